@@ -1,0 +1,166 @@
+// Scenes: the anatomy, materials, needle, targets, obstacles, imaging and active models of one
+// procedure (DESIGN.md "Scenes"). Everything here is SI: the loader converts file units.
+#pragma once
+
+#include <optional>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/geometry/polygon.h"
+
+namespace needle_guidance::scene {
+
+using geometry::Point2;
+using geometry::Polygon;
+using geometry::Segment;
+
+/// Linear elastic tissue (dissertation 2.2.2, 2.3.2).
+struct Material {
+  std::string name;
+  double young_modulus_Pa = 0.0;   ///< E > 0 [Pa]
+  double poisson_ratio = 0.0;      ///< -1 < nu < 0.5
+  double density_kg_m3 = 1000.0;   ///< > 0 [kg/m^3]
+  double rayleigh_alpha_per_s = 0.0;  ///< mass-proportional damping [1/s], >= 0
+  double rayleigh_beta_s = 0.0;       ///< stiffness-proportional damping [s], >= 0
+};
+
+/// A segmented tissue region (polygon in frame `scene`) made of a named material.
+struct Region {
+  std::string name;
+  std::string material;
+  Polygon polygon;          ///< counter-clockwise after loading [m]
+  bool rigid = false;       ///< bone: its nodes are fixed (2.3.2)
+};
+
+enum class BoundaryCondition { kFree, kFixed };
+
+/// Outer-boundary nodes lying on `segment` get `condition`; all other outer nodes are free.
+struct BoundarySegment {
+  std::string name;
+  Segment segment;  ///< [m]
+  BoundaryCondition condition = BoundaryCondition::kFixed;
+};
+
+/// The needle and its tissue interaction. Insertion is along +x of frame `scene`; the tip is at
+/// x = depth_m, so the entry face of a tissue scene is the line x = 0.
+struct Needle {
+  double min_height_m = 0.0;      ///< lowest insertion height (y) allowed [m]
+  double max_height_m = 0.0;      ///< highest insertion height allowed [m]
+  double max_depth_m = 0.0;       ///< deepest tip x allowed [m]
+  double insertion_velocity_m_s = 0.01;  ///< default insertion speed [m/s]
+  double cutting_force_N = 0.0;   ///< force to cut cut_length_m of tissue (2.3.4) [N]
+  double cut_length_m = 0.0;      ///< b of 2.3.4 [m]
+  double static_friction_N = 0.0; ///< slip force f_smax per shaft node (2.3.5) [N]
+  double kinetic_friction_N = 0.0;///< dissipative force per sliding shaft node (2.3.5) [N]
+  double stick_velocity_m_s = 0.0;///< v_s: relative speed below which a node sticks [m/s]
+  double radius_of_curvature_m = 0.0;  ///< bevel-tip arc radius; 0 for a rigid needle (5.3) [m]
+};
+
+/// A point to reach, with the radius that counts as reached [m].
+struct Target {
+  std::string name;
+  Point2 position = Point2::Zero();  ///< [m]
+  double radius_m = 0.0;             ///< >= 0 [m]
+};
+
+/// An obstacle the needle must avoid, expanded by clearance_m (Minkowski sum, 5.3).
+struct Obstacle {
+  std::string name;
+  Polygon polygon;           ///< as given, counter-clockwise [m]
+  double clearance_m = 0.0;  ///< >= 0 [m]
+};
+
+/// Simulated imaging of the slice.
+struct Imaging {
+  std::string modality = "ultrasound";  ///< "ultrasound" | "fluoroscopy"
+  double pixel_size_m = 2e-4;           ///< > 0 [m]
+  double frame_rate_hz = 30.0;          ///< > 0 [Hz]
+  double noise_std = 0.0;               ///< Gaussian noise, fraction of full intensity, >= 0
+  double blur_sigma_m = 0.0;            ///< Gaussian blur, >= 0 [m]
+  double drop_probability = 0.0;        ///< in [0, 1)
+  std::string reference_image;          ///< optional image file, resolved to an absolute path
+};
+
+enum class TissueModel { kNone, kQuasiStatic, kNewmark, kExplicit };
+
+/// Which models the scene uses ("model only what a scene needs").
+struct Models {
+  TissueModel tissue = TissueModel::kNone;
+  bool corotational = false;
+  bool steering = false;
+};
+
+/// Element size control for the tissue mesh [m].
+struct MeshSpec {
+  double max_edge_m = 0.004;
+  double min_edge_m = 0.001;
+  double grading_length_m = 0.01;
+  double min_angle_deg = 25.0;
+  bool refine_targets = true;  ///< grade the mesh towards the targets
+};
+
+/// Steerable-needle MDP discretisation and motion uncertainty (dissertation 5.3–5.4).
+struct Steering {
+  double grid_spacing_m = 0.001;    ///< Delta [m]
+  int orientations = 40;            ///< N_c, a multiple of 4
+  double sigma_insert_rad = 0.0;    ///< sigma_i [rad]
+  double sigma_flip_rad = 0.0;      ///< sigma_r [rad]
+  double start_x_m = 0.0;           ///< feasible start states lie on the line x = start_x_m [m]
+};
+
+/// A validated scene in SI units.
+struct Scene {
+  std::string name;
+  std::string description;
+  std::string source;          ///< file path or "<embedded:NAME>"
+  Point2 workspace_min = Point2::Zero();  ///< workspace rectangle [m]
+  Point2 workspace_max = Point2::Zero();
+  std::string background_material;  ///< material of the workspace outside all regions ("" = none)
+  Models models;
+  std::vector<Material> materials;
+  std::vector<Region> regions;
+  std::vector<BoundarySegment> boundary;
+  Needle needle;
+  std::vector<Target> targets;
+  std::vector<Obstacle> obstacles;
+  Imaging imaging;
+  MeshSpec mesh;
+  std::optional<Steering> steering;  ///< present when models.steering
+
+  /// The material with this name; throws std::out_of_range if absent.
+  const Material& material(const std::string& name) const;
+  /// The workspace rectangle as a counter-clockwise polygon [m].
+  Polygon workspacePolygon() const;
+  /// True if p lies in tissue: inside the workspace (tissue scenes) [m].
+  bool inWorkspace(const Point2& p) const;
+};
+
+/// A scene file that cannot be used. what() is one line:
+/// "FILE: key 'KEY' value 'VALUE': REASON".
+class SceneError : public std::invalid_argument {
+public:
+  SceneError(const std::string& file, const std::string& key, const std::string& value,
+             const std::string& reason);
+  const std::string& file() const { return file_; }
+  const std::string& key() const { return key_; }
+  const std::string& value() const { return value_; }
+  const std::string& reason() const { return reason_; }
+
+private:
+  std::string file_, key_, value_, reason_;
+};
+
+/// Loads and validates a scene file; throws SceneError (also for a missing or unreadable file).
+Scene loadScene(const std::string& path);
+/// Parses and validates YAML text; `source` names it in errors. Throws SceneError.
+Scene parseScene(const std::string& yaml_text, const std::string& source);
+/// An embedded default scene by name ("prostate_sagittal", "steering_workspace"); throws
+/// std::invalid_argument for an unknown name.
+Scene defaultScene(const std::string& name);
+/// Names of the embedded scenes.
+std::vector<std::string> defaultSceneNames();
+/// Loads `spec`: a path to a YAML file, or the name of an embedded scene.
+Scene loadSceneSpec(const std::string& spec);
+
+}  // namespace needle_guidance::scene
