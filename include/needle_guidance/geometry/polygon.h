@@ -81,4 +81,9 @@ bool polygonsOverlap(const Polygon& a, const Polygon& b);
 /// True if the segment enters the interior of the polygon or crosses its boundary.
 bool segmentIntersectsPolygon(const Segment& s, const Polygon& poly);
 
+/// True if the simple polygon `inner` lies inside the closed simple polygon `outer` (their
+/// boundaries may touch or share edges). Exact predicates. Throws std::invalid_argument if
+/// either polygon self-intersects.
+bool polygonInside(const Polygon& inner, const Polygon& outer);
+
 }  // namespace needle_guidance::geometry

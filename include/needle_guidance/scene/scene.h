@@ -35,6 +35,9 @@ struct Region {
 
 enum class BoundaryCondition { kFree, kFixed };
 
+/// "free" | "fixed", as written in scene files.
+std::string toString(BoundaryCondition condition);
+
 /// Outer-boundary nodes lying on `segment` get `condition`; all other outer nodes are free.
 struct BoundarySegment {
   std::string name;
@@ -83,6 +86,9 @@ struct Imaging {
 };
 
 enum class TissueModel { kNone, kQuasiStatic, kNewmark, kExplicit };
+
+/// "none" | "quasi_static" | "newmark" | "explicit", as written in scene files.
+std::string toString(TissueModel model);
 
 /// Which models the scene uses ("model only what a scene needs").
 struct Models {
@@ -134,6 +140,14 @@ struct Scene {
   Polygon workspacePolygon() const;
   /// True if p lies in tissue: inside the workspace (tissue scenes) [m].
   bool inWorkspace(const Point2& p) const;
+
+  /// True if the scene has a FEM tissue model (models.tissue != none).
+  bool hasTissue() const { return models.tissue != TissueModel::kNone; }
+  /// The target with this name; throws std::out_of_range if absent.
+  const Target& target(const std::string& name) const;
+  /// Condition of an outer-boundary point p [m]: kFixed if p lies within tol_m of any fixed
+  /// boundary segment (fixed wins where segments meet, e.g. at corners), else kFree.
+  BoundaryCondition boundaryConditionAt(const Point2& p, double tol_m = 1e-9) const;
 };
 
 /// A scene file that cannot be used. what() is one line:
@@ -153,14 +167,18 @@ private:
 
 /// Loads and validates a scene file; throws SceneError (also for a missing or unreadable file).
 Scene loadScene(const std::string& path);
-/// Parses and validates YAML text; `source` names it in errors. Throws SceneError.
+/// Parses and validates YAML text; `source` names it in errors. Relative paths in the text
+/// (imaging.reference_image) resolve against source's directory, or against the working
+/// directory when source is not a path (it starts with '<', e.g. "<embedded:NAME>").
+/// Throws SceneError.
 Scene parseScene(const std::string& yaml_text, const std::string& source);
 /// An embedded default scene by name ("prostate_sagittal", "steering_workspace"); throws
 /// std::invalid_argument for an unknown name.
 Scene defaultScene(const std::string& name);
 /// Names of the embedded scenes.
 std::vector<std::string> defaultSceneNames();
-/// Loads `spec`: a path to a YAML file, or the name of an embedded scene.
+/// Loads `spec`: a path to a YAML file, or the name of an embedded scene. An existing file wins
+/// over an embedded name. Throws SceneError if it is neither.
 Scene loadSceneSpec(const std::string& spec);
 
 }  // namespace needle_guidance::scene

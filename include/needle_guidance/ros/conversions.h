@@ -1,0 +1,30 @@
+// Conversions between core types and ROS messages: the one place for them (STYLE.md rule 3).
+#pragma once
+
+#include <geometry_msgs/Point.h>
+#include <geometry_msgs/PoseStamped.h>
+#include <sensor_msgs/JointState.h>
+#include <visualization_msgs/MarkerArray.h>
+
+#include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/robot/insertion_stage.h"
+#include "needle_guidance/scene/scene.h"
+
+namespace needle_guidance::ros_conversions {
+
+/// A point of frame scene (z = 0) [m].
+geometry_msgs::Point toMessage(const geometry::Point2& p_Scene);
+
+/// Stage joint positions and velocities, names as in the URDF.
+void toMessage(const robot::StageState& state, sensor_msgs::JointState& msg);
+
+/// True tip pose of a rigid needle in frame scene: position (depth, height), orientation the
+/// bevel rotation about +x.
+void tipPoseToMessage(const robot::StageState& state, geometry_msgs::PoseStamped& msg);
+
+/// rviz markers of a scene in frame `frame_id`: workspace outline, filled regions coloured by
+/// material, obstacles (and their clearance outline), targets, boundary conditions.
+visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
+                                               const std::string& frame_id);
+
+}  // namespace needle_guidance::ros_conversions

@@ -1,0 +1,52 @@
+// Read-once parameter helpers: every value is validated, echoed once at INFO, and a missing or
+// out-of-range value stops the node with a message naming it (STYLE.md rule 10).
+#pragma once
+
+#include <ros/ros.h>
+
+#include <cmath>
+#include <sstream>
+#include <stdexcept>
+#include <string>
+
+namespace needle_guidance::ros_params {
+
+/// The parameter `name` of `nh` in [lower, upper], or `fallback` when unset. Throws
+/// std::runtime_error naming the parameter for a wrong type, NaN or a value out of range.
+inline double number(const ros::NodeHandle& nh, const std::string& name, double fallback,
+                     double lower, double upper, const std::string& unit) {
+  double value = fallback;
+  if (nh.hasParam(name) && !nh.getParam(name, value)) {
+    int as_int = 0;
+    if (!nh.getParam(name, as_int)) {
+      throw std::runtime_error("parameter '" + nh.resolveName(name) + "' is not a number");
+    }
+    value = as_int;
+  }
+  if (!std::isfinite(value) || value < lower || value > upper) {
+    std::ostringstream out;
+    out << "parameter '" << nh.resolveName(name) << "' = " << value << " " << unit
+        << " is outside [" << lower << ", " << upper << "] " << unit;
+    throw std::runtime_error(out.str());
+  }
+  ROS_INFO_STREAM("  " << nh.resolveName(name) << " = " << value << " " << unit);
+  return value;
+}
+
+/// The string parameter `name`, or `fallback` when unset; throws for a wrong type, or for an
+/// empty value when `required`.
+inline std::string text(const ros::NodeHandle& nh, const std::string& name,
+                        const std::string& fallback, bool required = false) {
+  std::string value = fallback;
+  if (nh.hasParam(name) && !nh.getParam(name, value)) {
+    throw std::runtime_error("parameter '" + nh.resolveName(name) + "' is not a string");
+  }
+  if (required && value.empty()) {
+    throw std::runtime_error("parameter '" + nh.resolveName(name) + "' is required");
+  }
+  ROS_INFO_STREAM("  " << nh.resolveName(name) << " = '"
+                       << (value.size() > 80 ? value.substr(0, 77) + "..." : value) << "'");
+  return value;
+}
+
+}  // namespace needle_guidance::ros_params

@@ -1,0 +1,193 @@
+#include "needle_guidance/ros/conversions.h"
+
+#include <ros/console.h>
+
+#include <algorithm>
+#include <cmath>
+
+#include "needle_guidance/geometry/triangle_mesh.h"
+
+namespace needle_guidance::ros_conversions {
+namespace {
+
+std_msgs::ColorRGBA rgba(float r, float g, float b, float a) {
+  std_msgs::ColorRGBA c;
+  c.r = r;
+  c.g = g;
+  c.b = b;
+  c.a = a;
+  return c;
+}
+
+/// A fixed colour per region index: background first (fat: pale yellow), then tissue colours.
+std_msgs::ColorRGBA regionColour(std::size_t index) {
+  static const std::array<std::array<float, 3>, 6> kPalette{{{0.95F, 0.85F, 0.55F},
+                                                             {0.85F, 0.45F, 0.45F},
+                                                             {0.55F, 0.7F, 0.9F},
+                                                             {0.6F, 0.85F, 0.55F},
+                                                             {0.8F, 0.6F, 0.9F},
+                                                             {0.9F, 0.65F, 0.35F}}};
+  const auto& c = kPalette[index % kPalette.size()];
+  return rgba(c[0], c[1], c[2], 0.6F);
+}
+
+visualization_msgs::Marker baseMarker(const std::string& frame_id, const std::string& ns, int id,
+                                      int type) {
+  visualization_msgs::Marker m;
+  m.header.frame_id = frame_id;
+  m.ns = ns;
+  m.id = id;
+  m.type = type;
+  m.action = visualization_msgs::Marker::ADD;
+  m.pose.orientation.w = 1.0;
+  m.scale.x = m.scale.y = m.scale.z = 1.0;
+  return m;
+}
+
+visualization_msgs::Marker outline(const geometry::Polygon& polygon, const std::string& frame_id,
+                                   const std::string& ns, int id, double width_m,
+                                   const std_msgs::ColorRGBA& colour) {
+  visualization_msgs::Marker m = baseMarker(frame_id, ns, id, visualization_msgs::Marker::LINE_STRIP);
+  m.scale.x = width_m;
+  m.color = colour;
+  for (const auto& v : polygon.vertices()) {
+    m.points.push_back(toMessage(v));
+  }
+  m.points.push_back(toMessage(polygon.vertices().front()));
+  return m;
+}
+
+/// Filled triangles of a (coarse) mesh of `domain` with `regions`, coloured by region.
+visualization_msgs::Marker filled(const geometry::Polygon& domain,
+                                  const std::vector<geometry::MeshRegion>& regions,
+                                  const std::string& frame_id, const std::string& ns, int id,
+                                  const std::vector<std_msgs::ColorRGBA>& colours) {
+  const double size_m = 0.25 * (domain.maxCorner() - domain.minCorner()).maxCoeff();
+  geometry::MeshingOptions options;
+  options.max_edge_m = size_m;
+  options.min_edge_m = size_m;
+  options.grading_length_m = size_m;
+  options.min_angle_deg = 20.0;
+  const geometry::TriangleMesh mesh = geometry::meshDomain(domain, ns, regions, options);
+  visualization_msgs::Marker m =
+      baseMarker(frame_id, ns, id, visualization_msgs::Marker::TRIANGLE_LIST);
+  for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
+    const auto& colour = colours[static_cast<std::size_t>(mesh.triangle_region[t]) % colours.size()];
+    for (int node : mesh.triangles[t]) {
+      m.points.push_back(toMessage(mesh.nodes[static_cast<std::size_t>(node)]));
+      m.points.back().z = -0.0005;  // just behind needle and mesh overlays
+      m.colors.push_back(colour);
+    }
+  }
+  return m;
+}
+
+}  // namespace
+
+geometry_msgs::Point toMessage(const geometry::Point2& p_Scene) {
+  geometry_msgs::Point p;
+  p.x = p_Scene.x();
+  p.y = p_Scene.y();
+  p.z = 0.0;
+  return p;
+}
+
+void toMessage(const robot::StageState& state, sensor_msgs::JointState& msg) {
+  msg.name.clear();
+  msg.position.assign(state.position.begin(), state.position.end());
+  msg.velocity.assign(state.velocity.begin(), state.velocity.end());
+  msg.effort.clear();
+  for (std::size_t i = 0; i < robot::kStageJointCount; ++i) {
+    msg.name.emplace_back(robot::jointName(static_cast<robot::StageJoint>(i)));
+  }
+}
+
+void tipPoseToMessage(const robot::StageState& state, geometry_msgs::PoseStamped& msg) {
+  msg.header.frame_id = "scene";
+  msg.pose.position.x = state.depth_m();
+  msg.pose.position.y = state.height_m();
+  msg.pose.position.z = 0.0;
+  msg.pose.orientation.x = std::sin(0.5 * state.bevel_rad());
+  msg.pose.orientation.y = 0.0;
+  msg.pose.orientation.z = 0.0;
+  msg.pose.orientation.w = std::cos(0.5 * state.bevel_rad());
+}
+
+visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
+                                               const std::string& frame_id) {
+  visualization_msgs::MarkerArray array;
+  const geometry::Polygon workspace = scene.workspacePolygon();
+  array.markers.push_back(outline(workspace, frame_id, "workspace", 0, 0.0006, rgba(0.2F, 0.2F, 0.2F, 1.0F)));
+
+  if (!scene.regions.empty() || !scene.background_material.empty()) {
+    std::vector<geometry::MeshRegion> regions;
+    std::vector<std_msgs::ColorRGBA> colours{scene.background_material.empty()
+                                                 ? rgba(0.0F, 0.0F, 0.0F, 0.0F)
+                                                 : regionColour(0)};
+    for (std::size_t i = 0; i < scene.regions.size(); ++i) {
+      regions.push_back({scene.regions[i].name, scene.regions[i].polygon});
+      colours.push_back(scene.regions[i].rigid ? rgba(0.9F, 0.9F, 0.85F, 0.8F) : regionColour(i + 1));
+      array.markers.push_back(outline(scene.regions[i].polygon, frame_id, "region_outlines",
+                                      static_cast<int>(i), 0.0004, rgba(0.4F, 0.1F, 0.1F, 1.0F)));
+    }
+    try {
+      array.markers.push_back(filled(workspace, regions, frame_id, "regions", 0, colours));
+    } catch (const std::exception& e) {
+      ROS_WARN_STREAM("sceneToMarkers: regions drawn as outlines only: " << e.what());
+    }
+  }
+
+  for (std::size_t i = 0; i < scene.obstacles.size(); ++i) {
+    const scene::Obstacle& obstacle = scene.obstacles[i];
+    const int id = static_cast<int>(i);
+    try {
+      array.markers.push_back(filled(obstacle.polygon, {}, frame_id, "obstacles", id,
+                                     {rgba(0.35F, 0.35F, 0.4F, 0.9F)}));
+    } catch (const std::exception& e) {
+      ROS_WARN_STREAM("sceneToMarkers: obstacle '" << obstacle.name << "' outline only: " << e.what());
+    }
+    array.markers.push_back(outline(obstacle.polygon, frame_id, "obstacle_outlines", id, 0.0004,
+                                    rgba(0.1F, 0.1F, 0.1F, 1.0F)));
+    if (obstacle.clearance_m > 0.0) {
+      array.markers.push_back(outline(obstacle.polygon.offset(obstacle.clearance_m), frame_id,
+                                      "obstacle_clearance", id, 0.0002, rgba(0.9F, 0.5F, 0.1F, 1.0F)));
+    }
+  }
+
+  for (std::size_t i = 0; i < scene.boundary.size(); ++i) {
+    const scene::BoundarySegment& b = scene.boundary[i];
+    if (b.condition != scene::BoundaryCondition::kFixed) {
+      continue;
+    }
+    visualization_msgs::Marker m =
+        baseMarker(frame_id, "fixed_boundary", static_cast<int>(i), visualization_msgs::Marker::LINE_LIST);
+    m.scale.x = 0.0015;
+    m.color = rgba(0.15F, 0.15F, 0.15F, 1.0F);
+    m.points.push_back(toMessage(b.segment.a));
+    m.points.push_back(toMessage(b.segment.b));
+    array.markers.push_back(m);
+  }
+
+  for (std::size_t i = 0; i < scene.targets.size(); ++i) {
+    const scene::Target& target = scene.targets[i];
+    const int id = static_cast<int>(i);
+    visualization_msgs::Marker sphere =
+        baseMarker(frame_id, "targets", id, visualization_msgs::Marker::SPHERE);
+    sphere.pose.position = toMessage(target.position);
+    const double diameter_m = std::max(2.0 * target.radius_m, 0.0015);
+    sphere.scale.x = sphere.scale.y = sphere.scale.z = diameter_m;
+    sphere.color = rgba(0.1F, 0.7F, 0.2F, 0.9F);
+    array.markers.push_back(sphere);
+    visualization_msgs::Marker label =
+        baseMarker(frame_id, "target_labels", id, visualization_msgs::Marker::TEXT_VIEW_FACING);
+    label.pose.position = toMessage(target.position);
+    label.pose.position.y += 0.5 * diameter_m + 0.002;
+    label.scale.z = 0.002;
+    label.color = rgba(0.0F, 0.3F, 0.0F, 1.0F);
+    label.text = target.name;
+    array.markers.push_back(label);
+  }
+  return array;
+}
+
+}  // namespace needle_guidance::ros_conversions
