@@ -28,7 +28,7 @@ std_msgs::ColorRGBA regionColour(std::size_t index) {
                                                              {0.8F, 0.6F, 0.9F},
                                                              {0.9F, 0.65F, 0.35F}}};
   const auto& c = kPalette[index % kPalette.size()];
-  return rgba(c[0], c[1], c[2], 0.6F);
+  return rgba(c[0], c[1], c[2], 1.0F);  // opaque: no blending-order artefacts in rviz
 }
 
 visualization_msgs::Marker baseMarker(const std::string& frame_id, const std::string& ns, int id,
@@ -71,6 +71,7 @@ visualization_msgs::Marker filled(const geometry::Polygon& domain,
   const geometry::TriangleMesh mesh = geometry::meshDomain(domain, ns, regions, options);
   visualization_msgs::Marker m =
       baseMarker(frame_id, ns, id, visualization_msgs::Marker::TRIANGLE_LIST);
+  m.color = rgba(1.0F, 1.0F, 1.0F, 1.0F);  // rviz multiplies vertex colours by this
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
     const auto& colour = colours[static_cast<std::size_t>(mesh.triangle_region[t]) % colours.size()];
     for (int node : mesh.triangles[t]) {
@@ -126,7 +127,7 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
                                                  : regionColour(0)};
     for (std::size_t i = 0; i < scene.regions.size(); ++i) {
       regions.push_back({scene.regions[i].name, scene.regions[i].polygon});
-      colours.push_back(scene.regions[i].rigid ? rgba(0.9F, 0.9F, 0.85F, 0.8F) : regionColour(i + 1));
+      colours.push_back(scene.regions[i].rigid ? rgba(0.9F, 0.9F, 0.85F, 1.0F) : regionColour(i + 1));
       array.markers.push_back(outline(scene.regions[i].polygon, frame_id, "region_outlines",
                                       static_cast<int>(i), 0.0004, rgba(0.4F, 0.1F, 0.1F, 1.0F)));
     }
@@ -142,7 +143,7 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
     const int id = static_cast<int>(i);
     try {
       array.markers.push_back(filled(obstacle.polygon, {}, frame_id, "obstacles", id,
-                                     {rgba(0.35F, 0.35F, 0.4F, 0.9F)}));
+                                     {rgba(0.35F, 0.35F, 0.4F, 1.0F)}));
     } catch (const std::exception& e) {
       ROS_WARN_STREAM("sceneToMarkers: obstacle '" << obstacle.name << "' outline only: " << e.what());
     }
@@ -176,13 +177,13 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
     sphere.pose.position = toMessage(target.position);
     const double diameter_m = std::max(2.0 * target.radius_m, 0.0015);
     sphere.scale.x = sphere.scale.y = sphere.scale.z = diameter_m;
-    sphere.color = rgba(0.1F, 0.7F, 0.2F, 0.9F);
+    sphere.color = rgba(0.1F, 0.7F, 0.2F, 1.0F);
     array.markers.push_back(sphere);
     visualization_msgs::Marker label =
         baseMarker(frame_id, "target_labels", id, visualization_msgs::Marker::TEXT_VIEW_FACING);
     label.pose.position = toMessage(target.position);
-    label.pose.position.y += 0.5 * diameter_m + 0.002;
-    label.scale.z = 0.002;
+    label.pose.position.y += 0.5 * diameter_m + 0.001;
+    label.scale.z = 0.0015;
     label.color = rgba(0.0F, 0.3F, 0.0F, 1.0F);
     label.text = target.name;
     array.markers.push_back(label);
