@@ -70,8 +70,8 @@ int main(int argc, char** argv) {
     const double domain_area = domain.area();
 
     // Uniform size sweep (max = min edge) from coarse to fine, plus the scene's graded default.
-    std::vector<double> edges_mm = quick ? std::vector<double>{2.5, 1.0, 0.5}
-                                         : std::vector<double>{2.5, 1.6, 1.0, 0.7, 0.5, 0.36};
+    std::vector<double> edges_mm = quick ? std::vector<double>{4.0, 1.0, 0.5}
+                                         : std::vector<double>{4.0, 2.5, 1.6, 1.0, 0.7, 0.5, 0.36};
     ng::report::Table table({"mesh", "max_edge_mm", "triangles", "nodes", "mesh_ms",
                              "min_angle_deg", "area_rel_error", "locate_ns"},
                             6);
