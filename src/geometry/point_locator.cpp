@@ -17,7 +17,9 @@ using Kernel = CGAL::Exact_predicates_inexact_constructions_kernel;
 /// Largest number of grid cells along one axis (bounds memory for extreme aspect ratios).
 constexpr long kMaxCellsPerAxis = 4096;
 
-Kernel::Point_2 toCgal(const Point2& p) { return Kernel::Point_2(p.x(), p.y()); }
+Kernel::Point_2 toCgal(const Point2& p) {
+  return Kernel::Point_2(p.x(), p.y());
+}
 
 /// Exact orientation of (a, b, c): +1 left turn, -1 right turn, 0 collinear.
 int orient(const Point2& a, const Point2& b, const Point2& c) {
@@ -34,7 +36,8 @@ double pointSegmentDistance(const Point2& p, const Point2& a, const Point2& b) {
 
 }  // namespace
 
-std::array<double, 3> barycentric(const Point2& p, const Point2& a, const Point2& b, const Point2& c) {
+std::array<double, 3> barycentric(const Point2& p, const Point2& a, const Point2& b,
+                                  const Point2& c) {
   const Point2 u = b - a;
   const Point2 v = c - a;
   const double twice_area = u.x() * v.y() - u.y() * v.x();
@@ -66,7 +69,8 @@ struct PointLocator::Grid {
   }
 };
 
-PointLocator::PointLocator(const TriangleMesh& mesh) : mesh_(mesh), grid_(std::make_unique<Grid>()) {
+PointLocator::PointLocator(const TriangleMesh& mesh)
+    : mesh_(mesh), grid_(std::make_unique<Grid>()) {
   Grid& grid = *grid_;
   if (mesh.triangles.empty()) {
     grid.cell_start.assign(2, 0);
@@ -89,17 +93,22 @@ PointLocator::PointLocator(const TriangleMesh& mesh) : mesh_(mesh), grid_(std::m
   const Point2 extent = (hi - lo).cwiseMax(Point2::Constant(1e-300));
   grid.origin = lo;
   grid.cell_m = std::sqrt(extent.x() * extent.y() / static_cast<double>(mesh.triangles.size()));
-  grid.cell_m = std::max({grid.cell_m, extent.x() / kMaxCellsPerAxis, extent.y() / kMaxCellsPerAxis});
-  grid.nx = std::clamp(static_cast<long>(std::ceil(extent.x() / grid.cell_m)), 1L, kMaxCellsPerAxis);
-  grid.ny = std::clamp(static_cast<long>(std::ceil(extent.y() / grid.cell_m)), 1L, kMaxCellsPerAxis);
+  grid.cell_m =
+      std::max({grid.cell_m, extent.x() / kMaxCellsPerAxis, extent.y() / kMaxCellsPerAxis});
+  grid.nx =
+      std::clamp(static_cast<long>(std::ceil(extent.x() / grid.cell_m)), 1L, kMaxCellsPerAxis);
+  grid.ny =
+      std::clamp(static_cast<long>(std::ceil(extent.y() / grid.cell_m)), 1L, kMaxCellsPerAxis);
 
-  const auto cellRange = [&](std::size_t t, long& x0, long& x1, long& y0, long& y1) {
+  const auto cell_range = [&](std::size_t t, long& x0, long& x1, long& y0, long& y1) {
     const auto& triangle = mesh.triangles[t];
     Point2 t_lo = mesh.nodes[static_cast<std::size_t>(triangle[0])];
     Point2 t_hi = t_lo;
     for (int k = 1; k < 3; ++k) {
-      t_lo = t_lo.cwiseMin(mesh.nodes[static_cast<std::size_t>(triangle[static_cast<std::size_t>(k)])]);
-      t_hi = t_hi.cwiseMax(mesh.nodes[static_cast<std::size_t>(triangle[static_cast<std::size_t>(k)])]);
+      t_lo = t_lo.cwiseMin(
+          mesh.nodes[static_cast<std::size_t>(triangle[static_cast<std::size_t>(k)])]);
+      t_hi = t_hi.cwiseMax(
+          mesh.nodes[static_cast<std::size_t>(triangle[static_cast<std::size_t>(k)])]);
     }
     x0 = grid.clampX(t_lo.x());
     x1 = grid.clampX(t_hi.x());
@@ -110,20 +119,23 @@ PointLocator::PointLocator(const TriangleMesh& mesh) : mesh_(mesh), grid_(std::m
   grid.cell_start.assign(cells + 1, 0);
   for (std::size_t t = 0; t < mesh.triangles.size(); ++t) {
     long x0, x1, y0, y1;
-    cellRange(t, x0, x1, y0, y1);
+    cell_range(t, x0, x1, y0, y1);
     for (long y = y0; y <= y1; ++y) {
-      for (long x = x0; x <= x1; ++x) ++grid.cell_start[static_cast<std::size_t>(y * grid.nx + x) + 1];
+      for (long x = x0; x <= x1; ++x)
+        ++grid.cell_start[static_cast<std::size_t>(y * grid.nx + x) + 1];
     }
   }
-  for (std::size_t c = 0; c < cells; ++c) grid.cell_start[c + 1] += grid.cell_start[c];
+  for (std::size_t c = 0; c < cells; ++c)
+    grid.cell_start[c + 1] += grid.cell_start[c];
   grid.cell_triangles.resize(grid.cell_start[cells]);
   std::vector<std::size_t> fill(grid.cell_start.begin(), grid.cell_start.end() - 1);
   for (std::size_t t = 0; t < mesh.triangles.size(); ++t) {
     long x0, x1, y0, y1;
-    cellRange(t, x0, x1, y0, y1);
+    cell_range(t, x0, x1, y0, y1);
     for (long y = y0; y <= y1; ++y) {
       for (long x = x0; x <= x1; ++x) {
-        grid.cell_triangles[fill[static_cast<std::size_t>(y * grid.nx + x)]++] = static_cast<int>(t);
+        grid.cell_triangles[fill[static_cast<std::size_t>(y * grid.nx + x)]++] =
+            static_cast<int>(t);
       }
     }
   }
@@ -133,12 +145,14 @@ PointLocator::~PointLocator() = default;
 
 std::optional<MeshLocation> PointLocator::locate(const Point2& p, double tol_m) const {
   const Grid& grid = *grid_;
-  if (mesh_.triangles.empty() || !p.allFinite()) return std::nullopt;
+  if (mesh_.triangles.empty() || !p.allFinite())
+    return std::nullopt;
   tol_m = std::max(tol_m, 0.0);
   const double grid_width_m = grid.cell_m * static_cast<double>(grid.nx);
   const double grid_height_m = grid.cell_m * static_cast<double>(grid.ny);
   if (p.x() < grid.origin.x() - tol_m || p.y() < grid.origin.y() - tol_m ||
-      p.x() > grid.origin.x() + grid_width_m + tol_m || p.y() > grid.origin.y() + grid_height_m + tol_m) {
+      p.x() > grid.origin.x() + grid_width_m + tol_m ||
+      p.y() > grid.origin.y() + grid_height_m + tol_m) {
     return std::nullopt;
   }
   const long x0 = grid.clampX(p.x() - tol_m);
@@ -162,11 +176,13 @@ std::optional<MeshLocation> PointLocator::locate(const Point2& p, double tol_m) 
         if (orient(a, b, p) >= 0 && orient(b, c, p) >= 0 && orient(c, a, p) >= 0) {
           return MeshLocation{t, barycentric(p, a, b, c)};
         }
-        if (tol_m == 0.0) continue;
+        if (tol_m == 0.0)
+          continue;
         // p is outside this triangle: its distance to the triangle is the distance to the
         // nearest edge.
-        const double outside_m = std::min({pointSegmentDistance(p, a, b), pointSegmentDistance(p, b, c),
-                                           pointSegmentDistance(p, c, a)});
+        const double outside_m =
+            std::min({pointSegmentDistance(p, a, b), pointSegmentDistance(p, b, c),
+                      pointSegmentDistance(p, c, a)});
         if (outside_m <= tol_m && outside_m < best_outside_m) {
           best_outside_m = outside_m;
           best = MeshLocation{t, barycentric(p, a, b, c)};

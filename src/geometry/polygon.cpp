@@ -33,7 +33,9 @@ constexpr int kMinCircleVertices = 8;
 /// Largest number of vertices of that regular polygon (bounds the Minkowski-sum cost).
 constexpr int kMaxCircleVertices = 4096;
 
-CgalPoint toCgal(const Point2& p) { return CgalPoint(p.x(), p.y()); }
+CgalPoint toCgal(const Point2& p) {
+  return CgalPoint(p.x(), p.y());
+}
 
 /// Exact orientation of (a, b, c): +1 left turn, -1 right turn, 0 collinear.
 int orient(const Point2& a, const Point2& b, const Point2& c) {
@@ -42,7 +44,8 @@ int orient(const Point2& a, const Point2& b, const Point2& c) {
 
 /// Exact test: p lies on the closed segment [a, b].
 bool onSegment(const Point2& p, const Point2& a, const Point2& b) {
-  if (orient(a, b, p) != 0) return false;
+  if (orient(a, b, p) != 0)
+    return false;
   return std::min(a.x(), b.x()) <= p.x() && p.x() <= std::max(a.x(), b.x()) &&
          std::min(a.y(), b.y()) <= p.y() && p.y() <= std::max(a.y(), b.y());
 }
@@ -61,11 +64,14 @@ Side pointSide(const std::vector<Point2>& vertices, const Point2& p) {
   for (std::size_t i = 0; i < n; ++i) {
     const Point2& a = vertices[i];
     const Point2& b = vertices[(i + 1) % n];
-    if (onSegment(p, a, b)) return Side::kBoundary;
+    if (onSegment(p, a, b))
+      return Side::kBoundary;
     if (a.y() <= p.y()) {
-      if (b.y() > p.y() && orient(a, b, p) > 0) ++winding;
+      if (b.y() > p.y() && orient(a, b, p) > 0)
+        ++winding;
     } else {
-      if (b.y() <= p.y() && orient(a, b, p) < 0) --winding;
+      if (b.y() <= p.y() && orient(a, b, p) < 0)
+        --winding;
     }
   }
   return winding != 0 ? Side::kInside : Side::kOutside;
@@ -91,11 +97,13 @@ SidesVisited sidesVisited(const Point2& a, const Point2& b, const std::vector<Po
     return visited;
   }
   for (std::size_t i = 0; i < n; ++i) {
-    if (properlyCross(a, b, vertices[i], vertices[(i + 1) % n])) return {true, true};
+    if (properlyCross(a, b, vertices[i], vertices[(i + 1) % n]))
+      return {true, true};
   }
   std::vector<Point2> contacts{a, b};
   for (const Point2& v : vertices) {
-    if (onSegment(v, a, b)) contacts.push_back(v);
+    if (onSegment(v, a, b))
+      contacts.push_back(v);
   }
   const Point2 direction = b - a;
   std::sort(contacts.begin(), contacts.end(), [&](const Point2& p, const Point2& q) {
@@ -112,16 +120,19 @@ SidesVisited sidesVisited(const Point2& a, const Point2& b, const std::vector<Po
       const Point2& e1 = vertices[(i + 1) % n];
       on_boundary = onSegment(p, e0, e1) && onSegment(q, e0, e1);
     }
-    if (on_boundary) continue;
+    if (on_boundary)
+      continue;
     // The open piece (p, q) does not meet the boundary; a rounded sample point could, in a
     // near-degenerate case, land on it, so a few samples are tried.
     for (double fraction : kSampleFractions) {
       const Side side = pointSide(vertices, p + fraction * (q - p));
-      if (side == Side::kBoundary) continue;
+      if (side == Side::kBoundary)
+        continue;
       (side == Side::kInside ? visited.interior : visited.exterior) = true;
       break;
     }
-    if (visited.interior && visited.exterior) break;
+    if (visited.interior && visited.exterior)
+      break;
   }
   return visited;
 }
@@ -137,12 +148,15 @@ double pointSegmentDistance(const Point2& p, const Point2& a, const Point2& b) {
 
 /// A point common to two closed segments known to intersect.
 Point2 commonPoint(const Segment& s, const Segment& t) {
-  if (s.a == s.b) return s.a;
-  if (t.a == t.b) return t.a;
+  if (s.a == s.b)
+    return s.a;
+  if (t.a == t.b)
+    return t.a;
   const auto result = CGAL::intersection(CgalSegment(toCgal(s.a), toCgal(s.b)),
                                          CgalSegment(toCgal(t.a), toCgal(t.b)));
   if (result) {
-    if (const CgalPoint* p = boost::get<CgalPoint>(&*result)) return Point2(p->x(), p->y());
+    if (const CgalPoint* p = boost::get<CgalPoint>(&*result))
+      return Point2(p->x(), p->y());
     if (const CgalSegment* seg = boost::get<CgalSegment>(&*result)) {
       return Point2(seg->source().x(), seg->source().y());
     }
@@ -181,9 +195,8 @@ Polygon::Polygon(std::vector<Point2> vertices) : vertices_(std::move(vertices)) 
 
 Segment Polygon::edge(std::size_t i) const {
   if (i >= vertices_.size()) {
-    throw std::invalid_argument("Polygon::edge: index " + std::to_string(i) +
-                                " out of range for " + std::to_string(vertices_.size()) +
-                                " edges");
+    throw std::invalid_argument("Polygon::edge: index " + std::to_string(i) + " out of range for " +
+                                std::to_string(vertices_.size()) + " edges");
   }
   return Segment{vertices_[i], vertices_[(i + 1) % vertices_.size()]};
 }
@@ -192,7 +205,8 @@ double Polygon::signedArea() const {
   // Shoelace relative to the first vertex, which limits cancellation for polygons far from
   // the origin.
   const std::size_t n = vertices_.size();
-  if (n < 3) return 0.0;
+  if (n < 3)
+    return 0.0;
   const Point2& origin = vertices_[0];
   double twice_area = 0.0;
   for (std::size_t i = 1; i + 1 < n; ++i) {
@@ -203,10 +217,13 @@ double Polygon::signedArea() const {
   return 0.5 * twice_area;
 }
 
-double Polygon::area() const { return std::abs(signedArea()); }
+double Polygon::area() const {
+  return std::abs(signedArea());
+}
 
 Polygon Polygon::counterClockwise() const {
-  if (isCounterClockwise()) return *this;
+  if (isCounterClockwise())
+    return *this;
   std::vector<Point2> reversed(vertices_.rbegin(), vertices_.rend());
   // Keep vertex 0 first so that indices stay recognisable.
   std::rotate(reversed.begin(), reversed.end() - 1, reversed.end());
@@ -214,8 +231,10 @@ Polygon Polygon::counterClockwise() const {
 }
 
 bool Polygon::contains(const Point2& p, double tol_m) const {
-  if (vertices_.size() < 3) return false;
-  if (pointSide(vertices_, p) != Side::kOutside) return true;
+  if (vertices_.size() < 3)
+    return false;
+  if (pointSide(vertices_, p) != Side::kOutside)
+    return true;
   return tol_m > 0.0 && distanceToBoundary(p) <= tol_m;
 }
 
@@ -223,14 +242,16 @@ double Polygon::distanceToBoundary(const Point2& p) const {
   const std::size_t n = vertices_.size();
   double distance_m = std::numeric_limits<double>::infinity();
   for (std::size_t i = 0; i < n; ++i) {
-    distance_m = std::min(distance_m, pointSegmentDistance(p, vertices_[i], vertices_[(i + 1) % n]));
+    distance_m =
+        std::min(distance_m, pointSegmentDistance(p, vertices_[i], vertices_[(i + 1) % n]));
   }
   return distance_m;
 }
 
 std::optional<SelfIntersection> Polygon::selfIntersection() const {
   const std::size_t n = vertices_.size();
-  if (n < 3) return std::nullopt;
+  if (n < 3)
+    return std::nullopt;
   // Sweep over the edges sorted by their smallest x; only pairs with overlapping bounding
   // boxes are tested exactly. All intersecting pairs are considered so that the
   // lexicographically first pair is reported.
@@ -249,7 +270,8 @@ std::optional<SelfIntersection> Polygon::selfIntersection() const {
             [&](std::size_t i, std::size_t j) { return x_min[i] < x_min[j]; });
   std::optional<SelfIntersection> first;
   auto consider = [&](std::size_t i, std::size_t j, const Point2& point) {
-    if (i > j) std::swap(i, j);
+    if (i > j)
+      std::swap(i, j);
     if (!first || std::make_pair(i, j) < std::make_pair(first->edge_a, first->edge_b)) {
       first = SelfIntersection{i, j, point};
     }
@@ -258,7 +280,8 @@ std::optional<SelfIntersection> Polygon::selfIntersection() const {
     const std::size_t i = order[k];
     for (std::size_t l = k + 1; l < n && x_min[order[l]] <= x_max[i]; ++l) {
       const std::size_t j = order[l];
-      if (y_min[j] > y_max[i] || y_min[i] > y_max[j]) continue;
+      if (y_min[j] > y_max[i] || y_min[i] > y_max[j])
+        continue;
       const std::size_t lo = std::min(i, j);
       const std::size_t hi = std::max(i, j);
       const bool adjacent = hi == lo + 1 || (lo == 0 && hi == n - 1);
@@ -276,7 +299,8 @@ std::optional<SelfIntersection> Polygon::selfIntersection() const {
       } else {
         const Segment s = edge(lo);
         const Segment t = edge(hi);
-        if (segmentsIntersect(s, t)) consider(lo, hi, commonPoint(s, t));
+        if (segmentsIntersect(s, t))
+          consider(lo, hi, commonPoint(s, t));
       }
     }
   }
@@ -290,13 +314,15 @@ std::optional<SelfIntersection> Polygon::selfIntersection() const {
 
 Point2 Polygon::minCorner() const {
   Point2 corner = Point2::Constant(std::numeric_limits<double>::infinity());
-  for (const Point2& v : vertices_) corner = corner.cwiseMin(v);
+  for (const Point2& v : vertices_)
+    corner = corner.cwiseMin(v);
   return corner;
 }
 
 Point2 Polygon::maxCorner() const {
   Point2 corner = Point2::Constant(-std::numeric_limits<double>::infinity());
-  for (const Point2& v : vertices_) corner = corner.cwiseMax(v);
+  for (const Point2& v : vertices_)
+    corner = corner.cwiseMax(v);
   return corner;
 }
 
@@ -309,8 +335,10 @@ Polygon Polygon::offset(double clearance_m, double max_chord_error_m) const {
     throw std::invalid_argument("Polygon::offset: max_chord_error_m must be finite and > 0, got " +
                                 std::to_string(max_chord_error_m));
   }
-  if (vertices_.size() < 3) throw std::invalid_argument("Polygon::offset: empty polygon");
-  if (clearance_m == 0.0) return *this;
+  if (vertices_.size() < 3)
+    throw std::invalid_argument("Polygon::offset: empty polygon");
+  if (clearance_m == 0.0)
+    return *this;
   if (const auto crossing = selfIntersection()) {
     throw std::invalid_argument("Polygon::offset: polygon self-intersects at edges " +
                                 std::to_string(crossing->edge_a) + " and " +
@@ -330,10 +358,10 @@ Polygon Polygon::offset(double clearance_m, double max_chord_error_m) const {
   const double half_angle_rad = std::acos(std::max(-1.0, 1.0 - max_chord_error_m / clearance_m));
   const double needed = half_angle_rad > 0.0 ? M_PI / half_angle_rad : kMaxCircleVertices + 1.0;
   if (needed > kMaxCircleVertices) {
-    throw std::invalid_argument("Polygon::offset: max_chord_error_m = " +
-                                std::to_string(max_chord_error_m) + " is too small for clearance_m = " +
-                                std::to_string(clearance_m) + " (needs more than " +
-                                std::to_string(kMaxCircleVertices) + " arc vertices)");
+    throw std::invalid_argument(
+        "Polygon::offset: max_chord_error_m = " + std::to_string(max_chord_error_m) +
+        " is too small for clearance_m = " + std::to_string(clearance_m) + " (needs more than " +
+        std::to_string(kMaxCircleVertices) + " arc vertices)");
   }
   int circle_vertices = std::max(kMinCircleVertices, static_cast<int>(std::ceil(needed)));
   circle_vertices = (circle_vertices + 3) / 4 * 4;
@@ -344,9 +372,18 @@ Polygon Polygon::offset(double clearance_m, double max_chord_error_m) const {
     double x = std::cos(angle_rad);
     double y = std::sin(angle_rad);
     // Exact axis points (cos(pi/2) is not exactly 0 in floating point).
-    if (4 * k == circle_vertices) { x = 0.0; y = 1.0; }
-    if (2 * k == circle_vertices) { x = -1.0; y = 0.0; }
-    if (4 * k == 3 * circle_vertices) { x = 0.0; y = -1.0; }
+    if (4 * k == circle_vertices) {
+      x = 0.0;
+      y = 1.0;
+    }
+    if (2 * k == circle_vertices) {
+      x = -1.0;
+      y = 0.0;
+    }
+    if (4 * k == 3 * circle_vertices) {
+      x = 0.0;
+      y = -1.0;
+    }
     disc.push_back(ExactKernel::Point_2(clearance_m * x, clearance_m * y));
   }
   ExactPolygon original;
@@ -363,9 +400,11 @@ Polygon Polygon::offset(double clearance_m, double max_chord_error_m) const {
   for (auto it = sum.outer_boundary().vertices_begin(); it != sum.outer_boundary().vertices_end();
        ++it) {
     const Point2 p(CGAL::to_double(it->x()), CGAL::to_double(it->y()));
-    if (result.empty() || result.back() != p) result.push_back(p);
+    if (result.empty() || result.back() != p)
+      result.push_back(p);
   }
-  while (result.size() > 1 && result.front() == result.back()) result.pop_back();
+  while (result.size() > 1 && result.front() == result.back())
+    result.pop_back();
   Polygon expanded(std::move(result));
   return expanded.counterClockwise();
 }
@@ -373,9 +412,12 @@ Polygon Polygon::offset(double clearance_m, double max_chord_error_m) const {
 bool segmentsIntersect(const Segment& s, const Segment& t) {
   const bool s_point = s.a == s.b;
   const bool t_point = t.a == t.b;
-  if (s_point && t_point) return s.a == t.a;
-  if (s_point) return onSegment(s.a, t.a, t.b);
-  if (t_point) return onSegment(t.a, s.a, s.b);
+  if (s_point && t_point)
+    return s.a == t.a;
+  if (s_point)
+    return onSegment(s.a, t.a, t.b);
+  if (t_point)
+    return onSegment(t.a, s.a, s.b);
   return CGAL::do_intersect(CgalSegment(toCgal(s.a), toCgal(s.b)),
                             CgalSegment(toCgal(t.a), toCgal(t.b)));
 }
@@ -395,7 +437,8 @@ bool polygonsOverlap(const Polygon& a, const Polygon& b) {
   // Bounding boxes whose interiors are disjoint cannot hold overlapping interiors.
   const Point2 lo = a.minCorner().cwiseMax(b.minCorner());
   const Point2 hi = a.maxCorner().cwiseMin(b.maxCorner());
-  if (lo.x() >= hi.x() || lo.y() >= hi.y()) return false;
+  if (lo.x() >= hi.x() || lo.y() >= hi.y())
+    return false;
   // For simple polygons A and B: if no edge of A enters int(B) and no edge of B enters int(A),
   // then int(A) and int(B) are either disjoint or equal (a component of their intersection is
   // bounded by boundary of both, hence is all of int(A) and all of int(B)). They are equal
@@ -404,12 +447,14 @@ bool polygonsOverlap(const Polygon& a, const Polygon& b) {
   for (std::size_t i = 0; i < a.size(); ++i) {
     const Segment e = a.edge(i);
     const SidesVisited visited = sidesVisited(e.a, e.b, b.vertices());
-    if (visited.interior) return true;
+    if (visited.interior)
+      return true;
     a_enters_exterior_of_b = a_enters_exterior_of_b || visited.exterior;
   }
   for (std::size_t i = 0; i < b.size(); ++i) {
     const Segment e = b.edge(i);
-    if (sidesVisited(e.a, e.b, a.vertices()).interior) return true;
+    if (sidesVisited(e.a, e.b, a.vertices()).interior)
+      return true;
   }
   return !a_enters_exterior_of_b;
 }
@@ -417,7 +462,8 @@ bool polygonsOverlap(const Polygon& a, const Polygon& b) {
 bool segmentIntersectsPolygon(const Segment& s, const Polygon& poly) {
   // "Enters the interior": a segment that only touches the boundary (grazes a vertex or runs
   // along an edge from outside) does not count; crossing the boundary always enters.
-  if (poly.size() < 3) return false;
+  if (poly.size() < 3)
+    return false;
   return sidesVisited(s.a, s.b, poly.vertices()).interior;
 }
 
@@ -437,7 +483,8 @@ bool polygonInside(const Polygon& inner, const Polygon& outer) {
   // never enters it, neither does the interior of `inner`.
   for (std::size_t i = 0; i < inner.size(); ++i) {
     const Segment e = inner.edge(i);
-    if (sidesVisited(e.a, e.b, outer.vertices()).exterior) return false;
+    if (sidesVisited(e.a, e.b, outer.vertices()).exterior)
+      return false;
   }
   return true;
 }

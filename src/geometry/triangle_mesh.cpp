@@ -29,8 +29,9 @@ namespace {
 
 using Kernel = CGAL::Exact_predicates_inexact_constructions_kernel;
 using Vb = CGAL::Triangulation_vertex_base_with_info_2<int, Kernel>;
-using FbInfo = CGAL::Triangulation_face_base_with_info_2<int, Kernel,
-                                                         CGAL::Constrained_triangulation_face_base_2<Kernel>>;
+using FbInfo =
+    CGAL::Triangulation_face_base_with_info_2<int, Kernel,
+                                              CGAL::Constrained_triangulation_face_base_2<Kernel>>;
 using Fb = CGAL::Delaunay_mesh_face_base_2<Kernel, FbInfo>;
 using Tds = CGAL::Triangulation_data_structure_2<Vb, Fb>;
 // Exact_predicates_tag: refinement lines may cross region outlines; the triangulation then
@@ -46,8 +47,12 @@ constexpr double kMaxMinAngleDeg = 30.0;
 /// unbounded refinement.
 constexpr double kSnapRelTol = 1e-6;
 
-CdtPoint toCgal(const Point2& p) { return CdtPoint(p.x(), p.y()); }
-Point2 fromCgal(const CdtPoint& p) { return Point2(p.x(), p.y()); }
+CdtPoint toCgal(const Point2& p) {
+  return CdtPoint(p.x(), p.y());
+}
+Point2 fromCgal(const CdtPoint& p) {
+  return Point2(p.x(), p.y());
+}
 
 std::string formatDouble(double value) {
   std::ostringstream out;
@@ -76,11 +81,15 @@ public:
         lines_(options.refine_lines) {}
 
   double operator()(const Point2& p) const {
-    if (min_edge_m_ == max_edge_m_) return max_edge_m_;
+    if (min_edge_m_ == max_edge_m_)
+      return max_edge_m_;
     double distance_m = grading_length_m_;
-    for (const Point2& q : points_) distance_m = std::min(distance_m, (p - q).norm());
-    for (const Segment& s : lines_) distance_m = std::min(distance_m, pointSegmentDistance(p, s.a, s.b));
-    return min_edge_m_ + (max_edge_m_ - min_edge_m_) * std::clamp(distance_m / grading_length_m_, 0.0, 1.0);
+    for (const Point2& q : points_)
+      distance_m = std::min(distance_m, (p - q).norm());
+    for (const Segment& s : lines_)
+      distance_m = std::min(distance_m, pointSegmentDistance(p, s.a, s.b));
+    return min_edge_m_ +
+           (max_edge_m_ - min_edge_m_) * std::clamp(distance_m / grading_length_m_, 0.0, 1.0);
   }
 
 private:
@@ -107,8 +116,8 @@ public:
         Base(squared_sine_bound, 0.0),
         size_field_(size_field) {}
 
-  /// Badness test used by the mesher.
-  class Is_bad : public CGAL::Delaunay_mesh_criteria_2<Cdt>::Is_bad {
+  /// Badness test used by the mesher (the name is required by CGAL's mesher).
+  class Is_bad  // NOLINT(readability-identifier-naming) : public CGAL::Delaunay_mesh_criteria_2<Cdt>::Is_bad {
   public:
     using Parent = CGAL::Delaunay_mesh_criteria_2<Cdt>::Is_bad;
 
@@ -116,8 +125,10 @@ public:
         : Parent(squared_sine_bound, traits), size_field_(size_field) {}
 
     CGAL::Mesh_2::Face_badness operator()(const Quality q) const {
-      if (q.size() > 1) return CGAL::Mesh_2::IMPERATIVELY_BAD;
-      if (q.sine() < this->B) return CGAL::Mesh_2::BAD;
+      if (q.size() > 1)
+        return CGAL::Mesh_2::IMPERATIVELY_BAD;
+      if (q.sine() < this->B)
+        return CGAL::Mesh_2::BAD;
       return CGAL::Mesh_2::NOT_BAD;
     }
 
@@ -125,13 +136,15 @@ public:
       const CdtPoint& pa = fh->vertex(0)->point();
       const CdtPoint& pb = fh->vertex(1)->point();
       const CdtPoint& pc = fh->vertex(2)->point();
-      const double a = CGAL::to_double(CGAL::squared_distance(pb, pc));
-      const double b = CGAL::to_double(CGAL::squared_distance(pc, pa));
-      const double c = CGAL::to_double(CGAL::squared_distance(pa, pb));
-      double sorted[3] = {a, b, c};
-      std::sort(sorted, sorted + 3);
-      const double max_sq_length = sorted[2];
-      const double second_max_sq_length = sorted[1];
+      // Squared edge lengths sorted so that shortest <= middle <= longest.
+      double shortest = CGAL::to_double(CGAL::squared_distance(pb, pc));
+      double middle = CGAL::to_double(CGAL::squared_distance(pc, pa));
+      double longest = CGAL::to_double(CGAL::squared_distance(pa, pb));
+      if (shortest > middle) std::swap(shortest, middle);
+      if (middle > longest) std::swap(middle, longest);
+      if (shortest > middle) std::swap(shortest, middle);
+      const double max_sq_length = longest;
+      const double second_max_sq_length = middle;
 
       const Point2 centroid((pa.x() + pb.x() + pc.x()) / 3.0, (pa.y() + pb.y() + pc.y()) / 3.0);
       const double size_m = (*size_field_)(centroid);
@@ -149,7 +162,8 @@ public:
     const SizeField* size_field_;
   };
 
-  Is_bad is_bad_object() const { return Is_bad(this->bound(), size_field_, this->traits); }
+  /// The badness functor CGAL's mesher asks for (name required by CGAL).
+  Is_bad is_bad_object() const  // NOLINT(readability-identifier-naming) { return Is_bad(this->bound(), size_field_, this->traits); }
 
 private:
   const SizeField* size_field_;
@@ -166,7 +180,8 @@ struct Outline {
 /// `skip` is an outline p belongs to (or nullptr).
 void snapPoint(Point2& p, std::vector<Outline>& outlines, const Outline* skip, double tol_m) {
   for (Outline& outline : outlines) {
-    if (&outline == skip) continue;
+    if (&outline == skip)
+      continue;
     std::vector<Point2>& pts = outline.points;
     for (const Point2& v : pts) {
       if (v != p && (v - p).norm() <= tol_m) {
@@ -176,12 +191,15 @@ void snapPoint(Point2& p, std::vector<Outline>& outlines, const Outline* skip, d
     }
   }
   for (Outline& outline : outlines) {
-    if (&outline == skip) continue;
+    if (&outline == skip)
+      continue;
     std::vector<Point2>& pts = outline.points;
     const std::size_t n = pts.size();
     bool on_vertex = false;
-    for (const Point2& v : pts) on_vertex = on_vertex || v == p;
-    if (on_vertex) continue;
+    for (const Point2& v : pts)
+      on_vertex = on_vertex || v == p;
+    if (on_vertex)
+      continue;
     for (std::size_t i = 0; i < n; ++i) {
       const Point2& a = pts[i];
       const Point2& b = pts[(i + 1) % n];
@@ -202,14 +220,17 @@ std::vector<Segment> clipToDomain(const Segment& line, const Polygon& domain) {
   const Kernel::Segment_2 cgal_line(toCgal(line.a), toCgal(line.b));
   for (std::size_t i = 0; i < domain.size(); ++i) {
     const Segment e = domain.edge(i);
-    if (!segmentsIntersect(line, e)) continue;
+    if (!segmentsIntersect(line, e))
+      continue;
     const auto result = CGAL::intersection(cgal_line, Kernel::Segment_2(toCgal(e.a), toCgal(e.b)));
-    if (!result) continue;
+    if (!result)
+      continue;
     auto add = [&](const CdtPoint& q) {
       const Point2 p = fromCgal(q);
       cuts.emplace_back(std::clamp((p - line.a).dot(direction) / length_sq, 0.0, 1.0), p);
     };
-    if (const CdtPoint* p = boost::get<CdtPoint>(&*result)) add(*p);
+    if (const CdtPoint* p = boost::get<CdtPoint>(&*result))
+      add(*p);
     if (const Kernel::Segment_2* s = boost::get<Kernel::Segment_2>(&*result)) {
       add(s->source());
       add(s->target());
@@ -220,7 +241,8 @@ std::vector<Segment> clipToDomain(const Segment& line, const Polygon& domain) {
   std::vector<Segment> pieces;
   bool open = false;
   for (std::size_t k = 0; k + 1 < cuts.size(); ++k) {
-    if (cuts[k + 1].first <= cuts[k].first) continue;
+    if (cuts[k + 1].first <= cuts[k].first)
+      continue;
     const Point2 middle = line.a + 0.5 * (cuts[k].first + cuts[k + 1].first) * direction;
     if (domain.contains(middle)) {
       if (open) {
@@ -238,17 +260,19 @@ std::vector<Segment> clipToDomain(const Segment& line, const Polygon& domain) {
 
 void validateOptions(const MeshingOptions& options) {
   auto require = [](bool ok, const std::string& message) {
-    if (!ok) throw std::invalid_argument("meshDomain: " + message);
+    if (!ok)
+      throw std::invalid_argument("meshDomain: " + message);
   };
   require(std::isfinite(options.max_edge_m) && options.max_edge_m > 0.0,
           "max_edge_m must be positive and finite, got " + formatDouble(options.max_edge_m));
   require(std::isfinite(options.min_edge_m) && options.min_edge_m > 0.0,
           "min_edge_m must be positive and finite, got " + formatDouble(options.min_edge_m));
   require(options.min_edge_m <= options.max_edge_m,
-          "min_edge_m = " + formatDouble(options.min_edge_m) + " exceeds max_edge_m = " +
-              formatDouble(options.max_edge_m));
+          "min_edge_m = " + formatDouble(options.min_edge_m) +
+              " exceeds max_edge_m = " + formatDouble(options.max_edge_m));
   require(std::isfinite(options.grading_length_m) && options.grading_length_m > 0.0,
-          "grading_length_m must be positive and finite, got " + formatDouble(options.grading_length_m));
+          "grading_length_m must be positive and finite, got " +
+              formatDouble(options.grading_length_m));
   require(std::isfinite(options.min_angle_deg) && options.min_angle_deg >= 0.0 &&
               options.min_angle_deg <= kMaxMinAngleDeg,
           "min_angle_deg must be in [0, 30], got " + formatDouble(options.min_angle_deg));
@@ -263,7 +287,8 @@ void validateOptions(const MeshingOptions& options) {
 }
 
 void validateRegions(const Polygon& domain, const std::vector<MeshRegion>& regions) {
-  if (domain.size() < 3) throw std::invalid_argument("meshDomain: domain polygon is empty");
+  if (domain.size() < 3)
+    throw std::invalid_argument("meshDomain: domain polygon is empty");
   if (const auto crossing = domain.selfIntersection()) {
     throw std::invalid_argument("meshDomain: domain polygon self-intersects at edges " +
                                 std::to_string(crossing->edge_a) + " and " +
@@ -271,7 +296,8 @@ void validateRegions(const Polygon& domain, const std::vector<MeshRegion>& regio
   }
   for (const MeshRegion& region : regions) {
     const std::string label = "meshDomain: region '" + region.name + "' polygon";
-    if (region.polygon.size() < 3) throw std::invalid_argument(label + " is empty");
+    if (region.polygon.size() < 3)
+      throw std::invalid_argument(label + " is empty");
     if (const auto crossing = region.polygon.selfIntersection()) {
       throw std::invalid_argument(label + " self-intersects at edges " +
                                   std::to_string(crossing->edge_a) + " and " +
@@ -294,10 +320,12 @@ void validateRegions(const Polygon& domain, const std::vector<MeshRegion>& regio
 /// Labels the connected components of finite faces (connected across unconstrained edges);
 /// returns one representative face per component (the largest, for a robust centroid test).
 std::vector<FaceHandle> labelComponents(Cdt& cdt, bool in_domain_only) {
-  for (auto f = cdt.all_faces_begin(); f != cdt.all_faces_end(); ++f) f->info() = -1;
+  for (auto f = cdt.all_faces_begin(); f != cdt.all_faces_end(); ++f)
+    f->info() = -1;
   std::vector<FaceHandle> representatives;
   for (auto start = cdt.finite_faces_begin(); start != cdt.finite_faces_end(); ++start) {
-    if (start->info() >= 0 || (in_domain_only && !start->is_in_domain())) continue;
+    if (start->info() >= 0 || (in_domain_only && !start->is_in_domain()))
+      continue;
     const int component = static_cast<int>(representatives.size());
     FaceHandle best = start;
     double best_area = -1.0;
@@ -315,8 +343,10 @@ std::vector<FaceHandle> labelComponents(Cdt& cdt, bool in_domain_only) {
       }
       for (int i = 0; i < 3; ++i) {
         const FaceHandle neighbor = f->neighbor(i);
-        if (f->is_constrained(i) || cdt.is_infinite(neighbor) || neighbor->info() >= 0) continue;
-        if (in_domain_only && !neighbor->is_in_domain()) continue;
+        if (f->is_constrained(i) || cdt.is_infinite(neighbor) || neighbor->info() >= 0)
+          continue;
+        if (in_domain_only && !neighbor->is_in_domain())
+          continue;
         neighbor->info() = component;
         queue.push(neighbor);
       }
@@ -350,7 +380,8 @@ double TriangleMesh::triangleArea(std::size_t t) const {
 
 double TriangleMesh::totalArea() const {
   double area_m2 = 0.0;
-  for (std::size_t t = 0; t < triangles.size(); ++t) area_m2 += triangleArea(t);
+  for (std::size_t t = 0; t < triangles.size(); ++t)
+    area_m2 += triangleArea(t);
   return area_m2;
 }
 
@@ -366,7 +397,8 @@ std::vector<int> TriangleMesh::boundaryNodes() const {
   }
   std::vector<int> boundary;
   for (const auto& [key, count] : edge_use) {
-    if (count != 1) continue;
+    if (count != 1)
+      continue;
     boundary.push_back(static_cast<int>(key >> 32));
     boundary.push_back(static_cast<int>(key & 0xffffffffu));
   }
@@ -385,15 +417,18 @@ TriangleMesh meshDomain(const Polygon& domain, const std::string& background_nam
   // extra vertices where other input points touch them.
   std::vector<Outline> outlines;
   outlines.push_back(Outline{"domain", domain.vertices()});
-  for (const MeshRegion& region : regions) outlines.push_back(Outline{region.name, region.polygon.vertices()});
+  for (const MeshRegion& region : regions)
+    outlines.push_back(Outline{region.name, region.polygon.vertices()});
   for (std::size_t k = 1; k < outlines.size(); ++k) {
     std::vector<Point2> own = outlines[k].points;
-    for (Point2& p : own) snapPoint(p, outlines, &outlines[k], snap_tol_m);
+    for (Point2& p : own)
+      snapPoint(p, outlines, &outlines[k], snap_tol_m);
     outlines[k].points = own;
     // A snap onto a neighbour's vertex could in principle make two consecutive vertices equal.
     auto& pts = outlines[k].points;
     pts.erase(std::unique(pts.begin(), pts.end()), pts.end());
-    while (pts.size() > 1 && pts.front() == pts.back()) pts.pop_back();
+    while (pts.size() > 1 && pts.front() == pts.back())
+      pts.pop_back();
   }
 
   // Refinement lines are clipped to the domain (their crossing points become domain
@@ -408,12 +443,15 @@ TriangleMesh meshDomain(const Polygon& domain, const std::string& background_nam
     for (Segment piece : clipToDomain(line, domain)) {
       snapPoint(piece.a, outlines, nullptr, snap_tol_m);
       snapPoint(piece.b, outlines, nullptr, snap_tol_m);
-      if (piece.a != piece.b) line_pieces.push_back(piece);
+      if (piece.a != piece.b)
+        line_pieces.push_back(piece);
     }
   }
-  for (const Point2& p : options.refine_points) points.push_back(p);
+  for (const Point2& p : options.refine_points)
+    points.push_back(p);
   for (Point2& p : points) {
-    if (!domain.contains(p)) continue;
+    if (!domain.contains(p))
+      continue;
     snapPoint(p, outlines, nullptr, snap_tol_m);
   }
 
@@ -421,22 +459,27 @@ TriangleMesh meshDomain(const Polygon& domain, const std::string& background_nam
   for (const Outline& outline : outlines) {
     std::vector<Cdt::Vertex_handle> handles;
     handles.reserve(outline.points.size());
-    for (const Point2& p : outline.points) handles.push_back(cdt.insert(toCgal(p)));
+    for (const Point2& p : outline.points)
+      handles.push_back(cdt.insert(toCgal(p)));
     for (std::size_t i = 0; i < handles.size(); ++i) {
       const auto& a = handles[i];
       const auto& b = handles[(i + 1) % handles.size()];
-      if (a != b) cdt.insert_constraint(a, b);
+      if (a != b)
+        cdt.insert_constraint(a, b);
     }
   }
-  for (const Segment& piece : line_pieces) cdt.insert_constraint(toCgal(piece.a), toCgal(piece.b));
+  for (const Segment& piece : line_pieces)
+    cdt.insert_constraint(toCgal(piece.a), toCgal(piece.b));
   for (const Point2& p : points) {
-    if (domain.contains(p)) cdt.insert(toCgal(p));
+    if (domain.contains(p))
+      cdt.insert(toCgal(p));
   }
 
   // Mark the faces inside the domain: every component between constraints lies entirely on
   // one side of the domain outline.
   const Polygon constrained_domain(outlines[0].points);
-  for (auto f = cdt.all_faces_begin(); f != cdt.all_faces_end(); ++f) f->set_in_domain(false);
+  for (auto f = cdt.all_faces_begin(); f != cdt.all_faces_end(); ++f)
+    f->set_in_domain(false);
   {
     const std::vector<FaceHandle> representatives = labelComponents(cdt, false);
     std::vector<bool> inside(representatives.size());
@@ -451,7 +494,8 @@ TriangleMesh meshDomain(const Polygon& domain, const std::string& background_nam
   // Delaunay refinement with the graded size field (sizes from the unclipped features).
   const SizeField size_field(options);
   const double sine = std::sin(options.min_angle_deg * M_PI / 180.0);
-  CGAL::Delaunay_mesher_2<Cdt, GradedSizeCriteria> mesher(cdt, GradedSizeCriteria(sine * sine, &size_field));
+  CGAL::Delaunay_mesher_2<Cdt, GradedSizeCriteria> mesher(
+      cdt, GradedSizeCriteria(sine * sine, &size_field));
   mesher.init(true);
   mesher.refine_mesh();
 
@@ -459,9 +503,11 @@ TriangleMesh meshDomain(const Polygon& domain, const std::string& background_nam
   // contains its centroid (region outlines are constraints, so no face straddles one).
   TriangleMesh mesh;
   mesh.region_names.push_back(background_name);
-  for (const MeshRegion& region : regions) mesh.region_names.push_back(region.name);
+  for (const MeshRegion& region : regions)
+    mesh.region_names.push_back(region.name);
   std::vector<Polygon> region_outlines;
-  for (std::size_t k = 1; k < outlines.size(); ++k) region_outlines.emplace_back(outlines[k].points);
+  for (std::size_t k = 1; k < outlines.size(); ++k)
+    region_outlines.emplace_back(outlines[k].points);
 
   const std::vector<FaceHandle> representatives = labelComponents(cdt, true);
   std::vector<int> component_region(representatives.size(), 0);
@@ -475,9 +521,11 @@ TriangleMesh meshDomain(const Polygon& domain, const std::string& background_nam
     }
   }
 
-  for (auto v = cdt.finite_vertices_begin(); v != cdt.finite_vertices_end(); ++v) v->info() = -1;
+  for (auto v = cdt.finite_vertices_begin(); v != cdt.finite_vertices_end(); ++v)
+    v->info() = -1;
   for (auto f = cdt.finite_faces_begin(); f != cdt.finite_faces_end(); ++f) {
-    if (!f->is_in_domain()) continue;
+    if (!f->is_in_domain())
+      continue;
     std::array<int, 3> triangle{};
     for (int k = 0; k < 3; ++k) {
       const auto v = f->vertex(k);

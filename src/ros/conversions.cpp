@@ -191,4 +191,76 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
   return array;
 }
 
+visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& sim,
+                                                const std::string& colour_by,
+                                                const std::string& frame_id) {
+  visualization_msgs::MarkerArray array;
+  const auto& mesh = sim.model().mesh();
+  const std::vector<geometry::Point2> nodes = sim.deformedNodes();
+  const bool by_stress = colour_by == "stress";
+  Eigen::VectorXd stress;
+  double max_stress = 0.0;
+  if (by_stress) {
+    stress = sim.model().elementVonMises(sim.integrator().displacement());
+    max_stress = std::max(stress.maxCoeff(), 1e-12);
+  }
+  visualization_msgs::Marker fill = baseMarker(frame_id, "tissue", 0, visualization_msgs::Marker::TRIANGLE_LIST);
+  fill.color = rgba(1.0F, 1.0F, 1.0F, 1.0F);
+  visualization_msgs::Marker wire = baseMarker(frame_id, "tissue_wireframe", 0, visualization_msgs::Marker::LINE_LIST);
+  wire.scale.x = 0.00008;
+  wire.color = rgba(0.3F, 0.3F, 0.3F, 0.6F);
+  for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
+    std_msgs::ColorRGBA colour;
+    if (by_stress) {
+      const float s = static_cast<float>(std::clamp(stress[static_cast<Eigen::Index>(t)] / max_stress, 0.0, 1.0));
+      colour = rgba(s, 0.2F * (1.0F - s), 1.0F - s, 1.0F);
+    } else {
+      colour = regionColour(static_cast<std::size_t>(mesh.triangle_region[t]));
+    }
+    const auto& tri = mesh.triangles[t];
+    for (int k = 0; k < 3; ++k) {
+      fill.points.push_back(toMessage(nodes[static_cast<std::size_t>(tri[static_cast<std::size_t>(k)])]));
+      fill.points.back().z = 0.0002;
+      fill.colors.push_back(colour);
+      const int a = tri[static_cast<std::size_t>(k)];
+      const int b = tri[static_cast<std::size_t>((k + 1) % 3)];
+      if (a < b) {  // each interior edge once (its other triangle sees it reversed)
+        wire.points.push_back(toMessage(nodes[static_cast<std::size_t>(a)]));
+        wire.points.push_back(toMessage(nodes[static_cast<std::size_t>(b)]));
+        wire.points[wire.points.size() - 2].z = wire.points.back().z = 0.0004;
+      }
+    }
+  }
+  array.markers.push_back(fill);
+  array.markers.push_back(wire);
+
+  visualization_msgs::Marker shaft = baseMarker(frame_id, "shaft_nodes", 0, visualization_msgs::Marker::SPHERE_LIST);
+  shaft.scale.x = shaft.scale.y = shaft.scale.z = 0.0006;
+  shaft.color = rgba(1.0F, 0.55F, 0.0F, 1.0F);
+  for (int node : sim.needle().shaftNodes()) {
+    shaft.points.push_back(toMessage(nodes[static_cast<std::size_t>(node)]));
+    shaft.points.back().z = 0.0006;
+  }
+  array.markers.push_back(shaft);
+  visualization_msgs::Marker tip = baseMarker(frame_id, "tip_node", 0, visualization_msgs::Marker::SPHERE);
+  tip.scale.x = tip.scale.y = tip.scale.z = 0.0009;
+  tip.color = rgba(0.9F, 0.0F, 0.0F, 1.0F);
+  if (sim.needle().tipNode() >= 0) {
+    tip.pose.position = toMessage(nodes[static_cast<std::size_t>(sim.needle().tipNode())]);
+    tip.pose.position.z = 0.0007;
+  } else {
+    tip.action = visualization_msgs::Marker::DELETE;
+  }
+  array.markers.push_back(tip);
+  visualization_msgs::Marker seeds = baseMarker(frame_id, "seeds", 0, visualization_msgs::Marker::SPHERE_LIST);
+  seeds.scale.x = seeds.scale.y = seeds.scale.z = 0.0012;
+  seeds.color = rgba(1.0F, 0.9F, 0.0F, 1.0F);
+  for (const auto& seed : sim.seeds()) {
+    seeds.points.push_back(toMessage(sim.seedPosition(seed)));
+    seeds.points.back().z = 0.0008;
+  }
+  array.markers.push_back(seeds);
+  return array;
+}
+
 }  // namespace needle_guidance::ros_conversions

@@ -1,6 +1,7 @@
 #include "needle_guidance/ros/insertion_procedure_ros.h"
 
 #include <actionlib/client/simple_action_client.h>
+#include <geometry_msgs/PoseArray.h>
 #include <geometry_msgs/PoseStamped.h>
 
 #include <algorithm>
@@ -9,6 +10,7 @@
 #include <mutex>
 #include <sstream>
 
+#include "needle_guidance/ImplantSeed.h"
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
@@ -53,6 +55,7 @@ InsertionProcedureRos::InsertionProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   scene_spec_ = ros_params::text(private_nh, "scene", "prostate_sagittal");
   const scene::Scene scene = scene::loadSceneSpec(scene_spec_);
   robot_ns_ = ros_params::text(private_nh, "robot", "insertion_robot");
+  tissue_ns_ = ros_params::text(private_nh, "tissue", "");
   report_dir_ = ros_params::text(private_nh, "report_dir", "", true);
   insertion_velocity_m_s_ = ros_params::number(private_nh, "insertion_velocity_m_s",
                                                scene.needle.insertion_velocity_m_s, 1e-4, 1.0, "m/s");
@@ -76,94 +79,165 @@ bool InsertionProcedureRos::run() {
       return false;
     }
   }
-  std::mutex tip_mutex;
+  std::mutex mutex;
   geometry_msgs::PoseStamped last_tip;
+  geometry_msgs::PoseArray last_seeds;
   ros::Subscriber tip_sub = nh_.subscribe<geometry_msgs::PoseStamped>(
       robot_ns_ + "/measured_cp", 10, [&](const geometry_msgs::PoseStampedConstPtr& msg) {
-        std::lock_guard<std::mutex> lock(tip_mutex);
+        std::lock_guard<std::mutex> lock(mutex);
         last_tip = *msg;
       });
+  ros::ServiceClient implant;
+  ros::Subscriber seeds_sub;
+  if (!tissue_ns_.empty()) {
+    implant = nh_.serviceClient<ImplantSeed>(tissue_ns_ + "/implant_seed");
+    if (!implant.waitForExistence(ros::Duration(30.0))) {
+      ROS_FATAL_STREAM("insertion_procedure: " << tissue_ns_ << "/implant_seed did not come up in 30 s");
+      return false;
+    }
+    seeds_sub = nh_.subscribe<geometry_msgs::PoseArray>(
+        tissue_ns_ + "/seeds", 10, [&](const geometry_msgs::PoseArrayConstPtr& msg) {
+          std::lock_guard<std::mutex> lock(mutex);
+          last_seeds = *msg;
+        });
+  }
 
-  report::Table moves({"target", "target_x_mm", "target_y_mm", "height_mm", "depth_reached_mm",
-                       "depth_error_mm", "tip_error_mm", "insert_s", "insert_velocity_mm_s",
-                       "velocity_error_pct", "retract_s", "status"},
-                      6);
+  struct Record {
+    const scene::Target* target;
+    MoveOutcome insert, retract;
+    double tip_error_mm = NAN;
+    int seed_id = -1;
+    std::string status;
+  };
+  std::vector<Record> records;
   const ros::WallTime start = ros::WallTime::now();
-  bool all_ok = true;
-  double max_depth_error_mm = 0.0;
-  double max_velocity_error_pct = 0.0;
-  double max_tip_error_mm = 0.0;
   const std::size_t count = max_targets_ > 0
                                 ? std::min<std::size_t>(scene.targets.size(), max_targets_)
                                 : scene.targets.size();
   double depth_now = retract_depth_m_;
   for (std::size_t i = 0; i < count && ros::ok(); ++i) {
-    const scene::Target& target = scene.targets[i];
-    const double height = target.position.y();
-    const double depth = target.position.x();
-    std::string status = "ok";
+    Record r;
+    r.target = &scene.targets[i];
+    const double height = r.target->position.y();
+    const double depth = r.target->position.x();
     const MoveOutcome h = move(height_client, height, height_velocity_m_s_, 0.0);
-    const MoveOutcome in = h.ok ? move(insert_client, depth, insertion_velocity_m_s_, depth_now)
-                                : MoveOutcome{};
+    if (h.ok) {
+      r.insert = move(insert_client, depth, insertion_velocity_m_s_, depth_now);
+    }
     ros::Duration(0.05).sleep();  // one more measured_cp at rest
-    geometry::Point2 tip(NAN, NAN);
     {
-      std::lock_guard<std::mutex> lock(tip_mutex);
-      tip = {last_tip.pose.position.x, last_tip.pose.position.y};
+      std::lock_guard<std::mutex> lock(mutex);
+      r.tip_error_mm = 1e3 * (geometry::Point2(last_tip.pose.position.x, last_tip.pose.position.y) -
+                              r.target->position).norm();
     }
-    const MoveOutcome out = move(retract_client, retract_depth_m_, retract_velocity_m_s_, depth);
-    if (!h.ok || !in.ok || !out.ok) {
-      status = !h.ok ? "height " + h.state : !in.ok ? "insert " + in.state : "retract " + out.state;
+    if (!tissue_ns_.empty() && r.insert.ok) {
+      ImplantSeed srv;
+      if (implant.call(srv) && srv.response.success) {
+        r.seed_id = srv.response.seed_id;
+      } else {
+        ROS_ERROR_STREAM("insertion_procedure: seed at " << r.target->name
+                                                         << " not implanted: " << srv.response.message);
+      }
     }
-    const double depth_error_mm = 1e3 * std::abs(in.result.reached_m - depth);
-    const double tip_error_mm = 1e3 * (tip - target.position).norm();
-    const double velocity_error_pct =
-        100.0 * std::abs(in.result.mean_velocity_m_s - insertion_velocity_m_s_) / insertion_velocity_m_s_;
-    if (status == "ok" && (depth_error_mm > 1e3 * depth_tolerance_m_ ||
-                           velocity_error_pct > 100.0 * velocity_tolerance_)) {
-      status = "out of tolerance";
+    r.retract = move(retract_client, retract_depth_m_, retract_velocity_m_s_, depth);
+    depth_now = r.retract.ok ? retract_depth_m_ : depth;
+    r.status = !h.ok ? "height " + h.state
+               : !r.insert.ok ? "insert " + r.insert.state
+               : !r.retract.ok ? "retract " + r.retract.state
+               : (!tissue_ns_.empty() && r.seed_id < 0) ? "no seed"
+                                                        : "ok";
+    ROS_INFO_STREAM("insertion_procedure: " << r.target->name << " " << r.status << " ("
+                                            << r.insert.result.duration_s << " s)");
+    records.push_back(r);
+  }
+  if (!tissue_ns_.empty()) {
+    ros::Duration(0.5).sleep();  // seeds settle with the needle out; take their final positions
+  }
+  geometry_msgs::PoseArray seeds;
+  {
+    std::lock_guard<std::mutex> lock(mutex);
+    seeds = last_seeds;
+  }
+
+  report::Table moves({"target", "target_x_mm", "target_y_mm", "depth_reached_mm", "depth_error_mm",
+                       "tip_error_mm", "insert_s", "insert_velocity_mm_s", "velocity_error_pct",
+                       "retract_s", "seed_x_mm", "seed_y_mm", "seed_error_mm", "status"},
+                      6);
+  bool all_ok = records.size() == count;
+  double max_depth_error_mm = 0.0, max_velocity_error_pct = 0.0, max_tip_error_mm = 0.0;
+  double max_seed_error_mm = 0.0, sum_seed_error_mm = 0.0;
+  int seeds_measured = 0;
+  for (Record& r : records) {
+    const double depth_error_mm = 1e3 * std::abs(r.insert.result.reached_m - r.target->position.x());
+    const double velocity_error_pct = 100.0 *
+                                      std::abs(r.insert.result.mean_velocity_m_s - insertion_velocity_m_s_) /
+                                      insertion_velocity_m_s_;
+    if (r.status == "ok" && (depth_error_mm > 1e3 * depth_tolerance_m_ ||
+                             velocity_error_pct > 100.0 * velocity_tolerance_)) {
+      r.status = "out of tolerance";
     }
-    all_ok = all_ok && status == "ok";
+    geometry::Point2 seed(NAN, NAN);
+    double seed_error_mm = NAN;
+    if (r.seed_id >= 0 && static_cast<std::size_t>(r.seed_id) < seeds.poses.size()) {
+      const auto& p = seeds.poses[static_cast<std::size_t>(r.seed_id)].position;
+      seed = {p.x, p.y};
+      seed_error_mm = 1e3 * (seed - r.target->position).norm();
+      max_seed_error_mm = std::max(max_seed_error_mm, seed_error_mm);
+      sum_seed_error_mm += seed_error_mm;
+      ++seeds_measured;
+    } else if (!tissue_ns_.empty() && r.status == "ok") {
+      r.status = "seed not measured";
+    }
+    all_ok = all_ok && r.status == "ok";
     max_depth_error_mm = std::max(max_depth_error_mm, depth_error_mm);
     max_velocity_error_pct = std::max(max_velocity_error_pct, velocity_error_pct);
-    max_tip_error_mm = std::max(max_tip_error_mm, std::isfinite(tip_error_mm) ? tip_error_mm : 1e9);
-    moves.addRow({target.name, 1e3 * depth, 1e3 * height, 1e3 * height, 1e3 * in.result.reached_m,
-                  depth_error_mm, tip_error_mm, in.result.duration_s,
-                  1e3 * in.result.mean_velocity_m_s, velocity_error_pct, out.result.duration_s,
-                  status});
-    depth_now = out.ok ? retract_depth_m_ : depth;
-    ROS_INFO_STREAM("insertion_procedure: " << target.name << " " << status << " (depth error "
-                                            << depth_error_mm << " mm, " << in.result.duration_s
-                                            << " s)");
+    max_tip_error_mm = std::max(max_tip_error_mm, std::isfinite(r.tip_error_mm) ? r.tip_error_mm : 1e9);
+    moves.addRow({r.target->name, 1e3 * r.target->position.x(), 1e3 * r.target->position.y(),
+                  1e3 * r.insert.result.reached_m, depth_error_mm, r.tip_error_mm,
+                  r.insert.result.duration_s, 1e3 * r.insert.result.mean_velocity_m_s,
+                  velocity_error_pct, r.retract.result.duration_s, 1e3 * seed.x(), 1e3 * seed.y(),
+                  seed_error_mm, r.status});
   }
   const double total_s = (ros::WallTime::now() - start).toSec();
-  all_ok = all_ok && moves.rowCount() == count;
+  const bool with_tissue = !tissue_ns_.empty();
 
   std::ostringstream json;
   json.precision(9);
-  json << "{\n  \"procedure\": \"robot_insertion\",\n  \"scene\": \"" << scene.name
-       << "\",\n  \"success\": " << (all_ok ? "true" : "false") << ",\n  \"targets\": " << count
-       << ",\n  \"max_depth_error_mm\": " << max_depth_error_mm
+  json << "{\n  \"procedure\": \"" << (with_tissue ? "unplanned_seed_implant" : "robot_insertion")
+       << "\",\n  \"scene\": \"" << scene.name << "\",\n  \"success\": " << (all_ok ? "true" : "false")
+       << ",\n  \"targets\": " << count << ",\n  \"max_depth_error_mm\": " << max_depth_error_mm
        << ",\n  \"max_tip_error_mm\": " << max_tip_error_mm
-       << ",\n  \"max_velocity_error_pct\": " << max_velocity_error_pct
-       << ",\n  \"insertion_velocity_mm_s\": " << 1e3 * insertion_velocity_m_s_
-       << ",\n  \"wall_time_s\": " << total_s << "\n}\n";
+       << ",\n  \"max_velocity_error_pct\": " << max_velocity_error_pct;
+  if (with_tissue) {
+    json << ",\n  \"seeds\": " << seeds_measured << ",\n  \"max_seed_error_mm\": " << max_seed_error_mm
+         << ",\n  \"mean_seed_error_mm\": "
+         << (seeds_measured > 0 ? sum_seed_error_mm / seeds_measured : -1.0);
+  }
+  json << ",\n  \"wall_time_s\": " << total_s << "\n}\n";
   std::ostringstream md;
-  md << "# Robot insertion procedure — scene `" << scene.name << "`\n\n"
-     << "Each target: move to its height, insert to its depth at "
-     << 1e3 * insertion_velocity_m_s_ << " mm/s, retract to " << 1e3 * retract_depth_m_
-     << " mm. Rigid needle, no tissue model: tip error is the robot's positioning error.\n\n"
-     << moves.toMarkdown() << "\nResult: " << (all_ok ? "all moves succeeded" : "FAILED")
+  md << "# " << (with_tissue ? "Seed implant without deformation compensation" : "Robot insertion")
+     << " — scene `" << scene.name << "`\n\n"
+     << "Each target: move to its height, insert to its depth at " << 1e3 * insertion_velocity_m_s_
+     << " mm/s" << (with_tissue ? ", implant a seed" : "") << ", retract to "
+     << 1e3 * retract_depth_m_ << " mm. Tip error is the robot's positioning error."
+     << (with_tissue ? " Seed error is where the seed ends up in the FEM tissue once the needle is "
+                       "out, against its target: the error that offset planning (dissertation "
+                       "ch. 4) cancels."
+                     : " No tissue model.")
+     << "\n\n" << moves.toMarkdown() << "\nResult: " << (all_ok ? "all moves succeeded" : "FAILED")
      << ", wall time " << total_s << " s.\n";
   moves.writeCsv(report_dir_ + "/moves.csv");
   report::writeTextFile(report_dir_ + "/summary.json", json.str());
   report::writeTextFile(report_dir_ + "/summary.md", md.str());
-  std::cout << "\n== Robot insertion on scene '" << scene.name << "' ==\n"
+  std::cout << "\n== " << (with_tissue ? "Seed implant (no compensation)" : "Robot insertion")
+            << " on scene '" << scene.name << "' ==\n"
             << moves.toText() << (all_ok ? "PASS" : "FAIL") << ": " << count
             << " targets, max depth error " << max_depth_error_mm << " mm, max velocity error "
-            << max_velocity_error_pct << " %, " << total_s << " s; report in " << report_dir_
-            << "\n"
-            << std::flush;
+            << max_velocity_error_pct << " %";
+  if (with_tissue) {
+    std::cout << ", seed error max " << max_seed_error_mm << " mm";
+  }
+  std::cout << ", " << total_s << " s; report in " << report_dir_ << "\n" << std::flush;
   return all_ok;
 }
 

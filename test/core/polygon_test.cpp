@@ -14,10 +14,14 @@ namespace {
 constexpr double kAreaRelTol = 1e-12;
 constexpr double kDistanceTol_m = 1e-12;
 
-Polygon unitSquare() { return Polygon({{0, 0}, {1, 0}, {1, 1}, {0, 1}}); }
+Polygon unitSquare() {
+  return Polygon({{0, 0}, {1, 0}, {1, 1}, {0, 1}});
+}
 
 /// L-shape of area 3 with a concave notch at the top right (its reflex vertex is (1, 1)).
-Polygon lShape() { return Polygon({{0, 0}, {2, 0}, {2, 1}, {1, 1}, {1, 2}, {0, 2}}); }
+Polygon lShape() {
+  return Polygon({{0, 0}, {2, 0}, {2, 1}, {1, 1}, {1, 2}, {0, 2}});
+}
 
 TEST(PolygonTest, AreaAndOrientationOfKnownShapes) {
   EXPECT_NEAR(unitSquare().signedArea(), 1.0, kAreaRelTol);
@@ -131,22 +135,22 @@ TEST(PolygonTest, ConstructorRejectsInvalidInput) {
   EXPECT_THROW(Polygon({{0, 0}, {1, 0}, {1, 0}, {0, 1}}), std::invalid_argument);
   EXPECT_THROW(Polygon({{0, 0}, {1, 0}, {0, 1}, {0, 0}}), std::invalid_argument);  // closed
   try {
-    Polygon({{0, 0}, {1, 0}});
-    FAIL() << "expected std::invalid_argument";
+    const Polygon too_small({{0, 0}, {1, 0}});
+    FAIL() << "expected std::invalid_argument, got " << too_small.size() << " vertices";
   } catch (const std::invalid_argument& error) {
     EXPECT_NE(std::string(error.what()).find("Polygon"), std::string::npos);
-    EXPECT_NE(std::string(error.what()).find("2"), std::string::npos);
+    EXPECT_NE(std::string(error.what()).find("got 2"), std::string::npos);
   }
 }
 
 TEST(PolygonTest, SegmentsIntersect) {
-  EXPECT_TRUE(segmentsIntersect({{0, 0}, {1, 1}}, {{0, 1}, {1, 0}}));        // crossing
-  EXPECT_TRUE(segmentsIntersect({{0, 0}, {1, 0}}, {{1, 0}, {2, 5}}));        // shared end point
-  EXPECT_TRUE(segmentsIntersect({{0, 0}, {2, 0}}, {{1, 0}, {1, 3}}));        // T junction
-  EXPECT_TRUE(segmentsIntersect({{0, 0}, {2, 0}}, {{1, 0}, {3, 0}}));        // collinear overlap
-  EXPECT_FALSE(segmentsIntersect({{0, 0}, {1, 0}}, {{2, 0}, {3, 0}}));       // collinear apart
-  EXPECT_FALSE(segmentsIntersect({{0, 0}, {1, 0}}, {{0, 1}, {1, 1}}));       // parallel
-  EXPECT_FALSE(segmentsIntersect({{0, 0}, {1, 1}}, {{1, 0}, {2, -1}}));      // disjoint
+  EXPECT_TRUE(segmentsIntersect({{0, 0}, {1, 1}}, {{0, 1}, {1, 0}}));          // crossing
+  EXPECT_TRUE(segmentsIntersect({{0, 0}, {1, 0}}, {{1, 0}, {2, 5}}));          // shared end point
+  EXPECT_TRUE(segmentsIntersect({{0, 0}, {2, 0}}, {{1, 0}, {1, 3}}));          // T junction
+  EXPECT_TRUE(segmentsIntersect({{0, 0}, {2, 0}}, {{1, 0}, {3, 0}}));          // collinear overlap
+  EXPECT_FALSE(segmentsIntersect({{0, 0}, {1, 0}}, {{2, 0}, {3, 0}}));         // collinear apart
+  EXPECT_FALSE(segmentsIntersect({{0, 0}, {1, 0}}, {{0, 1}, {1, 1}}));         // parallel
+  EXPECT_FALSE(segmentsIntersect({{0, 0}, {1, 1}}, {{1, 0}, {2, -1}}));        // disjoint
   EXPECT_TRUE(segmentsIntersect({{0.5, 0.5}, {0.5, 0.5}}, {{0, 0}, {1, 1}}));  // point on it
   EXPECT_FALSE(segmentsIntersect({{0.5, 0.6}, {0.5, 0.6}}, {{0, 0}, {1, 1}}));
   // Exactness: 0.1 * 3 is not 0.3 in floating point, the predicate must not care.
@@ -157,12 +161,15 @@ TEST(PolygonTest, PolygonsOverlap) {
   const Polygon square = unitSquare();
   EXPECT_TRUE(polygonsOverlap(square, Polygon({{0.5, 0.5}, {1.5, 0.5}, {1.5, 1.5}, {0.5, 1.5}})));
   EXPECT_FALSE(polygonsOverlap(square, Polygon({{1, 0}, {2, 0}, {2, 1}, {1, 1}})));  // shared edge
-  EXPECT_FALSE(polygonsOverlap(square, Polygon({{1, 1}, {2, 1}, {2, 2}, {1, 2}})));  // shared vertex
-  EXPECT_TRUE(polygonsOverlap(square, Polygon({{0.25, 0.25}, {0.75, 0.25}, {0.5, 0.75}})));  // nested
+  EXPECT_FALSE(
+      polygonsOverlap(square, Polygon({{1, 1}, {2, 1}, {2, 2}, {1, 2}})));  // shared vertex
+  EXPECT_TRUE(
+      polygonsOverlap(square, Polygon({{0.25, 0.25}, {0.75, 0.25}, {0.5, 0.75}})));  // nested
   EXPECT_TRUE(polygonsOverlap(Polygon({{0.25, 0.25}, {0.75, 0.25}, {0.5, 0.75}}), square));
-  EXPECT_TRUE(polygonsOverlap(square, Polygon({{0, 0}, {0.5, 0}, {0.5, 0.5}})));  // nested, touching
-  EXPECT_FALSE(polygonsOverlap(square, Polygon({{3, 3}, {4, 3}, {4, 4}})));        // disjoint
-  EXPECT_TRUE(polygonsOverlap(square, unitSquare()));                              // identical
+  EXPECT_TRUE(
+      polygonsOverlap(square, Polygon({{0, 0}, {0.5, 0}, {0.5, 0.5}})));     // nested, touching
+  EXPECT_FALSE(polygonsOverlap(square, Polygon({{3, 3}, {4, 3}, {4, 4}})));  // disjoint
+  EXPECT_TRUE(polygonsOverlap(square, unitSquare()));                        // identical
   EXPECT_TRUE(polygonsOverlap(square, Polygon({{0, 0}, {0, 1}, {1, 1}, {1, 0}})));  // identical, CW
   // Crossing without any vertex inside the other polygon (a plus sign).
   EXPECT_TRUE(polygonsOverlap(Polygon({{-1, 0.4}, {2, 0.4}, {2, 0.6}, {-1, 0.6}}),
@@ -208,8 +215,8 @@ TEST(PolygonTest, OffsetOfSquareMatchesMinkowskiArea) {
 
   // Exact area of the Minkowski sum with the disc; the arcs are replaced by chords, each at most
   // the chord error inside the arc, so at most (arc length) * (chord error) is lost.
-  const double exact_area = kSide_m * kSide_m + 4.0 * kSide_m * kClearance_m +
-                            M_PI * kClearance_m * kClearance_m;
+  const double exact_area =
+      kSide_m * kSide_m + 4.0 * kSide_m * kClearance_m + M_PI * kClearance_m * kClearance_m;
   const double area_tol = 2.0 * M_PI * kClearance_m * kChordError_m;
   EXPECT_LE(expanded.area(), exact_area + 1e-15);
   EXPECT_GE(expanded.area(), exact_area - area_tol);

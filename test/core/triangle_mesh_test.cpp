@@ -45,7 +45,8 @@ double distanceToSegment(const Point2& p, const Segment& s) {
 
 Point2 centroidOf(const TriangleMesh& mesh, std::size_t t) {
   const auto& tri = mesh.triangles[t];
-  return (mesh.nodes[static_cast<std::size_t>(tri[0])] + mesh.nodes[static_cast<std::size_t>(tri[1])] +
+  return (mesh.nodes[static_cast<std::size_t>(tri[0])] +
+          mesh.nodes[static_cast<std::size_t>(tri[1])] +
           mesh.nodes[static_cast<std::size_t>(tri[2])]) /
          3.0;
 }
@@ -65,7 +66,8 @@ double minAngleDeg(const TriangleMesh& mesh, std::size_t t) {
     const double opposite = l[k];
     const double side1 = l[(k + 1) % 3];
     const double side2 = l[(k + 2) % 3];
-    const double cosine = (side1 * side1 + side2 * side2 - opposite * opposite) / (2.0 * side1 * side2);
+    const double cosine =
+        (side1 * side1 + side2 * side2 - opposite * opposite) / (2.0 * side1 * side2);
     smallest = std::min(smallest, std::acos(std::clamp(cosine, -1.0, 1.0)) * 180.0 / M_PI);
   }
   return smallest;
@@ -74,8 +76,10 @@ double minAngleDeg(const TriangleMesh& mesh, std::size_t t) {
 /// Size field as specified in MeshingOptions.
 double expectedSize(const MeshingOptions& options, const Point2& p) {
   double distance_m = std::numeric_limits<double>::infinity();
-  for (const Point2& q : options.refine_points) distance_m = std::min(distance_m, (p - q).norm());
-  for (const Segment& s : options.refine_lines) distance_m = std::min(distance_m, distanceToSegment(p, s));
+  for (const Point2& q : options.refine_points)
+    distance_m = std::min(distance_m, (p - q).norm());
+  for (const Segment& s : options.refine_lines)
+    distance_m = std::min(distance_m, distanceToSegment(p, s));
   return options.min_edge_m + (options.max_edge_m - options.min_edge_m) *
                                   std::clamp(distance_m / options.grading_length_m, 0.0, 1.0);
 }
@@ -122,12 +126,14 @@ void expectValidMesh(const TriangleMesh& mesh, const Polygon& domain) {
   EXPECT_NEAR(mesh.totalArea(), domain.area(), kAreaRelTol * domain.area());
   // Deduplicated nodes, all used.
   std::vector<std::pair<double, double>> sorted;
-  for (const Point2& p : mesh.nodes) sorted.emplace_back(p.x(), p.y());
+  for (const Point2& p : mesh.nodes)
+    sorted.emplace_back(p.x(), p.y());
   std::sort(sorted.begin(), sorted.end());
   EXPECT_EQ(std::adjacent_find(sorted.begin(), sorted.end()), sorted.end());
   std::vector<bool> used(mesh.nodeCount(), false);
   for (const auto& tri : mesh.triangles) {
-    for (int k : tri) used.at(static_cast<std::size_t>(k)) = true;
+    for (int k : tri)
+      used.at(static_cast<std::size_t>(k)) = true;
   }
   EXPECT_EQ(std::count(used.begin(), used.end(), false), 0);
 }
@@ -166,9 +172,11 @@ TEST(TriangleMeshTest, RegionTagsAndAreas) {
   expectRegionTags(mesh, scene.regions);
   double background_m2 = 0.0;
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
-    if (mesh.triangle_region[t] == 0) background_m2 += mesh.triangleArea(t);
+    if (mesh.triangle_region[t] == 0)
+      background_m2 += mesh.triangleArea(t);
   }
-  const double expected = scene.domain.area() - scene.regions[0].polygon.area() - scene.regions[1].polygon.area();
+  const double expected =
+      scene.domain.area() - scene.regions[0].polygon.area() - scene.regions[1].polygon.area();
   EXPECT_NEAR(background_m2, expected, kAreaRelTol * scene.domain.area());
 }
 
@@ -182,7 +190,8 @@ TEST(TriangleMeshTest, QualityBoundHoldsWithoutSmallInputAngles) {
     options.min_angle_deg = bound_deg;
     const TriangleMesh mesh = meshDomain(scene.domain, "tissue", scene.regions, options);
     double smallest_deg = 180.0;
-    for (std::size_t t = 0; t < mesh.triangleCount(); ++t) smallest_deg = std::min(smallest_deg, minAngleDeg(mesh, t));
+    for (std::size_t t = 0; t < mesh.triangleCount(); ++t)
+      smallest_deg = std::min(smallest_deg, minAngleDeg(mesh, t));
     EXPECT_GE(smallest_deg, bound_deg - kAngleSlackDeg) << "bound " << bound_deg;
   }
 }
@@ -196,12 +205,13 @@ TEST(TriangleMeshTest, QualityWithRefineLineCrossingRegion) {
   const TriangleMesh mesh = meshDomain(scene.domain, "tissue", scene.regions, options);
   std::size_t below = 0;
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
-    if (minAngleDeg(mesh, t) >= options.min_angle_deg - kAngleSlackDeg) continue;
+    if (minAngleDeg(mesh, t) >= options.min_angle_deg - kAngleSlackDeg)
+      continue;
     ++below;
     bool touches_line = false;
     for (int k : mesh.triangles[t]) {
-      touches_line = touches_line ||
-                     distanceToSegment(mesh.nodes[static_cast<std::size_t>(k)], options.refine_lines[0]) < kOnLineTol_m;
+      touches_line = touches_line || distanceToSegment(mesh.nodes[static_cast<std::size_t>(k)],
+                                                       options.refine_lines[0]) < kOnLineTol_m;
     }
     EXPECT_TRUE(touches_line) << "triangle " << t << " min angle " << minAngleDeg(mesh, t);
   }
@@ -223,8 +233,8 @@ TEST(TriangleMeshTest, SizeIsGradedTowardsFeatures) {
     const Point2 c = centroidOf(mesh, t);
     // The size criterion: the longest edge never exceeds the local size at the centroid.
     EXPECT_LE(longest_m, expectedSize(options, c) * (1.0 + kSizeRelSlack)) << "triangle " << t;
-    const double feature_distance_m =
-        std::min((c - options.refine_points[0]).norm(), distanceToSegment(c, options.refine_lines[0]));
+    const double feature_distance_m = std::min((c - options.refine_points[0]).norm(),
+                                               distanceToSegment(c, options.refine_lines[0]));
     if ((c - options.refine_points[0]).norm() < 0.002) {
       near_sum_m += longest_m;
       ++near_count;
@@ -260,7 +270,8 @@ TEST(TriangleMeshTest, RefineLineIsAChainOfMeshEdges) {
   ASSERT_GE(on_line.size(), 3u);
   // Starts where the path enters the domain (x = -0.05) and ends at the target.
   const Point2 entry(-0.05, 0.03 - 0.025 * (0.01 / 0.07));
-  EXPECT_NEAR((mesh.nodes[static_cast<std::size_t>(on_line.front().second)] - entry).norm(), 0.0, kOnLineTol_m);
+  EXPECT_NEAR((mesh.nodes[static_cast<std::size_t>(on_line.front().second)] - entry).norm(), 0.0,
+              kOnLineTol_m);
   EXPECT_EQ(mesh.nodes[static_cast<std::size_t>(on_line.back().second)], line.b);
   const auto edges = meshEdges(mesh);
   for (std::size_t k = 0; k + 1 < on_line.size(); ++k) {
@@ -274,7 +285,8 @@ TEST(TriangleMeshTest, RefinePointIsANode) {
   const Scene scene;
   const MeshingOptions options = gradedOptions();
   const TriangleMesh mesh = meshDomain(scene.domain, "tissue", scene.regions, options);
-  EXPECT_NE(std::find(mesh.nodes.begin(), mesh.nodes.end(), options.refine_points[0]), mesh.nodes.end());
+  EXPECT_NE(std::find(mesh.nodes.begin(), mesh.nodes.end(), options.refine_points[0]),
+            mesh.nodes.end());
 }
 
 TEST(TriangleMeshTest, ConcaveDomainWithTouchingRegions) {
@@ -293,6 +305,18 @@ TEST(TriangleMeshTest, ConcaveDomainWithTouchingRegions) {
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
     EXPECT_TRUE(domain.contains(centroidOf(mesh, t)));
   }
+}
+
+TEST(TriangleMeshTest, ClockwiseInputGivesCounterClockwiseTriangles) {
+  const Polygon clockwise_domain({{0, 0}, {0, 0.05}, {0.05, 0.05}, {0.05, 0}});
+  const std::vector<MeshRegion> regions{
+      {"cw", Polygon({{0.01, 0.01}, {0.01, 0.03}, {0.03, 0.03}, {0.03, 0.01}})}};
+  MeshingOptions options;
+  options.max_edge_m = 0.005;
+  options.min_edge_m = 0.005;
+  const TriangleMesh mesh = meshDomain(clockwise_domain, "background", regions, options);
+  expectValidMesh(mesh, clockwise_domain);
+  expectRegionTags(mesh, regions);
 }
 
 TEST(TriangleMeshTest, BoundaryNodesLieOnTheDomainBoundary) {
@@ -328,7 +352,7 @@ TEST(TriangleMeshTest, NearDegenerateInputIsSnapped) {
 TEST(TriangleMeshTest, InvalidInputsThrow) {
   const Scene scene;
   const MeshingOptions options = gradedOptions();
-  auto expectThrowWith = [&](const Polygon& domain, const std::vector<MeshRegion>& regions,
+  auto expect_throw_with = [&](const Polygon& domain, const std::vector<MeshRegion>& regions,
                              const MeshingOptions& opts, const std::string& fragment) {
     try {
       meshDomain(domain, "tissue", regions, opts);
@@ -337,34 +361,35 @@ TEST(TriangleMeshTest, InvalidInputsThrow) {
       EXPECT_NE(std::string(error.what()).find(fragment), std::string::npos) << error.what();
     }
   };
-  expectThrowWith(scene.domain, {{"bowtie", Polygon({{0, 0}, {0.01, 0.01}, {0.01, 0}, {0, 0.01}})}},
+  expect_throw_with(scene.domain, {{"bowtie", Polygon({{0, 0}, {0.01, 0.01}, {0.01, 0}, {0, 0.01}})}},
                   options, "meshDomain: region 'bowtie' polygon self-intersects at edges 0 and 2");
-  expectThrowWith(scene.domain, {{"outside", rectangle(0.04, 0.04, 0.06, 0.06)}}, options,
+  expect_throw_with(scene.domain, {{"outside", rectangle(0.04, 0.04, 0.06, 0.06)}}, options,
                   "region 'outside' polygon is not inside the domain");
-  expectThrowWith(scene.domain,
-                  {{"one", rectangle(0.0, 0.0, 0.02, 0.02)}, {"two", rectangle(0.01, 0.01, 0.03, 0.03)}},
-                  options, "region 'one' polygon overlaps region 'two'");
-  expectThrowWith(Polygon({{0, 0}, {0.1, 0.1}, {0.1, 0}, {0, 0.1}}), {}, options,
+  expect_throw_with(
+      scene.domain,
+      {{"one", rectangle(0.0, 0.0, 0.02, 0.02)}, {"two", rectangle(0.01, 0.01, 0.03, 0.03)}},
+      options, "region 'one' polygon overlaps region 'two'");
+  expect_throw_with(Polygon({{0, 0}, {0.1, 0.1}, {0.1, 0}, {0, 0.1}}), {}, options,
                   "domain polygon self-intersects");
   MeshingOptions bad = options;
   bad.min_edge_m = 0.01;
-  expectThrowWith(scene.domain, scene.regions, bad, "min_edge_m = 0.01 exceeds max_edge_m = 0.005");
+  expect_throw_with(scene.domain, scene.regions, bad, "min_edge_m = 0.01 exceeds max_edge_m = 0.005");
   bad = options;
   bad.max_edge_m = 0.0;
-  expectThrowWith(scene.domain, scene.regions, bad, "max_edge_m must be positive");
+  expect_throw_with(scene.domain, scene.regions, bad, "max_edge_m must be positive");
   bad = options;
   bad.min_edge_m = -0.001;
-  expectThrowWith(scene.domain, scene.regions, bad, "min_edge_m must be positive");
+  expect_throw_with(scene.domain, scene.regions, bad, "min_edge_m must be positive");
   bad = options;
   bad.grading_length_m = 0.0;
-  expectThrowWith(scene.domain, scene.regions, bad, "grading_length_m must be positive");
+  expect_throw_with(scene.domain, scene.regions, bad, "grading_length_m must be positive");
   bad = options;
   bad.min_angle_deg = 35.0;
-  expectThrowWith(scene.domain, scene.regions, bad, "min_angle_deg must be in [0, 30]");
+  expect_throw_with(scene.domain, scene.regions, bad, "min_angle_deg must be in [0, 30]");
   bad = options;
   bad.refine_points.push_back({std::nan(""), 0.0});
-  expectThrowWith(scene.domain, scene.regions, bad, "refine point 1 is not finite");
-  expectThrowWith(Polygon(), {}, options, "domain polygon is empty");
+  expect_throw_with(scene.domain, scene.regions, bad, "refine point 1 is not finite");
+  expect_throw_with(Polygon(), {}, options, "domain polygon is empty");
 }
 
 TEST(TriangleMeshTest, PointLocatorMatchesBruteForce) {
@@ -373,7 +398,8 @@ TEST(TriangleMeshTest, PointLocatorMatchesBruteForce) {
   options.max_edge_m = 0.004;
   options.min_edge_m = 0.001;
   options.refine_points = {{0.01, 0.01}};
-  const TriangleMesh mesh = meshDomain(domain, "background", {{"a", rectangle(0.005, 0.005, 0.02, 0.02)}}, options);
+  const TriangleMesh mesh =
+      meshDomain(domain, "background", {{"a", rectangle(0.005, 0.005, 0.02, 0.02)}}, options);
   const PointLocator locator(mesh);
   std::mt19937 random(42);
   std::uniform_real_distribution<double> coordinate(-0.01, 0.07);
@@ -386,8 +412,10 @@ TEST(TriangleMeshTest, PointLocatorMatchesBruteForce) {
     for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
       const auto& tri = mesh.triangles[t];
       const auto w = barycentric(p, mesh.nodes[static_cast<std::size_t>(tri[0])],
-                                 mesh.nodes[static_cast<std::size_t>(tri[1])], mesh.nodes[static_cast<std::size_t>(tri[2])]);
-      if (*std::min_element(w.begin(), w.end()) >= -kBruteForceTol) containing.push_back(static_cast<int>(t));
+                                 mesh.nodes[static_cast<std::size_t>(tri[1])],
+                                 mesh.nodes[static_cast<std::size_t>(tri[2])]);
+      if (*std::min_element(w.begin(), w.end()) >= -kBruteForceTol)
+        containing.push_back(static_cast<int>(t));
     }
     EXPECT_EQ(domain.contains(p), !containing.empty()) << p.transpose();
     if (containing.empty()) {
@@ -396,7 +424,8 @@ TEST(TriangleMeshTest, PointLocatorMatchesBruteForce) {
     }
     ++inside_count;
     ASSERT_TRUE(location.has_value()) << p.transpose();
-    EXPECT_NE(std::find(containing.begin(), containing.end(), location->triangle), containing.end());
+    EXPECT_NE(std::find(containing.begin(), containing.end(), location->triangle),
+              containing.end());
     const auto& w = location->barycentric;
     EXPECT_NEAR(w[0] + w[1] + w[2], 1.0, kBarycentricTol);
     const auto& tri = mesh.triangles[static_cast<std::size_t>(location->triangle)];
@@ -432,14 +461,16 @@ TEST(TriangleMeshTest, MeshingTime) {
     options.min_edge_m = edge_m;
     const auto start = std::chrono::steady_clock::now();
     const TriangleMesh mesh = meshDomain(domain, "tissue", {}, options);
-    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    const double seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     std::cout << "[ timing   ] " << mesh.triangleCount() << " triangles in " << seconds << " s\n";
     const auto locate_start = std::chrono::steady_clock::now();
     const PointLocator locator(mesh);
     std::mt19937 random(42);
     std::uniform_real_distribution<double> coordinate(0.0, 0.1);
     int found = 0;
-    for (int i = 0; i < 100000; ++i) found += locator.locate({coordinate(random), coordinate(random)}).has_value();
+    for (int i = 0; i < 100000; ++i)
+      found += locator.locate({coordinate(random), coordinate(random)}).has_value();
     const double locate_seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - locate_start).count();
     std::cout << "[ timing   ] locator build + 1e5 queries in " << locate_seconds << " s\n";

@@ -9,6 +9,7 @@
 #include "needle_guidance/geometry/polygon.h"
 #include "needle_guidance/robot/insertion_stage.h"
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/tissue/tissue_simulation.h"
 
 namespace needle_guidance::ros_conversions {
 
@@ -26,5 +27,12 @@ void tipPoseToMessage(const robot::StageState& state, geometry_msgs::PoseStamped
 /// material, obstacles (and their clearance outline), targets, boundary conditions.
 visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
                                                const std::string& frame_id);
+
+/// rviz markers of the deformed tissue in frame `frame_id`: filled triangles coloured by region
+/// (colour_by "region") or by von Mises stress ("stress", blue 0 to red at the maximum), the mesh
+/// wireframe, shaft nodes (orange), the tip node (red) and the seeds (yellow).
+visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& sim,
+                                                const std::string& colour_by,
+                                                const std::string& frame_id);
 
 }  // namespace needle_guidance::ros_conversions

@@ -23,6 +23,7 @@ private:
   ros::NodeHandle nh_;
   std::string scene_spec_;
   std::string robot_ns_;
+  std::string tissue_ns_;  ///< tissue_sim namespace; "" = no tissue (no seeds)
   std::string report_dir_;
   double insertion_velocity_m_s_ = 0.0;
   double retract_velocity_m_s_ = 0.0;
