@@ -283,6 +283,7 @@ private:
     const PointValue min = m.requiredPoint("min", detail::kLength);
     const PointValue max = m.requiredPoint("max", detail::kLength);
     scene_.background_material = m.optionalString("background_material").value_or("");
+    scene_.thickness_m = positiveOr(m, "thickness", detail::kLength, scene_.thickness_m);
     background_key_ = m.keyPath("background_material");
     background_line_ = m.lineOfKey("background_material");
     m.finish();

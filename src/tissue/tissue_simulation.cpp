@@ -96,6 +96,7 @@ TissueSimulation::TissueSimulation(const scene::Scene& scene, const TissueSimOpt
 void TissueSimulation::build() {
   FemOptions fem_options;
   fem_options.formulation = options_.formulation;
+  fem_options.thickness_m = scene_.thickness_m;
   model_ = std::make_unique<FemModel>(initial_mesh_, element_materials_, fem_options);
   IntegratorOptions integrator_options;
   integrator_options.corotational = options_.corotational;

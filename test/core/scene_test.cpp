@@ -279,7 +279,8 @@ TEST(SceneTest, EmbeddedProstateSagittal) {
   EXPECT_NEAR(scene.needle.insertion_velocity_m_s, 0.01, kTol_m);
   EXPECT_NEAR(scene.needle.cut_length_m, 5e-4, kTol_m);
   EXPECT_NEAR(scene.needle.stick_velocity_m_s, 5e-4, kTol_m);
-  EXPECT_DOUBLE_EQ(scene.needle.cutting_force_N, 0.2);
+  EXPECT_DOUBLE_EQ(scene.needle.cutting_force_N, 1.0);
+  EXPECT_NEAR(scene.thickness_m, 0.01, kTol_m);  // thickness_cm: 1.0
   EXPECT_EQ(scene.needle.radius_of_curvature_m, 0.0);
 
   EXPECT_EQ(scene.imaging.modality, "ultrasound");

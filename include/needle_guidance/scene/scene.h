@@ -123,6 +123,9 @@ struct Scene {
   Point2 workspace_min = Point2::Zero();  ///< workspace rectangle [m]
   Point2 workspace_max = Point2::Zero();
   std::string background_material;  ///< material of the workspace outside all regions ("" = none)
+  /// Out-of-plane thickness of the 2-D tissue slice: needle forces act on this much tissue
+  /// (plane strain per unit thickness x thickness) [m], > 0.
+  double thickness_m = 0.01;
   Models models;
   std::vector<Material> materials;
   std::vector<Region> regions;
