@@ -202,7 +202,13 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
   double max_stress = 0.0;
   if (by_stress) {
     stress = sim.model().elementVonMises(sim.integrator().displacement());
-    max_stress = std::max(stress.maxCoeff(), 1e-12);
+    // Scale by the 95th percentile: the peak at the tip would wash out everything else.
+    std::vector<double> sorted(stress.data(), stress.data() + stress.size());
+    const std::size_t p95 = sorted.empty() ? 0 : (sorted.size() * 95) / 100;
+    if (!sorted.empty()) {
+      std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(p95), sorted.end());
+      max_stress = std::max(sorted[p95], 1e-12);
+    }
   }
   visualization_msgs::Marker fill = baseMarker(frame_id, "tissue", 0, visualization_msgs::Marker::TRIANGLE_LIST);
   fill.color = rgba(1.0F, 1.0F, 1.0F, 1.0F);
@@ -220,14 +226,14 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
     const auto& tri = mesh.triangles[t];
     for (int k = 0; k < 3; ++k) {
       fill.points.push_back(toMessage(nodes[static_cast<std::size_t>(tri[static_cast<std::size_t>(k)])]));
-      fill.points.back().z = 0.0002;
+      fill.points.back().z = -0.0003;  // above the scene fill, below needle and targets
       fill.colors.push_back(colour);
       const int a = tri[static_cast<std::size_t>(k)];
       const int b = tri[static_cast<std::size_t>((k + 1) % 3)];
       if (a < b) {  // each interior edge once (its other triangle sees it reversed)
         wire.points.push_back(toMessage(nodes[static_cast<std::size_t>(a)]));
         wire.points.push_back(toMessage(nodes[static_cast<std::size_t>(b)]));
-        wire.points[wire.points.size() - 2].z = wire.points.back().z = 0.0004;
+        wire.points[wire.points.size() - 2].z = wire.points.back().z = -0.0002;
       }
     }
   }
@@ -240,6 +246,9 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
   for (int node : sim.needle().shaftNodes()) {
     shaft.points.push_back(toMessage(nodes[static_cast<std::size_t>(node)]));
     shaft.points.back().z = 0.0006;
+  }
+  if (shaft.points.empty()) {
+    shaft.action = visualization_msgs::Marker::DELETE;  // rviz rejects empty point lists
   }
   array.markers.push_back(shaft);
   visualization_msgs::Marker tip = baseMarker(frame_id, "tip_node", 0, visualization_msgs::Marker::SPHERE);
@@ -258,6 +267,9 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
   for (const auto& seed : sim.seeds()) {
     seeds.points.push_back(toMessage(sim.seedPosition(seed)));
     seeds.points.back().z = 0.0008;
+  }
+  if (seeds.points.empty()) {
+    seeds.action = visualization_msgs::Marker::DELETE;
   }
   array.markers.push_back(seeds);
   return array;
