@@ -121,12 +121,14 @@ PointLocator::PointLocator(const TriangleMesh& mesh)
     long x0, x1, y0, y1;
     cell_range(t, x0, x1, y0, y1);
     for (long y = y0; y <= y1; ++y) {
-      for (long x = x0; x <= x1; ++x)
+      for (long x = x0; x <= x1; ++x) {
         ++grid.cell_start[static_cast<std::size_t>(y * grid.nx + x) + 1];
+      }
     }
   }
-  for (std::size_t c = 0; c < cells; ++c)
+  for (std::size_t c = 0; c < cells; ++c) {
     grid.cell_start[c + 1] += grid.cell_start[c];
+  }
   grid.cell_triangles.resize(grid.cell_start[cells]);
   std::vector<std::size_t> fill(grid.cell_start.begin(), grid.cell_start.end() - 1);
   for (std::size_t t = 0; t < mesh.triangles.size(); ++t) {
@@ -145,8 +147,9 @@ PointLocator::~PointLocator() = default;
 
 std::optional<MeshLocation> PointLocator::locate(const Point2& p, double tol_m) const {
   const Grid& grid = *grid_;
-  if (mesh_.triangles.empty() || !p.allFinite())
+  if (mesh_.triangles.empty() || !p.allFinite()) {
     return std::nullopt;
+  }
   tol_m = std::max(tol_m, 0.0);
   const double grid_width_m = grid.cell_m * static_cast<double>(grid.nx);
   const double grid_height_m = grid.cell_m * static_cast<double>(grid.ny);
@@ -176,8 +179,9 @@ std::optional<MeshLocation> PointLocator::locate(const Point2& p, double tol_m) 
         if (orient(a, b, p) >= 0 && orient(b, c, p) >= 0 && orient(c, a, p) >= 0) {
           return MeshLocation{t, barycentric(p, a, b, c)};
         }
-        if (tol_m == 0.0)
+        if (tol_m == 0.0) {
           continue;
+        }
         // p is outside this triangle: its distance to the triangle is the distance to the
         // nearest edge.
         const double outside_m =

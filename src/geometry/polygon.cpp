@@ -44,8 +44,9 @@ int orient(const Point2& a, const Point2& b, const Point2& c) {
 
 /// Exact test: p lies on the closed segment [a, b].
 bool onSegment(const Point2& p, const Point2& a, const Point2& b) {
-  if (orient(a, b, p) != 0)
+  if (orient(a, b, p) != 0) {
     return false;
+  }
   return std::min(a.x(), b.x()) <= p.x() && p.x() <= std::max(a.x(), b.x()) &&
          std::min(a.y(), b.y()) <= p.y() && p.y() <= std::max(a.y(), b.y());
 }
@@ -64,14 +65,17 @@ Side pointSide(const std::vector<Point2>& vertices, const Point2& p) {
   for (std::size_t i = 0; i < n; ++i) {
     const Point2& a = vertices[i];
     const Point2& b = vertices[(i + 1) % n];
-    if (onSegment(p, a, b))
+    if (onSegment(p, a, b)) {
       return Side::kBoundary;
+    }
     if (a.y() <= p.y()) {
-      if (b.y() > p.y() && orient(a, b, p) > 0)
+      if (b.y() > p.y() && orient(a, b, p) > 0) {
         ++winding;
+      }
     } else {
-      if (b.y() <= p.y() && orient(a, b, p) < 0)
+      if (b.y() <= p.y() && orient(a, b, p) < 0) {
         --winding;
+      }
     }
   }
   return winding != 0 ? Side::kInside : Side::kOutside;
@@ -97,13 +101,15 @@ SidesVisited sidesVisited(const Point2& a, const Point2& b, const std::vector<Po
     return visited;
   }
   for (std::size_t i = 0; i < n; ++i) {
-    if (properlyCross(a, b, vertices[i], vertices[(i + 1) % n]))
+    if (properlyCross(a, b, vertices[i], vertices[(i + 1) % n])) {
       return {true, true};
+    }
   }
   std::vector<Point2> contacts{a, b};
   for (const Point2& v : vertices) {
-    if (onSegment(v, a, b))
+    if (onSegment(v, a, b)) {
       contacts.push_back(v);
+    }
   }
   const Point2 direction = b - a;
   std::sort(contacts.begin(), contacts.end(), [&](const Point2& p, const Point2& q) {
@@ -120,19 +126,22 @@ SidesVisited sidesVisited(const Point2& a, const Point2& b, const std::vector<Po
       const Point2& e1 = vertices[(i + 1) % n];
       on_boundary = onSegment(p, e0, e1) && onSegment(q, e0, e1);
     }
-    if (on_boundary)
+    if (on_boundary) {
       continue;
+    }
     // The open piece (p, q) does not meet the boundary; a rounded sample point could, in a
     // near-degenerate case, land on it, so a few samples are tried.
     for (double fraction : kSampleFractions) {
       const Side side = pointSide(vertices, p + fraction * (q - p));
-      if (side == Side::kBoundary)
+      if (side == Side::kBoundary) {
         continue;
+      }
       (side == Side::kInside ? visited.interior : visited.exterior) = true;
       break;
     }
-    if (visited.interior && visited.exterior)
+    if (visited.interior && visited.exterior) {
       break;
+    }
   }
   return visited;
 }
@@ -148,15 +157,18 @@ double pointSegmentDistance(const Point2& p, const Point2& a, const Point2& b) {
 
 /// A point common to two closed segments known to intersect.
 Point2 commonPoint(const Segment& s, const Segment& t) {
-  if (s.a == s.b)
+  if (s.a == s.b) {
     return s.a;
-  if (t.a == t.b)
+  }
+  if (t.a == t.b) {
     return t.a;
+  }
   const auto result = CGAL::intersection(CgalSegment(toCgal(s.a), toCgal(s.b)),
                                          CgalSegment(toCgal(t.a), toCgal(t.b)));
   if (result) {
-    if (const CgalPoint* p = boost::get<CgalPoint>(&*result))
+    if (const CgalPoint* p = boost::get<CgalPoint>(&*result)) {
       return Point2(p->x(), p->y());
+    }
     if (const CgalSegment* seg = boost::get<CgalSegment>(&*result)) {
       return Point2(seg->source().x(), seg->source().y());
     }
@@ -205,8 +217,9 @@ double Polygon::signedArea() const {
   // Shoelace relative to the first vertex, which limits cancellation for polygons far from
   // the origin.
   const std::size_t n = vertices_.size();
-  if (n < 3)
+  if (n < 3) {
     return 0.0;
+  }
   const Point2& origin = vertices_[0];
   double twice_area = 0.0;
   for (std::size_t i = 1; i + 1 < n; ++i) {
@@ -222,8 +235,9 @@ double Polygon::area() const {
 }
 
 Polygon Polygon::counterClockwise() const {
-  if (isCounterClockwise())
+  if (isCounterClockwise()) {
     return *this;
+  }
   std::vector<Point2> reversed(vertices_.rbegin(), vertices_.rend());
   // Keep vertex 0 first so that indices stay recognisable.
   std::rotate(reversed.begin(), reversed.end() - 1, reversed.end());
@@ -231,10 +245,12 @@ Polygon Polygon::counterClockwise() const {
 }
 
 bool Polygon::contains(const Point2& p, double tol_m) const {
-  if (vertices_.size() < 3)
+  if (vertices_.size() < 3) {
     return false;
-  if (pointSide(vertices_, p) != Side::kOutside)
+  }
+  if (pointSide(vertices_, p) != Side::kOutside) {
     return true;
+  }
   return tol_m > 0.0 && distanceToBoundary(p) <= tol_m;
 }
 
@@ -250,8 +266,9 @@ double Polygon::distanceToBoundary(const Point2& p) const {
 
 std::optional<SelfIntersection> Polygon::selfIntersection() const {
   const std::size_t n = vertices_.size();
-  if (n < 3)
+  if (n < 3) {
     return std::nullopt;
+  }
   // Sweep over the edges sorted by their smallest x; only pairs with overlapping bounding
   // boxes are tested exactly. All intersecting pairs are considered so that the
   // lexicographically first pair is reported.
@@ -270,8 +287,9 @@ std::optional<SelfIntersection> Polygon::selfIntersection() const {
             [&](std::size_t i, std::size_t j) { return x_min[i] < x_min[j]; });
   std::optional<SelfIntersection> first;
   auto consider = [&](std::size_t i, std::size_t j, const Point2& point) {
-    if (i > j)
+    if (i > j) {
       std::swap(i, j);
+    }
     if (!first || std::make_pair(i, j) < std::make_pair(first->edge_a, first->edge_b)) {
       first = SelfIntersection{i, j, point};
     }
@@ -280,8 +298,9 @@ std::optional<SelfIntersection> Polygon::selfIntersection() const {
     const std::size_t i = order[k];
     for (std::size_t l = k + 1; l < n && x_min[order[l]] <= x_max[i]; ++l) {
       const std::size_t j = order[l];
-      if (y_min[j] > y_max[i] || y_min[i] > y_max[j])
+      if (y_min[j] > y_max[i] || y_min[i] > y_max[j]) {
         continue;
+      }
       const std::size_t lo = std::min(i, j);
       const std::size_t hi = std::max(i, j);
       const bool adjacent = hi == lo + 1 || (lo == 0 && hi == n - 1);
@@ -299,8 +318,9 @@ std::optional<SelfIntersection> Polygon::selfIntersection() const {
       } else {
         const Segment s = edge(lo);
         const Segment t = edge(hi);
-        if (segmentsIntersect(s, t))
+        if (segmentsIntersect(s, t)) {
           consider(lo, hi, commonPoint(s, t));
+        }
       }
     }
   }
@@ -314,15 +334,17 @@ std::optional<SelfIntersection> Polygon::selfIntersection() const {
 
 Point2 Polygon::minCorner() const {
   Point2 corner = Point2::Constant(std::numeric_limits<double>::infinity());
-  for (const Point2& v : vertices_)
+  for (const Point2& v : vertices_) {
     corner = corner.cwiseMin(v);
+  }
   return corner;
 }
 
 Point2 Polygon::maxCorner() const {
   Point2 corner = Point2::Constant(-std::numeric_limits<double>::infinity());
-  for (const Point2& v : vertices_)
+  for (const Point2& v : vertices_) {
     corner = corner.cwiseMax(v);
+  }
   return corner;
 }
 
@@ -335,10 +357,12 @@ Polygon Polygon::offset(double clearance_m, double max_chord_error_m) const {
     throw std::invalid_argument("Polygon::offset: max_chord_error_m must be finite and > 0, got " +
                                 std::to_string(max_chord_error_m));
   }
-  if (vertices_.size() < 3)
+  if (vertices_.size() < 3) {
     throw std::invalid_argument("Polygon::offset: empty polygon");
-  if (clearance_m == 0.0)
+  }
+  if (clearance_m == 0.0) {
     return *this;
+  }
   if (const auto crossing = selfIntersection()) {
     throw std::invalid_argument("Polygon::offset: polygon self-intersects at edges " +
                                 std::to_string(crossing->edge_a) + " and " +
@@ -400,11 +424,13 @@ Polygon Polygon::offset(double clearance_m, double max_chord_error_m) const {
   for (auto it = sum.outer_boundary().vertices_begin(); it != sum.outer_boundary().vertices_end();
        ++it) {
     const Point2 p(CGAL::to_double(it->x()), CGAL::to_double(it->y()));
-    if (result.empty() || result.back() != p)
+    if (result.empty() || result.back() != p) {
       result.push_back(p);
+    }
   }
-  while (result.size() > 1 && result.front() == result.back())
+  while (result.size() > 1 && result.front() == result.back()) {
     result.pop_back();
+  }
   Polygon expanded(std::move(result));
   return expanded.counterClockwise();
 }
@@ -412,12 +438,15 @@ Polygon Polygon::offset(double clearance_m, double max_chord_error_m) const {
 bool segmentsIntersect(const Segment& s, const Segment& t) {
   const bool s_point = s.a == s.b;
   const bool t_point = t.a == t.b;
-  if (s_point && t_point)
+  if (s_point && t_point) {
     return s.a == t.a;
-  if (s_point)
+  }
+  if (s_point) {
     return onSegment(s.a, t.a, t.b);
-  if (t_point)
+  }
+  if (t_point) {
     return onSegment(t.a, s.a, s.b);
+  }
   return CGAL::do_intersect(CgalSegment(toCgal(s.a), toCgal(s.b)),
                             CgalSegment(toCgal(t.a), toCgal(t.b)));
 }
@@ -437,8 +466,9 @@ bool polygonsOverlap(const Polygon& a, const Polygon& b) {
   // Bounding boxes whose interiors are disjoint cannot hold overlapping interiors.
   const Point2 lo = a.minCorner().cwiseMax(b.minCorner());
   const Point2 hi = a.maxCorner().cwiseMin(b.maxCorner());
-  if (lo.x() >= hi.x() || lo.y() >= hi.y())
+  if (lo.x() >= hi.x() || lo.y() >= hi.y()) {
     return false;
+  }
   // For simple polygons A and B: if no edge of A enters int(B) and no edge of B enters int(A),
   // then int(A) and int(B) are either disjoint or equal (a component of their intersection is
   // bounded by boundary of both, hence is all of int(A) and all of int(B)). They are equal
@@ -447,14 +477,16 @@ bool polygonsOverlap(const Polygon& a, const Polygon& b) {
   for (std::size_t i = 0; i < a.size(); ++i) {
     const Segment e = a.edge(i);
     const SidesVisited visited = sidesVisited(e.a, e.b, b.vertices());
-    if (visited.interior)
+    if (visited.interior) {
       return true;
+    }
     a_enters_exterior_of_b = a_enters_exterior_of_b || visited.exterior;
   }
   for (std::size_t i = 0; i < b.size(); ++i) {
     const Segment e = b.edge(i);
-    if (sidesVisited(e.a, e.b, a.vertices()).interior)
+    if (sidesVisited(e.a, e.b, a.vertices()).interior) {
       return true;
+    }
   }
   return !a_enters_exterior_of_b;
 }
@@ -462,8 +494,9 @@ bool polygonsOverlap(const Polygon& a, const Polygon& b) {
 bool segmentIntersectsPolygon(const Segment& s, const Polygon& poly) {
   // "Enters the interior": a segment that only touches the boundary (grazes a vertex or runs
   // along an edge from outside) does not count; crossing the boundary always enters.
-  if (poly.size() < 3)
+  if (poly.size() < 3) {
     return false;
+  }
   return sidesVisited(s.a, s.b, poly.vertices()).interior;
 }
 
@@ -483,8 +516,9 @@ bool polygonInside(const Polygon& inner, const Polygon& outer) {
   // never enters it, neither does the interior of `inner`.
   for (std::size_t i = 0; i < inner.size(); ++i) {
     const Segment e = inner.edge(i);
-    if (sidesVisited(e.a, e.b, outer.vertices()).exterior)
+    if (sidesVisited(e.a, e.b, outer.vertices()).exterior) {
       return false;
+    }
   }
   return true;
 }

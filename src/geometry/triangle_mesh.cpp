@@ -73,7 +73,7 @@ double pointSegmentDistance(const Point2& p, const Point2& a, const Point2& b) {
 /// size(p) = min + (max - min) * clamp(dist(p, features) / grading_length, 0, 1).
 class SizeField {
 public:
-  SizeField(const MeshingOptions& options)
+  explicit SizeField(const MeshingOptions& options)
       : min_edge_m_(options.min_edge_m),
         max_edge_m_(options.max_edge_m),
         grading_length_m_(options.grading_length_m),
@@ -81,13 +81,16 @@ public:
         lines_(options.refine_lines) {}
 
   double operator()(const Point2& p) const {
-    if (min_edge_m_ == max_edge_m_)
+    if (min_edge_m_ == max_edge_m_) {
       return max_edge_m_;
+    }
     double distance_m = grading_length_m_;
-    for (const Point2& q : points_)
+    for (const Point2& q : points_) {
       distance_m = std::min(distance_m, (p - q).norm());
-    for (const Segment& s : lines_)
+    }
+    for (const Segment& s : lines_) {
       distance_m = std::min(distance_m, pointSegmentDistance(p, s.a, s.b));
+    }
     return min_edge_m_ +
            (max_edge_m_ - min_edge_m_) * std::clamp(distance_m / grading_length_m_, 0.0, 1.0);
   }
@@ -117,7 +120,8 @@ public:
         size_field_(size_field) {}
 
   /// Badness test used by the mesher (the name is required by CGAL's mesher).
-  class Is_bad  // NOLINT(readability-identifier-naming) : public CGAL::Delaunay_mesh_criteria_2<Cdt>::Is_bad {
+  // NOLINTNEXTLINE(readability-identifier-naming)
+  class Is_bad : public CGAL::Delaunay_mesh_criteria_2<Cdt>::Is_bad {
   public:
     using Parent = CGAL::Delaunay_mesh_criteria_2<Cdt>::Is_bad;
 
@@ -125,10 +129,12 @@ public:
         : Parent(squared_sine_bound, traits), size_field_(size_field) {}
 
     CGAL::Mesh_2::Face_badness operator()(const Quality q) const {
-      if (q.size() > 1)
+      if (q.size() > 1) {
         return CGAL::Mesh_2::IMPERATIVELY_BAD;
-      if (q.sine() < this->B)
+      }
+      if (q.sine() < this->B) {
         return CGAL::Mesh_2::BAD;
+      }
       return CGAL::Mesh_2::NOT_BAD;
     }
 
@@ -140,9 +146,15 @@ public:
       double shortest = CGAL::to_double(CGAL::squared_distance(pb, pc));
       double middle = CGAL::to_double(CGAL::squared_distance(pc, pa));
       double longest = CGAL::to_double(CGAL::squared_distance(pa, pb));
-      if (shortest > middle) std::swap(shortest, middle);
-      if (middle > longest) std::swap(middle, longest);
-      if (shortest > middle) std::swap(shortest, middle);
+      if (shortest > middle) {
+        std::swap(shortest, middle);
+      }
+      if (middle > longest) {
+        std::swap(middle, longest);
+      }
+      if (shortest > middle) {
+        std::swap(shortest, middle);
+      }
       const double max_sq_length = longest;
       const double second_max_sq_length = middle;
 
@@ -163,7 +175,8 @@ public:
   };
 
   /// The badness functor CGAL's mesher asks for (name required by CGAL).
-  Is_bad is_bad_object() const  // NOLINT(readability-identifier-naming) { return Is_bad(this->bound(), size_field_, this->traits); }
+  // NOLINTNEXTLINE(readability-identifier-naming)
+  Is_bad is_bad_object() const { return Is_bad(this->bound(), size_field_, this->traits); }
 
 private:
   const SizeField* size_field_;
@@ -180,8 +193,9 @@ struct Outline {
 /// `skip` is an outline p belongs to (or nullptr).
 void snapPoint(Point2& p, std::vector<Outline>& outlines, const Outline* skip, double tol_m) {
   for (Outline& outline : outlines) {
-    if (&outline == skip)
+    if (&outline == skip) {
       continue;
+    }
     std::vector<Point2>& pts = outline.points;
     for (const Point2& v : pts) {
       if (v != p && (v - p).norm() <= tol_m) {
@@ -191,15 +205,18 @@ void snapPoint(Point2& p, std::vector<Outline>& outlines, const Outline* skip, d
     }
   }
   for (Outline& outline : outlines) {
-    if (&outline == skip)
+    if (&outline == skip) {
       continue;
+    }
     std::vector<Point2>& pts = outline.points;
     const std::size_t n = pts.size();
     bool on_vertex = false;
-    for (const Point2& v : pts)
+    for (const Point2& v : pts) {
       on_vertex = on_vertex || v == p;
-    if (on_vertex)
+    }
+    if (on_vertex) {
       continue;
+    }
     for (std::size_t i = 0; i < n; ++i) {
       const Point2& a = pts[i];
       const Point2& b = pts[(i + 1) % n];
@@ -220,17 +237,20 @@ std::vector<Segment> clipToDomain(const Segment& line, const Polygon& domain) {
   const Kernel::Segment_2 cgal_line(toCgal(line.a), toCgal(line.b));
   for (std::size_t i = 0; i < domain.size(); ++i) {
     const Segment e = domain.edge(i);
-    if (!segmentsIntersect(line, e))
+    if (!segmentsIntersect(line, e)) {
       continue;
+    }
     const auto result = CGAL::intersection(cgal_line, Kernel::Segment_2(toCgal(e.a), toCgal(e.b)));
-    if (!result)
+    if (!result) {
       continue;
+    }
     auto add = [&](const CdtPoint& q) {
       const Point2 p = fromCgal(q);
       cuts.emplace_back(std::clamp((p - line.a).dot(direction) / length_sq, 0.0, 1.0), p);
     };
-    if (const CdtPoint* p = boost::get<CdtPoint>(&*result))
+    if (const CdtPoint* p = boost::get<CdtPoint>(&*result)) {
       add(*p);
+    }
     if (const Kernel::Segment_2* s = boost::get<Kernel::Segment_2>(&*result)) {
       add(s->source());
       add(s->target());
@@ -241,8 +261,9 @@ std::vector<Segment> clipToDomain(const Segment& line, const Polygon& domain) {
   std::vector<Segment> pieces;
   bool open = false;
   for (std::size_t k = 0; k + 1 < cuts.size(); ++k) {
-    if (cuts[k + 1].first <= cuts[k].first)
+    if (cuts[k + 1].first <= cuts[k].first) {
       continue;
+    }
     const Point2 middle = line.a + 0.5 * (cuts[k].first + cuts[k + 1].first) * direction;
     if (domain.contains(middle)) {
       if (open) {
@@ -260,8 +281,9 @@ std::vector<Segment> clipToDomain(const Segment& line, const Polygon& domain) {
 
 void validateOptions(const MeshingOptions& options) {
   auto require = [](bool ok, const std::string& message) {
-    if (!ok)
+    if (!ok) {
       throw std::invalid_argument("meshDomain: " + message);
+    }
   };
   require(std::isfinite(options.max_edge_m) && options.max_edge_m > 0.0,
           "max_edge_m must be positive and finite, got " + formatDouble(options.max_edge_m));
@@ -287,8 +309,9 @@ void validateOptions(const MeshingOptions& options) {
 }
 
 void validateRegions(const Polygon& domain, const std::vector<MeshRegion>& regions) {
-  if (domain.size() < 3)
+  if (domain.size() < 3) {
     throw std::invalid_argument("meshDomain: domain polygon is empty");
+  }
   if (const auto crossing = domain.selfIntersection()) {
     throw std::invalid_argument("meshDomain: domain polygon self-intersects at edges " +
                                 std::to_string(crossing->edge_a) + " and " +
@@ -296,8 +319,9 @@ void validateRegions(const Polygon& domain, const std::vector<MeshRegion>& regio
   }
   for (const MeshRegion& region : regions) {
     const std::string label = "meshDomain: region '" + region.name + "' polygon";
-    if (region.polygon.size() < 3)
+    if (region.polygon.size() < 3) {
       throw std::invalid_argument(label + " is empty");
+    }
     if (const auto crossing = region.polygon.selfIntersection()) {
       throw std::invalid_argument(label + " self-intersects at edges " +
                                   std::to_string(crossing->edge_a) + " and " +
@@ -320,12 +344,14 @@ void validateRegions(const Polygon& domain, const std::vector<MeshRegion>& regio
 /// Labels the connected components of finite faces (connected across unconstrained edges);
 /// returns one representative face per component (the largest, for a robust centroid test).
 std::vector<FaceHandle> labelComponents(Cdt& cdt, bool in_domain_only) {
-  for (auto f = cdt.all_faces_begin(); f != cdt.all_faces_end(); ++f)
+  for (auto f = cdt.all_faces_begin(); f != cdt.all_faces_end(); ++f) {
     f->info() = -1;
+  }
   std::vector<FaceHandle> representatives;
   for (auto start = cdt.finite_faces_begin(); start != cdt.finite_faces_end(); ++start) {
-    if (start->info() >= 0 || (in_domain_only && !start->is_in_domain()))
+    if (start->info() >= 0 || (in_domain_only && !start->is_in_domain())) {
       continue;
+    }
     const int component = static_cast<int>(representatives.size());
     FaceHandle best = start;
     double best_area = -1.0;
@@ -343,10 +369,12 @@ std::vector<FaceHandle> labelComponents(Cdt& cdt, bool in_domain_only) {
       }
       for (int i = 0; i < 3; ++i) {
         const FaceHandle neighbor = f->neighbor(i);
-        if (f->is_constrained(i) || cdt.is_infinite(neighbor) || neighbor->info() >= 0)
+        if (f->is_constrained(i) || cdt.is_infinite(neighbor) || neighbor->info() >= 0) {
           continue;
-        if (in_domain_only && !neighbor->is_in_domain())
+        }
+        if (in_domain_only && !neighbor->is_in_domain()) {
           continue;
+        }
         neighbor->info() = component;
         queue.push(neighbor);
       }
@@ -380,8 +408,9 @@ double TriangleMesh::triangleArea(std::size_t t) const {
 
 double TriangleMesh::totalArea() const {
   double area_m2 = 0.0;
-  for (std::size_t t = 0; t < triangles.size(); ++t)
+  for (std::size_t t = 0; t < triangles.size(); ++t) {
     area_m2 += triangleArea(t);
+  }
   return area_m2;
 }
 
@@ -397,8 +426,9 @@ std::vector<int> TriangleMesh::boundaryNodes() const {
   }
   std::vector<int> boundary;
   for (const auto& [key, count] : edge_use) {
-    if (count != 1)
+    if (count != 1) {
       continue;
+    }
     boundary.push_back(static_cast<int>(key >> 32));
     boundary.push_back(static_cast<int>(key & 0xffffffffu));
   }
@@ -417,18 +447,21 @@ TriangleMesh meshDomain(const Polygon& domain, const std::string& background_nam
   // extra vertices where other input points touch them.
   std::vector<Outline> outlines;
   outlines.push_back(Outline{"domain", domain.vertices()});
-  for (const MeshRegion& region : regions)
+  for (const MeshRegion& region : regions) {
     outlines.push_back(Outline{region.name, region.polygon.vertices()});
+  }
   for (std::size_t k = 1; k < outlines.size(); ++k) {
     std::vector<Point2> own = outlines[k].points;
-    for (Point2& p : own)
+    for (Point2& p : own) {
       snapPoint(p, outlines, &outlines[k], snap_tol_m);
+    }
     outlines[k].points = own;
     // A snap onto a neighbour's vertex could in principle make two consecutive vertices equal.
     auto& pts = outlines[k].points;
     pts.erase(std::unique(pts.begin(), pts.end()), pts.end());
-    while (pts.size() > 1 && pts.front() == pts.back())
+    while (pts.size() > 1 && pts.front() == pts.back()) {
       pts.pop_back();
+    }
   }
 
   // Refinement lines are clipped to the domain (their crossing points become domain
@@ -443,15 +476,18 @@ TriangleMesh meshDomain(const Polygon& domain, const std::string& background_nam
     for (Segment piece : clipToDomain(line, domain)) {
       snapPoint(piece.a, outlines, nullptr, snap_tol_m);
       snapPoint(piece.b, outlines, nullptr, snap_tol_m);
-      if (piece.a != piece.b)
+      if (piece.a != piece.b) {
         line_pieces.push_back(piece);
+      }
     }
   }
-  for (const Point2& p : options.refine_points)
+  for (const Point2& p : options.refine_points) {
     points.push_back(p);
+  }
   for (Point2& p : points) {
-    if (!domain.contains(p))
+    if (!domain.contains(p)) {
       continue;
+    }
     snapPoint(p, outlines, nullptr, snap_tol_m);
   }
 
@@ -459,27 +495,32 @@ TriangleMesh meshDomain(const Polygon& domain, const std::string& background_nam
   for (const Outline& outline : outlines) {
     std::vector<Cdt::Vertex_handle> handles;
     handles.reserve(outline.points.size());
-    for (const Point2& p : outline.points)
+    for (const Point2& p : outline.points) {
       handles.push_back(cdt.insert(toCgal(p)));
+    }
     for (std::size_t i = 0; i < handles.size(); ++i) {
       const auto& a = handles[i];
       const auto& b = handles[(i + 1) % handles.size()];
-      if (a != b)
+      if (a != b) {
         cdt.insert_constraint(a, b);
+      }
     }
   }
-  for (const Segment& piece : line_pieces)
+  for (const Segment& piece : line_pieces) {
     cdt.insert_constraint(toCgal(piece.a), toCgal(piece.b));
+  }
   for (const Point2& p : points) {
-    if (domain.contains(p))
+    if (domain.contains(p)) {
       cdt.insert(toCgal(p));
+    }
   }
 
   // Mark the faces inside the domain: every component between constraints lies entirely on
   // one side of the domain outline.
   const Polygon constrained_domain(outlines[0].points);
-  for (auto f = cdt.all_faces_begin(); f != cdt.all_faces_end(); ++f)
+  for (auto f = cdt.all_faces_begin(); f != cdt.all_faces_end(); ++f) {
     f->set_in_domain(false);
+  }
   {
     const std::vector<FaceHandle> representatives = labelComponents(cdt, false);
     std::vector<bool> inside(representatives.size());
@@ -503,11 +544,13 @@ TriangleMesh meshDomain(const Polygon& domain, const std::string& background_nam
   // contains its centroid (region outlines are constraints, so no face straddles one).
   TriangleMesh mesh;
   mesh.region_names.push_back(background_name);
-  for (const MeshRegion& region : regions)
+  for (const MeshRegion& region : regions) {
     mesh.region_names.push_back(region.name);
+  }
   std::vector<Polygon> region_outlines;
-  for (std::size_t k = 1; k < outlines.size(); ++k)
+  for (std::size_t k = 1; k < outlines.size(); ++k) {
     region_outlines.emplace_back(outlines[k].points);
+  }
 
   const std::vector<FaceHandle> representatives = labelComponents(cdt, true);
   std::vector<int> component_region(representatives.size(), 0);
@@ -521,11 +564,13 @@ TriangleMesh meshDomain(const Polygon& domain, const std::string& background_nam
     }
   }
 
-  for (auto v = cdt.finite_vertices_begin(); v != cdt.finite_vertices_end(); ++v)
+  for (auto v = cdt.finite_vertices_begin(); v != cdt.finite_vertices_end(); ++v) {
     v->info() = -1;
+  }
   for (auto f = cdt.finite_faces_begin(); f != cdt.finite_faces_end(); ++f) {
-    if (!f->is_in_domain())
+    if (!f->is_in_domain()) {
       continue;
+    }
     std::array<int, 3> triangle{};
     for (int k = 0; k < 3; ++k) {
       const auto v = f->vertex(k);

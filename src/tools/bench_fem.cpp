@@ -3,7 +3,7 @@
 // synthetic needle-like load: a prescribed tip node moving along +x, a shaft y-constraint added
 // every few steps (the tip hands over to the next node on the needle line), and a moveNode of
 // the tip node every few steps (cutting). Also runs without mesh changes (only the tip value
-// changes). Writes fem.csv and fem_summary.json to DIR.
+// changes). Writes fem.csv, summary.json and plot.json to DIR (scripts/bench fem).
 // Usage: bench_fem --out DIR [--quick]
 #include <algorithm>
 #include <chrono>
@@ -215,7 +215,12 @@ int main(int argc, char** argv) {
     }
     json << "\n}\n";
     table.writeCsv(out_dir + "/fem.csv");
-    ng::report::writeTextFile(out_dir + "/fem_summary.json", json.str());
+    ng::report::writeTextFile(out_dir + "/summary.json", json.str());
+    ng::report::writeTextFile(
+        out_dir + "/plot.json",
+        R"json([{"csv": "fem.csv", "x": "triangles", "y": "steps_per_s", "group": "integrator",
+  "title": "FEM solver steps per second, synthetic needle load (one core)", "logx": true,
+  "logy": true, "png": "fem_steps_per_s.png"}])json");
     std::cout << table.toText();
   } catch (const std::exception& e) {
     std::cerr << "bench_fem: " << e.what() << "\n";

@@ -76,10 +76,12 @@ double minAngleDeg(const TriangleMesh& mesh, std::size_t t) {
 /// Size field as specified in MeshingOptions.
 double expectedSize(const MeshingOptions& options, const Point2& p) {
   double distance_m = std::numeric_limits<double>::infinity();
-  for (const Point2& q : options.refine_points)
+  for (const Point2& q : options.refine_points) {
     distance_m = std::min(distance_m, (p - q).norm());
-  for (const Segment& s : options.refine_lines)
+  }
+  for (const Segment& s : options.refine_lines) {
     distance_m = std::min(distance_m, distanceToSegment(p, s));
+  }
   return options.min_edge_m + (options.max_edge_m - options.min_edge_m) *
                                   std::clamp(distance_m / options.grading_length_m, 0.0, 1.0);
 }
@@ -126,14 +128,16 @@ void expectValidMesh(const TriangleMesh& mesh, const Polygon& domain) {
   EXPECT_NEAR(mesh.totalArea(), domain.area(), kAreaRelTol * domain.area());
   // Deduplicated nodes, all used.
   std::vector<std::pair<double, double>> sorted;
-  for (const Point2& p : mesh.nodes)
+  for (const Point2& p : mesh.nodes) {
     sorted.emplace_back(p.x(), p.y());
+  }
   std::sort(sorted.begin(), sorted.end());
   EXPECT_EQ(std::adjacent_find(sorted.begin(), sorted.end()), sorted.end());
   std::vector<bool> used(mesh.nodeCount(), false);
   for (const auto& tri : mesh.triangles) {
-    for (int k : tri)
+    for (int k : tri) {
       used.at(static_cast<std::size_t>(k)) = true;
+    }
   }
   EXPECT_EQ(std::count(used.begin(), used.end(), false), 0);
 }
@@ -172,8 +176,9 @@ TEST(TriangleMeshTest, RegionTagsAndAreas) {
   expectRegionTags(mesh, scene.regions);
   double background_m2 = 0.0;
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
-    if (mesh.triangle_region[t] == 0)
+    if (mesh.triangle_region[t] == 0) {
       background_m2 += mesh.triangleArea(t);
+    }
   }
   const double expected =
       scene.domain.area() - scene.regions[0].polygon.area() - scene.regions[1].polygon.area();
@@ -190,8 +195,9 @@ TEST(TriangleMeshTest, QualityBoundHoldsWithoutSmallInputAngles) {
     options.min_angle_deg = bound_deg;
     const TriangleMesh mesh = meshDomain(scene.domain, "tissue", scene.regions, options);
     double smallest_deg = 180.0;
-    for (std::size_t t = 0; t < mesh.triangleCount(); ++t)
+    for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
       smallest_deg = std::min(smallest_deg, minAngleDeg(mesh, t));
+    }
     EXPECT_GE(smallest_deg, bound_deg - kAngleSlackDeg) << "bound " << bound_deg;
   }
 }
@@ -205,8 +211,9 @@ TEST(TriangleMeshTest, QualityWithRefineLineCrossingRegion) {
   const TriangleMesh mesh = meshDomain(scene.domain, "tissue", scene.regions, options);
   std::size_t below = 0;
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
-    if (minAngleDeg(mesh, t) >= options.min_angle_deg - kAngleSlackDeg)
+    if (minAngleDeg(mesh, t) >= options.min_angle_deg - kAngleSlackDeg) {
       continue;
+    }
     ++below;
     bool touches_line = false;
     for (int k : mesh.triangles[t]) {
@@ -353,7 +360,7 @@ TEST(TriangleMeshTest, InvalidInputsThrow) {
   const Scene scene;
   const MeshingOptions options = gradedOptions();
   auto expect_throw_with = [&](const Polygon& domain, const std::vector<MeshRegion>& regions,
-                             const MeshingOptions& opts, const std::string& fragment) {
+                               const MeshingOptions& opts, const std::string& fragment) {
     try {
       meshDomain(domain, "tissue", regions, opts);
       ADD_FAILURE() << "expected std::invalid_argument containing '" << fragment << "'";
@@ -361,19 +368,21 @@ TEST(TriangleMeshTest, InvalidInputsThrow) {
       EXPECT_NE(std::string(error.what()).find(fragment), std::string::npos) << error.what();
     }
   };
-  expect_throw_with(scene.domain, {{"bowtie", Polygon({{0, 0}, {0.01, 0.01}, {0.01, 0}, {0, 0.01}})}},
-                  options, "meshDomain: region 'bowtie' polygon self-intersects at edges 0 and 2");
+  expect_throw_with(scene.domain,
+                    {{"bowtie", Polygon({{0, 0}, {0.01, 0.01}, {0.01, 0}, {0, 0.01}})}}, options,
+                    "meshDomain: region 'bowtie' polygon self-intersects at edges 0 and 2");
   expect_throw_with(scene.domain, {{"outside", rectangle(0.04, 0.04, 0.06, 0.06)}}, options,
-                  "region 'outside' polygon is not inside the domain");
+                    "region 'outside' polygon is not inside the domain");
   expect_throw_with(
       scene.domain,
       {{"one", rectangle(0.0, 0.0, 0.02, 0.02)}, {"two", rectangle(0.01, 0.01, 0.03, 0.03)}},
       options, "region 'one' polygon overlaps region 'two'");
   expect_throw_with(Polygon({{0, 0}, {0.1, 0.1}, {0.1, 0}, {0, 0.1}}), {}, options,
-                  "domain polygon self-intersects");
+                    "domain polygon self-intersects");
   MeshingOptions bad = options;
   bad.min_edge_m = 0.01;
-  expect_throw_with(scene.domain, scene.regions, bad, "min_edge_m = 0.01 exceeds max_edge_m = 0.005");
+  expect_throw_with(scene.domain, scene.regions, bad,
+                    "min_edge_m = 0.01 exceeds max_edge_m = 0.005");
   bad = options;
   bad.max_edge_m = 0.0;
   expect_throw_with(scene.domain, scene.regions, bad, "max_edge_m must be positive");
@@ -414,8 +423,9 @@ TEST(TriangleMeshTest, PointLocatorMatchesBruteForce) {
       const auto w = barycentric(p, mesh.nodes[static_cast<std::size_t>(tri[0])],
                                  mesh.nodes[static_cast<std::size_t>(tri[1])],
                                  mesh.nodes[static_cast<std::size_t>(tri[2])]);
-      if (*std::min_element(w.begin(), w.end()) >= -kBruteForceTol)
+      if (*std::min_element(w.begin(), w.end()) >= -kBruteForceTol) {
         containing.push_back(static_cast<int>(t));
+      }
     }
     EXPECT_EQ(domain.contains(p), !containing.empty()) << p.transpose();
     if (containing.empty()) {
@@ -469,8 +479,9 @@ TEST(TriangleMeshTest, MeshingTime) {
     std::mt19937 random(42);
     std::uniform_real_distribution<double> coordinate(0.0, 0.1);
     int found = 0;
-    for (int i = 0; i < 100000; ++i)
+    for (int i = 0; i < 100000; ++i) {
       found += locator.locate({coordinate(random), coordinate(random)}).has_value();
+    }
     const double locate_seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - locate_start).count();
     std::cout << "[ timing   ] locator build + 1e5 queries in " << locate_seconds << " s\n";
