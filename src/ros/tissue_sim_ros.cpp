@@ -43,12 +43,14 @@ TissueSimRos::TissueSimRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   }
   tissue::TissueSimOptions options = tissue::optionsFromScene(scene);
   options.integrator = parseIntegrator(ros_params::text(private_nh, "integrator", ""), scene);
-  const std::string formulation = ros_params::text(private_nh, "formulation", "linear");
+  const std::string formulation = ros_params::text(private_nh, "formulation", "");
   if (formulation == "averaged_volumetric") {
     options.formulation = tissue::ElementFormulation::kAveragedVolumetric;
-  } else if (formulation != "linear") {
+  } else if (formulation == "linear") {
+    options.formulation = tissue::ElementFormulation::kLinear;
+  } else if (!formulation.empty()) {
     throw std::runtime_error("parameter 'formulation' = '" + formulation +
-                             "' is not one of linear, averaged_volumetric");
+                             "' is not one of '' (the scene's), linear, averaged_volumetric");
   }
   const double rate_hz = ros_params::number(private_nh, "rate_hz", 200.0, 1.0, 5000.0, "Hz");
   const double marker_rate_hz = ros_params::number(private_nh, "marker_rate_hz", 20.0, 0.1, rate_hz, "Hz");

@@ -299,6 +299,9 @@ private:
   void readModels(MapReader m) {
     scene_.models.tissue = tissueModelFromString(m.requiredChoice("tissue", kTissueModels));
     scene_.models.corotational = m.optionalBool("corotational", false);
+    scene_.models.averaged_volumetric =
+        m.optionalChoice("element", {"linear", "averaged_volumetric"}).value_or("linear") ==
+        "averaged_volumetric";
     scene_.models.steering = m.optionalBool("steering", false);
     m.finish();
     if (scene_.models.corotational && !scene_.hasTissue()) {
@@ -406,9 +409,10 @@ private:
         positiveOr(m, "insertion_velocity", detail::kVelocity, needle.insertion_velocity_m_s);
     needle.cutting_force_N = nonNegativeOr(m, "cutting_force", detail::kForce, 0.0);
     const std::optional<Quantity> cut_length = m.optionalQuantity("cut_length", detail::kLength);
-    needle.static_friction_N = nonNegativeOr(m, "static_friction", detail::kForce, 0.0);
-    needle.kinetic_friction_N = nonNegativeOr(m, "kinetic_friction", detail::kForce, 0.0);
+    needle.static_friction_N_per_m = nonNegativeOr(m, "static_friction", detail::kForcePerLength, 0.0);
+    needle.kinetic_friction_N_per_m = nonNegativeOr(m, "kinetic_friction", detail::kForcePerLength, 0.0);
     needle.stick_velocity_m_s = nonNegativeOr(m, "stick_velocity", detail::kVelocity, 0.0);
+    needle.diameter_m = nonNegativeOr(m, "diameter", detail::kLength, 0.0);
     const std::optional<Quantity> radius =
         m.optionalQuantity("radius_of_curvature", detail::kLength);
     m.finish();

@@ -38,7 +38,7 @@ NeedleInsertion::NeedleInsertion(FemModel& model, Integrator& integrator,
   auto positive = [](double v) { return std::isfinite(v) && v > 0.0; };
   auto non_negative = [](double v) { return std::isfinite(v) && v >= 0.0; };
   if (!positive(params.cut_length_m) || !non_negative(params.cutting_force_N) ||
-      !non_negative(params.static_friction_N) || !non_negative(params.kinetic_friction_N) ||
+      !non_negative(params.static_friction_N_per_m) || !non_negative(params.kinetic_friction_N_per_m) ||
       !non_negative(params.stick_velocity_m_s) || params.max_cuts_per_step < 1 ||
       params.max_friction_iterations < 1 || !(params.min_area_fraction > 0.0) ||
       !(params.min_area_fraction < 1.0)) {
@@ -46,10 +46,10 @@ NeedleInsertion::NeedleInsertion(FemModel& model, Integrator& integrator,
         "NeedleInsertion: invalid needle parameters (cut length must be > 0, forces and stick "
         "velocity >= 0, iteration bounds >= 1, min area fraction in (0, 1))");
   }
-  if (params.kinetic_friction_N > params.static_friction_N) {
+  if (params.kinetic_friction_N_per_m > params.static_friction_N_per_m) {
     throw std::invalid_argument("NeedleInsertion: kinetic friction " +
-                                str(params.kinetic_friction_N) + " N exceeds static friction " +
-                                str(params.static_friction_N) + " N");
+                                str(params.kinetic_friction_N_per_m) + " N/m exceeds static friction " +
+                                str(params.static_friction_N_per_m) + " N/m");
   }
   const int n = model_.nodeCount();
   node_fixed_.assign(static_cast<std::size_t>(n), 0);
@@ -107,6 +107,12 @@ Prescribed NeedleInsertion::buildPrescribed() const {
     p.values.push_back(tip_x_m_ - x.x());
     p.dofs.push_back(dofY(tip_node_));
     p.values.push_back(height_m_ - x.y());
+    for (int node : tip_patch_) {  // a finite tip: its face moves rigidly with the tip node
+      p.dofs.push_back(dofX(node));
+      p.values.push_back(tip_x_m_ - x.x());
+      p.dofs.push_back(dofY(node));
+      p.values.push_back(height_m_ - x.y());
+    }
   }
   for (std::size_t s = 0; s < shaft_.size(); ++s) {
     const int node = shaft_[s];
@@ -196,12 +202,13 @@ StepStatus NeedleInsertion::step(double dt_s, double needle_height_m, double tip
     }
   }
 
+  refreshTipPatch();
   Eigen::VectorXd reactions;
   f_ext_.setZero();
   for (std::size_t s = 0; s < shaft_.size(); ++s) {
     if (!shaft_state_[s].stuck) {  // kinetic friction drags along the needle's motion
       const double direction = tip_x_m_ >= prev_tip_x_m_ ? 1.0 : -1.0;
-      f_ext_[dofX(shaft_[s])] = direction * params_.kinetic_friction_N;
+      f_ext_[dofX(shaft_[s])] = direction * params_.kinetic_friction_N_per_m * shaftShare(s);
     }
   }
   StepStatus status;
@@ -221,13 +228,12 @@ StepStatus NeedleInsertion::step(double dt_s, double needle_height_m, double tip
   // Cutting (2.3.4): while the needle pushes the tip node harder than the cutting force, the
   // tip advances b in the reference mesh and the step is solved again.
   while (status && inserting && tip_node_ >= 0 && info_.cuts < params_.max_cuts_per_step) {
-    const Prescribed prescribed = buildPrescribed();
-    const int tip_index = prescribedIndex(prescribed, dofX(tip_node_));
-    info_.tip_force_N = reactions[tip_index];
+    info_.tip_force_N = tipForce(buildPrescribed(), reactions);
     if (info_.tip_force_N < params_.cutting_force_N || !cut()) {
       break;
     }
     ++info_.cuts;
+    refreshTipPatch();
     integrator_.setState(u0, v0, a0);
     status = integrator_.step(dt_s, f_ext_, buildPrescribed(), reactions);
   }
@@ -239,7 +245,7 @@ StepStatus NeedleInsertion::step(double dt_s, double needle_height_m, double tip
   }
   const Prescribed final_prescribed = buildPrescribed();
   if (tip_node_ >= 0) {
-    info_.tip_force_N = reactions[prescribedIndex(final_prescribed, dofX(tip_node_))];
+    info_.tip_force_N = tipForce(final_prescribed, reactions);
   }
   for (std::size_t s = 0; s < shaft_.size(); ++s) {
     const int index = prescribedIndex(final_prescribed, dofX(shaft_[s]));
@@ -263,10 +269,10 @@ bool NeedleInsertion::updateFriction(const Prescribed& prescribed,
     ShaftState& state = shaft_state_[s];
     if (state.stuck) {
       const int index = prescribedIndex(prescribed, dofX(node));
-      if (index >= 0 && std::abs(reactions[index]) > params_.static_friction_N) {
+      if (index >= 0 && std::abs(reactions[index]) > params_.static_friction_N_per_m * shaftShare(s)) {
         state.stuck = false;
         const double direction = reactions[index] > 0.0 ? 1.0 : -1.0;
-        f_ext_[dofX(node)] = direction * params_.kinetic_friction_N;
+        f_ext_[dofX(node)] = direction * params_.kinetic_friction_N_per_m * shaftShare(s);
         changed = true;
       }
     } else {
@@ -459,6 +465,59 @@ double NeedleInsertion::moveNodeSafely(int node, const Point2& target) {
   integrator_.modelChanged(changed);
   relocateSeeds(node);
   return fraction;
+}
+
+double NeedleInsertion::shaftShare(std::size_t s) const {
+  const auto& nodes = model_.mesh().nodes;
+  auto x_of = [&](int node) { return nodes[static_cast<std::size_t>(node)].x(); };
+  const double before = s == 0 ? bounds_min_.x() : x_of(shaft_[s - 1]);
+  const double after = s + 1 < shaft_.size() ? x_of(shaft_[s + 1])
+                       : tip_node_ >= 0      ? x_of(tip_node_)
+                                             : x_of(shaft_[s]);
+  return 0.5 * std::abs(after - before);
+}
+
+double NeedleInsertion::tipForce(const Prescribed& prescribed, const Eigen::VectorXd& reactions) const {
+  double force = reactions[prescribedIndex(prescribed, dofX(tip_node_))];
+  for (int node : tip_patch_) {
+    force += reactions[prescribedIndex(prescribed, dofX(node))];
+  }
+  return force;
+}
+
+void NeedleInsertion::refreshTipPatch() {
+  tip_patch_.clear();
+  if (tip_node_ < 0 || !(params_.tip_radius_m > 0.0)) {
+    return;
+  }
+  // Free nodes within the tip radius of p on or ahead of the tip face, found by a search over
+  // mesh neighbours outwards from the tip node.
+  const auto& mesh = model_.mesh();
+  const Point2 p = mesh.nodes[static_cast<std::size_t>(tip_node_)];
+  const double r = params_.tip_radius_m;
+  std::vector<int> frontier{tip_node_};
+  std::vector<int> seen{tip_node_};
+  while (!frontier.empty()) {
+    const int node = frontier.back();
+    frontier.pop_back();
+    for (int t : model_.trianglesOfNode(node)) {
+      for (int k : mesh.triangles[static_cast<std::size_t>(t)]) {
+        if (std::find(seen.begin(), seen.end(), k) != seen.end()) {
+          continue;
+        }
+        seen.push_back(k);
+        const Point2& x = mesh.nodes[static_cast<std::size_t>(k)];
+        if ((x - p).norm() > r) {
+          continue;
+        }
+        frontier.push_back(k);
+        const bool on_shaft = std::find(shaft_.begin(), shaft_.end(), k) != shaft_.end();
+        if (x.x() >= p.x() - kGeomTol_m && !node_fixed_[static_cast<std::size_t>(k)] && !on_shaft) {
+          tip_patch_.push_back(k);
+        }
+      }
+    }
+  }
 }
 
 void NeedleInsertion::releaseBehind() {

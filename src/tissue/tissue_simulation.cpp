@@ -28,13 +28,19 @@ TissueSimOptions optionsFromScene(const scene::Scene& scene) {
   TissueSimOptions options;
   options.integrator = integratorFor(scene.models.tissue);
   options.corotational = scene.models.corotational;
+  options.formulation = scene.models.averaged_volumetric ? ElementFormulation::kAveragedVolumetric
+                                                         : ElementFormulation::kLinear;
   options.meshing.max_edge_m = scene.mesh.max_edge_m;
   options.meshing.min_edge_m = scene.mesh.min_edge_m;
   options.meshing.grading_length_m = scene.mesh.grading_length_m;
   options.meshing.min_angle_deg = scene.mesh.min_angle_deg;
   if (scene.mesh.refine_targets) {
+    // Fine at the targets and along the straight needle paths from the entry face to them
+    // (DESIGN.md: graded meshes, fine along the needle path).
     for (const auto& target : scene.targets) {
       options.meshing.refine_points.push_back(target.position);
+      options.meshing.refine_lines.push_back(
+          {Point2(scene.workspace_min.x(), target.position.y()), target.position});
     }
   }
   return options;
@@ -44,9 +50,10 @@ NeedleParams needleParamsFromScene(const scene::Scene& scene) {
   NeedleParams params;
   params.cutting_force_N = scene.needle.cutting_force_N;
   params.cut_length_m = scene.needle.cut_length_m > 0.0 ? scene.needle.cut_length_m : params.cut_length_m;
-  params.static_friction_N = scene.needle.static_friction_N;
-  params.kinetic_friction_N = scene.needle.kinetic_friction_N;
+  params.static_friction_N_per_m = scene.needle.static_friction_N_per_m;
+  params.kinetic_friction_N_per_m = scene.needle.kinetic_friction_N_per_m;
   params.stick_velocity_m_s = scene.needle.stick_velocity_m_s;
+  params.tip_radius_m = 0.5 * scene.needle.diameter_m;
   return params;
 }
 

@@ -126,7 +126,7 @@ int main(int argc, char** argv) {
     const ng::geometry::Point2 target = scene.target("t06").position;
     // Graded meshes: the scene's sizes (fine at the targets) scaled down; scale 1 is the default.
     const std::vector<double> scales = quick ? std::vector<double>{1.0, 0.5}
-                                             : std::vector<double>{1.0, 0.5, 0.3, 0.2, 0.16};
+                                             : std::vector<double>{1.0, 0.5, 0.3, 0.2};
     const std::vector<IntegratorKind> kinds{IntegratorKind::kQuasiStatic, IntegratorKind::kNewmark,
                                             IntegratorKind::kExplicit};
     std::map<std::pair<int, double>, RunResult> results;
@@ -150,7 +150,10 @@ int main(int argc, char** argv) {
         }
         std::cout << ng::tissue::toString(kind) << " scale " << scale << ": " << r.triangles
                   << " triangles, dt " << r.dt_s << " s, " << r.steps_per_s << " steps/s, p99 "
-                  << r.p99_ms << " ms" << (r.complete ? "" : " (" + r.note + ")") << "\n"
+                  << r.p99_ms << " ms"
+                  << (r.complete ? ", seed short of target " + std::to_string(1e3 * (target - r.seed).norm()) + " mm"
+                                 : " (" + r.note + ")")
+                  << "\n"
                   << std::flush;
         results[{static_cast<int>(kind), scale}] = r;
       }

@@ -148,6 +148,36 @@ TEST(NeedleInsertionHardCases, NoInvertedElementOnCoarseMeshesAtManyHeights) {
             << ", guarded relocations " << relocations << "\n";
 }
 
+// A needle path exactly along a region boundary (constrained mesh edges on the needle line),
+// with a stiffness contrast of 100 across it: the insertion works, the shaft stays on the line,
+// no element inverts, no NaN.
+TEST(NeedleInsertionHardCases, NeedlePathAlongARegionBoundary) {
+  scene::Scene scene = scene::defaultScene("prostate_sagittal");
+  constexpr double kBoundaryY_m = 0.03;
+  scene::Material stiff = scene.material("prostate");
+  stiff.name = "stiff";
+  stiff.young_modulus_Pa = 100.0 * scene.material("fat").young_modulus_Pa;
+  scene.materials.push_back(stiff);
+  scene.regions.clear();
+  scene.regions.push_back({"slab", "stiff",
+                           geometry::Polygon({{0.01, 0.01}, {0.05, 0.01}, {0.05, kBoundaryY_m}, {0.01, kBoundaryY_m}}),
+                           false});
+  scene.targets.clear();
+  scene.targets.push_back({"on_boundary", Point2(0.04, kBoundaryY_m), 0.0});
+  TissueSimulation sim(scene);
+  double min_ratio = 1e300;
+  drive(sim, kBoundaryY_m, -0.002, 0.04, &min_ratio);
+  EXPECT_GT(min_ratio, 0.0);
+  EXPECT_GE(sim.needle().shaftNodes().size(), 5U);
+  ASSERT_TRUE(sim.implantSeed().has_value());
+  drive(sim, kBoundaryY_m, 0.04, -0.002, &min_ratio);
+  const Point2 seed = sim.seedPosition(sim.seeds().front());
+  EXPECT_TRUE(seed.allFinite());
+  EXPECT_NEAR(seed.y(), kBoundaryY_m, 1e-3);  // stays near the boundary line [m]
+  EXPECT_GT(seed.x(), 0.03);
+  EXPECT_LE(seed.x(), 0.04 + 1e-12);
+}
+
 }  // namespace
 }  // namespace needle_guidance::tissue
 

@@ -157,8 +157,8 @@ void expectScenesEqual(const Scene& a, const Scene& b) {
   EXPECT_EQ(a.needle.insertion_velocity_m_s, b.needle.insertion_velocity_m_s);
   EXPECT_EQ(a.needle.cutting_force_N, b.needle.cutting_force_N);
   EXPECT_EQ(a.needle.cut_length_m, b.needle.cut_length_m);
-  EXPECT_EQ(a.needle.static_friction_N, b.needle.static_friction_N);
-  EXPECT_EQ(a.needle.kinetic_friction_N, b.needle.kinetic_friction_N);
+  EXPECT_EQ(a.needle.static_friction_N_per_m, b.needle.static_friction_N_per_m);
+  EXPECT_EQ(a.needle.kinetic_friction_N_per_m, b.needle.kinetic_friction_N_per_m);
   EXPECT_EQ(a.needle.stick_velocity_m_s, b.needle.stick_velocity_m_s);
   EXPECT_EQ(a.needle.radius_of_curvature_m, b.needle.radius_of_curvature_m);
   ASSERT_EQ(a.targets.size(), b.targets.size());
@@ -277,7 +277,9 @@ TEST(SceneTest, EmbeddedProstateSagittal) {
   EXPECT_NEAR(scene.needle.max_height_m, 0.055, kTol_m);
   EXPECT_NEAR(scene.needle.max_depth_m, 0.055, kTol_m);
   EXPECT_NEAR(scene.needle.insertion_velocity_m_s, 0.01, kTol_m);
-  EXPECT_NEAR(scene.needle.cut_length_m, 5e-4, kTol_m);
+  EXPECT_NEAR(scene.needle.cut_length_m, 1e-4, kTol_m);
+  EXPECT_NEAR(scene.needle.diameter_m, 1.27e-3, kTol_m);
+  EXPECT_NEAR(scene.needle.static_friction_N_per_m, 30.0, 1e-9);  // 0.3 N/cm
   EXPECT_NEAR(scene.needle.stick_velocity_m_s, 5e-4, kTol_m);
   EXPECT_DOUBLE_EQ(scene.needle.cutting_force_N, 1.0);
   EXPECT_NEAR(scene.thickness_m, 0.01, kTol_m);  // thickness_cm: 1.0

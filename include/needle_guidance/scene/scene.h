@@ -54,10 +54,14 @@ struct Needle {
   double insertion_velocity_m_s = 0.01;  ///< default insertion speed [m/s]
   double cutting_force_N = 0.0;   ///< force to cut cut_length_m of tissue (2.3.4) [N]
   double cut_length_m = 0.0;      ///< b of 2.3.4 [m]
-  double static_friction_N = 0.0; ///< slip force f_smax per shaft node (2.3.5) [N]
-  double kinetic_friction_N = 0.0;///< dissipative force per sliding shaft node (2.3.5) [N]
+  /// Slip force f_smax per unit length of shaft (2.3.5); each shaft node gets it times its
+  /// share of the shaft, so the total does not depend on the mesh [N/m].
+  double static_friction_N_per_m = 0.0;
+  double kinetic_friction_N_per_m = 0.0;  ///< dissipative force per unit length of shaft [N/m]
   double stick_velocity_m_s = 0.0;///< v_s: relative speed below which a node sticks [m/s]
   double radius_of_curvature_m = 0.0;  ///< bevel-tip arc radius; 0 for a rigid needle (5.3) [m]
+  /// Needle diameter [m]; the tip pushes the tissue across it (0 = a point tip, as in 2.3.4).
+  double diameter_m = 0.0;
 };
 
 /// A point to reach, with the radius that counts as reached [m].
@@ -94,6 +98,9 @@ std::string toString(TissueModel model);
 struct Models {
   TissueModel tissue = TissueModel::kNone;
   bool corotational = false;
+  /// Element formulation (models.element): false = linear triangles ("linear"), true = averaged
+  /// nodal volumetric strain ("averaged_volumetric"), the remedy for locking as nu -> 0.5.
+  bool averaged_volumetric = false;
   bool steering = false;
 };
 

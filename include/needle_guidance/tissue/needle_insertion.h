@@ -20,14 +20,21 @@ namespace needle_guidance::tissue {
 struct NeedleParams {
   double cutting_force_N = 0.2;      ///< f_b: force that cuts cut_length_m of tissue (2.3.4) [N]
   double cut_length_m = 5e-4;        ///< b [m], > 0
-  double static_friction_N = 0.05;   ///< f_smax: a stuck shaft node slips above this (2.3.5) [N]
-  double kinetic_friction_N = 0.03;  ///< f_k: force on a slipping shaft node [N]
+  /// f_smax per unit length of shaft (2.3.5): a stuck node slips when holding it needs more than
+  /// this times its share of the shaft (half the distance to each shaft neighbour) [N/m].
+  double static_friction_N_per_m = 30.0;
+  double kinetic_friction_N_per_m = 20.0;  ///< f_k per unit length of shaft [N/m]
   double stick_velocity_m_s = 5e-4;  ///< v_s: a slipping node sticks again below this [m/s]
   int max_cuts_per_step = 64;        ///< bound on tip advances in one step
   int max_friction_iterations = 8;   ///< bound on stick/slip re-solves in one step
   /// Node moves never make a triangle smaller than this fraction of its original area
   /// (prevents figure 2.9's inverted elements).
   double min_area_fraction = 0.05;
+  /// Tip radius [m]. 0: the dissertation's point tip (one tip node), whose cutting force makes
+  /// the tip displacement grow like log(1/h) as the mesh is refined (a 2-D point load). > 0:
+  /// every free node within this radius ahead of the tip face moves with the tip node and the
+  /// cutting force is their summed reaction, a finite-width load that converges with the mesh.
+  double tip_radius_m = 0.0;
 };
 
 /// A seed implanted in the tissue: fixed in the reference mesh, tracked in its triangle by
@@ -79,6 +86,8 @@ public:
   /// Deformed position of every node [m].
   std::vector<Point2> deformedNodes() const;
   int tipNode() const { return tip_node_; }          ///< -1 when no tip node is kept
+  /// Nodes that move rigidly with the tip node (empty for a point tip).
+  const std::vector<int>& tipPatch() const { return tip_patch_; }
   const std::vector<int>& shaftNodes() const { return shaft_; }
   bool inTissue() const { return in_tissue_; }
   const InsertionStepInfo& lastStep() const { return info_; }
@@ -97,6 +106,11 @@ private:
   bool enterTissue();
   bool cut();
   void releaseBehind();
+  /// Recomputes the nodes that move rigidly with the tip node (tip_radius_m > 0).
+  void refreshTipPatch();
+  /// Length of shaft that shaft_[s] stands for: half the distance to each neighbour (the entry
+  /// face and the tip at the ends) [m].
+  double shaftShare(std::size_t s) const;
   bool updateFriction(const Prescribed& prescribed, const Eigen::VectorXd& reactions, double dt_s);
   /// Moves a reference node towards target as far as no adjacent triangle drops below its
   /// minimum area; returns the fraction of the move made, in [0, 1].
@@ -106,6 +120,8 @@ private:
   Eigen::Matrix2d deformationGradient(int triangle) const;
   double triangleArea(int triangle) const;
   int prescribedIndex(const Prescribed& p, int dof) const;
+  /// Needle force on the tissue along +x at the tip node and its patch [N].
+  double tipForce(const Prescribed& prescribed, const Eigen::VectorXd& reactions) const;
 
   FemModel& model_;
   Integrator& integrator_;
@@ -123,6 +139,7 @@ private:
   int tip_node_ = -1;
   Point2 tip_start_ref_ = Point2::Zero();  ///< reference position where the tip node started
   std::vector<int> shaft_;                 ///< shaft nodes, from the entry towards the tip
+  std::vector<int> tip_patch_;             ///< nodes moving with the tip node (finite tip)
   std::vector<ShaftState> shaft_state_;
   std::vector<Seed> seeds_;
   Eigen::VectorXd f_ext_;
