@@ -121,12 +121,11 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
   array.markers.push_back(outline(workspace, frame_id, "workspace", 0, 0.0006, rgba(0.2F, 0.2F, 0.2F, 1.0F)));
 
   if (!scene.regions.empty() || !scene.background_material.empty()) {
-    std::vector<geometry::MeshRegion> regions;
+    const std::vector<geometry::MeshRegion> regions = scene.meshRegions();
     std::vector<std_msgs::ColorRGBA> colours{scene.background_material.empty()
                                                  ? rgba(0.0F, 0.0F, 0.0F, 0.0F)
                                                  : regionColour(0)};
     for (std::size_t i = 0; i < scene.regions.size(); ++i) {
-      regions.push_back({scene.regions[i].name, scene.regions[i].polygon});
       colours.push_back(scene.regions[i].rigid ? rgba(0.9F, 0.9F, 0.85F, 1.0F) : regionColour(i + 1));
       array.markers.push_back(outline(scene.regions[i].polygon, frame_id, "region_outlines",
                                       static_cast<int>(i), 0.0004, rgba(0.4F, 0.1F, 0.1F, 1.0F)));

@@ -722,6 +722,15 @@ const Target& Scene::target(const std::string& target_name) const {
   throw std::out_of_range("Scene::target: no target '" + target_name + "' in scene '" + name + "'");
 }
 
+std::vector<geometry::MeshRegion> Scene::meshRegions() const {
+  std::vector<geometry::MeshRegion> out;
+  out.reserve(regions.size());
+  for (const Region& region : regions) {
+    out.push_back({region.name, region.polygon});
+  }
+  return out;
+}
+
 Polygon Scene::workspacePolygon() const {
   return Polygon({workspace_min, Point2(workspace_max.x(), workspace_min.y()), workspace_max,
                   Point2(workspace_min.x(), workspace_max.y())});

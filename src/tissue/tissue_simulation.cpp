@@ -60,12 +60,8 @@ NeedleParams needleParamsFromScene(const scene::Scene& scene) {
 TissueSimulation::TissueSimulation(const scene::Scene& scene, const TissueSimOptions& options)
     : scene_(scene), options_(options) {
   integratorFor(scene_.models.tissue);  // refuses scenes without tissue
-  std::vector<geometry::MeshRegion> regions;
-  for (const auto& region : scene_.regions) {
-    regions.push_back({region.name, region.polygon});
-  }
   initial_mesh_ = geometry::meshDomain(scene_.workspacePolygon(), scene_.background_material,
-                                       regions, options_.meshing);
+                                       scene_.meshRegions(), options_.meshing);
 
   element_materials_.reserve(initial_mesh_.triangleCount());
   std::vector<char> node_fixed(initial_mesh_.nodeCount(), 0);

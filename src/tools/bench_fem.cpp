@@ -11,10 +11,12 @@
 #include <iostream>
 #include <limits>
 #include <sstream>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "needle_guidance/geometry/triangle_mesh.h"
+#include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/tissue/integrator.h"
@@ -41,8 +43,7 @@ struct Problem {
 
 Problem makeProblem(const ng::scene::Scene& scene, double edge_m) {
   Problem p;
-  std::vector<ng::geometry::MeshRegion> regions;
-  for (const auto& r : scene.regions) regions.push_back({r.name, r.polygon});
+  const std::vector<ng::geometry::MeshRegion> regions = scene.meshRegions();
   ng::geometry::MeshingOptions options;
   options.max_edge_m = options.min_edge_m = edge_m;
   options.grading_length_m = scene.mesh.grading_length_m;
@@ -150,23 +151,12 @@ Result run(const Problem& problem, tissue::IntegratorKind kind, bool mesh_change
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string out_dir;
-  bool quick = false;
-  for (int i = 1; i < argc; ++i) {
-    const std::string arg = argv[i];
-    if (arg == "--out" && i + 1 < argc) {
-      out_dir = argv[++i];
-    } else if (arg == "--quick") {
-      quick = true;
-    } else {
-      std::cerr << "usage: bench_fem --out DIR [--quick]\n";
-      return 2;
-    }
-  }
-  if (out_dir.empty()) {
-    std::cerr << "bench_fem: --out DIR is required\n";
+  const std::optional<ng::report::BenchArgs> args = ng::report::parseBenchArgs(argc, argv, "bench_fem");
+  if (!args) {
     return 2;
   }
+  const std::string& out_dir = args->out_dir;
+  const bool quick = args->quick;
   try {
     const ng::scene::Scene scene = ng::scene::defaultScene("prostate_sagittal");
     const double area_m2 = scene.workspacePolygon().area();

@@ -7,10 +7,12 @@
 #include <iostream>
 #include <random>
 #include <sstream>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "needle_guidance/geometry/triangle_mesh.h"
+#include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/scene/scene.h"
 
@@ -40,32 +42,16 @@ double minAngleDeg(const ng::geometry::TriangleMesh& mesh) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string out_dir;
-  std::string scene_spec = "prostate_sagittal";
-  bool quick = false;
-  for (int i = 1; i < argc; ++i) {
-    const std::string arg = argv[i];
-    if (arg == "--out" && i + 1 < argc) {
-      out_dir = argv[++i];
-    } else if (arg == "--scene" && i + 1 < argc) {
-      scene_spec = argv[++i];
-    } else if (arg == "--quick") {
-      quick = true;
-    } else {
-      std::cerr << "usage: bench_meshing --out DIR [--quick] [--scene SPEC]\n";
-      return 2;
-    }
-  }
-  if (out_dir.empty()) {
-    std::cerr << "bench_meshing: --out DIR is required\n";
+  const std::optional<ng::report::BenchArgs> args = ng::report::parseBenchArgs(argc, argv, "bench_meshing");
+  if (!args) {
     return 2;
   }
+  const std::string& out_dir = args->out_dir;
+  const bool quick = args->quick;
+  const std::string& scene_spec = args->scene;
   try {
     const ng::scene::Scene scene = ng::scene::loadSceneSpec(scene_spec);
-    std::vector<ng::geometry::MeshRegion> regions;
-    for (const auto& r : scene.regions) {
-      regions.push_back({r.name, r.polygon});
-    }
+    const std::vector<ng::geometry::MeshRegion> regions = scene.meshRegions();
     const ng::geometry::Polygon domain = scene.workspacePolygon();
     const double domain_area = domain.area();
 

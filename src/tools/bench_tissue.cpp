@@ -11,9 +11,11 @@
 #include <iostream>
 #include <map>
 #include <sstream>
+#include <optional>
 #include <string>
 #include <vector>
 
+#include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/tissue/tissue_simulation.h"
@@ -104,23 +106,12 @@ RunResult run(const ng::scene::Scene& scene, const ng::tissue::TissueSimOptions&
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string out_dir;
-  bool quick = false;
-  for (int i = 1; i < argc; ++i) {
-    const std::string arg = argv[i];
-    if (arg == "--out" && i + 1 < argc) {
-      out_dir = argv[++i];
-    } else if (arg == "--quick") {
-      quick = true;
-    } else {
-      std::cerr << "usage: bench_tissue --out DIR [--quick]\n";
-      return 2;
-    }
-  }
-  if (out_dir.empty()) {
-    std::cerr << "bench_tissue: --out DIR is required\n";
+  const std::optional<ng::report::BenchArgs> args = ng::report::parseBenchArgs(argc, argv, "bench_tissue");
+  if (!args) {
     return 2;
   }
+  const std::string& out_dir = args->out_dir;
+  const bool quick = args->quick;
   try {
     const ng::scene::Scene scene = ng::scene::defaultScene("prostate_sagittal");
     const ng::geometry::Point2 target = scene.target("t06").position;

@@ -7,6 +7,7 @@
 
 #include "needle_guidance/geometry/triangle_mesh.h"
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/tissue/tissue_simulation.h"
 
 namespace ng = needle_guidance;
 
@@ -42,23 +43,11 @@ int main(int argc, char** argv) {
               << s.boundary.size() << " boundary segments, " << s.targets.size() << " targets, "
               << s.obstacles.size() << " obstacles\n";
     if (mesh && s.hasTissue()) {
-      ng::geometry::MeshingOptions options;
-      options.max_edge_m = s.mesh.max_edge_m;
-      options.min_edge_m = s.mesh.min_edge_m;
-      options.grading_length_m = s.mesh.grading_length_m;
-      options.min_angle_deg = s.mesh.min_angle_deg;
-      if (s.mesh.refine_targets) {
-        for (const auto& t : s.targets) {
-          options.refine_points.push_back(t.position);
-        }
-      }
-      std::vector<ng::geometry::MeshRegion> regions;
-      for (const auto& r : s.regions) {
-        regions.push_back({r.name, r.polygon});
-      }
+      // The mesh tissue_sim builds: the scene's sizes, graded towards targets and needle paths.
+      const ng::geometry::MeshingOptions options = ng::tissue::optionsFromScene(s).meshing;
       const auto start = std::chrono::steady_clock::now();
       const ng::geometry::TriangleMesh m =
-          ng::geometry::meshDomain(s.workspacePolygon(), s.background_material, regions, options);
+          ng::geometry::meshDomain(s.workspacePolygon(), s.background_material, s.meshRegions(), options);
       const double ms =
           std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
       std::cout << "  mesh: " << m.nodeCount() << " nodes, " << m.triangleCount()

@@ -9,155 +9,31 @@
 #include <iostream>
 #include <random>
 
+#include "fem_test_support.h"
 #include "needle_guidance/tissue/integrator.h"
 
 namespace needle_guidance::tissue {
 namespace {
 
+using namespace test_support;  // NOLINT(google-build-using-namespace): test helpers
+
 constexpr unsigned kSeed = 99;
 
-/// nx x ny cells split into two triangles each; `alternate` flips the diagonal in a checkerboard
-/// (which hides volumetric locking), otherwise every diagonal runs the same way.
-geometry::TriangleMesh gridMesh(int nx, int ny, double lx, double ly, double jitter, unsigned seed = kSeed,
-                                bool alternate = true) {
-  geometry::TriangleMesh mesh;
-  std::mt19937 rng(seed);
-  std::uniform_real_distribution<double> uni(-1.0, 1.0);
-  const double hx = lx / nx, hy = ly / ny;
-  for (int j = 0; j <= ny; ++j) {
-    for (int i = 0; i <= nx; ++i) {
-      Point2 p(i * hx, j * hy);
-      if (i > 0 && i < nx && j > 0 && j < ny) p += Point2(jitter * hx * uni(rng), jitter * hy * uni(rng));
-      mesh.nodes.push_back(p);
-    }
-  }
-  auto id = [&](int i, int j) { return j * (nx + 1) + i; };
-  for (int j = 0; j < ny; ++j) {
-    for (int i = 0; i < nx; ++i) {
-      const int a = id(i, j), b = id(i + 1, j), c = id(i + 1, j + 1), d = id(i, j + 1);
-      if (!alternate || (i + j) % 2 == 0) {
-        mesh.triangles.push_back({a, b, c});
-        mesh.triangles.push_back({a, c, d});
-      } else {
-        mesh.triangles.push_back({a, b, d});
-        mesh.triangles.push_back({b, c, d});
-      }
-      mesh.triangle_region.push_back(0);
-      mesh.triangle_region.push_back(0);
-    }
-  }
-  mesh.region_names = {"tissue"};
-  return mesh;
-}
 
-ElementMaterial material(double e_pa, double nu, double alpha_per_s = 0.0, double beta_s = 0.0) {
-  ElementMaterial m;
-  m.young_modulus_Pa = e_pa;
-  m.poisson_ratio = nu;
-  m.density_kg_m3 = 1000.0;
-  m.rayleigh_alpha_per_s = alpha_per_s;
-  m.rayleigh_beta_s = beta_s;
-  return m;
-}
 
-/// A manufactured displacement field on the unit square, zero on the boundary, and the body
-/// force b = -div sigma(u) for plane strain with shear modulus mu and Lame lambda.
-struct Manufactured {
-  std::function<Point2(const Point2&)> u;
-  std::function<Point2(const Point2&, double mu, double lambda)> body_force;
-};
 
-/// u = (sin(pi x) sin(pi y), sin(pi x) sin(pi y)); b = -(mu lap u + (lambda + mu) grad div u).
-[[maybe_unused]] Manufactured sineField() {
-  Manufactured m;
-  m.u = [](const Point2& p) {
-    const double s = std::sin(M_PI * p.x()) * std::sin(M_PI * p.y());
-    return Point2(s, s);
-  };
-  m.body_force = [](const Point2& p, double mu, double lambda) {
-    const double sx = std::sin(M_PI * p.x()), sy = std::sin(M_PI * p.y());
-    const double cx = std::cos(M_PI * p.x()), cy = std::cos(M_PI * p.y());
-    const double lap = -2.0 * M_PI * M_PI * sx * sy;
-    const double gd = M_PI * M_PI * (cx * cy - sx * sy);  // both components of grad div u
-    return Point2(-(mu * lap + (lambda + mu) * gd), -(mu * lap + (lambda + mu) * gd));
-  };
-  return m;
-}
 
-/// Divergence-free u = curl(sin^2(pi x) sin^2(pi y)): b = -mu lap u, independent of lambda, so
-/// the exact solution stays bounded as nu -> 0.5 (a locking test).
-Manufactured divergenceFreeField() {
-  Manufactured m;
-  m.u = [](const Point2& p) {
-    const double x = p.x(), y = p.y();
-    return Point2(M_PI * std::pow(std::sin(M_PI * x), 2) * std::sin(2 * M_PI * y),
-                  -M_PI * std::sin(2 * M_PI * x) * std::pow(std::sin(M_PI * y), 2));
-  };
-  m.body_force = [](const Point2& p, double mu, double /*lambda*/) {
-    const double x = p.x(), y = p.y();
-    const double pi3 = M_PI * M_PI * M_PI;
-    const double lap_x = 2 * pi3 * std::sin(2 * M_PI * y) * (2 * std::cos(2 * M_PI * x) - 1);
-    const double lap_y = -2 * pi3 * std::sin(2 * M_PI * x) * (2 * std::cos(2 * M_PI * y) - 1);
-    return Point2(-mu * lap_x, -mu * lap_y);
-  };
-  return m;
-}
 
-/// Degree-2 triangle quadrature: barycentric points (2/3, 1/6, 1/6) and permutations, weight 1/3.
-const std::array<std::array<double, 3>, 3> kQuadPoints = {
-    {{2.0 / 3, 1.0 / 6, 1.0 / 6}, {1.0 / 6, 2.0 / 3, 1.0 / 6}, {1.0 / 6, 1.0 / 6, 2.0 / 3}}};
 
-/// Solves the manufactured problem on an n x n grid of the unit square (boundary fixed) and
-/// returns the relative L2 displacement error.
-double manufacturedL2Error(const Manufactured& field, int n, double e_pa, double nu, ElementFormulation formulation) {
-  const auto mesh = gridMesh(n, n, 1.0, 1.0, 0.0, kSeed, /*alternate=*/false);
-  FemOptions options;
-  options.formulation = formulation;
-  const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(e_pa, nu)), options);
-  const double mu = e_pa / (2 * (1 + nu));
-  const double lambda = e_pa * nu / ((1 + nu) * (1 - 2 * nu));
-  Eigen::VectorXd f = Eigen::VectorXd::Zero(model.dofCount());
-  for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
-    const auto& tri = mesh.triangles[t];
-    const double area = mesh.triangleArea(t);
-    for (const auto& q : kQuadPoints) {
-      const Point2 x = q[0] * mesh.nodes[tri[0]] + q[1] * mesh.nodes[tri[1]] + q[2] * mesh.nodes[tri[2]];
-      const Point2 b = field.body_force(x, mu, lambda);
-      for (int k = 0; k < 3; ++k) f.segment<2>(2 * tri[k]) += area / 3.0 * q[k] * b;
-    }
-  }
-  std::vector<int> fixed;
-  for (int node : mesh.boundaryNodes()) {
-    fixed.push_back(dofX(node));
-    fixed.push_back(dofY(node));
-  }
-  auto integ = makeIntegrator(IntegratorKind::kQuasiStatic, model, fixed);
-  Eigen::VectorXd r;
-  EXPECT_TRUE(integ->step(1.0, f, {}, r));
-  const Eigen::VectorXd& u = integ->displacement();
-  double err2 = 0.0, norm2 = 0.0;
-  for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
-    const auto& tri = mesh.triangles[t];
-    const double area = mesh.triangleArea(t);
-    for (const auto& q : kQuadPoints) {
-      const Point2 x = q[0] * mesh.nodes[tri[0]] + q[1] * mesh.nodes[tri[1]] + q[2] * mesh.nodes[tri[2]];
-      Point2 uh = Point2::Zero();
-      for (int k = 0; k < 3; ++k) uh += q[k] * Point2(u(2 * tri[k]), u(2 * tri[k] + 1));
-      const Point2 ue = field.u(x);
-      err2 += area / 3.0 * (uh - ue).squaredNorm();
-      norm2 += area / 3.0 * ue.squaredNorm();
-    }
-  }
-  return std::sqrt(err2 / norm2);
-}
 
 TEST(FemHardCases, VolumetricLockingAtNu0499AndAveragedVolumetricRemedy) {
   constexpr int kN = 16;
   constexpr double kAveragedMaxRelL2 = 0.1;  // stated error of the remedy on this mesh
-  const double linear_030 = manufacturedL2Error(divergenceFreeField(), kN, 1.0, 0.3, ElementFormulation::kLinear);
-  const double linear_0499 = manufacturedL2Error(divergenceFreeField(), kN, 1.0, 0.499, ElementFormulation::kLinear);
+  const double linear_030 = manufacturedL2Error(divergenceFreeField(), kN, 1.0, 0.3, ElementFormulation::kLinear, false);
+  const double linear_0499 = manufacturedL2Error(divergenceFreeField(), kN, 1.0, 0.499, ElementFormulation::kLinear, false);
   const double avg_0499 =
-      manufacturedL2Error(divergenceFreeField(), kN, 1.0, 0.499, ElementFormulation::kAveragedVolumetric);
+      manufacturedL2Error(divergenceFreeField(), kN, 1.0, 0.499, ElementFormulation::kAveragedVolumetric,
+                          false);
   std::cout << "relative L2 error, 16x16: linear nu=0.3 " << linear_030 << ", linear nu=0.499 " << linear_0499
             << ", averaged volumetric nu=0.499 " << avg_0499 << "\n";
   EXPECT_GT(linear_0499, 3.0 * linear_030);  // locking: the CST error explodes as nu -> 0.5
@@ -168,7 +44,7 @@ TEST(FemHardCases, VolumetricLockingAtNu0499AndAveragedVolumetricRemedy) {
 TEST(FemHardCases, StiffnessContrast1e4MatchesSeriesSprings) {
   constexpr double kRel = 1e-8;
   const double l_m = 0.05, h_m = 0.02, e_soft = 10e3, e_stiff = 1e8, force_n = 0.5;
-  const auto mesh = gridMesh(20, 4, 2 * l_m, h_m, 0.0);
+  const auto mesh = gridMesh(20, 4, 2 * l_m, h_m, 0.0, kSeed);
   std::vector<ElementMaterial> mats;
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
     const auto& tri = mesh.triangles[t];
@@ -205,7 +81,7 @@ TEST(FemHardCases, SliverElementsSolveThePatchTest) {
   // conditioning (observed ~1.3e-7 relative), far below any physical tolerance.
   constexpr double kPatchRel = 1e-6;
   constexpr double kSliverGap_m = 1e-12;
-  auto mesh = gridMesh(6, 6, 0.06, 0.06, 0.3);
+  auto mesh = gridMesh(6, 6, 0.06, 0.06, 0.3, kSeed);
   // Collapse an interior node onto the opposite edge of one of its triangles (a gap of
   // kSliverGap_m): that triangle becomes a sliver; the others must stay positive.
   const int node = 3 * 7 + 3;
@@ -252,7 +128,7 @@ TEST(FemHardCases, SliverElementsSolveThePatchTest) {
 }
 
 TEST(FemHardCases, VeryLargeTimeStepsNewmarkStableExplicitRefuses) {
-  const auto mesh = gridMesh(8, 4, 0.08, 0.04, 0.2);
+  const auto mesh = gridMesh(8, 4, 0.08, 0.04, 0.2, kSeed);
   const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(60e3, 0.45, 2.0, 0.01)));
   std::vector<int> fixed;
   for (std::size_t i = 0; i < mesh.nodeCount(); ++i) {
@@ -280,7 +156,7 @@ TEST(FemHardCases, VeryLargeTimeStepsNewmarkStableExplicitRefuses) {
 }
 
 TEST(FemHardCases, NaNInputsRefusedStateUnchanged) {
-  const auto mesh = gridMesh(4, 4, 0.04, 0.04, 0.1);
+  const auto mesh = gridMesh(4, 4, 0.04, 0.04, 0.1, kSeed);
   const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(60e3, 0.45)));
   const std::vector<int> fixed = {0, 1, 2, 3};
   for (IntegratorKind kind : {IntegratorKind::kQuasiStatic, IntegratorKind::kNewmark, IntegratorKind::kExplicit}) {

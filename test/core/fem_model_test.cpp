@@ -10,48 +10,19 @@
 #include <random>
 #include <stdexcept>
 
+#include "fem_test_support.h"
 #include "needle_guidance/tissue/fem_model.h"
 
 namespace needle_guidance::tissue {
 namespace {
+
+using namespace test_support;  // NOLINT(google-build-using-namespace): test helpers
 
 constexpr double kRoundOffRel = 1e-12;         // relative, matrix norms
 constexpr double kNullSpaceRel = 1e-12;        // |K r| / (|K| |r|)
 constexpr double kMassTol_kg = 1e-12;          // absolute on masses of O(1e-3 .. 1) kg
 constexpr unsigned kSeed = 12345;
 
-/// Structured nx x ny grid of [0, lx] x [0, ly] split into CCW triangles with alternating
-/// diagonals; interior nodes jittered by up to `jitter` of the cell size (fixed seed).
-geometry::TriangleMesh gridMesh(int nx, int ny, double lx, double ly, double jitter, unsigned seed = kSeed) {
-  geometry::TriangleMesh mesh;
-  std::mt19937 rng(seed);
-  std::uniform_real_distribution<double> uni(-1.0, 1.0);
-  const double hx = lx / nx, hy = ly / ny;
-  for (int j = 0; j <= ny; ++j) {
-    for (int i = 0; i <= nx; ++i) {
-      Point2 p(i * hx, j * hy);
-      if (i > 0 && i < nx && j > 0 && j < ny) p += Point2(jitter * hx * uni(rng), jitter * hy * uni(rng));
-      mesh.nodes.push_back(p);
-    }
-  }
-  auto id = [&](int i, int j) { return j * (nx + 1) + i; };
-  for (int j = 0; j < ny; ++j) {
-    for (int i = 0; i < nx; ++i) {
-      const int a = id(i, j), b = id(i + 1, j), c = id(i + 1, j + 1), d = id(i, j + 1);
-      if ((i + j) % 2 == 0) {
-        mesh.triangles.push_back({a, b, c});
-        mesh.triangles.push_back({a, c, d});
-      } else {
-        mesh.triangles.push_back({a, b, d});
-        mesh.triangles.push_back({b, c, d});
-      }
-      mesh.triangle_region.push_back(0);
-      mesh.triangle_region.push_back(0);
-    }
-  }
-  mesh.region_names = {"tissue"};
-  return mesh;
-}
 
 ElementMaterial tissue(double e_pa = 60e3, double nu = 0.45) {
   ElementMaterial m;
@@ -89,7 +60,7 @@ protected:
 };
 
 TEST_P(FemModelTest, StiffnessMassDampingSymmetric) {
-  const auto mesh = gridMesh(6, 5, 0.1, 0.08, 0.25);
+  const auto mesh = gridMesh(6, 5, 0.1, 0.08, 0.25, kSeed);
   const FemModel model(mesh, mixedMaterials(mesh), options());
   for (const SparseMatrix* m : {&model.stiffness(), &model.mass(), &model.damping()}) {
     EXPECT_LT(SparseMatrix(*m - SparseMatrix(m->transpose())).norm(), kRoundOffRel * m->norm());
@@ -97,7 +68,7 @@ TEST_P(FemModelTest, StiffnessMassDampingSymmetric) {
 }
 
 TEST_P(FemModelTest, RigidBodyModesInNullSpace) {
-  const auto mesh = gridMesh(7, 6, 0.1, 0.08, 0.3);
+  const auto mesh = gridMesh(7, 6, 0.1, 0.08, 0.3, kSeed);
   const FemModel model(mesh, mixedMaterials(mesh), options());
   const int n = model.nodeCount();
   Eigen::VectorXd tx = Eigen::VectorXd::Zero(2 * n), ty = tx, rot = tx;
@@ -118,7 +89,7 @@ TEST_P(FemModelTest, RigidBodyModesInNullSpace) {
 }
 
 TEST_P(FemModelTest, MassTotalsAndLumping) {
-  const auto mesh = gridMesh(5, 4, 0.1, 0.08, 0.2);
+  const auto mesh = gridMesh(5, 4, 0.1, 0.08, 0.2, kSeed);
   const auto mats = mixedMaterials(mesh);
   const FemModel model(mesh, mats, options());
   double expected_kg = 0.0;
@@ -141,7 +112,7 @@ TEST_P(FemModelTest, MassTotalsAndLumping) {
 }
 
 TEST_P(FemModelTest, MoveNodeMatchesFromScratchAssembly) {
-  auto mesh = gridMesh(8, 6, 0.1, 0.08, 0.25);
+  auto mesh = gridMesh(8, 6, 0.1, 0.08, 0.25, kSeed);
   const auto mats = mixedMaterials(mesh);
   FemModel model(mesh, mats, options());
   // Several moves of different interior nodes, like the needle tip advancing.
@@ -165,7 +136,7 @@ TEST_P(FemModelTest, MoveNodeMatchesFromScratchAssembly) {
 }
 
 TEST_P(FemModelTest, MoveNodeThatWouldInvertThrowsAndLeavesModelUnchanged) {
-  const auto mesh = gridMesh(4, 4, 0.1, 0.1, 0.0);
+  const auto mesh = gridMesh(4, 4, 0.1, 0.1, 0.0, kSeed);
   FemModel model(mesh, mixedMaterials(mesh), options());
   const SparseMatrix k_before = model.stiffness();
   const int node = 2 * 5 + 2;  // centre node (0.05, 0.05)
@@ -197,7 +168,7 @@ void expectThrowNaming(const geometry::TriangleMesh& mesh, const std::vector<Ele
 }
 
 TEST(FemModelInvalid, InvalidMaterialsThrowNamingTheElement) {
-  const auto mesh = gridMesh(3, 3, 0.03, 0.03, 0.0);
+  const auto mesh = gridMesh(3, 3, 0.03, 0.03, 0.0, kSeed);
   const std::vector<std::function<void(ElementMaterial&)>> breakers = {
       [](ElementMaterial& m) { m.young_modulus_Pa = 0.0; },
       [](ElementMaterial& m) { m.young_modulus_Pa = -1.0; },
@@ -218,13 +189,13 @@ TEST(FemModelInvalid, InvalidMaterialsThrowNamingTheElement) {
 }
 
 TEST(FemModelInvalid, InvertedInputTriangleThrowsNamingTheElement) {
-  auto mesh = gridMesh(3, 3, 0.03, 0.03, 0.0);
+  auto mesh = gridMesh(3, 3, 0.03, 0.03, 0.0, kSeed);
   std::swap(mesh.triangles[5][1], mesh.triangles[5][2]);  // clockwise
   expectThrowNaming(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), tissue()), "element 5");
-  auto degenerate = gridMesh(3, 3, 0.03, 0.03, 0.0);
+  auto degenerate = gridMesh(3, 3, 0.03, 0.03, 0.0, kSeed);
   degenerate.nodes[5] = degenerate.nodes[4];  // collapses triangles using nodes 4 and 5
   expectThrowNaming(degenerate, std::vector<ElementMaterial>(degenerate.triangleCount(), tissue()), "element");
-  auto non_finite = gridMesh(3, 3, 0.03, 0.03, 0.0);
+  auto non_finite = gridMesh(3, 3, 0.03, 0.03, 0.0, kSeed);
   non_finite.nodes[2].x() = std::nan("");
   expectThrowNaming(non_finite, std::vector<ElementMaterial>(non_finite.triangleCount(), tissue()), "node 2");
 }
@@ -232,7 +203,7 @@ TEST(FemModelInvalid, InvertedInputTriangleThrowsNamingTheElement) {
 TEST(FemModelCorotational, RigidRotationHasZeroForceAndEnergy) {
   constexpr double kForceRel = 1e-10;  // |f_int| relative to |K| |u|
   for (ElementFormulation formulation : {ElementFormulation::kLinear, ElementFormulation::kAveragedVolumetric}) {
-    const auto mesh = gridMesh(6, 5, 0.1, 0.08, 0.25);
+    const auto mesh = gridMesh(6, 5, 0.1, 0.08, 0.25, kSeed);
     FemOptions options;
     options.formulation = formulation;
     const FemModel model(mesh, mixedMaterials(mesh), options);
@@ -264,7 +235,7 @@ TEST(FemModelCorotational, RigidRotationHasZeroForceAndEnergy) {
 TEST(FemModelEnergy, ElementEnergiesSumToTotalAndVonMisesOfUniaxialStrain) {
   constexpr double kEnergyRel = 1e-12;
   for (ElementFormulation formulation : {ElementFormulation::kLinear, ElementFormulation::kAveragedVolumetric}) {
-    const auto mesh = gridMesh(5, 4, 0.1, 0.08, 0.2);
+    const auto mesh = gridMesh(5, 4, 0.1, 0.08, 0.2, kSeed);
     FemOptions options;
     options.formulation = formulation;
     options.thickness_m = 0.5;

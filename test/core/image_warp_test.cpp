@@ -40,10 +40,7 @@ scene::Scene prostateScene() {
 }
 
 geometry::TriangleMesh sceneMesh(const scene::Scene& scene) {
-  std::vector<geometry::MeshRegion> regions;
-  for (const auto& r : scene.regions) {
-    regions.push_back({r.name, r.polygon});
-  }
+  const std::vector<geometry::MeshRegion> regions = scene.meshRegions();
   geometry::MeshingOptions options;
   options.max_edge_m = scene.mesh.max_edge_m;
   options.min_edge_m = scene.mesh.min_edge_m;

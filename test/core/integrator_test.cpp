@@ -7,46 +7,19 @@
 #include <cmath>
 #include <random>
 
+#include "fem_test_support.h"
 #include "needle_guidance/tissue/integrator.h"
 
 namespace needle_guidance::tissue {
 namespace {
+
+using namespace test_support;  // NOLINT(google-build-using-namespace): test helpers
 
 constexpr double kForceTol_N = 1e-9;       // reactions of O(1) N forces
 constexpr double kSolutionRel = 1e-9;      // relative to the solution's max norm
 constexpr unsigned kSeed = 4242;
 constexpr double kDt_s = 1e-3;
 
-geometry::TriangleMesh gridMesh(int nx, int ny, double lx, double ly, double jitter, unsigned seed = kSeed) {
-  geometry::TriangleMesh mesh;
-  std::mt19937 rng(seed);
-  std::uniform_real_distribution<double> uni(-1.0, 1.0);
-  const double hx = lx / nx, hy = ly / ny;
-  for (int j = 0; j <= ny; ++j) {
-    for (int i = 0; i <= nx; ++i) {
-      Point2 p(i * hx, j * hy);
-      if (i > 0 && i < nx && j > 0 && j < ny) p += Point2(jitter * hx * uni(rng), jitter * hy * uni(rng));
-      mesh.nodes.push_back(p);
-    }
-  }
-  auto id = [&](int i, int j) { return j * (nx + 1) + i; };
-  for (int j = 0; j < ny; ++j) {
-    for (int i = 0; i < nx; ++i) {
-      const int a = id(i, j), b = id(i + 1, j), c = id(i + 1, j + 1), d = id(i, j + 1);
-      if ((i + j) % 2 == 0) {
-        mesh.triangles.push_back({a, b, c});
-        mesh.triangles.push_back({a, c, d});
-      } else {
-        mesh.triangles.push_back({a, b, d});
-        mesh.triangles.push_back({b, c, d});
-      }
-      mesh.triangle_region.push_back(0);
-      mesh.triangle_region.push_back(0);
-    }
-  }
-  mesh.region_names = {"tissue"};
-  return mesh;
-}
 
 ElementMaterial tissue(double e_pa = 60e3, double nu = 0.45) {
   ElementMaterial m;
@@ -113,7 +86,7 @@ TEST(IntegratorReactions, ReactionEqualsAppliedForceOneAndTwoElements) {
 /// along +x, shaft y-constraints added and later removed) and compares every step with a fresh
 /// integrator started from the same state.
 void compareWithFresh(IntegratorKind kind, ElementFormulation formulation, bool move_nodes) {
-  auto mesh = gridMesh(12, 10, 0.12, 0.1, 0.2);
+  auto mesh = gridMesh(12, 10, 0.12, 0.1, 0.2, kSeed);
   FemOptions options;
   options.formulation = formulation;
   FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), tissue()), options);
@@ -183,7 +156,7 @@ TEST(IntegratorCorotational, RigidRotationOfTheBoundaryGivesZeroStrainEnergy) {
   // Every boundary node prescribed to a 90-degree rigid rotation: the corotational solution is
   // the rigid rotation (zero strain energy); linear FEM reproduces the linear field (R - I) X
   // (patch test) and reports a large spurious strain energy.
-  const auto mesh = gridMesh(6, 6, 0.06, 0.06, 0.2);
+  const auto mesh = gridMesh(6, 6, 0.06, 0.06, 0.2, kSeed);
   const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), tissue()));
   Prescribed p;
   for (int node : mesh.boundaryNodes()) {
@@ -222,7 +195,7 @@ TEST(IntegratorCorotational, RigidRotationOfTheBoundaryGivesZeroStrainEnergy) {
 }
 
 TEST(IntegratorInput, BrokenPreconditionsThrow) {
-  const auto mesh = gridMesh(3, 3, 0.03, 0.03, 0.0);
+  const auto mesh = gridMesh(3, 3, 0.03, 0.03, 0.0, kSeed);
   const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), tissue()));
   EXPECT_THROW(makeIntegrator(IntegratorKind::kNewmark, model, {-1}), std::invalid_argument);
   EXPECT_THROW(makeIntegrator(IntegratorKind::kNewmark, model, {model.dofCount()}), std::invalid_argument);

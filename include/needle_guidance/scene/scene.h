@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/geometry/triangle_mesh.h"
 
 namespace needle_guidance::scene {
 
@@ -146,6 +147,8 @@ struct Scene {
 
   /// The material with this name; throws std::out_of_range if absent.
   const Material& material(const std::string& name) const;
+  /// The regions as meshing input (name and polygon, in order: mesh region index i + 1).
+  std::vector<geometry::MeshRegion> meshRegions() const;
   /// The workspace rectangle as a counter-clockwise polygon [m].
   Polygon workspacePolygon() const;
   /// True if p lies in tissue: inside the workspace (tissue scenes) [m].

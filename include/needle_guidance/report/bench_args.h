@@ -1,0 +1,19 @@
+// Command line of the benchmark tools (bench_NAME --out DIR [--quick] [--scene SPEC]).
+#pragma once
+
+#include <optional>
+#include <string>
+
+namespace needle_guidance::report {
+
+struct BenchArgs {
+  std::string out_dir;                  ///< where summary.json, CSV and plot.json go
+  bool quick = false;                   ///< a smaller sweep for a fast look
+  std::string scene = "prostate_sagittal";  ///< scene file or embedded name
+};
+
+/// Parses the arguments; on a bad or missing one prints the usage of `tool` to stderr and
+/// returns nullopt (the tool then exits with status 2).
+std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string& tool);
+
+}  // namespace needle_guidance::report
