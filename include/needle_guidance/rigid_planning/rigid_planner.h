@@ -1,0 +1,96 @@
+// Sensorless offset planning for a rigid needle in deformable tissue (dissertation ch. 4): find the
+// release point (height, depth) whose seed, once the tissue has relaxed, lands on the target.
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/scene/scene.h"
+#include "needle_guidance/tissue/tissue_simulation.h"
+
+namespace needle_guidance::rigid_planning {
+
+using geometry::Point2;
+
+/// One simulated insertion at a fixed height (4.3.2): the implant point p_a for every depth the
+/// needle passed, read in O(1) per step from the tip's reference-mesh position (after retraction
+/// the elastic tissue returns to its reference state, so a seed released at the tip ends there).
+struct DepthScan {
+  double height_m = 0.0;
+  std::vector<double> depth_m;        ///< needle tip x at each step [m]
+  std::vector<Point2> implant;        ///< p_a if released at that depth [m]
+  double best_depth_m = 0.0;          ///< z_r*(y_r), interpolated between steps [m]
+  Point2 best_implant = Point2::Zero();
+  double best_error_m = 0.0;          ///< epsilon(y_r) [m]
+  /// p_a and the error if released at depth z (linear between steps); z within the scan.
+  Point2 implantAt(double depth_m) const;
+};
+
+struct PlannerOptions {
+  double height_window_m = 0.002;      ///< search y_t +- this (4.4.3: 0.2 cm) [m]
+  double height_tolerance_m = 1e-4;    ///< golden-section stop (4.4.3: 0.01 cm) [m]
+  double depth_step_m = 1e-4;          ///< dz = v h between simulation steps [m]
+  double velocity_m_s = 0.005;         ///< v (4.4: 0.5 cm/s) [m/s]
+  double depth_margin_m = 0.005;       ///< scan to target depth + margin (<= max depth) [m]
+  int grid_points = 5;                 ///< coarse heights that detect a non-unimodal error
+  /// Stop searching heights once a scan's best error is below this (the target height is scanned
+  /// first; 0 searches the whole window) [m].
+  double error_goal_m = 1e-5;
+};
+
+/// Why a plan failed, or kOk (STYLE.md rule 8).
+enum class PlanCode { kOk, kTargetOutsideTissue, kHeightOutOfRange, kBeyondMaxDepth, kSimulationFailed };
+
+/// A plan: release point, predicted error, and what it cost.
+struct RigidPlan {
+  PlanCode code = PlanCode::kOk;
+  std::string message;
+  Point2 target = Point2::Zero();
+  Point2 release = Point2::Zero();            ///< (depth x, height y) to release the seed [m]
+  Point2 predicted_implant = Point2::Zero();  ///< where the seed is predicted to end [m]
+  double predicted_error_m = 0.0;
+  bool unimodal = true;          ///< false: the coarse grid found several minima (grid fallback)
+  int simulations = 0;
+  double seconds = 0.0;
+  std::vector<DepthScan> scans;  ///< every height simulated, in evaluation order
+  explicit operator bool() const { return code == PlanCode::kOk; }
+  const std::string& toString() const { return message; }
+};
+
+/// Plans with an in-process FEM model of the scene (the simulator of ch. 2). Thread-compatible:
+/// plan() builds its own simulation.
+class RigidPlanner {
+public:
+  /// Throws std::invalid_argument for a scene without tissue or invalid options.
+  RigidPlanner(scene::Scene scene, tissue::TissueSimOptions sim_options, PlannerOptions options);
+  RigidPlanner(const scene::Scene& scene, PlannerOptions options)
+      : RigidPlanner(scene, tissue::optionsFromScene(scene), options) {}
+
+  /// Golden-section search over height around the target (after a coarse grid that detects a
+  /// non-unimodal error and then brackets the best grid point), each height scanned over depth.
+  RigidPlan plan(const Point2& target) const;
+  /// Depth only: the needle at the target's height, best depth (4.4.2).
+  RigidPlan planDepthOnly(const Point2& target) const;
+  /// No planning: release at the target (p_r = p_t); the predicted error is what deformation
+  /// does to a naive insertion.
+  RigidPlan unplanned(const Point2& target) const;
+
+  const scene::Scene& scene() const { return scene_; }
+  const PlannerOptions& options() const { return options_; }
+
+private:
+  /// A refusal for an infeasible target, or kOk.
+  RigidPlan check(const Point2& target) const;
+  DepthScan scan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
+                 double max_depth_m) const;
+  std::unique_ptr<tissue::TissueSimulation> makeSimulation(const Point2& target) const;
+
+  scene::Scene scene_;
+  tissue::TissueSimOptions sim_options_;
+  PlannerOptions options_;
+};
+
+const char* toString(PlanCode code);
+
+}  // namespace needle_guidance::rigid_planning

@@ -1,0 +1,269 @@
+#include "needle_guidance/rigid_planning/rigid_planner.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <sstream>
+#include <stdexcept>
+
+namespace needle_guidance::rigid_planning {
+namespace {
+
+constexpr double kGolden = 0.6180339887498949;  // (sqrt(5) - 1) / 2
+constexpr double kStartOutside_m = 0.001;       // the needle starts this far outside the tissue
+
+std::string mm(double metres) {
+  std::ostringstream out;
+  out.precision(4);
+  out << 1e3 * metres << " mm";
+  return out.str();
+}
+
+/// The point of segment (a, b) closest to t, as a fraction of the segment.
+double closestFraction(const Point2& a, const Point2& b, const Point2& t) {
+  const Point2 d = b - a;
+  const double length2 = d.squaredNorm();
+  return length2 > 0.0 ? std::clamp((t - a).dot(d) / length2, 0.0, 1.0) : 0.0;
+}
+
+}  // namespace
+
+const char* toString(PlanCode code) {
+  switch (code) {
+    case PlanCode::kOk:
+      return "ok";
+    case PlanCode::kTargetOutsideTissue:
+      return "target outside tissue";
+    case PlanCode::kHeightOutOfRange:
+      return "height out of range";
+    case PlanCode::kBeyondMaxDepth:
+      return "beyond max depth";
+    case PlanCode::kSimulationFailed:
+      return "simulation failed";
+  }
+  return "?";
+}
+
+Point2 DepthScan::implantAt(double z) const {
+  if (depth_m.empty()) {
+    throw std::logic_error("DepthScan::implantAt: empty scan");
+  }
+  const auto it = std::lower_bound(depth_m.begin(), depth_m.end(), z);
+  if (it == depth_m.begin()) {
+    return implant.front();
+  }
+  if (it == depth_m.end()) {
+    return implant.back();
+  }
+  const std::size_t i = static_cast<std::size_t>(it - depth_m.begin());
+  const double s = (z - depth_m[i - 1]) / (depth_m[i] - depth_m[i - 1]);
+  return implant[i - 1] + s * (implant[i] - implant[i - 1]);
+}
+
+RigidPlanner::RigidPlanner(scene::Scene scene, tissue::TissueSimOptions sim_options, PlannerOptions options)
+    : scene_(std::move(scene)), sim_options_(std::move(sim_options)), options_(options) {
+  if (!scene_.hasTissue()) {
+    throw std::invalid_argument("RigidPlanner: scene '" + scene_.name + "' has no tissue model");
+  }
+  auto positive = [](double v) { return std::isfinite(v) && v > 0.0; };
+  if (!positive(options_.height_window_m) || !positive(options_.height_tolerance_m) ||
+      !positive(options_.depth_step_m) || !positive(options_.velocity_m_s) ||
+      !(options_.depth_margin_m >= 0.0) || options_.grid_points < 3) {
+    throw std::invalid_argument(
+        "RigidPlanner: window, tolerance, depth step and velocity must be > 0, margin >= 0 and "
+        "at least 3 grid points");
+  }
+}
+
+RigidPlan RigidPlanner::check(const Point2& target) const {
+  RigidPlan plan;
+  plan.target = target;
+  auto refuse = [&](PlanCode code, const std::string& why) {
+    plan.code = code;
+    plan.message = std::string("RigidPlanner: ") + toString(code) + ": " + why;
+    return plan;
+  };
+  if (!target.allFinite() || !scene_.inWorkspace(target)) {
+    return refuse(PlanCode::kTargetOutsideTissue,
+                  "target (" + mm(target.x()) + ", " + mm(target.y()) + ") is not in the tissue");
+  }
+  for (const auto& region : scene_.regions) {
+    if (region.rigid && region.polygon.contains(target)) {
+      return refuse(PlanCode::kTargetOutsideTissue, "target lies in rigid region '" + region.name + "'");
+    }
+  }
+  if (target.y() < scene_.needle.min_height_m || target.y() > scene_.needle.max_height_m) {
+    return refuse(PlanCode::kHeightOutOfRange,
+                  "target height " + mm(target.y()) + " is outside the needle's range [" +
+                      mm(scene_.needle.min_height_m) + ", " + mm(scene_.needle.max_height_m) + "]");
+  }
+  if (target.x() >= scene_.needle.max_depth_m) {
+    return refuse(PlanCode::kBeyondMaxDepth, "target depth " + mm(target.x()) +
+                                                 " is not short of the max depth " +
+                                                 mm(scene_.needle.max_depth_m));
+  }
+  plan.message = "ok";
+  return plan;
+}
+
+std::unique_ptr<tissue::TissueSimulation> RigidPlanner::makeSimulation(const Point2& target) const {
+  tissue::TissueSimOptions options = sim_options_;
+  // Fine along this target's needle path, whatever the scene's own targets are.
+  options.meshing.refine_points.push_back(target);
+  options.meshing.refine_lines.push_back({Point2(scene_.workspace_min.x(), target.y()), target});
+  return std::make_unique<tissue::TissueSimulation>(scene_, options);
+}
+
+DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
+                             double max_depth_m) const {
+  sim.reset();
+  DepthScan scan;
+  scan.height_m = height_m;
+  const double dz = options_.depth_step_m;
+  const double dt_s = dz / options_.velocity_m_s;
+  double x = scene_.workspace_min.x() - kStartOutside_m;
+  scan.best_error_m = 1e300;
+  while (x < max_depth_m - 1e-12) {
+    x = std::min(max_depth_m, x + dz);
+    const tissue::StepStatus status = sim.step(dt_s, height_m, x);
+    if (!status) {
+      throw std::runtime_error("RigidPlanner: simulation step refused: " + status.toString());
+    }
+    const std::optional<Point2> tip = sim.needle().tipReference();
+    if (!tip) {
+      continue;  // not in tissue yet
+    }
+    scan.depth_m.push_back(x);
+    scan.implant.push_back(*tip);
+    const std::size_t n = scan.implant.size();
+    if (n >= 2) {  // O(1) per step: the best release on the last segment (4.3.2)
+      const double s = closestFraction(scan.implant[n - 2], scan.implant[n - 1], target);
+      const Point2 p = scan.implant[n - 2] + s * (scan.implant[n - 1] - scan.implant[n - 2]);
+      const double error = (p - target).norm();
+      if (error < scan.best_error_m) {
+        scan.best_error_m = error;
+        scan.best_implant = p;
+        scan.best_depth_m = scan.depth_m[n - 2] + s * (scan.depth_m[n - 1] - scan.depth_m[n - 2]);
+      }
+    }
+  }
+  if (scan.implant.size() < 2) {
+    throw std::runtime_error("RigidPlanner: the needle never entered the tissue at height " + mm(height_m));
+  }
+  return scan;
+}
+
+RigidPlan RigidPlanner::plan(const Point2& target) const {
+  const auto start = std::chrono::steady_clock::now();
+  RigidPlan plan = check(target);
+  if (!plan) {
+    return plan;
+  }
+  try {
+    const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
+    const double max_depth = std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m);
+    auto evaluate = [&](double y) {
+      plan.scans.push_back(scan(*sim, y, target, max_depth));
+      ++plan.simulations;
+      return plan.scans.back().best_error_m;
+    };
+    // The target height first (depth-only planning, 4.4.2): often already good enough.
+    if (evaluate(target.y()) <= options_.error_goal_m) {
+      const DepthScan& s = plan.scans.back();
+      plan.release = Point2(s.best_depth_m, s.height_m);
+      plan.predicted_implant = s.best_implant;
+      plan.predicted_error_m = s.best_error_m;
+      plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+      return plan;
+    }
+    const double lo = std::max(scene_.needle.min_height_m, target.y() - options_.height_window_m);
+    const double hi = std::min(scene_.needle.max_height_m, target.y() + options_.height_window_m);
+    // Coarse grid: detects an error that is not unimodal over the window (4.3.2 notes it need not
+    // be, e.g. next to a tissue boundary) and brackets the best grid point.
+    const int n = options_.grid_points;
+    std::vector<double> ys(static_cast<std::size_t>(n)), errors(static_cast<std::size_t>(n));
+    for (int i = 0; i < n; ++i) {
+      ys[static_cast<std::size_t>(i)] = lo + (hi - lo) * i / (n - 1);
+      errors[static_cast<std::size_t>(i)] = evaluate(ys[static_cast<std::size_t>(i)]);
+    }
+    int local_minima = 0;
+    for (int i = 0; i < n; ++i) {
+      const double e = errors[static_cast<std::size_t>(i)];
+      const bool left = i == 0 || e < errors[static_cast<std::size_t>(i - 1)];
+      const bool right = i == n - 1 || e <= errors[static_cast<std::size_t>(i + 1)];
+      local_minima += left && right ? 1 : 0;
+    }
+    plan.unimodal = local_minima <= 1;
+    const std::size_t best = static_cast<std::size_t>(std::min_element(errors.begin(), errors.end()) - errors.begin());
+    // Golden-section search in the bracket around the best grid point (4.3.2, [23]).
+    double a = ys[best == 0 ? 0 : best - 1];
+    double b = ys[std::min<std::size_t>(best + 1, ys.size() - 1)];
+    double c = b - kGolden * (b - a);
+    double d = a + kGolden * (b - a);
+    double fc = evaluate(c);
+    double fd = evaluate(d);
+    while (b - a > options_.height_tolerance_m) {
+      if (fc < fd) {
+        b = d;
+        d = c;
+        fd = fc;
+        c = b - kGolden * (b - a);
+        fc = evaluate(c);
+      } else {
+        a = c;
+        c = d;
+        fc = fd;
+        d = a + kGolden * (b - a);
+        fd = evaluate(d);
+      }
+    }
+    const auto best_scan = std::min_element(plan.scans.begin(), plan.scans.end(),
+                                            [](const DepthScan& l, const DepthScan& r) {
+                                              return l.best_error_m < r.best_error_m;
+                                            });
+    plan.release = Point2(best_scan->best_depth_m, best_scan->height_m);
+    plan.predicted_implant = best_scan->best_implant;
+    plan.predicted_error_m = best_scan->best_error_m;
+    plan.message = plan.unimodal ? "ok" : "ok (error not unimodal over the window: grid fallback)";
+  } catch (const std::exception& e) {
+    plan.code = PlanCode::kSimulationFailed;
+    plan.message = e.what();
+  }
+  plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  return plan;
+}
+
+RigidPlan RigidPlanner::planDepthOnly(const Point2& target) const {
+  const auto start = std::chrono::steady_clock::now();
+  RigidPlan plan = check(target);
+  if (!plan) {
+    return plan;
+  }
+  try {
+    const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
+    const double max_depth = std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m);
+    plan.scans.push_back(scan(*sim, target.y(), target, max_depth));
+    plan.simulations = 1;
+    const DepthScan& s = plan.scans.back();
+    plan.release = Point2(s.best_depth_m, target.y());
+    plan.predicted_implant = s.best_implant;
+    plan.predicted_error_m = s.best_error_m;
+  } catch (const std::exception& e) {
+    plan.code = PlanCode::kSimulationFailed;
+    plan.message = e.what();
+  }
+  plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  return plan;
+}
+
+RigidPlan RigidPlanner::unplanned(const Point2& target) const {
+  RigidPlan plan = planDepthOnly(target);  // one scan at the target height
+  if (plan) {
+    plan.release = target;
+    plan.predicted_implant = plan.scans.back().implantAt(target.x());
+    plan.predicted_error_m = (plan.predicted_implant - target).norm();
+  }
+  return plan;
+}
+
+}  // namespace needle_guidance::rigid_planning

@@ -1,0 +1,132 @@
+// Benchmark of rigid-needle offset planning (issue 4, dissertation 4.4): 12 targets in the
+// prostate, golden section over y_t +- 0.2 cm to 0.01 cm, needle at 0.5 cm/s. For each target:
+// unplanned, depth-only and planned release points, their predicted errors, the error measured
+// by an independent full simulation (insert to the release point, implant, retract), and the
+// planning time. Usage: bench_rigid --out DIR [--quick]
+#include <algorithm>
+#include <cmath>
+#include <iostream>
+#include <numeric>
+#include <optional>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/report/bench_args.h"
+#include "needle_guidance/report/table.h"
+#include "needle_guidance/rigid_planning/rigid_planner.h"
+
+namespace ng = needle_guidance;
+using ng::geometry::Point2;
+
+namespace {
+
+/// Inserts at the release height to the release depth, implants, retracts, and returns where
+/// the seed ends up: the ground truth a plan's prediction is checked against.
+Point2 simulateImplant(const ng::scene::Scene& scene, const ng::tissue::TissueSimOptions& options,
+                       const Point2& release, const Point2& target, double dz_m, double v_m_s) {
+  ng::tissue::TissueSimOptions o = options;
+  o.meshing.refine_points.push_back(target);
+  o.meshing.refine_lines.push_back({Point2(scene.workspace_min.x(), target.y()), target});
+  ng::tissue::TissueSimulation sim(scene, o);
+  const double dt = dz_m / v_m_s;
+  double x = scene.workspace_min.x() - 0.001;
+  auto step = [&](double next) {
+    const auto status = sim.step(dt, release.y(), next);
+    if (!status) {
+      throw std::runtime_error(status.toString());
+    }
+    x = next;
+  };
+  while (x < release.x() - 1e-12) {
+    step(std::min(release.x(), x + dz_m));
+  }
+  const auto id = sim.implantSeed();
+  if (!id) {
+    throw std::runtime_error("seed not implanted");
+  }
+  while (x > scene.workspace_min.x() - 0.001 + 1e-12) {
+    step(std::max(scene.workspace_min.x() - 0.001, x - dz_m));
+  }
+  return sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
+}
+
+double mean(const std::vector<double>& v) { return std::accumulate(v.begin(), v.end(), 0.0) / v.size(); }
+double sd(const std::vector<double>& v) {
+  const double m = mean(v);
+  double s = 0.0;
+  for (double x : v) {
+    s += (x - m) * (x - m);
+  }
+  return v.size() > 1 ? std::sqrt(s / (v.size() - 1)) : 0.0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  const std::optional<ng::report::BenchArgs> args = ng::report::parseBenchArgs(argc, argv, "bench_rigid");
+  if (!args) {
+    return 2;
+  }
+  try {
+    const ng::scene::Scene scene = ng::scene::loadSceneSpec(args->scene);
+    ng::rigid_planning::PlannerOptions options;  // dissertation 4.4: +-0.2 cm, 0.01 cm, 0.5 cm/s
+    const ng::rigid_planning::RigidPlanner planner(scene, options);
+    const std::size_t count = args->quick ? std::min<std::size_t>(3, scene.targets.size()) : scene.targets.size();
+    ng::report::Table table({"target", "target_x_mm", "target_y_mm", "unplanned_error_mm",
+                             "depth_only_error_mm", "planned_error_mm", "planned_measured_error_mm",
+                             "release_x_mm", "release_y_mm", "simulations", "plan_s", "unimodal"},
+                            6);
+    std::vector<double> unplanned_cm, depth_cm, planned_cm, measured_cm, seconds;
+    for (std::size_t i = 0; i < count; ++i) {
+      const auto& target = scene.targets[i];
+      const auto unplanned = planner.unplanned(target.position);
+      const auto depth_only = planner.planDepthOnly(target.position);
+      const auto plan = planner.plan(target.position);
+      if (!unplanned || !depth_only || !plan) {
+        throw std::runtime_error(target.name + ": " + plan.toString());
+      }
+      const Point2 seed = simulateImplant(scene, ng::tissue::optionsFromScene(scene), plan.release,
+                                          target.position, options.depth_step_m, options.velocity_m_s);
+      const double measured = (seed - target.position).norm();
+      unplanned_cm.push_back(1e2 * unplanned.predicted_error_m);
+      depth_cm.push_back(1e2 * depth_only.predicted_error_m);
+      planned_cm.push_back(1e2 * plan.predicted_error_m);
+      measured_cm.push_back(1e2 * measured);
+      seconds.push_back(plan.seconds);
+      table.addRow({target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
+                    1e3 * unplanned.predicted_error_m, 1e3 * depth_only.predicted_error_m,
+                    1e3 * plan.predicted_error_m, 1e3 * measured, 1e3 * plan.release.x(),
+                    1e3 * plan.release.y(), double(plan.simulations), plan.seconds,
+                    std::string(plan.unimodal ? "yes" : "no")});
+      std::cout << target.name << ": unplanned " << 1e3 * unplanned.predicted_error_m << " mm, depth-only "
+                << 1e3 * depth_only.predicted_error_m << " mm, planned " << 1e3 * plan.predicted_error_m
+                << " mm (measured " << 1e3 * measured << " mm), " << plan.simulations << " simulations, "
+                << plan.seconds << " s\n"
+                << std::flush;
+    }
+    std::ostringstream json;
+    json.precision(6);
+    json << "{\n  \"benchmark\": \"rigid\",\n  \"scene\": \"" << scene.name << "\",\n"
+         << "  \"quick\": " << (args->quick ? "true" : "false") << ",\n  \"targets\": " << count << ",\n"
+         << "  \"unplanned_error_cm_mean\": " << mean(unplanned_cm) << ",\n"
+         << "  \"unplanned_error_cm_sd\": " << sd(unplanned_cm) << ",\n"
+         << "  \"depth_only_error_cm_mean\": " << mean(depth_cm) << ",\n"
+         << "  \"planned_error_cm_mean\": " << mean(planned_cm) << ",\n"
+         << "  \"planned_error_cm_sd\": " << sd(planned_cm) << ",\n"
+         << "  \"planned_measured_error_cm_mean\": " << mean(measured_cm) << ",\n"
+         << "  \"planned_measured_error_cm_max\": " << *std::max_element(measured_cm.begin(), measured_cm.end())
+         << ",\n  \"seconds_per_target_mean\": " << mean(seconds) << "\n}\n";
+    table.writeCsv(args->out_dir + "/rigid.csv");
+    ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
+    ng::report::writeTextFile(
+        args->out_dir + "/plot.json",
+        R"json([{"csv": "rigid.csv", "x": "plan_s", "y": "planned_error_mm", "annotate": "target",
+  "title": "Planned error vs planning time per target", "logy": true, "png": "planned_error_vs_time.png"}])json");
+    std::cout << table.toText() << json.str();
+  } catch (const std::exception& e) {
+    std::cerr << "bench_rigid: " << e.what() << "\n";
+    return 1;
+  }
+  return 0;
+}
