@@ -2,6 +2,7 @@
 
 #include <actionlib/client/simple_action_client.h>
 #include <geometry_msgs/PoseArray.h>
+#include <std_srvs/Trigger.h>
 #include <geometry_msgs/PoseStamped.h>
 
 #include <algorithm>
@@ -12,6 +13,8 @@
 
 #include "needle_guidance/ImplantSeed.h"
 #include "needle_guidance/LinearMoveAction.h"
+#include "needle_guidance/PlanRigid.h"
+#include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 
@@ -56,6 +59,9 @@ InsertionProcedureRos::InsertionProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   const scene::Scene scene = scene::loadSceneSpec(scene_spec_);
   robot_ns_ = ros_params::text(private_nh, "robot", "insertion_robot");
   tissue_ns_ = ros_params::text(private_nh, "tissue", "");
+  planner_ns_ = ros_params::text(private_nh, "planner", "");
+  reset_between_needles_ =
+      ros_params::number(private_nh, "reset_between_needles", 1.0, 0.0, 1.0, "(0 or 1)") > 0.5;
   report_dir_ = ros_params::text(private_nh, "report_dir", "", true);
   insertion_velocity_m_s_ = ros_params::number(private_nh, "insertion_velocity_m_s",
                                                scene.needle.insertion_velocity_m_s, 1e-4, 1.0, "m/s");
@@ -88,9 +94,11 @@ bool InsertionProcedureRos::run() {
         last_tip = *msg;
       });
   ros::ServiceClient implant;
+  ros::ServiceClient reset_tissue;
   ros::Subscriber seeds_sub;
   if (!tissue_ns_.empty()) {
     implant = nh_.serviceClient<ImplantSeed>(tissue_ns_ + "/implant_seed");
+    reset_tissue = nh_.serviceClient<std_srvs::Trigger>(tissue_ns_ + "/reset");
     if (!implant.waitForExistence(ros::Duration(30.0))) {
       ROS_FATAL_STREAM("insertion_procedure: " << tissue_ns_ << "/implant_seed did not come up in 30 s");
       return false;
@@ -102,8 +110,21 @@ bool InsertionProcedureRos::run() {
         });
   }
 
+  ros::ServiceClient planner;
+  if (!planner_ns_.empty()) {
+    planner = nh_.serviceClient<PlanRigid>(planner_ns_ + "/plan");
+    if (!planner.waitForExistence(ros::Duration(30.0))) {
+      ROS_FATAL_STREAM("insertion_procedure: " << planner_ns_ << "/plan did not come up in 30 s");
+      return false;
+    }
+  }
   struct Record {
     const scene::Target* target;
+    geometry::Point2 aim = geometry::Point2::Zero();  ///< release point commanded [m]
+    double predicted_error_m = NAN;
+    double unplanned_predicted_m = NAN;
+    double plan_s = NAN;
+    geometry::Point2 seed{NAN, NAN};  ///< seed position once the needle is out and at rest [m]
     MoveOutcome insert, retract;
     double tip_error_mm = NAN;
     int seed_id = -1;
@@ -118,8 +139,23 @@ bool InsertionProcedureRos::run() {
   for (std::size_t i = 0; i < count && ros::ok(); ++i) {
     Record r;
     r.target = &scene.targets[i];
-    const double height = r.target->position.y();
-    const double depth = r.target->position.x();
+    r.aim = r.target->position;
+    if (!planner_ns_.empty()) {
+      PlanRigid srv;
+      srv.request.target = ros_conversions::toMessage(r.target->position);
+      if (!planner.call(srv) || !srv.response.success) {
+        r.status = "plan failed: " + srv.response.message;
+        ROS_ERROR_STREAM("insertion_procedure: " << r.target->name << " " << r.status);
+        records.push_back(r);
+        continue;
+      }
+      r.aim = {srv.response.release.x, srv.response.release.y};
+      r.predicted_error_m = srv.response.predicted_error_m;
+      r.unplanned_predicted_m = srv.response.unplanned_error_m;
+      r.plan_s = srv.response.planning_time_s;
+    }
+    const double height = r.aim.y();
+    const double depth = r.aim.x();
     const MoveOutcome h = move(height_client, height, height_velocity_m_s_, 0.0);
     if (h.ok) {
       r.insert = move(insert_client, depth, insertion_velocity_m_s_, depth_now);
@@ -128,7 +164,7 @@ bool InsertionProcedureRos::run() {
     {
       std::lock_guard<std::mutex> lock(mutex);
       r.tip_error_mm = 1e3 * (geometry::Point2(last_tip.pose.position.x, last_tip.pose.position.y) -
-                              r.target->position).norm();
+                              r.aim).norm();
     }
     if (!tissue_ns_.empty() && r.insert.ok) {
       ImplantSeed srv;
@@ -140,6 +176,20 @@ bool InsertionProcedureRos::run() {
       }
     }
     r.retract = move(retract_client, retract_depth_m_, retract_velocity_m_s_, depth);
+    if (r.seed_id >= 0) {
+      ros::Duration(0.4).sleep();  // the tissue comes to rest; seeds are republished at 20 Hz
+      std::lock_guard<std::mutex> lock(mutex);
+      if (static_cast<std::size_t>(r.seed_id) < last_seeds.poses.size()) {
+        const auto& p = last_seeds.poses[static_cast<std::size_t>(r.seed_id)].position;
+        r.seed = {p.x, p.y};
+      }
+    }
+    if (reset_tissue && reset_between_needles_) {
+      std_srvs::Trigger trigger;
+      reset_tissue.call(trigger);  // the next needle meets undisturbed tissue (4.4)
+      std::lock_guard<std::mutex> lock(mutex);
+      last_seeds.poses.clear();
+    }
     depth_now = r.retract.ok ? retract_depth_m_ : depth;
     r.status = !h.ok ? "height " + h.state
                : !r.insert.ok ? "insert " + r.insert.state
@@ -150,25 +200,21 @@ bool InsertionProcedureRos::run() {
                                             << r.insert.result.duration_s << " s)");
     records.push_back(r);
   }
-  if (!tissue_ns_.empty()) {
-    ros::Duration(0.5).sleep();  // seeds settle with the needle out; take their final positions
-  }
-  geometry_msgs::PoseArray seeds;
-  {
-    std::lock_guard<std::mutex> lock(mutex);
-    seeds = last_seeds;
-  }
 
-  report::Table moves({"target", "target_x_mm", "target_y_mm", "depth_reached_mm", "depth_error_mm",
-                       "tip_error_mm", "insert_s", "insert_velocity_mm_s", "velocity_error_pct",
-                       "retract_s", "seed_x_mm", "seed_y_mm", "seed_error_mm", "status"},
+  report::Table moves({"target", "target_x_mm", "target_y_mm", "release_x_mm", "release_y_mm",
+                       "depth_reached_mm", "depth_error_mm", "tip_error_mm", "insert_s",
+                       "insert_velocity_mm_s", "velocity_error_pct", "retract_s", "seed_x_mm",
+                       "seed_y_mm", "seed_error_mm", "predicted_error_mm", "unplanned_predicted_mm",
+                       "plan_s", "status"},
                       6);
+  double sum_plan_s = 0.0;
   bool all_ok = records.size() == count;
   double max_depth_error_mm = 0.0, max_velocity_error_pct = 0.0, max_tip_error_mm = 0.0;
   double max_seed_error_mm = 0.0, sum_seed_error_mm = 0.0;
   int seeds_measured = 0;
   for (Record& r : records) {
-    const double depth_error_mm = 1e3 * std::abs(r.insert.result.reached_m - r.target->position.x());
+    const double depth_error_mm = 1e3 * std::abs(r.insert.result.reached_m - r.aim.x());
+    sum_plan_s += std::isfinite(r.plan_s) ? r.plan_s : 0.0;
     const double velocity_error_pct = 100.0 *
                                       std::abs(r.insert.result.mean_velocity_m_s - insertion_velocity_m_s_) /
                                       insertion_velocity_m_s_;
@@ -176,11 +222,9 @@ bool InsertionProcedureRos::run() {
                              velocity_error_pct > 100.0 * velocity_tolerance_)) {
       r.status = "out of tolerance";
     }
-    geometry::Point2 seed(NAN, NAN);
+    const geometry::Point2 seed = r.seed;
     double seed_error_mm = NAN;
-    if (r.seed_id >= 0 && static_cast<std::size_t>(r.seed_id) < seeds.poses.size()) {
-      const auto& p = seeds.poses[static_cast<std::size_t>(r.seed_id)].position;
-      seed = {p.x, p.y};
+    if (seed.allFinite()) {
       seed_error_mm = 1e3 * (seed - r.target->position).norm();
       max_seed_error_mm = std::max(max_seed_error_mm, seed_error_mm);
       sum_seed_error_mm += seed_error_mm;
@@ -193,17 +237,21 @@ bool InsertionProcedureRos::run() {
     max_velocity_error_pct = std::max(max_velocity_error_pct, velocity_error_pct);
     max_tip_error_mm = std::max(max_tip_error_mm, std::isfinite(r.tip_error_mm) ? r.tip_error_mm : 1e9);
     moves.addRow({r.target->name, 1e3 * r.target->position.x(), 1e3 * r.target->position.y(),
-                  1e3 * r.insert.result.reached_m, depth_error_mm, r.tip_error_mm,
+                  1e3 * r.aim.x(), 1e3 * r.aim.y(), 1e3 * r.insert.result.reached_m, depth_error_mm,
+                  r.tip_error_mm,
                   r.insert.result.duration_s, 1e3 * r.insert.result.mean_velocity_m_s,
                   velocity_error_pct, r.retract.result.duration_s, 1e3 * seed.x(), 1e3 * seed.y(),
-                  seed_error_mm, r.status});
+                  seed_error_mm, 1e3 * r.predicted_error_m, 1e3 * r.unplanned_predicted_m, r.plan_s,
+                  r.status});
   }
   const double total_s = (ros::WallTime::now() - start).toSec();
   const bool with_tissue = !tissue_ns_.empty();
+  const bool planned = !planner_ns_.empty();
 
   std::ostringstream json;
   json.precision(9);
-  json << "{\n  \"procedure\": \"" << (with_tissue ? "unplanned_seed_implant" : "robot_insertion")
+  json << "{\n  \"procedure\": \""
+       << (planned ? "rigid_seed_implant" : with_tissue ? "unplanned_seed_implant" : "robot_insertion")
        << "\",\n  \"scene\": \"" << scene.name << "\",\n  \"success\": " << (all_ok ? "true" : "false")
        << ",\n  \"targets\": " << count << ",\n  \"max_depth_error_mm\": " << max_depth_error_mm
        << ",\n  \"max_tip_error_mm\": " << max_tip_error_mm
@@ -213,9 +261,15 @@ bool InsertionProcedureRos::run() {
          << ",\n  \"mean_seed_error_mm\": "
          << (seeds_measured > 0 ? sum_seed_error_mm / seeds_measured : -1.0);
   }
+  if (planned) {
+    json << ",\n  \"planning_s_mean\": " << (count > 0 ? sum_plan_s / count : 0.0);
+  }
   json << ",\n  \"wall_time_s\": " << total_s << "\n}\n";
   std::ostringstream md;
-  md << "# " << (with_tissue ? "Seed implant without deformation compensation" : "Robot insertion")
+  md << "# "
+     << (planned       ? "Rigid seed implant with offset planning (ch. 4)"
+         : with_tissue ? "Seed implant without deformation compensation"
+                       : "Robot insertion")
      << " — scene `" << scene.name << "`\n\n"
      << "Each target: move to its height, insert to its depth at " << 1e3 * insertion_velocity_m_s_
      << " mm/s" << (with_tissue ? ", implant a seed" : "") << ", retract to "
@@ -229,7 +283,8 @@ bool InsertionProcedureRos::run() {
   moves.writeCsv(report_dir_ + "/moves.csv");
   report::writeTextFile(report_dir_ + "/summary.json", json.str());
   report::writeTextFile(report_dir_ + "/summary.md", md.str());
-  std::cout << "\n== " << (with_tissue ? "Seed implant (no compensation)" : "Robot insertion")
+  std::cout << "\n== "
+            << (planned ? "Rigid seed implant (planned)" : with_tissue ? "Seed implant (no compensation)" : "Robot insertion")
             << " on scene '" << scene.name << "' ==\n"
             << moves.toText() << (all_ok ? "PASS" : "FAIL") << ": " << count
             << " targets, max depth error " << max_depth_error_mm << " mm, max velocity error "

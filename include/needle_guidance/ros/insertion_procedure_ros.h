@@ -24,6 +24,10 @@ private:
   std::string scene_spec_;
   std::string robot_ns_;
   std::string tissue_ns_;  ///< tissue_sim namespace; "" = no tissue (no seeds)
+  std::string planner_ns_; ///< rigid_planner namespace; "" = aim at the target (no planning)
+  /// Reset the tissue after each needle (each insertion independent, as dissertation 4.4
+  /// assumes); false keeps earlier needle tracks in the tissue.
+  bool reset_between_needles_ = true;
   std::string report_dir_;
   double insertion_velocity_m_s_ = 0.0;
   double retract_velocity_m_s_ = 0.0;

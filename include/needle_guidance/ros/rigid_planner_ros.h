@@ -1,0 +1,24 @@
+// ROS wrapper of the rigid-needle offset planner (node rigid_planner).
+#pragma once
+
+#include <ros/ros.h>
+
+#include <memory>
+
+#include "needle_guidance/PlanRigid.h"
+#include "needle_guidance/rigid_planning/rigid_planner.h"
+
+namespace needle_guidance {
+
+/// Reads parameters once (throws std::runtime_error on a bad one) and serves `~plan`.
+class RigidPlannerRos {
+public:
+  RigidPlannerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh);
+
+private:
+  bool onPlan(PlanRigid::Request& req, PlanRigid::Response& res);
+  std::unique_ptr<rigid_planning::RigidPlanner> planner_;
+  ros::ServiceServer plan_srv_;
+};
+
+}  // namespace needle_guidance
