@@ -1,6 +1,7 @@
 #include "needle_guidance/rigid_planning/rigid_planner.h"
 
 #include <algorithm>
+#include <random>
 #include <chrono>
 #include <cmath>
 #include <sstream>
@@ -153,38 +154,25 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
   return scan;
 }
 
-RigidPlan RigidPlanner::plan(const Point2& target) const {
-  const auto start = std::chrono::steady_clock::now();
-  RigidPlan plan = check(target);
-  if (!plan) {
-    return plan;
-  }
-  try {
-    const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
-    const double max_depth = std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m);
-    auto evaluate = [&](double y) {
-      plan.scans.push_back(scan(*sim, y, target, max_depth));
-      ++plan.simulations;
-      return plan.scans.back().best_error_m;
-    };
-    // The target height first (depth-only planning, 4.4.2): often already good enough.
-    if (evaluate(target.y()) <= options_.error_goal_m) {
-      const DepthScan& s = plan.scans.back();
-      plan.release = Point2(s.best_depth_m, s.height_m);
-      plan.predicted_implant = s.best_implant;
-      plan.predicted_error_m = s.best_error_m;
-      plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-      return plan;
-    }
+void RigidPlanner::searchHeights(RigidPlan& plan, const std::function<HeightResult(double)>& evaluate,
+                                 bool early_stop) const {
+  const Point2 target = plan.target;
+  std::vector<std::pair<double, HeightResult>> seen;
+  auto f = [&](double y) {
+    seen.emplace_back(y, evaluate(y));
+    return seen.back().second.error_m;
+  };
+  // The target height first (depth-only planning, 4.4.2): often already good enough.
+  if (f(target.y()) > options_.error_goal_m || !early_stop) {
     const double lo = std::max(scene_.needle.min_height_m, target.y() - options_.height_window_m);
     const double hi = std::min(scene_.needle.max_height_m, target.y() + options_.height_window_m);
-    // Coarse grid: detects an error that is not unimodal over the window (4.3.2 notes it need not
-    // be, e.g. next to a tissue boundary) and brackets the best grid point.
+    // Coarse grid: detects an error that is not unimodal over the window (4.3.2 notes it need
+    // not be, e.g. next to a tissue boundary) and brackets the best grid point.
     const int n = options_.grid_points;
     std::vector<double> ys(static_cast<std::size_t>(n)), errors(static_cast<std::size_t>(n));
     for (int i = 0; i < n; ++i) {
       ys[static_cast<std::size_t>(i)] = lo + (hi - lo) * i / (n - 1);
-      errors[static_cast<std::size_t>(i)] = evaluate(ys[static_cast<std::size_t>(i)]);
+      errors[static_cast<std::size_t>(i)] = f(ys[static_cast<std::size_t>(i)]);
     }
     int local_minima = 0;
     for (int i = 0; i < n; ++i) {
@@ -194,37 +182,152 @@ RigidPlan RigidPlanner::plan(const Point2& target) const {
       local_minima += left && right ? 1 : 0;
     }
     plan.unimodal = local_minima <= 1;
-    const std::size_t best = static_cast<std::size_t>(std::min_element(errors.begin(), errors.end()) - errors.begin());
+    const std::size_t best =
+        static_cast<std::size_t>(std::min_element(errors.begin(), errors.end()) - errors.begin());
     // Golden-section search in the bracket around the best grid point (4.3.2, [23]).
     double a = ys[best == 0 ? 0 : best - 1];
     double b = ys[std::min<std::size_t>(best + 1, ys.size() - 1)];
     double c = b - kGolden * (b - a);
     double d = a + kGolden * (b - a);
-    double fc = evaluate(c);
-    double fd = evaluate(d);
+    double fc = f(c);
+    double fd = f(d);
     while (b - a > options_.height_tolerance_m) {
       if (fc < fd) {
         b = d;
         d = c;
         fd = fc;
         c = b - kGolden * (b - a);
-        fc = evaluate(c);
+        fc = f(c);
       } else {
         a = c;
         c = d;
         fc = fd;
         d = a + kGolden * (b - a);
-        fd = evaluate(d);
+        fd = f(d);
       }
     }
-    const auto best_scan = std::min_element(plan.scans.begin(), plan.scans.end(),
-                                            [](const DepthScan& l, const DepthScan& r) {
-                                              return l.best_error_m < r.best_error_m;
-                                            });
-    plan.release = Point2(best_scan->best_depth_m, best_scan->height_m);
-    plan.predicted_implant = best_scan->best_implant;
-    plan.predicted_error_m = best_scan->best_error_m;
-    plan.message = plan.unimodal ? "ok" : "ok (error not unimodal over the window: grid fallback)";
+  }
+  const auto best = std::min_element(seen.begin(), seen.end(), [](const auto& l, const auto& r) {
+    return l.second.error_m < r.second.error_m;
+  });
+  plan.release = Point2(best->second.depth_m, best->first);
+  plan.predicted_implant = best->second.implant;
+  plan.predicted_error_m = best->second.error_m;
+  plan.message = plan.unimodal ? "ok" : "ok (error not unimodal over the window: grid fallback)";
+}
+
+RigidPlan RigidPlanner::plan(const Point2& target) const {
+  const auto start = std::chrono::steady_clock::now();
+  RigidPlan plan = check(target);
+  if (!plan) {
+    return plan;
+  }
+  try {
+    const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
+    const double max_depth = std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m);
+    searchHeights(
+        plan,
+        [&](double y) {
+          plan.scans.push_back(scan(*sim, y, target, max_depth));
+          ++plan.simulations;
+          const DepthScan& s = plan.scans.back();
+          return HeightResult{s.best_error_m, s.best_depth_m, s.best_implant};
+        },
+        /*early_stop=*/true);
+  } catch (const std::exception& e) {
+    plan.code = PlanCode::kSimulationFailed;
+    plan.message = e.what();
+  }
+  plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  return plan;
+}
+
+scene::Scene withStiffnessFactors(const scene::Scene& scene, const std::vector<double>& factors) {
+  if (factors.size() != scene.materials.size()) {
+    throw std::invalid_argument("withStiffnessFactors: " + std::to_string(factors.size()) +
+                                " factors for " + std::to_string(scene.materials.size()) + " materials");
+  }
+  scene::Scene out = scene;
+  for (std::size_t i = 0; i < factors.size(); ++i) {
+    if (!(factors[i] > 0.0) || !std::isfinite(factors[i])) {
+      throw std::invalid_argument("withStiffnessFactors: factor " + std::to_string(factors[i]) +
+                                  " for material '" + scene.materials[i].name + "' must be > 0");
+    }
+    out.materials[i].young_modulus_Pa *= factors[i];
+  }
+  return out;
+}
+
+std::vector<std::vector<double>> drawStiffnessFactors(const scene::Scene& scene,
+                                                      const StiffnessUncertainty& u) {
+  if (!(u.relative >= 0.0 && u.relative < 1.0) || u.samples < 1) {
+    throw std::invalid_argument("drawStiffnessFactors: relative uncertainty must be in [0, 1) and samples >= 1");
+  }
+  std::mt19937 rng(u.seed);
+  std::uniform_real_distribution<double> factor(1.0 - u.relative, 1.0 + u.relative);
+  std::vector<std::vector<double>> out;
+  const std::size_t m = scene.materials.size();
+  const std::size_t corners = m < 16 ? (std::size_t{1} << m) : 0;
+  if (u.corners_first && corners <= static_cast<std::size_t>(u.samples)) {
+    for (std::size_t c = 0; c < corners; ++c) {
+      std::vector<double> sample;
+      for (std::size_t i = 0; i < m; ++i) {
+        sample.push_back((c >> i) & 1U ? 1.0 + u.relative : 1.0 - u.relative);
+      }
+      out.push_back(sample);
+    }
+  }
+  while (out.size() < static_cast<std::size_t>(u.samples)) {
+    std::vector<double> sample;
+    for (std::size_t i = 0; i < m; ++i) {
+      sample.push_back(factor(rng));
+    }
+    out.push_back(sample);
+  }
+  return out;
+}
+
+RigidPlan RigidPlanner::planRobust(const Point2& target, const StiffnessUncertainty& uncertainty) const {
+  const auto start = std::chrono::steady_clock::now();
+  RigidPlan plan = check(target);
+  if (!plan) {
+    return plan;
+  }
+  try {
+    std::vector<std::unique_ptr<RigidPlanner>> models;
+    std::vector<std::unique_ptr<tissue::TissueSimulation>> sims;
+    for (const auto& factors : drawStiffnessFactors(scene_, uncertainty)) {
+      models.push_back(std::make_unique<RigidPlanner>(withStiffnessFactors(scene_, factors), sim_options_, options_));
+      sims.push_back(models.back()->makeSimulation(target));
+    }
+    const double max_depth = std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m);
+    searchHeights(
+        plan,
+        [&](double y) {
+          std::vector<DepthScan> scans;
+          for (std::size_t k = 0; k < sims.size(); ++k) {
+            scans.push_back(models[k]->scan(*sims[k], y, target, max_depth));
+            ++plan.simulations;
+          }
+          // The depth that minimises the mean (or worst) error over the samples, on the first
+          // sample's depth grid, each sample interpolated there.
+          HeightResult best{1e300, 0.0, Point2::Zero()};
+          for (double z : scans.front().depth_m) {
+            double objective = 0.0;
+            Point2 mean_implant = Point2::Zero();
+            for (const DepthScan& s : scans) {
+              const Point2 p = s.implantAt(z);
+              const double e = (p - target).norm();
+              objective = uncertainty.worst_case ? std::max(objective, e) : objective + e / scans.size();
+              mean_implant += p / static_cast<double>(scans.size());
+            }
+            if (objective < best.error_m) {
+              best = {objective, z, mean_implant};
+            }
+          }
+          return best;
+        },
+        /*early_stop=*/false);
   } catch (const std::exception& e) {
     plan.code = PlanCode::kSimulationFailed;
     plan.message = e.what();

@@ -51,6 +51,13 @@ Point2 simulateImplant(const ng::scene::Scene& scene, const ng::tissue::TissueSi
   return sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
 }
 
+double percentile(std::vector<double> v, double p) {
+  std::sort(v.begin(), v.end());
+  const double pos = p * (v.size() - 1);
+  const std::size_t i = static_cast<std::size_t>(pos);
+  return i + 1 < v.size() ? v[i] + (pos - i) * (v[i + 1] - v[i]) : v.back();
+}
+
 double mean(const std::vector<double>& v) { return std::accumulate(v.begin(), v.end(), 0.0) / v.size(); }
 double sd(const std::vector<double>& v) {
   const double m = mean(v);
@@ -78,6 +85,16 @@ int main(int argc, char** argv) {
                              "release_x_mm", "release_y_mm", "simulations", "plan_s", "unimodal"},
                             6);
     std::vector<double> unplanned_cm, depth_cm, planned_cm, measured_cm, seconds;
+    // Robustness: plans made on the nominal model or robustly over +-30 % stiffness, executed on
+    // "true patients" whose stiffness differs from the model (another seed).
+    ng::rigid_planning::StiffnessUncertainty uncertainty;  // +-30 %, 5 samples, seed 1
+    ng::rigid_planning::StiffnessUncertainty patients = uncertainty;
+    patients.samples = args->quick ? 4 : 8;
+    patients.seed = 2026;
+    patients.corners_first = false;  // true patients: uniform over the box
+    const auto patient_factors = ng::rigid_planning::drawStiffnessFactors(scene, patients);
+    std::vector<double> nominal_patient_cm, robust_patient_cm, robust_seconds;
+    ng::report::Table robust_table({"target", "patient", "nominal_error_mm", "robust_error_mm"}, 6);
     for (std::size_t i = 0; i < count; ++i) {
       const auto& target = scene.targets[i];
       const auto unplanned = planner.unplanned(target.position);
@@ -89,6 +106,24 @@ int main(int argc, char** argv) {
       const Point2 seed = simulateImplant(scene, ng::tissue::optionsFromScene(scene), plan.release,
                                           target.position, options.depth_step_m, options.velocity_m_s);
       const double measured = (seed - target.position).norm();
+      const auto robust = planner.planRobust(target.position, uncertainty);
+      if (!robust) {
+        throw std::runtime_error(target.name + " robust: " + robust.toString());
+      }
+      robust_seconds.push_back(robust.seconds);
+      for (std::size_t k = 0; k < patient_factors.size(); ++k) {
+        const ng::scene::Scene patient = ng::rigid_planning::withStiffnessFactors(scene, patient_factors[k]);
+        const auto options_k = ng::tissue::optionsFromScene(patient);
+        const double e_nominal = (simulateImplant(patient, options_k, plan.release, target.position,
+                                                  options.depth_step_m, options.velocity_m_s) -
+                                  target.position).norm();
+        const double e_robust = (simulateImplant(patient, options_k, robust.release, target.position,
+                                                 options.depth_step_m, options.velocity_m_s) -
+                                 target.position).norm();
+        nominal_patient_cm.push_back(1e2 * e_nominal);
+        robust_patient_cm.push_back(1e2 * e_robust);
+        robust_table.addRow({target.name, double(k), 1e3 * e_nominal, 1e3 * e_robust});
+      }
       unplanned_cm.push_back(1e2 * unplanned.predicted_error_m);
       depth_cm.push_back(1e2 * depth_only.predicted_error_m);
       planned_cm.push_back(1e2 * plan.predicted_error_m);
@@ -102,7 +137,9 @@ int main(int argc, char** argv) {
       std::cout << target.name << ": unplanned " << 1e3 * unplanned.predicted_error_m << " mm, depth-only "
                 << 1e3 * depth_only.predicted_error_m << " mm, planned " << 1e3 * plan.predicted_error_m
                 << " mm (measured " << 1e3 * measured << " mm), " << plan.simulations << " simulations, "
-                << plan.seconds << " s\n"
+                << plan.seconds << " s; robust plan " << robust.seconds << " s, patients nominal/robust p95 so far "
+                << 10.0 * percentile(nominal_patient_cm, 0.95) << "/" << 10.0 * percentile(robust_patient_cm, 0.95)
+                << " mm\n"
                 << std::flush;
     }
     std::ostringstream json;
@@ -116,13 +153,23 @@ int main(int argc, char** argv) {
          << "  \"planned_error_cm_sd\": " << sd(planned_cm) << ",\n"
          << "  \"planned_measured_error_cm_mean\": " << mean(measured_cm) << ",\n"
          << "  \"planned_measured_error_cm_max\": " << *std::max_element(measured_cm.begin(), measured_cm.end())
-         << ",\n  \"seconds_per_target_mean\": " << mean(seconds) << "\n}\n";
+         << ",\n  \"seconds_per_target_mean\": " << mean(seconds)
+         << ",\n  \"stiffness_uncertainty\": " << uncertainty.relative
+         << ",\n  \"patients_per_target\": " << patients.samples
+         << ",\n  \"nominal_p95_error_cm\": " << percentile(nominal_patient_cm, 0.95)
+         << ",\n  \"robust_p95_error_cm\": " << percentile(robust_patient_cm, 0.95)
+         << ",\n  \"nominal_mean_error_cm_patients\": " << mean(nominal_patient_cm)
+         << ",\n  \"robust_mean_error_cm_patients\": " << mean(robust_patient_cm)
+         << ",\n  \"robust_seconds_per_target_mean\": " << mean(robust_seconds) << "\n}\n";
+    robust_table.writeCsv(args->out_dir + "/robust.csv");
     table.writeCsv(args->out_dir + "/rigid.csv");
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(
         args->out_dir + "/plot.json",
         R"json([{"csv": "rigid.csv", "x": "plan_s", "y": "planned_error_mm", "annotate": "target",
-  "title": "Planned error vs planning time per target", "logy": true, "png": "planned_error_vs_time.png"}])json");
+  "title": "Planned error vs planning time per target", "logy": true, "png": "planned_error_vs_time.png"},
+ {"csv": "robust.csv", "x": "nominal_error_mm", "y": "robust_error_mm", "annotate": "target",
+  "title": "Seed error on patients with +-30 % stiffness: nominal vs robust plan", "png": "robust_vs_nominal.png"}])json");
     std::cout << table.toText() << json.str();
   } catch (const std::exception& e) {
     std::cerr << "bench_rigid: " << e.what() << "\n";

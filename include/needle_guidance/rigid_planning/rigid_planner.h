@@ -2,6 +2,7 @@
 // release point (height, depth) whose seed, once the tissue has relaxed, lands on the target.
 #pragma once
 
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -39,6 +40,27 @@ struct PlannerOptions {
   double error_goal_m = 1e-5;
 };
 
+/// Stiffness uncertainty for robust planning: every material's Young's modulus is scaled by a
+/// factor in [1 - u, 1 + u], independently per material. The samples are the corners of that box
+/// first (the extremes a worst-case plan must see), then factors drawn uniformly (fixed seed).
+struct StiffnessUncertainty {
+  double relative = 0.3;     ///< u (0.3 = +-30 %)
+  int samples = 5;           ///< K models planned against
+  unsigned seed = 1;         ///< generator seed (STYLE.md rule 12)
+  bool corners_first = true; ///< start with the 2^materials corners of the box (if K allows)
+  /// Minimise the worst error over the samples (default), else the mean. Compression ahead of
+  /// the needle scales like 1/E, whose median is the nominal model's: a mean-error plan cannot
+  /// beat the nominal one on average, a minimax plan aims at the middle of the range and cuts
+  /// the tail.
+  bool worst_case = true;
+};
+
+/// `scene` with every material's Young's modulus scaled by its factor (one per material).
+scene::Scene withStiffnessFactors(const scene::Scene& scene, const std::vector<double>& factors);
+/// K sets of per-material factors drawn from `u` (deterministic for its seed).
+std::vector<std::vector<double>> drawStiffnessFactors(const scene::Scene& scene,
+                                                      const StiffnessUncertainty& u);
+
 /// Why a plan failed, or kOk (STYLE.md rule 8).
 enum class PlanCode { kOk, kTargetOutsideTissue, kHeightOutOfRange, kBeyondMaxDepth, kSimulationFailed };
 
@@ -75,6 +97,9 @@ public:
   /// No planning: release at the target (p_r = p_t); the predicted error is what deformation
   /// does to a naive insertion.
   RigidPlan unplanned(const Point2& target) const;
+  /// Robust plan (beyond the dissertation): the release point minimising the mean (or worst)
+  /// error over K stiffness samples of the tissue; predicted_error_m is that objective.
+  RigidPlan planRobust(const Point2& target, const StiffnessUncertainty& uncertainty) const;
 
   const scene::Scene& scene() const { return scene_; }
   const PlannerOptions& options() const { return options_; }
@@ -84,6 +109,16 @@ private:
   RigidPlan check(const Point2& target) const;
   DepthScan scan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
                  double max_depth_m) const;
+  /// One height's result for the search: objective, best depth, predicted implant.
+  struct HeightResult {
+    double error_m;
+    double depth_m;
+    Point2 implant;
+  };
+  /// Grid + golden-section search over height of `evaluate`, starting at the target height and
+  /// stopping early below error_goal_m when `early_stop`.
+  void searchHeights(RigidPlan& plan, const std::function<HeightResult(double)>& evaluate,
+                     bool early_stop) const;
   std::unique_ptr<tissue::TissueSimulation> makeSimulation(const Point2& target) const;
 
   scene::Scene scene_;

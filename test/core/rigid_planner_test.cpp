@@ -1,0 +1,115 @@
+// RigidPlanner (dissertation ch. 4): infeasible targets, a scene with a known zero offset, the
+// O(1) implant prediction against full insert-implant-retract simulations, the executed plan.
+#include <gtest/gtest.h>
+
+#include "needle_guidance/rigid_planning/rigid_planner.h"
+
+namespace needle_guidance::rigid_planning {
+namespace {
+
+constexpr double kDepthStep_m = 1e-4;
+constexpr double kPredictionTol_m = 2e-4;  // full simulation vs O(1) prediction (~2 cut steps)
+constexpr double kPlannedTol_m = 1e-4;     // issue 4 target: planned error <= 0.01 cm
+
+/// Inserts to `release`, implants, retracts; the seed's final position (ground truth).
+Point2 fullSimulation(const scene::Scene& scene, const Point2& release, const Point2& target) {
+  tissue::TissueSimOptions options = tissue::optionsFromScene(scene);
+  options.meshing.refine_points.push_back(target);
+  options.meshing.refine_lines.push_back({Point2(scene.workspace_min.x(), target.y()), target});
+  tissue::TissueSimulation sim(scene, options);
+  double x = -0.001;
+  while (x < release.x() - 1e-12) {
+    x = std::min(release.x(), x + kDepthStep_m);
+    EXPECT_TRUE(sim.step(0.02, release.y(), x));
+  }
+  const auto id = sim.implantSeed();
+  EXPECT_TRUE(id.has_value());
+  while (x > -0.001 + 1e-12) {
+    x = std::max(-0.001, x - kDepthStep_m);
+    EXPECT_TRUE(sim.step(0.02, release.y(), x));
+  }
+  return sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
+}
+
+class RigidPlannerTest : public ::testing::Test {
+protected:
+  RigidPlannerTest() : scene_(scene::defaultScene("prostate_sagittal")), planner_(scene_, PlannerOptions{}) {}
+  scene::Scene scene_;
+  RigidPlanner planner_;
+};
+
+TEST_F(RigidPlannerTest, InfeasibleTargetsReturnAStatusSayingWhy) {
+  EXPECT_EQ(planner_.plan(Point2(0.07, 0.03)).code, PlanCode::kTargetOutsideTissue);
+  EXPECT_EQ(planner_.plan(Point2(NAN, 0.03)).code, PlanCode::kTargetOutsideTissue);
+  EXPECT_EQ(planner_.plan(Point2(0.03, 0.002)).code, PlanCode::kHeightOutOfRange);
+  const RigidPlan deep = planner_.plan(Point2(0.058, 0.03));
+  EXPECT_EQ(deep.code, PlanCode::kBeyondMaxDepth);
+  EXPECT_FALSE(deep);
+  EXPECT_NE(deep.toString().find("max depth"), std::string::npos) << deep.toString();
+}
+
+TEST(RigidPlannerKnownOffset, NoCuttingForceAndNoFrictionNeedNoOffset) {
+  // The tissue is cut as soon as it is touched and nothing drags it: the seed lands where it
+  // is released, so the optimal release point is the target itself.
+  scene::Scene scene = scene::defaultScene("prostate_sagittal");
+  scene.needle.cutting_force_N = 0.0;
+  scene.needle.static_friction_N_per_m = scene.needle.kinetic_friction_N_per_m = 0.0;
+  const RigidPlanner planner(scene, PlannerOptions{});
+  const Point2 target = scene.target("t06").position;
+  const RigidPlan plan = planner.plan(target);
+  ASSERT_TRUE(plan) << plan.toString();
+  EXPECT_NEAR(plan.release.x(), target.x(), kDepthStep_m);
+  EXPECT_NEAR(plan.release.y(), target.y(), 1e-12);
+  EXPECT_LT(plan.predicted_error_m, kDepthStep_m);
+  EXPECT_EQ(plan.simulations, 1);
+}
+
+TEST_F(RigidPlannerTest, ImplantPredictionMatchesFullSimulationsAndThePlanLands) {
+  const Point2 target = scene_.target("t06").position;
+  const RigidPlan unplanned = planner_.unplanned(target);
+  ASSERT_TRUE(unplanned) << unplanned.toString();
+  // The O(1) prediction of 4.3.2 against an independent insert-implant-retract simulation.
+  for (double depth : {target.x(), target.x() + 0.001}) {
+    const Point2 predicted = unplanned.scans.front().implantAt(depth);
+    const Point2 simulated = fullSimulation(scene_, Point2(depth, target.y()), target);
+    EXPECT_NEAR((predicted - simulated).norm(), 0.0, kPredictionTol_m) << "at depth " << depth;
+  }
+  // Deformation matters: aiming at the target misses by more than a millimetre.
+  EXPECT_GT(unplanned.predicted_error_m, 1e-3);
+  const RigidPlan plan = planner_.plan(target);
+  ASSERT_TRUE(plan) << plan.toString();
+  EXPECT_LT(plan.predicted_error_m, kPlannedTol_m);
+  EXPECT_GT(plan.release.x(), target.x());  // deeper than the target: tissue compresses (4.4.2)
+  const Point2 seed = fullSimulation(scene_, plan.release, target);
+  EXPECT_LT((seed - target).norm(), kPlannedTol_m + kPredictionTol_m);
+}
+
+TEST(RigidPlannerRobust, StiffnessSamplesAreDeterministicAndValidated) {
+  const scene::Scene scene = scene::defaultScene("prostate_sagittal");
+  StiffnessUncertainty u;
+  const auto a = drawStiffnessFactors(scene, u);
+  const auto b = drawStiffnessFactors(scene, u);
+  ASSERT_EQ(a.size(), static_cast<std::size_t>(u.samples));
+  EXPECT_EQ(a, b);
+  for (const auto& sample : a) {
+    for (double f : sample) {
+      EXPECT_GE(f, 1.0 - u.relative);
+      EXPECT_LE(f, 1.0 + u.relative);
+    }
+  }
+  const scene::Scene scaled = withStiffnessFactors(scene, a.front());
+  EXPECT_DOUBLE_EQ(scaled.materials[0].young_modulus_Pa, scene.materials[0].young_modulus_Pa * a.front()[0]);
+  EXPECT_THROW(withStiffnessFactors(scene, {1.0}), std::invalid_argument);
+  EXPECT_THROW(withStiffnessFactors(scene, std::vector<double>(scene.materials.size(), -1.0)),
+               std::invalid_argument);
+  u.relative = 1.5;
+  EXPECT_THROW(drawStiffnessFactors(scene, u), std::invalid_argument);
+}
+
+}  // namespace
+}  // namespace needle_guidance::rigid_planning
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}

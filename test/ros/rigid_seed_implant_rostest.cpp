@@ -1,0 +1,71 @@
+// rostest for the rigid seed-implant procedure: the real robot, tissue_sim, rigid_planner and
+// insertion_procedure run two targets end to end; the procedure's report is checked: every move
+// succeeded and each seed's measured error agrees with the plan's prediction.
+#include <gtest/gtest.h>
+#include <ros/ros.h>
+
+#include <fstream>
+#include <map>
+#include <sstream>
+#include <string>
+#include <vector>
+
+namespace {
+
+constexpr double kPredictionAgreement_mm = 0.3;  // live stepping vs the planner (~3 cut steps)
+constexpr int kTargets = 2;
+
+std::vector<std::map<std::string, std::string>> readCsv(const std::string& path) {
+  std::ifstream in(path);
+  std::vector<std::map<std::string, std::string>> rows;
+  std::string line;
+  std::vector<std::string> header;
+  while (std::getline(in, line)) {
+    std::vector<std::string> cells;
+    std::stringstream ss(line);
+    std::string cell;
+    while (std::getline(ss, cell, ',')) {
+      cells.push_back(cell);
+    }
+    if (header.empty()) {
+      header = cells;
+      continue;
+    }
+    std::map<std::string, std::string> row;
+    for (std::size_t i = 0; i < header.size() && i < cells.size(); ++i) {
+      row[header[i]] = cells[i];
+    }
+    rows.push_back(row);
+  }
+  return rows;
+}
+
+TEST(RigidSeedImplant, TwoTargetsLandWherePredicted) {
+  ros::NodeHandle private_nh("~");
+  std::string report_dir;
+  ASSERT_TRUE(private_nh.getParam("report_dir", report_dir));
+  const std::string summary = report_dir + "/summary.json";
+  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(200.0);
+  while (ros::WallTime::now() < end && !std::ifstream(summary).good()) {
+    ros::WallDuration(0.5).sleep();
+  }
+  ASSERT_TRUE(std::ifstream(summary).good()) << "the procedure wrote no report in 200 s";
+  const auto rows = readCsv(report_dir + "/moves.csv");
+  ASSERT_EQ(rows.size(), static_cast<std::size_t>(kTargets));
+  for (const auto& row : rows) {
+    EXPECT_EQ(row.at("status"), "ok") << row.at("target");
+    const double measured_mm = std::stod(row.at("seed_error_mm"));
+    const double predicted_mm = std::stod(row.at("predicted_error_mm"));
+    const double unplanned_mm = std::stod(row.at("unplanned_predicted_mm"));
+    EXPECT_NEAR(measured_mm, predicted_mm, kPredictionAgreement_mm) << row.at("target");
+    EXPECT_LT(measured_mm, 0.25 * unplanned_mm) << row.at("target") << ": planning did not help";
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  ros::init(argc, argv, "rigid_seed_implant_rostest");
+  return RUN_ALL_TESTS();
+}
