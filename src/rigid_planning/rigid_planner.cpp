@@ -293,6 +293,9 @@ RigidPlan RigidPlanner::planRobust(const Point2& target, const StiffnessUncertai
   if (!plan) {
     return plan;
   }
+  if (!(uncertainty.quantile > 0.0 && uncertainty.quantile <= 1.0)) {
+    throw std::invalid_argument("planRobust: quantile must be in (0, 1]");
+  }
   try {
     std::vector<std::unique_ptr<RigidPlanner>> models;
     std::vector<std::unique_ptr<tissue::TissueSimulation>> sims;
@@ -301,33 +304,48 @@ RigidPlan RigidPlanner::planRobust(const Point2& target, const StiffnessUncertai
       sims.push_back(models.back()->makeSimulation(target));
     }
     const double max_depth = std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m);
-    searchHeights(
-        plan,
-        [&](double y) {
-          std::vector<DepthScan> scans;
-          for (std::size_t k = 0; k < sims.size(); ++k) {
-            scans.push_back(models[k]->scan(*sims[k], y, target, max_depth));
-            ++plan.simulations;
-          }
-          // The depth that minimises the mean (or worst) error over the samples, on the first
-          // sample's depth grid, each sample interpolated there.
-          HeightResult best{1e300, 0.0, Point2::Zero()};
-          for (double z : scans.front().depth_m) {
-            double objective = 0.0;
-            Point2 mean_implant = Point2::Zero();
-            for (const DepthScan& s : scans) {
-              const Point2 p = s.implantAt(z);
-              const double e = (p - target).norm();
-              objective = uncertainty.worst_case ? std::max(objective, e) : objective + e / scans.size();
-              mean_implant += p / static_cast<double>(scans.size());
-            }
-            if (objective < best.error_m) {
-              best = {objective, z, mean_implant};
-            }
-          }
-          return best;
-        },
-        /*early_stop=*/false);
+    auto evaluate = [&](double y) {
+      std::vector<DepthScan> scans;
+      for (std::size_t k = 0; k < sims.size(); ++k) {
+        scans.push_back(models[k]->scan(*sims[k], y, target, max_depth));
+        ++plan.simulations;
+      }
+      // The depth minimising the quantile of the error over the samples, on the first sample's
+      // depth grid with every sample interpolated there.
+      HeightResult best{1e300, 0.0, Point2::Zero()};
+      std::vector<double> errors(scans.size());
+      for (double z : scans.front().depth_m) {
+        Point2 mean_implant = Point2::Zero();
+        for (std::size_t k = 0; k < scans.size(); ++k) {
+          const Point2 p = scans[k].implantAt(z);
+          errors[k] = (p - target).norm();
+          mean_implant += p / static_cast<double>(scans.size());
+        }
+        std::sort(errors.begin(), errors.end());
+        const double pos = uncertainty.quantile * static_cast<double>(errors.size() - 1);
+        const std::size_t i = static_cast<std::size_t>(pos);
+        const double objective =
+            i + 1 < errors.size() ? errors[i] + (pos - static_cast<double>(i)) * (errors[i + 1] - errors[i]) : errors.back();
+        if (objective < best.error_m) {
+          best = {objective, z, mean_implant};
+        }
+      }
+      return best;
+    };
+    if (uncertainty.search_height) {
+      searchHeights(plan, evaluate, /*early_stop=*/false);
+    } else {
+      const RigidPlan nominal = this->plan(target);  // its height; depth is where stiffness acts
+      if (!nominal) {
+        return nominal;
+      }
+      plan.simulations += nominal.simulations;
+      const HeightResult r = evaluate(nominal.release.y());
+      plan.release = Point2(r.depth_m, nominal.release.y());
+      plan.predicted_implant = r.implant;
+      plan.predicted_error_m = r.error_m;
+      plan.message = "ok";
+    }
   } catch (const std::exception& e) {
     plan.code = PlanCode::kSimulationFailed;
     plan.message = e.what();
