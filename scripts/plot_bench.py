@@ -1,6 +1,6 @@
 #!/usr/bin/python3
 """Plots a benchmark folder: reads plot.json written by the bench tool, a list of
-{"csv", "x", "y", "group", "title", "logx", "logy", "png"} entries, and draws each CSV's
+{"csv", "x", "y", "group", "title", "logx", "logy", "points", "annotate", "png"} entries, and draws each CSV's
 y against x (one line per group) to the PNG. Speed against error, as DESIGN.md asks."""
 import csv
 import json
@@ -24,7 +24,8 @@ def plot(folder: pathlib.Path, spec: dict) -> None:
         xs = [float(r[spec["x"]]) for r in members]
         ys = [float(r[spec["y"]]) for r in members]
         order = sorted(range(len(xs)), key=xs.__getitem__)
-        ax.plot([xs[i] for i in order], [ys[i] for i in order], "o-", label=name or None)
+        style = "o" if spec.get("points") else "o-"
+        ax.plot([xs[i] for i in order], [ys[i] for i in order], style, label=name or None)
         for i in order:
             if spec.get("annotate"):
                 ax.annotate(members[i][spec["annotate"]], (xs[i], ys[i]), fontsize=7,

@@ -158,12 +158,15 @@ void RigidPlanner::searchHeights(RigidPlan& plan, const std::function<HeightResu
                                  bool early_stop) const {
   const Point2 target = plan.target;
   std::vector<std::pair<double, HeightResult>> seen;
+  bool goal_met = false;  // with early_stop: any height whose error meets the goal ends the search
   auto f = [&](double y) {
     seen.emplace_back(y, evaluate(y));
+    goal_met = goal_met || (early_stop && seen.back().second.error_m <= options_.error_goal_m);
     return seen.back().second.error_m;
   };
   // The target height first (depth-only planning, 4.4.2): often already good enough.
-  if (f(target.y()) > options_.error_goal_m || !early_stop) {
+  f(target.y());
+  if (!goal_met) {
     const double lo = std::max(scene_.needle.min_height_m, target.y() - options_.height_window_m);
     const double hi = std::min(scene_.needle.max_height_m, target.y() + options_.height_window_m);
     // Coarse grid: detects an error that is not unimodal over the window (4.3.2 notes it need
@@ -172,7 +175,7 @@ void RigidPlanner::searchHeights(RigidPlan& plan, const std::function<HeightResu
     std::vector<double> ys(static_cast<std::size_t>(n)), errors(static_cast<std::size_t>(n));
     for (int i = 0; i < n; ++i) {
       ys[static_cast<std::size_t>(i)] = lo + (hi - lo) * i / (n - 1);
-      errors[static_cast<std::size_t>(i)] = f(ys[static_cast<std::size_t>(i)]);
+      errors[static_cast<std::size_t>(i)] = goal_met ? 1e300 : f(ys[static_cast<std::size_t>(i)]);
     }
     int local_minima = 0;
     for (int i = 0; i < n; ++i) {
@@ -181,7 +184,7 @@ void RigidPlanner::searchHeights(RigidPlan& plan, const std::function<HeightResu
       const bool right = i == n - 1 || e <= errors[static_cast<std::size_t>(i + 1)];
       local_minima += left && right ? 1 : 0;
     }
-    plan.unimodal = local_minima <= 1;
+    plan.unimodal = goal_met || local_minima <= 1;
     const std::size_t best =
         static_cast<std::size_t>(std::min_element(errors.begin(), errors.end()) - errors.begin());
     // Golden-section search in the bracket around the best grid point (4.3.2, [23]).
@@ -189,9 +192,9 @@ void RigidPlanner::searchHeights(RigidPlan& plan, const std::function<HeightResu
     double b = ys[std::min<std::size_t>(best + 1, ys.size() - 1)];
     double c = b - kGolden * (b - a);
     double d = a + kGolden * (b - a);
-    double fc = f(c);
-    double fd = f(d);
-    while (b - a > options_.height_tolerance_m) {
+    double fc = goal_met ? 0.0 : f(c);
+    double fd = goal_met ? 0.0 : f(d);
+    while (!goal_met && b - a > options_.height_tolerance_m) {
       if (fc < fd) {
         b = d;
         d = c;
@@ -352,6 +355,16 @@ RigidPlan RigidPlanner::planRobust(const Point2& target, const StiffnessUncertai
   }
   plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   return plan;
+}
+
+DepthScan RigidPlanner::scanHeight(const Point2& target, double height_m) const {
+  const RigidPlan feasible = check(target);
+  if (!feasible) {
+    throw std::invalid_argument(feasible.message);
+  }
+  const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
+  return scan(*sim, height_m, target,
+              std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m));
 }
 
 RigidPlan RigidPlanner::planDepthOnly(const Point2& target) const {

@@ -94,6 +94,7 @@ int main(int argc, char** argv) {
     patients.corners_first = false;  // true patients: uniform over the box
     const auto patient_factors = ng::rigid_planning::drawStiffnessFactors(scene, patients);
     std::vector<double> nominal_patient_cm, robust_patient_cm, robust_seconds;
+    ng::report::Table seed_map({"kind", "x_mm", "y_mm"}, 6);  // figure 4.7
     ng::report::Table robust_table({"target", "patient", "nominal_error_mm", "robust_error_mm"}, 6);
     for (std::size_t i = 0; i < count; ++i) {
       const auto& target = scene.targets[i];
@@ -106,6 +107,10 @@ int main(int argc, char** argv) {
       const Point2 seed = simulateImplant(scene, ng::tissue::optionsFromScene(scene), plan.release,
                                           target.position, options.depth_step_m, options.velocity_m_s);
       const double measured = (seed - target.position).norm();
+      seed_map.addRow({std::string("target"), 1e3 * target.position.x(), 1e3 * target.position.y()});
+      seed_map.addRow({std::string("unplanned seed"), 1e3 * unplanned.predicted_implant.x(),
+                       1e3 * unplanned.predicted_implant.y()});
+      seed_map.addRow({std::string("planned seed"), 1e3 * seed.x(), 1e3 * seed.y()});
       const auto robust = planner.planRobust(target.position, uncertainty);
       if (!robust) {
         throw std::runtime_error(target.name + " robust: " + robust.toString());
@@ -162,6 +167,23 @@ int main(int argc, char** argv) {
          << ",\n  \"robust_mean_error_cm_patients\": " << mean(robust_patient_cm)
          << ",\n  \"robust_seconds_per_target_mean\": " << mean(robust_seconds) << "\n}\n";
     robust_table.writeCsv(args->out_dir + "/robust.csv");
+    seed_map.writeCsv(args->out_dir + "/seed_map.csv");
+    // Figures 4.5 and 4.6 for one target: error vs depth at its height, best depth and error vs
+    // height over y_t +- 3 mm.
+    const Point2 t = scene.targets[std::min<std::size_t>(5, scene.targets.size() - 1)].position;
+    ng::report::Table by_depth({"depth_mm", "error_mm"}, 6);
+    const auto at_height = planner.scanHeight(t, t.y());
+    for (std::size_t i = 0; i < at_height.depth_m.size(); ++i) {
+      by_depth.addRow({1e3 * at_height.depth_m[i], 1e3 * (at_height.implant[i] - t).norm()});
+    }
+    by_depth.writeCsv(args->out_dir + "/error_vs_depth.csv");
+    ng::report::Table by_height({"height_mm", "best_depth_mm", "error_mm"}, 6);
+    for (int k = -6; k <= 6; ++k) {
+      const double y = t.y() + 0.5e-3 * k;
+      const auto s = planner.scanHeight(t, y);
+      by_height.addRow({1e3 * y, 1e3 * s.best_depth_m, 1e3 * s.best_error_m});
+    }
+    by_height.writeCsv(args->out_dir + "/error_vs_height.csv");
     table.writeCsv(args->out_dir + "/rigid.csv");
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(
@@ -169,7 +191,14 @@ int main(int argc, char** argv) {
         R"json([{"csv": "rigid.csv", "x": "plan_s", "y": "planned_error_mm", "annotate": "target",
   "title": "Planned error vs planning time per target", "logy": true, "png": "planned_error_vs_time.png"},
  {"csv": "robust.csv", "x": "nominal_error_mm", "y": "robust_error_mm", "annotate": "target",
-  "title": "Seed error on patients with +-30 % stiffness: nominal vs robust plan", "png": "robust_vs_nominal.png"}])json");
+  "title": "Seed error on patients with +-30 % stiffness: nominal vs robust plan", "points": true,
+  "png": "robust_vs_nominal.png"},
+ {"csv": "error_vs_depth.csv", "x": "depth_mm", "y": "error_mm", "logy": true,
+  "title": "Placement error vs release depth at the target height (fig. 4.5)", "png": "error_vs_depth.png"},
+ {"csv": "error_vs_height.csv", "x": "height_mm", "y": "error_mm", "logy": true,
+  "title": "Best-depth error vs insertion height (fig. 4.6)", "png": "error_vs_height.png"},
+ {"csv": "seed_map.csv", "x": "x_mm", "y": "y_mm", "group": "kind", "points": true,
+  "title": "Targets and final seeds, unplanned vs planned (fig. 4.7)", "png": "seed_map.png"}])json");
     std::cout << table.toText() << json.str();
   } catch (const std::exception& e) {
     std::cerr << "bench_rigid: " << e.what() << "\n";

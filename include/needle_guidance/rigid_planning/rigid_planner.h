@@ -94,6 +94,9 @@ public:
   /// Golden-section search over height around the target (after a coarse grid that detects a
   /// non-unimodal error and then brackets the best grid point), each height scanned over depth.
   RigidPlan plan(const Point2& target) const;
+  /// One insertion at `height_m` scanned over depth for `target` (figures 4.5, 4.6). Throws
+  /// std::invalid_argument for an infeasible target.
+  DepthScan scanHeight(const Point2& target, double height_m) const;
   /// Depth only: the needle at the target's height, best depth (4.4.2).
   RigidPlan planDepthOnly(const Point2& target) const;
   /// No planning: release at the target (p_r = p_t); the predicted error is what deformation
