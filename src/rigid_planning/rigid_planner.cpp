@@ -144,6 +144,10 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
       if (error < scan.best_error_m) {
         scan.best_error_m = error;
         scan.best_implant = p;
+        const Point2 along = scan.implant[n - 1] - scan.implant[n - 2];
+        const double length = along.norm();
+        scan.lateral_m = length > 0.0 ? (along.x() * (target - p).y() - along.y() * (target - p).x()) / length
+                                      : 0.0;
         scan.best_depth_m = scan.depth_m[n - 2] + s * (scan.depth_m[n - 1] - scan.depth_m[n - 2]);
       }
     }
@@ -166,6 +170,31 @@ void RigidPlanner::searchHeights(RigidPlan& plan, const std::function<HeightResu
   };
   // The target height first (depth-only planning, 4.4.2): often already good enough.
   f(target.y());
+  // Secant search on the lateral offset of the implant curve, which is close to linear in height
+  // over the window: a few simulations where the grid + golden section needs many more.
+  const double lo_y = std::max(scene_.needle.min_height_m, target.y() - options_.height_window_m);
+  const double hi_y = std::min(scene_.needle.max_height_m, target.y() + options_.height_window_m);
+  if (early_stop && !goal_met && options_.secant_iterations > 0 && seen.back().second.lateral_m != 0.0) {
+    double y0 = target.y();
+    double d0 = seen.back().second.lateral_m;
+    // First step: the implant curve moves with the needle, so shift the height by the offset.
+    double y1 = std::clamp(y0 + d0, lo_y, hi_y);
+    for (int i = 0; i < options_.secant_iterations && !goal_met && y1 != y0; ++i) {
+      f(y1);
+      const double d1 = seen.back().second.lateral_m;
+      if (d1 == d0) {
+        break;
+      }
+      const double y2 = std::clamp(y1 - d1 * (y1 - y0) / (d1 - d0), lo_y, hi_y);
+      y0 = y1;
+      d0 = d1;
+      y1 = y2;
+      if (std::abs(y1 - y0) < 0.1 * options_.height_tolerance_m) {
+        break;
+      }
+    }
+    plan.secant = goal_met;
+  }
   if (!goal_met) {
     const double lo = std::max(scene_.needle.min_height_m, target.y() - options_.height_window_m);
     const double hi = std::min(scene_.needle.max_height_m, target.y() + options_.height_window_m);
@@ -216,33 +245,45 @@ void RigidPlanner::searchHeights(RigidPlan& plan, const std::function<HeightResu
   plan.release = Point2(best->second.depth_m, best->first);
   plan.predicted_implant = best->second.implant;
   plan.predicted_error_m = best->second.error_m;
-  plan.message = plan.unimodal ? "ok" : "ok (error not unimodal over the window: grid fallback)";
+  plan.message = plan.secant     ? "ok (secant on the lateral offset)"
+                 : plan.unimodal ? "ok"
+                                 : "ok (error not unimodal over the window: grid fallback)";
 }
 
-RigidPlan RigidPlanner::plan(const Point2& target) const {
+double RigidPlanner::maxScanDepth(const Point2& target) const {
+  return std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m);
+}
+
+RigidPlan RigidPlanner::timed(const Point2& target, const std::function<void(RigidPlan&)>& body) const {
   const auto start = std::chrono::steady_clock::now();
   RigidPlan plan = check(target);
   if (!plan) {
     return plan;
   }
   try {
-    const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
-    const double max_depth = std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m);
-    searchHeights(
-        plan,
-        [&](double y) {
-          plan.scans.push_back(scan(*sim, y, target, max_depth));
-          ++plan.simulations;
-          const DepthScan& s = plan.scans.back();
-          return HeightResult{s.best_error_m, s.best_depth_m, s.best_implant};
-        },
-        /*early_stop=*/true);
+    body(plan);
   } catch (const std::exception& e) {
     plan.code = PlanCode::kSimulationFailed;
     plan.message = e.what();
   }
   plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   return plan;
+}
+
+RigidPlan RigidPlanner::plan(const Point2& target) const {
+  return timed(target, [&](RigidPlan& plan) {
+    const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
+    const double max_depth = maxScanDepth(target);
+    searchHeights(
+        plan,
+        [&](double y) {
+          plan.scans.push_back(scan(*sim, y, target, max_depth));
+          ++plan.simulations;
+          const DepthScan& s = plan.scans.back();
+          return HeightResult{s.best_error_m, s.best_depth_m, s.best_implant, s.lateral_m};
+        },
+        /*early_stop=*/true);
+  });
 }
 
 scene::Scene withStiffnessFactors(const scene::Scene& scene, const std::vector<double>& factors) {
@@ -291,22 +332,17 @@ std::vector<std::vector<double>> drawStiffnessFactors(const scene::Scene& scene,
 }
 
 RigidPlan RigidPlanner::planRobust(const Point2& target, const StiffnessUncertainty& uncertainty) const {
-  const auto start = std::chrono::steady_clock::now();
-  RigidPlan plan = check(target);
-  if (!plan) {
-    return plan;
-  }
   if (!(uncertainty.quantile > 0.0 && uncertainty.quantile <= 1.0)) {
     throw std::invalid_argument("planRobust: quantile must be in (0, 1]");
   }
-  try {
+  return timed(target, [&](RigidPlan& plan) {
     std::vector<std::unique_ptr<RigidPlanner>> models;
     std::vector<std::unique_ptr<tissue::TissueSimulation>> sims;
     for (const auto& factors : drawStiffnessFactors(scene_, uncertainty)) {
       models.push_back(std::make_unique<RigidPlanner>(withStiffnessFactors(scene_, factors), sim_options_, options_));
       sims.push_back(models.back()->makeSimulation(target));
     }
-    const double max_depth = std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m);
+    const double max_depth = maxScanDepth(target);
     auto evaluate = [&](double y) {
       std::vector<DepthScan> scans;
       for (std::size_t k = 0; k < sims.size(); ++k) {
@@ -340,7 +376,7 @@ RigidPlan RigidPlanner::planRobust(const Point2& target, const StiffnessUncertai
     } else {
       const RigidPlan nominal = this->plan(target);  // its height; depth is where stiffness acts
       if (!nominal) {
-        return nominal;
+        throw std::runtime_error(nominal.message);
       }
       plan.simulations += nominal.simulations;
       const HeightResult r = evaluate(nominal.release.y());
@@ -349,12 +385,7 @@ RigidPlan RigidPlanner::planRobust(const Point2& target, const StiffnessUncertai
       plan.predicted_error_m = r.error_m;
       plan.message = "ok";
     }
-  } catch (const std::exception& e) {
-    plan.code = PlanCode::kSimulationFailed;
-    plan.message = e.what();
-  }
-  plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  return plan;
+  });
 }
 
 DepthScan RigidPlanner::scanHeight(const Point2& target, double height_m) const {
@@ -364,30 +395,19 @@ DepthScan RigidPlanner::scanHeight(const Point2& target, double height_m) const 
   }
   const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
   return scan(*sim, height_m, target,
-              std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m));
+              maxScanDepth(target));
 }
 
 RigidPlan RigidPlanner::planDepthOnly(const Point2& target) const {
-  const auto start = std::chrono::steady_clock::now();
-  RigidPlan plan = check(target);
-  if (!plan) {
-    return plan;
-  }
-  try {
+  return timed(target, [&](RigidPlan& plan) {
     const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
-    const double max_depth = std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m);
-    plan.scans.push_back(scan(*sim, target.y(), target, max_depth));
+    plan.scans.push_back(scan(*sim, target.y(), target, maxScanDepth(target)));
     plan.simulations = 1;
     const DepthScan& s = plan.scans.back();
     plan.release = Point2(s.best_depth_m, target.y());
     plan.predicted_implant = s.best_implant;
     plan.predicted_error_m = s.best_error_m;
-  } catch (const std::exception& e) {
-    plan.code = PlanCode::kSimulationFailed;
-    plan.message = e.what();
-  }
-  plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  return plan;
+  });
 }
 
 RigidPlan RigidPlanner::unplanned(const Point2& target) const {

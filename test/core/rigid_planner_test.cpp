@@ -84,6 +84,22 @@ TEST_F(RigidPlannerTest, ImplantPredictionMatchesFullSimulationsAndThePlanLands)
   EXPECT_LT((seed - target).norm(), kPlannedTol_m + kPredictionTol_m);
 }
 
+TEST_F(RigidPlannerTest, SecantAndGoldenSectionSearchesAgree) {
+  // A target whose best height is off the target height (the gland rotates, 4.3.1).
+  const Point2 target = scene_.target("t06").position;
+  PlannerOptions golden_only;
+  golden_only.secant_iterations = 0;
+  const RigidPlan golden = RigidPlanner(scene_, golden_only).plan(target);
+  const RigidPlan secant = planner_.plan(target);
+  ASSERT_TRUE(golden) << golden.toString();
+  ASSERT_TRUE(secant) << secant.toString();
+  EXPECT_FALSE(golden.secant);
+  EXPECT_LT(golden.predicted_error_m, kPlannedTol_m);
+  EXPECT_LT(secant.predicted_error_m, kPlannedTol_m);
+  EXPECT_NEAR(secant.release.y(), golden.release.y(), 2.0 * PlannerOptions{}.height_tolerance_m);
+  EXPECT_LE(secant.simulations, golden.simulations);
+}
+
 TEST(RigidPlannerRobust, StiffnessSamplesAreDeterministicAndValidated) {
   const scene::Scene scene = scene::defaultScene("prostate_sagittal");
   StiffnessUncertainty u;

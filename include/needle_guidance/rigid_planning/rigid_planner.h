@@ -24,6 +24,10 @@ struct DepthScan {
   double best_depth_m = 0.0;          ///< z_r*(y_r), interpolated between steps [m]
   Point2 best_implant = Point2::Zero();
   double best_error_m = 0.0;          ///< epsilon(y_r) [m]
+  /// Signed distance of the implant curve from the target at the best depth, positive when the
+  /// target lies to the left of the curve's direction of travel [m]: ~linear in height, the
+  /// secant search drives it to zero.
+  double lateral_m = 0.0;
   /// p_a and the error if released at depth z (linear between steps); z within the scan.
   Point2 implantAt(double depth_m) const;
 };
@@ -35,9 +39,10 @@ struct PlannerOptions {
   double velocity_m_s = 0.005;         ///< v (4.4: 0.5 cm/s) [m/s]
   double depth_margin_m = 0.005;       ///< scan to target depth + margin (<= max depth) [m]
   int grid_points = 5;                 ///< coarse heights that detect a non-unimodal error
+  int secant_iterations = 4;           ///< secant steps on the lateral offset before the grid (0 = off)
   /// Stop searching heights once a scan's best error is below this (the target height is scanned
   /// first; 0 searches the whole window) [m].
-  double error_goal_m = 1e-5;
+  double error_goal_m = 2e-5;
 };
 
 /// Stiffness uncertainty for robust planning: every material's Young's modulus is scaled by a
@@ -75,6 +80,7 @@ struct RigidPlan {
   Point2 predicted_implant = Point2::Zero();  ///< where the seed is predicted to end [m]
   double predicted_error_m = 0.0;
   bool unimodal = true;          ///< false: the coarse grid found several minima (grid fallback)
+  bool secant = false;           ///< the secant search on the lateral offset met the goal
   int simulations = 0;
   double seconds = 0.0;
   std::vector<DepthScan> scans;  ///< every height simulated, in evaluation order
@@ -119,12 +125,17 @@ private:
     double error_m;
     double depth_m;
     Point2 implant;
+    double lateral_m = 0.0;  ///< see DepthScan::lateral_m; 0 if unknown
   };
   /// Grid + golden-section search over height of `evaluate`, starting at the target height and
   /// stopping early below error_goal_m when `early_stop`.
   void searchHeights(RigidPlan& plan, const std::function<HeightResult(double)>& evaluate,
                      bool early_stop) const;
   std::unique_ptr<tissue::TissueSimulation> makeSimulation(const Point2& target) const;
+  /// Depth to scan to for a target: its depth plus the margin, at most the needle's max depth.
+  double maxScanDepth(const Point2& target) const;
+  /// check(), then `body` (exceptions become kSimulationFailed), with the wall time recorded.
+  RigidPlan timed(const Point2& target, const std::function<void(RigidPlan&)>& body) const;
 
   scene::Scene scene_;
   tissue::TissueSimOptions sim_options_;
