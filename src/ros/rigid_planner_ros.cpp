@@ -16,6 +16,8 @@ RigidPlannerRos::RigidPlannerRos(ros::NodeHandle& /*nh*/, ros::NodeHandle& priva
   options.velocity_m_s = ros_params::number(private_nh, "velocity_m_s", options.velocity_m_s, 1e-4, 0.1, "m/s");
   options.depth_margin_m = ros_params::number(private_nh, "depth_margin_m", options.depth_margin_m, 0.0, 0.05, "m");
   options.error_goal_m = ros_params::number(private_nh, "error_goal_m", options.error_goal_m, 0.0, 0.01, "m");
+  options.secant_iterations = static_cast<int>(
+      ros_params::number(private_nh, "secant_iterations", options.secant_iterations, 0, 20, "steps"));
   planner_ = std::make_unique<rigid_planning::RigidPlanner>(scene, options);
   plan_srv_ = private_nh.advertiseService("plan", &RigidPlannerRos::onPlan, this);
   ROS_INFO_STREAM("rigid_planner: ready on scene '" << scene.name << "'");
