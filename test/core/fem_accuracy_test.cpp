@@ -75,13 +75,7 @@ TEST(FemAccuracy, NewmarkFreeVibrationConservesEnergy) {
   constexpr double kEnergyDriftRel = 1e-9;
   const auto mesh = gridMesh(10, 4, 0.1, 0.04, 0.2, kSeed);
   const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(60e3, 0.45)));
-  std::vector<int> fixed;
-  for (std::size_t i = 0; i < mesh.nodeCount(); ++i) {
-    if (mesh.nodes[i].x() < 1e-12) {
-      fixed.push_back(dofX(static_cast<int>(i)));
-      fixed.push_back(dofY(static_cast<int>(i)));
-    }
-  }
+  const std::vector<int> fixed = fixedDofsWhere(mesh, [](const Point2& p) { return p.x() < 1e-12; });
   auto integ = makeIntegrator(IntegratorKind::kNewmark, model, fixed);
   // Start at u = 0 (a = M^-1 (-K u) = 0, consistent) with a smooth bending velocity.
   Eigen::VectorXd v = Eigen::VectorXd::Zero(model.dofCount());
@@ -106,13 +100,7 @@ TEST(FemAccuracy, NewmarkFreeVibrationConservesEnergy) {
 TEST(FemAccuracy, ExplicitStableBelowLimitAndRefusedAbove) {
   const auto mesh = gridMesh(10, 4, 0.1, 0.04, 0.2, kSeed);
   const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(60e3, 0.45)));
-  std::vector<int> fixed;
-  for (std::size_t i = 0; i < mesh.nodeCount(); ++i) {
-    if (mesh.nodes[i].x() < 1e-12) {
-      fixed.push_back(dofX(static_cast<int>(i)));
-      fixed.push_back(dofY(static_cast<int>(i)));
-    }
-  }
+  const std::vector<int> fixed = fixedDofsWhere(mesh, [](const Point2& p) { return p.x() < 1e-12; });
   auto integ = makeIntegrator(IntegratorKind::kExplicit, model, fixed);
   const double limit_s = integ->stableTimeStep();
   ASSERT_TRUE(std::isfinite(limit_s));

@@ -24,15 +24,7 @@ constexpr double kMassTol_kg = 1e-12;          // absolute on masses of O(1e-3 .
 constexpr unsigned kSeed = 12345;
 
 
-ElementMaterial tissue(double e_pa = 60e3, double nu = 0.45) {
-  ElementMaterial m;
-  m.young_modulus_Pa = e_pa;
-  m.poisson_ratio = nu;
-  m.density_kg_m3 = 1050.0;
-  m.rayleigh_alpha_per_s = 2.0;
-  m.rayleigh_beta_s = 0.01;
-  return m;
-}
+ElementMaterial tissue(double e_pa = 60e3, double nu = 0.45) { return material(e_pa, nu, 2.0, 0.01, 1050.0); }
 
 /// Two materials: left half soft, right half stiff.
 std::vector<ElementMaterial> mixedMaterials(const geometry::TriangleMesh& mesh) {

@@ -45,6 +45,19 @@ inline geometry::TriangleMesh gridMesh(int nx, int ny, double lx, double ly, dou
   return mesh;
 }
 
+/// Both DOFs of every node whose reference position satisfies `where`.
+inline std::vector<int> fixedDofsWhere(const geometry::TriangleMesh& mesh,
+                                       const std::function<bool(const Point2&)>& where) {
+  std::vector<int> fixed;
+  for (std::size_t i = 0; i < mesh.nodeCount(); ++i) {
+    if (where(mesh.nodes[i])) {
+      fixed.push_back(dofX(static_cast<int>(i)));
+      fixed.push_back(dofY(static_cast<int>(i)));
+    }
+  }
+  return fixed;
+}
+
 /// A material with density rho [kg/m^3] and Rayleigh damping C = alpha M + beta K.
 inline ElementMaterial material(double e_pa, double nu, double alpha_per_s = 0.0, double beta_s = 0.0,
                                 double density_kg_m3 = 1000.0) {

@@ -21,26 +21,11 @@ constexpr unsigned kSeed = 4242;
 constexpr double kDt_s = 1e-3;
 
 
-ElementMaterial tissue(double e_pa = 60e3, double nu = 0.45) {
-  ElementMaterial m;
-  m.young_modulus_Pa = e_pa;
-  m.poisson_ratio = nu;
-  m.density_kg_m3 = 1050.0;
-  m.rayleigh_alpha_per_s = 1.0;
-  m.rayleigh_beta_s = 0.002;
-  return m;
-}
+ElementMaterial tissue(double e_pa = 60e3, double nu = 0.45) { return material(e_pa, nu, 1.0, 0.002, 1050.0); }
 
 /// Left and bottom edges fixed.
 std::vector<int> fixedEdges(const geometry::TriangleMesh& mesh) {
-  std::vector<int> fixed;
-  for (std::size_t i = 0; i < mesh.nodeCount(); ++i) {
-    if (mesh.nodes[i].x() < 1e-12 || mesh.nodes[i].y() < 1e-12) {
-      fixed.push_back(dofX(static_cast<int>(i)));
-      fixed.push_back(dofY(static_cast<int>(i)));
-    }
-  }
-  return fixed;
+  return fixedDofsWhere(mesh, [](const Point2& p) { return p.x() < 1e-12 || p.y() < 1e-12; });
 }
 
 double relError(const Eigen::VectorXd& a, const Eigen::VectorXd& b) {
