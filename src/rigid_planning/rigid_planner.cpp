@@ -1,17 +1,25 @@
 #include "needle_guidance/rigid_planning/rigid_planner.h"
 
 #include <algorithm>
+#include <atomic>
+#include <exception>
+#include <mutex>
 #include <random>
 #include <chrono>
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
+#include <thread>
 
 namespace needle_guidance::rigid_planning {
 namespace {
 
 constexpr double kGolden = 0.6180339887498949;  // (sqrt(5) - 1) / 2
 constexpr double kStartOutside_m = 0.001;       // the needle starts this far outside the tissue
+constexpr double kSecantAcceptFactor = 10.0;    // a converged secant bracket is accepted below this x goal
+/// A plan's scan stops once the implant point is this far past the target along the needle and
+/// the best error is smaller: the implant curve only moves on (4.3.2: no later depth is better).
+constexpr double kStopPastTarget_m = 0.001;
 
 std::string mm(double metres) {
   std::ostringstream out;
@@ -25,6 +33,37 @@ double closestFraction(const Point2& a, const Point2& b, const Point2& t) {
   const Point2 d = b - a;
   const double length2 = d.squaredNorm();
   return length2 > 0.0 ? std::clamp((t - a).dot(d) / length2, 0.0, 1.0) : 0.0;
+}
+
+/// Calls body(i) for i in [0, n), `threads` at a time (<= 0: one per core). Each body(i) must
+/// touch only its own outputs. The first exception is rethrown after all threads joined.
+void parallelFor(std::size_t n, int threads, const std::function<void(std::size_t)>& body) {
+  const std::size_t workers = std::min<std::size_t>(
+      n, threads > 0 ? static_cast<std::size_t>(threads) : std::max(1U, std::thread::hardware_concurrency()));
+  std::atomic<std::size_t> next{0};
+  std::exception_ptr failure;
+  std::mutex failure_mutex;
+  auto worker = [&] {
+    for (std::size_t i = next++; i < n; i = next++) {
+      try {
+        body(i);
+      } catch (...) {
+        const std::lock_guard<std::mutex> lock(failure_mutex);
+        failure = failure ? failure : std::current_exception();
+      }
+    }
+  };
+  std::vector<std::thread> pool;
+  for (std::size_t t = 1; t < workers; ++t) {
+    pool.emplace_back(worker);
+  }
+  worker();
+  for (auto& thread : pool) {
+    thread.join();
+  }
+  if (failure) {
+    std::rethrow_exception(failure);
+  }
 }
 
 }  // namespace
@@ -116,7 +155,7 @@ std::unique_ptr<tissue::TissueSimulation> RigidPlanner::makeSimulation(const Poi
 }
 
 DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
-                             double max_depth_m) const {
+                             double max_depth_m, bool stop_past_target) const {
   sim.reset();
   DepthScan scan;
   scan.height_m = height_m;
@@ -150,6 +189,9 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
                                       : 0.0;
         scan.best_depth_m = scan.depth_m[n - 2] + s * (scan.depth_m[n - 1] - scan.depth_m[n - 2]);
       }
+      if (stop_past_target && tip->x() - target.x() > kStopPastTarget_m && scan.best_error_m < kStopPastTarget_m) {
+        break;
+      }
     }
   }
   if (scan.implant.size() < 2) {
@@ -171,29 +213,52 @@ void RigidPlanner::searchHeights(RigidPlan& plan, const std::function<HeightResu
   // The target height first (depth-only planning, 4.4.2): often already good enough.
   f(target.y());
   // Secant search on the lateral offset of the implant curve, which is close to linear in height
-  // over the window: a few simulations where the grid + golden section needs many more.
+  // over the window: a few simulations where the grid + golden section needs many more. Once
+  // two heights put the curve on opposite sides of the target the root is bracketed and the
+  // Illinois variant of false position keeps it bracketed; the mesh makes the offset a step
+  // function of height at the 0.01 mm scale, so a bracket narrower than a tenth of the height
+  // tolerance is as good as the golden section can do and ends the search too.
   const double lo_y = std::max(scene_.needle.min_height_m, target.y() - options_.height_window_m);
   const double hi_y = std::min(scene_.needle.max_height_m, target.y() + options_.height_window_m);
   if (early_stop && !goal_met && options_.secant_iterations > 0 && seen.back().second.lateral_m != 0.0) {
-    double y0 = target.y();
-    double d0 = seen.back().second.lateral_m;
-    // First step: the implant curve moves with the needle, so shift the height by the offset.
-    double y1 = std::clamp(y0 + d0, lo_y, hi_y);
-    for (int i = 0; i < options_.secant_iterations && !goal_met && y1 != y0; ++i) {
-      f(y1);
-      const double d1 = seen.back().second.lateral_m;
-      if (d1 == d0) {
+    // (ya, da): the older point, or the far end once bracketed; (yb, db): the newest point.
+    double ya = target.y();
+    double da = seen.back().second.lateral_m;
+    double yb = std::clamp(ya + da, lo_y, hi_y);  // the curve moves with the needle: shift by the offset
+    f(yb);
+    double db = seen.back().second.lateral_m;
+    bool bracketed = (da > 0.0) != (db > 0.0);
+    for (int i = 1; i < options_.secant_iterations && !goal_met; ++i) {
+      if (bracketed && std::abs(yb - ya) < 0.1 * options_.height_tolerance_m) {
+        plan.secant = true;  // converged to the mesh's resolution in height
         break;
       }
-      const double y2 = std::clamp(y1 - d1 * (y1 - y0) / (d1 - d0), lo_y, hi_y);
-      y0 = y1;
-      d0 = d1;
-      y1 = y2;
-      if (std::abs(y1 - y0) < 0.1 * options_.height_tolerance_m) {
+      if (db == da || db == 0.0) {
         break;
       }
+      const double yc = std::clamp(yb - db * (yb - ya) / (db - da), lo_y, hi_y);
+      if (yc == yb) {
+        break;  // pinned at the window's edge
+      }
+      f(yc);
+      const double dc = seen.back().second.lateral_m;
+      if (bracketed && (dc > 0.0) == (db > 0.0)) {
+        da *= 0.5;  // Illinois: the far end is kept once more, so halve its weight
+      } else {
+        bracketed = bracketed || (dc > 0.0) != (db > 0.0);
+        ya = yb;
+        da = db;
+      }
+      yb = yc;
+      db = dc;
     }
-    plan.secant = goal_met;
+    // A converged bracket with a large error is a jump in the offset (a tissue boundary): the
+    // grid below looks for a better minimum elsewhere.
+    const double best_error = std::min_element(seen.begin(), seen.end(), [](const auto& l, const auto& r) {
+                                return l.second.error_m < r.second.error_m;
+                              })->second.error_m;
+    plan.secant = goal_met || (plan.secant && best_error <= kSecantAcceptFactor * options_.error_goal_m);
+    goal_met = plan.secant;
   }
   if (!goal_met) {
     const double lo = std::max(scene_.needle.min_height_m, target.y() - options_.height_window_m);
@@ -277,13 +342,20 @@ RigidPlan RigidPlanner::plan(const Point2& target) const {
     searchHeights(
         plan,
         [&](double y) {
-          plan.scans.push_back(scan(*sim, y, target, max_depth));
+          plan.scans.push_back(scan(*sim, y, target, max_depth, /*stop_past_target=*/true));
           ++plan.simulations;
           const DepthScan& s = plan.scans.back();
           return HeightResult{s.best_error_m, s.best_depth_m, s.best_implant, s.lateral_m};
         },
         /*early_stop=*/true);
   });
+}
+
+std::vector<RigidPlan> RigidPlanner::planAll(const std::vector<Point2>& targets, int threads) const {
+  std::vector<RigidPlan> plans(targets.size());
+  // plan() never throws: failures are codes.
+  parallelFor(targets.size(), threads, [&](std::size_t i) { plans[i] = plan(targets[i]); });
+  return plans;
 }
 
 scene::Scene withStiffnessFactors(const scene::Scene& scene, const std::vector<double>& factors) {
@@ -344,11 +416,10 @@ RigidPlan RigidPlanner::planRobust(const Point2& target, const StiffnessUncertai
     }
     const double max_depth = maxScanDepth(target);
     auto evaluate = [&](double y) {
-      std::vector<DepthScan> scans;
-      for (std::size_t k = 0; k < sims.size(); ++k) {
-        scans.push_back(models[k]->scan(*sims[k], y, target, max_depth));
-        ++plan.simulations;
-      }
+      std::vector<DepthScan> scans(sims.size());
+      parallelFor(sims.size(), uncertainty.threads,
+                  [&](std::size_t k) { scans[k] = models[k]->scan(*sims[k], y, target, max_depth); });
+      plan.simulations += static_cast<int>(sims.size());
       // The depth minimising the quantile of the error over the samples, on the first sample's
       // depth grid with every sample interpolated there.
       HeightResult best{1e300, 0.0, Point2::Zero()};

@@ -2,9 +2,12 @@
 // prostate, golden section over y_t +- 0.2 cm to 0.01 cm, needle at 0.5 cm/s. For each target:
 // unplanned, depth-only and planned release points, their predicted errors, the error measured
 // by an independent full simulation (insert to the release point, implant, retract), and the
-// planning time. Usage: bench_rigid --out DIR [--quick]
+// planning time (one plan at a time, and the batch of all targets on every core); then planning
+// speed against placement error over mesh size and time step. Usage: bench_rigid --out DIR [--quick]
 #include <algorithm>
+#include <chrono>
 #include <cmath>
+#include <thread>
 #include <iostream>
 #include <numeric>
 #include <optional>
@@ -84,7 +87,7 @@ int main(int argc, char** argv) {
                              "depth_only_error_mm", "planned_error_mm", "planned_measured_error_mm",
                              "release_x_mm", "release_y_mm", "simulations", "plan_s", "unimodal"},
                             6);
-    std::vector<double> unplanned_cm, depth_cm, planned_cm, measured_cm, seconds;
+    std::vector<double> unplanned_cm, depth_cm, planned_cm, measured_cm, seconds, simulations;
     // Robustness: plans made on the nominal model or robustly over +-30 % stiffness, executed on
     // "true patients" whose stiffness differs from the model (another seed).
     ng::rigid_planning::StiffnessUncertainty uncertainty;  // +-30 %, 5 samples, seed 1
@@ -134,6 +137,7 @@ int main(int argc, char** argv) {
       planned_cm.push_back(1e2 * plan.predicted_error_m);
       measured_cm.push_back(1e2 * measured);
       seconds.push_back(plan.seconds);
+      simulations.push_back(plan.simulations);
       table.addRow({target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
                     1e3 * unplanned.predicted_error_m, 1e3 * depth_only.predicted_error_m,
                     1e3 * plan.predicted_error_m, 1e3 * measured, 1e3 * plan.release.x(),
@@ -147,6 +151,59 @@ int main(int argc, char** argv) {
                 << " mm\n"
                 << std::flush;
     }
+    // The batch the procedure plans: every target, on every core.
+    std::vector<Point2> positions;
+    for (std::size_t i = 0; i < count; ++i) {
+      positions.push_back(scene.targets[i].position);
+    }
+    const int threads = static_cast<int>(std::max(1U, std::thread::hardware_concurrency()));
+    const auto batch_start = std::chrono::steady_clock::now();
+    const auto batch = planner.planAll(positions, threads);
+    const double batch_seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - batch_start).count();
+    for (std::size_t i = 0; i < count; ++i) {
+      if (!batch[i] || (batch[i].release - planner.plan(positions[i]).release).norm() > 1e-12) {
+        throw std::runtime_error(scene.targets[i].name + ": the batch plan differs from the sequential plan");
+      }
+    }
+
+    // Speed against error over mesh size and time step: plan with a coarser or finer model, then
+    // implant in the patient simulated as the procedure does (scene mesh, dz = 0.1 mm).
+    ng::report::Table sweep({"mesh_scale", "nodes", "dz_mm", "seconds_per_plan", "predicted_error_mm",
+                             "measured_error_mm", "model"}, 6);
+    const std::vector<double> mesh_scales = args->quick ? std::vector<double>{1.0, 2.0} : std::vector<double>{0.75, 1.0, 1.5, 2.0};
+    const std::vector<double> steps_mm = args->quick ? std::vector<double>{0.1, 0.5} : std::vector<double>{0.05, 0.1, 0.2, 0.5};
+    const std::vector<std::size_t> sweep_targets = args->quick ? std::vector<std::size_t>{0} : std::vector<std::size_t>{0, 5, 10};
+    for (double scale : mesh_scales) {
+      ng::tissue::TissueSimOptions sim_options = ng::tissue::optionsFromScene(scene);
+      sim_options.meshing.max_edge_m *= scale;
+      sim_options.meshing.min_edge_m *= scale;
+      const std::size_t nodes = ng::tissue::TissueSimulation(scene, sim_options).model().mesh().nodeCount();
+      for (double dz_mm : steps_mm) {
+        ng::rigid_planning::PlannerOptions o = options;
+        o.depth_step_m = 1e-3 * dz_mm;
+        const ng::rigid_planning::RigidPlanner model(scene, sim_options, o);
+        std::vector<double> secs, predicted, measured_mm;
+        for (std::size_t i : sweep_targets) {
+          const Point2 t = scene.targets[std::min(i, scene.targets.size() - 1)].position;
+          const auto p = model.plan(t);
+          if (!p) {
+            throw std::runtime_error("sweep: " + p.toString());
+          }
+          secs.push_back(p.seconds);
+          predicted.push_back(1e3 * p.predicted_error_m);
+          measured_mm.push_back(1e3 * (simulateImplant(scene, ng::tissue::optionsFromScene(scene), p.release, t,
+                                                       options.depth_step_m, options.velocity_m_s) - t).norm());
+        }
+        const std::string label = "mesh x" + std::to_string(scale).substr(0, 4) + " (" + std::to_string(nodes) + " nodes)";
+        sweep.addRow({scale, double(nodes), dz_mm, mean(secs), mean(predicted), mean(measured_mm), label});
+        std::cout << "sweep: mesh x" << scale << " (" << nodes << " nodes), dz " << dz_mm << " mm: " << mean(secs)
+                  << " s per plan, predicted " << mean(predicted) << " mm, measured " << mean(measured_mm) << " mm\n"
+                  << std::flush;
+      }
+    }
+    sweep.writeCsv(args->out_dir + "/speed_vs_error.csv");
+
     std::ostringstream json;
     json.precision(6);
     json << "{\n  \"benchmark\": \"rigid\",\n  \"scene\": \"" << scene.name << "\",\n"
@@ -158,7 +215,12 @@ int main(int argc, char** argv) {
          << "  \"planned_error_cm_sd\": " << sd(planned_cm) << ",\n"
          << "  \"planned_measured_error_cm_mean\": " << mean(measured_cm) << ",\n"
          << "  \"planned_measured_error_cm_max\": " << *std::max_element(measured_cm.begin(), measured_cm.end())
-         << ",\n  \"seconds_per_target_mean\": " << mean(seconds)
+         << ",\n  \"seconds_per_target_mean\": " << batch_seconds / count
+         << ",\n  \"seconds_per_target_note\": \"wall time of planning all targets on " << threads
+         << " threads, divided by the targets\""
+         << ",\n  \"plan_latency_seconds_mean\": " << mean(seconds)
+         << ",\n  \"plan_latency_seconds_max\": " << *std::max_element(seconds.begin(), seconds.end())
+         << ",\n  \"simulations_per_target_mean\": " << mean(simulations)
          << ",\n  \"stiffness_uncertainty\": " << uncertainty.relative
          << ",\n  \"patients_per_target\": " << patients.samples
          << ",\n  \"nominal_p95_error_cm\": " << percentile(nominal_patient_cm, 0.95)
@@ -188,7 +250,11 @@ int main(int argc, char** argv) {
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(
         args->out_dir + "/plot.json",
-        R"json([{"csv": "rigid.csv", "x": "plan_s", "y": "planned_error_mm", "annotate": "target",
+        R"json([{"csv": "speed_vs_error.csv", "x": "seconds_per_plan", "y": "measured_error_mm", "group": "model",
+  "annotate": "dz_mm", "logx": true, "logy": true, "points": true,
+  "title": "Plan time vs seed error: mesh size (colour), dz in mm (label)",
+  "png": "speed_vs_error.png"},
+ {"csv": "rigid.csv", "x": "plan_s", "y": "planned_error_mm", "annotate": "target",
   "title": "Planned error vs planning time per target", "logy": true, "png": "planned_error_vs_time.png"},
  {"csv": "robust.csv", "x": "nominal_error_mm", "y": "robust_error_mm", "annotate": "target",
   "title": "Seed error on patients with +-30 % stiffness: nominal vs robust plan", "points": true,

@@ -39,10 +39,10 @@ struct PlannerOptions {
   double velocity_m_s = 0.005;         ///< v (4.4: 0.5 cm/s) [m/s]
   double depth_margin_m = 0.005;       ///< scan to target depth + margin (<= max depth) [m]
   int grid_points = 5;                 ///< coarse heights that detect a non-unimodal error
-  int secant_iterations = 4;           ///< secant steps on the lateral offset before the grid (0 = off)
+  int secant_iterations = 6;           ///< secant steps on the lateral offset before the grid (0 = off)
   /// Stop searching heights once a scan's best error is below this (the target height is scanned
   /// first; 0 searches the whole window) [m].
-  double error_goal_m = 2e-5;
+  double error_goal_m = 5e-5;
 };
 
 /// Stiffness uncertainty for robust planning: every material's Young's modulus is scaled by a
@@ -60,6 +60,7 @@ struct StiffnessUncertainty {
   /// over the box corners over-hedges (measured: worse p95 than nominal).
   double quantile = 0.95;
   bool search_height = false; ///< also search height (K x more simulations); else the nominal plan's
+  int threads = 0;            ///< samples simulated at a time (<= 0: one per core)
 };
 
 /// `scene` with every material's Young's modulus scaled by its factor (one per material).
@@ -80,7 +81,9 @@ struct RigidPlan {
   Point2 predicted_implant = Point2::Zero();  ///< where the seed is predicted to end [m]
   double predicted_error_m = 0.0;
   bool unimodal = true;          ///< false: the coarse grid found several minima (grid fallback)
-  bool secant = false;           ///< the secant search on the lateral offset met the goal
+  /// The secant search on the lateral offset met the goal, or bracketed the offset's zero to the
+  /// mesh's resolution in height (a tenth of the height tolerance) with an error below 10x the goal.
+  bool secant = false;
   int simulations = 0;
   double seconds = 0.0;
   std::vector<DepthScan> scans;  ///< every height simulated, in evaluation order
@@ -103,6 +106,9 @@ public:
   /// One insertion at `height_m` scanned over depth for `target` (figures 4.5, 4.6). Throws
   /// std::invalid_argument for an infeasible target.
   DepthScan scanHeight(const Point2& target, double height_m) const;
+  /// plan() for every target, `threads` plans at a time (each builds its own simulation, so the
+  /// results equal sequential plans); in the order of `targets`. threads <= 0: one per core.
+  std::vector<RigidPlan> planAll(const std::vector<Point2>& targets, int threads = 0) const;
   /// Depth only: the needle at the target's height, best depth (4.4.2).
   RigidPlan planDepthOnly(const Point2& target) const;
   /// No planning: release at the target (p_r = p_t); the predicted error is what deformation
@@ -118,8 +124,10 @@ public:
 private:
   /// A refusal for an infeasible target, or kOk.
   RigidPlan check(const Point2& target) const;
+  /// One insertion at height_m to max_depth_m; with stop_past_target it ends once the implant
+  /// curve has passed the target (a plan needs only the best depth; figures need the whole curve).
   DepthScan scan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
-                 double max_depth_m) const;
+                 double max_depth_m, bool stop_past_target = false) const;
   /// One height's result for the search: objective, best depth, predicted implant.
   struct HeightResult {
     double error_m;
