@@ -15,11 +15,13 @@ namespace needle_guidance::rigid_planning {
 namespace {
 
 constexpr double kGolden = 0.6180339887498949;  // (sqrt(5) - 1) / 2
-constexpr double kStartOutside_m = 0.001;       // the needle starts this far outside the tissue
+// The scan starts with the tip on the entry face: steps outside the tissue would only solve the
+// unloaded model.
+constexpr double kStartOutside_m = 0.0;
 constexpr double kSecantAcceptFactor = 10.0;    // a converged secant bracket is accepted below this x goal
 /// A plan's scan stops once the implant point is this far past the target along the needle and
 /// the best error is smaller: the implant curve only moves on (4.3.2: no later depth is better).
-constexpr double kStopPastTarget_m = 0.001;
+constexpr double kStopPastTarget_m = 5e-4;
 
 std::string mm(double metres) {
   std::ostringstream out;
