@@ -1,0 +1,145 @@
+#include "needle_guidance/dose/hdr_case.h"
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+
+namespace needle_guidance::dose {
+namespace {
+
+/// Even-odd point-in-polygon test.
+bool insidePolygon(const std::vector<Point2d>& poly, const Point2d& p) {
+  bool inside = false;
+  for (std::size_t i = 0, j = poly.size() - 1; i < poly.size(); j = i++) {
+    const Point2d& a = poly[i];
+    const Point2d& b = poly[j];
+    if ((a.y() > p.y()) != (b.y() > p.y()) &&
+        p.x() < (b.x() - a.x()) * (p.y() - a.y()) / (b.y() - a.y()) + a.x()) {
+      inside = !inside;
+    }
+  }
+  return inside;
+}
+
+double polygonArea(const std::vector<Point2d>& poly) {
+  double twice = 0.0;
+  for (std::size_t i = 0, j = poly.size() - 1; i < poly.size(); j = i++) {
+    twice += poly[j].x() * poly[i].y() - poly[i].x() * poly[j].y();
+  }
+  return 0.5 * std::abs(twice);
+}
+
+}  // namespace
+
+void Structure::normalise() {
+  for (std::size_t c = 0; c < contours.size(); ++c) {
+    const Contour& contour = contours[c];
+    if (contour.xy_m.size() < 3 || !std::isfinite(contour.z_m)) {
+      throw std::invalid_argument("structure '" + name + "': contour " + std::to_string(c) +
+                                  " needs >= 3 vertices and a finite z");
+    }
+    for (const Point2d& p : contour.xy_m) {
+      if (!p.allFinite()) {
+        throw std::invalid_argument("structure '" + name + "': contour " + std::to_string(c) +
+                                    " has a non-finite vertex");
+      }
+    }
+  }
+  std::stable_sort(contours.begin(), contours.end(),
+                   [](const Contour& a, const Contour& b) { return a.z_m < b.z_m; });
+}
+
+double Structure::sliceSpacing() const {
+  std::vector<double> zs;
+  for (const Contour& c : contours) {
+    if (zs.empty() || std::abs(c.z_m - zs.back()) > 1e-9) {
+      zs.push_back(c.z_m);
+    }
+  }
+  if (zs.size() < 2) {
+    return 0.0;
+  }
+  std::vector<double> gaps;
+  for (std::size_t i = 1; i < zs.size(); ++i) {
+    gaps.push_back(zs[i] - zs[i - 1]);
+  }
+  std::nth_element(gaps.begin(), gaps.begin() + static_cast<long>(gaps.size() / 2), gaps.end());
+  return gaps[gaps.size() / 2];
+}
+
+bool Structure::contains(const Point3& p) const {
+  if (contours.empty()) {
+    return false;
+  }
+  const double half = 0.5 * (sliceSpacing() > 0.0 ? sliceSpacing() : 1e-3);
+  // The nearest slice within half a slice spacing.
+  double best = 1e300;
+  for (const Contour& c : contours) {
+    best = std::min(best, std::abs(c.z_m - p.z()));
+  }
+  if (best > half + 1e-12) {
+    return false;
+  }
+  bool inside = false;
+  for (const Contour& c : contours) {
+    if (std::abs(std::abs(c.z_m - p.z()) - best) < 1e-12 && insidePolygon(c.xy_m, p.head<2>())) {
+      inside = !inside;  // even-odd over contours of that slice (holes)
+    }
+  }
+  return inside;
+}
+
+double Structure::volume_m3() const {
+  const double dz = sliceSpacing();
+  double volume = 0.0;
+  for (const Contour& c : contours) {
+    volume += polygonArea(c.xy_m) * (dz > 0.0 ? dz : 0.0);
+  }
+  return volume;
+}
+
+void Structure::bounds(Point3& lo, Point3& hi) const {
+  lo = Point3::Constant(1e300);
+  hi = Point3::Constant(-1e300);
+  for (const Contour& c : contours) {
+    for (const Point2d& p : c.xy_m) {
+      lo = lo.cwiseMin(Point3(p.x(), p.y(), c.z_m));
+      hi = hi.cwiseMax(Point3(p.x(), p.y(), c.z_m));
+    }
+  }
+}
+
+int HdrCase::structureIndex(const std::string& wanted) const {
+  for (std::size_t i = 0; i < structures.size(); ++i) {
+    if (structures[i].name == wanted) {
+      return static_cast<int>(i);
+    }
+  }
+  return -1;
+}
+
+Eigen::MatrixXd doseRateMatrix(const HdrCase& c, const Tg43Source& source, SourceModel model,
+                               double min_distance_m) {
+  if (!(c.air_kerma_strength_U > 0.0) || !std::isfinite(c.air_kerma_strength_U)) {
+    throw std::invalid_argument("doseRateMatrix: case '" + c.name + "': air-kerma strength must be > 0 U");
+  }
+  Eigen::MatrixXd d(static_cast<Eigen::Index>(c.points.size()), static_cast<Eigen::Index>(c.dwells.size()));
+  for (std::size_t j = 0; j < c.dwells.size(); ++j) {
+    const DwellPosition& dwell = c.dwells[j];
+    for (std::size_t i = 0; i < c.points.size(); ++i) {
+      Point3 p = c.points[i].position_m;
+      const Point3 offset = p - dwell.position_m;
+      const double r = offset.norm();
+      if (r < min_distance_m) {  // inside the source: the dose rate at min_distance_m off the axis
+        const Point3 side = dwell.axis.unitOrthogonal();
+        p = dwell.position_m + min_distance_m * side;
+      }
+      d(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j)) =
+          c.air_kerma_strength_U * source.doseRatePerU(p, dwell.position_m, dwell.axis, model);
+    }
+  }
+  return d;
+}
+
+}  // namespace needle_guidance::dose
