@@ -26,11 +26,13 @@ namespace needle_guidance::dose {
 /// in both encodings, but they differ between pairs:
 enum class DwellTimeEncoding {
   kNoActiveDwells,        ///< no channel has a non-zero weight: nothing to tell
-  kStandardCumulative,    ///< DICOM PS3.3 C.8.8.15: monotonic, no time between pairs (0, 2.1, 2.1, 3.6, ...)
-  kPerPairNonCumulative,  ///< non-standard: 0 at the first point of each pair, that position's weight
-                          ///< at the second (0, 6.7, 0, 3.4, ...); consecutive differences across
-                          ///< pairs would be negative "transit times"
-  kIndistinguishable,     ///< active weights only at the first position: both readings agree
+  kStandardCumulative,    ///< DICOM PS3.3 C.8.8.15: monotonic, no time between pairs
+                          ///< (0, 2.1, 2.1, 3.6, ...)
+  kPerPairNonCumulative,  ///< non-standard: 0 at the first point of each pair, that position's
+                          ///< weight at the second (0, 6.7, 0, 3.4, ...); consecutive differences
+                          ///< across pairs would be negative "transit times"
+  kIndistinguishable,     ///< each channel's only weight is at its last control-point pair: both
+                          ///< readings agree
   kMixed,                 ///< some channels use one encoding and some the other
 };
 
@@ -54,19 +56,20 @@ DicomRtFiles findDicomRtFiles(const std::string& dir);
 /// What the importer saw besides the case itself (for reports and sanity checks).
 struct DicomRtImportReport {
   std::string plan_path;
-  std::string structure_set_path;        ///< empty if imported without RTSTRUCT
+  std::string structure_set_path;  ///< empty if imported without RTSTRUCT
   DwellTimeEncoding encoding = DwellTimeEncoding::kNoActiveDwells;  ///< whole plan
   std::vector<DwellTimeEncoding> channel_encodings;                 ///< one per catheter
-  int fractions_planned = 1;             ///< NumberOfFractionsPlanned (300A,0078)
-  double total_dwell_time_s = 0.0;       ///< sum of the imported dwell times (one fraction)
-  std::optional<double> total_reference_air_kerma_uGy;  ///< TotalReferenceAirKerma (300A,0250), summed
-  std::string source_type;               ///< SourceType (300A,0214), e.g. LINE
-  std::optional<double> active_source_length_m;        ///< ActiveSourceLength (300A,021A)
-  std::string source_strength_reference_date;          ///< (300A,022C); S_K is NOT decay-corrected
-  int orientation_flips = 0;             ///< ControlPointOrientation vectors reversed to point at the tip
-  double max_axis_deviation_rad = 0.0;   ///< largest angle between ControlPointOrientation and the
-                                         ///< catheter direction (after flipping)
-  std::vector<std::string> warnings;     ///< non-fatal oddities, one sentence each
+  int fractions_planned = 1;        ///< NumberOfFractionsPlanned (300A,0078)
+  double total_dwell_time_s = 0.0;  ///< sum of the imported dwell times (one fraction)
+  std::optional<double>
+      total_reference_air_kerma_uGy;             ///< TotalReferenceAirKerma (300A,0250), summed
+  std::string source_type;                       ///< SourceType (300A,0214), e.g. LINE
+  std::optional<double> active_source_length_m;  ///< ActiveSourceLength (300A,021A)
+  std::string source_strength_reference_date;    ///< (300A,022C); S_K is NOT decay-corrected
+  int orientation_flips = 0;  ///< ControlPointOrientation vectors reversed to point at the tip
+  double max_axis_deviation_rad = 0.0;  ///< largest angle between ControlPointOrientation and the
+                                        ///< catheter direction (after flipping)
+  std::vector<std::string> warnings;    ///< non-fatal oddities, one sentence each
 };
 
 /// Options for import.
@@ -101,28 +104,32 @@ HdrCase importDicomRt(const std::string& dir, DicomRtImportReport* report = null
 /// Same with explicit files; `structure_set_path` may be empty (no structures; catheters from
 /// the control points).
 HdrCase importDicomRt(const std::string& plan_path, const std::string& structure_set_path,
-                      DicomRtImportReport* report = nullptr, const DicomRtImportOptions& options = {});
+                      DicomRtImportReport* report = nullptr,
+                      const DicomRtImportOptions& options = {});
 
 /// A dose grid on an axis-aligned DICOM image grid (ImageOrientationPatient = 1\0\0\0\1\0).
 /// Voxel (i, j, k) = (column, row, frame) sits at
 ///   origin_m + (i * spacing_m.x(), j * spacing_m.y(), z_offsets_m[k]).
 struct DoseGrid {
-  Point3 origin_m = Point3::Zero();            ///< centre of voxel (0,0,0): ImagePositionPatient [m]
-  Eigen::Vector3d spacing_m = Eigen::Vector3d::Ones();  ///< column, row spacing; z: mean |frame step| [m]
-  std::array<int, 3> sizes = {0, 0, 0};        ///< columns, rows, frames
-  std::vector<double> z_offsets_m;             ///< frame z relative to origin_m.z() [m], strictly monotone
-  std::vector<double> dose_Gy;                 ///< index i + nx * (j + ny * k) [Gy]
-  std::string summation_type;                  ///< DoseSummationType (3004,000A), e.g. PLAN
+  Point3 origin_m = Point3::Zero();  ///< centre of voxel (0,0,0): ImagePositionPatient [m]
+  Eigen::Vector3d spacing_m =
+      Eigen::Vector3d::Ones();           ///< column, row spacing; z: mean |frame step| [m]
+  std::array<int, 3> sizes = {0, 0, 0};  ///< columns, rows, frames
+  std::vector<double> z_offsets_m;  ///< frame z relative to origin_m.z() [m], strictly monotone
+  std::vector<double> dose_Gy;      ///< index i + nx * (j + ny * k) [Gy]
+  std::string summation_type;       ///< DoseSummationType (3004,000A), e.g. PLAN
 
   std::size_t voxelCount() const { return dose_Gy.size(); }
   std::size_t index(int i, int j, int k) const {
     return static_cast<std::size_t>(i) +
-           static_cast<std::size_t>(sizes[0]) * (static_cast<std::size_t>(j) +
-                                                 static_cast<std::size_t>(sizes[1]) * static_cast<std::size_t>(k));
+           static_cast<std::size_t>(sizes[0]) *
+               (static_cast<std::size_t>(j) +
+                static_cast<std::size_t>(sizes[1]) * static_cast<std::size_t>(k));
   }
   /// Centre of voxel (i, j, k) [m]. No bounds check.
   Point3 position(int i, int j, int k) const {
-    return origin_m + Point3(i * spacing_m.x(), j * spacing_m.y(), z_offsets_m[static_cast<std::size_t>(k)]);
+    return origin_m +
+           Point3(i * spacing_m.x(), j * spacing_m.y(), z_offsets_m[static_cast<std::size_t>(k)]);
   }
   double at(int i, int j, int k) const { return dose_Gy[index(i, j, k)]; }
   double& at(int i, int j, int k) { return dose_Gy[index(i, j, k)]; }
@@ -180,17 +187,18 @@ std::vector<VoxelIndex> sampleVoxels(const std::vector<VoxelIndex>& voxels, std:
 
 /// Global gamma criteria (Low et al., Med. Phys. 25 (1998) 656).
 struct GammaCriteria {
-  double dose_fraction = 0.03;   ///< dose-difference criterion as a fraction of normalisation_Gy
-  double dta_m = 3e-3;           ///< distance-to-agreement criterion [m]
-  double normalisation_Gy = 0;   ///< global normalisation dose, usually the prescription [Gy], > 0
+  double dose_fraction = 0.03;  ///< dose-difference criterion as a fraction of normalisation_Gy
+  double dta_m = 3e-3;          ///< distance-to-agreement criterion [m]
+  double normalisation_Gy = 0;  ///< global normalisation dose, usually the prescription [Gy], > 0
   double search_step_fraction = 0.1;  ///< reference search step as a fraction of dta_m (DTA/10)
 };
 
 struct GammaResult {
-  double pass_rate = 0.0;      ///< fraction (0-1) of points with gamma <= 1
-  int points = 0;              ///< points evaluated
-  int points_outside = 0;      ///< points outside the reference grid (counted as failing)
-  double mean_gamma = 0.0;     ///< over the points inside the grid (gamma capped at the search radius, see gammaIndex)
+  double pass_rate = 0.0;  ///< fraction (0-1) of points with gamma <= 1
+  int points = 0;          ///< points evaluated
+  int points_outside = 0;  ///< points outside the reference grid (counted as failing)
+  double mean_gamma =
+      0.0;  ///< over the points inside the grid (gamma capped at the search radius, see gammaIndex)
   double max_gamma = 0.0;
   /// median over the points inside the grid with reference dose > 0 of
   /// (evaluated - reference) / reference, the reference interpolated at the point itself.
@@ -206,5 +214,60 @@ struct GammaResult {
 /// Throws std::invalid_argument for sizes that differ, non-finite doses or bad criteria.
 GammaResult gammaIndex(const DoseGrid& reference, const std::vector<Point3>& points_m,
                        const std::vector<double>& evaluated_Gy, const GammaCriteria& criteria);
+
+/// Our TG-43 dose [Gy] at every voxel centre of `geometry` (its dose values are ignored): the
+/// case's dwells with time > 0, its dwell times and S_K, through doseRateMatrix with
+/// min_distance 0 (the TG-43 model's own near-source handling applies), times `scale` (e.g. the
+/// number of fractions for a PLAN dose). Throws std::invalid_argument for a bad case or grid.
+DoseGrid computeDoseOnGrid(const HdrCase& c, const Tg43Source& source, const DoseGrid& geometry,
+                           SourceModel model = SourceModel::kLine, double scale = 1.0);
+
+/// Settings of validateAgainstRtDose; the defaults are the thresholds justified in dicom_rt.cpp.
+struct RtDoseValidationOptions {
+  double low_dose_cutoff = 0.10;     ///< compare voxels with RTDOSE >= this fraction of Rx
+  std::size_t gamma_samples = 3000;  ///< fixed-seed sample for the gamma index (0 = all voxels)
+  std::uint32_t seed = 1;
+  double min_gamma_3pct3mm = 0.99;  ///< pass rate required in both directions
+  double max_abs_median = 0.01;     ///< |median relative difference|
+  double max_p95_abs = 0.02;        ///< 95th percentile of |relative difference|
+};
+
+/// Result of comparing our dose with an RTDOSE.
+struct RtDoseValidation {
+  bool pass = false;
+  std::vector<std::string> reasons;  ///< why it failed (empty when it passes), then hints
+  double normalisation_Gy = 0.0;     ///< Rx x fraction factor: the global gamma normalisation
+  double fraction_factor = 1.0;      ///< our one-fraction dose is scaled by this (PLAN dose)
+  std::size_t voxels = 0;            ///< RTDOSE voxels >= low_dose_cutoff x Rx
+  std::size_t gamma_points = 0;
+  GammaResult gamma33_ours_vs_rtdose;  ///< our dose at the sampled voxels against the RTDOSE grid
+  GammaResult gamma33_rtdose_vs_ours;  ///< RTDOSE voxel values against our dose grid
+  GammaResult gamma22_ours_vs_rtdose;
+  GammaResult gamma22_rtdose_vs_ours;
+  /// (ours - RTDOSE) / RTDOSE over all compared voxels.
+  double median_relative_difference = 0.0;
+  double p95_abs_relative_difference = 0.0;
+  double p99_abs_relative_difference = 0.0;
+  int worst_frame = -1;  ///< frame with the largest |median| (>= 20 voxels), -1 if none
+  double worst_frame_median = 0.0;
+  std::size_t worst_frame_voxels = 0;
+  /// Registration diagnostic: the whole-voxel displacement d (one axis, up to 2 voxels) for which
+  /// our dose at (written position + d) best matches the RTDOSE values; zero if none beats d = 0.
+  Point3 best_shift_m = Point3::Zero();
+  double best_shift_median_abs = 0.0;  ///< median |relative difference| with that displacement
+  double unshifted_median_abs = 0.0;
+
+  double gamma3pct3mm() const;  ///< worse of the two directions
+  double gamma2pct2mm() const;
+};
+
+/// Compares our TG-43 dose for the imported plan with a vendor RTDOSE: relative differences at
+/// every RTDOSE voxel >= low_dose_cutoff x Rx, global gamma 3 %/3 mm and 2 %/2 mm (Rx-normalised)
+/// in both directions at a fixed-seed sample of them, a per-frame and a shift diagnostic, and
+/// the verdict. `fractions` scales our dose when the RTDOSE DoseSummationType is PLAN (or empty).
+/// Throws std::invalid_argument if no voxel reaches the cut-off or the inputs are invalid.
+RtDoseValidation validateAgainstRtDose(const HdrCase& c, const Tg43Source& source,
+                                       const DoseGrid& rtdose, int fractions,
+                                       const RtDoseValidationOptions& options = {});
 
 }  // namespace needle_guidance::dose
