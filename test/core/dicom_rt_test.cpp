@@ -6,6 +6,8 @@
 // ($NG_SHARED_DATA, default /work/shared/data) is absent.
 #include <gtest/gtest.h>
 
+#include "../csv_rows.h"
+
 #include <unistd.h>
 #include <cmath>
 #include <cstdlib>
@@ -402,30 +404,6 @@ std::string sharedData() {
   return env != nullptr && *env != '\0' ? env : "/work/shared/data";
 }
 
-std::vector<std::map<std::string, std::string>> readCsv(const std::string& path) {
-  std::ifstream in(path);
-  std::vector<std::map<std::string, std::string>> rows;
-  std::string line;
-  std::vector<std::string> header;
-  while (std::getline(in, line)) {
-    std::vector<std::string> cells;
-    std::stringstream ss(line);
-    std::string cell;
-    while (std::getline(ss, cell, ',')) {
-      cells.push_back(cell);
-    }
-    if (header.empty()) {
-      header = cells;
-      continue;
-    }
-    std::map<std::string, std::string> row;
-    for (std::size_t c = 0; c < header.size() && c < cells.size(); ++c) {
-      row[header[c]] = cells[c];
-    }
-    rows.push_back(row);
-  }
-  return rows;
-}
 
 /// Dwell positions, times and orientations against dwell_positions.csv (pydicom export).
 void checkAgainstCsv(const std::string& dir, dose::DwellTimeEncoding expected_encoding,
@@ -437,7 +415,7 @@ void checkAgainstCsv(const std::string& dir, dose::DwellTimeEncoding expected_en
   EXPECT_NEAR(c.air_kerma_strength_U, 40700.0, 1e-9);
   EXPECT_NEAR(c.prescription_Gy, 16.0, 1e-12);
   ASSERT_EQ(c.catheters.size(), 14u);
-  const auto rows = readCsv(dir + "/dwell_positions.csv");
+  const auto rows = readCsvRows(dir + "/dwell_positions.csv");
   ASSERT_EQ(rows.size(), c.dwells.size());
   for (const auto& row : rows) {
     const int catheter = std::stoi(row.at("channel")) - 1;
@@ -486,7 +464,7 @@ TEST(DicomRtRealData, ExamplePlanMatchesCsvExport) {
   EXPECT_EQ(g.sizes[0], 80);
   EXPECT_EQ(g.sizes[1], 80);
   EXPECT_EQ(g.sizes[2], 56);
-  const auto rows = readCsv(dir + "/rtdose_sample_points.csv");
+  const auto rows = readCsvRows(dir + "/rtdose_sample_points.csv");
   ASSERT_GT(rows.size(), 1000u);
   for (const auto& row : rows) {
     const int k = std::stoi(row.at("frame"));

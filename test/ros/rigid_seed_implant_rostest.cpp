@@ -2,6 +2,8 @@
 // insertion_procedure run two targets end to end; the procedure's report is checked: every move
 // succeeded and each seed's measured error agrees with the plan's prediction.
 #include <gtest/gtest.h>
+
+#include "../csv_rows.h"
 #include <ros/ros.h>
 
 #include <fstream>
@@ -15,30 +17,6 @@ namespace {
 constexpr double kPredictionAgreement_mm = 0.3;  // live stepping vs the planner (~3 cut steps)
 constexpr int kTargets = 2;
 
-std::vector<std::map<std::string, std::string>> readCsv(const std::string& path) {
-  std::ifstream in(path);
-  std::vector<std::map<std::string, std::string>> rows;
-  std::string line;
-  std::vector<std::string> header;
-  while (std::getline(in, line)) {
-    std::vector<std::string> cells;
-    std::stringstream ss(line);
-    std::string cell;
-    while (std::getline(ss, cell, ',')) {
-      cells.push_back(cell);
-    }
-    if (header.empty()) {
-      header = cells;
-      continue;
-    }
-    std::map<std::string, std::string> row;
-    for (std::size_t i = 0; i < header.size() && i < cells.size(); ++i) {
-      row[header[i]] = cells[i];
-    }
-    rows.push_back(row);
-  }
-  return rows;
-}
 
 TEST(RigidSeedImplant, TwoTargetsLandWherePredicted) {
   ros::NodeHandle private_nh("~");
@@ -50,7 +28,7 @@ TEST(RigidSeedImplant, TwoTargetsLandWherePredicted) {
     ros::WallDuration(0.5).sleep();
   }
   ASSERT_TRUE(std::ifstream(summary).good()) << "the procedure wrote no report in 200 s";
-  const auto rows = readCsv(report_dir + "/moves.csv");
+  const auto rows = readCsvRows(report_dir + "/moves.csv");
   ASSERT_EQ(rows.size(), static_cast<std::size_t>(kTargets));
   for (const auto& row : rows) {
     EXPECT_EQ(row.at("status"), "ok") << row.at("target");
