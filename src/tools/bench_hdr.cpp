@@ -186,6 +186,47 @@ int main(int argc, char** argv) {
         }
       }
       dvh.writeCsv(args->out_dir + "/dvh.csv");
+      // Isodose lines on the transverse slice through the gland's centre (figure 6.6).
+      const dose::Structure& gland = c.structures.front();
+      dose::Point3 lo, hi;
+      gland.bounds(lo, hi);
+      double z = gland.contours.front().z_m;
+      for (const auto& contour : gland.contours) {
+        if (std::abs(contour.z_m - 0.5 * (lo.z() + hi.z())) < std::abs(z - 0.5 * (lo.z() + hi.z()))) z = contour.z_m;
+      }
+      ng::report::Table outlines({"structure", "contour", "x_mm", "y_mm"}, 6);
+      for (const auto& s : c.structures) {
+        for (std::size_t k = 0; k < s.contours.size(); ++k) {
+          if (std::abs(s.contours[k].z_m - z) < 1e-9) {
+            for (const auto& p : s.contours[k].xy_m) {
+              outlines.addRow({s.name, double(k), 1e3 * p.x(), 1e3 * p.y()});
+            }
+          }
+        }
+      }
+      outlines.writeCsv(args->out_dir + "/isodose_outlines.csv");
+      ng::report::Table catheters({"x_mm", "y_mm"}, 6);
+      for (const auto& dw : c.dwells) {
+        if (std::abs(dw.position_m.z() - z) < 2.5e-3) catheters.addRow({1e3 * dw.position_m.x(), 1e3 * dw.position_m.y()});
+      }
+      catheters.writeCsv(args->out_dir + "/isodose_dwells.csv");
+      for (int method = 0; method < 2; ++method) {
+        const auto& times = method == 0 ? lp_times_all[dvh_case] : sa_times_all[dvh_case];
+        ng::report::Table grid({"x_mm", "y_mm", "dose_pct"}, 5);
+        for (double y = lo.y() - 0.02; y <= hi.y() + 0.02 + 1e-9; y += 1e-3) {
+          for (double x = lo.x() - 0.02; x <= hi.x() + 0.02 + 1e-9; x += 1e-3) {
+            double total = 0.0;
+            for (std::size_t j = 0; j < c.dwells.size(); ++j) {
+              if (times[j] > 0.0) {
+                total += times[j] * c.air_kerma_strength_U *
+                         source.doseRatePerU(dose::Point3(x, y, z), c.dwells[j].position_m, c.dwells[j].axis);
+              }
+            }
+            grid.addRow({1e3 * x, 1e3 * y, 100.0 * total / c.prescription_Gy});
+          }
+        }
+        grid.writeCsv(args->out_dir + (method == 0 ? "/isodose_lp.csv" : "/isodose_sa.csv"));
+      }
     }
 
     // SA: objective gap to the LP optimum against iterations (case 1).
@@ -268,6 +309,10 @@ int main(int argc, char** argv) {
   "title": "LP time vs objective error (on the densest points) over dose-point count", "png": "point_density.png"},
  {"csv": "hdr.csv", "x": "lp_objective", "y": "sa_objective", "annotate": "case", "points": true,
   "title": "Objective per case: LP (optimum) vs simulated annealing", "png": "lp_vs_sa.png"},
+ {"kind": "isodose", "csv": "isodose_lp.csv", "contours": "isodose_outlines.csv", "points_csv": "isodose_dwells.csv",
+  "levels": [50, 100, 150, 200], "invert_y": true, "title": "Isodose lines (% Rx), LP plan, mid-gland slice (anterior up)", "png": "isodose_lp.png"},
+ {"kind": "isodose", "csv": "isodose_sa.csv", "contours": "isodose_outlines.csv", "points_csv": "isodose_dwells.csv",
+  "levels": [50, 100, 150, 200], "invert_y": true, "title": "Isodose lines (% Rx), SA plan, mid-gland slice (anterior up)", "png": "isodose_sa.png"},
  {"csv": "dvh.csv", "x": "dose_Gy", "y": "volume_pct", "group": "curve",
   "title": "Cumulative DVH, LP vs SA (case with the largest index difference)", "png": "dvh.png"}])json");
     std::cout << cases.toText() << comparison.toText() << json.str();
