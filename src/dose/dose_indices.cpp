@@ -42,17 +42,7 @@ std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& so
             if (!s.contains(p)) {
               continue;
             }
-            double dose = 0.0;
-            for (std::size_t j = 0; j < c.dwells.size(); ++j) {
-              if (times_s[j] > 0.0) {
-                const DwellPosition& dw = c.dwells[j];
-                Point3 q = p;
-                if ((q - dw.position_m).norm() < 1e-3) {  // inside the source: as doseRateMatrix
-                  q = dw.position_m + 1e-3 * dw.axis.unitOrthogonal();
-                }
-                dose += times_s[j] * c.air_kerma_strength_U * source.doseRatePerU(q, dw.position_m, dw.axis);
-              }
-            }
+            const double dose = doseAt(c, source, times_s, p);
             sd.dose_Gy.push_back(dose);
           }
         }

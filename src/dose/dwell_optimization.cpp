@@ -41,7 +41,7 @@ inline double pointPenalty(const PenaltyModel& m, Eigen::Index i, double dose) {
 }
 
 /// The LP of optimizeLp as a Clp model.
-void buildLp(const HdrCase& c, const Eigen::MatrixXd& d, const PenaltyModel& pm, ClpSimplex& model) {
+void buildLp(const Eigen::MatrixXd& d, const PenaltyModel& pm, ClpSimplex& model) {
   const int m = static_cast<int>(d.rows());
   const int n = static_cast<int>(d.cols());
   const double inf = COIN_DBL_MAX;
@@ -93,7 +93,6 @@ void buildLp(const HdrCase& c, const Eigen::MatrixXd& d, const PenaltyModel& pm,
   model.loadProblem(matrix, col_lo.data(), col_hi.data(), cost.data(), row_lo.data(), row_hi.data());
   model.setOptimizationDirection(1.0);
   model.setLogLevel(0);
-  (void)c;
 }
 
 /// The dual of that LP: one row per dwell position (the basis is n x n, n = a few hundred,
@@ -198,7 +197,7 @@ PenaltyModel penaltyModel(const HdrCase& c) {
 void writeLpMps(const HdrCase& c, const Eigen::MatrixXd& d, const std::string& path) {
   checkSizes(c, d, "writeLpMps");
   ClpSimplex model;
-  buildLp(c, d, penaltyModel(c), model);
+  buildLp(d, penaltyModel(c), model);
   if (model.writeMps(path.c_str(), 0, 1) != 0) {
     throw std::runtime_error("writeLpMps: cannot write '" + path + "'");
   }
@@ -225,7 +224,7 @@ DwellResult optimizeLp(const HdrCase& c, const Eigen::MatrixXd& d, const LpOptio
     }
     r.lower_bound = -model.objectiveValue();  // weak duality: no dwell times do better
   } else {
-    buildLp(c, d, pm, model);
+    buildLp(d, pm, model);
     model.setMaximumSeconds(options.max_seconds);
     model.dual();
     const double* x = model.primalColumnSolution();

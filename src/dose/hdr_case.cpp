@@ -48,24 +48,17 @@ void Structure::normalise() {
   }
   std::stable_sort(contours.begin(), contours.end(),
                    [](const Contour& a, const Contour& b) { return a.z_m < b.z_m; });
-}
-
-double Structure::sliceSpacing() const {
-  std::vector<double> zs;
-  for (const Contour& c : contours) {
-    if (zs.empty() || std::abs(c.z_m - zs.back()) > 1e-9) {
-      zs.push_back(c.z_m);
+  std::vector<double> gaps;
+  for (std::size_t i = 1; i < contours.size(); ++i) {
+    if (contours[i].z_m - contours[i - 1].z_m > 1e-9) {
+      gaps.push_back(contours[i].z_m - contours[i - 1].z_m);
     }
   }
-  if (zs.size() < 2) {
-    return 0.0;
+  slice_spacing_m = 0.0;
+  if (!gaps.empty()) {
+    std::nth_element(gaps.begin(), gaps.begin() + static_cast<long>(gaps.size() / 2), gaps.end());
+    slice_spacing_m = gaps[gaps.size() / 2];
   }
-  std::vector<double> gaps;
-  for (std::size_t i = 1; i < zs.size(); ++i) {
-    gaps.push_back(zs[i] - zs[i - 1]);
-  }
-  std::nth_element(gaps.begin(), gaps.begin() + static_cast<long>(gaps.size() / 2), gaps.end());
-  return gaps[gaps.size() / 2];
 }
 
 bool Structure::contains(const Point3& p) const {
@@ -119,6 +112,24 @@ int HdrCase::structureIndex(const std::string& wanted) const {
   return -1;
 }
 
+double dwellDoseRate(const HdrCase& c, const Tg43Source& source, const DwellPosition& dwell, const Point3& p,
+                     SourceModel model, double min_distance_m) {
+  const Point3 q = (p - dwell.position_m).norm() < min_distance_m
+                       ? Point3(dwell.position_m + min_distance_m * dwell.axis.unitOrthogonal())
+                       : p;
+  return c.air_kerma_strength_U * source.doseRatePerU(q, dwell.position_m, dwell.axis, model);
+}
+
+double doseAt(const HdrCase& c, const Tg43Source& source, const std::vector<double>& times_s, const Point3& p) {
+  double dose = 0.0;
+  for (std::size_t j = 0; j < c.dwells.size() && j < times_s.size(); ++j) {
+    if (times_s[j] > 0.0) {
+      dose += times_s[j] * dwellDoseRate(c, source, c.dwells[j], p);
+    }
+  }
+  return dose;
+}
+
 Eigen::MatrixXd doseRateMatrix(const HdrCase& c, const Tg43Source& source, SourceModel model,
                                double min_distance_m) {
   if (!(c.air_kerma_strength_U > 0.0) || !std::isfinite(c.air_kerma_strength_U)) {
@@ -126,17 +137,9 @@ Eigen::MatrixXd doseRateMatrix(const HdrCase& c, const Tg43Source& source, Sourc
   }
   Eigen::MatrixXd d(static_cast<Eigen::Index>(c.points.size()), static_cast<Eigen::Index>(c.dwells.size()));
   for (std::size_t j = 0; j < c.dwells.size(); ++j) {
-    const DwellPosition& dwell = c.dwells[j];
     for (std::size_t i = 0; i < c.points.size(); ++i) {
-      Point3 p = c.points[i].position_m;
-      const Point3 offset = p - dwell.position_m;
-      const double r = offset.norm();
-      if (r < min_distance_m) {  // inside the source: the dose rate at min_distance_m off the axis
-        const Point3 side = dwell.axis.unitOrthogonal();
-        p = dwell.position_m + min_distance_m * side;
-      }
       d(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j)) =
-          c.air_kerma_strength_U * source.doseRatePerU(p, dwell.position_m, dwell.axis, model);
+          dwellDoseRate(c, source, c.dwells[j], c.points[i].position_m, model, min_distance_m);
     }
   }
   return d;

@@ -1,5 +1,7 @@
 #include "needle_guidance/rigid_planning/rigid_planner.h"
 
+#include "needle_guidance/report/statistics.h"
+
 #include <algorithm>
 #include <atomic>
 #include <exception>
@@ -15,9 +17,6 @@ namespace needle_guidance::rigid_planning {
 namespace {
 
 constexpr double kGolden = 0.6180339887498949;  // (sqrt(5) - 1) / 2
-// The scan starts with the tip on the entry face: steps outside the tissue would only solve the
-// unloaded model.
-constexpr double kStartOutside_m = 0.0;
 constexpr double kSecantAcceptFactor = 10.0;    // a converged secant bracket is accepted below this x goal
 /// A plan's scan stops once the implant point is this far past the target along the needle and
 /// the best error is smaller: the implant curve only moves on (4.3.2: no later depth is better).
@@ -163,7 +162,7 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
   scan.height_m = height_m;
   const double dz = options_.depth_step_m;
   const double dt_s = dz / options_.velocity_m_s;
-  double x = scene_.workspace_min.x() - kStartOutside_m;
+  double x = scene_.workspace_min.x();  // tip on the entry face: steps outside only solve the unloaded model
   scan.best_error_m = 1e300;
   while (x < max_depth_m - 1e-12) {
     x = std::min(max_depth_m, x + dz);
@@ -263,14 +262,12 @@ void RigidPlanner::searchHeights(RigidPlan& plan, const std::function<HeightResu
     goal_met = plan.secant;
   }
   if (!goal_met) {
-    const double lo = std::max(scene_.needle.min_height_m, target.y() - options_.height_window_m);
-    const double hi = std::min(scene_.needle.max_height_m, target.y() + options_.height_window_m);
     // Coarse grid: detects an error that is not unimodal over the window (4.3.2 notes it need
     // not be, e.g. next to a tissue boundary) and brackets the best grid point.
     const int n = options_.grid_points;
     std::vector<double> ys(static_cast<std::size_t>(n)), errors(static_cast<std::size_t>(n));
     for (int i = 0; i < n; ++i) {
-      ys[static_cast<std::size_t>(i)] = lo + (hi - lo) * i / (n - 1);
+      ys[static_cast<std::size_t>(i)] = lo_y + (hi_y - lo_y) * i / (n - 1);
       errors[static_cast<std::size_t>(i)] = goal_met ? 1e300 : f(ys[static_cast<std::size_t>(i)]);
     }
     int local_minima = 0;
@@ -433,11 +430,7 @@ RigidPlan RigidPlanner::planRobust(const Point2& target, const StiffnessUncertai
           errors[k] = (p - target).norm();
           mean_implant += p / static_cast<double>(scans.size());
         }
-        std::sort(errors.begin(), errors.end());
-        const double pos = uncertainty.quantile * static_cast<double>(errors.size() - 1);
-        const std::size_t i = static_cast<std::size_t>(pos);
-        const double objective =
-            i + 1 < errors.size() ? errors[i] + (pos - static_cast<double>(i)) * (errors[i + 1] - errors[i]) : errors.back();
+        const double objective = report::quantile(errors, uncertainty.quantile);
         if (objective < best.error_m) {
           best = {objective, z, mean_implant};
         }

@@ -17,6 +17,7 @@
 #include "needle_guidance/dose/dwell_optimization.h"
 #include "needle_guidance/dose/prostate_case.h"
 #include "needle_guidance/report/bench_args.h"
+#include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
 #include "hdr_validation.h"
 
@@ -27,18 +28,9 @@ namespace {
 
 constexpr const char* kSource = "microselectron_v2_hdr";
 
-double mean(const std::vector<double>& v) { return v.empty() ? 0.0 : std::accumulate(v.begin(), v.end(), 0.0) / v.size(); }
-double median(std::vector<double> v) {
-  if (v.empty()) return 0.0;
-  std::sort(v.begin(), v.end());
-  return v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]);
-}
-double sd(const std::vector<double>& v) {
-  const double m = mean(v);
-  double s = 0.0;
-  for (double x : v) s += (x - m) * (x - m);
-  return v.size() > 1 ? std::sqrt(s / (v.size() - 1)) : 0.0;
-}
+using ng::report::mean;
+using ng::report::median;
+using ng::report::sampleSd;
 
 /// Regularised incomplete beta I_x(a, b) by its continued fraction (Lentz), for the t-test.
 double incompleteBeta(double a, double b, double x) {
@@ -67,7 +59,7 @@ double incompleteBeta(double a, double b, double x) {
 
 /// Two-sided p-value of the paired t-test of differences v (0 differences: p = 1).
 double pairedTTestP(const std::vector<double>& v) {
-  const double s = sd(v);
+  const double s = sampleSd(v);
   if (v.size() < 2) return 1.0;
   if (s == 0.0) return mean(v) == 0.0 ? 1.0 : 0.0;
   const double t = mean(v) / (s / std::sqrt(static_cast<double>(v.size())));
@@ -99,10 +91,12 @@ int main(int argc, char** argv) {
     std::size_t dvh_case = 0;
     double dvh_case_diff = -1.0;
     std::vector<std::vector<double>> lp_times_all, sa_times_all;
+    Eigen::MatrixXd first_matrix;
     for (int k = 0; k < n_cases; ++k) {
       const dose::HdrCase& c = cohort[static_cast<std::size_t>(k)];
       const auto t0 = std::chrono::steady_clock::now();
       const Eigen::MatrixXd d = dose::doseRateMatrix(c, source);
+      if (k == 0) first_matrix = d;
       const double m_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
       const dose::DwellResult lp = dose::optimizeLp(c, d);
       sa_options.seed = static_cast<unsigned>(k + 1);
@@ -215,13 +209,7 @@ int main(int argc, char** argv) {
         ng::report::Table grid({"x_mm", "y_mm", "dose_pct"}, 5);
         for (double y = lo.y() - 0.02; y <= hi.y() + 0.02 + 1e-9; y += 1e-3) {
           for (double x = lo.x() - 0.02; x <= hi.x() + 0.02 + 1e-9; x += 1e-3) {
-            double total = 0.0;
-            for (std::size_t j = 0; j < c.dwells.size(); ++j) {
-              if (times[j] > 0.0) {
-                total += times[j] * c.air_kerma_strength_U *
-                         source.doseRatePerU(dose::Point3(x, y, z), c.dwells[j].position_m, c.dwells[j].axis);
-              }
-            }
+            const double total = dose::doseAt(c, source, times, dose::Point3(x, y, z));
             grid.addRow({1e3 * x, 1e3 * y, 100.0 * total / c.prescription_Gy});
           }
         }
@@ -233,7 +221,7 @@ int main(int argc, char** argv) {
     ng::report::Table sa_conv({"iterations", "seconds", "gap_pct"}, 6);
     {
       const dose::HdrCase& c = cohort.front();
-      const Eigen::MatrixXd d = dose::doseRateMatrix(c, source);
+      const Eigen::MatrixXd& d = first_matrix;  // computed in the cohort loop
       const double optimum = lp_obj.front();
       const std::vector<long> iterations = args->quick ? std::vector<long>{1000, 10000, 100000}
                                                        : std::vector<long>{1000, 3000, 10000, 30000, 100000, 300000};

@@ -28,14 +28,17 @@ struct Structure {
   std::string name;
   StructureRole role = StructureRole::kOrganAtRisk;
   std::vector<Contour> contours;  ///< sorted by z after normalise()
+  /// Median spacing of distinct contour z, set by normalise() (call it after changing contours) [m].
+  double slice_spacing_m = 0.0;
 
-  /// Sorts the contours by z and checks them (>= 3 finite vertices). Throws std::invalid_argument.
+  /// Sorts the contours by z, checks them (>= 3 finite vertices) and sets slice_spacing_m.
+  /// Throws std::invalid_argument.
   void normalise();
   /// Point inside (even-odd over the contours of the nearest slice, within half a slice).
   bool contains(const Point3& p) const;
   double volume_m3() const;
-  /// Slice spacing [m] (median difference of distinct contour z; 0 for one slice).
-  double sliceSpacing() const;
+  /// Slice spacing [m] (slice_spacing_m; 0 for one slice or before normalise()).
+  double sliceSpacing() const { return slice_spacing_m; }
   /// Axis-aligned bounds.
   void bounds(Point3& lo, Point3& hi) const;
 };
@@ -89,6 +92,15 @@ struct HdrCase {
 
   int structureIndex(const std::string& name) const;  ///< -1 if absent
 };
+
+/// Dose rate [Gy s^-1] at p per second of dwell at `dwell`, including S_K. A point closer than
+/// min_distance_m to the dwell centre gets the dose rate at min_distance_m off the source axis
+/// (TG-43 is undefined inside the source).
+double dwellDoseRate(const HdrCase& c, const Tg43Source& source, const DwellPosition& dwell, const Point3& p,
+                     SourceModel model = SourceModel::kLine, double min_distance_m = 1e-3);
+
+/// Dose [Gy] at p from the dwell times (one per dwell position; zero times skipped).
+double doseAt(const HdrCase& c, const Tg43Source& source, const std::vector<double>& times_s, const Point3& p);
 
 /// The dose-rate matrix d_ij [Gy s^-1]: dose rate at point i per unit dwell time at dwell j,
 /// including S_K. A dose point closer than min_distance_m to a dwell centre uses the dose rate
