@@ -12,17 +12,6 @@ namespace {
 
 using robot::StageJoint;
 
-/// A relative path is taken relative to ROS_HOME (default ~/.ros), as roslaunch does for logs.
-std::string resolveRosHomePath(const std::string& path) {
-  if (path.empty() || path.front() == '/') {
-    return path;
-  }
-  const char* ros_home = std::getenv("ROS_HOME");
-  const char* home = std::getenv("HOME");
-  const std::string base = ros_home ? ros_home : std::string(home ? home : ".") + "/.ros";
-  return base + "/" + path;
-}
-
 }  // namespace
 
 InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) : nh_(nh) {
@@ -52,7 +41,7 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
       ros_params::number(private_nh, "initial_depth_m", scene_limits.entry_x_m - 0.01, d.lower,
                          scene_limits.entry_x_m, "m"),
       ros_params::number(private_nh, "initial_bevel_rad", b.lower, b.lower, b.upper, "rad")};
-  const std::string journal_path = resolveRosHomePath(
+  const std::string journal_path = ros_params::rosHomePath(
       ros_params::text(private_nh, "journal_file", "insertion_robot_journal.csv"));
   publish_period_s_ = 1.0 / publish_rate_hz;
 

@@ -5,6 +5,7 @@
 #include <ros/ros.h>
 
 #include <cmath>
+#include <cstdlib>
 #include <sstream>
 #include <stdexcept>
 #include <string>
@@ -47,6 +48,17 @@ inline std::string text(const ros::NodeHandle& nh, const std::string& name,
   ROS_INFO_STREAM("  " << nh.resolveName(name) << " = '"
                        << (value.size() > 80 ? value.substr(0, 77) + "..." : value) << "'");
   return value;
+}
+
+/// A relative path is taken relative to ROS_HOME (default ~/.ros), as roslaunch does for logs.
+inline std::string rosHomePath(const std::string& path) {
+  if (path.empty() || path.front() == '/') {
+    return path;
+  }
+  const char* ros_home = std::getenv("ROS_HOME");
+  const char* home = std::getenv("HOME");
+  const std::string base = ros_home ? ros_home : std::string(home ? home : ".") + "/.ros";
+  return base + "/" + path;
 }
 
 }  // namespace needle_guidance::ros_params
