@@ -19,6 +19,19 @@ std::string lower(std::string s) {
 
 std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& source,
                                           const std::vector<double>& times_s, double spacing_m) {
+  return structureDoses(c, source, times_s, {}, spacing_m);
+}
+
+std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& source,
+                                          const std::vector<double>& times_s,
+                                          const std::vector<ExtraDwell>& extra, double spacing_m) {
+  for (std::size_t k = 0; k < extra.size(); ++k) {
+    const ExtraDwell& e = extra[k];
+    if (!std::isfinite(e.time_s) || e.time_s < 0.0 || !e.dwell.position_m.allFinite() || !e.dwell.axis.allFinite()) {
+      throw std::invalid_argument("structureDoses: extra stop " + std::to_string(k) +
+                                  " needs a finite time >= 0 and a finite position and axis");
+    }
+  }
   if (times_s.size() != c.dwells.size()) {
     throw std::invalid_argument("structureDoses: " + std::to_string(times_s.size()) + " dwell times for " +
                                 std::to_string(c.dwells.size()) + " dwell positions");
@@ -42,7 +55,12 @@ std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& so
             if (!s.contains(p)) {
               continue;
             }
-            const double dose = doseAt(c, source, times_s, p);
+            double dose = doseAt(c, source, times_s, p);
+            for (const ExtraDwell& e : extra) {
+              if (e.time_s > 0.0) {
+                dose += e.time_s * dwellDoseRate(c, source, e.dwell, p);
+              }
+            }
             sd.dose_Gy.push_back(dose);
           }
         }

@@ -172,22 +172,24 @@ void AfterloaderRos::publish(bool feedback) {
   m.id = 0;
   m.type = visualization_msgs::Marker::SPHERE;
   m.pose.orientation.w = 1.0;
+  // The source's tf is always published (at the frame origin while parked), so that the
+  // patient frame exists for rviz before and after a delivery.
+  const delivery::Point3 p = s.source_in_patient ? device_->sourcePosition() : delivery::Point3::Zero();
+  geometry_msgs::TransformStamped t;
+  t.header = m.header;
+  t.child_frame_id = "afterloader_source";
+  t.transform.translation.x = p.x();
+  t.transform.translation.y = p.y();
+  t.transform.translation.z = p.z();
+  t.transform.rotation.w = 1.0;
+  tf_.sendTransform(t);
   if (s.source_in_patient) {
-    const auto p = device_->sourcePosition();
     m.action = visualization_msgs::Marker::ADD;
     m.pose.position = ros_conversions::toPointMessage(p);
     m.scale.x = m.scale.y = m.scale.z = 0.003;
     m.color.r = 1.0f;
-    m.color.g = s.dwell >= 0 ? 0.1f : 0.8f;
+    m.color.g = s.dwell >= 0 ? 0.1f : 0.6f;
     m.color.a = 1.0f;
-    geometry_msgs::TransformStamped t;
-    t.header = m.header;
-    t.child_frame_id = "afterloader_source";
-    t.transform.translation.x = p.x();
-    t.transform.translation.y = p.y();
-    t.transform.translation.z = p.z();
-    t.transform.rotation.w = 1.0;
-    tf_.sendTransform(t);
   } else {
     m.action = visualization_msgs::Marker::DELETE;
   }

@@ -20,6 +20,22 @@ struct StructureDose {
 std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& source,
                                           const std::vector<double>& times_s, double spacing_m = 2e-3);
 
+/// A source stop that is not one of the case's dwell positions (e.g. the source in transit
+/// through a catheter, tripTransitSamples in delivery/schedule.h), with its time at the case's
+/// S_K c.air_kerma_strength_U [s].
+struct ExtraDwell {
+  DwellPosition dwell;
+  double time_s = 0.0;
+};
+
+/// Same, plus the dose of the `extra` stops at every grid point. The grid depends only on the
+/// case's structures and spacing_m, so the doses of two calls on one case can be added point by
+/// point. Throws std::invalid_argument for a times size mismatch, spacing <= 0, or an extra stop
+/// with a negative or non-finite time, or a non-finite position or axis.
+std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& source,
+                                          const std::vector<double>& times_s,
+                                          const std::vector<ExtraDwell>& extra, double spacing_m = 2e-3);
+
 /// V_x: % of the volume receiving at least `fraction` x prescription; D_x: the minimum dose of
 /// the hottest x % (D90, D10) or of the hottest `cc` cubic centimetres (D2cc) [Gy]. A structure
 /// without grid points gives NaN-free zeros with a note.
