@@ -205,12 +205,14 @@ Schedule makeSchedule(const dose::HdrCase& c, const std::vector<double>& times_s
   return s;
 }
 
+bool isValidPlanId(const std::string& id) {
+  return !id.empty() && id.size() <= 100 && id.front() != '.' &&
+         id.find_first_not_of(kPlanIdCharacters) == std::string::npos;
+}
+
 std::vector<std::string> validateSchedule(const Schedule& s, const DeviceLimits& limits) {
   std::vector<std::string> problems;
-  if (s.plan_id.empty() || s.plan_id.size() > 100 ||
-      s.plan_id.find_first_not_of("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-.") !=
-          std::string::npos ||
-      s.plan_id[0] == '.') {
+  if (!isValidPlanId(s.plan_id)) {
     problems.push_back("plan_id '" + s.plan_id + "' must be 1-100 characters of [A-Za-z0-9_.-], not starting with '.'");
   }
   std::set<int> seen;

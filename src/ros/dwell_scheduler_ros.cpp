@@ -29,36 +29,6 @@ constexpr double kIsodoseLevels[] = {0.5, 1.0, 1.5, 2.0};  ///< fractions of the
 constexpr double kContourWidth_m = 0.5e-3;
 constexpr double kCatheterWidth_m = 0.8e-3;
 constexpr double kDwellDiameter_m = 1.5e-3;
-constexpr std::size_t kMaxPlanIdLength = 100;
-const char kPlanIdCharacters[] =
-    "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-.";
-
-/// ros_params-style boolean (0 / 1 accepted): echoed once, wrong type throws naming it.
-bool flag(const ros::NodeHandle& nh, const std::string& name, bool fallback) {
-  bool value = fallback;
-  if (nh.hasParam(name) && !nh.getParam(name, value)) {
-    int as_int = 0;
-    if (!nh.getParam(name, as_int) || (as_int != 0 && as_int != 1)) {
-      throw std::runtime_error("parameter '" + nh.resolveName(name) + "' is not a bool");
-    }
-    value = as_int == 1;
-  }
-  ROS_INFO_STREAM("  " << nh.resolveName(name) << " = " << (value ? "true" : "false"));
-  return value;
-}
-
-/// ros_params::number that must also be a whole number.
-long integer(const ros::NodeHandle& nh, const std::string& name, long fallback, long lower,
-             long upper, const std::string& unit) {
-  const double value =
-      ros_params::number(nh, name, static_cast<double>(fallback), static_cast<double>(lower),
-                         static_cast<double>(upper), unit);
-  if (value != std::floor(value)) {
-    throw std::runtime_error("parameter '" + nh.resolveName(name) + "' = " + std::to_string(value) +
-                             " is not a whole number");
-  }
-  return static_cast<long>(value);
-}
 
 /// "2024-01-05T10:00" -> seconds; a bad date throws naming the parameter.
 double dateParameter(const ros::NodeHandle& nh, const std::string& name, const std::string& text) {
@@ -78,15 +48,10 @@ std::string utcStamp(double seconds) {
   return text;
 }
 
-bool validPlanId(const std::string& id) {
-  return !id.empty() && id.size() <= kMaxPlanIdLength && id.front() != '.' &&
-         id.find_first_not_of(kPlanIdCharacters) == std::string::npos;
-}
-
 std::string sanitised(const std::string& text) {
   std::string out = text;
   for (char& ch : out) {
-    if (std::string(kPlanIdCharacters).find(ch) == std::string::npos)
+    if (std::string(delivery::kPlanIdCharacters).find(ch) == std::string::npos)
       ch = '_';
   }
   while (!out.empty() && out.front() == '.')
@@ -321,16 +286,16 @@ DwellSchedulerRos::DwellSchedulerRos(ros::NodeHandle& /*nh*/, ros::NodeHandle& p
   settings_.source_speed_m_s = ros_params::number(private_nh, "source_speed_m_s",
                                                   settings_.source_speed_m_s, 1e-3, 10.0, "m/s");
   settings_.dvh_bins =
-      static_cast<int>(integer(private_nh, "dvh_bins", settings_.dvh_bins, 1, 100000, "bins"));
+      static_cast<int>(ros_params::integer(private_nh, "dvh_bins", settings_.dvh_bins, 1, 100000, "bins"));
   settings_.dose_grid_m =
       ros_params::number(private_nh, "dose_grid_m", settings_.dose_grid_m, 5e-4, 1e-2, "m");
   settings_.sa_iterations =
-      integer(private_nh, "sa_iterations", settings_.sa_iterations, 1, 100000000, "moves");
+      ros_params::integer(private_nh, "sa_iterations", settings_.sa_iterations, 1, 100000000, "moves");
   settings_.sa_seed =
-      static_cast<unsigned>(integer(private_nh, "sa_seed", settings_.sa_seed, 0, 4294967295L, "-"));
-  settings_.default_synthetic_seed = static_cast<int>(integer(
+      static_cast<unsigned>(ros_params::integer(private_nh, "sa_seed", settings_.sa_seed, 0, 4294967295L, "-"));
+  settings_.default_synthetic_seed = static_cast<int>(ros_params::integer(
       private_nh, "default_synthetic_seed", settings_.default_synthetic_seed, 1, 1000000, "-"));
-  const bool plan_on_start = flag(private_nh, "plan_on_start", false);
+  const bool plan_on_start = ros_params::flag(private_nh, "plan_on_start", false);
 
   plan_pub_ = private_nh.advertise<DwellPlan>("plan", 1, true);
   dvh_pub_ = private_nh.advertise<DoseVolumeHistogram>("dvh", 1, true);
@@ -379,7 +344,7 @@ DwellSchedulerRos::PlanOutcome DwellSchedulerRos::makePlan(const std::string& ca
   if (method != "lp" && method != "sa") {
     throw std::invalid_argument("method '" + requested_method + "' is not lp or sa");
   }
-  if (!requested_id.empty() && !validPlanId(requested_id)) {
+  if (!requested_id.empty() && !delivery::isValidPlanId(requested_id)) {
     throw std::invalid_argument(
         "plan_id '" + requested_id +
         "' must be 1-100 characters of [A-Za-z0-9_.-], not starting with '.'");

@@ -32,7 +32,7 @@ HdrProcedureRos::HdrProcedureRos(ros::NodeHandle& nh, ros::NodeHandle& private_n
   ROS_INFO("hdr_procedure parameters:");
   report_dir_ = ros_params::text(private_nh, "report_dir", "", true);
   case_dir_ = ros_params::text(private_nh, "case_dir", "");
-  synthetic_seed_ = static_cast<int>(ros_params::number(private_nh, "synthetic_seed", 1, 1, 1e6, ""));
+  synthetic_seed_ = static_cast<int>(ros_params::integer(private_nh, "synthetic_seed", 1, 1, 1000000, ""));
   method_ = ros_params::text(private_nh, "method", "lp");
   if (method_ != "lp" && method_ != "sa") throw std::runtime_error("parameter ~method must be lp or sa, not '" + method_ + "'");
   scheduler_ = ros_params::text(private_nh, "scheduler", "dwell_scheduler", true);

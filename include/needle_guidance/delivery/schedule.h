@@ -79,6 +79,10 @@ struct ScheduleOptions {
 Schedule makeSchedule(const dose::HdrCase& c, const std::vector<double>& times_s, const std::string& plan_id,
                       const ScheduleOptions& options = {});
 
+/// Characters of a plan id (it names the journal file): [A-Za-z0-9_.-], 1-100, not starting with '.'.
+constexpr const char* kPlanIdCharacters = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-.";
+bool isValidPlanId(const std::string& id);
+
 /// What the device can do; a schedule outside it is refused before anything moves.
 struct DeviceLimits {
   int channels = 18;             ///< channel numbers 1..channels

@@ -50,6 +50,34 @@ inline std::string text(const ros::NodeHandle& nh, const std::string& name,
   return value;
 }
 
+/// A boolean parameter (0 / 1 accepted), or `fallback` when unset; echoed once; a wrong type
+/// throws naming it.
+inline bool flag(const ros::NodeHandle& nh, const std::string& name, bool fallback) {
+  bool value = fallback;
+  if (nh.hasParam(name) && !nh.getParam(name, value)) {
+    int as_int = 0;
+    if (!nh.getParam(name, as_int) || (as_int != 0 && as_int != 1)) {
+      throw std::runtime_error("parameter '" + nh.resolveName(name) + "' is not a bool");
+    }
+    value = as_int == 1;
+  }
+  ROS_INFO_STREAM("  " << nh.resolveName(name) << " = " << (value ? "true" : "false"));
+  return value;
+}
+
+/// number() that must also be a whole number.
+inline long integer(const ros::NodeHandle& nh, const std::string& name, long fallback, long lower,
+             long upper, const std::string& unit) {
+  const double value =
+      number(nh, name, static_cast<double>(fallback), static_cast<double>(lower),
+                         static_cast<double>(upper), unit);
+  if (value != std::floor(value)) {
+    throw std::runtime_error("parameter '" + nh.resolveName(name) + "' = " + std::to_string(value) +
+                             " is not a whole number");
+  }
+  return static_cast<long>(value);
+}
+
 /// A relative path is taken relative to ROS_HOME (default ~/.ros), as roslaunch does for logs.
 inline std::string rosHomePath(const std::string& path) {
   if (path.empty() || path.front() == '/') {
