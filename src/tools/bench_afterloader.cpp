@@ -409,9 +409,9 @@ int main(int argc, char** argv) {
     ng::report::writeTextFile(
         out + "/plot.json",
         R"json([{"csv": "quantum.csv", "x": "wall_s", "y": "max_error_bound_s", "annotate": "quantum_s",
-  "title": "Commit quantum: delivery wall time (fsync) vs worst dwell-time error after 10 crashes", "png": "quantum.png"},
+  "title": "Commit quantum (labels, s): wall time vs worst dwell error, 10 crashes", "png": "quantum.png"},
  {"csv": "afterloader.csv", "x": "faults", "y": "max_dwell_error_s", "points": true, "annotate": "kills",
-  "title": "Fault campaign: dwell-time error bound per delivery (labels: process kills)", "png": "afterloader.png"}]
+  "title": "Fault campaign: dwell error bound per delivery (labels: kills)", "png": "afterloader.png"}]
 )json");
     if (safe != deliveries) exit_code = 1;
   }

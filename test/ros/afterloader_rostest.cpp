@@ -117,6 +117,16 @@ void expectExact(const ng::DeliverResult& r, const delivery::Schedule& s) {
   }
 }
 
+/// Waits for the running goal's result; it must have completed with every dwell exact.
+ng::DeliverResult expectCompleted(const delivery::Schedule& s) {
+  EXPECT_TRUE(client().waitForResult(ros::Duration(kResultWaitS)));
+  EXPECT_EQ(client().getState(), actionlib::SimpleClientGoalState::SUCCEEDED) << client().getState().getText();
+  const ng::DeliverResult r = client().getResult() ? *client().getResult() : ng::DeliverResult{};
+  EXPECT_EQ(r.status, "completed") << r.message;
+  expectExact(r, s);
+  return r;
+}
+
 std::string journalPath(const delivery::Schedule& s) {
   std::string dir;
   ros::NodeHandle("~").getParam("journal_dir", dir);
@@ -162,11 +172,7 @@ TEST(Afterloader, DeliversAScheduleExactly) {
   ASSERT_TRUE(client().waitForServer(ros::Duration(30.0)));
   const auto s = schedule("full");
   send(s);
-  ASSERT_TRUE(client().waitForResult(ros::Duration(kResultWaitS)));
-  ASSERT_EQ(client().getState(), actionlib::SimpleClientGoalState::SUCCEEDED) << client().getState().getText();
-  const auto r = *client().getResult();
-  EXPECT_EQ(r.status, "completed");
-  expectExact(r, s);
+  const auto r = expectCompleted(s);
   ASSERT_EQ(r.trips.size(), 3u);
   double transit = 0.0;
   for (const auto& c : s.channels) transit += delivery::tripTransitSeconds(c, kSourceSpeed);
@@ -188,10 +194,7 @@ TEST(Afterloader, PauseHoldsTheDoseAndResumeCompletes) {
   EXPECT_EQ(state().state, "PAUSED");
   EXPECT_NEAR(state().delivered_fraction, held, 1e-12);
   ASSERT_TRUE(trigger("resume"));
-  ASSERT_TRUE(client().waitForResult(ros::Duration(kResultWaitS)));
-  const auto r = *client().getResult();
-  EXPECT_EQ(r.status, "completed");
-  expectExact(r, s);
+  const auto r = expectCompleted(s);
   EXPECT_GE(r.interruptions, 1);
 }
 
@@ -212,10 +215,7 @@ TEST(Afterloader, AbortStopsAndTheSameScheduleResumes) {
   EXPECT_GT(delivered, 0.25 * planned);
   EXPECT_LT(delivered, planned - 1.0);
   send(s);
-  ASSERT_TRUE(client().waitForResult(ros::Duration(kResultWaitS)));
-  r = *client().getResult();
-  EXPECT_EQ(r.status, "completed");
-  expectExact(r, s);
+  expectCompleted(s);
   // A fully delivered plan is refused: nothing is delivered twice.
   send(s);
   ASSERT_TRUE(client().waitForResult(ros::Duration(10.0)));
@@ -243,10 +243,7 @@ TEST(Afterloader, ObstructionMidDwellRetractsAndSkipsTheChannel) {
   EXPECT_GT(short_s, 1.0);
   ASSERT_TRUE(obstruct(channel, false));
   send(s);
-  ASSERT_TRUE(client().waitForResult(ros::Duration(kResultWaitS)));
-  r = *client().getResult();
-  EXPECT_EQ(r.status, "completed");
-  expectExact(r, s);
+  expectCompleted(s);
 }
 
 TEST(Afterloader, OpenDoorPausesAndBlocksResume) {
@@ -258,10 +255,7 @@ TEST(Afterloader, OpenDoorPausesAndBlocksResume) {
   EXPECT_FALSE(trigger("resume"));
   ASSERT_TRUE(door(false));
   ASSERT_TRUE(trigger("resume"));
-  ASSERT_TRUE(client().waitForResult(ros::Duration(kResultWaitS)));
-  const auto r = *client().getResult();
-  EXPECT_EQ(r.status, "completed");
-  expectExact(r, s);
+  expectCompleted(s);
 }
 
 TEST(Afterloader, RefusesUnknownChannelsAndNegativeTimesBeforeAnythingMoves) {
@@ -295,11 +289,7 @@ TEST(Afterloader, SigkillMidDwellThenRestartResumesWithExactTotals) {
   ASSERT_TRUE(client().waitForServer(ros::Duration(30.0)));
   ros::WallDuration(1.0).sleep();  // let the goal topic connect to the new server
   send(s);
-  ASSERT_TRUE(client().waitForResult(ros::Duration(kResultWaitS)));
-  ASSERT_EQ(client().getState(), actionlib::SimpleClientGoalState::SUCCEEDED) << client().getState().getText();
-  const auto r = *client().getResult();
-  EXPECT_EQ(r.status, "completed");
-  expectExact(r, s);
+  const auto r = expectCompleted(s);
   // The journal itself: complete, consistent, and the crash left at most one quantum in doubt.
   const delivery::Journal journal(journalPath(s));
   const auto ledger = delivery::replay(journal.records(), &s, kSourceSpeed);
