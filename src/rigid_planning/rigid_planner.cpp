@@ -160,11 +160,14 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
   sim.reset();
   DepthScan scan;
   scan.height_m = height_m;
-  const double dz = options_.depth_step_m;
-  const double dt_s = dz / options_.velocity_m_s;
   double x = scene_.workspace_min.x();  // tip on the entry face: steps outside only solve the unloaded model
   scan.best_error_m = 1e300;
+  const double fine_from = target.x() - options_.approach_zone_m;
   while (x < max_depth_m - 1e-12) {
+    const double dz = options_.approach_step_m > 0.0 && x + options_.approach_step_m < fine_from
+                          ? options_.approach_step_m
+                          : options_.depth_step_m;
+    const double dt_s = dz / options_.velocity_m_s;
     x = std::min(max_depth_m, x + dz);
     const tissue::StepStatus status = sim.step(dt_s, height_m, x);
     if (!status) {

@@ -13,6 +13,10 @@ RigidPlannerRos::RigidPlannerRos(ros::NodeHandle& /*nh*/, ros::NodeHandle& priva
   options.height_tolerance_m =
       ros_params::number(private_nh, "height_tolerance_m", options.height_tolerance_m, 1e-6, 0.01, "m");
   options.depth_step_m = ros_params::number(private_nh, "depth_step_m", options.depth_step_m, 1e-5, 0.005, "m");
+  options.approach_step_m =
+      ros_params::number(private_nh, "approach_step_m", options.approach_step_m, 0.0, 0.005, "m");
+  options.approach_zone_m =
+      ros_params::number(private_nh, "approach_zone_m", options.approach_zone_m, 0.0, 0.05, "m");
   options.velocity_m_s = ros_params::number(private_nh, "velocity_m_s", options.velocity_m_s, 1e-4, 0.1, "m/s");
   options.depth_margin_m = ros_params::number(private_nh, "depth_margin_m", options.depth_margin_m, 0.0, 0.05, "m");
   options.error_goal_m = ros_params::number(private_nh, "error_goal_m", options.error_goal_m, 0.0, 0.01, "m");

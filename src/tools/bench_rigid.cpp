@@ -192,6 +192,28 @@ int main(int argc, char** argv) {
                   << std::flush;
       }
     }
+    // The approach step (coarser dz until approach_zone_m before the target) on the scene's mesh.
+    for (double approach_mm : args->quick ? std::vector<double>{0.0} : std::vector<double>{0.0, 0.3, 0.5, 1.0}) {
+      ng::rigid_planning::PlannerOptions o = options;
+      o.approach_step_m = 1e-3 * approach_mm;
+      const ng::rigid_planning::RigidPlanner model(scene, o);
+      std::vector<double> secs, predicted, measured_mm;
+      for (std::size_t i : sweep_targets) {
+        const Point2 t = scene.targets[std::min(i, scene.targets.size() - 1)].position;
+        const auto p = model.plan(t);
+        if (!p) throw std::runtime_error("sweep: " + p.toString());
+        secs.push_back(p.seconds);
+        predicted.push_back(1e3 * p.predicted_error_m);
+        measured_mm.push_back(1e3 * (simulateImplant(scene, ng::tissue::optionsFromScene(scene), p.release, t,
+                                                     options.depth_step_m, options.velocity_m_s) - t).norm());
+      }
+      const std::string label = approach_mm > 0.0 ? "approach dz " + std::to_string(approach_mm).substr(0, 3) + " mm"
+                                                  : "uniform dz";
+      sweep.addRow({1.0, double(ng::tissue::TissueSimulation(scene, ng::tissue::optionsFromScene(scene)).model().mesh().nodeCount()),
+                    1e3 * options.depth_step_m, mean(secs), mean(predicted), mean(measured_mm), label});
+      std::cout << "sweep: " << label << ": " << mean(secs) << " s per plan, measured " << mean(measured_mm) << " mm\n"
+                << std::flush;
+    }
     sweep.writeCsv(args->out_dir + "/speed_vs_error.csv");
 
     std::ostringstream json;

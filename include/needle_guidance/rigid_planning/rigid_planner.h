@@ -36,6 +36,11 @@ struct PlannerOptions {
   double height_window_m = 0.002;      ///< search y_t +- this (4.4.3: 0.2 cm) [m]
   double height_tolerance_m = 1e-4;    ///< golden-section stop (4.4.3: 0.01 cm) [m]
   double depth_step_m = 1e-4;          ///< dz = v h between simulation steps [m]
+  /// Steps of the scan farther than approach_zone_m before the target depth use this larger dz
+  /// (0: depth_step_m all the way). The cuts, not the steps, dominate a scan's cost, so this
+  /// saves ~20 % of the planning time for ~0.02 mm of error (bench rigid, speed_vs_error) [m]
+  double approach_step_m = 5e-4;
+  double approach_zone_m = 0.005;      ///< fine steps within this of the target depth [m]
   double velocity_m_s = 0.005;         ///< v (4.4: 0.5 cm/s) [m/s]
   double depth_margin_m = 0.005;       ///< scan to target depth + margin (<= max depth) [m]
   int grid_points = 5;                 ///< coarse heights that detect a non-unimodal error
