@@ -35,7 +35,9 @@ Afterloader::Afterloader(AfterloaderConfig config) : config_(std::move(config)) 
 
 Afterloader::~Afterloader() = default;
 
-std::string Afterloader::journalPath() const { return config_.journal_dir + "/" + (schedule_ ? schedule_->plan_id : "") + ".journal"; }
+std::string Afterloader::journalPath() const {
+  return schedule_ ? config_.journal_dir + "/" + schedule_->plan_id + ".journal" : "";
+}
 
 Status Afterloader::start(const Schedule& schedule) {
   if (state_ == DeliveryState::kDelivering || state_ == DeliveryState::kPaused) {

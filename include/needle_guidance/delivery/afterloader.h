@@ -96,7 +96,7 @@ public:
   std::vector<DwellRecord> records() const;
   /// The journal of the current plan replayed (trips, transit, interruptions, anomalies).
   Ledger ledger() const;
-  std::string journalPath() const;
+  std::string journalPath() const;  ///< "" before the first start()
   /// Journal lines written since the last call, in order (to publish).
   std::vector<std::string> takeJournalLines();
 
