@@ -1,0 +1,229 @@
+// Value iteration on P_s (dissertation 5.4.3), Gauss-Seidel with alternating sweep orders.
+#include "needle_guidance/steering/value_iteration.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstring>
+#include <stdexcept>
+#include <string>
+#include <thread>
+
+namespace needle_guidance::steering {
+namespace {
+
+/// Number of distinct sweep orders (x descending/ascending x y descending/ascending).
+constexpr int kSweepOrders = 4;
+
+struct Band {
+  int row_begin = 0;
+  int row_end = 0;
+};
+
+/// Shared read-only context of one solve.
+struct Context {
+  const SteeringModel* model = nullptr;
+  const GridSpec* grid = nullptr;
+  const std::uint8_t* cells = nullptr;
+  float* values = nullptr;
+  const float* snapshot = nullptr;  // rows of neighbouring bands, copied at the start of a sweep
+  std::uint8_t* controls = nullptr;
+  const StencilEntry* const* stencil_begin = nullptr;  // per (b * nc + k) * 2 + u, plus end
+  const StencilEntry* const* stencil_end = nullptr;
+};
+
+/// Expected P_s of one control: sum_j p_ij P_s(x_j) over the stencil (eq. 5.2). kCheck: some
+/// arcs from this position fail; kBand: successors outside rows [row_begin, row_end) are read
+/// from the snapshot (they belong to another thread).
+template <bool kCheck, bool kBand>
+inline float expected(const Context& c, const StencilEntry* begin, const StencilEntry* end,
+                      std::int64_t s, const std::uint64_t* mask, int iy, const Band& band) {
+  float sum = 0.0f;
+  for (const StencilEntry* e = begin; e != end; ++e) {
+    if (kCheck && !((mask[e->arc >> 6] >> (e->arc & 63)) & 1u)) {
+      continue;  // the arc fails: P_s = 0
+    }
+    const std::int64_t j = s + e->offset;
+    float v;
+    if (kBand) {
+      const int row = iy + e->dy;
+      v = row >= band.row_begin && row < band.row_end ? c.values[j] : c.snapshot[j];
+    } else {
+      v = c.values[j];
+    }
+    sum += e->probability * v;
+  }
+  return sum;
+}
+
+template <bool kCheck, bool kBand>
+float updatePosition(const Context& c, std::int64_t pos, int iy, const Band& band) {
+  const int nc = c.grid->nc;
+  const std::uint64_t* mask = c.model->validityMask(pos);
+  float max_change = 0.0f;
+  const std::int64_t base = pos * 2 * nc;
+  for (int bk = 0; bk < 2 * nc; ++bk) {
+    const std::int64_t s = base + bk;
+    const float q_insert = expected<kCheck, kBand>(c, c.stencil_begin[2 * bk],
+                                                   c.stencil_end[2 * bk], s, mask, iy, band);
+    const float q_flip = expected<kCheck, kBand>(c, c.stencil_begin[2 * bk + 1],
+                                                 c.stencil_end[2 * bk + 1], s, mask, iy, band);
+    const bool flip = q_flip > q_insert;  // ties keep insert
+    const float best = flip ? q_flip : q_insert;
+    max_change = std::max(max_change, std::abs(best - c.values[s]));
+    c.values[s] = best;
+    c.controls[s] = flip ? 1 : 0;
+  }
+  return max_change;
+}
+
+/// One sweep of the rows in `band` (all columns), in the given order; returns max |change|.
+float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_descending, int reach,
+                bool use_snapshot) {
+  const GridSpec& g = *c.grid;
+  float max_change = 0.0f;
+  for (int i = 0; i < g.nx; ++i) {
+    const int ix = x_descending ? g.nx - 1 - i : i;
+    const int rows = band.row_end - band.row_begin;
+    for (int r = 0; r < rows; ++r) {
+      const int iy = y_descending ? band.row_end - 1 - r : band.row_begin + r;
+      const std::int64_t pos = g.position(ix, iy);
+      if (c.cells[pos] != static_cast<std::uint8_t>(Cell::kFree)) {
+        continue;  // absorbing (5.4.2)
+      }
+      const bool check = !c.model->allArcsValid(pos);
+      const bool near_edge =
+          use_snapshot && (iy - band.row_begin < reach || band.row_end - 1 - iy < reach);
+      float change;
+      if (near_edge) {
+        change = check ? updatePosition<true, true>(c, pos, iy, band)
+                       : updatePosition<false, true>(c, pos, iy, band);
+      } else {
+        change = check ? updatePosition<true, false>(c, pos, iy, band)
+                       : updatePosition<false, false>(c, pos, iy, band);
+      }
+      max_change = std::max(max_change, change);
+    }
+  }
+  return max_change;
+}
+
+}  // namespace
+
+PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions& options,
+                                SolveStats* stats) {
+  if (!(options.epsilon > 0.0) || !std::isfinite(options.epsilon)) {
+    throw std::invalid_argument("solveValueIteration: epsilon must be finite and > 0, got " +
+                                std::to_string(options.epsilon));
+  }
+  if (options.max_sweeps < 1) {
+    throw std::invalid_argument("solveValueIteration: max_sweeps must be >= 1, got " +
+                                std::to_string(options.max_sweeps));
+  }
+  if (options.threads < 1) {
+    throw std::invalid_argument("solveValueIteration: threads must be >= 1, got " +
+                                std::to_string(options.threads));
+  }
+  const auto t0 = std::chrono::steady_clock::now();
+  const GridSpec& g = model.grid();
+  const int nc = g.nc;
+  const std::int64_t n = g.numStates();
+  std::vector<float> values(static_cast<std::size_t>(n), 0.0f);
+  std::vector<std::uint8_t> controls(static_cast<std::size_t>(n), 0);
+  const std::vector<std::uint8_t>& cells = model.cells();
+  for (std::int64_t pos = 0; pos < g.numPositions(); ++pos) {
+    if (model.cell(pos) == Cell::kTarget) {
+      std::fill_n(values.begin() + pos * 2 * nc, 2 * nc, 1.0f);
+    }
+  }
+  std::vector<const StencilEntry*> begins(static_cast<std::size_t>(4 * nc)),
+      ends(static_cast<std::size_t>(4 * nc));
+  for (int b = 0; b < 2; ++b) {
+    for (int k = 0; k < nc; ++k) {
+      for (int u = 0; u < 2; ++u) {
+        const auto slot = static_cast<std::size_t>((b * nc + k) * 2 + u);
+        begins[slot] = model.stencilBegin(k, static_cast<Bevel>(b), static_cast<Control>(u));
+        ends[slot] = model.stencilEnd(k, static_cast<Bevel>(b), static_cast<Control>(u));
+      }
+    }
+  }
+
+  // Bands of rows, one per thread; a band at least as tall as the stencil's reach.
+  const int reach = model.maxRowReach();
+  const int n_threads = std::max(1, std::min(options.threads, g.ny / std::max(1, 2 * reach)));
+  std::vector<Band> bands;
+  for (int t = 0; t < n_threads; ++t) {
+    bands.push_back({g.ny * t / n_threads, g.ny * (t + 1) / n_threads});
+  }
+  std::vector<float> snapshot(n_threads > 1 ? static_cast<std::size_t>(n) : 0);
+
+  Context c;
+  c.model = &model;
+  c.grid = &g;
+  c.cells = cells.data();
+  c.values = values.data();
+  c.snapshot = snapshot.data();
+  c.controls = controls.data();
+  c.stencil_begin = begins.data();
+  c.stencil_end = ends.data();
+
+  SolveStats local;
+  SolveStats& st = stats ? *stats : local;
+  st = SolveStats{};
+  int quiet_sweeps = 0;  // consecutive sweeps with max change < epsilon
+  std::vector<float> band_change(static_cast<std::size_t>(n_threads), 0.0f);
+  for (int sweep = 0; sweep < options.max_sweeps; ++sweep) {
+    const int order = sweep % kSweepOrders;
+    const bool x_desc = order < 2;  // insertion is mostly along +x: start there
+    const bool y_desc = order == 0 || order == 3;
+    if (n_threads > 1) {
+      // Rows within `reach` of a band boundary, copied so that neighbours read them race-free.
+      for (int ix = 0; ix < g.nx; ++ix) {
+        for (std::size_t t = 1; t < bands.size(); ++t) {
+          const int lo = std::max(0, bands[t].row_begin - reach);
+          const int hi = std::min(g.ny, bands[t].row_begin + reach);
+          const std::int64_t first = g.position(ix, lo) * 2 * nc;
+          const std::int64_t count = static_cast<std::int64_t>(hi - lo) * 2 * nc;
+          std::memcpy(snapshot.data() + first, values.data() + first,
+                      static_cast<std::size_t>(count) * sizeof(float));
+        }
+      }
+      std::vector<std::thread> pool;
+      for (int t = 1; t < n_threads; ++t) {
+        pool.emplace_back([&, t] {
+          band_change[static_cast<std::size_t>(t)] =
+              sweepBand(c, bands[static_cast<std::size_t>(t)], x_desc, y_desc, reach, true);
+        });
+      }
+      band_change[0] = sweepBand(c, bands[0], x_desc, y_desc, reach, true);
+      for (auto& th : pool) {
+        th.join();
+      }
+    } else {
+      band_change[0] = sweepBand(c, bands[0], x_desc, y_desc, reach, false);
+    }
+    const double max_change = *std::max_element(band_change.begin(), band_change.end());
+    st.max_change_per_sweep.push_back(max_change);
+    st.sweeps = sweep + 1;
+    st.last_max_change = max_change;
+    quiet_sweeps = max_change < options.epsilon ? quiet_sweeps + 1 : 0;
+    // Converged when a full cycle of orders changed nothing by epsilon: a single quiet sweep
+    // in an order that runs against the flow of information would prove little.
+    if (quiet_sweeps >= kSweepOrders) {
+      st.converged = true;
+      break;
+    }
+  }
+
+  std::vector<std::uint64_t> bits(static_cast<std::size_t>((n + 63) / 64), 0);
+  for (std::int64_t s = 0; s < n; ++s) {
+    if (controls[static_cast<std::size_t>(s)]) {
+      bits[static_cast<std::size_t>(s >> 6)] |= std::uint64_t{1} << (s & 63);
+    }
+  }
+  st.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return PolicyTable(g, model.hash(), std::move(values), std::move(bits), cells, options.epsilon,
+                     st.sweeps, st.converged);
+}
+
+}  // namespace needle_guidance::steering

@@ -1,0 +1,343 @@
+// Benchmark of the steerable-needle MDP planner (issue 5, dissertation 5.4.2-5.5): build and
+// solve time, sweeps and peak memory against the number of states on the steering_workspace
+// scene at Delta = 4, 2, 1 mm (1 mm = the dissertation's 800,000-state problem) and 0.5 mm as
+// the finer reference; 1 vs 2 threads; epsilon against the value error (speed against error);
+// P_s at a fixed start pose against the grid spacing; O(1) control look-up time; table file
+// size and save/load time; the start-state surface of figure 5.7.
+// Usage: bench_steering --out DIR [--quick] [--scene SPEC]
+#include <sys/resource.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <iostream>
+#include <memory>
+#include <random>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/report/bench_args.h"
+#include "needle_guidance/report/table.h"
+#include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/policy_table.h"
+#include "needle_guidance/steering/steering_model.h"
+#include "needle_guidance/steering/value_iteration.h"
+
+namespace ng = needle_guidance;
+namespace st = ng::steering;
+
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+constexpr double kMmPerM = 1e3;
+constexpr double kDegPerRad = 180.0 / kPi;
+/// Look-ups timed for lookup_us.
+constexpr int kLookups = 1000000;
+/// Seed of the random look-up poses.
+constexpr unsigned kLookupSeed = 5;
+/// The grid spacing of the dissertation's 800,000-state problem [m].
+constexpr double kSpacing800k_m = 1e-3;
+/// Solves per grid whose median time is reported.
+constexpr int kSolveRepeats = 3;
+
+double peakMb() {
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  return static_cast<double>(usage.ru_maxrss) / 1024.0;  // ru_maxrss is in KiB on Linux
+}
+
+double secondsSince(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+struct Solved {
+  double spacing_m = 0.0;
+  std::int64_t states = 0;
+  double build_s = 0.0;
+  st::SolveStats stats;
+  double peak_mb = 0.0;
+  int transitions = 0;
+  std::unique_ptr<st::PolicyTable> table;
+  st::BestStart best;
+};
+
+Solved solveAt(const st::SteeringProblem& base, double spacing_m, int threads, double epsilon,
+               const st::StartOptions& start) {
+  st::SteeringProblem problem = base;
+  problem.params.grid_spacing_m = spacing_m;
+  Solved out;
+  out.spacing_m = spacing_m;
+  const auto t0 = std::chrono::steady_clock::now();
+  const st::SteeringModel model(problem, threads);
+  out.build_s = secondsSince(t0);
+  out.states = model.numStates();
+  out.transitions = model.maxTransitions();
+  st::SolverOptions options;
+  options.threads = threads;
+  options.epsilon = epsilon;
+  // Solve time: the median of kSolveRepeats solves (the first also pays for page faults).
+  std::vector<double> seconds;
+  for (int i = 0; i < kSolveRepeats; ++i) {
+    out.table =
+        std::make_unique<st::PolicyTable>(st::solveValueIteration(model, options, &out.stats));
+    seconds.push_back(out.stats.seconds);
+  }
+  std::sort(seconds.begin(), seconds.end());
+  out.stats.seconds = seconds[seconds.size() / 2];
+  out.peak_mb = peakMb();
+  out.best = out.table->bestStart(start);
+  return out;
+}
+
+std::string jsonNumber(double v) {
+  if (!std::isfinite(v))
+    return "null";
+  std::ostringstream s;
+  s.precision(6);
+  s << v;
+  return s.str();
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  const auto args = ng::report::parseBenchArgs(argc, argv, "bench_steering");
+  if (!args) {
+    return 2;
+  }
+  try {
+    // BenchArgs defaults to the prostate scene, which has no steering section.
+    const std::string scene_spec =
+        args->scene == "prostate_sagittal" ? "steering_workspace" : args->scene;
+    const ng::scene::Scene scene = ng::scene::loadSceneSpec(scene_spec);
+    const st::SteeringProblem problem = st::problemFromScene(scene);
+    const st::StartOptions start = st::startOptionsFromScene(scene);
+    const double baseline_mb = peakMb();
+    std::cout << "bench_steering: scene " << scene.name
+              << ", r = " << problem.params.radius_m * kMmPerM
+              << " mm, N_c = " << problem.params.orientations
+              << ", sigma_i = " << problem.params.sigma_insert_rad * kDegPerRad
+              << " deg, sigma_r = " << problem.params.sigma_flip_rad * kDegPerRad << " deg\n"
+              << std::flush;
+
+    // ---- states vs time and memory (increasing size, so ru_maxrss belongs to the last solve) ----
+    // 0.5 mm (3.2 M states) is the finer reference for the P_s error; it runs after the one-
+    // thread 800k solve so that ru_maxrss of that solve is still its own.
+    const std::vector<double> spacings_m = {4e-3, 2e-3, kSpacing800k_m};
+    std::vector<Solved> runs;
+    ng::report::Table scaling({"grid_spacing_mm", "states", "transitions_max", "build_s", "solve_s",
+                               "total_s", "sweeps", "converged", "peak_mb", "best_ps", "threads"},
+                              6);
+    Solved* run800k = nullptr;
+    for (double spacing : spacings_m) {
+      runs.push_back(solveAt(problem, spacing, 2, 1e-3, start));
+      Solved& r = runs.back();
+      scaling.addRow({spacing * kMmPerM, double(r.states), double(r.transitions), r.build_s,
+                      r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
+                      r.stats.converged ? 1.0 : 0.0, r.peak_mb,
+                      double(r.best.best.probability_of_success), 2.0});
+      std::cout << "Delta " << spacing * kMmPerM << " mm: " << r.states << " states, build "
+                << r.build_s << " s, solve " << r.stats.seconds << " s (" << r.stats.sweeps
+                << " sweeps), peak " << r.peak_mb << " MB, " << r.best.toString() << "\n"
+                << std::flush;
+    }
+
+    // ---- one thread at 800k ----
+    const Solved single = solveAt(problem, kSpacing800k_m, 1, 1e-3, start);
+    scaling.addRow({kSpacing800k_m * kMmPerM, double(single.states), double(single.transitions),
+                    single.build_s, single.stats.seconds, single.build_s + single.stats.seconds,
+                    double(single.stats.sweeps), single.stats.converged ? 1.0 : 0.0, single.peak_mb,
+                    double(single.best.best.probability_of_success), 1.0});
+    std::cout << "1 thread: build " << single.build_s << " s, solve " << single.stats.seconds
+              << " s (" << single.stats.sweeps << " sweeps)\n"
+              << std::flush;
+    if (!args->quick) {
+      runs.push_back(solveAt(problem, 0.5e-3, 2, 1e-3, start));
+      Solved& r = runs.back();
+      scaling.addRow({r.spacing_m * kMmPerM, double(r.states), double(r.transitions), r.build_s,
+                      r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
+                      r.stats.converged ? 1.0 : 0.0, r.peak_mb,
+                      double(r.best.best.probability_of_success), 2.0});
+      std::cout << "Delta 0.5 mm: " << r.states << " states, build " << r.build_s << " s, solve "
+                << r.stats.seconds << " s (" << r.stats.sweeps << " sweeps), peak " << r.peak_mb
+                << " MB, " << r.best.toString() << "\n"
+                << std::flush;
+    }
+    scaling.writeCsv(args->out_dir + "/steering.csv");
+
+    for (auto& r : runs) {
+      if (std::abs(r.spacing_m - kSpacing800k_m) < 1e-12)
+        run800k = &r;
+    }
+    if (run800k == nullptr)
+      throw std::runtime_error("no 1 mm run");
+
+    // ---- convergence of the 800k solve ----
+    ng::report::Table convergence({"sweep", "max_change"}, 6);
+    for (std::size_t i = 0; i < run800k->stats.max_change_per_sweep.size(); ++i) {
+      convergence.addRow({double(i + 1), std::max(1e-12, run800k->stats.max_change_per_sweep[i])});
+    }
+    convergence.writeCsv(args->out_dir + "/convergence.csv");
+
+    // ---- P_s at one start pose (the 1 mm best start) against the grid spacing ----
+    const st::TipPose reference_start = run800k->best.best.pose;
+    const Solved& finest = runs.back();
+    const double ps_finest = finest.table->lookup(reference_start).probability_of_success;
+    ng::report::Table resolution(
+        {"grid_spacing_mm", "states", "total_s", "ps_reference_start", "ps_error_vs_finest"}, 6);
+    for (const auto& r : runs) {
+      const double ps = r.table->lookup(reference_start).probability_of_success;
+      resolution.addRow({r.spacing_m * kMmPerM, double(r.states), r.build_s + r.stats.seconds, ps,
+                         std::abs(ps - ps_finest)});
+    }
+    resolution.writeCsv(args->out_dir + "/resolution.csv");
+
+    // ---- epsilon: sweeps and time against the error in P_s (speed against error) ----
+    st::SteeringProblem p800k = problem;
+    p800k.params.grid_spacing_m = kSpacing800k_m;
+    const st::SteeringModel model800k(p800k, 2);
+    const double reference_epsilon = args->quick ? 1e-6 : 1e-7;
+    st::SolverOptions tight;
+    tight.epsilon = reference_epsilon;
+    const st::PolicyTable reference = st::solveValueIteration(model800k, tight);
+    const std::vector<double> epsilons = args->quick
+                                             ? std::vector<double>{1e-2, 1e-3, 1e-4}
+                                             : std::vector<double>{1e-2, 1e-3, 1e-4, 1e-5, 1e-6};
+    ng::report::Table eps_table(
+        {"epsilon", "sweeps", "solve_s", "max_value_error", "best_ps", "policy_agreement"}, 6);
+    for (double eps : epsilons) {
+      st::SolverOptions o;
+      o.epsilon = eps;
+      st::SolveStats s;
+      const st::PolicyTable t = st::solveValueIteration(model800k, o, &s);
+      double max_err = 0.0;
+      std::int64_t same = 0, free_states = 0;
+      for (std::int64_t i = 0; i < t.grid().numStates(); ++i) {
+        max_err = std::max(max_err, double(std::abs(t.value(i) - reference.value(i))));
+        if (t.cell(i / (2 * t.grid().nc)) == st::Cell::kFree && reference.value(i) > 0.0f) {
+          ++free_states;
+          same += t.control(i) == reference.control(i) ? 1 : 0;
+        }
+      }
+      eps_table.addRow({eps, double(s.sweeps), s.seconds, std::max(1e-9, max_err),
+                        double(t.bestStart(start).best.probability_of_success),
+                        free_states > 0 ? double(same) / double(free_states) : 1.0});
+    }
+    eps_table.writeCsv(args->out_dir + "/epsilon.csv");
+
+    // ---- O(1) look-up: mean over random continuous poses ----
+    const st::PolicyTable& table = *run800k->table;
+    std::mt19937 rng(kLookupSeed);
+    std::uniform_real_distribution<double> ux(problem.workspace_min.x(), problem.workspace_max.x());
+    std::uniform_real_distribution<double> uy(problem.workspace_min.y(), problem.workspace_max.y());
+    std::uniform_real_distribution<double> ut(-kPi, kPi);
+    std::vector<st::TipPose> poses(kLookups);
+    for (auto& pose : poses) {
+      pose.p_SceneTip = st::Point2(ux(rng), uy(rng));
+      pose.theta_rad = ut(rng);
+      pose.bevel = rng() % 2 ? st::Bevel::kRight : st::Bevel::kLeft;
+    }
+    double checksum = 0.0;
+    int flips = 0;
+    const auto tl = std::chrono::steady_clock::now();
+    for (const auto& pose : poses) {
+      const st::ControlLookup l = table.lookup(pose);
+      checksum += l.probability_of_success;
+      flips += l.control == st::Control::kFlip ? 1 : 0;
+    }
+    const double lookup_us = secondsSince(tl) / kLookups * 1e6;
+    std::cout << "lookup: " << lookup_us << " us (checksum " << checksum << ", flips " << flips
+              << ")\n";
+
+    // ---- table file ----
+    const std::string table_path = args->out_dir + "/steering_800k.table";
+    const auto ts = std::chrono::steady_clock::now();
+    table.save(table_path);
+    const double save_s = secondsSince(ts);
+    st::LoadStatus load_status;
+    const auto tload = std::chrono::steady_clock::now();
+    const auto loaded = st::PolicyTable::load(table_path, model800k.hash(), load_status);
+    const double load_s = secondsSince(tload);
+    if (!loaded)
+      throw std::runtime_error(load_status.toString());
+    std::FILE* f = std::fopen(table_path.c_str(), "rb");
+    double table_mb = 0.0;
+    if (f != nullptr) {
+      std::fseek(f, 0, SEEK_END);
+      table_mb = static_cast<double>(std::ftell(f)) / (1024.0 * 1024.0);
+      std::fclose(f);
+    }
+    std::remove(table_path.c_str());  // a report folder holds figures, not 4 MB binaries
+
+    // ---- start surface (figure 5.7) ----
+    ng::report::Table surface({"bevel", "y_mm", "theta_deg", "ps"}, 6);
+    ng::report::Table slices({"theta", "y_mm", "ps"}, 6);
+    const std::vector<int> slice_deg = {-45, -18, 0, 18, 45};
+    for (const auto& c : table.startCandidates(start)) {
+      const double theta_deg = c.pose.theta_rad * kDegPerRad;
+      surface.addRow({st::toString(c.pose.bevel), c.pose.p_SceneTip.y() * kMmPerM, theta_deg,
+                      double(c.probability_of_success)});
+      for (int d : slice_deg) {
+        if (c.pose.bevel == run800k->best.best.pose.bevel && std::abs(theta_deg - d) < 1e-6) {
+          slices.addRow({std::to_string(d) + " deg", c.pose.p_SceneTip.y() * kMmPerM,
+                         double(c.probability_of_success)});
+        }
+      }
+    }
+    surface.writeCsv(args->out_dir + "/start_surface.csv");
+    slices.writeCsv(args->out_dir + "/start_slices.csv");
+
+    const st::BestStart& best = run800k->best;
+    std::ostringstream json;
+    json.precision(6);
+    json << "{\n  \"benchmark\": \"steering\",\n  \"scene\": \"" << scene.name
+         << "\",\n  \"quick\": " << (args->quick ? "true" : "false")
+         << ",\n  \"radius_mm\": " << problem.params.radius_m * kMmPerM
+         << ",\n  \"orientations\": " << problem.params.orientations
+         << ",\n  \"sigma_insert_deg\": " << problem.params.sigma_insert_rad * kDegPerRad
+         << ",\n  \"sigma_flip_deg\": " << problem.params.sigma_flip_rad * kDegPerRad
+         << ",\n  \"states_800k\": " << run800k->states
+         << ",\n  \"solve_s_800k\": " << jsonNumber(run800k->stats.seconds)
+         << ",\n  \"build_s_800k\": " << jsonNumber(run800k->build_s)
+         << ",\n  \"total_s_800k\": " << jsonNumber(run800k->build_s + run800k->stats.seconds)
+         << ",\n  \"sweeps_800k\": " << run800k->stats.sweeps
+         << ",\n  \"converged_800k\": " << (run800k->stats.converged ? "true" : "false")
+         << ",\n  \"epsilon\": 0.001,\n  \"threads\": 2"
+         << ",\n  \"solve_s_800k_1thread\": " << jsonNumber(single.stats.seconds)
+         << ",\n  \"sweeps_800k_1thread\": " << single.stats.sweeps
+         << ",\n  \"peak_mb_800k\": " << jsonNumber(run800k->peak_mb)
+         << ",\n  \"baseline_mb\": " << jsonNumber(baseline_mb)
+         << ",\n  \"lookup_us\": " << jsonNumber(lookup_us)
+         << ",\n  \"mdp_ps\": " << jsonNumber(best.best.probability_of_success)
+         << ",\n  \"best_start_y_mm\": " << jsonNumber(best.best.pose.p_SceneTip.y() * kMmPerM)
+         << ",\n  \"best_start_theta_deg\": " << jsonNumber(best.best.pose.theta_rad * kDegPerRad)
+         << ",\n  \"best_start_bevel\": \"" << st::toString(best.best.pose.bevel) << "\""
+         << ",\n  \"ps_reference_start_finest\": " << jsonNumber(ps_finest)
+         << ",\n  \"finest_spacing_mm\": " << jsonNumber(finest.spacing_m * kMmPerM)
+         << ",\n  \"table_mb_800k\": " << jsonNumber(table_mb)
+         << ",\n  \"table_save_s\": " << jsonNumber(save_s)
+         << ",\n  \"table_load_s\": " << jsonNumber(load_s) << "\n}\n";
+    ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
+    ng::report::writeTextFile(
+        args->out_dir + "/plot.json",
+        R"json([{"csv": "steering.csv", "x": "states", "y": "total_s", "group": "threads", "logx": true, "logy": true,
+  "annotate": "grid_spacing_mm", "title": "MDP build + solve time vs number of states (group: threads)", "png": "solve_time.png"},
+ {"csv": "steering.csv", "x": "states", "y": "peak_mb", "group": "threads", "logx": true, "annotate": "grid_spacing_mm",
+  "title": "Peak resident memory vs number of states", "png": "memory.png"},
+ {"csv": "convergence.csv", "x": "sweep", "y": "max_change", "logy": true,
+  "title": "Gauss-Seidel value iteration, 800k states: max change per sweep", "png": "convergence.png"},
+ {"csv": "epsilon.csv", "x": "solve_s", "y": "max_value_error", "logy": true, "annotate": "epsilon",
+  "title": "Convergence threshold: solve time vs max P_s error (800k states)", "png": "epsilon.png"},
+ {"csv": "resolution.csv", "x": "total_s", "y": "ps_error_vs_finest", "logx": true, "annotate": "grid_spacing_mm",
+  "points": true, "title": "Grid spacing: time vs P_s error at the 1 mm best start (vs finest grid)", "png": "resolution.png"},
+ {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
+  "title": "P_s of start states on the entry line (figure 5.7 slices, best bevel)", "png": "start_surface.png"}])json");
+    std::cout << scaling.toText() << eps_table.toText() << resolution.toText() << json.str();
+  } catch (const std::exception& e) {
+    std::cerr << "bench_steering: " << e.what() << "\n";
+    return 1;
+  }
+  return 0;
+}
