@@ -26,14 +26,6 @@ int orient(const Point2& a, const Point2& b, const Point2& c) {
   return static_cast<int>(CGAL::orientation(toCgal(a), toCgal(b), toCgal(c)));
 }
 
-/// Distance from p to the closed segment [a, b] [m].
-double pointSegmentDistance(const Point2& p, const Point2& a, const Point2& b) {
-  const Point2 ab = b - a;
-  const double length_sq = ab.squaredNorm();
-  const double t = length_sq > 0.0 ? std::clamp((p - a).dot(ab) / length_sq, 0.0, 1.0) : 0.0;
-  return (a + t * ab - p).norm();
-}
-
 }  // namespace
 
 std::array<double, 3> barycentric(const Point2& p, const Point2& a, const Point2& b,

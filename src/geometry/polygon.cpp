@@ -146,14 +146,6 @@ SidesVisited sidesVisited(const Point2& a, const Point2& b, const std::vector<Po
   return visited;
 }
 
-/// Distance from p to the closed segment [a, b] [m].
-double pointSegmentDistance(const Point2& p, const Point2& a, const Point2& b) {
-  const Point2 ab = b - a;
-  const double length_sq = ab.squaredNorm();
-  double t = length_sq > 0.0 ? (p - a).dot(ab) / length_sq : 0.0;
-  t = std::clamp(t, 0.0, 1.0);
-  return (a + t * ab - p).norm();
-}
 
 /// A point common to two closed segments known to intersect.
 Point2 commonPoint(const Segment& s, const Segment& t) {
@@ -184,6 +176,14 @@ std::string formatPoint(const Point2& p) {
 }
 
 }  // namespace
+
+double pointSegmentDistance(const Point2& p, const Point2& a, const Point2& b) {
+  const Point2 ab = b - a;
+  const double length_sq = ab.squaredNorm();
+  double t = length_sq > 0.0 ? (p - a).dot(ab) / length_sq : 0.0;
+  t = std::clamp(t, 0.0, 1.0);
+  return (a + t * ab - p).norm();
+}
 
 Polygon::Polygon(std::vector<Point2> vertices) : vertices_(std::move(vertices)) {
   const std::size_t n = vertices_.size();

@@ -61,13 +61,6 @@ std::string formatDouble(double value) {
   return out.str();
 }
 
-/// Distance from p to the closed segment [a, b] [m].
-double pointSegmentDistance(const Point2& p, const Point2& a, const Point2& b) {
-  const Point2 ab = b - a;
-  const double length_sq = ab.squaredNorm();
-  const double t = length_sq > 0.0 ? std::clamp((p - a).dot(ab) / length_sq, 0.0, 1.0) : 0.0;
-  return (a + t * ab - p).norm();
-}
 
 /// Target edge length [m] graded towards the refinement points and lines:
 /// size(p) = min + (max - min) * clamp(dist(p, features) / grading_length, 0, 1).

@@ -63,12 +63,6 @@ std::string indexed(const std::string& key, std::size_t i) {
   return key + "[" + std::to_string(i) + "]";
 }
 
-double pointSegmentDistance(const Point2& p, const Segment& s) {
-  const Point2 d = s.b - s.a;
-  const double length_sq = d.squaredNorm();
-  const double t = length_sq > 0.0 ? std::clamp((p - s.a).dot(d) / length_sq, 0.0, 1.0) : 0.0;
-  return (p - (s.a + t * d)).norm();
-}
 
 /// Parses one document into a Scene, validating as it goes, then cross-checks the parts.
 class SceneParser {
@@ -744,7 +738,7 @@ bool Scene::inWorkspace(const Point2& p) const {
 BoundaryCondition Scene::boundaryConditionAt(const Point2& p, double tol_m) const {
   for (const BoundarySegment& segment : boundary) {
     if (segment.condition == BoundaryCondition::kFixed &&
-        pointSegmentDistance(p, segment.segment) <= tol_m) {
+        geometry::pointSegmentDistance(p, segment.segment.a, segment.segment.b) <= tol_m) {
       return BoundaryCondition::kFixed;
     }
   }

@@ -59,12 +59,6 @@ bool segmentsTouch(const Point2& a, const Point2& b, const Point2& c, const Poin
          (d3 == 0 && onBox(c, d, a)) || (d4 == 0 && onBox(c, d, b));
 }
 
-double pointSegmentDistance(const Point2& p, const Point2& a, const Point2& b) {
-  const Point2 ab = b - a;
-  const double len2 = ab.squaredNorm();
-  const double t = len2 > 0.0 ? std::clamp((p - a).dot(ab) / len2, 0.0, 1.0) : 0.0;
-  return (a + t * ab - p).norm();
-}
 
 struct Box {
   double min_x, min_y, max_x, max_y;
@@ -556,7 +550,7 @@ void SteeringModel::buildValidity(int threads) {
                 continue;
               }
               stamp[static_cast<std::size_t>(e)] = stamp_id;
-              if (pointSegmentDistance(q, ea[static_cast<std::size_t>(e)],
+              if (geometry::pointSegmentDistance(q, ea[static_cast<std::size_t>(e)],
                                        eb[static_cast<std::size_t>(e)]) <= reach + slack) {
                 near.push_back(e);
               }

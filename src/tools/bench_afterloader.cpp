@@ -226,6 +226,26 @@ private:
   std::unique_ptr<Client> client_;
 };
 
+/// The worst dwell-time error the journal allows, over the scheduled dwells: |recorded - plan|
+/// plus the committed quanta a crash left in doubt; and the dwells recorded above their plan.
+struct ErrorBound {
+  double worst_s = 0.0;
+  int over_plan = 0;
+};
+ErrorBound errorBound(const delivery::Ledger& ledger, const delivery::Schedule& s) {
+  ErrorBound b;
+  for (const auto& c : s.channels) {
+    for (std::size_t k = 0; k < c.time_s.size(); ++k) {
+      const std::pair<int, int> key{c.channel, c.dwell_index[k]};
+      const double got = ledger.delivered_s.count(key) ? ledger.delivered_s.at(key) : 0.0;
+      const double doubt = ledger.uncertainty_s.count(key) ? ledger.uncertainty_s.at(key) : 0.0;
+      b.worst_s = std::max(b.worst_s, std::abs(got - c.time_s[k]) + doubt);
+      if (got > c.time_s[k] + 1e-9) ++b.over_plan;
+    }
+  }
+  return b;
+}
+
 /// The commit quantum's trade (core only, no ROS): one delivery of `s` with crashes at
 /// `crashes` random moments; journal records, wall time and the worst dwell-time error left.
 struct QuantumRow {
@@ -261,14 +281,7 @@ QuantumRow quantumTrial(const delivery::Schedule& s, double quantum, int crashes
   const double wall = now() - t0;
   const delivery::Journal journal(dir + "/" + s.plan_id + ".journal");
   const auto ledger = delivery::replay(journal.records(), &s, kSpeed);
-  double worst = 0.0;
-  for (const auto& c : s.channels) {
-    for (std::size_t k = 0; k < c.time_s.size(); ++k) {
-      const std::pair<int, int> key{c.channel, c.dwell_index[k]};
-      const double u = ledger.uncertainty_s.count(key) ? ledger.uncertainty_s.at(key) : 0.0;
-      worst = std::max(worst, std::abs(ledger.delivered_s.at(key) - c.time_s[k]) + u);
-    }
-  }
+  const double worst = errorBound(ledger, s).worst_s;
   return {quantum, wall, static_cast<double>(journal.records().size()), device_time / wall, worst};
 }
 
@@ -355,17 +368,9 @@ int main(int argc, char** argv) {
       // The journal, replayed independently of the node.
       const delivery::Journal journal(journal_dir + "/" + s.plan_id + ".journal");
       const auto ledger = delivery::replay(journal.records(), &s, kSpeed);
-      double worst = 0.0;
-      int doubled = static_cast<int>(ledger.anomalies.size());
-      for (const auto& c : s.channels) {
-        for (std::size_t k = 0; k < c.time_s.size(); ++k) {
-          const std::pair<int, int> key{c.channel, c.dwell_index[k]};
-          const double got = ledger.delivered_s.count(key) ? ledger.delivered_s.at(key) : 0.0;
-          const double u = ledger.uncertainty_s.count(key) ? ledger.uncertainty_s.at(key) : 0.0;
-          worst = std::max(worst, std::abs(got - c.time_s[k]) + u);
-          if (got > c.time_s[k] + 1e-9) ++doubled;
-        }
-      }
+      const ErrorBound bound = errorBound(ledger, s);
+      const double worst = bound.worst_s;
+      const int doubled = static_cast<int>(ledger.anomalies.size()) + bound.over_plan;
       std::set<std::string> in_file;
       {
         std::ifstream in(journal.path());

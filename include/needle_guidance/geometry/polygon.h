@@ -70,6 +70,9 @@ private:
   std::vector<Point2> vertices_;
 };
 
+/// Distance from p to the closed segment [a, b] [m].
+double pointSegmentDistance(const Point2& p, const Point2& a, const Point2& b);
+
 /// True if two closed segments share at least one point (exact predicates, robust to
 /// collinear overlap and shared end points).
 bool segmentsIntersect(const Segment& s, const Segment& t);
