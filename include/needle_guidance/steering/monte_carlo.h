@@ -1,0 +1,90 @@
+// Monte Carlo truth check of the steering MDP (issue 5): the continuous needle (exact arcs,
+// continuous normal deflections, continuous_workspace.h) follows a policy with the tip imaged
+// after every insertion distance delta (5.3); the empirical success rate with a 95 % Wilson
+// interval is compared with the P_s the discretised MDP predicts. Plain C++; no ROS.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/steering/continuous_workspace.h"
+#include "needle_guidance/steering/policy_table.h"
+
+namespace needle_guidance::steering {
+
+/// How a trial ended.
+enum class TrialOutcome {
+  kReachedTarget,  ///< the imaged tip (after a step) lies in the target disc
+  kHitObstacle,    ///< an arc touched an expanded obstacle
+  kLeftWorkspace,  ///< an arc left the workspace
+  kStepLimit,      ///< max_steps insertions without reaching the target
+};
+/// "reached_target" | "hit_obstacle" | "left_workspace" | "step_limit".
+std::string toString(TrialOutcome outcome);
+
+/// A policy: the control to apply at the imaged tip pose (before step `step`, from 0).
+using SteeringPolicy = std::function<Control(const TipPose& pose, int step)>;
+
+/// The closed-loop policy of a solved table: lookup(pose).control (insert where the look-up
+/// fails, e.g. off the grid). The table must outlive the returned function.
+SteeringPolicy tablePolicy(const PolicyTable& table);
+/// An open-loop policy: controls[step], then kInsert once the sequence is exhausted.
+SteeringPolicy openLoopPolicy(std::vector<Control> controls);
+
+struct TrialOptions {
+  int max_steps = 200;       ///< insertions before kStepLimit, >= 1
+  bool record_path = false;  ///< keep every imaged pose (start included) in Trial::path
+};
+
+/// One simulated insertion.
+struct Trial {
+  TrialOutcome outcome = TrialOutcome::kStepLimit;
+  int steps = 0;               ///< insertions made (the failing one included)
+  int flips = 0;               ///< direction changes made
+  TipPose end;                 ///< last pose (at the contact point on failure)
+  std::vector<TipPose> path;   ///< imaged poses, when TrialOptions::record_path
+  std::vector<Control> controls;  ///< controls applied, when TrialOptions::record_path
+  bool success() const { return outcome == TrialOutcome::kReachedTarget; }
+};
+
+/// Simulates one trial from `start`: at each step the policy picks u, beta ~ N(0, sigma_i)
+/// (u = insert) or N(0, sigma_r) (u = flip) is drawn from `rng`, and the exact arc of
+/// advanceTip of length delta = 2 pi r / N_c is traced. A start outside the workspace or in an
+/// obstacle fails at once (steps = 0); a start in the target succeeds at once.
+Trial simulateTrial(const ContinuousWorkspace& world, const TipPose& start,
+                    const SteeringPolicy& policy, std::uint64_t seed,
+                    const TrialOptions& options = {});
+
+/// Binomial 95 % (or other z) Wilson score interval of successes / trials; [0, 1] for 0 trials.
+struct Interval {
+  double low = 0.0;
+  double high = 1.0;
+  bool contains(double p) const { return p >= low && p <= high; }
+};
+Interval wilsonInterval(std::int64_t successes, std::int64_t trials, double z = 1.959963984540054);
+
+/// Aggregate of many trials from one start.
+struct MonteCarloResult {
+  std::int64_t trials = 0;
+  std::int64_t successes = 0;
+  std::int64_t hit_obstacle = 0;
+  std::int64_t left_workspace = 0;
+  std::int64_t step_limit = 0;
+  double mean_steps = 0.0;
+  double mean_flips = 0.0;
+  double seconds = 0.0;  ///< wall time [s]
+  double rate() const { return trials > 0 ? double(successes) / double(trials) : 0.0; }
+  Interval interval() const { return wilsonInterval(successes, trials); }
+};
+
+/// Runs `trials` independent trials from `start`; trial i uses seed (seed, i), so the result
+/// does not depend on `threads` (>= 1). The policy must be safe to call from several threads.
+/// Throws std::invalid_argument for trials < 1, threads < 1 or max_steps < 1.
+MonteCarloResult runMonteCarlo(const ContinuousWorkspace& world, const TipPose& start,
+                               const SteeringPolicy& policy, std::int64_t trials,
+                               std::uint64_t seed, int threads = 2,
+                               const TrialOptions& options = {});
+
+}  // namespace needle_guidance::steering
