@@ -21,6 +21,7 @@
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/steering/steering_model.h"
 #include "needle_guidance/steering/value_iteration.h"
@@ -41,6 +42,13 @@ constexpr unsigned kLookupSeed = 5;
 constexpr double kSpacing800k_m = 1e-3;
 /// Solves per grid whose median time is reported.
 constexpr int kSolveRepeats = 3;
+/// Monte Carlo trials per start state (issue 5: >= 10,000).
+constexpr std::int64_t kMonteCarloTrials = 10000;
+/// Seed of the Monte Carlo trials (trial i of every start uses the stream (seed, i)).
+constexpr std::uint64_t kMonteCarloSeed = 11;
+/// Start states whose predicted and simulated P_s are both below this are left out of the
+/// truth check: they agree trivially.
+constexpr double kTrivialPs = 0.01;
 
 double peakMb() {
   rusage usage{};
@@ -153,14 +161,14 @@ int main(int argc, char** argv) {
     std::cout << "1 thread: build " << single.build_s << " s, solve " << single.stats.seconds
               << " s (" << single.stats.sweeps << " sweeps)\n"
               << std::flush;
-    if (!args->quick) {
-      runs.push_back(solveAt(problem, 0.5e-3, 2, 1e-3, start));
+    for (double fine_m : args->quick ? std::vector<double>{} : std::vector<double>{0.5e-3, 0.25e-3}) {
+      runs.push_back(solveAt(problem, fine_m, 2, 1e-3, start));
       Solved& r = runs.back();
       scaling.addRow({r.spacing_m * kMmPerM, double(r.states), double(r.transitions), r.build_s,
                       r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
                       r.stats.converged ? 1.0 : 0.0, r.peak_mb,
                       double(r.best.best.probability_of_success), 2.0});
-      std::cout << "Delta 0.5 mm: " << r.states << " states, build " << r.build_s << " s, solve "
+      std::cout << "Delta " << fine_m * kMmPerM << " mm: " << r.states << " states, build " << r.build_s << " s, solve "
                 << r.stats.seconds << " s (" << r.stats.sweeps << " sweeps), peak " << r.peak_mb
                 << " MB, " << r.best.toString() << "\n"
                 << std::flush;
@@ -193,6 +201,80 @@ int main(int argc, char** argv) {
                          std::abs(ps - ps_finest)});
     }
     resolution.writeCsv(args->out_dir + "/resolution.csv");
+
+    // ---- truth check: predicted P_s against the continuous needle (Monte Carlo) ----
+    // Start states: a fixed set on the entry line (heights x angles x bevels) plus the 1 mm best
+    // start; the policy of each grid drives the continuous needle (exact arcs, continuous
+    // deflections) from the same start states.
+    const st::ContinuousWorkspace world(problem);
+    std::vector<st::TipPose> mc_starts;
+    for (double y_mm : {5.0, 10.0, 15.0, 30.0, 54.0, 60.0, 80.0}) {
+      for (double theta_deg : {-18.0, 0.0, 18.0}) {
+        for (st::Bevel b : {st::Bevel::kLeft, st::Bevel::kRight}) {
+          st::TipPose pose;
+          pose.p_SceneTip = st::Point2(start.start_x_m, y_mm / kMmPerM);
+          pose.theta_rad = theta_deg / kDegPerRad;
+          pose.bevel = b;
+          mc_starts.push_back(pose);
+        }
+      }
+    }
+    mc_starts.push_back(run800k->best.best.pose);
+    ng::report::Table truth({"grid_spacing_mm", "y_mm", "theta_deg", "bevel", "predicted_ps",
+                             "mc_ps", "ci_low", "ci_high", "within_ci", "gap"},
+                            6);
+    ng::report::Table gap_table({"grid_spacing_mm", "states", "total_s", "starts",
+                                 "within_ci_fraction", "mean_abs_gap", "max_abs_gap",
+                                 "mean_abs_gap_discrete_deflections"},
+                                6);
+    double within_800k = 0.0, mc_seconds = 0.0;
+    std::int64_t mc_trials_total = 0;
+    for (const auto& r : runs) {
+      int starts = 0, within = 0;
+      double sum_gap = 0.0, max_gap = 0.0, sum_gap_discrete = 0.0;
+      st::TrialOptions discrete;
+      discrete.deflection_step_rad = 2.0 * kPi / problem.params.orientations;
+      for (const auto& pose : mc_starts) {
+        const double predicted = r.table->lookup(pose).probability_of_success;
+        const st::MonteCarloResult mc = st::runMonteCarlo(
+            world, pose, st::tablePolicy(*r.table), kMonteCarloTrials, kMonteCarloSeed, 2);
+        mc_seconds += mc.seconds;
+        mc_trials_total += mc.trials;
+        if (predicted < kTrivialPs && mc.rate() < kTrivialPs) {
+          continue;
+        }
+        const st::MonteCarloResult mc_discrete =
+            st::runMonteCarlo(world, pose, st::tablePolicy(*r.table), kMonteCarloTrials,
+                              kMonteCarloSeed, 2, discrete);
+        const st::Interval ci = mc.interval();
+        ++starts;
+        within += ci.contains(predicted) ? 1 : 0;
+        const double gap = predicted - mc.rate();
+        sum_gap += std::abs(gap);
+        max_gap = std::max(max_gap, std::abs(gap));
+        sum_gap_discrete += std::abs(predicted - mc_discrete.rate());
+        truth.addRow({r.spacing_m * kMmPerM, pose.p_SceneTip.y() * kMmPerM,
+                      pose.theta_rad * kDegPerRad, st::toString(pose.bevel), predicted, mc.rate(),
+                      ci.low, ci.high, ci.contains(predicted) ? 1.0 : 0.0, gap});
+      }
+      const double fraction = starts > 0 ? double(within) / starts : 1.0;
+      if (&r == run800k) {
+        within_800k = fraction;
+      }
+      gap_table.addRow({r.spacing_m * kMmPerM, double(r.states), r.build_s + r.stats.seconds,
+                        double(starts), fraction, starts > 0 ? sum_gap / starts : 0.0, max_gap,
+                        starts > 0 ? sum_gap_discrete / starts : 0.0});
+      std::cout << "truth check, Delta " << r.spacing_m * kMmPerM << " mm: " << within << " of "
+                << starts << " start states within the 95 % interval, mean |gap| "
+                << (starts > 0 ? sum_gap / starts : 0.0) << "\n"
+                << std::flush;
+    }
+    truth.writeCsv(args->out_dir + "/truth_check.csv");
+    gap_table.writeCsv(args->out_dir + "/truth_gap.csv");
+    // P_s measured by Monte Carlo from the best start (the headline mdp_ps).
+    const st::MonteCarloResult mdp_mc =
+        st::runMonteCarlo(world, run800k->best.best.pose, st::tablePolicy(*run800k->table),
+                          kMonteCarloTrials, kMonteCarloSeed, 2);
 
     // ---- epsilon: sweeps and time against the error in P_s (speed against error) ----
     st::SteeringProblem p800k = problem;
@@ -310,7 +392,14 @@ int main(int argc, char** argv) {
          << ",\n  \"peak_mb_800k\": " << jsonNumber(run800k->peak_mb)
          << ",\n  \"baseline_mb\": " << jsonNumber(baseline_mb)
          << ",\n  \"lookup_us\": " << jsonNumber(lookup_us)
-         << ",\n  \"mdp_ps\": " << jsonNumber(best.best.probability_of_success)
+         << ",\n  \"mdp_ps\": " << jsonNumber(mdp_mc.rate())
+         << ",\n  \"mdp_ps_ci\": [" << jsonNumber(mdp_mc.interval().low) << ", "
+         << jsonNumber(mdp_mc.interval().high) << "]"
+         << ",\n  \"mdp_ps_predicted\": " << jsonNumber(best.best.probability_of_success)
+         << ",\n  \"mc_within_ci_fraction\": " << jsonNumber(within_800k)
+         << ",\n  \"mc_trials_per_start\": " << kMonteCarloTrials
+         << ",\n  \"mc_trials_total\": " << mc_trials_total
+         << ",\n  \"mc_seconds_total\": " << jsonNumber(mc_seconds)
          << ",\n  \"best_start_y_mm\": " << jsonNumber(best.best.pose.p_SceneTip.y() * kMmPerM)
          << ",\n  \"best_start_theta_deg\": " << jsonNumber(best.best.pose.theta_rad * kDegPerRad)
          << ",\n  \"best_start_bevel\": \"" << st::toString(best.best.pose.bevel) << "\""
@@ -332,9 +421,14 @@ int main(int argc, char** argv) {
   "title": "Convergence threshold: solve time vs max P_s error (800k states)", "png": "epsilon.png"},
  {"csv": "resolution.csv", "x": "total_s", "y": "ps_error_vs_finest", "logx": true, "annotate": "grid_spacing_mm",
   "points": true, "title": "Grid spacing: time vs P_s error at the 1 mm best start (vs finest grid)", "png": "resolution.png"},
+ {"csv": "truth_gap.csv", "x": "grid_spacing_mm", "y": "mean_abs_gap", "logx": true, "points": true, "annotate": "within_ci_fraction",
+  "title": "Truth check: mean |predicted P_s - Monte Carlo| vs grid spacing (label: fraction within 95 % CI)", "png": "truth_gap.png"},
+ {"csv": "truth_check.csv", "x": "predicted_ps", "y": "mc_ps", "group": "grid_spacing_mm", "points": true,
+  "title": "Predicted P_s (MDP) vs Monte Carlo success rate, 10,000 trials per start", "png": "truth_check.png"},
  {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
   "title": "P_s of start states on the entry line (figure 5.7 slices, best bevel)", "png": "start_surface.png"}])json");
-    std::cout << scaling.toText() << eps_table.toText() << resolution.toText() << json.str();
+    std::cout << scaling.toText() << eps_table.toText() << resolution.toText() << gap_table.toText()
+              << json.str();
   } catch (const std::exception& e) {
     std::cerr << "bench_steering: " << e.what() << "\n";
     return 1;

@@ -36,6 +36,10 @@ SteeringPolicy openLoopPolicy(std::vector<Control> controls);
 struct TrialOptions {
   int max_steps = 200;       ///< insertions before kStepLimit, >= 1
   bool record_path = false;  ///< keep every imaged pose (start included) in Trial::path
+  /// 0: continuous deflections (the truth). > 0: every beta is rounded to the nearest multiple
+  /// of this step [rad] — an ablation that isolates the MDP's orientation quantisation (with
+  /// alpha = 2 pi / N_c, what remains of the gap is the position rounding of 5.4.2).
+  double deflection_step_rad = 0.0;
 };
 
 /// One simulated insertion.

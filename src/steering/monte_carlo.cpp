@@ -1,0 +1,172 @@
+#include "needle_guidance/steering/monte_carlo.h"
+
+#include <chrono>
+#include <cmath>
+#include <random>
+#include <stdexcept>
+#include <thread>
+
+namespace needle_guidance::steering {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+
+/// SplitMix64: decorrelates the seeds of consecutive trials.
+std::uint64_t mixSeed(std::uint64_t seed, std::uint64_t index) {
+  std::uint64_t z = seed + 0x9E3779B97F4A7C15ull * (index + 1);
+  z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+  z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+  return z ^ (z >> 31);
+}
+
+}  // namespace
+
+std::string toString(TrialOutcome outcome) {
+  switch (outcome) {
+    case TrialOutcome::kReachedTarget:
+      return "reached_target";
+    case TrialOutcome::kHitObstacle:
+      return "hit_obstacle";
+    case TrialOutcome::kLeftWorkspace:
+      return "left_workspace";
+    case TrialOutcome::kStepLimit:
+      return "step_limit";
+  }
+  return "unknown";
+}
+
+SteeringPolicy tablePolicy(const PolicyTable& table) {
+  return [&table](const TipPose& pose, int) { return table.lookup(pose).control; };
+}
+
+SteeringPolicy openLoopPolicy(std::vector<Control> controls) {
+  return [controls = std::move(controls)](const TipPose&, int step) {
+    return step >= 0 && static_cast<std::size_t>(step) < controls.size()
+               ? controls[static_cast<std::size_t>(step)]
+               : Control::kInsert;
+  };
+}
+
+Trial simulateTrial(const ContinuousWorkspace& world, const TipPose& start,
+                    const SteeringPolicy& policy, std::uint64_t seed,
+                    const TrialOptions& options) {
+  Trial trial;
+  trial.end = start;
+  if (options.record_path) {
+    trial.path.push_back(start);
+  }
+  if (!start.p_SceneTip.allFinite() || !std::isfinite(start.theta_rad) ||
+      !world.inWorkspace(start.p_SceneTip)) {
+    trial.outcome = TrialOutcome::kLeftWorkspace;
+    return trial;
+  }
+  if (world.obstacleAt(start.p_SceneTip) >= 0) {
+    trial.outcome = TrialOutcome::kHitObstacle;
+    return trial;
+  }
+  if (world.inTarget(start.p_SceneTip)) {
+    trial.outcome = TrialOutcome::kReachedTarget;
+    return trial;
+  }
+  const SteeringParams& params = world.problem().params;
+  const double delta = 2.0 * kPi * params.radius_m / params.orientations;
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> normal(0.0, 1.0);
+  TipPose pose = start;
+  for (int step = 0; step < options.max_steps; ++step) {
+    const Control u = policy(pose, step);
+    const double sigma = u == Control::kInsert ? params.sigma_insert_rad : params.sigma_flip_rad;
+    double beta = sigma > 0.0 ? sigma * normal(rng) : 0.0;
+    if (options.deflection_step_rad > 0.0) {
+      beta = options.deflection_step_rad * std::round(beta / options.deflection_step_rad);
+    }
+    const ArcTrace arc = world.traceArc(pose, u, beta, delta);
+    ++trial.steps;
+    trial.flips += u == Control::kFlip ? 1 : 0;
+    pose = arc.end;
+    if (options.record_path) {
+      trial.path.push_back(pose);
+      trial.controls.push_back(u);
+    }
+    if (arc.outcome != ArcOutcome::kFree) {
+      trial.outcome = arc.outcome == ArcOutcome::kObstacle ? TrialOutcome::kHitObstacle
+                                                           : TrialOutcome::kLeftWorkspace;
+      trial.end = pose;
+      return trial;
+    }
+    if (world.inTarget(pose.p_SceneTip)) {
+      trial.outcome = TrialOutcome::kReachedTarget;
+      trial.end = pose;
+      return trial;
+    }
+  }
+  trial.outcome = TrialOutcome::kStepLimit;
+  trial.end = pose;
+  return trial;
+}
+
+Interval wilsonInterval(std::int64_t successes, std::int64_t trials, double z) {
+  if (trials <= 0) {
+    return {};
+  }
+  const double n = static_cast<double>(trials);
+  const double p = static_cast<double>(successes) / n;
+  const double z2 = z * z;
+  const double centre = (p + z2 / (2.0 * n)) / (1.0 + z2 / n);
+  const double half = z / (1.0 + z2 / n) * std::sqrt(p * (1.0 - p) / n + z2 / (4.0 * n * n));
+  return {std::max(0.0, centre - half), std::min(1.0, centre + half)};
+}
+
+MonteCarloResult runMonteCarlo(const ContinuousWorkspace& world, const TipPose& start,
+                               const SteeringPolicy& policy, std::int64_t trials,
+                               std::uint64_t seed, int threads, const TrialOptions& options) {
+  if (trials < 1 || threads < 1 || options.max_steps < 1) {
+    throw std::invalid_argument("runMonteCarlo: trials, threads and max_steps must be >= 1, got " +
+                                std::to_string(trials) + ", " + std::to_string(threads) + ", " +
+                                std::to_string(options.max_steps));
+  }
+  const auto t0 = std::chrono::steady_clock::now();
+  TrialOptions quiet = options;
+  quiet.record_path = false;
+  std::vector<MonteCarloResult> parts(static_cast<std::size_t>(threads));
+  std::vector<double> steps(parts.size(), 0.0), flips(parts.size(), 0.0);
+  auto work = [&](int part) {
+    MonteCarloResult& r = parts[static_cast<std::size_t>(part)];
+    for (std::int64_t i = part; i < trials; i += threads) {
+      const Trial t = simulateTrial(world, start, policy, mixSeed(seed, std::uint64_t(i)), quiet);
+      ++r.trials;
+      r.successes += t.outcome == TrialOutcome::kReachedTarget ? 1 : 0;
+      r.hit_obstacle += t.outcome == TrialOutcome::kHitObstacle ? 1 : 0;
+      r.left_workspace += t.outcome == TrialOutcome::kLeftWorkspace ? 1 : 0;
+      r.step_limit += t.outcome == TrialOutcome::kStepLimit ? 1 : 0;
+      steps[static_cast<std::size_t>(part)] += t.steps;
+      flips[static_cast<std::size_t>(part)] += t.flips;
+    }
+  };
+  std::vector<std::thread> pool;
+  for (int part = 1; part < threads; ++part) {
+    pool.emplace_back(work, part);
+  }
+  work(0);
+  for (auto& th : pool) {
+    th.join();
+  }
+  MonteCarloResult total;
+  double total_steps = 0.0, total_flips = 0.0;
+  for (std::size_t i = 0; i < parts.size(); ++i) {
+    total.trials += parts[i].trials;
+    total.successes += parts[i].successes;
+    total.hit_obstacle += parts[i].hit_obstacle;
+    total.left_workspace += parts[i].left_workspace;
+    total.step_limit += parts[i].step_limit;
+    total_steps += steps[i];
+    total_flips += flips[i];
+  }
+  total.mean_steps = total_steps / double(total.trials);
+  total.mean_flips = total_flips / double(total.trials);
+  total.seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return total;
+}
+
+}  // namespace needle_guidance::steering

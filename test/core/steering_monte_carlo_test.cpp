@@ -1,0 +1,253 @@
+// The continuous needle world and the Monte Carlo truth check (issue 5 item 3): exact arcs and
+// contacts, an analytic success probability, the Wilson interval, thread independence, and
+// agreement with the MDP where the discretisation is exact (sigma = 0).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <iostream>
+#include <limits>
+#include <stdexcept>
+
+#include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/steering/continuous_workspace.h"
+#include "needle_guidance/steering/monte_carlo.h"
+#include "needle_guidance/steering/value_iteration.h"
+
+namespace needle_guidance::steering {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+constexpr double kDeg = kPi / 180.0;
+constexpr double kExact_m = 1e-12;         // same formula, rounding only [m]
+constexpr double kChordTol_m = 1e-5;       // ContinuousWorkspace default chord tolerance [m]
+constexpr double kContactTol_m = 2e-5;     // contact point to expanded boundary [m]
+constexpr double kWilsonTol = 1e-4;        // published interval values, 4 decimals
+constexpr double kStandardErrors = 4.0;    // Monte Carlo vs analytic, in binomial SEs
+
+SteeringProblem openProblem() {
+  SteeringProblem p;
+  p.workspace_min = Point2(0.0, 0.0);
+  p.workspace_max = Point2(0.1, 0.1);
+  p.target.name = "target";
+  p.target.position = Point2(0.08, 0.05);
+  p.target.radius_m = 0.005;
+  p.params.grid_spacing_m = 1e-3;
+  p.params.orientations = 40;
+  p.params.radius_m = 0.05;
+  return p;
+}
+
+scene::Obstacle wall(double x0, double y0, double x1, double y1, double clearance_m) {
+  scene::Obstacle o;
+  o.name = "wall";
+  o.polygon = geometry::Polygon({{x0, y0}, {x1, y0}, {x1, y1}, {x0, y1}});
+  o.clearance_m = clearance_m;
+  return o;
+}
+
+double delta(const SteeringProblem& p) {
+  return 2.0 * kPi * p.params.radius_m / p.params.orientations;
+}
+
+TEST(ContinuousWorkspace, FreeArcEndsWhereAdvanceTipSays) {
+  const ContinuousWorkspace world(openProblem());
+  TipPose start;
+  start.p_SceneTip = Point2(0.01, 0.05);
+  start.theta_rad = 10 * kDeg;
+  for (Control u : {Control::kInsert, Control::kFlip}) {
+    const ArcTrace t = world.traceArc(start, u, 3 * kDeg, 0.0078);
+    const TipPose want = advanceTip(start, u, 3 * kDeg, 0.0078, 0.05);
+    EXPECT_EQ(t.outcome, ArcOutcome::kFree);
+    EXPECT_NEAR(t.free_length_m, 0.0078, kExact_m);
+    EXPECT_NEAR((t.end.p_SceneTip - want.p_SceneTip).norm(), 0.0, kExact_m);
+    EXPECT_NEAR(t.end.theta_rad, want.theta_rad, kExact_m);
+    EXPECT_EQ(t.end.bevel, want.bevel);
+  }
+}
+
+TEST(ContinuousWorkspace, ArcStopsAtTheExpandedObstacle) {
+  SteeringProblem p = openProblem();
+  p.obstacles.push_back(wall(0.03, 0.0, 0.035, 0.1, 0.002));  // expanded face at x = 0.028
+  const ContinuousWorkspace world(p);
+  TipPose start;
+  start.p_SceneTip = Point2(0.02, 0.05);
+  const ArcTrace t = world.traceArc(start, Control::kInsert, 0.0, 0.02);
+  ASSERT_EQ(t.outcome, ArcOutcome::kObstacle);
+  EXPECT_EQ(t.obstacle, "wall");
+  EXPECT_NEAR(t.end.p_SceneTip.x(), 0.028, kContactTol_m);
+  EXPECT_LT(t.free_length_m, 0.02);
+  EXPECT_NEAR(world.expandedObstacles()[0].distanceToBoundary(t.end.p_SceneTip), 0.0,
+              kContactTol_m);
+  // The same arc, shorter than the gap, is free.
+  EXPECT_EQ(world.traceArc(start, Control::kInsert, 0.0, 0.005).outcome, ArcOutcome::kFree);
+}
+
+TEST(ContinuousWorkspace, LeavingTheWorkspaceStopsOnTheBoundary) {
+  const ContinuousWorkspace world(openProblem());
+  TipPose start;
+  start.p_SceneTip = Point2(0.095, 0.05);
+  const ArcTrace t = world.traceArc(start, Control::kInsert, 0.0, 0.02);
+  ASSERT_EQ(t.outcome, ArcOutcome::kLeftWorkspace);
+  EXPECT_NEAR(t.end.p_SceneTip.x(), 0.1, kChordTol_m);
+  EXPECT_GT(t.free_length_m, 0.0049);
+}
+
+TEST(ContinuousWorkspace, BadStartsAreFailuresNotNaN) {
+  SteeringProblem p = openProblem();
+  p.obstacles.push_back(wall(0.03, 0.04, 0.04, 0.06, 0.0));
+  const ContinuousWorkspace world(p);
+  TipPose inside;
+  inside.p_SceneTip = Point2(0.035, 0.05);
+  EXPECT_EQ(world.traceArc(inside, Control::kInsert, 0.0, 0.01).outcome, ArcOutcome::kObstacle);
+  TipPose nan_pose;
+  nan_pose.p_SceneTip = Point2(std::numeric_limits<double>::quiet_NaN(), 0.05);
+  const ArcTrace t = world.traceArc(nan_pose, Control::kInsert, 0.0, 0.01);
+  EXPECT_EQ(t.outcome, ArcOutcome::kLeftWorkspace);
+  EXPECT_EQ(t.free_length_m, 0.0);
+  TipPose ok;
+  ok.p_SceneTip = Point2(0.01, 0.05);
+  EXPECT_EQ(world.traceArc(ok, Control::kInsert, std::nan(""), 0.01).outcome,
+            ArcOutcome::kLeftWorkspace);
+  SteeringProblem bad = openProblem();
+  bad.params.radius_m = 0.0;
+  EXPECT_THROW(ContinuousWorkspace{bad}, std::invalid_argument);
+}
+
+TEST(Wilson, MatchesPublishedValues) {
+  // Wilson score 95 % intervals (Newcombe 1998, table I): 81/263 and 0/10.
+  const Interval a = wilsonInterval(81, 263);
+  EXPECT_NEAR(a.low, 0.2553, kWilsonTol);
+  EXPECT_NEAR(a.high, 0.3662, kWilsonTol);
+  const Interval b = wilsonInterval(0, 10);
+  EXPECT_NEAR(b.low, 0.0, kWilsonTol);
+  EXPECT_NEAR(b.high, 0.2775, kWilsonTol);
+  const Interval none = wilsonInterval(0, 0);
+  EXPECT_EQ(none.low, 0.0);
+  EXPECT_EQ(none.high, 1.0);
+}
+
+TEST(MonteCarlo, OneStepSuccessMatchesTheNormalIntegral) {
+  // One insertion aimed at the target centre: the tip lands in the disc iff the chord rotated
+  // by beta ends within rho of the centre, i.e. |beta| <= 2 asin(rho / (2 c)) for chord c.
+  SteeringProblem p = openProblem();
+  p.params.sigma_insert_rad = 5 * kDeg;
+  TipPose start;
+  start.p_SceneTip = Point2(0.02, 0.05);
+  const TipPose aim = advanceTip(start, Control::kInsert, 0.0, delta(p), p.params.radius_m);
+  p.target.position = aim.p_SceneTip;
+  p.target.radius_m = 0.0005;
+  const ContinuousWorkspace world(p);
+  const double chord = (aim.p_SceneTip - start.p_SceneTip).norm();
+  const double bound = 2.0 * std::asin(p.target.radius_m / (2.0 * chord));
+  const double analytic = std::erf(bound / (p.params.sigma_insert_rad * std::sqrt(2.0)));
+  TrialOptions one;
+  one.max_steps = 1;
+  const std::int64_t n = 20000;
+  const MonteCarloResult r = runMonteCarlo(
+      world, start, [](const TipPose&, int) { return Control::kInsert; }, n, 3, 2, one);
+  const double se = std::sqrt(analytic * (1.0 - analytic) / n);
+  EXPECT_NEAR(r.rate(), analytic, kStandardErrors * se);
+  EXPECT_EQ(r.successes + r.step_limit + r.hit_obstacle + r.left_workspace, n);
+}
+
+TEST(MonteCarlo, ResultDoesNotDependOnThreads) {
+  SteeringProblem p = openProblem();
+  p.params.sigma_insert_rad = 5 * kDeg;
+  p.params.sigma_flip_rad = 10 * kDeg;
+  const ContinuousWorkspace world(p);
+  const SteeringModel model(p);
+  const PolicyTable table = solveValueIteration(model);
+  TipPose start;
+  start.p_SceneTip = Point2(0.0, 0.05);
+  const MonteCarloResult one = runMonteCarlo(world, start, tablePolicy(table), 3000, 9, 1);
+  const MonteCarloResult two = runMonteCarlo(world, start, tablePolicy(table), 3000, 9, 2);
+  EXPECT_EQ(one.successes, two.successes);
+  EXPECT_EQ(one.hit_obstacle, two.hit_obstacle);
+  EXPECT_EQ(one.left_workspace, two.left_workspace);
+  EXPECT_DOUBLE_EQ(one.mean_steps, two.mean_steps);
+  const MonteCarloResult other_seed = runMonteCarlo(world, start, tablePolicy(table), 3000, 10, 2);
+  EXPECT_NE(one.successes, other_seed.successes);
+}
+
+TEST(MonteCarlo, DeterministicNeedleStaysWithinTheDiscretisationBound) {
+  // sigma = 0 (5.4.2): following the MDP's controls, the continuous needle has exactly the
+  // discrete orientation, and its position stays within E_h = h Delta sqrt(2) + Delta sqrt(2)/2
+  // of the discrete state after h direction changes. So a P_s = 1 path ends within E_h of the
+  // target disc (not necessarily inside it: rounding can put a grid point in the disc that
+  // the true tip misses).
+  SteeringProblem p = openProblem();
+  p.obstacles.push_back(wall(0.04, 0.0, 0.045, 0.045, 0.001));
+  const ContinuousWorkspace world(p);
+  const SteeringModel model(p);
+  const PolicyTable table = solveValueIteration(model);
+  const GridSpec& grid = model.grid();
+  const double spacing = p.params.grid_spacing_m;
+  TipPose pose;
+  pose.p_SceneTip = Point2(0.0, 0.06);
+  StateId s = grid.nearestState(pose);
+  ASSERT_FLOAT_EQ(table.value(s), 1.0f);
+  int flips = 0;
+  int steps = 0;
+  double worst_ratio = 0.0;
+  while (model.cell(s / (2 * grid.nc)) == Cell::kFree && steps < 100) {
+    const Control u = table.control(s);
+    const std::vector<Transition> next = model.successors(s, u);
+    ASSERT_EQ(next.size(), 1u);
+    ASSERT_NE(next[0].next, kFailState);
+    const ArcTrace arc = world.traceArc(pose, u, 0.0, delta(p));
+    ASSERT_EQ(arc.outcome, ArcOutcome::kFree) << "step " << steps;
+    pose = arc.end;
+    s = next[0].next;
+    flips += u == Control::kFlip ? 1 : 0;
+    ++steps;
+    const TipPose discrete = grid.pose(s);
+    const double bound = flips * spacing * std::sqrt(2.0) + spacing * std::sqrt(2.0) / 2.0;
+    const double error = (pose.p_SceneTip - discrete.p_SceneTip).norm();
+    EXPECT_LE(error, bound) << "step " << steps << ", " << flips << " direction changes";
+    worst_ratio = std::max(worst_ratio, error / bound);
+    EXPECT_NEAR(std::remainder(pose.theta_rad - discrete.theta_rad, 2.0 * kPi), 0.0, 1e-9);
+    EXPECT_EQ(pose.bevel, discrete.bevel);
+  }
+  ASSERT_EQ(model.cell(s / (2 * grid.nc)), Cell::kTarget);
+  const double final_bound = flips * spacing * std::sqrt(2.0) + spacing * std::sqrt(2.0) / 2.0;
+  EXPECT_LE((pose.p_SceneTip - p.target.position).norm(), p.target.radius_m + final_bound);
+  std::cout << steps << " steps, " << flips << " direction changes, worst error / E_h = "
+            << worst_ratio << "\n";
+}
+
+TEST(MonteCarlo, StartsInObstacleOutsideOrInTargetEndAtOnce) {
+  SteeringProblem p = openProblem();
+  p.obstacles.push_back(wall(0.03, 0.04, 0.04, 0.06, 0.0));
+  const ContinuousWorkspace world(p);
+  const SteeringPolicy insert = [](const TipPose&, int) { return Control::kInsert; };
+  TipPose s;
+  s.p_SceneTip = Point2(0.035, 0.05);
+  EXPECT_EQ(simulateTrial(world, s, insert, 1).outcome, TrialOutcome::kHitObstacle);
+  s.p_SceneTip = Point2(-0.01, 0.05);
+  EXPECT_EQ(simulateTrial(world, s, insert, 1).outcome, TrialOutcome::kLeftWorkspace);
+  s.p_SceneTip = p.target.position;
+  const Trial in_target = simulateTrial(world, s, insert, 1);
+  EXPECT_TRUE(in_target.success());
+  EXPECT_EQ(in_target.steps, 0);
+  s.p_SceneTip = Point2(0.0, 0.05);
+  s.theta_rad = std::nan("");
+  EXPECT_EQ(simulateTrial(world, s, insert, 1).outcome, TrialOutcome::kLeftWorkspace);
+  EXPECT_THROW(runMonteCarlo(world, s, insert, 0, 1), std::invalid_argument);
+  EXPECT_THROW(runMonteCarlo(world, s, insert, 10, 1, 0), std::invalid_argument);
+}
+
+TEST(MonteCarlo, OpenLoopPolicyReplaysItsControls) {
+  const SteeringPolicy policy = openLoopPolicy({Control::kFlip, Control::kInsert});
+  const TipPose any;
+  EXPECT_EQ(policy(any, 0), Control::kFlip);
+  EXPECT_EQ(policy(any, 1), Control::kInsert);
+  EXPECT_EQ(policy(any, 7), Control::kInsert);
+}
+
+}  // namespace
+}  // namespace needle_guidance::steering
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}
