@@ -1,0 +1,85 @@
+// ROS wrapper of the steerable-needle policy (node steering_policy, dissertation 5.4.3-5.5):
+// solves or loads the MDP look-up table for the node's scene and target, answers every incoming
+// tip pose with the optimal control and its P_s, and serves the best start state. The MDP, the
+// solver, the table file and the look-up are the core's (steering/); this class only converts
+// and wires.
+#pragma once
+
+#include <ros/ros.h>
+
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "needle_guidance/BestStart.h"
+#include "needle_guidance/NeedleTip.h"
+#include "needle_guidance/SolvePolicy.h"
+#include "needle_guidance/steering/policy_table.h"
+#include "needle_guidance/steering/steering_model.h"
+
+namespace needle_guidance {
+
+/// Subscribes `tip` (NeedleTip, frame scene; remap it to the tracker's or the robot's topic) and
+/// publishes one `~control` (SteeringControl) per well-formed tip. Serves `~solve` (SolvePolicy)
+/// and `~best_start` (BestStart). Publishes latched `~ps_map` (Marker CUBE_LIST, max P_s per grid
+/// position) and `~best_start_marker` (Marker ARROW) after every solve or load.
+///
+/// Tables are files `<table_dir>/<scene name>_<problem hash, 16 hex digits>.table`; a file is
+/// used only if it was solved for the same problem (hash) to an epsilon no larger than the one
+/// asked for, otherwise the MDP is solved and the file (re)written. A failed solve keeps the
+/// previous table.
+class SteeringPolicyRos {
+public:
+  /// Parameters, read once and echoed (STYLE.md rule 10).
+  struct Settings {
+    std::string scene = "steering_workspace";  ///< ~scene: embedded scene name or YAML path
+    std::string target;                        ///< ~target: target name, "" = the first
+    double epsilon = 1e-3;       ///< ~epsilon: value-iteration threshold, (0, 0.1] (5.4.3)
+    int threads = 2;             ///< ~threads: model pre-computation and solver threads, 1..2
+    std::string table_dir;       ///< ~table_dir, resolved against ROS_HOME; "" = never save
+    bool solve_on_start = true;  ///< ~solve_on_start
+  };
+
+  /// Reads and checks every parameter, builds the MDP of the scene's target (diagnostics are
+  /// logged as warnings), solves or loads the table when ~solve_on_start, then advertises.
+  /// Throws std::runtime_error naming a bad parameter, and std::invalid_argument /
+  /// std::out_of_range for a scene without a steering section or an unknown target. A failed
+  /// start-up solve is logged, not thrown: the node waits for ~solve.
+  SteeringPolicyRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh);
+
+  /// The result of one solve-or-load request.
+  struct SolveOutcome {
+    bool success = false;
+    std::string message;
+    std::string source;    ///< solved | loaded | cached ("" on failure)
+    int sweeps = 0;        ///< value-iteration sweeps of the table in use
+    double seconds = 0.0;  ///< wall time of this request [s]
+  };
+
+private:
+  /// Makes a table available for `epsilon` (see the class comment); on success publishes the
+  /// maps, on failure leaves table_ and the topics as they were. Never throws.
+  SolveOutcome solveOrLoad(double epsilon, bool force);
+  void onTip(const NeedleTipConstPtr& msg);
+  bool onSolve(SolvePolicy::Request& req, SolvePolicy::Response& res);
+  bool onBestStart(BestStart::Request& req, BestStart::Response& res);
+  /// Publishes ~ps_map and ~best_start_marker for table_ (which must be set).
+  void publishMaps();
+  /// The table file of this node's problem; "" when ~table_dir is "".
+  std::string tablePath() const;
+
+  Settings settings_;
+  std::string scene_name_;
+  steering::StartOptions start_options_;
+  std::unique_ptr<const steering::SteeringModel> model_;
+  std::unique_ptr<const steering::PolicyTable> table_;
+  std::string table_source_;  ///< how table_ was made: solved | loaded
+  ros::Publisher control_pub_;
+  ros::Publisher ps_map_pub_;
+  ros::Publisher best_start_pub_;
+  ros::Subscriber tip_sub_;
+  ros::ServiceServer solve_srv_;
+  ros::ServiceServer best_start_srv_;
+};
+
+}  // namespace needle_guidance

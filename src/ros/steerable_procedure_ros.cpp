@@ -1,0 +1,426 @@
+#include "needle_guidance/ros/steerable_procedure_ros.h"
+
+#include <actionlib/client/simple_action_client.h>
+
+#include <chrono>
+#include <cmath>
+#include <condition_variable>
+#include <iostream>
+#include <mutex>
+#include <sstream>
+#include <vector>
+
+#include "needle_guidance/BestStart.h"
+#include "needle_guidance/FlipBevelAction.h"
+#include "needle_guidance/LinearMoveAction.h"
+#include "needle_guidance/NeedleTip.h"
+#include "needle_guidance/SetEntryPose.h"
+#include "needle_guidance/SteeringControl.h"
+#include "needle_guidance/report/table.h"
+#include "needle_guidance/ros/params.h"
+#include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/continuous_workspace.h"
+#include "needle_guidance/steering/monte_carlo.h"
+#include "needle_guidance/steering/value_iteration.h"
+
+namespace needle_guidance {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+constexpr double kMmPerM = 1e3;
+constexpr double kDegPerRad = 180.0 / kPi;
+/// Monte Carlo trials of the core simulator from the same start, for the report.
+constexpr std::int64_t kMonteCarloTrials = 10000;
+constexpr std::uint64_t kMonteCarloSeed = 11;
+
+using LinearMoveClient = actionlib::SimpleActionClient<LinearMoveAction>;
+using FlipBevelClient = actionlib::SimpleActionClient<FlipBevelAction>;
+
+/// The latest message of a topic, with a wait for one stamped at or after a time.
+template <class Msg>
+class Latest {
+public:
+  void set(const Msg& msg) {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      msg_ = msg;
+      has_ = true;
+      if (recording_) {
+        record_.push_back(msg);
+      }
+    }
+    changed_.notify_all();
+  }
+  /// Waits (wall time) for a message with header.stamp >= stamp; false on timeout.
+  bool waitFor(const ros::Time& stamp, double timeout_s, Msg& out) {
+    std::unique_lock<std::mutex> lock(mutex_);
+    const bool ok = changed_.wait_for(lock, std::chrono::duration<double>(timeout_s), [&] {
+      return has_ && msg_.header.stamp >= stamp;
+    });
+    if (ok) {
+      out = msg_;
+    }
+    return ok;
+  }
+  void startRecording() {
+    std::lock_guard<std::mutex> lock(mutex_);
+    record_.clear();
+    recording_ = true;
+  }
+  std::vector<Msg> stopRecording() {
+    std::lock_guard<std::mutex> lock(mutex_);
+    recording_ = false;
+    return std::move(record_);
+  }
+
+private:
+  std::mutex mutex_;
+  std::condition_variable changed_;
+  Msg msg_;
+  bool has_ = false;
+  bool recording_ = false;
+  std::vector<Msg> record_;
+};
+
+/// One decision point of a trial (figure 5.8: small dots insert, large dots flip).
+struct Decision {
+  NeedleTip tip;
+  std::string control;
+  double probability_of_success = 0.0;
+};
+
+struct TrialRecord {
+  std::string outcome;  ///< reached_target | hit_obstacle | left_workspace | step_limit | error
+  std::string message;
+  int steps = 0;
+  int flips = 0;
+  double seconds = 0.0;
+  std::vector<Decision> decisions;
+  std::vector<NeedleTip> samples;  ///< every measured tip during the trial
+};
+
+steering::TipPose toPose(const NeedleTip& tip) {
+  steering::TipPose pose;
+  pose.p_SceneTip = steering::Point2(tip.pose.x, tip.pose.y);
+  pose.theta_rad = tip.pose.theta;
+  pose.bevel = tip.bevel == "right" ? steering::Bevel::kRight : steering::Bevel::kLeft;
+  return pose;
+}
+
+std::string jsonNumber(double v) {
+  if (!std::isfinite(v)) {
+    return "null";
+  }
+  std::ostringstream s;
+  s.precision(6);
+  s << v;
+  return s.str();
+}
+
+}  // namespace
+
+SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh)
+    : nh_(nh) {
+  ROS_INFO("steerable_procedure parameters:");
+  scene_spec_ = ros_params::text(private_nh, "scene", "steering_workspace");
+  target_ = ros_params::text(private_nh, "target", "");
+  robot_ns_ = ros_params::text(private_nh, "robot", "insertion_robot");
+  policy_ns_ = ros_params::text(private_nh, "policy", "steering_policy");
+  report_dir_ = ros_params::text(private_nh, "report_dir", "", true);
+  trials_ = static_cast<int>(ros_params::integer(private_nh, "trials", 20, 1, 100000, "trials"));
+  max_steps_ = static_cast<int>(ros_params::integer(private_nh, "max_steps", 40, 1, 1000, "steps"));
+  insertion_velocity_m_s_ =
+      ros_params::number(private_nh, "insertion_velocity_m_s", 0.05, 1e-4, 1.0, "m/s");
+  retract_velocity_m_s_ =
+      ros_params::number(private_nh, "retract_velocity_m_s", 0.05, 1e-4, 1.0, "m/s");
+  flip_velocity_rad_s_ =
+      ros_params::number(private_nh, "flip_velocity_rad_s", 2.0 * kPi, 1e-3, 100.0, "rad/s");
+  timeout_s_ = ros_params::number(private_nh, "timeout_s", 10.0, 0.1, 600.0, "s");
+  // Fail now, not after the robot has moved, if the scene cannot be steered.
+  steering::problemFromScene(scene::loadSceneSpec(scene_spec_), target_);
+}
+
+bool SteerableProcedureRos::run() {
+  const auto wall_start = std::chrono::steady_clock::now();
+  const scene::Scene scene = scene::loadSceneSpec(scene_spec_);
+  const steering::SteeringProblem problem = steering::problemFromScene(scene, target_);
+  const steering::ContinuousWorkspace world(problem);
+  const double delta_m = 2.0 * kPi * problem.params.radius_m / problem.params.orientations;
+
+  LinearMoveClient insert(nh_, robot_ns_ + "/insert", true);
+  LinearMoveClient retract(nh_, robot_ns_ + "/retract", true);
+  FlipBevelClient flip(nh_, robot_ns_ + "/flip_bevel", true);
+  ros::ServiceClient set_entry = nh_.serviceClient<SetEntryPose>(robot_ns_ + "/set_entry_pose");
+  ros::ServiceClient best_start = nh_.serviceClient<BestStart>(policy_ns_ + "/best_start");
+  const ros::Duration wait_up(60.0);
+  if (!insert.waitForServer(wait_up) || !retract.waitForServer(wait_up) ||
+      !flip.waitForServer(wait_up) || !set_entry.waitForExistence(wait_up) ||
+      !best_start.waitForExistence(wait_up)) {
+    ROS_FATAL_STREAM("steerable_procedure: the robot (" << robot_ns_ << ") or the policy ("
+                                                        << policy_ns_
+                                                        << ") did not come up in 60 s");
+    return false;
+  }
+  Latest<NeedleTip> tips;
+  Latest<SteeringControl> controls;
+  ros::Subscriber tip_sub = nh_.subscribe<NeedleTip>(
+      robot_ns_ + "/measured_tip", 100, [&](const NeedleTipConstPtr& m) { tips.set(*m); });
+  ros::Subscriber control_sub = nh_.subscribe<SteeringControl>(
+      policy_ns_ + "/control", 100, [&](const SteeringControlConstPtr& m) { controls.set(*m); });
+
+  BestStart best;
+  if (!best_start.call(best) || !best.response.found) {
+    ROS_FATAL_STREAM("steerable_procedure: no start state: " << best.response.message);
+    return false;
+  }
+  const double predicted = best.response.probability_of_success;
+  ROS_INFO_STREAM("steerable_procedure: best start y = " << best.response.pose.y * kMmPerM
+                  << " mm, theta = " << best.response.pose.theta * kDegPerRad << " deg, bevel "
+                  << best.response.bevel << ", predicted P_s = " << predicted);
+
+  auto moveTo = [&](LinearMoveClient& client, double target_m, double velocity,
+                    std::string& message) {
+    LinearMoveGoal goal;
+    goal.target_m = target_m;
+    goal.velocity_m_s = velocity;
+    const auto state =
+        client.sendGoalAndWait(goal, ros::Duration(timeout_s_), ros::Duration(1.0));
+    message = client.getResult() ? client.getResult()->message : state.toString();
+    return state == actionlib::SimpleClientGoalState::SUCCEEDED;
+  };
+  // The tip after the last motion: the first measured tip stamped after `since`.
+  auto tipAfter = [&](const ros::Time& since, NeedleTip& tip) {
+    return tips.waitFor(since, timeout_s_, tip);
+  };
+
+  std::vector<TrialRecord> records;
+  bool all_ran = true;
+  for (int trial = 0; trial < trials_ && ros::ok(); ++trial) {
+    TrialRecord rec;
+    const auto t0 = std::chrono::steady_clock::now();
+    NeedleTip tip;
+    std::string message;
+    if (!tipAfter(ros::Time(0), tip)) {
+      rec.outcome = "error";
+      rec.message = "no measured tip";
+    } else if (tip.inserted_length_m > 0.0 &&
+               !moveTo(retract, 0.0, retract_velocity_m_s_, message)) {
+      rec.outcome = "error";
+      rec.message = "retract: " + message;
+    }
+    SetEntryPose entry;
+    entry.request.height_m = best.response.pose.y;
+    entry.request.angle_rad = best.response.pose.theta;
+    entry.request.bevel = best.response.bevel;
+    if (rec.outcome.empty() && (!set_entry.call(entry) || !entry.response.success)) {
+      rec.outcome = "error";
+      rec.message = "set_entry_pose: " + entry.response.message;
+    }
+    tips.startRecording();
+    ros::Time since = ros::Time::now();
+    while (rec.outcome.empty()) {
+      if (!tipAfter(since, tip)) {
+        rec.outcome = "error";
+        rec.message = "no measured tip within " + std::to_string(timeout_s_) + " s";
+        break;
+      }
+      const steering::TipPose pose = toPose(tip);
+      if (world.inTarget(pose.p_SceneTip)) {
+        rec.outcome = "reached_target";
+        rec.decisions.push_back({tip, "", 1.0});
+        break;
+      }
+      if (rec.steps >= max_steps_) {
+        rec.outcome = "step_limit";
+        break;
+      }
+      SteeringControl control;
+      if (!controls.waitFor(tip.header.stamp, timeout_s_, control)) {
+        rec.outcome = "error";
+        rec.message = "no control from " + policy_ns_ + " within " +
+                      std::to_string(timeout_s_) + " s";
+        break;
+      }
+      rec.decisions.push_back({tip, control.control, control.probability_of_success});
+      if (control.control == "flip") {
+        FlipBevelGoal goal;
+        goal.velocity_rad_s = flip_velocity_rad_s_;
+        const auto state = flip.sendGoalAndWait(goal, ros::Duration(timeout_s_));
+        if (state != actionlib::SimpleClientGoalState::SUCCEEDED) {
+          rec.outcome = "error";
+          rec.message = "flip_bevel: " + (flip.getResult() ? flip.getResult()->message
+                                                            : state.toString());
+          break;
+        }
+        ++rec.flips;
+      }
+      ++rec.steps;
+      const bool moved =
+          moveTo(insert, tip.inserted_length_m + delta_m, insertion_velocity_m_s_, message);
+      since = ros::Time::now();
+      if (!moved) {
+        // The world stopped the needle: classify by the ground-truth tip where it stopped.
+        NeedleTip stopped;
+        const bool have = tipAfter(since, stopped);
+        rec.message = message;
+        if (message.find("workspace") != std::string::npos ||
+            (have && !world.inWorkspace(toPose(stopped).p_SceneTip))) {
+          rec.outcome = "left_workspace";
+        } else if (message.find("obstacle") != std::string::npos) {
+          rec.outcome = "hit_obstacle";
+        } else {
+          rec.outcome = "error";
+        }
+        if (have) {
+          rec.decisions.push_back({stopped, "", 0.0});
+        }
+      }
+    }
+    rec.samples = tips.stopRecording();
+    rec.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    all_ran = all_ran && rec.outcome != "error";
+    ROS_INFO_STREAM("steerable_procedure: trial " << trial + 1 << "/" << trials_ << ": "
+                    << rec.outcome << " after " << rec.steps << " steps, " << rec.flips
+                    << " flips" << (rec.message.empty() ? "" : " (" + rec.message + ")"));
+    records.push_back(std::move(rec));
+  }
+  {
+    NeedleTip tip;
+    std::string message;
+    if (tipAfter(ros::Time(0), tip) && tip.inserted_length_m > 0.0) {
+      moveTo(retract, 0.0, retract_velocity_m_s_, message);
+    }
+  }
+
+  // ---- report ----
+  std::int64_t successes = 0;
+  double sum_steps = 0.0, sum_flips = 0.0;
+  report::Table trials_table({"trial", "outcome", "steps", "flips", "seconds", "message"}, 6);
+  report::Table paths({"trial", "sample", "x_mm", "y_mm", "theta_deg", "bevel"}, 6);
+  report::Table decisions({"trial", "step", "x_mm", "y_mm", "theta_deg", "bevel", "control",
+                           "predicted_ps"},
+                          6);
+  for (std::size_t i = 0; i < records.size(); ++i) {
+    const TrialRecord& r = records[i];
+    successes += r.outcome == "reached_target" ? 1 : 0;
+    sum_steps += r.steps;
+    sum_flips += r.flips;
+    trials_table.addRow(
+        {double(i + 1), r.outcome, double(r.steps), double(r.flips), r.seconds, r.message});
+    for (std::size_t k = 0; k < r.samples.size(); ++k) {
+      const NeedleTip& s = r.samples[k];
+      if (s.inserted_length_m <= 0.0 && k + 1 < r.samples.size()) {
+        continue;  // before entry (retracted or at the guide)
+      }
+      paths.addRow({double(i + 1), double(k), s.pose.x * kMmPerM, s.pose.y * kMmPerM,
+                    s.pose.theta * kDegPerRad, s.bevel});
+    }
+    for (std::size_t k = 0; k < r.decisions.size(); ++k) {
+      const Decision& d = r.decisions[k];
+      decisions.addRow({double(i + 1), double(k), d.tip.pose.x * kMmPerM,
+                        d.tip.pose.y * kMmPerM, d.tip.pose.theta * kDegPerRad, d.tip.bevel,
+                        d.control.empty() ? std::string("end") : d.control,
+                        d.probability_of_success});
+    }
+  }
+  const std::int64_t n = static_cast<std::int64_t>(records.size());
+  const steering::Interval ci = steering::wilsonInterval(successes, n);
+  const double rate = n > 0 ? double(successes) / double(n) : 0.0;
+
+  // The same start in the core simulator (continuous needle, same policy table) and the P_s
+  // map of figure 5.7, from a solve of the same problem (the same table the node uses).
+  const steering::SteeringModel model(problem);
+  const steering::PolicyTable table = steering::solveValueIteration(model);
+  steering::TipPose start;
+  start.p_SceneTip = steering::Point2(best.response.pose.x, best.response.pose.y);
+  start.theta_rad = best.response.pose.theta;
+  start.bevel = best.response.bevel == "right" ? steering::Bevel::kRight : steering::Bevel::kLeft;
+  const steering::MonteCarloResult mc = steering::runMonteCarlo(
+      world, start, steering::tablePolicy(table), kMonteCarloTrials, kMonteCarloSeed, 2);
+  report::Table ps_map({"bevel", "y_mm", "theta_deg", "ps"}, 6);
+  for (const auto& c : table.startCandidates(steering::startOptionsFromScene(scene))) {
+    ps_map.addRow({steering::toString(c.pose.bevel), c.pose.p_SceneTip.y() * kMmPerM,
+                   c.pose.theta_rad * kDegPerRad, double(c.probability_of_success)});
+  }
+  report::Table outlines({"structure", "contour", "x_mm", "y_mm"}, 6);
+  const std::vector<geometry::Polygon>& expanded = world.expandedObstacles();
+  for (std::size_t o = 0; o < problem.obstacles.size(); ++o) {
+    for (const auto& v : problem.obstacles[o].polygon.vertices()) {
+      outlines.addRow({std::string("obstacle"), problem.obstacles[o].name, v.x() * kMmPerM,
+                       v.y() * kMmPerM});
+    }
+    for (const auto& v : expanded[o].vertices()) {
+      outlines.addRow({std::string("clearance"), problem.obstacles[o].name + "_expanded",
+                       v.x() * kMmPerM, v.y() * kMmPerM});
+    }
+  }
+  const double wall_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - wall_start).count();
+  // Success of the procedure: every trial ran to an outcome, and the closed loop did not do
+  // significantly worse than predicted (the interval reaches the prediction or lies above it).
+  const bool success = all_ran && n == trials_ && ci.high >= predicted;
+
+  std::ostringstream json;
+  json << "{\n  \"procedure\": \"steerable_needle\",\n  \"scene\": \"" << scene.name
+       << "\",\n  \"success\": " << (success ? "true" : "false")
+       << ",\n  \"trials\": " << n << ",\n  \"successes\": " << successes
+       << ",\n  \"success_rate\": " << jsonNumber(rate)
+       << ",\n  \"success_rate_ci\": [" << jsonNumber(ci.low) << ", " << jsonNumber(ci.high)
+       << "],\n  \"predicted_ps\": " << jsonNumber(predicted)
+       << ",\n  \"predicted_within_ci\": " << (ci.contains(predicted) ? "true" : "false")
+       << ",\n  \"monte_carlo_ps\": " << jsonNumber(mc.rate())
+       << ",\n  \"monte_carlo_trials\": " << mc.trials
+       << ",\n  \"start_y_mm\": " << jsonNumber(start.p_SceneTip.y() * kMmPerM)
+       << ",\n  \"start_theta_deg\": " << jsonNumber(start.theta_rad * kDegPerRad)
+       << ",\n  \"start_bevel\": \"" << best.response.bevel << "\""
+       << ",\n  \"mean_steps\": " << jsonNumber(n > 0 ? sum_steps / double(n) : 0.0)
+       << ",\n  \"mean_flips\": " << jsonNumber(n > 0 ? sum_flips / double(n) : 0.0)
+       << ",\n  \"wall_time_s\": " << jsonNumber(wall_s) << "\n}\n";
+  std::ostringstream md;
+  md << "# Steerable needle: " << n << " closed-loop trials on " << scene.name << "\n\n"
+     << "| figure | value |\n| --- | --- |\n"
+     << "| start | y = " << start.p_SceneTip.y() * kMmPerM << " mm, theta = "
+     << start.theta_rad * kDegPerRad << " deg, bevel " << best.response.bevel << " |\n"
+     << "| predicted P_s (MDP) | " << predicted << " |\n"
+     << "| success rate (ROS closed loop) | " << successes << " / " << n << " = " << rate
+     << ", 95 % CI [" << ci.low << ", " << ci.high << "] |\n"
+     << "| Monte Carlo (core, " << mc.trials << " trials) | " << mc.rate() << " |\n"
+     << "| mean steps / flips | " << (n > 0 ? sum_steps / n : 0.0) << " / "
+     << (n > 0 ? sum_flips / n : 0.0) << " |\n\n" << trials_table.toMarkdown();
+  if (!report_dir_.empty()) {
+    trials_table.writeCsv(report_dir_ + "/trials.csv");
+    paths.writeCsv(report_dir_ + "/paths.csv");
+    decisions.writeCsv(report_dir_ + "/decisions.csv");
+    ps_map.writeCsv(report_dir_ + "/ps_map.csv");
+    outlines.writeCsv(report_dir_ + "/obstacles.csv");
+    report::writeTextFile(report_dir_ + "/summary.json", json.str());
+    report::writeTextFile(report_dir_ + "/summary.md", md.str());
+    std::ostringstream plot;
+    plot << "[{\"kind\": \"paths\", \"paths\": \"paths.csv\", \"decisions\": \"decisions.csv\", "
+            "\"contours\": \"obstacles.csv\", \"target\": ["
+         << problem.target.position.x() * kMmPerM << ", " << problem.target.position.y() * kMmPerM
+         << ", " << problem.target.radius_m * kMmPerM << "], \"bounds\": ["
+         << problem.workspace_min.x() * kMmPerM << ", " << problem.workspace_min.y() * kMmPerM
+         << ", " << problem.workspace_max.x() * kMmPerM << ", "
+         << problem.workspace_max.y() * kMmPerM << "], \"max_paths\": 6, \"title\": "
+            "\"Closed-loop trials (figure 5.8): small dots insert, large dots flip\", "
+            "\"png\": \"paths.png\"},\n"
+            " {\"kind\": \"heatmap\", \"csv\": \"ps_map.csv\", \"x\": \"theta_deg\", \"y\": "
+            "\"y_mm\", \"value\": \"ps\", \"filter\": {\"bevel\": \""
+         << best.response.bevel
+         << "\"}, \"title\": \"P_s of start states on the entry line (figure 5.7), bevel "
+         << best.response.bevel << "\", \"png\": \"ps_map.png\"}]\n";
+    report::writeTextFile(report_dir_ + "/plot.json", plot.str());
+  }
+  std::cout << "\n== Steerable needle: " << successes << " / " << n
+            << " closed-loop trials reached the target (rate " << rate << ", 95 % CI ["
+            << ci.low << ", " << ci.high << "]); predicted P_s " << predicted
+            << ", Monte Carlo " << mc.rate() << " ==\n"
+            << "start y = " << start.p_SceneTip.y() * kMmPerM
+            << " mm, theta = " << start.theta_rad * kDegPerRad << " deg, bevel "
+            << best.response.bevel << "; " << wall_s << " s; report in " << report_dir_ << "\n"
+            << std::flush;
+  return success;
+}
+
+}  // namespace needle_guidance

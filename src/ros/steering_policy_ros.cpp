@@ -1,0 +1,428 @@
+#include "needle_guidance/ros/steering_policy_ros.h"
+
+#include <unistd.h>
+#include <visualization_msgs/Marker.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <iomanip>
+#include <optional>
+#include <sstream>
+#include <stdexcept>
+#include <utility>
+
+#include "needle_guidance/SteeringControl.h"
+#include "needle_guidance/ros/params.h"
+#include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/value_iteration.h"
+
+namespace needle_guidance {
+namespace {
+
+namespace st = steering;
+
+constexpr char kName[] = "steering_policy";
+constexpr char kSceneFrame[] = "scene";
+constexpr double kMaxEpsilon = 0.1;       ///< loosest accepted value-iteration threshold
+constexpr double kThrottle_s = 5.0;       ///< period of per-message warnings and errors [s]
+constexpr double kMapDepth_m = 1e-3;      ///< ~ps_map sits this far below z = 0 (under markers)
+constexpr double kMapThickness_m = 5e-4;  ///< cube height of ~ps_map [m]
+constexpr double kArrowLength_m = 0.01;   ///< ~best_start_marker [m]
+constexpr double kArrowShaft_m = 1e-3;
+constexpr double kArrowHead_m = 2e-3;
+
+double secondsSince(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+std::string fmt(double value) {
+  std::ostringstream s;
+  s << value;
+  return s.str();
+}
+
+std::string hex16(std::uint64_t v) {
+  std::ostringstream s;
+  s << std::hex << std::setw(16) << std::setfill('0') << v;
+  return s.str();
+}
+
+// ---- conversions (message <-> core), kept together (STYLE.md rule 3) -----------------------
+
+/// "left" | "right" -> bevel; nullopt for anything else.
+std::optional<st::Bevel> bevelFromString(const std::string& text) {
+  if (text == st::toString(st::Bevel::kLeft)) {
+    return st::Bevel::kLeft;
+  }
+  if (text == st::toString(st::Bevel::kRight)) {
+    return st::Bevel::kRight;
+  }
+  return std::nullopt;
+}
+
+/// The wire name of a look-up status (SteeringControl.status).
+std::string toWire(st::ControlLookup::Status status) {
+  switch (status) {
+    case st::ControlLookup::Status::kOk:
+      return "ok";
+    case st::ControlLookup::Status::kOutsideGrid:
+      return "outside_grid";
+    case st::ControlLookup::Status::kInTarget:
+      return "in_target";
+    case st::ControlLookup::Status::kInObstacle:
+      return "in_obstacle";
+  }
+  return "outside_grid";
+}
+
+geometry_msgs::Pose2D toMessage(const st::TipPose& pose) {
+  geometry_msgs::Pose2D msg;
+  msg.x = pose.p_SceneTip.x();
+  msg.y = pose.p_SceneTip.y();
+  msg.theta = pose.theta_rad;
+  return msg;
+}
+
+/// The answer to `tip` (whose bevel is `bevel`): header copied (an empty frame becomes scene).
+SteeringControl toMessage(const NeedleTip& tip, const st::ControlLookup& lookup,
+                          double step_length_m) {
+  SteeringControl msg;
+  msg.header = tip.header;
+  if (msg.header.frame_id.empty()) {
+    msg.header.frame_id = kSceneFrame;
+  }
+  msg.status = toWire(lookup.status);
+  msg.control = st::toString(lookup.control);
+  msg.probability_of_success = lookup.probability_of_success;
+  msg.step_length_m = step_length_m;
+  msg.tip = tip.pose;
+  msg.bevel = tip.bevel;
+  return msg;
+}
+
+std_msgs::ColorRGBA colour(double r, double g, double b, double a = 1.0) {
+  std_msgs::ColorRGBA c;
+  c.r = static_cast<float>(r);
+  c.g = static_cast<float>(g);
+  c.b = static_cast<float>(b);
+  c.a = static_cast<float>(a);
+  return c;
+}
+
+/// P_s in [0, 1] -> dark blue (0) ... yellow (1), linear in RGB.
+std_msgs::ColorRGBA probabilityColour(double p) {
+  const double t = std::clamp(p, 0.0, 1.0);
+  return colour(t, t, 0.5 * (1.0 - t));
+}
+
+visualization_msgs::Marker marker(const std::string& ns, int type) {
+  visualization_msgs::Marker m;
+  m.header.frame_id = kSceneFrame;  // stamp 0: static, rviz uses the latest transform
+  m.ns = ns;
+  m.id = 0;
+  m.type = type;
+  m.action = visualization_msgs::Marker::ADD;
+  m.pose.orientation.w = 1.0;
+  return m;
+}
+
+/// One cube per grid position coloured by the largest P_s over its orientations and bevels
+/// (what the best orientation achieves there); obstacle cells grey.
+visualization_msgs::Marker probabilityMap(const st::PolicyTable& table) {
+  using visualization_msgs::Marker;
+  const st::GridSpec& grid = table.grid();
+  Marker m = marker("ps_map", Marker::CUBE_LIST);
+  m.color = colour(1.0, 1.0, 1.0);  // per-cube colours below; opaque
+  m.pose.position.z = -kMapDepth_m;
+  m.scale.x = grid.spacing_m;
+  m.scale.y = grid.spacing_m;
+  m.scale.z = kMapThickness_m;
+  m.points.reserve(static_cast<std::size_t>(grid.numPositions()));
+  m.colors.reserve(static_cast<std::size_t>(grid.numPositions()));
+  const std::size_t per_position = 2 * static_cast<std::size_t>(grid.nc);
+  const auto& values = table.values();
+  for (int ix = 0; ix < grid.nx; ++ix) {
+    for (int iy = 0; iy < grid.ny; ++iy) {
+      const std::int64_t position = grid.position(ix, iy);
+      const auto first = values.begin() + static_cast<std::ptrdiff_t>(
+                                              static_cast<std::size_t>(position) * per_position);
+      geometry_msgs::Point p;
+      p.x = grid.point(ix, iy).x();
+      p.y = grid.point(ix, iy).y();
+      m.points.push_back(p);
+      m.colors.push_back(table.cell(position) == st::Cell::kObstacle
+                             ? colour(0.5, 0.5, 0.5)
+                             : probabilityColour(*std::max_element(
+                                   first, first + static_cast<std::ptrdiff_t>(per_position))));
+    }
+  }
+  return m;
+}
+
+/// An arrow at the best start pose (green), or a DELETE when there is none.
+visualization_msgs::Marker bestStartMarker(const st::BestStart& best) {
+  using visualization_msgs::Marker;
+  Marker m = marker("best_start", Marker::ARROW);
+  if (!best) {
+    m.action = Marker::DELETE;
+    return m;
+  }
+  const st::TipPose& pose = best.best.pose;
+  m.pose.position.x = pose.p_SceneTip.x();
+  m.pose.position.y = pose.p_SceneTip.y();
+  m.pose.orientation.z = std::sin(0.5 * pose.theta_rad);
+  m.pose.orientation.w = std::cos(0.5 * pose.theta_rad);
+  m.scale.x = kArrowLength_m;
+  m.scale.y = kArrowShaft_m;
+  m.scale.z = kArrowHead_m;
+  m.color = colour(0.1, 0.9, 0.1);
+  return m;
+}
+
+/// Writes `table` to `path` through a temporary file and a rename, so a reader never sees a
+/// half-written table. Throws std::runtime_error / std::filesystem::filesystem_error.
+void saveAtomically(const st::PolicyTable& table, const std::string& path) {
+  namespace fs = std::filesystem;
+  const fs::path target(path);
+  if (target.has_parent_path()) {
+    fs::create_directories(target.parent_path());
+  }
+  const std::string temporary = path + ".tmp" + std::to_string(::getpid());
+  try {
+    table.save(temporary);
+    fs::rename(temporary, target);
+  } catch (...) {
+    std::error_code ignored;
+    fs::remove(temporary, ignored);
+    throw;
+  }
+}
+
+}  // namespace
+
+SteeringPolicyRos::SteeringPolicyRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
+  ROS_INFO("steering_policy parameters:");
+  settings_.scene = ros_params::text(private_nh, "scene", settings_.scene, true);
+  settings_.target = ros_params::text(private_nh, "target", settings_.target);
+  settings_.epsilon =
+      ros_params::number(private_nh, "epsilon", settings_.epsilon, 0.0, kMaxEpsilon, "");
+  if (!(settings_.epsilon > 0.0)) {
+    throw std::runtime_error("parameter '" + private_nh.resolveName("epsilon") + "' must be > 0");
+  }
+  settings_.threads = static_cast<int>(
+      ros_params::integer(private_nh, "threads", settings_.threads, 1, 2, "threads"));
+  settings_.table_dir =
+      ros_params::rosHomePath(ros_params::text(private_nh, "table_dir", "steering_tables"));
+  settings_.solve_on_start =
+      ros_params::flag(private_nh, "solve_on_start", settings_.solve_on_start);
+
+  const scene::Scene scene = scene::loadSceneSpec(settings_.scene);
+  scene_name_ = scene.name;
+  start_options_ = st::startOptionsFromScene(scene);
+  model_ = std::make_unique<const st::SteeringModel>(st::problemFromScene(scene, settings_.target),
+                                                     settings_.threads);
+  for (const std::string& warning : model_->diagnostics()) {
+    ROS_WARN_STREAM_NAMED(kName, "steering_policy: " << warning);
+  }
+  const st::GridSpec& grid = model_->grid();
+  ROS_INFO_STREAM_NAMED(kName, "steering_policy: scene '"
+                                   << scene_name_ << "', target '" << model_->problem().target.name
+                                   << "', grid " << grid.nx << " x " << grid.ny << " x " << grid.nc
+                                   << " x 2 = " << model_->numStates() << " states, step "
+                                   << 1e3 * model_->arcLength_m() << " mm, table file '"
+                                   << tablePath() << "'");
+
+  control_pub_ = private_nh.advertise<SteeringControl>("control", 10);
+  ps_map_pub_ = private_nh.advertise<visualization_msgs::Marker>("ps_map", 1, true);
+  best_start_pub_ = private_nh.advertise<visualization_msgs::Marker>("best_start_marker", 1, true);
+
+  if (settings_.solve_on_start) {
+    const SolveOutcome outcome = solveOrLoad(settings_.epsilon, false);
+    if (!outcome.success) {
+      ROS_ERROR_STREAM_NAMED(kName, "steering_policy: start-up solve failed ("
+                                        << outcome.message << "); waiting for ~solve");
+    }
+  }
+
+  tip_sub_ = nh.subscribe("tip", 10, &SteeringPolicyRos::onTip, this);
+  solve_srv_ = private_nh.advertiseService("solve", &SteeringPolicyRos::onSolve, this);
+  best_start_srv_ =
+      private_nh.advertiseService("best_start", &SteeringPolicyRos::onBestStart, this);
+  ROS_INFO_STREAM_NAMED(kName, "steering_policy: ready, tips from '" << tip_sub_.getTopic() << "'");
+}
+
+std::string SteeringPolicyRos::tablePath() const {
+  if (settings_.table_dir.empty()) {
+    return "";
+  }
+  return (std::filesystem::path(settings_.table_dir) /
+          (scene_name_ + "_" + hex16(model_->hash()) + ".table"))
+      .string();
+}
+
+SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, bool force) {
+  const auto t0 = std::chrono::steady_clock::now();
+  SolveOutcome out;
+  try {
+    // A table in memory for this problem solved at least as tightly needs no work.
+    if (!force && table_ && table_->problemHash() == model_->hash() &&
+        table_->epsilon() <= epsilon) {
+      out.success = true;
+      out.source = "cached";
+      out.sweeps = table_->sweeps();
+      out.seconds = secondsSince(t0);
+      out.message =
+          "table in memory (" + table_source_ + ", epsilon " + fmt(table_->epsilon()) + ")";
+      ROS_INFO_STREAM_NAMED(kName, "steering_policy: cached table, " << model_->numStates()
+                                                                     << " states, " << out.sweeps
+                                                                     << " sweeps");
+      return out;
+    }
+    const std::string path = tablePath();
+    std::unique_ptr<const st::PolicyTable> table;
+    std::string note;
+    if (!force && !path.empty()) {
+      st::LoadStatus status;
+      std::optional<st::PolicyTable> loaded =
+          st::PolicyTable::load(path, model_->hash(), status, epsilon);
+      if (loaded && loaded->converged()) {
+        table = std::make_unique<const st::PolicyTable>(std::move(*loaded));
+        out.source = "loaded";
+      } else if (loaded) {
+        ROS_WARN_STREAM_NAMED(kName, "steering_policy: '" << path << "' did not converge; solving");
+      } else if (status.code == st::LoadStatus::Code::kCannotOpen ||
+                 status.code == st::LoadStatus::Code::kTooLoose) {
+        // Expected: no table yet, or a tighter epsilon was asked for.
+        ROS_INFO_STREAM_NAMED(kName, "steering_policy: " << status.message << "; solving");
+      } else {
+        ROS_WARN_STREAM_NAMED(kName, "steering_policy: " << status.message << "; solving");
+      }
+    }
+    if (!table) {
+      st::SolverOptions options;
+      options.epsilon = epsilon;
+      options.threads = settings_.threads;
+      st::SolveStats stats;
+      st::PolicyTable solved = st::solveValueIteration(*model_, options, &stats);
+      if (!stats.converged) {
+        std::ostringstream why;
+        why << "value iteration did not converge to epsilon " << epsilon << " in " << stats.sweeps
+            << " sweeps (last change " << stats.last_max_change << ")";
+        throw std::runtime_error(why.str());
+      }
+      out.source = "solved";
+      if (!path.empty()) {
+        try {
+          saveAtomically(solved, path);
+          note = ", saved to '" + path + "'";
+        } catch (const std::exception& e) {
+          // The table is good; only the cache on disk is missing.
+          note = ", not saved: " + std::string(e.what());
+          ROS_WARN_STREAM_NAMED(kName, "steering_policy: table not saved: " << e.what());
+        }
+      }
+      table = std::make_unique<const st::PolicyTable>(std::move(solved));
+    }
+    table_ = std::move(table);
+    table_source_ = out.source;
+    out.success = true;
+    out.sweeps = table_->sweeps();
+    out.seconds = secondsSince(t0);
+    out.message = out.source + " (epsilon " + fmt(table_->epsilon()) + ")" + note;
+    ROS_INFO_STREAM_NAMED(kName, "steering_policy: table "
+                                     << out.source << ": " << model_->numStates() << " states, "
+                                     << out.sweeps << " sweeps, " << out.seconds << " s" << note);
+  } catch (const std::exception& e) {
+    out = SolveOutcome{};
+    out.message = e.what();
+    out.seconds = secondsSince(t0);
+    ROS_ERROR_STREAM_NAMED(kName,
+                           "steering_policy: solve failed, previous table kept: " << e.what());
+    return out;
+  }
+  try {
+    publishMaps();
+  } catch (const std::exception& e) {
+    ROS_ERROR_STREAM_NAMED(kName, "steering_policy: markers not published: " << e.what());
+  }
+  return out;
+}
+
+void SteeringPolicyRos::publishMaps() {
+  ps_map_pub_.publish(probabilityMap(*table_));
+  const st::BestStart best = table_->bestStart(start_options_);
+  best_start_pub_.publish(bestStartMarker(best));
+  ROS_INFO_STREAM_NAMED(kName, "steering_policy: " << best.toString());
+}
+
+void SteeringPolicyRos::onTip(const NeedleTipConstPtr& msg) {
+  if (!table_) {
+    ROS_WARN_STREAM_THROTTLE_NAMED(
+        kThrottle_s, kName, "steering_policy: no policy table yet (call ~solve); tip ignored");
+    return;
+  }
+  if (!msg->header.frame_id.empty() && msg->header.frame_id != kSceneFrame) {
+    ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
+                                    "steering_policy: tip in frame '"
+                                        << msg->header.frame_id << "', expected '" << kSceneFrame
+                                        << "'; tip ignored");
+    return;
+  }
+  const std::optional<st::Bevel> bevel = bevelFromString(msg->bevel);
+  if (!bevel) {
+    ROS_ERROR_STREAM_THROTTLE_NAMED(
+        kThrottle_s, kName,
+        "steering_policy: tip bevel '" << msg->bevel << "' is not left or right; tip ignored");
+    return;
+  }
+  try {
+    st::TipPose pose;
+    pose.p_SceneTip = geometry::Point2(msg->pose.x, msg->pose.y);
+    pose.theta_rad = msg->pose.theta;
+    pose.bevel = *bevel;
+    // A non-finite pose comes back as outside_grid from the look-up.
+    control_pub_.publish(toMessage(*msg, table_->lookup(pose), model_->arcLength_m()));
+  } catch (const std::exception& e) {
+    ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
+                                    "steering_policy: tip not answered: " << e.what());
+  }
+}
+
+bool SteeringPolicyRos::onSolve(SolvePolicy::Request& req, SolvePolicy::Response& res) {
+  const double epsilon = req.epsilon == 0.0 ? settings_.epsilon : req.epsilon;
+  if (!(epsilon > 0.0 && epsilon <= kMaxEpsilon)) {
+    std::ostringstream why;
+    why << "epsilon " << req.epsilon << " is outside (0, " << kMaxEpsilon << "] (0 = ~epsilon)";
+    res.success = false;
+    res.message = why.str();
+    ROS_WARN_STREAM_NAMED(kName, "steering_policy: solve refused: " << res.message);
+  } else {
+    const SolveOutcome outcome = solveOrLoad(epsilon, req.force);
+    res.success = outcome.success;
+    res.message = outcome.message;
+    res.source = outcome.source;
+    res.seconds = outcome.seconds;
+  }
+  res.states = table_ ? table_->grid().numStates() : 0;
+  res.sweeps = table_ ? table_->sweeps() : 0;
+  return true;
+}
+
+bool SteeringPolicyRos::onBestStart(BestStart::Request& /*req*/, BestStart::Response& res) {
+  if (!table_) {
+    res.found = false;
+    res.message = "no policy table yet: call ~solve";
+    return true;
+  }
+  const st::BestStart best = table_->bestStart(start_options_);
+  res.found = best.found;
+  res.message = best.found ? best.toString() : best.message;
+  res.pose = toMessage(best.best.pose);
+  res.bevel = st::toString(best.best.pose.bevel);
+  res.probability_of_success = best.best.probability_of_success;
+  return true;
+}
+
+}  // namespace needle_guidance
