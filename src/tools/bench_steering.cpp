@@ -23,6 +23,7 @@
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/policy_table.h"
+#include "needle_guidance/steering/shortest_path.h"
 #include "needle_guidance/steering/steering_model.h"
 #include "needle_guidance/steering/value_iteration.h"
 
@@ -276,6 +277,34 @@ int main(int argc, char** argv) {
         st::runMonteCarlo(world, run800k->best.best.pose, st::tablePolicy(*run800k->table),
                           kMonteCarloTrials, kMonteCarloSeed, 2);
 
+    // ---- baseline: shortest path under deterministic motion (OMPL SST), from the same start ----
+    // Open loop: the planned controls replayed under the same uncertainty. Closed loop: the
+    // shortest path re-planned after every imaged step, as a steps-to-go table on the same grid.
+    st::ShortestPathOptions sp_options;
+    sp_options.max_iterations = 100000;  // with the seed: the same plan in every run
+    sp_options.time_limit_s = 30.0;
+    const st::ShortestPath sp = st::planShortestPath(world, run800k->best.best.pose, sp_options);
+    std::cout << "shortest path: " << sp.toString() << "\n" << std::flush;
+    st::SteeringProblem sp_problem = problem;
+    sp_problem.params.grid_spacing_m = kSpacing800k_m;
+    const st::ShortestPathTable sp_table = st::ShortestPathTable::fromProblem(sp_problem, 2);
+    ng::report::Table baseline({"policy", "ps", "ci_low", "ci_high", "mean_steps", "mean_flips"}, 6);
+    auto addBaseline = [&](const std::string& name, const st::MonteCarloResult& r) {
+      baseline.addRow({name, r.rate(), r.interval().low, r.interval().high, r.mean_steps,
+                       r.mean_flips});
+    };
+    addBaseline("mdp", mdp_mc);
+    st::MonteCarloResult sp_closed, sp_open;
+    if (sp.found) {
+      sp_open = st::runMonteCarlo(world, run800k->best.best.pose, st::openLoopPolicy(sp.controls),
+                                  kMonteCarloTrials, kMonteCarloSeed, 2);
+      addBaseline("shortest_path_open_loop", sp_open);
+    }
+    sp_closed = st::runMonteCarlo(world, run800k->best.best.pose, st::shortestPathPolicy(sp_table),
+                                  kMonteCarloTrials, kMonteCarloSeed, 2);
+    addBaseline("shortest_path_closed_loop", sp_closed);
+    baseline.writeCsv(args->out_dir + "/baseline.csv");
+
     // ---- epsilon: sweeps and time against the error in P_s (speed against error) ----
     st::SteeringProblem p800k = problem;
     p800k.params.grid_spacing_m = kSpacing800k_m;
@@ -397,6 +426,14 @@ int main(int argc, char** argv) {
          << jsonNumber(mdp_mc.interval().high) << "]"
          << ",\n  \"mdp_ps_predicted\": " << jsonNumber(best.best.probability_of_success)
          << ",\n  \"mc_within_ci_fraction\": " << jsonNumber(within_800k)
+         << ",\n  \"shortest_path_ps\": " << jsonNumber(sp_closed.rate())
+         << ",\n  \"shortest_path_open_loop_ps\": "
+         << (sp.found ? jsonNumber(sp_open.rate()) : std::string("null"))
+         << ",\n  \"mdp_gain_over_shortest_path\": "
+         << jsonNumber(sp_closed.rate() > 0.0 ? mdp_mc.rate() / sp_closed.rate() - 1.0 : NAN)
+         << ",\n  \"shortest_path_steps\": " << sp.steps
+         << ",\n  \"shortest_path_proven\": " << (sp.proven_shortest ? "true" : "false")
+         << ",\n  \"shortest_path_plan_s\": " << jsonNumber(sp.seconds)
          << ",\n  \"mc_trials_per_start\": " << kMonteCarloTrials
          << ",\n  \"mc_trials_total\": " << mc_trials_total
          << ",\n  \"mc_seconds_total\": " << jsonNumber(mc_seconds)
@@ -425,9 +462,12 @@ int main(int argc, char** argv) {
   "title": "Truth check: mean |predicted P_s - Monte Carlo| vs grid spacing (label: fraction within 95 % CI)", "png": "truth_gap.png"},
  {"csv": "truth_check.csv", "x": "predicted_ps", "y": "mc_ps", "group": "grid_spacing_mm", "points": true,
   "title": "Predicted P_s (MDP) vs Monte Carlo success rate, 10,000 trials per start", "png": "truth_check.png"},
+ {"csv": "baseline.csv", "x": "mean_steps", "y": "ps", "group": "policy", "points": true,
+  "title": "P_s from the best start (Monte Carlo, 10,000 trials): MDP vs shortest path", "png": "baseline.png"},
  {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
   "title": "P_s of start states on the entry line (figure 5.7 slices, best bevel)", "png": "start_surface.png"}])json");
     std::cout << scaling.toText() << eps_table.toText() << resolution.toText() << gap_table.toText()
+              << baseline.toText()
               << json.str();
   } catch (const std::exception& e) {
     std::cerr << "bench_steering: " << e.what() << "\n";
