@@ -169,6 +169,42 @@ CommandStatus InsertionStage::flipBevel(double velocity_rad_s) {
   return command(StageJoint::kBevel, target, velocity_rad_s);
 }
 
+CommandStatus InsertionStage::placeGuide(double height_m, double bevel_rad) {
+  const JointLimits& h = limits_[StageJoint::kHeight];
+  const JointLimits& b = limits_[StageJoint::kBevel];
+  std::string reason;
+  if (!std::isfinite(height_m) || !std::isfinite(bevel_rad)) {
+    reason = "height and bevel must be finite numbers";
+  } else if (operating_state_ == OperatingState::kEstopped) {
+    reason = "emergency stop is active; reset it first";
+  } else if (active_) {
+    reason = std::string("busy: joint '") + kJointNames[static_cast<std::size_t>(active_->joint)] +
+             "' is still moving";
+  } else if (tipInTissue()) {
+    reason = "needle tip is in tissue (depth " + describe(state_.depth_m(), "m") +
+             "); retract out of tissue first";
+  } else if (height_m < h.lower || height_m > h.upper) {
+    reason = "height " + describe(height_m, "m") + " is outside the joint limits [" +
+             describe(h.lower, "m") + ", " + describe(h.upper, "m") + "]";
+  } else if (bevel_rad < b.lower || bevel_rad > b.upper) {
+    reason = "bevel " + describe(bevel_rad, "rad") + " is outside the joint limits [" +
+             describe(b.lower, "rad") + ", " + describe(b.upper, "rad") + "]";
+  }
+  if (!reason.empty()) {
+    record("place", "", 0.0, 0.0, false,
+           reason + " (requested height " + describe(height_m, "m") + ", bevel " +
+               describe(bevel_rad, "rad") + ")");
+    return CommandStatus::refused("place guide refused: " + reason);
+  }
+  state_.position[static_cast<std::size_t>(StageJoint::kHeight)] = height_m;
+  state_.position[static_cast<std::size_t>(StageJoint::kBevel)] = bevel_rad;
+  state_.velocity.fill(0.0);
+  record("place", "", 0.0, 0.0, true,
+         "guide placed at height " + describe(height_m, "m") + ", bevel " +
+             describe(bevel_rad, "rad"));
+  return CommandStatus::accepted();
+}
+
 void InsertionStage::cancel() {
   if (!active_) {
     return;

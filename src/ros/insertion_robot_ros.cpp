@@ -1,16 +1,105 @@
 #include "needle_guidance/ros/insertion_robot_ros.h"
 
-#include <cstdlib>
+#include <visualization_msgs/Marker.h>
 
+#include <algorithm>
+#include <cmath>
+#include <cstdlib>
+#include <iomanip>
+#include <optional>
+#include <sstream>
+
+#include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/OperatingState.h"
 #include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/steering_model.h"
 
 namespace needle_guidance {
 namespace {
 
 using robot::StageJoint;
+
+constexpr double kRadPerDeg = 3.14159265358979323846 / 180.0;
+/// Spacing of the points of ~needle_path along the arcs [m].
+constexpr double kPathSpacing_m = 5e-4;
+/// Line width of ~needle_path [m].
+constexpr double kPathWidth_m = 6e-4;
+
+// Steerable-mode conversions, local to this node (its only user).
+
+/// "left" | "right" -> bevel; nullopt for anything else.
+std::optional<steering::Bevel> bevelFromString(const std::string& text) {
+  if (text == "left") {
+    return steering::Bevel::kLeft;
+  }
+  if (text == "right") {
+    return steering::Bevel::kRight;
+  }
+  return std::nullopt;
+}
+
+NeedleTip toNeedleTip(const steering::TipPose& tip, double inserted_length_m,
+                      const ros::Time& stamp) {
+  NeedleTip msg;
+  msg.header.stamp = stamp;
+  msg.header.frame_id = "scene";
+  msg.pose.x = tip.p_SceneTip.x();
+  msg.pose.y = tip.p_SceneTip.y();
+  msg.pose.theta = tip.theta_rad;
+  msg.bevel = steering::toString(tip.bevel);
+  msg.inserted_length_m = inserted_length_m;
+  return msg;
+}
+
+/// Tip position with the tangent as yaw about +z of frame scene.
+geometry_msgs::PoseStamped toPoseStamped(const steering::TipPose& tip, const ros::Time& stamp) {
+  geometry_msgs::PoseStamped msg;
+  msg.header.stamp = stamp;
+  msg.header.frame_id = "scene";
+  msg.pose.position = ros_conversions::toMessage(tip.p_SceneTip);
+  msg.pose.orientation.z = std::sin(0.5 * tip.theta_rad);
+  msg.pose.orientation.w = std::cos(0.5 * tip.theta_rad);
+  return msg;
+}
+
+/// The inserted needle as a LINE_STRIP (DELETE while nothing is inserted).
+visualization_msgs::Marker toPathMarker(const robot::SteerableNeedle& needle,
+                                        const ros::Time& stamp) {
+  visualization_msgs::Marker m;
+  m.header.stamp = stamp;
+  m.header.frame_id = "scene";
+  m.ns = "needle_path";
+  m.id = 0;
+  m.type = visualization_msgs::Marker::LINE_STRIP;
+  m.pose.orientation.w = 1.0;
+  if (!(needle.insertedLength_m() > 0.0)) {
+    m.action = visualization_msgs::Marker::DELETE;
+    return m;
+  }
+  m.action = visualization_msgs::Marker::ADD;
+  m.scale.x = kPathWidth_m;
+  m.color.r = 0.85F;
+  m.color.g = 0.85F;
+  m.color.b = 0.9F;
+  m.color.a = 1.0F;
+  for (const geometry::Point2& p : needle.pathPoints(kPathSpacing_m)) {
+    m.points.push_back(ros_conversions::toMessage(p));
+    m.points.back().z = 0.001;  // in front of the scene's filled regions
+  }
+  return m;
+}
+
+/// "dir/x.csv" -> "dir/x_needle.csv" (any other name gets "_needle.csv" appended).
+std::string needleJournalPath(const std::string& journal_path) {
+  const std::string ext = ".csv";
+  if (journal_path.size() > ext.size() &&
+      journal_path.compare(journal_path.size() - ext.size(), ext.size(), ext) == 0) {
+    return journal_path.substr(0, journal_path.size() - ext.size()) + "_needle.csv";
+  }
+  return journal_path + "_needle.csv";
+}
 
 }  // namespace
 
@@ -26,21 +115,46 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   }
   const robot::StageLimits limits = robot::parseStageLimits(urdf_xml);
   const scene::Scene scene = scene::loadSceneSpec(scene_spec);
-  const robot::SceneLimits scene_limits{scene.needle.min_height_m, scene.needle.max_height_m,
-                                        scene.needle.max_depth_m, scene.workspace_min.x()};
+  const std::string mode = ros_params::text(private_nh, "mode", "auto");
+  if (mode != "auto" && mode != "rigid" && mode != "steerable") {
+    throw std::runtime_error("parameter '" + private_nh.resolveName("mode") + "' = '" + mode +
+                             "' is not rigid, steerable or auto");
+  }
+  const bool steerable_mode = mode == "steerable" || (mode == "auto" && scene.steering);
+  if (steerable_mode && !scene.steering) {
+    throw std::runtime_error("~mode steerable needs a scene with models.steering; scene '" +
+                             scene.name + "' has none");
+  }
+  const auto& h = limits[StageJoint::kHeight];
+  const auto& d = limits[StageJoint::kDepth];
+  const auto& b = limits[StageJoint::kBevel];
+  // Steerable: the insertion joint is the inserted arc length, 0 at the entry; the world stops
+  // the needle at the workspace boundary, so the scene's max_depth (an x) does not cap the arc
+  // length, the joint's travel does.
+  const robot::SceneLimits scene_limits =
+      steerable_mode
+          ? robot::SceneLimits{scene.needle.min_height_m, scene.needle.max_height_m, d.upper, 0.0}
+          : robot::SceneLimits{scene.needle.min_height_m, scene.needle.max_height_m,
+                               scene.needle.max_depth_m, scene.workspace_min.x()};
   const double control_rate_hz = ros_params::number(private_nh, "control_rate_hz", 500.0, 10.0,
                                                     5000.0, "Hz");
   const double publish_rate_hz = ros_params::number(private_nh, "publish_rate_hz", 100.0, 1.0,
                                                     control_rate_hz, "Hz");
-  const auto& h = limits[StageJoint::kHeight];
-  const auto& d = limits[StageJoint::kDepth];
-  const auto& b = limits[StageJoint::kBevel];
+  time_scale_ =
+      ros_params::number(private_nh, "time_scale", 1.0, 1.0, 100.0, "simulated s per wall s");
   const double mid_height = 0.5 * (scene_limits.min_height_m + scene_limits.max_height_m);
-  const std::array<double, robot::kStageJointCount> initial{
-      ros_params::number(private_nh, "initial_height_m", mid_height, h.lower, h.upper, "m"),
-      ros_params::number(private_nh, "initial_depth_m", scene_limits.entry_x_m - 0.01, d.lower,
-                         scene_limits.entry_x_m, "m"),
-      ros_params::number(private_nh, "initial_bevel_rad", b.lower, b.lower, b.upper, "rad")};
+  const double initial_height_m =
+      ros_params::number(private_nh, "initial_height_m", mid_height, h.lower, h.upper, "m");
+  // Steerable: the needle starts at its entry point (inserted length 0).
+  const double initial_depth_m =
+      steerable_mode
+          ? 0.0
+          : ros_params::number(private_nh, "initial_depth_m", scene_limits.entry_x_m - 0.01,
+                               d.lower, scene_limits.entry_x_m, "m");
+  const double initial_bevel_rad =
+      ros_params::number(private_nh, "initial_bevel_rad", b.lower, b.lower, b.upper, "rad");
+  const std::array<double, robot::kStageJointCount> initial{initial_height_m, initial_depth_m,
+                                                            initial_bevel_rad};
   const std::string journal_path = ros_params::rosHomePath(
       ros_params::text(private_nh, "journal_file", "insertion_robot_journal.csv"));
   publish_period_s_ = 1.0 / publish_rate_hz;
@@ -52,12 +166,60 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
     ROS_INFO_STREAM("insertion_robot: journal appended to " << journal_path);
   }
 
+  if (steerable_mode) {
+    if (initial_bevel_rad != b.lower && initial_bevel_rad != b.upper) {
+      throw std::runtime_error("parameter '" + private_nh.resolveName("initial_bevel_rad") +
+                               "' must be " + std::to_string(b.lower) + " (left) or " +
+                               std::to_string(b.upper) + " (right) in steerable mode");
+    }
+    const scene::Steering& st = *scene.steering;
+    robot::SteerableNeedleConfig config;
+    config.start_x_m = st.start_x_m;
+    config.min_height_m = scene.needle.min_height_m;
+    config.max_height_m = scene.needle.max_height_m;
+    config.seed = static_cast<std::uint64_t>(
+        ros_params::integer(private_nh, "seed", 1, 0, 9007199254740992L, ""));
+    config.sigma_insert_rad =
+        kRadPerDeg * ros_params::number(private_nh, "sigma_insert_deg",
+                                        st.sigma_insert_rad / kRadPerDeg, 0.0, 90.0, "deg");
+    config.sigma_flip_rad =
+        kRadPerDeg * ros_params::number(private_nh, "sigma_flip_deg",
+                                        st.sigma_flip_rad / kRadPerDeg, 0.0, 90.0, "deg");
+    robot::EntryPose entry;
+    entry.height_m = initial_height_m;
+    entry.angle_rad = 0.0;
+    entry.bevel = initial_bevel_rad == b.lower ? steering::Bevel::kLeft : steering::Bevel::kRight;
+    try {
+      needle_ = std::make_unique<robot::SteerableNeedle>(steering::problemFromScene(scene), config,
+                                                         entry);
+    } catch (const std::invalid_argument& e) {
+      throw std::runtime_error(std::string("steerable needle: ") + e.what());
+    }
+    if (!journal_path.empty()) {
+      const std::string needle_path = needleJournalPath(journal_path);
+      needle_journal_file_ = std::make_unique<robot::NeedleJournalFile>(needle_path);
+      needle_->setJournalSink([this](const robot::NeedleJournalEntry& e) {
+        needle_journal_file_->write(e, stage_->state().time_s);
+      });
+      ROS_INFO_STREAM("insertion_robot: needle journal appended to " << needle_path);
+    }
+    // The initial entry goes into the journal like every later one.
+    needle_->setEntry(entry);
+  }
+
   ros::NodeHandle robot_nh(private_nh);
   measured_js_pub_ = robot_nh.advertise<sensor_msgs::JointState>("measured_js", 10);
   measured_cp_pub_ = robot_nh.advertise<geometry_msgs::PoseStamped>("measured_cp", 10);
   operating_state_pub_ = robot_nh.advertise<OperatingState>("operating_state", 1, true);
   estop_srv_ = robot_nh.advertiseService("estop", &InsertionRobotRos::onEstop, this);
   reset_estop_srv_ = robot_nh.advertiseService("reset_estop", &InsertionRobotRos::onResetEstop, this);
+  // Served in both modes so that clients get an answer; rigid mode refuses it.
+  set_entry_srv_ =
+      robot_nh.advertiseService("set_entry_pose", &InsertionRobotRos::onSetEntryPose, this);
+  if (steerable()) {
+    measured_tip_pub_ = robot_nh.advertise<NeedleTip>("measured_tip", 10);
+    needle_path_pub_ = robot_nh.advertise<visualization_msgs::Marker>("needle_path", 1, true);
+  }
 
   auto make_linear = [&](const std::string& name, Owner owner) {
     auto server = std::make_unique<LinearMoveServer>(robot_nh, name, false);
@@ -79,8 +241,9 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   publishState(last_step_);
   control_timer_ = nh.createTimer(ros::Duration(1.0 / control_rate_hz),
                                   &InsertionRobotRos::onControlTimer, this);
-  ROS_INFO_STREAM("insertion_robot: ready on scene '" << scene.name << "', needle "
-                                                      << limits.needle_length_m << " m");
+  ROS_INFO_STREAM("insertion_robot: ready on scene '"
+                  << scene.name << "', needle " << limits.needle_length_m << " m, "
+                  << (steerable() ? "steerable" : "rigid") << " mode, time scale " << time_scale_);
 }
 
 InsertionRobotRos::LinearMoveServer& InsertionRobotRos::linearServer(Owner owner) {
@@ -114,8 +277,18 @@ void InsertionRobotRos::onLinearGoal(Owner owner) {
                                            std::to_string(goal->target_m) +
                                            " m is deeper than the current depth " +
                                            std::to_string(current) + " m; use insert");
+  } else if (const std::string why = steerable() ? steerableRefusal(owner, goal->target_m) : "";
+             !why.empty()) {
+    status = robot::CommandStatus::refused(why);
   } else {
     status = stage_->command(joint, goal->target_m, goal->velocity_m_s);
+    if (status && steerable() && owner == Owner::kInsert && stage_->busy()) {
+      // The insertion command starts here: its deflection is drawn once (5.3).
+      status = needle_->beginInsertion();
+      if (!status) {
+        stage_->cancel();
+      }
+    }
   }
   if (!status) {
     LinearMoveResult result;
@@ -131,6 +304,8 @@ void InsertionRobotRos::onLinearGoal(Owner owner) {
   owner_ = owner;
   goal_start_ = ros::Time::now();
   goal_start_position_ = current;
+  goal_target_ = goal->target_m;
+  goal_velocity_ = goal->velocity_m_s;
   if (!stage_->busy()) {
     finishActiveGoal(true, "already at target");
   }
@@ -186,6 +361,12 @@ void InsertionRobotRos::finishActiveGoal(bool success, const std::string& messag
   owner_ = Owner::kNone;
   last_message_ = message;
   const ros::Time now = ros::Time::now();
+  if (steerable()) {
+    if (owner == Owner::kFlip && success && bevelAtEnd() && jointBevel() != needle_->bevel()) {
+      needle_->flip();  // the rotation is complete: the world's bevel turns
+    }
+    publishNeedle(now);  // the pose at the goal's end, before its result
+  }
   if (owner == Owner::kFlip) {
     FlipBevelResult result;
     result.success = success;
@@ -202,7 +383,7 @@ void InsertionRobotRos::finishActiveGoal(bool success, const std::string& messag
   result.success = success;
   result.message = message;
   result.reached_m = stage_->state().position[static_cast<std::size_t>(joint)];
-  result.duration_s = (now - goal_start_).toSec();
+  result.duration_s = (now - goal_start_).toSec() * time_scale_;  // simulated time
   result.mean_velocity_m_s =
       result.duration_s > 0.0 ? std::abs(result.reached_m - goal_start_position_) / result.duration_s
                               : 0.0;
@@ -212,9 +393,13 @@ void InsertionRobotRos::finishActiveGoal(bool success, const std::string& messag
 
 void InsertionRobotRos::onControlTimer(const ros::TimerEvent& /*event*/) {
   const ros::Time now = ros::Time::now();
-  const double dt_s = std::max(0.0, (now - last_step_).toSec());
+  const double dt_s = std::max(0.0, (now - last_step_).toSec()) * time_scale_;
   last_step_ = now;
-  stage_->step(dt_s);
+  if (steerable()) {
+    stepSteerable(dt_s);
+  } else {
+    stage_->step(dt_s);
+  }
   if (owner_ != Owner::kNone && !stage_->busy()) {
     finishActiveGoal(true, "target reached");
   }
@@ -231,10 +416,14 @@ void InsertionRobotRos::publishState(const ros::Time& stamp) {
   js.header.stamp = stamp;
   measured_js_pub_.publish(js);
 
-  geometry_msgs::PoseStamped cp;
-  ros_conversions::tipPoseToMessage(state, cp);
-  cp.header.stamp = stamp;
-  measured_cp_pub_.publish(cp);
+  if (steerable()) {
+    publishNeedle(stamp);  // measured_cp is the needle's tip pose
+  } else {
+    geometry_msgs::PoseStamped cp;
+    ros_conversions::tipPoseToMessage(state, cp);
+    cp.header.stamp = stamp;
+    measured_cp_pub_.publish(cp);
+  }
 
   OperatingState op;
   op.header.stamp = stamp;
@@ -255,7 +444,8 @@ void InsertionRobotRos::publishState(const ros::Time& stamp) {
     LinearMoveFeedback fb;
     fb.position_m = state.position[static_cast<std::size_t>(j)];
     fb.velocity_m_s = state.velocity[static_cast<std::size_t>(j)];
-    fb.tip = ros_conversions::toMessage(stage_->tipPosition());
+    fb.tip =
+        ros_conversions::toMessage(steerable() ? needle_->tip().p_SceneTip : stage_->tipPosition());
     linearServer(owner_).publishFeedback(fb);
   }
 }
@@ -282,6 +472,160 @@ bool InsertionRobotRos::onResetEstop(std_srvs::Trigger::Request& /*req*/,
   last_message_ = status ? "enabled" : status.toString();
   publishState(ros::Time::now());
   return true;
+}
+
+std::string InsertionRobotRos::steerableRefusal(Owner owner, double target_m) const {
+  const char* command = owner == Owner::kHeight   ? "move_to_height"
+                        : owner == Owner::kInsert ? "insert"
+                                                  : "retract";
+  std::ostringstream out;
+  out << std::setprecision(6) << command << " command refused: ";
+  if (owner == Owner::kHeight) {
+    const robot::SteerableNeedleConfig& c = needle_->config();
+    if (target_m < c.min_height_m || target_m > c.max_height_m) {
+      out << "height " << target_m << " m is not an entry height of the scene [" << c.min_height_m
+          << ", " << c.max_height_m << "] m (steerable mode: the height is the entry height)";
+      return out.str();
+    }
+    return "";
+  }
+  if (!(target_m >= 0.0)) {
+    out << "target " << target_m << " m is negative; in steerable mode the insertion joint is "
+        << "the inserted needle length, 0 at the entry";
+    return out.str();
+  }
+  if (owner == Owner::kInsert) {
+    if (needle_->inContact()) {
+      out << "the needle tip is in contact (" << needle_->contact().toString()
+          << "); retract past the contact first";
+      return out.str();
+    }
+    if (!bevelAtEnd()) {
+      out << "the bevel is mid-rotation (" << stage_->state().bevel_rad()
+          << " rad); finish a flip first";
+      return out.str();
+    }
+  }
+  return "";
+}
+
+steering::Bevel InsertionRobotRos::jointBevel() const {
+  const robot::JointLimits& b = stage_->limits()[StageJoint::kBevel];
+  return stage_->state().bevel_rad() < 0.5 * (b.lower + b.upper) ? steering::Bevel::kLeft
+                                                                 : steering::Bevel::kRight;
+}
+
+bool InsertionRobotRos::bevelAtEnd() const {
+  const robot::JointLimits& b = stage_->limits()[StageJoint::kBevel];
+  const double bevel = stage_->state().bevel_rad();
+  return bevel == b.lower || bevel == b.upper;
+}
+
+void InsertionRobotRos::stepSteerable(double dt_s) {
+  const std::size_t depth = static_cast<std::size_t>(StageJoint::kDepth);
+  if (owner_ == Owner::kInsert && stage_->busy() && stage_->activeJoint() == StageJoint::kDepth) {
+    // Where this step takes the stage (InsertionStage::step's rule): trace the needle there
+    // first, so that on contact the stage can stop exactly at the contact point.
+    const double position = stage_->state().position[depth];
+    const double remaining = goal_target_ - position;
+    const double travel = goal_velocity_ * dt_s;
+    const double next = std::abs(remaining) <= travel ? goal_target_ : position + travel;
+    const robot::MotionStatus motion =
+        next > needle_->insertedLength_m()
+            ? needle_->advanceTo(next)
+            : robot::MotionStatus(robot::MotionOutcome::kMoved, "no travel");
+    if (motion.outcome() == robot::MotionOutcome::kMoved) {
+      stage_->step(dt_s);
+      return;
+    }
+    // Contact (or an unexpected refusal): move the stage to where the needle stopped, stop.
+    const double dt_stop_s =
+        goal_velocity_ > 0.0
+            ? std::clamp((needle_->insertedLength_m() - position) / goal_velocity_, 0.0, dt_s)
+            : 0.0;
+    stage_->step(dt_stop_s);
+    stage_->cancel();
+    stage_->step(dt_s - dt_stop_s);
+    std::string message = motion.toString();
+    if (motion.outcome() == robot::MotionOutcome::kContact) {
+      message = "insert stopped at contact: " + needle_->contact().toString() + " after " +
+                std::to_string(needle_->insertedLength_m()) +
+                " m inserted; retract past the contact before inserting again";
+      ROS_WARN_STREAM_NAMED("insertion_robot", message);
+    } else {
+      ROS_ERROR_STREAM_NAMED("insertion_robot", "needle refused a step: " << message);
+    }
+    finishActiveGoal(false, message);
+    return;
+  }
+  const double before_m = stage_->state().position[depth];
+  stage_->step(dt_s);
+  // A retraction pulls the needle back along its path. Only an actual backward motion of the
+  // joint does: after a stop at a contact the joint may sit an ulp short of the needle's length,
+  // which must not count as retracting past the contact.
+  const double after_m = stage_->state().position[depth];
+  if (after_m < before_m) {
+    const double length_m = std::max(0.0, after_m);
+    if (length_m < needle_->insertedLength_m()) {
+      needle_->retractTo(length_m);
+    }
+  }
+  // Out of tissue, the needle guide follows the height joint.
+  const double height_m = stage_->state().height_m();
+  if (needle_->insertedLength_m() == 0.0 && height_m != needle_->entry().height_m) {
+    robot::EntryPose entry = needle_->entry();
+    entry.height_m = height_m;
+    entry.bevel = needle_->bevel();
+    needle_->setEntry(entry);
+  }
+}
+
+bool InsertionRobotRos::onSetEntryPose(SetEntryPose::Request& req, SetEntryPose::Response& res) {
+  res.success = false;
+  if (!steerable()) {
+    res.message = "set_entry_pose refused: the robot is in rigid mode (~mode)";
+  } else if (const auto bevel = bevelFromString(req.bevel); !bevel) {
+    res.message = "set_entry_pose refused: bevel '" + req.bevel + "' is not left or right";
+  } else if (owner_ != Owner::kNone || stage_->busy()) {
+    res.message = "set_entry_pose refused: a motion is running; wait for it to end";
+  } else {
+    robot::EntryPose entry;
+    entry.height_m = req.height_m;
+    entry.angle_rad = req.angle_rad;
+    entry.bevel = *bevel;
+    robot::CommandStatus status = needle_->checkEntry(entry);
+    if (!status) {
+      needle_->setEntry(entry);  // refused again, so that the needle's journal records it
+    } else {
+      const robot::JointLimits& b = stage_->limits()[StageJoint::kBevel];
+      status =
+          stage_->placeGuide(req.height_m, *bevel == steering::Bevel::kLeft ? b.lower : b.upper);
+    }
+    if (status) {
+      status = needle_->setEntry(entry);
+    }
+    res.success = static_cast<bool>(status);
+    res.message = status ? "entry set: " + needle_->journal().back().message
+                         : "set_entry_pose refused: " + status.toString();
+  }
+  last_message_ = res.message;
+  if (!res.success) {
+    ROS_WARN_STREAM_NAMED("insertion_robot", res.message);
+  }
+  publishState(ros::Time::now());
+  return true;
+}
+
+void InsertionRobotRos::publishNeedle(const ros::Time& stamp) {
+  const steering::TipPose tip = needle_->tip();
+  measured_tip_pub_.publish(toNeedleTip(tip, needle_->insertedLength_m(), stamp));
+  measured_cp_pub_.publish(toPoseStamped(tip, stamp));
+  // The journal grows with every change of the needle's state: republish the path then only.
+  const std::size_t version = needle_->journal().size();
+  if (version != published_path_version_) {
+    published_path_version_ = version;
+    needle_path_pub_.publish(toPathMarker(*needle_, stamp));
+  }
 }
 
 }  // namespace needle_guidance

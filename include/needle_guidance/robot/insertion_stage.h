@@ -82,7 +82,7 @@ private:
 /// motion (reached, cancelled, e-stop).
 struct JournalEntry {
   double time_s = 0.0;
-  std::string event;   ///< "command", "reached", "cancelled", "estop", "estop_reset"
+  std::string event;   ///< "command", "reached", "cancelled", "estop", "estop_reset", "place"
   std::string joint;   ///< joint name or ""
   double target = 0.0;
   double velocity = 0.0;
@@ -107,6 +107,11 @@ public:
   CommandStatus command(StageJoint joint, double target, double velocity);
   /// Rotates the bevel by 180 degrees (to the other end of its range) at `velocity` [rad/s].
   CommandStatus flipBevel(double velocity_rad_s);
+  /// Places the needle guide: sets height [m] and bevel [rad] at once (a setup step such as
+  /// mounting the guide of a steerable needle, not a motion; velocities stay 0). Refused (and
+  /// nothing changes) while a motion runs, while e-stopped, with the tip in tissue, or for a
+  /// non-finite value or one outside the joint limits. Journaled as event "place".
+  CommandStatus placeGuide(double height_m, double bevel_rad);
   /// Stops the running motion where it is (goal preempted). No effect when idle.
   void cancel();
   /// Emergency stop: motion stops at once; every command is refused until resetEstop().

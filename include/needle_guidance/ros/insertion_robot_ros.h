@@ -1,22 +1,56 @@
-// ROS wrapper of the simulated insertion stage (node insertion_robot).
+// ROS wrapper of the simulated insertion stage (node insertion_robot), rigid or steerable.
 #pragma once
 
 #include <actionlib/server/simple_action_server.h>
 #include <ros/ros.h>
 #include <std_srvs/Trigger.h>
 
+#include <cstdint>
 #include <memory>
 #include <string>
 
 #include "needle_guidance/FlipBevelAction.h"
 #include "needle_guidance/LinearMoveAction.h"
+#include "needle_guidance/SetEntryPose.h"
 #include "needle_guidance/robot/insertion_stage.h"
+#include "needle_guidance/robot/steerable_needle.h"
 
 namespace needle_guidance {
 
 /// Owns the NodeHandles, reads and validates parameters once, runs the stage's control loop on
 /// a timer and exposes CRTK-style topics, the motion actions and the e-stop services.
 /// Throws std::runtime_error from the constructor on a missing or invalid parameter.
+///
+/// Modes (~mode: rigid | steerable | auto; auto, the default, is steerable when the scene has
+/// models.steering, else rigid):
+/// - rigid: a straight needle; "insertion" is the tip's x in frame scene (unchanged behaviour).
+/// - steerable: the stage drives a bevel-tip needle through robot::SteerableNeedle, "the world"
+///   of dissertation 5.3 (constant-curvature arcs, deflection beta ~ N(0, sigma_i) drawn at the
+///   start of every insert goal, N(0, sigma_r) when a flip came before it, contact with expanded
+///   obstacles and the workspace). The "insertion" joint is the inserted arc length (>= 0; 0 at
+///   the entry point on the scene's line x = steering.start_x, up to the joint's upper limit),
+///   "height" is the entry height (move_to_height moves the needle guide out of tissue, within
+///   the scene's needle heights), "bevel" 0 = left, pi = right (flip_bevel turns the world's
+///   bevel when the rotation completes; insertion is refused while the bevel is between the
+///   two). insert / retract goals move the inserted length; an insert goal that makes contact
+///   stops at the contact point and aborts with success = false and a message naming the
+///   obstacle (or "left the workspace") and the point; insertion is then refused until a
+///   retract goes back past the contact point. ~set_entry_pose (SetEntryPose) places the needle
+///   guide at once, as a setup step rather than a motion: it is refused while the needle is in
+///   tissue (inserted length > 0), while a motion runs or the e-stop is active, for an unknown
+///   bevel, an angle outside [-pi/2, pi/2] or a height outside the scene's needle heights; on
+///   success the stage's height and bevel joints jump to the entry height and bevel.
+///   Publishes ~measured_tip (NeedleTip, frame scene, ground truth) at ~publish_rate_hz and
+///   after every goal end, ~measured_cp (tip position, yaw = theta) and the latched
+///   ~needle_path (Marker LINE_STRIP, frame scene). Deflections and contacts are journaled to
+///   a second CSV next to ~journal_file ("X.csv" -> "X_needle.csv"), flushed per line.
+///   The tf of the URDF (robot_state_publisher) still draws a straight needle.
+///
+/// ~time_scale (in [1, 100], default 1): simulated seconds per wall second. The control loop
+/// advances the stage by time_scale x the wall time between ticks, so goal velocities (and the
+/// URDF's velocity limits) are in simulated time and a goal takes 1 / time_scale of its
+/// simulated duration; result duration_s and mean_velocity_m_s are in simulated time. Topic
+/// stamps stay ROS time.
 class InsertionRobotRos {
 public:
   InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh);
@@ -36,6 +70,22 @@ private:
   void finishActiveGoal(bool success, const std::string& message);
   void publishState(const ros::Time& stamp);
   LinearMoveServer& linearServer(Owner owner);
+
+  // Steerable mode.
+  bool steerable() const { return static_cast<bool>(needle_); }
+  /// Why a linear goal cannot start in steerable mode ("" if it may), before the stage's own
+  /// checks.
+  std::string steerableRefusal(Owner owner, double target_m) const;
+  /// One control step of dt_s simulated seconds: advances the needle ahead of the stage so an
+  /// insertion stops exactly at a contact, then keeps the world's entry and retraction in step
+  /// with the stage.
+  void stepSteerable(double dt_s);
+  /// The world's bevel as the stage's bevel joint shows it (left at the lower end).
+  steering::Bevel jointBevel() const;
+  /// True if the bevel joint is at one end of its range (not mid-rotation).
+  bool bevelAtEnd() const;
+  bool onSetEntryPose(SetEntryPose::Request& req, SetEntryPose::Response& res);
+  void publishNeedle(const ros::Time& stamp);
 
   ros::NodeHandle nh_;
   std::unique_ptr<robot::InsertionStage> stage_;
@@ -58,6 +108,17 @@ private:
   ros::Time last_step_;
   ros::Time last_publish_;
   double publish_period_s_ = 0.01;
+  double time_scale_ = 1.0;  ///< simulated seconds per wall second
+
+  // Steerable mode only (needle_ is null in rigid mode).
+  std::unique_ptr<robot::SteerableNeedle> needle_;
+  std::unique_ptr<robot::NeedleJournalFile> needle_journal_file_;
+  double goal_target_ = 0.0;    ///< target of the running linear goal [m]
+  double goal_velocity_ = 0.0;  ///< its velocity [m/s, simulated time]
+  std::size_t published_path_version_ = static_cast<std::size_t>(-1);
+  ros::Publisher measured_tip_pub_;
+  ros::Publisher needle_path_pub_;
+  ros::ServiceServer set_entry_srv_;
 };
 
 }  // namespace needle_guidance
