@@ -25,7 +25,7 @@ constexpr double kRadPerDeg = 3.14159265358979323846 / 180.0;
 /// Spacing of the points of ~needle_path along the arcs [m].
 constexpr double kPathSpacing_m = 5e-4;
 /// Line width of ~needle_path [m].
-constexpr double kPathWidth_m = 6e-4;
+constexpr double kPathWidth_m = 1e-3;
 
 // Steerable-mode conversions, local to this node (its only user).
 
@@ -80,9 +80,9 @@ visualization_msgs::Marker toPathMarker(const robot::SteerableNeedle& needle,
   }
   m.action = visualization_msgs::Marker::ADD;
   m.scale.x = kPathWidth_m;
-  m.color.r = 0.85F;
-  m.color.g = 0.85F;
-  m.color.b = 0.9F;
+  m.color.r = 0.85F;  // red: visible over the blue-to-yellow P_s map
+  m.color.g = 0.1F;
+  m.color.b = 0.1F;
   m.color.a = 1.0F;
   for (const geometry::Point2& p : needle.pathPoints(kPathSpacing_m)) {
     m.points.push_back(ros_conversions::toMessage(p));
