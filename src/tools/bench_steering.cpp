@@ -153,6 +153,15 @@ int main(int argc, char** argv) {
                 << std::flush;
     }
 
+    // ---- the dissertation's other 800,000-state problems (5.5: r = 2.5 cm, delta = 0.393 cm) ----
+    st::SteeringProblem r25 = problem;
+    r25.params.radius_m = 0.025;
+    const Solved solved_r25 = solveAt(r25, kSpacing800k_m, 2, 1e-3, start);
+    std::cout << "r = 25 mm: " << solved_r25.states << " states, build " << solved_r25.build_s
+              << " s, solve " << solved_r25.stats.seconds << " s (" << solved_r25.stats.sweeps
+              << " sweeps), " << solved_r25.best.toString() << "\n"
+              << std::flush;
+
     // ---- one thread at 800k ----
     const Solved single = solveAt(problem, kSpacing800k_m, 1, 1e-3, start);
     scaling.addRow({kSpacing800k_m * kMmPerM, double(single.states), double(single.transitions),
@@ -417,6 +426,9 @@ int main(int argc, char** argv) {
          << ",\n  \"converged_800k\": " << (run800k->stats.converged ? "true" : "false")
          << ",\n  \"epsilon\": 0.001,\n  \"threads\": 2"
          << ",\n  \"solve_s_800k_1thread\": " << jsonNumber(single.stats.seconds)
+         << ",\n  \"solve_s_800k_r25mm\": " << jsonNumber(solved_r25.stats.seconds)
+         << ",\n  \"sweeps_800k_r25mm\": " << solved_r25.stats.sweeps
+         << ",\n  \"transitions_max_800k_r25mm\": " << solved_r25.transitions
          << ",\n  \"sweeps_800k_1thread\": " << single.stats.sweeps
          << ",\n  \"peak_mb_800k\": " << jsonNumber(run800k->peak_mb)
          << ",\n  \"baseline_mb\": " << jsonNumber(baseline_mb)

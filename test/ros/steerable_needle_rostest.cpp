@@ -1,0 +1,94 @@
+// rostest for the closed-loop steerable-needle trials: the real insertion robot (steerable mode),
+// steering_policy and steerable_procedure run 8 trials; the report is checked against the
+// scene: every trial ends in a defined outcome, every success ends in the target disc, every
+// path starts at the best start and stays in the workspace, and flips are where the policy said.
+#include <gtest/gtest.h>
+#include <ros/ros.h>
+
+#include <cmath>
+#include <fstream>
+#include <map>
+#include <set>
+#include <sstream>
+#include <string>
+
+#include "../csv_rows.h"
+#include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/steering_model.h"
+
+namespace {
+
+constexpr int kTrials = 8;
+constexpr double kMmTol = 1e-3;       // [mm] CSV rounding of positions (6 significant digits)
+constexpr double kContactTol = 0.05;  // [mm] a stopped tip lies on the workspace edge or outside no further
+
+TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
+  ros::NodeHandle private_nh("~");
+  std::string report_dir;
+  ASSERT_TRUE(private_nh.getParam("report_dir", report_dir));
+  const std::string summary = report_dir + "/summary.json";
+  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(200.0);
+  while (ros::WallTime::now() < end && !std::ifstream(summary).good()) {
+    ros::WallDuration(0.5).sleep();
+  }
+  ASSERT_TRUE(std::ifstream(summary).good()) << "the procedure wrote no report in 200 s";
+  std::stringstream text;
+  text << std::ifstream(summary).rdbuf();
+  EXPECT_NE(text.str().find("\"trials\": 8,"), std::string::npos) << text.str();
+
+  namespace st = needle_guidance::steering;
+  const st::SteeringProblem problem =
+      st::problemFromScene(needle_guidance::scene::loadSceneSpec("steering_workspace"));
+  const auto trials = readCsvRows(report_dir + "/trials.csv");
+  ASSERT_EQ(trials.size(), static_cast<std::size_t>(kTrials));
+  const std::set<std::string> outcomes = {"reached_target", "hit_obstacle", "left_workspace",
+                                          "step_limit"};
+  std::map<std::string, std::string> outcome_of;
+  for (const auto& row : trials) {
+    EXPECT_TRUE(outcomes.count(row.at("outcome"))) << row.at("outcome") << ": " << row.at("message");
+    outcome_of[row.at("trial")] = row.at("outcome");
+  }
+
+  // Decision points: the first of each trial is the best start; the last of a success is in
+  // the target disc; every flip decision is followed by a bevel change.
+  const auto decisions = readCsvRows(report_dir + "/decisions.csv");
+  std::map<std::string, std::vector<std::map<std::string, std::string>>> by_trial;
+  for (const auto& row : decisions) by_trial[row.at("trial")].push_back(row);
+  ASSERT_EQ(by_trial.size(), static_cast<std::size_t>(kTrials));
+  const double tx = problem.target.position.x() * 1e3, ty = problem.target.position.y() * 1e3;
+  const double tr = problem.target.radius_m * 1e3;
+  for (const auto& [trial, rows] : by_trial) {
+    ASSERT_FALSE(rows.empty());
+    EXPECT_NEAR(std::stod(rows.front().at("x_mm")), 0.0, kMmTol) << "trial " << trial;
+    for (std::size_t i = 0; i + 1 < rows.size(); ++i) {
+      if (rows[i].at("control") == "flip") {
+        EXPECT_NE(rows[i].at("bevel"), rows[i + 1].at("bevel")) << "trial " << trial << " step " << i;
+      } else if (rows[i].at("control") == "insert") {
+        EXPECT_EQ(rows[i].at("bevel"), rows[i + 1].at("bevel")) << "trial " << trial << " step " << i;
+      }
+    }
+    const double x = std::stod(rows.back().at("x_mm")), y = std::stod(rows.back().at("y_mm"));
+    if (outcome_of[trial] == "reached_target") {
+      EXPECT_LE(std::hypot(x - tx, y - ty), tr + kMmTol) << "trial " << trial;
+    } else if (outcome_of[trial] == "left_workspace") {
+      const double edge = std::min({x, y, 100.0 - x, 100.0 - y});
+      EXPECT_NEAR(edge, 0.0, kContactTol) << "trial " << trial << " stopped at (" << x << ", " << y << ")";
+    }
+  }
+  // Every recorded tip lies in the (closed) workspace.
+  for (const auto& row : readCsvRows(report_dir + "/paths.csv")) {
+    const double x = std::stod(row.at("x_mm")), y = std::stod(row.at("y_mm"));
+    EXPECT_GE(x, -kContactTol);
+    EXPECT_LE(x, 100.0 + kContactTol);
+    EXPECT_GE(y, -kContactTol);
+    EXPECT_LE(y, 100.0 + kContactTol);
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  ros::init(argc, argv, "steerable_needle_rostest");
+  return RUN_ALL_TESTS();
+}
