@@ -122,6 +122,16 @@ std::string Table::toText() const {
 
 void Table::writeCsv(const std::string& path) const { writeTextFile(path, toCsv()); }
 
+std::string jsonNumber(double v, int precision) {
+  if (!std::isfinite(v)) {
+    return "null";
+  }
+  std::ostringstream out;
+  out.precision(precision);
+  out << v;
+  return out.str();
+}
+
 void writeTextFile(const std::string& path, const std::string& text) {
   const std::filesystem::path p(path);
   if (p.has_parent_path()) {

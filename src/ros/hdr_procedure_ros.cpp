@@ -18,13 +18,7 @@ namespace needle_guidance {
 
 namespace {
 
-std::string jsonNumber(double v) {
-  if (!std::isfinite(v)) return "null";
-  std::ostringstream out;
-  out.precision(8);
-  out << v;
-  return out.str();
-}
+std::string jsonNumber(double v) { return report::jsonNumber(v, 8); }
 
 }  // namespace
 

@@ -107,16 +107,6 @@ steering::TipPose toPose(const NeedleTip& tip) {
   return pose;
 }
 
-std::string jsonNumber(double v) {
-  if (!std::isfinite(v)) {
-    return "null";
-  }
-  std::ostringstream s;
-  s.precision(6);
-  s << v;
-  return s.str();
-}
-
 }  // namespace
 
 SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh)
@@ -364,18 +354,18 @@ bool SteerableProcedureRos::run() {
   json << "{\n  \"procedure\": \"steerable_needle\",\n  \"scene\": \"" << scene.name
        << "\",\n  \"success\": " << (success ? "true" : "false")
        << ",\n  \"trials\": " << n << ",\n  \"successes\": " << successes
-       << ",\n  \"success_rate\": " << jsonNumber(rate)
-       << ",\n  \"success_rate_ci\": [" << jsonNumber(ci.low) << ", " << jsonNumber(ci.high)
-       << "],\n  \"predicted_ps\": " << jsonNumber(predicted)
+       << ",\n  \"success_rate\": " << report::jsonNumber(rate)
+       << ",\n  \"success_rate_ci\": [" << report::jsonNumber(ci.low) << ", " << report::jsonNumber(ci.high)
+       << "],\n  \"predicted_ps\": " << report::jsonNumber(predicted)
        << ",\n  \"predicted_within_ci\": " << (ci.contains(predicted) ? "true" : "false")
-       << ",\n  \"monte_carlo_ps\": " << jsonNumber(mc.rate())
+       << ",\n  \"monte_carlo_ps\": " << report::jsonNumber(mc.rate())
        << ",\n  \"monte_carlo_trials\": " << mc.trials
-       << ",\n  \"start_y_mm\": " << jsonNumber(start.p_SceneTip.y() * kMmPerM)
-       << ",\n  \"start_theta_deg\": " << jsonNumber(start.theta_rad * kDegPerRad)
+       << ",\n  \"start_y_mm\": " << report::jsonNumber(start.p_SceneTip.y() * kMmPerM)
+       << ",\n  \"start_theta_deg\": " << report::jsonNumber(start.theta_rad * kDegPerRad)
        << ",\n  \"start_bevel\": \"" << best.response.bevel << "\""
-       << ",\n  \"mean_steps\": " << jsonNumber(n > 0 ? sum_steps / double(n) : 0.0)
-       << ",\n  \"mean_flips\": " << jsonNumber(n > 0 ? sum_flips / double(n) : 0.0)
-       << ",\n  \"wall_time_s\": " << jsonNumber(wall_s) << "\n}\n";
+       << ",\n  \"mean_steps\": " << report::jsonNumber(n > 0 ? sum_steps / double(n) : 0.0)
+       << ",\n  \"mean_flips\": " << report::jsonNumber(n > 0 ? sum_flips / double(n) : 0.0)
+       << ",\n  \"wall_time_s\": " << report::jsonNumber(wall_s) << "\n}\n";
   std::ostringstream md;
   md << "# Steerable needle: " << n << " closed-loop trials on " << scene.name << "\n\n"
      << "| figure | value |\n| --- | --- |\n"

@@ -100,15 +100,6 @@ Solved solveAt(const st::SteeringProblem& base, double spacing_m, int threads, d
   return out;
 }
 
-std::string jsonNumber(double v) {
-  if (!std::isfinite(v))
-    return "null";
-  std::ostringstream s;
-  s.precision(6);
-  s << v;
-  return s.str();
-}
-
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -419,44 +410,44 @@ int main(int argc, char** argv) {
          << ",\n  \"sigma_insert_deg\": " << problem.params.sigma_insert_rad * kDegPerRad
          << ",\n  \"sigma_flip_deg\": " << problem.params.sigma_flip_rad * kDegPerRad
          << ",\n  \"states_800k\": " << run800k->states
-         << ",\n  \"solve_s_800k\": " << jsonNumber(run800k->stats.seconds)
-         << ",\n  \"build_s_800k\": " << jsonNumber(run800k->build_s)
-         << ",\n  \"total_s_800k\": " << jsonNumber(run800k->build_s + run800k->stats.seconds)
+         << ",\n  \"solve_s_800k\": " << ng::report::jsonNumber(run800k->stats.seconds)
+         << ",\n  \"build_s_800k\": " << ng::report::jsonNumber(run800k->build_s)
+         << ",\n  \"total_s_800k\": " << ng::report::jsonNumber(run800k->build_s + run800k->stats.seconds)
          << ",\n  \"sweeps_800k\": " << run800k->stats.sweeps
          << ",\n  \"converged_800k\": " << (run800k->stats.converged ? "true" : "false")
          << ",\n  \"epsilon\": 0.001,\n  \"threads\": 2"
-         << ",\n  \"solve_s_800k_1thread\": " << jsonNumber(single.stats.seconds)
-         << ",\n  \"solve_s_800k_r25mm\": " << jsonNumber(solved_r25.stats.seconds)
+         << ",\n  \"solve_s_800k_1thread\": " << ng::report::jsonNumber(single.stats.seconds)
+         << ",\n  \"solve_s_800k_r25mm\": " << ng::report::jsonNumber(solved_r25.stats.seconds)
          << ",\n  \"sweeps_800k_r25mm\": " << solved_r25.stats.sweeps
          << ",\n  \"transitions_max_800k_r25mm\": " << solved_r25.transitions
          << ",\n  \"sweeps_800k_1thread\": " << single.stats.sweeps
-         << ",\n  \"peak_mb_800k\": " << jsonNumber(run800k->peak_mb)
-         << ",\n  \"baseline_mb\": " << jsonNumber(baseline_mb)
-         << ",\n  \"lookup_us\": " << jsonNumber(lookup_us)
-         << ",\n  \"mdp_ps\": " << jsonNumber(mdp_mc.rate())
-         << ",\n  \"mdp_ps_ci\": [" << jsonNumber(mdp_mc.interval().low) << ", "
-         << jsonNumber(mdp_mc.interval().high) << "]"
-         << ",\n  \"mdp_ps_predicted\": " << jsonNumber(best.best.probability_of_success)
-         << ",\n  \"mc_within_ci_fraction\": " << jsonNumber(within_800k)
-         << ",\n  \"shortest_path_ps\": " << jsonNumber(sp_closed.rate())
+         << ",\n  \"peak_mb_800k\": " << ng::report::jsonNumber(run800k->peak_mb)
+         << ",\n  \"baseline_mb\": " << ng::report::jsonNumber(baseline_mb)
+         << ",\n  \"lookup_us\": " << ng::report::jsonNumber(lookup_us)
+         << ",\n  \"mdp_ps\": " << ng::report::jsonNumber(mdp_mc.rate())
+         << ",\n  \"mdp_ps_ci\": [" << ng::report::jsonNumber(mdp_mc.interval().low) << ", "
+         << ng::report::jsonNumber(mdp_mc.interval().high) << "]"
+         << ",\n  \"mdp_ps_predicted\": " << ng::report::jsonNumber(best.best.probability_of_success)
+         << ",\n  \"mc_within_ci_fraction\": " << ng::report::jsonNumber(within_800k)
+         << ",\n  \"shortest_path_ps\": " << ng::report::jsonNumber(sp_closed.rate())
          << ",\n  \"shortest_path_open_loop_ps\": "
-         << (sp.found ? jsonNumber(sp_open.rate()) : std::string("null"))
+         << (sp.found ? ng::report::jsonNumber(sp_open.rate()) : std::string("null"))
          << ",\n  \"mdp_gain_over_shortest_path\": "
-         << jsonNumber(sp_closed.rate() > 0.0 ? mdp_mc.rate() / sp_closed.rate() - 1.0 : NAN)
+         << ng::report::jsonNumber(sp_closed.rate() > 0.0 ? mdp_mc.rate() / sp_closed.rate() - 1.0 : NAN)
          << ",\n  \"shortest_path_steps\": " << sp.steps
          << ",\n  \"shortest_path_proven\": " << (sp.proven_shortest ? "true" : "false")
-         << ",\n  \"shortest_path_plan_s\": " << jsonNumber(sp.seconds)
+         << ",\n  \"shortest_path_plan_s\": " << ng::report::jsonNumber(sp.seconds)
          << ",\n  \"mc_trials_per_start\": " << kMonteCarloTrials
          << ",\n  \"mc_trials_total\": " << mc_trials_total
-         << ",\n  \"mc_seconds_total\": " << jsonNumber(mc_seconds)
-         << ",\n  \"best_start_y_mm\": " << jsonNumber(best.best.pose.p_SceneTip.y() * kMmPerM)
-         << ",\n  \"best_start_theta_deg\": " << jsonNumber(best.best.pose.theta_rad * kDegPerRad)
+         << ",\n  \"mc_seconds_total\": " << ng::report::jsonNumber(mc_seconds)
+         << ",\n  \"best_start_y_mm\": " << ng::report::jsonNumber(best.best.pose.p_SceneTip.y() * kMmPerM)
+         << ",\n  \"best_start_theta_deg\": " << ng::report::jsonNumber(best.best.pose.theta_rad * kDegPerRad)
          << ",\n  \"best_start_bevel\": \"" << st::toString(best.best.pose.bevel) << "\""
-         << ",\n  \"ps_reference_start_finest\": " << jsonNumber(ps_finest)
-         << ",\n  \"finest_spacing_mm\": " << jsonNumber(finest.spacing_m * kMmPerM)
-         << ",\n  \"table_mb_800k\": " << jsonNumber(table_mb)
-         << ",\n  \"table_save_s\": " << jsonNumber(save_s)
-         << ",\n  \"table_load_s\": " << jsonNumber(load_s) << "\n}\n";
+         << ",\n  \"ps_reference_start_finest\": " << ng::report::jsonNumber(ps_finest)
+         << ",\n  \"finest_spacing_mm\": " << ng::report::jsonNumber(finest.spacing_m * kMmPerM)
+         << ",\n  \"table_mb_800k\": " << ng::report::jsonNumber(table_mb)
+         << ",\n  \"table_save_s\": " << ng::report::jsonNumber(save_s)
+         << ",\n  \"table_load_s\": " << ng::report::jsonNumber(load_s) << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(
         args->out_dir + "/plot.json",

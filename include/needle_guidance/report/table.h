@@ -36,6 +36,10 @@ private:
   int precision_;
 };
 
+/// A number for a JSON report: `precision` significant digits, "null" if not finite (JSON has
+/// no NaN or infinity).
+std::string jsonNumber(double v, int precision = 6);
+
 /// Writes text to path, creating parent folders; throws std::runtime_error on failure.
 void writeTextFile(const std::string& path, const std::string& text);
 
