@@ -27,7 +27,7 @@ constexpr char kName[] = "steering_policy";
 constexpr char kSceneFrame[] = "scene";
 constexpr double kMaxEpsilon = 0.1;       ///< loosest accepted value-iteration threshold
 constexpr double kThrottle_s = 5.0;       ///< period of per-message warnings and errors [s]
-constexpr double kMapDepth_m = 1e-3;      ///< ~ps_map sits this far below z = 0 (under markers)
+constexpr double kMapDepth_m = 0.02;  ///< ~ps_map sits this far below z = 0: rviz's top-down ortho depth buffer loses mm separations
 constexpr double kMapThickness_m = 5e-4;  ///< cube height of ~ps_map [m]
 constexpr double kArrowLength_m = 0.01;   ///< ~best_start_marker [m]
 constexpr double kArrowShaft_m = 1e-3;
