@@ -29,17 +29,6 @@ constexpr double kPathWidth_m = 1e-3;
 
 // Steerable-mode conversions, local to this node (its only user).
 
-/// "left" | "right" -> bevel; nullopt for anything else.
-std::optional<steering::Bevel> bevelFromString(const std::string& text) {
-  if (text == "left") {
-    return steering::Bevel::kLeft;
-  }
-  if (text == "right") {
-    return steering::Bevel::kRight;
-  }
-  return std::nullopt;
-}
-
 NeedleTip toNeedleTip(const steering::TipPose& tip, double inserted_length_m,
                       const ros::Time& stamp) {
   NeedleTip msg;
@@ -584,7 +573,7 @@ bool InsertionRobotRos::onSetEntryPose(SetEntryPose::Request& req, SetEntryPose:
   res.success = false;
   if (!steerable()) {
     res.message = "set_entry_pose refused: the robot is in rigid mode (~mode)";
-  } else if (const auto bevel = bevelFromString(req.bevel); !bevel) {
+  } else if (const auto bevel = steering::bevelFromString(req.bevel); !bevel) {
     res.message = "set_entry_pose refused: bevel '" + req.bevel + "' is not left or right";
   } else if (owner_ != Owner::kNone || stage_->busy()) {
     res.message = "set_entry_pose refused: a motion is running; wait for it to end";

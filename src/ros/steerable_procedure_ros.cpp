@@ -103,7 +103,7 @@ steering::TipPose toPose(const NeedleTip& tip) {
   steering::TipPose pose;
   pose.p_SceneTip = steering::Point2(tip.pose.x, tip.pose.y);
   pose.theta_rad = tip.pose.theta;
-  pose.bevel = tip.bevel == "right" ? steering::Bevel::kRight : steering::Bevel::kLeft;
+  pose.bevel = steering::bevelFromString(tip.bevel).value_or(steering::Bevel::kLeft);
   return pose;
 }
 
@@ -324,7 +324,7 @@ bool SteerableProcedureRos::run() {
   steering::TipPose start;
   start.p_SceneTip = steering::Point2(best.response.pose.x, best.response.pose.y);
   start.theta_rad = best.response.pose.theta;
-  start.bevel = best.response.bevel == "right" ? steering::Bevel::kRight : steering::Bevel::kLeft;
+  start.bevel = steering::bevelFromString(best.response.bevel).value_or(steering::Bevel::kLeft);
   const steering::MonteCarloResult mc = steering::runMonteCarlo(
       world, start, steering::tablePolicy(table), kMonteCarloTrials, kMonteCarloSeed, 2);
   report::Table ps_map({"bevel", "y_mm", "theta_deg", "ps"}, 6);

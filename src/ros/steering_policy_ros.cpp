@@ -51,17 +51,6 @@ std::string hex16(std::uint64_t v) {
 
 // ---- conversions (message <-> core), kept together (STYLE.md rule 3) -----------------------
 
-/// "left" | "right" -> bevel; nullopt for anything else.
-std::optional<st::Bevel> bevelFromString(const std::string& text) {
-  if (text == st::toString(st::Bevel::kLeft)) {
-    return st::Bevel::kLeft;
-  }
-  if (text == st::toString(st::Bevel::kRight)) {
-    return st::Bevel::kRight;
-  }
-  return std::nullopt;
-}
-
 /// The wire name of a look-up status (SteeringControl.status).
 std::string toWire(st::ControlLookup::Status status) {
   switch (status) {
@@ -370,7 +359,7 @@ void SteeringPolicyRos::onTip(const NeedleTipConstPtr& msg) {
                                         << "'; tip ignored");
     return;
   }
-  const std::optional<st::Bevel> bevel = bevelFromString(msg->bevel);
+  const std::optional<st::Bevel> bevel = st::bevelFromString(msg->bevel);
   if (!bevel) {
     ROS_ERROR_STREAM_THROTTLE_NAMED(
         kThrottle_s, kName,

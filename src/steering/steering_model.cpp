@@ -99,6 +99,16 @@ std::string toString(Bevel bevel) {
   return bevel == Bevel::kLeft ? "left" : "right";
 }
 
+std::optional<Bevel> bevelFromString(const std::string& text) {
+  if (text == toString(Bevel::kLeft)) {
+    return Bevel::kLeft;
+  }
+  if (text == toString(Bevel::kRight)) {
+    return Bevel::kRight;
+  }
+  return std::nullopt;
+}
+
 std::string toString(Control control) {
   return control == Control::kInsert ? "insert" : "flip";
 }

@@ -10,6 +10,7 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -28,6 +29,8 @@ enum class Control : std::uint8_t { kInsert = 0, kFlip = 1 };
 
 /// "left" | "right".
 std::string toString(Bevel bevel);
+/// The inverse of toString(Bevel): "left" | "right" -> bevel; nullopt for anything else.
+std::optional<Bevel> bevelFromString(const std::string& text);
 /// "insert" | "flip".
 std::string toString(Control control);
 /// The other bevel direction.
