@@ -1,6 +1,6 @@
 #!/usr/bin/python3
 """Plots a benchmark folder: reads plot.json written by the bench tool, a list of
-{"csv", "x", "y", "group", "title", "logx", "logy", "points", "annotate", "png"} entries, and draws each CSV's
+{"csv", "x", "y", "group", "filter", "title", "logx", "logy", "points", "annotate", "png"} entries, and draws each CSV's
 y against x (one line per group) to the PNG; entries with "kind": "isodose" draw isodose lines,
 "kind": "paths" needle paths over obstacles (figure 5.8), "kind": "heatmap" a value over two
 columns (figure 5.7). Speed against error, as DESIGN.md asks."""
@@ -137,7 +137,8 @@ def plot(folder: pathlib.Path, spec: dict) -> None:
         kinds[spec["kind"]](folder, spec)
         return
     with open(folder / spec["csv"], newline="") as f:
-        rows = list(csv.DictReader(f))
+        rows = [r for r in csv.DictReader(f)
+                if all(r.get(k) == v for k, v in spec.get("filter", {}).items())]
     groups = {}
     for row in rows:
         groups.setdefault(row.get(spec.get("group", ""), ""), []).append(row)

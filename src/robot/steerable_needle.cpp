@@ -121,6 +121,13 @@ CommandStatus SteerableNeedle::setEntry(const EntryPose& entry) {
   return CommandStatus::accepted();
 }
 
+CommandStatus SteerableNeedle::reseed(std::uint64_t seed) {
+  rng_.seed(seed);
+  draws_ = 0;
+  record("reseed", true, "deflection stream restarted from seed " + std::to_string(seed));
+  return CommandStatus::accepted();
+}
+
 CommandStatus SteerableNeedle::flip() {
   bevel_ = steering::flipped(bevel_);
   flip_pending_ = true;

@@ -9,6 +9,8 @@
 #include <optional>
 #include <sstream>
 
+#include "needle_guidance/NeedleDrive.h"
+#include "needle_guidance/NeedleShape.h"
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/OperatingState.h"
 #include "needle_guidance/ros/conversions.h"
@@ -39,6 +41,8 @@ NeedleTip toNeedleTip(const steering::TipPose& tip, double inserted_length_m,
   msg.pose.theta = tip.theta_rad;
   msg.bevel = steering::toString(tip.bevel);
   msg.inserted_length_m = inserted_length_m;
+  msg.source = "ground_truth";
+  msg.confident = true;  // covariance stays zero: the world's own tip is exact
   return msg;
 }
 
@@ -194,6 +198,7 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
     }
     // The initial entry goes into the journal like every later one.
     needle_->setEntry(entry);
+    ++entry_id_;
   }
 
   ros::NodeHandle robot_nh(private_nh);
@@ -207,6 +212,8 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
       robot_nh.advertiseService("set_entry_pose", &InsertionRobotRos::onSetEntryPose, this);
   if (steerable()) {
     measured_tip_pub_ = robot_nh.advertise<NeedleTip>("measured_tip", 10);
+    needle_shape_pub_ = robot_nh.advertise<NeedleShape>("needle_shape", 10);
+    drive_pub_ = robot_nh.advertise<NeedleDrive>("drive", 10);
     needle_path_pub_ = robot_nh.advertise<visualization_msgs::Marker>("needle_path", 1, true);
   }
 
@@ -353,6 +360,7 @@ void InsertionRobotRos::finishActiveGoal(bool success, const std::string& messag
   if (steerable()) {
     if (owner == Owner::kFlip && success && bevelAtEnd() && jointBevel() != needle_->bevel()) {
       needle_->flip();  // the rotation is complete: the world's bevel turns
+      ++flips_since_entry_;
     }
     publishNeedle(now);  // the pose at the goal's end, before its result
   }
@@ -565,7 +573,10 @@ void InsertionRobotRos::stepSteerable(double dt_s) {
     robot::EntryPose entry = needle_->entry();
     entry.height_m = height_m;
     entry.bevel = needle_->bevel();
-    needle_->setEntry(entry);
+    if (needle_->setEntry(entry)) {
+      ++entry_id_;
+      flips_since_entry_ = 0;
+    }
   }
 }
 
@@ -593,6 +604,13 @@ bool InsertionRobotRos::onSetEntryPose(SetEntryPose::Request& req, SetEntryPose:
     if (status) {
       status = needle_->setEntry(entry);
     }
+    if (status) {
+      ++entry_id_;
+      flips_since_entry_ = 0;
+      if (req.reseed) {
+        needle_->reseed(req.seed);
+      }
+    }
     res.success = static_cast<bool>(status);
     res.message = status ? "entry set: " + needle_->journal().back().message
                          : "set_entry_pose refused: " + status.toString();
@@ -607,7 +625,25 @@ bool InsertionRobotRos::onSetEntryPose(SetEntryPose::Request& req, SetEntryPose:
 
 void InsertionRobotRos::publishNeedle(const ros::Time& stamp) {
   const steering::TipPose tip = needle_->tip();
-  measured_tip_pub_.publish(toNeedleTip(tip, needle_->insertedLength_m(), stamp));
+  const NeedleTip tip_msg = toNeedleTip(tip, needle_->insertedLength_m(), stamp);
+  measured_tip_pub_.publish(tip_msg);
+  NeedleShape shape;
+  shape.header = tip_msg.header;
+  shape.tip = tip_msg;
+  for (const geometry::Point2& p : needle_->pathPoints(kPathSpacing_m)) {
+    shape.points.push_back(ros_conversions::toMessage(p));
+  }
+  needle_shape_pub_.publish(shape);
+  NeedleDrive drive;
+  drive.header = tip_msg.header;
+  drive.entry_id = entry_id_;
+  drive.entry.x = needle_->entryPoint().x();
+  drive.entry.y = needle_->entryPoint().y();
+  drive.entry.theta = needle_->entry().angle_rad;
+  drive.bevel = steering::toString(needle_->bevel());
+  drive.inserted_length_m = needle_->insertedLength_m();
+  drive.flips = flips_since_entry_;
+  drive_pub_.publish(drive);
   measured_cp_pub_.publish(toPoseStamped(tip, stamp));
   // The journal grows with every change of the needle's state: republish the path then only.
   const std::size_t version = needle_->journal().size();

@@ -2,6 +2,7 @@
 
 #include <actionlib/client/simple_action_client.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
@@ -16,6 +17,7 @@
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SetEntryPose.h"
 #include "needle_guidance/SteeringControl.h"
+#include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
@@ -32,6 +34,8 @@ constexpr double kDegPerRad = 180.0 / kPi;
 /// Monte Carlo trials of the core simulator from the same start, for the report.
 constexpr std::int64_t kMonteCarloTrials = 10000;
 constexpr std::uint64_t kMonteCarloSeed = 11;
+/// Trial k's deflection stream is seed * stride + k.
+constexpr std::uint64_t kTrialSeedStride = 100000;
 
 using LinearMoveClient = actionlib::SimpleActionClient<LinearMoveAction>;
 using FlipBevelClient = actionlib::SimpleActionClient<FlipBevelAction>;
@@ -84,9 +88,14 @@ private:
 
 /// One decision point of a trial (figure 5.8: small dots insert, large dots flip).
 struct Decision {
-  NeedleTip tip;
+  NeedleTip tip;  ///< ground truth (the robot's)
   std::string control;
   double probability_of_success = 0.0;
+  /// The pose the policy looked up (the tracker's estimate with image feedback) and its source.
+  geometry_msgs::Pose2D looked_up;
+  std::string source;
+  bool confident = true;
+  bool answered = false;  ///< false for the end-of-trial entries (no control)
 };
 
 struct TrialRecord {
@@ -94,10 +103,17 @@ struct TrialRecord {
   std::string message;
   int steps = 0;
   int flips = 0;
+  int unconfident_decisions = 0;  ///< controls taken on a tip the tracker was not confident of
   double seconds = 0.0;
   std::vector<Decision> decisions;
   std::vector<NeedleTip> samples;  ///< every measured tip during the trial
 };
+
+using report::median;
+
+double maximum(const std::vector<double>& v) {
+  return v.empty() ? 0.0 : *std::max_element(v.begin(), v.end());
+}
 
 steering::TipPose toPose(const NeedleTip& tip) {
   steering::TipPose pose;
@@ -126,6 +142,10 @@ SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   flip_velocity_rad_s_ =
       ros_params::number(private_nh, "flip_velocity_rad_s", 2.0 * kPi, 1e-3, 100.0, "rad/s");
   timeout_s_ = ros_params::number(private_nh, "timeout_s", 10.0, 0.1, 600.0, "s");
+  seed_ = ros_params::integer(private_nh, "seed", 1, -1, 1L << 40, "(-1 = the robot's stream)");
+  max_unconfident_ = static_cast<int>(ros_params::integer(
+      private_nh, "max_unconfident_controls", 10, 0, 1000, "controls"));
+  feedback_ = ros_params::text(private_nh, "feedback", "ground_truth");
   // Fail now, not after the robot has moved, if the scene cannot be steered.
   steering::problemFromScene(scene::loadSceneSpec(scene_spec_), target_);
 }
@@ -202,6 +222,11 @@ bool SteerableProcedureRos::run() {
     entry.request.height_m = best.response.pose.y;
     entry.request.angle_rad = best.response.pose.theta;
     entry.request.bevel = best.response.bevel;
+    // Trial k draws its deflections from its own stream: runs with ground-truth and image
+    // feedback see the same needle as long as they make the same decisions.
+    entry.request.reseed = seed_ >= 0;
+    entry.request.seed = static_cast<std::uint64_t>(seed_) * kTrialSeedStride +
+                         static_cast<std::uint64_t>(trial);
     if (rec.outcome.empty() && (!set_entry.call(entry) || !entry.response.success)) {
       rec.outcome = "error";
       rec.message = "set_entry_pose: " + entry.response.message;
@@ -217,21 +242,34 @@ bool SteerableProcedureRos::run() {
       const steering::TipPose pose = toPose(tip);
       if (world.inTarget(pose.p_SceneTip)) {
         rec.outcome = "reached_target";
-        rec.decisions.push_back({tip, "", 1.0});
+        rec.decisions.push_back({tip, "", 1.0, tip.pose, tip.source, true, false});
         break;
       }
       if (rec.steps >= max_steps_) {
         rec.outcome = "step_limit";
         break;
       }
+      // The policy's answer to a tip measured after the motion ended; with image feedback, wait
+      // up to max_unconfident_controls more frames for one the tracker is confident of.
       SteeringControl control;
-      if (!controls.waitFor(tip.header.stamp, timeout_s_, control)) {
+      bool have_control = false;
+      ros::Time after = since;
+      for (int unconfident = 0; controls.waitFor(after, timeout_s_, control); ++unconfident) {
+        have_control = true;
+        if (control.tip_confident || unconfident >= max_unconfident_) {
+          break;
+        }
+        after = control.header.stamp + ros::Duration(0, 1);
+      }
+      if (!have_control) {
         rec.outcome = "error";
         rec.message = "no control from " + policy_ns_ + " within " +
                       std::to_string(timeout_s_) + " s";
         break;
       }
-      rec.decisions.push_back({tip, control.control, control.probability_of_success});
+      rec.unconfident_decisions += control.tip_confident ? 0 : 1;
+      rec.decisions.push_back({tip, control.control, control.probability_of_success,
+                               control.tip, control.tip_source, control.tip_confident != 0, true});
       if (control.control == "flip") {
         FlipBevelGoal goal;
         goal.velocity_rad_s = flip_velocity_rad_s_;
@@ -262,7 +300,7 @@ bool SteerableProcedureRos::run() {
           rec.outcome = "error";
         }
         if (have) {
-          rec.decisions.push_back({stopped, "", 0.0});
+          rec.decisions.push_back({stopped, "", 0.0, stopped.pose, stopped.source, true, false});
         }
       }
     }
@@ -288,8 +326,11 @@ bool SteerableProcedureRos::run() {
   report::Table trials_table({"trial", "outcome", "steps", "flips", "seconds", "message"}, 6);
   report::Table paths({"trial", "sample", "x_mm", "y_mm", "theta_deg", "bevel"}, 6);
   report::Table decisions({"trial", "step", "x_mm", "y_mm", "theta_deg", "bevel", "control",
-                           "predicted_ps"},
+                           "predicted_ps", "source", "confident", "tip_error_mm",
+                           "heading_error_deg"},
                           6);
+  std::vector<double> tip_errors_mm, heading_errors_deg;
+  int unconfident = 0;
   for (std::size_t i = 0; i < records.size(); ++i) {
     const TrialRecord& r = records[i];
     successes += r.outcome == "reached_target" ? 1 : 0;
@@ -305,12 +346,23 @@ bool SteerableProcedureRos::run() {
       paths.addRow({double(i + 1), double(k), s.pose.x * kMmPerM, s.pose.y * kMmPerM,
                     s.pose.theta * kDegPerRad, s.bevel});
     }
+    unconfident += r.unconfident_decisions;
     for (std::size_t k = 0; k < r.decisions.size(); ++k) {
       const Decision& d = r.decisions[k];
+      // What the policy was told against the truth at the same moment (the needle is still).
+      const double tip_error_mm =
+          std::hypot(d.looked_up.x - d.tip.pose.x, d.looked_up.y - d.tip.pose.y) * kMmPerM;
+      const double heading_error_deg =
+          std::abs(std::remainder(d.looked_up.theta - d.tip.pose.theta, 2.0 * kPi)) * kDegPerRad;
+      if (d.answered) {
+        tip_errors_mm.push_back(tip_error_mm);
+        heading_errors_deg.push_back(heading_error_deg);
+      }
       decisions.addRow({double(i + 1), double(k), d.tip.pose.x * kMmPerM,
                         d.tip.pose.y * kMmPerM, d.tip.pose.theta * kDegPerRad, d.tip.bevel,
                         d.control.empty() ? std::string("end") : d.control,
-                        d.probability_of_success});
+                        d.probability_of_success, d.source, std::string(d.confident ? "1" : "0"),
+                        tip_error_mm, heading_error_deg});
     }
   }
   const std::int64_t n = static_cast<std::int64_t>(records.size());
@@ -363,6 +415,13 @@ bool SteerableProcedureRos::run() {
        << ",\n  \"start_y_mm\": " << report::jsonNumber(start.p_SceneTip.y() * kMmPerM)
        << ",\n  \"start_theta_deg\": " << report::jsonNumber(start.theta_rad * kDegPerRad)
        << ",\n  \"start_bevel\": \"" << best.response.bevel << "\""
+       << ",\n  \"feedback\": \"" << feedback_ << "\""
+       << ",\n  \"seed\": " << seed_
+       << ",\n  \"decisions\": " << tip_errors_mm.size()
+       << ",\n  \"tip_error_mm_median\": " << report::jsonNumber(median(tip_errors_mm))
+       << ",\n  \"tip_error_mm_max\": " << report::jsonNumber(maximum(tip_errors_mm))
+       << ",\n  \"heading_error_deg_median\": " << report::jsonNumber(median(heading_errors_deg))
+       << ",\n  \"unconfident_decisions\": " << unconfident
        << ",\n  \"mean_steps\": " << report::jsonNumber(n > 0 ? sum_steps / double(n) : 0.0)
        << ",\n  \"mean_flips\": " << report::jsonNumber(n > 0 ? sum_flips / double(n) : 0.0)
        << ",\n  \"wall_time_s\": " << report::jsonNumber(wall_s) << "\n}\n";
@@ -374,6 +433,10 @@ bool SteerableProcedureRos::run() {
      << "| predicted P_s (MDP) | " << predicted << " |\n"
      << "| success rate (ROS closed loop) | " << successes << " / " << n << " = " << rate
      << ", 95 % CI [" << ci.low << ", " << ci.high << "] |\n"
+     << "| feedback | " << feedback_ << "; tip error at decisions median "
+     << median(tip_errors_mm) << " mm (max " << maximum(tip_errors_mm) << "), heading "
+     << median(heading_errors_deg) << " deg; " << unconfident
+     << " decisions on unconfident tips |\n"
      << "| Monte Carlo (core, " << mc.trials << " trials) | " << mc.rate() << " |\n"
      << "| mean steps / flips | " << (n > 0 ? sum_steps / n : 0.0) << " / "
      << (n > 0 ? sum_flips / n : 0.0) << " |\n\n" << trials_table.toMarkdown();
@@ -402,7 +465,7 @@ bool SteerableProcedureRos::run() {
          << best.response.bevel << "\", \"png\": \"ps_map.png\"}]\n";
     report::writeTextFile(report_dir_ + "/plot.json", plot.str());
   }
-  std::cout << "\n== Steerable needle: " << successes << " / " << n
+  std::cout << "\n== Steerable needle (" << feedback_ << " feedback): " << successes << " / " << n
             << " closed-loop trials reached the target (rate " << rate << ", 95 % CI ["
             << ci.low << ", " << ci.high << "]); predicted P_s " << predicted
             << ", Monte Carlo " << mc.rate() << " ==\n"

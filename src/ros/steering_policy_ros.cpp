@@ -88,6 +88,8 @@ SteeringControl toMessage(const NeedleTip& tip, const st::ControlLookup& lookup,
   msg.step_length_m = step_length_m;
   msg.tip = tip.pose;
   msg.bevel = tip.bevel;
+  msg.tip_source = tip.source;
+  msg.tip_confident = tip.confident;
   return msg;
 }
 

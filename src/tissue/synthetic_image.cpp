@@ -144,6 +144,29 @@ double meanEchogenicity(const std::string& material_name) {
   return 0.35;
 }
 
+cv::Mat rayleighSpeckle(cv::Size size, double sigma_x_px, double sigma_y_px, std::uint32_t seed) {
+  // Fully developed speckle: |smoothed complex Gaussian field| is Rayleigh distributed; the
+  // smoothing kernel sets the grain. Scaled to unit mean so it multiplies the echogenicity.
+  cv::Mat re(size, CV_32F), im(size, CV_32F);
+  NormalPairs normal(seed);
+  for (int r = 0; r < size.height; ++r) {
+    float* re_row = re.ptr<float>(r);
+    float* im_row = im.ptr<float>(r);
+    for (int c = 0; c < size.width; ++c) {
+      normal.next(re_row[c], im_row[c]);
+    }
+  }
+  gaussianBlurIfWide(re, sigma_x_px, sigma_y_px);
+  gaussianBlurIfWide(im, sigma_x_px, sigma_y_px);
+  cv::Mat speckle;
+  cv::magnitude(re, im, speckle);
+  const double mean_speckle = cv::mean(speckle)[0];
+  if (mean_speckle > 0.0) {
+    speckle *= 1.0 / mean_speckle;
+  }
+  return speckle;
+}
+
 cv::Mat syntheticUltrasound(const scene::Scene& scene, const ImageGeometry& g, std::uint32_t seed) {
   g.validate("syntheticUltrasound");
 
@@ -170,27 +193,10 @@ cv::Mat syntheticUltrasound(const scene::Scene& scene, const ImageGeometry& g, s
   const double echo_sigma_px = kEchoBlurSigma_m / g.pixel_size_m;
   gaussianBlurIfWide(echo, echo_sigma_px, echo_sigma_px);
 
-  // Fully developed speckle: |smoothed complex Gaussian field| is Rayleigh distributed; the
-  // smoothing kernel sets the grain. Scaled to unit mean so it multiplies the echogenicity.
-  cv::Mat re(g.rows, g.cols, CV_32F), im(g.rows, g.cols, CV_32F);
-  NormalPairs normal(seed);
-  for (int r = 0; r < g.rows; ++r) {
-    float* re_row = re.ptr<float>(r);
-    float* im_row = im.ptr<float>(r);
-    for (int c = 0; c < g.cols; ++c) {
-      normal.next(re_row[c], im_row[c]);
-    }
-  }
-  const double lateral_px = kSpeckleSigmaLateral_m / g.pixel_size_m;
-  const double axial_px = kSpeckleSigmaAxial_m / g.pixel_size_m;
-  gaussianBlurIfWide(re, lateral_px, axial_px);
-  gaussianBlurIfWide(im, lateral_px, axial_px);
-  cv::Mat speckle;
-  cv::magnitude(re, im, speckle);
-  const double mean_speckle = cv::mean(speckle)[0];
-
+  const cv::Mat speckle = rayleighSpeckle(g.size(), kSpeckleSigmaLateral_m / g.pixel_size_m,
+                                          kSpeckleSigmaAxial_m / g.pixel_size_m, seed);
   cv::Mat image;
-  cv::Mat(echo.mul(speckle)).convertTo(image, CV_8U, 255.0 / mean_speckle);  // rounds, saturates
+  cv::Mat(echo.mul(speckle)).convertTo(image, CV_8U, 255.0);  // rounds, saturates
   return image;
 }
 

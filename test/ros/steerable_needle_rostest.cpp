@@ -20,7 +20,9 @@ namespace {
 
 constexpr int kTrials = 8;
 constexpr double kMmTol = 1e-3;       // [mm] CSV rounding of positions (6 significant digits)
-constexpr double kContactTol = 0.05;  // [mm] a stopped tip lies on the workspace edge or outside no further
+constexpr double kContactTol = 0.05;
+// [mm] a tip the tracker called confident (position sd <= 0.5 mm) is within this of the truth
+constexpr double kConfidentTipErrorMm = 2.5;  // [mm] a stopped tip lies on the workspace edge or outside no further
 
 TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
   ros::NodeHandle private_nh("~");
@@ -74,6 +76,29 @@ TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
       const double edge = std::min({x, y, 100.0 - x, 100.0 - y});
       EXPECT_NEAR(edge, 0.0, kContactTol) << "trial " << trial << " stopped at (" << x << ", " << y << ")";
     }
+  }
+  // With image feedback (steerable_needle_image.test) the policy acted on tracked tips: every
+  // decision names its source, and those the tracker was confident of are close to the truth.
+  std::string feedback = "ground_truth";
+  private_nh.getParam("feedback", feedback);
+  EXPECT_NE(text.str().find("\"feedback\": \"" + feedback + "\""), std::string::npos) << text.str();
+  int confident_decisions = 0;
+  for (const auto& row : decisions) {
+    if (row.at("control") == "end") {
+      continue;
+    }
+    if (feedback == "ground_truth") {
+      EXPECT_EQ(row.at("source"), "ground_truth");
+      EXPECT_NEAR(std::stod(row.at("tip_error_mm")), 0.0, kMmTol);
+    } else if (row.at("confident") == "1") {
+      ++confident_decisions;
+      EXPECT_TRUE(row.at("source") == "entry" || row.at("source") == "tracked") << row.at("source");
+      EXPECT_LT(std::stod(row.at("tip_error_mm")), kConfidentTipErrorMm)
+          << "trial " << row.at("trial") << " step " << row.at("step");
+    }
+  }
+  if (feedback == "image") {
+    EXPECT_GT(confident_decisions, 0);
   }
   // Every recorded tip lies in the (closed) workspace.
   for (const auto& row : readCsvRows(report_dir + "/paths.csv")) {

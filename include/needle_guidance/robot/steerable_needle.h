@@ -90,7 +90,7 @@ private:
 /// deflection and every contact.
 struct NeedleJournalEntry {
   std::uint64_t sequence = 0;  ///< 0, 1, 2, ... in the order written
-  /// "set_entry", "flip", "insert" (beginInsertion: the deflection drawn), "advance",
+  /// "set_entry", "reseed", "flip", "insert" (beginInsertion: the deflection drawn), "advance",
   /// "retract", "contact", "contact_cleared".
   std::string event;
   bool accepted = true;
@@ -127,6 +127,9 @@ public:
   CommandStatus checkEntry(const EntryPose& entry) const;
   /// Places the needle guide: entry pose and bevel, empty path, no contact, no pending flip.
   CommandStatus setEntry(const EntryPose& entry);
+  /// Restarts the deflection stream from `seed` (draw 0 next), journaled as "reseed": lets a
+  /// series of trials give every trial its own reproducible stream. Never refused.
+  CommandStatus reseed(std::uint64_t seed);
   /// Rotates the needle by 180 degrees (bevel left <-> right) where it is; the next insertion's
   /// deflection uses sigma_r (two flips in a row still count as a direction change). Ends the
   /// open insertion, if any. Never refused.

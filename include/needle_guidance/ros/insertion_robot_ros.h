@@ -118,6 +118,10 @@ private:
   std::size_t published_path_version_ = static_cast<std::size_t>(-1);
   ros::Publisher measured_tip_pub_;
   ros::Publisher needle_path_pub_;
+  ros::Publisher needle_shape_pub_;  ///< true needle shape (for the simulated imager)
+  ros::Publisher drive_pub_;         ///< guide and joints (for the tip tracker's prediction)
+  std::uint32_t entry_id_ = 0;       ///< accepted entries so far
+  std::uint32_t flips_since_entry_ = 0;
   ros::ServiceServer set_entry_srv_;
 };
 

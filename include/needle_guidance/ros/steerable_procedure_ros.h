@@ -35,6 +35,9 @@ private:
   double retract_velocity_m_s_ = 0.0;
   double flip_velocity_rad_s_ = 0.0;
   double timeout_s_ = 0.0;
+  long seed_ = 1;            ///< per-trial deflection streams (-1: the robot's own stream)
+  int max_unconfident_ = 0;  ///< extra controls to wait for a confident tip before acting
+  std::string feedback_;     ///< label for the report: ground_truth | image
 };
 
 }  // namespace needle_guidance

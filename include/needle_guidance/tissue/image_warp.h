@@ -71,6 +71,12 @@ double meanEchogenicity(const std::string& material_name);
 /// @return CV_8UC1 image of size g.size()
 cv::Mat syntheticUltrasound(const scene::Scene& scene, const ImageGeometry& g, std::uint32_t seed);
 
+/// Fully developed speckle: the magnitude of a complex Gaussian field (std::mt19937, own
+/// Box-Muller: the same on every platform) smoothed by a Gaussian of sigma_x_px / sigma_y_px,
+/// i.e. Rayleigh distributed, scaled to unit mean (CV_32FC1 of `size`). Multiply an
+/// echogenicity map by it.
+cv::Mat rayleighSpeckle(cv::Size size, double sigma_x_px, double sigma_y_px, std::uint32_t seed);
+
 /// The reference (undeformed) image of the slice: scene.imaging.reference_image read as 8-bit
 /// greyscale and resized to g (it is taken to span the image geometry exactly) when the scene
 /// names one, else syntheticUltrasound(scene, g, seed).

@@ -1,0 +1,99 @@
+// Simulated imaging device (DESIGN.md, imager row): frames of the scene plane rendered from the
+// true needle shape, in a fluoroscopy-like and an ultrasound-like mode, with the device's pixel
+// grid, noise, blur and dropped frames. The steering controller of dissertation 5.5 assumes the
+// tip is localised in such an image after every insertion step (figure 5.8). Plain C++ and
+// OpenCV; no ROS (STYLE.md rules 1-2).
+#pragma once
+
+#include <cstdint>
+#include <opencv2/core.hpp>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/scene/scene.h"
+#include "needle_guidance/tissue/image_warp.h"
+
+namespace needle_guidance::imaging {
+
+using geometry::Point2;
+/// Pixel <-> scene calibration of a frame: top-left corner, square pixel size, rows x cols.
+using tissue::ImageGeometry;
+
+enum class Modality : std::uint8_t {
+  /// Projection image as displayed: bright where little is absorbed; bone (the scene's rigid
+  /// regions and obstacles) darker; the metal needle a thin, dark, high-contrast curve.
+  kFluoroscopy,
+  /// B-mode-like image from a linear probe on the workspace's lower face (y = min, beam along
+  /// +y): speckle, depth attenuation, bright tissue boundaries with acoustic shadows behind
+  /// obstacles, a needle that is bright where it faces the beam and faint where it does not, and
+  /// reverberation echoes behind it. Bright is echogenic.
+  kUltrasound,
+};
+/// "fluoroscopy" | "ultrasound".
+std::string toString(Modality modality);
+/// Inverse of toString(Modality); nullopt for anything else.
+std::optional<Modality> modalityFromString(const std::string& name);
+
+/// Everything that defines the simulated device. Lengths in metres, intensities as fractions of
+/// full scale (255 grey levels).
+struct ImagerConfig {
+  Modality modality = Modality::kUltrasound;
+  ImageGeometry geometry;         ///< the pixel grid (calibration); validated
+  double noise_std = 0.0;         ///< additive Gaussian noise per frame, fraction of full scale, >= 0
+  double blur_sigma_m = 0.0;      ///< Gaussian point-spread function, >= 0 [m]
+  double drop_probability = 0.0;  ///< probability that a frame is lost, in [0, 1)
+  double needle_diameter_m = 0.5e-3;  ///< drawn width of the needle, > 0 [m]
+  std::uint64_t seed = 1;         ///< seed of everything random (speckle, noise, drops)
+  /// Throws std::invalid_argument naming the field and its value when anything is out of range.
+  void validate() const;
+};
+
+/// The device of a scene: its imaging section (modality, pixel size, noise, blur, drops) over a
+/// pixel grid covering the workspace (tissue::forWorkspace).
+/// Throws std::invalid_argument for an unknown modality.
+ImagerConfig imagerConfigFromScene(const scene::Scene& scene, std::uint64_t seed = 1);
+
+/// A field of view of cols x rows pixels of pixel_size_m centred on the workspace's centre (the
+/// whole workspace, tissue::forWorkspace, when cols or rows is 0). Throws std::invalid_argument
+/// for a pixel size that is not positive and finite or a negative count.
+ImageGeometry fieldOfView(const scene::Scene& scene, double pixel_size_m, int cols = 0,
+                          int rows = 0);
+
+/// One frame. `image` is CV_8UC1 of config.geometry.size(); empty when dropped.
+struct Frame {
+  std::uint64_t index = 0;  ///< frame number (0, 1, 2, ...): with the seed it fixes every random draw
+  bool dropped = false;     ///< true: the device lost this frame (image empty)
+  cv::Mat image;
+};
+
+/// Renders frames of one scene. The static anatomy (background, obstacles, regions, and in
+/// ultrasound the speckle pattern of the tissue, which does not change while the tissue does not
+/// move) is made once at construction; each frame adds the needle, the blur and that frame's
+/// noise. Deterministic: the same (config, needle, index) gives the same frame bit for bit.
+class FrameRenderer {
+public:
+  /// Throws std::invalid_argument from config.validate().
+  FrameRenderer(const scene::Scene& scene, const ImagerConfig& config);
+
+  /// Frame `index` of the needle whose inserted shape is `needle_points` (entry -> tip, frame
+  /// scene [m], spaced finely enough to draw as a polyline; empty or one point = no needle in the
+  /// image). Parts of the needle outside the field of view are clipped. Throws
+  /// std::invalid_argument if a point is not finite.
+  Frame render(const std::vector<Point2>& needle_points, std::uint64_t index) const;
+
+  /// Whether frame `index` is dropped (the same draw render() uses).
+  bool dropped(std::uint64_t index) const;
+
+  const ImagerConfig& config() const { return config_; }
+  /// The static anatomy before blur and noise, as fractions of full scale (CV_32FC1).
+  const cv::Mat& anatomy() const { return anatomy_; }
+
+private:
+  ImagerConfig config_;
+  cv::Mat anatomy_;      ///< CV_32FC1, static part of the frame
+  cv::Mat attenuation_;  ///< CV_32FC1, ultrasound: per-pixel gain of depth attenuation and shadows
+};
+
+}  // namespace needle_guidance::imaging

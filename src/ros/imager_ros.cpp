@@ -1,0 +1,127 @@
+#include "needle_guidance/ros/imager_ros.h"
+
+#include <cv_bridge/cv_bridge.h>
+
+#include <cmath>
+#include <stdexcept>
+
+#include "needle_guidance/ImageCalibration.h"
+#include "needle_guidance/ros/params.h"
+#include "needle_guidance/scene/scene.h"
+
+namespace needle_guidance {
+namespace {
+
+constexpr const char* kName = "imager";
+constexpr double kThrottle_s = 5.0;
+constexpr double kMaxFrameRate_hz = 1000.0;
+constexpr long kMaxImageSide_px = 8192;
+
+}  // namespace
+
+ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
+  ROS_INFO("imager parameters:");
+  const scene::Scene scene =
+      scene::loadSceneSpec(ros_params::text(private_nh, "scene", "steering_workspace"));
+  imaging::ImagerConfig config =
+      imaging::imagerConfigFromScene(scene, static_cast<std::uint64_t>(ros_params::integer(
+                                                private_nh, "seed", 1, 0, 1L << 53, "")));
+  // Every device setting defaults to the scene's imaging section.
+  const std::string modality = ros_params::text(private_nh, "modality", "");
+  if (!modality.empty()) {
+    const auto m = imaging::modalityFromString(modality);
+    if (!m) {
+      throw std::runtime_error("parameter '" + private_nh.resolveName("modality") + "' = '" +
+                               modality + "' is not ultrasound or fluoroscopy");
+    }
+    config.modality = *m;
+  }
+  const double pixel_size_m = ros_params::number(private_nh, "pixel_size_m",
+                                                 config.geometry.pixel_size_m, 1e-6, 0.01, "m");
+  const int width = static_cast<int>(
+      ros_params::integer(private_nh, "width_px", 0, 0, kMaxImageSide_px, "px (0 = workspace)"));
+  const int height = static_cast<int>(
+      ros_params::integer(private_nh, "height_px", 0, 0, kMaxImageSide_px, "px (0 = workspace)"));
+  config.geometry = imaging::fieldOfView(scene, pixel_size_m, width, height);
+  config.noise_std = ros_params::number(private_nh, "noise_std", config.noise_std, 0.0, 10.0, "");
+  config.blur_sigma_m =
+      ros_params::number(private_nh, "blur_sigma_m", config.blur_sigma_m, 0.0, 0.01, "m");
+  config.drop_probability = ros_params::number(private_nh, "drop_probability",
+                                               config.drop_probability, 0.0, 0.99, "");
+  frame_rate_hz_ = ros_params::number(private_nh, "frame_rate_hz", scene.imaging.frame_rate_hz,
+                                      0.1, kMaxFrameRate_hz, "Hz");
+  renderer_ = std::make_unique<imaging::FrameRenderer>(scene, config);
+
+  ImageCalibration calibration;
+  calibration.header.stamp = ros::Time::now();
+  calibration.header.frame_id = "scene";
+  calibration.modality = imaging::toString(config.modality);
+  calibration.origin_x_m = config.geometry.origin_m.x();
+  calibration.origin_y_m = config.geometry.origin_m.y();
+  calibration.pixel_size_m = config.geometry.pixel_size_m;
+  calibration.width = static_cast<std::uint32_t>(config.geometry.cols);
+  calibration.height = static_cast<std::uint32_t>(config.geometry.rows);
+  calibration.frame_rate_hz = frame_rate_hz_;
+  calibration.noise_std = config.noise_std;
+  calibration.blur_sigma_m = config.blur_sigma_m;
+  calibration.drop_probability = config.drop_probability;
+  calibration.seed = config.seed;
+  calibration_pub_ = private_nh.advertise<ImageCalibration>("calibration", 1, true);
+  calibration_pub_.publish(calibration);
+  image_pub_ = private_nh.advertise<sensor_msgs::Image>("image", 5);
+  shape_sub_ = nh.subscribe("needle_shape", 5, &ImagerRos::onShape, this);
+  frame_timer_ = nh.createTimer(ros::Duration(1.0 / frame_rate_hz_), &ImagerRos::onFrameTimer, this);
+  ROS_INFO_STREAM_NAMED(kName, "imager: " << calibration.modality << " " << calibration.width
+                                          << " x " << calibration.height << " px of "
+                                          << pixel_size_m * 1e3 << " mm at " << frame_rate_hz_
+                                          << " Hz on scene '" << scene.name << "'");
+}
+
+ImagerRos::~ImagerRos() {
+  ROS_INFO_STREAM_NAMED(kName, "imager: " << published_ << " frames published, " << dropped_
+                                          << " dropped");
+}
+
+void ImagerRos::onShape(const NeedleShapeConstPtr& msg) {
+  std::vector<imaging::Point2> points;
+  points.reserve(msg->points.size());
+  for (const geometry_msgs::Point& p : msg->points) {
+    if (!(std::isfinite(p.x) && std::isfinite(p.y))) {
+      ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
+                                      "imager: needle shape with a non-finite point ignored");
+      return;
+    }
+    points.emplace_back(p.x, p.y);
+  }
+  std::lock_guard<std::mutex> lock(mutex_);
+  needle_points_ = std::move(points);
+  shape_stamp_ = msg->header.stamp;
+  have_shape_ = true;
+}
+
+void ImagerRos::onFrameTimer(const ros::TimerEvent& /*event*/) {
+  std::vector<imaging::Point2> points;
+  ros::Time stamp = ros::Time::now();
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (have_shape_) {
+      points = needle_points_;
+      stamp = shape_stamp_;  // the frame shows the needle as it was then
+    }
+  }
+  const imaging::Frame frame = renderer_->render(points, next_index_++);
+  if (frame.dropped) {
+    ++dropped_;
+    return;
+  }
+  cv_bridge::CvImage image;
+  image.header.stamp = stamp;
+  image.header.frame_id = "imager";
+  image.header.seq = static_cast<std::uint32_t>(frame.index);
+  image.encoding = "mono8";
+  image.image = frame.image;
+  image_pub_.publish(image.toImageMsg());
+  ++published_;
+}
+
+}  // namespace needle_guidance

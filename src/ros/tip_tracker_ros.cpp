@@ -1,0 +1,201 @@
+#include "needle_guidance/ros/tip_tracker_ros.h"
+
+#include <cv_bridge/cv_bridge.h>
+
+#include <Eigen/Eigenvalues>
+
+#include <cmath>
+#include <opencv2/imgproc.hpp>
+#include <stdexcept>
+
+#include "needle_guidance/NeedleTip.h"
+#include "needle_guidance/ros/params.h"
+
+namespace needle_guidance {
+namespace {
+
+constexpr const char* kName = "tip_tracker";
+constexpr double kThrottle_s = 5.0;
+constexpr double kPi = 3.14159265358979323846;
+constexpr std::size_t kMaxBufferedDrives = 1000;
+constexpr double kDebugTipRadius_px = 6.0;
+constexpr double kDebugHeadingLength_px = 30.0;
+
+NeedleTip toMessage(const imaging::TipEstimate& e, const std_msgs::Header& image_header) {
+  NeedleTip msg;
+  msg.header.stamp = image_header.stamp;
+  msg.header.frame_id = "scene";
+  msg.pose.x = e.tip.p_SceneTip.x();
+  msg.pose.y = e.tip.p_SceneTip.y();
+  msg.pose.theta = e.tip.theta_rad;
+  msg.bevel = steering::toString(e.tip.bevel);
+  msg.inserted_length_m = e.inserted_length_m;
+  msg.source = imaging::toString(e.status);
+  msg.confident = e.confident;
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) {
+      msg.covariance[static_cast<std::size_t>(3 * r + c)] = e.covariance(r, c);
+    }
+  }
+  return msg;
+}
+
+/// The frame in colour with the estimate drawn: green = confident, yellow = not; the detection
+/// (if any) as a cyan cross; the status in the corner.
+cv::Mat debugImage(const cv::Mat& frame, const imaging::TipEstimate& e,
+                   const imaging::ImageGeometry& g) {
+  cv::Mat bgr;
+  if (frame.type() == CV_8UC1) {
+    cv::cvtColor(frame, bgr, cv::COLOR_GRAY2BGR);
+  } else {
+    bgr = cv::Mat(g.size(), CV_8UC3, cv::Scalar(0, 0, 0));
+  }
+  const cv::Scalar colour = e.confident ? cv::Scalar(0, 220, 0) : cv::Scalar(0, 220, 255);
+  const cv::Point2d tip = g.toPixel(e.tip.p_SceneTip);
+  const cv::Point2d ahead(tip.x + kDebugHeadingLength_px * std::cos(e.tip.theta_rad),
+                          tip.y - kDebugHeadingLength_px * std::sin(e.tip.theta_rad));
+  cv::circle(bgr, tip, static_cast<int>(kDebugTipRadius_px), colour, 1, cv::LINE_AA);
+  cv::line(bgr, tip, ahead, colour, 1, cv::LINE_AA);
+  // One-sigma position ellipse.
+  const Eigen::Matrix2d p = e.covariance.topLeftCorner<2, 2>();
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> eig(p);
+  if (eig.info() == Eigen::Success && eig.eigenvalues().minCoeff() >= 0.0) {
+    const Eigen::Vector2d axis = eig.eigenvectors().col(1);
+    const double angle_deg = std::atan2(-axis.y(), axis.x()) * 180.0 / kPi;
+    cv::ellipse(bgr, tip,
+                cv::Size2d(std::sqrt(eig.eigenvalues()(1)) / g.pixel_size_m + 1.0,
+                           std::sqrt(eig.eigenvalues()(0)) / g.pixel_size_m + 1.0),
+                angle_deg, 0.0, 360.0, colour, 1, cv::LINE_AA);
+  }
+  if (e.detection.found) {
+    cv::drawMarker(bgr, g.toPixel(e.detection.p_SceneTip), cv::Scalar(255, 255, 0),
+                   cv::MARKER_CROSS, 10, 1);
+  }
+  cv::putText(bgr, imaging::toString(e.status) + (e.confident ? " (confident)" : ""),
+              cv::Point(8, 20), cv::FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv::LINE_AA);
+  return bgr;
+}
+
+}  // namespace
+
+TipTrackerRos::TipTrackerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
+  ROS_INFO("tip_tracker parameters:");
+  scene_ = scene::loadSceneSpec(ros_params::text(private_nh, "scene", "steering_workspace"));
+  // Validate that the scene can be tracked now, with the scene's own imaging settings.
+  settings_ = imaging::trackerConfigFromScene(scene_, imaging::imagerConfigFromScene(scene_));
+  settings_.search_margin_m = ros_params::number(private_nh, "search_margin_m",
+                                                 settings_.search_margin_m, 0.0, 0.1, "m");
+  settings_.gate_chi2 =
+      ros_params::number(private_nh, "gate_chi2", settings_.gate_chi2, 1.0, 1e6, "");
+  settings_.confident_position_std_m =
+      ros_params::number(private_nh, "confident_position_std_m",
+                         settings_.confident_position_std_m, 1e-6, 0.1, "m");
+  settings_.confident_heading_std_rad =
+      ros_params::number(private_nh, "confident_heading_std_rad",
+                         settings_.confident_heading_std_rad, 1e-4, 1.0, "rad");
+  tip_pub_ = private_nh.advertise<NeedleTip>("tip", 10);
+  debug_pub_ = private_nh.advertise<sensor_msgs::Image>("debug_image", 2);
+  calibration_sub_ = nh.subscribe("calibration", 1, &TipTrackerRos::onCalibration, this);
+  drive_sub_ = nh.subscribe("drive", 200, &TipTrackerRos::onDrive, this);
+  image_sub_ = nh.subscribe("image", 5, &TipTrackerRos::onImage, this);
+}
+
+void TipTrackerRos::onCalibration(const ImageCalibrationConstPtr& msg) {
+  imaging::TrackerConfig config = settings_;
+  const auto modality = imaging::modalityFromString(msg->modality);
+  if (!modality) {
+    ROS_ERROR_STREAM_NAMED(kName, "tip_tracker: calibration refused: modality '"
+                                      << msg->modality << "' is not ultrasound or fluoroscopy");
+    return;
+  }
+  config.modality = *modality;
+  config.geometry.origin_m = imaging::Point2(msg->origin_x_m, msg->origin_y_m);
+  config.geometry.pixel_size_m = msg->pixel_size_m;
+  config.geometry.cols = static_cast<int>(msg->width);
+  config.geometry.rows = static_cast<int>(msg->height);
+  try {
+    auto tracker = std::make_unique<imaging::TipTracker>(config);
+    tracker_ = std::move(tracker);  // the state before the new calibration is not kept
+    have_entry_ = false;
+    ROS_INFO_STREAM_NAMED(kName, "tip_tracker: calibration " << msg->modality << " " << msg->width
+                                                             << " x " << msg->height << " px of "
+                                                             << msg->pixel_size_m * 1e3 << " mm");
+  } catch (const std::invalid_argument& e) {
+    ROS_ERROR_STREAM_NAMED(kName, "tip_tracker: calibration refused: " << e.what());
+  }
+}
+
+void TipTrackerRos::onDrive(const NeedleDriveConstPtr& msg) {
+  drives_.push_back(*msg);
+  if (drives_.size() > kMaxBufferedDrives) {
+    drives_.pop_front();
+  }
+}
+
+void TipTrackerRos::applyDrives(const ros::Time& stamp) {
+  while (!drives_.empty() && drives_.front().header.stamp <= stamp) {
+    const NeedleDrive d = drives_.front();
+    drives_.pop_front();
+    const auto bevel = steering::bevelFromString(d.bevel);
+    if (!bevel || !std::isfinite(d.inserted_length_m) || !std::isfinite(d.entry.x) ||
+        !std::isfinite(d.entry.y) || !std::isfinite(d.entry.theta)) {
+      ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
+                                      "tip_tracker: drive message with bevel '"
+                                          << d.bevel << "' or a non-finite value ignored");
+      continue;
+    }
+    if (!have_entry_ || d.entry_id != entry_id_) {
+      steering::TipPose entry;
+      entry.p_SceneTip = imaging::Point2(d.entry.x, d.entry.y);
+      entry.theta_rad = d.entry.theta;
+      entry.bevel = *bevel;
+      // The guide is where the robot put it; the bevel at the entry is the one before any flip.
+      if (d.flips % 2 == 1) {
+        entry.bevel = steering::flipped(*bevel);
+      }
+      tracker_->reset(entry);
+      entry_id_ = d.entry_id;
+      have_entry_ = true;
+    }
+    tracker_->onDrive(d.inserted_length_m, *bevel, d.flips);
+    last_drive_ = d;
+  }
+}
+
+void TipTrackerRos::onImage(const sensor_msgs::ImageConstPtr& msg) {
+  if (!tracker_) {
+    ROS_WARN_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
+                                   "tip_tracker: no calibration yet; frame ignored");
+    return;
+  }
+  applyDrives(msg->header.stamp);
+  if (!have_entry_) {
+    ROS_WARN_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
+                                   "tip_tracker: no needle guide pose from the robot yet; frame "
+                                   "ignored");
+    return;
+  }
+  cv::Mat frame;
+  std::string encoding_error;
+  try {
+    frame = cv_bridge::toCvShare(msg)->image;  // as sent: the tracker checks size and type
+  } catch (const std::exception& e) {
+    encoding_error = e.what();
+  }
+  imaging::TipEstimate estimate = tracker_->onFrame(frame);
+  if (!encoding_error.empty()) {
+    estimate.message = "image encoding '" + msg->encoding + "' unusable: " + encoding_error;
+  }
+  ++frames_;
+  if (estimate.status == imaging::TrackStatus::kBadFrame) {
+    ROS_WARN_STREAM_THROTTLE_NAMED(kThrottle_s, kName, "tip_tracker: " << estimate.message);
+  }
+  tip_pub_.publish(toMessage(estimate, msg->header));
+  if (debug_pub_.getNumSubscribers() > 0) {
+    cv_bridge::CvImage debug(msg->header, "bgr8",
+                             debugImage(frame, estimate, tracker_->config().geometry));
+    debug_pub_.publish(debug.toImageMsg());
+  }
+}
+
+}  // namespace needle_guidance

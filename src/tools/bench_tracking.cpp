@@ -1,0 +1,434 @@
+// Benchmark of needle-tip tracking from images (issue 6) on steering_workspace:
+// 1. accuracy: seeded needle insertions (entry, flips and deflections as in 5.3) imaged by the
+//    simulated imager in 640 x 480 frames (0.2 mm pixels) in both modalities over noise levels;
+//    at every step the TipTracker (ridge + RANSAC arc + filter) output, its raw single-frame
+//    detection and the plain OpenCV HoughLinesP baseline (same window, same prior) against the
+//    true tip: tip error [mm], heading error [deg], frames per second on one core;
+// 2. closed loop: the same seeded trials from the policy's best start with ground-truth and with
+//    image feedback (runGuidedTrial), success rate with its 95 % interval against noise.
+// Usage: bench_tracking --out DIR [--quick] [--scene SPEC]
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <iostream>
+#include <map>
+#include <random>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/imaging/frame_renderer.h"
+#include "needle_guidance/imaging/guided_trial.h"
+#include "needle_guidance/imaging/tip_tracker.h"
+#include "needle_guidance/report/bench_args.h"
+#include "needle_guidance/report/statistics.h"
+#include "needle_guidance/report/table.h"
+#include "needle_guidance/robot/steerable_needle.h"
+#include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/monte_carlo.h"
+#include "needle_guidance/steering/value_iteration.h"
+
+namespace ng = needle_guidance;
+namespace im = ng::imaging;
+namespace st = ng::steering;
+
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+constexpr double kMmPerM = 1e3;
+constexpr double kDegPerRad = 180.0 / kPi;
+constexpr int kCols = 640;
+constexpr int kRows = 480;
+constexpr double kPixel_m = 0.2e-3;
+/// The devices' default settings: ultrasound 0.1 noise with a 0.3 mm PSF; fluoroscopy the
+/// scene's (0.02, 0.2 mm).
+constexpr double kUsNoise = 0.1;
+constexpr double kUsBlur_m = 0.3e-3;
+constexpr double kFluoroNoise = 0.02;
+constexpr double kFluoroBlur_m = 0.2e-3;
+const std::vector<double> kNoiseLevels = {0.0, 0.05, 0.1, 0.2, 0.3};
+/// Entries of the accuracy sequences: heights and angles that keep most of them in view.
+constexpr double kEntryMinY_m = 0.02, kEntryMaxY_m = 0.08;
+constexpr double kEntryMaxAngle_rad = 0.35;
+constexpr double kFlipProbability = 0.3;
+constexpr int kMaxSequenceSteps = 9;
+constexpr std::uint64_t kSequenceSeed = 2026;
+constexpr std::uint64_t kTrialSeed = 1;
+constexpr double kWithin_mm = 1.0;
+
+double secondsSince(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+double headingError(double a, double b) { return std::abs(std::remainder(a - b, 2.0 * kPi)); }
+
+im::ImagerConfig deviceConfig(const ng::scene::Scene& scene, im::Modality modality, double noise,
+                              std::uint64_t seed) {
+  im::ImagerConfig c = im::imagerConfigFromScene(scene, seed);
+  c.modality = modality;
+  c.geometry = im::fieldOfView(scene, kPixel_m, kCols, kRows);
+  c.noise_std = noise;
+  c.blur_sigma_m = modality == im::Modality::kUltrasound ? kUsBlur_m : kFluoroBlur_m;
+  c.drop_probability = 0.0;
+  return c;
+}
+
+struct Errors {
+  std::vector<double> tip_mm, heading_deg;
+  int attempts = 0;
+  double seconds = 0.0;
+  void add(const ng::geometry::Point2& p, double theta, const st::TipPose& truth) {
+    tip_mm.push_back((p - truth.p_SceneTip).norm() * kMmPerM);
+    heading_deg.push_back(headingError(theta, truth.theta_rad) * kDegPerRad);
+  }
+};
+
+/// Fraction of all attempts (misses count as outside) with a tip error within limit_mm.
+double within(const Errors& e, double limit_mm) {
+  const auto n = std::count_if(e.tip_mm.begin(), e.tip_mm.end(), [&](double v) { return v <= limit_mm; });
+  return e.attempts > 0 ? double(n) / e.attempts : 0.0;
+}
+
+/// An example frame with the truth (green) and the estimate (red) drawn, for the report.
+void writeExample(const std::string& path, const cv::Mat& frame, const im::ImageGeometry& g,
+                  const st::TipPose& truth, const im::TipEstimate& est,
+                  const im::Detection& hough) {
+  cv::Mat bgr;
+  cv::cvtColor(frame, bgr, cv::COLOR_GRAY2BGR);
+  auto arrow = [&](const st::TipPose& p, const cv::Scalar& colour) {
+    const cv::Point2d a = g.toPixel(p.p_SceneTip);
+    const cv::Point2d b(a.x + 25.0 * std::cos(p.theta_rad), a.y - 25.0 * std::sin(p.theta_rad));
+    cv::circle(bgr, a, 5, colour, 1, cv::LINE_AA);
+    cv::line(bgr, a, b, colour, 1, cv::LINE_AA);
+  };
+  arrow(truth, cv::Scalar(0, 200, 0));
+  arrow(est.tip, cv::Scalar(0, 0, 255));
+  if (hough.found) {
+    cv::drawMarker(bgr, g.toPixel(hough.p_SceneTip), cv::Scalar(255, 200, 0), cv::MARKER_CROSS,
+                   10, 1);
+  }
+  cv::putText(bgr, "green truth, red tracker (" + im::toString(est.status) + "), cyan Hough",
+              cv::Point(8, 18), cv::FONT_HERSHEY_SIMPLEX, 0.45, cv::Scalar(255, 255, 255), 1,
+              cv::LINE_AA);
+  cv::imwrite(path, bgr);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  auto args = ng::report::parseBenchArgs(argc, argv, "bench_tracking");
+  if (!args) {
+    return 2;
+  }
+  if (args->scene == "prostate_sagittal") {
+    args->scene = "steering_workspace";  // the bench's default scene
+  }
+  cv::setNumThreads(1);  // every figure is for one core
+  const ng::scene::Scene scene = ng::scene::loadSceneSpec(args->scene);
+  const st::SteeringProblem problem = st::problemFromScene(scene, "");
+  const double delta_m = 2.0 * kPi * problem.params.radius_m / problem.params.orientations;
+  ng::robot::SteerableNeedleConfig needle_config;
+  needle_config.start_x_m = scene.steering->start_x_m;
+  needle_config.min_height_m = scene.needle.min_height_m;
+  needle_config.max_height_m = scene.needle.max_height_m;
+  needle_config.sigma_insert_rad = problem.params.sigma_insert_rad;
+  needle_config.sigma_flip_rad = problem.params.sigma_flip_rad;
+  const int sequences = args->quick ? 25 : 120;
+  const int trials = args->quick ? 40 : 300;
+
+  // ---- 1. accuracy over seeded insertion sequences ----
+  ng::report::Table frames_csv({"modality", "noise_std", "sequence", "step", "status", "confident",
+                                "tracker_tip_mm", "tracker_heading_deg", "detection_tip_mm",
+                                "detection_heading_deg", "hough_tip_mm", "hough_heading_deg"},
+                               6);
+  ng::report::Table accuracy({"modality", "noise_std", "method", "frames", "found_fraction",
+                              "within_1mm_fraction",
+                              "tip_error_mm_median", "tip_error_mm_p90", "heading_error_deg_median",
+                              "ms_per_frame", "fps"},
+                             6);
+  std::map<std::string, double> headline;
+  bool better_than_hough_everywhere = true;
+  for (const im::Modality modality : {im::Modality::kUltrasound, im::Modality::kFluoroscopy}) {
+    for (const double noise : kNoiseLevels) {
+      const im::ImagerConfig device = deviceConfig(scene, modality, noise, kSequenceSeed);
+      const im::FrameRenderer renderer(scene, device);
+      const im::TrackerConfig tracker_config = im::trackerConfigFromScene(scene, device);
+      Errors tracker_err, detect_err, hough_err;
+      std::uint64_t frame_index = 0;
+      int confident = 0, estimates = 0;
+      std::mt19937_64 rng(kSequenceSeed);
+      std::uniform_real_distribution<double> u01(0.0, 1.0);
+      for (int seq = 0; seq < sequences; ++seq) {
+        ng::robot::EntryPose entry;
+        entry.height_m = kEntryMinY_m + (kEntryMaxY_m - kEntryMinY_m) * u01(rng);
+        entry.angle_rad = kEntryMaxAngle_rad * (2.0 * u01(rng) - 1.0);
+        entry.bevel = u01(rng) < 0.5 ? st::Bevel::kLeft : st::Bevel::kRight;
+        needle_config.seed = kSequenceSeed * 1000 + std::uint64_t(seq);
+        ng::robot::SteerableNeedle needle(problem, needle_config, entry);
+        im::TipTracker tracker(tracker_config);
+        tracker.reset(needle.tip());
+        std::uint32_t flips = 0;
+        const int steps = 2 + int(u01(rng) * (kMaxSequenceSteps - 1));
+        for (int step = 0; step < steps; ++step) {
+          if (u01(rng) < kFlipProbability) {
+            needle.flip();
+            ++flips;
+          }
+          const auto moved = needle.insertTo(needle.insertedLength_m() + delta_m);
+          const im::TipEstimate predicted =
+              tracker.onDrive(needle.insertedLength_m(), needle.bevel(), flips);
+          if (moved.outcome() != ng::robot::MotionOutcome::kMoved) {
+            break;  // touched an obstacle or left the workspace: the sequence ends
+          }
+          const st::TipPose truth = needle.tip();
+          const im::Frame frame = renderer.render(needle.pathPoints(0.5e-3), frame_index++);
+          im::SearchPrior prior;
+          prior.tip = predicted.tip;
+          prior.covariance = predicted.covariance;
+
+          auto t0 = std::chrono::steady_clock::now();
+          const im::TipEstimate est = tracker.onFrame(frame.image);
+          tracker_err.seconds += secondsSince(t0);
+          t0 = std::chrono::steady_clock::now();
+          const im::Detection det = im::detectTip(frame.image, tracker_config, prior);
+          detect_err.seconds += secondsSince(t0);
+          t0 = std::chrono::steady_clock::now();
+          const im::Detection hough = im::houghBaselineTip(frame.image, tracker_config, prior);
+          hough_err.seconds += secondsSince(t0);
+          ++tracker_err.attempts;
+          ++detect_err.attempts;
+          ++hough_err.attempts;
+          ++estimates;
+          confident += est.confident ? 1 : 0;
+          const bool in_view = est.status != im::TrackStatus::kOutOfView;
+          if (in_view) {
+            tracker_err.add(est.tip.p_SceneTip, est.tip.theta_rad, truth);
+          }
+          if (det.found) {
+            detect_err.add(det.p_SceneTip, det.theta_rad, truth);
+          }
+          if (hough.found) {
+            hough_err.add(hough.p_SceneTip, hough.theta_rad, truth);
+          }
+          auto err = [&](bool ok, const ng::geometry::Point2& p, double theta, bool tip) {
+            if (!ok) {
+              return ng::report::Cell(std::string(""));
+            }
+            return ng::report::Cell(tip ? (p - truth.p_SceneTip).norm() * kMmPerM
+                                               : headingError(theta, truth.theta_rad) * kDegPerRad);
+          };
+          frames_csv.addRow({im::toString(modality), noise, double(seq), double(step),
+                             im::toString(est.status), double(est.confident ? 1 : 0),
+                             err(in_view, est.tip.p_SceneTip, est.tip.theta_rad, true),
+                             err(in_view, est.tip.p_SceneTip, est.tip.theta_rad, false),
+                             err(det.found, det.p_SceneTip, det.theta_rad, true),
+                             err(det.found, det.p_SceneTip, det.theta_rad, false),
+                             err(hough.found, hough.p_SceneTip, hough.theta_rad, true),
+                             err(hough.found, hough.p_SceneTip, hough.theta_rad, false)});
+          if (seq == 3 && step == steps - 1 && (noise == kUsNoise || noise == 0.05)) {
+            writeExample(args->out_dir + "/example_" + im::toString(modality) + "_noise" +
+                             std::to_string(int(std::lround(noise * 100))) + ".png",
+                         frame.image, device.geometry, truth, est, hough);
+          }
+        }
+      }
+      auto addRow = [&](const std::string& method, const Errors& e) {
+        const double ms = e.attempts > 0 ? 1e3 * e.seconds / e.attempts : 0.0;
+        accuracy.addRow({im::toString(modality), noise, method, double(e.attempts),
+                         e.attempts > 0 ? double(e.tip_mm.size()) / e.attempts : 0.0,
+                         within(e, kWithin_mm),
+                         ng::report::median(e.tip_mm), ng::report::quantile(e.tip_mm, 0.9),
+                         ng::report::median(e.heading_deg), ms, ms > 0.0 ? 1e3 / ms : 0.0});
+      };
+      addRow("tracker", tracker_err);
+      addRow("detection", detect_err);
+      addRow("hough", hough_err);
+      const double ours = ng::report::median(detect_err.tip_mm);
+      const double theirs = ng::report::median(hough_err.tip_mm);
+      const double ours_found = double(detect_err.tip_mm.size()) / std::max(1, detect_err.attempts);
+      const double theirs_found = double(hough_err.tip_mm.size()) / std::max(1, hough_err.attempts);
+      // Better = a lower median error where found AND more frames within 1 mm of the truth
+      // (a miss counts as outside): a detector cannot win by answering only easy frames.
+      const double ours_within = within(detect_err, kWithin_mm);
+      const double theirs_within = within(hough_err, kWithin_mm);
+      if (!(ours < theirs && ours_within > theirs_within)) {
+        better_than_hough_everywhere = false;
+      }
+      std::cout << "[tracking] " << im::toString(modality) << " noise " << noise
+                << ": tracker median " << ng::report::median(tracker_err.tip_mm) << " mm / "
+                << ng::report::median(tracker_err.heading_deg) << " deg, detection " << ours
+                << " mm (found " << ours_found << ", within 1 mm " << ours_within << "), hough "
+                << theirs << " mm (found " << theirs_found << ", within 1 mm " << theirs_within
+                << "), " << 1e3 * tracker_err.seconds / std::max(1, tracker_err.attempts)
+                << " ms/frame, confident " << double(confident) / std::max(1, estimates) << "\n";
+      const bool us = modality == im::Modality::kUltrasound;
+      if (us && noise == kUsNoise) {
+        headline["tip_error_mm_median_us"] = ng::report::median(tracker_err.tip_mm);
+        headline["heading_error_deg_median_us"] = ng::report::median(tracker_err.heading_deg);
+        headline["detection_tip_error_mm_median_us"] = ours;
+        headline["hough_tip_error_mm_median_us"] = theirs;
+        headline["hough_heading_error_deg_median_us"] = ng::report::median(hough_err.heading_deg);
+        headline["fps_640x480"] = tracker_err.seconds > 0.0 ? tracker_err.attempts / tracker_err.seconds : 0.0;
+        headline["hough_fps_640x480"] = hough_err.seconds > 0.0 ? hough_err.attempts / hough_err.seconds : 0.0;
+        headline["confident_fraction_us"] = double(confident) / std::max(1, estimates);
+      }
+      if (!us && noise == 0.0) {
+        headline["tip_error_mm_median_fluoro_noise0"] = ng::report::median(tracker_err.tip_mm);
+      }
+    }
+  }
+  // Fluoroscopy at its default noise (not on the sweep grid): one more pass of the tracker.
+  {
+    const im::ImagerConfig device =
+        deviceConfig(scene, im::Modality::kFluoroscopy, kFluoroNoise, kSequenceSeed);
+    const im::FrameRenderer renderer(scene, device);
+    const im::TrackerConfig tracker_config = im::trackerConfigFromScene(scene, device);
+    Errors e;
+    std::mt19937_64 rng(kSequenceSeed);
+    std::uniform_real_distribution<double> u01(0.0, 1.0);
+    std::uint64_t frame_index = 0;
+    for (int seq = 0; seq < sequences; ++seq) {
+      ng::robot::EntryPose entry;
+      entry.height_m = kEntryMinY_m + (kEntryMaxY_m - kEntryMinY_m) * u01(rng);
+      entry.angle_rad = kEntryMaxAngle_rad * (2.0 * u01(rng) - 1.0);
+      entry.bevel = u01(rng) < 0.5 ? st::Bevel::kLeft : st::Bevel::kRight;
+      needle_config.seed = kSequenceSeed * 1000 + std::uint64_t(seq);
+      ng::robot::SteerableNeedle needle(problem, needle_config, entry);
+      im::TipTracker tracker(tracker_config);
+      tracker.reset(needle.tip());
+      std::uint32_t flips = 0;
+      const int steps = 2 + int(u01(rng) * (kMaxSequenceSteps - 1));
+      for (int step = 0; step < steps; ++step) {
+        if (u01(rng) < kFlipProbability) {
+          needle.flip();
+          ++flips;
+        }
+        const auto moved = needle.insertTo(needle.insertedLength_m() + delta_m);
+        tracker.onDrive(needle.insertedLength_m(), needle.bevel(), flips);
+        if (moved.outcome() != ng::robot::MotionOutcome::kMoved) {
+          break;
+        }
+        const im::TipEstimate est =
+            tracker.onFrame(renderer.render(needle.pathPoints(0.5e-3), frame_index++).image);
+        if (est.status != im::TrackStatus::kOutOfView) {
+          e.add(est.tip.p_SceneTip, est.tip.theta_rad, needle.tip());
+        }
+      }
+    }
+    headline["tip_error_mm_median_fluoro"] = ng::report::median(e.tip_mm);
+    headline["heading_error_deg_median_fluoro"] = ng::report::median(e.heading_deg);
+  }
+
+  // ---- 2. closed loop: the same seeded trials with each kind of feedback ----
+  const st::SteeringModel model(problem);
+  const st::PolicyTable table = st::solveValueIteration(model);
+  const st::BestStart best = table.bestStart(st::startOptionsFromScene(scene));
+  if (!best) {
+    std::cerr << "bench_tracking: no start state: " << best.message << "\n";
+    return 1;
+  }
+  ng::robot::EntryPose start;
+  start.height_m = best.best.pose.p_SceneTip.y();
+  start.angle_rad = best.best.pose.theta_rad;
+  start.bevel = best.best.pose.bevel;
+  needle_config.seed = kTrialSeed;
+  ng::robot::SteerableNeedle world(problem, needle_config, start);
+  ng::report::Table loop_csv({"feedback", "modality", "noise_std", "trials", "successes",
+                              "success_rate", "ci_low", "ci_high", "tip_error_mm_median",
+                              "heading_error_deg_median", "unconfident_decisions",
+                              "frames_per_decision", "seconds"},
+                             6);
+  struct Feedback {
+    std::string name;
+    im::Modality modality;
+    double noise;
+  };
+  std::vector<Feedback> feedbacks = {{"ground_truth", im::Modality::kUltrasound, 0.0}};
+  for (const double noise : {0.05, 0.1, 0.2, 0.3}) {
+    feedbacks.push_back({"image", im::Modality::kUltrasound, noise});
+  }
+  feedbacks.push_back({"image", im::Modality::kFluoroscopy, kFluoroNoise});
+  for (const Feedback& fb : feedbacks) {
+    const bool image = fb.name == "image";
+    // The whole workspace in view, as the imager node images it by default.
+    im::ImagerConfig device = deviceConfig(scene, fb.modality, fb.noise, kTrialSeed);
+    device.geometry = im::fieldOfView(scene, kPixel_m);
+    const im::FrameRenderer renderer(scene, device);
+    im::TipTracker tracker(im::trackerConfigFromScene(scene, device));
+    std::int64_t successes = 0;
+    std::vector<double> tip_mm, heading_deg;
+    int unconfident = 0, frames = 0, decisions = 0;
+    std::uint64_t frame_index = 0;
+    const auto t0 = std::chrono::steady_clock::now();
+    for (int k = 0; k < trials; ++k) {
+      const im::GuidedTrial trial =
+          im::runGuidedTrial(world, start, kTrialSeed * 100000 + std::uint64_t(k), table,
+                             image ? &renderer : nullptr, image ? &tracker : nullptr, frame_index);
+      successes += trial.outcome == st::TrialOutcome::kReachedTarget ? 1 : 0;
+      for (double e : trial.tip_errors_m) tip_mm.push_back(e * kMmPerM);
+      for (double e : trial.heading_errors_rad) heading_deg.push_back(e * kDegPerRad);
+      unconfident += trial.unconfident_decisions;
+      frames += trial.frames;
+      decisions += int(trial.tip_errors_m.size());
+    }
+    const double seconds = secondsSince(t0);
+    const st::Interval ci = st::wilsonInterval(successes, trials);
+    const double rate = double(successes) / trials;
+    loop_csv.addRow({fb.name, image ? im::toString(fb.modality) : std::string("-"), fb.noise,
+                     double(trials), double(successes), rate, ci.low, ci.high,
+                     ng::report::median(tip_mm), ng::report::median(heading_deg),
+                     double(unconfident), decisions > 0 ? double(frames) / decisions : 0.0,
+                     seconds});
+    std::cout << "[tracking] closed loop " << fb.name << " " << (image ? im::toString(fb.modality) : "")
+              << " noise " << fb.noise << ": " << successes << "/" << trials << " = " << rate
+              << " [" << ci.low << ", " << ci.high << "], tip error median "
+              << ng::report::median(tip_mm) << " mm, " << unconfident << " unconfident, "
+              << seconds << " s\n";
+    if (!image) {
+      headline["closed_loop_success_truth"] = rate;
+    } else if (fb.modality == im::Modality::kUltrasound && fb.noise == kUsNoise) {
+      headline["closed_loop_success_tracked"] = rate;
+      headline["closed_loop_tracked_ci_low"] = ci.low;
+      headline["closed_loop_tracked_ci_high"] = ci.high;
+    }
+  }
+
+  frames_csv.writeCsv(args->out_dir + "/frames.csv");
+  accuracy.writeCsv(args->out_dir + "/accuracy.csv");
+  loop_csv.writeCsv(args->out_dir + "/closed_loop.csv");
+  std::ostringstream json;
+  json << "{\n  \"bench\": \"tracking\",\n  \"scene\": \"" << scene.name << "\",\n  \"quick\": "
+       << (args->quick ? "true" : "false") << ",\n  \"frame_size\": [" << kCols << ", " << kRows
+       << "],\n  \"pixel_size_mm\": " << kPixel_m * kMmPerM
+       << ",\n  \"default_us_noise_std\": " << kUsNoise
+       << ",\n  \"default_fluoro_noise_std\": " << kFluoroNoise
+       << ",\n  \"sequences_per_setting\": " << sequences
+       << ",\n  \"closed_loop_trials\": " << trials
+       << ",\n  \"closed_loop_predicted_ps\": "
+       << ng::report::jsonNumber(best.best.probability_of_success)
+       << ",\n  \"detection_better_than_hough_every_level\": "
+       << (better_than_hough_everywhere ? "true" : "false");
+  for (const auto& [key, value] : headline) {
+    json << ",\n  \"" << key << "\": " << ng::report::jsonNumber(value);
+  }
+  json << "\n}\n";
+  ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
+  ng::report::writeTextFile(
+      args->out_dir + "/plot.json",
+      R"json([{"csv": "accuracy.csv", "x": "noise_std", "y": "tip_error_mm_median", "group": "method", "filter": {"modality": "ultrasound"},
+  "title": "Ultrasound: median tip error vs noise (tracker, its raw detection, HoughLinesP)", "png": "tip_error_us.png"},
+ {"csv": "accuracy.csv", "x": "noise_std", "y": "tip_error_mm_median", "group": "method", "filter": {"modality": "fluoroscopy"}, "title": "Fluoroscopy: median tip error vs noise", "png": "tip_error_fluoro.png"},
+ {"csv": "accuracy.csv", "x": "noise_std", "y": "heading_error_deg_median", "group": "method", "filter": {"modality": "ultrasound"},
+  "title": "Ultrasound: median heading error vs noise", "png": "heading_error_us.png"},
+ {"csv": "accuracy.csv", "x": "ms_per_frame", "y": "tip_error_mm_median", "group": "method", "points": true, "logy": true,
+  "annotate": "noise_std", "title": "Speed against error: ms per 640x480 frame (one core) vs median tip error", "png": "speed_vs_error.png"},
+ {"csv": "closed_loop.csv", "x": "noise_std", "y": "success_rate", "group": "modality",
+  "title": "Closed loop from the best start: success rate vs ultrasound noise (same seeded trials)", "png": "closed_loop.png"}]
+)json");
+  std::cout << json.str();
+  return 0;
+}
