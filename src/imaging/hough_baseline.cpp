@@ -5,11 +5,13 @@
 // Canny marks both flanks of the needle; when the longest segment has a parallel partner one
 // needle width away, the two are averaged to the centre line (a plain Hough pipeline would
 // report a flank, half a needle off).
+#include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
-#include <Eigen/Dense>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
+#include <stdexcept>
+#include <string>
 #include <vector>
 
 #include "needle_guidance/imaging/tip_tracker.h"
@@ -55,8 +57,10 @@ Detection fail(const std::string& why) {
 
 }  // namespace
 
-Detection houghBaselineTip(const cv::Mat& frame, const TrackerConfig& config,
-                           const std::optional<SearchPrior>& prior) {
+namespace {
+
+Detection houghUnguarded(const cv::Mat& frame, const TrackerConfig& config,
+                         const std::optional<SearchPrior>& prior) {
   const ImageGeometry& g = config.geometry;
   if (!(std::isfinite(g.pixel_size_m) && g.pixel_size_m > 0.0 && g.rows > 0 && g.cols > 0)) {
     return fail("invalid tracker configuration (pixel grid)");
@@ -96,8 +100,8 @@ Detection houghBaselineTip(const cv::Mat& frame, const TrackerConfig& config,
   const Eigen::Vector2d ref(std::cos(ref_theta), std::sin(ref_theta));
   double heading_limit = kPi;
   if (prior) {
-    heading_limit = std::min(kPi, 3.0 * std::sqrt(std::max(0.0, prior->covariance(2, 2))) +
-                                      kPriorHeadingSlack_rad);
+    heading_limit = std::min(
+        kPi, 3.0 * std::sqrt(std::max(0.0, prior->covariance(2, 2))) + kPriorHeadingSlack_rad);
   }
   struct Seg {
     Eigen::Vector2d a, b;  // oriented along the reference direction, q axes [px]
@@ -121,9 +125,8 @@ Detection houghBaselineTip(const cv::Mat& frame, const TrackerConfig& config,
   if (segs.empty()) {
     return fail("no Hough segment consistent with the prior heading");
   }
-  const auto longest = std::max_element(segs.begin(), segs.end(), [](const Seg& x, const Seg& y) {
-    return x.length < y.length;
-  });
+  const auto longest = std::max_element(
+      segs.begin(), segs.end(), [](const Seg& x, const Seg& y) { return x.length < y.length; });
   Seg best = *longest;
   const Eigen::Vector2d dir = (best.b - best.a).normalized();
   const Eigen::Vector2d nrm(-dir.y(), dir.x());
@@ -135,7 +138,8 @@ Detection houghBaselineTip(const cv::Mat& frame, const TrackerConfig& config,
       continue;
     }
     const Eigen::Vector2d d = (s.b - s.a).normalized();
-    if (std::abs(std::asin(std::clamp(d.x() * dir.y() - d.y() * dir.x(), -1.0, 1.0))) > kPartnerAngle_rad) {
+    if (std::abs(std::asin(std::clamp(d.x() * dir.y() - d.y() * dir.x(), -1.0, 1.0))) >
+        kPartnerAngle_rad) {
       continue;
     }
     const double off = nrm.dot(0.5 * (s.a + s.b) - best.a);
@@ -154,7 +158,8 @@ Detection houghBaselineTip(const cv::Mat& frame, const TrackerConfig& config,
   d.found = true;
   d.p_SceneTip = g.toScene(cv::Point2d(best.b.x(), -best.b.y()));
   d.theta_rad = theta;
-  const double heading_std = std::max(kHeadingStdFloor_rad, std::atan(2.0 / std::max(best.length, 1.0)));
+  const double heading_std =
+      std::max(kHeadingStdFloor_rad, std::atan(2.0 / std::max(best.length, 1.0)));
   d.covariance = Eigen::Matrix3d::Zero();
   d.covariance(0, 0) = d.covariance(1, 1) = kEndpointStd_px * kEndpointStd_px * ps * ps;
   d.covariance(2, 2) = heading_std * heading_std;
@@ -168,6 +173,17 @@ Detection houghBaselineTip(const cv::Mat& frame, const TrackerConfig& config,
     return fail("non-finite Hough result");
   }
   return d;
+}
+
+}  // namespace
+
+Detection houghBaselineTip(const cv::Mat& frame, const TrackerConfig& config,
+                           const std::optional<SearchPrior>& prior) {
+  try {
+    return houghUnguarded(frame, config, prior);
+  } catch (const std::exception& e) {
+    return fail(std::string("Hough baseline failed: ") + e.what());
+  }
 }
 
 }  // namespace needle_guidance::imaging

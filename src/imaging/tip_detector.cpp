@@ -1,21 +1,32 @@
-// Single-frame needle-tip detector (tip_tracker.h): ridge filter in a window around the
-// predicted tip, RANSAC arc of the needle's known radius, centre-line tracing along the arc,
-// tip at the half-maximum of the needle's cross-line contrast, kink-aware local refit.
+// Single-frame needle-tip detector (tip_tracker.h, detectTip). Steps:
+//  1. ridge filter (Gaussian + Hessian at the needle's scale, polarity by modality) in the
+//     search window, candidates = ridge maxima across the line above an adaptive threshold;
+//  2. RANSAC (fixed seed) of a circle of the needle's known radius from point pairs, the sense
+//     from the prior's bevel (both without a prior), least-squares refit on the inliers; in
+//     ultrasound a dimmer copy deeper than a brighter one is a reverberation echo;
+//  3. the needle's centre line traced along the arc (sub-pixel lateral peaks, following kinks),
+//     with its cross-line contrast (brighter than both sides: not an edge; not a line crossing
+//     the arc) against the same statistic on parallel arcs (the background);
+//  4. the tip: the change point of the contrast (bridges the gaps of a partly visible needle),
+//     refined to the steepest descent of the end, minus the rounded end's radius;
+//  5. kink-aware refit of the last few millimetres (a step's deflection or a flip kinks the
+//     needle; the robot's lengths since them are hints), heading = tangent at the tip;
+//  6. covariance from the fit residuals, the kink models' spread, the end's slope and floors.
 //
 // All geometry below is in "q" coordinates: pixel units with q = (col, -row), i.e. axes aligned
 // with frame scene (+x right, +y up) so angles and the sense of rotation (bevel left =
 // counter-clockwise) are the scene's. q -> scene: x = ox + (q.x + 0.5) ps, y = oy + (q.y - 0.5) ps.
+#include <Eigen/Dense>
 #include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstdint>
-#include <cstdio>
-#include <cstdlib>
-#include <Eigen/Dense>
 #include <limits>
 #include <opencv2/imgproc.hpp>
 #include <random>
 #include <sstream>
+#include <stdexcept>
+#include <string>
 #include <vector>
 
 #include "needle_guidance/imaging/tip_tracker.h"
@@ -67,6 +78,7 @@ constexpr double kEchoMinShift_m = 0.8e-3;
 constexpr double kEchoMaxShift_m = 2.6e-3;
 constexpr double kEchoScoreRatio = 0.6;
 constexpr int kMaxEchoMoves = 3;
+constexpr double kEchoShiftStep_px = 0.5;
 /// Slack of the prior consistency checks beyond 3 sigma: lateral [m] and heading [rad].
 constexpr double kPriorLateralSlack_m = 1e-3;
 constexpr double kPriorHeadingSlack_rad = 30.0 * kDeg;
@@ -75,6 +87,10 @@ constexpr double kPriorHeadingSlack_rad = 30.0 * kDeg;
 constexpr double kTraceStep_px = 0.5;
 /// Lateral search around the predicted centre-line offset [px] and its sampling step [px].
 constexpr double kLateralSearch_px = 2.5;
+/// When the traced centre line is lost, the search widens to this [px] for up to
+/// kRecoveryLength_px after the last reliable sample (a kink of up to ~25 degrees).
+constexpr double kLateralSearchWide_px = 5.0;
+constexpr double kRecoveryLength_px = 5.0;
 constexpr double kLateralStep_px = 0.5;
 /// The side samples of the cross-line contrast lie this far beyond the needle's radius [px].
 constexpr double kSideDistanceExtra_px = 1.5;
@@ -86,9 +102,13 @@ constexpr double kCrossingLineLikeness = 0.5;
 constexpr double kMaxCrossingAngle_rad = 30.0 * kDeg;
 /// Largest slope of the tracked offset (the centre line's angle to the arc, tan) [px/px].
 constexpr double kMaxOffsetSlope = 0.6;
-/// A sample is "visible needle" when its contrast is above the background's by this fraction
-/// of the shaft's (the change-point detector's threshold).
-constexpr double kVisibleFraction = 0.35;
+/// A sample is "visible needle" (the change-point detector's threshold) when its contrast is
+/// above this quantile of the background's and above the background's median by
+/// kVisibleFraction of the shaft's contrast; samples above kReliableFraction of it steer the
+/// tracing of the centre line.
+constexpr double kBackgroundQuantile = 0.9;
+constexpr double kVisibleFraction = 0.12;
+constexpr double kReliableFraction = 0.4;
 /// The shaft must stand out from the background's level by this factor of it.
 constexpr double kMinContrastOverBackground = 0.5;
 /// Background statistic: lateral offsets of the parallel arcs [px] and their sampling step [px].
@@ -123,7 +143,7 @@ constexpr double kTraceBorder_px = 3.0;
 /// so at most one kink at a step's start lies inside) ...
 constexpr double kLocalFitLength_m = 7.0e-3;
 /// ... but not the last this long, where the contrast fades [m].
-constexpr double kLocalFitTipExclusion_m = 0.3e-3;
+constexpr double kLocalFitTipExclusion_m = 0.6e-3;
 /// Kink search: the tip arc is at least this long, the arc before it too [m].
 constexpr double kMinTipArc_m = 1.5e-3;
 constexpr double kMinArcBeforeKink_m = 1.5e-3;
@@ -131,9 +151,14 @@ constexpr double kKinkStep_m = 0.25e-3;
 /// Centre-line samples this close to a kink are not fitted (the blur rounds the corner) [m].
 constexpr double kKinkBlurExclusion_m = 0.5e-3;
 /// Prior probability of a kink inside the fitted span (it is almost one step long, and every
-/// step starts with a deflection), and how many consecutive trace samples count as one
-/// independent residual (the image is smoothed over a few pixels, samples are 0.5 px apart).
+/// step starts with a deflection).
 constexpr double kKinkPrior = 0.5;
+/// The robot's lengths since the last flip and since the step's start place those kinks to
+/// within this [m]; a step's start then gets this prior probability.
+constexpr double kKinkHintTolerance_m = 0.75e-3;
+constexpr double kStepHintPrior = 0.7;
+/// How many consecutive trace samples count as one independent residual (the image is
+/// smoothed over a few pixels, samples are 0.5 px apart).
 constexpr double kResidualCorrelationSamples = 10.0;
 constexpr int kGaussNewtonIterations = 8;
 
@@ -144,7 +169,10 @@ constexpr double kPositionFloor_px = 0.3;
 constexpr double kHeadingFloor_rad = 0.6 * kDeg;
 constexpr double kMinAlongStd_px = 0.35;
 constexpr double kMaxAlongStd_px = 15.0;
-constexpr double kMinResidualStd_px = 0.15;
+/// Floor of the centre line's residual standard deviation [px]: the sub-pixel centre line is not
+/// better than this whatever the noise (pixelisation, the blur rounding kinks); it also sets how
+/// sharply the kink models are told apart.
+constexpr double kMinResidualStd_px = 0.25;
 
 // ---- small helpers ----------------------------------------------------------------------
 Vec leftNormal(const Vec& v) {
@@ -180,7 +208,8 @@ double quantile(std::vector<double> v, double q) {
   if (v.empty()) {
     return 0.0;
   }
-  const auto k = static_cast<std::size_t>(std::clamp(q, 0.0, 1.0) * static_cast<double>(v.size() - 1));
+  const auto k =
+      static_cast<std::size_t>(std::clamp(q, 0.0, 1.0) * static_cast<double>(v.size() - 1));
   std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
   return v[k];
 }
@@ -200,12 +229,12 @@ Point2 qToScene(const ImageGeometry& g, const Vec& q) {
 
 /// Filtered images of the (padded) search region, needle polarity made bright.
 struct RidgeImages {
-  cv::Rect region;   ///< filtered region in frame pixels (the window plus padding)
-  cv::Rect window;   ///< the search window in frame pixels
-  cv::Mat smooth;    ///< CV_32F smoothed, bright needle
-  cv::Mat ridge;     ///< CV_32F ridge strength R >= 0
-  cv::Mat normal_c;  ///< CV_32F cross-line unit vector, column component (image axes)
-  cv::Mat normal_r;  ///< CV_32F cross-line unit vector, row component (image axes)
+  cv::Rect region;     ///< filtered region in frame pixels (the window plus padding)
+  cv::Rect window;     ///< the search window in frame pixels
+  cv::Mat smooth;      ///< CV_32F smoothed, bright needle
+  cv::Mat ridge;       ///< CV_32F ridge strength R >= 0
+  cv::Mat normal_c;    ///< CV_32F cross-line unit vector, column component (image axes)
+  cv::Mat normal_r;    ///< CV_32F cross-line unit vector, row component (image axes)
   cv::Mat anisotropy;  ///< CV_32F (|l1| - |l2|) / (|l1| + |l2|): 1 for a line, 0 for a blob
 
   /// Bilinear sample of `m` at q; false outside the region shrunk by `border` pixels.
@@ -228,7 +257,8 @@ struct RidgeImages {
   /// Cross-line direction at the pixel nearest q, in q axes (unit), and how line-like it is.
   Vec normalAt(const Vec& q, double& line_likeness) const {
     const int c = std::clamp(static_cast<int>(std::lround(q.x() - region.x)), 0, region.width - 1);
-    const int r = std::clamp(static_cast<int>(std::lround(-q.y() - region.y)), 0, region.height - 1);
+    const int r =
+        std::clamp(static_cast<int>(std::lround(-q.y() - region.y)), 0, region.height - 1);
     line_likeness = anisotropy.at<float>(r, c);
     return {normal_c.at<float>(r, c), -normal_r.at<float>(r, c)};
   }
@@ -238,12 +268,20 @@ RidgeImages filterRegion(const cv::Mat& frame, const cv::Rect& window, Modality 
                          double smoothing_px) {
   RidgeImages out;
   out.window = window;
+  // The window plus a margin for the filters and the centre-line sampling; beyond the frame's
+  // edges the frame is mirrored, so a needle running along an edge can still be traced (a tip
+  // found in the mirrored part is refused later).
   const int pad = static_cast<int>(std::ceil(3.0 * smoothing_px)) + 3;
-  out.region = cv::Rect(window.x - pad, window.y - pad, window.width + 2 * pad,
-                        window.height + 2 * pad) &
-               cv::Rect(0, 0, frame.cols, frame.rows);
+  out.region =
+      cv::Rect(window.x - pad, window.y - pad, window.width + 2 * pad, window.height + 2 * pad);
+  const cv::Rect inside = out.region & cv::Rect(0, 0, frame.cols, frame.rows);
+  cv::Mat roi8;
+  cv::copyMakeBorder(frame(inside), roi8, inside.y - out.region.y,
+                     out.region.br().y - inside.br().y, inside.x - out.region.x,
+                     out.region.br().x - inside.br().x,
+                     cv::BORDER_REFLECT_101 | cv::BORDER_ISOLATED);
   cv::Mat roi;
-  frame(out.region).convertTo(roi, CV_32F);
+  roi8.convertTo(roi, CV_32F);
   if (modality == Modality::kFluoroscopy) {
     roi = 255.0f - roi;  // dark needle on a bright background -> bright ridge
   }
@@ -297,8 +335,8 @@ RidgeImages filterRegion(const cv::Mat& frame, const cv::Rect& window, Modality 
 }
 
 struct Candidate {
-  Vec q;      ///< position [px, q axes]
-  Vec along;  ///< unit direction of the ridge (sign arbitrary)
+  Vec q;                  ///< position [px, q axes]
+  Vec along;              ///< unit direction of the ridge (sign arbitrary)
   double weight = 0.0;    ///< RANSAC weight: strength clipped and normalised, in (0, 1]
   double strength = 0.0;  ///< ridge strength R
 };
@@ -323,8 +361,8 @@ std::vector<Candidate> ridgeCandidates(const RidgeImages& ri) {
   }
   const double mad_std = 1.4826 * median(dev);
   const double strong = quantile(values, kStrongRidgeQuantile);
-  const double threshold = std::max({med + kCandidateThresholdSigmas * mad_std,
-                                     kRelativeCandidateThreshold * strong, 1e-3});
+  const double threshold = std::max(
+      {med + kCandidateThresholdSigmas * mad_std, kRelativeCandidateThreshold * strong, 1e-3});
 
   std::vector<Candidate> out;
   for (int r = std::max(y0, 1); r < std::min(y0 + ri.window.height, ri.ridge.rows - 1); ++r) {
@@ -554,10 +592,12 @@ RansacResult ransacArc(const std::vector<Candidate>& cands, double radius_px, do
       // Both sample points must look like the arc locally.
       const Vec ta = leftNormal((a - arc.centre) / radius_px);
       const Vec tb = leftNormal((b - arc.centre) / radius_px);
-      if (std::abs(ta.dot(cands[i].along)) < cos_max && std::abs(ta.dot(cands[j].along)) < cos_max) {
+      if (std::abs(ta.dot(cands[i].along)) < cos_max &&
+          std::abs(ta.dot(cands[j].along)) < cos_max) {
         continue;
       }
-      if (std::abs(tb.dot(cands[j].along)) < cos_max && std::abs(tb.dot(cands[i].along)) < cos_max) {
+      if (std::abs(tb.dot(cands[j].along)) < cos_max &&
+          std::abs(tb.dot(cands[i].along)) < cos_max) {
         continue;
       }
       const double score = arcScore(arc, cands, radius_px);
@@ -578,14 +618,16 @@ RansacResult ransacArc(const std::vector<Candidate>& cands, double radius_px, do
 /// Ultrasound: reverberation echoes repeat the needle deeper (+y, away from the probe on the
 /// lower face), dimmer. If a copy of the fitted arc moved towards the probe by one echo spacing
 /// also scores well, the fit was an echo: move to that copy (repeatedly).
-void preferShallowestCopy(RansacResult& fit, const std::vector<Candidate>& cands,
-                          double radius_px, double ps, const std::optional<PriorQ>& prior,
-                          int& moves) {
+void preferShallowestCopy(RansacResult& fit, const std::vector<Candidate>& cands, double radius_px,
+                          double ps, const std::optional<PriorQ>& prior, int& moves) {
   moves = 0;
   for (int round = 0; round < kMaxEchoMoves; ++round) {
     double best_score = 0.0;
     Arc best_arc;
-    for (double shift = kEchoMinShift_m / ps; shift <= kEchoMaxShift_m / ps; shift += 0.5) {
+    const int shifts =
+        static_cast<int>((kEchoMaxShift_m - kEchoMinShift_m) / ps / kEchoShiftStep_px);
+    for (int i = 0; i <= shifts; ++i) {
+      const double shift = kEchoMinShift_m / ps + i * kEchoShiftStep_px;
       Arc moved = fit.arc;
       moved.centre.y() -= shift;
       if (prior && !consistentWithPrior(moved, *prior, radius_px, ps)) {
@@ -637,8 +679,6 @@ struct TraceSample {
   double offset = 0.0;    ///< lateral offset of the centre line (outward normal) [px]
   double contrast = 0.0;  ///< cross-line contrast of the needle there [grey]; 0 if not line-like
   bool inside = false;    ///< sampled inside the filtered region
-  double raw = 0.0;       ///< debug: contrast before the orientation check
-  double align = 0.0;     ///< debug: |cos| between the Hessian normal and the arc normal
 };
 
 /// Traces the needle's centre line along the coarse arc.
@@ -667,40 +707,44 @@ public:
 
   /// The contrast profile across the line at s around `predicted_offset`.
   /// `slope` is d offset / d s of the tracked centre line (its direction relative to the arc).
-  TraceSample sampleAt(double s, double predicted_offset, double slope = 0.0) const {
+  TraceSample sampleAt(double s, double predicted_offset, double slope = 0.0,
+                       double half_range_px = kLateralSearch_px) const {
     TraceSample out;
     out.s = s;
     out.offset = predicted_offset;
     const Vec b = base(s);
     const Vec n = outward(s);
-    constexpr int kHalf = static_cast<int>(kLateralSearch_px / kLateralStep_px);
-    std::array<double, 2 * kHalf + 1> v{};
-    for (int k = -kHalf; k <= kHalf; ++k) {
+    constexpr int kMaxHalf = static_cast<int>(kLateralSearchWide_px / kLateralStep_px);
+    const int half = std::min(kMaxHalf, static_cast<int>(half_range_px / kLateralStep_px));
+    std::array<double, 2 * kMaxHalf + 1> v{};
+    for (int k = -half; k <= half; ++k) {
       const double o = predicted_offset + k * kLateralStep_px;
       double val = 0.0;
       if (!ri_.sample(ri_.smooth, b + o * n, kTraceBorder_px + side_px_, val)) {
         return out;  // outside: inside = false
       }
-      v[static_cast<std::size_t>(k + kHalf)] = val;
+      const int index = k + half;
+      v[static_cast<std::size_t>(index)] = val;
     }
     out.inside = true;
     int best = 0;
-    for (int k = 1; k < 2 * kHalf + 1; ++k) {
+    for (int k = 1; k < 2 * half + 1; ++k) {
       if (v[static_cast<std::size_t>(k)] > v[static_cast<std::size_t>(best)]) {
         best = k;
       }
     }
     double frac = 0.0;
-    if (best > 0 && best < 2 * kHalf) {
-      const double ym = v[static_cast<std::size_t>(best - 1)];
-      const double y0 = v[static_cast<std::size_t>(best)];
-      const double yp = v[static_cast<std::size_t>(best + 1)];
+    if (best > 0 && best < 2 * half) {
+      const auto b0 = static_cast<std::size_t>(best);
+      const double ym = v[b0 - 1];
+      const double y0 = v[b0];
+      const double yp = v[b0 + 1];
       const double den = ym - 2.0 * y0 + yp;
       if (den < 0.0) {
         frac = std::clamp(0.5 * (ym - yp) / den, -0.5, 0.5);
       }
     }
-    const double o_peak = predicted_offset + (best - kHalf + frac) * kLateralStep_px;
+    const double o_peak = predicted_offset + (best - half + frac) * kLateralStep_px;
     const Vec pc = b + o_peak * n;
     double centre = 0.0;
     double left = 0.0;
@@ -721,9 +765,8 @@ public:
     double line_likeness = 0.0;
     const Vec nh = ri_.normalAt(pc, line_likeness);
     const Vec line_normal = (n - slope * tangentAt(arc_, b)).normalized();
-    out.raw = contrast;
-    out.align = std::abs(nh.dot(line_normal));
-    if (line_likeness > kCrossingLineLikeness && out.align < std::cos(kMaxCrossingAngle_rad)) {
+    if (line_likeness > kCrossingLineLikeness &&
+        std::abs(nh.dot(line_normal)) < std::cos(kMaxCrossingAngle_rad)) {
       contrast = 0.0;
     }
     out.contrast = std::max(0.0, contrast);
@@ -766,6 +809,16 @@ public:
       if (!t.inside) {
         hit_edge = true;
         break;
+      }
+      if (t.contrast < visible && !good.empty() &&
+          std::abs(s - good.back().first) <= kRecoveryLength_px) {
+        // Lost just now (a kink turned the needle out of the narrow search): look wider, and
+        // if the needle is there, follow it from there with a fresh history.
+        const TraceSample wide = sampleAt(s, predicted, 0.0, kLateralSearchWide_px);
+        if (wide.inside && wide.contrast >= visible) {
+          t = wide;
+          good.clear();
+        }
       }
       if (t.contrast >= visible) {
         good.emplace_back(t.s, t.offset);
@@ -826,12 +879,13 @@ LocalFit fitSpan(const std::vector<Vec>& pts, const std::vector<double>& w,
   return f;
 }
 
-/// The tip arc after a kink, continuous with the arc before it: through the kink point K,
-/// only its heading phi there is free (Gauss-Newton in phi). `point_var_unit` is K's variance
-/// per unit residual variance (from the fit before the kink).
+/// The tip arc after a kink, continuous with the arc before it: through the kink point kink_point,
+/// only its heading phi there is free (Gauss-Newton in phi). `point_var_unit` is kink_point's
+/// variance per unit residual variance (from the fit before the kink).
 LocalFit fitThroughPoint(const std::vector<Vec>& pts, const std::vector<double>& w,
-                         const std::vector<double>& s, double s_lo, double s_hi, const Vec& K,
-                         double phi0, double side, double radius_px, double point_var_unit) {
+                         const std::vector<double>& s, double s_lo, double s_hi,
+                         const Vec& kink_point, double phi0, double side, double radius_px,
+                         double point_var_unit) {
   LocalFit f;
   std::vector<Vec> p;
   std::vector<double> ww;
@@ -846,13 +900,13 @@ LocalFit fitThroughPoint(const std::vector<Vec>& pts, const std::vector<double>&
   if (f.n < 3) {
     return f;
   }
-  const auto centreOf = [&](double phi) {
-    return Vec(K + side * radius_px * Vec(-std::sin(phi), std::cos(phi)));
+  const auto centre_of = [&](double phi) {
+    return Vec(kink_point + side * radius_px * Vec(-std::sin(phi), std::cos(phi)));
   };
   double phi = phi0;
   double jtj = 0.0;
   for (int it = 0; it < kGaussNewtonIterations; ++it) {
-    const Vec c = centreOf(phi);
+    const Vec c = centre_of(phi);
     const Vec dc = side * radius_px * Vec(-std::cos(phi), -std::sin(phi));
     jtj = 0.0;
     double jtr = 0.0;
@@ -879,7 +933,7 @@ LocalFit fitThroughPoint(const std::vector<Vec>& pts, const std::vector<double>&
   if (!std::isfinite(phi)) {
     return f;
   }
-  f.arc = {centreOf(phi), side};
+  f.arc = {centre_of(phi), side};
   f.rss = 0.0;
   for (std::size_t i = 0; i < p.size(); ++i) {
     const double res = (p[i] - f.arc.centre).norm() - radius_px;
@@ -912,8 +966,8 @@ std::string frameProblem(const cv::Mat& frame, const ImageGeometry& geometry) {
   }
   if (frame.type() != CV_8UC1) {
     std::ostringstream s;
-    s << "frame encoding is not 8-bit single-channel (CV_8UC1): depth " << frame.depth()
-      << ", " << frame.channels() << " channel(s)";
+    s << "frame encoding is not 8-bit single-channel (CV_8UC1): depth " << frame.depth() << ", "
+      << frame.channels() << " channel(s)";
     return s.str();
   }
   if (frame.cols != geometry.cols || frame.rows != geometry.rows) {
@@ -944,7 +998,8 @@ cv::Rect searchWindow(const TrackerConfig& config, const std::optional<SearchPri
   if (!cov.allFinite() || !finitePose(tip.p_SceneTip, tip.theta_rad)) {
     return frame;
   }
-  const Eigen::Matrix2d pos = 0.5 * (cov.topLeftCorner<2, 2>() + cov.topLeftCorner<2, 2>().transpose());
+  const Eigen::Matrix2d pos =
+      0.5 * (cov.topLeftCorner<2, 2>() + cov.topLeftCorner<2, 2>().transpose());
   const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> es(pos);
   const double pos_sigma = std::sqrt(std::max(0.0, es.eigenvalues().maxCoeff()));
   const double heading_sigma = std::sqrt(std::max(0.0, cov(2, 2)));
@@ -984,8 +1039,10 @@ cv::Rect searchWindow(const TrackerConfig& config, const std::optional<SearchPri
   return cv::Rect(c0, r0, c1 - c0 + 1, r1 - r0 + 1) & frame;
 }
 
-Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
-                    const std::optional<SearchPrior>& prior) {
+namespace {
+
+Detection detectTipUnguarded(const cv::Mat& frame, const TrackerConfig& config,
+                             const std::optional<SearchPrior>& prior) {
   const ImageGeometry& g = config.geometry;
   if (!(std::isfinite(g.pixel_size_m) && g.pixel_size_m > 0.0 && g.rows > 0 && g.cols > 0) ||
       !(std::isfinite(config.radius_of_curvature_m) && config.radius_of_curvature_m > 0.0)) {
@@ -1052,7 +1109,8 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
     mean /= static_cast<double>(rs.inliers.size());
     reference = mean;
   }
-  Tracer tracer(ri, rs.arc, radius_px, reference, 0.5 * diameter_px + smoothing_px + kSideDistanceExtra_px);
+  Tracer tracer(ri, rs.arc, radius_px, reference,
+                0.5 * diameter_px + smoothing_px + kSideDistanceExtra_px);
   std::vector<double> inlier_s;
   for (int k : rs.inliers) {
     inlier_s.push_back(tracer.sOf(cands[static_cast<std::size_t>(k)].q));
@@ -1069,7 +1127,8 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
   // statistic on arcs parallel to the fit, off the needle; the median over several offsets, so
   // an echo or boundary along one of them does not matter).
   std::vector<double> inlier_contrast;
-  for (std::size_t k = 0; k < inlier_s.size(); k += std::max<std::size_t>(1, inlier_s.size() / 40)) {
+  for (std::size_t k = 0; k < inlier_s.size();
+       k += std::max<std::size_t>(1, inlier_s.size() / 40)) {
     const TraceSample t = tracer.sampleAt(inlier_s[k], 0.0);
     if (t.inside && t.contrast > 0.0) {
       inlier_contrast.push_back(t.contrast);
@@ -1084,8 +1143,9 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
   }
   std::vector<double> background;
   for (double off : kBackgroundOffsets_px) {
-    for (double sb = inlier_s.front(); sb <= s_stop; sb += kBackgroundStep_px) {
-      const TraceSample t = tracer.sampleAt(sb, off);
+    const int count = static_cast<int>((s_stop - inlier_s.front()) / kBackgroundStep_px);
+    for (int i = 0; i <= count; ++i) {
+      const TraceSample t = tracer.sampleAt(inlier_s.front() + i * kBackgroundStep_px, off);
       if (t.inside) {
         background.push_back(t.contrast);
       }
@@ -1093,19 +1153,25 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
   }
   const double background_level = median(background);
   if (!(shaft_level > 0.0) || background.size() < 8 ||
-      shaft_level - background_level < kMinContrastOverBackground * std::max(background_level, 1.0)) {
+      shaft_level - background_level <
+          kMinContrastOverBackground * std::max(background_level, 1.0)) {
     return fail("the fitted arc does not stand out from the background (shaft " +
                 fmt(shaft_level, 1) + ", background " + fmt(background_level, 1) + " grey)");
   }
-  // A sample is needle-like above this level.
-  const double visible = background_level + kVisibleFraction * (shaft_level - background_level);
+  // A sample is needle-like above `visible` (the change point's threshold); only samples above
+  // the higher `reliable` steer the tracing (so it does not wander off along noise).
+  const double visible =
+      std::max(quantile(background, kBackgroundQuantile),
+               background_level + kVisibleFraction * (shaft_level - background_level));
+  const double reliable = background_level + kReliableFraction * (shaft_level - background_level);
 
   // 4. Walk forward from the inliers' middle to beyond the expected tip; the tip is the change
   // point of the contrast (the last sample of the largest partial sum of contrast - visible):
   // gaps of the partly visible needle are bridged when more needle follows, a short bright
   // structure after a gap is not.
   bool fwd_edge = false;
-  const std::vector<TraceSample> fwd = tracer.walk(s_mid, s_stop, kTraceStep_px, visible, fwd_edge);
+  const std::vector<TraceSample> fwd =
+      tracer.walk(s_mid, s_stop, kTraceStep_px, reliable, fwd_edge);
   if (fwd.size() < 4) {
     return fail("the fitted arc leaves the search region");
   }
@@ -1141,7 +1207,8 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
   }
   double tip_level = median(tip_levels);
   {
-    const std::size_t half_window = static_cast<std::size_t>(kPlateauWindow_px / kTraceStep_px / 2.0);
+    const std::size_t half_window =
+        static_cast<std::size_t>(kPlateauWindow_px / kTraceStep_px / 2.0);
     for (std::size_t i = change + 1; i-- > half_window;) {
       if (fwd[change].s - fwd[i].s > kPlateauSearch_m / ps) {
         break;
@@ -1186,11 +1253,11 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
     const auto smoothed = [&](std::size_t i) {
       double sum = 0.0;
       double wsum = 0.0;
-      for (int k = -2; k <= 2; ++k) {
-        const auto j = static_cast<std::ptrdiff_t>(i) + k;
+      for (std::size_t k = 0; k < kSmooth.size(); ++k) {
+        const auto j = static_cast<std::ptrdiff_t>(i + k) - 2;
         if (j >= 0 && j < static_cast<std::ptrdiff_t>(fwd.size())) {
-          sum += kSmooth[static_cast<std::size_t>(k + 2)] * fwd[static_cast<std::size_t>(j)].contrast;
-          wsum += kSmooth[static_cast<std::size_t>(k + 2)];
+          sum += kSmooth[k] * fwd[static_cast<std::size_t>(j)].contrast;
+          wsum += kSmooth[k];
         }
       }
       return sum / wsum;
@@ -1205,7 +1272,8 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
       deriv.push_back((smoothed(i + 2) - smoothed(i - 2)) / (fwd[i + 2].s - fwd[i - 2].s));
     }
     if (deriv.size() >= 3) {
-      const auto k = static_cast<std::size_t>(std::min_element(deriv.begin(), deriv.end()) - deriv.begin());
+      const auto k =
+          static_cast<std::size_t>(std::min_element(deriv.begin(), deriv.end()) - deriv.begin());
       if (deriv[k] < 0.0) {
         double frac = 0.0;
         if (k > 0 && k + 1 < deriv.size()) {
@@ -1219,14 +1287,6 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
       }
     }
   }
-  if (std::getenv("TIP_DEBUG") != nullptr) {
-    for (const auto& t : fwd) {
-      if (std::abs(t.s - s_tip) < 8.0) {
-        std::fprintf(stderr, "s %.1f rel %.2f off %.2f contrast %.1f raw %.1f align %.2f\n", t.s, t.s - s_tip, t.offset, t.contrast, t.raw, t.align);
-      }
-    }
-    std::fprintf(stderr, "level %.1f half %.1f\n", tip_level, half);
-  }
   // 5. Centre-line points behind the tip: the forward walk, plus a backward walk if needed.
   const double fit_len_px = kLocalFitLength_m / ps;
   std::vector<TraceSample> pts_s;
@@ -1238,7 +1298,7 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
   if (s_mid > s_tip - fit_len_px) {
     bool back_edge = false;
     std::vector<TraceSample> bwd =
-        tracer.walk(s_mid - kTraceStep_px, s_tip - fit_len_px, -kTraceStep_px, visible, back_edge);
+        tracer.walk(s_mid - kTraceStep_px, s_tip - fit_len_px, -kTraceStep_px, reliable, back_edge);
     pts_s.insert(pts_s.end(), bwd.begin(), bwd.end());
   }
   std::vector<Vec> pts;
@@ -1250,7 +1310,8 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
       continue;
     }
     pts.push_back(tracer.point(t.s, t.offset));
-    w.push_back(std::min(1.0, t.contrast / std::max(tip_level, 1e-9)));
+    const double rel = std::min(1.0, t.contrast / std::max(tip_level, 1e-9));
+    w.push_back(rel * rel);
     ss.push_back(t.s);
   }
   if (pts.size() < 6) {
@@ -1276,7 +1337,7 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
     offset_tip = o.empty() ? 0.0 : median(o);
   }
   const Vec along_point = tracer.point(s_tip, offset_tip);
-  const auto tipPose = [&](const Arc& arc, Vec& p, double& theta) {
+  const auto tip_pose = [&](const Arc& arc, Vec& p, double& theta) {
     const Vec d = along_point - arc.centre;
     p = arc.centre + radius_px * d / d.norm();
     const Vec t = arc.side * leftNormal(d / d.norm());
@@ -1287,6 +1348,8 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
     double total_rss = 0.0;
     int params = 2;
     double kink_s = std::numeric_limits<double>::quiet_NaN();
+    double log_prior = 0.0;
+    double unseen_deflection_var = 0.0;  ///< heading variance of a deflection not yet visible
     double log_w = 0.0;
     Vec p = Vec::Zero();
     double theta = 0.0;
@@ -1302,26 +1365,33 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
       return fail("local arc refit did not converge");
     }
     m.total_rss = m.tip_arc.rss;
+    m.log_prior = std::log(1.0 - kKinkPrior);
     models.push_back(m);
   }
   const double min_tip_arc_px = kMinTipArc_m / ps;
   const double min_before_px = kMinArcBeforeKink_m / ps;
   const double tip_side = models.front().tip_arc.arc.side;
-  for (double sk = s_hi - min_tip_arc_px; sk >= s_lo + min_before_px; sk -= kKinkStep_m / ps) {
-    // The arc before a kink may be of either sense (a bevel flip).
+  const double blur_gap_px = kKinkBlurExclusion_m / ps;
+  // A kink model at sk: the arc before it (either sense, or forced), and the tip arc through
+  // the kink point with a free heading there (the deflection). Too few samples after the kink
+  // (a flip just now): the tip arc continues the tangent and the flip's deflection, unseen, is
+  // added to the heading variance.
+  const auto add_kink = [&](double sk, int before_side_required, double prior_mass) {
     // The image blur rounds the corner: samples within kKinkBlurExclusion_m of it are left out.
-    const double blur_gap_px = kKinkBlurExclusion_m / ps;
-    LocalFit before = fitSpan(pts, w, ss, s_lo, sk - blur_gap_px, start, radius_px);
-    const LocalFit before_m = fitSpan(pts, w, ss, s_lo, sk - blur_gap_px,
-                                      mirrored(start, tracer.point(sk, 0.0), radius_px), radius_px);
-    if (!before.ok || (before_m.ok && before_m.rss < before.rss)) {
-      before = before_m;
+    const Arc mirror = mirrored(start, tracer.point(sk, 0.0), radius_px);
+    LocalFit before;
+    if (before_side_required == 0 || before_side_required == static_cast<int>(start.side)) {
+      before = fitSpan(pts, w, ss, s_lo, sk - blur_gap_px, start, radius_px);
+    }
+    if (before_side_required == 0 || before_side_required == static_cast<int>(mirror.side)) {
+      const LocalFit before_m = fitSpan(pts, w, ss, s_lo, sk - blur_gap_px, mirror, radius_px);
+      if (!before.ok || (before_m.ok && before_m.rss < before.rss)) {
+        before = before_m;
+      }
     }
     if (!before.ok) {
-      continue;
+      return;
     }
-    // The kink point: the centre line there, on the arc before it; the tip arc starts there
-    // with the free heading (the deflection), initialised by an unconstrained fit.
     Vec near = Vec::Zero();
     int count = 0;
     for (std::size_t i = 0; i < pts.size(); ++i) {
@@ -1330,23 +1400,27 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
         ++count;
       }
     }
-    if (count == 0) {
-      continue;
-    }
-    near /= count;
-    const Vec dk = (near - before.arc.centre).normalized();
-    const Vec K = before.arc.centre + radius_px * dk;
+    // The kink point: the centre line there (the arc before it is least certain at its end).
+    const Vec kink_point = count > 0 ? Vec(near / count) : tracer.point(sk, 0.0);
+    const Vec dk = (kink_point - before.arc.centre).normalized();
+    const Vec t_before = before.arc.side * leftNormal(dk);
     const LocalFit free_tip =
         fitSpan(pts, w, ss, sk + blur_gap_px, s_hi, Arc{start.centre, tip_side}, radius_px);
-    Vec t0 = before.arc.side * leftNormal(dk);
-    if (free_tip.ok) {
-      t0 = tangentAt(free_tip.arc, K);
-    }
+    const Vec t0 = free_tip.ok ? tangentAt(free_tip.arc, kink_point) : t_before;
     Model m;
-    m.tip_arc = fitThroughPoint(pts, w, ss, sk + blur_gap_px, s_hi, K, std::atan2(t0.y(), t0.x()), tip_side,
-                                radius_px, 1.0 / std::max(before.weight_sum, 1.0));
+    m.tip_arc =
+        fitThroughPoint(pts, w, ss, sk + blur_gap_px, s_hi, kink_point, std::atan2(t0.y(), t0.x()),
+                        tip_side, radius_px, 1.0 / std::max(before.weight_sum, 1.0));
     if (!m.tip_arc.ok) {
-      continue;
+      const double phi = std::atan2(t_before.y(), t_before.x());
+      m.tip_arc.arc = {kink_point + tip_side * radius_px * Vec(-std::sin(phi), std::cos(phi)),
+                       tip_side};
+      m.tip_arc.ok = true;
+      m.tip_arc.rss = 0.0;
+      m.tip_arc.n = 0;
+      m.tip_arc.weight_sum = 0.0;
+      m.tip_arc.centre_cov_unit = before.centre_cov_unit;
+      m.unseen_deflection_var = config.sigma_flip_rad * config.sigma_flip_rad;
     }
     // Same data as the single arc: the samples around the corner count with the nearer arc.
     m.total_rss = m.tip_arc.rss + before.rss;
@@ -1359,25 +1433,76 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
     }
     m.params = 3;
     m.kink_s = sk;
+    m.log_prior = std::log(prior_mass);
     models.push_back(m);
+  };
+  // Where the robot says the kinks are (the prior's lengths since the flip and the step).
+  const double tol_px = kKinkHintTolerance_m / ps;
+  const auto hinted_at = [&](double length_m) {
+    return pq && std::isfinite(length_m) && length_m >= 0.0
+               ? s_tip - length_m / ps
+               : std::numeric_limits<double>::quiet_NaN();
+  };
+  const double flip_kink = hinted_at(prior ? prior->length_since_flip_m : 0.0);
+  const double step_kink = hinted_at(prior ? prior->length_since_step_m : 0.0);
+  const double kink_lo = s_lo + min_before_px;
+  if (std::isfinite(flip_kink) && flip_kink + tol_px >= kink_lo) {
+    // The flip is inside the span: the needle before it curves the other way. Only kinks at
+    // the flip (within the tolerance) and no single arc.
+    models.clear();
+    std::vector<double> locations;
+    const int steps = static_cast<int>(2.0 * tol_px / (kKinkStep_m / ps));
+    for (int i = 0; i <= steps; ++i) {
+      const double sk = flip_kink - tol_px + i * kKinkStep_m / ps;
+      if (sk >= kink_lo) {
+        locations.push_back(std::min(sk, s_hi));
+      }
+    }
+    for (double sk : locations) {
+      add_kink(sk, -static_cast<int>(tip_side), 1.0 / static_cast<double>(locations.size()));
+    }
+    if (models.empty()) {
+      return fail("no arc fits before the bevel flip");
+    }
+  } else {
+    // Kinks anywhere (a deflection at each step's start; the needle before it of either sense
+    // unless the prior says the last flip is before the span); near the step's start if the
+    // robot's steps are known.
+    const int before_side =
+        pq && std::isfinite(prior->length_since_flip_m) ? static_cast<int>(tip_side) : 0;
+    std::vector<double> locations;
+    int near_hint = 0;
+    const int steps = static_cast<int>((s_hi - min_tip_arc_px - kink_lo) / (kKinkStep_m / ps));
+    for (int i = 0; i <= steps; ++i) {
+      const double sk = s_hi - min_tip_arc_px - i * kKinkStep_m / ps;
+      locations.push_back(sk);
+      near_hint += std::abs(sk - step_kink) <= tol_px ? 1 : 0;
+    }
+    const double hint_mass = near_hint > 0 ? kStepHintPrior : 0.0;
+    models.front().log_prior = std::log((1.0 - hint_mass) * (1.0 - kKinkPrior));
+    const int others = static_cast<int>(locations.size()) - near_hint;
+    for (double sk : locations) {
+      const bool at_hint = std::abs(sk - step_kink) <= tol_px;
+      const double mass =
+          at_hint ? hint_mass / near_hint : (1.0 - hint_mass) * kKinkPrior / std::max(1, others);
+      add_kink(sk, before_side, mass);
+    }
   }
-  const int n_points = models.front().tip_arc.n;
+  const int n_points = static_cast<int>(pts.size());
   double best_rate = std::numeric_limits<double>::infinity();
   for (const auto& m : models) {
     best_rate = std::min(best_rate, m.total_rss / std::max(1, n_points - m.params - 1));
   }
-  const double sigma2 = std::max(best_rate, kMinResidualStd_px * kMinResidualStd_px * 0.25);
+  const double sigma2 = std::max(best_rate, kMinResidualStd_px * kMinResidualStd_px);
   const double n_eff = std::max(1.0, n_points / kResidualCorrelationSamples);
-  const int kink_models = static_cast<int>(models.size()) - 1;
   double max_log_w = -std::numeric_limits<double>::infinity();
   std::size_t map = 0;
   for (std::size_t i = 0; i < models.size(); ++i) {
     Model& m = models[i];
     const bool kink = std::isfinite(m.kink_s);
     m.log_w = -0.5 * m.total_rss / (sigma2 * kResidualCorrelationSamples) -
-              (kink ? std::log(n_eff) : 0.0) +
-              (kink ? std::log(kKinkPrior / std::max(1, kink_models)) : std::log(1.0 - kKinkPrior));
-    tipPose(m.tip_arc.arc, m.p, m.theta);
+              (kink ? std::log(n_eff) : 0.0) + m.log_prior;
+    tip_pose(m.tip_arc.arc, m.p, m.theta);
     if (!finitePose(m.p, m.theta)) {
       m.log_w = -std::numeric_limits<double>::infinity();
     }
@@ -1387,27 +1512,16 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
     }
   }
   const Model& chosen_model = models[map];
-  if (std::getenv("TIP_DEBUG") != nullptr) {
-    if (FILE* fp = std::fopen("/tmp/pts.txt", "w")) {
-      for (std::size_t i = 0; i < pts.size(); ++i) {
-        const Point2 sc = qToScene(g, pts[i]);
-        std::fprintf(fp, "%.9f %.9f %.3f %.3f\n", sc.x(), sc.y(), ss[i] - s_tip, w[i]);
-      }
-      std::fclose(fp);
-    }
-    for (const auto& m : models) {
-      std::fprintf(stderr, "model kink %.1f px rss %.1f n %d log_w %.2f theta %.2f deg side %.0f\n",
-                   std::isfinite(m.kink_s) ? s_tip - m.kink_s : -1.0, m.total_rss, m.tip_arc.n,
-                   m.log_w - max_log_w, m.theta / kDeg, m.tip_arc.arc.side);
-    }
-    std::fprintf(stderr, "sigma2 %.4f n_eff %.1f\n", sigma2, n_eff);
-  }
   const LocalFit& chosen = chosen_model.tip_arc;
   const double kink_s = chosen_model.kink_s;
   Vec tip_q = chosen_model.p;
   double theta = chosen_model.theta;
   if (!finitePose(tip_q, theta)) {
     return fail("non-finite tip pose");
+  }
+  if (tip_q.x() < -0.5 || -tip_q.y() < -0.5 || tip_q.x() > g.cols - 0.5 ||
+      -tip_q.y() > g.rows - 0.5) {
+    return fail("the needle runs out of the frame (tip not inside it)");
   }
   Eigen::Matrix3d model_spread = Eigen::Matrix3d::Zero();
   {
@@ -1419,6 +1533,12 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
       }
       const Eigen::Vector3d d(m.p.x() - tip_q.x(), m.p.y() - tip_q.y(), wrapAngle(m.theta - theta));
       model_spread += wm * d * d.transpose();
+      if (m.unseen_deflection_var > 0.0) {
+        // A heading change at the kink turns the tip arc about the kink point.
+        const double h = std::max(0.0, s_tip - m.kink_s);
+        const Eigen::Vector3d g(-std::sin(m.theta) * h, std::cos(m.theta) * h, 1.0);
+        model_spread += wm * m.unseen_deflection_var * g * g.transpose();
+      }
       wsum += wm;
     }
     model_spread /= std::max(wsum, 1e-300);
@@ -1427,10 +1547,11 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
   // 7. Covariance: the chosen fit's (residuals through the tip pose's dependence on the arc's
   // centre), the models' spread, the along-needle uncertainty of the end and floors.
   const int dof = std::max(1, chosen.n - 2);
-  const double res_var = std::max(chosen.rss / std::max(chosen.weight_sum, 1e-9) *
-                                      chosen.n / dof,
-                                  kMinResidualStd_px * kMinResidualStd_px) *
-                         kResidualCorrelationSamples;
+  // The residual variance: the chosen fit's own, but not below that of the best model over
+  // all the points (a short tip arc's few residuals say little about the noise).
+  const double res_var =
+      std::max(chosen.rss / std::max(chosen.weight_sum, 1e-9) * chosen.n / dof, sigma2) *
+      kResidualCorrelationSamples;
   const Eigen::Matrix2d cov_c = res_var * chosen.centre_cov_unit;  // sigma^2 (J^T W J)^-1
   Eigen::Matrix<double, 3, 2> jac;
   constexpr double kFiniteDiff_px = 0.01;
@@ -1440,14 +1561,34 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
     Vec p1, p0;
     double t1 = 0.0;
     double t0 = 0.0;
-    tipPose(Arc{chosen.arc.centre + dc, chosen.arc.side}, p1, t1);
-    tipPose(Arc{chosen.arc.centre - dc, chosen.arc.side}, p0, t0);
+    tip_pose(Arc{chosen.arc.centre + dc, chosen.arc.side}, p1, t1);
+    tip_pose(Arc{chosen.arc.centre - dc, chosen.arc.side}, p0, t0);
     jac.block<2, 1>(0, k) = (p1 - p0) / (2.0 * kFiniteDiff_px);
     jac(2, k) = wrapAngle(t1 - t0) / (2.0 * kFiniteDiff_px);
   }
   Eigen::Matrix3d cov_px = jac * cov_c * jac.transpose() + model_spread;
+  // The fit ends before the tip (the exclusion at the end, or a stretch the needle is not
+  // visible): a step's deflection may kink the needle in between, unseen. Its variance is
+  // added with the probability that a step starts there (known from the prior's length since
+  // the step, else the gap's share of a step length).
+  {
+    const double last_fitted = *std::max_element(ss.begin(), ss.end());
+    const double gap_px = std::max(0.0, s_tip - last_fitted);
+    double p_kink = std::min(1.0, gap_px * ps / config.step_length_m);
+    if (std::isfinite(step_kink)) {
+      p_kink = step_kink > last_fitted && step_kink <= s_tip ? 1.0 : 0.0;
+    }
+    const bool flip_in_gap =
+        std::isfinite(flip_kink) && flip_kink > last_fitted && flip_kink <= s_tip;
+    const double sigma = flip_in_gap ? config.sigma_flip_rad : config.sigma_insert_rad;
+    if (gap_px > 0.0 && p_kink > 0.0 && sigma > 0.0) {
+      const Eigen::Vector3d g(-std::sin(theta) * gap_px, std::cos(theta) * gap_px, 1.0);
+      cov_px += p_kink * sigma * sigma * g * g.transpose();
+    }
+  }
   // Along the needle: the half-maximum's noise over the contrast profile's slope.
   std::vector<double> dev;
+  dev.reserve(tip_levels.size());
   for (double v : tip_levels) {
     dev.push_back(std::abs(v - tip_level));
   }
@@ -1456,7 +1597,8 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
   along_std_px = std::clamp(along_std_px, kMinAlongStd_px, kMaxAlongStd_px);
   const Vec tdir(std::cos(theta), std::sin(theta));
   cov_px.topLeftCorner<2, 2>() += along_std_px * along_std_px * tdir * tdir.transpose();
-  cov_px.topLeftCorner<2, 2>() += kPositionFloor_px * kPositionFloor_px * Eigen::Matrix2d::Identity();
+  cov_px.topLeftCorner<2, 2>() +=
+      kPositionFloor_px * kPositionFloor_px * Eigen::Matrix2d::Identity();
   cov_px(2, 2) += kHeadingFloor_rad * kHeadingFloor_rad;
   Eigen::Matrix3d cov = cov_px;
   cov.topLeftCorner<2, 2>() *= ps * ps;
@@ -1496,6 +1638,18 @@ Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
   }
   d.message = msg.str();
   return d;
+}
+
+}  // namespace
+
+Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
+                    const std::optional<SearchPrior>& prior) {
+  // Never throws: an OpenCV or allocation failure on a strange input is a failed detection.
+  try {
+    return detectTipUnguarded(frame, config, prior);
+  } catch (const std::exception& e) {
+    return fail(std::string("detection failed: ") + e.what());
+  }
 }
 
 }  // namespace needle_guidance::imaging

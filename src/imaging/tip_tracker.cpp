@@ -3,9 +3,9 @@
 // arcs, steering::advanceTip) and fuses detectTip's detections behind a chi-square gate.
 #include "needle_guidance/imaging/tip_tracker.h"
 
+#include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
-#include <Eigen/Dense>
 #include <sstream>
 #include <stdexcept>
 
@@ -22,6 +22,16 @@ constexpr double kMaxSubstepFraction = 0.25;
 constexpr double kPositionNoisePerLength_m2_per_m = (0.05e-3 * 0.05e-3) / 1e-3;
 /// Heading process noise on retraction per metre (the path is retraced, nearly exactly).
 constexpr double kRetractHeadingNoise_rad2_per_m = (0.5 * kDeg) * (0.5 * kDeg) / 1e-2;
+/// Longer inserted lengths are refused as implausible (a needle is centimetres long) [m].
+constexpr double kMaxInsertedLength_m = 10.0;
+/// Re-acquisition: consecutive rejected detections must advance along the needle by the
+/// robot's travel to within the larger of these [m] and this fraction of the travel.
+constexpr double kReacquireAdvanceTolerance_m = 0.5e-3;
+constexpr double kReacquireAdvanceFraction = 0.3;
+/// The filtered covariance never gets below these standard deviations (x, y [m]; heading
+/// [rad]): the floor of errors that repeated frames share.
+constexpr double kMinPositionStd_m = 0.03e-3;
+constexpr double kMinHeadingStd_rad = 0.3 * kDeg;
 /// Predicted tips within this distance outside the frame border still count as in view [px]
 /// (none: a tip outside the pixels cannot be seen).
 constexpr double kOutOfViewTolerance_px = 0.0;
@@ -121,14 +131,15 @@ void TipTracker::reset(const steering::TipPose& entry, double position_std_m,
   if (!(entry.p_SceneTip.allFinite() && std::isfinite(entry.theta_rad)) ||
       !(std::isfinite(position_std_m) && position_std_m > 0.0) ||
       !(std::isfinite(heading_std_rad) && heading_std_rad > 0.0)) {
-    throw std::invalid_argument("TipTracker::reset: entry pose and standard deviations must be "
-                                "finite (and the deviations > 0)");
+    throw std::invalid_argument(
+        "TipTracker::reset: entry pose and standard deviations must be "
+        "finite (and the deviations > 0)");
   }
   entry_ = entry;
-  entry_covariance_ = Eigen::Vector3d(position_std_m * position_std_m,
-                                      position_std_m * position_std_m,
-                                      heading_std_rad * heading_std_rad)
-                          .asDiagonal();
+  entry_covariance_ =
+      Eigen::Vector3d(position_std_m * position_std_m, position_std_m * position_std_m,
+                      heading_std_rad * heading_std_rad)
+          .asDiagonal();
   have_entry_ = true;
   initialized_ = true;
   length_m_ = 0.0;
@@ -136,7 +147,9 @@ void TipTracker::reset(const steering::TipPose& entry, double position_std_m,
   flip_pending_ = false;
   step_origin_m_ = 0.0;
   deflected_until_m_ = 0.0;
+  flip_length_m_ = -1.0;
   rejected_.reset();
+  confirm_.reset();
   estimate_ = TipEstimate{};
   estimate_.status = TrackStatus::kEntry;
   estimate_.tip = entry;
@@ -148,7 +161,7 @@ void TipTracker::reset(const steering::TipPose& entry, double position_std_m,
 
 void TipTracker::move(double ds_m, steering::Bevel bevel) {
   steering::TipPose& tip = estimate_.tip;
-  Eigen::Matrix3d& P = estimate_.covariance;
+  Eigen::Matrix3d& cov = estimate_.covariance;
   const double r = config_.radius_of_curvature_m;
   const double max_sub = kMaxSubstepFraction * config_.step_length_m;
   const int substeps = std::max(1, static_cast<int>(std::ceil(std::abs(ds_m) / max_sub)));
@@ -169,15 +182,15 @@ void TipTracker::move(double ds_m, steering::Bevel bevel) {
     // Jacobian of the end pose in the start pose: translations pass through, a heading change
     // rotates the whole arc about its start, moving the end by the rotated chord.
     const Point2 chord = to.p_SceneTip - from.p_SceneTip;
-    Eigen::Matrix3d F = Eigen::Matrix3d::Identity();
-    F(0, 2) = -chord.y();
-    F(1, 2) = chord.x();
-    P = symmetrised(F * P * F.transpose());
+    Eigen::Matrix3d jac = Eigen::Matrix3d::Identity();
+    jac(0, 2) = -chord.y();
+    jac(1, 2) = chord.x();
+    cov = symmetrised(jac * cov * jac.transpose());
     const double q_pos = kPositionNoisePerLength_m2_per_m * std::abs(ds);
-    P(0, 0) += q_pos;
-    P(1, 1) += q_pos;
+    cov(0, 0) += q_pos;
+    cov(1, 1) += q_pos;
     if (ds < 0.0) {
-      P(2, 2) += kRetractHeadingNoise_rad2_per_m * std::abs(ds);
+      cov(2, 2) += kRetractHeadingNoise_rad2_per_m * std::abs(ds);
     }
     tip = to;
   }
@@ -191,19 +204,24 @@ void TipTracker::predict(double from_m, double to_m, steering::Bevel bevel) {
     // A later insertion starts a new step here.
     step_origin_m_ = to_m;
     deflected_until_m_ = to_m;
+    if (flip_length_m_ > to_m) {
+      flip_length_m_ = -1.0;  // retracted past the flip: its kink is no longer in the needle
+    }
     return;
   }
   const double step = config_.step_length_m;
-  constexpr double kEps = 1e-12;
+  constexpr double kTolerance_m = 1e-9;  // lengths this close count as equal
   double at = from_m;
   while (at < to_m) {
-    if (deflected_until_m_ <= at + kEps) {
+    if (deflected_until_m_ <= at + kTolerance_m) {
       // A new step begins at or before `at`: its deflection enters now, whole.
-      const double k = std::floor((at - step_origin_m_) / step + kEps);
       const double sigma = flip_pending_ ? config_.sigma_flip_rad : config_.sigma_insert_rad;
       estimate_.covariance(2, 2) += sigma * sigma;
       flip_pending_ = false;
-      deflected_until_m_ = step_origin_m_ + (k + 1.0) * step;
+      deflected_until_m_ = std::max(deflected_until_m_, step_origin_m_);
+      while (deflected_until_m_ <= at + kTolerance_m) {
+        deflected_until_m_ += step;
+      }
     }
     const double next = std::min(to_m, deflected_until_m_);
     move(next - at, bevel);
@@ -217,24 +235,32 @@ bool TipTracker::stateFinite() const {
 }
 
 void TipTracker::updateConfidence() {
-  const auto& P = estimate_.covariance;
+  const auto& cov = estimate_.covariance;
   const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> es(
-      0.5 * (P.topLeftCorner<2, 2>() + P.topLeftCorner<2, 2>().transpose()));
+      0.5 * (cov.topLeftCorner<2, 2>() + cov.topLeftCorner<2, 2>().transpose()));
   const double pos_std = std::sqrt(std::max(0.0, es.eigenvalues().maxCoeff()));
-  const double heading_std = std::sqrt(std::max(0.0, P(2, 2)));
+  const double heading_std = std::sqrt(std::max(0.0, cov(2, 2)));
+  // A step's deflection kinks the needle where the step began; over the first few millimetres
+  // after it the new heading is seen on too short an arc to be trusted.
+  const bool step_known = deflected_until_m_ > step_origin_m_;
+  const double since_step =
+      step_known ? length_m_ - (deflected_until_m_ - config_.step_length_m) : 0.0;
+  const bool heading_settled = !step_known || since_step >= kMinStepAdvanceForConfidence_m;
   estimate_.confident = (estimate_.status == TrackStatus::kEntry ||
-                         estimate_.status == TrackStatus::kTracked) &&
-                        initialized_ && stateFinite() &&
+                         (estimate_.status == TrackStatus::kTracked && heading_settled)) &&
+                        initialized_ && stateFinite() && !confirm_ &&
                         pos_std <= config_.confident_position_std_m &&
                         heading_std <= config_.confident_heading_std_rad;
 }
 
 TipEstimate TipTracker::onDrive(double inserted_length_m, steering::Bevel bevel,
                                 std::uint32_t flips) {
-  if (!std::isfinite(inserted_length_m) || inserted_length_m < 0.0) {
+  if (!std::isfinite(inserted_length_m) || inserted_length_m < 0.0 ||
+      inserted_length_m > kMaxInsertedLength_m) {
     TipEstimate out = estimate_;
     out.message = "drive ignored: inserted length " + fmt(inserted_length_m * 1e3) +
-                  " mm is not a finite non-negative length";
+                  " mm is not a finite length in [0, " + fmt(kMaxInsertedLength_m * 1e3, 0) +
+                  "] mm";
     return out;
   }
   if (flips != flips_) {
@@ -242,6 +268,7 @@ TipEstimate TipTracker::onDrive(double inserted_length_m, steering::Bevel bevel,
     flip_pending_ = true;
     step_origin_m_ = length_m_;
     deflected_until_m_ = length_m_;
+    flip_length_m_ = length_m_;
     flips_ = flips;
   }
   estimate_.detection = Detection{};
@@ -265,14 +292,17 @@ TipEstimate TipTracker::onDrive(double inserted_length_m, steering::Bevel bevel,
     estimate_.message = "nothing inserted: the needle guide's pose";
     step_origin_m_ = 0.0;
     deflected_until_m_ = 0.0;
+    flip_length_m_ = -1.0;
+    confirm_.reset();
+    rejected_.reset();
   } else if (delta == 0.0) {
     estimate_.tip.bevel = bevel;  // e.g. a flip in place: the tip does not move
     estimate_.message = "no insertion change";
   } else {
     predict(length_m_, inserted_length_m, bevel);
     estimate_.status = TrackStatus::kPredicted;
-    estimate_.message = "predicted along the " + steering::toString(bevel) + " arc by " +
-                        fmt(delta * 1e3) + " mm";
+    estimate_.message =
+        "predicted along the " + steering::toString(bevel) + " arc by " + fmt(delta * 1e3) + " mm";
   }
   if (!stateFinite()) {
     estimate_ = before;
@@ -310,9 +340,13 @@ TipEstimate TipTracker::onFrame(const cv::Mat& frame) {
     estimate_.tip = {d.p_SceneTip, d.theta_rad, bevel};
     estimate_.covariance = symmetrised(kReacquireInflation * d.covariance);
     estimate_.status = TrackStatus::kTracked;
-    estimate_.message = "acquired without a prior (not confident until confirmed): " + d.message;
+    estimate_.message =
+        "acquired without a prior (not confident until confirmed by the "
+        "robot's motion): " +
+        d.message;
     initialized_ = true;
-    estimate_.confident = false;
+    confirmWith(d, true);
+    updateConfidence();
     return estimate_;
   }
   if (have_entry_ && length_m_ == 0.0) {
@@ -324,7 +358,8 @@ TipEstimate TipTracker::onFrame(const cv::Mat& frame) {
   const ImageGeometry& g = config_.geometry;
   const cv::Point2d px = g.toPixel(estimate_.tip.p_SceneTip);
   if (px.x < -0.5 - kOutOfViewTolerance_px || px.y < -0.5 - kOutOfViewTolerance_px ||
-      px.x > g.cols - 0.5 + kOutOfViewTolerance_px || px.y > g.rows - 0.5 + kOutOfViewTolerance_px) {
+      px.x > g.cols - 0.5 + kOutOfViewTolerance_px ||
+      px.y > g.rows - 0.5 + kOutOfViewTolerance_px) {
     estimate_.status = TrackStatus::kOutOfView;
     estimate_.message = "predicted tip outside the frame (pixel " + fmt(px.x, 1) + ", " +
                         fmt(px.y, 1) + "): predicted only";
@@ -334,6 +369,17 @@ TipEstimate TipTracker::onFrame(const cv::Mat& frame) {
   SearchPrior prior;
   prior.tip = estimate_.tip;
   prior.covariance = estimate_.covariance;
+  // The needle's last arc began at the last flip, or at the entry (the guide holds it straight
+  // before), so the needle before it curves the other way or is not there.
+  if (flip_length_m_ >= 0.0) {
+    prior.length_since_flip_m = length_m_ - flip_length_m_;
+  } else if (have_entry_) {
+    prior.length_since_flip_m = length_m_;
+  }
+  if (deflected_until_m_ > step_origin_m_) {
+    // Steps of step_length_m from the entry or the last flip, as the robot inserts them.
+    prior.length_since_step_m = length_m_ - (deflected_until_m_ - config_.step_length_m);
+  }
   const Detection d = detectTip(frame, config_, prior);
   estimate_.detection = d;
   if (!d.found) {
@@ -346,8 +392,8 @@ TipEstimate TipTracker::onFrame(const cv::Mat& frame) {
   const Eigen::Vector3d x = poseVector(estimate_.tip);
   Eigen::Vector3d nu(d.p_SceneTip.x() - x.x(), d.p_SceneTip.y() - x.y(),
                      wrapAngle(d.theta_rad - x.z()));
-  const Eigen::Matrix3d S = symmetrised(estimate_.covariance + d.covariance);
-  const Eigen::LDLT<Eigen::Matrix3d> ldlt(S);
+  const Eigen::Matrix3d innovation_cov = symmetrised(estimate_.covariance + d.covariance);
+  const Eigen::LDLT<Eigen::Matrix3d> ldlt(innovation_cov);
   const double d2 = nu.dot(ldlt.solve(nu));
   if (!std::isfinite(d2) || d2 > config_.gate_chi2) {
     // Gated out. Does it agree with the previous rejected detections (moved by the robot)?
@@ -365,16 +411,24 @@ TipEstimate TipTracker::onFrame(const cv::Mat& frame) {
                                      config_.radius_of_curvature_m);
       }
       const double sig2 = std::max(config_.sigma_insert_rad, config_.sigma_flip_rad);
-      Eigen::Matrix3d C = rejected_->covariance + d.covariance;
-      C(2, 2) += sig2 * sig2 * std::max(travel, 0.0) / config_.step_length_m;
+      Eigen::Matrix3d agree_cov = rejected_->covariance + d.covariance;
+      agree_cov(2, 2) += sig2 * sig2 * std::max(travel, 0.0) / config_.step_length_m;
       const double q = std::max(travel, 0.0) * std::max(sig2, 1e-3);
-      C(0, 0) += q * q;
-      C(1, 1) += q * q;
+      agree_cov(0, 0) += q * q;
+      agree_cov(1, 1) += q * q;
       Eigen::Vector3d e(d.p_SceneTip.x() - moved.p_SceneTip.x(),
                         d.p_SceneTip.y() - moved.p_SceneTip.y(),
                         wrapAngle(d.theta_rad - moved.theta_rad));
-      const double a2 = e.dot(symmetrised(C).ldlt().solve(e));
-      if (travel >= 0.0 && std::isfinite(a2) && a2 <= config_.gate_chi2) {
+      const double a2 = e.dot(symmetrised(agree_cov).ldlt().solve(e));
+      // ... and they must move with the needle: the detected advance along the needle matches
+      // the robot's (a static structure, e.g. where the needle enters an acoustic shadow, does
+      // not move when the needle does).
+      const Point2 dir(std::cos(rejected_->pose.theta_rad), std::sin(rejected_->pose.theta_rad));
+      const double advance = (d.p_SceneTip - rejected_->pose.p_SceneTip).dot(dir);
+      const bool moves_with_needle =
+          std::abs(advance - travel) <=
+          std::max(kReacquireAdvanceTolerance_m, kReacquireAdvanceFraction * travel);
+      if (travel >= 0.0 && std::isfinite(a2) && a2 <= config_.gate_chi2 && moves_with_needle) {
         now.agreeing = rejected_->agreeing + 1;
         now.travel_m = rejected_->travel_m + travel;
       }
@@ -386,9 +440,11 @@ TipEstimate TipTracker::onFrame(const cv::Mat& frame) {
       estimate_.status = TrackStatus::kTracked;
       estimate_.message = "re-acquired: " + std::to_string(now.agreeing) +
                           " consecutive detections agreed with each other but not with the "
-                          "prediction (last d2 = " + fmt(d2, 1) + "); covariance inflated";
+                          "prediction (last d2 = " +
+                          fmt(d2, 1) + "); covariance inflated";
       rejected_.reset();
-      estimate_.confident = false;
+      confirmWith(d, true);
+      updateConfidence();
       return estimate_;
     }
     estimate_.status = TrackStatus::kPredicted;
@@ -401,13 +457,24 @@ TipEstimate TipTracker::onFrame(const cv::Mat& frame) {
   rejected_.reset();
   // Kalman update (Joseph form).
   const TipEstimate before = estimate_;
-  const Eigen::Matrix3d K = ldlt.solve(estimate_.covariance.transpose()).transpose();
-  const Eigen::Vector3d dx = K * nu;
-  const Eigen::Matrix3d IK = Eigen::Matrix3d::Identity() - K;
-  estimate_.covariance =
-      symmetrised(IK * estimate_.covariance * IK.transpose() + K * d.covariance * K.transpose());
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> prior_es(
+      estimate_.covariance.topLeftCorner<2, 2>());
+  const bool wide_prior =
+      std::sqrt(std::max(0.0, prior_es.eigenvalues().maxCoeff())) > kConfirmPriorStd_m;
+  const Eigen::Matrix3d gain = ldlt.solve(estimate_.covariance.transpose()).transpose();
+  const Eigen::Vector3d dx = gain * nu;
+  const Eigen::Matrix3d i_kh = Eigen::Matrix3d::Identity() - gain;
+  estimate_.covariance = symmetrised(i_kh * estimate_.covariance * i_kh.transpose() +
+                                     gain * d.covariance * gain.transpose());
   estimate_.tip.p_SceneTip += dx.head<2>();
   estimate_.tip.theta_rad = wrapAngle(estimate_.tip.theta_rad + dx.z());
+  // Floor: repeated frames of a needle that did not move share their errors (the static
+  // speckle and anatomy), so fusing them must not shrink the covariance without bound.
+  for (int k = 0; k < 3; ++k) {
+    const double floor =
+        k < 2 ? kMinPositionStd_m * kMinPositionStd_m : kMinHeadingStd_rad * kMinHeadingStd_rad;
+    estimate_.covariance(k, k) = std::max(estimate_.covariance(k, k), floor);
+  }
   if (!stateFinite()) {
     estimate_ = before;
     estimate_.status = TrackStatus::kPredicted;
@@ -417,8 +484,42 @@ TipEstimate TipTracker::onFrame(const cv::Mat& frame) {
   }
   estimate_.status = TrackStatus::kTracked;
   estimate_.message = "fused (d2 = " + fmt(d2, 2) + "): " + d.message;
+  if (wide_prior || confirm_) {
+    confirmWith(d, wide_prior);
+    if (confirm_) {
+      estimate_.message +=
+          " (wide prediction: not confident until " + std::to_string(kConfirmDetections) +
+          " detections move with the robot; " + std::to_string(confirm_->count) + " so far)";
+    }
+  }
   updateConfidence();
   return estimate_;
+}
+
+void TipTracker::confirmWith(const Detection& d, bool start) {
+  if (start || !confirm_) {
+    confirm_ = Confirmation{d.p_SceneTip, d.theta_rad, length_m_, 0, 0.0};
+    return;
+  }
+  const double travel = length_m_ - confirm_->inserted_length_m;
+  const Point2 dir(std::cos(confirm_->theta_rad), std::sin(confirm_->theta_rad));
+  const double advance = (d.p_SceneTip - confirm_->p_SceneTip).dot(dir);
+  const bool moves = travel >= 0.0 &&
+                     std::abs(advance - travel) <=
+                         std::max(kReacquireAdvanceTolerance_m, kReacquireAdvanceFraction * travel);
+  if (moves) {
+    confirm_->count += 1;
+    confirm_->travel_m += travel;
+  } else {
+    confirm_->count = 0;
+    confirm_->travel_m = 0.0;
+  }
+  confirm_->p_SceneTip = d.p_SceneTip;
+  confirm_->theta_rad = d.theta_rad;
+  confirm_->inserted_length_m = length_m_;
+  if (confirm_->count >= kConfirmDetections && confirm_->travel_m >= kConfirmTravel_m) {
+    confirm_.reset();
+  }
 }
 
 }  // namespace needle_guidance::imaging

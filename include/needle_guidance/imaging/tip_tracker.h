@@ -11,6 +11,7 @@
 
 #include <Eigen/Core>
 #include <cstdint>
+#include <limits>
 #include <opencv2/core.hpp>
 #include <optional>
 #include <string>
@@ -52,7 +53,7 @@ TrackerConfig trackerConfigFromScene(const scene::Scene& scene, const ImagerConf
 /// One frame's detection, before any filtering.
 struct Detection {
   bool found = false;
-  std::string message;  ///< why not found, or a one-line summary of the fit
+  std::string message;                 ///< why not found, or a one-line summary of the fit
   Point2 p_SceneTip = Point2::Zero();  ///< [m]
   double theta_rad = 0.0;              ///< tangent at the tip, along the insertion direction [rad]
   /// Covariance of (x [m], y [m], theta [rad]) from the fit residuals and the tip profile.
@@ -65,6 +66,14 @@ struct Detection {
 struct SearchPrior {
   steering::TipPose tip;  ///< predicted tip; tip.bevel sets the sign of the last arc's curvature
   Eigen::Matrix3d covariance = Eigen::Matrix3d::Zero();  ///< of (x, y, theta)
+  /// Inserted length since the bevel last flipped, or since the entry if it never did [m]: the
+  /// needle's last arc (of tip.bevel's sense) is this long, and before it the needle curves the
+  /// other way (the flip's kink in between) or is not in the tissue. +inf if unknown (then
+  /// either sense is considered for the needle behind a kink).
+  double length_since_flip_m = std::numeric_limits<double>::infinity();
+  /// Inserted length since the current insertion step began [m] (its deflection kinks the
+  /// needle there), +inf if unknown. Only a hint: kinks elsewhere are still considered.
+  double length_since_step_m = std::numeric_limits<double>::infinity();
 };
 
 /// Why `frame` cannot be used as a frame of `geometry`, or "" if it can: empty (a dropped
@@ -83,16 +92,24 @@ cv::Rect searchWindow(const TrackerConfig& config, const std::optional<SearchPri
 constexpr double kSearchBackLength_m = 10e-3;
 
 /// Single-frame detector: ridge filter in the prior's window (the whole frame without prior),
-/// RANSAC arc of the known radius (both curvature signs without prior), least-squares refit,
-/// tip at the far end along the insertion direction (sub-pixel, half-maximum of the needle's
-/// intensity profile along the arc). Never throws for a bad frame: returns found = false with the
-/// reason. `frame` must be CV_8UC1 of config.geometry.size().
+/// RANSAC arc of the known radius (both curvature signs without prior; in ultrasound a
+/// reverberation echo is recognised as a dimmer copy deeper than the needle), least-squares
+/// refit, the centre line traced along the arc through kinks, the tip at the far end along the
+/// insertion direction (change point of the needle's cross-line contrast, which bridges the
+/// gaps of a partly visible needle; sub-pixel at the end's steepest descent, minus the rounded
+/// end's radius), the heading from a kink-aware refit of the last ~7 mm (kinks at a step's start
+/// or a flip; see SearchPrior's lengths). The tip must lie in the frame. Never throws, never
+/// returns NaN: a bad frame or a failed fit gives found = false with the reason. `frame` must be
+/// CV_8UC1 of config.geometry.size(). Without a prior the whole frame is filtered (~15 ms for
+/// 640 x 480); with one only its window (< 1 ms).
 Detection detectTip(const cv::Mat& frame, const TrackerConfig& config,
                     const std::optional<SearchPrior>& prior);
 
-/// Baseline: Gaussian blur, Canny, cv::HoughLinesP in the same window as detectTip, the longest
-/// segment, its end farther along the prior heading (+x without prior) as the tip and its
-/// direction as the heading. Same contract as detectTip.
+/// Baseline: Gaussian blur, Canny (thresholds from the window's gradient quantiles),
+/// cv::HoughLinesP in the same window as detectTip, the longest segment whose direction agrees
+/// with the prior's heading (as detectTip's check), moved to the midline if Canny also found
+/// the needle's other flank, its end farther along the prior heading (+x without prior) as the
+/// tip and its direction as the heading. Same contract as detectTip.
 Detection houghBaselineTip(const cv::Mat& frame, const TrackerConfig& config,
                            const std::optional<SearchPrior>& prior);
 
@@ -111,17 +128,33 @@ std::string toString(TrackStatus status);
 /// The tracker's output for one frame (or one motion update).
 struct TipEstimate {
   TrackStatus status = TrackStatus::kUninitialized;
-  std::string message;                 ///< one line: what happened and why
-  steering::TipPose tip;               ///< filtered pose; bevel from the robot [m, rad]
+  std::string message;    ///< one line: what happened and why
+  steering::TipPose tip;  ///< filtered pose; bevel from the robot [m, rad]
   Eigen::Matrix3d covariance = Eigen::Matrix3d::Identity();  ///< of (x, y, theta), finite
   /// Position and heading standard deviations within the configured limits, and the status is
   /// kEntry or kTracked. Never true for a pose that was not confirmed by an image (or the guide).
+  /// Also false (see TipTracker) after a re-acquisition or an acquisition until detections
+  /// have moved with the robot, and over the first kMinStepAdvanceForConfidence_m of each
+  /// insertion step (the new step's deflection is not yet measurable).
   bool confident = false;
   double inserted_length_m = 0.0;  ///< from the robot [m]
   Detection detection;             ///< this frame's raw detection (found = false if none)
 };
 
 /// Temporal filter (extended Kalman over x, y, theta) around detectTip.
+///
+/// Process model (dissertation 5.3): the tip moves along the arc of the current bevel by the
+/// inserted length; each insertion step's deflection (sigma_insert, sigma_flip for the first
+/// step after a flip) enters the heading variance whole where the step begins, steps of
+/// step_length_m counted from the entry or the last flip (as the robot inserts them; if it
+/// does not, the variance per length is still right on average). Measurement: detectTip with
+/// the prediction as prior (and the lengths since the last flip and step as hints), fused if
+/// its innovation passes the chi-square gate (3 dof, gate_chi2) on S = P + R; the covariance
+/// never shrinks below a small floor (repeated frames of a needle at rest share their errors).
+/// A detection that keeps being gated out although it follows the robot's motion re-acquires
+/// the track (see kReacquireAfter); after a re-acquisition, an acquisition or a fusion into a
+/// very wide prediction the estimate is not confident until detections have moved with the
+/// robot (kConfirmPriorStd_m). Every output is finite: a non-finite update is discarded.
 class TipTracker {
 public:
   /// Throws std::invalid_argument from config.validate().
@@ -133,12 +166,18 @@ public:
              double heading_std_rad = 0.005);
   /// The robot's proprioception: inserted length now and the current bevel; `flips` counts
   /// bevel flips since the entry. A longer length predicts the tip along an arc of the bevel's
-  /// direction and grows the heading variance (sigma_flip if a flip came since the last
-  /// advance, else sigma_insert, per step_length_m); a shorter one moves it back along the
-  /// arc. Non-finite or negative lengths are ignored with the returned status saying so.
+  /// direction and grows the heading variance (sigma_flip for the first step_length_m after a
+  /// flip, else sigma_insert, per step of step_length_m); a shorter one moves it back along
+  /// the arc (back to 0: the guide's pose, kEntry). Status kPredicted after a move (not
+  /// confident), unchanged without one. Non-finite, negative or implausible (> 10 m) lengths
+  /// are ignored, the returned message saying so. Before reset() or an acquisition it only
+  /// records the length and bevel.
   TipEstimate onDrive(double inserted_length_m, steering::Bevel bevel, std::uint32_t flips);
-  /// One frame: validate, detect around the prediction, gate, fuse. Bad frames and missed or
-  /// gated detections leave the filter at its prediction and say why.
+  /// One frame: validate (kBadFrame, state unchanged), nothing inserted (kEntry), predicted tip
+  /// outside the frame (kOutOfView, no detection attempted), detect around the prediction, gate
+  /// and fuse (kTracked) or keep the prediction (kPredicted, with the reason: no detection or
+  /// gated out). Without reset() the first detection without a prior acquires the track (not
+  /// confident until confirmed). Never throws.
   TipEstimate onFrame(const cv::Mat& frame);
 
   /// The current estimate (status of the last update).
@@ -152,6 +191,18 @@ public:
   static constexpr int kReacquireAfter = 3;
   static constexpr double kReacquireInflation = 4.0;
   static constexpr double kReacquireMinTravel_m = 1e-3;
+  /// A detection fused into a wide prediction (largest position standard deviation above
+  /// kConfirmPriorStd_m: after many frames without a detection), a re-acquisition and an
+  /// acquisition without an entry could have locked onto something else that happened to pass
+  /// the wide gate: the estimate is not confident until kConfirmDetections further fused
+  /// detections have moved with the robot over at least kConfirmTravel_m of insertion.
+  static constexpr double kConfirmPriorStd_m = 2e-3;
+  static constexpr int kConfirmDetections = 2;
+  static constexpr double kConfirmTravel_m = 1e-3;
+  /// A tracked estimate is confident only once the needle has advanced this far since the
+  /// current insertion step began (its deflection is seen over too short an arc before: 5-10
+  /// degree heading errors with 1-2 degree standard deviations were measured on 2-4 mm arcs).
+  static constexpr double kMinStepAdvanceForConfidence_m = 4.5e-3;
 
 private:
   /// A gated-out detection kept to check whether the next ones agree with it.
@@ -159,8 +210,8 @@ private:
     steering::TipPose pose;
     Eigen::Matrix3d covariance = Eigen::Matrix3d::Identity();
     double inserted_length_m = 0.0;
-    int agreeing = 0;           ///< how many consecutive rejected detections agree, this included
-    double travel_m = 0.0;      ///< insertion travelled across them [m]
+    int agreeing = 0;       ///< how many consecutive rejected detections agree, this included
+    double travel_m = 0.0;  ///< insertion travelled across them [m]
   };
 
   /// Moves the state from inserted length `from_m` to `to_m` along the arc of `bevel`, growing
@@ -178,16 +229,29 @@ private:
 
   TrackerConfig config_;
   TipEstimate estimate_;
-  bool initialized_ = false;   ///< an entry pose or an acquisition gave the state a meaning
-  bool have_entry_ = false;    ///< reset() gave a guide pose (used again when retracted to 0)
+  bool initialized_ = false;  ///< an entry pose or an acquisition gave the state a meaning
+  bool have_entry_ = false;   ///< reset() gave a guide pose (used again when retracted to 0)
   steering::TipPose entry_;
   Eigen::Matrix3d entry_covariance_ = Eigen::Matrix3d::Identity();
-  double length_m_ = 0.0;      ///< inserted length the state refers to [m]
+  double length_m_ = 0.0;  ///< inserted length the state refers to [m]
   std::uint32_t flips_ = 0;
   bool flip_pending_ = false;       ///< the next step's deflection is drawn with sigma_flip
   double step_origin_m_ = 0.0;      ///< steps of step_length_m are counted from here [m]
+  double flip_length_m_ = -1.0;     ///< inserted length at the last flip, < 0 if none [m]
   double deflected_until_m_ = 0.0;  ///< the deflection of travel up to here is in P [m]
   std::optional<Rejected> rejected_;
+  /// Pending confirmation of a fused detection by the robot's motion (see kConfirmPriorStd_m).
+  struct Confirmation {
+    Point2 p_SceneTip = Point2::Zero();  ///< the last confirming detection [m]
+    double theta_rad = 0.0;
+    double inserted_length_m = 0.0;
+    int count = 0;          ///< detections that moved with the robot since
+    double travel_m = 0.0;  ///< insertion over them [m]
+  };
+  std::optional<Confirmation> confirm_;
+  /// Starts or advances the confirmation with a fused detection; false if it was not moving
+  /// with the robot.
+  void confirmWith(const Detection& d, bool start);
 };
 
 }  // namespace needle_guidance::imaging
