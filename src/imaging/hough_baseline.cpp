@@ -15,9 +15,14 @@
 #include <vector>
 
 #include "needle_guidance/imaging/tip_tracker.h"
+#include "detection_util.h"
 
 namespace needle_guidance::imaging {
 namespace {
+
+using detail::fail;
+using detail::wrapAngle;
+
 
 constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
@@ -39,21 +44,6 @@ constexpr double kPriorHeadingSlack_rad = 30.0 * kDeg;
 /// Covariance: position std of a segment end [px] and heading std floor [rad].
 constexpr double kEndpointStd_px = 2.0;
 constexpr double kHeadingStdFloor_rad = 1.0 * kDeg;
-
-double wrapAngle(double a) {
-  a = std::fmod(a + kPi, 2.0 * kPi);
-  if (a < 0.0) {
-    a += 2.0 * kPi;
-  }
-  return a - kPi;
-}
-
-Detection fail(const std::string& why) {
-  Detection d;
-  d.found = false;
-  d.message = why;
-  return d;
-}
 
 }  // namespace
 

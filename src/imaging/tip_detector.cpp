@@ -30,9 +30,15 @@
 #include <vector>
 
 #include "needle_guidance/imaging/tip_tracker.h"
+#include "detection_util.h"
 
 namespace needle_guidance::imaging {
 namespace {
+
+using detail::fail;
+using detail::fmt;
+using detail::wrapAngle;
+
 
 using Vec = Eigen::Vector2d;
 constexpr double kPi = 3.14159265358979323846;
@@ -177,22 +183,6 @@ constexpr double kMinResidualStd_px = 0.25;
 // ---- small helpers ----------------------------------------------------------------------
 Vec leftNormal(const Vec& v) {
   return {-v.y(), v.x()};
-}
-
-double wrapAngle(double a) {
-  a = std::fmod(a + kPi, 2.0 * kPi);
-  if (a < 0.0) {
-    a += 2.0 * kPi;
-  }
-  return a - kPi;
-}
-
-std::string fmt(double v, int precision = 3) {
-  std::ostringstream s;
-  s.setf(std::ios::fixed);
-  s.precision(precision);
-  s << v;
-  return s.str();
 }
 
 double median(std::vector<double> v) {
@@ -949,13 +939,6 @@ LocalFit fitThroughPoint(const std::vector<Vec>& pts, const std::vector<double>&
 Arc mirrored(const Arc& arc, const Vec& through, double radius_px) {
   const Vec d = (through - arc.centre).normalized();
   return {through + radius_px * d, -arc.side};
-}
-
-Detection fail(const std::string& why) {
-  Detection d;
-  d.found = false;
-  d.message = why;
-  return d;
 }
 
 }  // namespace

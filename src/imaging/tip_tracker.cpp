@@ -3,6 +3,8 @@
 // arcs, steering::advanceTip) and fuses detectTip's detections behind a chi-square gate.
 #include "needle_guidance/imaging/tip_tracker.h"
 
+#include "detection_util.h"
+
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
@@ -11,6 +13,10 @@
 
 namespace needle_guidance::imaging {
 namespace {
+
+using detail::fmt;
+using detail::wrapAngle;
+
 
 constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
@@ -35,22 +41,6 @@ constexpr double kMinHeadingStd_rad = 0.3 * kDeg;
 /// Predicted tips within this distance outside the frame border still count as in view [px]
 /// (none: a tip outside the pixels cannot be seen).
 constexpr double kOutOfViewTolerance_px = 0.0;
-
-double wrapAngle(double a) {
-  a = std::fmod(a + kPi, 2.0 * kPi);
-  if (a < 0.0) {
-    a += 2.0 * kPi;
-  }
-  return a - kPi;
-}
-
-std::string fmt(double v, int precision = 3) {
-  std::ostringstream s;
-  s.setf(std::ios::fixed);
-  s.precision(precision);
-  s << v;
-  return s.str();
-}
 
 Eigen::Vector3d poseVector(const steering::TipPose& p) {
   return {p.p_SceneTip.x(), p.p_SceneTip.y(), p.theta_rad};

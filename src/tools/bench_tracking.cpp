@@ -51,6 +51,8 @@ constexpr double kUsBlur_m = 0.3e-3;
 constexpr double kFluoroNoise = 0.02;
 constexpr double kFluoroBlur_m = 0.2e-3;
 const std::vector<double> kNoiseLevels = {0.0, 0.05, 0.1, 0.2, 0.3};
+/// Fluoroscopy adds its default (0.02) to the sweep.
+const std::vector<double> kFluoroNoiseLevels = {0.0, 0.02, 0.05, 0.1, 0.2, 0.3};
 /// Entries of the accuracy sequences: heights and angles that keep most of them in view.
 constexpr double kEntryMinY_m = 0.02, kEntryMaxY_m = 0.08;
 constexpr double kEntryMaxAngle_rad = 0.35;
@@ -153,7 +155,8 @@ int main(int argc, char** argv) {
   std::map<std::string, double> headline;
   bool better_than_hough_everywhere = true;
   for (const im::Modality modality : {im::Modality::kUltrasound, im::Modality::kFluoroscopy}) {
-    for (const double noise : kNoiseLevels) {
+    for (const double noise :
+         modality == im::Modality::kUltrasound ? kNoiseLevels : kFluoroNoiseLevels) {
       const im::ImagerConfig device = deviceConfig(scene, modality, noise, kSequenceSeed);
       const im::FrameRenderer renderer(scene, device);
       const im::TrackerConfig tracker_config = im::trackerConfigFromScene(scene, device);
@@ -276,53 +279,13 @@ int main(int argc, char** argv) {
         headline["hough_fps_640x480"] = hough_err.seconds > 0.0 ? hough_err.attempts / hough_err.seconds : 0.0;
         headline["confident_fraction_us"] = double(confident) / std::max(1, estimates);
       }
-      if (!us && noise == 0.0) {
-        headline["tip_error_mm_median_fluoro_noise0"] = ng::report::median(tracker_err.tip_mm);
+      if (!us && noise == kFluoroNoise) {
+        headline["tip_error_mm_median_fluoro"] = ng::report::median(tracker_err.tip_mm);
+        headline["heading_error_deg_median_fluoro"] = ng::report::median(tracker_err.heading_deg);
+        headline["hough_tip_error_mm_median_fluoro"] = theirs;
       }
     }
   }
-  // Fluoroscopy at its default noise (not on the sweep grid): one more pass of the tracker.
-  {
-    const im::ImagerConfig device =
-        deviceConfig(scene, im::Modality::kFluoroscopy, kFluoroNoise, kSequenceSeed);
-    const im::FrameRenderer renderer(scene, device);
-    const im::TrackerConfig tracker_config = im::trackerConfigFromScene(scene, device);
-    Errors e;
-    std::mt19937_64 rng(kSequenceSeed);
-    std::uniform_real_distribution<double> u01(0.0, 1.0);
-    std::uint64_t frame_index = 0;
-    for (int seq = 0; seq < sequences; ++seq) {
-      ng::robot::EntryPose entry;
-      entry.height_m = kEntryMinY_m + (kEntryMaxY_m - kEntryMinY_m) * u01(rng);
-      entry.angle_rad = kEntryMaxAngle_rad * (2.0 * u01(rng) - 1.0);
-      entry.bevel = u01(rng) < 0.5 ? st::Bevel::kLeft : st::Bevel::kRight;
-      needle_config.seed = kSequenceSeed * 1000 + std::uint64_t(seq);
-      ng::robot::SteerableNeedle needle(problem, needle_config, entry);
-      im::TipTracker tracker(tracker_config);
-      tracker.reset(needle.tip());
-      std::uint32_t flips = 0;
-      const int steps = 2 + int(u01(rng) * (kMaxSequenceSteps - 1));
-      for (int step = 0; step < steps; ++step) {
-        if (u01(rng) < kFlipProbability) {
-          needle.flip();
-          ++flips;
-        }
-        const auto moved = needle.insertTo(needle.insertedLength_m() + delta_m);
-        tracker.onDrive(needle.insertedLength_m(), needle.bevel(), flips);
-        if (moved.outcome() != ng::robot::MotionOutcome::kMoved) {
-          break;
-        }
-        const im::TipEstimate est =
-            tracker.onFrame(renderer.render(needle.pathPoints(0.5e-3), frame_index++).image);
-        if (est.status != im::TrackStatus::kOutOfView) {
-          e.add(est.tip.p_SceneTip, est.tip.theta_rad, needle.tip());
-        }
-      }
-    }
-    headline["tip_error_mm_median_fluoro"] = ng::report::median(e.tip_mm);
-    headline["heading_error_deg_median_fluoro"] = ng::report::median(e.heading_deg);
-  }
-
   // ---- 2. closed loop: the same seeded trials with each kind of feedback ----
   const st::SteeringModel model(problem);
   const st::PolicyTable table = st::solveValueIteration(model);
