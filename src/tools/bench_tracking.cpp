@@ -163,6 +163,7 @@ int main(int argc, char** argv) {
       Errors tracker_err, detect_err, hough_err;
       std::uint64_t frame_index = 0;
       int confident = 0, estimates = 0;
+      bool example_written = false;
       std::mt19937_64 rng(kSequenceSeed);
       std::uniform_real_distribution<double> u01(0.0, 1.0);
       for (int seq = 0; seq < sequences; ++seq) {
@@ -232,7 +233,9 @@ int main(int argc, char** argv) {
                              err(det.found, det.p_SceneTip, det.theta_rad, false),
                              err(hough.found, hough.p_SceneTip, hough.theta_rad, true),
                              err(hough.found, hough.p_SceneTip, hough.theta_rad, false)});
-          if (seq == 3 && step == steps - 1 && (noise == kUsNoise || noise == 0.05)) {
+          if (!example_written && step >= 3 && est.status == im::TrackStatus::kTracked &&
+              (noise == kUsNoise || noise == kFluoroNoise)) {
+            example_written = true;
             writeExample(args->out_dir + "/example_" + im::toString(modality) + "_noise" +
                              std::to_string(int(std::lround(noise * 100))) + ".png",
                          frame.image, device.geometry, truth, est, hough);

@@ -827,59 +827,6 @@ TEST(TipTrackerTest, AcquiresWithoutAnEntryButNotConfidently) {
 }
 
 /// Timings on one core (printed, not asserted): 640 x 480 frames at 0.2 mm, and the scene's grid.
-TEST(TipTrackerTest, PrintTimings) {
-  const int threads = cv::getNumThreads();
-  cv::setNumThreads(1);
-  for (const bool vga : {true, false}) {
-    for (const Modality m : {Modality::kUltrasound, Modality::kFluoroscopy}) {
-      ImagerConfig ic = imager(m, kDefaultNoise);
-      if (vga) {
-        ic.geometry = fieldOfView(workspace(), 0.2e-3, 640, 480);
-      }
-      const TrackerConfig tc = trackerConfigFromScene(workspace(), ic);
-      const FrameRenderer renderer(workspace(), ic);
-      std::vector<double> with_prior, without_prior, hough, filter;
-      for (std::size_t t = 0; t < 3; ++t) {
-        TipTracker tracker(tc);
-        tracker.reset(trajectories()[t].front().tip);
-        for (std::size_t k = 1; k < trajectories()[t].size(); ++k) {
-          const Shot& shot = trajectories()[t][k];
-          const TipEstimate p = tracker.onDrive(shot.length_m, shot.tip.bevel, shot.flips);
-          const cv::Mat frame = renderer.render(shot.points, k).image;
-          SearchPrior prior;
-          prior.tip = p.tip;
-          prior.covariance = p.covariance;
-          auto t0 = std::chrono::steady_clock::now();
-          const auto ms = [&t0] {
-            const auto t1 = std::chrono::steady_clock::now();
-            const double v = std::chrono::duration<double, std::milli>(t1 - t0).count();
-            t0 = t1;
-            return v;
-          };
-          detectTip(frame, tc, prior);
-          with_prior.push_back(ms());
-          houghBaselineTip(frame, tc, prior);
-          hough.push_back(ms());
-          tracker.onFrame(frame);
-          filter.push_back(ms());
-          if (k % 8 == 0) {
-            detectTip(frame, tc, std::nullopt);
-            without_prior.push_back(ms());
-          }
-        }
-      }
-      std::printf(
-          "  timing %dx%d %-11s: detectTip with prior median %.2f ms (p95 %.2f), "
-          "TipTracker::onFrame %.2f ms (%.0f frames/s), without prior %.1f ms, "
-          "houghBaselineTip %.2f ms\n",
-          ic.geometry.cols, ic.geometry.rows, toString(m).c_str(), median(with_prior),
-          percentile(with_prior, 0.95), median(filter), 1e3 / median(filter), median(without_prior),
-          median(hough));
-    }
-  }
-  cv::setNumThreads(threads);
-}
-
 }  // namespace
 }  // namespace needle_guidance::imaging
 
