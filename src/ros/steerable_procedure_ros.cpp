@@ -398,9 +398,13 @@ bool SteerableProcedureRos::run() {
   }
   const double wall_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - wall_start).count();
-  // Success of the procedure: every trial ran to an outcome, and the closed loop did not do
-  // significantly worse than predicted (the interval reaches the prediction or lies above it).
-  const bool success = all_ran && n == trials_ && ci.high >= predicted;
+  // Success of the procedure: every trial ran to an outcome, and with ground-truth feedback the
+  // closed loop did not do significantly worse than predicted (the interval reaches the
+  // prediction or lies above it). The prediction assumes an exactly localised tip, so with
+  // image feedback a lower rate is the measured cost of tracking, reported
+  // (predicted_within_ci), not a failure of the procedure.
+  const bool ground_truth = feedback_ == "ground_truth";
+  const bool success = all_ran && n == trials_ && (!ground_truth || ci.high >= predicted);
 
   std::ostringstream json;
   json << "{\n  \"procedure\": \"steerable_needle\",\n  \"scene\": \"" << scene.name
