@@ -627,13 +627,16 @@ void InsertionRobotRos::publishNeedle(const ros::Time& stamp) {
   const steering::TipPose tip = needle_->tip();
   const NeedleTip tip_msg = toNeedleTip(tip, needle_->insertedLength_m(), stamp);
   measured_tip_pub_.publish(tip_msg);
-  NeedleShape shape;
-  shape.header = tip_msg.header;
-  shape.tip = tip_msg;
-  for (const geometry::Point2& p : needle_->pathPoints(kPathSpacing_m)) {
-    shape.points.push_back(ros_conversions::toMessage(p));
+  // The whole needle, for the imager: built only while someone listens (it is a hot path).
+  if (needle_shape_pub_.getNumSubscribers() > 0) {
+    NeedleShape shape;
+    shape.header = tip_msg.header;
+    shape.tip = tip_msg;
+    for (const geometry::Point2& p : needle_->pathPoints(kPathSpacing_m)) {
+      shape.points.push_back(ros_conversions::toMessage(p));
+    }
+    needle_shape_pub_.publish(shape);
   }
-  needle_shape_pub_.publish(shape);
   NeedleDrive drive;
   drive.header = tip_msg.header;
   drive.entry_id = entry_id_;

@@ -17,6 +17,8 @@
 #include "needle_guidance/steering/steering_model.h"
 #include "needle_guidance/steering/value_iteration.h"
 
+#include "../steering_shapes.h"
+
 namespace needle_guidance::steering {
 namespace {
 
@@ -27,17 +29,8 @@ constexpr double kResidualTol = 5e-3;         // Bellman residual after an epsil
 constexpr double kThreadAgreementTol = 5e-3;  // P_s, 1 vs 2 threads (both within epsilon)
 constexpr int kMaxRolloutSteps = 400;
 
-geometry::Polygon rect(double x0, double y0, double x1, double y1) {
-  return geometry::Polygon({{x0, y0}, {x1, y0}, {x1, y1}, {x0, y1}});
-}
-
-scene::Obstacle obstacle(const std::string& name, const geometry::Polygon& p, double clearance_m) {
-  scene::Obstacle o;
-  o.name = name;
-  o.polygon = p;
-  o.clearance_m = clearance_m;
-  return o;
-}
+using test_shapes::obstacle;
+using test_shapes::rect;
 
 /// 10 x 10 cm, r = 5 cm, N_c = 40, target at (8.5, 5) cm of radius 5 mm, no obstacles.
 SteeringProblem openProblem(double spacing_m, double sigma_i_rad, double sigma_r_rad) {

@@ -31,6 +31,8 @@
 #include "needle_guidance/steering/steering_model.h"
 #include "needle_guidance/steering/value_iteration.h"
 
+#include "../steering_shapes.h"
+
 namespace needle_guidance::steering {
 namespace {
 
@@ -59,17 +61,8 @@ constexpr std::uint64_t kMonteCarloSeed = 20070501;
 /// Deepest exhaustive search [steps].
 constexpr int kExhaustiveDepth = 20;
 
-geometry::Polygon rect(double x0, double y0, double x1, double y1) {
-  return geometry::Polygon({{x0, y0}, {x1, y0}, {x1, y1}, {x0, y1}});
-}
-
-scene::Obstacle obstacle(const std::string& name, const geometry::Polygon& p, double clearance_m) {
-  scene::Obstacle o;
-  o.name = name;
-  o.polygon = p;
-  o.clearance_m = clearance_m;
-  return o;
-}
+using test_shapes::obstacle;
+using test_shapes::rect;
 
 /// 10 x 10 cm, Delta = 1 mm, r = 5 cm, N_c = 40 (delta = 7.85 mm), target (85, 50) mm of radius
 /// 5 mm, no obstacles, sigma = 0 (figure 5.1's parameters).
