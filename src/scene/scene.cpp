@@ -547,11 +547,21 @@ private:
     const int orientations_line = m.lineOfKey("orientations");
     const Quantity sigma_insert = m.requiredQuantity("sigma_insert", detail::kAngle);
     const Quantity sigma_flip = m.requiredQuantity("sigma_flip", detail::kAngle);
+    const std::optional<int> subdivision = m.optionalInt("orientation_subdivision");
+    const std::string subdivision_key = m.keyPath("orientation_subdivision");
+    const int subdivision_line = m.lineOfKey("orientation_subdivision");
     const std::optional<Quantity> start_x = m.optionalQuantity("start_x", detail::kLength);
     m.finish();
     if (steering.orientations < 4 || steering.orientations % 4 != 0) {
       fail(orientations_key, std::to_string(steering.orientations),
            "orientations N_c must be a positive multiple of 4 (5.4.2)", orientations_line);
+    }
+    if (subdivision) {
+      if (*subdivision < 1 || *subdivision > 64) {
+        fail(subdivision_key, std::to_string(*subdivision),
+             "orientation_subdivision must be an integer in [1, 64]", subdivision_line);
+      }
+      steering.orientation_subdivision = *subdivision;
     }
     requireNonNegative(sigma_insert);
     requireNonNegative(sigma_flip);

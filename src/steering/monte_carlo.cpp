@@ -1,5 +1,6 @@
 #include "needle_guidance/steering/monte_carlo.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <random>
@@ -167,6 +168,73 @@ MonteCarloResult runMonteCarlo(const ContinuousWorkspace& world, const TipPose& 
   total.seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return total;
+}
+
+ChainResult runDiscreteChain(const SteeringModel& model, const PolicyTable& table,
+                             const TipPose& start, std::int64_t trials, std::uint64_t seed,
+                             int max_steps) {
+  const std::string where = "runDiscreteChain: ";
+  if (trials < 1 || max_steps < 1) {
+    throw std::invalid_argument(where + "trials and max_steps must be >= 1, got " +
+                                std::to_string(trials) + ", " + std::to_string(max_steps));
+  }
+  if (table.problemHash() != model.hash()) {
+    throw std::invalid_argument(where + "the table was solved for another problem");
+  }
+  const GridSpec& grid = model.grid();
+  const StateId first = grid.nearestState(start);
+  if (first < 0) {
+    throw std::invalid_argument(where + "the start pose is off the grid");
+  }
+  const std::int64_t per_position = 2 * std::int64_t{grid.nc};
+  const double alpha = grid.alphaRad();
+  const SteeringParams& params = model.params();
+  // The discrete deflection of a normal draw: beta rounded to the nearest multiple of alpha,
+  // the tails folded onto the end transitions (or wrapped around the circle when the model
+  // wraps), which has exactly the model's probabilities. Drawing beta as simulateTrial does
+  // (same generator, same seed, one draw per step with sigma > 0) couples this chain with the
+  // Monte Carlo of rounded deflections: the two differ only where positions round differently.
+  auto deflectionIndex = [&](Control u, double beta) {
+    const int first_d = model.firstDeflection(u);
+    const int count = static_cast<int>(model.deflectionProbabilities(u).size());
+    const auto d = static_cast<std::int64_t>(std::llround(beta / alpha));
+    if (count == grid.nc) {
+      const std::int64_t wrapped = ((d - first_d) % grid.nc + grid.nc) % grid.nc;
+      return static_cast<std::size_t>(wrapped);
+    }
+    return static_cast<std::size_t>(std::clamp<std::int64_t>(d - first_d, 0, count - 1));
+  };
+  ChainResult out;
+  for (std::int64_t i = 0; i < trials; ++i) {
+    std::mt19937_64 rng(mixSeed(seed, std::uint64_t(i)));
+    std::normal_distribution<double> normal(0.0, 1.0);
+    ++out.trials;
+    StateId s = first;
+    bool ended = false;
+    for (int step = 0; step <= max_steps && !ended; ++step) {
+      const Cell cell = model.cell(s / per_position);
+      if (cell == Cell::kTarget) {
+        ++out.successes;
+        ended = true;
+      } else if (cell == Cell::kObstacle) {
+        ++out.rounded_into_obstacle;  // a start in an obstacle counts here too
+        ended = true;
+      } else if (step == max_steps) {
+        ++out.step_limit;
+        ended = true;
+      } else {
+        const Control u = table.control(s);
+        const double sigma = u == Control::kInsert ? params.sigma_insert_rad : params.sigma_flip_rad;
+        const double beta = sigma > 0.0 ? sigma * normal(rng) : 0.0;
+        s = model.successors(s, u)[deflectionIndex(u, beta)].next;
+        if (s == kFailState) {
+          ++out.failed_arcs;
+          ended = true;
+        }
+      }
+    }
+  }
+  return out;
 }
 
 }  // namespace needle_guidance::steering

@@ -144,6 +144,7 @@ SteeringProblem problemFromScene(const scene::Scene& scene, const std::string& t
   problem.target = target_name.empty() ? scene.targets.front() : scene.target(target_name);
   problem.params.grid_spacing_m = scene.steering->grid_spacing_m;
   problem.params.orientations = scene.steering->orientations;
+  problem.params.orientation_subdivision = scene.steering->orientation_subdivision;
   problem.params.radius_m = scene.needle.radius_of_curvature_m;
   problem.params.sigma_insert_rad = scene.steering->sigma_insert_rad;
   problem.params.sigma_flip_rad = scene.steering->sigma_flip_rad;
@@ -172,6 +173,9 @@ std::uint64_t problemHash(const SteeringProblem& problem) {
   const SteeringParams& p = problem.params;
   h.f64(p.grid_spacing_m);
   h.i64(p.orientations);
+  if (p.orientation_subdivision != 1) {  // s = 1 keeps the hashes of 5.4.2 tables
+    h.i64(p.orientation_subdivision);
+  }
   h.f64(p.radius_m);
   h.f64(p.sigma_insert_rad);
   h.f64(p.sigma_flip_rad);
@@ -238,9 +242,16 @@ SteeringModel::SteeringModel(SteeringProblem problem, int threads) : problem_(st
     throw std::invalid_argument(where + "orientations N_c = " + std::to_string(p.orientations) +
                                 " is not a positive multiple of 4 (dissertation 5.4.2)");
   }
-  if (p.orientations > 4096) {
+  if (p.orientation_subdivision < 1 || p.orientation_subdivision > 64) {
+    throw std::invalid_argument(where + "orientation_subdivision s = " +
+                                std::to_string(p.orientation_subdivision) +
+                                " is not in [1, 64]");
+  }
+  const int tracked = p.orientations * p.orientation_subdivision;
+  if (p.orientations > 4096 || tracked > 4096) {
     throw std::invalid_argument(where + "orientations N_c = " + std::to_string(p.orientations) +
-                                " exceeds 4096");
+                                " times orientation_subdivision s = " +
+                                std::to_string(p.orientation_subdivision) + " exceeds 4096");
   }
   if (!(p.grid_spacing_m > 0.0) || !std::isfinite(p.grid_spacing_m)) {
     throw std::invalid_argument(where + "grid_spacing_m must be finite and > 0, got " +
@@ -281,9 +292,9 @@ SteeringModel::SteeringModel(SteeringProblem problem, int threads) : problem_(st
     throw std::invalid_argument(where + "workspace " + num(size.x()) + " x " + num(size.y()) +
                                 " m is narrower than grid_spacing_m = " + num(p.grid_spacing_m));
   }
-  if (fnx * fny * 2.0 * p.orientations >= static_cast<double>(kMaxStates)) {
-    throw std::invalid_argument(where + "too many states (" +
-                                num(fnx * fny * 2.0 * p.orientations) + "); the limit is 2^31");
+  if (fnx * fny * 2.0 * tracked >= static_cast<double>(kMaxStates)) {
+    throw std::invalid_argument(where + "too many states (" + num(fnx * fny * 2.0 * tracked) +
+                                "); the limit is 2^31");
   }
   if (!(problem_.target.radius_m >= 0.0) || !problem_.target.position.allFinite()) {
     throw std::invalid_argument(where + "target '" + problem_.target.name +
@@ -300,7 +311,7 @@ SteeringModel::SteeringModel(SteeringProblem problem, int threads) : problem_(st
   grid_.spacing_m = p.grid_spacing_m;
   grid_.nx = static_cast<int>(fnx);
   grid_.ny = static_cast<int>(fny);
-  grid_.nc = p.orientations;
+  grid_.nc = tracked;
   hash_ = problemHash(problem_);
 
   // Obstacles expanded by their clearance (Minkowski sum, 5.3); arcs of the offset within a
@@ -374,6 +385,7 @@ void SteeringModel::buildStencils() {
   const int nc = grid_.nc;
   const double r_cells = problem_.params.radius_m / grid_.spacing_m;
   const double alpha = grid_.alphaRad();
+  const int s = problem_.params.orientation_subdivision;  // one arc turns s orientation steps
   // Rounded control-circle points of the bevel-left circle (figure 5.3): the point whose
   // counter-clockwise tangent is theta_m = m alpha lies at r (sin theta_m, -cos theta_m) from the
   // centre. The bevel-right circle is its 180-degree rotation, so its rounded points are the
@@ -387,11 +399,11 @@ void SteeringModel::buildStencils() {
   disp_y_.assign(static_cast<std::size_t>(2 * nc), 0);
   for (int o = 0; o < nc; ++o) {
     const auto so = static_cast<std::size_t>(o);
-    const auto next = static_cast<std::size_t>(wrap(o + 1, nc));
-    const auto prev = static_cast<std::size_t>(wrap(o - 1, nc));
-    disp_x_[so] = rx[next] - rx[so];  // left: o -> o + 1
+    const auto next = static_cast<std::size_t>(wrap(o + s, nc));
+    const auto prev = static_cast<std::size_t>(wrap(o - s, nc));
+    disp_x_[so] = rx[next] - rx[so];  // left: o -> o + s
     disp_y_[so] = ry[next] - ry[so];
-    disp_x_[so + static_cast<std::size_t>(nc)] = rx[so] - rx[prev];  // right: o -> o - 1
+    disp_x_[so + static_cast<std::size_t>(nc)] = rx[so] - rx[prev];  // right: o -> o - s
     disp_y_[so + static_cast<std::size_t>(nc)] = ry[so] - ry[prev];
   }
   const std::int64_t ny = grid_.ny;
@@ -409,7 +421,7 @@ void SteeringModel::buildStencils() {
         for (std::size_t i = 0; i < probs.size(); ++i) {
           const int o = wrap(k + first_d_[u] + static_cast<int>(i), nc);
           const int arc = traced * nc + o;
-          const int o_next = wrap(traced == 0 ? o + 1 : o - 1, nc);
+          const int o_next = wrap(traced == 0 ? o + s : o - s, nc);
           const std::int64_t dx = disp_x_[static_cast<std::size_t>(arc)];
           const std::int64_t dy = disp_y_[static_cast<std::size_t>(arc)];
           const std::int64_t offset =
@@ -485,7 +497,8 @@ void SteeringModel::buildValidity(int threads) {
   const double alpha = grid_.alphaRad();
   const double max_step =
       2.0 * std::acos(std::max(-1.0, 1.0 - problem_.params.arc_chord_tolerance_m / r));
-  const int segments = std::max(1, static_cast<int>(std::ceil(alpha / max_step)));
+  const double turn = arcLength_m() / r;  // one arc turns 2 pi / N_c
+  const int segments = std::max(1, static_cast<int>(std::ceil(turn / max_step)));
   std::vector<std::vector<Point2>> arc_points(static_cast<std::size_t>(n_arcs));
   std::vector<Box> arc_box(static_cast<std::size_t>(n_arcs));
   double reach = 0.0;  // farthest any arc point gets from the start [m]

@@ -15,7 +15,9 @@
 #include <memory>
 #include <random>
 #include <sstream>
+#include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "needle_guidance/report/bench_args.h"
@@ -63,32 +65,38 @@ double secondsSince(std::chrono::steady_clock::time_point t0) {
 
 struct Solved {
   double spacing_m = 0.0;
+  int subdivision = 1;  ///< orientation_subdivision s
   std::int64_t states = 0;
   double build_s = 0.0;
   st::SolveStats stats;
   double peak_mb = 0.0;
   int transitions = 0;
+  std::unique_ptr<const st::SteeringModel> model;
   std::unique_ptr<st::PolicyTable> table;
   st::BestStart best;
 };
 
+/// Builds and solves at one grid spacing and orientation subdivision; the solve time is the
+/// median of `repeats` solves (the first also pays for page faults).
 Solved solveAt(const st::SteeringProblem& base, double spacing_m, int threads, double epsilon,
-               const st::StartOptions& start) {
+               const st::StartOptions& start, int subdivision = 1, int repeats = kSolveRepeats) {
   st::SteeringProblem problem = base;
   problem.params.grid_spacing_m = spacing_m;
+  problem.params.orientation_subdivision = subdivision;
   Solved out;
   out.spacing_m = spacing_m;
+  out.subdivision = subdivision;
   const auto t0 = std::chrono::steady_clock::now();
-  const st::SteeringModel model(problem, threads);
+  out.model = std::make_unique<const st::SteeringModel>(problem, threads);
+  const st::SteeringModel& model = *out.model;
   out.build_s = secondsSince(t0);
   out.states = model.numStates();
   out.transitions = model.maxTransitions();
   st::SolverOptions options;
   options.threads = threads;
   options.epsilon = epsilon;
-  // Solve time: the median of kSolveRepeats solves (the first also pays for page faults).
   std::vector<double> seconds;
-  for (int i = 0; i < kSolveRepeats; ++i) {
+  for (int i = 0; i < repeats; ++i) {
     out.table =
         std::make_unique<st::PolicyTable>(st::solveValueIteration(model, options, &out.stats));
     seconds.push_back(out.stats.seconds);
@@ -99,6 +107,137 @@ Solved solveAt(const st::SteeringProblem& base, double spacing_m, int threads, d
   out.best = out.table->bestStart(start);
   return out;
 }
+
+/// The truth check of issue 5 at one (Delta, s) after another: per start state, the table's
+/// predicted P_s against (a) the continuous needle (exact arcs, continuous deflections), (b)
+/// the same needle with deflections rounded to the model's orientation step and (c) the MDP's
+/// own Markov chain, all with the same seeds, so that
+///   predicted - chain      = solver error (should be noise only),
+///   chain - rounded        = position rounding of 5.4.2 (and the grid-aligned obstacle edges),
+///   rounded - continuous   = deflection quantisation (alpha / s).
+class TruthCheck {
+public:
+  struct Summary {
+    double spacing_mm = 0.0;
+    int subdivision = 1;
+    std::int64_t states = 0;
+    double total_s = 0.0;
+    int starts = 0;
+    double within = 0.0;          ///< fraction of starts whose predicted P_s is in the MC CI
+    double mean_abs_gap = 0.0;    ///< mean |predicted - MC|
+    double noise_floor = 0.0;     ///< mean E|MC - p| from binomial noise alone
+  };
+
+  TruthCheck(const st::ContinuousWorkspace& world, std::vector<st::TipPose> starts)
+      : world_(world),
+        starts_(std::move(starts)),
+        per_start_({"grid_spacing_mm", "subdivision", "y_mm", "theta_deg", "bevel",
+                    "predicted_ps", "mc_ps", "ci_low", "ci_high", "within_ci", "gap", "chain_ps",
+                    "chain_within_ci", "rounded_deflection_ps", "rounded_into_obstacle"},
+                   6),
+        summary_({"grid_spacing_mm", "subdivision", "states", "total_s", "starts",
+                  "within_ci_fraction", "mean_abs_gap", "max_abs_gap", "mean_gap", "noise_floor",
+                  "solver_gap", "chain_within_ci_fraction", "position_rounding_gap",
+                  "deflection_gap", "rounded_into_obstacle"},
+                 6) {}
+
+  void check(const Solved& r) {
+    const st::SteeringPolicy policy = st::tablePolicy(*r.table);
+    st::TrialOptions rounded;
+    rounded.deflection_step_rad = r.model->grid().alphaRad();
+    Summary sum;
+    sum.spacing_mm = r.spacing_m * kMmPerM;
+    sum.subdivision = r.subdivision;
+    sum.states = r.states;
+    sum.total_s = r.build_s + r.stats.seconds;
+    double max_gap = 0.0, signed_gap = 0.0, solver = 0.0, position = 0.0, deflection = 0.0;
+    double into_obstacle = 0.0, chain_within = 0.0;
+    for (const auto& pose : starts_) {
+      const double predicted = r.table->lookup(pose).probability_of_success;
+      const st::MonteCarloResult mc =
+          st::runMonteCarlo(world_, pose, policy, kMonteCarloTrials, kMonteCarloSeed, 2);
+      seconds_ += mc.seconds;
+      trials_ += mc.trials;
+      if (predicted < kTrivialPs && mc.rate() < kTrivialPs) {
+        continue;
+      }
+      const st::MonteCarloResult mc_rounded =
+          st::runMonteCarlo(world_, pose, policy, kMonteCarloTrials, kMonteCarloSeed, 2, rounded);
+      const st::ChainResult chain =
+          st::runDiscreteChain(*r.model, *r.table, pose, kMonteCarloTrials, kMonteCarloSeed);
+      const st::Interval ci = mc.interval();
+      const double gap = predicted - mc.rate();
+      const double into = double(chain.rounded_into_obstacle) / double(chain.trials);
+      ++sum.starts;
+      sum.within += ci.contains(predicted) ? 1.0 : 0.0;
+      sum.mean_abs_gap += std::abs(gap);
+      sum.noise_floor += std::sqrt(2.0 / kPi * predicted * (1.0 - predicted) / double(mc.trials));
+      max_gap = std::max(max_gap, std::abs(gap));
+      signed_gap += gap;
+      solver += std::abs(predicted - chain.rate());
+      chain_within += chain.interval().contains(predicted) ? 1.0 : 0.0;
+      position += std::abs(chain.rate() - mc_rounded.rate());
+      deflection += std::abs(mc_rounded.rate() - mc.rate());
+      into_obstacle += into;
+      per_start_.addRow({sum.spacing_mm, double(r.subdivision), pose.p_SceneTip.y() * kMmPerM,
+                         pose.theta_rad * kDegPerRad, st::toString(pose.bevel), predicted,
+                         mc.rate(), ci.low, ci.high, ci.contains(predicted) ? 1.0 : 0.0, gap,
+                         chain.rate(), chain.interval().contains(predicted) ? 1.0 : 0.0,
+                         mc_rounded.rate(), into});
+    }
+    const double n = std::max(1, sum.starts);
+    sum.within = sum.starts > 0 ? sum.within / n : 1.0;
+    sum.mean_abs_gap /= n;
+    sum.noise_floor /= n;
+    summary_.addRow({sum.spacing_mm, double(r.subdivision), double(r.states), sum.total_s,
+                     double(sum.starts), sum.within, sum.mean_abs_gap, max_gap, signed_gap / n,
+                     sum.noise_floor, solver / n, chain_within / n, position / n, deflection / n,
+                     into_obstacle / n});
+    summaries_.push_back(sum);
+    std::cout << "truth check, Delta " << sum.spacing_mm << " mm, s = " << r.subdivision << ": "
+              << sum.within * sum.starts << " of " << sum.starts
+              << " start states within the 95 % interval, mean |gap| " << sum.mean_abs_gap
+              << " (noise floor " << sum.noise_floor << "; solver " << solver / n
+              << ", position rounding " << position / n << ", deflection quantisation "
+              << deflection / n << ")\n"
+              << std::flush;
+  }
+
+  double withinFraction(double spacing_m, int subdivision) const {
+    for (const Summary& s : summaries_) {
+      if (std::abs(s.spacing_mm - spacing_m * kMmPerM) < 1e-9 && s.subdivision == subdivision) {
+        return s.within;
+      }
+    }
+    throw std::runtime_error("truth check: no run at that spacing and subdivision");
+  }
+  /// The model whose predictions fall in the interval most often (then: smaller mean gap).
+  Summary best() const {
+    Summary b = summaries_.front();
+    for (const Summary& s : summaries_) {
+      if (s.within > b.within || (s.within == b.within && s.mean_abs_gap < b.mean_abs_gap)) {
+        b = s;
+      }
+    }
+    return b;
+  }
+  double seconds() const { return seconds_; }
+  std::int64_t trials() const { return trials_; }
+  std::string summaryText() const { return summary_.toText(); }
+  void writeCsv(const std::string& dir) const {
+    per_start_.writeCsv(dir + "/truth_check.csv");
+    summary_.writeCsv(dir + "/truth_gap.csv");
+  }
+
+private:
+  const st::ContinuousWorkspace& world_;
+  std::vector<st::TipPose> starts_;
+  ng::report::Table per_start_;
+  ng::report::Table summary_;
+  std::vector<Summary> summaries_;
+  double seconds_ = 0.0;
+  std::int64_t trials_ = 0;
+};
 
 }  // namespace
 
@@ -206,7 +345,8 @@ int main(int argc, char** argv) {
     // ---- truth check: predicted P_s against the continuous needle (Monte Carlo) ----
     // Start states: a fixed set on the entry line (heights x angles x bevels) plus the 1 mm best
     // start; the policy of each grid drives the continuous needle (exact arcs, continuous
-    // deflections) from the same start states.
+    // deflections) from the same start states, at every grid spacing and, finer than 5.4.2,
+    // with the orientation subdivided s = 2 and 4 times.
     const st::ContinuousWorkspace world(problem);
     std::vector<st::TipPose> mc_starts;
     for (double y_mm : {5.0, 10.0, 15.0, 30.0, 54.0, 60.0, 80.0}) {
@@ -221,57 +361,24 @@ int main(int argc, char** argv) {
       }
     }
     mc_starts.push_back(run800k->best.best.pose);
-    ng::report::Table truth({"grid_spacing_mm", "y_mm", "theta_deg", "bevel", "predicted_ps",
-                             "mc_ps", "ci_low", "ci_high", "within_ci", "gap"},
-                            6);
-    ng::report::Table gap_table({"grid_spacing_mm", "states", "total_s", "starts",
-                                 "within_ci_fraction", "mean_abs_gap", "max_abs_gap",
-                                 "mean_abs_gap_discrete_deflections"},
-                                6);
-    double within_800k = 0.0, mc_seconds = 0.0;
-    std::int64_t mc_trials_total = 0;
+    TruthCheck truth(world, mc_starts);
     for (const auto& r : runs) {
-      int starts = 0, within = 0;
-      double sum_gap = 0.0, max_gap = 0.0, sum_gap_discrete = 0.0;
-      st::TrialOptions discrete;
-      discrete.deflection_step_rad = 2.0 * kPi / problem.params.orientations;
-      for (const auto& pose : mc_starts) {
-        const double predicted = r.table->lookup(pose).probability_of_success;
-        const st::MonteCarloResult mc = st::runMonteCarlo(
-            world, pose, st::tablePolicy(*r.table), kMonteCarloTrials, kMonteCarloSeed, 2);
-        mc_seconds += mc.seconds;
-        mc_trials_total += mc.trials;
-        if (predicted < kTrivialPs && mc.rate() < kTrivialPs) {
-          continue;
-        }
-        const st::MonteCarloResult mc_discrete =
-            st::runMonteCarlo(world, pose, st::tablePolicy(*r.table), kMonteCarloTrials,
-                              kMonteCarloSeed, 2, discrete);
-        const st::Interval ci = mc.interval();
-        ++starts;
-        within += ci.contains(predicted) ? 1 : 0;
-        const double gap = predicted - mc.rate();
-        sum_gap += std::abs(gap);
-        max_gap = std::max(max_gap, std::abs(gap));
-        sum_gap_discrete += std::abs(predicted - mc_discrete.rate());
-        truth.addRow({r.spacing_m * kMmPerM, pose.p_SceneTip.y() * kMmPerM,
-                      pose.theta_rad * kDegPerRad, st::toString(pose.bevel), predicted, mc.rate(),
-                      ci.low, ci.high, ci.contains(predicted) ? 1.0 : 0.0, gap});
-      }
-      const double fraction = starts > 0 ? double(within) / starts : 1.0;
-      if (&r == run800k) {
-        within_800k = fraction;
-      }
-      gap_table.addRow({r.spacing_m * kMmPerM, double(r.states), r.build_s + r.stats.seconds,
-                        double(starts), fraction, starts > 0 ? sum_gap / starts : 0.0, max_gap,
-                        starts > 0 ? sum_gap_discrete / starts : 0.0});
-      std::cout << "truth check, Delta " << r.spacing_m * kMmPerM << " mm: " << within << " of "
-                << starts << " start states within the 95 % interval, mean |gap| "
-                << (starts > 0 ? sum_gap / starts : 0.0) << "\n"
-                << std::flush;
+      truth.check(r);
     }
-    truth.writeCsv(args->out_dir + "/truth_check.csv");
-    gap_table.writeCsv(args->out_dir + "/truth_gap.csv");
+    const double within_800k = truth.withinFraction(kSpacing800k_m, 1);
+    if (!args->quick) {
+      // Finer models, solved once each and dropped after their check (memory).
+      const std::vector<std::pair<double, int>> finer = {
+          {0.125e-3, 1}, {1e-3, 2}, {0.5e-3, 2}, {0.25e-3, 2}, {0.125e-3, 2},
+          {1e-3, 4},     {0.5e-3, 4}, {0.25e-3, 4}};
+      for (const auto& [spacing, subdivision] : finer) {
+        truth.check(solveAt(problem, spacing, 2, 1e-3, start, subdivision, 1));
+      }
+    }
+    truth.writeCsv(args->out_dir);
+    const TruthCheck::Summary truth_best = truth.best();
+    const double mc_seconds = truth.seconds();
+    const std::int64_t mc_trials_total = truth.trials();
     // P_s measured by Monte Carlo from the best start (the headline mdp_ps).
     const st::MonteCarloResult mdp_mc =
         st::runMonteCarlo(world, run800k->best.best.pose, st::tablePolicy(*run800k->table),
@@ -429,6 +536,13 @@ int main(int argc, char** argv) {
          << ng::report::jsonNumber(mdp_mc.interval().high) << "]"
          << ",\n  \"mdp_ps_predicted\": " << ng::report::jsonNumber(best.best.probability_of_success)
          << ",\n  \"mc_within_ci_fraction\": " << ng::report::jsonNumber(within_800k)
+         << ",\n  \"mc_within_ci_fraction_best\": " << ng::report::jsonNumber(truth_best.within)
+         << ",\n  \"truth_best_spacing_mm\": " << ng::report::jsonNumber(truth_best.spacing_mm)
+         << ",\n  \"truth_best_subdivision\": " << truth_best.subdivision
+         << ",\n  \"truth_best_states\": " << truth_best.states
+         << ",\n  \"truth_best_total_s\": " << ng::report::jsonNumber(truth_best.total_s)
+         << ",\n  \"truth_best_mean_abs_gap\": " << ng::report::jsonNumber(truth_best.mean_abs_gap)
+         << ",\n  \"truth_best_noise_floor\": " << ng::report::jsonNumber(truth_best.noise_floor)
          << ",\n  \"shortest_path_ps\": " << ng::report::jsonNumber(sp_closed.rate())
          << ",\n  \"shortest_path_open_loop_ps\": "
          << (sp.found ? ng::report::jsonNumber(sp_open.rate()) : std::string("null"))
@@ -461,15 +575,17 @@ int main(int argc, char** argv) {
   "title": "Convergence threshold: solve time vs max P_s error (800k states)", "png": "epsilon.png"},
  {"csv": "resolution.csv", "x": "total_s", "y": "ps_error_vs_finest", "logx": true, "annotate": "grid_spacing_mm",
   "points": true, "title": "Grid spacing: time vs P_s error at the 1 mm best start (vs finest grid)", "png": "resolution.png"},
- {"csv": "truth_gap.csv", "x": "grid_spacing_mm", "y": "mean_abs_gap", "logx": true, "points": true, "annotate": "within_ci_fraction",
-  "title": "Truth check: mean |predicted P_s - Monte Carlo| vs grid spacing (label: fraction within 95 % CI)", "png": "truth_gap.png"},
- {"csv": "truth_check.csv", "x": "predicted_ps", "y": "mc_ps", "group": "grid_spacing_mm", "points": true,
+ {"csv": "truth_gap.csv", "x": "grid_spacing_mm", "y": "mean_abs_gap", "group": "subdivision", "logx": true, "annotate": "within_ci_fraction",
+  "title": "Truth check: mean |predicted P_s - MC| vs Delta (group: orientation subdivision s; label: fraction in 95 % CI)", "png": "truth_gap.png"},
+ {"csv": "truth_gap.csv", "x": "total_s", "y": "mean_abs_gap", "group": "subdivision", "logx": true, "annotate": "grid_spacing_mm",
+  "title": "Speed against error: build + solve time vs mean |predicted P_s - MC| (label: Delta mm)", "png": "truth_tradeoff.png"},
+ {"csv": "truth_check.csv", "x": "predicted_ps", "y": "mc_ps", "group": "grid_spacing_mm", "filter": {"subdivision": "1"}, "points": true,
   "title": "Predicted P_s (MDP) vs Monte Carlo success rate, 10,000 trials per start", "png": "truth_check.png"},
  {"csv": "baseline.csv", "x": "mean_steps", "y": "ps", "group": "policy", "points": true,
   "title": "P_s from the best start (Monte Carlo, 10,000 trials): MDP vs shortest path", "png": "baseline.png"},
  {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
   "title": "P_s of start states on the entry line (figure 5.7 slices, best bevel)", "png": "start_surface.png"}])json");
-    std::cout << scaling.toText() << eps_table.toText() << resolution.toText() << gap_table.toText()
+    std::cout << scaling.toText() << eps_table.toText() << resolution.toText() << truth.summaryText()
               << baseline.toText()
               << json.str();
   } catch (const std::exception& e) {

@@ -230,6 +230,11 @@ TEST(SceneTest, BaseScenesParse) {
   EXPECT_TRUE(steering.regions.empty());
   ASSERT_TRUE(steering.steering.has_value());
   EXPECT_EQ(steering.steering->start_x_m, 0.0);  // defaults to the workspace's left edge
+  EXPECT_EQ(steering.steering->orientation_subdivision, 1);  // 5.4.2 unless asked for
+  const Scene finer = parseScene(
+      edit(kSteeringBase, "orientations: 40", "orientations: 40\n  orientation_subdivision: 2"),
+      "finer.yaml");
+  EXPECT_EQ(finer.steering->orientation_subdivision, 2);
 }
 
 TEST(SceneTest, EmbeddedProstateSagittal) {
@@ -645,6 +650,15 @@ TEST(SceneErrorTest, OrientationsNotAMultipleOfFour) {
             "steering.orientations");
   EXPECT_EQ(parseError(edit(kSteeringBase, "orientations: 40", "orientations: 0")).key(),
             "steering.orientations");
+}
+
+TEST(SceneErrorTest, OrientationSubdivisionOutOfRange) {
+  for (const std::string bad : {"0", "65", "1.5", "two"}) {
+    const SceneError e = parseError(edit(kSteeringBase, "orientations: 40",
+                                         "orientations: 40\n  orientation_subdivision: " + bad));
+    EXPECT_EQ(e.key(), "steering.orientation_subdivision") << bad;
+    EXPECT_EQ(e.value(), bad);
+  }
 }
 
 TEST(SceneErrorTest, NeedleHeightRange) {

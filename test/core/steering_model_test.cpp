@@ -208,6 +208,65 @@ TEST(SteeringModelTest, SuccessorsFollowTheStencil) {
   EXPECT_THROW(m.successors(m.numStates(), Control::kInsert), std::out_of_range);
 }
 
+// Orientation subdivision s (beyond 5.4.2): orientation in alpha / s steps, each arc still
+// turns alpha and inserts delta; deflections integrated into alpha / s bins.
+TEST(SteeringModelTest, SubdividedOrientationTracksTheSameArcs) {
+  SteeringProblem p = workspaceProblem(1e-3);
+  p.params.orientation_subdivision = 2;
+  const SteeringModel m(p);
+  const GridSpec& g = m.grid();
+  ASSERT_EQ(g.nc, 80);
+  EXPECT_EQ(m.numStates(), 1600000);
+  EXPECT_NEAR(m.arcLength_m(), 2 * kPi * 0.05 / 40, kPositionTol_m);  // delta unchanged
+  const double r_cells = 50.0;
+  for (int o = 0; o < 80; ++o) {
+    // Left arc from orientation o (o alpha / 2) to o + 2: between rounded points of 80.
+    const double t0 = 2 * kPi * o / 80, t1 = 2 * kPi * (o + 2) / 80;
+    const auto left = m.arcDisplacement(o);
+    EXPECT_EQ(left.first, std::lround(r_cells * std::sin(t1)) - std::lround(r_cells * std::sin(t0)))
+        << o;
+    EXPECT_EQ(left.second,
+              std::lround(-r_cells * std::cos(t1)) - std::lround(-r_cells * std::cos(t0)))
+        << o;
+  }
+  // sigma_i = 5 deg in 4.5-degree bins: the tails beyond 2.5 bins hold 2.4 %, beyond 3.5 bins
+  // 0.2 %, so d = -3..3 (tail_mass 1 %), the last bin holding everything beyond 2.5 bins.
+  const auto& ins = m.deflectionProbabilities(Control::kInsert);
+  ASSERT_EQ(ins.size(), 7u);
+  ASSERT_EQ(m.firstDeflection(Control::kInsert), -3);
+  const double sigma = 5.0 * kDeg, half_bin = 2.25 * kDeg;
+  EXPECT_NEAR(ins[3], normalCdf(half_bin / sigma) - normalCdf(-half_bin / sigma),
+              kProbabilityTol);
+  EXPECT_NEAR(ins[6], 1.0 - normalCdf(5 * half_bin / sigma), kProbabilityTol);
+  // Successor of an undeflected insert: orientation o + 2, position by arc o.
+  const StateId s = g.state(20, 30, 6, Bevel::kLeft);
+  const auto next = m.successors(s, Control::kInsert);
+  const auto disp = m.arcDisplacement(6);
+  EXPECT_EQ(next[3].next, g.state(20 + disp.first, 30 + disp.second, 8, Bevel::kLeft));
+  // The pose of state k is k alpha / 2.
+  EXPECT_NEAR(g.pose(s).theta_rad, 6 * 4.5 * kDeg, kAngleTol_rad);
+  // A different model: a different table file.
+  EXPECT_NE(m.hash(), problemHash(workspaceProblem(1e-3)));
+}
+
+TEST(SteeringModelTest, BadSubdivisionIsRefused) {
+  for (int bad : {0, -1, 65}) {
+    SteeringProblem p = workspaceProblem(4e-3);
+    p.params.orientation_subdivision = bad;
+    try {
+      SteeringModel m(p);
+      ADD_FAILURE() << "s = " << bad << " accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("orientation_subdivision"), std::string::npos)
+          << e.what();
+    }
+  }
+  SteeringProblem p = workspaceProblem(4e-3);
+  p.params.orientations = 2048;
+  p.params.orientation_subdivision = 4;  // 8192 orientations: more than arc ids hold
+  EXPECT_THROW(SteeringModel m(p), std::invalid_argument);
+}
+
 // The discrete transition matches the continuous model from the grid point up to the
 // rounding of the control-circle points: |error| <= Delta sqrt(2) (5.4.2).
 TEST(SteeringModelTest, DiscreteStepsTrackTheContinuousArc) {

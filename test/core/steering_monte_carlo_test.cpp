@@ -3,12 +3,14 @@
 // agreement with the MDP where the discretisation is exact (sigma = 0).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <iostream>
 #include <limits>
 #include <stdexcept>
 
 #include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/continuous_workspace.h"
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/value_iteration.h"
@@ -213,6 +215,63 @@ TEST(MonteCarlo, DeterministicNeedleStaysWithinTheDiscretisationBound) {
   EXPECT_LE((pose.p_SceneTip - p.target.position).norm(), p.target.radius_m + final_bound);
   std::cout << steps << " steps, " << flips << " direction changes, worst error / E_h = "
             << worst_ratio << "\n";
+}
+
+// The solver's P_s is the success probability of its own Markov chain: sampling the chain
+// (runDiscreteChain) must agree with the table within binomial noise, from several starts of
+// the scene with obstacles and a narrow channel. This checks value iteration independently of
+// any discretisation error.
+TEST(DiscreteChain, SuccessRateMatchesThePredictedPs) {
+  SteeringProblem p = problemFromScene(scene::loadSceneSpec("steering_workspace"));
+  p.params.grid_spacing_m = 2e-3;
+  const SteeringModel model(p);
+  SolverOptions tight;
+  tight.epsilon = 1e-7;
+  const PolicyTable table = solveValueIteration(model, tight);
+  constexpr std::int64_t kTrials = 20000;
+  int checked = 0;
+  for (double y_mm : {6.0, 10.0, 30.0, 54.0, 60.0}) {
+    for (Bevel b : {Bevel::kLeft, Bevel::kRight}) {
+      TipPose start;
+      start.p_SceneTip = Point2(0.0, y_mm * 1e-3);
+      start.bevel = b;
+      const double predicted = table.lookup(start).probability_of_success;
+      const ChainResult chain = runDiscreteChain(model, table, start, kTrials, 7);
+      ASSERT_EQ(chain.trials, kTrials);
+      EXPECT_EQ(chain.successes + chain.failed_arcs + chain.rounded_into_obstacle +
+                    chain.step_limit,
+                kTrials);
+      const double se = std::sqrt(std::max(predicted * (1 - predicted), 1e-4) / kTrials);
+      EXPECT_NEAR(chain.rate(), predicted, kStandardErrors * se) << "y " << y_mm << " mm";
+      checked += predicted > 0.05 ? 1 : 0;
+    }
+  }
+  EXPECT_GE(checked, 6);  // most starts have a non-trivial P_s
+}
+
+// sigma = 0: the chain is the deterministic discrete path, so a P_s = 1 start always succeeds
+// and a P_s = 0 start always fails; bad requests are refused.
+TEST(DiscreteChain, DeterministicAndRefusals) {
+  SteeringProblem p = openProblem();
+  p.obstacles.push_back(wall(0.04, 0.0, 0.045, 0.045, 0.001));
+  const SteeringModel model(p);
+  const PolicyTable table = solveValueIteration(model);
+  TipPose start;
+  start.p_SceneTip = Point2(0.0, 0.06);
+  ASSERT_FLOAT_EQ(table.lookup(start).probability_of_success, 1.0f);
+  EXPECT_EQ(runDiscreteChain(model, table, start, 50, 1).successes, 50);
+  start.p_SceneTip = Point2(0.0, 0.0);
+  start.theta_rad = -kPi / 2;  // straight out of the workspace
+  ASSERT_FLOAT_EQ(table.lookup(start).probability_of_success, 0.0f);
+  EXPECT_EQ(runDiscreteChain(model, table, start, 50, 1).successes, 0);
+  EXPECT_THROW(runDiscreteChain(model, table, start, 0, 1), std::invalid_argument);
+  start.p_SceneTip = Point2(0.5, 0.5);
+  EXPECT_THROW(runDiscreteChain(model, table, start, 10, 1), std::invalid_argument);
+  SteeringProblem other = p;
+  other.params.grid_spacing_m = 2e-3;
+  const SteeringModel other_model(other);
+  start.p_SceneTip = Point2(0.0, 0.06);
+  EXPECT_THROW(runDiscreteChain(other_model, table, start, 10, 1), std::invalid_argument);
 }
 
 TEST(MonteCarlo, StartsInObstacleOutsideOrInTargetEndAtOnce) {

@@ -118,6 +118,7 @@ struct MeshSpec {
 struct Steering {
   double grid_spacing_m = 0.001;    ///< Delta [m]
   int orientations = 40;            ///< N_c, a multiple of 4
+  int orientation_subdivision = 1;  ///< s: orientation tracked in alpha / s (1 = 5.4.2)
   double sigma_insert_rad = 0.0;    ///< sigma_i [rad]
   double sigma_flip_rad = 0.0;      ///< sigma_r [rad]
   double start_x_m = 0.0;           ///< feasible start states lie on the line x = start_x_m [m]

@@ -11,6 +11,7 @@
 
 #include "needle_guidance/steering/continuous_workspace.h"
 #include "needle_guidance/steering/policy_table.h"
+#include "needle_guidance/steering/steering_model.h"
 
 namespace needle_guidance::steering {
 
@@ -90,5 +91,29 @@ MonteCarloResult runMonteCarlo(const ContinuousWorkspace& world, const TipPose& 
                                const SteeringPolicy& policy, std::int64_t trials,
                                std::uint64_t seed, int threads = 2,
                                const TrialOptions& options = {});
+
+/// Aggregate of sampling the discretised MDP itself (DiscreteChain).
+struct ChainResult {
+  std::int64_t trials = 0;
+  std::int64_t successes = 0;
+  std::int64_t failed_arcs = 0;  ///< the true arc from the grid point failed (5.4.2)
+  /// The true arc was clear but its rounded end point is an obstacle cell: a failure that only
+  /// the position rounding makes (e.g. end points rounded onto an expanded edge on a grid line).
+  std::int64_t rounded_into_obstacle = 0;
+  std::int64_t step_limit = 0;
+  double rate() const { return trials > 0 ? double(successes) / double(trials) : 0.0; }
+  Interval interval() const { return wilsonInterval(successes, trials); }
+};
+
+/// Samples the Markov chain the solver optimised: from the grid state nearest `start`, the
+/// table's control, a discrete deflection drawn with the model's probabilities (beta ~ N(0,
+/// sigma) drawn as simulateTrial draws it, rounded to the alpha grid, tails folded), the
+/// stencil's successor. Its success rate estimates the table's P_s at that state with no modelling error
+/// at all, so it separates solver error from discretisation error in the truth check. Trial i
+/// uses seed (seed, i). Throws std::invalid_argument for trials < 1 or max_steps < 1, a start
+/// off the grid, or a table solved for another model (hash).
+ChainResult runDiscreteChain(const SteeringModel& model, const PolicyTable& table,
+                             const TipPose& start, std::int64_t trials, std::uint64_t seed,
+                             int max_steps = 200);
 
 }  // namespace needle_guidance::steering

@@ -60,6 +60,11 @@ TipPose advanceTip(const TipPose& pose, Control control, double beta_rad, double
 struct SteeringParams {
   double grid_spacing_m = 1e-3;   ///< Delta, spacing of the position grid [m], > 0
   int orientations = 40;          ///< N_c, number of control-circle arcs; a multiple of 4
+  /// s: the MDP tracks orientation in steps of alpha / s while each insertion still traces one
+  /// arc of alpha = 2 pi / N_c (delta = 2 pi r / N_c). s = 1 is 5.4.2 exactly; s > 1 (our
+  /// extension) quantises deflections finer, so the MDP's deflection variance approaches
+  /// sigma^2, at s times the states. In [1, 64].
+  int orientation_subdivision = 1;
   double radius_m = 0.05;         ///< r, radius of curvature of the needle path [m], > 0
   double sigma_insert_rad = 0.0;  ///< sigma_i, std. dev. of the deflection on insertion [rad]
   double sigma_flip_rad = 0.0;    ///< sigma_r, std. dev. of the deflection on a flip [rad]
@@ -105,7 +110,8 @@ enum class Cell : std::uint8_t {
 };
 
 /// The discrete state space s = {q, Theta, b} (5.4.2): grid point q = origin + (ix, iy) Delta
-/// with ix in [0, nx), iy in [0, ny); orientation index k in [0, N_c) meaning theta = k alpha;
+/// with ix in [0, nx), iy in [0, ny); orientation index k in [0, nc) meaning theta = k 2 pi / nc,
+/// where nc = N_c s (N_c when orientation_subdivision s = 1, as in 5.4.2);
 /// bevel b. The grid is aligned at workspace_min and has nx = floor(width / Delta) columns, so a
 /// 10 cm workspace at Delta = 1 mm gives 100 x 100 positions and N = 2 * 100 * 100 * 40 =
 /// 800,000 states at N_c = 40 (5.5). Flat layout: ((ix * ny + iy) * 2 + b) * N_c + k, so the
@@ -115,11 +121,11 @@ struct GridSpec {
   double spacing_m = 0.0;          ///< Delta [m]
   int nx = 0;                      ///< columns (along x)
   int ny = 0;                      ///< rows (along y)
-  int nc = 0;                      ///< N_c
+  int nc = 0;                      ///< orientations tracked: N_c s (N_c in 5.4.2)
 
   std::int64_t numPositions() const { return static_cast<std::int64_t>(nx) * ny; }
   std::int64_t numStates() const { return numPositions() * 2 * nc; }
-  /// alpha = 2 pi / N_c [rad]
+  /// Orientation quantum 2 pi / nc [rad]: alpha = 2 pi / N_c when s = 1.
   double alphaRad() const;
   /// Position index of grid point (ix, iy).
   std::int64_t position(int ix, int iy) const { return static_cast<std::int64_t>(ix) * ny + iy; }
@@ -150,7 +156,7 @@ struct Transition {
 struct StencilEntry {
   std::int32_t offset = 0;   ///< next state's flat index minus this state's
   float probability = 0.0f;  ///< P(deflection)
-  std::uint16_t arc = 0;     ///< traced arc id: bevel * N_c + start orientation
+  std::uint16_t arc = 0;     ///< traced arc id: bevel * nc + start orientation
   std::int16_t dy = 0;       ///< row displacement of the next position [grid steps]
 };
 
@@ -165,7 +171,10 @@ struct StencilEntry {
 /// onto all N_c orientations), and the tip traces one control-circle arc from orientation
 /// o = k + d with bevel b'. The position moves by the vector between the two rounded control-
 /// circle points of that arc, so orientation is exact and position error bounded (5.4.2); the
-/// next orientation is o + 1 (left) or o - 1 (right). The arc fails when the true arc from q
+/// next orientation is o + 1 (left) or o - 1 (right). With orientation_subdivision s > 1 (not
+/// in 5.4.2) the orientation index counts alpha / s: deflections are integrated into alpha / s
+/// bins, the rounded control-circle points are the N_c s points of that spacing, and an arc
+/// still turns alpha, from o to o + s (left) or o - s (right). The arc fails when the true arc from q
 /// leaves the workspace, crosses an expanded obstacle's boundary, or its rounded end point is
 /// off the grid. A grid point inside an expanded obstacle is an obstacle cell even if it is in
 /// the target too (the needle cannot get there without crossing the obstacle edge).
@@ -212,7 +221,7 @@ public:
   /// The first d of deflectionProbabilities(control).
   int firstDeflection(Control control) const { return first_d_[static_cast<int>(control)]; }
 
-  /// Grid displacement (dx, dy) of arc id (bevel * N_c + start orientation).
+  /// Grid displacement (dx, dy) of arc id (bevel * nc + start orientation).
   std::pair<int, int> arcDisplacement(int arc) const {
     return {disp_x_[static_cast<std::size_t>(arc)], disp_y_[static_cast<std::size_t>(arc)]};
   }
