@@ -6,8 +6,10 @@
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
+#include <filesystem>
 #include <iostream>
 #include <mutex>
+#include <optional>
 #include <sstream>
 #include <vector>
 
@@ -133,6 +135,7 @@ SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   robot_ns_ = ros_params::text(private_nh, "robot", "insertion_robot");
   policy_ns_ = ros_params::text(private_nh, "policy", "steering_policy");
   report_dir_ = ros_params::text(private_nh, "report_dir", "", true);
+  table_dir_ = ros_params::rosHomePath(ros_params::text(private_nh, "table_dir", "steering_tables"));
   trials_ = static_cast<int>(ros_params::integer(private_nh, "trials", 20, 1, 100000, "trials"));
   max_steps_ = static_cast<int>(ros_params::integer(private_nh, "max_steps", 40, 1, 1000, "steps"));
   insertion_velocity_m_s_ =
@@ -148,6 +151,25 @@ SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   feedback_ = ros_params::text(private_nh, "feedback", "ground_truth");
   // Fail now, not after the robot has moved, if the scene cannot be steered.
   steering::problemFromScene(scene::loadSceneSpec(scene_spec_), target_);
+}
+
+std::pair<steering::PolicyTable, std::string> SteerableProcedureRos::policyTable(
+    const std::string& scene_name, const steering::SteeringProblem& problem) const {
+  const std::uint64_t hash = steering::problemHash(problem);
+  if (!table_dir_.empty()) {
+    const std::string path =
+        (std::filesystem::path(table_dir_) / steering::PolicyTable::fileName(scene_name, hash))
+            .string();
+    steering::LoadStatus status;
+    std::optional<steering::PolicyTable> loaded = steering::PolicyTable::load(path, hash, status);
+    if (loaded && loaded->converged()) {
+      return {std::move(*loaded), "loaded"};
+    }
+    ROS_WARN_STREAM("steerable_procedure: no usable table of steering_policy (" << status.message
+                                                                            << "); solving");
+  }
+  const steering::SteeringModel model(problem);
+  return {steering::solveValueIteration(model), "solved"};
 }
 
 bool SteerableProcedureRos::run() {
@@ -370,9 +392,8 @@ bool SteerableProcedureRos::run() {
   const double rate = n > 0 ? double(successes) / double(n) : 0.0;
 
   // The same start in the core simulator (continuous needle, same policy table) and the P_s
-  // map of figure 5.7, from a solve of the same problem (the same table the node uses).
-  const steering::SteeringModel model(problem);
-  const steering::PolicyTable table = steering::solveValueIteration(model);
+  // map of figure 5.7, from the table steering_policy saved (solved here only without one).
+  const auto [table, table_source] = policyTable(scene.name, problem);
   steering::TipPose start;
   start.p_SceneTip = steering::Point2(best.response.pose.x, best.response.pose.y);
   start.theta_rad = best.response.pose.theta;
@@ -416,6 +437,7 @@ bool SteerableProcedureRos::run() {
        << ",\n  \"predicted_within_ci\": " << (ci.contains(predicted) ? "true" : "false")
        << ",\n  \"monte_carlo_ps\": " << report::jsonNumber(mc.rate())
        << ",\n  \"monte_carlo_trials\": " << mc.trials
+       << ",\n  \"policy_table\": \"" << table_source << "\""
        << ",\n  \"start_y_mm\": " << report::jsonNumber(start.p_SceneTip.y() * kMmPerM)
        << ",\n  \"start_theta_deg\": " << report::jsonNumber(start.theta_rad * kDegPerRad)
        << ",\n  \"start_bevel\": \"" << best.response.bevel << "\""

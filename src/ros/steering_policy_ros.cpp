@@ -7,7 +7,6 @@
 #include <chrono>
 #include <cmath>
 #include <filesystem>
-#include <iomanip>
 #include <optional>
 #include <sstream>
 #include <stdexcept>
@@ -40,12 +39,6 @@ double secondsSince(std::chrono::steady_clock::time_point t0) {
 std::string fmt(double value) {
   std::ostringstream s;
   s << value;
-  return s.str();
-}
-
-std::string hex16(std::uint64_t v) {
-  std::ostringstream s;
-  s << std::hex << std::setw(16) << std::setfill('0') << v;
   return s.str();
 }
 
@@ -249,7 +242,7 @@ std::string SteeringPolicyRos::tablePath() const {
     return "";
   }
   return (std::filesystem::path(settings_.table_dir) /
-          (scene_name_ + "_" + hex16(model_->hash()) + ".table"))
+          st::PolicyTable::fileName(scene_name_, model_->hash()))
       .string();
 }
 

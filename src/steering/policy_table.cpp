@@ -230,6 +230,13 @@ void PolicyTable::save(const std::string& path) const {
   }
 }
 
+std::string PolicyTable::fileName(const std::string& scene_name, std::uint64_t problem_hash) {
+  std::ostringstream s;
+  s << scene_name << "_" << std::hex << std::setw(16) << std::setfill('0') << problem_hash
+    << ".table";
+  return s.str();
+}
+
 std::optional<PolicyTable> PolicyTable::load(const std::string& path, std::uint64_t expected_hash,
                                              LoadStatus& status, double max_epsilon) {
   using Code = LoadStatus::Code;

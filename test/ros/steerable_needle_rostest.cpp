@@ -37,6 +37,8 @@ TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
   std::stringstream text;
   text << std::ifstream(summary).rdbuf();
   EXPECT_NE(text.str().find("\"trials\": 8,"), std::string::npos) << text.str();
+  // The report reads the table steering_policy saved; it does not solve the MDP again.
+  EXPECT_NE(text.str().find("\"policy_table\": \"loaded\""), std::string::npos) << text.str();
 
   namespace st = needle_guidance::steering;
   const st::SteeringProblem problem =

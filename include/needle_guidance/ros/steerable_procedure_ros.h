@@ -9,6 +9,10 @@
 #include <ros/ros.h>
 
 #include <string>
+#include <utility>
+
+#include "needle_guidance/steering/policy_table.h"
+#include "needle_guidance/steering/steering_model.h"
 
 namespace needle_guidance {
 
@@ -23,12 +27,18 @@ public:
   bool run();
 
 private:
+  /// The policy table of the problem: steering_policy's saved file when it has one for this
+  /// problem (by hash), else solved here. Second: "loaded" | "solved".
+  std::pair<steering::PolicyTable, std::string> policyTable(
+      const std::string& scene_name, const steering::SteeringProblem& problem) const;
+
   ros::NodeHandle nh_;
   std::string scene_spec_;
   std::string target_;
   std::string robot_ns_;
   std::string policy_ns_;
   std::string report_dir_;
+  std::string table_dir_;  ///< where steering_policy saves its table ("" = solve here)
   int trials_ = 0;
   int max_steps_ = 0;
   double insertion_velocity_m_s_ = 0.0;

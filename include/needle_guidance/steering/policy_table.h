@@ -124,6 +124,9 @@ public:
   /// why it was refused.
   static std::optional<PolicyTable> load(const std::string& path, std::uint64_t expected_hash,
                                          LoadStatus& status, double max_epsilon = 1.0);
+  /// The table's file name in a table directory: "<scene>_<16 hex digits of the hash>.table",
+  /// shared by the node that solves and every reader.
+  static std::string fileName(const std::string& scene_name, std::uint64_t problem_hash);
 
 private:
   GridSpec grid_;
