@@ -60,9 +60,8 @@ public:
   /// Waits (wall time) for a message with header.stamp >= stamp; false on timeout.
   bool waitFor(const ros::Time& stamp, double timeout_s, Msg& out) {
     std::unique_lock<std::mutex> lock(mutex_);
-    const bool ok = changed_.wait_for(lock, std::chrono::duration<double>(timeout_s), [&] {
-      return has_ && msg_.header.stamp >= stamp;
-    });
+    const bool ok = changed_.wait_for(lock, std::chrono::duration<double>(timeout_s),
+                                      [&] { return has_ && msg_.header.stamp >= stamp; });
     if (ok) {
       out = msg_;
     }
@@ -135,7 +134,8 @@ SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   robot_ns_ = ros_params::text(private_nh, "robot", "insertion_robot");
   policy_ns_ = ros_params::text(private_nh, "policy", "steering_policy");
   report_dir_ = ros_params::text(private_nh, "report_dir", "", true);
-  table_dir_ = ros_params::rosHomePath(ros_params::text(private_nh, "table_dir", "steering_tables"));
+  table_dir_ =
+      ros_params::rosHomePath(ros_params::text(private_nh, "table_dir", "steering_tables"));
   trials_ = static_cast<int>(ros_params::integer(private_nh, "trials", 20, 1, 100000, "trials"));
   max_steps_ = static_cast<int>(ros_params::integer(private_nh, "max_steps", 40, 1, 1000, "steps"));
   insertion_velocity_m_s_ =
@@ -146,8 +146,8 @@ SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
       ros_params::number(private_nh, "flip_velocity_rad_s", 2.0 * kPi, 1e-3, 100.0, "rad/s");
   timeout_s_ = ros_params::number(private_nh, "timeout_s", 10.0, 0.1, 600.0, "s");
   seed_ = ros_params::integer(private_nh, "seed", 1, -1, 1L << 40, "(-1 = the robot's stream)");
-  max_unconfident_ = static_cast<int>(ros_params::integer(
-      private_nh, "max_unconfident_controls", 10, 0, 1000, "controls"));
+  max_unconfident_ = static_cast<int>(
+      ros_params::integer(private_nh, "max_unconfident_controls", 10, 0, 1000, "controls"));
   feedback_ = ros_params::text(private_nh, "feedback", "ground_truth");
   // Fail now, not after the robot has moved, if the scene cannot be steered.
   steering::problemFromScene(scene::loadSceneSpec(scene_spec_), target_);
@@ -166,7 +166,7 @@ std::pair<steering::PolicyTable, std::string> SteerableProcedureRos::policyTable
       return {std::move(*loaded), "loaded"};
     }
     ROS_WARN_STREAM("steerable_procedure: no usable table of steering_policy (" << status.message
-                                                                            << "); solving");
+                                                                                << "); solving");
   }
   const steering::SteeringModel model(problem);
   return {steering::solveValueIteration(model), "solved"};
@@ -206,7 +206,8 @@ bool SteerableProcedureRos::run() {
     return false;
   }
   const double predicted = best.response.probability_of_success;
-  ROS_INFO_STREAM("steerable_procedure: best start y = " << best.response.pose.y * kMmPerM
+  ROS_INFO_STREAM("steerable_procedure: best start y = "
+                  << best.response.pose.y * kMmPerM
                   << " mm, theta = " << best.response.pose.theta * kDegPerRad << " deg, bevel "
                   << best.response.bevel << ", predicted P_s = " << predicted);
 
@@ -215,8 +216,7 @@ bool SteerableProcedureRos::run() {
     LinearMoveGoal goal;
     goal.target_m = target_m;
     goal.velocity_m_s = velocity;
-    const auto state =
-        client.sendGoalAndWait(goal, ros::Duration(timeout_s_), ros::Duration(1.0));
+    const auto state = client.sendGoalAndWait(goal, ros::Duration(timeout_s_), ros::Duration(1.0));
     message = client.getResult() ? client.getResult()->message : state.toString();
     return state == actionlib::SimpleClientGoalState::SUCCEEDED;
   };
@@ -247,8 +247,8 @@ bool SteerableProcedureRos::run() {
     // Trial k draws its deflections from its own stream: runs with ground-truth and image
     // feedback see the same needle as long as they make the same decisions.
     entry.request.reseed = seed_ >= 0;
-    entry.request.seed = static_cast<std::uint64_t>(seed_) * kTrialSeedStride +
-                         static_cast<std::uint64_t>(trial);
+    entry.request.seed =
+        static_cast<std::uint64_t>(seed_) * kTrialSeedStride + static_cast<std::uint64_t>(trial);
     if (rec.outcome.empty() && (!set_entry.call(entry) || !entry.response.success)) {
       rec.outcome = "error";
       rec.message = "set_entry_pose: " + entry.response.message;
@@ -285,21 +285,21 @@ bool SteerableProcedureRos::run() {
       }
       if (!have_control) {
         rec.outcome = "error";
-        rec.message = "no control from " + policy_ns_ + " within " +
-                      std::to_string(timeout_s_) + " s";
+        rec.message =
+            "no control from " + policy_ns_ + " within " + std::to_string(timeout_s_) + " s";
         break;
       }
       rec.unconfident_decisions += control.tip_confident ? 0 : 1;
-      rec.decisions.push_back({tip, control.control, control.probability_of_success,
-                               control.tip, control.tip_source, control.tip_confident != 0, true});
+      rec.decisions.push_back({tip, control.control, control.probability_of_success, control.tip,
+                               control.tip_source, control.tip_confident != 0, true});
       if (control.control == "flip") {
         FlipBevelGoal goal;
         goal.velocity_rad_s = flip_velocity_rad_s_;
         const auto state = flip.sendGoalAndWait(goal, ros::Duration(timeout_s_));
         if (state != actionlib::SimpleClientGoalState::SUCCEEDED) {
           rec.outcome = "error";
-          rec.message = "flip_bevel: " + (flip.getResult() ? flip.getResult()->message
-                                                            : state.toString());
+          rec.message =
+              "flip_bevel: " + (flip.getResult() ? flip.getResult()->message : state.toString());
           break;
         }
         ++rec.flips;
@@ -329,9 +329,10 @@ bool SteerableProcedureRos::run() {
     rec.samples = tips.stopRecording();
     rec.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     all_ran = all_ran && rec.outcome != "error";
-    ROS_INFO_STREAM("steerable_procedure: trial " << trial + 1 << "/" << trials_ << ": "
-                    << rec.outcome << " after " << rec.steps << " steps, " << rec.flips
-                    << " flips" << (rec.message.empty() ? "" : " (" + rec.message + ")"));
+    ROS_INFO_STREAM("steerable_procedure: trial "
+                    << trial + 1 << "/" << trials_ << ": " << rec.outcome << " after " << rec.steps
+                    << " steps, " << rec.flips << " flips"
+                    << (rec.message.empty() ? "" : " (" + rec.message + ")"));
     records.push_back(std::move(rec));
   }
   {
@@ -347,10 +348,10 @@ bool SteerableProcedureRos::run() {
   double sum_steps = 0.0, sum_flips = 0.0;
   report::Table trials_table({"trial", "outcome", "steps", "flips", "seconds", "message"}, 6);
   report::Table paths({"trial", "sample", "x_mm", "y_mm", "theta_deg", "bevel"}, 6);
-  report::Table decisions({"trial", "step", "x_mm", "y_mm", "theta_deg", "bevel", "control",
-                           "predicted_ps", "source", "confident", "tip_error_mm",
-                           "heading_error_deg"},
-                          6);
+  report::Table decisions(
+      {"trial", "step", "x_mm", "y_mm", "theta_deg", "bevel", "control", "predicted_ps", "source",
+       "confident", "tip_error_mm", "heading_error_deg"},
+      6);
   std::vector<double> tip_errors_mm, heading_errors_deg;
   int unconfident = 0;
   for (std::size_t i = 0; i < records.size(); ++i) {
@@ -380,8 +381,8 @@ bool SteerableProcedureRos::run() {
         tip_errors_mm.push_back(tip_error_mm);
         heading_errors_deg.push_back(heading_error_deg);
       }
-      decisions.addRow({double(i + 1), double(k), d.tip.pose.x * kMmPerM,
-                        d.tip.pose.y * kMmPerM, d.tip.pose.theta * kDegPerRad, d.tip.bevel,
+      decisions.addRow({double(i + 1), double(k), d.tip.pose.x * kMmPerM, d.tip.pose.y * kMmPerM,
+                        d.tip.pose.theta * kDegPerRad, d.tip.bevel,
                         d.control.empty() ? std::string("end") : d.control,
                         d.probability_of_success, d.source, std::string(d.confident ? "1" : "0"),
                         tip_error_mm, heading_error_deg});
@@ -409,8 +410,8 @@ bool SteerableProcedureRos::run() {
   const std::vector<geometry::Polygon>& expanded = world.expandedObstacles();
   for (std::size_t o = 0; o < problem.obstacles.size(); ++o) {
     for (const auto& v : problem.obstacles[o].polygon.vertices()) {
-      outlines.addRow({std::string("obstacle"), problem.obstacles[o].name, v.x() * kMmPerM,
-                       v.y() * kMmPerM});
+      outlines.addRow(
+          {std::string("obstacle"), problem.obstacles[o].name, v.x() * kMmPerM, v.y() * kMmPerM});
     }
     for (const auto& v : expanded[o].vertices()) {
       outlines.addRow({std::string("clearance"), problem.obstacles[o].name + "_expanded",
@@ -429,21 +430,20 @@ bool SteerableProcedureRos::run() {
 
   std::ostringstream json;
   json << "{\n  \"procedure\": \"steerable_needle\",\n  \"scene\": \"" << scene.name
-       << "\",\n  \"success\": " << (success ? "true" : "false")
-       << ",\n  \"trials\": " << n << ",\n  \"successes\": " << successes
-       << ",\n  \"success_rate\": " << report::jsonNumber(rate)
-       << ",\n  \"success_rate_ci\": [" << report::jsonNumber(ci.low) << ", " << report::jsonNumber(ci.high)
+       << "\",\n  \"success\": " << (success ? "true" : "false") << ",\n  \"trials\": " << n
+       << ",\n  \"successes\": " << successes
+       << ",\n  \"success_rate\": " << report::jsonNumber(rate) << ",\n  \"success_rate_ci\": ["
+       << report::jsonNumber(ci.low) << ", " << report::jsonNumber(ci.high)
        << "],\n  \"predicted_ps\": " << report::jsonNumber(predicted)
        << ",\n  \"predicted_within_ci\": " << (ci.contains(predicted) ? "true" : "false")
        << ",\n  \"monte_carlo_ps\": " << report::jsonNumber(mc.rate())
-       << ",\n  \"monte_carlo_trials\": " << mc.trials
-       << ",\n  \"policy_table\": \"" << table_source << "\""
+       << ",\n  \"monte_carlo_trials\": " << mc.trials << ",\n  \"policy_table\": \""
+       << table_source << "\""
        << ",\n  \"start_y_mm\": " << report::jsonNumber(start.p_SceneTip.y() * kMmPerM)
        << ",\n  \"start_theta_deg\": " << report::jsonNumber(start.theta_rad * kDegPerRad)
        << ",\n  \"start_bevel\": \"" << best.response.bevel << "\""
        << ",\n  \"feedback\": \"" << feedback_ << "\""
-       << ",\n  \"seed\": " << seed_
-       << ",\n  \"decisions\": " << tip_errors_mm.size()
+       << ",\n  \"seed\": " << seed_ << ",\n  \"decisions\": " << tip_errors_mm.size()
        << ",\n  \"tip_error_mm_median\": " << report::jsonNumber(median(tip_errors_mm))
        << ",\n  \"tip_error_mm_max\": " << report::jsonNumber(maximum(tip_errors_mm))
        << ",\n  \"heading_error_deg_median\": " << report::jsonNumber(median(heading_errors_deg))
@@ -454,18 +454,19 @@ bool SteerableProcedureRos::run() {
   std::ostringstream md;
   md << "# Steerable needle: " << n << " closed-loop trials on " << scene.name << "\n\n"
      << "| figure | value |\n| --- | --- |\n"
-     << "| start | y = " << start.p_SceneTip.y() * kMmPerM << " mm, theta = "
-     << start.theta_rad * kDegPerRad << " deg, bevel " << best.response.bevel << " |\n"
+     << "| start | y = " << start.p_SceneTip.y() * kMmPerM
+     << " mm, theta = " << start.theta_rad * kDegPerRad << " deg, bevel " << best.response.bevel
+     << " |\n"
      << "| predicted P_s (MDP) | " << predicted << " |\n"
      << "| success rate (ROS closed loop) | " << successes << " / " << n << " = " << rate
      << ", 95 % CI [" << ci.low << ", " << ci.high << "] |\n"
-     << "| feedback | " << feedback_ << "; tip error at decisions median "
-     << median(tip_errors_mm) << " mm (max " << maximum(tip_errors_mm) << "), heading "
-     << median(heading_errors_deg) << " deg; " << unconfident
-     << " decisions on unconfident tips |\n"
+     << "| feedback | " << feedback_ << "; tip error at decisions median " << median(tip_errors_mm)
+     << " mm (max " << maximum(tip_errors_mm) << "), heading " << median(heading_errors_deg)
+     << " deg; " << unconfident << " decisions on unconfident tips |\n"
      << "| Monte Carlo (core, " << mc.trials << " trials) | " << mc.rate() << " |\n"
      << "| mean steps / flips | " << (n > 0 ? sum_steps / n : 0.0) << " / "
-     << (n > 0 ? sum_flips / n : 0.0) << " |\n\n" << trials_table.toMarkdown();
+     << (n > 0 ? sum_flips / n : 0.0) << " |\n\n"
+     << trials_table.toMarkdown();
   if (!report_dir_.empty()) {
     trials_table.writeCsv(report_dir_ + "/trials.csv");
     paths.writeCsv(report_dir_ + "/paths.csv");
@@ -481,7 +482,8 @@ bool SteerableProcedureRos::run() {
          << ", " << problem.target.radius_m * kMmPerM << "], \"bounds\": ["
          << problem.workspace_min.x() * kMmPerM << ", " << problem.workspace_min.y() * kMmPerM
          << ", " << problem.workspace_max.x() * kMmPerM << ", "
-         << problem.workspace_max.y() * kMmPerM << "], \"max_paths\": 6, \"title\": "
+         << problem.workspace_max.y() * kMmPerM
+         << "], \"max_paths\": 6, \"title\": "
             "\"Closed-loop trials (figure 5.8): small dots insert, large dots flip\", "
             "\"png\": \"paths.png\"},\n"
             " {\"kind\": \"heatmap\", \"csv\": \"ps_map.csv\", \"x\": \"theta_deg\", \"y\": "
@@ -492,9 +494,9 @@ bool SteerableProcedureRos::run() {
     report::writeTextFile(report_dir_ + "/plot.json", plot.str());
   }
   std::cout << "\n== Steerable needle (" << feedback_ << " feedback): " << successes << " / " << n
-            << " closed-loop trials reached the target (rate " << rate << ", 95 % CI ["
-            << ci.low << ", " << ci.high << "]); predicted P_s " << predicted
-            << ", Monte Carlo " << mc.rate() << " ==\n"
+            << " closed-loop trials reached the target (rate " << rate << ", 95 % CI [" << ci.low
+            << ", " << ci.high << "]); predicted P_s " << predicted << ", Monte Carlo " << mc.rate()
+            << " ==\n"
             << "start y = " << start.p_SceneTip.y() * kMmPerM
             << " mm, theta = " << start.theta_rad * kDegPerRad << " deg, bevel "
             << best.response.bevel << "; " << wall_s << " s; report in " << report_dir_ << "\n"

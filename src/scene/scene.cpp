@@ -63,7 +63,6 @@ std::string indexed(const std::string& key, std::size_t i) {
   return key + "[" + std::to_string(i) + "]";
 }
 
-
 /// Parses one document into a Scene, validating as it goes, then cross-checks the parts.
 class SceneParser {
 public:
@@ -403,8 +402,10 @@ private:
         positiveOr(m, "insertion_velocity", detail::kVelocity, needle.insertion_velocity_m_s);
     needle.cutting_force_N = nonNegativeOr(m, "cutting_force", detail::kForce, 0.0);
     const std::optional<Quantity> cut_length = m.optionalQuantity("cut_length", detail::kLength);
-    needle.static_friction_N_per_m = nonNegativeOr(m, "static_friction", detail::kForcePerLength, 0.0);
-    needle.kinetic_friction_N_per_m = nonNegativeOr(m, "kinetic_friction", detail::kForcePerLength, 0.0);
+    needle.static_friction_N_per_m =
+        nonNegativeOr(m, "static_friction", detail::kForcePerLength, 0.0);
+    needle.kinetic_friction_N_per_m =
+        nonNegativeOr(m, "kinetic_friction", detail::kForcePerLength, 0.0);
     needle.stick_velocity_m_s = nonNegativeOr(m, "stick_velocity", detail::kVelocity, 0.0);
     needle.diameter_m = nonNegativeOr(m, "diameter", detail::kLength, 0.0);
     const std::optional<Quantity> radius =

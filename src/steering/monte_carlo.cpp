@@ -49,8 +49,7 @@ SteeringPolicy openLoopPolicy(std::vector<Control> controls) {
 }
 
 Trial simulateTrial(const ContinuousWorkspace& world, const TipPose& start,
-                    const SteeringPolicy& policy, std::uint64_t seed,
-                    const TrialOptions& options) {
+                    const SteeringPolicy& policy, std::uint64_t seed, const TrialOptions& options) {
   Trial trial;
   trial.end = start;
   if (options.record_path) {
@@ -165,8 +164,7 @@ MonteCarloResult runMonteCarlo(const ContinuousWorkspace& world, const TipPose& 
   }
   total.mean_steps = total_steps / double(total.trials);
   total.mean_flips = total_flips / double(total.trials);
-  total.seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  total.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return total;
 }
 
@@ -224,7 +222,8 @@ ChainResult runDiscreteChain(const SteeringModel& model, const PolicyTable& tabl
         ended = true;
       } else {
         const Control u = table.control(s);
-        const double sigma = u == Control::kInsert ? params.sigma_insert_rad : params.sigma_flip_rad;
+        const double sigma =
+            u == Control::kInsert ? params.sigma_insert_rad : params.sigma_flip_rad;
         const double beta = sigma > 0.0 ? sigma * normal(rng) : 0.0;
         s = model.successors(s, u)[deflectionIndex(u, beta)].next;
         if (s == kFailState) {

@@ -59,7 +59,6 @@ bool segmentsTouch(const Point2& a, const Point2& b, const Point2& c, const Poin
          (d3 == 0 && onBox(c, d, a)) || (d4 == 0 && onBox(c, d, b));
 }
 
-
 struct Box {
   double min_x, min_y, max_x, max_y;
   bool overlaps(const Box& o) const {
@@ -244,8 +243,7 @@ SteeringModel::SteeringModel(SteeringProblem problem, int threads) : problem_(st
   }
   if (p.orientation_subdivision < 1 || p.orientation_subdivision > 64) {
     throw std::invalid_argument(where + "orientation_subdivision s = " +
-                                std::to_string(p.orientation_subdivision) +
-                                " is not in [1, 64]");
+                                std::to_string(p.orientation_subdivision) + " is not in [1, 64]");
   }
   const int tracked = p.orientations * p.orientation_subdivision;
   if (p.orientations > 4096 || tracked > 4096) {
@@ -574,7 +572,8 @@ void SteeringModel::buildValidity(int threads) {
               }
               stamp[static_cast<std::size_t>(e)] = stamp_id;
               if (geometry::pointSegmentDistance(q, ea[static_cast<std::size_t>(e)],
-                                       eb[static_cast<std::size_t>(e)]) <= reach + slack) {
+                                                 eb[static_cast<std::size_t>(e)]) <=
+                  reach + slack) {
                 near.push_back(e);
               }
             }

@@ -123,17 +123,17 @@ public:
     std::int64_t states = 0;
     double total_s = 0.0;
     int starts = 0;
-    double within = 0.0;          ///< fraction of starts whose predicted P_s is in the MC CI
-    double mean_abs_gap = 0.0;    ///< mean |predicted - MC|
-    double noise_floor = 0.0;     ///< mean E|MC - p| from binomial noise alone
+    double within = 0.0;        ///< fraction of starts whose predicted P_s is in the MC CI
+    double mean_abs_gap = 0.0;  ///< mean |predicted - MC|
+    double noise_floor = 0.0;   ///< mean E|MC - p| from binomial noise alone
   };
 
   TruthCheck(const st::ContinuousWorkspace& world, std::vector<st::TipPose> starts)
       : world_(world),
         starts_(std::move(starts)),
-        per_start_({"grid_spacing_mm", "subdivision", "y_mm", "theta_deg", "bevel",
-                    "predicted_ps", "mc_ps", "ci_low", "ci_high", "within_ci", "gap", "chain_ps",
-                    "chain_within_ci", "rounded_deflection_ps", "rounded_into_obstacle"},
+        per_start_({"grid_spacing_mm", "subdivision", "y_mm", "theta_deg", "bevel", "predicted_ps",
+                    "mc_ps", "ci_low", "ci_high", "within_ci", "gap", "chain_ps", "chain_within_ci",
+                    "rounded_deflection_ps", "rounded_into_obstacle"},
                    6),
         summary_({"grid_spacing_mm", "subdivision", "states", "total_s", "starts",
                   "within_ci_fraction", "mean_abs_gap", "max_abs_gap", "mean_gap", "noise_floor",
@@ -301,16 +301,17 @@ int main(int argc, char** argv) {
     std::cout << "1 thread: build " << single.build_s << " s, solve " << single.stats.seconds
               << " s (" << single.stats.sweeps << " sweeps)\n"
               << std::flush;
-    for (double fine_m : args->quick ? std::vector<double>{} : std::vector<double>{0.5e-3, 0.25e-3}) {
+    for (double fine_m :
+         args->quick ? std::vector<double>{} : std::vector<double>{0.5e-3, 0.25e-3}) {
       runs.push_back(solveAt(problem, fine_m, 2, 1e-3, start));
       Solved& r = runs.back();
       scaling.addRow({r.spacing_m * kMmPerM, double(r.states), double(r.transitions), r.build_s,
                       r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
                       r.stats.converged ? 1.0 : 0.0, r.peak_mb,
                       double(r.best.best.probability_of_success), 2.0});
-      std::cout << "Delta " << fine_m * kMmPerM << " mm: " << r.states << " states, build " << r.build_s << " s, solve "
-                << r.stats.seconds << " s (" << r.stats.sweeps << " sweeps), peak " << r.peak_mb
-                << " MB, " << r.best.toString() << "\n"
+      std::cout << "Delta " << fine_m * kMmPerM << " mm: " << r.states << " states, build "
+                << r.build_s << " s, solve " << r.stats.seconds << " s (" << r.stats.sweeps
+                << " sweeps), peak " << r.peak_mb << " MB, " << r.best.toString() << "\n"
                 << std::flush;
     }
     scaling.writeCsv(args->out_dir + "/steering.csv");
@@ -368,9 +369,9 @@ int main(int argc, char** argv) {
     const double within_800k = truth.withinFraction(kSpacing800k_m, 1);
     if (!args->quick) {
       // Finer models, solved once each and dropped after their check (memory).
-      const std::vector<std::pair<double, int>> finer = {
-          {0.125e-3, 1}, {1e-3, 2}, {0.5e-3, 2}, {0.25e-3, 2}, {0.125e-3, 2},
-          {1e-3, 4},     {0.5e-3, 4}, {0.25e-3, 4}};
+      const std::vector<std::pair<double, int>> finer = {{0.125e-3, 1}, {1e-3, 2},     {0.5e-3, 2},
+                                                         {0.25e-3, 2},  {0.125e-3, 2}, {1e-3, 4},
+                                                         {0.5e-3, 4},   {0.25e-3, 4}};
       for (const auto& [spacing, subdivision] : finer) {
         truth.check(solveAt(problem, spacing, 2, 1e-3, start, subdivision, 1));
       }
@@ -395,10 +396,11 @@ int main(int argc, char** argv) {
     st::SteeringProblem sp_problem = problem;
     sp_problem.params.grid_spacing_m = kSpacing800k_m;
     const st::ShortestPathTable sp_table = st::ShortestPathTable::fromProblem(sp_problem, 2);
-    ng::report::Table baseline({"policy", "ps", "ci_low", "ci_high", "mean_steps", "mean_flips"}, 6);
+    ng::report::Table baseline({"policy", "ps", "ci_low", "ci_high", "mean_steps", "mean_flips"},
+                               6);
     auto addBaseline = [&](const std::string& name, const st::MonteCarloResult& r) {
-      baseline.addRow({name, r.rate(), r.interval().low, r.interval().high, r.mean_steps,
-                       r.mean_flips});
+      baseline.addRow(
+          {name, r.rate(), r.interval().low, r.interval().high, r.mean_steps, r.mean_flips});
     };
     addBaseline("mdp", mdp_mc);
     st::MonteCarloResult sp_closed, sp_open;
@@ -519,7 +521,8 @@ int main(int argc, char** argv) {
          << ",\n  \"states_800k\": " << run800k->states
          << ",\n  \"solve_s_800k\": " << ng::report::jsonNumber(run800k->stats.seconds)
          << ",\n  \"build_s_800k\": " << ng::report::jsonNumber(run800k->build_s)
-         << ",\n  \"total_s_800k\": " << ng::report::jsonNumber(run800k->build_s + run800k->stats.seconds)
+         << ",\n  \"total_s_800k\": "
+         << ng::report::jsonNumber(run800k->build_s + run800k->stats.seconds)
          << ",\n  \"sweeps_800k\": " << run800k->stats.sweeps
          << ",\n  \"converged_800k\": " << (run800k->stats.converged ? "true" : "false")
          << ",\n  \"epsilon\": 0.001,\n  \"threads\": 2"
@@ -531,10 +534,11 @@ int main(int argc, char** argv) {
          << ",\n  \"peak_mb_800k\": " << ng::report::jsonNumber(run800k->peak_mb)
          << ",\n  \"baseline_mb\": " << ng::report::jsonNumber(baseline_mb)
          << ",\n  \"lookup_us\": " << ng::report::jsonNumber(lookup_us)
-         << ",\n  \"mdp_ps\": " << ng::report::jsonNumber(mdp_mc.rate())
-         << ",\n  \"mdp_ps_ci\": [" << ng::report::jsonNumber(mdp_mc.interval().low) << ", "
+         << ",\n  \"mdp_ps\": " << ng::report::jsonNumber(mdp_mc.rate()) << ",\n  \"mdp_ps_ci\": ["
+         << ng::report::jsonNumber(mdp_mc.interval().low) << ", "
          << ng::report::jsonNumber(mdp_mc.interval().high) << "]"
-         << ",\n  \"mdp_ps_predicted\": " << ng::report::jsonNumber(best.best.probability_of_success)
+         << ",\n  \"mdp_ps_predicted\": "
+         << ng::report::jsonNumber(best.best.probability_of_success)
          << ",\n  \"mc_within_ci_fraction\": " << ng::report::jsonNumber(within_800k)
          << ",\n  \"mc_within_ci_fraction_best\": " << ng::report::jsonNumber(truth_best.within)
          << ",\n  \"truth_best_spacing_mm\": " << ng::report::jsonNumber(truth_best.spacing_mm)
@@ -547,15 +551,18 @@ int main(int argc, char** argv) {
          << ",\n  \"shortest_path_open_loop_ps\": "
          << (sp.found ? ng::report::jsonNumber(sp_open.rate()) : std::string("null"))
          << ",\n  \"mdp_gain_over_shortest_path\": "
-         << ng::report::jsonNumber(sp_closed.rate() > 0.0 ? mdp_mc.rate() / sp_closed.rate() - 1.0 : NAN)
+         << ng::report::jsonNumber(sp_closed.rate() > 0.0 ? mdp_mc.rate() / sp_closed.rate() - 1.0
+                                                          : NAN)
          << ",\n  \"shortest_path_steps\": " << sp.steps
          << ",\n  \"shortest_path_proven\": " << (sp.proven_shortest ? "true" : "false")
          << ",\n  \"shortest_path_plan_s\": " << ng::report::jsonNumber(sp.seconds)
          << ",\n  \"mc_trials_per_start\": " << kMonteCarloTrials
          << ",\n  \"mc_trials_total\": " << mc_trials_total
          << ",\n  \"mc_seconds_total\": " << ng::report::jsonNumber(mc_seconds)
-         << ",\n  \"best_start_y_mm\": " << ng::report::jsonNumber(best.best.pose.p_SceneTip.y() * kMmPerM)
-         << ",\n  \"best_start_theta_deg\": " << ng::report::jsonNumber(best.best.pose.theta_rad * kDegPerRad)
+         << ",\n  \"best_start_y_mm\": "
+         << ng::report::jsonNumber(best.best.pose.p_SceneTip.y() * kMmPerM)
+         << ",\n  \"best_start_theta_deg\": "
+         << ng::report::jsonNumber(best.best.pose.theta_rad * kDegPerRad)
          << ",\n  \"best_start_bevel\": \"" << st::toString(best.best.pose.bevel) << "\""
          << ",\n  \"ps_reference_start_finest\": " << ng::report::jsonNumber(ps_finest)
          << ",\n  \"finest_spacing_mm\": " << ng::report::jsonNumber(finest.spacing_m * kMmPerM)
@@ -585,9 +592,8 @@ int main(int argc, char** argv) {
   "title": "P_s from the best start (Monte Carlo, 10,000 trials): MDP vs shortest path", "png": "baseline.png"},
  {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
   "title": "P_s of start states on the entry line (figure 5.7 slices, best bevel)", "png": "start_surface.png"}])json");
-    std::cout << scaling.toText() << eps_table.toText() << resolution.toText() << truth.summaryText()
-              << baseline.toText()
-              << json.str();
+    std::cout << scaling.toText() << eps_table.toText() << resolution.toText()
+              << truth.summaryText() << baseline.toText() << json.str();
   } catch (const std::exception& e) {
     std::cerr << "bench_steering: " << e.what() << "\n";
     return 1;

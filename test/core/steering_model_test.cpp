@@ -235,8 +235,7 @@ TEST(SteeringModelTest, SubdividedOrientationTracksTheSameArcs) {
   ASSERT_EQ(ins.size(), 7u);
   ASSERT_EQ(m.firstDeflection(Control::kInsert), -3);
   const double sigma = 5.0 * kDeg, half_bin = 2.25 * kDeg;
-  EXPECT_NEAR(ins[3], normalCdf(half_bin / sigma) - normalCdf(-half_bin / sigma),
-              kProbabilityTol);
+  EXPECT_NEAR(ins[3], normalCdf(half_bin / sigma) - normalCdf(-half_bin / sigma), kProbabilityTol);
   EXPECT_NEAR(ins[6], 1.0 - normalCdf(5 * half_bin / sigma), kProbabilityTol);
   // Successor of an undeflected insert: orientation o + 2, position by arc o.
   const StateId s = g.state(20, 30, 6, Bevel::kLeft);

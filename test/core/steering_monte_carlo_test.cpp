@@ -20,11 +20,11 @@ namespace {
 
 constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
-constexpr double kExact_m = 1e-12;         // same formula, rounding only [m]
-constexpr double kChordTol_m = 1e-5;       // ContinuousWorkspace default chord tolerance [m]
-constexpr double kContactTol_m = 2e-5;     // contact point to expanded boundary [m]
-constexpr double kWilsonTol = 1e-4;        // published interval values, 4 decimals
-constexpr double kStandardErrors = 4.0;    // Monte Carlo vs analytic, in binomial SEs
+constexpr double kExact_m = 1e-12;       // same formula, rounding only [m]
+constexpr double kChordTol_m = 1e-5;     // ContinuousWorkspace default chord tolerance [m]
+constexpr double kContactTol_m = 2e-5;   // contact point to expanded boundary [m]
+constexpr double kWilsonTol = 1e-4;      // published interval values, 4 decimals
+constexpr double kStandardErrors = 4.0;  // Monte Carlo vs analytic, in binomial SEs
 
 SteeringProblem openProblem() {
   SteeringProblem p;
@@ -213,8 +213,8 @@ TEST(MonteCarlo, DeterministicNeedleStaysWithinTheDiscretisationBound) {
   ASSERT_EQ(model.cell(s / (2 * grid.nc)), Cell::kTarget);
   const double final_bound = flips * spacing * std::sqrt(2.0) + spacing * std::sqrt(2.0) / 2.0;
   EXPECT_LE((pose.p_SceneTip - p.target.position).norm(), p.target.radius_m + final_bound);
-  std::cout << steps << " steps, " << flips << " direction changes, worst error / E_h = "
-            << worst_ratio << "\n";
+  std::cout << steps << " steps, " << flips
+            << " direction changes, worst error / E_h = " << worst_ratio << "\n";
 }
 
 // The solver's P_s is the success probability of its own Markov chain: sampling the chain
@@ -238,9 +238,9 @@ TEST(DiscreteChain, SuccessRateMatchesThePredictedPs) {
       const double predicted = table.lookup(start).probability_of_success;
       const ChainResult chain = runDiscreteChain(model, table, start, kTrials, 7);
       ASSERT_EQ(chain.trials, kTrials);
-      EXPECT_EQ(chain.successes + chain.failed_arcs + chain.rounded_into_obstacle +
-                    chain.step_limit,
-                kTrials);
+      EXPECT_EQ(
+          chain.successes + chain.failed_arcs + chain.rounded_into_obstacle + chain.step_limit,
+          kTrials);
       const double se = std::sqrt(std::max(predicted * (1 - predicted), 1e-4) / kTrials);
       EXPECT_NEAR(chain.rate(), predicted, kStandardErrors * se) << "y " << y_mm << " mm";
       checked += predicted > 0.05 ? 1 : 0;

@@ -46,10 +46,10 @@ struct TrialOptions {
 /// One simulated insertion.
 struct Trial {
   TrialOutcome outcome = TrialOutcome::kStepLimit;
-  int steps = 0;               ///< insertions made (the failing one included)
-  int flips = 0;               ///< direction changes made
-  TipPose end;                 ///< last pose (at the contact point on failure)
-  std::vector<TipPose> path;   ///< imaged poses, when TrialOptions::record_path
+  int steps = 0;                  ///< insertions made (the failing one included)
+  int flips = 0;                  ///< direction changes made
+  TipPose end;                    ///< last pose (at the contact point on failure)
+  std::vector<TipPose> path;      ///< imaged poses, when TrialOptions::record_path
   std::vector<Control> controls;  ///< controls applied, when TrialOptions::record_path
   bool success() const { return outcome == TrialOutcome::kReachedTarget; }
 };
@@ -108,8 +108,8 @@ struct ChainResult {
 /// Samples the Markov chain the solver optimised: from the grid state nearest `start`, the
 /// table's control, a discrete deflection drawn with the model's probabilities (beta ~ N(0,
 /// sigma) drawn as simulateTrial draws it, rounded to the alpha grid, tails folded), the
-/// stencil's successor. Its success rate estimates the table's P_s at that state with no modelling error
-/// at all, so it separates solver error from discretisation error in the truth check. Trial i
+/// stencil's successor. Its success rate estimates the table's P_s at that state with no modelling
+/// error at all, so it separates solver error from discretisation error in the truth check. Trial i
 /// uses seed (seed, i). Throws std::invalid_argument for trials < 1 or max_steps < 1, a start
 /// off the grid, or a table solved for another model (hash).
 ChainResult runDiscreteChain(const SteeringModel& model, const PolicyTable& table,

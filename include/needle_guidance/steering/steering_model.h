@@ -58,8 +58,8 @@ TipPose advanceTip(const TipPose& pose, Control control, double beta_rad, double
 
 /// Discretisation and motion-uncertainty parameters (5.4.2).
 struct SteeringParams {
-  double grid_spacing_m = 1e-3;   ///< Delta, spacing of the position grid [m], > 0
-  int orientations = 40;          ///< N_c, number of control-circle arcs; a multiple of 4
+  double grid_spacing_m = 1e-3;  ///< Delta, spacing of the position grid [m], > 0
+  int orientations = 40;         ///< N_c, number of control-circle arcs; a multiple of 4
   /// s: the MDP tracks orientation in steps of alpha / s while each insertion still traces one
   /// arc of alpha = 2 pi / N_c (delta = 2 pi r / N_c). s = 1 is 5.4.2 exactly; s > 1 (our
   /// extension) quantises deflections finer, so the MDP's deflection variance approaches
@@ -174,12 +174,12 @@ struct StencilEntry {
 /// next orientation is o + 1 (left) or o - 1 (right). With orientation_subdivision s > 1 (not
 /// in 5.4.2) the orientation index counts alpha / s: deflections are integrated into alpha / s
 /// bins, the rounded control-circle points are the N_c s points of that spacing, and an arc
-/// still turns alpha, from o to o + s (left) or o - s (right). The arc fails when the true arc from q
-/// leaves the workspace, crosses an expanded obstacle's boundary, or its rounded end point is
-/// off the grid. A grid point inside an expanded obstacle is an obstacle cell even if it is in
-/// the target too (the needle cannot get there without crossing the obstacle edge).
-/// Success is judged at decision points, as the tip is imaged every delta (5.3): an arc that
-/// passes through the target but ends outside it does not count.
+/// still turns alpha, from o to o + s (left) or o - s (right). The arc fails when the true arc from
+/// q leaves the workspace, crosses an expanded obstacle's boundary, or its rounded end point is off
+/// the grid. A grid point inside an expanded obstacle is an obstacle cell even if it is in the
+/// target too (the needle cannot get there without crossing the obstacle edge). Success is judged
+/// at decision points, as the tip is imaged every delta (5.3): an arc that passes through the
+/// target but ends outside it does not count.
 class SteeringModel {
 public:
   /// Builds the discretisation. Throws std::invalid_argument naming the value for: N_c not a
