@@ -8,6 +8,7 @@
 #include <iostream>
 #include <limits>
 #include <stdexcept>
+#include <string>
 
 #include "needle_guidance/geometry/polygon.h"
 #include "needle_guidance/scene/scene.h"
@@ -171,13 +172,15 @@ TEST(MonteCarlo, ResultDoesNotDependOnThreads) {
   EXPECT_NE(one.successes, other_seed.successes);
 }
 
-TEST(MonteCarlo, DeterministicNeedleStaysWithinTheDiscretisationBound) {
-  // sigma = 0 (5.4.2): following the MDP's controls, the continuous needle has exactly the
-  // discrete orientation, and its position stays within E_h = h Delta sqrt(2) + Delta sqrt(2)/2
-  // of the discrete state after h direction changes. So a P_s = 1 path ends within E_h of the
-  // target disc (not necessarily inside it: rounding can put a grid point in the disc that
-  // the true tip misses).
+// sigma = 0 (5.4.2): following the MDP's controls, the continuous needle has exactly the
+// discrete orientation, and its position stays within E_h = h Delta sqrt(2) + Delta sqrt(2)/2
+// of the discrete state after h direction changes. So a P_s = 1 path ends within E_h of the
+// target disc (not necessarily inside it: rounding can put a grid point in the disc that
+// the true tip misses). The same holds with the orientation subdivided (s > 1).
+void expectWithinTheDiscretisationBound(int subdivision, double start_theta_rad) {
+  SCOPED_TRACE("orientation_subdivision " + std::to_string(subdivision));
   SteeringProblem p = openProblem();
+  p.params.orientation_subdivision = subdivision;
   p.obstacles.push_back(wall(0.04, 0.0, 0.045, 0.045, 0.001));
   const ContinuousWorkspace world(p);
   const SteeringModel model(p);
@@ -186,6 +189,7 @@ TEST(MonteCarlo, DeterministicNeedleStaysWithinTheDiscretisationBound) {
   const double spacing = p.params.grid_spacing_m;
   TipPose pose;
   pose.p_SceneTip = Point2(0.0, 0.06);
+  pose.theta_rad = start_theta_rad;
   StateId s = grid.nearestState(pose);
   ASSERT_FLOAT_EQ(table.value(s), 1.0f);
   int flips = 0;
@@ -213,8 +217,13 @@ TEST(MonteCarlo, DeterministicNeedleStaysWithinTheDiscretisationBound) {
   ASSERT_EQ(model.cell(s / (2 * grid.nc)), Cell::kTarget);
   const double final_bound = flips * spacing * std::sqrt(2.0) + spacing * std::sqrt(2.0) / 2.0;
   EXPECT_LE((pose.p_SceneTip - p.target.position).norm(), p.target.radius_m + final_bound);
-  std::cout << steps << " steps, " << flips
+  std::cout << "s = " << subdivision << ": " << steps << " steps, " << flips
             << " direction changes, worst error / E_h = " << worst_ratio << "\n";
+}
+
+TEST(MonteCarlo, DeterministicNeedleStaysWithinTheDiscretisationBound) {
+  expectWithinTheDiscretisationBound(1, 0.0);
+  expectWithinTheDiscretisationBound(2, 4.5 * kDeg);  // an orientation only s = 2 has
 }
 
 // The solver's P_s is the success probability of its own Markov chain: sampling the chain
