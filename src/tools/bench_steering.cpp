@@ -587,7 +587,7 @@ int main(int argc, char** argv) {
  {"csv": "truth_gap.csv", "x": "total_s", "y": "mean_abs_gap", "group": "subdivision", "logx": true, "annotate": "grid_spacing_mm",
   "title": "Speed against error by s (label: Delta mm)", "png": "truth_tradeoff.png"},
  {"csv": "truth_check.csv", "x": "predicted_ps", "y": "mc_ps", "group": "grid_spacing_mm", "filter": {"subdivision": "1"}, "points": true,
-  "title": "Predicted P_s (MDP) vs Monte Carlo success rate, 10,000 trials per start", "png": "truth_check.png"},
+  "title": "Predicted P_s vs Monte Carlo, 10,000 trials per start (s = 1)", "png": "truth_check.png"},
  {"csv": "baseline.csv", "x": "mean_steps", "y": "ps", "group": "policy", "points": true,
   "title": "P_s from the best start (Monte Carlo, 10,000 trials): MDP vs shortest path", "png": "baseline.png"},
  {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
