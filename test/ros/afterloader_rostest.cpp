@@ -12,7 +12,6 @@
 
 #include <csignal>
 #include <filesystem>
-#include <functional>
 #include <mutex>
 
 #include "needle_guidance/AfterloaderState.h"
@@ -21,6 +20,7 @@
 #include "needle_guidance/delivery/journal.h"
 #include "needle_guidance/delivery/schedule.h"
 #include "needle_guidance/ros/delivery_conversions.h"
+#include "../ros_wait.h"
 
 namespace {
 
@@ -74,18 +74,9 @@ ng::AfterloaderState state() {
   return g_state;
 }
 
-bool waitUntil(const std::function<bool()>& done, double seconds) {
-  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(seconds);
-  while (ros::WallTime::now() < end) {
-    if (done()) return true;
-    ros::WallDuration(0.01).sleep();
-  }
-  return done();
-}
-
 /// Waits until the source dwells and at least `fraction` of the plan is delivered.
 bool waitDwelling(double fraction) {
-  return waitUntil([&] { const auto s = state(); return s.dwell >= 0 && s.delivered_fraction >= fraction; }, 30.0);
+  return waitFor([&] { const auto s = state(); return s.dwell >= 0 && s.delivered_fraction >= fraction; }, 30.0);
 }
 
 Client& client() {
@@ -188,7 +179,7 @@ TEST(Afterloader, PauseHoldsTheDoseAndResumeCompletes) {
   send(s);
   ASSERT_TRUE(waitDwelling(0.2));
   ASSERT_TRUE(trigger("pause"));
-  ASSERT_TRUE(waitUntil([] { return !state().source_in_patient; }, 10.0)) << "source not retracted";
+  ASSERT_TRUE(waitFor([] { return !state().source_in_patient; }, 10.0)) << "source not retracted";
   const double held = state().delivered_fraction;
   ros::WallDuration(0.5).sleep();  // 5 s of device time
   EXPECT_EQ(state().state, "PAUSED");
@@ -251,7 +242,7 @@ TEST(Afterloader, OpenDoorPausesAndBlocksResume) {
   send(s);
   ASSERT_TRUE(waitDwelling(0.2));
   ASSERT_TRUE(door(true));
-  EXPECT_TRUE(waitUntil([] { return state().state == "PAUSED"; }, 5.0));
+  EXPECT_TRUE(waitFor([] { return state().state == "PAUSED"; }, 5.0));
   EXPECT_FALSE(trigger("resume"));
   ASSERT_TRUE(door(false));
   ASSERT_TRUE(trigger("resume"));
@@ -285,7 +276,7 @@ TEST(Afterloader, SigkillMidDwellThenRestartResumesWithExactTotals) {
   ASSERT_GT(pid, 0);
   ASSERT_EQ(::kill(pid, SIGKILL), 0);
   // roslaunch respawns the node; its first latched state comes from the new process.
-  ASSERT_TRUE(waitUntil([&] { const int p = afterloaderPid(); return p > 0 && p != pid; }, 30.0));
+  ASSERT_TRUE(waitFor([&] { const int p = afterloaderPid(); return p > 0 && p != pid; }, 30.0));
   ASSERT_TRUE(client().waitForServer(ros::Duration(30.0)));
   ros::WallDuration(1.0).sleep();  // let the goal topic connect to the new server
   send(s);

@@ -15,6 +15,7 @@
 #include "needle_guidance/DwellPlan.h"
 #include "needle_guidance/EvaluateDelivery.h"
 #include "needle_guidance/PlanDwells.h"
+#include "../ros_wait.h"
 
 namespace {
 
@@ -60,16 +61,7 @@ EvaluateDelivery::Response evaluate(const EvaluateDelivery::Request& request) {
 
 /// The latched ~plan as a new subscriber receives it (nullopt if nothing arrives).
 std::optional<DwellPlan> latchedPlan() {
-  ros::NodeHandle nh;
-  std::optional<DwellPlan> received;
-  ros::Subscriber sub = nh.subscribe<DwellPlan>(
-      kNode + "/plan", 1, [&](const needle_guidance::DwellPlanConstPtr& m) { received = *m; });
-  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(kTopicWait_s);
-  while (!received && ros::WallTime::now() < end) {
-    ros::spinOnce();
-    ros::WallDuration(0.02).sleep();
-  }
-  return received;
+  return firstMessage<DwellPlan>(kNode + "/plan", kTopicWait_s);
 }
 
 /// Synthetic case 1 planned with the LP once for the whole suite.

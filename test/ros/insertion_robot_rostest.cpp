@@ -11,6 +11,7 @@
 #include "needle_guidance/FlipBevelAction.h"
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/OperatingState.h"
+#include "../ros_wait.h"
 
 namespace {
 
@@ -67,17 +68,6 @@ protected:
   std::string opState() {
     std::lock_guard<std::mutex> lock(mutex_);
     return op_state_;
-  }
-  template <typename Pred>
-  bool waitFor(Pred pred, double timeout_s = 10.0) {
-    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(timeout_s);
-    while (ros::WallTime::now() < end) {
-      if (pred()) {
-        return true;
-      }
-      ros::WallDuration(0.01).sleep();
-    }
-    return pred();
   }
   /// The state after letting the node run a little (several publish periods).
   Sample settledState() {

@@ -21,6 +21,7 @@
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/continuous_workspace.h"
 #include "needle_guidance/steering/steering_model.h"
+#include "../ros_wait.h"
 
 namespace {
 
@@ -83,17 +84,6 @@ protected:
   std::optional<visualization_msgs::Marker> path() {
     std::lock_guard<std::mutex> lock(mutex_);
     return path_;
-  }
-  template <typename Pred>
-  bool waitFor(Pred pred, double timeout_s = 10.0) {
-    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(timeout_s);
-    while (ros::WallTime::now() < end) {
-      if (pred()) {
-        return true;
-      }
-      ros::WallDuration(0.01).sleep();
-    }
-    return pred();
   }
   /// The tip after letting the node publish a few more times.
   needle_guidance::NeedleTip settledTip() {

@@ -9,6 +9,7 @@
 #include <optional>
 
 #include "needle_guidance/Register.h"
+#include "../ros_wait.h"
 
 namespace {
 
@@ -71,9 +72,8 @@ TEST_F(RegistrationNodeTest, SyntheticCaseRegistersAndBeatsTheRigidBaseline) {
   EXPECT_NEAR(std::hypot(srv.response.grid_probe_in[1].x - srv.response.grid_probe_in[0].x,
                          srv.response.grid_probe_in[1].y - srv.response.grid_probe_in[0].y),
               0.007, 1e-9);
-  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(10.0);
-  while (ros::WallTime::now() < end && !markers()) ros::WallDuration(0.05).sleep();
-  ASSERT_TRUE(markers()) << "no markers published";
+  ASSERT_TRUE(waitFor([this] { return markers().has_value(); }, 10.0, 0.05))
+      << "no markers published";
   EXPECT_GT(markers()->markers.size(), 3U);
 }
 

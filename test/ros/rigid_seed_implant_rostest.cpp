@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include "../csv_rows.h"
+#include "../ros_wait.h"
 #include <ros/ros.h>
 
 #include <fstream>
@@ -23,11 +24,7 @@ TEST(RigidSeedImplant, TwoTargetsLandWherePredicted) {
   std::string report_dir;
   ASSERT_TRUE(private_nh.getParam("report_dir", report_dir));
   const std::string summary = report_dir + "/summary.json";
-  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(200.0);
-  while (ros::WallTime::now() < end && !std::ifstream(summary).good()) {
-    ros::WallDuration(0.5).sleep();
-  }
-  ASSERT_TRUE(std::ifstream(summary).good()) << "the procedure wrote no report in 200 s";
+  ASSERT_TRUE(waitForFile(summary, 200.0)) << "the procedure wrote no report in 200 s";
   const auto rows = readCsvRows(report_dir + "/moves.csv");
   ASSERT_EQ(rows.size(), static_cast<std::size_t>(kTargets));
   for (const auto& row : rows) {

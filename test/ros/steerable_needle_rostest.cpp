@@ -13,6 +13,7 @@
 #include <string>
 
 #include "../csv_rows.h"
+#include "../ros_wait.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/steering_model.h"
 
@@ -29,11 +30,7 @@ TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
   std::string report_dir;
   ASSERT_TRUE(private_nh.getParam("report_dir", report_dir));
   const std::string summary = report_dir + "/summary.json";
-  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(200.0);
-  while (ros::WallTime::now() < end && !std::ifstream(summary).good()) {
-    ros::WallDuration(0.5).sleep();
-  }
-  ASSERT_TRUE(std::ifstream(summary).good()) << "the procedure wrote no report in 200 s";
+  ASSERT_TRUE(waitForFile(summary, 200.0)) << "the procedure wrote no report in 200 s";
   std::stringstream text;
   text << std::ifstream(summary).rdbuf();
   EXPECT_NE(text.str().find("\"trials\": 8,"), std::string::npos) << text.str();

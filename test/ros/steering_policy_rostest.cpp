@@ -20,6 +20,7 @@
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SolvePolicy.h"
 #include "needle_guidance/SteeringControl.h"
+#include "../ros_wait.h"
 
 namespace {
 
@@ -136,16 +137,7 @@ SolvePolicy::Response solve(const std::string& node, double epsilon, bool force)
 
 /// The latched Marker on `topic` as a new subscriber receives it.
 std::optional<visualization_msgs::Marker> latchedMarker(const std::string& topic) {
-  ros::NodeHandle nh;
-  std::optional<visualization_msgs::Marker> received;
-  ros::Subscriber sub = nh.subscribe<visualization_msgs::Marker>(
-      topic, 1, [&](const visualization_msgs::MarkerConstPtr& m) { received = *m; });
-  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(kTopicWait_s);
-  while (!received && ros::WallTime::now() < end) {
-    ros::spinOnce();
-    ros::WallDuration(0.02).sleep();
-  }
-  return received;
+  return firstMessage<visualization_msgs::Marker>(topic, kTopicWait_s);
 }
 
 TEST(SteeringPolicy, BestStartIsOnTheEntryLine) {

@@ -14,6 +14,7 @@
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SetEntryPose.h"
+#include "../ros_wait.h"
 
 namespace {
 
@@ -59,17 +60,6 @@ protected:
   void onCalibration(const needle_guidance::ImageCalibrationConstPtr& msg) {
     std::lock_guard<std::mutex> lock(mutex_);
     calibration_ = *msg;
-  }
-  template <typename Pred>
-  bool waitFor(Pred pred, double timeout_s = 10.0) {
-    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(timeout_s);
-    while (ros::WallTime::now() < end) {
-      if (pred()) {
-        return true;
-      }
-      ros::WallDuration(0.01).sleep();
-    }
-    return pred();
   }
   /// The first tracked tip stamped at or after `since` for which `accept` holds.
   template <typename Accept>

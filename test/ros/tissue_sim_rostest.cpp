@@ -11,6 +11,7 @@
 #include "needle_guidance/ImplantSeed.h"
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/TissueStatus.h"
+#include "../ros_wait.h"
 
 namespace {
 
@@ -42,20 +43,15 @@ protected:
     std::lock_guard<std::mutex> lock(mutex_);
     seeds_ = *msg;
   }
+  /// waitFor (ros_wait.h) with pred() evaluated under the fixture's lock.
   template <typename Pred>
-  bool waitFor(Pred pred, double timeout_s = 10.0) {
-    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(timeout_s);
-    while (ros::WallTime::now() < end) {
-      {
-        std::lock_guard<std::mutex> lock(mutex_);
-        if (pred()) {
-          return true;
-        }
-      }
-      ros::WallDuration(0.02).sleep();
-    }
-    std::lock_guard<std::mutex> lock(mutex_);
-    return pred();
+  bool waitLocked(Pred pred, double timeout_s = 10.0) {
+    return waitFor(
+        [&] {
+          std::lock_guard<std::mutex> lock(mutex_);
+          return pred();
+        },
+        timeout_s, 0.02);
   }
   State move(LinearMoveClient& client, double target_m, double velocity_m_s) {
     needle_guidance::LinearMoveGoal goal;
@@ -76,14 +72,14 @@ protected:
 };
 
 TEST_F(TissueSimTest, SeedImplantedAtTheTipMovesWithTheTissueAndResetClearsIt) {
-  ASSERT_TRUE(waitFor([this] { return have_status_; }));
+  ASSERT_TRUE(waitLocked([this] { return have_status_; }));
   needle_guidance::ImplantSeed srv;
   ASSERT_TRUE(implant_.call(srv));
   EXPECT_FALSE(srv.response.success) << "a seed outside tissue must be refused";
   EXPECT_NE(srv.response.message.find("not in tissue"), std::string::npos) << srv.response.message;
 
   ASSERT_EQ(move(insert_, kTarget_m, 0.02), State::SUCCEEDED);
-  ASSERT_TRUE(waitFor([this] {
+  ASSERT_TRUE(waitLocked([this] {
     return status_.needle_in_tissue && status_.shaft_nodes > 0 && std::isfinite(status_.tip_force_N);
   }));
   ros::WallDuration(0.3).sleep();  // the simulation catches up with the stopped robot
@@ -93,9 +89,9 @@ TEST_F(TissueSimTest, SeedImplantedAtTheTipMovesWithTheTissueAndResetClearsIt) {
   EXPECT_NEAR(srv.response.position.y, kTarget_m, kSeedAtTipTol_m);
 
   ASSERT_EQ(move(retract_, -0.005, 0.05), State::SUCCEEDED);
-  ASSERT_TRUE(waitFor([this] { return !status_.needle_in_tissue; }));
+  ASSERT_TRUE(waitLocked([this] { return !status_.needle_in_tissue; }));
   ros::WallDuration(0.3).sleep();
-  ASSERT_TRUE(waitFor([this] { return seeds_.poses.size() == 1U; }));
+  ASSERT_TRUE(waitLocked([this] { return seeds_.poses.size() == 1U; }));
   {
     std::lock_guard<std::mutex> lock(mutex_);
     const auto& p = seeds_.poses.front().position;
@@ -110,7 +106,7 @@ TEST_F(TissueSimTest, SeedImplantedAtTheTipMovesWithTheTissueAndResetClearsIt) {
   std_srvs::Trigger trigger;
   ASSERT_TRUE(reset_.call(trigger));
   EXPECT_TRUE(trigger.response.success);
-  EXPECT_TRUE(waitFor([this] { return seeds_.poses.empty(); }));
+  EXPECT_TRUE(waitLocked([this] { return seeds_.poses.empty(); }));
 }
 
 }  // namespace

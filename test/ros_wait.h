@@ -1,0 +1,45 @@
+// Test helper shared by the rostests: waits on wall time for what other processes (the nodes
+// under test) do.
+#pragma once
+
+#include <ros/ros.h>
+
+#include <fstream>
+#include <optional>
+#include <string>
+
+/// Polls pred() every poll_s seconds until it holds or timeout_s seconds of wall time have
+/// passed; returns pred() at the end.
+template <typename Pred>
+bool waitFor(Pred pred, double timeout_s = 10.0, double poll_s = 0.01) {
+  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(timeout_s);
+  while (ros::WallTime::now() < end) {
+    if (pred()) {
+      return true;
+    }
+    ros::WallDuration(poll_s).sleep();
+  }
+  return pred();
+}
+
+/// Waits up to timeout_s seconds for `path` to be readable (e.g. a procedure's summary.json).
+inline bool waitForFile(const std::string& path, double timeout_s) {
+  return waitFor([&path] { return std::ifstream(path).good(); }, timeout_s, 0.5);
+}
+
+/// The first message a new subscriber to `topic` receives (a latched topic's last message),
+/// spinning the global queue; nullopt if none arrives within timeout_s seconds.
+template <typename Msg>
+std::optional<Msg> firstMessage(const std::string& topic, double timeout_s) {
+  ros::NodeHandle nh;
+  std::optional<Msg> received;
+  ros::Subscriber sub = nh.subscribe<Msg>(
+      topic, 1, [&received](const boost::shared_ptr<const Msg>& m) { received = *m; });
+  waitFor(
+      [&received] {
+        ros::spinOnce();
+        return received.has_value();
+      },
+      timeout_s, 0.02);
+  return received;
+}
