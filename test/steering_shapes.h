@@ -1,10 +1,12 @@
-// Obstacle shapes shared by the steering tests (test/core/steering_*_test.cpp).
+// Obstacle shapes and the open workspace shared by the steering tests
+// (test/core/steering_*_test.cpp).
 #pragma once
 
 #include <string>
 
 #include "needle_guidance/geometry/polygon.h"
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/steering_model.h"
 
 namespace needle_guidance::steering::test_shapes {
 
@@ -21,6 +23,24 @@ inline scene::Obstacle obstacle(const std::string& name, const geometry::Polygon
   o.polygon = p;
   o.clearance_m = clearance_m;
   return o;
+}
+
+/// 10 x 10 cm, no obstacles, r = 5 cm, N_c = 40 (delta = 7.85 mm) and a target of radius 5 mm
+/// at (target_x_m, 50 mm): figure 5.1's parameters.
+inline SteeringProblem openProblem(double spacing_m = 1e-3, double sigma_i_rad = 0.0,
+                                   double sigma_r_rad = 0.0, double target_x_m = 0.085) {
+  SteeringProblem p;
+  p.workspace_min = Point2(0.0, 0.0);
+  p.workspace_max = Point2(0.1, 0.1);
+  p.target.name = "target";
+  p.target.position = Point2(target_x_m, 0.05);
+  p.target.radius_m = 0.005;
+  p.params.grid_spacing_m = spacing_m;
+  p.params.orientations = 40;
+  p.params.radius_m = 0.05;
+  p.params.sigma_insert_rad = sigma_i_rad;
+  p.params.sigma_flip_rad = sigma_r_rad;
+  return p;
 }
 
 }  // namespace needle_guidance::steering::test_shapes

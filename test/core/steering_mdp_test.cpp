@@ -30,23 +30,8 @@ constexpr double kThreadAgreementTol = 5e-3;  // P_s, 1 vs 2 threads (both withi
 constexpr int kMaxRolloutSteps = 400;
 
 using test_shapes::obstacle;
+using test_shapes::openProblem;
 using test_shapes::rect;
-
-/// 10 x 10 cm, r = 5 cm, N_c = 40, target at (8.5, 5) cm of radius 5 mm, no obstacles.
-SteeringProblem openProblem(double spacing_m, double sigma_i_rad, double sigma_r_rad) {
-  SteeringProblem p;
-  p.workspace_min = Point2(0.0, 0.0);
-  p.workspace_max = Point2(0.1, 0.1);
-  p.target.name = "target";
-  p.target.position = Point2(0.085, 0.05);
-  p.target.radius_m = 0.005;
-  p.params.grid_spacing_m = spacing_m;
-  p.params.orientations = 40;
-  p.params.radius_m = 0.05;
-  p.params.sigma_insert_rad = sigma_i_rad;
-  p.params.sigma_flip_rad = sigma_r_rad;
-  return p;
-}
 
 StartOptions entryLine() {
   StartOptions s;

@@ -16,6 +16,8 @@
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/value_iteration.h"
 
+#include "../steering_shapes.h"
+
 namespace needle_guidance::steering {
 namespace {
 
@@ -27,25 +29,13 @@ constexpr double kContactTol_m = 2e-5;   // contact point to expanded boundary [
 constexpr double kWilsonTol = 1e-4;      // published interval values, 4 decimals
 constexpr double kStandardErrors = 4.0;  // Monte Carlo vs analytic, in binomial SEs
 
+/// The open workspace (Delta = 1 mm, sigma = 0) with the target at x = 80 mm.
 SteeringProblem openProblem() {
-  SteeringProblem p;
-  p.workspace_min = Point2(0.0, 0.0);
-  p.workspace_max = Point2(0.1, 0.1);
-  p.target.name = "target";
-  p.target.position = Point2(0.08, 0.05);
-  p.target.radius_m = 0.005;
-  p.params.grid_spacing_m = 1e-3;
-  p.params.orientations = 40;
-  p.params.radius_m = 0.05;
-  return p;
+  return test_shapes::openProblem(1e-3, 0.0, 0.0, 0.08);
 }
 
 scene::Obstacle wall(double x0, double y0, double x1, double y1, double clearance_m) {
-  scene::Obstacle o;
-  o.name = "wall";
-  o.polygon = geometry::Polygon({{x0, y0}, {x1, y0}, {x1, y1}, {x0, y1}});
-  o.clearance_m = clearance_m;
-  return o;
+  return test_shapes::obstacle("wall", test_shapes::rect(x0, y0, x1, y1), clearance_m);
 }
 
 double delta(const SteeringProblem& p) {

@@ -62,22 +62,8 @@ constexpr std::uint64_t kMonteCarloSeed = 20070501;
 constexpr int kExhaustiveDepth = 20;
 
 using test_shapes::obstacle;
+using test_shapes::openProblem;  // Delta = 1 mm, sigma = 0
 using test_shapes::rect;
-
-/// 10 x 10 cm, Delta = 1 mm, r = 5 cm, N_c = 40 (delta = 7.85 mm), target (85, 50) mm of radius
-/// 5 mm, no obstacles, sigma = 0 (figure 5.1's parameters).
-SteeringProblem openProblem() {
-  SteeringProblem p;
-  p.workspace_min = Point2(0.0, 0.0);
-  p.workspace_max = Point2(0.1, 0.1);
-  p.target.name = "target";
-  p.target.position = Point2(0.085, 0.05);
-  p.target.radius_m = 0.005;
-  p.params.grid_spacing_m = 1e-3;
-  p.params.orientations = 40;
-  p.params.radius_m = 0.05;
-  return p;
-}
 
 /// A wall at x = 40..50 mm over the full height with a gap at y = 47..53 mm: 4 mm wide after the
 /// 1 mm clearance, like the channel of the real scene.
