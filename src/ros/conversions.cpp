@@ -10,15 +10,6 @@
 namespace needle_guidance::ros_conversions {
 namespace {
 
-std_msgs::ColorRGBA rgba(float r, float g, float b, float a) {
-  std_msgs::ColorRGBA c;
-  c.r = r;
-  c.g = g;
-  c.b = b;
-  c.a = a;
-  return c;
-}
-
 /// A fixed colour per region index: background first (fat: pale yellow), then tissue colours.
 std_msgs::ColorRGBA regionColour(std::size_t index) {
   static const std::array<std::array<float, 3>, 6> kPalette{{{0.95F, 0.85F, 0.55F},
@@ -28,7 +19,7 @@ std_msgs::ColorRGBA regionColour(std::size_t index) {
                                                              {0.8F, 0.6F, 0.9F},
                                                              {0.9F, 0.65F, 0.35F}}};
   const auto& c = kPalette[index % kPalette.size()];
-  return rgba(c[0], c[1], c[2], 1.0F);  // opaque: no blending-order artefacts in rviz
+  return colour(c[0], c[1], c[2], 1.0F);  // opaque: no blending-order artefacts in rviz
 }
 
 visualization_msgs::Marker baseMarker(const std::string& frame_id, const std::string& ns, int id,
@@ -71,7 +62,7 @@ visualization_msgs::Marker filled(const geometry::Polygon& domain,
   const geometry::TriangleMesh mesh = geometry::meshDomain(domain, ns, regions, options);
   visualization_msgs::Marker m =
       baseMarker(frame_id, ns, id, visualization_msgs::Marker::TRIANGLE_LIST);
-  m.color = rgba(1.0F, 1.0F, 1.0F, 1.0F);  // rviz multiplies vertex colours by this
+  m.color = colour(1.0F, 1.0F, 1.0F, 1.0F);  // rviz multiplies vertex colours by this
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
     const auto& colour = colours[static_cast<std::size_t>(mesh.triangle_region[t]) % colours.size()];
     for (int node : mesh.triangles[t]) {
@@ -84,6 +75,15 @@ visualization_msgs::Marker filled(const geometry::Polygon& domain,
 }
 
 }  // namespace
+
+std_msgs::ColorRGBA colour(double r, double g, double b, double a) {
+  std_msgs::ColorRGBA c;
+  c.r = static_cast<float>(r);
+  c.g = static_cast<float>(g);
+  c.b = static_cast<float>(b);
+  c.a = static_cast<float>(a);
+  return c;
+}
 
 geometry_msgs::Point toMessage(const geometry::Point2& p_Scene) {
   geometry_msgs::Point p;
@@ -118,17 +118,17 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
                                                const std::string& frame_id) {
   visualization_msgs::MarkerArray array;
   const geometry::Polygon workspace = scene.workspacePolygon();
-  array.markers.push_back(outline(workspace, frame_id, "workspace", 0, 0.0006, rgba(0.2F, 0.2F, 0.2F, 1.0F)));
+  array.markers.push_back(outline(workspace, frame_id, "workspace", 0, 0.0006, colour(0.2F, 0.2F, 0.2F, 1.0F)));
 
   if (!scene.regions.empty() || !scene.background_material.empty()) {
     const std::vector<geometry::MeshRegion> regions = scene.meshRegions();
     std::vector<std_msgs::ColorRGBA> colours{scene.background_material.empty()
-                                                 ? rgba(0.0F, 0.0F, 0.0F, 0.0F)
+                                                 ? colour(0.0F, 0.0F, 0.0F, 0.0F)
                                                  : regionColour(0)};
     for (std::size_t i = 0; i < scene.regions.size(); ++i) {
-      colours.push_back(scene.regions[i].rigid ? rgba(0.9F, 0.9F, 0.85F, 1.0F) : regionColour(i + 1));
+      colours.push_back(scene.regions[i].rigid ? colour(0.9F, 0.9F, 0.85F, 1.0F) : regionColour(i + 1));
       array.markers.push_back(outline(scene.regions[i].polygon, frame_id, "region_outlines",
-                                      static_cast<int>(i), 0.0004, rgba(0.4F, 0.1F, 0.1F, 1.0F)));
+                                      static_cast<int>(i), 0.0004, colour(0.4F, 0.1F, 0.1F, 1.0F)));
     }
     try {
       array.markers.push_back(filled(workspace, regions, frame_id, "regions", 0, colours));
@@ -142,15 +142,15 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
     const int id = static_cast<int>(i);
     try {
       array.markers.push_back(filled(obstacle.polygon, {}, frame_id, "obstacles", id,
-                                     {rgba(0.35F, 0.35F, 0.4F, 1.0F)}));
+                                     {colour(0.35F, 0.35F, 0.4F, 1.0F)}));
     } catch (const std::exception& e) {
       ROS_WARN_STREAM("sceneToMarkers: obstacle '" << obstacle.name << "' outline only: " << e.what());
     }
     array.markers.push_back(outline(obstacle.polygon, frame_id, "obstacle_outlines", id, 0.0004,
-                                    rgba(0.1F, 0.1F, 0.1F, 1.0F)));
+                                    colour(0.1F, 0.1F, 0.1F, 1.0F)));
     if (obstacle.clearance_m > 0.0) {
       array.markers.push_back(outline(obstacle.polygon.offset(obstacle.clearance_m), frame_id,
-                                      "obstacle_clearance", id, 0.0002, rgba(0.9F, 0.5F, 0.1F, 1.0F)));
+                                      "obstacle_clearance", id, 0.0002, colour(0.9F, 0.5F, 0.1F, 1.0F)));
     }
   }
 
@@ -162,7 +162,7 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
     visualization_msgs::Marker m =
         baseMarker(frame_id, "fixed_boundary", static_cast<int>(i), visualization_msgs::Marker::LINE_LIST);
     m.scale.x = 0.0015;
-    m.color = rgba(0.15F, 0.15F, 0.15F, 1.0F);
+    m.color = colour(0.15F, 0.15F, 0.15F, 1.0F);
     m.points.push_back(toMessage(b.segment.a));
     m.points.push_back(toMessage(b.segment.b));
     array.markers.push_back(m);
@@ -176,14 +176,14 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
     sphere.pose.position = toMessage(target.position);
     const double diameter_m = std::max(2.0 * target.radius_m, 0.0015);
     sphere.scale.x = sphere.scale.y = sphere.scale.z = diameter_m;
-    sphere.color = rgba(0.1F, 0.7F, 0.2F, 1.0F);
+    sphere.color = colour(0.1F, 0.7F, 0.2F, 1.0F);
     array.markers.push_back(sphere);
     visualization_msgs::Marker label =
         baseMarker(frame_id, "target_labels", id, visualization_msgs::Marker::TEXT_VIEW_FACING);
     label.pose.position = toMessage(target.position);
     label.pose.position.y += 0.5 * diameter_m + 0.001;
     label.scale.z = 0.0015;
-    label.color = rgba(0.0F, 0.3F, 0.0F, 1.0F);
+    label.color = colour(0.0F, 0.3F, 0.0F, 1.0F);
     label.text = target.name;
     array.markers.push_back(label);
   }
@@ -210,23 +210,23 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
     }
   }
   visualization_msgs::Marker fill = baseMarker(frame_id, "tissue", 0, visualization_msgs::Marker::TRIANGLE_LIST);
-  fill.color = rgba(1.0F, 1.0F, 1.0F, 1.0F);
+  fill.color = colour(1.0F, 1.0F, 1.0F, 1.0F);
   visualization_msgs::Marker wire = baseMarker(frame_id, "tissue_wireframe", 0, visualization_msgs::Marker::LINE_LIST);
   wire.scale.x = 0.00008;
-  wire.color = rgba(0.3F, 0.3F, 0.3F, 0.6F);
+  wire.color = colour(0.3F, 0.3F, 0.3F, 0.6F);
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
-    std_msgs::ColorRGBA colour;
+    std_msgs::ColorRGBA tint;
     if (by_stress) {
       const float s = static_cast<float>(std::clamp(stress[static_cast<Eigen::Index>(t)] / max_stress, 0.0, 1.0));
-      colour = rgba(s, 0.2F * (1.0F - s), 1.0F - s, 1.0F);
+      tint = colour(s, 0.2F * (1.0F - s), 1.0F - s, 1.0F);
     } else {
-      colour = regionColour(static_cast<std::size_t>(mesh.triangle_region[t]));
+      tint = regionColour(static_cast<std::size_t>(mesh.triangle_region[t]));
     }
     const auto& tri = mesh.triangles[t];
     for (int k = 0; k < 3; ++k) {
       fill.points.push_back(toMessage(nodes[static_cast<std::size_t>(tri[static_cast<std::size_t>(k)])]));
       fill.points.back().z = -0.0003;  // above the scene fill, below needle and targets
-      fill.colors.push_back(colour);
+      fill.colors.push_back(tint);
       const int a = tri[static_cast<std::size_t>(k)];
       const int b = tri[static_cast<std::size_t>((k + 1) % 3)];
       if (a < b) {  // each interior edge once (its other triangle sees it reversed)
@@ -241,7 +241,7 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
 
   visualization_msgs::Marker shaft = baseMarker(frame_id, "shaft_nodes", 0, visualization_msgs::Marker::SPHERE_LIST);
   shaft.scale.x = shaft.scale.y = shaft.scale.z = 0.0006;
-  shaft.color = rgba(1.0F, 0.55F, 0.0F, 1.0F);
+  shaft.color = colour(1.0F, 0.55F, 0.0F, 1.0F);
   for (int node : sim.needle().shaftNodes()) {
     shaft.points.push_back(toMessage(nodes[static_cast<std::size_t>(node)]));
     shaft.points.back().z = 0.0006;
@@ -252,7 +252,7 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
   array.markers.push_back(shaft);
   visualization_msgs::Marker tip = baseMarker(frame_id, "tip_node", 0, visualization_msgs::Marker::SPHERE);
   tip.scale.x = tip.scale.y = tip.scale.z = 0.0009;
-  tip.color = rgba(0.9F, 0.0F, 0.0F, 1.0F);
+  tip.color = colour(0.9F, 0.0F, 0.0F, 1.0F);
   if (sim.needle().tipNode() >= 0) {
     tip.pose.position = toMessage(nodes[static_cast<std::size_t>(sim.needle().tipNode())]);
     tip.pose.position.z = 0.0007;
@@ -262,7 +262,7 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
   array.markers.push_back(tip);
   visualization_msgs::Marker seeds = baseMarker(frame_id, "seeds", 0, visualization_msgs::Marker::SPHERE_LIST);
   seeds.scale.x = seeds.scale.y = seeds.scale.z = 0.0012;
-  seeds.color = rgba(1.0F, 0.9F, 0.0F, 1.0F);
+  seeds.color = colour(1.0F, 0.9F, 0.0F, 1.0F);
   for (const auto& seed : sim.seeds()) {
     seeds.points.push_back(toMessage(sim.seedPosition(seed)));
     seeds.points.back().z = 0.0008;

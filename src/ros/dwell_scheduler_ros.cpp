@@ -18,6 +18,7 @@
 #include "needle_guidance/dose/prostate_case.h"
 #include "needle_guidance/ros/delivery_conversions.h"
 #include "needle_guidance/ros/params.h"
+#include "needle_guidance/ros/conversions.h"
 
 namespace needle_guidance {
 namespace {
@@ -72,14 +73,7 @@ void requireFinite(double value, const std::string& what) {
     throw std::runtime_error(what + " is not finite (" + fmt(value) + ")");
 }
 
-std_msgs::ColorRGBA colour(double r, double g, double b, double a = 1.0) {
-  std_msgs::ColorRGBA c;
-  c.r = static_cast<float>(r);
-  c.g = static_cast<float>(g);
-  c.b = static_cast<float>(b);
-  c.a = static_cast<float>(a);
-  return c;
-}
+using ros_conversions::colour;
 
 std_msgs::ColorRGBA structureColour(const std::string& name) {
   std::string n = name;

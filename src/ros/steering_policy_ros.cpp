@@ -16,6 +16,7 @@
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/value_iteration.h"
+#include "needle_guidance/ros/conversions.h"
 
 namespace needle_guidance {
 namespace {
@@ -86,14 +87,7 @@ SteeringControl toMessage(const NeedleTip& tip, const st::ControlLookup& lookup,
   return msg;
 }
 
-std_msgs::ColorRGBA colour(double r, double g, double b, double a = 1.0) {
-  std_msgs::ColorRGBA c;
-  c.r = static_cast<float>(r);
-  c.g = static_cast<float>(g);
-  c.b = static_cast<float>(b);
-  c.a = static_cast<float>(a);
-  return c;
-}
+using ros_conversions::colour;
 
 /// P_s in [0, 1] -> dark blue (0) ... yellow (1), linear in RGB.
 std_msgs::ColorRGBA probabilityColour(double p) {

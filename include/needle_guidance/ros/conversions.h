@@ -4,6 +4,7 @@
 #include <geometry_msgs/Point.h>
 #include <geometry_msgs/PoseStamped.h>
 #include <sensor_msgs/JointState.h>
+#include <std_msgs/ColorRGBA.h>
 #include <visualization_msgs/MarkerArray.h>
 
 #include "needle_guidance/geometry/polygon.h"
@@ -12,6 +13,9 @@
 #include "needle_guidance/tissue/tissue_simulation.h"
 
 namespace needle_guidance::ros_conversions {
+
+/// An rviz colour from components in [0, 1].
+std_msgs::ColorRGBA colour(double r, double g, double b, double a = 1.0);
 
 /// A point of frame scene (z = 0) [m].
 geometry_msgs::Point toMessage(const geometry::Point2& p_Scene);
