@@ -39,6 +39,8 @@
 #include <stdexcept>
 #include <utility>
 
+#include "needle_guidance/format.h"
+
 #ifndef NG_CONFIG_DIR
 #error "NG_CONFIG_DIR (the package's config/ directory) must be defined by the build"
 #endif
@@ -70,10 +72,7 @@ std::string label(const std::string& name) {
 }
 
 std::string fmt(double v) {
-  std::ostringstream os;
-  os.precision(10);
-  os << v;
-  return os.str();
+  return formatNumber(v, 10);
 }
 
 /// Throws unless v is non-empty, finite and strictly increasing.

@@ -8,6 +8,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "needle_guidance/format.h"
+
 namespace needle_guidance::robot {
 namespace {
 
@@ -15,9 +17,7 @@ constexpr std::array<const char*, kStageJointCount> kJointNames{"height", "inser
 constexpr std::array<const char*, kStageJointCount> kJointUnits{"m", "m", "rad"};
 
 std::string describe(double value, const char* unit) {
-  std::ostringstream out;
-  out << std::setprecision(6) << value << ' ' << unit;
-  return out.str();
+  return formatNumber(value) + ' ' + unit;
 }
 
 }  // namespace

@@ -7,6 +7,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "needle_guidance/format.h"
+
 namespace needle_guidance::robot {
 namespace {
 
@@ -19,9 +21,7 @@ constexpr double kPi = 3.14159265358979323846;
 constexpr double kHalfPi = 0.5 * kPi;
 
 std::string meters(double value) {
-  std::ostringstream out;
-  out << std::setprecision(6) << value << " m";
-  return out.str();
+  return formatNumber(value) + " m";
 }
 
 std::string point(const geometry::Point2& p) {

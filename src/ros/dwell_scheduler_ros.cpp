@@ -16,9 +16,10 @@
 #include "needle_guidance/dose/dwell_optimization.h"
 #include "needle_guidance/dose/isodose.h"
 #include "needle_guidance/dose/prostate_case.h"
+#include "needle_guidance/format.h"
+#include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/delivery_conversions.h"
 #include "needle_guidance/ros/params.h"
-#include "needle_guidance/ros/conversions.h"
 
 namespace needle_guidance {
 namespace {
@@ -60,17 +61,12 @@ std::string sanitised(const std::string& text) {
   return out.empty() ? "case" : out;
 }
 
-std::string fmt(double value) {
-  std::ostringstream out;
-  out << value;
-  return out.str();
-}
 
 /// Throws std::runtime_error naming `what` if `value` is NaN or infinite (nothing non-finite is
 /// ever published).
 void requireFinite(double value, const std::string& what) {
   if (!std::isfinite(value))
-    throw std::runtime_error(what + " is not finite (" + fmt(value) + ")");
+    throw std::runtime_error(what + " is not finite (" + formatNumber(value) + ")");
 }
 
 using ros_conversions::colour;
@@ -410,7 +406,7 @@ DwellSchedulerRos::PlanOutcome DwellSchedulerRos::makePlan(const std::string& ca
     double& t = stored.planned_times_s[j];
     if (!std::isfinite(t) || t < 0.0) {
       throw std::runtime_error(where + ": the optimiser gave dwell " + std::to_string(j) +
-                               " the time " + fmt(t) + " s");
+                               " the time " + formatNumber(t) + " s");
     }
     if (t <= settings_.schedule.min_dwell_s)
       t = 0.0;  // makeSchedule drops it: plan what is delivered
@@ -560,7 +556,7 @@ void DwellSchedulerRos::evaluate(const EvaluateDelivery::Request& req,
                               std::to_string(req.dwell_index[k]) + ")";
     const double t = req.delivered_s[k];
     if (!std::isfinite(t) || t < 0.0) {
-      throw std::invalid_argument(entry + ": delivered time " + fmt(t) +
+      throw std::invalid_argument(entry + ": delivered time " + formatNumber(t) +
                                   " s must be finite and >= 0");
     }
     const int ch_index = schedule.channelIndex(req.channel[k]);

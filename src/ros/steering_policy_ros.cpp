@@ -13,10 +13,11 @@
 #include <utility>
 
 #include "needle_guidance/SteeringControl.h"
+#include "needle_guidance/format.h"
+#include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/value_iteration.h"
-#include "needle_guidance/ros/conversions.h"
 
 namespace needle_guidance {
 namespace {
@@ -37,11 +38,6 @@ double secondsSince(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
-std::string fmt(double value) {
-  std::ostringstream s;
-  s << value;
-  return s.str();
-}
 
 // ---- conversions (message <-> core), kept together (STYLE.md rule 3) -----------------------
 
@@ -252,7 +248,7 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
       out.sweeps = table_->sweeps();
       out.seconds = secondsSince(t0);
       out.message =
-          "table in memory (" + table_source_ + ", epsilon " + fmt(table_->epsilon()) + ")";
+          "table in memory (" + table_source_ + ", epsilon " + formatNumber(table_->epsilon()) + ")";
       ROS_INFO_STREAM_NAMED(kName, "steering_policy: cached table, " << model_->numStates()
                                                                      << " states, " << out.sweeps
                                                                      << " sweeps");
@@ -308,7 +304,7 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
     out.success = true;
     out.sweeps = table_->sweeps();
     out.seconds = secondsSince(t0);
-    out.message = out.source + " (epsilon " + fmt(table_->epsilon()) + ")" + note;
+    out.message = out.source + " (epsilon " + formatNumber(table_->epsilon()) + ")" + note;
     ROS_INFO_STREAM_NAMED(kName, "steering_policy: table "
                                      << out.source << ": " << model_->numStates() << " states, "
                                      << out.sweeps << " sweeps, " << out.seconds << " s" << note);

@@ -6,14 +6,13 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "needle_guidance/format.h"
+
 namespace needle_guidance::steering {
 namespace {
 
 std::string num(double v) {
-  std::ostringstream s;
-  s.precision(10);
-  s << v;
-  return s.str();
+  return formatNumber(v, 10);
 }
 
 double cross2(const Point2& a, const Point2& b) {

@@ -25,6 +25,8 @@
 #include <ompl/util/Console.h>
 #include <ompl/util/RandomNumbers.h>
 
+#include "needle_guidance/format.h"
+
 namespace needle_guidance::steering {
 namespace {
 
@@ -43,12 +45,6 @@ constexpr double kBoundSlack = 1e-9;
 
 using Clock = std::chrono::steady_clock;
 
-std::string num(double v) {
-  std::ostringstream s;
-  s.precision(6);
-  s << v;
-  return s.str();
-}
 
 /// theta wrapped into (-pi, pi]; the identity (bit for bit) on values already in range, so a path
 /// that never turns past 180 degrees has exactly the poses the Monte Carlo simulator computes.
@@ -233,7 +229,7 @@ void checkOptions(const ShortestPathOptions& o) {
   const std::string where = "planShortestPath: ";
   if (!(o.time_limit_s > 0.0) || !std::isfinite(o.time_limit_s)) {
     throw std::invalid_argument(where + "time_limit_s must be finite and > 0, got " +
-                                num(o.time_limit_s));
+                                formatNumber(o.time_limit_s));
   }
   if (o.seed == 0) {
     throw std::invalid_argument(where + "seed must be > 0 (OMPL cannot use 0)");
@@ -244,19 +240,19 @@ void checkOptions(const ShortestPathOptions& o) {
   }
   if (!(o.selection_radius_m >= 0.0) || !std::isfinite(o.selection_radius_m)) {
     throw std::invalid_argument(where + "selection_radius_m must be finite and >= 0, got " +
-                                num(o.selection_radius_m));
+                                formatNumber(o.selection_radius_m));
   }
   if (!(o.pruning_radius_m >= 0.0) || !std::isfinite(o.pruning_radius_m)) {
     throw std::invalid_argument(where + "pruning_radius_m must be finite and >= 0, got " +
-                                num(o.pruning_radius_m));
+                                formatNumber(o.pruning_radius_m));
   }
   if (!(o.goal_bias >= 0.0 && o.goal_bias <= 1.0)) {
-    throw std::invalid_argument(where + "goal_bias must be in [0, 1], got " + num(o.goal_bias));
+    throw std::invalid_argument(where + "goal_bias must be in [0, 1], got " + formatNumber(o.goal_bias));
   }
 }
 
 std::string describe(const Point2& p) {
-  return "(" + num(p.x()) + ", " + num(p.y()) + ") m";
+  return "(" + formatNumber(p.x()) + ", " + formatNumber(p.y()) + ") m";
 }
 
 }  // namespace
@@ -296,8 +292,8 @@ ShortestPath planShortestPath(const ContinuousWorkspace& world, const TipPose& s
     return out;
   };
   if (!start.p_SceneTip.allFinite() || !std::isfinite(start.theta_rad)) {
-    return refuse("start pose is not finite (x, y, theta) = (" + num(start.p_SceneTip.x()) + ", " +
-                  num(start.p_SceneTip.y()) + ", " + num(start.theta_rad) + ")");
+    return refuse("start pose is not finite (x, y, theta) = (" + formatNumber(start.p_SceneTip.x()) + ", " +
+                  formatNumber(start.p_SceneTip.y()) + ", " + formatNumber(start.theta_rad) + ")");
   }
   if (start.bevel != Bevel::kLeft && start.bevel != Bevel::kRight) {
     return refuse("start bevel is neither left nor right");
@@ -394,11 +390,11 @@ ShortestPath planShortestPath(const ContinuousWorkspace& world, const TipPose& s
   if (!pdef->hasExactSolution()) {
     const double closest_m = pdef->getSolutionDifference();
     std::string why = "no path to target '" + problem.target.name + "' found in " +
-                      std::to_string(iterations) + " SST iterations over " + num(secondsSince(t0)) +
-                      " s (time_limit_s = " + num(options.time_limit_s) +
+                      std::to_string(iterations) + " SST iterations over " + formatNumber(secondsSince(t0)) +
+                      " s (time_limit_s = " + formatNumber(options.time_limit_s) +
                       ", max_iterations = " + std::to_string(options.max_iterations) + ")";
     if (closest_m >= 0.0 && std::isfinite(closest_m)) {
-      why += "; the closest tip came within " + num(closest_m * 1e3) + " mm of the target disc";
+      why += "; the closest tip came within " + formatNumber(closest_m * 1e3) + " mm of the target disc";
     } else {
       why += "; no step from the start is free";
     }
@@ -482,7 +478,7 @@ ShortestPathTable::ShortestPathTable(const SteeringModel& model)
     throw std::invalid_argument(
         "ShortestPathTable: the model must be deterministic (sigma_insert_rad = sigma_flip_rad = "
         "0), got " +
-        num(p.sigma_insert_rad) + " and " + num(p.sigma_flip_rad) +
+        formatNumber(p.sigma_insert_rad) + " and " + formatNumber(p.sigma_flip_rad) +
         " rad; use ShortestPathTable::fromProblem()");
   }
   const auto t0 = Clock::now();

@@ -10,6 +10,8 @@
 #include <thread>
 #include <utility>
 
+#include "needle_guidance/format.h"
+
 namespace needle_guidance::steering {
 namespace {
 
@@ -32,10 +34,7 @@ double normalCdf(double z) {
 }
 
 std::string num(double v) {
-  std::ostringstream s;
-  s.precision(10);
-  s << v;
-  return s.str();
+  return formatNumber(v, 10);
 }
 
 /// Exact-enough double segment test for collision checks of arc chords (the chords are an

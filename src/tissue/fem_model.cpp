@@ -14,6 +14,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "needle_guidance/format.h"
+
 namespace needle_guidance::tissue {
 namespace {
 
@@ -22,10 +24,7 @@ using Matrix36 = Eigen::Matrix<double, 3, 6>;
 using Vector6 = Eigen::Matrix<double, 6, 1>;
 
 std::string fmt(double value) {
-  std::ostringstream out;
-  out.precision(9);
-  out << value;
-  return out.str();
+  return formatNumber(value, 9);
 }
 
 /// Geometry of a constant-strain triangle: signed area and the strain-displacement matrix B

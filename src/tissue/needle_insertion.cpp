@@ -6,6 +6,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "needle_guidance/format.h"
+
 namespace needle_guidance::tissue {
 namespace {
 
@@ -17,10 +19,7 @@ double cross2(const Point2& a, const Point2& b) { return a.x() * b.y() - a.y() *
 StepStatus refused(const std::string& message) { return StepStatus{false, message}; }
 
 std::string str(double v) {
-  std::ostringstream out;
-  out.precision(6);
-  out << v;
-  return out.str();
+  return formatNumber(v);
 }
 
 }  // namespace
