@@ -64,4 +64,8 @@ ng_source() {
   source "$NG_BUILD/devel/setup.bash"
   export ROS_HOME="${ROS_HOME:-$NG_BUILD/ros_home}"
   export ROS_LOG_DIR="${ROS_LOG_DIR:-$NG_BUILD/ros_log}"
+  # Loopback unless the caller says otherwise: ROS 1 has no authentication, and any host that
+  # reaches a node's port can command the robot or the afterloader (README, "Across hosts").
+  export ROS_IP="${ROS_IP:-127.0.0.1}"
+  export ROS_HOSTNAME="${ROS_HOSTNAME:-localhost}"
 }

@@ -11,7 +11,10 @@
 #include "needle_guidance/DeliverAction.h"
 #include "needle_guidance/EvaluateDelivery.h"
 #include "needle_guidance/PlanDwells.h"
+#include "needle_guidance/delivery/journal.h"
 #include "needle_guidance/report/table.h"
+#include "needle_guidance/ros/delivery_conversions.h"
+#include "needle_guidance/ros/node_supervisor.h"
 #include "needle_guidance/ros/params.h"
 
 namespace needle_guidance {
@@ -35,6 +38,62 @@ HdrProcedureRos::HdrProcedureRos(ros::NodeHandle& nh, ros::NodeHandle& private_n
   pause_wall_s_ = ros_params::number(private_nh, "pause_s", 1.0, 0.0, 60.0, "s (wall)");
   timeout_s_ = ros_params::number(private_nh, "timeout_s", 600.0, 1.0, 86400.0, "s (wall)");
   tolerance_s_ = ros_params::number(private_nh, "dwell_tolerance_s", 0.1, 1e-6, 1.0, "s");
+  journal_dir_ = ros_params::rosHomePath(ros_params::text(private_nh, "journal_dir", "afterloader", true));
+  respawn_ = ros_params::flag(private_nh, "respawn", false);
+}
+
+bool HdrProcedureRos::reportNodeDeath(const DwellPlan& p, const NodeSupervisor::Death& death, double detect_s,
+                                      const ros::WallTime& t0) {
+  // What was given, from the afterloader's own durable journal (the device node is gone or its
+  // result is not trusted): the delivered time per dwell and the trips, replayed independently.
+  const delivery::Schedule schedule = ros_conversions::fromMessage(p.schedule);
+  const std::string path = journal_dir_ + "/" + p.plan_id + ".journal";
+  report::Table dwells({"channel", "dwell_index", "planned_s", "delivered_s", "uncertainty_s"});
+  double planned = 0.0, delivered = 0.0;
+  std::string journal_note;
+  try {
+    const delivery::Journal journal(path);
+    const delivery::Ledger ledger = delivery::replay(journal.records(), &schedule, 0.5);
+    for (const auto& c : schedule.channels) {
+      for (std::size_t k = 0; k < c.time_s.size(); ++k) {
+        const auto key = std::make_pair(c.channel, c.dwell_index[k]);
+        const auto d = ledger.delivered_s.find(key);
+        const auto u = ledger.uncertainty_s.find(key);
+        const double given = d == ledger.delivered_s.end() ? 0.0 : d->second;
+        dwells.addRow({double(c.channel), double(c.dwell_index[k]), c.time_s[k], given,
+                       u == ledger.uncertainty_s.end() ? 0.0 : u->second});
+        planned += c.time_s[k];
+        delivered += given;
+      }
+    }
+    journal_note = std::to_string(journal.records().size()) + " journal records in " + path;
+  } catch (const std::exception& e) {
+    journal_note = std::string("journal not readable: ") + e.what();
+    planned = schedule.totalDwellTime();
+  }
+  const std::string cause = death.toString() + ", detected " + report::jsonNumber(detect_s, 3) + " s after it";
+  std::ostringstream json;
+  json << "{\n  \"procedure\": \"hdr_delivery\",\n  \"scene\": \"" << p.case_name
+       << "\",\n  \"success\": false,\n  \"status\": \"node_died\",\n  \"dead_node\": \"" << death.node
+       << "\",\n  \"cause\": \"" << cause << "\",\n  \"plan_id\": \"" << p.plan_id
+       << "\",\n  \"planned_dwell_s\": " << jsonNumber(planned) << ",\n  \"delivered_dwell_s\": "
+       << jsonNumber(delivered) << ",\n  \"delivered_from\": \"journal\",\n  \"detect_s\": "
+       << jsonNumber(detect_s) << ",\n  \"wall_s\": " << jsonNumber((ros::WallTime::now() - t0).toSec())
+       << "\n}\n";
+  std::ostringstream md;
+  md << "# HDR delivery — case `" << p.case_name << "`, plan `" << p.plan_id << "`: STOPPED\n\n"
+     << cause << ". The delivery was stopped; what was delivered comes from the afterloader's journal ("
+     << journal_note << "): " << delivered << " s of " << planned << " s planned.\n\n"
+     << "On a restart the afterloader recovers from this journal with the source in its safe and resumes the "
+        "delivery when the same schedule is sent again (respawn:=true does this automatically).\n\n"
+     << dwells.toMarkdown();
+  dwells.writeCsv(report_dir_ + "/delivery.csv");
+  report::writeTextFile(report_dir_ + "/summary.md", md.str());
+  report::writeTextFile(report_dir_ + "/summary.json", json.str());
+  std::cout << "\n== HDR delivery of case '" << p.case_name << "' ==\nFAIL: " << cause << "; delivered " << delivered
+            << " s of " << planned << " s planned (from the journal); report in " << report_dir_ << "\n"
+            << std::flush;
+  return false;
 }
 
 bool HdrProcedureRos::run() {
@@ -58,13 +117,39 @@ bool HdrProcedureRos::run() {
 
   actionlib::SimpleActionClient<DeliverAction> deliver(afterloader_ + "/deliver", true);
   if (!deliver.waitForServer(ros::Duration(60.0))) throw std::runtime_error(afterloader_ + "/deliver did not come up");
+  // Watches the scheduler and the afterloader from here on (a death is seen within about 1 s).
+  NodeSupervisor supervisor(nh_, {scheduler_, afterloader_});
   DeliverGoal goal;
   goal.schedule = p.schedule;
   double fraction = 0.0;
-  deliver.sendGoal(goal, {}, {}, [&](const DeliverFeedbackConstPtr& f) { fraction = f->delivered_fraction; });
+  const auto send = [&] {
+    deliver.sendGoal(goal, {}, {}, [&](const DeliverFeedbackConstPtr& f) { fraction = f->delivered_fraction; });
+  };
+  send();
   bool paused_once = pause_at_fraction_ < 0.0;
+  int restarts = 0;
   const ros::WallTime deadline = t0 + ros::WallDuration(timeout_s_);
   while (!deliver.getState().isDone() && ros::ok() && ros::WallTime::now() < deadline) {
+    if (supervisor.death()) {
+      const NodeSupervisor::Death death = *supervisor.death();
+      const double detect_s = (ros::WallTime::now() - death.when).toSec();
+      const bool afterloader_died = death.node == nh_.resolveName(afterloader_, false);
+      if (afterloader_died && respawn_ && supervisor.waitForAll(10.0).empty() &&
+          deliver.waitForServer(ros::Duration(10.0))) {
+        // The respawned afterloader recovered from its journal: the same schedule resumes it.
+        ++restarts;
+        ROS_WARN_STREAM("hdr_procedure: " << death.toString() << "; it restarted, resuming the delivery");
+        supervisor.clear();
+        send();
+        continue;
+      }
+      ROS_ERROR_STREAM("hdr_procedure: " << death.toString() << "; stopping the delivery");
+      if (!afterloader_died) {
+        deliver.cancelGoal();  // the source retracts to its safe
+        deliver.waitForResult(ros::Duration(10.0));
+      }
+      return reportNodeDeath(p, death, detect_s, t0);
+    }
     if (!paused_once && fraction >= pause_at_fraction_) {
       paused_once = true;
       std_srvs::Trigger t;
@@ -80,6 +165,7 @@ bool HdrProcedureRos::run() {
     deliver.cancelGoal();
     deliver.waitForResult(ros::Duration(30.0));
   }
+  if (restarts > 0) ROS_INFO_STREAM("hdr_procedure: the afterloader restarted " << restarts << " time(s)");
   const DeliverResult r = deliver.getResult() ? *deliver.getResult() : DeliverResult{};
   const double wall_s = (ros::WallTime::now() - t0).toSec();
 

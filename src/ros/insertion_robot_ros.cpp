@@ -218,18 +218,19 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   }
 
   auto make_linear = [&](const std::string& name, Owner owner) {
-    auto server = std::make_unique<LinearMoveServer>(robot_nh, name, false);
-    server->registerGoalCallback([this, owner] { onLinearGoal(owner); });
-    server->registerPreemptCallback([this, owner] { onPreempt(owner); });
+    auto server = std::make_unique<LinearMoveServer>(
+        robot_nh, name, [this] { return runningMotion(); },
+        [this, owner](const LinearMoveGoal& goal) { onLinearGoal(owner, goal); },
+        [this, owner] { onPreempt(owner); });
     server->start();
     return server;
   };
   height_server_ = make_linear("move_to_height", Owner::kHeight);
   insert_server_ = make_linear("insert", Owner::kInsert);
   retract_server_ = make_linear("retract", Owner::kRetract);
-  flip_server_ = std::make_unique<FlipBevelServer>(robot_nh, "flip_bevel", false);
-  flip_server_->registerGoalCallback([this] { onFlipGoal(); });
-  flip_server_->registerPreemptCallback([this] { onPreempt(Owner::kFlip); });
+  flip_server_ = std::make_unique<FlipBevelServer>(
+      robot_nh, "flip_bevel", [this] { return runningMotion(); },
+      [this](const FlipBevelGoal& goal) { onFlipGoal(goal); }, [this] { onPreempt(Owner::kFlip); });
   flip_server_->start();
 
   last_step_ = ros::Time::now();
@@ -253,13 +254,24 @@ InsertionRobotRos::LinearMoveServer& InsertionRobotRos::linearServer(Owner owner
   }
 }
 
-void InsertionRobotRos::onLinearGoal(Owner owner) {
-  LinearMoveServer& server = linearServer(owner);
-  if (owner_ == owner) {
-    stage_->cancel();  // the new goal replaces this server's running one
-    owner_ = Owner::kNone;
+std::string InsertionRobotRos::runningMotion() const {
+  switch (owner_) {
+    case Owner::kNone:
+      return "";
+    case Owner::kHeight:
+      return "a move_to_height motion is running";
+    case Owner::kInsert:
+      return "an insert motion is running";
+    case Owner::kRetract:
+      return "a retract motion is running";
+    default:
+      return "a flip_bevel rotation is running";
   }
-  const auto goal = server.acceptNewGoal();
+}
+
+void InsertionRobotRos::onLinearGoal(Owner owner, const LinearMoveGoal& goal_msg) {
+  LinearMoveServer& server = linearServer(owner);
+  const LinearMoveGoal* goal = &goal_msg;
   const StageJoint joint = owner == Owner::kHeight ? StageJoint::kHeight : StageJoint::kDepth;
   const double current = stage_->state().position[static_cast<std::size_t>(joint)];
   robot::CommandStatus status = robot::CommandStatus::accepted();
@@ -307,12 +319,8 @@ void InsertionRobotRos::onLinearGoal(Owner owner) {
   }
 }
 
-void InsertionRobotRos::onFlipGoal() {
-  if (owner_ == Owner::kFlip) {
-    stage_->cancel();
-    owner_ = Owner::kNone;
-  }
-  const auto goal = flip_server_->acceptNewGoal();
+void InsertionRobotRos::onFlipGoal(const FlipBevelGoal& goal_msg) {
+  const FlipBevelGoal* goal = &goal_msg;
   const robot::CommandStatus status = stage_->flipBevel(goal->velocity_rad_s);
   if (!status) {
     FlipBevelResult result;

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <functional>
 #include <cmath>
 #include <condition_variable>
 #include <filesystem>
@@ -21,6 +22,7 @@
 #include "needle_guidance/SteeringControl.h"
 #include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
+#include "needle_guidance/ros/node_supervisor.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/continuous_workspace.h"
@@ -57,15 +59,25 @@ public:
     }
     changed_.notify_all();
   }
-  /// Waits (wall time) for a message with header.stamp >= stamp; false on timeout.
+  /// Waits (wall time) for a message with header.stamp >= stamp; false on timeout, or at once
+  /// (within 0.1 s) when the abort check says a node it depends on died.
   bool waitFor(const ros::Time& stamp, double timeout_s, Msg& out) {
     std::unique_lock<std::mutex> lock(mutex_);
-    const bool ok = changed_.wait_for(lock, std::chrono::duration<double>(timeout_s),
-                                      [&] { return has_ && msg_.header.stamp >= stamp; });
+    const auto deadline =
+        std::chrono::steady_clock::now() + std::chrono::duration<double>(timeout_s);
+    const auto ready = [&] { return has_ && msg_.header.stamp >= stamp; };
+    bool ok = ready();
+    while (!ok && std::chrono::steady_clock::now() < deadline && !(abort_ && abort_())) {
+      ok = changed_.wait_for(lock, std::chrono::milliseconds(100), ready);
+    }
     if (ok) {
       out = msg_;
     }
     return ok;
+  }
+  void setAbort(std::function<bool()> abort) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    abort_ = std::move(abort);
   }
   void startRecording() {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -85,6 +97,7 @@ private:
   bool has_ = false;
   bool recording_ = false;
   std::vector<Msg> record_;
+  std::function<bool()> abort_;
 };
 
 /// One decision point of a trial (figure 5.8: small dots insert, large dots flip).
@@ -149,6 +162,13 @@ SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   max_unconfident_ = static_cast<int>(
       ros_params::integer(private_nh, "max_unconfident_controls", 10, 0, 1000, "controls"));
   feedback_ = ros_params::text(private_nh, "feedback", "ground_truth");
+  // The nodes the run depends on (the launch file adds imager and tip_tracker with images).
+  const std::string watch = ros_params::text(private_nh, "watch_nodes", robot_ns_ + "," + policy_ns_);
+  for (std::size_t a = 0; a < watch.size();) {
+    const std::size_t b = std::min(watch.find(',', a), watch.size());
+    if (b > a) watch_nodes_.push_back(watch.substr(a, b - a));
+    a = b + 1;
+  }
   // Fail now, not after the robot has moved, if the scene cannot be steered.
   steering::problemFromScene(scene::loadSceneSpec(scene_spec_), target_);
 }
@@ -193,8 +213,14 @@ bool SteerableProcedureRos::run() {
                                                         << ") did not come up in 60 s");
     return false;
   }
+  // From here on every node the run depends on is watched; a death ends the run (no more
+  // trials waiting out their timeouts), and the report names the node.
+  NodeSupervisor supervisor(nh_, watch_nodes_);
+  const auto dead = [&] { return supervisor.death().has_value(); };
   Latest<NeedleTip> tips;
   Latest<SteeringControl> controls;
+  tips.setAbort(dead);
+  controls.setAbort(dead);
   ros::Subscriber tip_sub = nh_.subscribe<NeedleTip>(
       robot_ns_ + "/measured_tip", 100, [&](const NeedleTipConstPtr& m) { tips.set(*m); });
   ros::Subscriber control_sub = nh_.subscribe<SteeringControl>(
@@ -216,7 +242,16 @@ bool SteerableProcedureRos::run() {
     LinearMoveGoal goal;
     goal.target_m = target_m;
     goal.velocity_m_s = velocity;
-    const auto state = client.sendGoalAndWait(goal, ros::Duration(timeout_s_), ros::Duration(1.0));
+    client.sendGoal(goal);
+    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(timeout_s_);
+    while (!client.waitForResult(ros::Duration(0.1))) {
+      if (dead() || ros::WallTime::now() > end || !ros::ok()) {
+        client.cancelGoal();
+        message = dead() ? supervisor.death()->toString() : "no result within the timeout";
+        return false;
+      }
+    }
+    const auto state = client.getState();
     message = client.getResult() ? client.getResult()->message : state.toString();
     return state == actionlib::SimpleClientGoalState::SUCCEEDED;
   };
@@ -289,6 +324,16 @@ bool SteerableProcedureRos::run() {
             "no control from " + policy_ns_ + " within " + std::to_string(timeout_s_) + " s";
         break;
       }
+      if (control.status != "ok" && control.status != "in_target" &&
+          control.status != "in_obstacle" && control.status != "outside_grid") {
+        // No control to act on (invalid_tip: the pose was not finite; or a status this
+        // procedure does not know): stop here. Off the grid the world referees the next step.
+        rec.outcome = "error";
+        rec.message = policy_ns_ + " answered status '" + control.status + "' for the tip (" +
+                      std::to_string(control.tip.x) + ", " + std::to_string(control.tip.y) +
+                      ") m; no control";
+        break;
+      }
       rec.unconfident_decisions += control.tip_confident ? 0 : 1;
       rec.decisions.push_back({tip, control.control, control.probability_of_success, control.tip,
                                control.tip_source, control.tip_confident != 0, true});
@@ -328,23 +373,42 @@ bool SteerableProcedureRos::run() {
     }
     rec.samples = tips.stopRecording();
     rec.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    if (dead()) {
+      rec.outcome = "error";  // whatever the trial saw last, it ended because a node died
+      rec.message = supervisor.death()->toString();
+    }
     all_ran = all_ran && rec.outcome != "error";
     ROS_INFO_STREAM("steerable_procedure: trial "
                     << trial + 1 << "/" << trials_ << ": " << rec.outcome << " after " << rec.steps
                     << " steps, " << rec.flips << " flips"
                     << (rec.message.empty() ? "" : " (" + rec.message + ")"));
     records.push_back(std::move(rec));
+    if (dead()) {
+      break;
+    }
+  }
+  std::string dead_node, cause;
+  if (dead()) {
+    const NodeSupervisor::Death death = *supervisor.death();
+    dead_node = death.node;
+    cause = death.toString() + " after " + std::to_string(records.size()) + " of " +
+            std::to_string(trials_) + " trials; the run was stopped";
+    ROS_ERROR_STREAM("steerable_procedure: " << cause);
   }
   {
+    // Leave the needle out of the tissue: retract if the robot lives, else nothing can move it.
+    tips.setAbort(nullptr);
     NeedleTip tip;
     std::string message;
-    if (tipAfter(ros::Time(0), tip) && tip.inserted_length_m > 0.0) {
+    const bool robot_alive = NodeSupervisor::ping(nh_.resolveName(robot_ns_, false), 0.5).empty();
+    if (robot_alive && tips.waitFor(ros::Time(0), 1.0, tip) && tip.inserted_length_m > 0.0) {
+      supervisor.clear();
       moveTo(retract, 0.0, retract_velocity_m_s_, message);
     }
   }
 
   // ---- report ----
-  std::int64_t successes = 0;
+  std::int64_t successes = 0, errored = 0;
   double sum_steps = 0.0, sum_flips = 0.0;
   report::Table trials_table({"trial", "outcome", "steps", "flips", "seconds", "message"}, 6);
   report::Table paths({"trial", "sample", "x_mm", "y_mm", "theta_deg", "bevel"}, 6);
@@ -357,6 +421,7 @@ bool SteerableProcedureRos::run() {
   for (std::size_t i = 0; i < records.size(); ++i) {
     const TrialRecord& r = records[i];
     successes += r.outcome == "reached_target" ? 1 : 0;
+    errored += r.outcome == "error" ? 1 : 0;
     sum_steps += r.steps;
     sum_flips += r.flips;
     trials_table.addRow(
@@ -388,7 +453,9 @@ bool SteerableProcedureRos::run() {
                         tip_error_mm, heading_error_deg});
     }
   }
-  const std::int64_t n = static_cast<std::int64_t>(records.size());
+  // The success rate is over trials that ran to an outcome; errored trials (a node died, no
+  // control) are counted apart, not as misses.
+  const std::int64_t n = static_cast<std::int64_t>(records.size()) - errored;
   const steering::Interval ci = steering::wilsonInterval(successes, n);
   const double rate = n > 0 ? double(successes) / double(n) : 0.0;
 
@@ -426,12 +493,15 @@ bool SteerableProcedureRos::run() {
   // image feedback a lower rate is the measured cost of tracking, reported
   // (predicted_within_ci), not a failure of the procedure.
   const bool ground_truth = feedback_ == "ground_truth";
-  const bool success = all_ran && n == trials_ && (!ground_truth || ci.high >= predicted);
+  const bool success =
+      all_ran && dead_node.empty() && n == trials_ && (!ground_truth || ci.high >= predicted);
 
   std::ostringstream json;
   json << "{\n  \"procedure\": \"steerable_needle\",\n  \"scene\": \"" << scene.name
        << "\",\n  \"success\": " << (success ? "true" : "false") << ",\n  \"trials\": " << n
-       << ",\n  \"successes\": " << successes
+       << ",\n  \"successes\": " << successes << ",\n  \"errored_trials\": " << errored
+       << ",\n  \"trials_requested\": " << trials_ << ",\n  \"dead_node\": \"" << dead_node
+       << "\",\n  \"cause\": \"" << cause << "\""
        << ",\n  \"success_rate\": " << report::jsonNumber(rate) << ",\n  \"success_rate_ci\": ["
        << report::jsonNumber(ci.low) << ", " << report::jsonNumber(ci.high)
        << "],\n  \"predicted_ps\": " << report::jsonNumber(predicted)
@@ -458,6 +528,8 @@ bool SteerableProcedureRos::run() {
      << " mm, theta = " << start.theta_rad * kDegPerRad << " deg, bevel " << best.response.bevel
      << " |\n"
      << "| predicted P_s (MDP) | " << predicted << " |\n"
+     << (cause.empty() ? "" : "| STOPPED | " + cause + " |\n")
+     << "| errored trials (not counted as misses) | " << errored << " |\n"
      << "| success rate (ROS closed loop) | " << successes << " / " << n << " = " << rate
      << ", 95 % CI [" << ci.low << ", " << ci.high << "] |\n"
      << "| feedback | " << feedback_ << "; tip error at decisions median " << median(tip_errors_mm)
@@ -500,6 +572,8 @@ bool SteerableProcedureRos::run() {
             << "start y = " << start.p_SceneTip.y() * kMmPerM
             << " mm, theta = " << start.theta_rad * kDegPerRad << " deg, bevel "
             << best.response.bevel << "; " << wall_s << " s; report in " << report_dir_ << "\n"
+            << (errored > 0 ? std::to_string(errored) + " errored trial(s), not counted\n" : "")
+            << (cause.empty() ? "" : "FAIL: " + cause + "\n")
             << std::flush;
   return success;
 }

@@ -351,12 +351,22 @@ void SteeringPolicyRos::onTip(const NeedleTipConstPtr& msg) {
         "steering_policy: tip bevel '" << msg->bevel << "' is not left or right; tip ignored");
     return;
   }
+  if (!std::isfinite(msg->pose.x) || !std::isfinite(msg->pose.y) ||
+      !std::isfinite(msg->pose.theta)) {
+    // Refused, but answered, so that a waiting procedure learns it at once: no control.
+    ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
+                                    "steering_policy: tip pose is not finite; no control given");
+    SteeringControl refusal = toMessage(*msg, st::ControlLookup{}, model_->arcLength_m());
+    refusal.status = "invalid_tip";
+    refusal.control = "";
+    control_pub_.publish(refusal);
+    return;
+  }
   try {
     st::TipPose pose;
     pose.p_SceneTip = geometry::Point2(msg->pose.x, msg->pose.y);
     pose.theta_rad = msg->pose.theta;
     pose.bevel = *bevel;
-    // A non-finite pose comes back as outside_grid from the look-up.
     control_pub_.publish(toMessage(*msg, table_->lookup(pose), model_->arcLength_m()));
   } catch (const std::exception& e) {
     ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,

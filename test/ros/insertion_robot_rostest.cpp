@@ -212,6 +212,42 @@ TEST_F(InsertionRobotTest, EstopStopsMotionAndRefusesCommandsUntilReset) {
   EXPECT_EQ(move(retract_, -0.005, 0.05), State::SUCCEEDED);
 }
 
+TEST_F(InsertionRobotTest, SecondGoalWhileMovingIsRefusedAndCancelStops) {
+  // Another client's goal while an insertion runs is rejected; the running one goes on to its
+  // target. Only an explicit cancel of the running goal stops it.
+  LinearMoveClient intruder("insertion_robot/insert", true);
+  LinearMoveClient intruder_height("insertion_robot/move_to_height", true);
+  ASSERT_TRUE(intruder.waitForServer(kTimeout));
+  ASSERT_TRUE(intruder_height.waitForServer(kTimeout));
+  needle_guidance::LinearMoveGoal goal;
+  goal.target_m = 0.03;
+  goal.velocity_m_s = 0.01;
+  insert_.sendGoal(goal);
+  ASSERT_TRUE(waitFor([this] { return latest()->depth_m > 0.003; }));
+  needle_guidance::LinearMoveGoal stray;
+  stray.target_m = 0.06;
+  stray.velocity_m_s = 0.02;
+  EXPECT_EQ(intruder.sendGoalAndWait(stray, kTimeout), State::REJECTED);
+  ASSERT_TRUE(intruder.getResult());
+  EXPECT_NE(intruder.getResult()->message.find("an insert motion is running"), std::string::npos)
+      << intruder.getResult()->message;
+  stray.target_m = 0.01;
+  EXPECT_EQ(intruder_height.sendGoalAndWait(stray, kTimeout), State::REJECTED);
+  ASSERT_TRUE(insert_.waitForResult(kTimeout));
+  EXPECT_EQ(insert_.getState(), State::SUCCEEDED);
+  EXPECT_NEAR(settledState().depth_m, 0.03, 1e-4) << "the running goal reached its own target [m]";
+
+  // An explicit cancel stops the motion short of its target.
+  goal.target_m = 0.05;
+  insert_.sendGoal(goal);
+  ASSERT_TRUE(waitFor([this] { return latest()->depth_m > 0.033; }));
+  insert_.cancelGoal();
+  ASSERT_TRUE(insert_.waitForResult(kTimeout));
+  EXPECT_EQ(insert_.getState(), State::PREEMPTED);
+  EXPECT_LT(settledState().depth_m, 0.05 - 0.005);
+  EXPECT_EQ(move(retract_, -0.005, 0.05), State::SUCCEEDED);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {

@@ -183,8 +183,9 @@ TEST(SteeringPolicy, SpecialPosesGetTheirStatus) {
   const Case cases[] = {
       {"target centre (8.5, 5) cm", 0.085, 0.05, 0.0, "in_target", 1.0},
       {"inside upper_wall (3.9, 7.5) cm", 0.039, 0.075, 0.0, "in_obstacle", 0.0},
-      {"NaN x", nan, 0.05, 0.0, "outside_grid", 0.0},
-      {"NaN theta", 0.02, 0.05, nan, "outside_grid", 0.0},
+      {"NaN x", nan, 0.05, 0.0, "invalid_tip", 0.0},
+      {"NaN theta", 0.02, 0.05, nan, "invalid_tip", 0.0},
+      {"inf y", 0.02, std::numeric_limits<double>::infinity(), 0.0, "invalid_tip", 0.0},
       {"off the grid x = 0.5 m", 0.5, 0.05, 0.0, "outside_grid", 0.0},
   };
   for (const Case& c : cases) {
@@ -192,7 +193,8 @@ TEST(SteeringPolicy, SpecialPosesGetTheirStatus) {
     ASSERT_TRUE(control) << "no answer for " << c.what;
     EXPECT_EQ(control->status, c.status) << c.what;
     EXPECT_NEAR(control->probability_of_success, c.probability, kProbabilityTol) << c.what;
-    EXPECT_EQ(control->control, "insert") << c.what;
+    // A pose that is not finite gets no control at all (never "insert").
+    EXPECT_EQ(control->control, std::string(c.status) == "invalid_tip" ? "" : "insert") << c.what;
   }
 }
 

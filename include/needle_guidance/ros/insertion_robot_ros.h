@@ -1,7 +1,7 @@
 // ROS wrapper of the simulated insertion stage (node insertion_robot), rigid or steerable.
 #pragma once
 
-#include <actionlib/server/simple_action_server.h>
+#include "needle_guidance/ros/exclusive_action_server.h"
 #include <ros/ros.h>
 #include <std_srvs/Trigger.h>
 
@@ -56,13 +56,17 @@ public:
   InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh);
 
 private:
-  using LinearMoveServer = actionlib::SimpleActionServer<LinearMoveAction>;
-  using FlipBevelServer = actionlib::SimpleActionServer<FlipBevelAction>;
+  /// One goal at a time over all four actions: a goal sent while a motion runs is refused
+  /// (preemption only through an explicit cancel of the running goal).
+  using LinearMoveServer = ExclusiveActionServer<LinearMoveAction>;
+  using FlipBevelServer = ExclusiveActionServer<FlipBevelAction>;
   /// Which action owns the running motion.
   enum class Owner { kNone, kHeight, kInsert, kRetract, kFlip };
 
-  void onLinearGoal(Owner owner);
-  void onFlipGoal();
+  void onLinearGoal(Owner owner, const LinearMoveGoal& goal);
+  void onFlipGoal(const FlipBevelGoal& goal);
+  /// "" when no motion runs, else which one does (the exclusive servers' busy check).
+  std::string runningMotion() const;
   void onPreempt(Owner owner);
   void onControlTimer(const ros::TimerEvent& event);
   bool onEstop(std_srvs::Trigger::Request& req, std_srvs::Trigger::Response& res);

@@ -9,6 +9,7 @@
 #include <ros/ros.h>
 
 #include <string>
+#include <vector>
 #include <utility>
 
 #include "needle_guidance/steering/policy_table.h"
@@ -48,6 +49,7 @@ private:
   long seed_ = 1;            ///< per-trial deflection streams (-1: the robot's own stream)
   int max_unconfident_ = 0;  ///< extra controls to wait for a confident tip before acting
   std::string feedback_;     ///< label for the report: ground_truth | image
+  std::vector<std::string> watch_nodes_;  ///< nodes whose death stops the run (~watch_nodes)
 };
 
 }  // namespace needle_guidance

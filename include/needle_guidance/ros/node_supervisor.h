@@ -1,0 +1,50 @@
+#pragma once
+
+#include <ros/ros.h>
+
+#include <optional>
+#include <string>
+#include <vector>
+
+namespace needle_guidance {
+
+/// Watches the nodes a procedure depends on. A node counts as alive while the master knows it
+/// and its own XML-RPC server answers `getPid` (what `rosnode ping` asks) within the ping
+/// timeout; a killed node stays registered with the master, so the ping is what catches it. A
+/// timer checks every node each `period_s` (0.5 s by default), so a death is seen within about
+/// period + timeout <= 1 s. Once a node is found dead it stays reported dead (the first death
+/// is the cause a report names), even if a respawned node of the same name answers later;
+/// `clear()` forgets it when the procedure has dealt with the restart.
+class NodeSupervisor {
+public:
+  struct Death {
+    std::string node;      ///< full name, e.g. /afterloader
+    ros::WallTime when;    ///< when the supervisor saw it dead
+    std::string reason;    ///< e.g. "not registered with the master" or "no answer to getPid"
+    std::string toString() const;
+  };
+
+  /// `nodes`: full node names ("/steering_policy") or relative ones, resolved in `nh`'s
+  /// namespace. Checking starts at once.
+  NodeSupervisor(ros::NodeHandle nh, std::vector<std::string> nodes, double period_s = 0.5,
+                 double ping_timeout_s = 0.5);
+
+  /// Blocks until every node answers or `timeout_s` passes; the names that did not answer.
+  std::vector<std::string> waitForAll(double timeout_s);
+  /// The first node found dead, if any (checked by the timer; `checkNow` checks at once).
+  const std::optional<Death>& death() const { return death_; }
+  void checkNow();
+  void clear() { death_.reset(); }
+  const std::vector<std::string>& nodes() const { return nodes_; }
+
+  /// Whether `node` is registered and answers getPid within `timeout_s` ("" if alive, else why).
+  static std::string ping(const std::string& node, double timeout_s);
+
+private:
+  std::vector<std::string> nodes_;
+  double ping_timeout_s_;
+  std::optional<Death> death_;
+  ros::WallTimer timer_;
+};
+
+}  // namespace needle_guidance
