@@ -71,7 +71,8 @@ bool HdrProcedureRos::reportNodeDeath(const DwellPlan& p, const NodeSupervisor::
     journal_note = std::string("journal not readable: ") + e.what();
     planned = schedule.totalDwellTime();
   }
-  const std::string cause = death.toString() + ", detected " + report::jsonNumber(detect_s, 3) + " s after it";
+  const std::string cause = death.toString() + "; delivery stopped " + report::jsonNumber(detect_s, 3) +
+                            " s after the supervisor saw it";
   std::ostringstream json;
   json << "{\n  \"procedure\": \"hdr_delivery\",\n  \"scene\": \"" << p.case_name
        << "\",\n  \"success\": false,\n  \"status\": \"node_died\",\n  \"dead_node\": \"" << death.node
@@ -122,8 +123,21 @@ bool HdrProcedureRos::run() {
   DeliverGoal goal;
   goal.schedule = p.schedule;
   double fraction = 0.0;
+  std::size_t dwell_count = 0;
+  for (const auto& c : p.schedule.channels) dwell_count += c.time_s.size();
+  std::size_t dwells_started = 0;
+  std::pair<int, int> current{-1, -1};
   const auto send = [&] {
-    deliver.sendGoal(goal, {}, {}, [&](const DeliverFeedbackConstPtr& f) { fraction = f->delivered_fraction; });
+    deliver.sendGoal(goal, {}, {}, [&](const DeliverFeedbackConstPtr& f) {
+      fraction = f->delivered_fraction;
+      if (f->state == "DELIVERING" && f->dwell_index >= 0 && std::make_pair(f->channel, f->dwell_index) != current) {
+        current = {f->channel, f->dwell_index};
+        ++dwells_started;  // progress for the operator (scripts/demo prints these lines)
+        ROS_INFO_STREAM("hdr_procedure: dwell " << dwells_started << "/" << dwell_count << " (channel "
+                                                << f->channel << ", position " << f->dwell_index << "), "
+                                                << std::lround(100.0 * fraction) << " % delivered");
+      }
+    });
   };
   send();
   bool paused_once = pause_at_fraction_ < 0.0;
