@@ -8,6 +8,7 @@
 
 #include "needle_guidance/AfterloaderState.h"
 #include "needle_guidance/ros/delivery_conversions.h"
+#include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/params.h"
 
 namespace needle_guidance {
@@ -19,6 +20,11 @@ AfterloaderRos::AfterloaderRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh)
   ROS_INFO("afterloader parameters:");
   delivery::AfterloaderConfig config;
   config.journal_dir = ros_params::rosHomePath(ros_params::text(private_nh, "journal_dir", "afterloader", true));
+  if (const std::string why = report::systemLocation(config.journal_dir);
+      !why.empty() && !ros_params::flag(private_nh, "allow_system_paths", false)) {
+    throw std::runtime_error("parameter " + private_nh.resolveName("journal_dir") + ": refused: " + why +
+                             " (allow_system_paths:=true to write there)");
+  }
   config.limits.channels = static_cast<int>(ros_params::number(private_nh, "channels", 18, 1, 40, "channels"));
   config.limits.max_length_m = ros_params::number(private_nh, "max_channel_length_m", 1.5, 0.1, 3.0, "m");
   config.limits.max_dwell_s = ros_params::number(private_nh, "max_dwell_s", 999.0, 1.0, 3600.0, "s");

@@ -15,6 +15,7 @@
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/ros/delivery_conversions.h"
 #include "needle_guidance/ros/node_supervisor.h"
+#include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/params.h"
 
 namespace needle_guidance {
@@ -28,6 +29,9 @@ std::string jsonNumber(double v) { return report::jsonNumber(v, 8); }
 HdrProcedureRos::HdrProcedureRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) : nh_(nh) {
   ROS_INFO("hdr_procedure parameters:");
   report_dir_ = ros_params::text(private_nh, "report_dir", "", true);
+  // Refuses a system folder or someone else's non-empty folder before anything runs.
+  report::prepareReportDir(report_dir_, private_nh.resolveName("report_dir"),
+                           ros_params::flag(private_nh, "allow_system_paths", false));
   case_dir_ = ros_params::text(private_nh, "case_dir", "");
   synthetic_seed_ = static_cast<int>(ros_params::integer(private_nh, "synthetic_seed", 1, 1, 1000000, ""));
   method_ = ros_params::text(private_nh, "method", "lp");

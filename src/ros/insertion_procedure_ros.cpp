@@ -15,6 +15,7 @@
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/PlanRigid.h"
 #include "needle_guidance/ros/conversions.h"
+#include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 
@@ -63,6 +64,9 @@ InsertionProcedureRos::InsertionProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   reset_between_needles_ =
       ros_params::number(private_nh, "reset_between_needles", 1.0, 0.0, 1.0, "(0 or 1)") > 0.5;
   report_dir_ = ros_params::text(private_nh, "report_dir", "", true);
+  // Refuses a system folder or someone else's non-empty folder before anything runs.
+  report::prepareReportDir(report_dir_, private_nh.resolveName("report_dir"),
+                           ros_params::flag(private_nh, "allow_system_paths", false));
   insertion_velocity_m_s_ = ros_params::number(private_nh, "insertion_velocity_m_s",
                                                scene.needle.insertion_velocity_m_s, 1e-4, 1.0, "m/s");
   retract_velocity_m_s_ = ros_params::number(private_nh, "retract_velocity_m_s",

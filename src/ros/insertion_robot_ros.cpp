@@ -14,6 +14,7 @@
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/OperatingState.h"
 #include "needle_guidance/ros/conversions.h"
+#include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/steering_model.h"
@@ -154,6 +155,15 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
 
   stage_ = std::make_unique<robot::InsertionStage>(limits, scene_limits, initial);
   if (!journal_path.empty()) {
+    // Appends only to a journal of ours, never into a system folder (unless allowed).
+    const bool allow_system = ros_params::flag(private_nh, "allow_system_paths", false);
+    report::checkAppendFile(journal_path, {robot::JournalFile::header()},
+                            private_nh.resolveName("journal_file"), allow_system);
+    if (steerable_mode) {
+      report::checkAppendFile(needleJournalPath(journal_path), {robot::NeedleJournalFile::header()},
+                              private_nh.resolveName("journal_file") + " (needle journal)",
+                              allow_system);
+    }
     journal_file_ = std::make_unique<robot::JournalFile>(journal_path);
     stage_->setJournalSink([this](const robot::JournalEntry& e) { journal_file_->write(e); });
     ROS_INFO_STREAM("insertion_robot: journal appended to " << journal_path);

@@ -20,8 +20,27 @@ NodeSupervisor::NodeSupervisor(ros::NodeHandle nh, std::vector<std::string> node
   for (const std::string& n : nodes) {
     nodes_.push_back(nh.resolveName(n, false));
   }
-  timer_ = nh.createWallTimer(ros::WallDuration(period_s),
-                              [this](const ros::WallTimerEvent&) { checkNow(); });
+  ros::NodeHandle own(nh);
+  own.setCallbackQueue(&queue_);
+  timer_ = own.createWallTimer(ros::WallDuration(period_s),
+                               [this](const ros::WallTimerEvent&) { checkNow(); });
+  spinner_ = std::make_unique<ros::AsyncSpinner>(1, &queue_);
+  spinner_->start();
+}
+
+NodeSupervisor::~NodeSupervisor() {
+  timer_.stop();
+  spinner_->stop();
+}
+
+std::optional<NodeSupervisor::Death> NodeSupervisor::death() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return death_;
+}
+
+void NodeSupervisor::clear() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  death_.reset();
 }
 
 std::string NodeSupervisor::ping(const std::string& node, double timeout_s) {
@@ -49,14 +68,16 @@ std::string NodeSupervisor::ping(const std::string& node, double timeout_s) {
 }
 
 void NodeSupervisor::checkNow() {
-  if (death_) {
+  if (death()) {
     return;
   }
   for (const std::string& node : nodes_) {
     const std::string why = ping(node, ping_timeout_s_);
     if (!why.empty()) {
-      death_ = Death{node, ros::WallTime::now(), why};
-      ROS_ERROR_STREAM_NAMED("node_supervisor", "supervisor: " << death_->toString());
+      const Death d{node, ros::WallTime::now(), why};
+      ROS_ERROR_STREAM_NAMED("node_supervisor", "supervisor: " << d.toString());
+      std::lock_guard<std::mutex> lock(mutex_);
+      death_ = d;
       return;
     }
   }

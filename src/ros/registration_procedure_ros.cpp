@@ -8,6 +8,7 @@
 #include "needle_guidance/Register.h"
 #include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
+#include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/params.h"
 
 namespace needle_guidance {
@@ -16,6 +17,9 @@ RegistrationProcedureRos::RegistrationProcedureRos(ros::NodeHandle& nh, ros::Nod
     : nh_(nh) {
   ROS_INFO("registration_procedure parameters:");
   report_dir_ = ros_params::text(private_nh, "report_dir", "", true);
+  // Refuses a system folder or someone else's non-empty folder before anything runs.
+  report::prepareReportDir(report_dir_, private_nh.resolveName("report_dir"),
+                           ros_params::flag(private_nh, "allow_system_paths", false));
   service_ = ros_params::text(private_nh, "service", "registration/register");
   cases_per_probe_ = ros_params::integer(private_nh, "cases_per_probe", 5, 1, 100, "cases");
 }

@@ -23,6 +23,7 @@
 #include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/ros/node_supervisor.h"
+#include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/continuous_workspace.h"
@@ -147,6 +148,9 @@ SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   robot_ns_ = ros_params::text(private_nh, "robot", "insertion_robot");
   policy_ns_ = ros_params::text(private_nh, "policy", "steering_policy");
   report_dir_ = ros_params::text(private_nh, "report_dir", "", true);
+  // Refuses a system folder or someone else's non-empty folder before anything runs.
+  report::prepareReportDir(report_dir_, private_nh.resolveName("report_dir"),
+                           ros_params::flag(private_nh, "allow_system_paths", false));
   table_dir_ =
       ros_params::rosHomePath(ros_params::text(private_nh, "table_dir", "steering_tables"));
   trials_ = static_cast<int>(ros_params::integer(private_nh, "trials", 20, 1, 100000, "trials"));

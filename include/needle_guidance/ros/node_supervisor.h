@@ -1,6 +1,10 @@
 #pragma once
 
+#include <ros/callback_queue.h>
 #include <ros/ros.h>
+
+#include <memory>
+#include <mutex>
 
 #include <optional>
 #include <string>
@@ -28,13 +32,14 @@ public:
   /// namespace. Checking starts at once.
   NodeSupervisor(ros::NodeHandle nh, std::vector<std::string> nodes, double period_s = 0.5,
                  double ping_timeout_s = 0.5);
+  ~NodeSupervisor();
 
   /// Blocks until every node answers or `timeout_s` passes; the names that did not answer.
   std::vector<std::string> waitForAll(double timeout_s);
   /// The first node found dead, if any (checked by the timer; `checkNow` checks at once).
-  const std::optional<Death>& death() const { return death_; }
+  std::optional<Death> death() const;
   void checkNow();
-  void clear() { death_.reset(); }
+  void clear();
   const std::vector<std::string>& nodes() const { return nodes_; }
 
   /// Whether `node` is registered and answers getPid within `timeout_s` ("" if alive, else why).
@@ -43,8 +48,13 @@ public:
 private:
   std::vector<std::string> nodes_;
   double ping_timeout_s_;
+  mutable std::mutex mutex_;
   std::optional<Death> death_;
+  // The pings run on a queue and thread of their own, so that a slow ping never delays the
+  // procedure's own callbacks (action feedback, tips).
+  ros::CallbackQueue queue_;
   ros::WallTimer timer_;
+  std::unique_ptr<ros::AsyncSpinner> spinner_;
 };
 
 }  // namespace needle_guidance
