@@ -114,7 +114,8 @@ struct Decision {
 };
 
 struct TrialRecord {
-  std::string outcome;  ///< reached_target | hit_obstacle | left_workspace | step_limit | error
+  /// reached_target | hit_obstacle | left_workspace | step_limit | needle_length | error
+  std::string outcome;
   std::string message;
   int steps = 0;
   int flips = 0;
@@ -367,6 +368,8 @@ bool SteerableProcedureRos::run() {
           rec.outcome = "left_workspace";
         } else if (message.find("obstacle") != std::string::npos) {
           rec.outcome = "hit_obstacle";
+        } else if (message.find("outside the joint limits") != std::string::npos) {
+          rec.outcome = "needle_length";  // a miss: the needle was used up before the target
         } else {
           rec.outcome = "error";
         }
