@@ -39,9 +39,8 @@ std::string systemLocation(const std::string& path) {
   if (under(p, "/var/tmp")) {
     return "";
   }
-  for (const char* system : {"/bin", "/boot", "/dev", "/etc", "/lib", "/lib32", "/lib64",
-                             "/libx32", "/opt", "/proc", "/run", "/sbin", "/srv", "/sys", "/usr",
-                             "/var"}) {
+  for (const char* system : {"/bin", "/boot", "/dev", "/etc", "/lib", "/lib32", "/lib64", "/libx32",
+                             "/opt", "/proc", "/run", "/sbin", "/srv", "/sys", "/usr", "/var"}) {
     if (under(p, system)) {
       return "'" + p.string() + "' is in the system directory " + system;
     }

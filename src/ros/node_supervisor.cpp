@@ -14,8 +14,8 @@ std::string NodeSupervisor::Death::toString() const {
   return "node " + node + " died (" + reason + ")";
 }
 
-NodeSupervisor::NodeSupervisor(ros::NodeHandle nh, std::vector<std::string> nodes,
-                               double period_s, double ping_timeout_s)
+NodeSupervisor::NodeSupervisor(ros::NodeHandle nh, std::vector<std::string> nodes, double period_s,
+                               double ping_timeout_s)
     : ping_timeout_s_(ping_timeout_s) {
   for (const std::string& n : nodes) {
     nodes_.push_back(nh.resolveName(n, false));

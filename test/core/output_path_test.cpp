@@ -3,8 +3,8 @@
 #include <gtest/gtest.h>
 
 #include <filesystem>
-#include <functional>
 #include <fstream>
+#include <functional>
 #include <string>
 
 #include "needle_guidance/report/output_path.h"
@@ -56,7 +56,8 @@ TEST(OutputPath, ForeignSystemAndFileTargetsAreRefusedAndNothingIsCreated) {
   const fs::path foreign = scratch("foreign");
   fs::create_directories(foreign);
   std::ofstream(foreign / "thesis.tex") << "precious";
-  const std::string why = refusal([&] { prepareReportDir(foreign.string(), "~report_dir", false); });
+  const std::string why =
+      refusal([&] { prepareReportDir(foreign.string(), "~report_dir", false); });
   EXPECT_NE(why.find("~report_dir"), std::string::npos) << why;
   EXPECT_NE(why.find(foreign.string()), std::string::npos) << why;
   EXPECT_FALSE(fs::exists(foreign / kReportMarker));

@@ -31,8 +31,9 @@ public:
         busy_(std::move(busy)),
         on_goal_(std::move(on_goal)),
         on_cancel_(std::move(on_cancel)),
-        server_(nh, name, [this](GoalHandle g) { onGoal(g); },
-                [this](GoalHandle g) { onCancel(g); }, false) {}
+        server_(
+            nh, name, [this](GoalHandle g) { onGoal(g); }, [this](GoalHandle g) { onCancel(g); },
+            false) {}
 
   void start() { server_.start(); }
   bool isActive() const { return active_.has_value(); }

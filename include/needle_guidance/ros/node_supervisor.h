@@ -22,9 +22,9 @@ namespace needle_guidance {
 class NodeSupervisor {
 public:
   struct Death {
-    std::string node;      ///< full name, e.g. /afterloader
-    ros::WallTime when;    ///< when the supervisor saw it dead
-    std::string reason;    ///< e.g. "not registered with the master" or "no answer to getPid"
+    std::string node;    ///< full name, e.g. /afterloader
+    ros::WallTime when;  ///< when the supervisor saw it dead
+    std::string reason;  ///< e.g. "not registered with the master" or "no answer to getPid"
     std::string toString() const;
   };
 
