@@ -24,7 +24,7 @@ constexpr double kSameLineTheta_rad = 4.0 * kPi / 180.0;
 constexpr double kNearLineSigmas = 1.5;
 /// Step 5: side bands from 3 to 6 filter scales from the line (outside the needle's own blur).
 /// Step 6: the tip is where the cross-line contrast falls below this fraction of the shaft's
-/// median (a quarter: the needle fades towards its tip, a streak beyond it is fainter still).
+/// median (about a third: the needle fades towards its tip, a streak beyond it is fainter).
 constexpr double kTipLevel = 0.35;
 constexpr double kBandInnerSigmas = 3.0, kBandOuterSigmas = 6.0;
 /// Step 5: a ridge pixel is aligned with the line if its orientation is within this [rad].
