@@ -85,8 +85,10 @@ public:
 
   static constexpr int kConfirmFrames = 3;
   static constexpr int kReacquireAfter = 3;
-  static constexpr int kMaxPredicted = 3;          ///< frames bridged by prediction
-  static constexpr double kGateTip_px = 25.0;      ///< tip innovation gate [px]
+  static constexpr int kMaxPredicted = 3;  ///< frames bridged by prediction
+  /// Tip innovation gate along the axis [px]: a hand-held or recorded insertion moves the tip
+  /// by tens of pixels between frames along its axis, while the shaft stays on its line.
+  static constexpr double kGateTip_px = 60.0;
   static constexpr double kGateLine_px = 8.0;      ///< tip's distance from the track's line [px]
   static constexpr double kGateAngle_rad = 0.087;  ///< 5 degrees
   static constexpr double kAgreeTip_px = 12.0;     ///< agreement of consecutive detections [px]
