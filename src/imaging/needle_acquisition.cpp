@@ -22,14 +22,20 @@ constexpr double kSameLineRho_px = 8.0;
 constexpr double kSameLineTheta_rad = 4.0 * kPi / 180.0;
 /// Step 4: a ridge pixel belongs to a line if within this many filter scales of it.
 constexpr double kNearLineSigmas = 1.5;
-/// Step 5: side bands from 3 to 6 filter scales from the line (outside the needle's own blur).
+/// Step 5: side bands from 3 to 10 filter scales from the line (outside the needle's own blur,
+/// wide enough that an interface's step in echogenicity outweighs a reverberation copy).
 /// Step 6: the tip is where the cross-line contrast falls below kTipLevel of the shaft's
 /// level, its median along the traced segment (the needle fades towards its tip, and a streak
 /// beyond it is fainter still). Chosen on the even frames of the in-vitro set (0.3-0.4 equally
 /// good, 0.5 cuts fading tips short), checked on the odd ones.
 constexpr double kTipLevel = 0.35;
 constexpr double kShaftLevelQuantile = 0.5;
-constexpr double kBandInnerSigmas = 3.0, kBandOuterSigmas = 6.0;
+constexpr double kBandInnerSigmas = 3.0, kBandOuterSigmas = 10.0;
+/// Step 4: an end of a segment within this of the frame's border lies on the border [px].
+constexpr double kBorderMargin_px = 3.0;
+/// Step 5: power of the side symmetry in the score: an interface between media whose
+/// echogenicity differs by half scores an eighth, a needle inside one medium nearly 1.
+constexpr double kSymmetryPower = 3.0;
 /// Step 5: a ridge pixel is aligned with the line if its orientation is within this [rad].
 constexpr double kAlignedTolerance_rad = 15.0 * kPi / 180.0;
 
@@ -246,7 +252,13 @@ void measureCues(const RidgeMap& ridge, Candidate* c, double sigma) {
   s.coherence = ridge_px > 0 ? aligned / ridge_px : 0.0;
   const double length = c->t1 - c->t0;
   s.evidence = s.contrast / noise * std::sqrt(std::max(length, 0.0) / (4.0 * sigma));
-  c->score = s.evidence * s.symmetry * s.coherence;
+  c->score = s.evidence * std::pow(s.symmetry, kSymmetryPower) * s.coherence;
+}
+
+/// Whether p lies within kBorderMargin_px of the frame's border.
+bool onBorder(cv::Point2d p, cv::Size size) {
+  return p.x < kBorderMargin_px || p.y < kBorderMargin_px ||
+         p.x > size.width - 1 - kBorderMargin_px || p.y > size.height - 1 - kBorderMargin_px;
 }
 
 /// Distance from p along dir to the frame's border.
@@ -359,6 +371,10 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
       return {};
   }
   if (c.t1 - c.t0 < o.min_length_px)
+    return {};
+  // A line running from border to border has no tip in view: an interface, not a needle.
+  const cv::Size size = ridge.strength.size();
+  if (onBorder(at(c.line, c.t0), size) && onBorder(at(c.line, c.t1), size))
     return {};
   measureCues(ridge, &c, o.ridge_sigma_px);
   return c;
@@ -501,8 +517,21 @@ bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, dou
 }
 
 SequenceTracker::Output SequenceTracker::onFrame(const cv::Mat& frame) {
+  if (!frame.empty() && !last_frame_.empty() && frame.size() == last_frame_.size() &&
+      frame.type() == last_frame_.type() && cv::norm(frame, last_frame_, cv::NORM_INF) == 0) {
+    Output repeated = last_output_;
+    repeated.confident = false;
+    repeated.segment.message =
+        "repeated frame (identical to the previous): " + repeated.segment.message;
+    return repeated;
+  }
+  last_frame_ = frame.clone();
+  last_output_ = update(acquireNeedle(frame, options_));
+  return last_output_;
+}
+
+SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
   Output out;
-  NeedleSegment d = acquireNeedle(frame, options_);
   if (track_) {
     // Motion model: the tip moves along the needle's axis at the last speed.
     NeedleSegment pred = *track_;

@@ -80,7 +80,8 @@ public:
     bool confident = false;  ///< earned: kConfirmFrames agreeing detections in a row
     bool predicted = false;  ///< no gated detection: the tip is the motion model's prediction
   };
-  /// One frame. Never throws.
+  /// One frame. Never throws. A frame identical to the previous one (a frozen or repeated
+  /// frame) repeats the previous estimate, not confident, and is no new evidence.
   Output onFrame(const cv::Mat& frame);
 
   static constexpr int kConfirmFrames = 3;
@@ -95,6 +96,9 @@ public:
 
 private:
   bool agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px) const;
+  Output update(const NeedleSegment& d);
+  cv::Mat last_frame_;
+  Output last_output_;
   AcquisitionOptions options_;
   std::optional<NeedleSegment> track_;
   double velocity_px_ = 0.0;  ///< tip speed along the axis [px / frame]
