@@ -9,7 +9,8 @@
 // found_fraction, tip_error_px_median, tip_error_px_p90, angle_error_deg_median,
 // confident_wrong (confident and > 20 px off), fps_720x440, baseline_tip_error_px_median.
 // Overlays of the best and worst frames (best.png, worst.png). The pixel size (not recorded
-// with the data) is assumed 0.1 mm for the old detector's metric settings.
+// with the data) is assumed 0.1 mm for the old detector's metric settings. Without the data it
+// runs on a synthetic B-mode sequence (synthetic_bmode.h) and says so (summary key data).
 // Usage: bench_tracking_real --out DIR [--quick]
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -25,6 +26,7 @@
 #include <vector>
 
 #include "needle_guidance/imaging/needle_acquisition.h"
+#include "needle_guidance/imaging/synthetic_bmode.h"
 #include "needle_guidance/imaging/tip_tracker.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
@@ -68,6 +70,26 @@ Truth truthFromMask(const cv::Mat& mask) {
   }
   t.angle_rad = std::atan2(d.y, d.x);
   return t;
+}
+
+/// The fallback sequence: 25 frames of a needle entering from the left at 8 degrees above +x
+/// and advancing 8 px per frame beside a brighter, frame-wide interface, its last tenth fading
+/// out of the plane.
+void syntheticSequence(std::vector<fs::path>* files, std::vector<cv::Mat>* frames,
+                       std::vector<Truth>* truth) {
+  const double a = -8.0 / kDegPerRad;
+  const cv::Point2d u(std::cos(a), std::sin(a)), tail(120, 260);
+  const im::BModeInterface iface{330, 310};
+  for (int i = 0; i < 25; ++i) {
+    im::BModeNeedle n;
+    n.tail = tail;
+    n.tip = tail + (200.0 + 8.0 * i) * u;
+    n.fade_fraction = 0.1;
+    frames->push_back(im::syntheticBMode(cv::Size(720, 440), 100 + i, iface, n));
+    // Truth: where the fading echo is down to half (what a mask of the visible needle shows).
+    truth->push_back({n.tail + (1.0 - 0.5 * n.fade_fraction) * (n.tip - n.tail), a});
+    files->push_back("synthetic_" + std::to_string(100 + i) + ".png");
+  }
 }
 
 struct Result {
@@ -153,22 +175,21 @@ int main(int argc, char** argv) {
     return 2;
   const char* shared = std::getenv("NG_SHARED_DATA");
   const fs::path data = fs::path(shared ? shared : "/work/shared/data") / "us_needle_invitro";
-  if (!fs::is_directory(data / "image")) {
-    // TODO(issue 17): the realistic synthetic sequence is not written yet.
-    std::cerr << "bench_tracking_real: " << data << " absent and the synthetic fallback is not "
-              << "implemented: nothing measured\n";
-    ng::report::writeTextFile(args->out_dir + "/summary.json",
-                              "{\n  \"data\": \"absent\",\n  \"measured\": false\n}\n");
-    ng::report::writeTextFile(args->out_dir + "/plot.json", "[]\n");
-    return 0;
-  }
   std::vector<fs::path> files;
-  for (const auto& e : fs::directory_iterator(data / "image"))
-    files.push_back(e.path());
-  std::sort(files.begin(), files.end());
   std::vector<cv::Mat> frames;
   std::vector<Truth> truth;
-  for (const fs::path& f : files) {
+  const bool real = fs::is_directory(data / "image");
+  if (!real) {
+    std::cerr << "bench_tracking_real: " << data
+              << " absent: running on the synthetic B-mode sequence instead\n";
+    syntheticSequence(&files, &frames, &truth);
+  } else {
+    for (const auto& e : fs::directory_iterator(data / "image"))
+      files.push_back(e.path());
+    std::sort(files.begin(), files.end());
+  }
+  const std::vector<fs::path> to_read = real ? files : std::vector<fs::path>{};
+  for (const fs::path& f : to_read) {
     frames.push_back(cv::imread(f.string(), cv::IMREAD_GRAYSCALE));
     const cv::Mat mask =
         cv::imread((data / "mask" / (f.stem().string() + ".bmp")).string(), cv::IMREAD_GRAYSCALE);
@@ -230,7 +251,8 @@ int main(int argc, char** argv) {
   const Summary n = summarise(fresh, truth), o = summarise(old, truth), h = summarise(hough, truth);
   using ng::report::jsonNumber;
   std::ostringstream js;
-  js << "{\n  \"data\": \"us_needle_invitro\",\n  \"frames\": " << frames.size()
+  js << "{\n  \"data\": \"" << (real ? "us_needle_invitro" : "synthetic (shared data absent)")
+     << "\",\n  \"frames\": " << frames.size()
      << ",\n  \"found_fraction\": " << jsonNumber(n.found_fraction)
      << ",\n  \"tip_error_px_median\": " << jsonNumber(n.median)
      << ",\n  \"tip_error_px_p90\": " << jsonNumber(n.p90)

@@ -1,7 +1,8 @@
 // Hard cases of needle acquisition without a prior (imaging/needle_acquisition.h, issue 17) on
-// synthetic B-mode frames made here (speckle from a random scatterer field convolved with an
-// anisotropic point-spread function, specular interfaces between media of different
-// echogenicity, a needle with an acoustic shadow beneath and a reverberation tail). Fixed seeds.
+// synthetic B-mode frames (imaging/synthetic_bmode.h: speckle from a random scatterer field
+// convolved with an anisotropic point-spread function, specular interfaces between media of
+// different echogenicity, a needle with an acoustic shadow beneath and a reverberation tail). Fixed
+// seeds.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -9,6 +10,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "needle_guidance/imaging/needle_acquisition.h"
+#include "needle_guidance/imaging/synthetic_bmode.h"
 
 namespace im = needle_guidance::imaging;
 
@@ -20,77 +22,12 @@ constexpr double kPsfReach_px = 3.0;  // blur of the drawn needle (sigma 1 px) a
 constexpr double kAngleTolerance_rad = 3.0 * kPi / 180.0;
 const cv::Size kSize(720, 440);
 
-struct Needle {
-  cv::Point2d tail, tip;
-  double brightness = 170.0;   ///< grey levels added on the shaft
-  double fade_fraction = 0.0;  ///< last part of the shaft fading linearly to 0 (out of plane)
-};
-struct Interface {
-  double y0, y1;              ///< rows at x = 0 and x = cols - 1
-  double brightness = 230.0;  ///< brighter than the needle
-  double below_gain = 0.4;    ///< echogenicity below it relative to above
-};
+using Needle = im::BModeNeedle;
+using Interface = im::BModeInterface;
 
-/// Speckle: the envelope of two Gaussian scatterer fields convolved with a PSF that is longer
-/// laterally (x) than axially (y), mean about 60 grey levels.
-cv::Mat speckle(std::uint64_t seed) {
-  cv::RNG rng(seed);
-  cv::Mat a(kSize, CV_32F), b(kSize, CV_32F);
-  rng.fill(a, cv::RNG::NORMAL, 0, 1);
-  rng.fill(b, cv::RNG::NORMAL, 0, 1);
-  cv::GaussianBlur(a, a, cv::Size(), 3.0, 1.0);
-  cv::GaussianBlur(b, b, cv::Size(), 3.0, 1.0);
-  cv::Mat env;
-  cv::magnitude(a, b, env);
-  const double m = cv::mean(env)[0];
-  return env * (60.0 / m);
-}
-
-double rowOf(const Interface& f, double x) {
-  return f.y0 + (f.y1 - f.y0) * x / (kSize.width - 1);
-}
-
-/// One frame: speckle, optional interface (a step in echogenicity with a bright specular line
-/// across the whole width), optional needle (shadow below it, two reverberation copies).
 cv::Mat frame(std::uint64_t seed, const std::optional<Interface>& iface,
               const std::optional<Needle>& needle) {
-  cv::Mat img = speckle(seed);
-  cv::Mat add = cv::Mat::zeros(kSize, CV_32F);
-  if (iface) {
-    for (int y = 0; y < kSize.height; ++y) {
-      for (int x = 0; x < kSize.width; ++x) {
-        if (y > rowOf(*iface, x))
-          img.at<float>(y, x) *= static_cast<float>(iface->below_gain);
-      }
-    }
-    cv::line(add, cv::Point2d(0, iface->y0), cv::Point2d(kSize.width - 1, iface->y1),
-             iface->brightness, 3, cv::LINE_AA);
-  }
-  if (needle) {
-    const cv::Point2d d = needle->tip - needle->tail;
-    const double len = cv::norm(d);
-    const cv::Point2d u = d / len;
-    for (double s = 0; s <= len; s += 0.5) {
-      const cv::Point2d p = needle->tail + s * u;
-      const double fade_start = (1.0 - needle->fade_fraction) * len;
-      const double w = s < fade_start ? 1.0 : 1.0 - (s - fade_start) / (len - fade_start + 1e-9);
-      cv::circle(add, p, 1, needle->brightness * w, cv::FILLED, cv::LINE_AA);
-      for (int k = 1; k <= 2; ++k) {  // reverberation: dimmer copies deeper
-        cv::circle(add, p + cv::Point2d(0, 10.0 * k), 1, 0.25 * needle->brightness * w / k,
-                   cv::FILLED);
-      }
-      for (int y = static_cast<int>(p.y) + 3; y < kSize.height; ++y) {  // shadow
-        const int x = static_cast<int>(p.x);
-        if (x >= 0 && x < kSize.width)
-          img.at<float>(y, x) *= 0.995F;
-      }
-    }
-  }
-  cv::GaussianBlur(add, add, cv::Size(), 1.0);
-  img += add;
-  cv::Mat out;
-  img.convertTo(out, CV_8U);
-  return out;
+  return im::syntheticBMode(kSize, seed, iface, needle);
 }
 
 Needle leftNeedle() {
