@@ -1,0 +1,111 @@
+// Needle acquisition without a prior on B-mode frames (issue 17), in pixels. Where detectTip
+// (tip_tracker.h) assumes the needle the simulated imager draws, this finds a needle anywhere in
+// a real frame and tells it from the structures that look like one:
+//   step 1  grey conversion (8/16-bit, mono/colour; anything else refused with the reason);
+//   step 2  ridge filter (Hessian, bright thin lines) and its orientation;
+//   step 3  candidate lines (cv::HoughLines on the strongest ridge pixels);
+//   step 4  each candidate's visible segment along the line (gaps bridged), refit by weighted
+//           least squares on the ridge pixels near it;
+//   step 5  needle-vs-interface cues per candidate: cross-line contrast, orientation coherence
+//           along the segment, symmetry of the tissue on both sides (an interface separates two
+//           media: one side differs from the other; a needle lies inside one medium), length,
+//           and distance from the image border;
+//   step 6  the best candidate, if its evidence beats the thresholds (else "not found"),
+//           and its tip: the end away from the entry side (calibrated or worked out).
+// Plain C++ and OpenCV; no ROS (STYLE.md rules 1-2).
+#pragma once
+
+#include <opencv2/core.hpp>
+#include <optional>
+#include <string>
+
+namespace needle_guidance::imaging {
+
+/// Side of the image the needle enters from. kAuto: the end of the segment nearer the image
+/// border it points to is the entry (the tip is the end deeper inside the field of view).
+enum class EntrySide : int { kAuto, kLeft, kRight, kTop, kBottom };
+/// "auto" | "left" | "right" | "top" | "bottom".
+std::string toString(EntrySide side);
+/// Inverse of toString(EntrySide); nullopt for anything else.
+std::optional<EntrySide> entrySideFromString(const std::string& name);
+
+/// Settings of acquireNeedle, in pixels (none is fitted to a data set: each is a physical or
+/// statistical statement, see the .cpp).
+struct AcquisitionOptions {
+  EntrySide entry = EntrySide::kAuto;
+  double ridge_sigma_px = 2.0;  ///< scale of the ridge filter, about the needle's half width
+  double min_length_px = 40.0;  ///< a visible needle shorter than this is not acquired
+  double max_gap_px = 12.0;     ///< gaps along the shaft bridged when tracing it [px]
+  /// Minimum contrast-to-noise of the line against the tissue beside it (z-score of the mean
+  /// line intensity over the side bands' spread, times sqrt of the segment length in PSF
+  /// lengths), below which the frame is "not found".
+  double min_evidence = 6.0;
+  /// Throws std::invalid_argument naming the field when out of range.
+  void validate() const;
+};
+
+/// One frame's acquisition: the needle's visible segment with its tip.
+struct NeedleSegment {
+  bool found = false;
+  std::string message;            ///< why not found, or a one-line summary
+  cv::Point2d tip_px{0.0, 0.0};   ///< tip, pixel coordinates (origin at pixel centre)
+  cv::Point2d tail_px{0.0, 0.0};  ///< the other visible end
+  double angle_rad = 0.0;         ///< direction tail -> tip, atan2(drow, dcol)
+  double contrast = 0.0;          ///< mean line minus side-band intensity [grey levels]
+  double evidence = 0.0;          ///< score the candidate won with (see AcquisitionOptions)
+  double symmetry = 0.0;          ///< 1 = same tissue on both sides, 0 = interface-like
+  double coherence = 0.0;         ///< fraction of ridge pixels aligned with the line
+  double length_px() const;
+};
+
+/// Step 1: `frame` as CV_8UC1 (CV_8UC1 as is; CV_16UC1 scaled by its own maximum; 3- or
+/// 4-channel 8/16-bit converted to grey). Empty result with `problem` set for anything else
+/// (empty frame, float, 2 channels), naming type and size. Never throws.
+cv::Mat toGrey8(const cv::Mat& frame, std::string* problem);
+
+/// Finds the needle in one frame, no prior. Never throws, never NaN: a frame it cannot use or
+/// one without a needle gives found = false with the reason.
+NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options);
+
+/// Acquisition over a sequence: acquireNeedle per frame, a constant-velocity motion model of
+/// the tip along the needle's own axis (no robot drive needed), a gate on the tip and the
+/// angle, and confidence earned by consecutive agreeing detections. A still background plus a
+/// tip moving along the axis is what a needle does; a candidate that jumps is gated out and
+/// only replaces the track after kReacquireAfter agreeing frames.
+class SequenceTracker {
+public:
+  explicit SequenceTracker(const AcquisitionOptions& options);
+  struct Output {
+    NeedleSegment segment;   ///< this frame's estimate (found = false when nothing usable)
+    bool confident = false;  ///< earned: kConfirmFrames agreeing detections in a row
+    bool predicted = false;  ///< no gated detection: the tip is the motion model's prediction
+  };
+  /// One frame. Never throws. A frame identical to the previous one (a frozen or repeated
+  /// frame) repeats the previous estimate, not confident, and is no new evidence.
+  Output onFrame(const cv::Mat& frame);
+
+  static constexpr int kConfirmFrames = 3;
+  static constexpr int kReacquireAfter = 3;
+  static constexpr int kMaxPredicted = 3;  ///< frames bridged by prediction
+  /// Tip innovation gate along the axis [px]: a hand-held or recorded insertion moves the tip
+  /// by tens of pixels between frames along its axis, while the shaft stays on its line.
+  static constexpr double kGateTip_px = 60.0;
+  static constexpr double kGateLine_px = 8.0;      ///< tip's distance from the track's line [px]
+  static constexpr double kGateAngle_rad = 0.087;  ///< 5 degrees
+  static constexpr double kAgreeTip_px = 12.0;     ///< agreement of consecutive detections [px]
+
+private:
+  bool agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px) const;
+  Output update(const NeedleSegment& d);
+  cv::Mat last_frame_;
+  Output last_output_;
+  AcquisitionOptions options_;
+  std::optional<NeedleSegment> track_;
+  double velocity_px_ = 0.0;  ///< tip speed along the axis [px / frame]
+  int agreeing_ = 0;
+  int missed_ = 0;
+  std::optional<NeedleSegment> candidate_;
+  int candidate_count_ = 0;
+};
+
+}  // namespace needle_guidance::imaging

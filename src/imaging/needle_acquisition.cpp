@@ -1,0 +1,592 @@
+// Needle acquisition without a prior (issue 17); see needle_acquisition.h for the steps.
+#include "needle_guidance/imaging/needle_acquisition.h"
+
+#include <algorithm>
+#include <cmath>
+#include <opencv2/imgproc.hpp>
+#include <sstream>
+#include <stdexcept>
+#include <vector>
+
+namespace needle_guidance::imaging {
+
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+/// Step 3: the strongest ridge pixels kept for the Hough transform (a thin needle covers well
+/// under 2 % of a frame; speckle ridges are weaker than it).
+constexpr double kRidgeQuantile = 0.98;
+/// Step 3: at most this many Hough lines are examined; lines closer than these are the same.
+constexpr int kMaxCandidates = 24;
+constexpr double kSameLineRho_px = 8.0;
+constexpr double kSameLineTheta_rad = 4.0 * kPi / 180.0;
+/// Step 4: a ridge pixel belongs to a line if within this many filter scales of it.
+constexpr double kNearLineSigmas = 1.5;
+/// Step 5: side bands from 3 to 10 filter scales from the line (outside the needle's own blur,
+/// wide enough that an interface's step in echogenicity outweighs a reverberation copy).
+/// Step 6: the tip is where the cross-line contrast falls below kTipLevel of the shaft's
+/// level, its median along the traced segment (the needle fades towards its tip, and a streak
+/// beyond it is fainter still). Chosen on the even frames of the in-vitro set (0.3-0.4 equally
+/// good, 0.5 cuts fading tips short), checked on the odd ones.
+constexpr double kTipLevel = 0.35;
+constexpr double kShaftLevelQuantile = 0.5;
+constexpr double kBandInnerSigmas = 3.0, kBandOuterSigmas = 10.0;
+/// Step 4: an end of a segment within this of the frame's border lies on the border [px].
+constexpr double kBorderMargin_px = 3.0;
+/// Step 5: power of the side symmetry in the score: an interface between media whose
+/// echogenicity differs by half scores an eighth, a needle inside one medium nearly 1.
+constexpr double kSymmetryPower = 3.0;
+/// Step 5: a ridge pixel is aligned with the line if its orientation is within this [rad].
+constexpr double kAlignedTolerance_rad = 15.0 * kPi / 180.0;
+
+/// The Hessian ridge filter's output: strength (>= 0) and line direction per pixel.
+struct RidgeMap {
+  cv::Mat strength;        ///< CV_32F, bright-line strength
+  cv::Mat dxy, half_diff;  ///< CV_32F, Hessian parts the line direction is computed from
+  cv::Mat smooth;          ///< CV_32F, the frame smoothed at the filter scale
+  float threshold = 0.0F;
+};
+
+struct Line {
+  cv::Point2d point;  ///< a point on the line
+  cv::Point2d dir;    ///< unit direction
+};
+
+struct Candidate {
+  Line line;
+  double t0 = 0.0, t1 = 0.0;  ///< visible segment along line.dir from line.point
+  NeedleSegment cues;
+  double score = 0.0;
+};
+
+cv::Point2d at(const Line& l, double t) {
+  return l.point + t * l.dir;
+}
+
+float sample(const cv::Mat& m, cv::Point2d p) {
+  const int c = static_cast<int>(std::lround(p.x)), r = static_cast<int>(std::lround(p.y));
+  if (c < 0 || r < 0 || c >= m.cols || r >= m.rows)
+    return 0.0F;
+  return m.at<float>(r, c);
+}
+
+/// Step 2: Hessian of the frame smoothed at sigma; strength = -lambda_min - |lambda_max| where
+/// positive (a bright line, not a blob), direction = the eigenvector of lambda_max.
+RidgeMap ridgeFilter(const cv::Mat& grey8, double sigma_px) {
+  RidgeMap r;
+  grey8.convertTo(r.smooth, CV_32F);
+  cv::GaussianBlur(r.smooth, r.smooth, cv::Size(), sigma_px);
+  cv::Mat dxx, dyy, dxy;
+  cv::Sobel(r.smooth, dxx, CV_32F, 2, 0, 3);
+  cv::Sobel(r.smooth, dyy, CV_32F, 0, 2, 3);
+  cv::Sobel(r.smooth, dxy, CV_32F, 1, 1, 3);
+  cv::Mat half_trace = 0.5F * (dxx + dyy), half_diff = 0.5F * (dxx - dyy), root;
+  cv::magnitude(half_diff, dxy, root);
+  cv::Mat lmin = half_trace - root, lmax = cv::abs(half_trace + root);
+  r.strength = cv::max(-lmin - lmax, 0.0F);
+  r.dxy = dxy;
+  r.half_diff = half_diff;
+  return r;
+}
+
+/// The ridge's line direction at p, in [-pi/2, pi/2] [rad].
+double ridgeDirection(const RidgeMap& r, cv::Point2d p) {
+  return 0.5 * std::atan2(2.0 * sample(r.dxy, p), 2.0 * sample(r.half_diff, p));
+}
+
+/// Step 3 (threshold): the kRidgeQuantile quantile of the positive ridge strengths.
+float ridgeThreshold(const cv::Mat& strength) {
+  std::vector<float> v;
+  v.reserve(strength.total() / 4);
+  for (int y = 0; y < strength.rows; y += 2) {
+    const float* s = strength.ptr<float>(y);
+    for (int x = 0; x < strength.cols; x += 2)
+      v.push_back(s[x]);
+  }
+  if (v.empty())
+    return 0.0F;
+  auto k = v.begin() + static_cast<long>(kRidgeQuantile * static_cast<double>(v.size() - 1));
+  std::nth_element(v.begin(), k, v.end());
+  return std::max(*k, 1e-3F);
+}
+
+/// Step 3: Hough lines on the strongest ridge pixels, strongest first, duplicates merged.
+std::vector<Line> candidateLines(const RidgeMap& ridge, double min_length_px) {
+  cv::Mat binary = ridge.strength > ridge.threshold;
+  std::vector<cv::Vec2f> hough;
+  const int votes = std::max(10, static_cast<int>(0.5 * min_length_px));
+  cv::HoughLines(binary, hough, 1.0, kPi / 180.0, votes);
+  std::vector<cv::Vec2f> kept;
+  for (const cv::Vec2f& h : hough) {
+    bool same = false;
+    for (const cv::Vec2f& k : kept) {
+      double dt = std::abs(h[1] - k[1]);
+      dt = std::min(dt, kPi - dt);
+      const double dr = std::abs(std::abs(h[0]) - std::abs(k[0]));
+      same = same || (dt < kSameLineTheta_rad && dr < kSameLineRho_px);
+    }
+    if (!same)
+      kept.push_back(h);
+    if (static_cast<int>(kept.size()) >= kMaxCandidates)
+      break;
+  }
+  std::vector<Line> lines;
+  for (const cv::Vec2f& k : kept) {
+    const cv::Point2d n(std::cos(k[1]), std::sin(k[1]));
+    lines.push_back({k[0] * n, cv::Point2d(-n.y, n.x)});
+  }
+  return lines;
+}
+
+/// Step 4: the parameter range of the line inside the frame.
+bool lineSpan(const Line& l, cv::Size size, double* t_lo, double* t_hi) {
+  double lo = -1e9, hi = 1e9;
+  const double p[2] = {l.point.x, l.point.y}, d[2] = {l.dir.x, l.dir.y};
+  const double mx[2] = {size.width - 1.0, size.height - 1.0};
+  for (int i = 0; i < 2; ++i) {
+    if (std::abs(d[i]) < 1e-12) {
+      if (p[i] < 0 || p[i] > mx[i])
+        return false;
+      continue;
+    }
+    double a = (0 - p[i]) / d[i], b = (mx[i] - p[i]) / d[i];
+    if (a > b)
+      std::swap(a, b);
+    lo = std::max(lo, a);
+    hi = std::min(hi, b);
+  }
+  *t_lo = lo;
+  *t_hi = hi;
+  return hi > lo;
+}
+
+/// Step 4: the strongest run of ridge along the line (gaps up to max_gap bridged).
+bool traceSegment(const RidgeMap& ridge, const Line& l, double sigma, double max_gap, double* t0,
+                  double* t1) {
+  double lo = 0, hi = 0;
+  if (!lineSpan(l, ridge.strength.size(), &lo, &hi))
+    return false;
+  const cv::Point2d n(-l.dir.y, l.dir.x);
+  const int reach = std::max(1, static_cast<int>(std::lround(kNearLineSigmas * sigma)));
+  double best = 0, run_sum = 0, run_start = lo, last_on = lo - 2 * max_gap;
+  for (double t = lo; t <= hi; t += 1.0) {
+    float v = 0.0F;
+    for (int k = -reach; k <= reach; ++k)
+      v = std::max(v, sample(ridge.strength, at(l, t) + k * n));
+    if (v <= ridge.threshold)
+      continue;
+    if (t - last_on > max_gap) {
+      run_sum = 0;
+      run_start = t;
+    }
+    run_sum += v;
+    last_on = t;
+    if (run_sum > best) {
+      best = run_sum;
+      *t0 = run_start;
+      *t1 = t;
+    }
+  }
+  return best > 0;
+}
+
+/// Step 4: weighted least-squares line through the ridge pixels near the segment.
+Line refitLine(const RidgeMap& ridge, const Line& l, double t0, double t1, double sigma) {
+  const cv::Point2d n(-l.dir.y, l.dir.x);
+  const int reach = std::max(1, static_cast<int>(std::lround(kNearLineSigmas * sigma)));
+  double sw = 0, sx = 0, sy = 0, sxx = 0, syy = 0, sxy = 0;
+  for (double t = t0; t <= t1; t += 1.0) {
+    for (int k = -reach; k <= reach; ++k) {
+      const cv::Point2d p = at(l, t) + k * n;
+      const double w = sample(ridge.strength, p) - ridge.threshold;
+      if (w <= 0)
+        continue;
+      const double x = std::round(p.x), y = std::round(p.y);
+      sw += w, sx += w * x, sy += w * y, sxx += w * x * x, syy += w * y * y, sxy += w * x * y;
+    }
+  }
+  if (sw <= 0)
+    return l;
+  const double mx = sx / sw, my = sy / sw;
+  const double cxx = sxx / sw - mx * mx, cyy = syy / sw - my * my, cxy = sxy / sw - mx * my;
+  const double phi = 0.5 * std::atan2(2 * cxy, cxx - cyy);
+  cv::Point2d dir(std::cos(phi), std::sin(phi));
+  if (dir.dot(l.dir) < 0)
+    dir = -dir;
+  return {cv::Point2d(mx, my), dir};
+}
+
+/// Step 5: contrast, side symmetry, coherence and evidence of a candidate segment.
+void measureCues(const RidgeMap& ridge, Candidate* c, double sigma) {
+  const cv::Point2d n(-c->line.dir.y, c->line.dir.x);
+  double on = 0, a = 0, b = 0, a2 = 0, b2 = 0, aligned = 0, ridge_px = 0;
+  int count = 0, band = 0;
+  const double lo = kBandInnerSigmas * sigma, hi = kBandOuterSigmas * sigma;
+  const double line_angle = std::atan2(c->line.dir.y, c->line.dir.x);
+  for (double t = c->t0; t <= c->t1; t += 1.0) {
+    const cv::Point2d p = at(c->line, t);
+    on += sample(ridge.smooth, p);
+    ++count;
+    for (double o = lo; o <= hi; o += 1.0) {
+      const double va = sample(ridge.smooth, p + o * n), vb = sample(ridge.smooth, p - o * n);
+      a += va, a2 += va * va, b += vb, b2 += vb * vb;
+      ++band;
+    }
+    if (sample(ridge.strength, p) > ridge.threshold) {
+      double dt = std::abs(ridgeDirection(ridge, p) - line_angle);
+      dt = std::fmod(dt, kPi);
+      dt = std::min(dt, kPi - dt);
+      aligned += dt < kAlignedTolerance_rad ? 1.0 : 0.0;
+      ridge_px += 1.0;
+    }
+  }
+  if (count == 0 || band == 0)
+    return;
+  on /= count;
+  const double ma = a / band, mb = b / band;
+  const double var = 0.5 * (a2 / band - ma * ma + b2 / band - mb * mb);
+  const double noise = std::sqrt(std::max(var, 1.0));
+  NeedleSegment& s = c->cues;
+  s.contrast = on - 0.5 * (ma + mb);
+  s.symmetry = (std::min(ma, mb) + 1.0) / (std::max(ma, mb) + 1.0);
+  s.coherence = ridge_px > 0 ? aligned / ridge_px : 0.0;
+  const double length = c->t1 - c->t0;
+  s.evidence = s.contrast / noise * std::sqrt(std::max(length, 0.0) / (4.0 * sigma));
+  c->score = s.evidence * std::pow(s.symmetry, kSymmetryPower) * s.coherence;
+}
+
+/// Whether p lies within kBorderMargin_px of the frame's border.
+bool onBorder(cv::Point2d p, cv::Size size) {
+  return p.x < kBorderMargin_px || p.y < kBorderMargin_px ||
+         p.x > size.width - 1 - kBorderMargin_px || p.y > size.height - 1 - kBorderMargin_px;
+}
+
+/// Distance from p along dir to the frame's border.
+double rayToBorder(cv::Point2d p, cv::Point2d dir, cv::Size size) {
+  double t = 1e9;
+  if (dir.x > 1e-9)
+    t = std::min(t, (size.width - 1 - p.x) / dir.x);
+  if (dir.x < -1e-9)
+    t = std::min(t, -p.x / dir.x);
+  if (dir.y > 1e-9)
+    t = std::min(t, (size.height - 1 - p.y) / dir.y);
+  if (dir.y < -1e-9)
+    t = std::min(t, -p.y / dir.y);
+  return std::max(t, 0.0);
+}
+
+/// Step 6: orient the segment tail -> tip from the entry side.
+void orientByEntry(const Candidate& c, EntrySide entry, cv::Size size, NeedleSegment* s) {
+  cv::Point2d a = at(c.line, c.t0), b = at(c.line, c.t1);
+  bool a_is_tail = true;
+  switch (entry) {
+    case EntrySide::kLeft:
+      a_is_tail = a.x < b.x;
+      break;
+    case EntrySide::kRight:
+      a_is_tail = a.x > b.x;
+      break;
+    case EntrySide::kTop:
+      a_is_tail = a.y < b.y;
+      break;
+    case EntrySide::kBottom:
+      a_is_tail = a.y > b.y;
+      break;
+    case EntrySide::kAuto: {
+      // The needle comes in from the border its shaft points to: the end with the shorter
+      // way out along the shaft is the entry.
+      const cv::Point2d d = (b - a) / std::max(cv::norm(b - a), 1e-9);
+      a_is_tail = rayToBorder(a, -d, size) <= rayToBorder(b, d, size);
+      break;
+    }
+  }
+  s->tail_px = a_is_tail ? a : b;
+  s->tip_px = a_is_tail ? b : a;
+  s->angle_rad = std::atan2(s->tip_px.y - s->tail_px.y, s->tip_px.x - s->tail_px.x);
+}
+
+/// Cross-line contrast at p: the smoothed frame on the line minus its mean in the side bands.
+double crossContrast(const RidgeMap& ridge, cv::Point2d p, cv::Point2d n, double sigma) {
+  double side = 0;
+  int count = 0;
+  for (double o = kBandInnerSigmas * sigma; o <= kBandOuterSigmas * sigma; o += 1.0) {
+    side += sample(ridge.smooth, p + o * n) + sample(ridge.smooth, p - o * n);
+    count += 2;
+  }
+  // The line's own value: the brightest within the ridge filter's reach across it (the fitted
+  // line may sit a pixel or two off the shaft's centre towards the tip).
+  const int reach = std::max(1, static_cast<int>(std::lround(kNearLineSigmas * sigma)));
+  float on = 0.0F;
+  for (int k = -reach; k <= reach; ++k)
+    on = std::max(on, sample(ridge.smooth, p + k * n));
+  return on - side / std::max(count, 1);
+}
+
+/// Step 6 (tip): walking from the tail, the needle ends where its cross-line contrast stays
+/// below kTipLevel of the shaft's level for more than max_gap (a faint
+/// streak beyond the tip passes the ridge threshold but not this).
+void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, NeedleSegment* s) {
+  const double length = cv::norm(s->tip_px - s->tail_px);
+  if (length < 1.0)
+    return;
+  const cv::Point2d d = (s->tip_px - s->tail_px) / length, n(-d.y, d.x);
+  std::vector<double> c;
+  for (double u = 0; u <= length; u += 1.0)
+    c.push_back(crossContrast(ridge, s->tail_px + u * d, n, sigma));
+  std::vector<double> smooth(c.size());
+  for (std::size_t i = 0; i < c.size(); ++i) {
+    const std::size_t a = i < 2 ? 0 : i - 2, b = std::min(c.size() - 1, i + 2);
+    double sum = 0;
+    for (std::size_t k = a; k <= b; ++k)
+      sum += c[k];
+    smooth[i] = sum / static_cast<double>(b - a + 1);
+  }
+  std::vector<double> sorted = smooth;
+  const auto k = static_cast<long>(kShaftLevelQuantile * static_cast<double>(sorted.size() - 1));
+  std::nth_element(sorted.begin(), sorted.begin() + k, sorted.end());
+  const double half = kTipLevel * sorted[static_cast<std::size_t>(k)];
+  if (half <= 0)
+    return;
+  double last = 0;
+  for (std::size_t i = 0; i < smooth.size(); ++i) {
+    const double u = static_cast<double>(i);
+    if (u - last > max_gap)
+      break;
+    if (smooth[i] >= half)
+      last = u;
+  }
+  s->tip_px = s->tail_px + last * d;
+}
+
+/// Steps 4-5 for one Hough line: trace, refit, trace again, measure.
+std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
+                                 const AcquisitionOptions& o) {
+  Candidate c;
+  c.line = line;
+  if (!traceSegment(ridge, c.line, o.ridge_sigma_px, o.max_gap_px, &c.t0, &c.t1))
+    return {};
+  for (int pass = 0; pass < 2; ++pass) {
+    c.line = refitLine(ridge, c.line, c.t0, c.t1, o.ridge_sigma_px);
+    if (!traceSegment(ridge, c.line, o.ridge_sigma_px, o.max_gap_px, &c.t0, &c.t1))
+      return {};
+  }
+  if (c.t1 - c.t0 < o.min_length_px)
+    return {};
+  // A line running from border to border has no tip in view: an interface, not a needle.
+  const cv::Size size = ridge.strength.size();
+  if (onBorder(at(c.line, c.t0), size) && onBorder(at(c.line, c.t1), size))
+    return {};
+  measureCues(ridge, &c, o.ridge_sigma_px);
+  return c;
+}
+
+std::string summary(const NeedleSegment& s) {
+  std::ostringstream out;
+  out.precision(3);
+  out << "needle " << s.length_px() << " px, tip (" << s.tip_px.x << ", " << s.tip_px.y
+      << "), evidence " << s.evidence << ", symmetry " << s.symmetry << ", coherence "
+      << s.coherence;
+  return out.str();
+}
+
+}  // namespace
+
+std::string toString(EntrySide side) {
+  switch (side) {
+    case EntrySide::kLeft:
+      return "left";
+    case EntrySide::kRight:
+      return "right";
+    case EntrySide::kTop:
+      return "top";
+    case EntrySide::kBottom:
+      return "bottom";
+    case EntrySide::kAuto:
+      break;
+  }
+  return "auto";
+}
+
+std::optional<EntrySide> entrySideFromString(const std::string& name) {
+  for (EntrySide s : {EntrySide::kAuto, EntrySide::kLeft, EntrySide::kRight, EntrySide::kTop,
+                      EntrySide::kBottom}) {
+    if (toString(s) == name)
+      return s;
+  }
+  return std::nullopt;
+}
+
+void AcquisitionOptions::validate() const {
+  auto check = [](bool ok, const char* field, double v) {
+    if (!ok) {
+      throw std::invalid_argument(std::string("AcquisitionOptions.") + field + " = " +
+                                  std::to_string(v) + " is out of range");
+    }
+  };
+  check(std::isfinite(ridge_sigma_px) && ridge_sigma_px >= 0.5 && ridge_sigma_px <= 20,
+        "ridge_sigma_px", ridge_sigma_px);
+  check(std::isfinite(min_length_px) && min_length_px >= 5, "min_length_px", min_length_px);
+  check(std::isfinite(max_gap_px) && max_gap_px >= 0, "max_gap_px", max_gap_px);
+  check(std::isfinite(min_evidence) && min_evidence >= 0, "min_evidence", min_evidence);
+}
+
+double NeedleSegment::length_px() const {
+  return cv::norm(tip_px - tail_px);
+}
+
+cv::Mat toGrey8(const cv::Mat& frame, std::string* problem) {
+  std::ostringstream why;
+  cv::Mat grey;
+  if (frame.empty()) {
+    why << "empty frame";
+  } else if (frame.depth() != CV_8U && frame.depth() != CV_16U) {
+    why << "unsupported pixel depth (type " << frame.type() << ", " << frame.cols << " x "
+        << frame.rows << "): need 8- or 16-bit";
+  } else if (frame.channels() != 1 && frame.channels() != 3 && frame.channels() != 4) {
+    why << "unsupported channel count " << frame.channels() << ": need 1, 3 or 4";
+  } else {
+    cv::Mat mono = frame;
+    if (frame.channels() == 3)
+      cv::cvtColor(frame, mono, cv::COLOR_BGR2GRAY);
+    if (frame.channels() == 4)
+      cv::cvtColor(frame, mono, cv::COLOR_BGRA2GRAY);
+    if (mono.depth() == CV_16U) {
+      double mx = 0;
+      cv::minMaxLoc(mono, nullptr, &mx);
+      mono.convertTo(grey, CV_8U, mx > 0 ? 255.0 / mx : 1.0);
+    } else {
+      grey = mono;
+    }
+  }
+  if (problem)
+    *problem = why.str();
+  return grey;
+}
+
+NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options) {
+  NeedleSegment none;
+  try {
+    options.validate();
+  } catch (const std::invalid_argument& e) {
+    none.message = e.what();
+    return none;
+  }
+  std::string problem;
+  const cv::Mat grey = toGrey8(frame, &problem);  // step 1
+  if (grey.empty()) {
+    none.message = problem;
+    return none;
+  }
+  RidgeMap ridge = ridgeFilter(grey, options.ridge_sigma_px);  // step 2
+  ridge.threshold = ridgeThreshold(ridge.strength);
+  std::optional<Candidate> best;
+  for (const Line& line : candidateLines(ridge, options.min_length_px)) {  // step 3
+    std::optional<Candidate> c = examine(ridge, line, options);            // steps 4-5
+    if (c && (!best || c->score > best->score))
+      best = c;
+  }
+  if (!best) {
+    none.message = "no line of at least " + std::to_string(options.min_length_px) + " px";
+    return none;
+  }
+  NeedleSegment s = best->cues;  // step 6
+  orientByEntry(*best, options.entry, grey.size(), &s);
+  tipAtHalfLevel(ridge, options.ridge_sigma_px, options.max_gap_px, &s);
+  if (best->score < options.min_evidence) {
+    s.found = false;
+    s.message = "best line too weak to be a needle: " + summary(s);
+    return s;
+  }
+  s.found = true;
+  s.message = summary(s);
+  return s;
+}
+
+// ---- SequenceTracker --------------------------------------------------------------------------
+
+SequenceTracker::SequenceTracker(const AcquisitionOptions& options) : options_(options) {
+  options_.validate();
+}
+
+bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px) const {
+  double da = std::abs(a.angle_rad - b.angle_rad);
+  da = std::min(da, 2 * kPi - da);
+  const cv::Point2d n(-std::sin(a.angle_rad), std::cos(a.angle_rad));
+  const double off_line = std::abs((b.tip_px - a.tip_px).dot(n));
+  return da < kGateAngle_rad && off_line < kGateLine_px && cv::norm(b.tip_px - a.tip_px) < tip_px;
+}
+
+SequenceTracker::Output SequenceTracker::onFrame(const cv::Mat& frame) {
+  if (!frame.empty() && !last_frame_.empty() && frame.size() == last_frame_.size() &&
+      frame.type() == last_frame_.type() && cv::norm(frame, last_frame_, cv::NORM_INF) == 0) {
+    Output repeated = last_output_;
+    repeated.confident = false;
+    repeated.segment.message =
+        "repeated frame (identical to the previous): " + repeated.segment.message;
+    return repeated;
+  }
+  last_frame_ = frame.clone();
+  last_output_ = update(acquireNeedle(frame, options_));
+  return last_output_;
+}
+
+SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
+  Output out;
+  if (track_) {
+    // Motion model: the tip moves along the needle's axis at the last speed.
+    NeedleSegment pred = *track_;
+    const cv::Point2d axis(std::cos(pred.angle_rad), std::sin(pred.angle_rad));
+    pred.tip_px += velocity_px_ * axis;
+    if (d.found && agrees(pred, d, kGateTip_px)) {
+      velocity_px_ = 0.5 * velocity_px_ + 0.5 * (d.tip_px - track_->tip_px).dot(axis);
+      const bool close = cv::norm(d.tip_px - pred.tip_px) < kAgreeTip_px;
+      agreeing_ = close ? agreeing_ + 1 : 1;
+      track_ = d;
+      missed_ = 0;
+      candidate_.reset();
+      out.segment = d;
+      out.confident = agreeing_ >= kConfirmFrames;
+      return out;
+    }
+    if (d.found) {  // gated out: re-acquire only after agreeing frames
+      if (candidate_ && agrees(*candidate_, d, kAgreeTip_px)) {
+        ++candidate_count_;
+      } else {
+        candidate_count_ = 1;
+      }
+      candidate_ = d;
+      if (candidate_count_ >= kReacquireAfter) {
+        track_ = d;
+        velocity_px_ = 0;
+        agreeing_ = candidate_count_;
+        missed_ = 0;
+        out.segment = d;
+        out.segment.message = "re-acquired: " + d.message;
+        return out;
+      }
+    }
+    if (++missed_ > kMaxPredicted) {
+      track_.reset();
+      agreeing_ = 0;
+      out.segment = d;
+      out.segment.found = false;
+      return out;
+    }
+    pred.found = true;
+    pred.message =
+        "predicted along the axis (" + (d.found ? "detection gated out" : d.message) + ")";
+    out.segment = pred;
+    out.predicted = true;
+    return out;
+  }
+  if (d.found) {
+    track_ = d;
+    velocity_px_ = 0;
+    agreeing_ = 1;
+    missed_ = 0;
+  }
+  out.segment = d;
+  return out;
+}
+
+}  // namespace needle_guidance::imaging
