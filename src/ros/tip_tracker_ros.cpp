@@ -93,6 +93,32 @@ TipTrackerRos::TipTrackerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   settings_.confident_heading_std_rad =
       ros_params::number(private_nh, "confident_heading_std_rad",
                          settings_.confident_heading_std_rad, 1e-4, 1.0, "rad");
+  // drive: the robot's NeedleDrive predicts the tip (the image-guided loop); axis: no robot (a
+  // bag, a recorded or freehand sequence): the needle is acquired without a prior and followed
+  // along its own axis (SequenceTracker).
+  const std::string model = ros_params::text(private_nh, "motion_model", "drive");
+  if (model != "drive" && model != "axis") {
+    throw std::runtime_error("parameter " + private_nh.resolveName("motion_model") +
+                             " must be drive or axis, not '" + model + "'");
+  }
+  axis_model_ = model == "axis";
+  if (axis_model_) {
+    imaging::AcquisitionOptions options;
+    const std::string entry = ros_params::text(private_nh, "entry", "auto");
+    const auto side = imaging::entrySideFromString(entry);
+    if (!side) {
+      throw std::runtime_error("parameter " + private_nh.resolveName("entry") +
+                               " must be auto, left, right, top or bottom, not '" + entry + "'");
+    }
+    options.entry = *side;
+    sequence_ = std::make_unique<imaging::SequenceTracker>(options);
+    // Calibration as parameters (a recording without an ImageCalibration message); a message
+    // on `calibration` replaces it. 0 = wait for the message.
+    geometry_.pixel_size_m =
+        ros_params::number(private_nh, "pixel_size_m", 0.0, 0.0, 0.01, "m (0 = from the message)");
+    geometry_.origin_m = imaging::Point2(ros_params::number(private_nh, "origin_x_m", 0.0, -10.0, 10.0, "m"),
+                                         ros_params::number(private_nh, "origin_y_m", 0.0, -10.0, 10.0, "m"));
+  }
   tip_pub_ = private_nh.advertise<NeedleTip>("tip", 10);
   debug_pub_ = private_nh.advertise<sensor_msgs::Image>("debug_image", 2);
   calibration_sub_ = nh.subscribe("calibration", 1, &TipTrackerRos::onCalibration, this);
@@ -113,6 +139,17 @@ void TipTrackerRos::onCalibration(const ImageCalibrationConstPtr& msg) {
   config.geometry.pixel_size_m = msg->pixel_size_m;
   config.geometry.cols = static_cast<int>(msg->width);
   config.geometry.rows = static_cast<int>(msg->height);
+  if (axis_model_) {
+    if (!(msg->pixel_size_m > 0.0) || !std::isfinite(msg->pixel_size_m) ||
+        !std::isfinite(msg->origin_x_m) || !std::isfinite(msg->origin_y_m)) {
+      ROS_ERROR_STREAM_NAMED(kName, "tip_tracker: calibration refused: pixel size "
+                                        << msg->pixel_size_m << " m or origin not finite/positive");
+      return;
+    }
+    geometry_ = config.geometry;
+    ROS_INFO_STREAM_NAMED(kName, "tip_tracker: calibration " << msg->pixel_size_m * 1e3 << " mm pixels");
+    return;
+  }
   try {
     auto tracker = std::make_unique<imaging::TipTracker>(config);
     tracker_ = std::move(tracker);  // the state before the new calibration is not kept
@@ -162,7 +199,54 @@ void TipTrackerRos::applyDrives(const ros::Time& stamp) {
   }
 }
 
+void TipTrackerRos::onImageWithoutRobot(const sensor_msgs::ImageConstPtr& msg) {
+  if (!(geometry_.pixel_size_m > 0.0)) {
+    ROS_WARN_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
+                                   "tip_tracker: no calibration (message or ~pixel_size_m) yet; "
+                                   "frame ignored");
+    return;
+  }
+  cv::Mat frame;
+  try {
+    // Any depth and channel count cv_bridge can read; acquisition converts 8/16-bit mono or
+    // colour to grey and refuses the rest with the reason.
+    frame = cv_bridge::toCvShare(msg)->image;
+  } catch (const std::exception& e) {
+    ROS_WARN_STREAM_THROTTLE_NAMED(kThrottle_s, kName, "tip_tracker: image encoding '"
+                                                          << msg->encoding << "' unusable: " << e.what());
+    return;
+  }
+  const imaging::SequenceTracker::Output out = sequence_->onFrame(frame);
+  ++frames_;
+  NeedleTip tip;
+  tip.header.stamp = msg->header.stamp;
+  tip.header.frame_id = "scene";
+  if (!out.segment.found) {
+    tip.source = "not_found";  // nothing usable: never a confident tip
+    tip.pose.x = tip.pose.y = tip.pose.theta = std::nan("");
+    tip_pub_.publish(tip);
+    return;
+  }
+  const imaging::Point2 p = geometry_.toScene(out.segment.tip_px);
+  tip.pose.x = p.x();
+  tip.pose.y = p.y();
+  tip.pose.theta = std::atan2(-std::sin(out.segment.angle_rad), std::cos(out.segment.angle_rad));
+  tip.bevel = "";  // a recording does not tell the bevel
+  tip.source = out.predicted ? "predicted" : "tracked";
+  tip.confident = out.confident;
+  // About 3 px of tip and 2 degrees of heading (one sigma), more when only predicted.
+  const double s_px = out.predicted ? 9.0 : 3.0;
+  const double s_m = s_px * geometry_.pixel_size_m;
+  tip.covariance[0] = tip.covariance[4] = s_m * s_m;
+  tip.covariance[8] = std::pow((out.predicted ? 6.0 : 2.0) * kPi / 180.0, 2);
+  tip_pub_.publish(tip);
+}
+
 void TipTrackerRos::onImage(const sensor_msgs::ImageConstPtr& msg) {
+  if (axis_model_) {
+    onImageWithoutRobot(msg);
+    return;
+  }
   if (!tracker_) {
     ROS_WARN_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
                                    "tip_tracker: no calibration yet; frame ignored");

@@ -13,6 +13,7 @@
 
 #include "needle_guidance/ImageCalibration.h"
 #include "needle_guidance/NeedleDrive.h"
+#include "needle_guidance/imaging/needle_acquisition.h"
 #include "needle_guidance/imaging/tip_tracker.h"
 #include "needle_guidance/scene/scene.h"
 
@@ -33,6 +34,9 @@ private:
   void onImage(const sensor_msgs::ImageConstPtr& msg);
   /// Feeds the tracker the robot's drive messages stamped at or before `stamp`.
   void applyDrives(const ros::Time& stamp);
+  /// ~motion_model axis: a recorded or freehand sequence, no robot. SequenceTracker (needle
+  /// acquisition without a prior, motion along the needle's own axis, earned confidence).
+  void onImageWithoutRobot(const sensor_msgs::ImageConstPtr& msg);
 
   scene::Scene scene_;
   imaging::TrackerConfig settings_;  ///< parameters that do not come from the calibration
@@ -42,6 +46,9 @@ private:
   bool have_entry_ = false;
   NeedleDrive last_drive_;
   std::uint64_t frames_ = 0;
+  bool axis_model_ = false;  ///< ~motion_model: false = drive (the robot's), true = axis
+  std::unique_ptr<imaging::SequenceTracker> sequence_;
+  imaging::ImageGeometry geometry_;  ///< calibration (axis model)
   ros::Subscriber image_sub_;
   ros::Subscriber calibration_sub_;
   ros::Subscriber drive_sub_;
