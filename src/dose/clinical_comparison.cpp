@@ -1,5 +1,6 @@
 // The clinical comparison of dicom_case.h: the clinical RTPLAN's dwell times against our LP
 // (dissertation 6.3.2) on the same dose engine, dose points and evaluation grid.
+#include <algorithm>
 #include <chrono>
 #include <stdexcept>
 
@@ -34,7 +35,8 @@ PlanEvaluation evaluatePlan(const HdrCase& c, const Tg43Source& source,
 }
 
 ClinicalComparison compareWithClinical(const DicomCase& dc, const Tg43Source& source,
-                                       const std::vector<double>& urethra_scales, double grid_m) {
+                                       const std::vector<double>& urethra_scales, double grid_m,
+                                       const std::vector<double>& urethra_max_factors) {
   ClinicalComparison out;
   auto t0 = std::chrono::steady_clock::now();
   const Eigen::MatrixXd d = doseRateMatrix(dc.planning, source);
@@ -49,32 +51,34 @@ ClinicalComparison compareWithClinical(const DicomCase& dc, const Tg43Source& so
   const double c_v100 = indexOr(out.clinical.indices, "prostate_V100", 0.0);
   const double c_u = indexOr(out.clinical.indices, "urethra_D10", big);
   const double c_r = indexOr(out.clinical.indices, "rectum_D2cc", big);
-  for (const double scale : urethra_scales) {
-    HdrCase c = dc.planning;
-    for (Criterion& k : c.criteria) {
-      if (k.structure == "urethra") {
-        k.weight_under *= scale;
-        k.weight_over *= scale;
+  for (const double max_factor : urethra_max_factors)
+    for (const double scale : urethra_scales) {
+      HdrCase c = dc.planning;
+      for (Criterion& k : c.criteria) {
+        if (k.structure == "urethra") {
+          k.weight_over *= scale;
+          k.max_Gy = std::max(k.min_Gy, k.max_Gy * max_factor);
+        }
       }
+      const DwellResult lp = optimizeLp(c, d);
+      if (!lp.ok()) {
+        throw std::runtime_error("compareWithClinical: LP failed at urethra scale " +
+                                 std::to_string(scale));
+      }
+      const auto idx =
+          comparisonIndices(structureDoses(c, source, lp.times_s, grid_m), c.prescription_Gy);
+      FrontPoint p;
+      p.urethra_weight_scale = scale;
+      p.urethra_max_factor = max_factor;
+      p.v100_pct = indexOr(idx, "prostate_V100", 0.0);
+      p.urethra_d10_Gy = indexOr(idx, "urethra_D10", 0.0);
+      p.rectum_d2cc_Gy = indexOr(idx, "rectum_D2cc", 0.0);
+      p.lp_s = lp.seconds;
+      p.dominates_clinical =
+          p.v100_pct >= c_v100 && p.urethra_d10_Gy <= c_u && p.rectum_d2cc_Gy <= c_r;
+      out.clinical_dominated = out.clinical_dominated || p.dominates_clinical;
+      out.front.push_back(p);
     }
-    const DwellResult lp = optimizeLp(c, d);
-    if (!lp.ok()) {
-      throw std::runtime_error("compareWithClinical: LP failed at urethra scale " +
-                               std::to_string(scale));
-    }
-    const auto idx =
-        comparisonIndices(structureDoses(c, source, lp.times_s, grid_m), c.prescription_Gy);
-    FrontPoint p;
-    p.urethra_weight_scale = scale;
-    p.v100_pct = indexOr(idx, "prostate_V100", 0.0);
-    p.urethra_d10_Gy = indexOr(idx, "urethra_D10", 0.0);
-    p.rectum_d2cc_Gy = indexOr(idx, "rectum_D2cc", 0.0);
-    p.lp_s = lp.seconds;
-    p.dominates_clinical =
-        p.v100_pct >= c_v100 && p.urethra_d10_Gy <= c_u && p.rectum_d2cc_Gy <= c_r;
-    out.clinical_dominated = out.clinical_dominated || p.dominates_clinical;
-    out.front.push_back(p);
-  }
   return out;
 }
 

@@ -1557,6 +1557,8 @@ void writeRtStruct(const HdrCase& c, const std::string& path, const DicomExportC
   put(ds, DCM_StructureSetDate, ctx.study_date, path);
   put(ds, DCM_StructureSetTime, ctx.study_time, path);
   const std::string frame = ctx.frame_uid.empty() ? newUid() : ctx.frame_uid;
+  put(ds, DCM_FrameOfReferenceUID, frame, path);
+  put(ds, DCM_PositionReferenceIndicator, "", path);
   DcmItem* for_item = appendItem(ds, DCM_ReferencedFrameOfReferenceSequence, path);
   put(for_item, DCM_FrameOfReferenceUID, frame, path);
   const int n_structures = static_cast<int>(c.structures.size());
@@ -1603,6 +1605,22 @@ void writeRtStruct(const HdrCase& c, const std::string& path, const DicomExportC
   }
   save(ff, path);
 }
+
+namespace {
+
+/// Median spacing of a channel's consecutive dwell positions [mm] (5 mm if it has one).
+double channelStepMm(const HdrCase& c, const std::vector<std::size_t>& dwells) {
+  std::vector<double> gaps;
+  for (std::size_t i = 0; i + 1 < dwells.size(); ++i) {
+    const double gap = (c.dwells[dwells[i + 1]].position_m - c.dwells[dwells[i]].position_m).norm();
+    if (gap > 1e-6) gaps.push_back(gap);
+  }
+  if (gaps.empty()) return 5.0;
+  std::nth_element(gaps.begin(), gaps.begin() + gaps.size() / 2, gaps.end());
+  return std::round(gaps[gaps.size() / 2] * kMToMm * 100.0) / 100.0;
+}
+
+}  // namespace
 
 void writeRtPlan(const HdrCase& c, const std::string& path, DwellTimeEncoding encoding) {
   writeRtPlan(c, path, encoding, newExportContext());
@@ -1679,6 +1697,12 @@ void writeRtPlan(const HdrCase& c, const std::string& path, DwellTimeEncoding en
   put(src, DCM_SourceIsotopeName, "Ir-192", path);  // every source in config/sources/ is Ir-192
   put(src, DCM_ReferenceAirKermaRate, c.air_kerma_strength_U, path);
   put(src, DCM_SourceManufacturer, c.source, path);
+  put(src, DCM_SourceIsotopeHalfLife, 73.83, path);  // Ir-192 [days]
+  put(src, DCM_SourceStrengthReferenceDate, ctx.study_date, path);
+  put(src, DCM_SourceStrengthReferenceTime, ctx.study_time, path);
+  DcmItem* machine = appendItem(ds, DCM_TreatmentMachineSequence, path);
+  put(machine, DCM_TreatmentMachineName, "afterloader", path);
+  put(machine, DCM_Manufacturer, "needle_guidance", path);
   DcmItem* setup = appendItem(ds, DCM_ApplicationSetupSequence, path);
   put(setup, DCM_ApplicationSetupType, "PERINEAL", path);  // prostate interstitial HDR
   putInt(setup, DCM_ApplicationSetupNumber, 1, path);
@@ -1704,7 +1728,12 @@ void writeRtPlan(const HdrCase& c, const std::string& path, DwellTimeEncoding en
     put(ch, DCM_ChannelTotalTime, channel_s, path);
     put(ch, DCM_SourceMovementType, "STEPWISE", path);
     putInt(ch, DCM_ReferencedROINumber, n_structures + 1 + static_cast<long>(k), path);
+    putInt(ch, DCM_SourceApplicatorNumber, channel_number, path);
     put(ch, DCM_SourceApplicatorID, cat.name.substr(0, 16), path);
+    put(ch, DCM_SourceApplicatorType, "FLEXIBLE", path);
+    put(ch, DCM_SourceApplicatorLength, polylineLength(cat.points_m) * kMToMm, path);
+    put(ch, DCM_SourceApplicatorStepSize, channelStepMm(c, dwells), path);
+    put(ch, DCM_TransferTubeNumber, "", path);
     putInt(ch, DCM_NumberOfControlPoints, static_cast<long>(2 * dwells.size()), path);
     putInt(ch, DCM_ReferencedSourceNumber, 1, path);
     put(ch, DCM_FinalCumulativeTimeWeight, channel_s, path);

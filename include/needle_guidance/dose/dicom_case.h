@@ -99,7 +99,8 @@ struct PlanEvaluation {
 
 /// One LP plan of the urethra-weight sweep.
 struct FrontPoint {
-  double urethra_weight_scale = 1.0;  ///< multiplies the urethra criteria's weights
+  double urethra_weight_scale = 1.0;  ///< multiplies the urethra criteria's over-dose weights
+  double urethra_max_factor = 1.0;    ///< multiplies the urethra criteria's D_max (>= D_min kept)
   double v100_pct = 0.0, urethra_d10_Gy = 0.0, rectum_d2cc_Gy = 0.0, lp_s = 0.0;
   bool dominates_clinical = false;  ///< V100 >=, urethra D10 <=, rectum D2cc <= the clinical plan's
 };
@@ -117,9 +118,11 @@ PlanEvaluation evaluatePlan(const HdrCase& c, const Tg43Source& source,
                             const std::vector<double>& times_s, double grid_m);
 
 /// Plans the LP, evaluates both plans on a grid_m dose grid and sweeps the urethra weight over
-/// `urethra_scales` (empty: no front).
+/// `urethra_scales` for each urethra D_max factor in `urethra_max_factors` (1: Table 6.1's D_max;
+/// below 1 the penalty starts below it). Empty scales: no front.
 ClinicalComparison compareWithClinical(const DicomCase& dc, const Tg43Source& source,
                                        const std::vector<double>& urethra_scales,
-                                       double grid_m = 1e-3);
+                                       double grid_m = 1e-3,
+                                       const std::vector<double>& urethra_max_factors = {1.0});
 
 }  // namespace needle_guidance::dose
