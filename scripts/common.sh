@@ -18,6 +18,7 @@ NG_PACKAGES=(
   ros-core ros-robot-state-publisher librostest-dev python3-rostest python3-rospy rosbash
   python3-actionlib python3-geometry-msgs python3-sensor-msgs python3-visualization-msgs
   python3-tf2-msgs python3-std-srvs python3-matplotlib
+  dicom3tools python3-pydicom  # issue 19: dciodvfy and pydicom check the DICOM-RT export
 )
 
 ng_install() {
