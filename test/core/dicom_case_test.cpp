@@ -271,6 +271,21 @@ TEST(DicomCase, ShippedCaseFileIsTheDefault) {
   const std::string err = errorOf([] { dose::readDicomCaseSettings("/nonexistent/case.yaml"); });
   EXPECT_NE(err.find("/nonexistent/case.yaml"), std::string::npos);
 }
+// Found on the real plan (1 mm slices, 2 mm evaluation grid): a point exactly half-way between
+// two slices used to be tested against both slices' contours, which cancel in the even-odd rule.
+TEST(DicomCase, PointHalfWayBetweenSlicesIsInside) {
+  dose::Structure s;
+  s.name = "prostate";
+  for (const double z : {0.0, 1e-3, 2e-3}) {
+    s.contours.push_back({z, {{-5e-3, -5e-3}, {5e-3, -5e-3}, {5e-3, 5e-3}, {-5e-3, 5e-3}}});
+  }
+  s.normalise();
+  EXPECT_TRUE(s.contains({0.0, 0.0, 0.5e-3}));
+  EXPECT_TRUE(s.contains({0.0, 0.0, 1.5e-3}));
+  EXPECT_FALSE(s.contains({6e-3, 0.0, 0.5e-3}));
+  EXPECT_FALSE(s.contains({0.0, 0.0, 2.6e-3}));
+}
+
 int main(int argc, char** argv) {
   ::testing::InitGoogleTest(&argc, argv);
   return RUN_ALL_TESTS();
