@@ -19,6 +19,7 @@ NG_PACKAGES=(
   python3-actionlib python3-geometry-msgs python3-sensor-msgs python3-visualization-msgs
   python3-tf2-msgs python3-std-srvs python3-matplotlib
   rviz
+  dicom3tools python3-pydicom  # issue 19: dciodvfy and pydicom check the DICOM-RT export
 )
 
 ng_install() {

@@ -982,16 +982,32 @@ DcmItem* appendItem(DcmItem* parent, const DcmTagKey& seq, const std::string& pa
   return item;
 }
 
-void putCommon(DcmDataset* ds, const char* sop_class, const std::string& modality,
-               const std::string& path) {
+/// Patient, General Study, series, Frame of Reference (if any), General Equipment and SOP Common
+/// modules from the context; returns the SOP Instance UID written.
+std::string putCommon(DcmDataset* ds, const char* sop_class, const std::string& modality,
+                      const std::string& path, const DicomExportContext& ctx) {
+  const std::string instance = ctx.sop_instance_uid.empty() ? newUid() : ctx.sop_instance_uid;
+  put(ds, DCM_SpecificCharacterSet, "ISO_IR 100", path);
   put(ds, DCM_SOPClassUID, sop_class, path);
-  put(ds, DCM_SOPInstanceUID, newUid(), path);
+  put(ds, DCM_SOPInstanceUID, instance, path);
   put(ds, DCM_Modality, modality, path);
-  put(ds, DCM_StudyInstanceUID, newUid(), path);
+  put(ds, DCM_StudyInstanceUID, ctx.study_uid.empty() ? newUid() : ctx.study_uid, path);
   put(ds, DCM_SeriesInstanceUID, newUid(), path);
-  put(ds, DCM_PatientName, "needle_guidance^export", path);
-  put(ds, DCM_PatientID, "", path);
+  putInt(ds, DCM_SeriesNumber, ctx.series_number, path);
+  put(ds, DCM_StudyID, ctx.study_id, path);
+  put(ds, DCM_StudyDate, ctx.study_date, path);
+  put(ds, DCM_StudyTime, ctx.study_time, path);
+  put(ds, DCM_ReferringPhysicianName, "", path);
+  put(ds, DCM_AccessionNumber, "", path);
+  put(ds, DCM_PatientName, ctx.patient_name, path);
+  put(ds, DCM_PatientID, ctx.patient_id, path);
+  put(ds, DCM_PatientBirthDate, ctx.patient_birth_date, path);
+  put(ds, DCM_PatientSex, ctx.patient_sex, path);
   put(ds, DCM_Manufacturer, "needle_guidance", path);
+  put(ds, DCM_OperatorsName, "", path);
+  put(ds, DCM_InstanceCreationDate, ctx.study_date, path);
+  put(ds, DCM_InstanceCreationTime, ctx.study_time, path);
+  return instance;
 }
 
 void save(DcmFileFormat& ff, const std::string& path) {
@@ -1430,12 +1446,59 @@ DoseGrid readRtDose(const std::string& path) {
   return readDoseGrid(l);
 }
 
+DicomExportContext newExportContext() {
+  DicomExportContext ctx;
+  ctx.study_uid = newUid();
+  ctx.frame_uid = newUid();
+  return ctx;
+}
+
+DicomExportContext exportContextFrom(const std::string& path) {
+  DcmFileFormat ff;
+  const OFCondition st = ff.loadFile(path.c_str());
+  if (st.bad()) {
+    throw std::invalid_argument("DICOM-RT: " + path + ": cannot read: " + st.text());
+  }
+  DcmDataset* ds = ff.getDataset();
+  DicomExportContext ctx = newExportContext();
+  auto copy = [&](const DcmTagKey& key, std::string& into) {
+    const std::string v = getString(ds, key);
+    if (!v.empty()) into = v;
+  };
+  copy(DCM_PatientName, ctx.patient_name);
+  copy(DCM_PatientID, ctx.patient_id);
+  copy(DCM_PatientBirthDate, ctx.patient_birth_date);
+  copy(DCM_PatientSex, ctx.patient_sex);
+  copy(DCM_StudyInstanceUID, ctx.study_uid);
+  copy(DCM_StudyID, ctx.study_id);
+  copy(DCM_StudyDate, ctx.study_date);
+  copy(DCM_StudyTime, ctx.study_time);
+  // RTSTRUCT: (3006,0010)[0] FrameOfReferenceUID; images: (0020,0052).
+  copy(DCM_FrameOfReferenceUID, ctx.frame_uid);
+  const auto refs = getItems(ds, DCM_ReferencedFrameOfReferenceSequence);
+  if (!refs.empty()) {
+    const std::string v = getString(refs[0], DCM_FrameOfReferenceUID);
+    if (!v.empty()) ctx.frame_uid = v;
+  }
+  return ctx;
+}
+
 void writeRtDose(const DoseGrid& grid, const std::string& path) {
+  writeRtDose(grid, path, newExportContext());
+}
+
+void writeRtDose(const DoseGrid& grid, const std::string& path, const DicomExportContext& ctx) {
   grid.validate("writeRtDose(" + path + ")");
   DcmFileFormat ff;
   DcmDataset* ds = ff.getDataset();
-  putCommon(ds, UID_RTDoseStorage, "RTDOSE", path);
-  put(ds, DCM_FrameOfReferenceUID, newUid(), path);
+  putCommon(ds, UID_RTDoseStorage, "RTDOSE", path, ctx);
+  put(ds, DCM_FrameOfReferenceUID, ctx.frame_uid.empty() ? newUid() : ctx.frame_uid, path);
+  put(ds, DCM_PositionReferenceIndicator, "", path);
+  if (!ctx.plan_uid.empty()) {
+    DcmItem* ref = appendItem(ds, DCM_ReferencedRTPlanSequence, path);
+    put(ref, DCM_ReferencedSOPClassUID, UID_RTPlanStorage, path);
+    put(ref, DCM_ReferencedSOPInstanceUID, ctx.plan_uid, path);
+  }
   put(ds, DCM_ImagePositionPatient,
       formatNumbers(
           {grid.origin_m.x() * kMToMm, grid.origin_m.y() * kMToMm, grid.origin_m.z() * kMToMm}),
@@ -1483,11 +1546,21 @@ void writeRtDose(const DoseGrid& grid, const std::string& path) {
 }
 
 void writeRtStruct(const HdrCase& c, const std::string& path) {
+  writeRtStruct(c, path, newExportContext());
+}
+
+void writeRtStruct(const HdrCase& c, const std::string& path, const DicomExportContext& ctx) {
   DcmFileFormat ff;
   DcmDataset* ds = ff.getDataset();
-  putCommon(ds, UID_RTStructureSetStorage, "RTSTRUCT", path);
+  putCommon(ds, UID_RTStructureSetStorage, "RTSTRUCT", path, ctx);
   put(ds, DCM_StructureSetLabel, c.name.empty() ? "needle_guidance" : c.name.substr(0, 16), path);
-  const std::string frame = newUid();
+  put(ds, DCM_StructureSetDate, ctx.study_date, path);
+  put(ds, DCM_StructureSetTime, ctx.study_time, path);
+  const std::string frame = ctx.frame_uid.empty() ? newUid() : ctx.frame_uid;
+  put(ds, DCM_FrameOfReferenceUID, frame, path);
+  put(ds, DCM_PositionReferenceIndicator, "", path);
+  DcmItem* for_item = appendItem(ds, DCM_ReferencedFrameOfReferenceSequence, path);
+  put(for_item, DCM_FrameOfReferenceUID, frame, path);
   const int n_structures = static_cast<int>(c.structures.size());
   auto add_roi = [&](int number, const std::string& name, const std::string& type) {
     DcmItem* roi = appendItem(ds, DCM_StructureSetROISequence, path);
@@ -1533,7 +1606,28 @@ void writeRtStruct(const HdrCase& c, const std::string& path) {
   save(ff, path);
 }
 
+namespace {
+
+/// Median spacing of a channel's consecutive dwell positions [mm] (5 mm if it has one).
+double channelStepMm(const HdrCase& c, const std::vector<std::size_t>& dwells) {
+  std::vector<double> gaps;
+  for (std::size_t i = 0; i + 1 < dwells.size(); ++i) {
+    const double gap = (c.dwells[dwells[i + 1]].position_m - c.dwells[dwells[i]].position_m).norm();
+    if (gap > 1e-6) gaps.push_back(gap);
+  }
+  if (gaps.empty()) return 5.0;
+  std::nth_element(gaps.begin(), gaps.begin() + gaps.size() / 2, gaps.end());
+  return std::round(gaps[gaps.size() / 2] * kMToMm * 100.0) / 100.0;
+}
+
+}  // namespace
+
 void writeRtPlan(const HdrCase& c, const std::string& path, DwellTimeEncoding encoding) {
+  writeRtPlan(c, path, encoding, newExportContext());
+}
+
+void writeRtPlan(const HdrCase& c, const std::string& path, DwellTimeEncoding encoding,
+                 const DicomExportContext& ctx) {
   const std::string what = "writeRtPlan(" + path + ")";
   if (encoding != DwellTimeEncoding::kStandardCumulative &&
       encoding != DwellTimeEncoding::kPerPairNonCumulative) {
@@ -1570,9 +1664,18 @@ void writeRtPlan(const HdrCase& c, const std::string& path, DwellTimeEncoding en
 
   DcmFileFormat ff;
   DcmDataset* ds = ff.getDataset();
-  putCommon(ds, UID_RTPlanStorage, "RTPLAN", path);
+  putCommon(ds, UID_RTPlanStorage, "RTPLAN", path, ctx);
+  put(ds, DCM_FrameOfReferenceUID, ctx.frame_uid.empty() ? newUid() : ctx.frame_uid, path);
+  put(ds, DCM_PositionReferenceIndicator, "", path);
   put(ds, DCM_RTPlanLabel, c.name.empty() ? "needle_guidance" : c.name.substr(0, 16), path);
+  put(ds, DCM_RTPlanDate, ctx.study_date, path);
+  put(ds, DCM_RTPlanTime, ctx.study_time, path);
   put(ds, DCM_RTPlanGeometry, "PATIENT", path);
+  if (!ctx.structure_set_uid.empty()) {
+    DcmItem* ref = appendItem(ds, DCM_ReferencedStructureSetSequence, path);
+    put(ref, DCM_ReferencedSOPClassUID, UID_RTStructureSetStorage, path);
+    put(ref, DCM_ReferencedSOPInstanceUID, ctx.structure_set_uid, path);
+  }
   put(ds, DCM_BrachyTreatmentTechnique, "INTERSTITIAL", path);
   put(ds, DCM_BrachyTreatmentType, "HDR", path);
   DcmItem* dref = appendItem(ds, DCM_DoseReferenceSequence, path);
@@ -1594,6 +1697,12 @@ void writeRtPlan(const HdrCase& c, const std::string& path, DwellTimeEncoding en
   put(src, DCM_SourceIsotopeName, "Ir-192", path);  // every source in config/sources/ is Ir-192
   put(src, DCM_ReferenceAirKermaRate, c.air_kerma_strength_U, path);
   put(src, DCM_SourceManufacturer, c.source, path);
+  put(src, DCM_SourceIsotopeHalfLife, 73.83, path);  // Ir-192 [days]
+  put(src, DCM_SourceStrengthReferenceDate, ctx.study_date, path);
+  put(src, DCM_SourceStrengthReferenceTime, ctx.study_time, path);
+  DcmItem* machine = appendItem(ds, DCM_TreatmentMachineSequence, path);
+  put(machine, DCM_TreatmentMachineName, "afterloader", path);
+  put(machine, DCM_Manufacturer, "needle_guidance", path);
   DcmItem* setup = appendItem(ds, DCM_ApplicationSetupSequence, path);
   put(setup, DCM_ApplicationSetupType, "PERINEAL", path);  // prostate interstitial HDR
   putInt(setup, DCM_ApplicationSetupNumber, 1, path);
@@ -1619,7 +1728,12 @@ void writeRtPlan(const HdrCase& c, const std::string& path, DwellTimeEncoding en
     put(ch, DCM_ChannelTotalTime, channel_s, path);
     put(ch, DCM_SourceMovementType, "STEPWISE", path);
     putInt(ch, DCM_ReferencedROINumber, n_structures + 1 + static_cast<long>(k), path);
+    putInt(ch, DCM_SourceApplicatorNumber, channel_number, path);
     put(ch, DCM_SourceApplicatorID, cat.name.substr(0, 16), path);
+    put(ch, DCM_SourceApplicatorType, "FLEXIBLE", path);
+    put(ch, DCM_SourceApplicatorLength, polylineLength(cat.points_m) * kMToMm, path);
+    put(ch, DCM_SourceApplicatorStepSize, channelStepMm(c, dwells), path);
+    put(ch, DCM_TransferTubeNumber, "", path);
     putInt(ch, DCM_NumberOfControlPoints, static_cast<long>(2 * dwells.size()), path);
     putInt(ch, DCM_ReferencedSourceNumber, 1, path);
     put(ch, DCM_FinalCumulativeTimeWeight, channel_s, path);

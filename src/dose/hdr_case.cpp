@@ -66,17 +66,22 @@ bool Structure::contains(const Point3& p) const {
     return false;
   }
   const double half = 0.5 * (sliceSpacing() > 0.0 ? sliceSpacing() : 1e-3);
-  // The nearest slice within half a slice spacing.
-  double best = 1e300;
+  // The nearest slice within half a slice spacing; a point half-way between two slices belongs
+  // to the lower one (counting both would let their contours cancel in the even-odd rule).
+  double best = 1e300, slice_z = 0.0;
   for (const Contour& c : contours) {
-    best = std::min(best, std::abs(c.z_m - p.z()));
+    const double d = std::abs(c.z_m - p.z());
+    if (d < best - 1e-12 || (d < best + 1e-12 && c.z_m < slice_z)) {
+      best = std::min(best, d);
+      slice_z = c.z_m;
+    }
   }
   if (best > half + 1e-12) {
     return false;
   }
   bool inside = false;
   for (const Contour& c : contours) {
-    if (std::abs(std::abs(c.z_m - p.z()) - best) < 1e-12 && insidePolygon(c.xy_m, p.head<2>())) {
+    if (std::abs(c.z_m - slice_z) < 1e-12 && insidePolygon(c.xy_m, p.head<2>())) {
       inside = !inside;  // even-odd over contours of that slice (holes)
     }
   }

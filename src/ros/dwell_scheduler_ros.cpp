@@ -12,6 +12,7 @@
 #include <utility>
 
 #include "needle_guidance/dose/case_folder.h"
+#include "needle_guidance/dose/dicom_case.h"
 #include "needle_guidance/dose/dose_indices.h"
 #include "needle_guidance/dose/dwell_optimization.h"
 #include "needle_guidance/dose/isodose.h"
@@ -328,7 +329,8 @@ std::string DwellSchedulerRos::newPlanId(const std::string& case_name,
 DwellSchedulerRos::PlanOutcome DwellSchedulerRos::makePlan(const std::string& case_dir,
                                                            int synthetic_seed,
                                                            const std::string& requested_method,
-                                                           const std::string& requested_id) {
+                                                           const std::string& requested_id,
+                                                           const std::string& dicom_dir) {
   const ros::WallTime start = ros::WallTime::now();
   const std::string method = requested_method.empty() ? settings_.method : requested_method;
   if (method != "lp" && method != "sa") {
@@ -347,7 +349,13 @@ DwellSchedulerRos::PlanOutcome DwellSchedulerRos::makePlan(const std::string& ca
   PlanOutcome out;
   StoredPlan& stored = out.stored;
   dose::HdrCase& c = stored.hdr_case;
-  if (!case_dir.empty()) {
+  if (!dicom_dir.empty()) {
+    try {
+      c = dose::loadDicomCase(dicom_dir).planning;  // candidate dwells, ch. 6 points, Table 6.1
+    } catch (const std::exception& e) {
+      throw std::invalid_argument("dicom_dir '" + dicom_dir + "': " + e.what());
+    }
+  } else if (!case_dir.empty()) {
     if (!std::filesystem::is_directory(case_dir)) {
       throw std::invalid_argument("case_dir '" + case_dir + "' is not a directory");
     }
@@ -501,7 +509,7 @@ DwellPlan DwellSchedulerRos::commit(PlanOutcome outcome) {
 
 bool DwellSchedulerRos::onPlan(PlanDwells::Request& req, PlanDwells::Response& res) {
   try {
-    PlanOutcome outcome = makePlan(req.case_dir, req.synthetic_seed, req.method, req.plan_id);
+    PlanOutcome outcome = makePlan(req.case_dir, req.synthetic_seed, req.method, req.plan_id, req.dicom_dir);
     res.message = outcome.summary;
     res.plan = commit(std::move(outcome));
     res.success = true;

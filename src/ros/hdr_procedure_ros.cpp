@@ -33,6 +33,7 @@ HdrProcedureRos::HdrProcedureRos(ros::NodeHandle& nh, ros::NodeHandle& private_n
   report::prepareReportDir(report_dir_, private_nh.resolveName("report_dir"),
                            ros_params::flag(private_nh, "allow_system_paths", false));
   case_dir_ = ros_params::text(private_nh, "case_dir", "");
+  dicom_dir_ = ros_params::text(private_nh, "dicom_dir", "");
   synthetic_seed_ = static_cast<int>(ros_params::integer(private_nh, "synthetic_seed", 1, 1, 1000000, ""));
   method_ = ros_params::text(private_nh, "method", "lp");
   if (method_ != "lp" && method_ != "sa") throw std::runtime_error("parameter ~method must be lp or sa, not '" + method_ + "'");
@@ -110,6 +111,7 @@ bool HdrProcedureRos::run() {
   }
   PlanDwells plan;
   plan.request.case_dir = case_dir_;
+  plan.request.dicom_dir = dicom_dir_;
   plan.request.synthetic_seed = synthetic_seed_;
   plan.request.method = method_;
   if (!ros::service::call(plan_srv, plan) || !plan.response.success) {

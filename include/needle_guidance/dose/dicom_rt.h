@@ -152,6 +152,36 @@ struct DoseGrid {
 /// value is negative). Throws std::invalid_argument naming the file, tag and reason.
 DoseGrid readRtDose(const std::string& path);
 
+/// The identity an exported object carries (Patient, General Study, Frame of Reference modules)
+/// and the objects it references. Empty UIDs are generated on writing.
+struct DicomExportContext {
+  std::string patient_name = "needle_guidance^export";
+  std::string patient_id = "NG0001";
+  std::string patient_birth_date;
+  std::string patient_sex;
+  std::string study_uid;
+  std::string study_id = "1";
+  std::string study_date = "20260101";  ///< YYYYMMDD; also the series / plan / structure set date
+  std::string study_time = "000000";
+  std::string frame_uid;
+  std::string sop_instance_uid;          ///< of the object written
+  std::string structure_set_uid;         ///< RTPLAN -> RTSTRUCT (ReferencedStructureSetSequence)
+  std::string plan_uid;                  ///< RTDOSE -> RTPLAN (ReferencedRTPlanSequence)
+  int series_number = 1;
+};
+
+/// A context with fresh study and frame-of-reference UIDs.
+DicomExportContext newExportContext();
+/// A context with the patient, study and frame of reference of an existing DICOM object (e.g. the
+/// clinical RTSTRUCT), fresh object UIDs. Throws std::invalid_argument naming file and tag.
+DicomExportContext exportContextFrom(const std::string& path);
+
+/// The writers below with an explicit context (the context-free ones use newExportContext()).
+void writeRtDose(const DoseGrid& grid, const std::string& path, const DicomExportContext& context);
+void writeRtStruct(const HdrCase& c, const std::string& path, const DicomExportContext& context);
+void writeRtPlan(const HdrCase& c, const std::string& path, DwellTimeEncoding encoding,
+                 const DicomExportContext& context);
+
 /// Writes `grid` as an RTDOSE (uint32, DoseGridScaling = max / (2^32 - 1), PHYSICAL, GY, Explicit
 /// VR Little Endian). Throws std::invalid_argument for an invalid grid, std::runtime_error if the
 /// file cannot be written.

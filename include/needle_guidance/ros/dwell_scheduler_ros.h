@@ -72,7 +72,7 @@ private:
   /// or schedule failure) with a message naming what and where. Changes no member but the
   /// source cache.
   PlanOutcome makePlan(const std::string& case_dir, int synthetic_seed, const std::string& method,
-                       const std::string& plan_id);
+                       const std::string& plan_id, const std::string& dicom_dir = "");
   /// Evaluates a delivery into `res` (success left to the caller); throws std::invalid_argument
   /// naming the bad entry.
   void evaluate(const EvaluateDelivery::Request& req, EvaluateDelivery::Response& res) const;

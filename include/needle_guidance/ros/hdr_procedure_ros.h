@@ -32,7 +32,7 @@ private:
                        const ros::WallTime& t0);
 
   ros::NodeHandle nh_;
-  std::string report_dir_, case_dir_, method_, scheduler_, afterloader_;
+  std::string report_dir_, case_dir_, dicom_dir_, method_, scheduler_, afterloader_;
   int synthetic_seed_ = 1;
   double pause_at_fraction_ = -1.0;
   double pause_wall_s_ = 1.0;
