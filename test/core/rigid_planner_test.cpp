@@ -61,7 +61,9 @@ TEST(RigidPlannerKnownOffset, NoCuttingForceAndNoFrictionNeedNoOffset) {
   EXPECT_NEAR(plan.release.x(), target.x(), kDepthStep_m);
   EXPECT_NEAR(plan.release.y(), target.y(), 1e-12);
   EXPECT_LT(plan.predicted_error_m, kDepthStep_m);
-  EXPECT_EQ(plan.simulations, 1);
+  EXPECT_EQ(plan.scans.size(), 1U);
+  EXPECT_EQ(plan.verifications, 1);  // one scan and the verifying full simulation
+  EXPECT_EQ(plan.simulations, 2);
 }
 
 TEST_F(RigidPlannerTest, ImplantPredictionMatchesFullSimulationsAndThePlanLands) {
