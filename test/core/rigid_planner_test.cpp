@@ -33,7 +33,8 @@ Point2 fullSimulation(const scene::Scene& scene, const Point2& release, const Po
 
 class RigidPlannerTest : public ::testing::Test {
 protected:
-  RigidPlannerTest() : scene_(scene::defaultScene("prostate_sagittal")), planner_(scene_, PlannerOptions{}) {}
+  RigidPlannerTest()
+      : scene_(scene::defaultScene("prostate_sagittal")), planner_(scene_, PlannerOptions{}) {}
   scene::Scene scene_;
   RigidPlanner planner_;
 };
@@ -125,6 +126,62 @@ TEST_F(RigidPlannerTest, ParallelBatchEqualsSequentialPlans) {
   EXPECT_EQ(batch.back().code, PlanCode::kTargetOutsideTissue);
 }
 
+/// The shipped scene with a 10x stiffer gland (issue 22's hard case: a stiffness jump at the
+/// gland's edge, targets within 1 mm of it).
+scene::Scene stiffGland() {
+  scene::Scene scene = scene::defaultScene("prostate_sagittal");
+  scene.materials.at(1).young_modulus_Pa *= 10.0;
+  return scene;
+}
+
+TEST(RigidPlannerVerified, VerifiedErrorIsAnIndependentFullSimulationAndIsReportedHonestly) {
+  const scene::Scene scene = stiffGland();
+  const RigidPlanner planner(scene, PlannerOptions{});
+  for (const Point2& target :
+       {Point2(0.0181, 0.030), Point2(0.0168, 0.030), Point2(0.033, 0.0185)}) {
+    SCOPED_TRACE(::testing::Message() << "target " << target.transpose());
+    const RigidPlan plan = planner.plan(target);
+    ASSERT_TRUE(plan) << plan.toString();
+    ASSERT_TRUE(plan.verified);
+    EXPECT_GE(plan.verifications, 1);
+    EXPECT_EQ(plan.tolerance_m, scene.needle.placement_tolerance_m);
+    // An independent simulation (fresh mesh and model) of the reported release lands where the
+    // verification says.
+    tissue::TissueSimOptions options = tissue::optionsFromScene(scene);
+    options.meshing.refine_points.push_back(target);
+    options.meshing.refine_lines.push_back({Point2(scene.workspace_min.x(), target.y()), target});
+    tissue::TissueSimulation sim(scene, options);
+    const Point2 seed = simulateImplant(sim, plan.release, planner.schedule(target));
+    EXPECT_NEAR((seed - plan.verified_implant).norm(), 0.0, 1e-9);
+    EXPECT_NEAR((seed - target).norm(), plan.verified_error_m, 1e-9);
+    // Never a claim the verification does not back.
+    EXPECT_EQ(plan.within_tolerance, plan.verified_error_m <= plan.tolerance_m);
+    if (!plan.within_tolerance) {
+      EXPECT_NE(plan.message.find("exceeds the tolerance"), std::string::npos) << plan.message;
+    } else {
+      EXPECT_LE((seed - target).norm(), kPlannedTol_m);
+    }
+  }
+}
+
+TEST(RigidPlannerVerified, AnExpiredBudgetReturnsTheBestPlanSoFarVerified) {
+  PlannerOptions options;
+  options.time_budget_s = 1e-6;  // expires after the first scan
+  const scene::Scene scene = scene::defaultScene("prostate_sagittal");
+  const RigidPlanner planner(scene, options);
+  const RigidPlan plan =
+      planner.plan(scene.target("t06").position);  // needs a height offset (4.3.1)
+  ASSERT_TRUE(plan) << plan.toString();
+  EXPECT_TRUE(plan.budget_expired) << plan.message;
+  EXPECT_TRUE(plan.verified);
+  EXPECT_EQ(plan.scans.size(), 1U);
+  EXPECT_EQ(plan.simulations, 2);
+  EXPECT_TRUE(std::isfinite(plan.verified_error_m));
+  if (!plan.within_tolerance) {
+    EXPECT_NE(plan.message.find("time budget"), std::string::npos) << plan.message;
+  }
+}
+
 TEST(RigidPlannerRobust, StiffnessSamplesAreDeterministicAndValidated) {
   const scene::Scene scene = scene::defaultScene("prostate_sagittal");
   StiffnessUncertainty u;
@@ -139,7 +196,8 @@ TEST(RigidPlannerRobust, StiffnessSamplesAreDeterministicAndValidated) {
     }
   }
   const scene::Scene scaled = withStiffnessFactors(scene, a.front());
-  EXPECT_DOUBLE_EQ(scaled.materials[0].young_modulus_Pa, scene.materials[0].young_modulus_Pa * a.front()[0]);
+  EXPECT_DOUBLE_EQ(scaled.materials[0].young_modulus_Pa,
+                   scene.materials[0].young_modulus_Pa * a.front()[0]);
   EXPECT_THROW(withStiffnessFactors(scene, {1.0}), std::invalid_argument);
   EXPECT_THROW(withStiffnessFactors(scene, std::vector<double>(scene.materials.size(), -1.0)),
                std::invalid_argument);
