@@ -77,9 +77,10 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     const auto plan = planner.plan(target.position, previous_offset);
     if (!plan) {
       ++f.refused;
+      const ng::report::Cell none{std::string()};  // never inserted: no error figures
       rows.addRow({scene.name, target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
-                   std::string("refused"), NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN,
-                   plan.seconds, std::string(plan.message)});
+                   std::string("refused"), none, none, none, none, none, none, none, none, none,
+                   none, plan.seconds, std::string(plan.message)});
       std::cout << scene.name << "/" << target.name << ": refused: " << plan.message << "\n"
                 << std::flush;
       continue;
@@ -119,9 +120,9 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     rows.addRow({scene.name, target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
                  std::string(placed ? "placed" : "missed"),
                  1e3 * (unplanned_seed - target.position).norm(), 1e3 * plan.predicted_error_m,
-                 1e3 * plan.verified_error_m, 1e3 * measured, 1e3 * pvm, 1e3 * legacy_gap,
-                 1e3 * plan.release.x(), 1e3 * plan.release.y(), double(plan.simulations),
-                 plan.seconds, std::string(plan.message)});
+                 1e3 * plan.verified_error_m, 1e3 * measured, 1e3 * live_error, 1e3 * pvm,
+                 1e3 * legacy_gap, 1e3 * plan.release.x(), 1e3 * plan.release.y(),
+                 double(plan.simulations), plan.seconds, std::string(plan.message)});
     std::cout << scene.name << "/" << target.name << ": " << (placed ? "placed" : "MISSED")
               << " measured " << 1e3 * measured << " mm (predicted " << 1e3 * plan.predicted_error_m
               << ", verified " << 1e3 * plan.verified_error_m << ", O(1)-interpolated gap "
@@ -243,14 +244,17 @@ int main(int argc, char** argv) {
     const int threads = static_cast<int>(std::max(1U, std::thread::hardware_concurrency()));
     const auto batch_start = std::chrono::steady_clock::now();
     const auto batch = planner.planAll(positions, threads);
+    int batch_differing = 0;
     const double batch_seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - batch_start).count();
     for (std::size_t i = 0; i < count; ++i) {
-      if (!batch[i] ||
-          (batch[i].release - releases[i]).norm() > 1e-12) {  // as planned one at a time above
+      if (!batch[i]) {
         throw std::runtime_error(scene.targets[i].name +
-                                 ": the batch plan differs from the sequential plan");
+                                 ": the batch plan failed: " + batch[i].message);
       }
+      // As planned one at a time above, unless a time budget cut either search short (the
+      // budget makes a plan depend on the machine's load).
+      batch_differing += (batch[i].release - releases[i]).norm() > 1e-12 ? 1 : 0;
     }
 
     // Speed against error over mesh size and time step: plan with a coarser or finer model, then
@@ -359,7 +363,8 @@ int main(int argc, char** argv) {
          << ",\n  \"robust_p95_error_cm\": " << quantile(robust_patient_cm, 0.95)
          << ",\n  \"nominal_mean_error_cm_patients\": " << mean(nominal_patient_cm)
          << ",\n  \"robust_mean_error_cm_patients\": " << mean(robust_patient_cm)
-         << ",\n  \"robust_seconds_per_target_mean\": " << mean(robust_seconds);
+         << ",\n  \"robust_seconds_per_target_mean\": " << mean(robust_seconds)
+         << ",\n  \"batch_plans_differing_from_sequential\": " << batch_differing;
     // Every scene: measured (independent full simulation) planned error, the planner's
     // prediction and verification, the unplanned error, planning time and simulations.
     SceneFigures all;

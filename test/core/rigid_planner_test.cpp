@@ -31,10 +31,17 @@ Point2 fullSimulation(const scene::Scene& scene, const Point2& release, const Po
   return sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
 }
 
+/// Options without a time budget: plans that do not depend on the machine's load.
+PlannerOptions unbudgeted() {
+  PlannerOptions options;
+  options.time_budget_s = 0.0;
+  return options;
+}
+
 class RigidPlannerTest : public ::testing::Test {
 protected:
   RigidPlannerTest()
-      : scene_(scene::defaultScene("prostate_sagittal")), planner_(scene_, PlannerOptions{}) {}
+      : scene_(scene::defaultScene("prostate_sagittal")), planner_(scene_, unbudgeted()) {}
   scene::Scene scene_;
   RigidPlanner planner_;
 };
@@ -55,7 +62,7 @@ TEST(RigidPlannerKnownOffset, NoCuttingForceAndNoFrictionNeedNoOffset) {
   scene::Scene scene = scene::defaultScene("prostate_sagittal");
   scene.needle.cutting_force_N = 0.0;
   scene.needle.static_friction_N_per_m = scene.needle.kinetic_friction_N_per_m = 0.0;
-  const RigidPlanner planner(scene, PlannerOptions{});
+  const RigidPlanner planner(scene, unbudgeted());
   const Point2 target = scene.target("t06").position;
   const RigidPlan plan = planner.plan(target);
   ASSERT_TRUE(plan) << plan.toString();
@@ -92,7 +99,7 @@ TEST_F(RigidPlannerTest, SecantAndGoldenSectionSearchesAgree) {
   // jumps by ~0.09 mm within 0.01 mm of height (the mesh), so no height meets the error goal
   // and the secant must stop on its converged bracket rather than fall back to the grid.
   constexpr double kMeshFloor_m = 2e-5;  // how much the two searches may differ on that jump
-  PlannerOptions golden_only;
+  PlannerOptions golden_only = unbudgeted();
   golden_only.secant_iterations = 0;
   const RigidPlanner golden_planner(scene_, golden_only);
   for (const char* name : {"t06", "t09"}) {
@@ -136,7 +143,7 @@ scene::Scene stiffGland() {
 
 TEST(RigidPlannerVerified, VerifiedErrorIsAnIndependentFullSimulationAndIsReportedHonestly) {
   const scene::Scene scene = stiffGland();
-  const RigidPlanner planner(scene, PlannerOptions{});
+  const RigidPlanner planner(scene, unbudgeted());
   for (const Point2& target :
        {Point2(0.0181, 0.030), Point2(0.0168, 0.030), Point2(0.033, 0.0185)}) {
     SCOPED_TRACE(::testing::Message() << "target " << target.transpose());
