@@ -13,6 +13,7 @@ std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string
       args.out_dir = argv[++i];
     } else if (arg == "--scene" && i + 1 < argc) {
       args.scene = argv[++i];
+      args.scenes.push_back(args.scene);
     } else if (arg == "--quick") {
       args.quick = true;
     } else {
@@ -20,7 +21,7 @@ std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string
     }
   }
   if (!ok || args.out_dir.empty()) {
-    std::cerr << "usage: " << tool << " --out DIR [--quick] [--scene SPEC]\n";
+    std::cerr << "usage: " << tool << " --out DIR [--quick] [--scene SPEC]...\n";
     return std::nullopt;
   }
   return args;

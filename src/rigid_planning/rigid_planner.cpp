@@ -4,11 +4,11 @@
 
 #include <algorithm>
 #include <atomic>
+#include <chrono>
+#include <cmath>
 #include <exception>
 #include <mutex>
 #include <random>
-#include <chrono>
-#include <cmath>
 #include <sstream>
 #include <stdexcept>
 #include <thread>
@@ -17,10 +17,17 @@ namespace needle_guidance::rigid_planning {
 namespace {
 
 constexpr double kGolden = 0.6180339887498949;  // (sqrt(5) - 1) / 2
-constexpr double kSecantAcceptFactor = 10.0;    // a converged secant bracket is accepted below this x goal
+constexpr double kSecantAcceptFactor =
+    10.0;  // a converged secant bracket is accepted below this x goal
 /// A plan's scan stops once the implant point is this far past the target along the needle and
 /// the best error is smaller: the implant curve only moves on (4.3.2: no later depth is better).
 constexpr double kStopPastTarget_m = 5e-4;
+/// The height search stops once a height's error is below this fraction of the placement
+/// tolerance: the rest is headroom for what the plan cannot see (the live loop steps the tissue
+/// on its own clock, not on the plan's grid).
+constexpr double kGoalFraction = 0.5;
+/// A seed at rest moves less than this per step with the needle out [m].
+constexpr double kRest_m = 1e-9;
 
 std::string mm(double metres) {
   std::ostringstream out;
@@ -39,8 +46,9 @@ double closestFraction(const Point2& a, const Point2& b, const Point2& t) {
 /// Calls body(i) for i in [0, n), `threads` at a time (<= 0: one per core). Each body(i) must
 /// touch only its own outputs. The first exception is rethrown after all threads joined.
 void parallelFor(std::size_t n, int threads, const std::function<void(std::size_t)>& body) {
-  const std::size_t workers = std::min<std::size_t>(
-      n, threads > 0 ? static_cast<std::size_t>(threads) : std::max(1U, std::thread::hardware_concurrency()));
+  const std::size_t workers =
+      std::min<std::size_t>(n, threads > 0 ? static_cast<std::size_t>(threads)
+                                           : std::max(1U, std::thread::hardware_concurrency()));
   std::atomic<std::size_t> next{0};
   std::exception_ptr failure;
   std::mutex failure_mutex;
@@ -101,7 +109,8 @@ Point2 DepthScan::implantAt(double z) const {
   return implant[i - 1] + s * (implant[i] - implant[i - 1]);
 }
 
-RigidPlanner::RigidPlanner(scene::Scene scene, tissue::TissueSimOptions sim_options, PlannerOptions options)
+RigidPlanner::RigidPlanner(scene::Scene scene, tissue::TissueSimOptions sim_options,
+                           PlannerOptions options)
     : scene_(std::move(scene)), sim_options_(std::move(sim_options)), options_(options) {
   if (!scene_.hasTissue()) {
     throw std::invalid_argument("RigidPlanner: scene '" + scene_.name + "' has no tissue model");
@@ -130,7 +139,8 @@ RigidPlan RigidPlanner::check(const Point2& target) const {
   }
   for (const auto& region : scene_.regions) {
     if (region.rigid && region.polygon.contains(target)) {
-      return refuse(PlanCode::kTargetOutsideTissue, "target lies in rigid region '" + region.name + "'");
+      return refuse(PlanCode::kTargetOutsideTissue,
+                    "target lies in rigid region '" + region.name + "'");
     }
   }
   if (target.y() < scene_.needle.min_height_m || target.y() > scene_.needle.max_height_m) {
@@ -160,7 +170,8 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
   sim.reset();
   DepthScan scan;
   scan.height_m = height_m;
-  double x = scene_.workspace_min.x();  // tip on the entry face: steps outside only solve the unloaded model
+  double x = scene_.workspace_min
+                 .x();  // tip on the entry face: steps outside only solve the unloaded model
   scan.best_error_m = 1e300;
   const double fine_from = target.x() - options_.approach_zone_m;
   while (x < max_depth_m - 1e-12) {
@@ -189,46 +200,64 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
         scan.best_implant = p;
         const Point2 along = scan.implant[n - 1] - scan.implant[n - 2];
         const double length = along.norm();
-        scan.lateral_m = length > 0.0 ? (along.x() * (target - p).y() - along.y() * (target - p).x()) / length
-                                      : 0.0;
+        scan.lateral_m =
+            length > 0.0 ? (along.x() * (target - p).y() - along.y() * (target - p).x()) / length
+                         : 0.0;
         scan.best_depth_m = scan.depth_m[n - 2] + s * (scan.depth_m[n - 1] - scan.depth_m[n - 2]);
       }
-      if (stop_past_target && tip->x() - target.x() > kStopPastTarget_m && scan.best_error_m < kStopPastTarget_m) {
+      if (stop_past_target && tip->x() - target.x() > kStopPastTarget_m &&
+          scan.best_error_m < kStopPastTarget_m) {
         break;
       }
     }
   }
   if (scan.implant.size() < 2) {
-    throw std::runtime_error("RigidPlanner: the needle never entered the tissue at height " + mm(height_m));
+    throw std::runtime_error("RigidPlanner: the needle never entered the tissue at height " +
+                             mm(height_m));
   }
   return scan;
 }
 
-void RigidPlanner::searchHeights(RigidPlan& plan, const std::function<HeightResult(double)>& evaluate,
-                                 bool early_stop) const {
-  const Point2 target = plan.target;
+void RigidPlanner::searchHeights(RigidPlan& plan,
+                                 const std::function<HeightResult(double)>& evaluate,
+                                 bool early_stop, const Point2& aim, double goal_m,
+                                 double first_offset_m,
+                                 const std::function<bool()>& expired) const {
+  const Point2 target = aim;
   std::vector<std::pair<double, HeightResult>> seen;
   bool goal_met = false;  // with early_stop: any height whose error meets the goal ends the search
   auto f = [&](double y) {
     seen.emplace_back(y, evaluate(y));
-    goal_met = goal_met || (early_stop && seen.back().second.error_m <= options_.error_goal_m);
+    goal_met = goal_met || (early_stop && seen.back().second.error_m <= goal_m);
+    if (!goal_met && expired && expired()) {
+      plan.budget_expired = true;
+      goal_met = true;  // ends every loop below; the best height so far is the plan
+    }
     return seen.back().second.error_m;
   };
   // The target height first (depth-only planning, 4.4.2): often already good enough.
   f(target.y());
+  const double lo_y = std::max(scene_.needle.min_height_m, target.y() - options_.height_window_m);
+  const double hi_y = std::min(scene_.needle.max_height_m, target.y() + options_.height_window_m);
+  if (!goal_met && first_offset_m != 0.0) {  // warm start: the previous target's height offset
+    f(std::clamp(target.y() + first_offset_m, lo_y, hi_y));
+    if (seen.back().second.error_m > seen.front().second.error_m) {
+      std::swap(seen.front(), seen.back());  // the secant starts from the better of the two
+    }
+  }
   // Secant search on the lateral offset of the implant curve, which is close to linear in height
   // over the window: a few simulations where the grid + golden section needs many more. Once
   // two heights put the curve on opposite sides of the target the root is bracketed and the
   // Illinois variant of false position keeps it bracketed; the mesh makes the offset a step
   // function of height at the 0.01 mm scale, so a bracket narrower than a tenth of the height
   // tolerance is as good as the golden section can do and ends the search too.
-  const double lo_y = std::max(scene_.needle.min_height_m, target.y() - options_.height_window_m);
-  const double hi_y = std::min(scene_.needle.max_height_m, target.y() + options_.height_window_m);
-  if (early_stop && !goal_met && options_.secant_iterations > 0 && seen.back().second.lateral_m != 0.0) {
+  if (early_stop && !goal_met && options_.secant_iterations > 0 &&
+      seen.front().second.lateral_m != 0.0) {
     // (ya, da): the older point, or the far end once bracketed; (yb, db): the newest point.
-    double ya = target.y();
-    double da = seen.back().second.lateral_m;
-    double yb = std::clamp(ya + da, lo_y, hi_y);  // the curve moves with the needle: shift by the offset
+    double ya = seen.front().first;
+    double da = seen.front().second.lateral_m;
+    double yb =
+        std::clamp(ya + da, lo_y, hi_y);  // the curve moves with the needle: shift by the offset
     f(yb);
     double db = seen.back().second.lateral_m;
     bool bracketed = (da > 0.0) != (db > 0.0);
@@ -258,11 +287,13 @@ void RigidPlanner::searchHeights(RigidPlan& plan, const std::function<HeightResu
     }
     // A converged bracket with a large error is a jump in the offset (a tissue boundary): the
     // grid below looks for a better minimum elsewhere.
-    const double best_error = std::min_element(seen.begin(), seen.end(), [](const auto& l, const auto& r) {
-                                return l.second.error_m < r.second.error_m;
-                              })->second.error_m;
-    plan.secant = goal_met || (plan.secant && best_error <= kSecantAcceptFactor * options_.error_goal_m);
-    goal_met = plan.secant;
+    const double best_error =
+        std::min_element(seen.begin(), seen.end(), [](const auto& l, const auto& r) {
+          return l.second.error_m < r.second.error_m;
+        })->second.error_m;
+    plan.secant = (goal_met && !plan.budget_expired) ||
+                  (plan.secant && best_error <= kSecantAcceptFactor * goal_m);
+    goal_met = plan.secant || plan.budget_expired;
   }
   if (!goal_met) {
     // Coarse grid: detects an error that is not unimodal over the window (4.3.2 notes it need
@@ -312,16 +343,18 @@ void RigidPlanner::searchHeights(RigidPlan& plan, const std::function<HeightResu
   plan.release = Point2(best->second.depth_m, best->first);
   plan.predicted_implant = best->second.implant;
   plan.predicted_error_m = best->second.error_m;
-  plan.message = plan.secant     ? "ok (secant on the lateral offset)"
-                 : plan.unimodal ? "ok"
-                                 : "ok (error not unimodal over the window: grid fallback)";
+  plan.message = plan.budget_expired ? "ok (time budget expired: best height so far)"
+                 : plan.secant       ? "ok (secant on the lateral offset)"
+                 : plan.unimodal     ? "ok"
+                                     : "ok (error not unimodal over the window: grid fallback)";
 }
 
 double RigidPlanner::maxScanDepth(const Point2& target) const {
   return std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m);
 }
 
-RigidPlan RigidPlanner::timed(const Point2& target, const std::function<void(RigidPlan&)>& body) const {
+RigidPlan RigidPlanner::timed(const Point2& target,
+                              const std::function<void(RigidPlan&)>& body) const {
   const auto start = std::chrono::steady_clock::now();
   RigidPlan plan = check(target);
   if (!plan) {
@@ -337,23 +370,222 @@ RigidPlan RigidPlanner::timed(const Point2& target, const std::function<void(Rig
   return plan;
 }
 
-RigidPlan RigidPlanner::plan(const Point2& target) const {
+std::vector<double> ImplantSchedule::depths(double max_x_m) const {
+  std::vector<double> out;
+  if (approach_step_m > 0.0) {
+    for (long k = 1; start_x_m + static_cast<double>(k) * approach_step_m < fine_from_x_m; ++k) {
+      out.push_back(std::min(max_x_m, start_x_m + static_cast<double>(k) * approach_step_m));
+      if (out.back() >= max_x_m) {
+        return out;
+      }
+    }
+  }
+  const double fine_start = approach_step_m > 0.0 ? std::max(start_x_m, fine_from_x_m) : start_x_m;
+  for (long j = approach_step_m > 0.0 ? 0 : 1;; ++j) {
+    const double x = std::min(max_x_m, fine_start + static_cast<double>(j) * step_m);
+    if (!out.empty() && x <= out.back()) {
+      continue;
+    }
+    out.push_back(x);
+    if (x >= max_x_m) {
+      return out;
+    }
+  }
+}
+
+ImplantSchedule RigidPlanner::schedule(const Point2& target) const {
+  ImplantSchedule schedule;
+  schedule.approach_step_m = options_.approach_step_m;
+  schedule.fine_from_x_m = target.x() - options_.approach_zone_m;
+  schedule.start_x_m = scene_.workspace_min.x() - 0.001;
+  schedule.step_m = options_.depth_step_m;
+  schedule.velocity_m_s = scene_.needle.insertion_velocity_m_s;
+  schedule.retract_velocity_m_s =
+      2.0 * scene_.needle.insertion_velocity_m_s;  // the procedure's default
+  return schedule;
+}
+
+double RigidPlanner::tolerance() const {
+  return options_.tolerance_m > 0.0 ? options_.tolerance_m : scene_.needle.placement_tolerance_m;
+}
+
+Point2 simulateImplant(tissue::TissueSimulation& sim, const Point2& release,
+                       const ImplantSchedule& schedule) {
+  sim.reset();
+  auto step = [&](double dt_s, double x) {
+    const tissue::StepStatus status = sim.step(dt_s, release.y(), x);
+    if (!status) {
+      throw std::runtime_error("simulateImplant: step refused: " + status.toString());
+    }
+  };
+  double previous = schedule.start_x_m;
+  for (double x : schedule.depths(release.x())) {
+    step((x - previous) / schedule.velocity_m_s, x);
+    previous = x;
+  }
+  std::string why;
+  const std::optional<int> id = sim.implantSeed(&why);
+  if (!id) {
+    throw std::runtime_error("simulateImplant: seed not released: " + why);
+  }
+  // Retraction cuts nothing and moves no reference node (2.3.6), so it steps as coarsely as the
+  // approach.
+  const double retract_step = std::max(schedule.step_m, schedule.approach_step_m);
+  const double dt_out = retract_step / schedule.retract_velocity_m_s;
+  for (double x = release.x(); x > schedule.start_x_m;) {
+    x = std::max(schedule.start_x_m, x - retract_step);
+    step(dt_out, x);
+  }
+  Point2 seed = sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
+  for (int i = 0; i < schedule.max_rest_steps; ++i) {  // wait for steady state (4.3.2)
+    step(dt_out, schedule.start_x_m);
+    const Point2 next = sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
+    const bool at_rest = (next - seed).norm() < kRest_m;
+    seed = next;
+    if (at_rest) {
+      break;
+    }
+  }
+  return seed;
+}
+
+DepthScan RigidPlanner::gridScan(tissue::TissueSimulation& sim, double height_m,
+                                 const Point2& target, double max_depth_m, bool stop_past_target,
+                                 const ImplantSchedule& grid) const {
+  sim.reset();
+  DepthScan scan;
+  scan.height_m = height_m;
+  scan.best_error_m = 1e300;
+  double previous = grid.start_x_m;
+  for (double x : grid.depths(max_depth_m)) {
+    const double dt_s = (x - previous) / grid.velocity_m_s;
+    previous = x;
+    const tissue::StepStatus status = sim.step(dt_s, height_m, x);
+    if (!status) {
+      throw std::runtime_error("RigidPlanner: simulation step refused: " + status.toString());
+    }
+    const std::optional<Point2> tip = sim.needle().tipReference();
+    if (!tip) {
+      continue;
+    }
+    scan.depth_m.push_back(x);
+    scan.implant.push_back(*tip);
+    const std::size_t n = scan.implant.size();
+    // A release on this grid depth lands on the tip node's reference position exactly (4.3.2);
+    // the side of the target is read against the implant curve's last segment.
+    const double error = (*tip - target).norm();
+    if (error < scan.best_error_m) {
+      scan.best_error_m = error;
+      scan.best_implant = *tip;
+      scan.best_depth_m = x;
+      const Point2 along =
+          n >= 2 ? Point2(scan.implant[n - 1] - scan.implant[n - 2]) : Point2(1.0, 0.0);
+      const double length = along.norm();
+      scan.lateral_m =
+          length > 0.0
+              ? (along.x() * (target - *tip).y() - along.y() * (target - *tip).x()) / length
+              : 0.0;
+    }
+    if (stop_past_target && tip->x() - target.x() > kStopPastTarget_m &&
+        scan.best_error_m < kStopPastTarget_m) {
+      break;
+    }
+  }
+  if (scan.implant.size() < 2) {
+    throw std::runtime_error("RigidPlanner: the needle never entered the tissue at height " +
+                             mm(height_m));
+  }
+  return scan;
+}
+
+void RigidPlanner::searchPlan(RigidPlan& plan, tissue::TissueSimulation& sim, const Point2& aim,
+                              double first_offset_m, const std::function<bool()>& expired) const {
+  const double max_depth = maxScanDepth(aim);
+  searchHeights(
+      plan,
+      [&](double y) {
+        plan.scans.push_back(options_.procedure_grid
+                                 ? gridScan(sim, y, aim, max_depth, true, schedule(plan.target))
+                                 : scan(sim, y, aim, max_depth, /*stop_past_target=*/true));
+        ++plan.simulations;
+        const DepthScan& s = plan.scans.back();
+        return HeightResult{s.best_error_m, s.best_depth_m, s.best_implant, s.lateral_m};
+      },
+      /*early_stop=*/true, aim, std::min(options_.error_goal_m, kGoalFraction * tolerance()),
+      first_offset_m, expired);
+}
+
+RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m) const {
+  const auto start = std::chrono::steady_clock::now();
+  const std::function<bool()> expired = [&] {
+    return options_.time_budget_s > 0.0 &&
+           std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() >
+               options_.time_budget_s;
+  };
   return timed(target, [&](RigidPlan& plan) {
+    plan.tolerance_m = tolerance();
     const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
-    const double max_depth = maxScanDepth(target);
-    searchHeights(
-        plan,
-        [&](double y) {
-          plan.scans.push_back(scan(*sim, y, target, max_depth, /*stop_past_target=*/true));
-          ++plan.simulations;
-          const DepthScan& s = plan.scans.back();
-          return HeightResult{s.best_error_m, s.best_depth_m, s.best_implant, s.lateral_m};
-        },
-        /*early_stop=*/true);
+    searchPlan(plan, *sim, target, first_height_offset_m, expired);
+    plan.predicted_error_m = (plan.predicted_implant - target).norm();
+    if (!options_.verify) {
+      plan.within_tolerance = plan.predicted_error_m <= plan.tolerance_m;
+      return;
+    }
+    // Verify; while the verified seed misses and disagrees with the prediction, aim the O(1)
+    // search at the target shifted by the disagreement (the bias of the prediction is smooth in
+    // the release point, so this is a fixed-point step on the verified error).
+    RigidPlan best = plan;
+    Point2 aim = target;
+    for (int round = 0;; ++round) {
+      const Point2 verified = simulateImplant(*sim, plan.release, schedule(target));
+      ++plan.simulations;
+      ++plan.verifications;
+      const double verified_error = (verified - target).norm();
+      if (!best.verified || verified_error < best.verified_error_m) {
+        best = plan;
+        best.verified = true;
+        best.verified_implant = verified;
+        best.verified_error_m = verified_error;
+        best.predicted_error_m = (plan.predicted_implant - target).norm();
+      }
+      const Point2 bias = verified - plan.predicted_implant;
+      if (verified_error <= plan.tolerance_m || bias.norm() <= 0.5 * plan.tolerance_m ||
+          round >= options_.max_corrections || expired()) {
+        plan.budget_expired =
+            plan.budget_expired || (verified_error > plan.tolerance_m && expired());
+        break;
+      }
+      aim -= verified - target;  // next aim: cancel the verified miss
+      ++plan.corrections;
+      RigidPlan next = plan;
+      searchPlan(next, *sim, aim, plan.release.y() - aim.y(), expired);
+      plan.scans = std::move(next.scans);
+      plan.simulations = next.simulations;
+      plan.release = next.release;
+      plan.predicted_implant = next.predicted_implant;  // the O(1) model's own prediction
+      plan.budget_expired = next.budget_expired;
+    }
+    const int simulations = plan.simulations, verifications = plan.verifications,
+              corrections = plan.corrections;
+    const bool budget_expired = plan.budget_expired;
+    std::vector<DepthScan> scans = std::move(plan.scans);
+    plan = best;
+    plan.scans = std::move(scans);
+    plan.simulations = simulations;
+    plan.verifications = verifications;
+    plan.corrections = corrections;
+    plan.budget_expired = budget_expired;
+    plan.within_tolerance = plan.verified_error_m <= plan.tolerance_m;
+    if (!plan.within_tolerance) {
+      plan.message = "verified error " + mm(plan.verified_error_m) + " exceeds the tolerance " +
+                     mm(plan.tolerance_m) + (budget_expired ? " (time budget expired)" : "") +
+                     "; " + plan.message;
+    }
   });
 }
 
-std::vector<RigidPlan> RigidPlanner::planAll(const std::vector<Point2>& targets, int threads) const {
+std::vector<RigidPlan> RigidPlanner::planAll(const std::vector<Point2>& targets,
+                                             int threads) const {
   std::vector<RigidPlan> plans(targets.size());
   // plan() never throws: failures are codes.
   parallelFor(targets.size(), threads, [&](std::size_t i) { plans[i] = plan(targets[i]); });
@@ -363,7 +595,8 @@ std::vector<RigidPlan> RigidPlanner::planAll(const std::vector<Point2>& targets,
 scene::Scene withStiffnessFactors(const scene::Scene& scene, const std::vector<double>& factors) {
   if (factors.size() != scene.materials.size()) {
     throw std::invalid_argument("withStiffnessFactors: " + std::to_string(factors.size()) +
-                                " factors for " + std::to_string(scene.materials.size()) + " materials");
+                                " factors for " + std::to_string(scene.materials.size()) +
+                                " materials");
   }
   scene::Scene out = scene;
   for (std::size_t i = 0; i < factors.size(); ++i) {
@@ -379,7 +612,8 @@ scene::Scene withStiffnessFactors(const scene::Scene& scene, const std::vector<d
 std::vector<std::vector<double>> drawStiffnessFactors(const scene::Scene& scene,
                                                       const StiffnessUncertainty& u) {
   if (!(u.relative >= 0.0 && u.relative < 1.0) || u.samples < 1) {
-    throw std::invalid_argument("drawStiffnessFactors: relative uncertainty must be in [0, 1) and samples >= 1");
+    throw std::invalid_argument(
+        "drawStiffnessFactors: relative uncertainty must be in [0, 1) and samples >= 1");
   }
   std::mt19937 rng(u.seed);
   std::uniform_real_distribution<double> factor(1.0 - u.relative, 1.0 + u.relative);
@@ -405,7 +639,8 @@ std::vector<std::vector<double>> drawStiffnessFactors(const scene::Scene& scene,
   return out;
 }
 
-RigidPlan RigidPlanner::planRobust(const Point2& target, const StiffnessUncertainty& uncertainty) const {
+RigidPlan RigidPlanner::planRobust(const Point2& target,
+                                   const StiffnessUncertainty& uncertainty) const {
   if (!(uncertainty.quantile > 0.0 && uncertainty.quantile <= 1.0)) {
     throw std::invalid_argument("planRobust: quantile must be in (0, 1]");
   }
@@ -413,14 +648,16 @@ RigidPlan RigidPlanner::planRobust(const Point2& target, const StiffnessUncertai
     std::vector<std::unique_ptr<RigidPlanner>> models;
     std::vector<std::unique_ptr<tissue::TissueSimulation>> sims;
     for (const auto& factors : drawStiffnessFactors(scene_, uncertainty)) {
-      models.push_back(std::make_unique<RigidPlanner>(withStiffnessFactors(scene_, factors), sim_options_, options_));
+      models.push_back(std::make_unique<RigidPlanner>(withStiffnessFactors(scene_, factors),
+                                                      sim_options_, options_));
       sims.push_back(models.back()->makeSimulation(target));
     }
     const double max_depth = maxScanDepth(target);
     auto evaluate = [&](double y) {
       std::vector<DepthScan> scans(sims.size());
-      parallelFor(sims.size(), uncertainty.threads,
-                  [&](std::size_t k) { scans[k] = models[k]->scan(*sims[k], y, target, max_depth); });
+      parallelFor(sims.size(), uncertainty.threads, [&](std::size_t k) {
+        scans[k] = models[k]->scan(*sims[k], y, target, max_depth);
+      });
       plan.simulations += static_cast<int>(sims.size());
       // The depth minimising the quantile of the error over the samples, on the first sample's
       // depth grid with every sample interpolated there.
@@ -441,7 +678,7 @@ RigidPlan RigidPlanner::planRobust(const Point2& target, const StiffnessUncertai
       return best;
     };
     if (uncertainty.search_height) {
-      searchHeights(plan, evaluate, /*early_stop=*/false);
+      searchHeights(plan, evaluate, /*early_stop=*/false, target, 0.0);
     } else {
       const RigidPlan nominal = this->plan(target);  // its height; depth is where stiffness acts
       if (!nominal) {
@@ -463,8 +700,7 @@ DepthScan RigidPlanner::scanHeight(const Point2& target, double height_m) const 
     throw std::invalid_argument(feasible.message);
   }
   const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
-  return scan(*sim, height_m, target,
-              maxScanDepth(target));
+  return scan(*sim, height_m, target, maxScanDepth(target));
 }
 
 RigidPlan RigidPlanner::planDepthOnly(const Point2& target) const {

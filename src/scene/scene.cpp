@@ -408,6 +408,8 @@ private:
         nonNegativeOr(m, "kinetic_friction", detail::kForcePerLength, 0.0);
     needle.stick_velocity_m_s = nonNegativeOr(m, "stick_velocity", detail::kVelocity, 0.0);
     needle.diameter_m = nonNegativeOr(m, "diameter", detail::kLength, 0.0);
+    needle.placement_tolerance_m =
+        positiveOr(m, "placement_tolerance", detail::kLength, needle.placement_tolerance_m);
     const std::optional<Quantity> radius =
         m.optionalQuantity("radius_of_curvature", detail::kLength);
     m.finish();

@@ -31,9 +31,17 @@ Point2 fullSimulation(const scene::Scene& scene, const Point2& release, const Po
   return sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
 }
 
+/// Options without a time budget: plans that do not depend on the machine's load.
+PlannerOptions unbudgeted() {
+  PlannerOptions options;
+  options.time_budget_s = 0.0;
+  return options;
+}
+
 class RigidPlannerTest : public ::testing::Test {
 protected:
-  RigidPlannerTest() : scene_(scene::defaultScene("prostate_sagittal")), planner_(scene_, PlannerOptions{}) {}
+  RigidPlannerTest()
+      : scene_(scene::defaultScene("prostate_sagittal")), planner_(scene_, unbudgeted()) {}
   scene::Scene scene_;
   RigidPlanner planner_;
 };
@@ -54,14 +62,16 @@ TEST(RigidPlannerKnownOffset, NoCuttingForceAndNoFrictionNeedNoOffset) {
   scene::Scene scene = scene::defaultScene("prostate_sagittal");
   scene.needle.cutting_force_N = 0.0;
   scene.needle.static_friction_N_per_m = scene.needle.kinetic_friction_N_per_m = 0.0;
-  const RigidPlanner planner(scene, PlannerOptions{});
+  const RigidPlanner planner(scene, unbudgeted());
   const Point2 target = scene.target("t06").position;
   const RigidPlan plan = planner.plan(target);
   ASSERT_TRUE(plan) << plan.toString();
   EXPECT_NEAR(plan.release.x(), target.x(), kDepthStep_m);
   EXPECT_NEAR(plan.release.y(), target.y(), 1e-12);
   EXPECT_LT(plan.predicted_error_m, kDepthStep_m);
-  EXPECT_EQ(plan.simulations, 1);
+  EXPECT_EQ(plan.scans.size(), 1U);
+  EXPECT_EQ(plan.verifications, 1);  // one scan and the verifying full simulation
+  EXPECT_EQ(plan.simulations, 2);
 }
 
 TEST_F(RigidPlannerTest, ImplantPredictionMatchesFullSimulationsAndThePlanLands) {
@@ -89,7 +99,7 @@ TEST_F(RigidPlannerTest, SecantAndGoldenSectionSearchesAgree) {
   // jumps by ~0.09 mm within 0.01 mm of height (the mesh), so no height meets the error goal
   // and the secant must stop on its converged bracket rather than fall back to the grid.
   constexpr double kMeshFloor_m = 2e-5;  // how much the two searches may differ on that jump
-  PlannerOptions golden_only;
+  PlannerOptions golden_only = unbudgeted();
   golden_only.secant_iterations = 0;
   const RigidPlanner golden_planner(scene_, golden_only);
   for (const char* name : {"t06", "t09"}) {
@@ -123,6 +133,62 @@ TEST_F(RigidPlannerTest, ParallelBatchEqualsSequentialPlans) {
   EXPECT_EQ(batch.back().code, PlanCode::kTargetOutsideTissue);
 }
 
+/// The shipped scene with a 10x stiffer gland (issue 22's hard case: a stiffness jump at the
+/// gland's edge, targets within 1 mm of it).
+scene::Scene stiffGland() {
+  scene::Scene scene = scene::defaultScene("prostate_sagittal");
+  scene.materials.at(1).young_modulus_Pa *= 10.0;
+  return scene;
+}
+
+TEST(RigidPlannerVerified, VerifiedErrorIsAnIndependentFullSimulationAndIsReportedHonestly) {
+  const scene::Scene scene = stiffGland();
+  const RigidPlanner planner(scene, unbudgeted());
+  for (const Point2& target :
+       {Point2(0.0181, 0.030), Point2(0.0168, 0.030), Point2(0.033, 0.0185)}) {
+    SCOPED_TRACE(::testing::Message() << "target " << target.transpose());
+    const RigidPlan plan = planner.plan(target);
+    ASSERT_TRUE(plan) << plan.toString();
+    ASSERT_TRUE(plan.verified);
+    EXPECT_GE(plan.verifications, 1);
+    EXPECT_EQ(plan.tolerance_m, scene.needle.placement_tolerance_m);
+    // An independent simulation (fresh mesh and model) of the reported release lands where the
+    // verification says.
+    tissue::TissueSimOptions options = tissue::optionsFromScene(scene);
+    options.meshing.refine_points.push_back(target);
+    options.meshing.refine_lines.push_back({Point2(scene.workspace_min.x(), target.y()), target});
+    tissue::TissueSimulation sim(scene, options);
+    const Point2 seed = simulateImplant(sim, plan.release, planner.schedule(target));
+    EXPECT_NEAR((seed - plan.verified_implant).norm(), 0.0, 1e-9);
+    EXPECT_NEAR((seed - target).norm(), plan.verified_error_m, 1e-9);
+    // Never a claim the verification does not back.
+    EXPECT_EQ(plan.within_tolerance, plan.verified_error_m <= plan.tolerance_m);
+    if (!plan.within_tolerance) {
+      EXPECT_NE(plan.message.find("exceeds the tolerance"), std::string::npos) << plan.message;
+    } else {
+      EXPECT_LE((seed - target).norm(), kPlannedTol_m);
+    }
+  }
+}
+
+TEST(RigidPlannerVerified, AnExpiredBudgetReturnsTheBestPlanSoFarVerified) {
+  PlannerOptions options;
+  options.time_budget_s = 1e-6;  // expires after the first scan
+  const scene::Scene scene = scene::defaultScene("prostate_sagittal");
+  const RigidPlanner planner(scene, options);
+  const RigidPlan plan =
+      planner.plan(scene.target("t06").position);  // needs a height offset (4.3.1)
+  ASSERT_TRUE(plan) << plan.toString();
+  EXPECT_TRUE(plan.budget_expired) << plan.message;
+  EXPECT_TRUE(plan.verified);
+  EXPECT_EQ(plan.scans.size(), 1U);
+  EXPECT_EQ(plan.simulations, 2);
+  EXPECT_TRUE(std::isfinite(plan.verified_error_m));
+  if (!plan.within_tolerance) {
+    EXPECT_NE(plan.message.find("time budget"), std::string::npos) << plan.message;
+  }
+}
+
 TEST(RigidPlannerRobust, StiffnessSamplesAreDeterministicAndValidated) {
   const scene::Scene scene = scene::defaultScene("prostate_sagittal");
   StiffnessUncertainty u;
@@ -137,7 +203,8 @@ TEST(RigidPlannerRobust, StiffnessSamplesAreDeterministicAndValidated) {
     }
   }
   const scene::Scene scaled = withStiffnessFactors(scene, a.front());
-  EXPECT_DOUBLE_EQ(scaled.materials[0].young_modulus_Pa, scene.materials[0].young_modulus_Pa * a.front()[0]);
+  EXPECT_DOUBLE_EQ(scaled.materials[0].young_modulus_Pa,
+                   scene.materials[0].young_modulus_Pa * a.front()[0]);
   EXPECT_THROW(withStiffnessFactors(scene, {1.0}), std::invalid_argument);
   EXPECT_THROW(withStiffnessFactors(scene, std::vector<double>(scene.materials.size(), -1.0)),
                std::invalid_argument);

@@ -3,9 +3,9 @@
 // succeeded and each seed's measured error agrees with the plan's prediction.
 #include <gtest/gtest.h>
 
+#include <ros/ros.h>
 #include "../csv_rows.h"
 #include "../ros_wait.h"
-#include <ros/ros.h>
 
 #include <fstream>
 #include <map>
@@ -17,7 +17,7 @@ namespace {
 
 constexpr double kPredictionAgreement_mm = 0.3;  // live stepping vs the planner (~3 cut steps)
 constexpr int kTargets = 2;
-
+constexpr double kPlacementTolerance_mm = 0.1;  // the scene's needle.placement_tolerance (default)
 
 TEST(RigidSeedImplant, TwoTargetsLandWherePredicted) {
   ros::NodeHandle private_nh("~");
@@ -34,6 +34,11 @@ TEST(RigidSeedImplant, TwoTargetsLandWherePredicted) {
     const double unplanned_mm = std::stod(row.at("unplanned_predicted_mm"));
     EXPECT_NEAR(measured_mm, predicted_mm, kPredictionAgreement_mm) << row.at("target");
     EXPECT_LT(measured_mm, 0.25 * unplanned_mm) << row.at("target") << ": planning did not help";
+    // Success means the seed landed: the outcome follows the measured error and the tolerance.
+    EXPECT_EQ(row.at("outcome"), measured_mm <= kPlacementTolerance_mm ? "placed" : "missed")
+        << row.at("target");
+    EXPECT_FALSE(row.at("verified_error_mm").empty())
+        << row.at("target") << ": the plan was not verified";
   }
 }
 

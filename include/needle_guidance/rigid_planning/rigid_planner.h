@@ -19,11 +19,11 @@ using geometry::Point2;
 /// the elastic tissue returns to its reference state, so a seed released at the tip ends there).
 struct DepthScan {
   double height_m = 0.0;
-  std::vector<double> depth_m;        ///< needle tip x at each step [m]
-  std::vector<Point2> implant;        ///< p_a if released at that depth [m]
-  double best_depth_m = 0.0;          ///< z_r*(y_r), interpolated between steps [m]
+  std::vector<double> depth_m;  ///< needle tip x at each step [m]
+  std::vector<Point2> implant;  ///< p_a if released at that depth [m]
+  double best_depth_m = 0.0;    ///< z_r*(y_r), interpolated between steps [m]
   Point2 best_implant = Point2::Zero();
-  double best_error_m = 0.0;          ///< epsilon(y_r) [m]
+  double best_error_m = 0.0;  ///< epsilon(y_r) [m]
   /// Signed distance of the implant curve from the target at the best depth, positive when the
   /// target lies to the left of the curve's direction of travel [m]: ~linear in height, the
   /// secant search drives it to zero.
@@ -33,39 +33,80 @@ struct DepthScan {
 };
 
 struct PlannerOptions {
-  double height_window_m = 0.002;      ///< search y_t +- this (4.4.3: 0.2 cm) [m]
-  double height_tolerance_m = 1e-4;    ///< golden-section stop (4.4.3: 0.01 cm) [m]
-  double depth_step_m = 1e-4;          ///< dz = v h between simulation steps [m]
+  double height_window_m = 0.002;    ///< search y_t +- this (4.4.3: 0.2 cm) [m]
+  double height_tolerance_m = 1e-4;  ///< golden-section stop (4.4.3: 0.01 cm) [m]
+  double depth_step_m = 1e-4;        ///< dz = v h between simulation steps [m]
   /// Steps of the scan farther than approach_zone_m before the target depth use this larger dz
   /// (0: depth_step_m all the way). The cuts, not the steps, dominate a scan's cost, so this
   /// saves ~20 % of the planning time for ~0.02 mm of error (bench rigid, speed_vs_error) [m]
   double approach_step_m = 5e-4;
-  double approach_zone_m = 0.005;      ///< fine steps within this of the target depth [m]
-  double velocity_m_s = 0.005;         ///< v (4.4: 0.5 cm/s) [m/s]
-  double depth_margin_m = 0.005;       ///< scan to target depth + margin (<= max depth) [m]
-  int grid_points = 5;                 ///< coarse heights that detect a non-unimodal error
-  int secant_iterations = 6;           ///< secant steps on the lateral offset before the grid (0 = off)
+  double approach_zone_m = 0.005;  ///< fine steps within this of the target depth [m]
+  double velocity_m_s = 0.005;     ///< v (4.4: 0.5 cm/s) [m/s]
+  double depth_margin_m = 0.005;   ///< scan to target depth + margin (<= max depth) [m]
+  int grid_points = 5;             ///< coarse heights that detect a non-unimodal error
+  int secant_iterations = 6;       ///< secant steps on the lateral offset before the grid (0 = off)
   /// Stop searching heights once a scan's best error is below this (the target height is scanned
   /// first; 0 searches the whole window) [m].
   double error_goal_m = 5e-5;
+  /// Placement tolerance [m]; 0: the scene's needle.placement_tolerance_m. The search stops once
+  /// a height's error is below kGoalFraction of it (not at the fixed error_goal_m floor).
+  double tolerance_m = 0.0;
+  /// Verify every plan with a full insert-release-retract simulation on the procedure's step
+  /// schedule (below) and correct it on the verified error when the two disagree.
+  bool verify = true;
+  /// Scans on the procedure's grid (uniform dz from outside the tissue, release on a grid depth):
+  /// the O(1) prediction then reads the very tip node a verification would release at (no
+  /// interpolation between steps, no coarser approach history). false: today's scans.
+  bool procedure_grid = true;
+  int max_corrections = 3;  ///< re-plans on the verified error after the first verification
+  /// Wall-time budget per plan [s] (0: none). When it runs out the best plan so far is returned
+  /// with its verified error (budget_expired set).
+  double time_budget_s = 2.0;
 };
+
+/// The step schedule of a full insert-release-retract simulation (the procedure's): the tip
+/// starts at start_x_m outside the tissue and moves in steps of step_m at velocity_m_s to the
+/// release depth, the seed is released, the needle retracts at retract_velocity_m_s to
+/// start_x_m, and the tissue is stepped with the needle out until the seed is at rest.
+struct ImplantSchedule {
+  double start_x_m = -0.001;  ///< tip x before and after the insertion [m]
+  double step_m = 1e-4;       ///< dz per step near the release [m]
+  /// dz before fine_from_x_m (0: step_m all the way): the cuts far from the target barely move
+  /// it, and fewer steps there make a scan and a verification cheaper [m]
+  double approach_step_m = 0.0;
+  double fine_from_x_m = 0.0;  ///< fine steps from here on [m]
+  double velocity_m_s = 0.01;  ///< insertion velocity [m/s]
+  double retract_velocity_m_s = 0.02;
+  int max_rest_steps = 200;  ///< steps with the needle out, until the seed moves < 1 nm
+  /// The tip depths of the insertion up to max_x_m: coarse start + k approach_step_m before
+  /// fine_from_x_m, then fine_from_x_m + j step_m, each computed from its index so a scan and a
+  /// verification pass through bit-identical depths [m].
+  std::vector<double> depths(double max_x_m) const;
+};
+
+/// A full insert-release-retract simulation (4.3.2 without the O(1) shortcut) on `sim` (reset
+/// first): the seed's final position after retraction and rest [m]. Throws std::runtime_error if
+/// a step is refused or the seed cannot be released.
+Point2 simulateImplant(tissue::TissueSimulation& sim, const Point2& release,
+                       const ImplantSchedule& schedule);
 
 /// Stiffness uncertainty for robust planning: every material's Young's modulus is scaled by a
 /// factor in [1 - u, 1 + u], independently per material, K times (fixed seed); optionally the
 /// corners of that box come first.
 struct StiffnessUncertainty {
-  double relative = 0.3;      ///< u (0.3 = +-30 %)
-  int samples = 16;           ///< K models planned against
-  unsigned seed = 1;          ///< generator seed (STYLE.md rule 12)
-  bool corners_first = false; ///< start with the 2^materials corners of the box (if K allows)
+  double relative = 0.3;       ///< u (0.3 = +-30 %)
+  int samples = 16;            ///< K models planned against
+  unsigned seed = 1;           ///< generator seed (STYLE.md rule 12)
+  bool corners_first = false;  ///< start with the 2^materials corners of the box (if K allows)
   /// The plan minimises this quantile of the error over the samples: 1 = worst case, 0.95 = the
   /// 95th percentile. Compression ahead of the needle grows like 1/E (convex), so softer-than-
   /// modelled tissue costs more than stiffer saves; a quantile plan leans deeper than the nominal
   /// one. With independent materials most patients sit near the nominal model, so a minimax plan
   /// over the box corners over-hedges (measured: worse p95 than nominal).
   double quantile = 0.95;
-  bool search_height = false; ///< also search height (K x more simulations); else the nominal plan's
-  int threads = 0;            ///< samples simulated at a time (<= 0: one per core)
+  bool search_height =
+      false;        ///< also search height (K x more simulations); else the nominal plan's
+  int threads = 0;  ///< samples simulated at a time (<= 0: one per core)
 };
 
 /// `scene` with every material's Young's modulus scaled by its factor (one per material).
@@ -75,7 +116,13 @@ std::vector<std::vector<double>> drawStiffnessFactors(const scene::Scene& scene,
                                                       const StiffnessUncertainty& u);
 
 /// Why a plan failed, or kOk (STYLE.md rule 8).
-enum class PlanCode { kOk, kTargetOutsideTissue, kHeightOutOfRange, kBeyondMaxDepth, kSimulationFailed };
+enum class PlanCode {
+  kOk,
+  kTargetOutsideTissue,
+  kHeightOutOfRange,
+  kBeyondMaxDepth,
+  kSimulationFailed
+};
 
 /// A plan: release point, predicted error, and what it cost.
 struct RigidPlan {
@@ -85,13 +132,23 @@ struct RigidPlan {
   Point2 release = Point2::Zero();            ///< (depth x, height y) to release the seed [m]
   Point2 predicted_implant = Point2::Zero();  ///< where the seed is predicted to end [m]
   double predicted_error_m = 0.0;
-  bool unimodal = true;          ///< false: the coarse grid found several minima (grid fallback)
+  bool unimodal = true;  ///< false: the coarse grid found several minima (grid fallback)
   /// The secant search on the lateral offset met the goal, or bracketed the offset's zero to the
-  /// mesh's resolution in height (a tenth of the height tolerance) with an error below 10x the goal.
+  /// mesh's resolution in height (a tenth of the height tolerance) with an error below 10x the
+  /// goal.
   bool secant = false;
-  int simulations = 0;
+  int simulations = 0;  ///< insertions simulated: scans + verifications
   double seconds = 0.0;
   std::vector<DepthScan> scans;  ///< every height simulated, in evaluation order
+  /// Full insert-release-retract simulation of the plan (PlannerOptions::verify).
+  bool verified = false;
+  Point2 verified_implant = Point2::Zero();  ///< seed after the verifying simulation [m]
+  double verified_error_m = NAN;             ///< |verified implant - target| [m]
+  int verifications = 0;                     ///< full simulations among `simulations`
+  int corrections = 0;                       ///< re-plans on the verified error
+  double tolerance_m = 0.0;                  ///< placement tolerance the plan was held to [m]
+  bool within_tolerance = false;  ///< verified (or, unverified, predicted) error <= tolerance
+  bool budget_expired = false;    ///< the time budget ended the search
   explicit operator bool() const { return code == PlanCode::kOk; }
   const std::string& toString() const { return message; }
 };
@@ -107,7 +164,17 @@ public:
 
   /// Golden-section search over height around the target (after a coarse grid that detects a
   /// non-unimodal error and then brackets the best grid point), each height scanned over depth.
-  RigidPlan plan(const Point2& target) const;
+  /// Then verifies the plan with a full simulation; if it misses by more than the tolerance and
+  /// disagrees with the prediction, re-plans for the target shifted by the disagreement (a
+  /// fixed-point step on the verified error) until within tolerance, max_corrections or the
+  /// time budget. `first_height_offset_m` (warm start, e.g. the previous target's release height
+  /// minus its target height) is tried right after the target height.
+  RigidPlan plan(const Point2& target, double first_height_offset_m = 0.0) const;
+  /// The step schedule of scans and verifications for `target` (scene velocity, depth_step_m near
+  /// the target, approach_step_m before approach_zone_m ahead of it).
+  ImplantSchedule schedule(const Point2& target) const;
+  /// The tolerance plans are held to [m].
+  double tolerance() const;
   /// One insertion at `height_m` scanned over depth for `target` (figures 4.5, 4.6). Throws
   /// std::invalid_argument for an infeasible target.
   DepthScan scanHeight(const Point2& target, double height_m) const;
@@ -133,6 +200,12 @@ private:
   /// curve has passed the target (a plan needs only the best depth; figures need the whole curve).
   DepthScan scan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
                  double max_depth_m, bool stop_past_target = false) const;
+  /// scan() on the procedure's grid: depths schedule().depth(k), best depth on a grid point.
+  DepthScan gridScan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
+                     double max_depth_m, bool stop_past_target, const ImplantSchedule& grid) const;
+  /// The O(1) height search for `aim` (the target, or the target shifted by a correction).
+  void searchPlan(RigidPlan& plan, tissue::TissueSimulation& sim, const Point2& aim,
+                  double first_offset_m, const std::function<bool()>& expired) const;
   /// One height's result for the search: objective, best depth, predicted implant.
   struct HeightResult {
     double error_m;
@@ -143,7 +216,8 @@ private:
   /// Grid + golden-section search over height of `evaluate`, starting at the target height and
   /// stopping early below error_goal_m when `early_stop`.
   void searchHeights(RigidPlan& plan, const std::function<HeightResult(double)>& evaluate,
-                     bool early_stop) const;
+                     bool early_stop, const Point2& aim, double goal_m, double first_offset_m = 0.0,
+                     const std::function<bool()>& expired = nullptr) const;
   std::unique_ptr<tissue::TissueSimulation> makeSimulation(const Point2& target) const;
   /// Depth to scan to for a target: its depth plus the margin, at most the needle's max depth.
   double maxScanDepth(const Point2& target) const;

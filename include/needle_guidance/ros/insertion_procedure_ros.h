@@ -36,6 +36,7 @@ private:
   double depth_tolerance_m_ = 0.0;
   double velocity_tolerance_ = 0.0;
   int max_targets_ = 0;
+  double placement_tolerance_m_ = 1e-4;  ///< a seed within this of its target is placed [m]
 };
 
 }  // namespace needle_guidance

@@ -19,6 +19,7 @@ private:
   bool onPlan(PlanRigid::Request& req, PlanRigid::Response& res);
   std::unique_ptr<rigid_planning::RigidPlanner> planner_;
   ros::ServiceServer plan_srv_;
+  double last_height_offset_m_ = 0.0;  ///< warm start: the previous plan's release height - target height
 };
 
 }  // namespace needle_guidance

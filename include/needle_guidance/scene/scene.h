@@ -63,6 +63,8 @@ struct Needle {
   double radius_of_curvature_m = 0.0;  ///< bevel-tip arc radius; 0 for a rigid needle (5.3) [m]
   /// Needle diameter [m]; the tip pushes the tissue across it (0 = a point tip, as in 2.3.4).
   double diameter_m = 0.0;
+  /// A seed within this of its target counts as placed (rigid seed implant) [m].
+  double placement_tolerance_m = 1e-4;
 };
 
 /// A point to reach, with the radius that counts as reached [m].
