@@ -30,6 +30,7 @@ struct Context {
   std::uint8_t* controls = nullptr;
   const StencilEntry* const* stencil_begin = nullptr;  // per (b * nc + k) * 2 + u, plus end
   const StencilEntry* const* stencil_end = nullptr;
+  bool split = false;  // kInterpolated: positions off the fast path use expectedSplit
 };
 
 /// Expected P_s of one control: sum_j p_ij P_s(x_j) over the stencil (eq. 5.2). kCheck: some
@@ -77,6 +78,69 @@ float updatePosition(const Context& c, std::int64_t pos, int iy, const Band& ban
   return max_change;
 }
 
+/// Expected P_s of one control of the kInterpolated model at a position off the fast path:
+/// per deflection (four contiguous corner entries) a failed arc counts 0, an exact end in the
+/// target 1, otherwise the corners that are free grid points share the deflection's probability
+/// in proportion to their bilinear weights.
+template <bool kBand>
+inline float expectedSplit(const Context& c, const StencilEntry* begin, const StencilEntry* end,
+                           std::int64_t s, std::int64_t pos, const std::uint64_t* mask, int iy,
+                           const Band& band) {
+  float sum = 0.0f;
+  for (const StencilEntry* e = begin; e != end; e += 4) {
+    if (!((mask[e->arc >> 6] >> (e->arc & 63)) & 1u)) {
+      continue;  // the arc fails: P_s = 0
+    }
+    const std::uint8_t em = c.model->endMask(pos, e->arc);
+    const float total = e[0].probability + e[1].probability + e[2].probability + e[3].probability;
+    if (em & SteeringModel::kEndInTarget) {
+      sum += total;
+      continue;
+    }
+    float kept = 0.0f, weighted = 0.0f;
+    for (int i = 0; i < 4; ++i) {
+      if (!((em >> i) & 1u)) {
+        continue;
+      }
+      const std::int64_t j = s + e[i].offset;
+      float v;
+      if (kBand) {
+        const int row = iy + e[i].dy;
+        v = row >= band.row_begin && row < band.row_end ? c.values[j] : c.snapshot[j];
+      } else {
+        v = c.values[j];
+      }
+      kept += e[i].probability;
+      weighted += e[i].probability * v;
+    }
+    if (kept > 0.0f) {
+      sum += weighted * (total / kept);
+    }
+  }
+  return sum;
+}
+
+template <bool kBand>
+float updateSplitPosition(const Context& c, std::int64_t pos, int iy, const Band& band) {
+  const int nc = c.grid->nc;
+  const std::uint64_t* mask = c.model->validityMask(pos);
+  float max_change = 0.0f;
+  const std::int64_t base = pos * 2 * nc;
+  for (int bk = 0; bk < 2 * nc; ++bk) {
+    const std::int64_t s = base + bk;
+    const float q_insert = expectedSplit<kBand>(c, c.stencil_begin[2 * bk], c.stencil_end[2 * bk],
+                                                s, pos, mask, iy, band);
+    const float q_flip = expectedSplit<kBand>(c, c.stencil_begin[2 * bk + 1],
+                                              c.stencil_end[2 * bk + 1], s, pos, mask, iy, band);
+    const bool flip = q_flip > q_insert;  // ties keep insert
+    const float best = flip ? q_flip : q_insert;
+    max_change = std::max(max_change, std::abs(best - c.values[s]));
+    c.values[s] = best;
+    c.controls[s] = flip ? 1 : 0;
+  }
+  return max_change;
+}
+
 /// One sweep of the rows in `band` (all columns), in the given order; returns max |change|.
 float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_descending, int reach,
                 bool use_snapshot) {
@@ -95,7 +159,10 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
       const bool near_edge =
           use_snapshot && (iy - band.row_begin < reach || band.row_end - 1 - iy < reach);
       float change;
-      if (near_edge) {
+      if (check && c.split) {
+        change = near_edge ? updateSplitPosition<true>(c, pos, iy, band)
+                           : updateSplitPosition<false>(c, pos, iy, band);
+      } else if (near_edge) {
         change = check ? updatePosition<true, true>(c, pos, iy, band)
                        : updatePosition<false, true>(c, pos, iy, band);
       } else {
@@ -166,6 +233,7 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   c.controls = controls.data();
   c.stencil_begin = begins.data();
   c.stencil_end = ends.data();
+  c.split = model.transitionModel() == TransitionModel::kInterpolated;
 
   SolveStats local;
   SolveStats& st = stats ? *stats : local;
