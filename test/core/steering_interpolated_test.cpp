@@ -19,6 +19,8 @@ constexpr double kDeg = kPi / 180.0;
 constexpr double kVarianceTol_rad2 = 1e-10;    // bisection to ~1e-15 rad, probabilities in double
 constexpr double kFloatProbabilityTol = 1e-6;  // stencil probabilities are float
 constexpr double kPositionTol_m = 1e-7;        // float weights times a 1 mm cell
+/// Float values solved to epsilon 1e-7: the fixed point holds to float rounding of ~30 terms.
+constexpr double kBellmanTol = 1e-4;
 
 SteeringProblem interpolated(SteeringProblem p, int subdivision = 1) {
   p.params.transition_model = TransitionModel::kInterpolated;
@@ -124,6 +126,33 @@ TEST(SteeringInterpolatedTest, SolvedValuesAreProbabilitiesAndBeatNoWorseThanZer
   EXPECT_GT(t.bestStart(startOptionsFromScene(scene::loadSceneSpec("steering_workspace")))
                 .best.probability_of_success,
             0.3f);
+}
+
+TEST(SteeringInterpolatedTest, SolutionSatisfiesTheBellmanEquationOfItsSuccessors) {
+  // The solver factors the split per arc; successorGroups() is the plain per-deflection form.
+  SteeringProblem p = interpolated(problemFromScene(scene::loadSceneSpec("steering_workspace")), 1);
+  p.params.grid_spacing_m = 2e-3;
+  const SteeringModel m(p, 2);
+  SolverOptions options;
+  options.epsilon = 1e-7;
+  const PolicyTable t = solveValueIteration(m, options);
+  double worst = 0.0;
+  for (StateId s = 0; s < m.numStates(); s += 7) {
+    if (m.cell(s / (2 * m.grid().nc)) != Cell::kFree) {
+      continue;
+    }
+    double q[2] = {0.0, 0.0};
+    for (int u = 0; u < 2; ++u) {
+      for (const Transition& tr : m.successors(s, static_cast<Control>(u))) {
+        const double v = tr.next == kSuccessState ? 1.0
+                         : tr.next == kFailState  ? 0.0
+                                                  : double(t.value(tr.next));
+        q[u] += tr.probability * v;
+      }
+    }
+    worst = std::max(worst, std::abs(std::max(q[0], q[1]) - double(t.value(s))));
+  }
+  EXPECT_LT(worst, kBellmanTol);
 }
 
 TEST(SteeringInterpolatedTest, SceneKeySelectsTheModelAndBadValuesAreRefused) {
