@@ -43,4 +43,13 @@ inline SteeringProblem openProblem(double spacing_m = 1e-3, double sigma_i_rad =
   return p;
 }
 
+/// The dissertation's 5.4.2 discretisation of a scene's problem (Delta 1 mm, s = 1, rounded
+/// transitions), whatever model the scene file chooses: the tests of 5.4.2 run on it.
+inline SteeringProblem dissertation(SteeringProblem p) {
+  p.params.grid_spacing_m = 1e-3;
+  p.params.orientation_subdivision = 1;
+  p.params.transition_model = TransitionModel::kRounded;
+  return p;
+}
+
 }  // namespace needle_guidance::steering::test_shapes

@@ -469,6 +469,12 @@ bool SteerableProcedureRos::run() {
   // The same start in the core simulator (continuous needle, same policy table) and the P_s
   // map of figure 5.7, from the table steering_policy saved (solved here only without one).
   const auto [table, table_source] = policyTable(scene.name, problem);
+  std::ostringstream model_text;
+  model_text << steering::toString(problem.params.transition_model) << ", grid "
+             << problem.params.grid_spacing_m * kMmPerM
+             << " mm, s = " << problem.params.orientation_subdivision << ", "
+             << table.grid().numStates() << " states";
+  const std::string model_line = model_text.str();
   steering::TipPose start;
   start.p_SceneTip = steering::Point2(best.response.pose.x, best.response.pose.y);
   start.theta_rad = best.response.pose.theta;
@@ -514,8 +520,8 @@ bool SteerableProcedureRos::run() {
        << "],\n  \"predicted_ps\": " << report::jsonNumber(predicted)
        << ",\n  \"predicted_within_ci\": " << (ci.contains(predicted) ? "true" : "false")
        << ",\n  \"monte_carlo_ps\": " << report::jsonNumber(mc.rate())
-       << ",\n  \"monte_carlo_trials\": " << mc.trials << ",\n  \"policy_table\": \""
-       << table_source << "\""
+       << ",\n  \"monte_carlo_trials\": " << mc.trials << ",\n  \"model\": \"" << model_line
+       << "\",\n  \"policy_table\": \"" << table_source << "\""
        << ",\n  \"start_y_mm\": " << report::jsonNumber(start.p_SceneTip.y() * kMmPerM)
        << ",\n  \"start_theta_deg\": " << report::jsonNumber(start.theta_rad * kDegPerRad)
        << ",\n  \"start_bevel\": \"" << best.response.bevel << "\""
@@ -572,10 +578,10 @@ bool SteerableProcedureRos::run() {
          << best.response.bevel << "\", \"png\": \"ps_map.png\"}]\n";
     report::writeTextFile(report_dir_ + "/plot.json", plot.str());
   }
-  std::cout << "\n== Steerable needle (" << feedback_ << " feedback): " << successes << " / " << n
-            << " closed-loop trials reached the target (rate " << rate << ", 95 % CI [" << ci.low
-            << ", " << ci.high << "]); predicted P_s " << predicted << ", Monte Carlo " << mc.rate()
-            << " ==\n"
+  std::cout << "\n== Steerable needle (" << feedback_ << " feedback; MDP model " << model_line
+            << "): " << successes << " / " << n << " closed-loop trials reached the target (rate "
+            << rate << ", 95 % CI [" << ci.low << ", " << ci.high << "]); predicted P_s "
+            << predicted << ", Monte Carlo " << mc.rate() << " ==\n"
             << "start y = " << start.p_SceneTip.y() * kMmPerM
             << " mm, theta = " << start.theta_rad * kDegPerRad << " deg, bevel "
             << best.response.bevel << "; " << wall_s << " s; report in " << report_dir_ << "\n"

@@ -26,9 +26,10 @@ namespace st = steering;
 
 constexpr char kName[] = "steering_policy";
 constexpr char kSceneFrame[] = "scene";
-constexpr double kMaxEpsilon = 0.1;       ///< loosest accepted value-iteration threshold
-constexpr double kThrottle_s = 5.0;       ///< period of per-message warnings and errors [s]
-constexpr double kMapDepth_m = 0.02;  ///< ~ps_map sits this far below z = 0: rviz's top-down ortho depth buffer loses mm separations
+constexpr double kMaxEpsilon = 0.1;   ///< loosest accepted value-iteration threshold
+constexpr double kThrottle_s = 5.0;   ///< period of per-message warnings and errors [s]
+constexpr double kMapDepth_m = 0.02;  ///< ~ps_map sits this far below z = 0: rviz's top-down ortho
+                                      ///< depth buffer loses mm separations
 constexpr double kMapThickness_m = 5e-4;  ///< cube height of ~ps_map [m]
 constexpr double kArrowLength_m = 0.01;   ///< ~best_start_marker [m]
 constexpr double kArrowShaft_m = 1e-3;
@@ -37,7 +38,6 @@ constexpr double kArrowHead_m = 2e-3;
 double secondsSince(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
-
 
 // ---- conversions (message <-> core), kept together (STYLE.md rule 3) -----------------------
 
@@ -176,6 +176,15 @@ void saveAtomically(const st::PolicyTable& table, const std::string& path) {
 
 }  // namespace
 
+std::string modelDescription(const st::SteeringModel& model) {
+  std::ostringstream s;
+  s << st::toString(model.transitionModel()) << ", grid "
+    << formatNumber(model.grid().spacing_m * 1e3, 6)
+    << " mm, s = " << model.params().orientation_subdivision << ", " << model.numStates()
+    << " states";
+  return s.str();
+}
+
 SteeringPolicyRos::SteeringPolicyRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   ROS_INFO("steering_policy parameters:");
   settings_.scene = ros_params::text(private_nh, "scene", settings_.scene, true);
@@ -201,12 +210,12 @@ SteeringPolicyRos::SteeringPolicyRos(ros::NodeHandle& nh, ros::NodeHandle& priva
     ROS_WARN_STREAM_NAMED(kName, "steering_policy: " << warning);
   }
   const st::GridSpec& grid = model_->grid();
-  ROS_INFO_STREAM_NAMED(kName, "steering_policy: scene '"
-                                   << scene_name_ << "', target '" << model_->problem().target.name
-                                   << "', grid " << grid.nx << " x " << grid.ny << " x " << grid.nc
-                                   << " x 2 = " << model_->numStates() << " states, step "
-                                   << 1e3 * model_->arcLength_m() << " mm, table file '"
-                                   << tablePath() << "'");
+  ROS_INFO_STREAM_NAMED(
+      kName, "steering_policy: scene '"
+                 << scene_name_ << "', target '" << model_->problem().target.name << "', model "
+                 << modelDescription(*model_) << ", grid " << grid.nx << " x " << grid.ny << " x "
+                 << grid.nc << " x 2 = " << model_->numStates() << " states, step "
+                 << 1e3 * model_->arcLength_m() << " mm, table file '" << tablePath() << "'");
 
   control_pub_ = private_nh.advertise<SteeringControl>("control", 10);
   ps_map_pub_ = private_nh.advertise<visualization_msgs::Marker>("ps_map", 1, true);
@@ -247,8 +256,8 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
       out.source = "cached";
       out.sweeps = table_->sweeps();
       out.seconds = secondsSince(t0);
-      out.message =
-          "table in memory (" + table_source_ + ", epsilon " + formatNumber(table_->epsilon()) + ")";
+      out.message = "table in memory (" + table_source_ + ", epsilon " +
+                    formatNumber(table_->epsilon()) + ")";
       ROS_INFO_STREAM_NAMED(kName, "steering_policy: cached table, " << model_->numStates()
                                                                      << " states, " << out.sweeps
                                                                      << " sweeps");
@@ -391,6 +400,7 @@ bool SteeringPolicyRos::onSolve(SolvePolicy::Request& req, SolvePolicy::Response
   }
   res.states = table_ ? table_->grid().numStates() : 0;
   res.sweeps = table_ ? table_->sweeps() : 0;
+  res.model = modelDescription(*model_);
   return true;
 }
 

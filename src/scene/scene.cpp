@@ -554,7 +554,17 @@ private:
     const std::string subdivision_key = m.keyPath("orientation_subdivision");
     const int subdivision_line = m.lineOfKey("orientation_subdivision");
     const std::optional<Quantity> start_x = m.optionalQuantity("start_x", detail::kLength);
+    const std::optional<std::string> transition = m.optionalString("transition_model");
+    const std::string transition_key = m.keyPath("transition_model");
+    const int transition_line = m.lineOfKey("transition_model");
     m.finish();
+    if (transition) {
+      if (*transition != "rounded" && *transition != "interpolated") {
+        fail(transition_key, *transition, "transition_model must be rounded or interpolated",
+             transition_line);
+      }
+      steering.transition_model = *transition;
+    }
     if (steering.orientations < 4 || steering.orientations % 4 != 0) {
       fail(orientations_key, std::to_string(steering.orientations),
            "orientations N_c must be a positive multiple of 4 (5.4.2)", orientations_line);

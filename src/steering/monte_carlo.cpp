@@ -206,6 +206,8 @@ ChainResult runDiscreteChain(const SteeringModel& model, const PolicyTable& tabl
   for (std::int64_t i = 0; i < trials; ++i) {
     std::mt19937_64 rng(mixSeed(seed, std::uint64_t(i)));
     std::normal_distribution<double> normal(0.0, 1.0);
+    std::mt19937_64 corner_rng(mixSeed(~seed, std::uint64_t(i)));
+    std::uniform_real_distribution<double> corner_draw(0.0, 1.0);
     ++out.trials;
     StateId s = first;
     bool ended = false;
@@ -224,9 +226,28 @@ ChainResult runDiscreteChain(const SteeringModel& model, const PolicyTable& tabl
         const Control u = table.control(s);
         const double sigma =
             u == Control::kInsert ? params.sigma_insert_rad : params.sigma_flip_rad;
-        const double beta = sigma > 0.0 ? sigma * normal(rng) : 0.0;
-        s = model.successors(s, u)[deflectionIndex(u, beta)].next;
-        if (s == kFailState) {
+        // kInterpolated bins are those of sigma' (model.binSigma): the same draw, scaled.
+        const double beta = sigma > 0.0 ? model.binSigma(u) * normal(rng) : 0.0;
+        const std::vector<Transition> group = model.successorGroups(s, u)[deflectionIndex(u, beta)];
+        s = group.back().next;
+        if (group.size() > 1) {  // kInterpolated: a corner by its share (own stream)
+          double total = 0.0;
+          for (const Transition& t : group) {
+            total += t.probability;
+          }
+          double x = corner_draw(corner_rng) * total;
+          for (const Transition& t : group) {
+            x -= t.probability;
+            if (x < 0.0) {
+              s = t.next;
+              break;
+            }
+          }
+        }
+        if (s == kSuccessState) {
+          ++out.successes;
+          ended = true;
+        } else if (s == kFailState) {
           ++out.failed_arcs;
           ended = true;
         }

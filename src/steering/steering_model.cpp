@@ -111,6 +111,20 @@ std::string toString(Control control) {
   return control == Control::kInsert ? "insert" : "flip";
 }
 
+std::string toString(TransitionModel model) {
+  return model == TransitionModel::kRounded ? "rounded" : "interpolated";
+}
+
+std::optional<TransitionModel> transitionModelFromString(const std::string& text) {
+  if (text == toString(TransitionModel::kRounded)) {
+    return TransitionModel::kRounded;
+  }
+  if (text == toString(TransitionModel::kInterpolated)) {
+    return TransitionModel::kInterpolated;
+  }
+  return std::nullopt;
+}
+
 TipPose advanceTip(const TipPose& pose, Control control, double beta_rad, double arc_length_m,
                    double radius_m) {
   TipPose out;
@@ -146,6 +160,14 @@ SteeringProblem problemFromScene(const scene::Scene& scene, const std::string& t
   problem.params.radius_m = scene.needle.radius_of_curvature_m;
   problem.params.sigma_insert_rad = scene.steering->sigma_insert_rad;
   problem.params.sigma_flip_rad = scene.steering->sigma_flip_rad;
+  const std::optional<TransitionModel> model =
+      transitionModelFromString(scene.steering->transition_model);
+  if (!model) {
+    throw std::invalid_argument("problemFromScene: scene '" + scene.name +
+                                "' steering.transition_model '" + scene.steering->transition_model +
+                                "' is not rounded or interpolated");
+  }
+  problem.params.transition_model = *model;
   return problem;
 }
 
@@ -179,6 +201,9 @@ std::uint64_t problemHash(const SteeringProblem& problem) {
   h.f64(p.sigma_flip_rad);
   h.f64(p.tail_mass);
   h.f64(p.arc_chord_tolerance_m);
+  if (p.transition_model != TransitionModel::kRounded) {  // kRounded keeps the 5.4.2 hashes
+    h.str(toString(p.transition_model));
+  }
   return h.value();
 }
 
@@ -327,58 +352,123 @@ double SteeringModel::arcLength_m() const {
   return 2.0 * kPi * problem_.params.radius_m / problem_.params.orientations;
 }
 
+namespace {
+
+/// Probabilities of the discrete deflections d alpha, d = first..first + size - 1, of beta ~
+/// N(0, sigma) (5.4.2, figure 5.4): the normal integrated over bins of width alpha centred on
+/// the deflections, the smallest +-m whose tails hold less than tail_mass, tails folded into the
+/// end bins; when 2m + 1 > nc the normal wrapped onto all nc orientations.
+std::vector<double> binProbabilities(double sigma, double alpha, int nc, double tail_mass,
+                                     int& first) {
+  std::vector<double> probs;
+  if (sigma == 0.0) {
+    first = 0;
+    return {1.0};
+  }
+  int m = 0;
+  while (std::erfc((m + 0.5) * alpha / (sigma * std::sqrt(2.0))) >= tail_mass && 2 * m + 1 <= nc) {
+    ++m;
+  }
+  if (2 * m + 1 > nc) {
+    first = -(nc / 2 - 1);
+    const int wraps = static_cast<int>(std::ceil(10.0 * sigma / (2.0 * kPi))) + 1;
+    double total = 0.0;
+    for (int i = 0; i < nc; ++i) {
+      const int d = first + i;
+      double mass = 0.0;
+      for (int w = -wraps; w <= wraps; ++w) {
+        const double lo = ((d - 0.5) + static_cast<double>(w) * nc) * alpha / sigma;
+        const double hi = ((d + 0.5) + static_cast<double>(w) * nc) * alpha / sigma;
+        mass += normalCdf(hi) - normalCdf(lo);
+      }
+      probs.push_back(mass);
+      total += mass;
+    }
+    for (double& q : probs) {
+      q /= total;
+    }
+    return probs;
+  }
+  first = -m;
+  for (int d = -m; d <= m; ++d) {
+    // Tails folded into the end transitions (5.4.2, figure 5.4).
+    const double lo = d == -m ? 0.0 : normalCdf((d - 0.5) * alpha / sigma);
+    const double hi = d == m ? 1.0 : normalCdf((d + 0.5) * alpha / sigma);
+    probs.push_back(hi - lo);
+  }
+  return probs;
+}
+
+/// Variance [rad^2] of the discrete deflections of binProbabilities.
+double binVariance(double sigma, double alpha, int nc, double tail_mass) {
+  int first = 0;
+  const std::vector<double> p = binProbabilities(sigma, alpha, nc, tail_mass, first);
+  double var = 0.0;
+  for (std::size_t i = 0; i < p.size(); ++i) {
+    const double beta = (first + static_cast<int>(i)) * alpha;
+    var += p[i] * beta * beta;
+  }
+  return var;
+}
+
+/// sigma' whose binned deflections have variance sigma^2 (bisection; the binned variance grows
+/// monotonically with sigma'). Binning at bin centres inflates the variance by about alpha^2 / 12
+/// (Sheppard) for sigma > alpha / 2 and shrinks it for sigma << alpha; the needle's spread after
+/// many steps is the sum of the per-step variances, so matching it removes the bias.
+double varianceMatchedSigma(double sigma, double alpha, int nc, double tail_mass) {
+  if (sigma == 0.0 || (2.0 * sigma > kPi / 2.0)) {
+    return sigma;  // no deflection, or wide enough to wrap: no matching
+  }
+  const double target = sigma * sigma;
+  double lo = 0.0, hi = 2.0 * sigma;
+  while (binVariance(hi, alpha, nc, tail_mass) < target) {
+    hi *= 2.0;
+  }
+  for (int i = 0; i < 60; ++i) {
+    const double mid = 0.5 * (lo + hi);
+    (binVariance(mid, alpha, nc, tail_mass) < target ? lo : hi) = mid;
+  }
+  return 0.5 * (lo + hi);
+}
+
+}  // namespace
+
 void SteeringModel::buildDeflections() {
   const int nc = grid_.nc;
   const double alpha = grid_.alphaRad();
   const double sigmas[2] = {problem_.params.sigma_insert_rad, problem_.params.sigma_flip_rad};
+  const bool matched = problem_.params.transition_model == TransitionModel::kInterpolated;
   for (int u = 0; u < 2; ++u) {
-    std::vector<double>& probs = deflection_p_[u];
-    const double sigma = sigmas[u];
-    probs.clear();
-    if (sigma == 0.0) {
-      probs.push_back(1.0);
-      first_d_[u] = 0;
-      continue;
-    }
-    // Smallest m whose two tails |beta| > (m + 1/2) alpha hold less than tail_mass (5.4.2).
-    int m = 0;
-    while (std::erfc((m + 0.5) * alpha / (sigma * std::sqrt(2.0))) >= problem_.params.tail_mass &&
-           2 * m + 1 <= nc) {
-      ++m;
-    }
-    if (2 * m + 1 > nc) {
-      // Deflections so wide that +-m alpha wraps around the circle: the wrapped normal on all N_c
-      // orientations, d in -(N_c/2 - 1)..N_c/2.
-      first_d_[u] = -(nc / 2 - 1);
-      const int wraps = static_cast<int>(std::ceil(10.0 * sigma / (2.0 * kPi))) + 1;
-      double total = 0.0;
-      for (int i = 0; i < nc; ++i) {
-        const int d = first_d_[u] + i;
-        double mass = 0.0;
-        for (int w = -wraps; w <= wraps; ++w) {
-          const double lo = ((d - 0.5) + static_cast<double>(w) * nc) * alpha / sigma;
-          const double hi = ((d + 0.5) + static_cast<double>(w) * nc) * alpha / sigma;
-          mass += normalCdf(hi) - normalCdf(lo);
-        }
-        probs.push_back(mass);
-        total += mass;
+    bin_sigma_[u] =
+        matched ? varianceMatchedSigma(sigmas[u], alpha, nc, problem_.params.tail_mass) : sigmas[u];
+    deflection_p_[u] =
+        binProbabilities(bin_sigma_[u], alpha, nc, problem_.params.tail_mass, first_d_[u]);
+    std::vector<double>& p = deflection_p_[u];
+    if (matched && p.size() >= 3 && static_cast<int>(p.size()) < nc) {
+      // The binned variance jumps where the tail cut m grows, so bisection stops just below
+      // sigma^2: move the remainder from the centre bin to the two end bins (+-m alpha).
+      double var = 0.0;
+      for (std::size_t i = 0; i < p.size(); ++i) {
+        const double beta = (first_d_[u] + static_cast<int>(i)) * alpha;
+        var += p[i] * beta * beta;
       }
-      for (double& q : probs) {
-        q /= total;
+      const double m_alpha = -first_d_[u] * alpha;
+      const double eps = (sigmas[u] * sigmas[u] - var) / (2.0 * m_alpha * m_alpha);
+      const std::size_t centre = p.size() / 2;
+      if (eps > 0.0 && 2.0 * eps < p[centre]) {
+        p.front() += eps;
+        p.back() += eps;
+        p[centre] -= 2.0 * eps;
       }
-      continue;
-    }
-    first_d_[u] = -m;
-    for (int d = -m; d <= m; ++d) {
-      // Tails folded into the end transitions (5.4.2, figure 5.4).
-      const double lo = d == -m ? 0.0 : normalCdf((d - 0.5) * alpha / sigma);
-      const double hi = d == m ? 1.0 : normalCdf((d + 0.5) * alpha / sigma);
-      probs.push_back(hi - lo);
     }
   }
 }
 
 void SteeringModel::buildStencils() {
+  if (problem_.params.transition_model == TransitionModel::kInterpolated) {
+    buildInterpolatedStencils();
+    return;
+  }
   const int nc = grid_.nc;
   const double r_cells = problem_.params.radius_m / grid_.spacing_m;
   const double alpha = grid_.alphaRad();
@@ -428,10 +518,77 @@ void SteeringModel::buildStencils() {
           e.probability = static_cast<float>(probs[i]);
           e.arc = static_cast<std::uint16_t>(arc);
           e.dy = static_cast<std::int16_t>(dy);
+          e.dpos = static_cast<std::int32_t>(dx * ny + dy);
           stencil_.push_back(e);
           max_row_reach_ = std::max(max_row_reach_, static_cast<int>(std::abs(dy)));
         }
         max_transitions_ = std::max(max_transitions_, static_cast<int>(probs.size()));
+      }
+    }
+  }
+  stencil_start_.back() = stencil_.size();
+}
+
+void SteeringModel::buildInterpolatedStencils() {
+  const int nc = grid_.nc;
+  const int s = problem_.params.orientation_subdivision;
+  const double alpha = grid_.alphaRad();
+  // The exact end point of each arc from the origin, in grid steps: floor in disp_x_ / disp_y_,
+  // the fraction in frac_x_ / frac_y_ (bilinear weights of the cell's four corners).
+  disp_x_.assign(static_cast<std::size_t>(2 * nc), 0);
+  disp_y_.assign(static_cast<std::size_t>(2 * nc), 0);
+  frac_x_.assign(static_cast<std::size_t>(2 * nc), 0.0);
+  frac_y_.assign(static_cast<std::size_t>(2 * nc), 0.0);
+  for (int a = 0; a < 2 * nc; ++a) {
+    TipPose start;
+    start.theta_rad = (a % nc) * alpha;
+    start.bevel = a < nc ? Bevel::kLeft : Bevel::kRight;
+    const Point2 end =
+        advanceTip(start, Control::kInsert, 0.0, arcLength_m(), problem_.params.radius_m)
+            .p_SceneTip /
+        grid_.spacing_m;
+    const auto sa = static_cast<std::size_t>(a);
+    disp_x_[sa] = static_cast<int>(std::floor(end.x()));
+    disp_y_[sa] = static_cast<int>(std::floor(end.y()));
+    frac_x_[sa] = end.x() - disp_x_[sa];
+    frac_y_[sa] = end.y() - disp_y_[sa];
+  }
+  const std::int64_t ny = grid_.ny;
+  stencil_.clear();
+  stencil_start_.assign(static_cast<std::size_t>(4 * nc + 1), 0);
+  max_transitions_ = 0;
+  max_row_reach_ = 0;
+  for (int k = 0; k < nc; ++k) {
+    for (int b = 0; b < 2; ++b) {
+      for (int u = 0; u < 2; ++u) {
+        const std::size_t slot = stencilSlot(k, static_cast<Bevel>(b), static_cast<Control>(u));
+        stencil_start_[slot] = stencil_.size();
+        const int traced = u == 0 ? b : 1 - b;
+        const auto& probs = deflection_p_[u];
+        for (std::size_t i = 0; i < probs.size(); ++i) {
+          const int o = wrap(k + first_d_[u] + static_cast<int>(i), nc);
+          const int arc = traced * nc + o;
+          const auto sa = static_cast<std::size_t>(arc);
+          const int o_next = wrap(traced == 0 ? o + s : o - s, nc);
+          for (int corner = 0; corner < 4; ++corner) {
+            const int cx = corner & 1, cy = corner >> 1;
+            const double w =
+                (cx ? frac_x_[sa] : 1.0 - frac_x_[sa]) * (cy ? frac_y_[sa] : 1.0 - frac_y_[sa]);
+            const std::int64_t dx = disp_x_[sa] + cx;
+            const std::int64_t dy = disp_y_[sa] + cy;
+            StencilEntry e;
+            e.offset = static_cast<std::int32_t>((dx * ny + dy) * 2 * nc + (traced * nc + o_next) -
+                                                 (b * nc + k));
+            e.probability = static_cast<float>(probs[i] * w);
+            e.arc = static_cast<std::uint16_t>(arc);
+            e.dy = static_cast<std::int16_t>(dy);
+            e.corner = static_cast<std::uint8_t>(corner);
+            e.dpos = static_cast<std::int32_t>(dx * ny + dy);
+            stencil_.push_back(e);
+            max_row_reach_ = std::max(max_row_reach_, static_cast<int>(std::abs(dy)));
+          }
+        }
+        max_transitions_ = std::max(max_transitions_, static_cast<int>(4 * probs.size()));
       }
     }
   }
@@ -481,6 +638,26 @@ void SteeringModel::buildCells() {
   }
 }
 
+std::uint8_t SteeringModel::endMask(int ix, int iy, int arc) const {
+  const auto sa = static_cast<std::size_t>(arc);
+  std::uint8_t em = 0;
+  for (int corner = 0; corner < 4; ++corner) {
+    const int ex = ix + disp_x_[sa] + (corner & 1);
+    const int ey = iy + disp_y_[sa] + (corner >> 1);
+    if (ex >= 0 && ex < grid_.nx && ey >= 0 && ey < grid_.ny &&
+        cells_[static_cast<std::size_t>(grid_.position(ex, ey))] ==
+            static_cast<std::uint8_t>(Cell::kFree)) {
+      em |= static_cast<std::uint8_t>(1u << corner);
+    }
+  }
+  const Point2 end = grid_.point(ix, iy) +
+                     grid_.spacing_m * Point2(disp_x_[sa] + frac_x_[sa], disp_y_[sa] + frac_y_[sa]);
+  if ((end - problem_.target.position).norm() <= problem_.target.radius_m) {
+    em |= kEndInTarget;
+  }
+  return em;
+}
+
 void SteeringModel::buildValidity(int threads) {
   const int nc = grid_.nc;
   const int n_arcs = 2 * nc;
@@ -488,6 +665,10 @@ void SteeringModel::buildValidity(int threads) {
   const std::int64_t n_pos = grid_.numPositions();
   valid_.assign(static_cast<std::size_t>(n_pos * words_), 0);
   all_valid_.assign(static_cast<std::size_t>(n_pos), 0);
+  const bool interpolated = problem_.params.transition_model == TransitionModel::kInterpolated;
+  if (interpolated) {
+    end_mask_.assign(static_cast<std::size_t>(n_pos * n_arcs), 0);
+  }
 
   // Each arc as a polyline relative to its start point (the same at every position).
   const double r = problem_.params.radius_m;
@@ -585,7 +766,7 @@ void SteeringModel::buildValidity(int threads) {
           const int ex = ix + disp_x_[sa];
           const int ey = iy + disp_y_[sa];
           const Box& ab = arc_box[sa];
-          bool ok = ex >= 0 && ex < grid_.nx && ey >= 0 && ey < grid_.ny &&
+          bool ok = (interpolated || (ex >= 0 && ex < grid_.nx && ey >= 0 && ey < grid_.ny)) &&
                     q.x() + ab.min_x >= wmin.x() - slack && q.x() + ab.max_x <= wmax.x() + slack &&
                     q.y() + ab.min_y >= wmin.y() - slack && q.y() + ab.max_y <= wmax.y() + slack;
           if (ok && !near.empty()) {
@@ -603,6 +784,12 @@ void SteeringModel::buildValidity(int threads) {
                 break;
               }
             }
+          }
+          if (interpolated) {
+            const std::uint8_t em = ok ? endMask(ix, iy, a) : 0;
+            end_mask_[static_cast<std::size_t>(pos * n_arcs + a)] = em;
+            ok = em != 0;
+            all = all && em == 15;
           }
           if (ok) {
             mask[a / 64] |= std::uint64_t{1} << (a % 64);
@@ -628,7 +815,8 @@ void SteeringModel::buildValidity(int threads) {
   }
 }
 
-std::vector<Transition> SteeringModel::successors(StateId s, Control control) const {
+std::vector<std::vector<Transition>> SteeringModel::successorGroups(StateId s,
+                                                                    Control control) const {
   if (s < 0 || s >= numStates()) {
     throw std::out_of_range("SteeringModel::successors: state " + std::to_string(s) +
                             " not in [0, " + std::to_string(numStates()) + ")");
@@ -638,13 +826,48 @@ std::vector<Transition> SteeringModel::successors(StateId s, Control control) co
   grid_.decode(s, ix, iy, k, b);
   const std::int64_t pos = grid_.position(ix, iy);
   if (cell(pos) != Cell::kFree) {
-    return {{s, 1.0}};
+    return {{{s, 1.0}}};
   }
+  const bool interpolated = transitionModel() == TransitionModel::kInterpolated;
+  const std::size_t per = interpolated ? 4 : 1;
+  const StencilEntry* begin = stencilBegin(k, b, control);
+  const std::vector<double>& probs = deflection_p_[static_cast<int>(control)];
+  std::vector<std::vector<Transition>> out;
+  for (std::size_t i = 0; i < probs.size(); ++i) {
+    const StencilEntry* e = begin + i * per;
+    const double p = probs[i];
+    if (!arcValid(pos, e->arc)) {
+      out.push_back({{kFailState, p}});
+      continue;
+    }
+    if (!interpolated) {
+      out.push_back({{s + e->offset, p}});
+      continue;
+    }
+    const std::uint8_t em = endMask(pos, e->arc);
+    if (em & kEndInTarget) {
+      out.push_back({{kSuccessState, p}});
+      continue;
+    }
+    double kept = 0.0;
+    for (std::size_t c = 0; c < 4; ++c) {
+      kept += (em >> e[c].corner) & 1u ? double(e[c].probability) : 0.0;
+    }
+    std::vector<Transition> group;
+    for (std::size_t c = 0; c < 4; ++c) {
+      if (((em >> e[c].corner) & 1u) && e[c].probability > 0.0f) {
+        group.push_back({s + e[c].offset, p * double(e[c].probability) / kept});
+      }
+    }
+    out.push_back(std::move(group));
+  }
+  return out;
+}
+
+std::vector<Transition> SteeringModel::successors(StateId s, Control control) const {
   std::vector<Transition> out;
-  for (const StencilEntry* e = stencilBegin(k, b, control); e != stencilEnd(k, b, control); ++e) {
-    const std::size_t i = static_cast<std::size_t>(e - stencilBegin(k, b, control));
-    const double p = deflection_p_[static_cast<int>(control)][i];
-    out.push_back({arcValid(pos, e->arc) ? s + e->offset : kFailState, p});
+  for (auto& group : successorGroups(s, control)) {
+    out.insert(out.end(), group.begin(), group.end());
   }
   return out;
 }

@@ -30,6 +30,20 @@ struct Context {
   std::uint8_t* controls = nullptr;
   const StencilEntry* const* stencil_begin = nullptr;  // per (b * nc + k) * 2 + u, plus end
   const StencilEntry* const* stencil_end = nullptr;
+  bool split = false;  // kInterpolated: positions off the fast path use expectedSplit
+  const struct ArcTables* arcs = nullptr;  // kInterpolated: per-arc corners, per-slot deflections
+};
+
+/// kInterpolated, factored: the value after tracing arc a (bevel * nc + orientation) from a
+/// position depends on the arc only, so it is computed once per arc (four corners) and each
+/// control then sums P(d) over the arcs of its deflections, instead of 4 corners per deflection.
+struct ArcTables {
+  std::vector<std::int64_t> offset;  // per arc * 4 + corner: next state minus the position's base
+  std::vector<float> weight;         // bilinear weight of the corner
+  std::vector<std::int16_t> dy;      // row displacement of the corner
+  std::vector<std::uint8_t> corner;  // corner id (bit of endMask)
+  std::vector<std::vector<std::uint16_t>> slot_arc;  // per slot (b * nc + k) * 2 + u
+  std::vector<std::vector<float>> slot_p;
 };
 
 /// Expected P_s of one control: sum_j p_ij P_s(x_j) over the stencil (eq. 5.2). kCheck: some
@@ -77,11 +91,107 @@ float updatePosition(const Context& c, std::int64_t pos, int iy, const Band& ban
   return max_change;
 }
 
+template <bool kBand>
+float updateFactoredPosition(const Context& c, std::int64_t pos, int iy, const Band& band,
+                             bool plain, std::vector<float>& after) {
+  const int nc = c.grid->nc;
+  const ArcTables& t = *c.arcs;
+  const std::uint64_t* mask = c.model->validityMask(pos);
+  const std::int64_t base = pos * 2 * nc;
+  for (int a = 0; a < 2 * nc; ++a) {
+    if (!plain && !((mask[a >> 6] >> (a & 63)) & 1u)) {
+      after[static_cast<std::size_t>(a)] = 0.0f;  // the arc fails
+      continue;
+    }
+    const std::uint8_t em = plain ? 15 : c.model->endMask(pos, a);
+    if (em & SteeringModel::kEndInTarget) {
+      after[static_cast<std::size_t>(a)] = 1.0f;
+      continue;
+    }
+    float kept = 0.0f, weighted = 0.0f;
+    for (int i = 0; i < 4; ++i) {
+      const auto ai = static_cast<std::size_t>(a * 4 + i);
+      if (!((em >> t.corner[ai]) & 1u)) {
+        continue;
+      }
+      const std::int64_t j = base + t.offset[ai];
+      float v;
+      if (kBand) {
+        const int row = iy + t.dy[ai];
+        v = row >= band.row_begin && row < band.row_end ? c.values[j] : c.snapshot[j];
+      } else {
+        v = c.values[j];
+      }
+      kept += t.weight[ai];
+      weighted += t.weight[ai] * v;
+    }
+    after[static_cast<std::size_t>(a)] = kept > 0.0f ? weighted / kept : 0.0f;
+  }
+  float max_change = 0.0f;
+  for (int bk = 0; bk < 2 * nc; ++bk) {
+    float q[2];
+    for (int u = 0; u < 2; ++u) {
+      const auto slot = static_cast<std::size_t>(2 * bk + u);
+      const std::vector<std::uint16_t>& arcs = t.slot_arc[slot];
+      const std::vector<float>& p = t.slot_p[slot];
+      float sum = 0.0f;
+      for (std::size_t d = 0; d < arcs.size(); ++d) {
+        sum += p[d] * after[arcs[d]];
+      }
+      q[u] = sum;
+    }
+    const std::int64_t s = base + bk;
+    const bool flip = q[1] > q[0];  // ties keep insert
+    const float best = flip ? q[1] : q[0];
+    max_change = std::max(max_change, std::abs(best - c.values[s]));
+    c.values[s] = best;
+    c.controls[s] = flip ? 1 : 0;
+  }
+  return max_change;
+}
+
+/// The per-arc corners and per-slot deflections of a kInterpolated model's stencils.
+ArcTables arcTables(const SteeringModel& model) {
+  const int nc = model.grid().nc;
+  ArcTables t;
+  t.offset.assign(static_cast<std::size_t>(8 * nc), 0);
+  t.weight.assign(static_cast<std::size_t>(8 * nc), 0.0f);
+  t.dy.assign(static_cast<std::size_t>(8 * nc), 0);
+  t.corner.assign(static_cast<std::size_t>(8 * nc), 0);
+  t.slot_arc.resize(static_cast<std::size_t>(4 * nc));
+  t.slot_p.resize(static_cast<std::size_t>(4 * nc));
+  for (int b = 0; b < 2; ++b) {
+    for (int k = 0; k < nc; ++k) {
+      for (int u = 0; u < 2; ++u) {
+        const auto slot = static_cast<std::size_t>((b * nc + k) * 2 + u);
+        const StencilEntry* begin =
+            model.stencilBegin(k, static_cast<Bevel>(b), static_cast<Control>(u));
+        const StencilEntry* end =
+            model.stencilEnd(k, static_cast<Bevel>(b), static_cast<Control>(u));
+        for (const StencilEntry* e = begin; e != end; e += 4) {
+          const float p = e[0].probability + e[1].probability + e[2].probability + e[3].probability;
+          t.slot_arc[slot].push_back(e->arc);
+          t.slot_p[slot].push_back(p);
+          for (int i = 0; i < 4; ++i) {
+            const auto ai = static_cast<std::size_t>(e->arc * 4 + i);
+            t.offset[ai] = e[i].offset + (b * nc + k);
+            t.weight[ai] = p > 0.0f ? e[i].probability / p : 0.25f;
+            t.dy[ai] = e[i].dy;
+            t.corner[ai] = e[i].corner;
+          }
+        }
+      }
+    }
+  }
+  return t;
+}
+
 /// One sweep of the rows in `band` (all columns), in the given order; returns max |change|.
 float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_descending, int reach,
                 bool use_snapshot) {
   const GridSpec& g = *c.grid;
   float max_change = 0.0f;
+  std::vector<float> after(c.split ? static_cast<std::size_t>(2 * g.nc) : 0);
   for (int i = 0; i < g.nx; ++i) {
     const int ix = x_descending ? g.nx - 1 - i : i;
     const int rows = band.row_end - band.row_begin;
@@ -95,7 +205,10 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
       const bool near_edge =
           use_snapshot && (iy - band.row_begin < reach || band.row_end - 1 - iy < reach);
       float change;
-      if (near_edge) {
+      if (c.split) {
+        change = near_edge ? updateFactoredPosition<true>(c, pos, iy, band, !check, after)
+                           : updateFactoredPosition<false>(c, pos, iy, band, !check, after);
+      } else if (near_edge) {
         change = check ? updatePosition<true, true>(c, pos, iy, band)
                        : updatePosition<false, true>(c, pos, iy, band);
       } else {
@@ -166,6 +279,9 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   c.controls = controls.data();
   c.stencil_begin = begins.data();
   c.stencil_end = ends.data();
+  c.split = model.transitionModel() == TransitionModel::kInterpolated;
+  const ArcTables arc_tables = c.split ? arcTables(model) : ArcTables{};
+  c.arcs = &arc_tables;
 
   SolveStats local;
   SolveStats& st = stats ? *stats : local;

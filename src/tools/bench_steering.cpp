@@ -66,6 +66,7 @@ double secondsSince(std::chrono::steady_clock::time_point t0) {
 struct Solved {
   double spacing_m = 0.0;
   int subdivision = 1;  ///< orientation_subdivision s
+  st::TransitionModel transition = st::TransitionModel::kRounded;
   std::int64_t states = 0;
   double build_s = 0.0;
   st::SolveStats stats;
@@ -79,11 +80,14 @@ struct Solved {
 /// Builds and solves at one grid spacing and orientation subdivision; the solve time is the
 /// median of `repeats` solves (the first also pays for page faults).
 Solved solveAt(const st::SteeringProblem& base, double spacing_m, int threads, double epsilon,
-               const st::StartOptions& start, int subdivision = 1, int repeats = kSolveRepeats) {
+               const st::StartOptions& start, int subdivision = 1, int repeats = kSolveRepeats,
+               st::TransitionModel transition = st::TransitionModel::kRounded) {
   st::SteeringProblem problem = base;
   problem.params.grid_spacing_m = spacing_m;
   problem.params.orientation_subdivision = subdivision;
+  problem.params.transition_model = transition;
   Solved out;
+  out.transition = transition;
   out.spacing_m = spacing_m;
   out.subdivision = subdivision;
   const auto t0 = std::chrono::steady_clock::now();
@@ -133,15 +137,15 @@ public:
         starts_(std::move(starts)),
         per_start_({"grid_spacing_mm", "subdivision", "y_mm", "theta_deg", "bevel", "predicted_ps",
                     "mc_ps", "ci_low", "ci_high", "within_ci", "gap", "chain_ps", "chain_within_ci",
-                    "rounded_deflection_ps", "rounded_into_obstacle"},
+                    "rounded_deflection_ps", "rounded_into_obstacle", "transition_model"},
                    6),
         summary_({"grid_spacing_mm", "subdivision", "states", "total_s", "starts",
                   "within_ci_fraction", "mean_abs_gap", "max_abs_gap", "mean_gap", "noise_floor",
                   "solver_gap", "chain_within_ci_fraction", "position_rounding_gap",
-                  "deflection_gap", "rounded_into_obstacle"},
+                  "deflection_gap", "rounded_into_obstacle", "transition_model"},
                  6) {}
 
-  void check(const Solved& r) {
+  Summary check(const Solved& r) {
     const st::SteeringPolicy policy = st::tablePolicy(*r.table);
     st::TrialOptions rounded;
     rounded.deflection_step_rad = r.model->grid().alphaRad();
@@ -183,7 +187,7 @@ public:
                          pose.theta_rad * kDegPerRad, st::toString(pose.bevel), predicted,
                          mc.rate(), ci.low, ci.high, ci.contains(predicted) ? 1.0 : 0.0, gap,
                          chain.rate(), chain.interval().contains(predicted) ? 1.0 : 0.0,
-                         mc_rounded.rate(), into});
+                         mc_rounded.rate(), into, st::toString(r.transition)});
     }
     const double n = std::max(1, sum.starts);
     sum.within = sum.starts > 0 ? sum.within / n : 1.0;
@@ -192,15 +196,17 @@ public:
     summary_.addRow({sum.spacing_mm, double(r.subdivision), double(r.states), sum.total_s,
                      double(sum.starts), sum.within, sum.mean_abs_gap, max_gap, signed_gap / n,
                      sum.noise_floor, solver / n, chain_within / n, position / n, deflection / n,
-                     into_obstacle / n});
+                     into_obstacle / n, st::toString(r.transition)});
     summaries_.push_back(sum);
-    std::cout << "truth check, Delta " << sum.spacing_mm << " mm, s = " << r.subdivision << ": "
-              << sum.within * sum.starts << " of " << sum.starts
+    std::cout << "truth check, " << st::toString(r.transition) << ", Delta " << sum.spacing_mm
+              << " mm, s = " << r.subdivision << ", " << sum.total_s
+              << " s: " << sum.within * sum.starts << " of " << sum.starts
               << " start states within the 95 % interval, mean |gap| " << sum.mean_abs_gap
               << " (noise floor " << sum.noise_floor << "; solver " << solver / n
               << ", position rounding " << position / n << ", deflection quantisation "
               << deflection / n << ")\n"
               << std::flush;
+    return sum;
   }
 
   double withinFraction(double spacing_m, int subdivision) const {
@@ -254,6 +260,17 @@ int main(int argc, char** argv) {
     const st::SteeringProblem problem = st::problemFromScene(scene);
     const st::StartOptions start = st::startOptionsFromScene(scene);
     const double baseline_mb = peakMb();
+    // ---- the scene's own model (its Delta, s and transition model), first, so that the peak
+    // resident memory after it is its own ----
+    const Solved scene_model = solveAt(problem, problem.params.grid_spacing_m, 2, 1e-3, start,
+                                       problem.params.orientation_subdivision, kSolveRepeats,
+                                       problem.params.transition_model);
+    std::cout << "scene model (" << st::toString(scene_model.transition) << ", Delta "
+              << scene_model.spacing_m * kMmPerM << " mm, s = " << scene_model.subdivision
+              << "): " << scene_model.states << " states, build " << scene_model.build_s
+              << " s, solve " << scene_model.stats.seconds << " s, peak " << scene_model.peak_mb
+              << " MB\n"
+              << std::flush;
     std::cout << "bench_steering: scene " << scene.name
               << ", r = " << problem.params.radius_m * kMmPerM
               << " mm, N_c = " << problem.params.orientations
@@ -367,6 +384,12 @@ int main(int argc, char** argv) {
       truth.check(r);
     }
     const double within_800k = truth.withinFraction(kSpacing800k_m, 1);
+    const TruthCheck::Summary truth_default = truth.check(scene_model);
+    for (const auto& [spacing, subdivision] :
+         std::vector<std::pair<double, int>>{{1e-3, 3}, {0.7e-3, 3}, {0.5e-3, 3}}) {
+      truth.check(solveAt(problem, spacing, 2, 1e-3, start, subdivision, 1,
+                          st::TransitionModel::kInterpolated));
+    }
     if (!args->quick) {
       // Finer models, solved once each and dropped after their check (memory).
       const std::vector<std::pair<double, int>> finer = {{0.125e-3, 1}, {1e-3, 2},     {0.5e-3, 2},
@@ -568,7 +591,19 @@ int main(int argc, char** argv) {
          << ",\n  \"finest_spacing_mm\": " << ng::report::jsonNumber(finest.spacing_m * kMmPerM)
          << ",\n  \"table_mb_800k\": " << ng::report::jsonNumber(table_mb)
          << ",\n  \"table_save_s\": " << ng::report::jsonNumber(save_s)
-         << ",\n  \"table_load_s\": " << ng::report::jsonNumber(load_s) << "\n}\n";
+         << ",\n  \"table_load_s\": " << ng::report::jsonNumber(load_s)
+         << ",\n  \"transition_model_default\": \"" << st::toString(scene_model.transition) << "\""
+         << ",\n  \"grid_spacing_mm_default\": "
+         << ng::report::jsonNumber(scene_model.spacing_m * kMmPerM)
+         << ",\n  \"subdivision_default\": " << scene_model.subdivision
+         << ",\n  \"states_default\": " << scene_model.states
+         << ",\n  \"mc_within_ci_fraction_default\": "
+         << ng::report::jsonNumber(truth_default.within) << ",\n  \"ps_mean_abs_gap_default\": "
+         << ng::report::jsonNumber(truth_default.mean_abs_gap)
+         << ",\n  \"noise_floor_default\": " << ng::report::jsonNumber(truth_default.noise_floor)
+         << ",\n  \"solve_s_default\": " << ng::report::jsonNumber(scene_model.stats.seconds)
+         << ",\n  \"build_s_default\": " << ng::report::jsonNumber(scene_model.build_s)
+         << ",\n  \"peak_mb_default\": " << ng::report::jsonNumber(scene_model.peak_mb) << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(
         args->out_dir + "/plot.json",

@@ -343,8 +343,10 @@ TEST(SceneTest, EmbeddedSteeringWorkspace) {
   EXPECT_NEAR(scene.needle.max_height_m, 0.1, kTol_m);
 
   ASSERT_TRUE(scene.steering.has_value());
-  EXPECT_NEAR(scene.steering->grid_spacing_m, 1e-3, kTol_m);
+  EXPECT_NEAR(scene.steering->grid_spacing_m, 0.7e-3, kTol_m);
   EXPECT_EQ(scene.steering->orientations, 40);
+  EXPECT_EQ(scene.steering->orientation_subdivision, 3);
+  EXPECT_EQ(scene.steering->transition_model, "interpolated");
   EXPECT_NEAR(scene.steering->sigma_insert_rad, 5.0 * kPi / 180.0, kTol_rad);
   EXPECT_NEAR(scene.steering->sigma_flip_rad, 10.0 * kPi / 180.0, kTol_rad);
   EXPECT_EQ(scene.steering->start_x_m, 0.0);

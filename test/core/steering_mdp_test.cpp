@@ -116,7 +116,8 @@ TEST(SteeringMdpTest, QuarterCircleProblemSolvedByHand) {
 // ---- sigma = 0 ---------------------------------------------------------------------------------
 
 TEST(SteeringMdpTest, DeterministicMotionGivesZeroOrOne) {
-  SteeringProblem p = problemFromScene(scene::loadSceneSpec("steering_workspace"));
+  SteeringProblem p =
+      test_shapes::dissertation(problemFromScene(scene::loadSceneSpec("steering_workspace")));
   p.params.grid_spacing_m = 2e-3;
   p.params.sigma_insert_rad = 0.0;
   p.params.sigma_flip_rad = 0.0;
@@ -328,7 +329,8 @@ TEST(SteeringMdpTest, NarrowGapUnderUncertaintyAndClosedGap) {
 // -----------------------------------------------------------------------------
 
 TEST(SteeringMdpTest, SolutionSatisfiesTheBellmanEquation) {
-  SteeringProblem p = problemFromScene(scene::loadSceneSpec("steering_workspace"));
+  SteeringProblem p =
+      test_shapes::dissertation(problemFromScene(scene::loadSceneSpec("steering_workspace")));
   p.params.grid_spacing_m = 2e-3;
   const SteeringModel m(p);
   SolveStats stats;
@@ -354,7 +356,8 @@ TEST(SteeringMdpTest, SolutionSatisfiesTheBellmanEquation) {
 }
 
 TEST(SteeringMdpTest, ThreadsAreDeterministicAndAgree) {
-  SteeringProblem p = problemFromScene(scene::loadSceneSpec("steering_workspace"));
+  SteeringProblem p =
+      test_shapes::dissertation(problemFromScene(scene::loadSceneSpec("steering_workspace")));
   p.params.grid_spacing_m = 2e-3;
   const SteeringModel m(p);
   SolverOptions one, two;
@@ -372,7 +375,8 @@ TEST(SteeringMdpTest, ThreadsAreDeterministicAndAgree) {
 }
 
 TEST(SteeringMdpTest, TighterEpsilonOnRequest) {
-  SteeringProblem p = problemFromScene(scene::loadSceneSpec("steering_workspace"));
+  SteeringProblem p =
+      test_shapes::dissertation(problemFromScene(scene::loadSceneSpec("steering_workspace")));
   p.params.grid_spacing_m = 2e-3;
   const SteeringModel m(p);
   SolveStats loose_stats, tight_stats;

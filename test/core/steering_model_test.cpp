@@ -11,6 +11,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "../steering_shapes.h"
 #include "needle_guidance/geometry/polygon.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/policy_table.h"
@@ -37,7 +38,8 @@ double normalCdf(double z) {
 }
 
 SteeringProblem workspaceProblem(double spacing_m) {
-  SteeringProblem p = problemFromScene(scene::loadSceneSpec("steering_workspace"));
+  SteeringProblem p =
+      test_shapes::dissertation(problemFromScene(scene::loadSceneSpec("steering_workspace")));
   p.params.grid_spacing_m = spacing_m;
   return p;
 }
@@ -46,7 +48,9 @@ TEST(SteeringModelTest, ProblemFromSceneTakesTheSteeringSection) {
   const scene::Scene s = scene::loadSceneSpec("steering_workspace");
   const SteeringProblem p = problemFromScene(s);
   EXPECT_EQ(p.params.orientations, 40);
-  EXPECT_NEAR(p.params.grid_spacing_m, 1e-3, kPositionTol_m);
+  EXPECT_NEAR(p.params.grid_spacing_m, 0.7e-3, kPositionTol_m);
+  EXPECT_EQ(p.params.orientation_subdivision, 3);
+  EXPECT_EQ(p.params.transition_model, TransitionModel::kInterpolated);
   EXPECT_NEAR(p.params.radius_m, 0.05, kPositionTol_m);
   EXPECT_NEAR(p.params.sigma_insert_rad, 5 * kDeg, kAngleTol_rad);
   EXPECT_NEAR(p.params.sigma_flip_rad, 10 * kDeg, kAngleTol_rad);

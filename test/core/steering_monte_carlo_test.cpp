@@ -221,7 +221,8 @@ TEST(MonteCarlo, DeterministicNeedleStaysWithinTheDiscretisationBound) {
 // the scene with obstacles and a narrow channel. This checks value iteration independently of
 // any discretisation error.
 TEST(DiscreteChain, SuccessRateMatchesThePredictedPs) {
-  SteeringProblem p = problemFromScene(scene::loadSceneSpec("steering_workspace"));
+  SteeringProblem p =
+      test_shapes::dissertation(problemFromScene(scene::loadSceneSpec("steering_workspace")));
   p.params.grid_spacing_m = 2e-3;
   const SteeringModel model(p);
   SolverOptions tight;

@@ -441,7 +441,8 @@ TEST(ShortestPathPlanTest, SameSeedAndIterationBudgetGiveTheSamePlan) {
 // ---- the steps-to-go table -------------------------------------------------------------------
 
 TEST(ShortestPathTableTest, AgreesWithValueIterationAndTheBellmanEquationAtSigmaZero) {
-  SteeringProblem problem = problemFromScene(scene::loadSceneSpec("steering_workspace"));
+  SteeringProblem problem =
+      test_shapes::dissertation(problemFromScene(scene::loadSceneSpec("steering_workspace")));
   problem.params.grid_spacing_m = 2e-3;
   problem.params.sigma_insert_rad = 0.0;
   problem.params.sigma_flip_rad = 0.0;
@@ -595,7 +596,7 @@ TEST(ShortestPathTableTest, ClosedLoopPolicyReachesTheTargetWithoutNoise) {
 
 TEST(ShortestPathSceneTest, BaselinesAgainstTheMdpOnTheSteeringWorkspace) {
   const scene::Scene scene = scene::loadSceneSpec("steering_workspace");
-  const SteeringProblem problem = problemFromScene(scene);
+  const SteeringProblem problem = test_shapes::dissertation(problemFromScene(scene));
   const SteeringModel model(problem);
   ASSERT_EQ(model.numStates(), 800000);  // 5.5: N = 800,000
   const PolicyTable mdp = solveValueIteration(model);

@@ -16,11 +16,11 @@
 #include <string>
 #include <vector>
 
+#include "../ros_wait.h"
 #include "needle_guidance/BestStart.h"
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SolvePolicy.h"
 #include "needle_guidance/SteeringControl.h"
-#include "../ros_wait.h"
 
 namespace {
 
@@ -35,8 +35,8 @@ constexpr double kProbabilityTol = 1e-6;   ///< P_s of the look-up vs the best s
 constexpr double kStepTol_m = 1e-12;       ///< step_length_m vs 2 pi r / N_c
 constexpr double kRadius_m = 0.05;         ///< steering_workspace: r = 5 cm
 constexpr int kOrientations = 40;          ///< N_c
-constexpr long kStates = 800000;           ///< 100 x 100 x 40 x 2
-constexpr std::size_t kPositions = 10000;  ///< 100 x 100 grid positions
+constexpr long kStates = 4839360;          ///< 142 x 142 x (40 x 3) x 2 (0.7 mm, s = 3)
+constexpr std::size_t kPositions = 20164;  ///< 142 x 142 (0.7 mm)
 const std::string kFirst = "/steering_policy";
 const std::string kSecond = "/second/steering_policy";
 const ros::Duration kServiceWait(60.0);

@@ -19,6 +19,9 @@
 
 namespace needle_guidance {
 
+/// "interpolated, grid 0.7 mm, s = 3, 4839360 states": the discretisation a table belongs to.
+std::string modelDescription(const steering::SteeringModel& model);
+
 /// Subscribes `tip` (NeedleTip, frame scene; remap it to the tracker's or the robot's topic) and
 /// publishes one `~control` (SteeringControl) per well-formed tip. Serves `~solve` (SolvePolicy)
 /// and `~best_start` (BestStart). Publishes latched `~ps_map` (Marker CUBE_LIST, max P_s per grid

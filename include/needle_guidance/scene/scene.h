@@ -124,6 +124,10 @@ struct Steering {
   double sigma_insert_rad = 0.0;    ///< sigma_i [rad]
   double sigma_flip_rad = 0.0;      ///< sigma_r [rad]
   double start_x_m = 0.0;           ///< feasible start states lie on the line x = start_x_m [m]
+  /// How a transition's end point enters the MDP: "rounded" (5.4.2: rounded control-circle
+  /// points) or "interpolated" (exact arc end, probability split bilinearly between the four
+  /// neighbouring grid points; deflection bins matched to sigma's variance).
+  std::string transition_model = "rounded";
 };
 
 /// A validated scene in SI units.

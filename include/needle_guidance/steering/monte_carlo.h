@@ -109,7 +109,9 @@ struct ChainResult {
 /// table's control, a discrete deflection drawn with the model's probabilities (beta ~ N(0,
 /// sigma) drawn as simulateTrial draws it, rounded to the alpha grid, tails folded), the
 /// stencil's successor. Its success rate estimates the table's P_s at that state with no modelling
-/// error at all, so it separates solver error from discretisation error in the truth check. Trial i
+/// error at all, so it separates solver error from discretisation error in the truth check. With
+/// kInterpolated the draw is scaled to the model's sigma' (binSigma) and the corner of a split
+/// transition is drawn by its share from a second stream, so the deflections stay coupled. Trial i
 /// uses seed (seed, i). Throws std::invalid_argument for trials < 1 or max_steps < 1, a start
 /// off the grid, or a table solved for another model (hash).
 ChainResult runDiscreteChain(const SteeringModel& model, const PolicyTable& table,

@@ -33,6 +33,22 @@ std::string toString(Bevel bevel);
 std::optional<Bevel> bevelFromString(const std::string& text);
 /// "insert" | "flip".
 std::string toString(Control control);
+/// How a transition's end point and deflection enter the MDP.
+enum class TransitionModel : std::uint8_t {
+  /// 5.4.2 exactly: the tip moves by the vector between rounded control-circle points; the
+  /// deflection density is integrated over bins of the orientation step at their centres.
+  kRounded = 0,
+  /// Not in 5.4.2: the exact arc end from the grid point, its probability split bilinearly
+  /// between the four surrounding grid points (only those outside obstacles; an end inside the
+  /// target disc succeeds exactly), and deflection bins whose discrete variance equals sigma^2
+  /// (the bins of a normal with a smaller sigma', so quantisation does not inflate the spread).
+  kInterpolated = 1,
+};
+/// "rounded" | "interpolated".
+std::string toString(TransitionModel model);
+/// The inverse of toString(TransitionModel); nullopt for anything else.
+std::optional<TransitionModel> transitionModelFromString(const std::string& text);
+
 /// The other bevel direction.
 inline Bevel flipped(Bevel bevel) {
   return bevel == Bevel::kLeft ? Bevel::kRight : Bevel::kLeft;
@@ -75,6 +91,8 @@ struct SteeringParams {
   /// Collision checks follow each arc as a polyline whose chords lie at most this far inside
   /// the true arc [m], > 0.
   double arc_chord_tolerance_m = 1e-5;
+  /// kRounded is 5.4.2 (and keeps its table hashes); kInterpolated splits probabilities.
+  TransitionModel transition_model = TransitionModel::kRounded;
 };
 
 /// What the MDP needs from a scene: workspace rectangle, obstacles (expanded by their
@@ -101,6 +119,8 @@ std::uint64_t problemHash(const SteeringProblem& problem);
 using StateId = std::int64_t;
 /// The absorbing failure state (obstacle hit, workspace left) in transition lists.
 constexpr StateId kFailState = -1;
+/// kInterpolated only: the exact end point of the arc lies in the target disc (success).
+constexpr StateId kSuccessState = -2;
 
 /// What a grid position is (5.4.2 "special cases").
 enum class Cell : std::uint8_t {
@@ -158,6 +178,10 @@ struct StencilEntry {
   float probability = 0.0f;  ///< P(deflection)
   std::uint16_t arc = 0;     ///< traced arc id: bevel * nc + start orientation
   std::int16_t dy = 0;       ///< row displacement of the next position [grid steps]
+  /// kInterpolated: which of the four corners of the end point's grid cell (0..3) this entry
+  /// is; the four entries of one deflection are contiguous. 0 for kRounded.
+  std::uint8_t corner = 0;
+  std::int32_t dpos = 0;  ///< next position index minus this position index
 };
 
 /// The discretised MDP of 5.4.2 for one problem: grid, cells (free, target, obstacle),
@@ -241,10 +265,23 @@ public:
   bool arcValid(std::int64_t position, int arc) const {
     return (valid_[static_cast<std::size_t>(position * words_ + arc / 64)] >> (arc % 64)) & 1u;
   }
-  /// True if every arc from the position is valid (the solver's fast path).
+  /// True if every arc from the position is valid and, for kInterpolated, every end point's
+  /// four neighbours are free grid points and no end point lies in the target (the solver's fast
+  /// path: the stencil applies unchanged).
   bool allArcsValid(std::int64_t position) const {
     return all_valid_[static_cast<std::size_t>(position)] != 0;
   }
+  /// kInterpolated only: for arc `arc` from `position`, bits 0..3 = corner i of the end point's
+  /// cell is a free grid point (its probability share is kept), bit 4 = the exact end point lies
+  /// in the target disc (success).
+  std::uint8_t endMask(std::int64_t position, int arc) const {
+    return end_mask_[static_cast<std::size_t>(position * 2 * grid_.nc + arc)];
+  }
+  static constexpr std::uint8_t kEndInTarget = 16;
+  TransitionModel transitionModel() const { return problem_.params.transition_model; }
+  /// The standard deviation [rad] whose orientation-bin probabilities the model uses for a
+  /// control: sigma itself for kRounded, sigma' (discrete variance = sigma^2) for kInterpolated.
+  double binSigma(Control control) const { return bin_sigma_[static_cast<int>(control)]; }
   /// 64-bit words of arc validity per position.
   int validityWords() const { return words_; }
   const std::uint64_t* validityMask(std::int64_t position) const {
@@ -255,6 +292,10 @@ public:
   /// kFailState). An absorbing state (target or obstacle cell) returns itself with probability
   /// 1. Throws std::out_of_range for an invalid state index.
   std::vector<Transition> successors(StateId s, Control control) const;
+  /// successors() grouped by discrete deflection (group i = deflection firstDeflection + i):
+  /// one transition per group for kRounded; for kInterpolated the corners that keep a share
+  /// (renormalised to the deflection's probability), or kSuccessState / kFailState alone.
+  std::vector<std::vector<Transition>> successorGroups(StateId s, Control control) const;
 
 private:
   std::size_t stencilSlot(int k, Bevel b, Control u) const {
@@ -262,8 +303,11 @@ private:
   }
   void buildDeflections();
   void buildStencils();
+  void buildInterpolatedStencils();
   void buildCells();
   void buildValidity(int threads);
+  /// endMask of arc `arc` from grid point (ix, iy), computed from the cells (kInterpolated).
+  std::uint8_t endMask(int ix, int iy, int arc) const;
 
   SteeringProblem problem_;
   GridSpec grid_;
@@ -274,7 +318,8 @@ private:
   std::vector<std::string> diagnostics_;
   std::vector<double> deflection_p_[2];
   int first_d_[2] = {0, 0};
-  std::vector<int> disp_x_, disp_y_;  // per arc id
+  std::vector<int> disp_x_, disp_y_;     // per arc id (kInterpolated: floor of the exact end)
+  std::vector<double> frac_x_, frac_y_;  // kInterpolated: fraction of the exact end [grid steps]
   std::vector<StencilEntry> stencil_;
   std::vector<std::size_t> stencil_start_;
   int max_transitions_ = 0;
@@ -282,6 +327,8 @@ private:
   int words_ = 0;
   std::vector<std::uint64_t> valid_;
   std::vector<std::uint8_t> all_valid_;
+  std::vector<std::uint8_t> end_mask_;  // kInterpolated: per (position, arc)
+  double bin_sigma_[2] = {0.0, 0.0};
 };
 
 }  // namespace needle_guidance::steering
