@@ -46,7 +46,9 @@ ng_build() {
   jobs="$(nproc)"
   mkdir -p "$NG_BUILD"
   if [ ! -f "$NG_BUILD/CMakeCache.txt" ]; then
-    cmake -S "$NG_ROOT" -B "$NG_BUILD" -DCMAKE_BUILD_TYPE=Release \
+    local launcher=()  # ccache, when installed, makes rebuilds of a second checkout cheap
+    command -v ccache >/dev/null && launcher=(-DCMAKE_CXX_COMPILER_LAUNCHER=ccache)
+    cmake -S "$NG_ROOT" -B "$NG_BUILD" -DCMAKE_BUILD_TYPE=Release "${launcher[@]}" \
       -DPYTHON_EXECUTABLE=/usr/bin/python3 -DPython3_EXECUTABLE=/usr/bin/python3 \
       -DCATKIN_ENABLE_TESTING=ON >"$NG_BUILD/configure.log" 2>&1 \
       || { cat "$NG_BUILD/configure.log" >&2; return 1; }
