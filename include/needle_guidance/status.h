@@ -44,7 +44,7 @@ template <typename T, typename S = GeneralStatus>
 class Result {
 public:
   Result(T value) : status_(S::ok()), value_(std::move(value)) {}  // NOLINT: implicit on purpose
-  Result(S status) : status_(std::move(status)) {}                  // NOLINT: implicit on purpose
+  Result(S status) : status_(std::move(status)) {}                 // NOLINT: implicit on purpose
 
   explicit operator bool() const { return value_.has_value(); }
   const S& status() const { return status_; }
@@ -59,10 +59,14 @@ private:
 
 inline const char* toString(StatusCode code) {
   switch (code) {
-  case StatusCode::kOk: return "ok";
-  case StatusCode::kRefused: return "refused";
-  case StatusCode::kFailed: return "failed";
-  case StatusCode::kError: return "error";
+    case StatusCode::kOk:
+      return "ok";
+    case StatusCode::kRefused:
+      return "refused";
+    case StatusCode::kFailed:
+      return "failed";
+    case StatusCode::kError:
+      return "error";
   }
   return "unknown";
 }
