@@ -11,13 +11,9 @@
 #include <stdexcept>
 #include <utility>
 
-#include "needle_guidance/dose/case_folder.h"
-#include "needle_guidance/dose/dicom_case.h"
-#include "needle_guidance/dose/dose_indices.h"
-#include "needle_guidance/dose/dwell_optimization.h"
 #include "needle_guidance/dose/isodose.h"
-#include "needle_guidance/dose/prostate_case.h"
 #include "needle_guidance/format.h"
+#include "needle_guidance/procedures/hdr_pipeline.h"
 #include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/delivery_conversions.h"
 #include "needle_guidance/ros/params.h"
@@ -60,14 +56,6 @@ std::string sanitised(const std::string& text) {
   while (!out.empty() && out.front() == '.')
     out.erase(out.begin());
   return out.empty() ? "case" : out;
-}
-
-
-/// Throws std::runtime_error naming `what` if `value` is NaN or infinite (nothing non-finite is
-/// ever published).
-void requireFinite(double value, const std::string& what) {
-  if (!std::isfinite(value))
-    throw std::runtime_error(what + " is not finite (" + formatNumber(value) + ")");
 }
 
 using ros_conversions::colour;
@@ -219,27 +207,18 @@ visualization_msgs::MarkerArray planMarkers(const dose::HdrCase& c, const dose::
   return array;
 }
 
-/// index_names in map order (sorted by name) with their values.
-void splitIndices(const std::map<std::string, double>& indices, std::vector<std::string>& names,
-                  std::vector<double>& values) {
-  names.clear();
-  values.clear();
-  for (const auto& [name, value] : indices) {
-    requireFinite(value, "index " + name);
-    names.push_back(name);
-    values.push_back(value);
-  }
-}
-
 }  // namespace
 
 DwellSchedulerRos::DwellSchedulerRos(ros::NodeHandle& /*nh*/, ros::NodeHandle& private_nh) {
   ROS_INFO("dwell_scheduler parameters:");
   settings_.frame_id = ros_params::text(private_nh, "frame_id", settings_.frame_id, true);
-  settings_.method = ros_params::text(private_nh, "method", settings_.method);
-  if (settings_.method != "lp" && settings_.method != "sa") {
-    throw std::runtime_error("parameter '" + private_nh.resolveName("method") + "' = '" +
-                             settings_.method + "' is not lp or sa");
+  procedures::HdrPlanSettings& pipeline = settings_.pipeline;
+  try {
+    pipeline.method =
+        procedures::parseDwellMethod(ros_params::text(private_nh, "method", "lp"),
+                                     "parameter '" + private_nh.resolveName("method") + "'");
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(e.what());
   }
   const double calibration_U =
       ros_params::number(private_nh, "calibration_air_kerma_strength_U", 0.0, 0.0, 1e6, "U");
@@ -254,7 +233,7 @@ DwellSchedulerRos::DwellSchedulerRos(ros::NodeHandle& /*nh*/, ros::NodeHandle& p
                              "' and '" + private_nh.resolveName("calibration_date") +
                              "' go together: give both (decay-corrected times) or neither");
   }
-  settings_.schedule.calibration_air_kerma_strength_U = calibration_U;
+  pipeline.schedule.calibration_air_kerma_strength_U = calibration_U;
   if (calibration_U > 0.0) {
     const double calibration_s = dateParameter(private_nh, "calibration_date", calibration_date);
     const double days = (treatment_s - calibration_s) / kSecondsPerDay;
@@ -265,25 +244,25 @@ DwellSchedulerRos::DwellSchedulerRos(ros::NodeHandle& /*nh*/, ros::NodeHandle& p
           ") is before '" + private_nh.resolveName("calibration_date") + "' (" + calibration_date +
           ")");
     }
-    settings_.schedule.days_since_calibration = days;
+    pipeline.schedule.days_since_calibration = days;
     ROS_INFO_STREAM("  source: " << calibration_U << " U at calibration, " << days << " days ago: "
                                  << calibration_U * delivery::ir192DecayFactor(days)
                                  << " U at treatment");
   } else {
     ROS_INFO("  no calibration given: each case's S_K is the source's current strength (no decay)");
   }
-  settings_.schedule.transfer_length_m = ros_params::number(
-      private_nh, "transfer_length_m", settings_.schedule.transfer_length_m, 0.0, 2.0, "m");
-  settings_.source_speed_m_s = ros_params::number(private_nh, "source_speed_m_s",
-                                                  settings_.source_speed_m_s, 1e-3, 10.0, "m/s");
-  settings_.dvh_bins =
-      static_cast<int>(ros_params::integer(private_nh, "dvh_bins", settings_.dvh_bins, 1, 100000, "bins"));
-  settings_.dose_grid_m =
-      ros_params::number(private_nh, "dose_grid_m", settings_.dose_grid_m, 5e-4, 1e-2, "m");
-  settings_.sa_iterations =
-      ros_params::integer(private_nh, "sa_iterations", settings_.sa_iterations, 1, 100000000, "moves");
-  settings_.sa_seed =
-      static_cast<unsigned>(ros_params::integer(private_nh, "sa_seed", settings_.sa_seed, 0, 4294967295L, "-"));
+  pipeline.schedule.transfer_length_m = ros_params::number(
+      private_nh, "transfer_length_m", pipeline.schedule.transfer_length_m, 0.0, 2.0, "m");
+  pipeline.source_speed_m_s = ros_params::number(private_nh, "source_speed_m_s",
+                                                 pipeline.source_speed_m_s, 1e-3, 10.0, "m/s");
+  pipeline.dvh_bins = static_cast<int>(
+      ros_params::integer(private_nh, "dvh_bins", pipeline.dvh_bins, 1, 100000, "bins"));
+  pipeline.dose_grid_m =
+      ros_params::number(private_nh, "dose_grid_m", pipeline.dose_grid_m, 5e-4, 1e-2, "m");
+  pipeline.annealing.iterations = ros_params::integer(
+      private_nh, "sa_iterations", pipeline.annealing.iterations, 1, 100000000, "moves");
+  pipeline.annealing.seed = static_cast<unsigned>(
+      ros_params::integer(private_nh, "sa_seed", pipeline.annealing.seed, 0, 4294967295L, "-"));
   settings_.default_synthetic_seed = static_cast<int>(ros_params::integer(
       private_nh, "default_synthetic_seed", settings_.default_synthetic_seed, 1, 1000000, "-"));
   const bool plan_on_start = ros_params::flag(private_nh, "plan_on_start", false);
@@ -293,7 +272,7 @@ DwellSchedulerRos::DwellSchedulerRos(ros::NodeHandle& /*nh*/, ros::NodeHandle& p
   markers_pub_ = private_nh.advertise<visualization_msgs::MarkerArray>("markers", 1, true);
   if (plan_on_start) {
     try {
-      commit(makePlan("", settings_.default_synthetic_seed, "", ""));
+      commit(makePlan(PlanDwells::Request()));
     } catch (const std::exception& e) {
       throw std::runtime_error("plan_on_start: " + std::string(e.what()));
     }
@@ -301,15 +280,6 @@ DwellSchedulerRos::DwellSchedulerRos(ros::NodeHandle& /*nh*/, ros::NodeHandle& p
   plan_srv_ = private_nh.advertiseService("plan", &DwellSchedulerRos::onPlan, this);
   evaluate_srv_ = private_nh.advertiseService("evaluate", &DwellSchedulerRos::onEvaluate, this);
   ROS_INFO("dwell_scheduler: ready");
-}
-
-std::shared_ptr<const dose::Tg43Source> DwellSchedulerRos::source(const std::string& name) {
-  auto it = sources_.find(name);
-  if (it == sources_.end()) {
-    it = sources_.emplace(name, std::make_shared<const dose::Tg43Source>(dose::loadSource(name)))
-             .first;
-  }
-  return it->second;
 }
 
 std::string DwellSchedulerRos::newPlanId(const std::string& case_name,
@@ -326,168 +296,69 @@ std::string DwellSchedulerRos::newPlanId(const std::string& case_name,
   return id;
 }
 
-DwellSchedulerRos::PlanOutcome DwellSchedulerRos::makePlan(const std::string& case_dir,
-                                                           int synthetic_seed,
-                                                           const std::string& requested_method,
-                                                           const std::string& requested_id,
-                                                           const std::string& dicom_dir) {
-  const ros::WallTime start = ros::WallTime::now();
-  const std::string method = requested_method.empty() ? settings_.method : requested_method;
-  if (method != "lp" && method != "sa") {
-    throw std::invalid_argument("method '" + requested_method + "' is not lp or sa");
-  }
-  if (!requested_id.empty() && !delivery::isValidPlanId(requested_id)) {
+DwellSchedulerRos::PlanOutcome DwellSchedulerRos::makePlan(const PlanDwells::Request& req) {
+  const procedures::DwellMethod method =
+      req.method.empty() ? settings_.pipeline.method : procedures::parseDwellMethod(req.method);
+  if (!req.plan_id.empty() && !delivery::isValidPlanId(req.plan_id)) {
     throw std::invalid_argument(
-        "plan_id '" + requested_id +
+        "plan_id '" + req.plan_id +
         "' must be 1-100 characters of [A-Za-z0-9_.-], not starting with '.'");
   }
-  if (plans_.count(requested_id) > 0) {
+  if (plans_.count(req.plan_id) > 0) {
     // The afterloader keys its journal by plan id: an id never names two different plans.
-    throw std::invalid_argument("plan_id '" + requested_id + "' is already a plan of this node");
+    throw std::invalid_argument("plan_id '" + req.plan_id + "' is already a plan of this node");
   }
-
-  PlanOutcome out;
-  StoredPlan& stored = out.stored;
-  dose::HdrCase& c = stored.hdr_case;
-  if (!dicom_dir.empty()) {
-    try {
-      c = dose::loadDicomCase(dicom_dir).planning;  // candidate dwells, ch. 6 points, Table 6.1
-    } catch (const std::exception& e) {
-      throw std::invalid_argument("dicom_dir '" + dicom_dir + "': " + e.what());
-    }
-  } else if (!case_dir.empty()) {
-    if (!std::filesystem::is_directory(case_dir)) {
-      throw std::invalid_argument("case_dir '" + case_dir + "' is not a directory");
-    }
-    try {
-      c = dose::readCaseFolder(case_dir);
-    } catch (const std::exception& e) {
-      throw std::invalid_argument("case_dir '" + case_dir + "': " + e.what());
-    }
-  } else {
-    const int seed = synthetic_seed == 0 ? settings_.default_synthetic_seed : synthetic_seed;
-    if (seed < 1) {
+  procedures::HdrCaseInput input;
+  input.dicom_dir = req.dicom_dir;
+  input.case_dir = req.dicom_dir.empty() ? req.case_dir : "";
+  if (input.dicom_dir.empty() && input.case_dir.empty()) {
+    input.synthetic_seed =
+        req.synthetic_seed == 0 ? settings_.default_synthetic_seed : req.synthetic_seed;
+    if (input.synthetic_seed < 1) {
       throw std::invalid_argument(
-          "synthetic_seed " + std::to_string(synthetic_seed) +
+          "synthetic_seed " + std::to_string(req.synthetic_seed) +
           " must be >= 1 (0: ~default_synthetic_seed) when case_dir is empty");
     }
-    dose::SyntheticCaseOptions options;
-    options.seed = static_cast<unsigned>(seed);
-    c = dose::syntheticProstateCase(options);
   }
-  const std::string where = "case '" + c.name + "'";
-  if (c.dwells.empty())
-    throw std::invalid_argument(where + " has no dwell positions");
-  if (c.points.empty())
-    throw std::invalid_argument(where + " has no dose points");
-  try {
-    stored.source = source(c.source);
-  } catch (const std::exception& e) {
-    throw std::invalid_argument(where + ": source '" + c.source + "': " + e.what());
-  }
+  dose::HdrCase c = procedures::loadHdrCase(input);
+  procedures::HdrPlanSettings settings = settings_.pipeline;
+  settings.method = method;
+  const std::string plan_id =
+      req.plan_id.empty() ? newPlanId(c.name, procedures::toString(method)) : req.plan_id;
 
-  // Optimise (dissertation 6.2.3: LP of eq. 6.6, or annealing as the clinical baseline).
-  const Eigen::MatrixXd d = dose::doseRateMatrix(c, *stored.source);
-  for (const auto& note : dose::penaltyModel(c).notes)
-    ROS_INFO_STREAM_NAMED("dwell_scheduler", where << ": " << note);
-  dose::DwellResult result;
-  if (method == "lp") {
-    result = dose::optimizeLp(c, d);
-  } else {
-    dose::AnnealingOptions options;
-    options.iterations = settings_.sa_iterations;
-    options.seed = settings_.sa_seed;
-    result = dose::optimizeAnnealing(c, d, options);
-  }
-  if (!result.ok()) {
-    throw std::runtime_error(where + ": " + method + " optimisation failed: " + result.status);
-  }
-  if (result.times_s.size() != c.dwells.size()) {
-    throw std::runtime_error(where + ": the optimiser returned " +
-                             std::to_string(result.times_s.size()) + " dwell times for " +
-                             std::to_string(c.dwells.size()) + " dwell positions");
-  }
-  requireFinite(result.objective, where + ": objective");
-  requireFinite(result.lower_bound, where + ": lower bound");
-  stored.planned_times_s = result.times_s;
-  for (std::size_t j = 0; j < stored.planned_times_s.size(); ++j) {
-    double& t = stored.planned_times_s[j];
-    if (!std::isfinite(t) || t < 0.0) {
-      throw std::runtime_error(where + ": the optimiser gave dwell " + std::to_string(j) +
-                               " the time " + formatNumber(t) + " s");
-    }
-    if (t <= settings_.schedule.min_dwell_s)
-      t = 0.0;  // makeSchedule drops it: plan what is delivered
-  }
+  PlanOutcome out;
+  out.stored = procedures::planHdr(std::move(c), plan_id, settings, sources_);
+  const procedures::HdrPlan& stored = out.stored;
+  for (const auto& note : stored.notes)
+    ROS_INFO_STREAM_NAMED("dwell_scheduler", "case '" << stored.hdr_case.name << "': " << note);
 
-  const std::string plan_id = requested_id.empty() ? newPlanId(c.name, method) : requested_id;
-  try {
-    stored.schedule =
-        delivery::makeSchedule(c, stored.planned_times_s, plan_id, settings_.schedule);
-  } catch (const std::exception& e) {
-    throw std::runtime_error(where + ": schedule: " + e.what());
-  }
-  if (stored.schedule.channels.empty())
-    throw std::runtime_error(where + ": the plan has no dwell time at all");
-  double transit_s = 0.0;
-  for (const auto& ch : stored.schedule.channels)
-    transit_s += delivery::tripTransitSeconds(ch, settings_.source_speed_m_s);
-
-  // Indices and DVHs on the structure grid (dissertation 6.3.2).
-  const auto doses =
-      dose::structureDoses(c, *stored.source, stored.planned_times_s, settings_.dose_grid_m);
-  stored.planned_indices = dose::dosimetricIndices(doses, c.prescription_Gy);
-  double max_dose_Gy = 0.0;
-  for (const auto& s : doses) {
-    for (double v : s.dose_Gy) {
-      requireFinite(v, where + ": dose in " + s.name);
-      max_dose_Gy = std::max(max_dose_Gy, v);
-    }
-  }
-  // Up to 2 Rx (hot spots around the sources would squash the curves), less if nothing gets it.
-  const double dvh_max_Gy =
-      max_dose_Gy > 0.0 ? std::min(2.0 * c.prescription_Gy, max_dose_Gy) : 2.0 * c.prescription_Gy;
   out.dvh.plan_id = plan_id;
-  for (int b = 0; b <= settings_.dvh_bins; ++b)
-    out.dvh.dose_Gy.push_back(dvh_max_Gy * b / settings_.dvh_bins);
-  for (const auto& s : doses) {
+  out.dvh.dose_Gy = stored.dvh_dose_Gy;
+  for (const auto& [name, volume] : stored.dvh) {
     DvhCurve curve;
-    curve.structure = s.name;
-    curve.volume_percent = dose::cumulativeDvh(s, dvh_max_Gy, settings_.dvh_bins);
+    curve.structure = name;
+    curve.volume_percent = volume;
     out.dvh.curves.push_back(curve);
   }
-
   DwellPlan& plan = out.plan;
   plan.plan_id = plan_id;
-  plan.case_name = c.name;
-  plan.method = method;
-  plan.objective = result.objective;
-  plan.lower_bound = method == "lp" ? result.lower_bound : 0.0;  // E >= 0 is all SA certifies
-  plan.optimisation_s = result.seconds;
-  plan.prescription_Gy = c.prescription_Gy;
-  splitIndices(stored.planned_indices, plan.index_names, plan.index_values);
+  plan.case_name = stored.hdr_case.name;
+  plan.method = procedures::toString(method);
+  plan.objective = stored.optimisation.objective;
+  // E >= 0 is all annealing certifies.
+  plan.lower_bound = method == procedures::DwellMethod::kLp ? stored.optimisation.lower_bound : 0.0;
+  plan.optimisation_s = stored.optimisation.seconds;
+  plan.prescription_Gy = stored.hdr_case.prescription_Gy;
+  for (const auto& [name, value] : stored.planned_indices) {
+    plan.index_names.push_back(name);
+    plan.index_values.push_back(value);
+  }
   plan.total_dwell_s = stored.schedule.totalDwellTime();
-  plan.transit_s = transit_s;
+  plan.transit_s = stored.transit_s;
   plan.schedule = ros_conversions::toMessage(stored.schedule, settings_.frame_id);
-  for (double v : {plan.optimisation_s, plan.total_dwell_s, plan.transit_s,
-                   stored.schedule.current_air_kerma_strength_U}) {
-    requireFinite(v, where + ": plan summary value");
-  }
-
-  out.markers =
-      planMarkers(c, *stored.source, stored.planned_times_s, stored.schedule, settings_.frame_id);
-
-  std::ostringstream summary;
-  summary << "plan " << plan_id << ": " << where << " with " << method << ", objective "
-          << result.objective;
-  if (stored.planned_indices.count("prostate_V100")) {
-    summary << ", prostate V100 " << stored.planned_indices.at("prostate_V100") << " %";
-  }
-  summary << ", " << stored.schedule.dwellCount() << " dwells in "
-          << stored.schedule.channels.size() << " channels, " << plan.total_dwell_s << " s dwell + "
-          << transit_s << " s transit; planned in " << (ros::WallTime::now() - start).toSec()
-          << " s";
-  out.summary = summary.str();
+  out.markers = planMarkers(stored.hdr_case, *stored.source, stored.planned_times_s,
+                            stored.schedule, settings_.frame_id);
+  out.summary = stored.summary;
   return out;
 }
 
@@ -509,7 +380,7 @@ DwellPlan DwellSchedulerRos::commit(PlanOutcome outcome) {
 
 bool DwellSchedulerRos::onPlan(PlanDwells::Request& req, PlanDwells::Response& res) {
   try {
-    PlanOutcome outcome = makePlan(req.case_dir, req.synthetic_seed, req.method, req.plan_id, req.dicom_dir);
+    PlanOutcome outcome = makePlan(req);
     res.message = outcome.summary;
     res.plan = commit(std::move(outcome));
     res.success = true;
@@ -532,9 +403,6 @@ void DwellSchedulerRos::evaluate(const EvaluateDelivery::Request& req,
     throw std::invalid_argument("unknown plan_id '" + req.plan_id +
                                 "' (plans of this node: " + (known.empty() ? "none" : known) + ")");
   }
-  const StoredPlan& stored = found->second;
-  const dose::HdrCase& c = stored.hdr_case;
-  const delivery::Schedule& schedule = stored.schedule;
   if (req.dwell_index.size() != req.channel.size() ||
       req.delivered_s.size() != req.channel.size()) {
     throw std::invalid_argument(
@@ -547,127 +415,26 @@ void DwellSchedulerRos::evaluate(const EvaluateDelivery::Request& req,
                                 std::to_string(req.trips_channel.size()) + " and " +
                                 std::to_string(req.trips.size()) + " entries (must be equal)");
   }
-  // Delivered times back at the plan's S_K: the source was weaker by current / plan.
-  const double to_plan = schedule.current_air_kerma_strength_U / schedule.plan_air_kerma_strength_U;
-  auto catheterOf = [&](const delivery::ChannelSchedule& ch) {
-    for (std::size_t k = 0; k < c.catheters.size(); ++k) {
-      if (c.catheters[k].name == ch.catheter)
-        return static_cast<int>(k);
-    }
-    throw std::runtime_error("plan '" + req.plan_id + "': channel " + std::to_string(ch.channel) +
-                             "'s catheter '" + ch.catheter + "' is not in its case");
-  };
-  std::vector<double> delivered(c.dwells.size(), 0.0);
-  for (std::size_t k = 0; k < req.channel.size(); ++k) {
-    const std::string entry = "entry " + std::to_string(k) + " (channel " +
-                              std::to_string(req.channel[k]) + ", dwell_index " +
-                              std::to_string(req.dwell_index[k]) + ")";
-    const double t = req.delivered_s[k];
-    if (!std::isfinite(t) || t < 0.0) {
-      throw std::invalid_argument(entry + ": delivered time " + formatNumber(t) +
-                                  " s must be finite and >= 0");
-    }
-    const int ch_index = schedule.channelIndex(req.channel[k]);
-    if (ch_index < 0)
-      throw std::invalid_argument(entry + ": channel not in plan '" + req.plan_id + "'");
-    const delivery::ChannelSchedule& ch = schedule.channels[static_cast<std::size_t>(ch_index)];
-    if (std::find(ch.dwell_index.begin(), ch.dwell_index.end(), req.dwell_index[k]) ==
-        ch.dwell_index.end()) {
-      throw std::invalid_argument(entry + ": no such scheduled dwell in that channel");
-    }
-    const int catheter = catheterOf(ch);
-    std::size_t j = 0;
-    while (j < c.dwells.size() &&
-           !(c.dwells[j].catheter == catheter && c.dwells[j].index == req.dwell_index[k]))
-      ++j;
-    if (j == c.dwells.size())
-      throw std::runtime_error(entry + ": dwell position missing from the case");
-    delivered[j] += t * to_plan;  // an interrupted dwell reported twice adds up
-  }
-  // Transit: every trip's path in the patient as short equivalent dwells (schedule.h).
-  std::vector<dose::ExtraDwell> transit;
-  for (std::size_t k = 0; k < req.trips_channel.size(); ++k) {
-    const std::string entry = "trips entry " + std::to_string(k) + " (channel " +
-                              std::to_string(req.trips_channel[k]) + ")";
-    if (req.trips[k] < 0)
-      throw std::invalid_argument(entry + ": " + std::to_string(req.trips[k]) + " trips");
-    const int ch_index = schedule.channelIndex(req.trips_channel[k]);
-    if (ch_index < 0)
-      throw std::invalid_argument(entry + ": channel not in plan '" + req.plan_id + "'");
-    if (req.trips[k] == 0)
-      continue;
-    const delivery::ChannelSchedule& ch = schedule.channels[static_cast<std::size_t>(ch_index)];
-    const int catheter = catheterOf(ch);
-    for (const auto& sample : delivery::tripTransitSamples(ch, settings_.source_speed_m_s)) {
-      dose::ExtraDwell e;
-      e.dwell.catheter = catheter;
-      e.dwell.index = -1;  // between dwell positions
-      e.dwell.position_m = sample.position_m;
-      e.dwell.axis = sample.axis;
-      e.time_s = sample.time_s * req.trips[k] * to_plan;
-      transit.push_back(e);
-    }
-  }
-
-  const auto delivered_doses =
-      dose::structureDoses(c, *stored.source, delivered, settings_.dose_grid_m);
-  auto with_transit = delivered_doses;
-  if (!transit.empty()) {
-    const auto transit_doses =
-        dose::structureDoses(c, *stored.source, std::vector<double>(c.dwells.size(), 0.0), transit,
-                             settings_.dose_grid_m);
-    for (std::size_t s = 0; s < with_transit.size(); ++s) {
-      for (std::size_t i = 0; i < with_transit[s].dose_Gy.size(); ++i)
-        with_transit[s].dose_Gy[i] += transit_doses[s].dose_Gy[i];
-    }
-  }
-  const auto delivered_indices = dose::dosimetricIndices(delivered_doses, c.prescription_Gy);
-  const auto transit_indices = dose::dosimetricIndices(with_transit, c.prescription_Gy);
-
-  double transit_max = 0.0, transit_target_sum = 0.0;
-  int target_points = 0;
-  for (const auto& p : c.points) {
-    double dose_Gy = 0.0;
-    for (const auto& e : transit)
-      dose_Gy += e.time_s * dose::dwellDoseRate(c, *stored.source, e.dwell, p.position_m);
-    transit_max = std::max(transit_max, dose_Gy);
-    if (p.structure >= 0 && static_cast<std::size_t>(p.structure) < c.structures.size() &&
-        c.structures[static_cast<std::size_t>(p.structure)].role == dose::StructureRole::kTarget) {
-      transit_target_sum += dose_Gy;
-      ++target_points;
-    }
-  }
-  const double transit_mean = target_points > 0 ? transit_target_sum / target_points : 0.0;
-  requireFinite(transit_max, "transit dose max");
-  requireFinite(transit_mean, "transit dose mean");
-
+  procedures::DeliveryRecord record;
+  for (std::size_t k = 0; k < req.channel.size(); ++k)
+    record.dwells.push_back({req.channel[k], req.dwell_index[k], req.delivered_s[k]});
+  for (std::size_t k = 0; k < req.trips.size(); ++k)
+    record.trips.push_back({req.trips_channel[k], req.trips[k]});
+  const procedures::DeliveryEvaluation ev =
+      procedures::evaluateDelivery(found->second, record, settings_.pipeline);
   res.index_names.clear();
   res.planned_values.clear();
   res.delivered_values.clear();
   res.with_transit_values.clear();
-  for (const auto& [name, planned] : stored.planned_indices) {
-    const auto d = delivered_indices.find(name);
-    const auto w = transit_indices.find(name);
-    if (d == delivered_indices.end() || w == transit_indices.end()) {
-      throw std::runtime_error("index " + name + " missing from the delivered dose");
-    }
-    requireFinite(d->second, "delivered " + name);
-    requireFinite(w->second, "delivered + transit " + name);
-    res.index_names.push_back(name);
-    res.planned_values.push_back(planned);
-    res.delivered_values.push_back(d->second);
-    res.with_transit_values.push_back(w->second);
+  for (const auto& index : ev.indices) {
+    res.index_names.push_back(index.name);
+    res.planned_values.push_back(index.planned);
+    res.delivered_values.push_back(index.delivered);
+    res.with_transit_values.push_back(index.with_transit);
   }
-  res.transit_dose_max_Gy = transit_max;
-  res.transit_dose_mean_Gy = transit_mean;
-  double delivered_total_s = 0.0;
-  for (double t : req.delivered_s)
-    delivered_total_s += t;
-  std::ostringstream message;
-  message << "plan " << req.plan_id << ": " << req.channel.size() << " delivered dwells, "
-          << delivered_total_s << " s (of " << schedule.totalDwellTime() << " s scheduled), "
-          << transit.size() << " transit samples, transit dose max " << transit_max << " Gy";
-  res.message = message.str();
+  res.transit_dose_max_Gy = ev.transit_dose_max_Gy;
+  res.transit_dose_mean_Gy = ev.transit_dose_mean_Gy;
+  res.message = ev.message;
 }
 
 bool DwellSchedulerRos::onEvaluate(EvaluateDelivery::Request& req,

@@ -13,8 +13,8 @@
 #include "needle_guidance/NeedleShape.h"
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/OperatingState.h"
-#include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/report/output_path.h"
+#include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/steering_model.h"
@@ -97,11 +97,91 @@ std::string needleJournalPath(const std::string& journal_path) {
 
 }  // namespace
 
+void InsertionRobotRos::setUpSteerableNeedle(const ros::NodeHandle& private_nh,
+                                             const scene::Scene& scene, const robot::JointLimits& b,
+                                             double initial_height_m, double initial_bevel_rad,
+                                             const std::string& journal_path) {
+  if (initial_bevel_rad != b.lower && initial_bevel_rad != b.upper) {
+    throw std::runtime_error("parameter '" + private_nh.resolveName("initial_bevel_rad") +
+                             "' must be " + std::to_string(b.lower) + " (left) or " +
+                             std::to_string(b.upper) + " (right) in steerable mode");
+  }
+  const scene::Steering& st = *scene.steering;
+  robot::SteerableNeedleConfig config;
+  config.start_x_m = st.start_x_m;
+  config.min_height_m = scene.needle.min_height_m;
+  config.max_height_m = scene.needle.max_height_m;
+  config.seed = static_cast<std::uint64_t>(
+      ros_params::integer(private_nh, "seed", 1, 0, 9007199254740992L, ""));
+  config.sigma_insert_rad =
+      kRadPerDeg * ros_params::number(private_nh, "sigma_insert_deg",
+                                      st.sigma_insert_rad / kRadPerDeg, 0.0, 90.0, "deg");
+  config.sigma_flip_rad =
+      kRadPerDeg * ros_params::number(private_nh, "sigma_flip_deg", st.sigma_flip_rad / kRadPerDeg,
+                                      0.0, 90.0, "deg");
+  robot::EntryPose entry;
+  entry.height_m = initial_height_m;
+  entry.angle_rad = 0.0;
+  entry.bevel = initial_bevel_rad == b.lower ? steering::Bevel::kLeft : steering::Bevel::kRight;
+  try {
+    needle_ =
+        std::make_unique<robot::SteerableNeedle>(steering::problemFromScene(scene), config, entry);
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error(std::string("steerable needle: ") + e.what());
+  }
+  if (!journal_path.empty()) {
+    const std::string needle_path = needleJournalPath(journal_path);
+    needle_journal_file_ = std::make_unique<robot::NeedleJournalFile>(needle_path);
+    needle_->setJournalSink([this](const robot::NeedleJournalEntry& e) {
+      needle_journal_file_->write(e, stage_->state().time_s);
+    });
+    ROS_INFO_STREAM("insertion_robot: needle journal appended to " << needle_path);
+  }
+  // The initial entry goes into the journal like every later one.
+  needle_->setEntry(entry);
+  ++entry_id_;
+}
+
+void InsertionRobotRos::advertiseInterfaces(const ros::NodeHandle& private_nh) {
+  ros::NodeHandle robot_nh(private_nh);
+  measured_js_pub_ = robot_nh.advertise<sensor_msgs::JointState>("measured_js", 10);
+  measured_cp_pub_ = robot_nh.advertise<geometry_msgs::PoseStamped>("measured_cp", 10);
+  operating_state_pub_ = robot_nh.advertise<OperatingState>("operating_state", 1, true);
+  estop_srv_ = robot_nh.advertiseService("estop", &InsertionRobotRos::onEstop, this);
+  reset_estop_srv_ =
+      robot_nh.advertiseService("reset_estop", &InsertionRobotRos::onResetEstop, this);
+  // Served in both modes so that clients get an answer; rigid mode refuses it.
+  set_entry_srv_ =
+      robot_nh.advertiseService("set_entry_pose", &InsertionRobotRos::onSetEntryPose, this);
+  if (steerable()) {
+    measured_tip_pub_ = robot_nh.advertise<NeedleTip>("measured_tip", 10);
+    needle_shape_pub_ = robot_nh.advertise<NeedleShape>("needle_shape", 10);
+    drive_pub_ = robot_nh.advertise<NeedleDrive>("drive", 10);
+    needle_path_pub_ = robot_nh.advertise<visualization_msgs::Marker>("needle_path", 1, true);
+  }
+
+  auto make_linear = [&](const std::string& name, Owner owner) {
+    auto server = std::make_unique<LinearMoveServer>(
+        robot_nh, name, [this] { return runningMotion(); },
+        [this, owner](const LinearMoveGoal& goal) { onLinearGoal(owner, goal); },
+        [this, owner] { onPreempt(owner); });
+    server->start();
+    return server;
+  };
+  height_server_ = make_linear("move_to_height", Owner::kHeight);
+  insert_server_ = make_linear("insert", Owner::kInsert);
+  retract_server_ = make_linear("retract", Owner::kRetract);
+  flip_server_ = std::make_unique<FlipBevelServer>(
+      robot_nh, "flip_bevel", [this] { return runningMotion(); },
+      [this](const FlipBevelGoal& goal) { onFlipGoal(goal); }, [this] { onPreempt(Owner::kFlip); });
+  flip_server_->start();
+}
+
 InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) : nh_(nh) {
   ROS_INFO("insertion_robot parameters:");
   const std::string scene_spec = ros_params::text(private_nh, "scene", "prostate_sagittal");
-  const std::string description_param = ros_params::text(private_nh, "robot_description_param",
-                                                         "robot_description");
+  const std::string description_param =
+      ros_params::text(private_nh, "robot_description_param", "robot_description");
   std::string urdf_xml;
   if (!nh.getParam(description_param, urdf_xml)) {
     throw std::runtime_error("parameter '" + nh.resolveName(description_param) +
@@ -130,10 +210,10 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
           ? robot::SceneLimits{scene.needle.min_height_m, scene.needle.max_height_m, d.upper, 0.0}
           : robot::SceneLimits{scene.needle.min_height_m, scene.needle.max_height_m,
                                scene.needle.max_depth_m, scene.workspace_min.x()};
-  const double control_rate_hz = ros_params::number(private_nh, "control_rate_hz", 500.0, 10.0,
-                                                    5000.0, "Hz");
-  const double publish_rate_hz = ros_params::number(private_nh, "publish_rate_hz", 100.0, 1.0,
-                                                    control_rate_hz, "Hz");
+  const double control_rate_hz =
+      ros_params::number(private_nh, "control_rate_hz", 500.0, 10.0, 5000.0, "Hz");
+  const double publish_rate_hz =
+      ros_params::number(private_nh, "publish_rate_hz", 100.0, 1.0, control_rate_hz, "Hz");
   time_scale_ =
       ros_params::number(private_nh, "time_scale", 1.0, 1.0, 100.0, "simulated s per wall s");
   const double mid_height = 0.5 * (scene_limits.min_height_m + scene_limits.max_height_m);
@@ -169,79 +249,9 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
     ROS_INFO_STREAM("insertion_robot: journal appended to " << journal_path);
   }
 
-  if (steerable_mode) {
-    if (initial_bevel_rad != b.lower && initial_bevel_rad != b.upper) {
-      throw std::runtime_error("parameter '" + private_nh.resolveName("initial_bevel_rad") +
-                               "' must be " + std::to_string(b.lower) + " (left) or " +
-                               std::to_string(b.upper) + " (right) in steerable mode");
-    }
-    const scene::Steering& st = *scene.steering;
-    robot::SteerableNeedleConfig config;
-    config.start_x_m = st.start_x_m;
-    config.min_height_m = scene.needle.min_height_m;
-    config.max_height_m = scene.needle.max_height_m;
-    config.seed = static_cast<std::uint64_t>(
-        ros_params::integer(private_nh, "seed", 1, 0, 9007199254740992L, ""));
-    config.sigma_insert_rad =
-        kRadPerDeg * ros_params::number(private_nh, "sigma_insert_deg",
-                                        st.sigma_insert_rad / kRadPerDeg, 0.0, 90.0, "deg");
-    config.sigma_flip_rad =
-        kRadPerDeg * ros_params::number(private_nh, "sigma_flip_deg",
-                                        st.sigma_flip_rad / kRadPerDeg, 0.0, 90.0, "deg");
-    robot::EntryPose entry;
-    entry.height_m = initial_height_m;
-    entry.angle_rad = 0.0;
-    entry.bevel = initial_bevel_rad == b.lower ? steering::Bevel::kLeft : steering::Bevel::kRight;
-    try {
-      needle_ = std::make_unique<robot::SteerableNeedle>(steering::problemFromScene(scene), config,
-                                                         entry);
-    } catch (const std::invalid_argument& e) {
-      throw std::runtime_error(std::string("steerable needle: ") + e.what());
-    }
-    if (!journal_path.empty()) {
-      const std::string needle_path = needleJournalPath(journal_path);
-      needle_journal_file_ = std::make_unique<robot::NeedleJournalFile>(needle_path);
-      needle_->setJournalSink([this](const robot::NeedleJournalEntry& e) {
-        needle_journal_file_->write(e, stage_->state().time_s);
-      });
-      ROS_INFO_STREAM("insertion_robot: needle journal appended to " << needle_path);
-    }
-    // The initial entry goes into the journal like every later one.
-    needle_->setEntry(entry);
-    ++entry_id_;
-  }
-
-  ros::NodeHandle robot_nh(private_nh);
-  measured_js_pub_ = robot_nh.advertise<sensor_msgs::JointState>("measured_js", 10);
-  measured_cp_pub_ = robot_nh.advertise<geometry_msgs::PoseStamped>("measured_cp", 10);
-  operating_state_pub_ = robot_nh.advertise<OperatingState>("operating_state", 1, true);
-  estop_srv_ = robot_nh.advertiseService("estop", &InsertionRobotRos::onEstop, this);
-  reset_estop_srv_ = robot_nh.advertiseService("reset_estop", &InsertionRobotRos::onResetEstop, this);
-  // Served in both modes so that clients get an answer; rigid mode refuses it.
-  set_entry_srv_ =
-      robot_nh.advertiseService("set_entry_pose", &InsertionRobotRos::onSetEntryPose, this);
-  if (steerable()) {
-    measured_tip_pub_ = robot_nh.advertise<NeedleTip>("measured_tip", 10);
-    needle_shape_pub_ = robot_nh.advertise<NeedleShape>("needle_shape", 10);
-    drive_pub_ = robot_nh.advertise<NeedleDrive>("drive", 10);
-    needle_path_pub_ = robot_nh.advertise<visualization_msgs::Marker>("needle_path", 1, true);
-  }
-
-  auto make_linear = [&](const std::string& name, Owner owner) {
-    auto server = std::make_unique<LinearMoveServer>(
-        robot_nh, name, [this] { return runningMotion(); },
-        [this, owner](const LinearMoveGoal& goal) { onLinearGoal(owner, goal); },
-        [this, owner] { onPreempt(owner); });
-    server->start();
-    return server;
-  };
-  height_server_ = make_linear("move_to_height", Owner::kHeight);
-  insert_server_ = make_linear("insert", Owner::kInsert);
-  retract_server_ = make_linear("retract", Owner::kRetract);
-  flip_server_ = std::make_unique<FlipBevelServer>(
-      robot_nh, "flip_bevel", [this] { return runningMotion(); },
-      [this](const FlipBevelGoal& goal) { onFlipGoal(goal); }, [this] { onPreempt(Owner::kFlip); });
-  flip_server_->start();
+  if (steerable_mode)
+    setUpSteerableNeedle(private_nh, scene, b, initial_height_m, initial_bevel_rad, journal_path);
+  advertiseInterfaces(private_nh);
 
   last_step_ = ros::Time::now();
   last_publish_ = last_step_;
@@ -286,15 +296,13 @@ void InsertionRobotRos::onLinearGoal(Owner owner, const LinearMoveGoal& goal_msg
   const double current = stage_->state().position[static_cast<std::size_t>(joint)];
   robot::CommandStatus status = robot::CommandStatus::accepted();
   if (owner == Owner::kInsert && goal->target_m < current) {
-    status = robot::CommandStatus::refused("insert command refused: target depth " +
-                                           std::to_string(goal->target_m) +
-                                           " m is shallower than the current depth " +
-                                           std::to_string(current) + " m; use retract");
+    status = robot::CommandStatus::refused(
+        "insert command refused: target depth " + std::to_string(goal->target_m) +
+        " m is shallower than the current depth " + std::to_string(current) + " m; use retract");
   } else if (owner == Owner::kRetract && goal->target_m > current) {
-    status = robot::CommandStatus::refused("retract command refused: target depth " +
-                                           std::to_string(goal->target_m) +
-                                           " m is deeper than the current depth " +
-                                           std::to_string(current) + " m; use insert");
+    status = robot::CommandStatus::refused(
+        "retract command refused: target depth " + std::to_string(goal->target_m) +
+        " m is deeper than the current depth " + std::to_string(current) + " m; use insert");
   } else if (const std::string why = steerable() ? steerableRefusal(owner, goal->target_m) : "";
              !why.empty()) {
     status = robot::CommandStatus::refused(why);
@@ -387,7 +395,8 @@ void InsertionRobotRos::finishActiveGoal(bool success, const std::string& messag
     result.success = success;
     result.message = message;
     result.bevel_rad = stage_->state().bevel_rad();
-    success ? flip_server_->setSucceeded(result, message) : flip_server_->setAborted(result, message);
+    success ? flip_server_->setSucceeded(result, message)
+            : flip_server_->setAborted(result, message);
     return;
   }
   if (owner == Owner::kNone) {
@@ -400,8 +409,9 @@ void InsertionRobotRos::finishActiveGoal(bool success, const std::string& messag
   result.reached_m = stage_->state().position[static_cast<std::size_t>(joint)];
   result.duration_s = (now - goal_start_).toSec() * time_scale_;  // simulated time
   result.mean_velocity_m_s =
-      result.duration_s > 0.0 ? std::abs(result.reached_m - goal_start_position_) / result.duration_s
-                              : 0.0;
+      result.duration_s > 0.0
+          ? std::abs(result.reached_m - goal_start_position_) / result.duration_s
+          : 0.0;
   LinearMoveServer& server = linearServer(owner);
   success ? server.setSucceeded(result, message) : server.setAborted(result, message);
 }

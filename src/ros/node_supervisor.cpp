@@ -6,6 +6,8 @@
 #include <xmlrpcpp/XmlRpcValue.h>
 
 #include <chrono>
+#include <future>
+#include <memory>
 #include <thread>
 
 namespace needle_guidance {
@@ -43,7 +45,11 @@ void NodeSupervisor::clear() {
   death_.reset();
 }
 
-std::string NodeSupervisor::ping(const std::string& node, double timeout_s) {
+namespace {
+
+/// Registration with the master, then getPid on the node's own XML-RPC server; blocks as long
+/// as the node takes to answer ("" if it answered, else why not).
+std::string pingBlocking(const std::string& node) {
   XmlRpc::XmlRpcValue args, result, payload;
   args[0] = ros::this_node::getName();
   args[1] = node;
@@ -58,13 +64,27 @@ std::string NodeSupervisor::ping(const std::string& node, double timeout_s) {
   XmlRpc::XmlRpcClient client(host.c_str(), static_cast<int>(port), "/");
   XmlRpc::XmlRpcValue ping_args, ping_result;
   ping_args[0] = ros::this_node::getName();
-  // A killed node's port refuses the connection at once. (XmlRpcClient has no timeout: a
-  // stopped, not killed, process would block here; timeout_s is kept for that future case.)
-  (void)timeout_s;
+  // A killed node's port refuses the connection at once; a stopped or hung one accepts it and
+  // never answers (XmlRpcClient has no timeout: the caller bounds the wait).
   if (!client.execute("getPid", ping_args, ping_result) || client.isFault()) {
     return "no answer to getPid at " + static_cast<std::string>(payload);
   }
   return "";
+}
+
+}  // namespace
+
+std::string NodeSupervisor::ping(const std::string& node, double timeout_s) {
+  // The blocking ping runs on a thread of its own; a node that does not answer within the
+  // timeout (a stopped process) counts as dead, and the thread is left to end when it can.
+  auto answer = std::make_shared<std::promise<std::string>>();
+  std::future<std::string> result = answer->get_future();
+  std::thread([node, answer] { answer->set_value(pingBlocking(node)); }).detach();
+  if (result.wait_for(std::chrono::duration<double>(timeout_s)) != std::future_status::ready) {
+    return "no answer to getPid within " + std::to_string(timeout_s).substr(0, 4) +
+           " s (stopped or hung)";
+  }
+  return result.get();
 }
 
 void NodeSupervisor::checkNow() {

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 #include <ros/ros.h>
 
+#include <filesystem>
 #include <fstream>
 #include <sstream>
 #include <string>
@@ -49,6 +50,9 @@ TEST(HdrDelivery, PlanDeliverEvaluateReport) {
     }
   }
   EXPECT_TRUE(found_d90);
+  // A plain roslaunch writes the plots too (issue 20): the planned DVH and the dwell times.
+  for (const char* png : {"/dvh.png", "/dwells.png"})
+    EXPECT_TRUE(std::filesystem::exists(report_dir + png)) << png << " missing";
 }
 
 }  // namespace

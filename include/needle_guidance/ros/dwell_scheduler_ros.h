@@ -15,8 +15,7 @@
 #include "needle_guidance/DwellPlan.h"
 #include "needle_guidance/EvaluateDelivery.h"
 #include "needle_guidance/PlanDwells.h"
-#include "needle_guidance/delivery/schedule.h"
-#include "needle_guidance/dose/hdr_case.h"
+#include "needle_guidance/procedures/hdr_pipeline.h"
 
 namespace needle_guidance {
 
@@ -33,32 +32,15 @@ public:
   /// Parameters, read once (README, "dwell_scheduler").
   struct Settings {
     std::string frame_id = "patient";
-    std::string method = "lp";           ///< lp | sa, when a request leaves it empty
-    delivery::ScheduleOptions schedule;  ///< calibration S_K [U], days since calibration,
-                                         ///< transfer length [m]
-    double source_speed_m_s = 0.5;       ///< source travel speed in the catheters [m/s]
-    int dvh_bins = 200;
-    double dose_grid_m = 2e-3;  ///< structure dose grid for indices and DVHs [m]
-    long sa_iterations = 100000;
-    unsigned sa_seed = 1;
+    procedures::HdrPlanSettings pipeline;  ///< method (when a request leaves it empty), schedule
+                                           ///< calibration, source speed, dose grid, DVH bins
     int default_synthetic_seed = 1;
   };
 
 private:
-  /// A plan of this node, kept for ~evaluate.
-  struct StoredPlan {
-    dose::HdrCase hdr_case;
-    std::shared_ptr<const dose::Tg43Source> source;
-    delivery::Schedule schedule;
-    /// One per hdr_case.dwells at the plan's S_K [s]: the optimiser's times with those the
-    /// schedule drops (<= ScheduleOptions::min_dwell_s) set to 0, i.e. exactly the schedule.
-    std::vector<double> planned_times_s;
-    std::map<std::string, double> planned_indices;  ///< dosimetricIndices of planned_times_s
-  };
-
   /// Everything a successful ~plan publishes, made before anything is stored or published.
   struct PlanOutcome {
-    StoredPlan stored;
+    procedures::HdrPlan stored;
     DwellPlan plan;
     DoseVolumeHistogram dvh;
     visualization_msgs::MarkerArray markers;
@@ -71,22 +53,19 @@ private:
   /// Plans the request; throws std::invalid_argument (bad input) or std::runtime_error (solver
   /// or schedule failure) with a message naming what and where. Changes no member but the
   /// source cache.
-  PlanOutcome makePlan(const std::string& case_dir, int synthetic_seed, const std::string& method,
-                       const std::string& plan_id, const std::string& dicom_dir = "");
+  PlanOutcome makePlan(const PlanDwells::Request& req);
   /// Evaluates a delivery into `res` (success left to the caller); throws std::invalid_argument
   /// naming the bad entry.
   void evaluate(const EvaluateDelivery::Request& req, EvaluateDelivery::Response& res) const;
   /// Stores the plan and publishes it (the only place state changes); returns the plan message
   /// as published.
   DwellPlan commit(PlanOutcome outcome);
-  /// The TG-43 source `name`, loaded once.
-  std::shared_ptr<const dose::Tg43Source> source(const std::string& name);
   /// A new plan id "<case>_<method>_<UTC time>_<n>" in [A-Za-z0-9_.-], not yet used.
   std::string newPlanId(const std::string& case_name, const std::string& method) const;
 
   Settings settings_;
-  std::map<std::string, StoredPlan> plans_;
-  std::map<std::string, std::shared_ptr<const dose::Tg43Source>> sources_;
+  std::map<std::string, procedures::HdrPlan> plans_;
+  procedures::SourceCache sources_;
   long plans_made_ = 0;
   ros::Publisher plan_pub_;
   ros::Publisher dvh_pub_;

@@ -6,7 +6,9 @@
 
 #include <string>
 
+#include "needle_guidance/DeliverAction.h"
 #include "needle_guidance/DwellPlan.h"
+#include "needle_guidance/procedures/hdr_report.h"
 #include "needle_guidance/ros/node_supervisor.h"
 
 namespace needle_guidance {
@@ -28,8 +30,14 @@ public:
 private:
   /// A node died during the delivery: the report names it, when, and what the journal says
   /// was delivered. Returns false (the procedure failed).
-  bool reportNodeDeath(const DwellPlan& p, const NodeSupervisor::Death& death, double detect_s,
+  bool reportNodeDeath(const DwellPlan& p, procedures::HdrDeliveryReport base,
+                       const NodeSupervisor::Death& death, double detect_s,
                        const ros::WallTime& t0);
+  /// The report's plan part, with the scheduler's DVH of the plan when it is published.
+  procedures::HdrDeliveryReport planReport(const DwellPlan& p) const;
+  /// Asks the scheduler to evaluate the delivery; fills r.indices (left empty if refused).
+  void evaluate(const DwellPlan& p, const DeliverResult& result,
+                procedures::HdrDeliveryReport& r) const;
 
   ros::NodeHandle nh_;
   std::string report_dir_, case_dir_, dicom_dir_, method_, scheduler_, afterloader_;
@@ -40,7 +48,6 @@ private:
   double tolerance_s_ = 0.1;
   std::string journal_dir_;  ///< the afterloader's (its ~journal_dir), to read after a crash
   bool respawn_ = false;     ///< the afterloader respawns: wait for it and resume
-
 };
 
 }  // namespace needle_guidance

@@ -1,9 +1,9 @@
 // ROS wrapper of the simulated insertion stage (node insertion_robot), rigid or steerable.
 #pragma once
 
-#include "needle_guidance/ros/exclusive_action_server.h"
 #include <ros/ros.h>
 #include <std_srvs/Trigger.h>
+#include "needle_guidance/ros/exclusive_action_server.h"
 
 #include <cstdint>
 #include <memory>
@@ -14,6 +14,7 @@
 #include "needle_guidance/SetEntryPose.h"
 #include "needle_guidance/robot/insertion_stage.h"
 #include "needle_guidance/robot/steerable_needle.h"
+#include "needle_guidance/scene/scene.h"
 
 namespace needle_guidance {
 
@@ -63,6 +64,12 @@ private:
   /// Which action owns the running motion.
   enum class Owner { kNone, kHeight, kInsert, kRetract, kFlip };
 
+  /// Steerable mode: the needle world (seeded deflections), its journal, the initial entry.
+  void setUpSteerableNeedle(const ros::NodeHandle& private_nh, const scene::Scene& scene,
+                            const robot::JointLimits& bevel_limits, double initial_height_m,
+                            double initial_bevel_rad, const std::string& journal_path);
+  /// Topics, services and the four exclusive action servers.
+  void advertiseInterfaces(const ros::NodeHandle& private_nh);
   void onLinearGoal(Owner owner, const LinearMoveGoal& goal);
   void onFlipGoal(const FlipBevelGoal& goal);
   /// "" when no motion runs, else which one does (the exclusive servers' busy check).

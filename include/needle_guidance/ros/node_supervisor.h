@@ -14,11 +14,13 @@ namespace needle_guidance {
 
 /// Watches the nodes a procedure depends on. A node counts as alive while the master knows it
 /// and its own XML-RPC server answers `getPid` (what `rosnode ping` asks) within the ping
-/// timeout; a killed node stays registered with the master, so the ping is what catches it. A
-/// timer checks every node each `period_s` (0.5 s by default), so a death is seen within about
-/// period + timeout <= 1 s. Once a node is found dead it stays reported dead (the first death
-/// is the cause a report names), even if a respawned node of the same name answers later;
-/// `clear()` forgets it when the procedure has dealt with the restart.
+/// timeout; a killed node stays registered with the master, so the ping is what catches it (its
+/// port refuses at once). A timer checks every node each `period_s` (0.5 s by default), so a
+/// killed node is seen within about 0.5 s and a stopped (hung) one, which accepts the connection
+/// but never answers, within period + ping timeout (1.5 s by default) <= 2 s. Once a node is found
+/// dead it stays reported dead (the first death is the cause a report names), even if a respawned
+/// node of the same name answers later; `clear()` forgets it when the procedure has dealt with the
+/// restart.
 class NodeSupervisor {
 public:
   struct Death {
@@ -31,7 +33,7 @@ public:
   /// `nodes`: full node names ("/steering_policy") or relative ones, resolved in `nh`'s
   /// namespace. Checking starts at once.
   NodeSupervisor(ros::NodeHandle nh, std::vector<std::string> nodes, double period_s = 0.5,
-                 double ping_timeout_s = 0.5);
+                 double ping_timeout_s = 1.5);
   ~NodeSupervisor();
 
   /// Blocks until every node answers or `timeout_s` passes; the names that did not answer.
