@@ -33,12 +33,12 @@ HANG_S = 30.0  # a procedure that has not exited this long after the fault hangs
 PROCEDURES = {
     "hdr_delivery": dict(
         launch="hdr_delivery.launch",
-        args=["synthetic_seed:=1", "time_scale:=50"],
+        args=["synthetic_seed:=1", "time_scale:=20"],
         nodes=["afterloader", "dwell_scheduler"],
         running=r"hdr_procedure: dwell 1/", window=(0.2, 6.0)),
     "hdr_delivery_respawn": dict(
         launch="hdr_delivery.launch",
-        args=["synthetic_seed:=2", "time_scale:=50", "respawn:=true"],
+        args=["synthetic_seed:=2", "time_scale:=20", "respawn:=true"],
         nodes=["afterloader"],
         running=r"hdr_procedure: dwell 1/", window=(0.2, 5.0), resumes=True),
     "steerable_needle": dict(
@@ -85,7 +85,8 @@ class Run:
         self.port = port
         self.master = f"http://localhost:{port}"
         self.env = dict(os.environ, ROS_MASTER_URI=self.master, ROS_IP="127.0.0.1",
-                        ROS_HOSTNAME="localhost")
+                        ROS_HOSTNAME="localhost", ROSCONSOLE_STDOUT_LINE_BUFFERED="1",
+                        PYTHONUNBUFFERED="1")
         self.journal_dir = os.path.join(self.dir, "journal")
         self.robot_journal = os.path.join(self.dir, "robot_journal.csv")
         args = ["roslaunch", "-p", str(port), "--screen", "needle_guidance", spec["launch"],
@@ -225,6 +226,10 @@ def kill_run(out_dir, name, spec, node, rng, index):
         time.sleep(delay)
         proc_node = procedure_node(spec)
         pid = run.node_pid(node)
+        if read_summary(run) is not None or not run.node_alive(proc_node):
+            rec["outcome"] = "the procedure had already ended at the kill time"
+            rec["skipped"] = 1
+            return rec
         if pid is None:
             rec["outcome"] = f"/{node} not running at the kill time (procedure already over?)"
             rec["skipped"] = 1
@@ -498,6 +503,7 @@ def main():
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--runs", type=int, default=0, help="kill runs (default 42, --quick 14)")
+    ap.add_argument("--skip-bad", action="store_true", help="kill runs only (debugging)")
     ap.add_argument("--probe")
     ap.add_argument("--send-bad", nargs="+")
     a = ap.parse_args()
@@ -521,16 +527,19 @@ def main():
               f"unsafe '{rec['unsafe']}', lost {rec['lost']} — {rec['outcome']}", flush=True)
         records.append(rec)
     bad = []
-    bad += bad_input_run(out, rng, len(plan), "steerable_needle",
-                         ["second_insert_goal", "insert_nan_target", "insert_inf_velocity",
-                          "height_nan", "policy_nan_tip", "policy_inf_tip", "policy_nan_theta",
-                          "entry_pose_nan", "entry_pose_bad_bevel"])
-    bad += bad_input_run(out, rng, len(plan) + 1, "hdr_delivery",
-                         ["plan_dwells_bad_method", "plan_dwells_bad_id", "evaluate_nan",
-                          "deliver_nan_time"])
-    bad += bad_input_run(out, rng, len(plan) + 2, "rigid_seed_implant",
-                         ["plan_rigid_nan", "plan_rigid_outside"])
-    bad.append(stale_parameter_run(out, rng, len(plan) + 3))
+    if a.skip_bad:
+        pass
+    else:
+        bad += bad_input_run(out, rng, len(plan), "steerable_needle",
+                             ["second_insert_goal", "insert_nan_target", "insert_inf_velocity",
+                              "height_nan", "policy_nan_tip", "policy_inf_tip", "policy_nan_theta",
+                              "entry_pose_nan", "entry_pose_bad_bevel"])
+        bad += bad_input_run(out, rng, len(plan) + 1, "hdr_delivery",
+                             ["plan_dwells_bad_method", "plan_dwells_bad_id", "evaluate_nan",
+                              "deliver_nan_time"])
+        bad += bad_input_run(out, rng, len(plan) + 2, "rigid_seed_implant",
+                             ["plan_rigid_nan", "plan_rigid_outside"])
+        bad.append(stale_parameter_run(out, rng, len(plan) + 3))
     for b in bad:
         print(f"[faults] bad input {b['case']}: {'refused' if b['refused'] else 'NOT REFUSED'} — {b['detail']}")
 

@@ -112,21 +112,22 @@ void HdrDeliveryReport::write(const std::string& dir) const {
        << ",\n  \"prostate_D90_with_transit_Gy\": "
        << jsonNumber(indexValue(indices, "prostate_D90", &DeliveryEvaluation::Index::with_transit))
        << ",\n  \"transit_dose_max_Gy\": " << jsonNumber(transit_dose_max_Gy);
-  if (!dead_node.empty()) {
+  if (!cause.empty()) {
     json << ",\n  \"dead_node\": " << jsonText(dead_node) << ",\n  \"cause\": " << jsonText(cause)
-         << ",\n  \"detect_s\": " << jsonNumber(detect_s)
-         << ",\n  \"detected_unix_s\": " << report::jsonNumber(detected_unix_s, 15);
+         << ",\n  \"detect_s\": " << jsonNumber(detect_s);
   }
+  if (detected_unix_s > 0.0)  // a death was seen (the cause, or a restart that was resumed)
+    json << ",\n  \"detected_unix_s\": " << report::jsonNumber(detected_unix_s, 15);
   json << ",\n  \"afterloader_restarts\": " << afterloader_restarts;
   json << ",\n  \"wall_s\": " << jsonNumber(wall_s) << "\n}\n";
 
   std::ostringstream md;
   md << "# HDR delivery — case `" << case_name << "`, plan `" << plan_id << "`"
-     << (dead_node.empty() ? "" : ": STOPPED") << "\n\n"
+     << (cause.empty() ? "" : ": STOPPED") << "\n\n"
      << "Plan (" << method << ", dissertation ch. 6): objective " << objective << ", "
      << plannedTotal_s() << " s of dwell time in " << channels << " channels, source S_K "
      << source_U << " U (" << decay_days << " days after calibration).\n\n";
-  if (!dead_node.empty()) {
+  if (!cause.empty()) {
     md << "**" << cause << ".** The delivery was stopped; what was delivered comes from the "
        << delivered_from << " (`" << journal << "`): " << deliveredTotal_s() << " s of "
        << plannedTotal_s() << " s planned. On a restart the afterloader recovers from this "
@@ -169,7 +170,7 @@ std::string HdrDeliveryReport::consoleSummary(const std::string& dir) const {
       index_table.addRow({i.name, i.planned, i.delivered, i.with_transit});
     out << index_table.toText();
   }
-  out << (success() ? "PASS" : "FAIL") << ": " << (dead_node.empty() ? status : cause) << ", "
+  out << (success() ? "PASS" : "FAIL") << ": " << (cause.empty() ? status : cause) << ", "
       << dwells.size() << " dwells, delivered " << deliveredTotal_s() << " s of "
       << plannedTotal_s() << " s planned (from the " << delivered_from << "), max dwell error "
       << maxDwellError_s() << " s, " << interruptions << " interruption(s), transit "

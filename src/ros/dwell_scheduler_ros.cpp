@@ -28,6 +28,9 @@ constexpr double kIsodoseLevels[] = {0.5, 1.0, 1.5, 2.0};  ///< fractions of the
 constexpr double kContourWidth_m = 0.5e-3;
 constexpr double kCatheterWidth_m = 0.8e-3;
 constexpr double kDwellDiameter_m = 1.5e-3;
+constexpr double kLegendText_m = 3e-3;     ///< colour key text height
+constexpr double kLegendLine_m = 4.5e-3;   ///< colour key line spacing
+constexpr double kLegendOffset_m = 12e-3;  ///< colour key's distance to the right of the slice
 
 /// "2024-01-05T10:00" -> seconds; a bad date throws naming the parameter.
 double dateParameter(const ros::NodeHandle& nh, const std::string& name, const std::string& text) {
@@ -202,6 +205,22 @@ visualization_msgs::MarkerArray planMarkers(const dose::HdrCase& c, const dose::
       }
       if (!m.points.empty())
         array.markers.push_back(m);
+    }
+    // Colour key beside the slice: what the isodose and dwell colours mean.
+    const char* level_names[] = {"50 % Rx", "100 % Rx", "150 % Rx", "200 % Rx"};
+    std::vector<std::pair<std::string, std_msgs::ColorRGBA>> key;
+    for (std::size_t level = 0; level < std::size(kIsodoseLevels); ++level)
+      key.emplace_back(std::string("isodose ") + level_names[level], level_colours[level]);
+    key.emplace_back("dwell: short time", colour(0.0, 0.0, 1.0));
+    key.emplace_back("dwell: longest " + formatNumber(longest_s) + " s", colour(1.0, 0.0, 0.0));
+    for (std::size_t k = 0; k < key.size(); ++k) {
+      Marker text = marker(frame_id, "legend", static_cast<int>(k), Marker::TEXT_VIEW_FACING);
+      text.pose.position =
+          point(x_hi + kIsodoseMargin_m + kLegendOffset_m, y_hi - kLegendLine_m * double(k), z);
+      text.scale.z = kLegendText_m;
+      text.color = key[k].second;
+      text.text = key[k].first;
+      array.markers.push_back(text);
     }
   }
   return array;

@@ -109,21 +109,49 @@ bool HdrProcedureRos::reportNodeDeath(const DwellPlan& p, procedures::HdrDeliver
   return false;
 }
 
+bool HdrProcedureRos::reportNotStarted(const std::string& node, const std::string& cause,
+                                       const ros::WallTime& t0) {
+  procedures::HdrDeliveryReport r;
+  r.case_name = case_dir_.empty() && dicom_dir_.empty()
+                    ? "synthetic_" + std::to_string(synthetic_seed_)
+                    : (dicom_dir_.empty() ? case_dir_ : dicom_dir_);
+  r.method = method_;
+  r.status = "not_started";
+  r.delivered_from = "nothing (no delivery started)";
+  r.dead_node = node;
+  r.cause = cause;
+  r.detected_unix_s = ros::WallTime::now().toSec();
+  r.wall_s = (ros::WallTime::now() - t0).toSec();
+  r.write(report_dir_);
+  std::cout << r.consoleSummary(report_dir_) << std::flush;
+  return false;
+}
+
 bool HdrProcedureRos::run() {
   const ros::WallTime t0 = ros::WallTime::now();
-  const std::string plan_srv = scheduler_ + "/plan", evaluate_srv = scheduler_ + "/evaluate";
-  if (!ros::service::waitForService(plan_srv, ros::Duration(60.0)) ||
-      !ros::service::waitForService(evaluate_srv, ros::Duration(10.0))) {
-    throw std::runtime_error("services " + plan_srv + " and " + evaluate_srv +
-                             " did not come up in 60 s");
+  // Watches the scheduler and the afterloader from the start: a node that refused its
+  // parameters never comes up, one that dies later is seen within about 0.5 s.
+  NodeSupervisor supervisor(nh_, {scheduler_, afterloader_});
+  if (const auto missing = supervisor.waitForAll(kStartupWait_s); !missing.empty()) {
+    return reportNotStarted(missing.front(),
+                            "node " + missing.front() + " did not come up within " +
+                                std::to_string(int(kStartupWait_s)) +
+                                " s (did it refuse its parameters? see its log)",
+                            t0);
   }
+  supervisor.clear();  // "not registered yet" seen while the nodes were starting
+  const std::string plan_srv = scheduler_ + "/plan";
   PlanDwells plan;
   plan.request.case_dir = case_dir_;
   plan.request.dicom_dir = dicom_dir_;
   plan.request.synthetic_seed = synthetic_seed_;
   plan.request.method = method_;
-  if (!ros::service::call(plan_srv, plan) || !plan.response.success) {
-    throw std::runtime_error("planning failed: " + plan.response.message);
+  if (!ros::service::waitForService(plan_srv, ros::Duration(kStartupWait_s)) ||
+      !ros::service::call(plan_srv, plan) || !plan.response.success) {
+    supervisor.checkNow();
+    if (const auto death = supervisor.death())
+      return reportNotStarted(death->node, death->toString() + " while planning", t0);
+    return reportNotStarted("", "planning failed: " + plan.response.message, t0);
   }
   const DwellPlan& p = plan.response.plan;
   ROS_INFO_STREAM("hdr_procedure: plan " << p.plan_id << ": objective " << p.objective << ", "
@@ -132,10 +160,13 @@ bool HdrProcedureRos::run() {
   const procedures::HdrDeliveryReport base = planReport(p);
 
   actionlib::SimpleActionClient<DeliverAction> deliver(afterloader_ + "/deliver", true);
-  if (!deliver.waitForServer(ros::Duration(60.0)))
-    throw std::runtime_error(afterloader_ + "/deliver did not come up");
-  // Watches the scheduler and the afterloader from here on (a death is seen within about 1 s).
-  NodeSupervisor supervisor(nh_, {scheduler_, afterloader_});
+  if (!deliver.waitForServer(ros::Duration(kStartupWait_s))) {
+    supervisor.checkNow();
+    const auto death = supervisor.death();
+    return reportNotStarted(death ? death->node : afterloader_,
+                            death ? death->toString() : afterloader_ + "/deliver did not come up",
+                            t0);
+  }
   DeliverGoal goal;
   goal.schedule = p.schedule;
   double fraction = 0.0;
@@ -161,6 +192,7 @@ bool HdrProcedureRos::run() {
   send();
   bool paused_once = pause_at_fraction_ < 0.0;
   int restarts = 0;
+  ros::WallTime last_restart_seen;
   const ros::WallTime deadline = t0 + ros::WallDuration(timeout_s_);
   while (!deliver.getState().isDone() && ros::ok() && ros::WallTime::now() < deadline) {
     if (supervisor.death()) {
@@ -171,6 +203,7 @@ bool HdrProcedureRos::run() {
           deliver.waitForServer(ros::Duration(10.0))) {
         // The respawned afterloader recovered from its journal: the same schedule resumes it.
         ++restarts;
+        last_restart_seen = death.when;
         ROS_WARN_STREAM("hdr_procedure: " << death.toString()
                                           << "; it restarted, resuming the delivery");
         supervisor.clear();
@@ -205,6 +238,7 @@ bool HdrProcedureRos::run() {
   const DeliverResult result = deliver.getResult() ? *deliver.getResult() : DeliverResult{};
   procedures::HdrDeliveryReport r = base;
   r.afterloader_restarts = restarts;
+  r.detected_unix_s = restarts > 0 ? last_restart_seen.toSec() : 0.0;
   r.status = result.status;
   r.message = result.message;
   r.journal = result.journal;

@@ -33,12 +33,16 @@ private:
   bool reportNodeDeath(const DwellPlan& p, procedures::HdrDeliveryReport base,
                        const NodeSupervisor::Death& death, double detect_s,
                        const ros::WallTime& t0);
+  /// No delivery started (a node missing at start-up, planning refused or its node died): the
+  /// report names the node (or none) and the cause. Returns false.
+  bool reportNotStarted(const std::string& node, const std::string& cause, const ros::WallTime& t0);
   /// The report's plan part, with the scheduler's DVH of the plan when it is published.
   procedures::HdrDeliveryReport planReport(const DwellPlan& p) const;
   /// Asks the scheduler to evaluate the delivery; fills r.indices (left empty if refused).
   void evaluate(const DwellPlan& p, const DeliverResult& result,
                 procedures::HdrDeliveryReport& r) const;
 
+  static constexpr double kStartupWait_s = 60.0;  ///< for the nodes and services to come up
   ros::NodeHandle nh_;
   std::string report_dir_, case_dir_, dicom_dir_, method_, scheduler_, afterloader_;
   int synthetic_seed_ = 1;
