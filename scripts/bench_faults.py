@@ -90,12 +90,15 @@ class Run:
         self.journal_dir = os.path.join(self.dir, "journal")
         self.robot_journal = os.path.join(self.dir, "robot_journal.csv")
         args = ["roslaunch", "-p", str(port), "--screen", "needle_guidance", spec["launch"],
-                f"report_dir:={self.report_dir}", "hold:=true", "rviz:=false"] + spec["args"]
+                "rviz:=false"] + spec["args"]
+        if spec["launch"] not in ("insertion_robot.launch", "steering_policy.launch"):
+            args += [f"report_dir:={self.report_dir}", "hold:=true"]
         if spec["launch"].startswith("hdr"):
             args.append(f"journal_dir:={self.journal_dir}")
-        if spec["launch"].startswith("steerable"):
-            args += [f"table_dir:={os.path.join(self.dir, 'tables')}",
-                     f"journal_file:={self.robot_journal}"]
+        if spec["launch"].startswith("steerable") or spec["launch"].startswith("insertion_robot"):
+            args += [f"journal_file:={self.robot_journal}"]
+        if spec["launch"].startswith("steer"):
+            args += [f"table_dir:={os.path.join(self.dir, 'tables')}"]
         args += list(extra_args)
         self.log_path = os.path.join(self.dir, "roslaunch.log")
         self.log = open(self.log_path, "w")
@@ -272,21 +275,39 @@ def kill_run(out_dir, name, spec, node, rng, index):
 
 # ---- bad inputs (sent by the probe process, on a master with the nodes running) -----------
 
-def bad_input_run(out_dir, rng, index, launch_name, cases):
-    spec = PROCEDURES[launch_name]
-    run = Run(out_dir, f"{index:02d}_bad_inputs_{launch_name}", spec, free_port(rng),
-              extra_args=["trials:=200"] if launch_name.startswith("steerable") else [])
+# Bad-input runs: a launch with the nodes idle (so that a refusal is for the bad value, not
+# because a device is busy), its ready line, and the cases the sender tries on it.
+BAD_INPUT_RUNS = [
+    dict(name="robot", launch="insertion_robot.launch",
+         args=["scene:=steering_workspace", "mode:=steerable"], ready=r"insertion_robot: ready",
+         cases=["second_insert_goal", "insert_nan_target", "insert_inf_velocity", "height_nan",
+                "flip_nan_velocity", "entry_pose_nan", "entry_pose_bad_bevel"]),
+    dict(name="policy", launch="steering_policy.launch",
+         args=["tip_topic:=/insertion_robot/measured_tip"], ready=r"steering_policy: ready",
+         cases=["policy_nan_tip", "policy_inf_tip", "policy_nan_theta"]),
+    dict(name="hdr", launch="hdr_delivery.launch", args=["synthetic_seed:=1", "time_scale:=50"],
+         ready=r"hdr_procedure: dwell 1/",
+         cases=["plan_dwells_bad_method", "plan_dwells_bad_id", "evaluate_nan",
+                "deliver_nan_time"]),
+    dict(name="rigid", launch="rigid_seed_implant.launch", args=["max_targets:=1"],
+         ready=r"insertion_procedure: ", cases=["plan_rigid_nan", "plan_rigid_outside"]),
+]
+
+
+def bad_input_run(out_dir, rng, index, spec):
+    run = Run(out_dir, f"{index:02d}_bad_inputs_{spec['name']}", spec, free_port(rng))
     results = []
     try:
-        run.wait_for_log(spec["running"], 120.0)
+        run.wait_for_log(spec["ready"], 120.0)
         out = os.path.join(run.dir, "bad_inputs.json")
-        subprocess.run([sys.executable, os.path.abspath(__file__), "--send-bad", out] + cases,
-                       env=run.env, timeout=240, stdout=open(os.path.join(run.dir, "send.log"), "w"),
+        subprocess.run([sys.executable, os.path.abspath(__file__), "--send-bad", out] +
+                       spec["cases"], env=run.env, timeout=300,
+                       stdout=open(os.path.join(run.dir, "send.log"), "w"),
                        stderr=subprocess.STDOUT)
         with open(out) as f:
             results = json.load(f)
     except (OSError, ValueError, subprocess.TimeoutExpired) as e:
-        results = [dict(case=c, refused=0, detail=f"sender failed: {e}") for c in cases]
+        results = [dict(case=c, refused=0, detail=f"sender failed: {e}") for c in spec["cases"]]
     finally:
         run.shutdown()
     return results
@@ -377,15 +398,28 @@ def send_bad_main(out_path, cases):
     import rospy
     from geometry_msgs.msg import Point, Pose2D
     from needle_guidance.msg import (LinearMoveAction, LinearMoveGoal, NeedleTip, SteeringControl,
-                                     DeliverAction, DeliverGoal, DwellChannel)
+                                     DeliverAction, DeliverGoal, DwellChannel, FlipBevelAction,
+                                     FlipBevelGoal, AfterloaderState)
     from needle_guidance.srv import (PlanDwells, PlanRigid, SetEntryPose, EvaluateDelivery,
                                      PlanDwellsRequest, PlanRigidRequest, SetEntryPoseRequest,
                                      EvaluateDeliveryRequest)
     rospy.init_node("bad_input_sender", anonymous=True)
     results = []
 
-    def record(case, refused, detail):
-        results.append(dict(case=case, refused=int(bool(refused)), detail=str(detail)[:200]))
+    def record(case, refused, detail, expect=None):
+        """Refused, and (with `expect`) for the bad value: the reason names one of the words."""
+        detail = str(detail)
+        if expect and not any(w in detail.lower() for w in expect):
+            refused = False
+            detail = "refused for another reason: " + detail
+        results.append(dict(case=case, refused=int(bool(refused)), detail=detail[:240]))
+
+    def goal_refused(client):
+        r = client.get_result()
+        return (client.get_state() in (actionlib.GoalStatus.REJECTED, actionlib.GoalStatus.ABORTED)
+                or (r is not None and hasattr(r, "success") and not r.success)), \
+            f"state {client.get_state()}: {client.get_goal_status_text()} " + \
+            (getattr(r, "message", "") if r is not None else "")
 
     def call(name, srv, req):
         rospy.wait_for_service(name, 60)
@@ -413,33 +447,39 @@ def send_bad_main(out_path, cases):
                 b = actionlib.SimpleActionClient("/insertion_robot/insert", LinearMoveAction)
                 a.wait_for_server(rospy.Duration(30))
                 b.wait_for_server(rospy.Duration(30))
-                a.send_goal(LinearMoveGoal(target_m=0.0, velocity_m_s=0.001))  # may be refused too
-                time.sleep(0.3)
-                b.send_goal(LinearMoveGoal(target_m=0.01, velocity_m_s=0.001))
+                a.send_goal(LinearMoveGoal(target_m=0.02, velocity_m_s=0.002))
+                time.sleep(0.5)
+                b.send_goal(LinearMoveGoal(target_m=0.01, velocity_m_s=0.002))
                 b.wait_for_result(rospy.Duration(5))
-                st = b.get_state()
-                record(case, st == actionlib.GoalStatus.REJECTED or
-                       (b.get_result() is not None and not b.get_result().success),
-                       f"state {st}")
+                first_running = a.get_state() == actionlib.GoalStatus.ACTIVE
+                refused, detail = goal_refused(b)
+                record(case, refused and first_running and
+                       b.get_state() == actionlib.GoalStatus.REJECTED,
+                       f"{detail}; the first goal still running: {first_running}")
                 a.cancel_goal()
-            elif case in ("insert_nan_target", "insert_inf_velocity"):
-                a = actionlib.SimpleActionClient("/insertion_robot/insert", LinearMoveAction)
+                a.wait_for_result(rospy.Duration(10))
+                retract = actionlib.SimpleActionClient("/insertion_robot/retract", LinearMoveAction)
+                retract.wait_for_server(rospy.Duration(10))
+                retract.send_goal(LinearMoveGoal(target_m=0.0, velocity_m_s=0.01))
+                retract.wait_for_result(rospy.Duration(20))
+            elif case in ("insert_nan_target", "insert_inf_velocity", "height_nan"):
+                action = "/insertion_robot/move_to_height" if case == "height_nan" else "/insertion_robot/insert"
+                a = actionlib.SimpleActionClient(action, LinearMoveAction)
                 a.wait_for_server(rospy.Duration(30))
-                goal = LinearMoveGoal(target_m=float("nan"), velocity_m_s=0.001) if case == "insert_nan_target" \
-                    else LinearMoveGoal(target_m=0.01, velocity_m_s=float("inf"))
+                goal = {"insert_nan_target": LinearMoveGoal(target_m=float("nan"), velocity_m_s=0.001),
+                        "insert_inf_velocity": LinearMoveGoal(target_m=0.01, velocity_m_s=float("inf")),
+                        "height_nan": LinearMoveGoal(target_m=float("nan"), velocity_m_s=0.001)}[case]
                 a.send_goal(goal)
                 a.wait_for_result(rospy.Duration(5))
-                r = a.get_result()
-                record(case, a.get_state() == actionlib.GoalStatus.REJECTED or (r is not None and not r.success),
-                       f"state {a.get_state()} {r.message if r else ''}")
-            elif case in ("height_nan",):
-                a = actionlib.SimpleActionClient("/insertion_robot/move_to_height", LinearMoveAction)
+                refused, detail = goal_refused(a)
+                record(case, refused, detail, expect=["nan", "inf", "finite"])
+            elif case == "flip_nan_velocity":
+                a = actionlib.SimpleActionClient("/insertion_robot/flip_bevel", FlipBevelAction)
                 a.wait_for_server(rospy.Duration(30))
-                a.send_goal(LinearMoveGoal(target_m=float("nan"), velocity_m_s=0.001))
+                a.send_goal(FlipBevelGoal(velocity_rad_s=float("nan")))
                 a.wait_for_result(rospy.Duration(5))
-                r = a.get_result()
-                record(case, a.get_state() == actionlib.GoalStatus.REJECTED or (r is not None and not r.success),
-                       f"state {a.get_state()}")
+                refused, detail = goal_refused(a)
+                record(case, refused, detail, expect=["nan", "finite", "velocity"])
             elif case in ("policy_nan_tip", "policy_inf_tip", "policy_nan_theta"):
                 pose = {"policy_nan_tip": Pose2D(float("nan"), 0.0, 0.0),
                         "policy_inf_tip": Pose2D(0.01, float("inf"), 0.0),
@@ -450,7 +490,7 @@ def send_bad_main(out_path, cases):
             elif case == "entry_pose_nan":
                 r = call("/insertion_robot/set_entry_pose", SetEntryPose,
                          SetEntryPoseRequest(height_m=float("nan"), angle_rad=0.0, bevel="left"))
-                record(case, not r.success, r.message)
+                record(case, not r.success, r.message, expect=["finite", "nan"])
             elif case == "entry_pose_bad_bevel":
                 r = call("/insertion_robot/set_entry_pose", SetEntryPose,
                          SetEntryPoseRequest(height_m=0.0, angle_rad=0.0, bevel="sideways"))
@@ -462,11 +502,20 @@ def send_bad_main(out_path, cases):
                 r = call("/dwell_scheduler/plan", PlanDwells, PlanDwellsRequest(synthetic_seed=1, plan_id="../etc/x"))
                 record(case, not r.success, r.message)
             elif case == "evaluate_nan":
+                plan = call("/dwell_scheduler/plan", PlanDwells, PlanDwellsRequest(synthetic_seed=2))
+                ch = plan.plan.schedule.channels[0]
                 r = call("/dwell_scheduler/evaluate", EvaluateDelivery,
-                         EvaluateDeliveryRequest(plan_id="none", channel=[1], dwell_index=[0],
+                         EvaluateDeliveryRequest(plan_id=plan.plan.plan_id, channel=[ch.channel],
+                                                 dwell_index=[ch.dwell_index[0]],
                                                  delivered_s=[float("nan")]))
-                record(case, not r.success, r.message)
+                record(case, not r.success, r.message, expect=["finite", "nan"])
             elif case == "deliver_nan_time":
+                deadline = time.time() + 120  # the procedure's delivery ends first
+                while time.time() < deadline:
+                    st = rospy.wait_for_message("/afterloader/state", AfterloaderState, 5)
+                    if st.state not in ("DELIVERING", "PAUSED"):
+                        break
+                    time.sleep(0.5)
                 a = actionlib.SimpleActionClient("/afterloader/deliver", DeliverAction)
                 a.wait_for_server(rospy.Duration(30))
                 g = DeliverGoal()
@@ -482,10 +531,11 @@ def send_bad_main(out_path, cases):
                 r = a.get_result()
                 record(case, a.get_state() in (actionlib.GoalStatus.REJECTED, actionlib.GoalStatus.ABORTED)
                        or (r is not None and r.status in ("refused", "aborted")),
-                       f"state {a.get_state()} {r.status if r else ''} {r.message if r else ''}")
+                       f"state {a.get_state()}: {a.get_goal_status_text()} {r.status if r else ''} "
+                       f"{r.message if r else ''}", expect=["finite", "nan", "time"])
             elif case == "plan_rigid_nan":
                 r = call("/rigid_planner/plan", PlanRigid, PlanRigidRequest(target=Point(float("nan"), 0.0, 0.0)))
-                record(case, not r.success, r.message)
+                record(case, not r.success, r.message, expect=["finite", "nan"])
             elif case == "plan_rigid_outside":
                 r = call("/rigid_planner/plan", PlanRigid, PlanRigidRequest(target=Point(5.0, 5.0, 0.0)))
                 record(case, not r.success, r.message)
@@ -504,6 +554,7 @@ def main():
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--runs", type=int, default=0, help="kill runs (default 42, --quick 14)")
     ap.add_argument("--skip-bad", action="store_true", help="kill runs only (debugging)")
+    ap.add_argument("--skip-kills", action="store_true", help="bad inputs only (debugging)")
     ap.add_argument("--probe")
     ap.add_argument("--send-bad", nargs="+")
     a = ap.parse_args()
@@ -518,6 +569,8 @@ def main():
     # Every (procedure, node) pair in turn, then seeded random ones.
     pairs = [(p, node) for p, spec in PROCEDURES.items() for node in spec["nodes"]]
     plan = pairs[:n] + [rng.choice(pairs) for _ in range(max(0, n - len(pairs)))]
+    if a.skip_kills:
+        plan = []
     records = []
     t0 = time.time()
     for i, (p, node) in enumerate(plan):
@@ -527,19 +580,10 @@ def main():
               f"unsafe '{rec['unsafe']}', lost {rec['lost']} — {rec['outcome']}", flush=True)
         records.append(rec)
     bad = []
-    if a.skip_bad:
-        pass
-    else:
-        bad += bad_input_run(out, rng, len(plan), "steerable_needle",
-                             ["second_insert_goal", "insert_nan_target", "insert_inf_velocity",
-                              "height_nan", "policy_nan_tip", "policy_inf_tip", "policy_nan_theta",
-                              "entry_pose_nan", "entry_pose_bad_bevel"])
-        bad += bad_input_run(out, rng, len(plan) + 1, "hdr_delivery",
-                             ["plan_dwells_bad_method", "plan_dwells_bad_id", "evaluate_nan",
-                              "deliver_nan_time"])
-        bad += bad_input_run(out, rng, len(plan) + 2, "rigid_seed_implant",
-                             ["plan_rigid_nan", "plan_rigid_outside"])
-        bad.append(stale_parameter_run(out, rng, len(plan) + 3))
+    if not a.skip_bad:
+        for k, spec in enumerate(BAD_INPUT_RUNS):
+            bad += bad_input_run(out, rng, len(plan) + k, spec)
+        bad.append(stale_parameter_run(out, rng, len(plan) + len(BAD_INPUT_RUNS)))
     for b in bad:
         print(f"[faults] bad input {b['case']}: {'refused' if b['refused'] else 'NOT REFUSED'} — {b['detail']}")
 

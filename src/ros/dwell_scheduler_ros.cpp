@@ -211,12 +211,13 @@ visualization_msgs::MarkerArray planMarkers(const dose::HdrCase& c, const dose::
     std::vector<std::pair<std::string, std_msgs::ColorRGBA>> key;
     for (std::size_t level = 0; level < std::size(kIsodoseLevels); ++level)
       key.emplace_back(std::string("isodose ") + level_names[level], level_colours[level]);
-    key.emplace_back("dwell: short time", colour(0.0, 0.0, 1.0));
-    key.emplace_back("dwell: longest " + formatNumber(longest_s) + " s", colour(1.0, 0.0, 0.0));
+    key.emplace_back("dwell: short time (blue)", colour(0.4, 0.6, 1.0));
+    key.emplace_back("dwell: longest, " + formatNumber(longest_s) + " s (red)", colour(1.0, 0.2, 0.2));
     for (std::size_t k = 0; k < key.size(); ++k) {
       Marker text = marker(frame_id, "legend", static_cast<int>(k), Marker::TEXT_VIEW_FACING);
-      text.pose.position =
-          point(x_hi + kIsodoseMargin_m + kLegendOffset_m, y_hi - kLegendLine_m * double(k), z);
+      // Stacked along the patient's z (the up axis of the default view), right of the slice.
+      text.pose.position = point(x_hi + kIsodoseMargin_m + kLegendOffset_m, 0.5 * (y_lo + y_hi),
+                                 z + kLegendLine_m * (0.5 * double(key.size()) - double(k)));
       text.scale.z = kLegendText_m;
       text.color = key[k].second;
       text.text = key[k].first;

@@ -514,6 +514,10 @@ std::string InsertionRobotRos::steerableRefusal(Owner owner, double target_m) co
     }
     return "";
   }
+  if (!std::isfinite(target_m)) {
+    out << "target " << target_m << " m is not a finite number";
+    return out.str();
+  }
   if (!(target_m >= 0.0)) {
     out << "target " << target_m << " m is negative; in steerable mode the insertion joint is "
         << "the inserted needle length, 0 at the entry";

@@ -122,6 +122,71 @@ std::string quote(const std::string& s) {
 
 }  // namespace
 
+/// The figures as JSON (--out); false if the file cannot be written.
+bool writeJson(const Args& args, const dose::DicomRtFiles& files,
+               const dose::DicomRtImportReport& rep, const dose::HdrCase& c, std::size_t active,
+               const dose::RtDoseValidation& v, const dose::RtDoseValidationOptions& options) {
+  std::ofstream f(args.out);
+  auto gamma_json = [&](const dose::GammaResult& a, const dose::GammaResult& b) {
+    std::ostringstream os;
+    os << "{\"ours_vs_rtdose\": " << num(a.pass_rate)
+       << ", \"rtdose_vs_ours\": " << num(b.pass_rate)
+       << ", \"mean_gamma_ours_vs_rtdose\": " << num(a.mean_gamma)
+       << ", \"mean_gamma_rtdose_vs_ours\": " << num(b.mean_gamma) << "}";
+    return os.str();
+  };
+  std::string encodings;
+  for (std::size_t k = 0; k < rep.channel_encodings.size(); ++k) {
+    encodings += (k ? ", " : "") + quote(dose::toString(rep.channel_encodings[k]));
+  }
+  std::string reason_list;
+  for (std::size_t k = 0; k < v.reasons.size(); ++k) {
+    reason_list += (k ? ", " : "") + quote(v.reasons[k]);
+  }
+  const dose::Point3 shift_mm = v.best_shift_m * 1e3;
+  f << "{\n"
+    << "  \"plan_dir\": " << quote(args.dir) << ",\n"
+    << "  \"plan\": " << quote(files.plan) << ",\n"
+    << "  \"structure_set\": " << quote(files.structure_set) << ",\n"
+    << "  \"dose\": " << quote(files.dose) << ",\n"
+    << "  \"source\": " << quote(args.source) << ",\n"
+    << "  \"dwell_encoding\": " << quote(dose::toString(rep.encoding)) << ",\n"
+    << "  \"channel_encodings\": [" << encodings << "],\n"
+    << "  \"max_axis_deviation_deg\": " << num(rep.max_axis_deviation_rad * 180.0 / M_PI) << ",\n"
+    << "  \"orientation_flips\": " << rep.orientation_flips << ",\n"
+    << "  \"catheters\": " << c.catheters.size() << ",\n"
+    << "  \"dwell_positions\": " << c.dwells.size() << ",\n"
+    << "  \"active_dwell_positions\": " << active << ",\n"
+    << "  \"total_dwell_time_s\": " << num(rep.total_dwell_time_s, 8) << ",\n"
+    << "  \"air_kerma_strength_U\": " << num(c.air_kerma_strength_U, 8) << ",\n"
+    << "  \"prescription_Gy\": " << num(c.prescription_Gy) << ",\n"
+    << "  \"fractions\": " << rep.fractions_planned << ",\n"
+    << "  \"voxels\": " << v.voxels << ",\n"
+    << "  \"gamma_points\": " << v.gamma_points << ",\n"
+    << "  \"seed\": " << args.seed << ",\n"
+    << "  \"gamma_3pct3mm\": " << num(v.gamma3pct3mm()) << ",\n"
+    << "  \"gamma_2pct2mm\": " << num(v.gamma2pct2mm()) << ",\n"
+    << "  \"gamma_3pct3mm_detail\": "
+    << gamma_json(v.gamma33_ours_vs_rtdose, v.gamma33_rtdose_vs_ours) << ",\n"
+    << "  \"gamma_2pct2mm_detail\": "
+    << gamma_json(v.gamma22_ours_vs_rtdose, v.gamma22_rtdose_vs_ours) << ",\n"
+    << "  \"median_relative_difference\": " << num(v.median_relative_difference) << ",\n"
+    << "  \"p95_abs_relative_difference\": " << num(v.p95_abs_relative_difference) << ",\n"
+    << "  \"p99_abs_relative_difference\": " << num(v.p99_abs_relative_difference) << ",\n"
+    << "  \"worst_frame\": {\"index\": " << v.worst_frame
+    << ", \"median_relative_difference\": " << num(v.worst_frame_median)
+    << ", \"voxels\": " << v.worst_frame_voxels << "},\n"
+    << "  \"best_shift_mm\": [" << num(shift_mm.x()) << ", " << num(shift_mm.y()) << ", "
+    << num(shift_mm.z()) << "],\n"
+    << "  \"thresholds\": {\"gamma_3pct3mm_min\": " << num(options.min_gamma_3pct3mm)
+    << ", \"abs_median_max\": " << num(options.max_abs_median)
+    << ", \"p95_abs_max\": " << num(options.max_p95_abs) << "},\n"
+    << "  \"verdict\": " << quote(v.pass ? "pass" : "fail") << ",\n"
+    << "  \"reasons\": [" << reason_list << "]\n"
+    << "}\n";
+  return static_cast<bool>(f);
+}
+
 int main(int argc, char** argv) {
   Args args;
   if (!parseArgs(argc, argv, args)) {
@@ -214,69 +279,9 @@ int main(int argc, char** argv) {
     std::cout << "  " << r << "\n";
   }
 
-  if (!args.out.empty()) {
-    std::ofstream f(args.out);
-    auto gamma_json = [&](const dose::GammaResult& a, const dose::GammaResult& b) {
-      std::ostringstream os;
-      os << "{\"ours_vs_rtdose\": " << num(a.pass_rate)
-         << ", \"rtdose_vs_ours\": " << num(b.pass_rate)
-         << ", \"mean_gamma_ours_vs_rtdose\": " << num(a.mean_gamma)
-         << ", \"mean_gamma_rtdose_vs_ours\": " << num(b.mean_gamma) << "}";
-      return os.str();
-    };
-    std::string encodings;
-    for (std::size_t k = 0; k < rep.channel_encodings.size(); ++k) {
-      encodings += (k ? ", " : "") + quote(dose::toString(rep.channel_encodings[k]));
-    }
-    std::string reason_list;
-    for (std::size_t k = 0; k < v.reasons.size(); ++k) {
-      reason_list += (k ? ", " : "") + quote(v.reasons[k]);
-    }
-    const dose::Point3 shift_mm = v.best_shift_m * 1e3;
-    f << "{\n"
-      << "  \"plan_dir\": " << quote(args.dir) << ",\n"
-      << "  \"plan\": " << quote(files.plan) << ",\n"
-      << "  \"structure_set\": " << quote(files.structure_set) << ",\n"
-      << "  \"dose\": " << quote(files.dose) << ",\n"
-      << "  \"source\": " << quote(args.source) << ",\n"
-      << "  \"dwell_encoding\": " << quote(dose::toString(rep.encoding)) << ",\n"
-      << "  \"channel_encodings\": [" << encodings << "],\n"
-      << "  \"max_axis_deviation_deg\": " << num(rep.max_axis_deviation_rad * 180.0 / M_PI) << ",\n"
-      << "  \"orientation_flips\": " << rep.orientation_flips << ",\n"
-      << "  \"catheters\": " << c.catheters.size() << ",\n"
-      << "  \"dwell_positions\": " << c.dwells.size() << ",\n"
-      << "  \"active_dwell_positions\": " << active << ",\n"
-      << "  \"total_dwell_time_s\": " << num(rep.total_dwell_time_s, 8) << ",\n"
-      << "  \"air_kerma_strength_U\": " << num(c.air_kerma_strength_U, 8) << ",\n"
-      << "  \"prescription_Gy\": " << num(c.prescription_Gy) << ",\n"
-      << "  \"fractions\": " << rep.fractions_planned << ",\n"
-      << "  \"voxels\": " << v.voxels << ",\n"
-      << "  \"gamma_points\": " << v.gamma_points << ",\n"
-      << "  \"seed\": " << args.seed << ",\n"
-      << "  \"gamma_3pct3mm\": " << num(v.gamma3pct3mm()) << ",\n"
-      << "  \"gamma_2pct2mm\": " << num(v.gamma2pct2mm()) << ",\n"
-      << "  \"gamma_3pct3mm_detail\": "
-      << gamma_json(v.gamma33_ours_vs_rtdose, v.gamma33_rtdose_vs_ours) << ",\n"
-      << "  \"gamma_2pct2mm_detail\": "
-      << gamma_json(v.gamma22_ours_vs_rtdose, v.gamma22_rtdose_vs_ours) << ",\n"
-      << "  \"median_relative_difference\": " << num(v.median_relative_difference) << ",\n"
-      << "  \"p95_abs_relative_difference\": " << num(v.p95_abs_relative_difference) << ",\n"
-      << "  \"p99_abs_relative_difference\": " << num(v.p99_abs_relative_difference) << ",\n"
-      << "  \"worst_frame\": {\"index\": " << v.worst_frame
-      << ", \"median_relative_difference\": " << num(v.worst_frame_median)
-      << ", \"voxels\": " << v.worst_frame_voxels << "},\n"
-      << "  \"best_shift_mm\": [" << num(shift_mm.x()) << ", " << num(shift_mm.y()) << ", "
-      << num(shift_mm.z()) << "],\n"
-      << "  \"thresholds\": {\"gamma_3pct3mm_min\": " << num(options.min_gamma_3pct3mm)
-      << ", \"abs_median_max\": " << num(options.max_abs_median)
-      << ", \"p95_abs_max\": " << num(options.max_p95_abs) << "},\n"
-      << "  \"verdict\": " << quote(v.pass ? "pass" : "fail") << ",\n"
-      << "  \"reasons\": [" << reason_list << "]\n"
-      << "}\n";
-    if (!f) {
-      std::cerr << "hdr_validate_plan: cannot write " << args.out << "\n";
-      return kExitBadInput;
-    }
+  if (!args.out.empty() && !writeJson(args, files, rep, c, active, v, options)) {
+    std::cerr << "hdr_validate_plan: cannot write " << args.out << "\n";
+    return kExitBadInput;
   }
   return v.pass ? kExitPass : kExitFail;
 }
