@@ -44,6 +44,8 @@ HdrProcedureRos::HdrProcedureRos(ros::NodeHandle& nh, ros::NodeHandle& private_n
   journal_dir_ =
       ros_params::rosHomePath(ros_params::text(private_nh, "journal_dir", "afterloader", true));
   respawn_ = ros_params::flag(private_nh, "respawn", false);
+  startup_wait_s_ =
+      ros_params::number(private_nh, "startup_timeout_s", 60.0, 1.0, 600.0, "s (wall)");
 }
 
 procedures::HdrDeliveryReport HdrProcedureRos::planReport(const DwellPlan& p) const {
@@ -132,10 +134,10 @@ bool HdrProcedureRos::run() {
   // Watches the scheduler and the afterloader from the start: a node that refused its
   // parameters never comes up, one that dies later is seen within about 0.5 s.
   NodeSupervisor supervisor(nh_, {scheduler_, afterloader_});
-  if (const auto missing = supervisor.waitForAll(kStartupWait_s); !missing.empty()) {
+  if (const auto missing = supervisor.waitForAll(startup_wait_s_); !missing.empty()) {
     return reportNotStarted(missing.front(),
                             "node " + missing.front() + " did not come up within " +
-                                std::to_string(int(kStartupWait_s)) +
+                                std::to_string(int(startup_wait_s_)) +
                                 " s (did it refuse its parameters? see its log)",
                             t0);
   }
@@ -146,7 +148,7 @@ bool HdrProcedureRos::run() {
   plan.request.dicom_dir = dicom_dir_;
   plan.request.synthetic_seed = synthetic_seed_;
   plan.request.method = method_;
-  if (!ros::service::waitForService(plan_srv, ros::Duration(kStartupWait_s)) ||
+  if (!ros::service::waitForService(plan_srv, ros::Duration(startup_wait_s_)) ||
       !ros::service::call(plan_srv, plan) || !plan.response.success) {
     supervisor.checkNow();
     if (const auto death = supervisor.death())
@@ -160,7 +162,7 @@ bool HdrProcedureRos::run() {
   const procedures::HdrDeliveryReport base = planReport(p);
 
   actionlib::SimpleActionClient<DeliverAction> deliver(afterloader_ + "/deliver", true);
-  if (!deliver.waitForServer(ros::Duration(kStartupWait_s))) {
+  if (!deliver.waitForServer(ros::Duration(startup_wait_s_))) {
     supervisor.checkNow();
     const auto death = supervisor.death();
     return reportNotStarted(death ? death->node : afterloader_,

@@ -42,7 +42,7 @@ private:
   void evaluate(const DwellPlan& p, const DeliverResult& result,
                 procedures::HdrDeliveryReport& r) const;
 
-  static constexpr double kStartupWait_s = 60.0;  ///< for the nodes and services to come up
+  double startup_wait_s_ = 60.0;  ///< for the nodes and services to come up [s, wall]
   ros::NodeHandle nh_;
   std::string report_dir_, case_dir_, dicom_dir_, method_, scheduler_, afterloader_;
   int synthetic_seed_ = 1;

@@ -22,6 +22,7 @@ private:
   ros::NodeHandle nh_;
   std::string report_dir_;
   std::string service_;
+  std::string watch_node_;  ///< the registration node, watched (NodeSupervisor)
   long cases_per_probe_ = 0;
 };
 

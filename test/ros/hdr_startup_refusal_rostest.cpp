@@ -1,0 +1,35 @@
+// rostest: a device node that refuses its parameters at start-up makes the HDR procedure fail
+// with a report that names it (issue 20), within its start-up timeout, never a pass or a hang.
+#include <gtest/gtest.h>
+#include <ros/ros.h>
+
+#include <fstream>
+#include <sstream>
+#include <string>
+
+#include "../ros_wait.h"
+
+namespace {
+
+constexpr double kReportWithin_s = 60.0;  // start-up timeout 5 s + planning, on a loaded machine
+
+TEST(HdrStartupRefusal, ReportNamesTheNodeThatNeverCameUp) {
+  ros::NodeHandle private_nh("~");
+  std::string report_dir;
+  ASSERT_TRUE(private_nh.getParam("report_dir", report_dir));
+  const std::string summary = report_dir + "/summary.json";
+  ASSERT_TRUE(waitForFile(summary, kReportWithin_s)) << "no report: the procedure hung";
+  std::stringstream text;
+  text << std::ifstream(summary).rdbuf();
+  EXPECT_NE(text.str().find("\"success\": false"), std::string::npos) << text.str();
+  EXPECT_NE(text.str().find("\"status\": \"not_started\""), std::string::npos) << text.str();
+  EXPECT_NE(text.str().find("\"dead_node\": \"/afterloader\""), std::string::npos) << text.str();
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  ros::init(argc, argv, "hdr_startup_refusal_rostest");
+  return RUN_ALL_TESTS();
+}
