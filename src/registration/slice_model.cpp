@@ -14,13 +14,14 @@
 namespace needle_guidance::registration::detail {
 namespace {
 
-using geometry::MeshRegion;
 using geometry::MeshingOptions;
+using geometry::MeshRegion;
 using geometry::Segment;
 using geometry::TriangleMesh;
 
 void addEdges(const Polygon& polygon, std::vector<Segment>& lines) {
-  for (std::size_t i = 0; i < polygon.size(); ++i) lines.push_back(polygon.edge(i));
+  for (std::size_t i = 0; i < polygon.size(); ++i)
+    lines.push_back(polygon.edge(i));
 }
 
 /// Region list for meshDomain and the role of each region index (index i + 1 = regions[i]).
@@ -41,8 +42,10 @@ RegionSetup regionSetup(const SliceSegmentation& seg) {
   add("cg", seg.cg.outer, Role::kCg);
   add("pz", seg.pz.outer, Role::kPz);
   add("rectum", seg.rectum.outer, Role::kRectum);
-  for (std::size_t b = 0; b < seg.bones.size(); ++b) add("bone" + std::to_string(b), seg.bones[b].outer, Role::kBone);
-  if (seg.bladder) add("bladder", seg.bladder->outer, Role::kBladder);
+  for (std::size_t b = 0; b < seg.bones.size(); ++b)
+    add("bone" + std::to_string(b), seg.bones[b].outer, Role::kBone);
+  if (seg.bladder)
+    add("bladder", seg.bladder->outer, Role::kBladder);
   return setup;
 }
 
@@ -63,10 +66,54 @@ int countTissueNodes(const TriangleMesh& mesh, const std::vector<Role>& roles) {
   std::vector<char> used(mesh.nodes.size(), 0);
   for (std::size_t t = 0; t < mesh.triangles.size(); ++t) {
     const Role role = roles[static_cast<std::size_t>(mesh.triangle_region[t])];
-    if (role == Role::kRectum || role == Role::kBladder) continue;
-    for (int k : mesh.triangles[t]) used[static_cast<std::size_t>(k)] = 1;
+    if (role == Role::kRectum || role == Role::kBladder)
+      continue;
+    for (int k : mesh.triangles[t])
+      used[static_cast<std::size_t>(k)] = 1;
   }
   return static_cast<int>(std::count(used.begin(), used.end(), 1));
+}
+
+}  // namespace
+
+namespace {
+
+/// The prostate's boundary loops: directed edges of CG u PZ triangles whose reverse is not in
+/// the set, chained into closed loops of node indices.
+std::vector<std::vector<int>> prostateBoundaryLoops(const geometry::TriangleMesh& mesh,
+                                                    const std::vector<int>& triangle_class) {
+  std::vector<std::vector<int>> loops;
+  std::map<std::pair<int, int>, int> directed;
+  for (std::size_t t = 0; t < mesh.triangles.size(); ++t) {
+    const int cls = triangle_class[t];
+    if (cls != kCentralGland && cls != kPeripheralZone)
+      continue;
+    for (int k = 0; k < 3; ++k) {
+      const int a = mesh.triangles[t][static_cast<std::size_t>(k)];
+      const int b = mesh.triangles[t][static_cast<std::size_t>((k + 1) % 3)];
+      directed[{a, b}] = 1;
+    }
+  }
+  std::unordered_map<int, int> next;
+  for (const auto& entry : directed) {
+    if (!directed.count({entry.first.second, entry.first.first}))
+      next[entry.first.first] = entry.first.second;
+  }
+  std::set<int> visited;
+  for (const auto& entry : next) {
+    if (visited.count(entry.first))
+      continue;
+    std::vector<int> loop;
+    int node = entry.first;
+    while (!visited.count(node) && next.count(node)) {
+      visited.insert(node);
+      loop.push_back(node);
+      node = next[node];
+    }
+    if (loop.size() >= 3)
+      loops.push_back(std::move(loop));
+  }
+  return loops;
 }
 
 }  // namespace
@@ -86,7 +133,8 @@ SliceModel buildSliceModel(const SliceSegmentation& seg, int target_nodes, doubl
       best = std::move(mesh);
       best_n = n;
     }
-    if (std::abs(n - target_nodes) <= 0.08 * target_nodes) break;
+    if (std::abs(n - target_nodes) <= 0.08 * target_nodes)
+      break;
     if (iteration > 0 && std::abs(std::log(h / prev_h)) > 1e-6 && n != prev_n) {
       slope = std::clamp(std::log(n / prev_n) / std::log(h / prev_h), -3.0, -0.5);
     }
@@ -109,10 +157,15 @@ SliceModel buildSliceModel(const SliceSegmentation& seg, int target_nodes, doubl
     const Role role = setup.roles[static_cast<std::size_t>(best.triangle_region[t])];
     for (int k = 0; k < 3; ++k) {
       const auto node = static_cast<std::size_t>(best.triangles[t][static_cast<std::size_t>(k)]);
-      if (role == Role::kRectum) rectum_node[node] = 1;
-      if (role == Role::kBladder) bladder_node[node] = 1;
-      if (!is_cavity(t)) other_node[node] = 1;
-      if (role == Role::kBladder) bladder_edges[{best.triangles[t][static_cast<std::size_t>(k)], best.triangles[t][static_cast<std::size_t>((k + 1) % 3)]}] = true;
+      if (role == Role::kRectum)
+        rectum_node[node] = 1;
+      if (role == Role::kBladder)
+        bladder_node[node] = 1;
+      if (!is_cavity(t))
+        other_node[node] = 1;
+      if (role == Role::kBladder)
+        bladder_edges[{best.triangles[t][static_cast<std::size_t>(k)],
+                       best.triangles[t][static_cast<std::size_t>((k + 1) % 3)]}] = true;
     }
   }
   std::vector<int> new_index(best.nodes.size(), -1);
@@ -126,22 +179,30 @@ SliceModel buildSliceModel(const SliceSegmentation& seg, int target_nodes, doubl
   }
   for (const auto& entry : bladder_edges) {
     const auto [a, b] = entry.first;
-    if (bladder_edges.count({b, a})) continue;  // interior edge of the cavity
-    if (new_index[static_cast<std::size_t>(a)] < 0 || new_index[static_cast<std::size_t>(b)] < 0) continue;
-    model.bladder_wall_edges.push_back({new_index[static_cast<std::size_t>(a)], new_index[static_cast<std::size_t>(b)]});
+    if (bladder_edges.count({b, a}))
+      continue;  // interior edge of the cavity
+    if (new_index[static_cast<std::size_t>(a)] < 0 || new_index[static_cast<std::size_t>(b)] < 0)
+      continue;
+    model.bladder_wall_edges.push_back(
+        {new_index[static_cast<std::size_t>(a)], new_index[static_cast<std::size_t>(b)]});
   }
   std::set<int> fixed;
   for (std::size_t t = 0; t < best.triangles.size(); ++t) {
     const int region = best.triangle_region[t];
     const Role role = setup.roles[static_cast<std::size_t>(region)];
-    if (is_cavity(t)) continue;
+    if (is_cavity(t))
+      continue;
     std::array<int, 3> tri{};
-    for (int k = 0; k < 3; ++k) tri[static_cast<std::size_t>(k)] = new_index[static_cast<std::size_t>(best.triangles[t][static_cast<std::size_t>(k)])];
+    for (int k = 0; k < 3; ++k)
+      tri[static_cast<std::size_t>(k)] =
+          new_index[static_cast<std::size_t>(best.triangles[t][static_cast<std::size_t>(k)])];
     mesh.triangles.push_back(tri);
     mesh.triangle_region.push_back(region);
     int cls = kSurrounding;
-    if (role == Role::kCg) cls = kCentralGland;
-    if (role == Role::kPz) cls = kPeripheralZone;
+    if (role == Role::kCg)
+      cls = kCentralGland;
+    if (role == Role::kPz)
+      cls = kPeripheralZone;
     if (role == Role::kBone) {
       cls = -1;
       fixed.insert(tri.begin(), tri.end());
@@ -162,8 +223,10 @@ SliceModel buildSliceModel(const SliceSegmentation& seg, int target_nodes, doubl
   }
   model.rectum_centre = c / (3.0 * a2);
   for (std::size_t i = 0; i < best.nodes.size(); ++i) {
-    if (rectum_node[i] && other_node[i] && !fixed.count(new_index[i])) model.rectum_nodes.push_back(new_index[i]);
-    if (bladder_node[i] && other_node[i] && !fixed.count(new_index[i])) model.bladder_nodes.push_back(new_index[i]);
+    if (rectum_node[i] && other_node[i] && !fixed.count(new_index[i]))
+      model.rectum_nodes.push_back(new_index[i]);
+    if (bladder_node[i] && other_node[i] && !fixed.count(new_index[i]))
+      model.bladder_nodes.push_back(new_index[i]);
   }
   const Point2 centre = model.rectum_centre;
   std::sort(model.rectum_nodes.begin(), model.rectum_nodes.end(), [&](int a, int b) {
@@ -173,33 +236,7 @@ SliceModel buildSliceModel(const SliceSegmentation& seg, int target_nodes, doubl
   });
   std::sort(model.bladder_nodes.begin(), model.bladder_nodes.end());
 
-  // Prostate boundary: directed edges of CG u PZ triangles whose reverse is not in the set.
-  std::map<std::pair<int, int>, int> directed;
-  for (std::size_t t = 0; t < mesh.triangles.size(); ++t) {
-    const int cls = model.triangle_class[t];
-    if (cls != kCentralGland && cls != kPeripheralZone) continue;
-    for (int k = 0; k < 3; ++k) {
-      const int a = mesh.triangles[t][static_cast<std::size_t>(k)];
-      const int b = mesh.triangles[t][static_cast<std::size_t>((k + 1) % 3)];
-      directed[{a, b}] = 1;
-    }
-  }
-  std::unordered_map<int, int> next;
-  for (const auto& entry : directed) {
-    if (!directed.count({entry.first.second, entry.first.first})) next[entry.first.first] = entry.first.second;
-  }
-  std::set<int> visited;
-  for (const auto& entry : next) {
-    if (visited.count(entry.first)) continue;
-    std::vector<int> loop;
-    int node = entry.first;
-    while (!visited.count(node) && next.count(node)) {
-      visited.insert(node);
-      loop.push_back(node);
-      node = next[node];
-    }
-    if (loop.size() >= 3) model.prostate_loops.push_back(std::move(loop));
-  }
+  model.prostate_loops = prostateBoundaryLoops(mesh, model.triangle_class);
 
   // Unit stiffness per class: K is linear in the per-element moduli (fixed nu), so
   // K_c = K(1 + [class == c]) - K(1) exactly; all share the FemModel's sparsity pattern.
@@ -219,8 +256,10 @@ SliceModel buildSliceModel(const SliceSegmentation& seg, int target_nodes, doubl
     const tissue::FemModel boosted(mesh, materials(c), fem_options);
     SparseMatrix k = boosted.stiffness();
     const SparseMatrix& k1 = base.stiffness();
-    if (k.nonZeros() != k1.nonZeros()) throw std::logic_error("buildSliceModel: stiffness patterns differ");
-    for (Eigen::Index i = 0; i < k.nonZeros(); ++i) k.valuePtr()[i] -= k1.valuePtr()[i];
+    if (k.nonZeros() != k1.nonZeros())
+      throw std::logic_error("buildSliceModel: stiffness patterns differ");
+    for (Eigen::Index i = 0; i < k.nonZeros(); ++i)
+      k.valuePtr()[i] -= k1.valuePtr()[i];
     model.unit_stiffness[static_cast<std::size_t>(c)] = std::move(k);
   }
   return model;
@@ -232,7 +271,8 @@ Loops deformedLoops(const SliceModel& model, const Eigen::VectorXd& u) {
     std::vector<Point2> points;
     points.reserve(loop.size());
     for (int node : loop) {
-      points.push_back(model.mesh.nodes[static_cast<std::size_t>(node)] + Point2(u(2 * node), u(2 * node + 1)));
+      points.push_back(model.mesh.nodes[static_cast<std::size_t>(node)] +
+                       Point2(u(2 * node), u(2 * node + 1)));
     }
     loops.push_back(std::move(points));
   }
@@ -245,7 +285,8 @@ SliceSolver::SliceSolver(const SliceModel& model, const std::vector<Point2>& rec
   n_dof_ = 2 * static_cast<int>(model.mesh.nodes.size());
   std::vector<char> prescribed(static_cast<std::size_t>(n_dof_), 0);
   u_prescribed_ = Eigen::VectorXd::Zero(n_dof_);
-  for (int node : model.fixed_nodes) prescribed[2 * node] = prescribed[2 * node + 1] = 1;
+  for (int node : model.fixed_nodes)
+    prescribed[2 * node] = prescribed[2 * node + 1] = 1;
   for (std::size_t i = 0; i < model.rectum_nodes.size(); ++i) {
     const int node = model.rectum_nodes[i];
     prescribed[2 * node] = prescribed[2 * node + 1] = 1;
@@ -261,7 +302,8 @@ SliceSolver::SliceSolver(const SliceModel& model, const std::vector<Point2>& rec
   }
   for (int node : force_nodes_) {
     for (int d : {2 * node, 2 * node + 1}) {
-      if (free_index_[static_cast<std::size_t>(d)] >= 0) force_dofs_.push_back(d);
+      if (free_index_[static_cast<std::size_t>(d)] >= 0)
+        force_dofs_.push_back(d);
     }
   }
   // K_ff pattern and the position of every full-pattern entry in it.
@@ -271,7 +313,8 @@ SliceSolver::SliceSolver(const SliceModel& model, const std::vector<Point2>& rec
     for (SparseMatrix::InnerIterator it(k, col); it; ++it) {
       const int fr = free_index_[static_cast<std::size_t>(it.row())];
       const int fc = free_index_[static_cast<std::size_t>(it.col())];
-      if (fr >= 0 && fc >= 0) triplets.emplace_back(fr, fc, 1.0);
+      if (fr >= 0 && fc >= 0)
+        triplets.emplace_back(fr, fc, 1.0);
     }
   }
   const int n_free = static_cast<int>(free_dofs_.size());
@@ -284,31 +327,36 @@ SliceSolver::SliceSolver(const SliceModel& model, const std::vector<Point2>& rec
     for (SparseMatrix::InnerIterator it(k, col); it; ++it, ++nz) {
       const int fr = free_index_[static_cast<std::size_t>(it.row())];
       const int fc = free_index_[static_cast<std::size_t>(it.col())];
-      if (fr < 0 || fc < 0) continue;
+      if (fr < 0 || fc < 0)
+        continue;
       const int* begin = k_ff_.innerIndexPtr() + k_ff_.outerIndexPtr()[fc];
       const int* end = k_ff_.innerIndexPtr() + k_ff_.outerIndexPtr()[fc + 1];
-      ff_position_[static_cast<std::size_t>(nz)] = static_cast<int>(std::lower_bound(begin, end, fr) - k_ff_.innerIndexPtr());
+      ff_position_[static_cast<std::size_t>(nz)] =
+          static_cast<int>(std::lower_bound(begin, end, fr) - k_ff_.innerIndexPtr());
     }
   }
   ldlt_.analyzePattern(k_ff_);
 }
 
 bool SliceSolver::setModuli(const Moduli& modulus_Pa) {
-  if (factorized_ && modulus_Pa == moduli_) return true;
+  if (factorized_ && modulus_Pa == moduli_)
+    return true;
   std::fill(k_ff_.valuePtr(), k_ff_.valuePtr() + k_ff_.nonZeros(), 0.0);
   for (int c = 0; c < kSoftClassCount; ++c) {
     const SparseMatrix& kc = model_.unit_stiffness[static_cast<std::size_t>(c)];
     const double e = modulus_Pa[static_cast<std::size_t>(c)];
     for (Eigen::Index i = 0; i < kc.nonZeros(); ++i) {
       const int pos = ff_position_[static_cast<std::size_t>(i)];
-      if (pos >= 0) k_ff_.valuePtr()[pos] += e * kc.valuePtr()[i];
+      if (pos >= 0)
+        k_ff_.valuePtr()[pos] += e * kc.valuePtr()[i];
     }
   }
   moduli_ = modulus_Pa;
   ldlt_.factorize(k_ff_);
   ++factorizations_;
   factorized_ = ldlt_.info() == Eigen::Success;
-  if (!factorized_) return false;
+  if (!factorized_)
+    return false;
   // u0: K_ff u_f = -K_fp u_p.
   const Eigen::VectorXd rhs = -multiplyK(u_prescribed_);
   u0_ = u_prescribed_ + solveFree(rhs);
@@ -318,16 +366,19 @@ bool SliceSolver::setModuli(const Moduli& modulus_Pa) {
 
 Eigen::VectorXd SliceSolver::solveFree(const Eigen::VectorXd& b_full) const {
   Eigen::VectorXd b(static_cast<Eigen::Index>(free_dofs_.size()));
-  for (std::size_t i = 0; i < free_dofs_.size(); ++i) b(static_cast<Eigen::Index>(i)) = b_full(free_dofs_[i]);
+  for (std::size_t i = 0; i < free_dofs_.size(); ++i)
+    b(static_cast<Eigen::Index>(i)) = b_full(free_dofs_[i]);
   const Eigen::VectorXd x = ldlt_.solve(b);
   Eigen::VectorXd out = Eigen::VectorXd::Zero(n_dof_);
-  for (std::size_t i = 0; i < free_dofs_.size(); ++i) out(free_dofs_[i]) = x(static_cast<Eigen::Index>(i));
+  for (std::size_t i = 0; i < free_dofs_.size(); ++i)
+    out(free_dofs_[i]) = x(static_cast<Eigen::Index>(i));
   return out;
 }
 
 Eigen::VectorXd SliceSolver::forceResponse(const Eigen::VectorXd& force_N) const {
   Eigen::VectorXd b = Eigen::VectorXd::Zero(n_dof_);
-  for (std::size_t k = 0; k < force_dofs_.size(); ++k) b(force_dofs_[k]) = force_N(static_cast<Eigen::Index>(k));
+  for (std::size_t k = 0; k < force_dofs_.size(); ++k)
+    b(force_dofs_[k]) = force_N(static_cast<Eigen::Index>(k));
   return solveFree(b);
 }
 
@@ -335,17 +386,20 @@ Eigen::MatrixXd SliceSolver::greensFunctions() const {
   const auto n_free = static_cast<Eigen::Index>(free_dofs_.size());
   const auto n_force = static_cast<Eigen::Index>(force_dofs_.size());
   Eigen::MatrixXd b = Eigen::MatrixXd::Zero(n_free, n_force);
-  for (Eigen::Index k = 0; k < n_force; ++k) b(free_index_[static_cast<std::size_t>(force_dofs_[static_cast<std::size_t>(k)])], k) = 1.0;
+  for (Eigen::Index k = 0; k < n_force; ++k)
+    b(free_index_[static_cast<std::size_t>(force_dofs_[static_cast<std::size_t>(k)])], k) = 1.0;
   const Eigen::MatrixXd x = ldlt_.solve(b);
   Eigen::MatrixXd out = Eigen::MatrixXd::Zero(n_dof_, n_force);
-  for (std::size_t i = 0; i < free_dofs_.size(); ++i) out.row(free_dofs_[i]) = x.row(static_cast<Eigen::Index>(i));
+  for (std::size_t i = 0; i < free_dofs_.size(); ++i)
+    out.row(free_dofs_[i]) = x.row(static_cast<Eigen::Index>(i));
   return out;
 }
 
 Eigen::VectorXd SliceSolver::multiplyK(const Eigen::VectorXd& u) const {
   Eigen::VectorXd out = Eigen::VectorXd::Zero(n_dof_);
   for (int c = 0; c < kSoftClassCount; ++c) {
-    out += moduli_[static_cast<std::size_t>(c)] * (model_.unit_stiffness[static_cast<std::size_t>(c)] * u);
+    out += moduli_[static_cast<std::size_t>(c)] *
+           (model_.unit_stiffness[static_cast<std::size_t>(c)] * u);
   }
   return out;
 }
