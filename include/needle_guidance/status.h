@@ -16,11 +16,13 @@ class Status {
 public:
   Status(Code code, std::string message) : code_(code), message_(std::move(message)) {}
   /// The success status with an optional message.
-  static Status ok(std::string message = "ok") { return Status(kSuccess, std::move(message)); }
+  static Status success(std::string message = "ok") { return Status(kSuccess, std::move(message)); }
 
   explicit operator bool() const { return code_ == kSuccess; }
+  bool ok() const { return code_ == kSuccess; }
   Code code() const { return code_; }
   const std::string& toString() const { return message_; }
+  const std::string& message() const { return message_; }
 
 private:
   Code code_;
@@ -39,12 +41,24 @@ const char* toString(StatusCode code);
 
 using GeneralStatus = Status<StatusCode, StatusCode::kOk>;
 
+/// A command's outcome: accepted, or refused with the reason (nothing changed).
+enum class CommandCode { kAccepted, kRefused };
+class CommandStatus : public Status<CommandCode, CommandCode::kAccepted> {
+public:
+  using Status::Status;
+  static CommandStatus accepted() { return {CommandCode::kAccepted, "accepted"}; }
+  static CommandStatus refused(std::string reason) {
+    return {CommandCode::kRefused, std::move(reason)};
+  }
+};
+
 /// A value or the status that says why there is none.
 template <typename T, typename S = GeneralStatus>
 class Result {
 public:
-  Result(T value) : status_(S::ok()), value_(std::move(value)) {}  // NOLINT: implicit on purpose
-  Result(S status) : status_(std::move(status)) {}                 // NOLINT: implicit on purpose
+  Result(T value)
+      : status_(S::success()), value_(std::move(value)) {}  // NOLINT: implicit on purpose
+  Result(S status) : status_(std::move(status)) {}          // NOLINT: implicit on purpose
 
   explicit operator bool() const { return value_.has_value(); }
   const S& status() const { return status_; }

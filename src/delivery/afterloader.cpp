@@ -14,11 +14,16 @@ constexpr double kTimeEps = 1e-9;  // [s] delivered within this of planned count
 
 const char* toString(DeliveryState state) {
   switch (state) {
-    case DeliveryState::kIdle: return "IDLE";
-    case DeliveryState::kDelivering: return "DELIVERING";
-    case DeliveryState::kPaused: return "PAUSED";
-    case DeliveryState::kStopped: return "STOPPED";
-    case DeliveryState::kCompleted: return "COMPLETED";
+    case DeliveryState::kIdle:
+      return "IDLE";
+    case DeliveryState::kDelivering:
+      return "DELIVERING";
+    case DeliveryState::kPaused:
+      return "PAUSED";
+    case DeliveryState::kStopped:
+      return "STOPPED";
+    case DeliveryState::kCompleted:
+      return "COMPLETED";
   }
   return "?";
 }
@@ -30,7 +35,8 @@ Afterloader::Afterloader(AfterloaderConfig config) : config_(std::move(config)) 
   if (!(config_.commit_quantum_s > 0.0) || !std::isfinite(config_.commit_quantum_s)) {
     throw std::invalid_argument("afterloader: commit quantum must be > 0 s");
   }
-  if (config_.limits.channels < 1) throw std::invalid_argument("afterloader: needs at least one channel");
+  if (config_.limits.channels < 1)
+    throw std::invalid_argument("afterloader: needs at least one channel");
 }
 
 Afterloader::~Afterloader() = default;
@@ -42,14 +48,18 @@ std::string Afterloader::journalPath() const {
 Status Afterloader::start(const Schedule& schedule) {
   if (state_ == DeliveryState::kDelivering || state_ == DeliveryState::kPaused) {
     return Status::refused("a delivery of plan '" + schedule_->plan_id + "' is " +
-                           (state_ == DeliveryState::kPaused ? "paused" : "running") + "; abort it first");
+                           (state_ == DeliveryState::kPaused ? "paused" : "running") +
+                           "; abort it first");
   }
-  if (channel_index_ >= 0) return Status::refused("the source is still retracting");
-  if (door_open_) return Status::refused("the treatment-room door is open");
+  if (channel_index_ >= 0)
+    return Status::refused("the source is still retracting");
+  if (door_open_)
+    return Status::refused("the treatment-room door is open");
   const auto problems = validateSchedule(schedule, config_.limits);
   if (!problems.empty()) {
     std::string why = "schedule refused:";
-    for (const auto& p : problems) why += " " + p + ";";
+    for (const auto& p : problems)
+      why += " " + p + ";";
     why.pop_back();
     return Status::refused(why);
   }
@@ -62,12 +72,16 @@ Status Afterloader::start(const Schedule& schedule) {
   }
   const Ledger ledger = replay(journal->records(), &schedule, config_.source_speed_m_s);
   char hash[32];
-  std::snprintf(hash, sizeof hash, "%016llx", static_cast<unsigned long long>(schedule.contentHash()));
-  if (ledger.begun && (ledger.plan_id != schedule.plan_id || ledger.content_hash != schedule.contentHash())) {
-    return Status::refused("journal " + path + " holds a different schedule for plan '" + schedule.plan_id +
-                           "' (plan ids must be unique per schedule)");
+  std::snprintf(hash, sizeof hash, "%016llx",
+                static_cast<unsigned long long>(schedule.contentHash()));
+  if (ledger.begun &&
+      (ledger.plan_id != schedule.plan_id || ledger.content_hash != schedule.contentHash())) {
+    return Status::refused("journal " + path + " holds a different schedule for plan '" +
+                           schedule.plan_id + "' (plan ids must be unique per schedule)");
   }
-  if (ledger.completed) return Status::refused("plan '" + schedule.plan_id + "' is already fully delivered (" + path + ")");
+  if (ledger.completed)
+    return Status::refused("plan '" + schedule.plan_id + "' is already fully delivered (" + path +
+                           ")");
   if (!ledger.anomalies.empty()) {
     return Status::refused("journal " + path + " is inconsistent: " + ledger.anomalies.front());
   }
@@ -75,8 +89,9 @@ Status Afterloader::start(const Schedule& schedule) {
     const int ci = schedule.channelIndex(key.first);
     const auto& idx = ci >= 0 ? schedule.channels[ci].dwell_index : std::vector<int>{};
     if (std::find(idx.begin(), idx.end(), key.second) == idx.end()) {
-      return Status::refused("journal " + path + " records channel " + std::to_string(key.first) + " dwell " +
-                             std::to_string(key.second) + ", which the schedule does not have");
+      return Status::refused("journal " + path + " records channel " + std::to_string(key.first) +
+                             " dwell " + std::to_string(key.second) +
+                             ", which the schedule does not have");
     }
   }
   schedule_ = std::make_unique<Schedule>(schedule);
@@ -89,16 +104,21 @@ Status Afterloader::start(const Schedule& schedule) {
   state_ = DeliveryState::kDelivering;
   if (!ledger.begun) {
     std::ostringstream text;
-    text << schedule.plan_id << " " << hash << " " << schedule.dwellCount() << " " << schedule.totalDwellTime();
+    text << schedule.plan_id << " " << hash << " " << schedule.dwellCount() << " "
+         << schedule.totalDwellTime();
     write({0, 0.0, "begin", 0, -1, 0.0, text.str()});
   }
-  if (ledger.open_session) write({0, 0.0, "recover", 0, -1, 0.0, "previous session ended without a record"});
+  if (ledger.open_session)
+    write({0, 0.0, "recover", 0, -1, 0.0, "previous session ended without a record"});
   write({0, 0.0, "session", 0, -1, deliveredTotal(), ledger.sessions == 0 ? "start" : "resume"});
-  last_message_ = (ledger.sessions == 0 ? "delivering plan '" : "resuming plan '") + schedule.plan_id + "'";
+  last_message_ =
+      (ledger.sessions == 0 ? "delivering plan '" : "resuming plan '") + schedule.plan_id + "'";
   return Status::accepted();
 }
 
-void Afterloader::write(JournalRecord r) { new_lines_.push_back(journal_->append(std::move(r))); }
+void Afterloader::write(JournalRecord r) {
+  new_lines_.push_back(journal_->append(std::move(r)));
+}
 
 void Afterloader::settleCurrent() {
   for (auto& [key, com] : committed_) {
@@ -111,7 +131,8 @@ void Afterloader::settleCurrent() {
 }
 
 Status Afterloader::pause(const std::string& reason) {
-  if (state_ != DeliveryState::kDelivering) return Status::refused(std::string("nothing to pause (") + toString(state_) + ")");
+  if (state_ != DeliveryState::kDelivering)
+    return Status::refused(std::string("nothing to pause (") + toString(state_) + ")");
   settleCurrent();
   write({0, 0.0, "pause", sourceChannel(), -1, 0.0, reason});
   state_ = DeliveryState::kPaused;
@@ -120,8 +141,10 @@ Status Afterloader::pause(const std::string& reason) {
 }
 
 Status Afterloader::resume() {
-  if (state_ != DeliveryState::kPaused) return Status::refused(std::string("not paused (") + toString(state_) + ")");
-  if (door_open_) return Status::refused("the treatment-room door is open");
+  if (state_ != DeliveryState::kPaused)
+    return Status::refused(std::string("not paused (") + toString(state_) + ")");
+  if (door_open_)
+    return Status::refused("the treatment-room door is open");
   write({0, 0.0, "resume", 0, -1, 0.0, ""});
   state_ = DeliveryState::kDelivering;
   last_message_ = "resumed";
@@ -142,12 +165,14 @@ Status Afterloader::abort(const std::string& reason) {
 
 void Afterloader::setDoorOpen(bool open) {
   door_open_ = open;
-  if (open && state_ == DeliveryState::kDelivering) pause("door open");
+  if (open && state_ == DeliveryState::kDelivering)
+    pause("door open");
 }
 
 Status Afterloader::setObstruction(int channel, bool obstructed) {
   if (channel < 1 || channel > config_.limits.channels) {
-    return Status::refused("no channel " + std::to_string(channel) + " (1-" + std::to_string(config_.limits.channels) + ")");
+    return Status::refused("no channel " + std::to_string(channel) + " (1-" +
+                           std::to_string(config_.limits.channels) + ")");
   }
   obstructed_[channel] = obstructed;
   if (!obstructed) {
@@ -160,7 +185,8 @@ Status Afterloader::setObstruction(int channel, bool obstructed) {
     skipped_[channel] = true;
     dwell_k_ = -1;
     moving_ = false;  // the retraction starts now
-    last_message_ = "interlock: channel " + std::to_string(channel) + " obstructed; source retracted";
+    last_message_ =
+        "interlock: channel " + std::to_string(channel) + " obstructed; source retracted";
   }
   return Status::accepted();
 }
@@ -168,7 +194,8 @@ Status Afterloader::setObstruction(int channel, bool obstructed) {
 std::vector<int> Afterloader::obstructedChannels() const {
   std::vector<int> out;
   for (const auto& [c, o] : obstructed_)
-    if (o) out.push_back(c);
+    if (o)
+      out.push_back(c);
   return out;
 }
 
@@ -177,7 +204,9 @@ int Afterloader::sourceChannel() const {
 }
 
 int Afterloader::sourceDwell() const {
-  return dwell_k_ >= 0 && channel_index_ >= 0 ? schedule_->channels[channel_index_].dwell_index[dwell_k_] : -1;
+  return dwell_k_ >= 0 && channel_index_ >= 0
+             ? schedule_->channels[channel_index_].dwell_index[dwell_k_]
+             : -1;
 }
 
 bool Afterloader::sourceInPatient() const {
@@ -185,14 +214,18 @@ bool Afterloader::sourceInPatient() const {
 }
 
 Point3 Afterloader::sourcePosition() const {
-  return channel_index_ >= 0 ? schedule_->channels[channel_index_].sourcePosition(distance_m_) : Point3::Zero();
+  return channel_index_ >= 0 ? schedule_->channels[channel_index_].sourcePosition(distance_m_)
+                             : Point3::Zero();
 }
 
-double Afterloader::plannedTotal() const { return schedule_ ? schedule_->totalDwellTime() : 0.0; }
+double Afterloader::plannedTotal() const {
+  return schedule_ ? schedule_->totalDwellTime() : 0.0;
+}
 
 double Afterloader::deliveredTotal() const {
   double t = 0.0;
-  for (const auto& [key, d] : delivered_) t += d;
+  for (const auto& [key, d] : delivered_)
+    t += d;
   return t;
 }
 
@@ -203,18 +236,21 @@ double Afterloader::deliveredFraction() const {
 
 std::vector<DwellRecord> Afterloader::records() const {
   std::vector<DwellRecord> out;
-  if (!schedule_) return out;
+  if (!schedule_)
+    return out;
   for (const auto& c : schedule_->channels) {
     for (std::size_t k = 0; k < c.time_s.size(); ++k) {
       const auto it = committed_.find({c.channel, c.dwell_index[k]});
-      out.push_back({c.channel, c.dwell_index[k], c.time_s[k], it == committed_.end() ? 0.0 : it->second});
+      out.push_back(
+          {c.channel, c.dwell_index[k], c.time_s[k], it == committed_.end() ? 0.0 : it->second});
     }
   }
   return out;
 }
 
 Ledger Afterloader::ledger() const {
-  return journal_ ? replay(journal_->records(), schedule_.get(), config_.source_speed_m_s) : Ledger{};
+  return journal_ ? replay(journal_->records(), schedule_.get(), config_.source_speed_m_s)
+                  : Ledger{};
 }
 
 std::vector<std::string> Afterloader::takeJournalLines() {
@@ -229,7 +265,8 @@ bool Afterloader::nextDwell(Dwell& next) const {
   // The channel the source is in first (never leave a channel half done), then schedule order.
   for (int pass = -1; pass < n; ++pass) {
     const int ci = pass < 0 ? channel_index_ : pass;
-    if (ci < 0 || skipped_.count(channels[ci].channel)) continue;
+    if (ci < 0 || skipped_.count(channels[ci].channel))
+      continue;
     const auto& c = channels[ci];
     for (std::size_t k = 0; k < c.time_s.size(); ++k) {
       const auto it = delivered_.find({c.channel, c.dwell_index[k]});
@@ -269,7 +306,8 @@ void Afterloader::finish() {
   std::ostringstream skipped;
   for (const auto& [channel, s] : skipped_) {
     const auto& c = schedule_->channels[schedule_->channelIndex(channel)];
-    for (std::size_t k = 0; k < c.time_s.size(); ++k) undelivered += c.time_s[k] - delivered_[{channel, c.dwell_index[k]}];
+    for (std::size_t k = 0; k < c.time_s.size(); ++k)
+      undelivered += c.time_s[k] - delivered_[{channel, c.dwell_index[k]}];
     skipped << " " << channel;
   }
   if (skipped_.empty()) {
@@ -287,7 +325,8 @@ void Afterloader::finish() {
 }
 
 void Afterloader::step(double dt_s) {
-  if (!std::isfinite(dt_s) || dt_s < 0.0) throw std::invalid_argument("afterloader: step dt must be finite and >= 0");
+  if (!std::isfinite(dt_s) || dt_s < 0.0)
+    throw std::invalid_argument("afterloader: step dt must be finite and >= 0");
   time_s_ += dt_s;
   try {
     while (dt_s > 0.0) {
@@ -296,7 +335,8 @@ void Afterloader::step(double dt_s) {
       const bool more = delivering && nextDwell(next);
       if (channel_index_ >= 0 && (!more || next.channel_index != channel_index_)) {
         // Retract: paused, stopped, done, interlocked or off to another channel.
-        if (!moving_ || move_target_m_ != 0.0) beginMove(channel_index_, 0.0);
+        if (!moving_ || move_target_m_ != 0.0)
+          beginMove(channel_index_, 0.0);
         moveToward(0.0, dt_s);
         if (distance_m_ <= 0.0) {
           distance_m_ = 0.0;
@@ -304,7 +344,8 @@ void Afterloader::step(double dt_s) {
         }
         continue;
       }
-      if (!delivering) break;
+      if (!delivering)
+        break;
       if (!more) {
         finish();
         break;
@@ -314,14 +355,16 @@ void Afterloader::step(double dt_s) {
         if (obstructed_[c.channel]) {
           write({0, 0.0, "interlock", c.channel, -1, 0.0, "obstruction"});
           skipped_[c.channel] = true;
-          last_message_ = "interlock: channel " + std::to_string(c.channel) + " obstructed; skipped";
+          last_message_ =
+              "interlock: channel " + std::to_string(c.channel) + " obstructed; skipped";
           continue;
         }
         channel_index_ = next.channel_index;
       }
       const double target = c.distance_m[next.k];
       if (distance_m_ != target) {
-        if (!moving_ || move_target_m_ != target) beginMove(channel_index_, target);
+        if (!moving_ || move_target_m_ != target)
+          beginMove(channel_index_, target);
         moveToward(target, dt_s);
         continue;
       }

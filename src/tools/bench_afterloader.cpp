@@ -47,12 +47,14 @@ using Client = actionlib::SimpleActionClient<ng::DeliverAction>;
 
 namespace {
 
-constexpr double kSpeed = 0.5;        // [m/s] source speed (node default)
-constexpr double kTimeScale = 100.0;  // device seconds per wall second in the campaign
-constexpr double kQuantum = 0.05;     // [s] the node's default commit quantum
-constexpr double kTargetErrorS = 0.1; // [s] issue 8's bound on the dwell-time error
+constexpr double kSpeed = 0.5;         // [m/s] source speed (node default)
+constexpr double kTimeScale = 100.0;   // device seconds per wall second in the campaign
+constexpr double kQuantum = 0.05;      // [s] the node's default commit quantum
+constexpr double kTargetErrorS = 0.1;  // [s] issue 8's bound on the dwell-time error
 
-double now() { return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count(); }
+double now() {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
+}
 
 /// Starts a process with its output appended to `log`; returns its pid.
 pid_t spawn(const std::vector<std::string>& argv, const std::string& log) {
@@ -65,7 +67,8 @@ pid_t spawn(const std::vector<std::string>& argv, const std::string& log) {
       dup2(fd, 2);
     }
     std::vector<char*> args;
-    for (const auto& a : argv) args.push_back(const_cast<char*>(a.c_str()));
+    for (const auto& a : argv)
+      args.push_back(const_cast<char*>(a.c_str()));
     args.push_back(nullptr);
     execvp(args[0], args.data());
     _exit(127);
@@ -74,10 +77,12 @@ pid_t spawn(const std::vector<std::string>& argv, const std::string& log) {
 }
 
 void stop(pid_t pid, int sig) {
-  if (pid <= 0) return;
+  if (pid <= 0)
+    return;
   ::kill(pid, sig);
   for (int i = 0; i < 500; ++i) {
-    if (waitpid(pid, nullptr, WNOHANG) == pid) return;
+    if (waitpid(pid, nullptr, WNOHANG) == pid)
+      return;
     usleep(10000);
   }
   ::kill(pid, SIGKILL);
@@ -106,15 +111,19 @@ struct Outcome {
 class Campaign {
 public:
   Campaign(std::string node_binary, std::string journal_dir, std::string log)
-      : binary_(std::move(node_binary)), journal_dir_(std::move(journal_dir)), log_(std::move(log)) {}
+      : binary_(std::move(node_binary)),
+        journal_dir_(std::move(journal_dir)),
+        log_(std::move(log)) {}
   ~Campaign() { stop(node_, SIGINT); }
 
   void startNode() {
-    node_ = spawn({binary_, "__name:=afterloader", "_time_scale:=" + std::to_string(kTimeScale),
-                   "_journal_dir:=" + journal_dir_, "_commit_quantum_s:=" + std::to_string(kQuantum)},
-                  log_);
+    node_ =
+        spawn({binary_, "__name:=afterloader", "_time_scale:=" + std::to_string(kTimeScale),
+               "_journal_dir:=" + journal_dir_, "_commit_quantum_s:=" + std::to_string(kQuantum)},
+              log_);
     client_ = std::make_unique<Client>("afterloader/deliver", true);
-    if (!client_->waitForServer(ros::Duration(30.0))) throw std::runtime_error("afterloader did not come up");
+    if (!client_->waitForServer(ros::Duration(30.0)))
+      throw std::runtime_error("afterloader did not come up");
     ros::WallDuration(0.3).sleep();
   }
 
@@ -141,10 +150,12 @@ public:
   bool waitFraction(double f) {
     const double end = now() + 120.0;
     while (now() < end) {
-      if (client_->getState().isDone()) return false;
+      if (client_->getState().isDone())
+        return false;
       {
         std::lock_guard<std::mutex> lock(g_mutex);
-        if (g_fraction >= f) return true;
+        if (g_fraction >= f)
+          return true;
       }
       usleep(2000);
     }
@@ -152,7 +163,8 @@ public:
   }
 
   std::string waitResult() {
-    if (!client_->waitForResult(ros::Duration(300.0))) return "timeout";
+    if (!client_->waitForResult(ros::Duration(300.0)))
+      return "timeout";
     const auto r = client_->getResult();
     return r ? r->status : "none";
   }
@@ -163,7 +175,8 @@ public:
     std::uniform_int_distribution<int> count(1, 3), kind(0, 4);
     std::uniform_real_distribution<double> at(0.05, 0.95), jitter(0.0, 0.05);
     std::vector<std::pair<double, int>> faults;
-    for (int k = count(rng); k > 0; --k) faults.emplace_back(at(rng), kind(rng));
+    for (int k = count(rng); k > 0; --k)
+      faults.emplace_back(at(rng), kind(rng));
     std::sort(faults.begin(), faults.end());
     {
       std::lock_guard<std::mutex> lock(g_mutex);
@@ -171,7 +184,8 @@ public:
     }
     send(s);
     for (const auto& [fraction, what] : faults) {
-      if (!waitFraction(fraction)) break;
+      if (!waitFraction(fraction))
+        break;
       ros::WallDuration(jitter(rng)).sleep();  // land anywhere: dwelling or in transit
       ++o.faults;
       std_srvs::Trigger t;
@@ -202,7 +216,8 @@ public:
       } else {  // obstruction of the channel the source is in (or the next one)
         ++o.obstructions;
         int channel = state().channel;
-        if (channel == 0) channel = s.channels.back().channel;
+        if (channel == 0)
+          channel = s.channels.back().channel;
         ng::SetChannelObstruction ob;
         ob.request.channel = channel;
         ob.request.obstructed = true;
@@ -210,7 +225,8 @@ public:
         const std::string st = waitResult();
         ob.request.obstructed = false;
         ros::service::call("afterloader/set_obstruction", ob);
-        if (st == "stopped") send(s);  // the rest of the obstructed channel, once cleared
+        if (st == "stopped")
+          send(s);  // the rest of the obstructed channel, once cleared
       }
     }
     o.status = waitResult();
@@ -240,7 +256,8 @@ ErrorBound errorBound(const delivery::Ledger& ledger, const delivery::Schedule& 
       const double got = ledger.delivered_s.count(key) ? ledger.delivered_s.at(key) : 0.0;
       const double doubt = ledger.uncertainty_s.count(key) ? ledger.uncertainty_s.at(key) : 0.0;
       b.worst_s = std::max(b.worst_s, std::abs(got - c.time_s[k]) + doubt);
-      if (got > c.time_s[k] + 1e-9) ++b.over_plan;
+      if (got > c.time_s[k] + 1e-9)
+        ++b.over_plan;
     }
   }
   return b;
@@ -251,7 +268,8 @@ ErrorBound errorBound(const delivery::Ledger& ledger, const delivery::Schedule& 
 struct QuantumRow {
   double quantum_s, wall_s, records, device_s_per_wall_s, max_error_bound_s;
 };
-QuantumRow quantumTrial(const delivery::Schedule& s, double quantum, int crashes, const std::string& dir) {
+QuantumRow quantumTrial(const delivery::Schedule& s, double quantum, int crashes,
+                        const std::string& dir) {
   fs::remove_all(dir);
   fs::create_directories(dir);
   delivery::AfterloaderConfig config;
@@ -261,14 +279,16 @@ QuantumRow quantumTrial(const delivery::Schedule& s, double quantum, int crashes
   const double device_total = s.totalDwellTime();
   std::uniform_real_distribution<double> when(0.0, device_total);
   std::vector<double> crash_at;
-  for (int k = 0; k < crashes; ++k) crash_at.push_back(when(rng));
+  for (int k = 0; k < crashes; ++k)
+    crash_at.push_back(when(rng));
   std::sort(crash_at.begin(), crash_at.end());
   const double t0 = now();
   double device_time = 0.0;
   std::size_t next_crash = 0;
   for (int session = 0; session < crashes + 2; ++session) {
     delivery::Afterloader a(config);
-    if (!a.start(s).ok) break;
+    if (!a.start(s).ok())
+      break;
     while (a.state() == delivery::DeliveryState::kDelivering || a.sourceChannel() != 0) {
       a.step(0.01);
       device_time += 0.01;
@@ -289,10 +309,12 @@ QuantumRow quantumTrial(const delivery::Schedule& s, double quantum, int crashes
 
 int main(int argc, char** argv) {
   const auto args = ng::report::parseBenchArgs(argc, argv, "bench_afterloader");
-  if (!args) return 2;
+  if (!args)
+    return 2;
   const int deliveries = args->quick ? 10 : 50;
   const int cases = 5;
-  const std::string out = fs::absolute(args->out_dir).string();  // the node resolves relative paths against ROS_HOME
+  const std::string out =
+      fs::absolute(args->out_dir).string();  // the node resolves relative paths against ROS_HOME
   const std::string journal_dir = out + "/journal";
   fs::remove_all(journal_dir);
   fs::create_directories(journal_dir);
@@ -303,19 +325,24 @@ int main(int argc, char** argv) {
     ng::dose::SyntheticCaseOptions o;
     o.seed = static_cast<unsigned>(c);
     const auto hdr = ng::dose::syntheticProstateCase(o);
-    const auto lp = ng::dose::optimizeLp(hdr, ng::dose::doseRateMatrix(hdr, ng::dose::loadSource(hdr.source)));
+    const auto lp =
+        ng::dose::optimizeLp(hdr, ng::dose::doseRateMatrix(hdr, ng::dose::loadSource(hdr.source)));
     plans.push_back(delivery::makeSchedule(hdr, lp.times_s, "case" + std::to_string(c)));
     std::cout << "[bench] case " << c << ": " << plans.back().dwellCount() << " dwells, "
-              << plans.back().totalDwellTime() << " s in " << plans.back().channels.size() << " channels\n";
+              << plans.back().totalDwellTime() << " s in " << plans.back().channels.size()
+              << " channels\n";
   }
 
   // 1. Commit quantum: journal writes and speed against the error a crash can leave (core).
-  ng::report::Table quantum({"quantum_s", "wall_s", "journal_records", "device_s_per_wall_s", "max_error_bound_s"});
+  ng::report::Table quantum(
+      {"quantum_s", "wall_s", "journal_records", "device_s_per_wall_s", "max_error_bound_s"});
   for (double q : {0.01, 0.02, 0.05, 0.1}) {
     const auto row = quantumTrial(plans[0], q, 10, out + "/quantum_journal");
-    quantum.addRow({row.quantum_s, row.wall_s, row.records, row.device_s_per_wall_s, row.max_error_bound_s});
-    std::cout << "[bench] quantum " << q << " s: " << row.records << " records, " << row.wall_s << " s wall, "
-              << row.device_s_per_wall_s << " device s per wall s, worst error bound " << row.max_error_bound_s << " s\n";
+    quantum.addRow(
+        {row.quantum_s, row.wall_s, row.records, row.device_s_per_wall_s, row.max_error_bound_s});
+    std::cout << "[bench] quantum " << q << " s: " << row.records << " records, " << row.wall_s
+              << " s wall, " << row.device_s_per_wall_s
+              << " device s per wall s, worst error bound " << row.max_error_bound_s << " s\n";
   }
   fs::remove_all(out + "/quantum_journal");
   quantum.writeCsv(out + "/quantum.csv");
@@ -328,7 +355,8 @@ int main(int argc, char** argv) {
   fs::remove(log);
   const pid_t roscore = spawn({"roscore", "-p", std::to_string(port)}, log);
   ros::init(argc, argv, "afterloader_campaign", ros::init_options::NoSigintHandler);
-  for (int i = 0; i < 300 && !ros::master::check(); ++i) usleep(100000);
+  for (int i = 0; i < 300 && !ros::master::check(); ++i)
+    usleep(100000);
   if (!ros::master::check()) {
     std::cerr << "bench_afterloader: roscore did not start on " << master << "\n";
     stop(roscore, SIGINT);
@@ -337,25 +365,31 @@ int main(int argc, char** argv) {
   int exit_code = 0;
   {
     ros::NodeHandle nh;
-    ros::Subscriber journal_sub = nh.subscribe<std_msgs::String>(
-        "afterloader/journal", 100000, boost::function<void(const std_msgs::String::ConstPtr&)>([](const std_msgs::String::ConstPtr& m) {
-          std::lock_guard<std::mutex> lock(g_mutex);
-          g_published[g_plan].push_back(m->data);
-        }));
+    ros::Subscriber journal_sub =
+        nh.subscribe<std_msgs::String>("afterloader/journal", 100000,
+                                       boost::function<void(const std_msgs::String::ConstPtr&)>(
+                                           [](const std_msgs::String::ConstPtr& m) {
+                                             std::lock_guard<std::mutex> lock(g_mutex);
+                                             g_published[g_plan].push_back(m->data);
+                                           }));
     ros::Subscriber state_sub = nh.subscribe<ng::AfterloaderState>(
-        "afterloader/state", 10, boost::function<void(const ng::AfterloaderState::ConstPtr&)>([](const ng::AfterloaderState::ConstPtr& m) {
-          std::lock_guard<std::mutex> lock(g_mutex);
-          g_state = *m;
-        }));
+        "afterloader/state", 10,
+        boost::function<void(const ng::AfterloaderState::ConstPtr&)>(
+            [](const ng::AfterloaderState::ConstPtr& m) {
+              std::lock_guard<std::mutex> lock(g_mutex);
+              g_state = *m;
+            }));
     ros::AsyncSpinner spinner(2);
     spinner.start();
-    const std::string binary = fs::read_symlink("/proc/self/exe").parent_path().string() + "/afterloader";
+    const std::string binary =
+        fs::read_symlink("/proc/self/exe").parent_path().string() + "/afterloader";
     Campaign campaign(binary, journal_dir, log);
     campaign.startNode();
 
-    ng::report::Table table({"delivery", "case", "dwells", "planned_s", "faults", "kills", "pauses", "aborts", "doors",
-                             "obstructions", "status", "stopped_safely", "max_dwell_error_s", "double_delivered",
-                             "lost_entries", "journal_records", "wall_s"});
+    ng::report::Table table({"delivery", "case", "dwells", "planned_s", "faults", "kills", "pauses",
+                             "aborts", "doors", "obstructions", "status", "stopped_safely",
+                             "max_dwell_error_s", "double_delivered", "lost_entries",
+                             "journal_records", "wall_s"});
     int completed = 0, safe = 0, faults = 0, kills = 0, doubles = 0, lost = 0;
     double max_error = 0.0;
     std::vector<double> wall;
@@ -374,12 +408,14 @@ int main(int argc, char** argv) {
       std::set<std::string> in_file;
       {
         std::ifstream in(journal.path());
-        for (std::string line; std::getline(in, line);) in_file.insert(line);
+        for (std::string line; std::getline(in, line);)
+          in_file.insert(line);
       }
       int missing = static_cast<int>(ledger.seq_gaps);
       {
         std::lock_guard<std::mutex> lock(g_mutex);
-        for (const auto& line : g_published[s.plan_id]) missing += in_file.count(line) ? 0 : 1;
+        for (const auto& line : g_published[s.plan_id])
+          missing += in_file.count(line) ? 0 : 1;
       }
       // Completed per the journal (a kill just after the last dwell makes the resent goal
       // "refused: already fully delivered", which is right).
@@ -392,23 +428,27 @@ int main(int argc, char** argv) {
       lost += missing;
       max_error = std::max(max_error, worst);
       wall.push_back(o.wall_s);
-      table.addRow({double(d), double(d % cases + 1), double(s.dwellCount()), s.totalDwellTime(), double(o.faults),
-                    double(o.kills), double(o.pauses), double(o.aborts), double(o.doors), double(o.obstructions),
-                    o.status, double(o.safe), worst, double(doubled), double(missing),
-                    double(journal.records().size()), o.wall_s});
-      std::cout << "[bench] delivery " << d << ": " << o.status << ", " << o.faults << " faults (" << o.kills
-                << " kills), max dwell error " << worst << " s, " << doubled << " doubled, " << missing << " lost, "
-                << o.wall_s << " s\n";
+      table.addRow({double(d), double(d % cases + 1), double(s.dwellCount()), s.totalDwellTime(),
+                    double(o.faults), double(o.kills), double(o.pauses), double(o.aborts),
+                    double(o.doors), double(o.obstructions), o.status, double(o.safe), worst,
+                    double(doubled), double(missing), double(journal.records().size()), o.wall_s});
+      std::cout << "[bench] delivery " << d << ": " << o.status << ", " << o.faults << " faults ("
+                << o.kills << " kills), max dwell error " << worst << " s, " << doubled
+                << " doubled, " << missing << " lost, " << o.wall_s << " s\n";
     }
     table.writeCsv(out + "/afterloader.csv");
     std::ostringstream json;
     json << "{\n  \"deliveries\": " << deliveries << ",\n  \"faults_injected\": " << faults
-         << ",\n  \"max_dwell_time_error_s\": " << max_error << ",\n  \"double_delivered_dwells\": " << doubles
+         << ",\n  \"max_dwell_time_error_s\": " << max_error
+         << ",\n  \"double_delivered_dwells\": " << doubles
          << ",\n  \"lost_journal_entries\": " << lost << ",\n  \"completed\": " << completed
          << ",\n  \"completed_or_stopped_safely\": " << safe << ",\n  \"process_kills\": " << kills
          << ",\n  \"time_scale\": " << kTimeScale << ",\n  \"commit_quantum_s\": " << kQuantum
-         << ",\n  \"delivery_wall_s_median\": " << ng::report::median(wall) << ",\n  \"target_met\": "
-         << (safe == deliveries && max_error <= kTargetErrorS && doubles == 0 && lost == 0 ? "true" : "false")
+         << ",\n  \"delivery_wall_s_median\": " << ng::report::median(wall)
+         << ",\n  \"target_met\": "
+         << (safe == deliveries && max_error <= kTargetErrorS && doubles == 0 && lost == 0
+                 ? "true"
+                 : "false")
          << "\n}\n";
     ng::report::writeTextFile(out + "/summary.json", json.str());
     ng::report::writeTextFile(
@@ -418,7 +458,8 @@ int main(int argc, char** argv) {
  {"csv": "afterloader.csv", "x": "faults", "y": "max_dwell_error_s", "points": true, "annotate": "kills",
   "title": "Fault campaign: dwell error bound per delivery (labels: kills)", "png": "afterloader.png"}]
 )json");
-    if (safe != deliveries) exit_code = 1;
+    if (safe != deliveries)
+      exit_code = 1;
   }
   ros::shutdown();
   stop(roscore, SIGINT);

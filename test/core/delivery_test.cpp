@@ -17,8 +17,8 @@ namespace fs = std::filesystem;
 
 namespace {
 
-constexpr double kExactS = 1e-9;      // [s] bookkeeping that must be exact up to round-off
-constexpr double kPositionM = 1e-9;   // [m]
+constexpr double kExactS = 1e-9;     // [s] bookkeeping that must be exact up to round-off
+constexpr double kPositionM = 1e-9;  // [m]
 
 struct TempDir {
   fs::path path;
@@ -60,7 +60,9 @@ AfterloaderConfig config(const TempDir& dir, double quantum = 0.05) {
 }
 
 void runToEnd(Afterloader& a, double dt = 0.013) {
-  for (int i = 0; i < 100000 && (a.state() == DeliveryState::kDelivering || a.sourceChannel() != 0); ++i) a.step(dt);
+  for (int i = 0; i < 100000 && (a.state() == DeliveryState::kDelivering || a.sourceChannel() != 0);
+       ++i)
+    a.step(dt);
 }
 
 void expectDeliveredAsPlanned(const Ledger& l, const Schedule& s, double tolerance_s) {
@@ -68,7 +70,8 @@ void expectDeliveredAsPlanned(const Ledger& l, const Schedule& s, double toleran
     for (std::size_t k = 0; k < c.time_s.size(); ++k) {
       const auto it = l.delivered_s.find({c.channel, c.dwell_index[k]});
       ASSERT_NE(it, l.delivered_s.end()) << "channel " << c.channel << " dwell " << k;
-      EXPECT_NEAR(it->second, c.time_s[k], tolerance_s) << "channel " << c.channel << " dwell " << k;
+      EXPECT_NEAR(it->second, c.time_s[k], tolerance_s)
+          << "channel " << c.channel << " dwell " << k;
     }
   }
 }
@@ -87,7 +90,8 @@ TEST(Schedule, ParsesUtcDatesAndRefusesBadOnes) {
   EXPECT_DOUBLE_EQ(parseUtcSeconds("2026-11-22"), 1795305600.0);
   EXPECT_DOUBLE_EQ(parseUtcSeconds("2024-02-29T13:45:10"), 1709214310.0);
   EXPECT_DOUBLE_EQ(parseUtcSeconds("2024-02-29T13:45"), 1709214300.0);
-  for (const char* bad : {"2026-13-01", "2026-02-30", "2026-11-22x", "22/11/2026", "", "2026-11-22T25:00"}) {
+  for (const char* bad :
+       {"2026-13-01", "2026-02-30", "2026-11-22x", "22/11/2026", "", "2026-11-22T25:00"}) {
     EXPECT_THROW(parseUtcSeconds(bad), std::invalid_argument) << bad;
   }
 }
@@ -121,7 +125,8 @@ TEST(Schedule, SyntheticCaseChannelsDistancesAndDecay) {
   EXPECT_THROW(makeSchedule(c, times, "x"), std::invalid_argument);
   EXPECT_THROW(makeSchedule(c, std::vector<double>(3, 1.0), "x"), std::invalid_argument);
   so.days_since_calibration = 600.0;  // 0.36 % left
-  EXPECT_THROW(makeSchedule(c, std::vector<double>(c.dwells.size(), 1.0), "x", so), std::invalid_argument);
+  EXPECT_THROW(makeSchedule(c, std::vector<double>(c.dwells.size(), 1.0), "x", so),
+               std::invalid_argument);
 }
 
 TEST(Schedule, TransitSamplesAddUpToTheTripTime) {
@@ -129,7 +134,8 @@ TEST(Schedule, TransitSamplesAddUpToTheTripTime) {
   const auto& c = s.channels[0];
   const auto samples = tripTransitSamples(c, 0.5, 1e-3);
   double t = 0.0;
-  for (const auto& x : samples) t += x.time_s;
+  for (const auto& x : samples)
+    t += x.time_s;
   EXPECT_NEAR(t, tripTransitSeconds(c, 0.5), kExactS);
   EXPECT_NEAR(tripTransitSeconds(c, 0.5), 2.0 * 0.06 / 0.5, kExactS);  // 6 cm in and out at 0.5 m/s
 }
@@ -187,7 +193,7 @@ TEST(Afterloader, DeliversEveryDwellExactlyAndRecordsTransit) {
   TempDir dir;
   Afterloader a(config(dir));
   const Schedule s = smallSchedule();
-  ASSERT_TRUE(a.start(s).ok);
+  ASSERT_TRUE(a.start(s).ok());
   runToEnd(a);
   EXPECT_EQ(a.state(), DeliveryState::kCompleted);
   EXPECT_EQ(a.sourceChannel(), 0);
@@ -197,12 +203,13 @@ TEST(Afterloader, DeliversEveryDwellExactlyAndRecordsTransit) {
   expectDeliveredAsPlanned(l, s, kExactS);
   EXPECT_EQ(l.trips.at(3), 1);
   EXPECT_EQ(l.trips.at(4), 1);
-  EXPECT_NEAR(l.transit_in_patient_s, tripTransitSeconds(s.channels[0], 0.5) + tripTransitSeconds(s.channels[1], 0.5),
+  EXPECT_NEAR(l.transit_in_patient_s,
+              tripTransitSeconds(s.channels[0], 0.5) + tripTransitSeconds(s.channels[1], 0.5),
               kExactS);
   EXPECT_NEAR(a.deliveredTotal(), s.totalDwellTime(), kExactS);
   // Delivered already: the same plan again is refused, and nothing is written.
   const auto lines = Journal(a.journalPath()).records().size();
-  EXPECT_FALSE(a.start(s).ok);
+  EXPECT_FALSE(a.start(s).ok());
   EXPECT_EQ(Journal(a.journalPath()).records().size(), lines);
 }
 
@@ -212,43 +219,44 @@ TEST(Afterloader, RefusesBadSchedulesBeforeAnythingMoves) {
   Schedule s = smallSchedule();
   s.channels[1].channel = 40;
   Status st = a.start(s);
-  EXPECT_FALSE(st.ok);
-  EXPECT_NE(st.message.find("channel 40: unknown"), std::string::npos) << st.message;
+  EXPECT_FALSE(st.ok());
+  EXPECT_NE(st.message().find("channel 40: unknown"), std::string::npos) << st.message();
   s = smallSchedule();
   s.channels[0].time_s[0] = -2.0;
-  EXPECT_FALSE(a.start(s).ok);
+  EXPECT_FALSE(a.start(s).ok());
   EXPECT_EQ(a.state(), DeliveryState::kIdle);
   EXPECT_TRUE(fs::is_empty(dir.path));  // no journal written
   // A different schedule under an id already used is refused.
-  ASSERT_TRUE(a.start(smallSchedule("p1")).ok);
+  ASSERT_TRUE(a.start(smallSchedule("p1")).ok());
   a.step(0.5);
-  EXPECT_FALSE(a.start(smallSchedule("p2")).ok);  // busy
-  ASSERT_TRUE(a.abort("test").ok);
+  EXPECT_FALSE(a.start(smallSchedule("p2")).ok());  // busy
+  ASSERT_TRUE(a.abort("test").ok());
   runToEnd(a);
   s = smallSchedule("p1");
   s.channels[0].time_s[2] += 1.0;
   st = a.start(s);
-  EXPECT_FALSE(st.ok);
-  EXPECT_NE(st.message.find("different schedule"), std::string::npos) << st.message;
+  EXPECT_FALSE(st.ok());
+  EXPECT_NE(st.message().find("different schedule"), std::string::npos) << st.message();
 }
 
 TEST(Afterloader, PauseSettlesTheExactTimeAndResumeCompletes) {
   TempDir dir;
   Afterloader a(config(dir, 0.1));
   const Schedule s = smallSchedule();
-  ASSERT_TRUE(a.start(s).ok);
+  ASSERT_TRUE(a.start(s).ok());
   // Out to the first dwell (1.06 m / 0.5 m/s = 2.12 s) and 0.437 s into it.
-  for (int i = 0; i < 2557; ++i) a.step(0.001);
+  for (int i = 0; i < 2557; ++i)
+    a.step(0.001);
   ASSERT_EQ(a.sourceDwell(), 0);
-  ASSERT_TRUE(a.pause("operator").ok);
-  EXPECT_FALSE(a.pause("again").ok);
+  ASSERT_TRUE(a.pause("operator").ok());
+  EXPECT_FALSE(a.pause("again").ok());
   const auto rec = a.records();
   EXPECT_NEAR(rec[0].delivered_s, 0.437, 1e-6);  // settled to what was dwelt, not the commit
   runToEnd(a);
   EXPECT_EQ(a.sourceChannel(), 0);  // retracted while paused
   a.step(1.0);
   EXPECT_NEAR(a.records()[0].delivered_s, 0.437, 1e-6);  // nothing delivered while paused
-  ASSERT_TRUE(a.resume().ok);
+  ASSERT_TRUE(a.resume().ok());
   runToEnd(a);
   EXPECT_EQ(a.state(), DeliveryState::kCompleted);
   const Ledger l = a.ledger();
@@ -260,13 +268,13 @@ TEST(Afterloader, PauseSettlesTheExactTimeAndResumeCompletes) {
 TEST(Afterloader, DoorInterlockPausesAndBlocksResume) {
   TempDir dir;
   Afterloader a(config(dir));
-  ASSERT_TRUE(a.start(smallSchedule()).ok);
+  ASSERT_TRUE(a.start(smallSchedule()).ok());
   a.step(1.0);
   a.setDoorOpen(true);
   EXPECT_EQ(a.state(), DeliveryState::kPaused);
-  EXPECT_FALSE(a.resume().ok);
+  EXPECT_FALSE(a.resume().ok());
   a.setDoorOpen(false);
-  EXPECT_TRUE(a.resume().ok);
+  EXPECT_TRUE(a.resume().ok());
   runToEnd(a);
   EXPECT_EQ(a.state(), DeliveryState::kCompleted);
 }
@@ -275,10 +283,11 @@ TEST(Afterloader, ObstructionRetractsSkipsTheChannelAndALaterDeliveryFinishesIt)
   TempDir dir;
   Afterloader a(config(dir));
   const Schedule s = smallSchedule();
-  ASSERT_TRUE(a.start(s).ok);
-  for (int i = 0; i < 3000; ++i) a.step(0.001);  // 2.12 s out, 0.88 s into dwell 0 of channel 3
+  ASSERT_TRUE(a.start(s).ok());
+  for (int i = 0; i < 3000; ++i)
+    a.step(0.001);  // 2.12 s out, 0.88 s into dwell 0 of channel 3
   ASSERT_EQ(a.sourceChannel(), 3);
-  ASSERT_TRUE(a.setObstruction(3, true).ok);
+  ASSERT_TRUE(a.setObstruction(3, true).ok());
   const double dwelt = a.records()[0].delivered_s;
   EXPECT_NEAR(dwelt, 0.88, 1e-6);
   runToEnd(a);
@@ -286,19 +295,20 @@ TEST(Afterloader, ObstructionRetractsSkipsTheChannelAndALaterDeliveryFinishesIt)
   EXPECT_NE(a.lastMessage().find("obstructed channel(s) 3"), std::string::npos) << a.lastMessage();
   auto l = a.ledger();
   EXPECT_NEAR(l.delivered_s.at({3, 0}), dwelt, kExactS);
-  EXPECT_NEAR(l.delivered_s.at({4, 2}), s.channels[1].time_s[2], kExactS);  // channel 4 delivered in full
+  EXPECT_NEAR(l.delivered_s.at({4, 2}), s.channels[1].time_s[2],
+              kExactS);  // channel 4 delivered in full
   // Still obstructed: the next session skips it at once.
-  ASSERT_TRUE(a.start(s).ok);
+  ASSERT_TRUE(a.start(s).ok());
   runToEnd(a);
   EXPECT_EQ(a.state(), DeliveryState::kStopped);
-  ASSERT_TRUE(a.setObstruction(3, false).ok);
-  ASSERT_TRUE(a.start(s).ok);
+  ASSERT_TRUE(a.setObstruction(3, false).ok());
+  ASSERT_TRUE(a.start(s).ok());
   runToEnd(a);
   EXPECT_EQ(a.state(), DeliveryState::kCompleted);
   l = a.ledger();
   expectDeliveredAsPlanned(l, s, kExactS);
   EXPECT_TRUE(l.anomalies.empty());
-  EXPECT_FALSE(a.setObstruction(0, true).ok);
+  EXPECT_FALSE(a.setObstruction(0, true).ok());
 }
 
 // A crash (the device object destroyed without a word, as SIGKILL does) at random moments, many
@@ -315,23 +325,27 @@ TEST(Afterloader, CrashesAtRandomMomentsNeverLoseOrRepeatDose) {
   for (int session = 0; session < 200; ++session) {
     Afterloader a(config(dir, quantum));
     const Status st = a.start(s);
-    if (!st.ok) {
-      ASSERT_NE(st.message.find("already fully delivered"), std::string::npos) << st.message;
+    if (!st.ok()) {
+      ASSERT_NE(st.message().find("already fully delivered"), std::string::npos) << st.message();
       break;
     }
     std::map<std::pair<int, int>, double> before;
-    for (const auto& r : a.records()) before[{r.channel, r.dwell}] = r.delivered_s;
+    for (const auto& r : a.records())
+      before[{r.channel, r.dwell}] = r.delivered_s;
     const int n = steps(rng);
-    for (int i = 0; i < n && a.state() == DeliveryState::kDelivering; ++i) a.step(0.0071);
+    for (int i = 0; i < n && a.state() == DeliveryState::kDelivering; ++i)
+      a.step(0.0071);
     // a.deliveredTotal() is the source's real dwell time so far (delivered_, not committed_).
     double real_this_session = a.deliveredTotal();
-    for (const auto& [key, t] : before) real_this_session -= t;
+    for (const auto& [key, t] : before)
+      real_this_session -= t;
     truth_s += real_this_session;
-    if (a.state() == DeliveryState::kDelivering) ++crashes;  // destroyed mid-delivery
+    if (a.state() == DeliveryState::kDelivering)
+      ++crashes;  // destroyed mid-delivery
   }
   EXPECT_GT(crashes, 5);
   Afterloader last(config(dir, quantum));
-  EXPECT_FALSE(last.start(s).ok);  // fully delivered: refused
+  EXPECT_FALSE(last.start(s).ok());  // fully delivered: refused
   const Ledger l = replay(Journal((dir.path / "test_plan.journal").string()).records(), &s, 0.5);
   EXPECT_TRUE(l.completed);
   EXPECT_TRUE(l.anomalies.empty()) << l.anomalies.front();
@@ -339,7 +353,8 @@ TEST(Afterloader, CrashesAtRandomMomentsNeverLoseOrRepeatDose) {
   expectDeliveredAsPlanned(l, s, kExactS);  // the record: exactly the plan
   // The source really dwelt at most the plan, and no less than one quantum per crash under it.
   double uncertainty = 0.0;  // each crash leaves at most one quantum unaccounted
-  for (const auto& [key, u] : l.uncertainty_s) uncertainty += u;
+  for (const auto& [key, u] : l.uncertainty_s)
+    uncertainty += u;
   EXPECT_LE(truth_s, s.totalDwellTime() + kExactS);
   EXPECT_GE(truth_s, s.totalDwellTime() - uncertainty - kExactS);
   EXPECT_LE(uncertainty, crashes * quantum + kExactS);

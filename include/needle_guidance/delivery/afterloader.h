@@ -14,28 +14,24 @@
 
 #include "needle_guidance/delivery/journal.h"
 #include "needle_guidance/delivery/schedule.h"
+#include "needle_guidance/status.h"
 
 namespace needle_guidance::delivery {
 
 struct AfterloaderConfig {
   DeviceLimits limits;
-  double source_speed_m_s = 0.5;    ///< source drive speed, all moves [m/s]
+  double source_speed_m_s = 0.5;  ///< source drive speed, all moves [m/s]
   /// Longest exposure one journal commit covers [s]: a crash can leave the record at most this
   /// much above what the source really delivered at one dwell.
   double commit_quantum_s = 0.05;
-  std::string journal_dir = ".";    ///< one file <plan_id>.journal per plan
+  std::string journal_dir = ".";  ///< one file <plan_id>.journal per plan
 };
 
 enum class DeliveryState { kIdle, kDelivering, kPaused, kStopped, kCompleted };
 const char* toString(DeliveryState state);
 
-/// Outcome of a command: accepted or refused with the reason.
-struct Status {
-  bool ok = true;
-  std::string message = "accepted";
-  static Status accepted() { return {}; }
-  static Status refused(std::string why) { return {false, std::move(why)}; }
-};
+/// Outcome of a command: accepted or refused with the reason (status.h).
+using Status = CommandStatus;
 
 /// Planned and delivered time of one scheduled dwell.
 struct DwellRecord {
@@ -121,12 +117,12 @@ private:
   std::map<int, bool> obstructed_;
   std::map<std::pair<int, int>, double> delivered_;  ///< what the source really dwelt
   std::map<std::pair<int, int>, double> committed_;  ///< what the journal covers (>= delivered_)
-  int channel_index_ = -1;        ///< schedule channel the source is in, -1 parked
-  double distance_m_ = 0.0;       ///< from the indexer
+  int channel_index_ = -1;   ///< schedule channel the source is in, -1 parked
+  double distance_m_ = 0.0;  ///< from the indexer
   bool moving_ = false;
   double move_target_m_ = 0.0;
-  int dwell_k_ = -1;              ///< index in the channel of the dwell the source is at, -1 if none
-  std::map<int, bool> skipped_;   ///< channels skipped this session (obstruction)
+  int dwell_k_ = -1;             ///< index in the channel of the dwell the source is at, -1 if none
+  std::map<int, bool> skipped_;  ///< channels skipped this session (obstruction)
   double time_s_ = 0.0;
   std::string last_message_;
 };

@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/status.h"
 
 namespace needle_guidance::robot {
 
@@ -64,31 +65,20 @@ struct StageState {
 enum class OperatingState { kEnabled, kEstopped };
 const char* toString(OperatingState state);
 
-/// Outcome of a command: accepted or refused with a reason (STYLE.md rule 8).
-class CommandStatus {
-public:
-  static CommandStatus accepted() { return CommandStatus(true, "accepted"); }
-  static CommandStatus refused(std::string reason) { return CommandStatus(false, std::move(reason)); }
-  explicit operator bool() const { return ok_; }
-  const std::string& toString() const { return message_; }
-
-private:
-  CommandStatus(bool ok, std::string message) : ok_(ok), message_(std::move(message)) {}
-  bool ok_;
-  std::string message_;
-};
+/// Outcome of a command: accepted or refused with a reason (status.h).
+using needle_guidance::CommandStatus;
 
 /// One line of the stage's journal: every command (accepted or refused) and every end of a
 /// motion (reached, cancelled, e-stop).
 struct JournalEntry {
   double time_s = 0.0;
-  std::string event;   ///< "command", "reached", "cancelled", "estop", "estop_reset", "place"
-  std::string joint;   ///< joint name or ""
+  std::string event;  ///< "command", "reached", "cancelled", "estop", "estop_reset", "place"
+  std::string joint;  ///< joint name or ""
   double target = 0.0;
   double velocity = 0.0;
   bool accepted = true;
   std::string message;
-  StageState state;    ///< state when the entry was written
+  StageState state;  ///< state when the entry was written
 };
 
 /// The simulated insertion stage. Moves one joint at a time at constant speed. Refuses (and

@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "needle_guidance/robot/insertion_stage.h"
+#include "needle_guidance/status.h"
 #include "needle_guidance/steering/continuous_workspace.h"
 #include "needle_guidance/steering/steering_model.h"
 
@@ -72,18 +73,12 @@ enum class MotionOutcome {
   kRefused,  ///< refused; nothing changed
 };
 
-/// Outcome of a motion with a one-line message; true only for kMoved (STYLE.md rule 8).
-class MotionStatus {
+/// Outcome of a motion with a one-line message; true only for kMoved (STYLE.md rule 8; the
+/// shared Status shape of status.h).
+class MotionStatus : public Status<MotionOutcome, MotionOutcome::kMoved> {
 public:
-  MotionStatus(MotionOutcome outcome, std::string message)
-      : outcome_(outcome), message_(std::move(message)) {}
-  explicit operator bool() const { return outcome_ == MotionOutcome::kMoved; }
-  MotionOutcome outcome() const { return outcome_; }
-  const std::string& toString() const { return message_; }
-
-private:
-  MotionOutcome outcome_;
-  std::string message_;
+  using Status::Status;
+  MotionOutcome outcome() const { return code(); }
 };
 
 /// One line of the needle's journal: every command (accepted or refused), every drawn
