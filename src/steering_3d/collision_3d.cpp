@@ -67,7 +67,16 @@ PointCheck CollisionWorld3::classify(const Vector3& p) const {
 }
 
 double CollisionWorld3::margin(const Vector3& p, int* nearest) const {
-  double best = tissue_.distance(p);
+  const double obstacle = obstacleMargin(p, nearest);
+  const double tissue = tissue_.distance(p);
+  if (tissue <= obstacle && nearest != nullptr) {
+    *nearest = -1;
+  }
+  return std::min(tissue, obstacle);
+}
+
+double CollisionWorld3::obstacleMargin(const Vector3& p, int* nearest) const {
+  double best = std::numeric_limits<double>::infinity();
   int best_index = -1;
   for (std::size_t i = 0; i < obstacles_.size(); ++i) {
     const MeshDistance& m = obstacle_distance_[i];
@@ -88,33 +97,42 @@ double CollisionWorld3::margin(const Vector3& p, int* nearest) const {
 }
 
 PathCheck CollisionWorld3::checkPath(const std::function<Vector3(double)>& point_at,
-                                     double length_m) const {
+                                     double length_m, double extra_margin_m) const {
   PathCheck out;
   out.min_margin_m = std::numeric_limits<double>::infinity();
   double s = 0.0;
   while (true) {
+    const Vector3 p = point_at(s);
     int nearest = -1;
-    const double m = margin(point_at(s), &nearest);
-    ++out.queries;
-    out.min_margin_m = std::min(out.min_margin_m, m);
-    if (m < tolerance_m_) {
-      out.contact = nearest < 0 ? Contact3::kOutsideTissue : Contact3::kObstacle;
-      out.obstacle = nearest < 0 ? "" : obstacles_[static_cast<std::size_t>(nearest)].name;
+    const double obstacle = obstacleMargin(p, &nearest) - extra_margin_m;
+    const double tissue = tissue_.distance(p);
+    out.queries += 1;
+    out.min_margin_m = std::min(out.min_margin_m, obstacle);
+    if (obstacle < tolerance_m_) {
+      out.contact = Contact3::kObstacle;
+      out.obstacle = obstacles_[static_cast<std::size_t>(nearest)].name;
+      out.contact_s_m = s;
+      return out;
+    }
+    if (tissue < tolerance_m_ && !tissue_.insideOrOn(p)) {
+      out.contact = Contact3::kOutsideTissue;
       out.contact_s_m = s;
       return out;
     }
     if (s >= length_m) {
       return out;
     }
-    // Nothing within m of this point; advance at least half the tolerance so the loop ends.
+    // Nothing within the margin of this point; near the tissue boundary (the entry) advance by
+    // half the tolerance and test inside again.
+    const double m = std::min(obstacle, tissue);
     s = std::min(length_m, s + std::max(m - 0.5 * tolerance_m_, 0.5 * tolerance_m_));
   }
 }
 
-PathCheck CollisionWorld3::checkArc(const TipPose3& pose, double curvature_per_m,
-                                    double length_m) const {
+PathCheck CollisionWorld3::checkArc(const TipPose3& pose, double curvature_per_m, double length_m,
+                                    double extra_margin_m) const {
   return checkPath([&](double s) { return advanceArc(pose, curvature_per_m, s).p_SceneTip; },
-                   length_m);
+                   length_m, extra_margin_m);
 }
 
 PathCheck CollisionWorld3::checkPolyline(const std::vector<Vector3>& points) const {

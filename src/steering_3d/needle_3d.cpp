@@ -13,6 +13,9 @@ constexpr double kPi = 3.14159265358979323846;
 /// Below this rotation angle the screw uses the series of its translation (relative error of the
 /// series ~ theta^4 / 120, far below double precision at 1e-4).
 constexpr double kSmallAngle_rad = 1e-4;
+/// Path points along held arcs are at most this far apart: the chord of a 1 mm piece lies
+/// within kappa l^2 / 8 = 2.5 um of an arc of kappa = 20 /m [m].
+constexpr double kPathSpacing_m = 1e-3;
 
 Matrix3 skew(const Vector3& w) {
   Matrix3 m;
@@ -162,12 +165,20 @@ TipPose3 insertDutyCycled(const TipPose3& pose, const DutyCycle& cycle, double l
     return pose;
   }
   const double kmax = params.kappa_max_per_m;
-  if (cycle.spin_fraction <= 0.0) {
-    TipPose3 out = advanceArc(pose, kmax, length_m);
-    if (path != nullptr) {
-      path->push_back(out.p_SceneTip);
+  const auto hold_arc = [&](const TipPose3& from, double length) {
+    // Path points along the held arc at most kPathSpacing_m apart.
+    const int pieces = std::max(1, static_cast<int>(std::ceil(length / kPathSpacing_m)));
+    for (int i = 1; path != nullptr && i < pieces; ++i) {
+      path->push_back(advanceArc(from, kmax, length * i / pieces).p_SceneTip);
     }
-    return out;
+    const TipPose3 end = advanceArc(from, kmax, length);
+    if (path != nullptr) {
+      path->push_back(end.p_SceneTip);
+    }
+    return end;
+  };
+  if (cycle.spin_fraction <= 0.0) {
+    return hold_arc(pose, length_m);
   }
   // Whole cycles only, so a step ends with the bevel where it began.
   const double cycle_length = cycleLength(length_m, params);
@@ -178,10 +189,7 @@ TipPose3 insertDutyCycled(const TipPose3& pose, const DutyCycle& cycle, double l
   TipPose3 out = pose;
   for (int c = 0; c < cycles; ++c) {
     if (hold > 0.0) {
-      out = advanceArc(out, kmax, hold);
-      if (path != nullptr) {
-        path->push_back(out.p_SceneTip);
-      }
+      out = hold_arc(out, hold);
     }
     out = screwMotion(out, kmax, roll_per_m, spin);
     if (path != nullptr) {

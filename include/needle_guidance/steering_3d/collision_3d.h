@@ -61,15 +61,26 @@ public:
   /// Free margin at a point already known to lie in the free space [m]; index of the nearest
   /// obstacle (-1 for the tissue boundary) in `nearest` if given.
   double margin(const Vector3& p_Scene, int* nearest = nullptr) const;
+  /// Margin to the nearest expanded obstacle only (+inf without obstacles) [m].
+  double obstacleMargin(const Vector3& p_Scene, int* nearest = nullptr) const;
   /// Sphere tracing of a unit-speed path s -> point_at(s), s in [0, length_m], whose start is
-  /// known to be free (see classify).
-  PathCheck checkPath(const std::function<Vector3(double)>& point_at, double length_m) const;
+  /// known to be free (see classify). An obstacle is touched where the margin drops below the
+  /// tolerance; the tissue is left where a point lies outside it (a path may start on the tissue
+  /// boundary: the entry). A free path's points all keep a margin of at least tolerance / 2 from
+  /// every expanded obstacle.
+  /// With extra_margin_m > 0 an obstacle counts as touched within tolerance + extra_margin_m.
+  PathCheck checkPath(const std::function<Vector3(double)>& point_at, double length_m,
+                      double extra_margin_m = 0.0) const;
   /// The constant-curvature arc of advanceArc from `pose`.
-  PathCheck checkArc(const TipPose3& pose, double curvature_per_m, double length_m) const;
+  PathCheck checkArc(const TipPose3& pose, double curvature_per_m, double length_m,
+                     double extra_margin_m = 0.0) const;
   /// A polyline (its first point known to be free).
   PathCheck checkPolyline(const std::vector<Vector3>& points) const;
 
   double tolerance() const { return tolerance_m_; }
+  /// Axis-aligned bounds of the tissue mesh [m].
+  const Vector3& tissueMin() const { return tissue_.minCorner(); }
+  const Vector3& tissueMax() const { return tissue_.maxCorner(); }
   const std::vector<ObstacleMesh3>& obstacles() const { return obstacles_; }
 
 private:

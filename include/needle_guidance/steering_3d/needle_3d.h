@@ -93,7 +93,8 @@ double residualHeadingRad(const DutyCycle& cycle, const NeedleParams3& params,
 /// Exact duty-cycled insertion over length_m from `pose` (bevel as in `pose`): the whole cycles
 /// of cycleLength(length_m), each a hold arc and a one-turn screw. The spin's screw leaves a small
 /// residual bend and roll (the model's residual error against the ideal arc of kappa_per_m).
-/// Appends the tip position after every hold and spin phase to `path` if given.
+/// Appends tip positions to `path` if given: at most 1 mm apart along held arcs and after each
+/// spin (whose helix has a radius of microns).
 TipPose3 insertDutyCycled(const TipPose3& pose, const DutyCycle& cycle, double length_m,
                           const NeedleParams3& params, std::vector<Vector3>* path = nullptr);
 
