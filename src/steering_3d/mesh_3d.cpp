@@ -285,6 +285,11 @@ MeshDistance::MeshDistance(const Mesh3& mesh) : impl_(std::make_unique<Impl>()) 
       std::make_unique<Tree>(faces(impl_->mesh).first, faces(impl_->mesh).second, impl_->mesh);
   impl_->tree->accelerate_distance_queries();
   impl_->inside = std::make_unique<Inside>(*impl_->tree);
+  // Build the lazily built search structures now, so const queries from several threads
+  // (the bench's trials) never race to build them.
+  impl_->tree->build();
+  (void)impl_->tree->squared_distance(Point(0.0, 0.0, 0.0));
+  (void)(*impl_->inside)(Point(0.0, 0.0, 0.0));
   min_ = Vector3::Constant(std::numeric_limits<double>::infinity());
   max_ = -min_;
   for (const Vector3& v : mesh.vertices) {

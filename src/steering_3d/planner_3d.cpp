@@ -78,8 +78,17 @@ Steer steerTo(const TipPose3& pose, const Vector3& q, const NeedleParams3& needl
 /// approach, if that lies within the ball (the closed loop then ends off-centre rather than not
 /// at all). ok = false if neither.
 Steer goalArc(const TipPose3& pose, const Target3& target, const NeedleParams3& needle,
-              double cycle_length) {
-  Steer g = steerTo(pose, target.center_m, needle, cycle_length, 0.0);
+              double cycle_length, double rotation_snap) {
+  // Without a bevel rotation if the arc in the current bevel plane still ends close enough
+  // (a rotation costs sigma_spin), else with the exact rotation.
+  Steer g = steerTo(pose, target.center_m, needle, cycle_length, rotation_snap);
+  if (g.ok && g.rotate == 0.0) {
+    const TipPose3 end = advanceArc(pose, g.kappa, g.length);
+    if ((end.p_SceneTip - target.center_m).norm() <= kGoalEndFraction * target.radius_m) {
+      return g;
+    }
+  }
+  g = steerTo(pose, target.center_m, needle, cycle_length, 0.0);
   if (g.ok) {
     const TipPose3 end = advanceArc(rotateBevel(pose, g.rotate), g.kappa, g.length);
     g.ok = (end.p_SceneTip - target.center_m).norm() <= kGoalEndFraction * target.radius_m;
@@ -133,6 +142,76 @@ double tail(double m, double variance, bool one_axis) {
     return 1.0;
   }
   return one_axis ? std::erfc(m / std::sqrt(2.0 * variance)) : std::exp(-m * m / (2.0 * variance));
+}
+
+struct TreeContext {
+  const CollisionWorld3& world;
+  const Target3& target;
+  const NeedleParams3& needle;
+  const PlannerParams3& params;
+  Vector3 lo;  ///< sampling box [m]
+  Vector3 hi;
+  Clock::time_point deadline;
+};
+
+/// Grows one RRT from `roots` until it connects to the target (one plan appended to `plans`),
+/// reaches max_nodes or the deadline. Adds its node count to rep.nodes. The roots' own goal
+/// arcs are tried only when try_roots (the first tree), so later trees add other plans.
+void growTree(const TreeContext& ctx, const std::vector<Node>& roots, std::mt19937_64& rng,
+              bool try_roots, std::vector<Plan3>& plans, PlanReport& rep) {
+  std::vector<Node> nodes = roots;
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  const double cycle = ctx.needle.duty_cycle_length_m;
+  const std::size_t before = plans.size();
+  const auto tryGoal = [&](int index) {
+    const Node& n = nodes[static_cast<std::size_t>(index)];
+    rep.closest_approach_m =
+        std::min(rep.closest_approach_m, (n.pose.p_SceneTip - ctx.target.center_m).norm());
+    const Steer g = goalArc(n.pose, ctx.target, ctx.needle, cycle, ctx.params.rotation_snap_rad);
+    if (!g.ok) {
+      return;
+    }
+    const TipPose3 rotated = rotateBevel(n.pose, g.rotate);
+    if (!ctx.world.checkArc(rotated, g.kappa, g.length, ctx.params.safety_margin_m).free()) {
+      return;
+    }
+    plans.push_back(assemble(nodes, index, Control3{g.rotate, g.kappa, g.length}));
+  };
+  for (int i = 0; try_roots && i < static_cast<int>(nodes.size()) && plans.size() == before; ++i) {
+    tryGoal(i);
+  }
+  while (plans.size() == before && static_cast<int>(nodes.size()) < ctx.params.max_nodes &&
+         Clock::now() < ctx.deadline) {
+    Vector3 q = ctx.target.center_m;
+    if (unit(rng) >= ctx.params.goal_bias) {
+      q = ctx.lo + (ctx.hi - ctx.lo).cwiseProduct(Vector3(unit(rng), unit(rng), unit(rng)));
+    }
+    int best = -1;
+    Steer best_steer;
+    for (int i = 0; i < static_cast<int>(nodes.size()); ++i) {
+      const Steer s = steerTo(nodes[static_cast<std::size_t>(i)].pose, q, ctx.needle, cycle,
+                              ctx.params.rotation_snap_rad);
+      if (s.ok && (best < 0 || s.length < best_steer.length)) {
+        best = i;
+        best_steer = s;
+      }
+    }
+    if (best < 0) {
+      continue;
+    }
+    const Node& from = nodes[static_cast<std::size_t>(best)];
+    const double length = std::min(best_steer.length, ctx.params.max_edge_length_m);
+    const TipPose3 rotated = rotateBevel(from.pose, best_steer.rotate);
+    if (length <= 0.0 ||
+        !ctx.world.checkArc(rotated, best_steer.kappa, length, ctx.params.safety_margin_m).free()) {
+      continue;
+    }
+    nodes.push_back(Node{advanceArc(rotated, best_steer.kappa, length), best,
+                         Control3{best_steer.rotate, best_steer.kappa, length},
+                         from.cost + length});
+    tryGoal(static_cast<int>(nodes.size()) - 1);
+  }
+  rep.nodes += static_cast<int>(nodes.size());
 }
 
 }  // namespace
@@ -292,70 +371,29 @@ Result<Plan3, PlanStatus> Planner3::plan(const std::vector<TipPose3>& roots, std
   }
   const Target3& target = scene_.target;
   const NeedleParams3& needle = scene_.needle;
-  const double cycle = needle.duty_cycle_length_m;
   Vector3 lo = target.center_m, hi = target.center_m;
   for (const Node& n : nodes) {
     lo = lo.cwiseMin(n.pose.p_SceneTip);
     hi = hi.cwiseMax(n.pose.p_SceneTip);
   }
-  lo = (lo - Vector3::Constant(kSampleMargin_m)).cwiseMax(world_.tissueMin());
-  hi = (hi + Vector3::Constant(kSampleMargin_m)).cwiseMin(world_.tissueMax());
+  TreeContext context{world_,
+                      target,
+                      needle,
+                      params_,
+                      (lo - Vector3::Constant(kSampleMargin_m)).cwiseMax(world_.tissueMin()),
+                      (hi + Vector3::Constant(kSampleMargin_m)).cwiseMin(world_.tissueMax()),
+                      started + std::chrono::duration_cast<Clock::duration>(
+                                    std::chrono::duration<double>(budget_s))};
   std::mt19937_64 rng(seed);
-  std::uniform_real_distribution<double> unit(0.0, 1.0);
-  const int wanted = params_.choice == PlanChoice::kFirstFound ? 1 : params_.max_plans;
-  const auto deadline = started + std::chrono::duration_cast<Clock::duration>(
-                                      std::chrono::duration<double>(budget_s));
   std::vector<Plan3> plans;
   rep.closest_approach_m = std::numeric_limits<double>::infinity();
-  const auto tryGoal = [&](int index) {
-    const Node& n = nodes[static_cast<std::size_t>(index)];
-    rep.closest_approach_m =
-        std::min(rep.closest_approach_m, (n.pose.p_SceneTip - target.center_m).norm());
-    const Steer g = goalArc(n.pose, target, needle, cycle);
-    if (!g.ok) {
-      return;
-    }
-    const TipPose3 rotated = rotateBevel(n.pose, g.rotate);
-    if (!world_.checkArc(rotated, g.kappa, g.length, params_.safety_margin_m).free()) {
-      return;
-    }
-    plans.push_back(assemble(nodes, index, Control3{g.rotate, g.kappa, g.length}));
-  };
-  for (int i = 0; i < static_cast<int>(nodes.size()); ++i) {
-    tryGoal(i);
-  }
-  while (static_cast<int>(plans.size()) < wanted &&
-         static_cast<int>(nodes.size()) < params_.max_nodes && Clock::now() < deadline) {
-    Vector3 q = target.center_m;
-    if (unit(rng) >= params_.goal_bias) {
-      q = lo + (hi - lo).cwiseProduct(Vector3(unit(rng), unit(rng), unit(rng)));
-    }
-    int best = -1;
-    Steer best_steer;
-    for (int i = 0; i < static_cast<int>(nodes.size()); ++i) {
-      const Steer s = steerTo(nodes[static_cast<std::size_t>(i)].pose, q, needle, cycle,
-                              params_.rotation_snap_rad);
-      if (s.ok && (best < 0 || s.length < best_steer.length)) {
-        best = i;
-        best_steer = s;
-      }
-    }
-    if (best < 0) {
-      continue;
-    }
-    const Node& from = nodes[static_cast<std::size_t>(best)];
-    const double length = std::min(best_steer.length, params_.max_edge_length_m);
-    const TipPose3 rotated = rotateBevel(from.pose, best_steer.rotate);
-    if (length <= 0.0 ||
-        !world_.checkArc(rotated, best_steer.kappa, length, params_.safety_margin_m).free()) {
-      continue;
-    }
-    nodes.push_back(Node{advanceArc(rotated, best_steer.kappa, length), best,
-                         Control3{best_steer.rotate, best_steer.kappa, length},
-                         from.cost + length});
-    tryGoal(static_cast<int>(nodes.size()) - 1);
-  }
-  rep.nodes = static_cast<int>(nodes.size());
+  // The baseline grows one tree to its first plan. Ours grows a fresh tree per plan, so the
+  // candidates it chooses among differ in more than their last arc.
+  const int wanted = params_.choice == PlanChoice::kFirstFound ? 1 : params_.max_plans;
+  int trees = 0;
+  do {
+    growTree(context, nodes, rng, trees++ == 0, plans, rep);
+  } while (static_cast<int>(plans.size()) < wanted && Clock::now() < context.deadline);
   rep.plans_found = static_cast<int>(plans.size());
   if (plans.empty()) {
     rep.seconds = std::chrono::duration<double>(Clock::now() - started).count();

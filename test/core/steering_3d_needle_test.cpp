@@ -283,3 +283,8 @@ TEST(Needle3d, StepRefusesBadControls) {
 
 }  // namespace
 }  // namespace needle_guidance::steering_3d
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}

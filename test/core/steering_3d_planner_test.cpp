@@ -159,3 +159,8 @@ TEST(ClosedLoop3d, NoiselessOpenLoopHitsTheCentre) {
 
 }  // namespace
 }  // namespace needle_guidance::steering_3d
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}

@@ -231,3 +231,8 @@ TEST(Scene3d, BadFilesAreRefusedNamingFileKeyAndValue) {
 
 }  // namespace
 }  // namespace needle_guidance::steering_3d
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}

@@ -47,10 +47,10 @@ enum class PlanChoice {
 struct PlannerParams3 {
   double time_budget_s = 0.03;       ///< wall-clock budget of a replan [s], > 0
   double entry_time_budget_s = 1.0;  ///< budget of the plan from the entry region [s], > 0
-  int max_plans = 8;                 ///< stop once this many plans are found (kMax...), >= 1
-  int max_nodes = 20000;             ///< tree size limit, >= 1
-  double goal_bias = 0.2;            ///< probability of sampling the target centre, [0, 1]
-  double max_edge_length_m = 0.01;   ///< longest tree edge [m], > 0
+  int max_plans = 8;       ///< kMaxSuccessProbability: plans to choose among (one per tree), >= 1
+  int max_nodes = 20000;   ///< tree size limit, >= 1
+  double goal_bias = 0.2;  ///< probability of sampling the target centre, [0, 1]
+  double max_edge_length_m = 0.01;  ///< longest tree edge [m], > 0
   /// Bevel rotations smaller than this are dropped (the arc is then traced in the current bevel
   /// plane): a rotation costs sigma_spin instead of sigma_insert (needle_3d.h) [rad].
   double rotation_snap_rad = 0.1;
