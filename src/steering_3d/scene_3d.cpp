@@ -106,6 +106,14 @@ public:
     last_key_ = found;
     return *value;
   }
+  /// quantity() that must be > 0 (positive) or >= 0.
+  double bounded(const std::string& base, const std::vector<UnitSpec>& units, bool positive) {
+    const double v = quantity(base, units);
+    if (positive ? !(v > 0.0) : !(v >= 0.0)) {
+      fail(last_key_, std::to_string(v), positive ? "must be > 0" : "must be >= 0");
+    }
+    return v;
+  }
   Vector3 vector(const std::string& base, const std::vector<UnitSpec>& units) {
     for (const UnitSpec& u : units) {
       const std::string k = base + u.suffix;
@@ -151,30 +159,13 @@ private:
   std::string last_key_;
 };
 
-void requirePositive(Reader& r, const std::string& k, double v) {
-  if (!(v > 0.0)) {
-    r.fail(k, std::to_string(v), "must be > 0");
-  }
-}
-void requireNonNegative(Reader& r, const std::string& k, double v) {
-  if (!(v >= 0.0)) {
-    r.fail(k, std::to_string(v), "must be >= 0");
-  }
-}
-
 NeedleParams3 readNeedle(Reader r, double& step_length_m) {
   NeedleParams3 p;
-  const double radius = r.quantity("radius_of_curvature", kLength);
-  requirePositive(r, r.lastKey(), radius);
-  p.kappa_max_per_m = 1.0 / radius;
-  p.insertion_speed_m_s = r.quantity("insertion_speed", kSpeed);
-  requirePositive(r, r.lastKey(), p.insertion_speed_m_s);
-  p.spin_rate_max_rad_s = r.quantity("spin_rate_max", kSpinRate);
-  requirePositive(r, r.lastKey(), p.spin_rate_max_rad_s);
-  p.duty_cycle_length_m = r.quantity("duty_cycle_length", kLength);
-  requirePositive(r, r.lastKey(), p.duty_cycle_length_m);
-  step_length_m = r.quantity("step_length", kLength);
-  requirePositive(r, r.lastKey(), step_length_m);
+  p.kappa_max_per_m = 1.0 / r.bounded("radius_of_curvature", kLength, true);
+  p.insertion_speed_m_s = r.bounded("insertion_speed", kSpeed, true);
+  p.spin_rate_max_rad_s = r.bounded("spin_rate_max", kSpinRate, true);
+  p.duty_cycle_length_m = r.bounded("duty_cycle_length", kLength, true);
+  step_length_m = r.bounded("step_length", kLength, true);
   if (step_length_m < p.duty_cycle_length_m) {
     r.fail(r.lastKey(), std::to_string(step_length_m),
            "must be >= duty_cycle_length (a step holds whole duty cycles)");
@@ -190,12 +181,9 @@ NeedleParams3 readNeedle(Reader r, double& step_length_m) {
 
 NoiseParams3 readNoise(Reader r) {
   NoiseParams3 n;
-  n.sigma_insert_rad = r.quantity("sigma_insert", kAngle);
-  requireNonNegative(r, r.lastKey(), n.sigma_insert_rad);
-  n.sigma_spin_rad = r.quantity("sigma_spin", kAngle);
-  requireNonNegative(r, r.lastKey(), n.sigma_spin_rad);
-  n.sigma_roll_rad = r.quantity("sigma_roll", kAngle);
-  requireNonNegative(r, r.lastKey(), n.sigma_roll_rad);
+  n.sigma_insert_rad = r.bounded("sigma_insert", kAngle, false);
+  n.sigma_spin_rad = r.bounded("sigma_spin", kAngle, false);
+  n.sigma_roll_rad = r.bounded("sigma_roll", kAngle, false);
   r.finish();
   return n;
 }
@@ -229,8 +217,7 @@ EntryRegion3 readEntry(Reader r) {
     r.fail("direction", "[0, 0, 0]", "must be non-zero");
   }
   e.direction = dir.normalized();
-  e.radius_m = r.quantity("radius", kLength);
-  requireNonNegative(r, r.lastKey(), e.radius_m);
+  e.radius_m = r.bounded("radius", kLength, false);
   e.cone_half_angle_rad = r.quantity("cone_half_angle", kAngle);
   if (!(e.cone_half_angle_rad >= 0.0) || !(e.cone_half_angle_rad < kPi / 2.0)) {
     r.fail(r.lastKey(), std::to_string(e.cone_half_angle_rad), "must be in [0, 90) deg");
@@ -269,21 +256,21 @@ void readScene(const YAML::Node& root, const std::string& source, const std::str
     }
     std::string file;
     obstacle.mesh = readMeshEntry(o, base_dir, file);
-    obstacle.clearance_m = o.quantity("clearance", kLength);
-    requireNonNegative(o, o.lastKey(), obstacle.clearance_m);
+    obstacle.clearance_m = o.bounded("clearance", kLength, false);
     o.finish();
     s.obstacles.push_back(std::move(obstacle));
     s.obstacle_files.push_back(file);
   }
   Reader target(top.get("target"), "target", source);
   s.target.center_m = target.vector("center", kLength);
-  s.target.radius_m = target.quantity("radius", kLength);
-  requirePositive(target, target.lastKey(), s.target.radius_m);
+  s.target.radius_m = target.bounded("radius", kLength, true);
   target.finish();
   s.entry = readEntry(Reader(top.get("entry"), "entry", source));
   Reader planner(top.get("planner"), "planner", source);
   s.collision_tolerance_m = planner.quantity("collision_tolerance", kLength, 5e-5);
-  requirePositive(planner, "collision_tolerance", s.collision_tolerance_m);
+  if (!(s.collision_tolerance_m > 0.0)) {
+    planner.fail("collision_tolerance", std::to_string(s.collision_tolerance_m), "must be > 0");
+  }
   planner.finish();
   top.finish();
 }
