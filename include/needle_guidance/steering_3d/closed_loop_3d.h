@@ -1,0 +1,52 @@
+// One simulated 3-D steerable-needle insertion (issue 18): the noisy needle of needle_3d.h is
+// the world, the tip is imaged after every step (step_length_m of insertion, 5.3's delta) and,
+// depending on the strategy, the planner replans from it, the plan runs open loop, or a straight
+// needle is pushed. Success means the outcome: the tip ends inside the target ball and the path
+// never touched an expanded obstacle or left the tissue. Plain C++; no ROS (the bench, the tests
+// and a node call the same function).
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/steering_3d/planner_3d.h"
+
+namespace needle_guidance::steering_3d {
+
+enum class Strategy3 {
+  kReplanUncertainty,  ///< replan every step, choose by estimated P(success) (ours)
+  kReplanFirstFound,   ///< replan every step, first feasible plan (Patil-style baseline)
+  kOpenLoop,           ///< plan once from the entry (by P(success)), execute blind
+  kStraight,           ///< a straight needle aimed at the target (no steering, no correction)
+};
+/// "replan_uncertainty" | "replan_first_found" | "open_loop" | "straight".
+std::string toString(Strategy3 strategy);
+
+struct TrialOptions3 {
+  int max_steps = 200;       ///< steps before giving up, >= 1
+  bool record_path = false;  ///< keep the tip path in TrialResult3::path
+};
+
+/// How one trial ended.
+struct TrialResult3 {
+  bool success = false;
+  Contact3 contact = Contact3::kFree;  ///< what the path touched (kFree if nothing)
+  std::string obstacle;                ///< for kObstacle
+  PlanCode no_plan = PlanCode::kOk;    ///< the first plan's failure, if any
+  std::string message;                 ///< a one-line reason for a failure
+  double target_error_m = 0.0;         ///< final tip to target centre [m] (inf without a start)
+  int steps = 0;
+  double initial_plan_s = 0.0;       ///< the first plan's wall time [s]
+  std::vector<double> replan_s;      ///< each replan's wall time [s]
+  double predicted_p_success = 0.0;  ///< the first plan's estimate (successProbability)
+  std::vector<Vector3> path;         ///< tip positions, when record_path
+};
+
+/// Runs one insertion in `scene` with noise `noise` (the world's; the planner assumes the same)
+/// from the planner's entry; `seed` seeds both the world and the planner.
+TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strategy3 strategy,
+                       const NoiseParams3& noise, const PlannerParams3& planner, std::uint64_t seed,
+                       const TrialOptions3& options = {});
+
+}  // namespace needle_guidance::steering_3d

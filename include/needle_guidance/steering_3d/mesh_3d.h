@@ -1,0 +1,67 @@
+// Closed triangle meshes of the 3-D steering scenes (issue 18): reading STL / OFF / OBJ through
+// CGAL's IO with validation, writing, simple primitives (box, tube along a polyline, sphere)
+// for the shipped scenes and the tests, and the bounding-volume-hierarchy distance queries the
+// planner's collision checks use (CGAL AABB tree). Plain C++; CGAL stays inside the .cpp.
+#pragma once
+
+#include <array>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/steering_3d/needle_3d.h"
+
+namespace needle_guidance::steering_3d {
+
+/// A triangle mesh in frame scene [m]; triangles index vertices.
+struct Mesh3 {
+  std::vector<Vector3> vertices;
+  std::vector<std::array<int, 3>> triangles;
+};
+
+/// Reads a mesh with CGAL's polygon-soup IO (the format from the extension: .stl, .off, .obj;
+/// also .ply), scales it by scale_to_m (a file in mm: 1e-3), merges duplicated points (STL) and
+/// orients it outwards. Throws std::invalid_argument naming the file for: an unreadable file or
+/// unknown extension, no triangles, a face that is not a triangle, a degenerate triangle (two
+/// equal vertices or zero area), a mesh that is not closed (an edge not shared by exactly two
+/// triangles, or not a manifold), or a self-intersecting mesh.
+Mesh3 readMesh3(const std::string& path, double scale_to_m);
+/// Writes a mesh (format from the extension), coordinates divided by scale_to_m. Throws
+/// std::runtime_error naming the file if it cannot be written.
+void writeMesh3(const std::string& path, const Mesh3& mesh, double scale_to_m);
+
+/// An axis-aligned box [m], outward oriented.
+Mesh3 boxMesh(const Vector3& min_corner, const Vector3& max_corner);
+/// A closed tube of radius_m along a polyline (at least two points), with flat end caps and
+/// `sides` vertices per ring (>= 3). Consecutive polyline points must differ. Throws
+/// std::invalid_argument otherwise.
+Mesh3 tubeMesh(const std::vector<Vector3>& centerline, double radius_m, int sides);
+/// An ellipsoid with semi-axes (a, b, c) about `center` from a UV sphere with `rings` >= 2
+/// latitude rings and `sides` >= 3 longitudes.
+Mesh3 ellipsoidMesh(const Vector3& center, const Vector3& semi_axes_m, int rings, int sides);
+
+/// Distance and inside queries on one closed mesh through an AABB tree (CGAL).
+class MeshDistance {
+public:
+  /// Builds the tree. The mesh must be closed and outward oriented (readMesh3's output).
+  explicit MeshDistance(const Mesh3& mesh);
+  ~MeshDistance();
+  MeshDistance(MeshDistance&&) noexcept;
+  MeshDistance& operator=(MeshDistance&&) noexcept;
+
+  /// Unsigned distance from p to the surface [m].
+  double distance(const Vector3& p) const;
+  /// True if p is inside the closed surface or on it.
+  bool insideOrOn(const Vector3& p) const;
+  /// Axis-aligned bounds of the mesh [m].
+  const Vector3& minCorner() const { return min_; }
+  const Vector3& maxCorner() const { return max_; }
+
+private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+  Vector3 min_ = Vector3::Zero();
+  Vector3 max_ = Vector3::Zero();
+};
+
+}  // namespace needle_guidance::steering_3d

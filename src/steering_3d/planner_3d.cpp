@@ -1,0 +1,422 @@
+// RRT with the reachability metric, goal connection by one arc, and the LQG-MP-style choice
+// (planner_3d.h).
+#include "needle_guidance/steering_3d/planner_3d.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <random>
+
+namespace needle_guidance::steering_3d {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+/// The tree samples in the box spanning its roots and the target, grown by this much and
+/// clipped to the tissue [m]: room for the S-curves a needle of r ~ 5 cm needs.
+constexpr double kSampleMargin_m = 0.03;
+/// A goal arc whose duty cycle could not give the exact curvature must still end this close to
+/// the centre, as a fraction of the target radius.
+constexpr double kGoalEndFraction = 0.25;
+/// Plan points and the clearance margins of successProbability are sampled this densely [m].
+constexpr double kPointSpacing_m = 1e-3;
+
+using Clock = std::chrono::steady_clock;
+
+struct Node {
+  TipPose3 pose;
+  int parent = -1;
+  Control3 control;  ///< from the parent to this node
+  double cost = 0.0;
+};
+
+/// The single arc from `pose` towards q: bevel rotation, curvature (snapped to what duty
+/// cycling achieves) and its length to q.
+struct Steer {
+  bool ok = false;
+  double rotate = 0.0;
+  double kappa = 0.0;
+  double length = 0.0;
+  bool exact = true;  ///< the arc passes through q (no rotation snap, no curvature saturation)
+};
+
+Steer steerTo(const TipPose3& pose, const Vector3& q, const NeedleParams3& needle,
+              double cycle_length, double rotation_snap) {
+  Steer out;
+  const Vector3 w = q - pose.p_SceneTip;
+  const Vector3 t = pose.tangent();
+  const double along = w.dot(t);
+  const double w2 = w.squaredNorm();
+  if (!(along > 0.0) || w2 == 0.0) {
+    return out;
+  }
+  const Vector3 perp = w - along * t;
+  const double pn = perp.norm();
+  const double kreq = 2.0 * pn / w2;
+  if (kreq > needle.kappa_max_per_m * (1.0 + 1e-9)) {
+    return out;
+  }
+  out.ok = true;
+  double kappa = kreq;
+  if (pn > 1e-12) {
+    out.rotate = std::atan2(perp.dot(pose.R_SceneTip.col(1)), perp.dot(pose.bevel()));
+    if (std::abs(out.rotate) < rotation_snap) {
+      kappa = 2.0 * std::max(0.0, perp.dot(pose.bevel())) / w2;  // stay in the bevel plane
+      out.rotate = 0.0;
+      out.exact = false;
+    }
+  }
+  const DutyCycle cycle = dutyCycleFor(kappa, needle, cycle_length);
+  out.kappa = cycle.kappa_per_m;
+  out.exact = out.exact && !cycle.saturated;
+  out.length = kreq > 1e-9 ? 2.0 * std::atan2(pn, along) / kreq : std::sqrt(w2);
+  return out;
+}
+
+/// The final arc from `pose` into the target: to its centre when one arc of achievable
+/// curvature reaches it; otherwise the arc bending towards it at kappa_max up to its closest
+/// approach, if that lies within the ball (the closed loop then ends off-centre rather than not
+/// at all). ok = false if neither.
+Steer goalArc(const TipPose3& pose, const Target3& target, const NeedleParams3& needle,
+              double cycle_length, double rotation_snap) {
+  // Without a bevel rotation if the arc in the current bevel plane still ends close enough
+  // (a rotation costs sigma_spin), else with the exact rotation.
+  Steer g = steerTo(pose, target.center_m, needle, cycle_length, rotation_snap);
+  if (g.ok && g.rotate == 0.0) {
+    const TipPose3 end = advanceArc(pose, g.kappa, g.length);
+    if ((end.p_SceneTip - target.center_m).norm() <= kGoalEndFraction * target.radius_m) {
+      return g;
+    }
+  }
+  g = steerTo(pose, target.center_m, needle, cycle_length, 0.0);
+  if (g.ok) {
+    const TipPose3 end = advanceArc(rotateBevel(pose, g.rotate), g.kappa, g.length);
+    g.ok = (end.p_SceneTip - target.center_m).norm() <= kGoalEndFraction * target.radius_m;
+    return g;
+  }
+  const Vector3 w = target.center_m - pose.p_SceneTip;
+  const double along = w.dot(pose.tangent());
+  if (!(along > 0.0)) {
+    return g;
+  }
+  const Vector3 perp = w - along * pose.tangent();
+  g.rotate = std::atan2(perp.dot(pose.R_SceneTip.col(1)), perp.dot(pose.bevel()));
+  g.kappa = needle.kappa_max_per_m;
+  const TipPose3 rotated = rotateBevel(pose, g.rotate);
+  // Closest approach along the arc, sampled at kPointSpacing_m up to a quarter turn.
+  double best = std::numeric_limits<double>::infinity();
+  for (double s = 0.0; s <= 0.5 * kPi / g.kappa; s += kPointSpacing_m) {
+    const double d = (advanceArc(rotated, g.kappa, s).p_SceneTip - target.center_m).norm();
+    if (d < best) {
+      best = d;
+      g.length = s;
+    }
+  }
+  g.ok = best <= target.radius_m && g.length > 0.0;
+  g.exact = false;
+  return g;
+}
+
+Plan3 assemble(const std::vector<Node>& nodes, int leaf, const Control3& goal) {
+  Plan3 plan;
+  std::vector<Control3> reversed{goal};
+  int i = leaf;
+  while (nodes[static_cast<std::size_t>(i)].parent >= 0) {
+    reversed.push_back(nodes[static_cast<std::size_t>(i)].control);
+    i = nodes[static_cast<std::size_t>(i)].parent;
+  }
+  plan.start = nodes[static_cast<std::size_t>(i)].pose;
+  plan.controls.assign(reversed.rbegin(), reversed.rend());
+  for (const Control3& c : plan.controls) {
+    plan.length_m += c.length_m;
+  }
+  return plan;
+}
+
+/// Tail of the lateral deviation beyond m: 2-D isotropic (Rayleigh) or 1-D (in-plane noise).
+double tail(double m, double variance, bool one_axis) {
+  if (variance <= 0.0) {
+    return m > 0.0 ? 0.0 : 1.0;
+  }
+  if (m <= 0.0) {
+    return 1.0;
+  }
+  return one_axis ? std::erfc(m / std::sqrt(2.0 * variance)) : std::exp(-m * m / (2.0 * variance));
+}
+
+struct TreeContext {
+  const CollisionWorld3& world;
+  const Target3& target;
+  const NeedleParams3& needle;
+  const PlannerParams3& params;
+  Vector3 lo;  ///< sampling box [m]
+  Vector3 hi;
+  Clock::time_point deadline;
+};
+
+/// Grows one RRT from `roots` until it connects to the target (one plan appended to `plans`),
+/// reaches max_nodes or the deadline. Adds its node count to rep.nodes. The roots' own goal
+/// arcs are tried only when try_roots (the first tree), so later trees add other plans.
+void growTree(const TreeContext& ctx, const std::vector<Node>& roots, std::mt19937_64& rng,
+              bool try_roots, std::vector<Plan3>& plans, PlanReport& rep) {
+  std::vector<Node> nodes = roots;
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  const double cycle = ctx.needle.duty_cycle_length_m;
+  const std::size_t before = plans.size();
+  const auto tryGoal = [&](int index) {
+    const Node& n = nodes[static_cast<std::size_t>(index)];
+    rep.closest_approach_m =
+        std::min(rep.closest_approach_m, (n.pose.p_SceneTip - ctx.target.center_m).norm());
+    const Steer g = goalArc(n.pose, ctx.target, ctx.needle, cycle, ctx.params.rotation_snap_rad);
+    if (!g.ok) {
+      return;
+    }
+    const TipPose3 rotated = rotateBevel(n.pose, g.rotate);
+    if (!ctx.world.checkArc(rotated, g.kappa, g.length, ctx.params.safety_margin_m).free()) {
+      return;
+    }
+    plans.push_back(assemble(nodes, index, Control3{g.rotate, g.kappa, g.length}));
+  };
+  for (int i = 0; try_roots && i < static_cast<int>(nodes.size()) && plans.size() == before; ++i) {
+    tryGoal(i);
+  }
+  while (plans.size() == before && static_cast<int>(nodes.size()) < ctx.params.max_nodes &&
+         Clock::now() < ctx.deadline) {
+    Vector3 q = ctx.target.center_m;
+    if (unit(rng) >= ctx.params.goal_bias) {
+      q = ctx.lo + (ctx.hi - ctx.lo).cwiseProduct(Vector3(unit(rng), unit(rng), unit(rng)));
+    }
+    int best = -1;
+    Steer best_steer;
+    for (int i = 0; i < static_cast<int>(nodes.size()); ++i) {
+      const Steer s = steerTo(nodes[static_cast<std::size_t>(i)].pose, q, ctx.needle, cycle,
+                              ctx.params.rotation_snap_rad);
+      if (s.ok && (best < 0 || s.length < best_steer.length)) {
+        best = i;
+        best_steer = s;
+      }
+    }
+    if (best < 0) {
+      continue;
+    }
+    const Node& from = nodes[static_cast<std::size_t>(best)];
+    const double length = std::min(best_steer.length, ctx.params.max_edge_length_m);
+    const TipPose3 rotated = rotateBevel(from.pose, best_steer.rotate);
+    if (length <= 0.0 ||
+        !ctx.world.checkArc(rotated, best_steer.kappa, length, ctx.params.safety_margin_m).free()) {
+      continue;
+    }
+    nodes.push_back(Node{advanceArc(rotated, best_steer.kappa, length), best,
+                         Control3{best_steer.rotate, best_steer.kappa, length},
+                         from.cost + length});
+    tryGoal(static_cast<int>(nodes.size()) - 1);
+  }
+  rep.nodes += static_cast<int>(nodes.size());
+}
+
+}  // namespace
+
+std::string toString(PlanCode code) {
+  switch (code) {
+    case PlanCode::kOk:
+      return "ok";
+    case PlanCode::kStartOutsideTissue:
+      return "start_outside_tissue";
+    case PlanCode::kStartInObstacle:
+      return "start_in_obstacle";
+    case PlanCode::kTargetOutsideTissue:
+      return "target_outside_tissue";
+    case PlanCode::kTargetInObstacle:
+      return "target_in_obstacle";
+    case PlanCode::kNoPathWithinBudget:
+      return "no_path_within_budget";
+  }
+  return "unknown";
+}
+
+std::vector<Vector3> Plan3::points() const {
+  std::vector<Vector3> out{start.p_SceneTip};
+  TipPose3 pose = start;
+  for (const Control3& c : controls) {
+    const TipPose3 rotated = rotateBevel(pose, c.rotate_rad);
+    const int pieces = std::max(1, static_cast<int>(std::ceil(c.length_m / kPointSpacing_m)));
+    for (int i = 1; i <= pieces; ++i) {
+      out.push_back(advanceArc(rotated, c.curvature_per_m, c.length_m * i / pieces).p_SceneTip);
+    }
+    pose = advanceArc(rotated, c.curvature_per_m, c.length_m);
+  }
+  return out;
+}
+
+double successProbability(const Plan3& plan, const CollisionWorld3& world, const Target3& target,
+                          const NoiseParams3& noise, double step_length_m, double kappa_max) {
+  const double lookahead = 2.0 * step_length_m;
+  const double k1 = 2.0 / (lookahead * lookahead), k2 = 2.0 / lookahead;
+  Eigen::Matrix2d P = Eigen::Matrix2d::Zero();
+  double p = 1.0;
+  TipPose3 pose = plan.start;
+  for (const Control3& c : plan.controls) {
+    const TipPose3 rotated = rotateBevel(pose, c.rotate_rad);
+    const int steps = std::max(1, static_cast<int>(std::ceil(c.length_m / step_length_m - 1e-9)));
+    for (int k = 0; k < steps; ++k) {
+      const double s0 = c.length_m * k / steps, l = c.length_m / steps;
+      const double sigma =
+          (k == 0 && c.rotate_rad != 0.0) ? noise.sigma_spin_rad : noise.sigma_insert_rad;
+      Eigen::Matrix2d A;
+      A << 1.0 - 0.5 * l * l * k1, l - 0.5 * l * l * k2, -l * k1, 1.0 - l * k2;
+      const Eigen::Vector2d b(l, 1.0);
+      P = A * P * A.transpose() + sigma * sigma * b * b.transpose();
+      // Clearance over the step: the smallest margin at points <= 1 mm apart.
+      double margin = std::numeric_limits<double>::infinity();
+      const int pieces = std::max(1, static_cast<int>(std::ceil(l / kPointSpacing_m)));
+      for (int i = 1; i <= pieces; ++i) {
+        margin = std::min(
+            margin, world.obstacleMargin(
+                        advanceArc(rotated, c.curvature_per_m, s0 + l * i / pieces).p_SceneTip));
+      }
+      p *= 1.0 - tail(margin, P(0, 0), noise.in_plane_only);
+      // The next step's correction c must fit in the curvature the plan leaves unused.
+      const Eigen::RowVector2d K(k1, k2);
+      const double correction_variance = K * P * K.transpose();
+      p *= 1.0 - 0.5 * tail(kappa_max - c.curvature_per_m, correction_variance, true);
+    }
+    pose = advanceArc(rotated, c.curvature_per_m, c.length_m);
+  }
+  return p * (1.0 - tail(target.radius_m, P(0, 0), noise.in_plane_only));
+}
+
+Planner3::Planner3(const Scene3d& scene, const CollisionWorld3& world, PlannerParams3 params,
+                   NoiseParams3 noise)
+    : scene_(scene), world_(world), params_(params), noise_(noise) {
+  if (!(params_.time_budget_s > 0.0) || !(params_.entry_time_budget_s > 0.0) ||
+      params_.max_plans < 1 || params_.max_nodes < 1 ||
+      !(params_.goal_bias >= 0.0 && params_.goal_bias <= 1.0) ||
+      !(params_.max_edge_length_m > 0.0) || params_.entry_samples < 1 ||
+      !(params_.safety_margin_m >= 0.0)) {
+    throw std::invalid_argument(
+        "Planner3: needs time budgets > 0, max_plans >= 1, max_nodes >= 1, goal_bias in "
+        "[0, 1], max_edge_length_m > 0, entry_samples >= 1, safety_margin_m >= 0");
+  }
+  noise_.validate();
+}
+
+PlanStatus Planner3::checkTarget() const {
+  const PointCheck target = world_.classify(scene_.target.center_m);
+  if (target.contact == Contact3::kOutsideTissue) {
+    return PlanStatus(PlanCode::kTargetOutsideTissue,
+                      "no plan: the target centre lies outside "
+                      "the tissue");
+  }
+  if (target.contact == Contact3::kObstacle) {
+    return PlanStatus(PlanCode::kTargetInObstacle,
+                      "no plan: the target centre lies within "
+                      "obstacle '" +
+                          target.obstacle + "' (with its clearance)");
+  }
+  return PlanStatus::ok();
+}
+
+Result<Plan3, PlanStatus> Planner3::planFromEntry(std::uint64_t seed, PlanReport* report) const {
+  std::mt19937_64 rng(seed ^ 0x9e3779b97f4a7c15ULL);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  const EntryRegion3& e = scene_.entry;
+  const Vector3 u = e.direction.unitOrthogonal();
+  const Vector3 v = e.direction.cross(u);
+  std::vector<TipPose3> roots;
+  for (int i = 0; i < params_.entry_samples; ++i) {
+    // Uniform on the disc; tangents uniform in the cone's solid angle; bevel at random.
+    const double r = e.radius_m * std::sqrt(unit(rng)), a = 2.0 * kPi * unit(rng);
+    const double cos_t = 1.0 - unit(rng) * (1.0 - std::cos(e.cone_half_angle_rad));
+    const double sin_t = std::sqrt(std::max(0.0, 1.0 - cos_t * cos_t)), b = 2.0 * kPi * unit(rng);
+    const Vector3 p = e.center_m + r * (std::cos(a) * u + std::sin(a) * v);
+    const Vector3 t = cos_t * e.direction + sin_t * (std::cos(b) * u + std::sin(b) * v);
+    const double bevel = 2.0 * kPi * unit(rng);
+    const Vector3 d0 = t.unitOrthogonal();
+    roots.push_back(makeTipPose(p, t, std::cos(bevel) * d0 + std::sin(bevel) * t.cross(d0)));
+  }
+  return plan(roots, seed, params_.entry_time_budget_s, report);
+}
+
+Result<Plan3, PlanStatus> Planner3::planFromTip(const TipPose3& tip, std::uint64_t seed,
+                                                PlanReport* report) const {
+  return plan({tip}, seed, params_.time_budget_s, report);
+}
+
+Result<Plan3, PlanStatus> Planner3::plan(const std::vector<TipPose3>& roots, std::uint64_t seed,
+                                         double budget_s, PlanReport* report) const {
+  const auto started = Clock::now();
+  PlanReport local;
+  PlanReport& rep = report != nullptr ? *report : local;
+  rep = PlanReport{};
+  const PlanStatus target_status = checkTarget();
+  if (!target_status) {
+    return target_status;
+  }
+  std::vector<Node> nodes;
+  PointCheck first_refusal;
+  for (const TipPose3& root : roots) {
+    const PointCheck check = world_.classify(root.p_SceneTip);
+    if (check.contact == Contact3::kFree) {
+      nodes.push_back(Node{root, -1, Control3{}, 0.0});
+    } else if (first_refusal.contact == Contact3::kFree) {
+      first_refusal = check;
+    }
+  }
+  if (nodes.empty()) {
+    if (first_refusal.contact == Contact3::kObstacle) {
+      return PlanStatus(PlanCode::kStartInObstacle,
+                        "no plan: the start lies within obstacle '" + first_refusal.obstacle + "'");
+    }
+    return PlanStatus(PlanCode::kStartOutsideTissue, "no plan: the start lies outside the tissue");
+  }
+  const Target3& target = scene_.target;
+  const NeedleParams3& needle = scene_.needle;
+  Vector3 lo = target.center_m, hi = target.center_m;
+  for (const Node& n : nodes) {
+    lo = lo.cwiseMin(n.pose.p_SceneTip);
+    hi = hi.cwiseMax(n.pose.p_SceneTip);
+  }
+  TreeContext context{world_,
+                      target,
+                      needle,
+                      params_,
+                      (lo - Vector3::Constant(kSampleMargin_m)).cwiseMax(world_.tissueMin()),
+                      (hi + Vector3::Constant(kSampleMargin_m)).cwiseMin(world_.tissueMax()),
+                      started + std::chrono::duration_cast<Clock::duration>(
+                                    std::chrono::duration<double>(budget_s))};
+  std::mt19937_64 rng(seed);
+  std::vector<Plan3> plans;
+  rep.closest_approach_m = std::numeric_limits<double>::infinity();
+  // The baseline grows one tree to its first plan. Ours grows a fresh tree per plan, so the
+  // candidates it chooses among differ in more than their last arc.
+  const int wanted = params_.choice == PlanChoice::kFirstFound ? 1 : params_.max_plans;
+  int trees = 0;
+  do {
+    growTree(context, nodes, rng, trees++ == 0, plans, rep);
+  } while (static_cast<int>(plans.size()) < wanted && Clock::now() < context.deadline);
+  rep.plans_found = static_cast<int>(plans.size());
+  if (plans.empty()) {
+    rep.seconds = std::chrono::duration<double>(Clock::now() - started).count();
+    return PlanStatus(PlanCode::kNoPathWithinBudget,
+                      "no plan: no feasible path to the target under kappa_max = " +
+                          std::to_string(needle.kappa_max_per_m) + " /m within " +
+                          std::to_string(budget_s * 1e3) + " ms (" + std::to_string(rep.nodes) +
+                          " nodes; closest approach " +
+                          std::to_string(rep.closest_approach_m * 1e3) + " mm)");
+  }
+  std::size_t chosen = 0;
+  for (std::size_t i = 0; i < plans.size(); ++i) {
+    plans[i].p_success = successProbability(plans[i], world_, target, noise_, scene_.step_length_m,
+                                            needle.kappa_max_per_m);
+    const bool better = plans[i].p_success > plans[chosen].p_success ||
+                        (plans[i].p_success == plans[chosen].p_success &&
+                         plans[i].length_m < plans[chosen].length_m);
+    if (params_.choice == PlanChoice::kMaxSuccessProbability && better) {
+      chosen = i;
+    }
+  }
+  rep.seconds = std::chrono::duration<double>(Clock::now() - started).count();
+  return plans[chosen];
+}
+
+}  // namespace needle_guidance::steering_3d
