@@ -313,7 +313,7 @@ PlanStatus Planner3::checkTarget() const {
                       "obstacle '" +
                           target.obstacle + "' (with its clearance)");
   }
-  return PlanStatus::ok();
+  return PlanStatus::success();
 }
 
 Result<Plan3, PlanStatus> Planner3::planFromEntry(std::uint64_t seed, PlanReport* report) const {
