@@ -7,7 +7,7 @@ export PATH="/usr/bin:$PATH"  # the pyenv python3 lacks catkin_pkg (ROS_ON_DEBIA
 
 # Debian packages the suite needs to build, run, test and benchmark (no recommends).
 NG_PACKAGES=(
-  build-essential cmake pkg-config
+  build-essential cmake pkg-config clang-format
   catkin ros-message-generation ros-message-runtime libroscpp-dev libstd-msgs-dev ros-std-msgs
   libgeometry-msgs-dev ros-geometry-msgs libsensor-msgs-dev ros-sensor-msgs
   libvisualization-msgs-dev ros-visualization-msgs libstd-srvs-dev ros-std-srvs
