@@ -555,6 +555,7 @@ def main():
     ap.add_argument("--runs", type=int, default=0, help="kill runs (default 42, --quick 14)")
     ap.add_argument("--skip-bad", action="store_true", help="kill runs only (debugging)")
     ap.add_argument("--skip-kills", action="store_true", help="bad inputs only (debugging)")
+    ap.add_argument("--procedures", default="", help="comma-separated subset (debugging)")
     ap.add_argument("--probe")
     ap.add_argument("--send-bad", nargs="+")
     a = ap.parse_args()
@@ -567,7 +568,8 @@ def main():
     rng = random.Random(a.seed)
     n = a.runs or (14 if a.quick else 42)
     # Every (procedure, node) pair in turn, then seeded random ones.
-    pairs = [(p, node) for p, spec in PROCEDURES.items() for node in spec["nodes"]]
+    chosen = set(a.procedures.split(",")) if a.procedures else set(PROCEDURES)
+    pairs = [(p, node) for p, spec in PROCEDURES.items() for node in spec["nodes"] if p in chosen]
     plan = pairs[:n] + [rng.choice(pairs) for _ in range(max(0, n - len(pairs)))]
     if a.skip_kills:
         plan = []
