@@ -10,6 +10,11 @@
 namespace needle_guidance::ros_conversions {
 namespace {
 
+/// Height of overlay markers (targets, labels, seeds) above the scene plane [m]: far enough above
+/// the tissue and region fills (z <= 0) for the depth buffer of a top-down view to tell them apart
+/// (1-2 mm were not: targets flickered under the fill).
+constexpr double kMarkerOverlay_m = 0.01;
+
 /// A fixed colour per region index: background first (fat: pale yellow), then tissue colours.
 std_msgs::ColorRGBA regionColour(std::size_t index) {
   static const std::array<std::array<float, 3>, 6> kPalette{{{0.95F, 0.85F, 0.55F},
@@ -174,6 +179,9 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
     visualization_msgs::Marker sphere =
         baseMarker(frame_id, "targets", id, visualization_msgs::Marker::SPHERE);
     sphere.pose.position = toMessage(target.position);
+    // Above the tissue fill and its wireframe (z < 0) wherever the mesh has moved, so that every
+    // target stays visible from the top view.
+    sphere.pose.position.z = kMarkerOverlay_m;
     const double diameter_m = std::max(2.0 * target.radius_m, 0.0015);
     sphere.scale.x = sphere.scale.y = sphere.scale.z = diameter_m;
     sphere.color = colour(0.1F, 0.7F, 0.2F, 1.0F);
@@ -181,9 +189,10 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
     visualization_msgs::Marker label =
         baseMarker(frame_id, "target_labels", id, visualization_msgs::Marker::TEXT_VIEW_FACING);
     label.pose.position = toMessage(target.position);
-    label.pose.position.y += 0.5 * diameter_m + 0.001;
-    label.scale.z = 0.0015;
-    label.color = colour(0.0F, 0.3F, 0.0F, 1.0F);
+    label.pose.position.y += 0.5 * diameter_m + 0.0012;
+    label.pose.position.z = kMarkerOverlay_m;
+    label.scale.z = 0.002;
+    label.color = colour(0.0F, 0.15F, 0.0F, 1.0F);  // dark on the light tissue colours
     label.text = target.name;
     array.markers.push_back(label);
   }
@@ -255,7 +264,7 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
   tip.color = colour(0.9F, 0.0F, 0.0F, 1.0F);
   if (sim.needle().tipNode() >= 0) {
     tip.pose.position = toMessage(nodes[static_cast<std::size_t>(sim.needle().tipNode())]);
-    tip.pose.position.z = 0.0007;
+    tip.pose.position.z = kMarkerOverlay_m + 0.0015;
   } else {
     tip.action = visualization_msgs::Marker::DELETE;
   }
@@ -265,7 +274,7 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
   seeds.color = colour(1.0F, 0.9F, 0.0F, 1.0F);
   for (const auto& seed : sim.seeds()) {
     seeds.points.push_back(toMessage(sim.seedPosition(seed)));
-    seeds.points.back().z = 0.0008;
+    seeds.points.back().z = kMarkerOverlay_m + 0.001;  // a seed shows on top of its target
   }
   if (seeds.points.empty()) {
     seeds.action = visualization_msgs::Marker::DELETE;
