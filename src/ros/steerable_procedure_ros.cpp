@@ -22,6 +22,7 @@
 #include "needle_guidance/SteeringControl.h"
 #include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
+#include "needle_guidance/steering/model_selection.h"
 #include "needle_guidance/ros/node_supervisor.h"
 #include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/params.h"
@@ -178,25 +179,6 @@ SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   steering::problemFromScene(scene::loadSceneSpec(scene_spec_), target_);
 }
 
-std::pair<steering::PolicyTable, std::string> SteerableProcedureRos::policyTable(
-    const std::string& scene_name, const steering::SteeringProblem& problem) const {
-  const std::uint64_t hash = steering::problemHash(problem);
-  if (!table_dir_.empty()) {
-    const std::string path =
-        (std::filesystem::path(table_dir_) / steering::PolicyTable::fileName(scene_name, hash))
-            .string();
-    steering::LoadStatus status;
-    std::optional<steering::PolicyTable> loaded = steering::PolicyTable::load(path, hash, status);
-    if (loaded && loaded->converged()) {
-      return {std::move(*loaded), "loaded"};
-    }
-    ROS_WARN_STREAM("steerable_procedure: no usable table of steering_policy (" << status.message
-                                                                                << "); solving");
-  }
-  const steering::SteeringModel model(problem);
-  return {steering::solveValueIteration(model), "solved"};
-}
-
 bool SteerableProcedureRos::run() {
   const auto wall_start = std::chrono::steady_clock::now();
   const scene::Scene scene = scene::loadSceneSpec(scene_spec_);
@@ -236,6 +218,20 @@ bool SteerableProcedureRos::run() {
     ROS_FATAL_STREAM("steerable_procedure: no start state: " << best.response.message);
     return false;
   }
+  steering::SelectionOptions selection;
+  selection.start = steering::startOptionsFromScene(scene);
+  Result<steering::PolicySource> policy =
+      steering::solveOrLoad(problem, scene.name, table_dir_, selection);
+  if (!policy) {
+    ROS_FATAL_STREAM("steerable_procedure: no policy table: " << policy.status().toString());
+    return false;
+  }
+  ROS_INFO_STREAM("steerable_procedure: model " << policy.value().description()
+                                                << " (ps_tolerance " << problem.ps_tolerance
+                                                << ")");
+  const steering::PolicyTable& table = *policy.value().table;
+  const std::string table_source = policy.value().source;
+  const double estimated_error = policy.value().estimated_error;
   const double predicted = best.response.probability_of_success;
   ROS_INFO_STREAM("steerable_procedure: best start y = "
                   << best.response.pose.y * kMmPerM
@@ -468,12 +464,8 @@ bool SteerableProcedureRos::run() {
 
   // The same start in the core simulator (continuous needle, same policy table) and the P_s
   // map of figure 5.7, from the table steering_policy saved (solved here only without one).
-  const auto [table, table_source] = policyTable(scene.name, problem);
   std::ostringstream model_text;
-  model_text << steering::toString(problem.params.transition_model) << ", grid "
-             << problem.params.grid_spacing_m * kMmPerM
-             << " mm, s = " << problem.params.orientation_subdivision << ", "
-             << table.grid().numStates() << " states";
+  model_text << policy.value().description();
   const std::string model_line = model_text.str();
   steering::TipPose start;
   start.p_SceneTip = steering::Point2(best.response.pose.x, best.response.pose.y);
@@ -522,6 +514,8 @@ bool SteerableProcedureRos::run() {
        << ",\n  \"monte_carlo_ps\": " << report::jsonNumber(mc.rate())
        << ",\n  \"monte_carlo_trials\": " << mc.trials << ",\n  \"model\": \"" << model_line
        << "\",\n  \"policy_table\": \"" << table_source << "\""
+       << ",\n  \"ps_tolerance\": " << report::jsonNumber(problem.ps_tolerance)
+       << ",\n  \"estimated_ps_error\": " << report::jsonNumber(estimated_error)
        << ",\n  \"start_y_mm\": " << report::jsonNumber(start.p_SceneTip.y() * kMmPerM)
        << ",\n  \"start_theta_deg\": " << report::jsonNumber(start.theta_rad * kDegPerRad)
        << ",\n  \"start_bevel\": \"" << best.response.bevel << "\""
@@ -541,6 +535,7 @@ bool SteerableProcedureRos::run() {
      << " mm, theta = " << start.theta_rad * kDegPerRad << " deg, bevel " << best.response.bevel
      << " |\n"
      << "| predicted P_s (MDP) | " << predicted << " |\n"
+     << "| model | " << model_line << " (ps_tolerance " << problem.ps_tolerance << ") |\n"
      << (cause.empty() ? "" : "| STOPPED | " + cause + " |\n")
      << "| errored trials (not counted as misses) | " << errored << " |\n"
      << "| success rate (ROS closed loop) | " << successes << " / " << n << " = " << rate

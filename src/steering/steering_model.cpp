@@ -168,6 +168,7 @@ SteeringProblem problemFromScene(const scene::Scene& scene, const std::string& t
                                 "' is not rounded or interpolated");
   }
   problem.params.transition_model = *model;
+  problem.ps_tolerance = scene.steering->ps_tolerance;
   return problem;
 }
 

@@ -23,6 +23,8 @@
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/adaptive_policy.h"
+#include "needle_guidance/steering/model_selection.h"
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/steering/shortest_path.h"
@@ -52,6 +54,8 @@ constexpr std::uint64_t kMonteCarloSeed = 11;
 /// Start states whose predicted and simulated P_s are both below this are left out of the
 /// truth check: they agree trivially.
 constexpr double kTrivialPs = 0.01;
+/// Heights of the truth check's start states on the entry line [mm].
+const std::vector<double> kTruthHeights_mm = {5.0, 10.0, 15.0, 30.0, 54.0, 60.0, 80.0};
 
 double peakMb() {
   rusage usage{};
@@ -73,7 +77,7 @@ struct Solved {
   double peak_mb = 0.0;
   int transitions = 0;
   std::unique_ptr<const st::SteeringModel> model;
-  std::unique_ptr<st::PolicyTable> table;
+  std::unique_ptr<const st::PolicyTable> table;
   st::BestStart best;
 };
 
@@ -102,7 +106,7 @@ Solved solveAt(const st::SteeringProblem& base, double spacing_m, int threads, d
   std::vector<double> seconds;
   for (int i = 0; i < repeats; ++i) {
     out.table =
-        std::make_unique<st::PolicyTable>(st::solveValueIteration(model, options, &out.stats));
+        std::make_unique<const st::PolicyTable>(st::solveValueIteration(model, options, &out.stats));
     seconds.push_back(out.stats.seconds);
   }
   std::sort(seconds.begin(), seconds.end());
@@ -227,12 +231,15 @@ public:
     }
     return b;
   }
+  /// The summary of the last check.
+  Summary last() const { return summaries_.back(); }
   double seconds() const { return seconds_; }
   std::int64_t trials() const { return trials_; }
   std::string summaryText() const { return summary_.toText(); }
-  void writeCsv(const std::string& dir) const {
-    per_start_.writeCsv(dir + "/truth_check.csv");
-    summary_.writeCsv(dir + "/truth_gap.csv");
+  /// Writes PREFIXtruth_check.csv and PREFIXtruth_gap.csv.
+  void writeCsv(const std::string& prefix) const {
+    per_start_.writeCsv(prefix + "truth_check.csv");
+    summary_.writeCsv(prefix + "truth_gap.csv");
   }
 
 private:
@@ -244,6 +251,285 @@ private:
   double seconds_ = 0.0;
   std::int64_t trials_ = 0;
 };
+
+
+// ---- the model chosen by ps_tolerance, checked against Monte Carlo (issue 21) ----
+
+/// The truth check's start states on a scene's entry line: heights at the given fractions of
+/// the start range, angles -18, 0, 18 degrees, both bevels.
+std::vector<st::TipPose> entryStarts(const st::SteeringProblem& problem, const st::StartOptions& start,
+                                     const std::vector<double>& y_mm) {
+  std::vector<st::TipPose> poses;
+  for (double y : y_mm) {
+    if (y / kMmPerM < std::max(start.min_height_m, problem.workspace_min.y()) ||
+        y / kMmPerM > std::min(start.max_height_m, problem.workspace_max.y())) {
+      continue;
+    }
+    for (double theta_deg : {-18.0, 0.0, 18.0}) {
+      for (st::Bevel b : {st::Bevel::kLeft, st::Bevel::kRight}) {
+        st::TipPose pose;
+        pose.p_SceneTip = st::Point2(start.start_x_m, y / kMmPerM);
+        pose.theta_rad = theta_deg / kDegPerRad;
+        pose.bevel = b;
+        poses.push_back(pose);
+      }
+    }
+  }
+  return poses;
+}
+
+/// The scene's model as steering_policy chooses it (ps_tolerance), solved once more for a median
+/// time, and every rung of the ladder checked against Monte Carlo: its own error estimate beside
+/// the measured mean gap (selection.csv).
+struct Selection {
+  st::SteeringProblem chosen;  ///< ps_tolerance 0, the chosen grid
+  double estimated_error = NAN;
+  double selection_s = 0.0;  ///< every rung built and solved [s]
+  int rungs = 0;
+};
+
+Selection selectModel(const std::string& scene_name, const st::SteeringProblem& problem,
+                      const st::StartOptions& start, TruthCheck* truth, ng::report::Table& table) {
+  st::SelectionOptions options;
+  options.start = start;
+  ng::Result<st::PolicySource> r = st::solveOrLoad(problem, "", "", options);
+  if (!r) {
+    throw std::runtime_error(r.status().toString());
+  }
+  Selection out;
+  out.chosen = r.value().model->problem();
+  out.chosen.ps_tolerance = 0.0;
+  out.estimated_error = r.value().estimated_error;
+  out.selection_s = r.value().seconds;
+  out.rungs = static_cast<int>(r.value().ladder.size());
+  std::cout << "ps_tolerance " << problem.ps_tolerance << " on " << scene_name << ": "
+            << r.value().description() << "\n"
+            << std::flush;
+  for (const st::ModelRung& rung : r.value().ladder) {
+    double within = NAN, gap = NAN;
+    if (truth != nullptr) {
+      const TruthCheck::Summary sum =
+          truth->check(solveAt(problem, rung.grid_spacing_m, 2, 1e-3, start,
+                               problem.params.orientation_subdivision, 1,
+                               problem.params.transition_model));
+      within = sum.within;
+      gap = sum.mean_abs_gap;
+    }
+    table.addRow({scene_name, rung.grid_spacing_m * kMmPerM, double(rung.states), rung.build_s,
+                  rung.solve_s, rung.estimated_error, gap, within,
+                  rung.grid_spacing_m == out.chosen.params.grid_spacing_m ? 1.0 : 0.0});
+  }
+  return out;
+}
+
+// ---- adaptation experiment (issue 21) ----
+
+/// Closed-loop trials per arm and world sigma (issue 21: >= 300).
+constexpr int kAdaptTrials = 300;
+/// Seed of trial i of every arm: kAdaptSeed + i (the arms see the same deflection streams).
+constexpr std::uint64_t kAdaptSeed = 2100;
+/// Trials after which sigma_estimate_error_pct is read.
+constexpr int kEstimateAfterTrials = 10;
+
+struct Arm {
+  std::string scene;
+  std::string arm;      ///< fixed | adaptive | oracle
+  double scale = 1.0;   ///< world sigma / scene sigma
+  std::int64_t successes = 0;
+  std::int64_t trials = 0;
+  st::Interval ci;
+  int resolves = 0;
+  double resolve_s = 0.0;          ///< summed re-solve time [s]
+  double sigma_i_error_pct = NAN;  ///< |sigma_i estimate - truth| / truth after 10 trials
+  double sigma_r_error_pct = NAN;
+};
+
+std::shared_ptr<const st::PolicySource> solvedFor(const st::SteeringProblem& p) {
+  st::SteeringProblem fixed = p;
+  fixed.ps_tolerance = 0.0;
+  ng::Result<st::PolicySource> r = st::solveOrLoad(fixed, "", "", st::SelectionOptions{});
+  if (!r) {
+    throw std::runtime_error(r.status().toString());
+  }
+  return std::make_shared<const st::PolicySource>(std::move(r.value()));
+}
+
+/// One arm: kAdaptTrials trials in a world whose sigmas are `scale` times the problem's, each
+/// from the best start of the table in use; the adaptive arm observes every completed step of a
+/// trial and swaps a re-solved table in before the next trial.
+Arm runArm(const std::string& scene_name, const st::SteeringProblem& problem,
+           const st::StartOptions& start, double scale, const std::string& arm_name,
+           const std::shared_ptr<const st::PolicySource>& assumed,
+           const std::shared_ptr<const st::PolicySource>& oracle, ng::report::Table& trajectory) {
+  st::SteeringProblem truth = problem;
+  truth.params.sigma_insert_rad *= scale;
+  truth.params.sigma_flip_rad *= scale;
+  const st::ContinuousWorkspace world(truth);
+  st::AdaptationOptions options;
+  options.adapt = arm_name == "adaptive";
+  st::AdaptivePolicy policy(arm_name == "oracle" ? truth : problem,
+                            arm_name == "oracle" ? oracle : assumed, options);
+  Arm out;
+  out.scene = scene_name;
+  out.arm = arm_name;
+  out.scale = scale;
+  st::TrialOptions trial_options;
+  trial_options.record_path = true;
+  for (int i = 0; i < kAdaptTrials; ++i) {
+    const std::shared_ptr<const st::PolicySource> table = policy.current();
+    const st::BestStart best = table->table->bestStart(start);
+    const st::SteeringPolicy control = [&table](const st::TipPose& pose, int) {
+      return table->table->lookup(pose).control;
+    };
+    const st::Trial t = st::simulateTrial(world, best.best.pose, control, kAdaptSeed + i, trial_options);
+    out.successes += t.success() ? 1 : 0;
+    ++out.trials;
+    // A failing step ends at the contact point, not after a whole arc: not a deflection sample.
+    const std::size_t complete = t.success() || t.outcome == st::TrialOutcome::kStepLimit
+                                     ? t.controls.size()
+                                     : t.controls.size() - std::min<std::size_t>(1, t.controls.size());
+    for (std::size_t j = 0; j < complete; ++j) {
+      policy.observe(t.path[j], t.path[j + 1], t.controls[j]);
+    }
+    policy.waitAndSwap();
+    if (i + 1 == kEstimateAfterTrials) {
+      const st::SigmaEstimate ei = policy.estimator().estimate(st::Control::kInsert);
+      const st::SigmaEstimate er = policy.estimator().estimate(st::Control::kFlip);
+      out.sigma_i_error_pct = 100.0 * std::abs(ei.sigma_rad / truth.params.sigma_insert_rad - 1.0);
+      out.sigma_r_error_pct =
+          er.samples > 0 ? 100.0 * std::abs(er.sigma_rad / truth.params.sigma_flip_rad - 1.0) : NAN;
+    }
+    if (arm_name == "adaptive") {
+      const st::SigmaEstimate ei = policy.estimator().estimate(st::Control::kInsert);
+      const st::SigmaEstimate er = policy.estimator().estimate(st::Control::kFlip);
+      trajectory.addRow({scene_name, scale, double(i + 1), ei.sigma_rad * kDegPerRad,
+                         ei.low_rad * kDegPerRad, ei.high_rad * kDegPerRad,
+                         er.sigma_rad * kDegPerRad, policy.assumedSigma(st::Control::kInsert) * kDegPerRad,
+                         policy.assumedSigma(st::Control::kFlip) * kDegPerRad,
+                         truth.params.sigma_insert_rad * kDegPerRad});
+    }
+  }
+  out.ci = st::wilsonInterval(out.successes, out.trials);
+  out.resolves = static_cast<int>(policy.resolves().size());
+  for (const st::Resolve& r : policy.resolves()) {
+    out.resolve_s += r.seconds;
+  }
+  std::cout << "adaptation, " << scene_name << ", world sigma " << scale << "x, " << arm_name
+            << ": " << out.successes << " / " << out.trials << " [" << out.ci.low << ", "
+            << out.ci.high << "], " << out.resolves << " re-solves (" << out.resolve_s
+            << " s), sigma_i error after " << kEstimateAfterTrials << " trials "
+            << out.sigma_i_error_pct << " %\n"
+            << std::flush;
+  return out;
+}
+
+/// Fixed-sigma, adaptive and oracle arms at world sigma 0.5x, 1x and 2x the scene's.
+std::vector<Arm> adaptationExperiment(const std::string& scene_name,
+                                      const st::PolicySource& chosen,
+                                      const st::StartOptions& start, ng::report::Table& arms,
+                                      ng::report::Table& trajectory) {
+  const st::SteeringProblem problem = chosen.model->problem();
+  const auto assumed = solvedFor(problem);
+  std::vector<Arm> out;
+  for (double scale : {0.5, 1.0, 2.0}) {
+    st::SteeringProblem truth = problem;
+    truth.params.sigma_insert_rad *= scale;
+    truth.params.sigma_flip_rad *= scale;
+    const auto oracle = scale == 1.0 ? assumed : solvedFor(truth);
+    for (const char* arm : {"fixed", "adaptive", "oracle"}) {
+      out.push_back(runArm(scene_name, problem, start, scale, arm, assumed, oracle, trajectory));
+      const Arm& a = out.back();
+      arms.addRow({a.scene, a.arm, a.scale, double(a.successes), double(a.trials),
+                   double(a.successes) / double(a.trials), a.ci.low, a.ci.high, double(a.resolves),
+                   a.resolve_s, a.sigma_i_error_pct, a.sigma_r_error_pct});
+    }
+  }
+  return out;
+}
+
+const Arm& findArm(const std::vector<Arm>& arms, const std::string& name, double scale) {
+  for (const Arm& a : arms) {
+    if (a.arm == name && a.scale == scale) {
+      return a;
+    }
+  }
+  throw std::runtime_error("no arm " + name);
+}
+
+/// The adaptation keys of one scene (suffix "" or "_heldout").
+std::string adaptationJson(const std::vector<Arm>& arms, const std::string& suffix) {
+  std::ostringstream j;
+  auto interval = [](const Arm& a) {
+    return "[" + ng::report::jsonNumber(a.ci.low) + ", " + ng::report::jsonNumber(a.ci.high) + "]";
+  };
+  for (double scale : {0.5, 1.0, 2.0}) {
+    const std::string level = scale == 0.5 ? "0.5x" : scale == 1.0 ? "1x" : "2x";
+    for (const char* arm : {"adaptive", "fixed", "oracle"}) {
+      const Arm& a = findArm(arms, arm, scale);
+      j << ",\n  \"success_" << arm << "_" << level << suffix
+        << "\": " << ng::report::jsonNumber(double(a.successes) / double(a.trials)) << ",\n  \"success_"
+        << arm << "_" << level << suffix << "_ci\": " << interval(a);
+    }
+  }
+  const Arm& adaptive2 = findArm(arms, "adaptive", 2.0);
+  const Arm& fixed2 = findArm(arms, "fixed", 2.0);
+  const Arm& oracle2 = findArm(arms, "oracle", 2.0);
+  const double rate = double(adaptive2.successes) / double(adaptive2.trials);
+  j << ",\n  \"adaptive_beats_fixed_2x" << suffix
+    << "\": " << (adaptive2.ci.low > fixed2.ci.high ? "true" : "false")
+    << ",\n  \"adaptive_within_oracle_ci_2x" << suffix
+    << "\": " << (oracle2.ci.contains(rate) ? "true" : "false")
+    << ",\n  \"resolves_adaptive_2x" << suffix << "\": " << adaptive2.resolves
+    << ",\n  \"resolve_s_adaptive_2x" << suffix << "\": " << ng::report::jsonNumber(adaptive2.resolve_s)
+    << ",\n  \"sigma_estimate_error_pct" << suffix
+    << "\": " << ng::report::jsonNumber(adaptive2.sigma_i_error_pct)
+    << ",\n  \"sigma_flip_estimate_error_pct" << suffix
+    << "\": " << ng::report::jsonNumber(adaptive2.sigma_r_error_pct);
+  return j.str();
+}
+
+/// The adaptation experiment on the scene and, with its own selection and truth check, on the
+/// held-out workspace steering_heldout; writes adaptation.csv and sigma_trajectory.csv and
+/// returns the JSON keys.
+std::string adaptationAndHeldOut(const std::string& scene_name, const Selection& selected,
+                                 const st::StartOptions& start, ng::report::Table& selection_table,
+                                 const std::string& out_dir) {
+  ng::report::Table arms({"scene", "arm", "world_sigma_scale", "successes", "trials", "success",
+                          "ci_low", "ci_high", "resolves", "resolve_s", "sigma_i_error_pct_10",
+                          "sigma_r_error_pct_10"},
+                         6);
+  ng::report::Table trajectory({"scene", "world_sigma_scale", "trial", "sigma_i_deg",
+                                "sigma_i_low_deg", "sigma_i_high_deg", "sigma_r_deg",
+                                "assumed_sigma_i_deg", "assumed_sigma_r_deg", "true_sigma_i_deg"},
+                               6);
+  const auto chosen = solvedFor(selected.chosen);
+  const std::vector<Arm> main_arms = adaptationExperiment(scene_name, *chosen, start, arms, trajectory);
+  std::ostringstream keys;
+  keys << adaptationJson(main_arms, "");
+  // Held out: selection, truth check of the chosen model and the same experiment.
+  const ng::scene::Scene held = ng::scene::loadSceneSpec("steering_heldout");
+  const st::SteeringProblem held_problem = st::problemFromScene(held);
+  const st::StartOptions held_start = st::startOptionsFromScene(held);
+  const st::ContinuousWorkspace held_world(held_problem);
+  TruthCheck held_truth(held_world, entryStarts(held_problem, held_start, {8.0, 16.0, 25.0, 40.0, 55.0, 70.0}));
+  const Selection held_selected =
+      selectModel(held.name, held_problem, held_start, &held_truth, selection_table);
+  held_truth.writeCsv(out_dir + "/heldout_");
+  const TruthCheck::Summary held_default = held_truth.last();
+  const auto held_chosen = solvedFor(held_selected.chosen);
+  const std::vector<Arm> held_arms =
+      adaptationExperiment(held.name, *held_chosen, held_start, arms, trajectory);
+  keys << adaptationJson(held_arms, "_heldout")
+       << ",\n  \"mc_within_ci_fraction_default_heldout\": " << ng::report::jsonNumber(held_default.within)
+       << ",\n  \"ps_mean_abs_gap_default_heldout\": " << ng::report::jsonNumber(held_default.mean_abs_gap)
+       << ",\n  \"estimated_error_default_heldout\": " << ng::report::jsonNumber(held_selected.estimated_error)
+       << ",\n  \"grid_spacing_mm_default_heldout\": "
+       << ng::report::jsonNumber(held_selected.chosen.params.grid_spacing_m * kMmPerM);
+  arms.writeCsv(out_dir + "/adaptation.csv");
+  trajectory.writeCsv(out_dir + "/sigma_trajectory.csv");
+  std::cout << arms.toText();
+  return keys.str();
+}
 
 }  // namespace
 
@@ -260,11 +546,19 @@ int main(int argc, char** argv) {
     const st::SteeringProblem problem = st::problemFromScene(scene);
     const st::StartOptions start = st::startOptionsFromScene(scene);
     const double baseline_mb = peakMb();
-    // ---- the scene's own model (its Delta, s and transition model), first, so that the peak
-    // resident memory after it is its own ----
-    const Solved scene_model = solveAt(problem, problem.params.grid_spacing_m, 2, 1e-3, start,
-                                       problem.params.orientation_subdivision, kSolveRepeats,
-                                       problem.params.transition_model);
+    // ---- the scene's model as ps_tolerance chooses it, first, so that the peak resident memory
+    // after it is its own; every rung of the ladder checked against Monte Carlo ----
+    const st::ContinuousWorkspace world(problem);
+    ng::report::Table selection_table({"scene", "grid_spacing_mm", "states", "build_s", "solve_s",
+                                       "estimated_error", "mc_mean_abs_gap",
+                                       "mc_within_ci_fraction", "chosen"},
+                                      6);
+    TruthCheck selection_truth(world, entryStarts(problem, start, kTruthHeights_mm));
+    const Selection selected =
+        selectModel(scene.name, problem, start, &selection_truth, selection_table);
+    const Solved scene_model = solveAt(selected.chosen, selected.chosen.params.grid_spacing_m, 2,
+                                       1e-3, start, problem.params.orientation_subdivision,
+                                       kSolveRepeats, problem.params.transition_model);
     std::cout << "scene model (" << st::toString(scene_model.transition) << ", Delta "
               << scene_model.spacing_m * kMmPerM << " mm, s = " << scene_model.subdivision
               << "): " << scene_model.states << " states, build " << scene_model.build_s
@@ -365,19 +659,7 @@ int main(int argc, char** argv) {
     // start; the policy of each grid drives the continuous needle (exact arcs, continuous
     // deflections) from the same start states, at every grid spacing and, finer than 5.4.2,
     // with the orientation subdivided s = 2 and 4 times.
-    const st::ContinuousWorkspace world(problem);
-    std::vector<st::TipPose> mc_starts;
-    for (double y_mm : {5.0, 10.0, 15.0, 30.0, 54.0, 60.0, 80.0}) {
-      for (double theta_deg : {-18.0, 0.0, 18.0}) {
-        for (st::Bevel b : {st::Bevel::kLeft, st::Bevel::kRight}) {
-          st::TipPose pose;
-          pose.p_SceneTip = st::Point2(start.start_x_m, y_mm / kMmPerM);
-          pose.theta_rad = theta_deg / kDegPerRad;
-          pose.bevel = b;
-          mc_starts.push_back(pose);
-        }
-      }
-    }
+    std::vector<st::TipPose> mc_starts = entryStarts(problem, start, kTruthHeights_mm);
     mc_starts.push_back(run800k->best.best.pose);
     TruthCheck truth(world, mc_starts);
     for (const auto& r : runs) {
@@ -399,7 +681,11 @@ int main(int argc, char** argv) {
         truth.check(solveAt(problem, spacing, 2, 1e-3, start, subdivision, 1));
       }
     }
-    truth.writeCsv(args->out_dir);
+    truth.writeCsv(args->out_dir + "/");
+    selection_truth.writeCsv(args->out_dir + "/selection_");
+    const std::string adaptation_keys =
+        adaptationAndHeldOut(scene.name, selected, start, selection_table, args->out_dir);
+    selection_table.writeCsv(args->out_dir + "/selection.csv");
     const TruthCheck::Summary truth_best = truth.best();
     const double mc_seconds = truth.seconds();
     const std::int64_t mc_trials_total = truth.trials();
@@ -603,7 +889,11 @@ int main(int argc, char** argv) {
          << ",\n  \"noise_floor_default\": " << ng::report::jsonNumber(truth_default.noise_floor)
          << ",\n  \"solve_s_default\": " << ng::report::jsonNumber(scene_model.stats.seconds)
          << ",\n  \"build_s_default\": " << ng::report::jsonNumber(scene_model.build_s)
-         << ",\n  \"peak_mb_default\": " << ng::report::jsonNumber(scene_model.peak_mb) << "\n}\n";
+         << ",\n  \"peak_mb_default\": " << ng::report::jsonNumber(scene_model.peak_mb)
+         << ",\n  \"ps_tolerance_default\": " << ng::report::jsonNumber(problem.ps_tolerance)
+         << ",\n  \"estimated_error_default\": " << ng::report::jsonNumber(selected.estimated_error)
+         << ",\n  \"selection_s_default\": " << ng::report::jsonNumber(selected.selection_s)
+         << ",\n  \"selection_models_default\": " << selected.rungs << adaptation_keys << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(
         args->out_dir + "/plot.json",
@@ -625,6 +915,12 @@ int main(int argc, char** argv) {
   "title": "Predicted P_s vs Monte Carlo, 10,000 trials per start (s = 1)", "png": "truth_check.png"},
  {"csv": "baseline.csv", "x": "mean_steps", "y": "ps", "group": "policy", "points": true,
   "title": "P_s from the best start (Monte Carlo, 10,000 trials): MDP vs shortest path", "png": "baseline.png"},
+ {"csv": "selection.csv", "x": "estimated_error", "y": "mc_mean_abs_gap", "group": "scene", "points": true, "annotate": "grid_spacing_mm",
+  "title": "ps_tolerance ladder: the solver's error estimate vs the Monte Carlo gap (label: Delta mm)", "png": "selection.png"},
+ {"csv": "adaptation.csv", "x": "world_sigma_scale", "y": "success", "group": "arm", "points": true,
+  "title": "Closed loop, 300 trials per arm: fixed sigma vs adaptive vs oracle (both scenes)", "png": "adaptation.png"},
+ {"csv": "sigma_trajectory.csv", "x": "trial", "y": "sigma_i_deg", "group": "world_sigma_scale",
+  "title": "Adaptive arm: learned sigma_i after each trial", "png": "sigma_trajectory.png"},
  {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
   "title": "P_s of start states on the entry line (figure 5.7 slices, best bevel)", "png": "start_surface.png"}])json");
     std::cout << scaling.toText() << eps_table.toText() << resolution.toText()

@@ -28,11 +28,6 @@ public:
   bool run();
 
 private:
-  /// The policy table of the problem: steering_policy's saved file when it has one for this
-  /// problem (by hash), else solved here. Second: "loaded" | "solved".
-  std::pair<steering::PolicyTable, std::string> policyTable(
-      const std::string& scene_name, const steering::SteeringProblem& problem) const;
-
   ros::NodeHandle nh_;
   std::string scene_spec_;
   std::string target_;

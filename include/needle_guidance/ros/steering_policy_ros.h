@@ -68,8 +68,6 @@ private:
   bool onBestStart(BestStart::Request& req, BestStart::Response& res);
   /// Publishes ~ps_map and ~best_start_marker for table_ (which must be set).
   void publishMaps();
-  /// The table file of this node's problem; "" when ~table_dir is "".
-  std::string tablePath() const;
 
   Settings settings_;
   std::string scene_name_;
@@ -77,6 +75,9 @@ private:
   std::unique_ptr<const steering::SteeringModel> model_;
   std::unique_ptr<const steering::PolicyTable> table_;
   std::string table_source_;  ///< how table_ was made: solved | loaded
+  steering::SteeringProblem problem_;  ///< the scene's, with its ps_tolerance
+  std::string description_;            ///< model, estimated error and time of table_
+  double estimated_error_ = 0.0;       ///< NaN when not estimated (ps_tolerance 0)
   ros::Publisher control_pub_;
   ros::Publisher ps_map_pub_;
   ros::Publisher best_start_pub_;
