@@ -35,8 +35,11 @@ constexpr double kProbabilityTol = 1e-6;   ///< P_s of the look-up vs the best s
 constexpr double kStepTol_m = 1e-12;       ///< step_length_m vs 2 pi r / N_c
 constexpr double kRadius_m = 0.05;         ///< steering_workspace: r = 5 cm
 constexpr int kOrientations = 40;          ///< N_c
-constexpr long kStates = 4839360;          ///< 142 x 142 x (40 x 3) x 2 (0.7 mm, s = 3)
-constexpr std::size_t kPositions = 20164;  ///< 142 x 142 (0.7 mm)
+/// The scene's ps_tolerance 0.005 picks 1.4 mm / sqrt(2)^2 = 0.7 mm (s = 3).
+constexpr long kStates = 4839360;          ///< 142 x 142 x (40 x 3) x 2
+constexpr std::size_t kPositions = 20164;  ///< 142 x 142
+constexpr double kChosenSpacing_m = 0.7e-3;
+constexpr double kSceneTolerance = 0.005;  ///< steering.ps_tolerance of steering_workspace
 const std::string kFirst = "/steering_policy";
 const std::string kSecond = "/second/steering_policy";
 const ros::Duration kServiceWait(60.0);
@@ -253,6 +256,11 @@ TEST(SteeringPolicy, SolveIsCachedUnlessForced) {
   EXPECT_EQ(cached.source, "cached") << cached.message;
   EXPECT_EQ(cached.states, kStates);
   EXPECT_GT(cached.sweeps, 0);
+  // The model was chosen by the scene's ps_tolerance, and the answer says which and how good.
+  EXPECT_NEAR(cached.grid_spacing_m, kChosenSpacing_m, 1e-9);
+  EXPECT_LE(cached.estimated_ps_error, kSceneTolerance);
+  EXPECT_GT(cached.estimated_ps_error, 0.0);
+  EXPECT_NE(cached.model.find("estimated P_s error"), std::string::npos) << cached.model;
 
   const float before = bestStart(kFirst).probability_of_success;
   const SolvePolicy::Response forced = solve(kFirst, 0.0, true);
