@@ -258,12 +258,12 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
                                        << " states, solved in " << rung.solve_s
                                        << " s, estimated mean P_s error " << rung.estimated_error);
     }
+    description_ = p.description();  // before the model moves out
+    estimated_error_ = p.estimated_error;
     model_ = std::move(p.model);
     table_ = std::move(p.table);
     out.source = p.source;
     table_source_ = out.source;
-    description_ = p.description();
-    estimated_error_ = p.estimated_error;
     out.success = true;
     out.sweeps = table_->sweeps();
     out.seconds = secondsSince(t0);

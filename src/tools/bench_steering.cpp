@@ -724,8 +724,10 @@ int main(int argc, char** argv) {
     baseline.writeCsv(args->out_dir + "/baseline.csv");
 
     // ---- epsilon: sweeps and time against the error in P_s (speed against error) ----
-    st::SteeringProblem p800k = problem;
+    st::SteeringProblem p800k = problem;  // the dissertation's model, as run800k was solved
     p800k.params.grid_spacing_m = kSpacing800k_m;
+    p800k.params.orientation_subdivision = 1;
+    p800k.params.transition_model = st::TransitionModel::kRounded;
     const st::SteeringModel model800k(p800k, 2);
     const double reference_epsilon = args->quick ? 1e-6 : 1e-7;
     st::SolverOptions tight;
