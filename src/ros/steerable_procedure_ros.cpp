@@ -4,10 +4,10 @@
 
 #include <algorithm>
 #include <chrono>
-#include <functional>
 #include <cmath>
 #include <condition_variable>
 #include <filesystem>
+#include <functional>
 #include <iostream>
 #include <mutex>
 #include <optional>
@@ -20,14 +20,14 @@
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SetEntryPose.h"
 #include "needle_guidance/SteeringControl.h"
+#include "needle_guidance/report/output_path.h"
 #include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
-#include "needle_guidance/steering/model_selection.h"
 #include "needle_guidance/ros/node_supervisor.h"
-#include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/continuous_workspace.h"
+#include "needle_guidance/steering/model_selection.h"
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/value_iteration.h"
 
@@ -169,10 +169,12 @@ SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
       ros_params::integer(private_nh, "max_unconfident_controls", 10, 0, 1000, "controls"));
   feedback_ = ros_params::text(private_nh, "feedback", "ground_truth");
   // The nodes the run depends on (the launch file adds imager and tip_tracker with images).
-  const std::string watch = ros_params::text(private_nh, "watch_nodes", robot_ns_ + "," + policy_ns_);
+  const std::string watch =
+      ros_params::text(private_nh, "watch_nodes", robot_ns_ + "," + policy_ns_);
   for (std::size_t a = 0; a < watch.size();) {
     const std::size_t b = std::min(watch.find(',', a), watch.size());
-    if (b > a) watch_nodes_.push_back(watch.substr(a, b - a));
+    if (b > a)
+      watch_nodes_.push_back(watch.substr(a, b - a));
     a = b + 1;
   }
   // Fail now, not after the robot has moved, if the scene cannot be steered.
@@ -226,9 +228,8 @@ bool SteerableProcedureRos::run() {
     ROS_FATAL_STREAM("steerable_procedure: no policy table: " << policy.status().toString());
     return false;
   }
-  ROS_INFO_STREAM("steerable_procedure: model " << policy.value().description()
-                                                << " (ps_tolerance " << problem.ps_tolerance
-                                                << ")");
+  ROS_INFO_STREAM("steerable_procedure: model " << policy.value().description() << " (ps_tolerance "
+                                                << problem.ps_tolerance << ")");
   const steering::PolicyTable& table = *policy.value().table;
   const std::string table_source = policy.value().source;
   const double estimated_error = policy.value().estimated_error;
@@ -581,8 +582,7 @@ bool SteerableProcedureRos::run() {
             << " mm, theta = " << start.theta_rad * kDegPerRad << " deg, bevel "
             << best.response.bevel << "; " << wall_s << " s; report in " << report_dir_ << "\n"
             << (errored > 0 ? std::to_string(errored) + " errored trial(s), not counted\n" : "")
-            << (cause.empty() ? "" : "FAIL: " + cause + "\n")
-            << std::flush;
+            << (cause.empty() ? "" : "FAIL: " + cause + "\n") << std::flush;
   return success;
 }
 

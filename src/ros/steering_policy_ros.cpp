@@ -181,6 +181,7 @@ SteeringPolicyRos::SteeringPolicyRos(ros::NodeHandle& nh, ros::NodeHandle& priva
       ros_params::rosHomePath(ros_params::text(private_nh, "table_dir", "steering_tables"));
   settings_.solve_on_start =
       ros_params::flag(private_nh, "solve_on_start", settings_.solve_on_start);
+  settings_.adapt_noise = ros_params::flag(private_nh, "adapt_noise", settings_.adapt_noise);
 
   const scene::Scene scene = scene::loadSceneSpec(settings_.scene);
   scene_name_ = scene.name;
@@ -260,15 +261,23 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
     }
     description_ = p.description();  // before the model moves out
     estimated_error_ = p.estimated_error;
-    model_ = std::move(p.model);
-    table_ = std::move(p.table);
     out.source = p.source;
+    const std::string note = p.note;
+    const auto source = std::make_shared<const st::PolicySource>(std::move(p));
+    adopt(source);
+    if (settings_.adapt_noise) {
+      st::AdaptationOptions adaptation;
+      adaptation.solver = options.solver;
+      adaptation.threads = settings_.threads;
+      adaptive_ = std::make_unique<st::AdaptivePolicy>(problem_, source, adaptation);
+      last_ = LastAnswer{};
+    }
     table_source_ = out.source;
     out.success = true;
     out.sweeps = table_->sweeps();
     out.seconds = secondsSince(t0);
     out.message = out.source + " (epsilon " + formatNumber(table_->epsilon()) + ")" +
-                  (p.note.empty() ? "" : ", " + p.note);
+                  (note.empty() ? "" : ", " + note);
     ROS_INFO_STREAM_NAMED(kName, "steering_policy: table " << out.source << ": " << description_
                                                            << ", " << out.sweeps << " sweeps");
   } catch (const std::exception& e) {
@@ -292,6 +301,44 @@ void SteeringPolicyRos::publishMaps() {
   const st::BestStart best = table_->bestStart(start_options_);
   best_start_pub_.publish(bestStartMarker(best));
   ROS_INFO_STREAM_NAMED(kName, "steering_policy: " << best.toString());
+}
+
+void SteeringPolicyRos::adopt(const std::shared_ptr<const st::PolicySource>& source) {
+  model_ = std::shared_ptr<const st::SteeringModel>(source, source->model.get());
+  table_ = std::shared_ptr<const st::PolicyTable>(source, source->table.get());
+}
+
+void SteeringPolicyRos::learnFrom(const NeedleTip& tip, const st::TipPose& pose) {
+  if (!adaptive_) {
+    return;
+  }
+  const double delta = model_->arcLength_m();
+  const bool whole_step =
+      last_.valid &&
+      std::abs(tip.inserted_length_m - last_.inserted_length_m - delta) <= 0.1 * delta &&
+      pose.bevel ==
+          (last_.control == st::Control::kFlip ? st::flipped(last_.pose.bevel) : last_.pose.bevel);
+  if (whole_step) {
+    const bool was_solving = adaptive_->solving();
+    adaptive_->observe(last_.pose, pose, last_.control);
+    if (!was_solving && adaptive_->solving()) {
+      const st::Resolve& r = adaptive_->resolves().back();
+      ROS_INFO_STREAM_NAMED(kName, "steering_policy: learned noise left the assumed interval after "
+                                       << r.requested_at_step << " steps; re-solving for sigma_i = "
+                                       << r.sigma_insert_rad * 180.0 / M_PI
+                                       << " deg, sigma_r = " << r.sigma_flip_rad * 180.0 / M_PI
+                                       << " deg (the current table answers meanwhile)");
+    }
+  }
+  if (adaptive_->poll()) {
+    adopt(adaptive_->current());
+    const st::Resolve& r = adaptive_->resolves().back();
+    description_ = adaptive_->current()->description();
+    ROS_INFO_STREAM_NAMED(kName, "steering_policy: re-solved table swapped in ("
+                                     << (r.cached ? "cached" : formatNumber(r.seconds, 3) + " s")
+                                     << "): " << description_);
+    publishMaps();
+  }
 }
 
 void SteeringPolicyRos::onTip(const NeedleTipConstPtr& msg) {
@@ -330,7 +377,14 @@ void SteeringPolicyRos::onTip(const NeedleTipConstPtr& msg) {
     pose.p_SceneTip = geometry::Point2(msg->pose.x, msg->pose.y);
     pose.theta_rad = msg->pose.theta;
     pose.bevel = *bevel;
-    control_pub_.publish(toMessage(*msg, table_->lookup(pose), model_->arcLength_m()));
+    learnFrom(*msg, pose);
+    const st::ControlLookup answer = table_->lookup(pose);
+    control_pub_.publish(toMessage(*msg, answer, model_->arcLength_m()));
+    // Only tips the robot or an image vouches for teach the noise.
+    last_.valid = answer && (msg->source == "ground_truth" || msg->confident);
+    last_.pose = pose;
+    last_.inserted_length_m = msg->inserted_length_m;
+    last_.control = answer.control;
   } catch (const std::exception& e) {
     ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
                                     "steering_policy: tip not answered: " << e.what());

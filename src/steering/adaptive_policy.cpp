@@ -44,7 +44,9 @@ double AdaptivePolicy::assumedSigma(Control control) const {
                                      : problem_.params.sigma_flip_rad;
 }
 
-bool AdaptivePolicy::solving() const { return pending_.valid(); }
+bool AdaptivePolicy::solving() const {
+  return pending_.valid();
+}
 
 void AdaptivePolicy::observe(const TipPose& before, const TipPose& after, Control control) {
   const double delta = current()->model->arcLength_m();

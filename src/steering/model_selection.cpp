@@ -4,9 +4,9 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cmath>
 #include <filesystem>
 #include <fstream>
-#include <cmath>
 #include <limits>
 #include <sstream>
 #include <stdexcept>
@@ -41,19 +41,20 @@ double secondsSince(std::chrono::steady_clock::time_point t0) {
 std::string ModelChoice::toString() const {
   std::ostringstream out;
   const SteeringParams& p = problem.params;
-  out << steering::toString(p.transition_model) << ", grid " << formatNumber(p.grid_spacing_m * 1e3, 3)
-      << " mm, s = " << p.orientation_subdivision << ", " << (model ? model->numStates() : 0)
-      << " states; estimated mean P_s error " << formatNumber(estimated_error, 2)
-      << " (change from the " << ladder.size() - 1 << " coarser model(s)); " << ladder.size()
-      << " model(s) solved in " << formatNumber(total_s, 3) << " s";
+  out << steering::toString(p.transition_model) << ", grid "
+      << formatNumber(p.grid_spacing_m * 1e3, 3) << " mm, s = " << p.orientation_subdivision << ", "
+      << (model ? model->numStates() : 0) << " states; estimated mean P_s error "
+      << formatNumber(estimated_error, 2) << " (change from the " << ladder.size() - 1
+      << " coarser model(s)); " << ladder.size() << " model(s) solved in "
+      << formatNumber(total_s, 3) << " s";
   return out.str();
 }
 
 double estimatedModelMb(const SteeringProblem& problem) {
   const SteeringParams& p = problem.params;
   const auto size = problem.workspace_max - problem.workspace_min;
-  const double positions =
-      std::floor(size.x() / p.grid_spacing_m + 1e-9) * std::floor(size.y() / p.grid_spacing_m + 1e-9);
+  const double positions = std::floor(size.x() / p.grid_spacing_m + 1e-9) *
+                           std::floor(size.y() / p.grid_spacing_m + 1e-9);
   const double states = positions * 2.0 * p.orientations * p.orientation_subdivision;
   return kBaseMb + states * kBytesPerState / (1024.0 * 1024.0);
 }
@@ -108,8 +109,8 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
     if (mb > options.memory_limit_mb) {
       std::ostringstream why;
       why << "ps_tolerance " << formatNumber(options.ps_tolerance, 4)
-          << " cannot be met within the memory limit of " << formatNumber(options.memory_limit_mb, 4)
-          << " MB: the finest model that fits (grid "
+          << " cannot be met within the memory limit of "
+          << formatNumber(options.memory_limit_mb, 4) << " MB: the finest model that fits (grid "
           << formatNumber(spacing * kRatio * 1e3, 3) << " mm) has an estimated mean P_s error of "
           << (choice.ladder.empty() ? std::string("(none)")
                                     : formatNumber(choice.ladder.back().estimated_error, 2))
@@ -146,8 +147,8 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
   }
   std::ostringstream why;
   why << "ps_tolerance " << formatNumber(options.ps_tolerance, 4) << " not met within "
-      << options.max_steps << " refinements of grid " << formatNumber(problem.params.grid_spacing_m * 1e3, 3)
-      << " mm: the finest estimate is "
+      << options.max_steps << " refinements of grid "
+      << formatNumber(problem.params.grid_spacing_m * 1e3, 3) << " mm: the finest estimate is "
       << formatNumber(choice.ladder.back().estimated_error, 2);
   return GeneralStatus(StatusCode::kRefused, why.str());
 }
@@ -161,7 +162,8 @@ namespace {
 std::string choicePath(const std::string& table_dir, const std::string& scene_name,
                        const SteeringProblem& problem) {
   std::string name = PolicyTable::fileName(scene_name, problemHash(problem));
-  name = name.substr(0, name.size() - 6) + "_tol" + formatNumber(problem.ps_tolerance, 6) + ".choice";
+  name =
+      name.substr(0, name.size() - 6) + "_tol" + formatNumber(problem.ps_tolerance, 6) + ".choice";
   return (std::filesystem::path(table_dir) / name).string();
 }
 
@@ -207,7 +209,8 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
   out.estimated_error = std::numeric_limits<double>::quiet_NaN();
   SteeringProblem chosen = problem;
   const bool select = problem.ps_tolerance > 0.0;
-  const std::string record = select && !table_dir.empty() ? choicePath(table_dir, scene_name, problem) : "";
+  const std::string record =
+      select && !table_dir.empty() ? choicePath(table_dir, scene_name, problem) : "";
   if (!force && !table_dir.empty()) {
     bool known = !select;
     if (select) {
@@ -225,8 +228,10 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
       auto model = std::make_unique<const SteeringModel>(chosen, options.threads);
       LoadStatus status;
       const std::string path =
-          (std::filesystem::path(table_dir) / PolicyTable::fileName(scene_name, model->hash())).string();
-      std::optional<PolicyTable> loaded = PolicyTable::load(path, model->hash(), status, options.solver.epsilon);
+          (std::filesystem::path(table_dir) / PolicyTable::fileName(scene_name, model->hash()))
+              .string();
+      std::optional<PolicyTable> loaded =
+          PolicyTable::load(path, model->hash(), status, options.solver.epsilon);
       if (loaded && loaded->converged()) {
         out.model = std::move(model);
         out.table = std::make_unique<const PolicyTable>(std::move(*loaded));
@@ -249,18 +254,19 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
   } else {
     out.model = std::make_unique<const SteeringModel>(chosen, options.threads);
     SolveStats stats;
-    out.table = std::make_unique<const PolicyTable>(solveValueIteration(*out.model, options.solver, &stats));
+    out.table = std::make_unique<const PolicyTable>(
+        solveValueIteration(*out.model, options.solver, &stats));
   }
   if (!out.table->converged()) {
-    return GeneralStatus(StatusCode::kFailed,
-                         "value iteration did not converge to epsilon " +
-                             formatNumber(options.solver.epsilon) + " in " +
-                             std::to_string(out.table->sweeps()) + " sweeps");
+    return GeneralStatus(StatusCode::kFailed, "value iteration did not converge to epsilon " +
+                                                  formatNumber(options.solver.epsilon) + " in " +
+                                                  std::to_string(out.table->sweeps()) + " sweeps");
   }
   out.source = "solved";
   if (!table_dir.empty()) {
     const std::string path =
-        (std::filesystem::path(table_dir) / PolicyTable::fileName(scene_name, out.model->hash())).string();
+        (std::filesystem::path(table_dir) / PolicyTable::fileName(scene_name, out.model->hash()))
+            .string();
     try {
       saveTableAtomically(*out.table, path);
       if (select) {
@@ -273,7 +279,8 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
       }
       out.note = "saved to '" + path + "'";
     } catch (const std::exception& e) {
-      out.note = std::string("not saved: ") + e.what();  // the table is good; only the cache is missing
+      out.note =
+          std::string("not saved: ") + e.what();  // the table is good; only the cache is missing
     }
   }
   out.seconds = secondsSince(t0);

@@ -34,7 +34,7 @@ struct Context {
   const StencilEntry* const* stencil_begin = nullptr;  // per (b * nc + k) * 2 + u, plus end
   const StencilEntry* const* stencil_end = nullptr;
   bool split = false;  // kInterpolated: positions off the fast path use expectedSplit
-  const struct ArcTables* arcs = nullptr;  // kInterpolated: per-arc corners, per-slot deflections
+  const struct ArcTables* arcs = nullptr;   // kInterpolated: per-arc corners, per-slot deflections
   struct ChangeTracker* changes = nullptr;  // null: every free position is updated every sweep
 };
 
@@ -48,9 +48,9 @@ struct Context {
 /// snapshot), so the result does not depend on timing.
 struct ChangeTracker {
   float skip_below = 0.0f;
-  std::vector<float> previous;  // per position: max |change| in the previous sweep
-  std::vector<float> current;   // per position: max |change| so far in this sweep
-  std::vector<float> pending;   // per position: bound on its change since its last update
+  std::vector<float> previous;          // per position: max |change| in the previous sweep
+  std::vector<float> current;           // per position: max |change| so far in this sweep
+  std::vector<float> pending;           // per position: bound on its change since its last update
   std::vector<std::int32_t> succ_dpos;  // distinct successor positions: index offset
   std::vector<std::int16_t> succ_dx, succ_dy;
 
@@ -304,9 +304,8 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
       if (c.cells[pos] != static_cast<std::uint8_t>(Cell::kFree)) {
         continue;  // absorbing (5.4.2)
       }
-      if (c.changes != nullptr &&
-          !c.changes->due(g, pos, ix, iy, use_snapshot ? band.row_begin : 0,
-                          use_snapshot ? band.row_end : g.ny)) {
+      if (c.changes != nullptr && !c.changes->due(g, pos, ix, iy, use_snapshot ? band.row_begin : 0,
+                                                  use_snapshot ? band.row_end : g.ny)) {
         max_change = std::max(max_change, c.changes->pending[static_cast<std::size_t>(pos)]);
         continue;  // its values would move by less than skip_below
       }

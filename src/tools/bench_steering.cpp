@@ -105,8 +105,8 @@ Solved solveAt(const st::SteeringProblem& base, double spacing_m, int threads, d
   options.epsilon = epsilon;
   std::vector<double> seconds;
   for (int i = 0; i < repeats; ++i) {
-    out.table =
-        std::make_unique<const st::PolicyTable>(st::solveValueIteration(model, options, &out.stats));
+    out.table = std::make_unique<const st::PolicyTable>(
+        st::solveValueIteration(model, options, &out.stats));
     seconds.push_back(out.stats.seconds);
   }
   std::sort(seconds.begin(), seconds.end());
@@ -252,12 +252,12 @@ private:
   std::int64_t trials_ = 0;
 };
 
-
 // ---- the model chosen by ps_tolerance, checked against Monte Carlo (issue 21) ----
 
 /// The truth check's start states on a scene's entry line: heights at the given fractions of
 /// the start range, angles -18, 0, 18 degrees, both bevels.
-std::vector<st::TipPose> entryStarts(const st::SteeringProblem& problem, const st::StartOptions& start,
+std::vector<st::TipPose> entryStarts(const st::SteeringProblem& problem,
+                                     const st::StartOptions& start,
                                      const std::vector<double>& y_mm) {
   std::vector<st::TipPose> poses;
   for (double y : y_mm) {
@@ -308,10 +308,9 @@ Selection selectModel(const std::string& scene_name, const st::SteeringProblem& 
   for (const st::ModelRung& rung : r.value().ladder) {
     double within = NAN, gap = NAN;
     if (truth != nullptr) {
-      const TruthCheck::Summary sum =
-          truth->check(solveAt(problem, rung.grid_spacing_m, 2, 1e-3, start,
-                               problem.params.orientation_subdivision, 1,
-                               problem.params.transition_model));
+      const TruthCheck::Summary sum = truth->check(
+          solveAt(problem, rung.grid_spacing_m, 2, 1e-3, start,
+                  problem.params.orientation_subdivision, 1, problem.params.transition_model));
       within = sum.within;
       gap = sum.mean_abs_gap;
     }
@@ -333,8 +332,8 @@ constexpr int kEstimateAfterTrials = 10;
 
 struct Arm {
   std::string scene;
-  std::string arm;      ///< fixed | adaptive | oracle
-  double scale = 1.0;   ///< world sigma / scene sigma
+  std::string arm;     ///< fixed | adaptive | oracle
+  double scale = 1.0;  ///< world sigma / scene sigma
   std::int64_t successes = 0;
   std::int64_t trials = 0;
   st::Interval ci;
@@ -381,13 +380,15 @@ Arm runArm(const std::string& scene_name, const st::SteeringProblem& problem,
     const st::SteeringPolicy control = [&table](const st::TipPose& pose, int) {
       return table->table->lookup(pose).control;
     };
-    const st::Trial t = st::simulateTrial(world, best.best.pose, control, kAdaptSeed + i, trial_options);
+    const st::Trial t =
+        st::simulateTrial(world, best.best.pose, control, kAdaptSeed + i, trial_options);
     out.successes += t.success() ? 1 : 0;
     ++out.trials;
     // A failing step ends at the contact point, not after a whole arc: not a deflection sample.
-    const std::size_t complete = t.success() || t.outcome == st::TrialOutcome::kStepLimit
-                                     ? t.controls.size()
-                                     : t.controls.size() - std::min<std::size_t>(1, t.controls.size());
+    const std::size_t complete =
+        t.success() || t.outcome == st::TrialOutcome::kStepLimit
+            ? t.controls.size()
+            : t.controls.size() - std::min<std::size_t>(1, t.controls.size());
     for (std::size_t j = 0; j < complete; ++j) {
       policy.observe(t.path[j], t.path[j + 1], t.controls[j]);
     }
@@ -404,7 +405,8 @@ Arm runArm(const std::string& scene_name, const st::SteeringProblem& problem,
       const st::SigmaEstimate er = policy.estimator().estimate(st::Control::kFlip);
       trajectory.addRow({scene_name, scale, double(i + 1), ei.sigma_rad * kDegPerRad,
                          ei.low_rad * kDegPerRad, ei.high_rad * kDegPerRad,
-                         er.sigma_rad * kDegPerRad, policy.assumedSigma(st::Control::kInsert) * kDegPerRad,
+                         er.sigma_rad * kDegPerRad,
+                         policy.assumedSigma(st::Control::kInsert) * kDegPerRad,
                          policy.assumedSigma(st::Control::kFlip) * kDegPerRad,
                          truth.params.sigma_insert_rad * kDegPerRad});
     }
@@ -424,8 +426,7 @@ Arm runArm(const std::string& scene_name, const st::SteeringProblem& problem,
 }
 
 /// Fixed-sigma, adaptive and oracle arms at world sigma 0.5x, 1x and 2x the scene's.
-std::vector<Arm> adaptationExperiment(const std::string& scene_name,
-                                      const st::PolicySource& chosen,
+std::vector<Arm> adaptationExperiment(const std::string& scene_name, const st::PolicySource& chosen,
                                       const st::StartOptions& start, ng::report::Table& arms,
                                       ng::report::Table& trajectory) {
   const st::SteeringProblem problem = chosen.model->problem();
@@ -467,8 +468,8 @@ std::string adaptationJson(const std::vector<Arm>& arms, const std::string& suff
     for (const char* arm : {"adaptive", "fixed", "oracle"}) {
       const Arm& a = findArm(arms, arm, scale);
       j << ",\n  \"success_" << arm << "_" << level << suffix
-        << "\": " << ng::report::jsonNumber(double(a.successes) / double(a.trials)) << ",\n  \"success_"
-        << arm << "_" << level << suffix << "_ci\": " << interval(a);
+        << "\": " << ng::report::jsonNumber(double(a.successes) / double(a.trials))
+        << ",\n  \"success_" << arm << "_" << level << suffix << "_ci\": " << interval(a);
     }
   }
   const Arm& adaptive2 = findArm(arms, "adaptive", 2.0);
@@ -478,11 +479,10 @@ std::string adaptationJson(const std::vector<Arm>& arms, const std::string& suff
   j << ",\n  \"adaptive_beats_fixed_2x" << suffix
     << "\": " << (adaptive2.ci.low > fixed2.ci.high ? "true" : "false")
     << ",\n  \"adaptive_within_oracle_ci_2x" << suffix
-    << "\": " << (oracle2.ci.contains(rate) ? "true" : "false")
-    << ",\n  \"resolves_adaptive_2x" << suffix << "\": " << adaptive2.resolves
-    << ",\n  \"resolve_s_adaptive_2x" << suffix << "\": " << ng::report::jsonNumber(adaptive2.resolve_s)
-    << ",\n  \"sigma_estimate_error_pct" << suffix
-    << "\": " << ng::report::jsonNumber(adaptive2.sigma_i_error_pct)
+    << "\": " << (oracle2.ci.contains(rate) ? "true" : "false") << ",\n  \"resolves_adaptive_2x"
+    << suffix << "\": " << adaptive2.resolves << ",\n  \"resolve_s_adaptive_2x" << suffix
+    << "\": " << ng::report::jsonNumber(adaptive2.resolve_s) << ",\n  \"sigma_estimate_error_pct"
+    << suffix << "\": " << ng::report::jsonNumber(adaptive2.sigma_i_error_pct)
     << ",\n  \"sigma_flip_estimate_error_pct" << suffix
     << "\": " << ng::report::jsonNumber(adaptive2.sigma_r_error_pct);
   return j.str();
@@ -494,16 +494,17 @@ std::string adaptationJson(const std::vector<Arm>& arms, const std::string& suff
 std::string adaptationAndHeldOut(const std::string& scene_name, const Selection& selected,
                                  const st::StartOptions& start, ng::report::Table& selection_table,
                                  const std::string& out_dir) {
-  ng::report::Table arms({"scene", "arm", "world_sigma_scale", "successes", "trials", "success",
-                          "ci_low", "ci_high", "resolves", "resolve_s", "sigma_i_error_pct_10",
-                          "sigma_r_error_pct_10"},
-                         6);
-  ng::report::Table trajectory({"scene", "world_sigma_scale", "trial", "sigma_i_deg",
-                                "sigma_i_low_deg", "sigma_i_high_deg", "sigma_r_deg",
-                                "assumed_sigma_i_deg", "assumed_sigma_r_deg", "true_sigma_i_deg"},
-                               6);
+  ng::report::Table arms(
+      {"scene", "arm", "world_sigma_scale", "successes", "trials", "success", "ci_low", "ci_high",
+       "resolves", "resolve_s", "sigma_i_error_pct_10", "sigma_r_error_pct_10"},
+      6);
+  ng::report::Table trajectory(
+      {"scene", "world_sigma_scale", "trial", "sigma_i_deg", "sigma_i_low_deg", "sigma_i_high_deg",
+       "sigma_r_deg", "assumed_sigma_i_deg", "assumed_sigma_r_deg", "true_sigma_i_deg"},
+      6);
   const auto chosen = solvedFor(selected.chosen);
-  const std::vector<Arm> main_arms = adaptationExperiment(scene_name, *chosen, start, arms, trajectory);
+  const std::vector<Arm> main_arms =
+      adaptationExperiment(scene_name, *chosen, start, arms, trajectory);
   std::ostringstream keys;
   keys << adaptationJson(main_arms, "");
   // Held out: selection, truth check of the chosen model and the same experiment.
@@ -511,7 +512,8 @@ std::string adaptationAndHeldOut(const std::string& scene_name, const Selection&
   const st::SteeringProblem held_problem = st::problemFromScene(held);
   const st::StartOptions held_start = st::startOptionsFromScene(held);
   const st::ContinuousWorkspace held_world(held_problem);
-  TruthCheck held_truth(held_world, entryStarts(held_problem, held_start, {8.0, 16.0, 25.0, 40.0, 55.0, 70.0}));
+  TruthCheck held_truth(held_world,
+                        entryStarts(held_problem, held_start, {8.0, 16.0, 25.0, 40.0, 55.0, 70.0}));
   const Selection held_selected =
       selectModel(held.name, held_problem, held_start, &held_truth, selection_table);
   held_truth.writeCsv(out_dir + "/heldout_");
@@ -520,9 +522,12 @@ std::string adaptationAndHeldOut(const std::string& scene_name, const Selection&
   const std::vector<Arm> held_arms =
       adaptationExperiment(held.name, *held_chosen, held_start, arms, trajectory);
   keys << adaptationJson(held_arms, "_heldout")
-       << ",\n  \"mc_within_ci_fraction_default_heldout\": " << ng::report::jsonNumber(held_default.within)
-       << ",\n  \"ps_mean_abs_gap_default_heldout\": " << ng::report::jsonNumber(held_default.mean_abs_gap)
-       << ",\n  \"estimated_error_default_heldout\": " << ng::report::jsonNumber(held_selected.estimated_error)
+       << ",\n  \"mc_within_ci_fraction_default_heldout\": "
+       << ng::report::jsonNumber(held_default.within)
+       << ",\n  \"ps_mean_abs_gap_default_heldout\": "
+       << ng::report::jsonNumber(held_default.mean_abs_gap)
+       << ",\n  \"estimated_error_default_heldout\": "
+       << ng::report::jsonNumber(held_selected.estimated_error)
        << ",\n  \"grid_spacing_mm_default_heldout\": "
        << ng::report::jsonNumber(held_selected.chosen.params.grid_spacing_m * kMmPerM);
   arms.writeCsv(out_dir + "/adaptation.csv");
@@ -549,10 +554,10 @@ int main(int argc, char** argv) {
     // ---- the scene's model as ps_tolerance chooses it, first, so that the peak resident memory
     // after it is its own; every rung of the ladder checked against Monte Carlo ----
     const st::ContinuousWorkspace world(problem);
-    ng::report::Table selection_table({"scene", "grid_spacing_mm", "states", "build_s", "solve_s",
-                                       "estimated_error", "mc_mean_abs_gap",
-                                       "mc_within_ci_fraction", "chosen"},
-                                      6);
+    ng::report::Table selection_table(
+        {"scene", "grid_spacing_mm", "states", "build_s", "solve_s", "estimated_error",
+         "mc_mean_abs_gap", "mc_within_ci_fraction", "chosen"},
+        6);
     TruthCheck selection_truth(world, entryStarts(problem, start, kTruthHeights_mm));
     const Selection selected =
         selectModel(scene.name, problem, start, &selection_truth, selection_table);

@@ -236,9 +236,8 @@ TEST(SceneTest, BaseScenesParse) {
       "finer.yaml");
   EXPECT_EQ(finer.steering->orientation_subdivision, 2);
   EXPECT_NEAR(steering.steering->ps_tolerance, 0.01, 1e-12);  // the default (README)
-  const Scene fixed =
-      parseScene(edit(kSteeringBase, "orientations: 40", "orientations: 40\n  ps_tolerance: 0"),
-                 "fixed.yaml");
+  const Scene fixed = parseScene(
+      edit(kSteeringBase, "orientations: 40", "orientations: 40\n  ps_tolerance: 0"), "fixed.yaml");
   EXPECT_EQ(fixed.steering->ps_tolerance, 0.0);
 }
 

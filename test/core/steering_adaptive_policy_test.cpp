@@ -6,8 +6,8 @@
 #include <memory>
 #include <random>
 
-#include "needle_guidance/steering/adaptive_policy.h"
 #include "../steering_shapes.h"
+#include "needle_guidance/steering/adaptive_policy.h"
 
 namespace needle_guidance::steering {
 namespace {

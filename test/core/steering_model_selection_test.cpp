@@ -6,14 +6,15 @@
 #include <filesystem>
 #include <string>
 
+#include "../steering_shapes.h"
 #include "needle_guidance/steering/model_selection.h"
 #include "needle_guidance/steering/value_iteration.h"
-#include "../steering_shapes.h"
 
 namespace needle_guidance::steering {
 namespace {
 
 constexpr double kPi = 3.14159265358979323846;
+using test_shapes::entryLine;
 /// A problem with uncertainty and a wall, small enough to solve many times in a test: the open
 /// workspace with sigma_i = 5 deg, sigma_r = 10 deg and a block in front of the target.
 SteeringProblem noisyProblem(double spacing_m) {
@@ -23,14 +24,6 @@ SteeringProblem noisyProblem(double spacing_m) {
   p.params.transition_model = TransitionModel::kInterpolated;
   p.params.orientation_subdivision = 2;
   return p;
-}
-
-StartOptions entryLine() {
-  StartOptions s;
-  s.start_x_m = 0.0;
-  s.min_height_m = 0.0;
-  s.max_height_m = 0.1;
-  return s;
 }
 
 TEST(SolverSkipping, ValuesWithinTheSkipBoundOfTheFullSweeps) {
@@ -52,8 +45,10 @@ TEST(SolverSkipping, ValuesWithinTheSkipBoundOfTheFullSweeps) {
   }
   EXPECT_LE(worst, kAgreementTol);
   std::int64_t updates_all = 0, updates_skip = 0;
-  for (auto u : stats_all.updated_per_sweep) updates_all += u;
-  for (auto u : stats_skip.updated_per_sweep) updates_skip += u;
+  for (auto u : stats_all.updated_per_sweep)
+    updates_all += u;
+  for (auto u : stats_skip.updated_per_sweep)
+    updates_skip += u;
   EXPECT_LT(updates_skip, updates_all) << "skipping saved no position update";
 }
 

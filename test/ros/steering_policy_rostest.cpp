@@ -30,11 +30,11 @@ using needle_guidance::SolvePolicy;
 using needle_guidance::SteeringControl;
 
 constexpr double kPi = 3.14159265358979323846;
-constexpr double kEntryLineTol_m = 1e-9;   ///< best start x vs the entry line x = 0
-constexpr double kProbabilityTol = 1e-6;   ///< P_s of the look-up vs the best start's
-constexpr double kStepTol_m = 1e-12;       ///< step_length_m vs 2 pi r / N_c
-constexpr double kRadius_m = 0.05;         ///< steering_workspace: r = 5 cm
-constexpr int kOrientations = 40;          ///< N_c
+constexpr double kEntryLineTol_m = 1e-9;  ///< best start x vs the entry line x = 0
+constexpr double kProbabilityTol = 1e-6;  ///< P_s of the look-up vs the best start's
+constexpr double kStepTol_m = 1e-12;      ///< step_length_m vs 2 pi r / N_c
+constexpr double kRadius_m = 0.05;        ///< steering_workspace: r = 5 cm
+constexpr int kOrientations = 40;         ///< N_c
 /// The scene's ps_tolerance 0.005 picks 1.4 mm / sqrt(2)^2 = 0.7 mm (s = 3).
 constexpr long kStates = 4839360;          ///< 142 x 142 x (40 x 3) x 2
 constexpr std::size_t kPositions = 20164;  ///< 142 x 142

@@ -9,8 +9,8 @@
 #include <ros/ros.h>
 
 #include <string>
-#include <vector>
 #include <utility>
+#include <vector>
 
 #include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/steering/steering_model.h"

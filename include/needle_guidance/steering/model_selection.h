@@ -19,7 +19,7 @@
 namespace needle_guidance::steering {
 
 struct SelectionOptions {
-  double ps_tolerance = 0.005;  ///< mean |P_s error| wanted at the entry-line states, in (0, 1)
+  double ps_tolerance = 0.005;     ///< mean |P_s error| wanted at the entry-line states, in (0, 1)
   double memory_limit_mb = 500.0;  ///< refuse models whose estimated footprint exceeds this [MB]
   int max_steps = 8;               ///< rungs of the ladder at most (Delta_0 / sqrt(2)^7 finest)
   SolverOptions solver;            ///< for every solve
@@ -85,7 +85,7 @@ struct PolicySource {
   std::string source;  ///< "solved" | "loaded"
   /// The chosen model's estimated mean |P_s error| (NaN when ps_tolerance is 0: not estimated).
   double estimated_error = 0.0;
-  double seconds = 0.0;         ///< wall time of this call [s]
+  double seconds = 0.0;           ///< wall time of this call [s]
   std::vector<ModelRung> ladder;  ///< the rungs solved (empty when loaded or fixed)
   std::string note;               ///< where the table was saved, or why not
   /// "interpolated, grid 0.707 mm, s = 3, 4771440 states, estimated P_s error 0.0070, solved in
