@@ -925,7 +925,7 @@ int main(int argc, char** argv) {
  {"csv": "selection.csv", "x": "estimated_error", "y": "mc_mean_abs_gap", "group": "scene", "points": true, "annotate": "grid_spacing_mm",
   "title": "ps_tolerance ladder: the solver's error estimate vs the Monte Carlo gap (label: Delta mm)", "png": "selection.png"},
  {"csv": "adaptation.csv", "x": "world_sigma_scale", "y": "success", "group": "arm", "points": true,
-  "title": "Closed loop, 300 trials per arm: fixed sigma vs adaptive vs oracle (both scenes)", "png": "adaptation.png"},
+  "title": "300 closed-loop trials per arm (both scenes)", "png": "adaptation.png"},
  {"csv": "sigma_trajectory.csv", "x": "trial", "y": "sigma_i_deg", "group": "world_sigma_scale",
   "title": "Adaptive arm: learned sigma_i after each trial", "png": "sigma_trajectory.png"},
  {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
