@@ -174,7 +174,9 @@ std::string PolicySource::description() const {
   const SteeringParams& p = model->params();
   out << toString(p.transition_model) << ", grid " << formatNumber(p.grid_spacing_m * 1e3, 3)
       << " mm, s = " << p.orientation_subdivision << ", " << model->numStates()
-      << " states, estimated P_s error "
+      << " states, sigma_i " << formatNumber(p.sigma_insert_rad * 180.0 / kPi, 3)
+      << " deg, sigma_r " << formatNumber(p.sigma_flip_rad * 180.0 / kPi, 3)
+      << " deg, estimated P_s error "
       << (std::isnan(estimated_error) ? std::string("not estimated (ps_tolerance 0)")
                                       : formatNumber(estimated_error, 2))
       << ", " << source << " in " << formatNumber(seconds, 3) << " s";

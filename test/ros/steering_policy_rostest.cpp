@@ -13,6 +13,7 @@
 #include <filesystem>
 #include <limits>
 #include <optional>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -21,6 +22,7 @@
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SolvePolicy.h"
 #include "needle_guidance/SteeringControl.h"
+#include "needle_guidance/steering/steering_model.h"
 
 namespace {
 
@@ -311,6 +313,61 @@ TEST(SteeringPolicyRestart, SecondNodeLoadsTheSavedTable) {
 
   const SolvePolicy::Response cached = solve(kSecond, 0.0, false);
   EXPECT_EQ(cached.source, "cached") << cached.message;
+}
+
+TEST(SteeringPolicyAdaptation, LearnedNoiseReSolvesWithoutAGapInTheControls) {
+  // Steps from the best start whose deflections have three times the scene's sigma: after enough
+  // of them the node re-solves for its estimate on a background thread; every tip sent meanwhile
+  // is answered, and the table swapped in assumes the learned sigma (named in ~solve's model).
+  namespace st = needle_guidance::steering;
+  constexpr double kRadius_m = 0.05;                                            // the scene's r
+  constexpr double kDelta_m = 2.0 * 3.14159265358979323846 * kRadius_m / 40.0;  // 2 pi r / N_c
+  constexpr double kSigmaScale = 3.0;
+  constexpr double kDegToRad = 3.14159265358979323846 / 180.0;
+  constexpr int kSteps = 40;
+  constexpr double kSwapWait_s = 90.0;
+  ASSERT_TRUE(client().connected());
+  const std::string before = solve(kFirst, 0.0, false).model;
+  ASSERT_NE(before.find("sigma_i 5 deg"), std::string::npos) << before;
+  const BestStart::Response best = bestStart(kFirst);
+  ASSERT_TRUE(best.found) << best.message;
+  std::mt19937_64 rng(21);
+  std::normal_distribution<double> unit(0.0, 1.0);
+  double inserted_m = 0.0;
+  for (int k = 0; k < kSteps; ++k) {
+    inserted_m += 1.0;  // not one step after the previous tip: no sample from that pair
+    NeedleTip a = client().tip(best.pose.x, best.pose.y, best.pose.theta, best.bevel);
+    a.source = "ground_truth";
+    a.inserted_length_m = inserted_m;
+    const auto answer = client().ask(a);
+    ASSERT_TRUE(answer) << "tip " << k << " not answered";
+    ASSERT_EQ(answer->status, "ok");
+    const st::Control u = answer->control == "flip" ? st::Control::kFlip : st::Control::kInsert;
+    st::TipPose pose;
+    pose.p_SceneTip = st::Point2(best.pose.x, best.pose.y);
+    pose.theta_rad = best.pose.theta;
+    pose.bevel = st::bevelFromString(best.bevel).value();
+    const double sigma = (u == st::Control::kFlip ? 10.0 : 5.0) * kSigmaScale * kDegToRad;
+    const st::TipPose next = st::advanceTip(pose, u, sigma * unit(rng), kDelta_m, kRadius_m);
+    NeedleTip b = client().tip(next.p_SceneTip.x(), next.p_SceneTip.y(), next.theta_rad,
+                               st::toString(next.bevel));
+    b.source = "ground_truth";
+    b.inserted_length_m = inserted_m + kDelta_m;
+    ASSERT_TRUE(client().ask(b)) << "step tip " << k << " not answered";
+  }
+  // Keep asking: each tip must be answered while the re-solve runs, until the new table is in.
+  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(kSwapWait_s);
+  std::string after = before;
+  int answered = 0;
+  while (after == before && ros::WallTime::now() < end) {
+    NeedleTip a = client().tip(best.pose.x, best.pose.y, best.pose.theta, best.bevel);
+    const auto answer = client().ask(a);
+    ASSERT_TRUE(answer) << "a tip went unanswered during the re-solve (after " << answered << ")";
+    ++answered;
+    after = solve(kFirst, 0.0, false).model;
+  }
+  EXPECT_NE(after, before) << "no re-solved table within " << kSwapWait_s << " s";
+  EXPECT_EQ(after.find("sigma_i 5 deg"), std::string::npos) << after;
 }
 
 }  // namespace
