@@ -536,6 +536,360 @@ std::string adaptationAndHeldOut(const std::string& scene_name, const Selection&
   return keys.str();
 }
 
+/// Epsilon against the P_s error of the dissertation's 800k model (speed against error):
+/// epsilon.csv. Returns the model (its hash names the table file).
+std::unique_ptr<st::SteeringModel> epsilonSweep(const st::SteeringProblem& problem,
+                                                const st::StartOptions& start, bool quick,
+                                                const std::string& out_dir) {
+  st::SteeringProblem p800k = problem;  // the dissertation's model, as run800k was solved
+  p800k.params.grid_spacing_m = kSpacing800k_m;
+  p800k.params.orientation_subdivision = 1;
+  p800k.params.transition_model = st::TransitionModel::kRounded;
+  auto model800k = std::make_unique<st::SteeringModel>(p800k, 2);
+  const double reference_epsilon = quick ? 1e-6 : 1e-7;
+  st::SolverOptions tight;
+  tight.epsilon = reference_epsilon;
+  const st::PolicyTable reference = st::solveValueIteration(*model800k, tight);
+  const std::vector<double> epsilons = quick ? std::vector<double>{1e-2, 1e-3, 1e-4}
+                                             : std::vector<double>{1e-2, 1e-3, 1e-4, 1e-5, 1e-6};
+  ng::report::Table eps_table(
+      {"epsilon", "sweeps", "solve_s", "max_value_error", "best_ps", "policy_agreement"}, 6);
+  for (double eps : epsilons) {
+    st::SolverOptions o;
+    o.epsilon = eps;
+    st::SolveStats s;
+    const st::PolicyTable t = st::solveValueIteration(*model800k, o, &s);
+    double max_err = 0.0;
+    std::int64_t same = 0, free_states = 0;
+    for (std::int64_t i = 0; i < t.grid().numStates(); ++i) {
+      max_err = std::max(max_err, double(std::abs(t.value(i) - reference.value(i))));
+      if (t.cell(i / (2 * t.grid().nc)) == st::Cell::kFree && reference.value(i) > 0.0f) {
+        ++free_states;
+        same += t.control(i) == reference.control(i) ? 1 : 0;
+      }
+    }
+    eps_table.addRow({eps, double(s.sweeps), s.seconds, std::max(1e-9, max_err),
+                      double(t.bestStart(start).best.probability_of_success),
+                      free_states > 0 ? double(same) / double(free_states) : 1.0});
+  }
+  eps_table.writeCsv(out_dir + "/epsilon.csv");
+  std::cout << eps_table.toText();
+
+  return model800k;
+}
+
+/// Mean O(1) look-up time over random continuous poses [us].
+double lookupMicroseconds(const st::PolicyTable& table, const st::SteeringProblem& problem) {
+  std::mt19937 rng(kLookupSeed);
+  std::uniform_real_distribution<double> ux(problem.workspace_min.x(), problem.workspace_max.x());
+  std::uniform_real_distribution<double> uy(problem.workspace_min.y(), problem.workspace_max.y());
+  std::uniform_real_distribution<double> ut(-kPi, kPi);
+  std::vector<st::TipPose> poses(kLookups);
+  for (auto& pose : poses) {
+    pose.p_SceneTip = st::Point2(ux(rng), uy(rng));
+    pose.theta_rad = ut(rng);
+    pose.bevel = rng() % 2 ? st::Bevel::kRight : st::Bevel::kLeft;
+  }
+  double checksum = 0.0;
+  int flips = 0;
+  const auto tl = std::chrono::steady_clock::now();
+  for (const auto& pose : poses) {
+    const st::ControlLookup l = table.lookup(pose);
+    checksum += l.probability_of_success;
+    flips += l.control == st::Control::kFlip ? 1 : 0;
+  }
+  const double lookup_us = secondsSince(tl) / kLookups * 1e6;
+  std::cout << "lookup: " << lookup_us << " us (checksum " << checksum << ", flips " << flips
+            << ")\n";
+
+  return lookup_us;
+}
+
+struct TableFile {
+  double save_s = 0.0;
+  double load_s = 0.0;
+  double mb = 0.0;
+};
+
+/// Saves, loads and measures the table file (then removes it: a report holds figures).
+TableFile tableFile(const st::PolicyTable& table, std::uint64_t hash, const std::string& out_dir) {
+  const std::string table_path = out_dir + "/steering_800k.table";
+  const auto ts = std::chrono::steady_clock::now();
+  table.save(table_path);
+  const double save_s = secondsSince(ts);
+  st::LoadStatus load_status;
+  const auto tload = std::chrono::steady_clock::now();
+  const auto loaded = st::PolicyTable::load(table_path, hash, load_status);
+  const double load_s = secondsSince(tload);
+  if (!loaded)
+    throw std::runtime_error(load_status.toString());
+  std::FILE* f = std::fopen(table_path.c_str(), "rb");
+  double table_mb = 0.0;
+  if (f != nullptr) {
+    std::fseek(f, 0, SEEK_END);
+    table_mb = static_cast<double>(std::ftell(f)) / (1024.0 * 1024.0);
+    std::fclose(f);
+  }
+  std::remove(table_path.c_str());  // a report folder holds figures, not 4 MB binaries
+
+  return {save_s, load_s, table_mb};
+}
+
+/// The start surface of figure 5.7 (start_surface.csv) and its slices (start_slices.csv).
+void startSurface(const st::PolicyTable& table, const st::StartOptions& start, st::Bevel bevel,
+                  const std::string& out_dir) {
+  ng::report::Table surface({"bevel", "y_mm", "theta_deg", "ps"}, 6);
+  ng::report::Table slices({"theta", "y_mm", "ps"}, 6);
+  const std::vector<int> slice_deg = {-45, -18, 0, 18, 45};
+  for (const auto& c : table.startCandidates(start)) {
+    const double theta_deg = c.pose.theta_rad * kDegPerRad;
+    surface.addRow({st::toString(c.pose.bevel), c.pose.p_SceneTip.y() * kMmPerM, theta_deg,
+                    double(c.probability_of_success)});
+    for (int d : slice_deg) {
+      if (c.pose.bevel == bevel && std::abs(theta_deg - d) < 1e-6) {
+        slices.addRow({std::to_string(d) + " deg", c.pose.p_SceneTip.y() * kMmPerM,
+                       double(c.probability_of_success)});
+      }
+    }
+  }
+  surface.writeCsv(out_dir + "/start_surface.csv");
+  slices.writeCsv(out_dir + "/start_slices.csv");
+}
+
+struct Scaling {
+  std::vector<Solved> runs;  ///< Delta 4, 2, 1 mm (and 0.5, 0.25 mm unless quick), 2 threads
+  Solved single;             ///< 1 mm, one thread
+  Solved r25;                ///< 1 mm, r = 2.5 cm
+  ng::report::Table scaling{{"grid_spacing_mm", "states", "transitions_max", "build_s", "solve_s",
+                             "total_s", "sweeps", "converged", "peak_mb", "best_ps", "threads"},
+                            6};
+};
+
+/// The dissertation's model at several grid spacings: states against time and memory
+/// (steering.csv).
+Scaling scalingRuns(const st::SteeringProblem& problem, const st::StartOptions& start, bool quick,
+                    const std::string& out_dir) {
+  Scaling out;
+  std::vector<Solved>& runs = out.runs;
+  ng::report::Table& scaling = out.scaling;
+  // ---- states vs time and memory (increasing size, so ru_maxrss belongs to the last solve) ----
+  // 0.5 mm (3.2 M states) is the finer reference for the P_s error; it runs after the one-
+  // thread 800k solve so that ru_maxrss of that solve is still its own.
+  const std::vector<double> spacings_m = {4e-3, 2e-3, kSpacing800k_m};
+  for (double spacing : spacings_m) {
+    runs.push_back(solveAt(problem, spacing, 2, 1e-3, start));
+    Solved& r = runs.back();
+    scaling.addRow({spacing * kMmPerM, double(r.states), double(r.transitions), r.build_s,
+                    r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
+                    r.stats.converged ? 1.0 : 0.0, r.peak_mb,
+                    double(r.best.best.probability_of_success), 2.0});
+    std::cout << "Delta " << spacing * kMmPerM << " mm: " << r.states << " states, build "
+              << r.build_s << " s, solve " << r.stats.seconds << " s (" << r.stats.sweeps
+              << " sweeps), peak " << r.peak_mb << " MB, " << r.best.toString() << "\n"
+              << std::flush;
+  }
+
+  // ---- the dissertation's other 800,000-state problems (5.5: r = 2.5 cm, delta = 0.393 cm) ----
+  st::SteeringProblem r25 = problem;
+  r25.params.radius_m = 0.025;
+  Solved& solved_r25 = out.r25 = solveAt(r25, kSpacing800k_m, 2, 1e-3, start);
+  std::cout << "r = 25 mm: " << solved_r25.states << " states, build " << solved_r25.build_s
+            << " s, solve " << solved_r25.stats.seconds << " s (" << solved_r25.stats.sweeps
+            << " sweeps), " << solved_r25.best.toString() << "\n"
+            << std::flush;
+
+  // ---- one thread at 800k ----
+  Solved& single = out.single = solveAt(problem, kSpacing800k_m, 1, 1e-3, start);
+  scaling.addRow({kSpacing800k_m * kMmPerM, double(single.states), double(single.transitions),
+                  single.build_s, single.stats.seconds, single.build_s + single.stats.seconds,
+                  double(single.stats.sweeps), single.stats.converged ? 1.0 : 0.0, single.peak_mb,
+                  double(single.best.best.probability_of_success), 1.0});
+  std::cout << "1 thread: build " << single.build_s << " s, solve " << single.stats.seconds
+            << " s (" << single.stats.sweeps << " sweeps)\n"
+            << std::flush;
+  for (double fine_m : quick ? std::vector<double>{} : std::vector<double>{0.5e-3, 0.25e-3}) {
+    runs.push_back(solveAt(problem, fine_m, 2, 1e-3, start));
+    Solved& r = runs.back();
+    scaling.addRow({r.spacing_m * kMmPerM, double(r.states), double(r.transitions), r.build_s,
+                    r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
+                    r.stats.converged ? 1.0 : 0.0, r.peak_mb,
+                    double(r.best.best.probability_of_success), 2.0});
+    std::cout << "Delta " << fine_m * kMmPerM << " mm: " << r.states << " states, build "
+              << r.build_s << " s, solve " << r.stats.seconds << " s (" << r.stats.sweeps
+              << " sweeps), peak " << r.peak_mb << " MB, " << r.best.toString() << "\n"
+              << std::flush;
+  }
+  scaling.writeCsv(out_dir + "/steering.csv");
+  return out;
+}
+
+/// The 800k solve's convergence (convergence.csv) and P_s at its best start against the grid
+/// spacing (resolution.csv); returns P_s there on the finest grid.
+double convergenceAndResolution(const std::vector<Solved>& runs, const Solved& run800k,
+                                const std::string& out_dir) {
+  ng::report::Table convergence({"sweep", "max_change"}, 6);
+  for (std::size_t i = 0; i < run800k.stats.max_change_per_sweep.size(); ++i) {
+    convergence.addRow({double(i + 1), std::max(1e-12, run800k.stats.max_change_per_sweep[i])});
+  }
+  convergence.writeCsv(out_dir + "/convergence.csv");
+
+  // ---- P_s at one start pose (the 1 mm best start) against the grid spacing ----
+  const st::TipPose reference_start = run800k.best.best.pose;
+  const Solved& finest = runs.back();
+  const double ps_finest = finest.table->lookup(reference_start).probability_of_success;
+  ng::report::Table resolution(
+      {"grid_spacing_mm", "states", "total_s", "ps_reference_start", "ps_error_vs_finest"}, 6);
+  for (const auto& r : runs) {
+    const double ps = r.table->lookup(reference_start).probability_of_success;
+    resolution.addRow({r.spacing_m * kMmPerM, double(r.states), r.build_s + r.stats.seconds, ps,
+                       std::abs(ps - ps_finest)});
+  }
+  resolution.writeCsv(out_dir + "/resolution.csv");
+  std::cout << resolution.toText();
+  return ps_finest;
+}
+
+struct Baseline {
+  st::ShortestPath sp;
+  st::MonteCarloResult sp_open, sp_closed;
+};
+
+/// The shortest-path baselines against the MDP from the same start (baseline.csv).
+Baseline shortestPathBaseline(const st::ContinuousWorkspace& world,
+                              const st::SteeringProblem& problem, const st::TipPose& start_pose,
+                              const st::MonteCarloResult& mdp_mc, const std::string& out_dir) {
+  Baseline out;
+  // Open loop: the planned controls replayed under the same uncertainty. Closed loop: the
+  // shortest path re-planned after every imaged step, as a steps-to-go table on the same grid.
+  st::ShortestPathOptions sp_options;
+  sp_options.max_iterations = 100000;  // with the seed: the same plan in every run
+  sp_options.time_limit_s = 30.0;
+  out.sp = st::planShortestPath(world, start_pose, sp_options);
+  std::cout << "shortest path: " << out.sp.toString() << "\n" << std::flush;
+  st::SteeringProblem sp_problem = problem;
+  sp_problem.params.grid_spacing_m = kSpacing800k_m;
+  const st::ShortestPathTable sp_table = st::ShortestPathTable::fromProblem(sp_problem, 2);
+  ng::report::Table baseline({"policy", "ps", "ci_low", "ci_high", "mean_steps", "mean_flips"}, 6);
+  auto addBaseline = [&](const std::string& name, const st::MonteCarloResult& r) {
+    baseline.addRow(
+        {name, r.rate(), r.interval().low, r.interval().high, r.mean_steps, r.mean_flips});
+  };
+  addBaseline("mdp", mdp_mc);
+  if (out.sp.found) {
+    out.sp_open = st::runMonteCarlo(world, start_pose, st::openLoopPolicy(out.sp.controls),
+                                    kMonteCarloTrials, kMonteCarloSeed, 2);
+    addBaseline("shortest_path_open_loop", out.sp_open);
+  }
+  out.sp_closed = st::runMonteCarlo(world, start_pose, st::shortestPathPolicy(sp_table),
+                                    kMonteCarloTrials, kMonteCarloSeed, 2);
+  addBaseline("shortest_path_closed_loop", out.sp_closed);
+  baseline.writeCsv(out_dir + "/baseline.csv");
+  std::cout << baseline.toText();
+  return out;
+}
+
+/// plot.json: the figures scripts/plot_bench.py draws from the CSVs.
+void writePlotJson(const std::string& out_dir) {
+  ng::report::writeTextFile(
+      out_dir + "/plot.json",
+      R"json([{"csv": "steering.csv", "x": "states", "y": "total_s", "group": "threads", "logx": true, "logy": true,
+  "annotate": "grid_spacing_mm", "title": "MDP build + solve time vs number of states (group: threads)", "png": "solve_time.png"},
+ {"csv": "steering.csv", "x": "states", "y": "peak_mb", "group": "threads", "logx": true, "annotate": "grid_spacing_mm",
+  "title": "Peak resident memory vs number of states", "png": "memory.png"},
+ {"csv": "convergence.csv", "x": "sweep", "y": "max_change", "logy": true,
+  "title": "Gauss-Seidel value iteration, 800k states: max change per sweep", "png": "convergence.png"},
+ {"csv": "epsilon.csv", "x": "solve_s", "y": "max_value_error", "logy": true, "annotate": "epsilon",
+  "title": "Convergence threshold: solve time vs max P_s error (800k states)", "png": "epsilon.png"},
+ {"csv": "resolution.csv", "x": "total_s", "y": "ps_error_vs_finest", "logx": true, "annotate": "grid_spacing_mm",
+  "points": true, "title": "Grid spacing: time vs P_s error at the 1 mm best start (vs finest grid)", "png": "resolution.png"},
+ {"csv": "truth_gap.csv", "x": "grid_spacing_mm", "y": "mean_abs_gap", "group": "subdivision", "logx": true, "annotate": "within_ci_fraction",
+  "title": "Truth check by Delta and s (label: fraction in 95 % CI)", "png": "truth_gap.png"},
+ {"csv": "truth_gap.csv", "x": "total_s", "y": "mean_abs_gap", "group": "subdivision", "logx": true, "annotate": "grid_spacing_mm",
+  "title": "Speed against error by s (label: Delta mm)", "png": "truth_tradeoff.png"},
+ {"csv": "truth_check.csv", "x": "predicted_ps", "y": "mc_ps", "group": "grid_spacing_mm", "filter": {"subdivision": "1"}, "points": true,
+  "title": "Predicted P_s vs Monte Carlo, 10,000 trials per start (s = 1)", "png": "truth_check.png"},
+ {"csv": "baseline.csv", "x": "mean_steps", "y": "ps", "group": "policy", "points": true,
+  "title": "P_s from the best start (Monte Carlo, 10,000 trials): MDP vs shortest path", "png": "baseline.png"},
+ {"csv": "selection.csv", "x": "estimated_error", "y": "mc_mean_abs_gap", "group": "scene", "points": true, "annotate": "grid_spacing_mm",
+  "title": "ps_tolerance ladder: the solver's error estimate vs the Monte Carlo gap (label: Delta mm)", "png": "selection.png"},
+ {"csv": "adaptation.csv", "x": "world_sigma_scale", "y": "success", "group": "arm", "points": true,
+  "title": "300 closed-loop trials per arm (both scenes)", "png": "adaptation.png"},
+ {"csv": "sigma_trajectory.csv", "x": "trial", "y": "sigma_i_deg", "group": "world_sigma_scale",
+  "title": "Adaptive arm: learned sigma_i after each trial", "png": "sigma_trajectory.png"},
+ {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
+  "title": "P_s of start states on the entry line (figure 5.7 slices, best bevel)", "png": "start_surface.png"}])json");
+}
+
+/// The truth check of every grid of `runs`, of the scene's chosen model (`default_out`), of the
+/// interpolated model at s = 3 and (unless quick) of finer models; writes its CSVs.
+TruthCheck truthChecks(const st::ContinuousWorkspace& world, const st::SteeringProblem& problem,
+                       const st::StartOptions& start, const std::vector<Solved>& runs,
+                       const Solved& run800k, const Solved& scene_model, bool quick,
+                       const std::string& out_dir, TruthCheck::Summary& default_out) {
+  // ---- truth check: predicted P_s against the continuous needle (Monte Carlo) ----
+  // Start states: a fixed set on the entry line (heights x angles x bevels) plus the 1 mm best
+  // start; the policy of each grid drives the continuous needle (exact arcs, continuous
+  // deflections) from the same start states, at every grid spacing and, finer than 5.4.2,
+  // with the orientation subdivided s = 2 and 4 times.
+  std::vector<st::TipPose> mc_starts = entryStarts(problem, start, kTruthHeights_mm);
+  mc_starts.push_back(run800k.best.best.pose);
+  TruthCheck truth(world, mc_starts);
+  for (const auto& r : runs) {
+    truth.check(r);
+  }
+  default_out = truth.check(scene_model);
+  for (const auto& [spacing, subdivision] :
+       std::vector<std::pair<double, int>>{{1e-3, 3}, {0.7e-3, 3}, {0.5e-3, 3}}) {
+    truth.check(solveAt(problem, spacing, 2, 1e-3, start, subdivision, 1,
+                        st::TransitionModel::kInterpolated));
+  }
+  if (!quick) {
+    // Finer models, solved once each and dropped after their check (memory).
+    const std::vector<std::pair<double, int>> finer = {{0.125e-3, 1}, {1e-3, 2},     {0.5e-3, 2},
+                                                       {0.25e-3, 2},  {0.125e-3, 2}, {1e-3, 4},
+                                                       {0.5e-3, 4},   {0.25e-3, 4}};
+    for (const auto& [spacing, subdivision] : finer) {
+      truth.check(solveAt(problem, spacing, 2, 1e-3, start, subdivision, 1));
+    }
+  }
+  truth.writeCsv(out_dir + "/");
+  return truth;
+}
+
+/// One line each: the scene's chosen model and the scene's needle.
+void printSceneModel(const std::string& scene_name, const st::SteeringProblem& problem,
+                     const Solved& scene_model) {
+  std::cout << "scene model (" << st::toString(scene_model.transition) << ", Delta "
+            << scene_model.spacing_m * kMmPerM << " mm, s = " << scene_model.subdivision
+            << "): " << scene_model.states << " states, build " << scene_model.build_s
+            << " s, solve " << scene_model.stats.seconds << " s, peak " << scene_model.peak_mb
+            << " MB\n"
+            << "bench_steering: scene " << scene_name
+            << ", r = " << problem.params.radius_m * kMmPerM
+            << " mm, N_c = " << problem.params.orientations
+            << ", sigma_i = " << problem.params.sigma_insert_rad * kDegPerRad
+            << " deg, sigma_r = " << problem.params.sigma_flip_rad * kDegPerRad << " deg\n"
+            << std::flush;
+}
+
+/// The 1 mm (800k) run of `runs`; throws std::runtime_error without one.
+const Solved& the800k(const std::vector<Solved>& runs) {
+  for (const auto& r : runs) {
+    if (std::abs(r.spacing_m - kSpacing800k_m) < 1e-12) {
+      return r;
+    }
+  }
+  throw std::runtime_error("no 1 mm run");
+}
+
+/// selection.csv's columns: one row per rung of each scene's ps_tolerance ladder.
+ng::report::Table selectionTable() {
+  return ng::report::Table(
+      {"scene", "grid_spacing_mm", "states", "build_s", "solve_s", "estimated_error",
+       "mc_mean_abs_gap", "mc_within_ci_fraction", "chosen"},
+      6);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -554,139 +908,29 @@ int main(int argc, char** argv) {
     // ---- the scene's model as ps_tolerance chooses it, first, so that the peak resident memory
     // after it is its own; every rung of the ladder checked against Monte Carlo ----
     const st::ContinuousWorkspace world(problem);
-    ng::report::Table selection_table(
-        {"scene", "grid_spacing_mm", "states", "build_s", "solve_s", "estimated_error",
-         "mc_mean_abs_gap", "mc_within_ci_fraction", "chosen"},
-        6);
+    ng::report::Table selection_table = selectionTable();
     TruthCheck selection_truth(world, entryStarts(problem, start, kTruthHeights_mm));
     const Selection selected =
         selectModel(scene.name, problem, start, &selection_truth, selection_table);
     const Solved scene_model = solveAt(selected.chosen, selected.chosen.params.grid_spacing_m, 2,
                                        1e-3, start, problem.params.orientation_subdivision,
                                        kSolveRepeats, problem.params.transition_model);
-    std::cout << "scene model (" << st::toString(scene_model.transition) << ", Delta "
-              << scene_model.spacing_m * kMmPerM << " mm, s = " << scene_model.subdivision
-              << "): " << scene_model.states << " states, build " << scene_model.build_s
-              << " s, solve " << scene_model.stats.seconds << " s, peak " << scene_model.peak_mb
-              << " MB\n"
-              << std::flush;
-    std::cout << "bench_steering: scene " << scene.name
-              << ", r = " << problem.params.radius_m * kMmPerM
-              << " mm, N_c = " << problem.params.orientations
-              << ", sigma_i = " << problem.params.sigma_insert_rad * kDegPerRad
-              << " deg, sigma_r = " << problem.params.sigma_flip_rad * kDegPerRad << " deg\n"
-              << std::flush;
+    printSceneModel(scene.name, problem, scene_model);
 
-    // ---- states vs time and memory (increasing size, so ru_maxrss belongs to the last solve) ----
-    // 0.5 mm (3.2 M states) is the finer reference for the P_s error; it runs after the one-
-    // thread 800k solve so that ru_maxrss of that solve is still its own.
-    const std::vector<double> spacings_m = {4e-3, 2e-3, kSpacing800k_m};
-    std::vector<Solved> runs;
-    ng::report::Table scaling({"grid_spacing_mm", "states", "transitions_max", "build_s", "solve_s",
-                               "total_s", "sweeps", "converged", "peak_mb", "best_ps", "threads"},
-                              6);
-    Solved* run800k = nullptr;
-    for (double spacing : spacings_m) {
-      runs.push_back(solveAt(problem, spacing, 2, 1e-3, start));
-      Solved& r = runs.back();
-      scaling.addRow({spacing * kMmPerM, double(r.states), double(r.transitions), r.build_s,
-                      r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
-                      r.stats.converged ? 1.0 : 0.0, r.peak_mb,
-                      double(r.best.best.probability_of_success), 2.0});
-      std::cout << "Delta " << spacing * kMmPerM << " mm: " << r.states << " states, build "
-                << r.build_s << " s, solve " << r.stats.seconds << " s (" << r.stats.sweeps
-                << " sweeps), peak " << r.peak_mb << " MB, " << r.best.toString() << "\n"
-                << std::flush;
-    }
+    Scaling scaled = scalingRuns(problem, start, args->quick, args->out_dir);
+    std::vector<Solved>& runs = scaled.runs;
+    const Solved& single = scaled.single;
+    const Solved& solved_r25 = scaled.r25;
+    const ng::report::Table& scaling = scaled.scaling;
+    const Solved* run800k = &the800k(runs);
 
-    // ---- the dissertation's other 800,000-state problems (5.5: r = 2.5 cm, delta = 0.393 cm) ----
-    st::SteeringProblem r25 = problem;
-    r25.params.radius_m = 0.025;
-    const Solved solved_r25 = solveAt(r25, kSpacing800k_m, 2, 1e-3, start);
-    std::cout << "r = 25 mm: " << solved_r25.states << " states, build " << solved_r25.build_s
-              << " s, solve " << solved_r25.stats.seconds << " s (" << solved_r25.stats.sweeps
-              << " sweeps), " << solved_r25.best.toString() << "\n"
-              << std::flush;
-
-    // ---- one thread at 800k ----
-    const Solved single = solveAt(problem, kSpacing800k_m, 1, 1e-3, start);
-    scaling.addRow({kSpacing800k_m * kMmPerM, double(single.states), double(single.transitions),
-                    single.build_s, single.stats.seconds, single.build_s + single.stats.seconds,
-                    double(single.stats.sweeps), single.stats.converged ? 1.0 : 0.0, single.peak_mb,
-                    double(single.best.best.probability_of_success), 1.0});
-    std::cout << "1 thread: build " << single.build_s << " s, solve " << single.stats.seconds
-              << " s (" << single.stats.sweeps << " sweeps)\n"
-              << std::flush;
-    for (double fine_m :
-         args->quick ? std::vector<double>{} : std::vector<double>{0.5e-3, 0.25e-3}) {
-      runs.push_back(solveAt(problem, fine_m, 2, 1e-3, start));
-      Solved& r = runs.back();
-      scaling.addRow({r.spacing_m * kMmPerM, double(r.states), double(r.transitions), r.build_s,
-                      r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
-                      r.stats.converged ? 1.0 : 0.0, r.peak_mb,
-                      double(r.best.best.probability_of_success), 2.0});
-      std::cout << "Delta " << fine_m * kMmPerM << " mm: " << r.states << " states, build "
-                << r.build_s << " s, solve " << r.stats.seconds << " s (" << r.stats.sweeps
-                << " sweeps), peak " << r.peak_mb << " MB, " << r.best.toString() << "\n"
-                << std::flush;
-    }
-    scaling.writeCsv(args->out_dir + "/steering.csv");
-
-    for (auto& r : runs) {
-      if (std::abs(r.spacing_m - kSpacing800k_m) < 1e-12)
-        run800k = &r;
-    }
-    if (run800k == nullptr)
-      throw std::runtime_error("no 1 mm run");
-
-    // ---- convergence of the 800k solve ----
-    ng::report::Table convergence({"sweep", "max_change"}, 6);
-    for (std::size_t i = 0; i < run800k->stats.max_change_per_sweep.size(); ++i) {
-      convergence.addRow({double(i + 1), std::max(1e-12, run800k->stats.max_change_per_sweep[i])});
-    }
-    convergence.writeCsv(args->out_dir + "/convergence.csv");
-
-    // ---- P_s at one start pose (the 1 mm best start) against the grid spacing ----
-    const st::TipPose reference_start = run800k->best.best.pose;
+    const double ps_finest = convergenceAndResolution(runs, *run800k, args->out_dir);
     const Solved& finest = runs.back();
-    const double ps_finest = finest.table->lookup(reference_start).probability_of_success;
-    ng::report::Table resolution(
-        {"grid_spacing_mm", "states", "total_s", "ps_reference_start", "ps_error_vs_finest"}, 6);
-    for (const auto& r : runs) {
-      const double ps = r.table->lookup(reference_start).probability_of_success;
-      resolution.addRow({r.spacing_m * kMmPerM, double(r.states), r.build_s + r.stats.seconds, ps,
-                         std::abs(ps - ps_finest)});
-    }
-    resolution.writeCsv(args->out_dir + "/resolution.csv");
 
-    // ---- truth check: predicted P_s against the continuous needle (Monte Carlo) ----
-    // Start states: a fixed set on the entry line (heights x angles x bevels) plus the 1 mm best
-    // start; the policy of each grid drives the continuous needle (exact arcs, continuous
-    // deflections) from the same start states, at every grid spacing and, finer than 5.4.2,
-    // with the orientation subdivided s = 2 and 4 times.
-    std::vector<st::TipPose> mc_starts = entryStarts(problem, start, kTruthHeights_mm);
-    mc_starts.push_back(run800k->best.best.pose);
-    TruthCheck truth(world, mc_starts);
-    for (const auto& r : runs) {
-      truth.check(r);
-    }
+    TruthCheck::Summary truth_default;
+    const TruthCheck truth = truthChecks(world, problem, start, runs, *run800k, scene_model,
+                                         args->quick, args->out_dir, truth_default);
     const double within_800k = truth.withinFraction(kSpacing800k_m, 1);
-    const TruthCheck::Summary truth_default = truth.check(scene_model);
-    for (const auto& [spacing, subdivision] :
-         std::vector<std::pair<double, int>>{{1e-3, 3}, {0.7e-3, 3}, {0.5e-3, 3}}) {
-      truth.check(solveAt(problem, spacing, 2, 1e-3, start, subdivision, 1,
-                          st::TransitionModel::kInterpolated));
-    }
-    if (!args->quick) {
-      // Finer models, solved once each and dropped after their check (memory).
-      const std::vector<std::pair<double, int>> finer = {{0.125e-3, 1}, {1e-3, 2},     {0.5e-3, 2},
-                                                         {0.25e-3, 2},  {0.125e-3, 2}, {1e-3, 4},
-                                                         {0.5e-3, 4},   {0.25e-3, 4}};
-      for (const auto& [spacing, subdivision] : finer) {
-        truth.check(solveAt(problem, spacing, 2, 1e-3, start, subdivision, 1));
-      }
-    }
-    truth.writeCsv(args->out_dir + "/");
     selection_truth.writeCsv(args->out_dir + "/selection_");
     const std::string adaptation_keys =
         adaptationAndHeldOut(scene.name, selected, start, selection_table, args->out_dir);
@@ -699,131 +943,18 @@ int main(int argc, char** argv) {
         st::runMonteCarlo(world, run800k->best.best.pose, st::tablePolicy(*run800k->table),
                           kMonteCarloTrials, kMonteCarloSeed, 2);
 
-    // ---- baseline: shortest path under deterministic motion (OMPL SST), from the same start ----
-    // Open loop: the planned controls replayed under the same uncertainty. Closed loop: the
-    // shortest path re-planned after every imaged step, as a steps-to-go table on the same grid.
-    st::ShortestPathOptions sp_options;
-    sp_options.max_iterations = 100000;  // with the seed: the same plan in every run
-    sp_options.time_limit_s = 30.0;
-    const st::ShortestPath sp = st::planShortestPath(world, run800k->best.best.pose, sp_options);
-    std::cout << "shortest path: " << sp.toString() << "\n" << std::flush;
-    st::SteeringProblem sp_problem = problem;
-    sp_problem.params.grid_spacing_m = kSpacing800k_m;
-    const st::ShortestPathTable sp_table = st::ShortestPathTable::fromProblem(sp_problem, 2);
-    ng::report::Table baseline({"policy", "ps", "ci_low", "ci_high", "mean_steps", "mean_flips"},
-                               6);
-    auto addBaseline = [&](const std::string& name, const st::MonteCarloResult& r) {
-      baseline.addRow(
-          {name, r.rate(), r.interval().low, r.interval().high, r.mean_steps, r.mean_flips});
-    };
-    addBaseline("mdp", mdp_mc);
-    st::MonteCarloResult sp_closed, sp_open;
-    if (sp.found) {
-      sp_open = st::runMonteCarlo(world, run800k->best.best.pose, st::openLoopPolicy(sp.controls),
-                                  kMonteCarloTrials, kMonteCarloSeed, 2);
-      addBaseline("shortest_path_open_loop", sp_open);
-    }
-    sp_closed = st::runMonteCarlo(world, run800k->best.best.pose, st::shortestPathPolicy(sp_table),
-                                  kMonteCarloTrials, kMonteCarloSeed, 2);
-    addBaseline("shortest_path_closed_loop", sp_closed);
-    baseline.writeCsv(args->out_dir + "/baseline.csv");
+    const Baseline base =
+        shortestPathBaseline(world, problem, run800k->best.best.pose, mdp_mc, args->out_dir);
+    const st::ShortestPath& sp = base.sp;
+    const st::MonteCarloResult& sp_open = base.sp_open;
+    const st::MonteCarloResult& sp_closed = base.sp_closed;
 
-    // ---- epsilon: sweeps and time against the error in P_s (speed against error) ----
-    st::SteeringProblem p800k = problem;  // the dissertation's model, as run800k was solved
-    p800k.params.grid_spacing_m = kSpacing800k_m;
-    p800k.params.orientation_subdivision = 1;
-    p800k.params.transition_model = st::TransitionModel::kRounded;
-    const st::SteeringModel model800k(p800k, 2);
-    const double reference_epsilon = args->quick ? 1e-6 : 1e-7;
-    st::SolverOptions tight;
-    tight.epsilon = reference_epsilon;
-    const st::PolicyTable reference = st::solveValueIteration(model800k, tight);
-    const std::vector<double> epsilons = args->quick
-                                             ? std::vector<double>{1e-2, 1e-3, 1e-4}
-                                             : std::vector<double>{1e-2, 1e-3, 1e-4, 1e-5, 1e-6};
-    ng::report::Table eps_table(
-        {"epsilon", "sweeps", "solve_s", "max_value_error", "best_ps", "policy_agreement"}, 6);
-    for (double eps : epsilons) {
-      st::SolverOptions o;
-      o.epsilon = eps;
-      st::SolveStats s;
-      const st::PolicyTable t = st::solveValueIteration(model800k, o, &s);
-      double max_err = 0.0;
-      std::int64_t same = 0, free_states = 0;
-      for (std::int64_t i = 0; i < t.grid().numStates(); ++i) {
-        max_err = std::max(max_err, double(std::abs(t.value(i) - reference.value(i))));
-        if (t.cell(i / (2 * t.grid().nc)) == st::Cell::kFree && reference.value(i) > 0.0f) {
-          ++free_states;
-          same += t.control(i) == reference.control(i) ? 1 : 0;
-        }
-      }
-      eps_table.addRow({eps, double(s.sweeps), s.seconds, std::max(1e-9, max_err),
-                        double(t.bestStart(start).best.probability_of_success),
-                        free_states > 0 ? double(same) / double(free_states) : 1.0});
-    }
-    eps_table.writeCsv(args->out_dir + "/epsilon.csv");
-
-    // ---- O(1) look-up: mean over random continuous poses ----
+    const std::unique_ptr<st::SteeringModel> model800k =
+        epsilonSweep(problem, start, args->quick, args->out_dir);
     const st::PolicyTable& table = *run800k->table;
-    std::mt19937 rng(kLookupSeed);
-    std::uniform_real_distribution<double> ux(problem.workspace_min.x(), problem.workspace_max.x());
-    std::uniform_real_distribution<double> uy(problem.workspace_min.y(), problem.workspace_max.y());
-    std::uniform_real_distribution<double> ut(-kPi, kPi);
-    std::vector<st::TipPose> poses(kLookups);
-    for (auto& pose : poses) {
-      pose.p_SceneTip = st::Point2(ux(rng), uy(rng));
-      pose.theta_rad = ut(rng);
-      pose.bevel = rng() % 2 ? st::Bevel::kRight : st::Bevel::kLeft;
-    }
-    double checksum = 0.0;
-    int flips = 0;
-    const auto tl = std::chrono::steady_clock::now();
-    for (const auto& pose : poses) {
-      const st::ControlLookup l = table.lookup(pose);
-      checksum += l.probability_of_success;
-      flips += l.control == st::Control::kFlip ? 1 : 0;
-    }
-    const double lookup_us = secondsSince(tl) / kLookups * 1e6;
-    std::cout << "lookup: " << lookup_us << " us (checksum " << checksum << ", flips " << flips
-              << ")\n";
-
-    // ---- table file ----
-    const std::string table_path = args->out_dir + "/steering_800k.table";
-    const auto ts = std::chrono::steady_clock::now();
-    table.save(table_path);
-    const double save_s = secondsSince(ts);
-    st::LoadStatus load_status;
-    const auto tload = std::chrono::steady_clock::now();
-    const auto loaded = st::PolicyTable::load(table_path, model800k.hash(), load_status);
-    const double load_s = secondsSince(tload);
-    if (!loaded)
-      throw std::runtime_error(load_status.toString());
-    std::FILE* f = std::fopen(table_path.c_str(), "rb");
-    double table_mb = 0.0;
-    if (f != nullptr) {
-      std::fseek(f, 0, SEEK_END);
-      table_mb = static_cast<double>(std::ftell(f)) / (1024.0 * 1024.0);
-      std::fclose(f);
-    }
-    std::remove(table_path.c_str());  // a report folder holds figures, not 4 MB binaries
-
-    // ---- start surface (figure 5.7) ----
-    ng::report::Table surface({"bevel", "y_mm", "theta_deg", "ps"}, 6);
-    ng::report::Table slices({"theta", "y_mm", "ps"}, 6);
-    const std::vector<int> slice_deg = {-45, -18, 0, 18, 45};
-    for (const auto& c : table.startCandidates(start)) {
-      const double theta_deg = c.pose.theta_rad * kDegPerRad;
-      surface.addRow({st::toString(c.pose.bevel), c.pose.p_SceneTip.y() * kMmPerM, theta_deg,
-                      double(c.probability_of_success)});
-      for (int d : slice_deg) {
-        if (c.pose.bevel == run800k->best.best.pose.bevel && std::abs(theta_deg - d) < 1e-6) {
-          slices.addRow({std::to_string(d) + " deg", c.pose.p_SceneTip.y() * kMmPerM,
-                         double(c.probability_of_success)});
-        }
-      }
-    }
-    surface.writeCsv(args->out_dir + "/start_surface.csv");
-    slices.writeCsv(args->out_dir + "/start_slices.csv");
+    const double lookup_us = lookupMicroseconds(table, problem);
+    const TableFile file = tableFile(table, model800k->hash(), args->out_dir);
+    startSurface(table, start, run800k->best.best.pose.bevel, args->out_dir);
 
     const st::BestStart& best = run800k->best;
     std::ostringstream json;
@@ -882,9 +1013,9 @@ int main(int argc, char** argv) {
          << ",\n  \"best_start_bevel\": \"" << st::toString(best.best.pose.bevel) << "\""
          << ",\n  \"ps_reference_start_finest\": " << ng::report::jsonNumber(ps_finest)
          << ",\n  \"finest_spacing_mm\": " << ng::report::jsonNumber(finest.spacing_m * kMmPerM)
-         << ",\n  \"table_mb_800k\": " << ng::report::jsonNumber(table_mb)
-         << ",\n  \"table_save_s\": " << ng::report::jsonNumber(save_s)
-         << ",\n  \"table_load_s\": " << ng::report::jsonNumber(load_s)
+         << ",\n  \"table_mb_800k\": " << ng::report::jsonNumber(file.mb)
+         << ",\n  \"table_save_s\": " << ng::report::jsonNumber(file.save_s)
+         << ",\n  \"table_load_s\": " << ng::report::jsonNumber(file.load_s)
          << ",\n  \"transition_model_default\": \"" << st::toString(scene_model.transition) << "\""
          << ",\n  \"grid_spacing_mm_default\": "
          << ng::report::jsonNumber(scene_model.spacing_m * kMmPerM)
@@ -902,36 +1033,8 @@ int main(int argc, char** argv) {
          << ",\n  \"selection_s_default\": " << ng::report::jsonNumber(selected.selection_s)
          << ",\n  \"selection_models_default\": " << selected.rungs << adaptation_keys << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
-    ng::report::writeTextFile(
-        args->out_dir + "/plot.json",
-        R"json([{"csv": "steering.csv", "x": "states", "y": "total_s", "group": "threads", "logx": true, "logy": true,
-  "annotate": "grid_spacing_mm", "title": "MDP build + solve time vs number of states (group: threads)", "png": "solve_time.png"},
- {"csv": "steering.csv", "x": "states", "y": "peak_mb", "group": "threads", "logx": true, "annotate": "grid_spacing_mm",
-  "title": "Peak resident memory vs number of states", "png": "memory.png"},
- {"csv": "convergence.csv", "x": "sweep", "y": "max_change", "logy": true,
-  "title": "Gauss-Seidel value iteration, 800k states: max change per sweep", "png": "convergence.png"},
- {"csv": "epsilon.csv", "x": "solve_s", "y": "max_value_error", "logy": true, "annotate": "epsilon",
-  "title": "Convergence threshold: solve time vs max P_s error (800k states)", "png": "epsilon.png"},
- {"csv": "resolution.csv", "x": "total_s", "y": "ps_error_vs_finest", "logx": true, "annotate": "grid_spacing_mm",
-  "points": true, "title": "Grid spacing: time vs P_s error at the 1 mm best start (vs finest grid)", "png": "resolution.png"},
- {"csv": "truth_gap.csv", "x": "grid_spacing_mm", "y": "mean_abs_gap", "group": "subdivision", "logx": true, "annotate": "within_ci_fraction",
-  "title": "Truth check by Delta and s (label: fraction in 95 % CI)", "png": "truth_gap.png"},
- {"csv": "truth_gap.csv", "x": "total_s", "y": "mean_abs_gap", "group": "subdivision", "logx": true, "annotate": "grid_spacing_mm",
-  "title": "Speed against error by s (label: Delta mm)", "png": "truth_tradeoff.png"},
- {"csv": "truth_check.csv", "x": "predicted_ps", "y": "mc_ps", "group": "grid_spacing_mm", "filter": {"subdivision": "1"}, "points": true,
-  "title": "Predicted P_s vs Monte Carlo, 10,000 trials per start (s = 1)", "png": "truth_check.png"},
- {"csv": "baseline.csv", "x": "mean_steps", "y": "ps", "group": "policy", "points": true,
-  "title": "P_s from the best start (Monte Carlo, 10,000 trials): MDP vs shortest path", "png": "baseline.png"},
- {"csv": "selection.csv", "x": "estimated_error", "y": "mc_mean_abs_gap", "group": "scene", "points": true, "annotate": "grid_spacing_mm",
-  "title": "ps_tolerance ladder: the solver's error estimate vs the Monte Carlo gap (label: Delta mm)", "png": "selection.png"},
- {"csv": "adaptation.csv", "x": "world_sigma_scale", "y": "success", "group": "arm", "points": true,
-  "title": "300 closed-loop trials per arm (both scenes)", "png": "adaptation.png"},
- {"csv": "sigma_trajectory.csv", "x": "trial", "y": "sigma_i_deg", "group": "world_sigma_scale",
-  "title": "Adaptive arm: learned sigma_i after each trial", "png": "sigma_trajectory.png"},
- {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
-  "title": "P_s of start states on the entry line (figure 5.7 slices, best bevel)", "png": "start_surface.png"}])json");
-    std::cout << scaling.toText() << eps_table.toText() << resolution.toText()
-              << truth.summaryText() << baseline.toText() << json.str();
+    writePlotJson(args->out_dir);
+    std::cout << scaling.toText() << truth.summaryText() << json.str();
   } catch (const std::exception& e) {
     std::cerr << "bench_steering: " << e.what() << "\n";
     return 1;
