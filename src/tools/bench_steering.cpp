@@ -672,21 +672,24 @@ Scaling scalingRuns(const st::SteeringProblem& problem, const st::StartOptions& 
   Scaling out;
   std::vector<Solved>& runs = out.runs;
   ng::report::Table& scaling = out.scaling;
+  const auto record = [&scaling](const Solved& r, int threads) {
+    scaling.addRow({r.spacing_m * kMmPerM, double(r.states), double(r.transitions), r.build_s,
+                    r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
+                    r.stats.converged ? 1.0 : 0.0, r.peak_mb,
+                    double(r.best.best.probability_of_success), double(threads)});
+    std::cout << "Delta " << r.spacing_m * kMmPerM << " mm, " << threads
+              << " thread(s): " << r.states << " states, build " << r.build_s << " s, solve "
+              << r.stats.seconds << " s (" << r.stats.sweeps << " sweeps), peak " << r.peak_mb
+              << " MB, " << r.best.toString() << "\n"
+              << std::flush;
+  };
   // ---- states vs time and memory (increasing size, so ru_maxrss belongs to the last solve) ----
   // 0.5 mm (3.2 M states) is the finer reference for the P_s error; it runs after the one-
   // thread 800k solve so that ru_maxrss of that solve is still its own.
   const std::vector<double> spacings_m = {4e-3, 2e-3, kSpacing800k_m};
   for (double spacing : spacings_m) {
     runs.push_back(solveAt(problem, spacing, 2, 1e-3, start));
-    Solved& r = runs.back();
-    scaling.addRow({spacing * kMmPerM, double(r.states), double(r.transitions), r.build_s,
-                    r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
-                    r.stats.converged ? 1.0 : 0.0, r.peak_mb,
-                    double(r.best.best.probability_of_success), 2.0});
-    std::cout << "Delta " << spacing * kMmPerM << " mm: " << r.states << " states, build "
-              << r.build_s << " s, solve " << r.stats.seconds << " s (" << r.stats.sweeps
-              << " sweeps), peak " << r.peak_mb << " MB, " << r.best.toString() << "\n"
-              << std::flush;
+    record(runs.back(), 2);
   }
 
   // ---- the dissertation's other 800,000-state problems (5.5: r = 2.5 cm, delta = 0.393 cm) ----
@@ -700,24 +703,10 @@ Scaling scalingRuns(const st::SteeringProblem& problem, const st::StartOptions& 
 
   // ---- one thread at 800k ----
   Solved& single = out.single = solveAt(problem, kSpacing800k_m, 1, 1e-3, start);
-  scaling.addRow({kSpacing800k_m * kMmPerM, double(single.states), double(single.transitions),
-                  single.build_s, single.stats.seconds, single.build_s + single.stats.seconds,
-                  double(single.stats.sweeps), single.stats.converged ? 1.0 : 0.0, single.peak_mb,
-                  double(single.best.best.probability_of_success), 1.0});
-  std::cout << "1 thread: build " << single.build_s << " s, solve " << single.stats.seconds
-            << " s (" << single.stats.sweeps << " sweeps)\n"
-            << std::flush;
+  record(single, 1);
   for (double fine_m : quick ? std::vector<double>{} : std::vector<double>{0.5e-3, 0.25e-3}) {
     runs.push_back(solveAt(problem, fine_m, 2, 1e-3, start));
-    Solved& r = runs.back();
-    scaling.addRow({r.spacing_m * kMmPerM, double(r.states), double(r.transitions), r.build_s,
-                    r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
-                    r.stats.converged ? 1.0 : 0.0, r.peak_mb,
-                    double(r.best.best.probability_of_success), 2.0});
-    std::cout << "Delta " << fine_m * kMmPerM << " mm: " << r.states << " states, build "
-              << r.build_s << " s, solve " << r.stats.seconds << " s (" << r.stats.sweeps
-              << " sweeps), peak " << r.peak_mb << " MB, " << r.best.toString() << "\n"
-              << std::flush;
+    record(runs.back(), 2);
   }
   scaling.writeCsv(out_dir + "/steering.csv");
   return out;
