@@ -6,6 +6,7 @@
 
 #include "needle_guidance/geometry/polygon.h"
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/steering/steering_model.h"
 
 namespace needle_guidance::steering::test_shapes {
@@ -41,6 +42,15 @@ inline SteeringProblem openProblem(double spacing_m = 1e-3, double sigma_i_rad =
   p.params.sigma_insert_rad = sigma_i_rad;
   p.params.sigma_flip_rad = sigma_r_rad;
   return p;
+}
+
+/// The entry line x = 0 of openProblem's workspace, every height [m].
+inline StartOptions entryLine() {
+  StartOptions s;
+  s.start_x_m = 0.0;
+  s.min_height_m = 0.0;
+  s.max_height_m = 0.1;
+  return s;
 }
 
 /// The dissertation's 5.4.2 discretisation of a scene's problem (Delta 1 mm, s = 1, rounded

@@ -4,10 +4,10 @@
 
 #include <algorithm>
 #include <chrono>
-#include <functional>
 #include <cmath>
 #include <condition_variable>
 #include <filesystem>
+#include <functional>
 #include <iostream>
 #include <mutex>
 #include <optional>
@@ -20,13 +20,14 @@
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SetEntryPose.h"
 #include "needle_guidance/SteeringControl.h"
+#include "needle_guidance/report/output_path.h"
 #include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/ros/node_supervisor.h"
-#include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/continuous_workspace.h"
+#include "needle_guidance/steering/model_selection.h"
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/value_iteration.h"
 
@@ -168,33 +169,16 @@ SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
       ros_params::integer(private_nh, "max_unconfident_controls", 10, 0, 1000, "controls"));
   feedback_ = ros_params::text(private_nh, "feedback", "ground_truth");
   // The nodes the run depends on (the launch file adds imager and tip_tracker with images).
-  const std::string watch = ros_params::text(private_nh, "watch_nodes", robot_ns_ + "," + policy_ns_);
+  const std::string watch =
+      ros_params::text(private_nh, "watch_nodes", robot_ns_ + "," + policy_ns_);
   for (std::size_t a = 0; a < watch.size();) {
     const std::size_t b = std::min(watch.find(',', a), watch.size());
-    if (b > a) watch_nodes_.push_back(watch.substr(a, b - a));
+    if (b > a)
+      watch_nodes_.push_back(watch.substr(a, b - a));
     a = b + 1;
   }
   // Fail now, not after the robot has moved, if the scene cannot be steered.
   steering::problemFromScene(scene::loadSceneSpec(scene_spec_), target_);
-}
-
-std::pair<steering::PolicyTable, std::string> SteerableProcedureRos::policyTable(
-    const std::string& scene_name, const steering::SteeringProblem& problem) const {
-  const std::uint64_t hash = steering::problemHash(problem);
-  if (!table_dir_.empty()) {
-    const std::string path =
-        (std::filesystem::path(table_dir_) / steering::PolicyTable::fileName(scene_name, hash))
-            .string();
-    steering::LoadStatus status;
-    std::optional<steering::PolicyTable> loaded = steering::PolicyTable::load(path, hash, status);
-    if (loaded && loaded->converged()) {
-      return {std::move(*loaded), "loaded"};
-    }
-    ROS_WARN_STREAM("steerable_procedure: no usable table of steering_policy (" << status.message
-                                                                                << "); solving");
-  }
-  const steering::SteeringModel model(problem);
-  return {steering::solveValueIteration(model), "solved"};
 }
 
 bool SteerableProcedureRos::run() {
@@ -236,6 +220,19 @@ bool SteerableProcedureRos::run() {
     ROS_FATAL_STREAM("steerable_procedure: no start state: " << best.response.message);
     return false;
   }
+  steering::SelectionOptions selection;
+  selection.start = steering::startOptionsFromScene(scene);
+  Result<steering::PolicySource> policy =
+      steering::solveOrLoad(problem, scene.name, table_dir_, selection);
+  if (!policy) {
+    ROS_FATAL_STREAM("steerable_procedure: no policy table: " << policy.status().toString());
+    return false;
+  }
+  ROS_INFO_STREAM("steerable_procedure: model " << policy.value().description() << " (ps_tolerance "
+                                                << problem.ps_tolerance << ")");
+  const steering::PolicyTable& table = *policy.value().table;
+  const std::string table_source = policy.value().source;
+  const double estimated_error = policy.value().estimated_error;
   const double predicted = best.response.probability_of_success;
   ROS_INFO_STREAM("steerable_procedure: best start y = "
                   << best.response.pose.y * kMmPerM
@@ -468,12 +465,8 @@ bool SteerableProcedureRos::run() {
 
   // The same start in the core simulator (continuous needle, same policy table) and the P_s
   // map of figure 5.7, from the table steering_policy saved (solved here only without one).
-  const auto [table, table_source] = policyTable(scene.name, problem);
   std::ostringstream model_text;
-  model_text << steering::toString(problem.params.transition_model) << ", grid "
-             << problem.params.grid_spacing_m * kMmPerM
-             << " mm, s = " << problem.params.orientation_subdivision << ", "
-             << table.grid().numStates() << " states";
+  model_text << policy.value().description();
   const std::string model_line = model_text.str();
   steering::TipPose start;
   start.p_SceneTip = steering::Point2(best.response.pose.x, best.response.pose.y);
@@ -522,6 +515,8 @@ bool SteerableProcedureRos::run() {
        << ",\n  \"monte_carlo_ps\": " << report::jsonNumber(mc.rate())
        << ",\n  \"monte_carlo_trials\": " << mc.trials << ",\n  \"model\": \"" << model_line
        << "\",\n  \"policy_table\": \"" << table_source << "\""
+       << ",\n  \"ps_tolerance\": " << report::jsonNumber(problem.ps_tolerance)
+       << ",\n  \"estimated_ps_error\": " << report::jsonNumber(estimated_error)
        << ",\n  \"start_y_mm\": " << report::jsonNumber(start.p_SceneTip.y() * kMmPerM)
        << ",\n  \"start_theta_deg\": " << report::jsonNumber(start.theta_rad * kDegPerRad)
        << ",\n  \"start_bevel\": \"" << best.response.bevel << "\""
@@ -541,6 +536,7 @@ bool SteerableProcedureRos::run() {
      << " mm, theta = " << start.theta_rad * kDegPerRad << " deg, bevel " << best.response.bevel
      << " |\n"
      << "| predicted P_s (MDP) | " << predicted << " |\n"
+     << "| model | " << model_line << " (ps_tolerance " << problem.ps_tolerance << ") |\n"
      << (cause.empty() ? "" : "| STOPPED | " + cause + " |\n")
      << "| errored trials (not counted as misses) | " << errored << " |\n"
      << "| success rate (ROS closed loop) | " << successes << " / " << n << " = " << rate
@@ -586,8 +582,7 @@ bool SteerableProcedureRos::run() {
             << " mm, theta = " << start.theta_rad * kDegPerRad << " deg, bevel "
             << best.response.bevel << "; " << wall_s << " s; report in " << report_dir_ << "\n"
             << (errored > 0 ? std::to_string(errored) + " errored trial(s), not counted\n" : "")
-            << (cause.empty() ? "" : "FAIL: " + cause + "\n")
-            << std::flush;
+            << (cause.empty() ? "" : "FAIL: " + cause + "\n") << std::flush;
   return success;
 }
 

@@ -1,6 +1,5 @@
 #include "needle_guidance/ros/steering_policy_ros.h"
 
-#include <unistd.h>
 #include <visualization_msgs/Marker.h>
 
 #include <algorithm>
@@ -17,6 +16,7 @@
 #include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/model_selection.h"
 #include "needle_guidance/steering/value_iteration.h"
 
 namespace needle_guidance {
@@ -155,25 +155,6 @@ visualization_msgs::Marker bestStartMarker(const st::BestStart& best) {
   return m;
 }
 
-/// Writes `table` to `path` through a temporary file and a rename, so a reader never sees a
-/// half-written table. Throws std::runtime_error / std::filesystem::filesystem_error.
-void saveAtomically(const st::PolicyTable& table, const std::string& path) {
-  namespace fs = std::filesystem;
-  const fs::path target(path);
-  if (target.has_parent_path()) {
-    fs::create_directories(target.parent_path());
-  }
-  const std::string temporary = path + ".tmp" + std::to_string(::getpid());
-  try {
-    table.save(temporary);
-    fs::rename(temporary, target);
-  } catch (...) {
-    std::error_code ignored;
-    fs::remove(temporary, ignored);
-    throw;
-  }
-}
-
 }  // namespace
 
 std::string modelDescription(const st::SteeringModel& model) {
@@ -200,12 +181,14 @@ SteeringPolicyRos::SteeringPolicyRos(ros::NodeHandle& nh, ros::NodeHandle& priva
       ros_params::rosHomePath(ros_params::text(private_nh, "table_dir", "steering_tables"));
   settings_.solve_on_start =
       ros_params::flag(private_nh, "solve_on_start", settings_.solve_on_start);
+  settings_.adapt_noise = ros_params::flag(private_nh, "adapt_noise", settings_.adapt_noise);
 
   const scene::Scene scene = scene::loadSceneSpec(settings_.scene);
   scene_name_ = scene.name;
   start_options_ = st::startOptionsFromScene(scene);
-  model_ = std::make_unique<const st::SteeringModel>(st::problemFromScene(scene, settings_.target),
-                                                     settings_.threads);
+  problem_ = st::problemFromScene(scene, settings_.target);
+  // The scene's model as given (with ps_tolerance: the coarsest one tried), until a solve picks.
+  model_ = std::make_unique<const st::SteeringModel>(problem_, settings_.threads);
   for (const std::string& warning : model_->diagnostics()) {
     ROS_WARN_STREAM_NAMED(kName, "steering_policy: " << warning);
   }
@@ -215,7 +198,10 @@ SteeringPolicyRos::SteeringPolicyRos(ros::NodeHandle& nh, ros::NodeHandle& priva
                  << scene_name_ << "', target '" << model_->problem().target.name << "', model "
                  << modelDescription(*model_) << ", grid " << grid.nx << " x " << grid.ny << " x "
                  << grid.nc << " x 2 = " << model_->numStates() << " states, step "
-                 << 1e3 * model_->arcLength_m() << " mm, table file '" << tablePath() << "'");
+                 << 1e3 * model_->arcLength_m() << " mm, ps_tolerance "
+                 << (problem_.ps_tolerance > 0.0 ? formatNumber(problem_.ps_tolerance)
+                                                 : std::string("0 (grid as given)"))
+                 << ", tables in '" << settings_.table_dir << "'");
 
   control_pub_ = private_nh.advertise<SteeringControl>("control", 10);
   ps_map_pub_ = private_nh.advertise<visualization_msgs::Marker>("ps_map", 1, true);
@@ -236,22 +222,12 @@ SteeringPolicyRos::SteeringPolicyRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   ROS_INFO_STREAM_NAMED(kName, "steering_policy: ready, tips from '" << tip_sub_.getTopic() << "'");
 }
 
-std::string SteeringPolicyRos::tablePath() const {
-  if (settings_.table_dir.empty()) {
-    return "";
-  }
-  return (std::filesystem::path(settings_.table_dir) /
-          st::PolicyTable::fileName(scene_name_, model_->hash()))
-      .string();
-}
-
 SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, bool force) {
   const auto t0 = std::chrono::steady_clock::now();
   SolveOutcome out;
   try {
-    // A table in memory for this problem solved at least as tightly needs no work.
-    if (!force && table_ && table_->problemHash() == model_->hash() &&
-        table_->epsilon() <= epsilon) {
+    // A table in memory solved at least as tightly needs no work.
+    if (!force && table_ && table_->epsilon() <= epsilon) {
       out.success = true;
       out.source = "cached";
       out.sweeps = table_->sweeps();
@@ -263,60 +239,47 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
                                                                      << " sweeps");
       return out;
     }
-    const std::string path = tablePath();
-    std::unique_ptr<const st::PolicyTable> table;
-    std::string note;
-    if (!force && !path.empty()) {
-      st::LoadStatus status;
-      std::optional<st::PolicyTable> loaded =
-          st::PolicyTable::load(path, model_->hash(), status, epsilon);
-      if (loaded && loaded->converged()) {
-        table = std::make_unique<const st::PolicyTable>(std::move(*loaded));
-        out.source = "loaded";
-      } else if (loaded) {
-        ROS_WARN_STREAM_NAMED(kName, "steering_policy: '" << path << "' did not converge; solving");
-      } else if (status.code == st::LoadStatus::Code::kCannotOpen ||
-                 status.code == st::LoadStatus::Code::kTooLoose) {
-        // Expected: no table yet, or a tighter epsilon was asked for.
-        ROS_INFO_STREAM_NAMED(kName, "steering_policy: " << status.message << "; solving");
-      } else {
-        ROS_WARN_STREAM_NAMED(kName, "steering_policy: " << status.message << "; solving");
-      }
+    st::SelectionOptions options;
+    options.solver.epsilon = epsilon;
+    options.solver.threads = settings_.threads;
+    options.threads = settings_.threads;
+    options.start = start_options_;
+    Result<st::PolicySource> policy =
+        st::solveOrLoad(problem_, scene_name_, settings_.table_dir, options, force);
+    if (!policy) {
+      throw std::runtime_error(policy.status().toString());
     }
-    if (!table) {
-      st::SolverOptions options;
-      options.epsilon = epsilon;
-      options.threads = settings_.threads;
-      st::SolveStats stats;
-      st::PolicyTable solved = st::solveValueIteration(*model_, options, &stats);
-      if (!stats.converged) {
-        std::ostringstream why;
-        why << "value iteration did not converge to epsilon " << epsilon << " in " << stats.sweeps
-            << " sweeps (last change " << stats.last_max_change << ")";
-        throw std::runtime_error(why.str());
-      }
-      out.source = "solved";
-      if (!path.empty()) {
-        try {
-          saveAtomically(solved, path);
-          note = ", saved to '" + path + "'";
-        } catch (const std::exception& e) {
-          // The table is good; only the cache on disk is missing.
-          note = ", not saved: " + std::string(e.what());
-          ROS_WARN_STREAM_NAMED(kName, "steering_policy: table not saved: " << e.what());
-        }
-      }
-      table = std::make_unique<const st::PolicyTable>(std::move(solved));
+    st::PolicySource& p = policy.value();
+    if (!p.note.empty() && p.note.rfind("not saved", 0) == 0) {
+      ROS_WARN_STREAM_NAMED(kName, "steering_policy: table " << p.note);
     }
-    table_ = std::move(table);
+    for (const st::ModelRung& rung : p.ladder) {
+      ROS_INFO_STREAM_NAMED(kName, "steering_policy: model grid "
+                                       << rung.grid_spacing_m * 1e3 << " mm, " << rung.states
+                                       << " states, solved in " << rung.solve_s
+                                       << " s, estimated mean P_s error " << rung.estimated_error);
+    }
+    description_ = p.description();  // before the model moves out
+    estimated_error_ = p.estimated_error;
+    out.source = p.source;
+    const std::string note = p.note;
+    const auto source = std::make_shared<const st::PolicySource>(std::move(p));
+    adopt(source);
+    if (settings_.adapt_noise) {
+      st::AdaptationOptions adaptation;
+      adaptation.solver = options.solver;
+      adaptation.threads = settings_.threads;
+      adaptive_ = std::make_unique<st::AdaptivePolicy>(problem_, source, adaptation);
+      last_ = LastAnswer{};
+    }
     table_source_ = out.source;
     out.success = true;
     out.sweeps = table_->sweeps();
     out.seconds = secondsSince(t0);
-    out.message = out.source + " (epsilon " + formatNumber(table_->epsilon()) + ")" + note;
-    ROS_INFO_STREAM_NAMED(kName, "steering_policy: table "
-                                     << out.source << ": " << model_->numStates() << " states, "
-                                     << out.sweeps << " sweeps, " << out.seconds << " s" << note);
+    out.message = out.source + " (epsilon " + formatNumber(table_->epsilon()) + ")" +
+                  (note.empty() ? "" : ", " + note);
+    ROS_INFO_STREAM_NAMED(kName, "steering_policy: table " << out.source << ": " << description_
+                                                           << ", " << out.sweeps << " sweeps");
   } catch (const std::exception& e) {
     out = SolveOutcome{};
     out.message = e.what();
@@ -338,6 +301,44 @@ void SteeringPolicyRos::publishMaps() {
   const st::BestStart best = table_->bestStart(start_options_);
   best_start_pub_.publish(bestStartMarker(best));
   ROS_INFO_STREAM_NAMED(kName, "steering_policy: " << best.toString());
+}
+
+void SteeringPolicyRos::adopt(const std::shared_ptr<const st::PolicySource>& source) {
+  model_ = std::shared_ptr<const st::SteeringModel>(source, source->model.get());
+  table_ = std::shared_ptr<const st::PolicyTable>(source, source->table.get());
+}
+
+void SteeringPolicyRos::learnFrom(const NeedleTip& tip, const st::TipPose& pose) {
+  if (!adaptive_) {
+    return;
+  }
+  const double delta = model_->arcLength_m();
+  const bool whole_step =
+      last_.valid &&
+      std::abs(tip.inserted_length_m - last_.inserted_length_m - delta) <= 0.1 * delta &&
+      pose.bevel ==
+          (last_.control == st::Control::kFlip ? st::flipped(last_.pose.bevel) : last_.pose.bevel);
+  if (whole_step) {
+    const bool was_solving = adaptive_->solving();
+    adaptive_->observe(last_.pose, pose, last_.control);
+    if (!was_solving && adaptive_->solving()) {
+      const st::Resolve& r = adaptive_->resolves().back();
+      ROS_INFO_STREAM_NAMED(kName, "steering_policy: learned noise left the assumed interval after "
+                                       << r.requested_at_step << " steps; re-solving for sigma_i = "
+                                       << r.sigma_insert_rad * 180.0 / M_PI
+                                       << " deg, sigma_r = " << r.sigma_flip_rad * 180.0 / M_PI
+                                       << " deg (the current table answers meanwhile)");
+    }
+  }
+  if (adaptive_->poll()) {
+    adopt(adaptive_->current());
+    const st::Resolve& r = adaptive_->resolves().back();
+    description_ = adaptive_->current()->description();
+    ROS_INFO_STREAM_NAMED(kName, "steering_policy: re-solved table swapped in ("
+                                     << (r.cached ? "cached" : formatNumber(r.seconds, 3) + " s")
+                                     << "): " << description_);
+    publishMaps();
+  }
 }
 
 void SteeringPolicyRos::onTip(const NeedleTipConstPtr& msg) {
@@ -376,7 +377,14 @@ void SteeringPolicyRos::onTip(const NeedleTipConstPtr& msg) {
     pose.p_SceneTip = geometry::Point2(msg->pose.x, msg->pose.y);
     pose.theta_rad = msg->pose.theta;
     pose.bevel = *bevel;
-    control_pub_.publish(toMessage(*msg, table_->lookup(pose), model_->arcLength_m()));
+    learnFrom(*msg, pose);
+    const st::ControlLookup answer = table_->lookup(pose);
+    control_pub_.publish(toMessage(*msg, answer, model_->arcLength_m()));
+    // Only tips the robot or an image vouches for teach the noise.
+    last_.valid = answer && (msg->source == "ground_truth" || msg->confident);
+    last_.pose = pose;
+    last_.inserted_length_m = msg->inserted_length_m;
+    last_.control = answer.control;
   } catch (const std::exception& e) {
     ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
                                     "steering_policy: tip not answered: " << e.what());
@@ -400,7 +408,9 @@ bool SteeringPolicyRos::onSolve(SolvePolicy::Request& req, SolvePolicy::Response
   }
   res.states = table_ ? table_->grid().numStates() : 0;
   res.sweeps = table_ ? table_->sweeps() : 0;
-  res.model = modelDescription(*model_);
+  res.model = description_.empty() ? modelDescription(*model_) : description_;
+  res.grid_spacing_m = model_->grid().spacing_m;
+  res.estimated_ps_error = estimated_error_;
   return true;
 }
 

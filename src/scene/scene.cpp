@@ -555,6 +555,8 @@ private:
     const int subdivision_line = m.lineOfKey("orientation_subdivision");
     const std::optional<Quantity> start_x = m.optionalQuantity("start_x", detail::kLength);
     const std::optional<std::string> transition = m.optionalString("transition_model");
+    const std::optional<Quantity> ps_tolerance =
+        m.optionalQuantity("ps_tolerance", detail::kDimensionless);
     const std::string transition_key = m.keyPath("transition_model");
     const int transition_line = m.lineOfKey("transition_model");
     m.finish();
@@ -580,6 +582,12 @@ private:
     requireNonNegative(sigma_flip);
     steering.sigma_insert_rad = sigma_insert.si;
     steering.sigma_flip_rad = sigma_flip.si;
+    if (ps_tolerance) {
+      if (!(ps_tolerance->si >= 0.0 && ps_tolerance->si < 1.0)) {
+        fail(*ps_tolerance, "ps_tolerance must be in [0, 1) (0: the grid spacing as given)");
+      }
+      steering.ps_tolerance = ps_tolerance->si;
+    }
     steering.start_x_m = scene_.workspace_min.x();
     if (start_x) {
       if (start_x->si < scene_.workspace_min.x() - kGeometryTol_m ||

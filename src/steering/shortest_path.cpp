@@ -45,7 +45,6 @@ constexpr double kBoundSlack = 1e-9;
 
 using Clock = std::chrono::steady_clock;
 
-
 /// theta wrapped into (-pi, pi]; the identity (bit for bit) on values already in range, so a path
 /// that never turns past 180 degrees has exactly the poses the Monte Carlo simulator computes.
 double wrapAngle(double theta_rad) {
@@ -247,7 +246,8 @@ void checkOptions(const ShortestPathOptions& o) {
                                 formatNumber(o.pruning_radius_m));
   }
   if (!(o.goal_bias >= 0.0 && o.goal_bias <= 1.0)) {
-    throw std::invalid_argument(where + "goal_bias must be in [0, 1], got " + formatNumber(o.goal_bias));
+    throw std::invalid_argument(where + "goal_bias must be in [0, 1], got " +
+                                formatNumber(o.goal_bias));
   }
 }
 
@@ -271,64 +271,12 @@ std::string ShortestPath::toString() const {
   return s.str();
 }
 
-ShortestPath planShortestPath(const ContinuousWorkspace& world, const TipPose& start,
-                              const ShortestPathOptions& options) {
-  checkOptions(options);
-  const auto t0 = Clock::now();
-  ShortestPath out;
+/// The control space of the needle for SST: SE(2) x {left, right} states, controls insert / flip
+/// held for one step of delta_m, propagated and checked against `world`.
+static oc::SpaceInformationPtr needleSpaceInformation(const ContinuousWorkspace& world,
+                                                      double delta_m) {
   const SteeringProblem& problem = world.problem();
-  const SteeringParams& params = problem.params;
-  if (params.orientations < 1) {
-    throw std::invalid_argument("planShortestPath: orientations N_c must be >= 1, got " +
-                                std::to_string(params.orientations));
-  }
-  const double r = params.radius_m;
-  const double delta_m = 2.0 * kPi * r / params.orientations;
-
-  auto refuse = [&](const std::string& why) {
-    out.found = false;
-    out.message = "planShortestPath: " + why;
-    out.seconds = secondsSince(t0);
-    return out;
-  };
-  if (!start.p_SceneTip.allFinite() || !std::isfinite(start.theta_rad)) {
-    return refuse("start pose is not finite (x, y, theta) = (" + formatNumber(start.p_SceneTip.x()) + ", " +
-                  formatNumber(start.p_SceneTip.y()) + ", " + formatNumber(start.theta_rad) + ")");
-  }
-  if (start.bevel != Bevel::kLeft && start.bevel != Bevel::kRight) {
-    return refuse("start bevel is neither left nor right");
-  }
-  if (!world.inWorkspace(start.p_SceneTip)) {
-    return refuse("start " + describe(start.p_SceneTip) + " is outside the workspace");
-  }
-  if (const int o = world.obstacleAt(start.p_SceneTip); o >= 0) {
-    return refuse("start " + describe(start.p_SceneTip) + " lies inside expanded obstacle '" +
-                  problem.obstacles[static_cast<std::size_t>(o)].name + "'");
-  }
-  TipPose start_pose = start;
-  start_pose.theta_rad = wrapAngle(start.theta_rad);
-  out.poses.push_back(start_pose);
-
-  // Lower bound: one step moves the tip by at most the chord 2 r sin(pi / N_c) of its arc.
-  const double chord_m = 2.0 * r * std::sin(kPi / params.orientations);
-  const double gap_m =
-      (start.p_SceneTip - problem.target.position).norm() - problem.target.radius_m;
-  if (world.inTarget(start.p_SceneTip)) {
-    out.found = true;
-    out.proven_shortest = true;
-    out.seconds = secondsSince(t0);
-    return out;
-  }
-  out.lower_bound_steps = std::max(1, static_cast<int>(std::ceil(gap_m / chord_m - kBoundSlack)));
-  if (out.lower_bound_steps > options.max_steps) {
-    out.poses.clear();
-    return refuse("the target is at least " + std::to_string(out.lower_bound_steps) +
-                  " steps away, more than max_steps = " + std::to_string(options.max_steps));
-  }
-
-  const QuietOmpl quiet;
-  seedOmpl(options.seed);  // before any OMPL object with a generator exists (see the header)
-
+  const double r = problem.params.radius_m;
   // SE(2) x {left, right} (5.3). The orientation weighs r [m/rad] in the metric, so turning by one
   // arc counts as much as moving by one arc; SE2StateSpace's own 0.5 would let orientation swamp
   // position in a 10 cm workspace. The bevel weighs 0: at sigma = 0 the two bevels of a pose have
@@ -355,6 +303,77 @@ ShortestPath planShortestPath(const ContinuousWorkspace& world, const TipPose& s
   si->setPropagationStepSize(kStepDuration);
   si->setMinMaxControlDuration(1, 1);
   si->setup();
+  return si;
+}
+
+/// Why `start` cannot start a plan ("" when it can).
+static std::string startRefusal(const ContinuousWorkspace& world, const TipPose& start) {
+  if (!start.p_SceneTip.allFinite() || !std::isfinite(start.theta_rad)) {
+    return ("start pose is not finite (x, y, theta) = (" + formatNumber(start.p_SceneTip.x()) +
+            ", " + formatNumber(start.p_SceneTip.y()) + ", " + formatNumber(start.theta_rad) + ")");
+  }
+  if (start.bevel != Bevel::kLeft && start.bevel != Bevel::kRight) {
+    return "start bevel is neither left nor right";
+  }
+  if (!world.inWorkspace(start.p_SceneTip)) {
+    return ("start " + describe(start.p_SceneTip) + " is outside the workspace");
+  }
+  if (const int o = world.obstacleAt(start.p_SceneTip); o >= 0) {
+    return ("start " + describe(start.p_SceneTip) + " lies inside expanded obstacle '" +
+            world.problem().obstacles[static_cast<std::size_t>(o)].name + "'");
+  }
+  return "";
+}
+
+ShortestPath planShortestPath(const ContinuousWorkspace& world, const TipPose& start,
+                              const ShortestPathOptions& options) {
+  checkOptions(options);
+  const auto t0 = Clock::now();
+  ShortestPath out;
+  const SteeringProblem& problem = world.problem();
+  const SteeringParams& params = problem.params;
+  if (params.orientations < 1) {
+    throw std::invalid_argument("planShortestPath: orientations N_c must be >= 1, got " +
+                                std::to_string(params.orientations));
+  }
+  const double r = params.radius_m;
+  const double delta_m = 2.0 * kPi * r / params.orientations;
+
+  auto refuse = [&](const std::string& why) {
+    out.found = false;
+    out.message = "planShortestPath: " + why;
+    out.seconds = secondsSince(t0);
+    return out;
+  };
+  if (const std::string why = startRefusal(world, start); !why.empty()) {
+    return refuse(why);
+  }
+  TipPose start_pose = start;
+  start_pose.theta_rad = wrapAngle(start.theta_rad);
+  out.poses.push_back(start_pose);
+
+  // Lower bound: one step moves the tip by at most the chord 2 r sin(pi / N_c) of its arc.
+  const double chord_m = 2.0 * r * std::sin(kPi / params.orientations);
+  const double gap_m =
+      (start.p_SceneTip - problem.target.position).norm() - problem.target.radius_m;
+  if (world.inTarget(start.p_SceneTip)) {
+    out.found = true;
+    out.proven_shortest = true;
+    out.seconds = secondsSince(t0);
+    return out;
+  }
+  out.lower_bound_steps = std::max(1, static_cast<int>(std::ceil(gap_m / chord_m - kBoundSlack)));
+  if (out.lower_bound_steps > options.max_steps) {
+    out.poses.clear();
+    return refuse("the target is at least " + std::to_string(out.lower_bound_steps) +
+                  " steps away, more than max_steps = " + std::to_string(options.max_steps));
+  }
+
+  const QuietOmpl quiet;
+  seedOmpl(options.seed);  // before any OMPL object with a generator exists (see the header)
+
+  const oc::SpaceInformationPtr si = needleSpaceInformation(world, delta_m);
+  const ob::StateSpacePtr& space = si->getStateSpace();
 
   auto pdef = std::make_shared<ob::ProblemDefinition>(si);
   ob::ScopedState<> start_state(space);
@@ -390,11 +409,13 @@ ShortestPath planShortestPath(const ContinuousWorkspace& world, const TipPose& s
   if (!pdef->hasExactSolution()) {
     const double closest_m = pdef->getSolutionDifference();
     std::string why = "no path to target '" + problem.target.name + "' found in " +
-                      std::to_string(iterations) + " SST iterations over " + formatNumber(secondsSince(t0)) +
+                      std::to_string(iterations) + " SST iterations over " +
+                      formatNumber(secondsSince(t0)) +
                       " s (time_limit_s = " + formatNumber(options.time_limit_s) +
                       ", max_iterations = " + std::to_string(options.max_iterations) + ")";
     if (closest_m >= 0.0 && std::isfinite(closest_m)) {
-      why += "; the closest tip came within " + formatNumber(closest_m * 1e3) + " mm of the target disc";
+      why += "; the closest tip came within " + formatNumber(closest_m * 1e3) +
+             " mm of the target disc";
     } else {
       why += "; no step from the start is free";
     }

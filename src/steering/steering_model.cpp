@@ -168,6 +168,7 @@ SteeringProblem problemFromScene(const scene::Scene& scene, const std::string& t
                                 "' is not rounded or interpolated");
   }
   problem.params.transition_model = *model;
+  problem.ps_tolerance = scene.steering->ps_tolerance;
   return problem;
 }
 
@@ -658,6 +659,41 @@ std::uint8_t SteeringModel::endMask(int ix, int iy, int arc) const {
   return em;
 }
 
+/// Every arc (bevel * nc + orientation) from the origin as a polyline whose chords lie within
+/// arc_chord_tolerance_m of the true arc, with its bounding box; returns the farthest distance
+/// any arc point gets from the start [m].
+static double arcPolylines(const SteeringParams& params, double alpha, int nc, double arc_length_m,
+                           std::vector<std::vector<Point2>>& arc_points,
+                           std::vector<Box>& arc_box) {
+  const double r = params.radius_m;
+  const double max_step = 2.0 * std::acos(std::max(-1.0, 1.0 - params.arc_chord_tolerance_m / r));
+  const double turn = arc_length_m / r;  // one arc turns 2 pi / N_c
+  const int segments = std::max(1, static_cast<int>(std::ceil(turn / max_step)));
+  const int n_arcs = 2 * nc;
+  arc_points.assign(static_cast<std::size_t>(n_arcs), {});
+  arc_box.assign(static_cast<std::size_t>(n_arcs), Box{0, 0, 0, 0});
+  double reach = 0.0;
+  for (int a = 0; a < n_arcs; ++a) {
+    TipPose start;
+    start.theta_rad = (a % nc) * alpha;
+    start.bevel = a < nc ? Bevel::kLeft : Bevel::kRight;
+    auto& pts = arc_points[static_cast<std::size_t>(a)];
+    Box box{0, 0, 0, 0};
+    for (int i = 0; i <= segments; ++i) {
+      const Point2 p =
+          i == 0
+              ? Point2(0, 0)
+              : advanceTip(start, Control::kInsert, 0.0, arc_length_m * i / segments, r).p_SceneTip;
+      pts.push_back(p);
+      box = {std::min(box.min_x, p.x()), std::min(box.min_y, p.y()), std::max(box.max_x, p.x()),
+             std::max(box.max_y, p.y())};
+      reach = std::max(reach, p.norm());
+    }
+    arc_box[static_cast<std::size_t>(a)] = box;
+  }
+  return reach;
+}
+
 void SteeringModel::buildValidity(int threads) {
   const int nc = grid_.nc;
   const int n_arcs = 2 * nc;
@@ -671,33 +707,11 @@ void SteeringModel::buildValidity(int threads) {
   }
 
   // Each arc as a polyline relative to its start point (the same at every position).
-  const double r = problem_.params.radius_m;
-  const double alpha = grid_.alphaRad();
-  const double max_step =
-      2.0 * std::acos(std::max(-1.0, 1.0 - problem_.params.arc_chord_tolerance_m / r));
-  const double turn = arcLength_m() / r;  // one arc turns 2 pi / N_c
-  const int segments = std::max(1, static_cast<int>(std::ceil(turn / max_step)));
-  std::vector<std::vector<Point2>> arc_points(static_cast<std::size_t>(n_arcs));
-  std::vector<Box> arc_box(static_cast<std::size_t>(n_arcs));
-  double reach = 0.0;  // farthest any arc point gets from the start [m]
-  for (int a = 0; a < n_arcs; ++a) {
-    TipPose start;
-    start.theta_rad = (a % nc) * alpha;
-    start.bevel = a < nc ? Bevel::kLeft : Bevel::kRight;
-    auto& pts = arc_points[static_cast<std::size_t>(a)];
-    Box box{0, 0, 0, 0};
-    for (int i = 0; i <= segments; ++i) {
-      const Point2 p =
-          i == 0 ? Point2(0, 0)
-                 : advanceTip(start, Control::kInsert, 0.0, arcLength_m() * i / segments, r)
-                       .p_SceneTip;
-      pts.push_back(p);
-      box = {std::min(box.min_x, p.x()), std::min(box.min_y, p.y()), std::max(box.max_x, p.x()),
-             std::max(box.max_y, p.y())};
-      reach = std::max(reach, p.norm());
-    }
-    arc_box[static_cast<std::size_t>(a)] = box;
-  }
+  std::vector<std::vector<Point2>> arc_points;
+  std::vector<Box> arc_box;
+  const double reach =
+      arcPolylines(problem_.params, grid_.alphaRad(), nc, arcLength_m(), arc_points,
+                   arc_box);  // farthest any arc point gets from the start [m]
 
   // Expanded-obstacle edges, binned on a uniform grid of cell size `reach` so each position
   // looks at the bins within reach only.

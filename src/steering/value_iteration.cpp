@@ -5,6 +5,9 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <limits>
+#include <numeric>
+#include <set>
 #include <stdexcept>
 #include <string>
 #include <thread>
@@ -31,7 +34,42 @@ struct Context {
   const StencilEntry* const* stencil_begin = nullptr;  // per (b * nc + k) * 2 + u, plus end
   const StencilEntry* const* stencil_end = nullptr;
   bool split = false;  // kInterpolated: positions off the fast path use expectedSplit
-  const struct ArcTables* arcs = nullptr;  // kInterpolated: per-arc corners, per-slot deflections
+  const struct ArcTables* arcs = nullptr;   // kInterpolated: per-arc corners, per-slot deflections
+  struct ChangeTracker* changes = nullptr;  // null: every free position is updated every sweep
+};
+
+/// Skips positions whose update could not move their values by `skip_below` or more. The
+/// Bellman update (eq. 5.2) is a maximum of weighted means with weights summing to <= 1, so a
+/// position's new values differ from its old ones by at most the largest change of any successor
+/// since its last update. `pending` accumulates an upper bound of that (changes in the previous
+/// sweep plus those already made in this one, counted twice at worst); a position is updated
+/// once its bound reaches skip_below. Changes made in another thread's band during the current
+/// sweep are counted one sweep later (when they are in `previous`), as their values are too (the
+/// snapshot), so the result does not depend on timing.
+struct ChangeTracker {
+  float skip_below = 0.0f;
+  std::vector<float> previous;          // per position: max |change| in the previous sweep
+  std::vector<float> current;           // per position: max |change| so far in this sweep
+  std::vector<float> pending;           // per position: bound on its change since its last update
+  std::vector<std::int32_t> succ_dpos;  // distinct successor positions: index offset
+  std::vector<std::int16_t> succ_dx, succ_dy;
+
+  /// Adds this sweep's bound for position (ix, iy) and says whether it must be updated.
+  bool due(const GridSpec& g, std::int64_t pos, int ix, int iy, int row_begin, int row_end) {
+    float bound = 0.0f;
+    for (std::size_t i = 0; i < succ_dpos.size(); ++i) {
+      const int x = ix + succ_dx[i], y = iy + succ_dy[i];
+      if (x < 0 || x >= g.nx || y < 0 || y >= g.ny) {
+        continue;
+      }
+      const auto q = static_cast<std::size_t>(pos + succ_dpos[i]);
+      const float own = y >= row_begin && y < row_end ? current[q] : 0.0f;
+      bound = std::max(bound, previous[q] + own);
+    }
+    float& p = pending[static_cast<std::size_t>(pos)];
+    p += bound;
+    return p >= skip_below;
+  }
 };
 
 /// kInterpolated, factored: the value after tracing arc a (bevel * nc + orientation) from a
@@ -42,8 +80,12 @@ struct ArcTables {
   std::vector<float> weight;         // bilinear weight of the corner
   std::vector<std::int16_t> dy;      // row displacement of the corner
   std::vector<std::uint8_t> corner;  // corner id (bit of endMask)
-  std::vector<std::vector<std::uint16_t>> slot_arc;  // per slot (b * nc + k) * 2 + u
-  std::vector<std::vector<float>> slot_p;
+  /// Per control u: P(d) for d = first[u] .. first[u] + p[u].size() - 1 (orientation steps).
+  std::vector<float> p[2];
+  int first[2] = {0, 0};
+  int first_min = 0;  // min(first[0], first[1])
+  int ext_len = 0;    // nc + the widest deflection span: length of one bevel's wrapped values
+  std::vector<std::uint16_t> ext_src;  // per j < ext_len: orientation (j + first_min) mod nc
 };
 
 /// Expected P_s of one control: sum_j p_ij P_s(x_j) over the stencil (eq. 5.2). kCheck: some
@@ -127,25 +169,47 @@ float updateFactoredPosition(const Context& c, std::int64_t pos, int iy, const B
     }
     after[static_cast<std::size_t>(a)] = kept > 0.0f ? weighted / kept : 0.0f;
   }
-  float max_change = 0.0f;
-  for (int bk = 0; bk < 2 * nc; ++bk) {
-    float q[2];
-    for (int u = 0; u < 2; ++u) {
-      const auto slot = static_cast<std::size_t>(2 * bk + u);
-      const std::vector<std::uint16_t>& arcs = t.slot_arc[slot];
-      const std::vector<float>& p = t.slot_p[slot];
-      float sum = 0.0f;
-      for (std::size_t d = 0; d < arcs.size(); ++d) {
-        sum += p[d] * after[arcs[d]];
-      }
-      q[u] = sum;
+  // The deflection sums are circular convolutions over the orientation: for bevel b and
+  // control u, q_u(k) = sum_i P_u(i) after(traced, k + first_u + i). Each bevel's values are
+  // unrolled once (wrapped around) so the inner loop runs over contiguous k (SIMD).
+  float* ext = after.data() + 2 * nc;
+  for (int tr = 0; tr < 2; ++tr) {
+    float* e = ext + tr * t.ext_len;
+    const float* src = after.data() + tr * nc;
+    for (int j = 0; j < t.ext_len; ++j) {
+      e[j] = src[t.ext_src[static_cast<std::size_t>(j)]];
     }
-    const std::int64_t s = base + bk;
-    const bool flip = q[1] > q[0];  // ties keep insert
-    const float best = flip ? q[1] : q[0];
-    max_change = std::max(max_change, std::abs(best - c.values[s]));
-    c.values[s] = best;
-    c.controls[s] = flip ? 1 : 0;
+  }
+  float* q = ext + 2 * t.ext_len;  // q[(b * 2 + u) * nc + k]
+  for (int b = 0; b < 2; ++b) {
+    for (int u = 0; u < 2; ++u) {
+      const int traced = u == 0 ? b : 1 - b;
+      const float* e = ext + traced * t.ext_len + (t.first[u] - t.first_min);
+      float* qu = q + (b * 2 + u) * nc;
+      std::fill(qu, qu + nc, 0.0f);
+      const std::vector<float>& p = t.p[u];
+      for (std::size_t i = 0; i < p.size(); ++i) {
+        const float pi = p[i];
+        const float* ei = e + i;
+        for (int k = 0; k < nc; ++k) {
+          qu[k] += pi * ei[k];
+        }
+      }
+    }
+  }
+  float max_change = 0.0f;
+  for (int b = 0; b < 2; ++b) {
+    const float* q_insert = q + (b * 2) * nc;
+    const float* q_flip = q + (b * 2 + 1) * nc;
+    float* v = c.values + base + b * nc;
+    std::uint8_t* ctl = c.controls + base + b * nc;
+    for (int k = 0; k < nc; ++k) {
+      const bool flip = q_flip[k] > q_insert[k];  // ties keep insert
+      const float best = flip ? q_flip[k] : q_insert[k];
+      max_change = std::max(max_change, std::abs(best - v[k]));
+      v[k] = best;
+      ctl[k] = flip ? 1 : 0;
+    }
   }
   return max_change;
 }
@@ -158,20 +222,27 @@ ArcTables arcTables(const SteeringModel& model) {
   t.weight.assign(static_cast<std::size_t>(8 * nc), 0.0f);
   t.dy.assign(static_cast<std::size_t>(8 * nc), 0);
   t.corner.assign(static_cast<std::size_t>(8 * nc), 0);
-  t.slot_arc.resize(static_cast<std::size_t>(4 * nc));
-  t.slot_p.resize(static_cast<std::size_t>(4 * nc));
+  int span = 0;
+  for (int u = 0; u < 2; ++u) {
+    const std::vector<double>& probs = model.deflectionProbabilities(static_cast<Control>(u));
+    t.first[u] = model.firstDeflection(static_cast<Control>(u));
+    t.p[u].assign(probs.begin(), probs.end());  // the same P(d) in every slot of a control
+    span = std::max(span, static_cast<int>(probs.size()));
+  }
+  t.first_min = std::min(t.first[0], t.first[1]);
+  t.ext_len = nc + span + std::abs(t.first[0] - t.first[1]);
+  for (int j = 0; j < t.ext_len; ++j) {
+    t.ext_src.push_back(static_cast<std::uint16_t>(((j + t.first_min) % nc + nc) % nc));
+  }
   for (int b = 0; b < 2; ++b) {
     for (int k = 0; k < nc; ++k) {
       for (int u = 0; u < 2; ++u) {
-        const auto slot = static_cast<std::size_t>((b * nc + k) * 2 + u);
         const StencilEntry* begin =
             model.stencilBegin(k, static_cast<Bevel>(b), static_cast<Control>(u));
         const StencilEntry* end =
             model.stencilEnd(k, static_cast<Bevel>(b), static_cast<Control>(u));
         for (const StencilEntry* e = begin; e != end; e += 4) {
           const float p = e[0].probability + e[1].probability + e[2].probability + e[3].probability;
-          t.slot_arc[slot].push_back(e->arc);
-          t.slot_p[slot].push_back(p);
           for (int i = 0; i < 4; ++i) {
             const auto ai = static_cast<std::size_t>(e->arc * 4 + i);
             t.offset[ai] = e[i].offset + (b * nc + k);
@@ -186,12 +257,44 @@ ArcTables arcTables(const SteeringModel& model) {
   return t;
 }
 
+/// A tracker with every position due in the first sweep and the distinct successor positions
+/// of the model's stencils.
+ChangeTracker changeTracker(const SteeringModel& model, float skip_below) {
+  const GridSpec& g = model.grid();
+  ChangeTracker t;
+  t.skip_below = skip_below;
+  const auto n = static_cast<std::size_t>(g.numPositions());
+  t.previous.assign(n, 0.0f);
+  t.current.assign(n, 0.0f);
+  t.pending.assign(n, std::numeric_limits<float>::infinity());
+  std::set<std::pair<std::int32_t, std::int16_t>> seen;
+  for (int b = 0; b < 2; ++b) {
+    for (int k = 0; k < g.nc; ++k) {
+      for (int u = 0; u < 2; ++u) {
+        const auto bevel = static_cast<Bevel>(b);
+        const auto control = static_cast<Control>(u);
+        for (const StencilEntry* e = model.stencilBegin(k, bevel, control);
+             e != model.stencilEnd(k, bevel, control); ++e) {
+          if (seen.insert({e->dpos, e->dy}).second) {
+            t.succ_dpos.push_back(e->dpos);
+            t.succ_dy.push_back(e->dy);
+            t.succ_dx.push_back(static_cast<std::int16_t>((e->dpos - e->dy) / g.ny));
+          }
+        }
+      }
+    }
+  }
+  return t;
+}
+
 /// One sweep of the rows in `band` (all columns), in the given order; returns max |change|.
 float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_descending, int reach,
-                bool use_snapshot) {
+                bool use_snapshot, std::int64_t& updated) {
+  updated = 0;
   const GridSpec& g = *c.grid;
   float max_change = 0.0f;
-  std::vector<float> after(c.split ? static_cast<std::size_t>(2 * g.nc) : 0);
+  // kInterpolated scratch: after (2 nc), the two wrapped bevels (2 ext_len), q (4 nc).
+  std::vector<float> after(c.split ? static_cast<std::size_t>(6 * g.nc + 2 * c.arcs->ext_len) : 0);
   for (int i = 0; i < g.nx; ++i) {
     const int ix = x_descending ? g.nx - 1 - i : i;
     const int rows = band.row_end - band.row_begin;
@@ -201,6 +304,12 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
       if (c.cells[pos] != static_cast<std::uint8_t>(Cell::kFree)) {
         continue;  // absorbing (5.4.2)
       }
+      if (c.changes != nullptr && !c.changes->due(g, pos, ix, iy, use_snapshot ? band.row_begin : 0,
+                                                  use_snapshot ? band.row_end : g.ny)) {
+        max_change = std::max(max_change, c.changes->pending[static_cast<std::size_t>(pos)]);
+        continue;  // its values would move by less than skip_below
+      }
+      ++updated;
       const bool check = !c.model->allArcsValid(pos);
       const bool near_edge =
           use_snapshot && (iy - band.row_begin < reach || band.row_end - 1 - iy < reach);
@@ -214,6 +323,10 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
       } else {
         change = check ? updatePosition<true, false>(c, pos, iy, band)
                        : updatePosition<false, false>(c, pos, iy, band);
+      }
+      if (c.changes != nullptr) {
+        c.changes->current[static_cast<std::size_t>(pos)] = change;
+        c.changes->pending[static_cast<std::size_t>(pos)] = 0.0f;
       }
       max_change = std::max(max_change, change);
     }
@@ -236,6 +349,10 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   if (options.threads < 1) {
     throw std::invalid_argument("solveValueIteration: threads must be >= 1, got " +
                                 std::to_string(options.threads));
+  }
+  if (!(options.skip_fraction >= 0.0 && options.skip_fraction <= 1.0)) {
+    throw std::invalid_argument("solveValueIteration: skip_fraction must be in [0, 1], got " +
+                                std::to_string(options.skip_fraction));
   }
   const auto t0 = std::chrono::steady_clock::now();
   const GridSpec& g = model.grid();
@@ -282,12 +399,18 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   c.split = model.transitionModel() == TransitionModel::kInterpolated;
   const ArcTables arc_tables = c.split ? arcTables(model) : ArcTables{};
   c.arcs = &arc_tables;
+  ChangeTracker tracker;
+  if (options.skip_fraction > 0.0) {
+    tracker = changeTracker(model, static_cast<float>(options.epsilon * options.skip_fraction));
+    c.changes = &tracker;
+  }
 
   SolveStats local;
   SolveStats& st = stats ? *stats : local;
   st = SolveStats{};
   int quiet_sweeps = 0;  // consecutive sweeps with max change < epsilon
   std::vector<float> band_change(static_cast<std::size_t>(n_threads), 0.0f);
+  std::vector<std::int64_t> band_updates(static_cast<std::size_t>(n_threads), 0);
   for (int sweep = 0; sweep < options.max_sweeps; ++sweep) {
     const int order = sweep % kSweepOrders;
     const bool x_desc = order < 2;  // insertion is mostly along +x: start there
@@ -308,18 +431,25 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
       for (int t = 1; t < n_threads; ++t) {
         pool.emplace_back([&, t] {
           band_change[static_cast<std::size_t>(t)] =
-              sweepBand(c, bands[static_cast<std::size_t>(t)], x_desc, y_desc, reach, true);
+              sweepBand(c, bands[static_cast<std::size_t>(t)], x_desc, y_desc, reach, true,
+                        band_updates[static_cast<std::size_t>(t)]);
         });
       }
-      band_change[0] = sweepBand(c, bands[0], x_desc, y_desc, reach, true);
+      band_change[0] = sweepBand(c, bands[0], x_desc, y_desc, reach, true, band_updates[0]);
       for (auto& th : pool) {
         th.join();
       }
     } else {
-      band_change[0] = sweepBand(c, bands[0], x_desc, y_desc, reach, false);
+      band_change[0] = sweepBand(c, bands[0], x_desc, y_desc, reach, false, band_updates[0]);
+    }
+    if (c.changes != nullptr) {
+      tracker.previous.swap(tracker.current);
+      std::fill(tracker.current.begin(), tracker.current.end(), 0.0f);
     }
     const double max_change = *std::max_element(band_change.begin(), band_change.end());
     st.max_change_per_sweep.push_back(max_change);
+    st.updated_per_sweep.push_back(
+        std::accumulate(band_updates.begin(), band_updates.end(), std::int64_t{0}));
     st.sweeps = sweep + 1;
     st.last_max_change = max_change;
     quiet_sweeps = max_change < options.epsilon ? quiet_sweeps + 1 : 0;

@@ -23,6 +23,8 @@
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/adaptive_policy.h"
+#include "needle_guidance/steering/model_selection.h"
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/steering/shortest_path.h"
@@ -52,6 +54,8 @@ constexpr std::uint64_t kMonteCarloSeed = 11;
 /// Start states whose predicted and simulated P_s are both below this are left out of the
 /// truth check: they agree trivially.
 constexpr double kTrivialPs = 0.01;
+/// Heights of the truth check's start states on the entry line [mm].
+const std::vector<double> kTruthHeights_mm = {5.0, 10.0, 15.0, 30.0, 54.0, 60.0, 80.0};
 
 double peakMb() {
   rusage usage{};
@@ -73,7 +77,7 @@ struct Solved {
   double peak_mb = 0.0;
   int transitions = 0;
   std::unique_ptr<const st::SteeringModel> model;
-  std::unique_ptr<st::PolicyTable> table;
+  std::unique_ptr<const st::PolicyTable> table;
   st::BestStart best;
 };
 
@@ -101,8 +105,8 @@ Solved solveAt(const st::SteeringProblem& base, double spacing_m, int threads, d
   options.epsilon = epsilon;
   std::vector<double> seconds;
   for (int i = 0; i < repeats; ++i) {
-    out.table =
-        std::make_unique<st::PolicyTable>(st::solveValueIteration(model, options, &out.stats));
+    out.table = std::make_unique<const st::PolicyTable>(
+        st::solveValueIteration(model, options, &out.stats));
     seconds.push_back(out.stats.seconds);
   }
   std::sort(seconds.begin(), seconds.end());
@@ -227,12 +231,15 @@ public:
     }
     return b;
   }
+  /// The summary of the last check.
+  Summary last() const { return summaries_.back(); }
   double seconds() const { return seconds_; }
   std::int64_t trials() const { return trials_; }
   std::string summaryText() const { return summary_.toText(); }
-  void writeCsv(const std::string& dir) const {
-    per_start_.writeCsv(dir + "/truth_check.csv");
-    summary_.writeCsv(dir + "/truth_gap.csv");
+  /// Writes PREFIXtruth_check.csv and PREFIXtruth_gap.csv.
+  void writeCsv(const std::string& prefix) const {
+    per_start_.writeCsv(prefix + "truth_check.csv");
+    summary_.writeCsv(prefix + "truth_gap.csv");
   }
 
 private:
@@ -244,6 +251,633 @@ private:
   double seconds_ = 0.0;
   std::int64_t trials_ = 0;
 };
+
+// ---- the model chosen by ps_tolerance, checked against Monte Carlo (issue 21) ----
+
+/// The truth check's start states on a scene's entry line: heights at the given fractions of
+/// the start range, angles -18, 0, 18 degrees, both bevels.
+std::vector<st::TipPose> entryStarts(const st::SteeringProblem& problem,
+                                     const st::StartOptions& start,
+                                     const std::vector<double>& y_mm) {
+  std::vector<st::TipPose> poses;
+  for (double y : y_mm) {
+    if (y / kMmPerM < std::max(start.min_height_m, problem.workspace_min.y()) ||
+        y / kMmPerM > std::min(start.max_height_m, problem.workspace_max.y())) {
+      continue;
+    }
+    for (double theta_deg : {-18.0, 0.0, 18.0}) {
+      for (st::Bevel b : {st::Bevel::kLeft, st::Bevel::kRight}) {
+        st::TipPose pose;
+        pose.p_SceneTip = st::Point2(start.start_x_m, y / kMmPerM);
+        pose.theta_rad = theta_deg / kDegPerRad;
+        pose.bevel = b;
+        poses.push_back(pose);
+      }
+    }
+  }
+  return poses;
+}
+
+/// The scene's model as steering_policy chooses it (ps_tolerance), solved once more for a median
+/// time, and every rung of the ladder checked against Monte Carlo: its own error estimate beside
+/// the measured mean gap (selection.csv).
+struct Selection {
+  st::SteeringProblem chosen;  ///< ps_tolerance 0, the chosen grid
+  double estimated_error = NAN;
+  double selection_s = 0.0;  ///< every rung built and solved [s]
+  int rungs = 0;
+};
+
+Selection selectModel(const std::string& scene_name, const st::SteeringProblem& problem,
+                      const st::StartOptions& start, TruthCheck* truth, ng::report::Table& table) {
+  st::SelectionOptions options;
+  options.start = start;
+  ng::Result<st::PolicySource> r = st::solveOrLoad(problem, "", "", options);
+  if (!r) {
+    throw std::runtime_error(r.status().toString());
+  }
+  Selection out;
+  out.chosen = r.value().model->problem();
+  out.chosen.ps_tolerance = 0.0;
+  out.estimated_error = r.value().estimated_error;
+  out.selection_s = r.value().seconds;
+  out.rungs = static_cast<int>(r.value().ladder.size());
+  std::cout << "ps_tolerance " << problem.ps_tolerance << " on " << scene_name << ": "
+            << r.value().description() << "\n"
+            << std::flush;
+  for (const st::ModelRung& rung : r.value().ladder) {
+    double within = NAN, gap = NAN;
+    if (truth != nullptr) {
+      const TruthCheck::Summary sum = truth->check(
+          solveAt(problem, rung.grid_spacing_m, 2, 1e-3, start,
+                  problem.params.orientation_subdivision, 1, problem.params.transition_model));
+      within = sum.within;
+      gap = sum.mean_abs_gap;
+    }
+    table.addRow({scene_name, rung.grid_spacing_m * kMmPerM, double(rung.states), rung.build_s,
+                  rung.solve_s, rung.estimated_error, gap, within,
+                  rung.grid_spacing_m == out.chosen.params.grid_spacing_m ? 1.0 : 0.0});
+  }
+  return out;
+}
+
+// ---- adaptation experiment (issue 21) ----
+
+/// Closed-loop trials per arm and world sigma (issue 21: >= 300).
+constexpr int kAdaptTrials = 300;
+/// Seed of trial i of every arm: kAdaptSeed + i (the arms see the same deflection streams).
+constexpr std::uint64_t kAdaptSeed = 2100;
+/// Trials after which sigma_estimate_error_pct is read.
+constexpr int kEstimateAfterTrials = 10;
+
+struct Arm {
+  std::string scene;
+  std::string arm;     ///< fixed | adaptive | oracle
+  double scale = 1.0;  ///< world sigma / scene sigma
+  std::int64_t successes = 0;
+  std::int64_t trials = 0;
+  st::Interval ci;
+  int resolves = 0;
+  double resolve_s = 0.0;          ///< summed re-solve time [s]
+  double sigma_i_error_pct = NAN;  ///< |sigma_i estimate - truth| / truth after 10 trials
+  double sigma_r_error_pct = NAN;
+};
+
+std::shared_ptr<const st::PolicySource> solvedFor(const st::SteeringProblem& p) {
+  st::SteeringProblem fixed = p;
+  fixed.ps_tolerance = 0.0;
+  ng::Result<st::PolicySource> r = st::solveOrLoad(fixed, "", "", st::SelectionOptions{});
+  if (!r) {
+    throw std::runtime_error(r.status().toString());
+  }
+  return std::make_shared<const st::PolicySource>(std::move(r.value()));
+}
+
+/// One arm: kAdaptTrials trials in a world whose sigmas are `scale` times the problem's, each
+/// from the best start of the table in use; the adaptive arm observes every completed step of a
+/// trial and swaps a re-solved table in before the next trial.
+Arm runArm(const std::string& scene_name, const st::SteeringProblem& problem,
+           const st::StartOptions& start, double scale, const std::string& arm_name,
+           const std::shared_ptr<const st::PolicySource>& assumed,
+           const std::shared_ptr<const st::PolicySource>& oracle, ng::report::Table& trajectory) {
+  st::SteeringProblem truth = problem;
+  truth.params.sigma_insert_rad *= scale;
+  truth.params.sigma_flip_rad *= scale;
+  const st::ContinuousWorkspace world(truth);
+  st::AdaptationOptions options;
+  options.adapt = arm_name == "adaptive";
+  st::AdaptivePolicy policy(arm_name == "oracle" ? truth : problem,
+                            arm_name == "oracle" ? oracle : assumed, options);
+  Arm out;
+  out.scene = scene_name;
+  out.arm = arm_name;
+  out.scale = scale;
+  st::TrialOptions trial_options;
+  trial_options.record_path = true;
+  for (int i = 0; i < kAdaptTrials; ++i) {
+    const std::shared_ptr<const st::PolicySource> table = policy.current();
+    const st::BestStart best = table->table->bestStart(start);
+    const st::SteeringPolicy control = [&table](const st::TipPose& pose, int) {
+      return table->table->lookup(pose).control;
+    };
+    const st::Trial t =
+        st::simulateTrial(world, best.best.pose, control, kAdaptSeed + i, trial_options);
+    out.successes += t.success() ? 1 : 0;
+    ++out.trials;
+    // A failing step ends at the contact point, not after a whole arc: not a deflection sample.
+    const std::size_t complete =
+        t.success() || t.outcome == st::TrialOutcome::kStepLimit
+            ? t.controls.size()
+            : t.controls.size() - std::min<std::size_t>(1, t.controls.size());
+    for (std::size_t j = 0; j < complete; ++j) {
+      policy.observe(t.path[j], t.path[j + 1], t.controls[j]);
+    }
+    policy.waitAndSwap();
+    if (i + 1 == kEstimateAfterTrials) {
+      const st::SigmaEstimate ei = policy.estimator().estimate(st::Control::kInsert);
+      const st::SigmaEstimate er = policy.estimator().estimate(st::Control::kFlip);
+      out.sigma_i_error_pct = 100.0 * std::abs(ei.sigma_rad / truth.params.sigma_insert_rad - 1.0);
+      out.sigma_r_error_pct =
+          er.samples > 0 ? 100.0 * std::abs(er.sigma_rad / truth.params.sigma_flip_rad - 1.0) : NAN;
+    }
+    if (arm_name == "adaptive") {
+      const st::SigmaEstimate ei = policy.estimator().estimate(st::Control::kInsert);
+      const st::SigmaEstimate er = policy.estimator().estimate(st::Control::kFlip);
+      trajectory.addRow({scene_name, scale, double(i + 1), ei.sigma_rad * kDegPerRad,
+                         ei.low_rad * kDegPerRad, ei.high_rad * kDegPerRad,
+                         er.sigma_rad * kDegPerRad,
+                         policy.assumedSigma(st::Control::kInsert) * kDegPerRad,
+                         policy.assumedSigma(st::Control::kFlip) * kDegPerRad,
+                         truth.params.sigma_insert_rad * kDegPerRad});
+    }
+  }
+  out.ci = st::wilsonInterval(out.successes, out.trials);
+  out.resolves = static_cast<int>(policy.resolves().size());
+  for (const st::Resolve& r : policy.resolves()) {
+    out.resolve_s += r.seconds;
+  }
+  std::cout << "adaptation, " << scene_name << ", world sigma " << scale << "x, " << arm_name
+            << ": " << out.successes << " / " << out.trials << " [" << out.ci.low << ", "
+            << out.ci.high << "], " << out.resolves << " re-solves (" << out.resolve_s
+            << " s), sigma_i error after " << kEstimateAfterTrials << " trials "
+            << out.sigma_i_error_pct << " %\n"
+            << std::flush;
+  return out;
+}
+
+/// Fixed-sigma, adaptive and oracle arms at world sigma 0.5x, 1x and 2x the scene's.
+std::vector<Arm> adaptationExperiment(const std::string& scene_name, const st::PolicySource& chosen,
+                                      const st::StartOptions& start, ng::report::Table& arms,
+                                      ng::report::Table& trajectory) {
+  const st::SteeringProblem problem = chosen.model->problem();
+  const auto assumed = solvedFor(problem);
+  std::vector<Arm> out;
+  for (double scale : {0.5, 1.0, 2.0}) {
+    st::SteeringProblem truth = problem;
+    truth.params.sigma_insert_rad *= scale;
+    truth.params.sigma_flip_rad *= scale;
+    const auto oracle = scale == 1.0 ? assumed : solvedFor(truth);
+    for (const char* arm : {"fixed", "adaptive", "oracle"}) {
+      out.push_back(runArm(scene_name, problem, start, scale, arm, assumed, oracle, trajectory));
+      const Arm& a = out.back();
+      arms.addRow({a.scene, a.arm, a.scale, double(a.successes), double(a.trials),
+                   double(a.successes) / double(a.trials), a.ci.low, a.ci.high, double(a.resolves),
+                   a.resolve_s, a.sigma_i_error_pct, a.sigma_r_error_pct});
+    }
+  }
+  return out;
+}
+
+const Arm& findArm(const std::vector<Arm>& arms, const std::string& name, double scale) {
+  for (const Arm& a : arms) {
+    if (a.arm == name && a.scale == scale) {
+      return a;
+    }
+  }
+  throw std::runtime_error("no arm " + name);
+}
+
+/// The adaptation keys of one scene (suffix "" or "_heldout").
+std::string adaptationJson(const std::vector<Arm>& arms, const std::string& suffix) {
+  std::ostringstream j;
+  auto interval = [](const Arm& a) {
+    return "[" + ng::report::jsonNumber(a.ci.low) + ", " + ng::report::jsonNumber(a.ci.high) + "]";
+  };
+  for (double scale : {0.5, 1.0, 2.0}) {
+    const std::string level = scale == 0.5 ? "0.5x" : scale == 1.0 ? "1x" : "2x";
+    for (const char* arm : {"adaptive", "fixed", "oracle"}) {
+      const Arm& a = findArm(arms, arm, scale);
+      j << ",\n  \"success_" << arm << "_" << level << suffix
+        << "\": " << ng::report::jsonNumber(double(a.successes) / double(a.trials))
+        << ",\n  \"success_" << arm << "_" << level << suffix << "_ci\": " << interval(a);
+    }
+  }
+  const Arm& adaptive2 = findArm(arms, "adaptive", 2.0);
+  const Arm& fixed2 = findArm(arms, "fixed", 2.0);
+  const Arm& oracle2 = findArm(arms, "oracle", 2.0);
+  const double rate = double(adaptive2.successes) / double(adaptive2.trials);
+  j << ",\n  \"adaptive_beats_fixed_2x" << suffix
+    << "\": " << (adaptive2.ci.low > fixed2.ci.high ? "true" : "false")
+    << ",\n  \"adaptive_within_oracle_ci_2x" << suffix
+    << "\": " << (oracle2.ci.contains(rate) ? "true" : "false") << ",\n  \"resolves_adaptive_2x"
+    << suffix << "\": " << adaptive2.resolves << ",\n  \"resolve_s_adaptive_2x" << suffix
+    << "\": " << ng::report::jsonNumber(adaptive2.resolve_s) << ",\n  \"sigma_estimate_error_pct"
+    << suffix << "\": " << ng::report::jsonNumber(adaptive2.sigma_i_error_pct)
+    << ",\n  \"sigma_flip_estimate_error_pct" << suffix
+    << "\": " << ng::report::jsonNumber(adaptive2.sigma_r_error_pct);
+  return j.str();
+}
+
+/// The adaptation experiment on the scene and, with its own selection and truth check, on the
+/// held-out workspace steering_heldout; writes adaptation.csv and sigma_trajectory.csv and
+/// returns the JSON keys.
+std::string adaptationAndHeldOut(const std::string& scene_name, const Selection& selected,
+                                 const st::StartOptions& start, ng::report::Table& selection_table,
+                                 const std::string& out_dir) {
+  ng::report::Table arms(
+      {"scene", "arm", "world_sigma_scale", "successes", "trials", "success", "ci_low", "ci_high",
+       "resolves", "resolve_s", "sigma_i_error_pct_10", "sigma_r_error_pct_10"},
+      6);
+  ng::report::Table trajectory(
+      {"scene", "world_sigma_scale", "trial", "sigma_i_deg", "sigma_i_low_deg", "sigma_i_high_deg",
+       "sigma_r_deg", "assumed_sigma_i_deg", "assumed_sigma_r_deg", "true_sigma_i_deg"},
+      6);
+  const auto chosen = solvedFor(selected.chosen);
+  const std::vector<Arm> main_arms =
+      adaptationExperiment(scene_name, *chosen, start, arms, trajectory);
+  std::ostringstream keys;
+  keys << adaptationJson(main_arms, "");
+  // Held out: selection, truth check of the chosen model and the same experiment.
+  const ng::scene::Scene held = ng::scene::loadSceneSpec("steering_heldout");
+  const st::SteeringProblem held_problem = st::problemFromScene(held);
+  const st::StartOptions held_start = st::startOptionsFromScene(held);
+  const st::ContinuousWorkspace held_world(held_problem);
+  TruthCheck held_truth(held_world,
+                        entryStarts(held_problem, held_start, {8.0, 16.0, 25.0, 40.0, 55.0, 70.0}));
+  const Selection held_selected =
+      selectModel(held.name, held_problem, held_start, &held_truth, selection_table);
+  held_truth.writeCsv(out_dir + "/heldout_");
+  const TruthCheck::Summary held_default = held_truth.last();
+  const auto held_chosen = solvedFor(held_selected.chosen);
+  const std::vector<Arm> held_arms =
+      adaptationExperiment(held.name, *held_chosen, held_start, arms, trajectory);
+  keys << adaptationJson(held_arms, "_heldout")
+       << ",\n  \"mc_within_ci_fraction_default_heldout\": "
+       << ng::report::jsonNumber(held_default.within)
+       << ",\n  \"ps_mean_abs_gap_default_heldout\": "
+       << ng::report::jsonNumber(held_default.mean_abs_gap)
+       << ",\n  \"estimated_error_default_heldout\": "
+       << ng::report::jsonNumber(held_selected.estimated_error)
+       << ",\n  \"grid_spacing_mm_default_heldout\": "
+       << ng::report::jsonNumber(held_selected.chosen.params.grid_spacing_m * kMmPerM);
+  arms.writeCsv(out_dir + "/adaptation.csv");
+  trajectory.writeCsv(out_dir + "/sigma_trajectory.csv");
+  std::cout << arms.toText();
+  return keys.str();
+}
+
+/// Epsilon against the P_s error of the dissertation's 800k model (speed against error):
+/// epsilon.csv. Returns the model (its hash names the table file).
+std::unique_ptr<st::SteeringModel> epsilonSweep(const st::SteeringProblem& problem,
+                                                const st::StartOptions& start, bool quick,
+                                                const std::string& out_dir) {
+  st::SteeringProblem p800k = problem;  // the dissertation's model, as run800k was solved
+  p800k.params.grid_spacing_m = kSpacing800k_m;
+  p800k.params.orientation_subdivision = 1;
+  p800k.params.transition_model = st::TransitionModel::kRounded;
+  auto model800k = std::make_unique<st::SteeringModel>(p800k, 2);
+  const double reference_epsilon = quick ? 1e-6 : 1e-7;
+  st::SolverOptions tight;
+  tight.epsilon = reference_epsilon;
+  const st::PolicyTable reference = st::solveValueIteration(*model800k, tight);
+  const std::vector<double> epsilons = quick ? std::vector<double>{1e-2, 1e-3, 1e-4}
+                                             : std::vector<double>{1e-2, 1e-3, 1e-4, 1e-5, 1e-6};
+  ng::report::Table eps_table(
+      {"epsilon", "sweeps", "solve_s", "max_value_error", "best_ps", "policy_agreement"}, 6);
+  for (double eps : epsilons) {
+    st::SolverOptions o;
+    o.epsilon = eps;
+    st::SolveStats s;
+    const st::PolicyTable t = st::solveValueIteration(*model800k, o, &s);
+    double max_err = 0.0;
+    std::int64_t same = 0, free_states = 0;
+    for (std::int64_t i = 0; i < t.grid().numStates(); ++i) {
+      max_err = std::max(max_err, double(std::abs(t.value(i) - reference.value(i))));
+      if (t.cell(i / (2 * t.grid().nc)) == st::Cell::kFree && reference.value(i) > 0.0f) {
+        ++free_states;
+        same += t.control(i) == reference.control(i) ? 1 : 0;
+      }
+    }
+    eps_table.addRow({eps, double(s.sweeps), s.seconds, std::max(1e-9, max_err),
+                      double(t.bestStart(start).best.probability_of_success),
+                      free_states > 0 ? double(same) / double(free_states) : 1.0});
+  }
+  eps_table.writeCsv(out_dir + "/epsilon.csv");
+  std::cout << eps_table.toText();
+
+  return model800k;
+}
+
+/// Mean O(1) look-up time over random continuous poses [us].
+double lookupMicroseconds(const st::PolicyTable& table, const st::SteeringProblem& problem) {
+  std::mt19937 rng(kLookupSeed);
+  std::uniform_real_distribution<double> ux(problem.workspace_min.x(), problem.workspace_max.x());
+  std::uniform_real_distribution<double> uy(problem.workspace_min.y(), problem.workspace_max.y());
+  std::uniform_real_distribution<double> ut(-kPi, kPi);
+  std::vector<st::TipPose> poses(kLookups);
+  for (auto& pose : poses) {
+    pose.p_SceneTip = st::Point2(ux(rng), uy(rng));
+    pose.theta_rad = ut(rng);
+    pose.bevel = rng() % 2 ? st::Bevel::kRight : st::Bevel::kLeft;
+  }
+  double checksum = 0.0;
+  int flips = 0;
+  const auto tl = std::chrono::steady_clock::now();
+  for (const auto& pose : poses) {
+    const st::ControlLookup l = table.lookup(pose);
+    checksum += l.probability_of_success;
+    flips += l.control == st::Control::kFlip ? 1 : 0;
+  }
+  const double lookup_us = secondsSince(tl) / kLookups * 1e6;
+  std::cout << "lookup: " << lookup_us << " us (checksum " << checksum << ", flips " << flips
+            << ")\n";
+
+  return lookup_us;
+}
+
+struct TableFile {
+  double save_s = 0.0;
+  double load_s = 0.0;
+  double mb = 0.0;
+};
+
+/// Saves, loads and measures the table file (then removes it: a report holds figures).
+TableFile tableFile(const st::PolicyTable& table, std::uint64_t hash, const std::string& out_dir) {
+  const std::string table_path = out_dir + "/steering_800k.table";
+  const auto ts = std::chrono::steady_clock::now();
+  table.save(table_path);
+  const double save_s = secondsSince(ts);
+  st::LoadStatus load_status;
+  const auto tload = std::chrono::steady_clock::now();
+  const auto loaded = st::PolicyTable::load(table_path, hash, load_status);
+  const double load_s = secondsSince(tload);
+  if (!loaded)
+    throw std::runtime_error(load_status.toString());
+  std::FILE* f = std::fopen(table_path.c_str(), "rb");
+  double table_mb = 0.0;
+  if (f != nullptr) {
+    std::fseek(f, 0, SEEK_END);
+    table_mb = static_cast<double>(std::ftell(f)) / (1024.0 * 1024.0);
+    std::fclose(f);
+  }
+  std::remove(table_path.c_str());  // a report folder holds figures, not 4 MB binaries
+
+  return {save_s, load_s, table_mb};
+}
+
+/// The start surface of figure 5.7 (start_surface.csv) and its slices (start_slices.csv).
+void startSurface(const st::PolicyTable& table, const st::StartOptions& start, st::Bevel bevel,
+                  const std::string& out_dir) {
+  ng::report::Table surface({"bevel", "y_mm", "theta_deg", "ps"}, 6);
+  ng::report::Table slices({"theta", "y_mm", "ps"}, 6);
+  const std::vector<int> slice_deg = {-45, -18, 0, 18, 45};
+  for (const auto& c : table.startCandidates(start)) {
+    const double theta_deg = c.pose.theta_rad * kDegPerRad;
+    surface.addRow({st::toString(c.pose.bevel), c.pose.p_SceneTip.y() * kMmPerM, theta_deg,
+                    double(c.probability_of_success)});
+    for (int d : slice_deg) {
+      if (c.pose.bevel == bevel && std::abs(theta_deg - d) < 1e-6) {
+        slices.addRow({std::to_string(d) + " deg", c.pose.p_SceneTip.y() * kMmPerM,
+                       double(c.probability_of_success)});
+      }
+    }
+  }
+  surface.writeCsv(out_dir + "/start_surface.csv");
+  slices.writeCsv(out_dir + "/start_slices.csv");
+}
+
+struct Scaling {
+  std::vector<Solved> runs;  ///< Delta 4, 2, 1 mm (and 0.5, 0.25 mm unless quick), 2 threads
+  Solved single;             ///< 1 mm, one thread
+  Solved r25;                ///< 1 mm, r = 2.5 cm
+  ng::report::Table scaling{{"grid_spacing_mm", "states", "transitions_max", "build_s", "solve_s",
+                             "total_s", "sweeps", "converged", "peak_mb", "best_ps", "threads"},
+                            6};
+};
+
+/// The dissertation's model at several grid spacings: states against time and memory
+/// (steering.csv).
+Scaling scalingRuns(const st::SteeringProblem& problem, const st::StartOptions& start, bool quick,
+                    const std::string& out_dir) {
+  Scaling out;
+  std::vector<Solved>& runs = out.runs;
+  ng::report::Table& scaling = out.scaling;
+  const auto record = [&scaling](const Solved& r, int threads) {
+    scaling.addRow({r.spacing_m * kMmPerM, double(r.states), double(r.transitions), r.build_s,
+                    r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
+                    r.stats.converged ? 1.0 : 0.0, r.peak_mb,
+                    double(r.best.best.probability_of_success), double(threads)});
+    std::cout << "Delta " << r.spacing_m * kMmPerM << " mm, " << threads
+              << " thread(s): " << r.states << " states, build " << r.build_s << " s, solve "
+              << r.stats.seconds << " s (" << r.stats.sweeps << " sweeps), peak " << r.peak_mb
+              << " MB, " << r.best.toString() << "\n"
+              << std::flush;
+  };
+  // ---- states vs time and memory (increasing size, so ru_maxrss belongs to the last solve) ----
+  // 0.5 mm (3.2 M states) is the finer reference for the P_s error; it runs after the one-
+  // thread 800k solve so that ru_maxrss of that solve is still its own.
+  const std::vector<double> spacings_m = {4e-3, 2e-3, kSpacing800k_m};
+  for (double spacing : spacings_m) {
+    runs.push_back(solveAt(problem, spacing, 2, 1e-3, start));
+    record(runs.back(), 2);
+  }
+
+  // ---- the dissertation's other 800,000-state problems (5.5: r = 2.5 cm, delta = 0.393 cm) ----
+  st::SteeringProblem r25 = problem;
+  r25.params.radius_m = 0.025;
+  Solved& solved_r25 = out.r25 = solveAt(r25, kSpacing800k_m, 2, 1e-3, start);
+  std::cout << "r = 25 mm: " << solved_r25.states << " states, build " << solved_r25.build_s
+            << " s, solve " << solved_r25.stats.seconds << " s (" << solved_r25.stats.sweeps
+            << " sweeps), " << solved_r25.best.toString() << "\n"
+            << std::flush;
+
+  // ---- one thread at 800k ----
+  Solved& single = out.single = solveAt(problem, kSpacing800k_m, 1, 1e-3, start);
+  record(single, 1);
+  for (double fine_m : quick ? std::vector<double>{} : std::vector<double>{0.5e-3, 0.25e-3}) {
+    runs.push_back(solveAt(problem, fine_m, 2, 1e-3, start));
+    record(runs.back(), 2);
+  }
+  scaling.writeCsv(out_dir + "/steering.csv");
+  return out;
+}
+
+/// The 800k solve's convergence (convergence.csv) and P_s at its best start against the grid
+/// spacing (resolution.csv); returns P_s there on the finest grid.
+double convergenceAndResolution(const std::vector<Solved>& runs, const Solved& run800k,
+                                const std::string& out_dir) {
+  ng::report::Table convergence({"sweep", "max_change"}, 6);
+  for (std::size_t i = 0; i < run800k.stats.max_change_per_sweep.size(); ++i) {
+    convergence.addRow({double(i + 1), std::max(1e-12, run800k.stats.max_change_per_sweep[i])});
+  }
+  convergence.writeCsv(out_dir + "/convergence.csv");
+
+  // ---- P_s at one start pose (the 1 mm best start) against the grid spacing ----
+  const st::TipPose reference_start = run800k.best.best.pose;
+  const Solved& finest = runs.back();
+  const double ps_finest = finest.table->lookup(reference_start).probability_of_success;
+  ng::report::Table resolution(
+      {"grid_spacing_mm", "states", "total_s", "ps_reference_start", "ps_error_vs_finest"}, 6);
+  for (const auto& r : runs) {
+    const double ps = r.table->lookup(reference_start).probability_of_success;
+    resolution.addRow({r.spacing_m * kMmPerM, double(r.states), r.build_s + r.stats.seconds, ps,
+                       std::abs(ps - ps_finest)});
+  }
+  resolution.writeCsv(out_dir + "/resolution.csv");
+  std::cout << resolution.toText();
+  return ps_finest;
+}
+
+struct Baseline {
+  st::ShortestPath sp;
+  st::MonteCarloResult sp_open, sp_closed;
+};
+
+/// The shortest-path baselines against the MDP from the same start (baseline.csv).
+Baseline shortestPathBaseline(const st::ContinuousWorkspace& world,
+                              const st::SteeringProblem& problem, const st::TipPose& start_pose,
+                              const st::MonteCarloResult& mdp_mc, const std::string& out_dir) {
+  Baseline out;
+  // Open loop: the planned controls replayed under the same uncertainty. Closed loop: the
+  // shortest path re-planned after every imaged step, as a steps-to-go table on the same grid.
+  st::ShortestPathOptions sp_options;
+  sp_options.max_iterations = 100000;  // with the seed: the same plan in every run
+  sp_options.time_limit_s = 30.0;
+  out.sp = st::planShortestPath(world, start_pose, sp_options);
+  std::cout << "shortest path: " << out.sp.toString() << "\n" << std::flush;
+  st::SteeringProblem sp_problem = problem;
+  sp_problem.params.grid_spacing_m = kSpacing800k_m;
+  const st::ShortestPathTable sp_table = st::ShortestPathTable::fromProblem(sp_problem, 2);
+  ng::report::Table baseline({"policy", "ps", "ci_low", "ci_high", "mean_steps", "mean_flips"}, 6);
+  auto addBaseline = [&](const std::string& name, const st::MonteCarloResult& r) {
+    baseline.addRow(
+        {name, r.rate(), r.interval().low, r.interval().high, r.mean_steps, r.mean_flips});
+  };
+  addBaseline("mdp", mdp_mc);
+  if (out.sp.found) {
+    out.sp_open = st::runMonteCarlo(world, start_pose, st::openLoopPolicy(out.sp.controls),
+                                    kMonteCarloTrials, kMonteCarloSeed, 2);
+    addBaseline("shortest_path_open_loop", out.sp_open);
+  }
+  out.sp_closed = st::runMonteCarlo(world, start_pose, st::shortestPathPolicy(sp_table),
+                                    kMonteCarloTrials, kMonteCarloSeed, 2);
+  addBaseline("shortest_path_closed_loop", out.sp_closed);
+  baseline.writeCsv(out_dir + "/baseline.csv");
+  std::cout << baseline.toText();
+  return out;
+}
+
+/// plot.json: the figures scripts/plot_bench.py draws from the CSVs.
+void writePlotJson(const std::string& out_dir) {
+  ng::report::writeTextFile(
+      out_dir + "/plot.json",
+      R"json([{"csv": "steering.csv", "x": "states", "y": "total_s", "group": "threads", "logx": true, "logy": true,
+  "annotate": "grid_spacing_mm", "title": "MDP build + solve time vs number of states (group: threads)", "png": "solve_time.png"},
+ {"csv": "steering.csv", "x": "states", "y": "peak_mb", "group": "threads", "logx": true, "annotate": "grid_spacing_mm",
+  "title": "Peak resident memory vs number of states", "png": "memory.png"},
+ {"csv": "convergence.csv", "x": "sweep", "y": "max_change", "logy": true,
+  "title": "Gauss-Seidel value iteration, 800k states: max change per sweep", "png": "convergence.png"},
+ {"csv": "epsilon.csv", "x": "solve_s", "y": "max_value_error", "logy": true, "annotate": "epsilon",
+  "title": "Convergence threshold: solve time vs max P_s error (800k states)", "png": "epsilon.png"},
+ {"csv": "resolution.csv", "x": "total_s", "y": "ps_error_vs_finest", "logx": true, "annotate": "grid_spacing_mm",
+  "points": true, "title": "Grid spacing: time vs P_s error at the 1 mm best start (vs finest grid)", "png": "resolution.png"},
+ {"csv": "truth_gap.csv", "x": "grid_spacing_mm", "y": "mean_abs_gap", "group": "subdivision", "logx": true, "annotate": "within_ci_fraction",
+  "title": "Truth check by Delta and s (label: fraction in 95 % CI)", "png": "truth_gap.png"},
+ {"csv": "truth_gap.csv", "x": "total_s", "y": "mean_abs_gap", "group": "subdivision", "logx": true, "annotate": "grid_spacing_mm",
+  "title": "Speed against error by s (label: Delta mm)", "png": "truth_tradeoff.png"},
+ {"csv": "truth_check.csv", "x": "predicted_ps", "y": "mc_ps", "group": "grid_spacing_mm", "filter": {"subdivision": "1"}, "points": true,
+  "title": "Predicted P_s vs Monte Carlo, 10,000 trials per start (s = 1)", "png": "truth_check.png"},
+ {"csv": "baseline.csv", "x": "mean_steps", "y": "ps", "group": "policy", "points": true,
+  "title": "P_s from the best start (Monte Carlo, 10,000 trials): MDP vs shortest path", "png": "baseline.png"},
+ {"csv": "selection.csv", "x": "estimated_error", "y": "mc_mean_abs_gap", "group": "scene", "points": true, "annotate": "grid_spacing_mm",
+  "title": "ps_tolerance ladder: the solver's error estimate vs the Monte Carlo gap (label: Delta mm)", "png": "selection.png"},
+ {"csv": "adaptation.csv", "x": "world_sigma_scale", "y": "success", "group": "arm", "points": true,
+  "title": "300 closed-loop trials per arm (both scenes)", "png": "adaptation.png"},
+ {"csv": "sigma_trajectory.csv", "x": "trial", "y": "sigma_i_deg", "group": "world_sigma_scale",
+  "title": "Adaptive arm: learned sigma_i after each trial", "png": "sigma_trajectory.png"},
+ {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
+  "title": "P_s of start states on the entry line (figure 5.7 slices, best bevel)", "png": "start_surface.png"}])json");
+}
+
+/// The truth check of every grid of `runs`, of the scene's chosen model (`default_out`), of the
+/// interpolated model at s = 3 and (unless quick) of finer models; writes its CSVs.
+TruthCheck truthChecks(const st::ContinuousWorkspace& world, const st::SteeringProblem& problem,
+                       const st::StartOptions& start, const std::vector<Solved>& runs,
+                       const Solved& run800k, const Solved& scene_model, bool quick,
+                       const std::string& out_dir, TruthCheck::Summary& default_out) {
+  // ---- truth check: predicted P_s against the continuous needle (Monte Carlo) ----
+  // Start states: a fixed set on the entry line (heights x angles x bevels) plus the 1 mm best
+  // start; the policy of each grid drives the continuous needle (exact arcs, continuous
+  // deflections) from the same start states, at every grid spacing and, finer than 5.4.2,
+  // with the orientation subdivided s = 2 and 4 times.
+  std::vector<st::TipPose> mc_starts = entryStarts(problem, start, kTruthHeights_mm);
+  mc_starts.push_back(run800k.best.best.pose);
+  TruthCheck truth(world, mc_starts);
+  for (const auto& r : runs) {
+    truth.check(r);
+  }
+  default_out = truth.check(scene_model);
+  for (const auto& [spacing, subdivision] :
+       std::vector<std::pair<double, int>>{{1e-3, 3}, {0.7e-3, 3}, {0.5e-3, 3}}) {
+    truth.check(solveAt(problem, spacing, 2, 1e-3, start, subdivision, 1,
+                        st::TransitionModel::kInterpolated));
+  }
+  if (!quick) {
+    // Finer models, solved once each and dropped after their check (memory).
+    const std::vector<std::pair<double, int>> finer = {{0.125e-3, 1}, {1e-3, 2},     {0.5e-3, 2},
+                                                       {0.25e-3, 2},  {0.125e-3, 2}, {1e-3, 4},
+                                                       {0.5e-3, 4},   {0.25e-3, 4}};
+    for (const auto& [spacing, subdivision] : finer) {
+      truth.check(solveAt(problem, spacing, 2, 1e-3, start, subdivision, 1));
+    }
+  }
+  truth.writeCsv(out_dir + "/");
+  return truth;
+}
+
+/// One line each: the scene's chosen model and the scene's needle.
+void printSceneModel(const std::string& scene_name, const st::SteeringProblem& problem,
+                     const Solved& scene_model) {
+  std::cout << "scene model (" << st::toString(scene_model.transition) << ", Delta "
+            << scene_model.spacing_m * kMmPerM << " mm, s = " << scene_model.subdivision
+            << "): " << scene_model.states << " states, build " << scene_model.build_s
+            << " s, solve " << scene_model.stats.seconds << " s, peak " << scene_model.peak_mb
+            << " MB\n"
+            << "bench_steering: scene " << scene_name
+            << ", r = " << problem.params.radius_m * kMmPerM
+            << " mm, N_c = " << problem.params.orientations
+            << ", sigma_i = " << problem.params.sigma_insert_rad * kDegPerRad
+            << " deg, sigma_r = " << problem.params.sigma_flip_rad * kDegPerRad << " deg\n"
+            << std::flush;
+}
+
+/// The 1 mm (800k) run of `runs`; throws std::runtime_error without one.
+const Solved& the800k(const std::vector<Solved>& runs) {
+  for (const auto& r : runs) {
+    if (std::abs(r.spacing_m - kSpacing800k_m) < 1e-12) {
+      return r;
+    }
+  }
+  throw std::runtime_error("no 1 mm run");
+}
+
+/// selection.csv's columns: one row per rung of each scene's ps_tolerance ladder.
+ng::report::Table selectionTable() {
+  return ng::report::Table(
+      {"scene", "grid_spacing_mm", "states", "build_s", "solve_s", "estimated_error",
+       "mc_mean_abs_gap", "mc_within_ci_fraction", "chosen"},
+      6);
+}
 
 }  // namespace
 
@@ -260,146 +894,36 @@ int main(int argc, char** argv) {
     const st::SteeringProblem problem = st::problemFromScene(scene);
     const st::StartOptions start = st::startOptionsFromScene(scene);
     const double baseline_mb = peakMb();
-    // ---- the scene's own model (its Delta, s and transition model), first, so that the peak
-    // resident memory after it is its own ----
-    const Solved scene_model = solveAt(problem, problem.params.grid_spacing_m, 2, 1e-3, start,
-                                       problem.params.orientation_subdivision, kSolveRepeats,
-                                       problem.params.transition_model);
-    std::cout << "scene model (" << st::toString(scene_model.transition) << ", Delta "
-              << scene_model.spacing_m * kMmPerM << " mm, s = " << scene_model.subdivision
-              << "): " << scene_model.states << " states, build " << scene_model.build_s
-              << " s, solve " << scene_model.stats.seconds << " s, peak " << scene_model.peak_mb
-              << " MB\n"
-              << std::flush;
-    std::cout << "bench_steering: scene " << scene.name
-              << ", r = " << problem.params.radius_m * kMmPerM
-              << " mm, N_c = " << problem.params.orientations
-              << ", sigma_i = " << problem.params.sigma_insert_rad * kDegPerRad
-              << " deg, sigma_r = " << problem.params.sigma_flip_rad * kDegPerRad << " deg\n"
-              << std::flush;
-
-    // ---- states vs time and memory (increasing size, so ru_maxrss belongs to the last solve) ----
-    // 0.5 mm (3.2 M states) is the finer reference for the P_s error; it runs after the one-
-    // thread 800k solve so that ru_maxrss of that solve is still its own.
-    const std::vector<double> spacings_m = {4e-3, 2e-3, kSpacing800k_m};
-    std::vector<Solved> runs;
-    ng::report::Table scaling({"grid_spacing_mm", "states", "transitions_max", "build_s", "solve_s",
-                               "total_s", "sweeps", "converged", "peak_mb", "best_ps", "threads"},
-                              6);
-    Solved* run800k = nullptr;
-    for (double spacing : spacings_m) {
-      runs.push_back(solveAt(problem, spacing, 2, 1e-3, start));
-      Solved& r = runs.back();
-      scaling.addRow({spacing * kMmPerM, double(r.states), double(r.transitions), r.build_s,
-                      r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
-                      r.stats.converged ? 1.0 : 0.0, r.peak_mb,
-                      double(r.best.best.probability_of_success), 2.0});
-      std::cout << "Delta " << spacing * kMmPerM << " mm: " << r.states << " states, build "
-                << r.build_s << " s, solve " << r.stats.seconds << " s (" << r.stats.sweeps
-                << " sweeps), peak " << r.peak_mb << " MB, " << r.best.toString() << "\n"
-                << std::flush;
-    }
-
-    // ---- the dissertation's other 800,000-state problems (5.5: r = 2.5 cm, delta = 0.393 cm) ----
-    st::SteeringProblem r25 = problem;
-    r25.params.radius_m = 0.025;
-    const Solved solved_r25 = solveAt(r25, kSpacing800k_m, 2, 1e-3, start);
-    std::cout << "r = 25 mm: " << solved_r25.states << " states, build " << solved_r25.build_s
-              << " s, solve " << solved_r25.stats.seconds << " s (" << solved_r25.stats.sweeps
-              << " sweeps), " << solved_r25.best.toString() << "\n"
-              << std::flush;
-
-    // ---- one thread at 800k ----
-    const Solved single = solveAt(problem, kSpacing800k_m, 1, 1e-3, start);
-    scaling.addRow({kSpacing800k_m * kMmPerM, double(single.states), double(single.transitions),
-                    single.build_s, single.stats.seconds, single.build_s + single.stats.seconds,
-                    double(single.stats.sweeps), single.stats.converged ? 1.0 : 0.0, single.peak_mb,
-                    double(single.best.best.probability_of_success), 1.0});
-    std::cout << "1 thread: build " << single.build_s << " s, solve " << single.stats.seconds
-              << " s (" << single.stats.sweeps << " sweeps)\n"
-              << std::flush;
-    for (double fine_m :
-         args->quick ? std::vector<double>{} : std::vector<double>{0.5e-3, 0.25e-3}) {
-      runs.push_back(solveAt(problem, fine_m, 2, 1e-3, start));
-      Solved& r = runs.back();
-      scaling.addRow({r.spacing_m * kMmPerM, double(r.states), double(r.transitions), r.build_s,
-                      r.stats.seconds, r.build_s + r.stats.seconds, double(r.stats.sweeps),
-                      r.stats.converged ? 1.0 : 0.0, r.peak_mb,
-                      double(r.best.best.probability_of_success), 2.0});
-      std::cout << "Delta " << fine_m * kMmPerM << " mm: " << r.states << " states, build "
-                << r.build_s << " s, solve " << r.stats.seconds << " s (" << r.stats.sweeps
-                << " sweeps), peak " << r.peak_mb << " MB, " << r.best.toString() << "\n"
-                << std::flush;
-    }
-    scaling.writeCsv(args->out_dir + "/steering.csv");
-
-    for (auto& r : runs) {
-      if (std::abs(r.spacing_m - kSpacing800k_m) < 1e-12)
-        run800k = &r;
-    }
-    if (run800k == nullptr)
-      throw std::runtime_error("no 1 mm run");
-
-    // ---- convergence of the 800k solve ----
-    ng::report::Table convergence({"sweep", "max_change"}, 6);
-    for (std::size_t i = 0; i < run800k->stats.max_change_per_sweep.size(); ++i) {
-      convergence.addRow({double(i + 1), std::max(1e-12, run800k->stats.max_change_per_sweep[i])});
-    }
-    convergence.writeCsv(args->out_dir + "/convergence.csv");
-
-    // ---- P_s at one start pose (the 1 mm best start) against the grid spacing ----
-    const st::TipPose reference_start = run800k->best.best.pose;
-    const Solved& finest = runs.back();
-    const double ps_finest = finest.table->lookup(reference_start).probability_of_success;
-    ng::report::Table resolution(
-        {"grid_spacing_mm", "states", "total_s", "ps_reference_start", "ps_error_vs_finest"}, 6);
-    for (const auto& r : runs) {
-      const double ps = r.table->lookup(reference_start).probability_of_success;
-      resolution.addRow({r.spacing_m * kMmPerM, double(r.states), r.build_s + r.stats.seconds, ps,
-                         std::abs(ps - ps_finest)});
-    }
-    resolution.writeCsv(args->out_dir + "/resolution.csv");
-
-    // ---- truth check: predicted P_s against the continuous needle (Monte Carlo) ----
-    // Start states: a fixed set on the entry line (heights x angles x bevels) plus the 1 mm best
-    // start; the policy of each grid drives the continuous needle (exact arcs, continuous
-    // deflections) from the same start states, at every grid spacing and, finer than 5.4.2,
-    // with the orientation subdivided s = 2 and 4 times.
+    // ---- the scene's model as ps_tolerance chooses it, first, so that the peak resident memory
+    // after it is its own; every rung of the ladder checked against Monte Carlo ----
     const st::ContinuousWorkspace world(problem);
-    std::vector<st::TipPose> mc_starts;
-    for (double y_mm : {5.0, 10.0, 15.0, 30.0, 54.0, 60.0, 80.0}) {
-      for (double theta_deg : {-18.0, 0.0, 18.0}) {
-        for (st::Bevel b : {st::Bevel::kLeft, st::Bevel::kRight}) {
-          st::TipPose pose;
-          pose.p_SceneTip = st::Point2(start.start_x_m, y_mm / kMmPerM);
-          pose.theta_rad = theta_deg / kDegPerRad;
-          pose.bevel = b;
-          mc_starts.push_back(pose);
-        }
-      }
-    }
-    mc_starts.push_back(run800k->best.best.pose);
-    TruthCheck truth(world, mc_starts);
-    for (const auto& r : runs) {
-      truth.check(r);
-    }
+    ng::report::Table selection_table = selectionTable();
+    TruthCheck selection_truth(world, entryStarts(problem, start, kTruthHeights_mm));
+    const Selection selected =
+        selectModel(scene.name, problem, start, &selection_truth, selection_table);
+    const Solved scene_model = solveAt(selected.chosen, selected.chosen.params.grid_spacing_m, 2,
+                                       1e-3, start, problem.params.orientation_subdivision,
+                                       kSolveRepeats, problem.params.transition_model);
+    printSceneModel(scene.name, problem, scene_model);
+
+    Scaling scaled = scalingRuns(problem, start, args->quick, args->out_dir);
+    std::vector<Solved>& runs = scaled.runs;
+    const Solved& single = scaled.single;
+    const Solved& solved_r25 = scaled.r25;
+    const ng::report::Table& scaling = scaled.scaling;
+    const Solved* run800k = &the800k(runs);
+
+    const double ps_finest = convergenceAndResolution(runs, *run800k, args->out_dir);
+    const Solved& finest = runs.back();
+
+    TruthCheck::Summary truth_default;
+    const TruthCheck truth = truthChecks(world, problem, start, runs, *run800k, scene_model,
+                                         args->quick, args->out_dir, truth_default);
     const double within_800k = truth.withinFraction(kSpacing800k_m, 1);
-    const TruthCheck::Summary truth_default = truth.check(scene_model);
-    for (const auto& [spacing, subdivision] :
-         std::vector<std::pair<double, int>>{{1e-3, 3}, {0.7e-3, 3}, {0.5e-3, 3}}) {
-      truth.check(solveAt(problem, spacing, 2, 1e-3, start, subdivision, 1,
-                          st::TransitionModel::kInterpolated));
-    }
-    if (!args->quick) {
-      // Finer models, solved once each and dropped after their check (memory).
-      const std::vector<std::pair<double, int>> finer = {{0.125e-3, 1}, {1e-3, 2},     {0.5e-3, 2},
-                                                         {0.25e-3, 2},  {0.125e-3, 2}, {1e-3, 4},
-                                                         {0.5e-3, 4},   {0.25e-3, 4}};
-      for (const auto& [spacing, subdivision] : finer) {
-        truth.check(solveAt(problem, spacing, 2, 1e-3, start, subdivision, 1));
-      }
-    }
-    truth.writeCsv(args->out_dir);
+    selection_truth.writeCsv(args->out_dir + "/selection_");
+    const std::string adaptation_keys =
+        adaptationAndHeldOut(scene.name, selected, start, selection_table, args->out_dir);
+    selection_table.writeCsv(args->out_dir + "/selection.csv");
     const TruthCheck::Summary truth_best = truth.best();
     const double mc_seconds = truth.seconds();
     const std::int64_t mc_trials_total = truth.trials();
@@ -408,129 +932,18 @@ int main(int argc, char** argv) {
         st::runMonteCarlo(world, run800k->best.best.pose, st::tablePolicy(*run800k->table),
                           kMonteCarloTrials, kMonteCarloSeed, 2);
 
-    // ---- baseline: shortest path under deterministic motion (OMPL SST), from the same start ----
-    // Open loop: the planned controls replayed under the same uncertainty. Closed loop: the
-    // shortest path re-planned after every imaged step, as a steps-to-go table on the same grid.
-    st::ShortestPathOptions sp_options;
-    sp_options.max_iterations = 100000;  // with the seed: the same plan in every run
-    sp_options.time_limit_s = 30.0;
-    const st::ShortestPath sp = st::planShortestPath(world, run800k->best.best.pose, sp_options);
-    std::cout << "shortest path: " << sp.toString() << "\n" << std::flush;
-    st::SteeringProblem sp_problem = problem;
-    sp_problem.params.grid_spacing_m = kSpacing800k_m;
-    const st::ShortestPathTable sp_table = st::ShortestPathTable::fromProblem(sp_problem, 2);
-    ng::report::Table baseline({"policy", "ps", "ci_low", "ci_high", "mean_steps", "mean_flips"},
-                               6);
-    auto addBaseline = [&](const std::string& name, const st::MonteCarloResult& r) {
-      baseline.addRow(
-          {name, r.rate(), r.interval().low, r.interval().high, r.mean_steps, r.mean_flips});
-    };
-    addBaseline("mdp", mdp_mc);
-    st::MonteCarloResult sp_closed, sp_open;
-    if (sp.found) {
-      sp_open = st::runMonteCarlo(world, run800k->best.best.pose, st::openLoopPolicy(sp.controls),
-                                  kMonteCarloTrials, kMonteCarloSeed, 2);
-      addBaseline("shortest_path_open_loop", sp_open);
-    }
-    sp_closed = st::runMonteCarlo(world, run800k->best.best.pose, st::shortestPathPolicy(sp_table),
-                                  kMonteCarloTrials, kMonteCarloSeed, 2);
-    addBaseline("shortest_path_closed_loop", sp_closed);
-    baseline.writeCsv(args->out_dir + "/baseline.csv");
+    const Baseline base =
+        shortestPathBaseline(world, problem, run800k->best.best.pose, mdp_mc, args->out_dir);
+    const st::ShortestPath& sp = base.sp;
+    const st::MonteCarloResult& sp_open = base.sp_open;
+    const st::MonteCarloResult& sp_closed = base.sp_closed;
 
-    // ---- epsilon: sweeps and time against the error in P_s (speed against error) ----
-    st::SteeringProblem p800k = problem;
-    p800k.params.grid_spacing_m = kSpacing800k_m;
-    const st::SteeringModel model800k(p800k, 2);
-    const double reference_epsilon = args->quick ? 1e-6 : 1e-7;
-    st::SolverOptions tight;
-    tight.epsilon = reference_epsilon;
-    const st::PolicyTable reference = st::solveValueIteration(model800k, tight);
-    const std::vector<double> epsilons = args->quick
-                                             ? std::vector<double>{1e-2, 1e-3, 1e-4}
-                                             : std::vector<double>{1e-2, 1e-3, 1e-4, 1e-5, 1e-6};
-    ng::report::Table eps_table(
-        {"epsilon", "sweeps", "solve_s", "max_value_error", "best_ps", "policy_agreement"}, 6);
-    for (double eps : epsilons) {
-      st::SolverOptions o;
-      o.epsilon = eps;
-      st::SolveStats s;
-      const st::PolicyTable t = st::solveValueIteration(model800k, o, &s);
-      double max_err = 0.0;
-      std::int64_t same = 0, free_states = 0;
-      for (std::int64_t i = 0; i < t.grid().numStates(); ++i) {
-        max_err = std::max(max_err, double(std::abs(t.value(i) - reference.value(i))));
-        if (t.cell(i / (2 * t.grid().nc)) == st::Cell::kFree && reference.value(i) > 0.0f) {
-          ++free_states;
-          same += t.control(i) == reference.control(i) ? 1 : 0;
-        }
-      }
-      eps_table.addRow({eps, double(s.sweeps), s.seconds, std::max(1e-9, max_err),
-                        double(t.bestStart(start).best.probability_of_success),
-                        free_states > 0 ? double(same) / double(free_states) : 1.0});
-    }
-    eps_table.writeCsv(args->out_dir + "/epsilon.csv");
-
-    // ---- O(1) look-up: mean over random continuous poses ----
+    const std::unique_ptr<st::SteeringModel> model800k =
+        epsilonSweep(problem, start, args->quick, args->out_dir);
     const st::PolicyTable& table = *run800k->table;
-    std::mt19937 rng(kLookupSeed);
-    std::uniform_real_distribution<double> ux(problem.workspace_min.x(), problem.workspace_max.x());
-    std::uniform_real_distribution<double> uy(problem.workspace_min.y(), problem.workspace_max.y());
-    std::uniform_real_distribution<double> ut(-kPi, kPi);
-    std::vector<st::TipPose> poses(kLookups);
-    for (auto& pose : poses) {
-      pose.p_SceneTip = st::Point2(ux(rng), uy(rng));
-      pose.theta_rad = ut(rng);
-      pose.bevel = rng() % 2 ? st::Bevel::kRight : st::Bevel::kLeft;
-    }
-    double checksum = 0.0;
-    int flips = 0;
-    const auto tl = std::chrono::steady_clock::now();
-    for (const auto& pose : poses) {
-      const st::ControlLookup l = table.lookup(pose);
-      checksum += l.probability_of_success;
-      flips += l.control == st::Control::kFlip ? 1 : 0;
-    }
-    const double lookup_us = secondsSince(tl) / kLookups * 1e6;
-    std::cout << "lookup: " << lookup_us << " us (checksum " << checksum << ", flips " << flips
-              << ")\n";
-
-    // ---- table file ----
-    const std::string table_path = args->out_dir + "/steering_800k.table";
-    const auto ts = std::chrono::steady_clock::now();
-    table.save(table_path);
-    const double save_s = secondsSince(ts);
-    st::LoadStatus load_status;
-    const auto tload = std::chrono::steady_clock::now();
-    const auto loaded = st::PolicyTable::load(table_path, model800k.hash(), load_status);
-    const double load_s = secondsSince(tload);
-    if (!loaded)
-      throw std::runtime_error(load_status.toString());
-    std::FILE* f = std::fopen(table_path.c_str(), "rb");
-    double table_mb = 0.0;
-    if (f != nullptr) {
-      std::fseek(f, 0, SEEK_END);
-      table_mb = static_cast<double>(std::ftell(f)) / (1024.0 * 1024.0);
-      std::fclose(f);
-    }
-    std::remove(table_path.c_str());  // a report folder holds figures, not 4 MB binaries
-
-    // ---- start surface (figure 5.7) ----
-    ng::report::Table surface({"bevel", "y_mm", "theta_deg", "ps"}, 6);
-    ng::report::Table slices({"theta", "y_mm", "ps"}, 6);
-    const std::vector<int> slice_deg = {-45, -18, 0, 18, 45};
-    for (const auto& c : table.startCandidates(start)) {
-      const double theta_deg = c.pose.theta_rad * kDegPerRad;
-      surface.addRow({st::toString(c.pose.bevel), c.pose.p_SceneTip.y() * kMmPerM, theta_deg,
-                      double(c.probability_of_success)});
-      for (int d : slice_deg) {
-        if (c.pose.bevel == run800k->best.best.pose.bevel && std::abs(theta_deg - d) < 1e-6) {
-          slices.addRow({std::to_string(d) + " deg", c.pose.p_SceneTip.y() * kMmPerM,
-                         double(c.probability_of_success)});
-        }
-      }
-    }
-    surface.writeCsv(args->out_dir + "/start_surface.csv");
-    slices.writeCsv(args->out_dir + "/start_slices.csv");
+    const double lookup_us = lookupMicroseconds(table, problem);
+    const TableFile file = tableFile(table, model800k->hash(), args->out_dir);
+    startSurface(table, start, run800k->best.best.pose.bevel, args->out_dir);
 
     const st::BestStart& best = run800k->best;
     std::ostringstream json;
@@ -589,9 +1002,9 @@ int main(int argc, char** argv) {
          << ",\n  \"best_start_bevel\": \"" << st::toString(best.best.pose.bevel) << "\""
          << ",\n  \"ps_reference_start_finest\": " << ng::report::jsonNumber(ps_finest)
          << ",\n  \"finest_spacing_mm\": " << ng::report::jsonNumber(finest.spacing_m * kMmPerM)
-         << ",\n  \"table_mb_800k\": " << ng::report::jsonNumber(table_mb)
-         << ",\n  \"table_save_s\": " << ng::report::jsonNumber(save_s)
-         << ",\n  \"table_load_s\": " << ng::report::jsonNumber(load_s)
+         << ",\n  \"table_mb_800k\": " << ng::report::jsonNumber(file.mb)
+         << ",\n  \"table_save_s\": " << ng::report::jsonNumber(file.save_s)
+         << ",\n  \"table_load_s\": " << ng::report::jsonNumber(file.load_s)
          << ",\n  \"transition_model_default\": \"" << st::toString(scene_model.transition) << "\""
          << ",\n  \"grid_spacing_mm_default\": "
          << ng::report::jsonNumber(scene_model.spacing_m * kMmPerM)
@@ -603,32 +1016,14 @@ int main(int argc, char** argv) {
          << ",\n  \"noise_floor_default\": " << ng::report::jsonNumber(truth_default.noise_floor)
          << ",\n  \"solve_s_default\": " << ng::report::jsonNumber(scene_model.stats.seconds)
          << ",\n  \"build_s_default\": " << ng::report::jsonNumber(scene_model.build_s)
-         << ",\n  \"peak_mb_default\": " << ng::report::jsonNumber(scene_model.peak_mb) << "\n}\n";
+         << ",\n  \"peak_mb_default\": " << ng::report::jsonNumber(scene_model.peak_mb)
+         << ",\n  \"ps_tolerance_default\": " << ng::report::jsonNumber(problem.ps_tolerance)
+         << ",\n  \"estimated_error_default\": " << ng::report::jsonNumber(selected.estimated_error)
+         << ",\n  \"selection_s_default\": " << ng::report::jsonNumber(selected.selection_s)
+         << ",\n  \"selection_models_default\": " << selected.rungs << adaptation_keys << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
-    ng::report::writeTextFile(
-        args->out_dir + "/plot.json",
-        R"json([{"csv": "steering.csv", "x": "states", "y": "total_s", "group": "threads", "logx": true, "logy": true,
-  "annotate": "grid_spacing_mm", "title": "MDP build + solve time vs number of states (group: threads)", "png": "solve_time.png"},
- {"csv": "steering.csv", "x": "states", "y": "peak_mb", "group": "threads", "logx": true, "annotate": "grid_spacing_mm",
-  "title": "Peak resident memory vs number of states", "png": "memory.png"},
- {"csv": "convergence.csv", "x": "sweep", "y": "max_change", "logy": true,
-  "title": "Gauss-Seidel value iteration, 800k states: max change per sweep", "png": "convergence.png"},
- {"csv": "epsilon.csv", "x": "solve_s", "y": "max_value_error", "logy": true, "annotate": "epsilon",
-  "title": "Convergence threshold: solve time vs max P_s error (800k states)", "png": "epsilon.png"},
- {"csv": "resolution.csv", "x": "total_s", "y": "ps_error_vs_finest", "logx": true, "annotate": "grid_spacing_mm",
-  "points": true, "title": "Grid spacing: time vs P_s error at the 1 mm best start (vs finest grid)", "png": "resolution.png"},
- {"csv": "truth_gap.csv", "x": "grid_spacing_mm", "y": "mean_abs_gap", "group": "subdivision", "logx": true, "annotate": "within_ci_fraction",
-  "title": "Truth check by Delta and s (label: fraction in 95 % CI)", "png": "truth_gap.png"},
- {"csv": "truth_gap.csv", "x": "total_s", "y": "mean_abs_gap", "group": "subdivision", "logx": true, "annotate": "grid_spacing_mm",
-  "title": "Speed against error by s (label: Delta mm)", "png": "truth_tradeoff.png"},
- {"csv": "truth_check.csv", "x": "predicted_ps", "y": "mc_ps", "group": "grid_spacing_mm", "filter": {"subdivision": "1"}, "points": true,
-  "title": "Predicted P_s vs Monte Carlo, 10,000 trials per start (s = 1)", "png": "truth_check.png"},
- {"csv": "baseline.csv", "x": "mean_steps", "y": "ps", "group": "policy", "points": true,
-  "title": "P_s from the best start (Monte Carlo, 10,000 trials): MDP vs shortest path", "png": "baseline.png"},
- {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
-  "title": "P_s of start states on the entry line (figure 5.7 slices, best bevel)", "png": "start_surface.png"}])json");
-    std::cout << scaling.toText() << eps_table.toText() << resolution.toText()
-              << truth.summaryText() << baseline.toText() << json.str();
+    writePlotJson(args->out_dir);
+    std::cout << scaling.toText() << truth.summaryText() << json.str();
   } catch (const std::exception& e) {
     std::cerr << "bench_steering: " << e.what() << "\n";
     return 1;

@@ -235,6 +235,10 @@ TEST(SceneTest, BaseScenesParse) {
       edit(kSteeringBase, "orientations: 40", "orientations: 40\n  orientation_subdivision: 2"),
       "finer.yaml");
   EXPECT_EQ(finer.steering->orientation_subdivision, 2);
+  EXPECT_NEAR(steering.steering->ps_tolerance, 0.01, 1e-12);  // the default (README)
+  const Scene fixed = parseScene(
+      edit(kSteeringBase, "orientations: 40", "orientations: 40\n  ps_tolerance: 0"), "fixed.yaml");
+  EXPECT_EQ(fixed.steering->ps_tolerance, 0.0);
 }
 
 TEST(SceneTest, EmbeddedProstateSagittal) {
@@ -343,7 +347,8 @@ TEST(SceneTest, EmbeddedSteeringWorkspace) {
   EXPECT_NEAR(scene.needle.max_height_m, 0.1, kTol_m);
 
   ASSERT_TRUE(scene.steering.has_value());
-  EXPECT_NEAR(scene.steering->grid_spacing_m, 0.7e-3, kTol_m);
+  EXPECT_NEAR(scene.steering->grid_spacing_m, 1.4e-3, kTol_m);  // the coarsest of the ladder
+  EXPECT_NEAR(scene.steering->ps_tolerance, 0.005, 1e-12);
   EXPECT_EQ(scene.steering->orientations, 40);
   EXPECT_EQ(scene.steering->orientation_subdivision, 3);
   EXPECT_EQ(scene.steering->transition_model, "interpolated");
@@ -660,6 +665,14 @@ TEST(SceneErrorTest, OrientationSubdivisionOutOfRange) {
                                          "orientations: 40\n  orientation_subdivision: " + bad));
     EXPECT_EQ(e.key(), "steering.orientation_subdivision") << bad;
     EXPECT_EQ(e.value(), bad);
+  }
+}
+
+TEST(SceneErrorTest, PsToleranceOutOfRange) {
+  for (const std::string bad : {"-0.01", "1", "1.5", "tight"}) {
+    const SceneError e = parseError(
+        edit(kSteeringBase, "orientations: 40", "orientations: 40\n  ps_tolerance: " + bad));
+    EXPECT_EQ(e.key(), "steering.ps_tolerance") << bad;
   }
 }
 

@@ -29,17 +29,10 @@ constexpr double kResidualTol = 5e-3;         // Bellman residual after an epsil
 constexpr double kThreadAgreementTol = 5e-3;  // P_s, 1 vs 2 threads (both within epsilon)
 constexpr int kMaxRolloutSteps = 400;
 
+using test_shapes::entryLine;
 using test_shapes::obstacle;
 using test_shapes::openProblem;
 using test_shapes::rect;
-
-StartOptions entryLine() {
-  StartOptions s;
-  s.start_x_m = 0.0;
-  s.min_height_m = 0.0;
-  s.max_height_m = 0.1;
-  return s;
-}
 
 double normalCdf(double z) {
   return 0.5 * std::erfc(-z / std::sqrt(2.0));

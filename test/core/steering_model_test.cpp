@@ -48,7 +48,8 @@ TEST(SteeringModelTest, ProblemFromSceneTakesTheSteeringSection) {
   const scene::Scene s = scene::loadSceneSpec("steering_workspace");
   const SteeringProblem p = problemFromScene(s);
   EXPECT_EQ(p.params.orientations, 40);
-  EXPECT_NEAR(p.params.grid_spacing_m, 0.7e-3, kPositionTol_m);
+  EXPECT_NEAR(p.params.grid_spacing_m, 1.4e-3, kPositionTol_m);
+  EXPECT_NEAR(p.ps_tolerance, 0.005, 1e-12);
   EXPECT_EQ(p.params.orientation_subdivision, 3);
   EXPECT_EQ(p.params.transition_model, TransitionModel::kInterpolated);
   EXPECT_NEAR(p.params.radius_m, 0.05, kPositionTol_m);

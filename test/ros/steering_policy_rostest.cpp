@@ -13,6 +13,7 @@
 #include <filesystem>
 #include <limits>
 #include <optional>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -21,6 +22,7 @@
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SolvePolicy.h"
 #include "needle_guidance/SteeringControl.h"
+#include "needle_guidance/steering/steering_model.h"
 
 namespace {
 
@@ -30,13 +32,16 @@ using needle_guidance::SolvePolicy;
 using needle_guidance::SteeringControl;
 
 constexpr double kPi = 3.14159265358979323846;
-constexpr double kEntryLineTol_m = 1e-9;   ///< best start x vs the entry line x = 0
-constexpr double kProbabilityTol = 1e-6;   ///< P_s of the look-up vs the best start's
-constexpr double kStepTol_m = 1e-12;       ///< step_length_m vs 2 pi r / N_c
-constexpr double kRadius_m = 0.05;         ///< steering_workspace: r = 5 cm
-constexpr int kOrientations = 40;          ///< N_c
-constexpr long kStates = 4839360;          ///< 142 x 142 x (40 x 3) x 2 (0.7 mm, s = 3)
-constexpr std::size_t kPositions = 20164;  ///< 142 x 142 (0.7 mm)
+constexpr double kEntryLineTol_m = 1e-9;  ///< best start x vs the entry line x = 0
+constexpr double kProbabilityTol = 1e-6;  ///< P_s of the look-up vs the best start's
+constexpr double kStepTol_m = 1e-12;      ///< step_length_m vs 2 pi r / N_c
+constexpr double kRadius_m = 0.05;        ///< steering_workspace: r = 5 cm
+constexpr int kOrientations = 40;         ///< N_c
+/// The scene's ps_tolerance 0.005 picks 1.4 mm / sqrt(2)^2 = 0.7 mm (s = 3).
+constexpr long kStates = 4839360;          ///< 142 x 142 x (40 x 3) x 2
+constexpr std::size_t kPositions = 20164;  ///< 142 x 142
+constexpr double kChosenSpacing_m = 0.7e-3;
+constexpr double kSceneTolerance = 0.005;  ///< steering.ps_tolerance of steering_workspace
 const std::string kFirst = "/steering_policy";
 const std::string kSecond = "/second/steering_policy";
 const ros::Duration kServiceWait(60.0);
@@ -253,6 +258,11 @@ TEST(SteeringPolicy, SolveIsCachedUnlessForced) {
   EXPECT_EQ(cached.source, "cached") << cached.message;
   EXPECT_EQ(cached.states, kStates);
   EXPECT_GT(cached.sweeps, 0);
+  // The model was chosen by the scene's ps_tolerance, and the answer says which and how good.
+  EXPECT_NEAR(cached.grid_spacing_m, kChosenSpacing_m, 1e-9);
+  EXPECT_LE(cached.estimated_ps_error, kSceneTolerance);
+  EXPECT_GT(cached.estimated_ps_error, 0.0);
+  EXPECT_NE(cached.model.find("estimated P_s error"), std::string::npos) << cached.model;
 
   const float before = bestStart(kFirst).probability_of_success;
   const SolvePolicy::Response forced = solve(kFirst, 0.0, true);
@@ -303,6 +313,61 @@ TEST(SteeringPolicyRestart, SecondNodeLoadsTheSavedTable) {
 
   const SolvePolicy::Response cached = solve(kSecond, 0.0, false);
   EXPECT_EQ(cached.source, "cached") << cached.message;
+}
+
+TEST(SteeringPolicyAdaptation, LearnedNoiseReSolvesWithoutAGapInTheControls) {
+  // Steps from the best start whose deflections have three times the scene's sigma: after enough
+  // of them the node re-solves for its estimate on a background thread; every tip sent meanwhile
+  // is answered, and the table swapped in assumes the learned sigma (named in ~solve's model).
+  namespace st = needle_guidance::steering;
+  constexpr double kRadius_m = 0.05;                                            // the scene's r
+  constexpr double kDelta_m = 2.0 * 3.14159265358979323846 * kRadius_m / 40.0;  // 2 pi r / N_c
+  constexpr double kSigmaScale = 3.0;
+  constexpr double kDegToRad = 3.14159265358979323846 / 180.0;
+  constexpr int kSteps = 40;
+  constexpr double kSwapWait_s = 90.0;
+  ASSERT_TRUE(client().connected());
+  const std::string before = solve(kFirst, 0.0, false).model;
+  ASSERT_NE(before.find("sigma_i 5 deg"), std::string::npos) << before;
+  const BestStart::Response best = bestStart(kFirst);
+  ASSERT_TRUE(best.found) << best.message;
+  std::mt19937_64 rng(21);
+  std::normal_distribution<double> unit(0.0, 1.0);
+  double inserted_m = 0.0;
+  for (int k = 0; k < kSteps; ++k) {
+    inserted_m += 1.0;  // not one step after the previous tip: no sample from that pair
+    NeedleTip a = client().tip(best.pose.x, best.pose.y, best.pose.theta, best.bevel);
+    a.source = "ground_truth";
+    a.inserted_length_m = inserted_m;
+    const auto answer = client().ask(a);
+    ASSERT_TRUE(answer) << "tip " << k << " not answered";
+    ASSERT_EQ(answer->status, "ok");
+    const st::Control u = answer->control == "flip" ? st::Control::kFlip : st::Control::kInsert;
+    st::TipPose pose;
+    pose.p_SceneTip = st::Point2(best.pose.x, best.pose.y);
+    pose.theta_rad = best.pose.theta;
+    pose.bevel = st::bevelFromString(best.bevel).value();
+    const double sigma = (u == st::Control::kFlip ? 10.0 : 5.0) * kSigmaScale * kDegToRad;
+    const st::TipPose next = st::advanceTip(pose, u, sigma * unit(rng), kDelta_m, kRadius_m);
+    NeedleTip b = client().tip(next.p_SceneTip.x(), next.p_SceneTip.y(), next.theta_rad,
+                               st::toString(next.bevel));
+    b.source = "ground_truth";
+    b.inserted_length_m = inserted_m + kDelta_m;
+    ASSERT_TRUE(client().ask(b)) << "step tip " << k << " not answered";
+  }
+  // Keep asking: each tip must be answered while the re-solve runs, until the new table is in.
+  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(kSwapWait_s);
+  std::string after = before;
+  int answered = 0;
+  while (after == before && ros::WallTime::now() < end) {
+    NeedleTip a = client().tip(best.pose.x, best.pose.y, best.pose.theta, best.bevel);
+    const auto answer = client().ask(a);
+    ASSERT_TRUE(answer) << "a tip went unanswered during the re-solve (after " << answered << ")";
+    ++answered;
+    after = solve(kFirst, 0.0, false).model;
+  }
+  EXPECT_NE(after, before) << "no re-solved table within " << kSwapWait_s << " s";
+  EXPECT_EQ(after.find("sigma_i 5 deg"), std::string::npos) << after;
 }
 
 }  // namespace

@@ -9,8 +9,8 @@
 #include <ros/ros.h>
 
 #include <string>
-#include <vector>
 #include <utility>
+#include <vector>
 
 #include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/steering/steering_model.h"
@@ -28,11 +28,6 @@ public:
   bool run();
 
 private:
-  /// The policy table of the problem: steering_policy's saved file when it has one for this
-  /// problem (by hash), else solved here. Second: "loaded" | "solved".
-  std::pair<steering::PolicyTable, std::string> policyTable(
-      const std::string& scene_name, const steering::SteeringProblem& problem) const;
-
   ros::NodeHandle nh_;
   std::string scene_spec_;
   std::string target_;

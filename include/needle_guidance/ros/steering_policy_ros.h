@@ -14,6 +14,7 @@
 #include "needle_guidance/BestStart.h"
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SolvePolicy.h"
+#include "needle_guidance/steering/adaptive_policy.h"
 #include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/steering/steering_model.h"
 
@@ -41,6 +42,7 @@ public:
     int threads = 2;             ///< ~threads: model pre-computation and solver threads, 1..2
     std::string table_dir;       ///< ~table_dir, resolved against ROS_HOME; "" = never save
     bool solve_on_start = true;  ///< ~solve_on_start
+    bool adapt_noise = true;     ///< ~adapt_noise: learn sigma from the tips and re-solve
   };
 
   /// Reads and checks every parameter, builds the MDP of the scene's target (diagnostics are
@@ -64,19 +66,35 @@ private:
   /// maps, on failure leaves table_ and the topics as they were. Never throws.
   SolveOutcome solveOrLoad(double epsilon, bool force);
   void onTip(const NeedleTipConstPtr& msg);
+  /// Makes `source` the table in use (model_, table_ share it).
+  void adopt(const std::shared_ptr<const steering::PolicySource>& source);
+  /// Feeds the step from the last answered tip to this one to adaptive_ when it is one whole
+  /// insertion of delta under the control given (inserted length and bevel agree); swaps in a
+  /// finished re-solve.
+  void learnFrom(const NeedleTip& tip, const steering::TipPose& pose);
   bool onSolve(SolvePolicy::Request& req, SolvePolicy::Response& res);
   bool onBestStart(BestStart::Request& req, BestStart::Response& res);
   /// Publishes ~ps_map and ~best_start_marker for table_ (which must be set).
   void publishMaps();
-  /// The table file of this node's problem; "" when ~table_dir is "".
-  std::string tablePath() const;
 
   Settings settings_;
   std::string scene_name_;
   steering::StartOptions start_options_;
-  std::unique_ptr<const steering::SteeringModel> model_;
-  std::unique_ptr<const steering::PolicyTable> table_;
-  std::string table_source_;  ///< how table_ was made: solved | loaded
+  std::shared_ptr<const steering::SteeringModel> model_;  ///< of table_ (shares its source)
+  std::shared_ptr<const steering::PolicyTable> table_;
+  /// Learns sigma_i / sigma_r from the tips answered and swaps in re-solved tables (~adapt_noise).
+  std::unique_ptr<steering::AdaptivePolicy> adaptive_;
+  /// The last tip answered with a control, for the deflection of the next step.
+  struct LastAnswer {
+    bool valid = false;
+    steering::TipPose pose;
+    double inserted_length_m = 0.0;
+    steering::Control control = steering::Control::kInsert;
+  } last_;
+  std::string table_source_;           ///< how table_ was made: solved | loaded
+  steering::SteeringProblem problem_;  ///< the scene's, with its ps_tolerance
+  std::string description_;            ///< model, estimated error and time of table_
+  double estimated_error_ = 0.0;       ///< NaN when not estimated (ps_tolerance 0)
   ros::Publisher control_pub_;
   ros::Publisher ps_map_pub_;
   ros::Publisher best_start_pub_;

@@ -128,6 +128,10 @@ struct Steering {
   /// points) or "interpolated" (exact arc end, probability split bilinearly between the four
   /// neighbouring grid points; deflection bins matched to sigma's variance).
   std::string transition_model = "rounded";
+  /// Mean |P_s error| the scene needs at its entry line (issue 21): steering_policy refines the
+  /// grid from grid_spacing_m (the coarsest) until its own error estimate meets it. 0 = use
+  /// grid_spacing_m as given, with no estimate.
+  double ps_tolerance = 0.01;
 };
 
 /// A validated scene in SI units.

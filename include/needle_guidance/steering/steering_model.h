@@ -103,6 +103,9 @@ struct SteeringProblem {
   std::vector<scene::Obstacle> obstacles;  ///< polygons as given plus clearance_m [m]
   scene::Target target;                    ///< success region: the closed disc [m]
   SteeringParams params;
+  /// Wanted mean |P_s error| (model_selection.h); 0 = params as given. Not part of the hash:
+  /// it chooses the params, which are.
+  double ps_tolerance = 0.0;
 };
 
 /// The steering problem of a scene: its workspace, obstacles, the target named target_name

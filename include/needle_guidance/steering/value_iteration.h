@@ -2,6 +2,7 @@
 // discretised MDP of steering_model.h, producing the look-up table of policy_table.h.
 #pragma once
 
+#include <cstdint>
 #include <vector>
 
 #include "needle_guidance/steering/policy_table.h"
@@ -16,6 +17,10 @@ struct SolverOptions {
   /// Threads that share each sweep (rows split into bands; a band reads its neighbour's rows
   /// from a copy made at the start of the sweep, so results do not depend on timing). >= 1.
   int threads = 2;
+  /// A position is updated only once the changes of its successors since its last update could
+  /// move its values by epsilon * skip_fraction or more (a bound: eq. 5.2 is a maximum of means).
+  /// 0 updates every position in every sweep. In [0, 1].
+  double skip_fraction = 0.1;
 };
 
 struct SolveStats {
@@ -24,6 +29,7 @@ struct SolveStats {
   double last_max_change = 0.0;  ///< max |change| in the last sweep
   double seconds = 0.0;          ///< wall time of the solve [s]
   std::vector<double> max_change_per_sweep;
+  std::vector<std::int64_t> updated_per_sweep;  ///< free positions updated in each sweep
 };
 
 /// Solves P_s(x) = max_u sum_j p_ij(u) P_s(x_j) (eq. 5.2) from P_s = 0 (target cells 1), so the

@@ -1,0 +1,109 @@
+// Choosing the discretisation from the P_s accuracy a scene asks for (issue 21): a ladder of
+// grid spacings, coarse to fine by a factor sqrt(2) (twice the states per step), each solved;
+// the error of a model is estimated from the change of P_s against the previous, coarser model
+// (Richardson: for an error of order p in Delta, e(Delta) = D / (r^p - 1) with r = sqrt(2); p = 2,
+// the order of bilinear interpolation, gives e = D). The first model whose estimate meets the
+// tolerance is chosen. Not in the dissertation (5.4.2 fixes Delta by hand).
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/status.h"
+#include "needle_guidance/steering/policy_table.h"
+#include "needle_guidance/steering/steering_model.h"
+#include "needle_guidance/steering/value_iteration.h"
+
+namespace needle_guidance::steering {
+
+struct SelectionOptions {
+  double ps_tolerance = 0.005;     ///< mean |P_s error| wanted at the entry-line states, in (0, 1)
+  double memory_limit_mb = 500.0;  ///< refuse models whose estimated footprint exceeds this [MB]
+  int max_steps = 8;               ///< rungs of the ladder at most (Delta_0 / sqrt(2)^7 finest)
+  SolverOptions solver;            ///< for every solve
+  int threads = 2;                 ///< model building
+  StartOptions start;              ///< the entry line the error is measured on
+};
+
+/// One rung of the ladder.
+struct ModelRung {
+  double grid_spacing_m = 0.0;
+  std::int64_t states = 0;
+  double build_s = 0.0;
+  double solve_s = 0.0;
+  int sweeps = 0;
+  /// Mean |P_s - P_s of the previous rung| over the evaluation states; NaN on the first rung.
+  double change_vs_coarser = 0.0;
+  double estimated_error = 0.0;  ///< the estimate of this rung's mean |P_s error| (NaN first)
+  int evaluation_states = 0;     ///< states where either rung predicts P_s >= 0.01
+};
+
+/// The model chosen for a tolerance, with its table.
+struct ModelChoice {
+  SteeringProblem problem;  ///< with the chosen grid spacing
+  std::unique_ptr<const SteeringModel> model;
+  std::unique_ptr<PolicyTable> table;
+  double estimated_error = 0.0;  ///< of the chosen rung
+  double total_s = 0.0;          ///< build + solve of every rung [s]
+  double peak_estimate_mb = 0.0;
+  std::vector<ModelRung> ladder;
+  /// One line: "interpolated, grid 0.71 mm, s = 3, 4.8 M states, estimated P_s error 0.003 ..."
+  std::string toString() const;
+};
+
+/// Estimated resident memory of building and solving a model with these parameters [MB].
+double estimatedModelMb(const SteeringProblem& problem);
+
+/// The continuous poses the error is measured at: the entry line x = start.start_x_m, heights
+/// every 2.5 mm between the start heights (within the workspace), angles every 9 degrees in
+/// [-36, 36] degrees and both bevels.
+std::vector<TipPose> evaluationPoses(const SteeringProblem& problem, const StartOptions& start);
+
+/// Mean |P_s(fine) - P_s(coarse)| at the poses where either predicts >= 0.01 (table look-ups,
+/// as the truth check does); `count` receives how many there were.
+double meanAbsChange(const PolicyTable& fine, const PolicyTable& coarse,
+                     const std::vector<TipPose>& poses, int& count);
+
+/// Solves the ladder from problem.params.grid_spacing_m (the coarsest) until a rung's estimate
+/// meets options.ps_tolerance. Refuses (StatusCode::kRefused, naming the tolerance, the finest
+/// estimate reached and why) when the next rung would exceed memory_limit_mb or max_steps; then
+/// nothing is kept.
+/// Throws std::invalid_argument for a tolerance outside (0, 1).
+Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionOptions& options);
+
+}  // namespace needle_guidance::steering
+
+namespace needle_guidance::steering {
+
+/// A solved or loaded policy and where it came from (the node, the procedure, the bench and the
+/// guided trial share this; issue 20: written once).
+struct PolicySource {
+  std::unique_ptr<const SteeringModel> model;
+  std::unique_ptr<const PolicyTable> table;
+  std::string source;  ///< "solved" | "loaded"
+  /// The chosen model's estimated mean |P_s error| (NaN when ps_tolerance is 0: not estimated).
+  double estimated_error = 0.0;
+  double seconds = 0.0;           ///< wall time of this call [s]
+  std::vector<ModelRung> ladder;  ///< the rungs solved (empty when loaded or fixed)
+  std::string note;               ///< where the table was saved, or why not
+  /// "interpolated, grid 0.707 mm, s = 3, 4771440 states, estimated P_s error 0.0070, solved in
+  /// 2.4 s (4 models)".
+  std::string description() const;
+};
+
+/// Writes `table` to `path` through a temporary file and a rename (readers never see half a
+/// table). Creates the folder. Throws std::runtime_error / std::filesystem errors on failure.
+void saveTableAtomically(const PolicyTable& table, const std::string& path);
+
+/// The policy for `problem`. With problem.ps_tolerance > 0: the model recorded for this problem
+/// and tolerance in table_dir and its table, if both load; else chooseModel (refusals come back
+/// as the status), saving the table and the record. With ps_tolerance 0: problem.params as
+/// given, its table loaded or solved and saved. table_dir "" = no files. force = solve even if
+/// files exist. options.ps_tolerance is taken from the problem.
+Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::string& scene_name,
+                                 const std::string& table_dir, SelectionOptions options,
+                                 bool force = false);
+
+}  // namespace needle_guidance::steering

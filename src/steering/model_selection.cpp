@@ -1,0 +1,292 @@
+// Choosing the discretisation from a P_s tolerance (issue 21; see model_selection.h).
+#include "needle_guidance/steering/model_selection.h"
+
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+#include <sstream>
+#include <stdexcept>
+
+#include "needle_guidance/format.h"
+
+namespace needle_guidance::steering {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+/// Spacing ratio between rungs: twice the positions per rung.
+const double kRatio = std::sqrt(2.0);
+/// Assumed order of the error in Delta (bilinear interpolation of a smooth P_s): with kRatio,
+/// e = D / (kRatio^2 - 1) = D.
+constexpr double kOrder = 2.0;
+/// Start states whose P_s both rungs put below this are left out (they agree trivially).
+constexpr double kTrivialPs = 0.01;
+/// Bytes per state while building and solving (values, controls, snapshot, end masks, policy
+/// bits, plus the coarser rung's table kept for the comparison), measured on steering_workspace.
+constexpr double kBytesPerState = 14.0;
+constexpr double kBaseMb = 50.0;  ///< the process without the model [MB]
+constexpr double kEvalStep_m = 2.5e-3;
+constexpr double kEvalAngleStep_rad = 9.0 * kPi / 180.0;
+constexpr int kEvalAngles = 4;  ///< -36 .. 36 degrees
+
+double secondsSince(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+}  // namespace
+
+std::string ModelChoice::toString() const {
+  std::ostringstream out;
+  const SteeringParams& p = problem.params;
+  out << steering::toString(p.transition_model) << ", grid "
+      << formatNumber(p.grid_spacing_m * 1e3, 3) << " mm, s = " << p.orientation_subdivision << ", "
+      << (model ? model->numStates() : 0) << " states; estimated mean P_s error "
+      << formatNumber(estimated_error, 2) << " (change from the " << ladder.size() - 1
+      << " coarser model(s)); " << ladder.size() << " model(s) solved in "
+      << formatNumber(total_s, 3) << " s";
+  return out.str();
+}
+
+double estimatedModelMb(const SteeringProblem& problem) {
+  const SteeringParams& p = problem.params;
+  const auto size = problem.workspace_max - problem.workspace_min;
+  const double positions = std::floor(size.x() / p.grid_spacing_m + 1e-9) *
+                           std::floor(size.y() / p.grid_spacing_m + 1e-9);
+  const double states = positions * 2.0 * p.orientations * p.orientation_subdivision;
+  return kBaseMb + states * kBytesPerState / (1024.0 * 1024.0);
+}
+
+std::vector<TipPose> evaluationPoses(const SteeringProblem& problem, const StartOptions& start) {
+  std::vector<TipPose> poses;
+  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
+  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
+  for (double y = lo + 0.5 * kEvalStep_m; y < hi; y += kEvalStep_m) {
+    for (int a = -kEvalAngles; a <= kEvalAngles; ++a) {
+      for (Bevel b : {Bevel::kLeft, Bevel::kRight}) {
+        TipPose pose;
+        pose.p_SceneTip = Point2(start.start_x_m, y);
+        pose.theta_rad = a * kEvalAngleStep_rad;
+        pose.bevel = b;
+        poses.push_back(pose);
+      }
+    }
+  }
+  return poses;
+}
+
+double meanAbsChange(const PolicyTable& fine, const PolicyTable& coarse,
+                     const std::vector<TipPose>& poses, int& count) {
+  double sum = 0.0;
+  count = 0;
+  for (const TipPose& pose : poses) {
+    const double a = fine.lookup(pose).probability_of_success;
+    const double b = coarse.lookup(pose).probability_of_success;
+    if (a < kTrivialPs && b < kTrivialPs) {
+      continue;
+    }
+    sum += std::abs(a - b);
+    ++count;
+  }
+  return count > 0 ? sum / count : 0.0;
+}
+
+Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionOptions& options) {
+  if (!(options.ps_tolerance > 0.0 && options.ps_tolerance < 1.0)) {
+    throw std::invalid_argument("chooseModel: ps_tolerance must be in (0, 1), got " +
+                                formatNumber(options.ps_tolerance, 6));
+  }
+  const std::vector<TipPose> poses = evaluationPoses(problem, options.start);
+  ModelChoice choice;
+  const auto t0 = std::chrono::steady_clock::now();
+  double spacing = problem.params.grid_spacing_m;
+  for (int step = 0; step < options.max_steps; ++step, spacing /= kRatio) {
+    SteeringProblem rung_problem = problem;
+    rung_problem.params.grid_spacing_m = spacing;
+    const double mb = estimatedModelMb(rung_problem);
+    if (mb > options.memory_limit_mb) {
+      std::ostringstream why;
+      why << "ps_tolerance " << formatNumber(options.ps_tolerance, 4)
+          << " cannot be met within the memory limit of "
+          << formatNumber(options.memory_limit_mb, 4) << " MB: the finest model that fits (grid "
+          << formatNumber(spacing * kRatio * 1e3, 3) << " mm) has an estimated mean P_s error of "
+          << (choice.ladder.empty() ? std::string("(none)")
+                                    : formatNumber(choice.ladder.back().estimated_error, 2))
+          << ", and the next (grid " << formatNumber(spacing * 1e3, 3) << " mm) needs about "
+          << formatNumber(mb, 4) << " MB";
+      return GeneralStatus(StatusCode::kRefused, why.str());
+    }
+    ModelRung rung;
+    rung.grid_spacing_m = spacing;
+    const auto tb = std::chrono::steady_clock::now();
+    auto model = std::make_unique<const SteeringModel>(rung_problem, options.threads);
+    rung.build_s = secondsSince(tb);
+    rung.states = model->numStates();
+    SolveStats stats;
+    auto table = std::make_unique<PolicyTable>(solveValueIteration(*model, options.solver, &stats));
+    rung.solve_s = stats.seconds;
+    rung.sweeps = stats.sweeps;
+    rung.change_vs_coarser = std::numeric_limits<double>::quiet_NaN();
+    rung.estimated_error = std::numeric_limits<double>::quiet_NaN();
+    if (choice.table) {
+      rung.change_vs_coarser = meanAbsChange(*table, *choice.table, poses, rung.evaluation_states);
+      rung.estimated_error = rung.change_vs_coarser / (std::pow(kRatio, kOrder) - 1.0);
+    }
+    choice.ladder.push_back(rung);
+    choice.problem = rung_problem;
+    choice.model = std::move(model);
+    choice.table = std::move(table);
+    choice.estimated_error = rung.estimated_error;
+    choice.peak_estimate_mb = std::max(choice.peak_estimate_mb, mb);
+    if (rung.estimated_error <= options.ps_tolerance) {  // false for NaN (the first rung)
+      choice.total_s = secondsSince(t0);
+      return choice;
+    }
+  }
+  std::ostringstream why;
+  why << "ps_tolerance " << formatNumber(options.ps_tolerance, 4) << " not met within "
+      << options.max_steps << " refinements of grid "
+      << formatNumber(problem.params.grid_spacing_m * 1e3, 3) << " mm: the finest estimate is "
+      << formatNumber(choice.ladder.back().estimated_error, 2);
+  return GeneralStatus(StatusCode::kRefused, why.str());
+}
+
+}  // namespace needle_guidance::steering
+
+namespace needle_guidance::steering {
+namespace {
+
+/// The file recording which grid spacing a tolerance chose for a problem (beside its tables).
+std::string choicePath(const std::string& table_dir, const std::string& scene_name,
+                       const SteeringProblem& problem) {
+  std::string name = PolicyTable::fileName(scene_name, problemHash(problem));
+  name =
+      name.substr(0, name.size() - 6) + "_tol" + formatNumber(problem.ps_tolerance, 6) + ".choice";
+  return (std::filesystem::path(table_dir) / name).string();
+}
+
+}  // namespace
+
+std::string PolicySource::description() const {
+  std::ostringstream out;
+  const SteeringParams& p = model->params();
+  out << toString(p.transition_model) << ", grid " << formatNumber(p.grid_spacing_m * 1e3, 3)
+      << " mm, s = " << p.orientation_subdivision << ", " << model->numStates()
+      << " states, sigma_i " << formatNumber(p.sigma_insert_rad * 180.0 / kPi, 3)
+      << " deg, sigma_r " << formatNumber(p.sigma_flip_rad * 180.0 / kPi, 3)
+      << " deg, estimated P_s error "
+      << (std::isnan(estimated_error) ? std::string("not estimated (ps_tolerance 0)")
+                                      : formatNumber(estimated_error, 2))
+      << ", " << source << " in " << formatNumber(seconds, 3) << " s";
+  if (!ladder.empty()) {
+    out << " (" << ladder.size() << " models)";
+  }
+  return out.str();
+}
+
+void saveTableAtomically(const PolicyTable& table, const std::string& path) {
+  namespace fs = std::filesystem;
+  const fs::path target(path);
+  if (target.has_parent_path()) {
+    fs::create_directories(target.parent_path());
+  }
+  const std::string temporary = path + ".tmp" + std::to_string(::getpid());
+  try {
+    table.save(temporary);
+    fs::rename(temporary, target);
+  } catch (...) {
+    std::error_code ignored;
+    fs::remove(temporary, ignored);
+    throw;
+  }
+}
+
+Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::string& scene_name,
+                                 const std::string& table_dir, SelectionOptions options,
+                                 bool force) {
+  const auto t0 = std::chrono::steady_clock::now();
+  PolicySource out;
+  out.estimated_error = std::numeric_limits<double>::quiet_NaN();
+  SteeringProblem chosen = problem;
+  const bool select = problem.ps_tolerance > 0.0;
+  const std::string record =
+      select && !table_dir.empty() ? choicePath(table_dir, scene_name, problem) : "";
+  if (!force && !table_dir.empty()) {
+    bool known = !select;
+    if (select) {
+      std::ifstream in(record);
+      std::string key_spacing, key_error;
+      double spacing = 0.0, error = 0.0;
+      known = static_cast<bool>(in >> key_spacing >> spacing >> key_error >> error) &&
+              key_spacing == "grid_spacing_m" && key_error == "estimated_error" && spacing > 0.0;
+      if (known) {
+        chosen.params.grid_spacing_m = spacing;
+        out.estimated_error = error;
+      }
+    }
+    if (known) {
+      auto model = std::make_unique<const SteeringModel>(chosen, options.threads);
+      LoadStatus status;
+      const std::string path =
+          (std::filesystem::path(table_dir) / PolicyTable::fileName(scene_name, model->hash()))
+              .string();
+      std::optional<PolicyTable> loaded =
+          PolicyTable::load(path, model->hash(), status, options.solver.epsilon);
+      if (loaded && loaded->converged()) {
+        out.model = std::move(model);
+        out.table = std::make_unique<const PolicyTable>(std::move(*loaded));
+        out.source = "loaded";
+        out.seconds = secondsSince(t0);
+        return out;
+      }
+    }
+  }
+  if (select) {
+    options.ps_tolerance = problem.ps_tolerance;
+    Result<ModelChoice> choice = chooseModel(problem, options);
+    if (!choice) {
+      return choice.status();
+    }
+    out.model = std::move(choice.value().model);
+    out.table = std::move(choice.value().table);
+    out.estimated_error = choice.value().estimated_error;
+    out.ladder = choice.value().ladder;
+  } else {
+    out.model = std::make_unique<const SteeringModel>(chosen, options.threads);
+    SolveStats stats;
+    out.table = std::make_unique<const PolicyTable>(
+        solveValueIteration(*out.model, options.solver, &stats));
+  }
+  if (!out.table->converged()) {
+    return GeneralStatus(StatusCode::kFailed, "value iteration did not converge to epsilon " +
+                                                  formatNumber(options.solver.epsilon) + " in " +
+                                                  std::to_string(out.table->sweeps()) + " sweeps");
+  }
+  out.source = "solved";
+  if (!table_dir.empty()) {
+    const std::string path =
+        (std::filesystem::path(table_dir) / PolicyTable::fileName(scene_name, out.model->hash()))
+            .string();
+    try {
+      saveTableAtomically(*out.table, path);
+      if (select) {
+        std::ofstream rec(record + ".tmp");
+        rec.precision(17);
+        rec << "grid_spacing_m " << out.model->params().grid_spacing_m << "\nestimated_error "
+            << out.estimated_error << "\n";
+        rec.close();
+        std::filesystem::rename(record + ".tmp", record);
+      }
+      out.note = "saved to '" + path + "'";
+    } catch (const std::exception& e) {
+      out.note =
+          std::string("not saved: ") + e.what();  // the table is good; only the cache is missing
+    }
+  }
+  out.seconds = secondsSince(t0);
+  return out;
+}
+
+}  // namespace needle_guidance::steering

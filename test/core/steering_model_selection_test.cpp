@@ -1,0 +1,141 @@
+// Model selection from a P_s tolerance (issue 21) and the solver's change-bounded skipping.
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <filesystem>
+#include <string>
+
+#include "../steering_shapes.h"
+#include "needle_guidance/steering/model_selection.h"
+#include "needle_guidance/steering/value_iteration.h"
+
+namespace needle_guidance::steering {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+using test_shapes::entryLine;
+/// A problem with uncertainty and a wall, small enough to solve many times in a test: the open
+/// workspace with sigma_i = 5 deg, sigma_r = 10 deg and a block in front of the target.
+SteeringProblem noisyProblem(double spacing_m) {
+  SteeringProblem p = test_shapes::openProblem(spacing_m, 5.0 * kPi / 180.0, 10.0 * kPi / 180.0);
+  p.obstacles.push_back(
+      test_shapes::obstacle("block", test_shapes::rect(0.045, 0.04, 0.055, 0.06), 0.001));
+  p.params.transition_model = TransitionModel::kInterpolated;
+  p.params.orientation_subdivision = 2;
+  return p;
+}
+
+TEST(SolverSkipping, ValuesWithinTheSkipBoundOfTheFullSweeps) {
+  // Skipping a position moves its value by less than epsilon * skip_fraction per skip; after
+  // convergence the two solves agree to a few epsilons.
+  constexpr double kAgreementTol = 3e-3;  // 3 epsilon [P_s]
+  const SteeringModel model(noisyProblem(2e-3), 2);
+  SolverOptions all;
+  all.skip_fraction = 0.0;
+  SolverOptions skip;
+  SolveStats stats_all, stats_skip;
+  const PolicyTable a = solveValueIteration(model, all, &stats_all);
+  const PolicyTable b = solveValueIteration(model, skip, &stats_skip);
+  ASSERT_TRUE(a.converged());
+  ASSERT_TRUE(b.converged());
+  double worst = 0.0;
+  for (StateId s = 0; s < model.numStates(); ++s) {
+    worst = std::max(worst, double(std::abs(a.value(s) - b.value(s))));
+  }
+  EXPECT_LE(worst, kAgreementTol);
+  std::int64_t updates_all = 0, updates_skip = 0;
+  for (auto u : stats_all.updated_per_sweep)
+    updates_all += u;
+  for (auto u : stats_skip.updated_per_sweep)
+    updates_skip += u;
+  EXPECT_LT(updates_skip, updates_all) << "skipping saved no position update";
+}
+
+TEST(SolverSkipping, BadSkipFractionIsRefused) {
+  const SteeringModel model(noisyProblem(4e-3), 1);
+  SolverOptions o;
+  o.skip_fraction = 1.5;
+  EXPECT_THROW(solveValueIteration(model, o), std::invalid_argument);
+}
+
+TEST(ModelSelection, ChosenRungMeetsTheToleranceByItsOwnEstimate) {
+  SelectionOptions o;
+  o.ps_tolerance = 0.02;
+  o.start = entryLine();
+  const Result<ModelChoice> r = chooseModel(noisyProblem(4e-3), o);
+  ASSERT_TRUE(r) << r.status().toString();
+  const ModelChoice& c = r.value();
+  ASSERT_GE(c.ladder.size(), 2u);
+  EXPECT_LE(c.estimated_error, o.ps_tolerance);
+  EXPECT_TRUE(std::isnan(c.ladder.front().estimated_error));
+  for (std::size_t i = 1; i + 1 < c.ladder.size(); ++i) {
+    EXPECT_GT(c.ladder[i].estimated_error, o.ps_tolerance) << "rung " << i << " already met it";
+  }
+  // Each rung halves the area of a grid cell.
+  for (std::size_t i = 1; i < c.ladder.size(); ++i) {
+    EXPECT_NEAR(c.ladder[i - 1].grid_spacing_m / c.ladder[i].grid_spacing_m, std::sqrt(2.0), 1e-12);
+  }
+  EXPECT_NEAR(c.problem.params.grid_spacing_m, c.ladder.back().grid_spacing_m, 1e-15);
+  EXPECT_EQ(c.model->numStates(), c.ladder.back().states);
+}
+
+TEST(ModelSelection, ToleranceBeyondTheMemoryLimitIsRefusedNamingIt) {
+  SelectionOptions o;
+  o.ps_tolerance = 1e-6;
+  o.memory_limit_mb = 60.0;  // the coarse rungs fit, the fine ones do not
+  o.start = entryLine();
+  const Result<ModelChoice> r = chooseModel(noisyProblem(4e-3), o);
+  ASSERT_FALSE(r);
+  EXPECT_EQ(r.status().code(), StatusCode::kRefused);
+  EXPECT_NE(r.status().toString().find("ps_tolerance 1e-06"), std::string::npos)
+      << r.status().toString();
+  EXPECT_NE(r.status().toString().find("memory limit of 60 MB"), std::string::npos)
+      << r.status().toString();
+}
+
+TEST(ModelSelection, BadToleranceThrows) {
+  SelectionOptions o;
+  o.ps_tolerance = 0.0;
+  EXPECT_THROW(chooseModel(noisyProblem(4e-3), o), std::invalid_argument);
+  o.ps_tolerance = std::nan("");
+  EXPECT_THROW(chooseModel(noisyProblem(4e-3), o), std::invalid_argument);
+}
+
+TEST(SolveOrLoad, SecondCallLoadsTheChosenModelAndItsEstimate) {
+  const std::string dir =
+      (std::filesystem::temp_directory_path() / ("ng_select_" + std::to_string(::getpid())))
+          .string();
+  std::filesystem::remove_all(dir);
+  SteeringProblem p = noisyProblem(4e-3);
+  p.ps_tolerance = 0.02;
+  SelectionOptions o;
+  o.start = entryLine();
+  const Result<PolicySource> first = solveOrLoad(p, "test", dir, o);
+  ASSERT_TRUE(first) << first.status().toString();
+  EXPECT_EQ(first.value().source, "solved");
+  const Result<PolicySource> second = solveOrLoad(p, "test", dir, o);
+  ASSERT_TRUE(second) << second.status().toString();
+  EXPECT_EQ(second.value().source, "loaded");
+  EXPECT_EQ(second.value().model->hash(), first.value().model->hash());
+  EXPECT_DOUBLE_EQ(second.value().estimated_error, first.value().estimated_error);
+  EXPECT_EQ(second.value().table->values(), first.value().table->values());
+  const Result<PolicySource> forced = solveOrLoad(p, "test", dir, o, true);
+  ASSERT_TRUE(forced);
+  EXPECT_EQ(forced.value().source, "solved");
+  // Without a tolerance: the grid as given, no estimate.
+  p.ps_tolerance = 0.0;
+  const Result<PolicySource> fixed = solveOrLoad(p, "test", "", o);
+  ASSERT_TRUE(fixed);
+  EXPECT_NEAR(fixed.value().model->params().grid_spacing_m, 4e-3, 1e-15);
+  EXPECT_TRUE(std::isnan(fixed.value().estimated_error));
+  std::filesystem::remove_all(dir);
+}
+
+}  // namespace
+}  // namespace needle_guidance::steering
+
+int main(int argc, char** argv) {
+  ::testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}
