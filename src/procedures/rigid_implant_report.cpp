@@ -78,7 +78,7 @@ void writePlot(const RigidImplantReport& rep, const std::string& path) {
   const int n = std::max<int>(1, static_cast<int>(rep.records.size()));
   const int left = 70, right = 20, top = 40, bottom = 110, bar = 36;
   const int width = left + right + n * bar, height = 420;
-  cv::Mat img(height, std::max(width, 360), CV_8UC3, cv::Scalar(255, 255, 255));
+  cv::Mat img(height, std::max(width, 600), CV_8UC3, cv::Scalar(255, 255, 255));
   const double lo = -3.0, hi = 1.0;  // log10 mm
   auto yOf = [&](double mm) {
     const double l = std::clamp(std::log10(std::max(mm, 1e-3)), lo, hi);
@@ -116,7 +116,7 @@ void writePlot(const RigidImplantReport& rep, const std::string& path) {
   title << "Seed error per target [mm, log] - scene " << rep.scene << ": "
         << rep.count(TargetOutcome::kPlaced) << " placed, " << rep.count(TargetOutcome::kMissed)
         << " missed (blue: tolerance)";
-  cv::putText(img, title.str(), {5, 20}, cv::FONT_HERSHEY_SIMPLEX, 0.45, black);
+  cv::putText(img, title.str(), {5, 20}, cv::FONT_HERSHEY_SIMPLEX, 0.4, black);
   if (!cv::imwrite(path, img)) {
     throw std::runtime_error("RigidImplantReport: cannot write " + path);
   }

@@ -2,6 +2,7 @@
 // the needle is in tissue during the second target; the procedure retracts within 2 s and its
 // report names /tissue_sim, the time, and counts only the targets actually tried.
 #include <gtest/gtest.h>
+#include <ros/network.h>
 #include <ros/ros.h>
 #include <sensor_msgs/JointState.h>
 #include <signal.h>
@@ -81,8 +82,8 @@ TEST(RigidSeedImplantFault, KilledTissueSimStopsTheRobotAndIsReported) {
       });
   ros::AsyncSpinner spinner(2);
   spinner.start();
-  // The first target is done (one seed implanted; the tissue resets after it, so the status
-  // then counts 0 again) and the needle is back in tissue for the second.
+  // The first target is done (a seed implanted, the needle back out; the tissue resets after it)
+  // and the needle is back in tissue, 1 cm deep, for the second.
   ASSERT_TRUE(waitFor(
       [&] {
         std::lock_guard<std::mutex> l(mutex);
@@ -90,6 +91,13 @@ TEST(RigidSeedImplantFault, KilledTissueSimStopsTheRobotAndIsReported) {
       },
       150.0))
       << "the first seed was never implanted";
+  ASSERT_TRUE(waitFor(
+      [&] {
+        std::lock_guard<std::mutex> l(mutex);
+        return depth < 0.0;
+      },
+      60.0))
+      << "the first needle never came out";
   ASSERT_TRUE(waitFor(
       [&] {
         std::lock_guard<std::mutex> l(mutex);
