@@ -89,6 +89,8 @@ const char* toString(PlanCode code) {
       return "beyond max depth";
     case PlanCode::kSimulationFailed:
       return "simulation failed";
+    case PlanCode::kOutOfTolerance:
+      return "out of tolerance";
   }
   return "?";
 }
@@ -564,6 +566,11 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
       plan.message = "verified error " + mm(plan.verified_error_m) + " exceeds the tolerance " +
                      mm(plan.tolerance_m) + (budget_expired ? " (time budget expired)" : "") +
                      "; " + plan.message;
+      if (options_.refuse_over_tolerance) {
+        plan.code = PlanCode::kOutOfTolerance;
+        plan.message = std::string("RigidPlanner: ") + toString(plan.code) +
+                       ": no release point within the tolerance found: " + plan.message;
+      }
     }
   });
 }
@@ -665,7 +672,7 @@ RigidPlan RigidPlanner::planRobust(const Point2& target,
       searchHeights(plan, evaluate, /*early_stop=*/false, target, 0.0);
     } else {
       const RigidPlan nominal = this->plan(target);  // its height; depth is where stiffness acts
-      if (!nominal) {
+      if (!nominal && nominal.code != PlanCode::kOutOfTolerance) {
         throw std::runtime_error(nominal.message);
       }
       plan.simulations += nominal.simulations;

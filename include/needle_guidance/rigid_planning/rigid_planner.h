@@ -65,6 +65,10 @@ struct PlannerOptions {
   /// Wall-time budget per plan [s] (0: none). When it runs out the best plan so far is returned
   /// with its verified error (budget_expired set).
   double time_budget_s = 2.0;
+  /// A plan whose verified error exceeds the tolerance is refused (kOutOfTolerance, issue 22:
+  /// every target placed within the tolerance or refused with a reason); false: returned as ok
+  /// with within_tolerance false.
+  bool refuse_over_tolerance = true;
 };
 
 /// How a full insert-release-retract simulation commands the needle (the procedure's motion): the
@@ -118,7 +122,11 @@ enum class PlanCode {
   kTargetOutsideTissue,
   kHeightOutOfRange,
   kBeyondMaxDepth,
-  kSimulationFailed
+  kSimulationFailed,
+  /// No release point whose verified seed lands within the tolerance was found (in the budget):
+  /// the target is refused with the best verified error; release and verified_* still say where
+  /// the best plan would put the seed, for a caller that accepts it.
+  kOutOfTolerance
 };
 
 /// A plan: release point, predicted error, and what it cost.
