@@ -340,7 +340,7 @@ constexpr const char* kPlots =
   "annotate": "dz_mm", "logx": true, "logy": true, "points": true,
   "title": "Plan time vs seed error: mesh size (colour), dz in mm (label)",
   "png": "speed_vs_error.png"},
- {"csv": "targets.csv", "x": "plan_s", "y": "measured_error_mm", "group": "scene", "points": true,
+ {"csv": "targets.csv", "x": "plan_s", "y": "measured_error_mm", "group": "scene", "points": true, "filter": {"status": "placed"},
   "logy": true, "title": "Measured seed error vs planning time, every scene", "png": "scenes_error_vs_time.png"},
  {"csv": "rigid.csv", "x": "plan_s", "y": "planned_error_mm", "annotate": "target",
   "title": "Planned error vs planning time per target", "logy": true, "png": "planned_error_vs_time.png"},
