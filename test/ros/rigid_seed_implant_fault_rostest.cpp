@@ -10,6 +10,7 @@
 
 #include <atomic>
 #include <fstream>
+#include <iostream>
 #include <mutex>
 #include <sstream>
 #include <string>
@@ -116,6 +117,8 @@ TEST(RigidSeedImplantFault, KilledTissueSimStopsTheRobotAndIsReported) {
     std::lock_guard<std::mutex> l(mutex);
     ASSERT_FALSE(retract_seen.isZero()) << "the robot never retracted after the kill";
     EXPECT_LT((retract_seen - kill_time).toSec(), kDetectAndStop_s);
+    std::cout << "retraction began " << (retract_seen - kill_time).toSec()
+              << " s after tissue_sim was killed\n";
     EXPECT_LT(depth, 0.0) << "the needle is still in the tissue";
   }
   const std::string json = readFile(summary);
