@@ -17,15 +17,16 @@ namespace needle_guidance::rigid_planning {
 namespace {
 
 constexpr double kGolden = 0.6180339887498949;  // (sqrt(5) - 1) / 2
-constexpr double kSecantAcceptFactor =
-    10.0;  // a converged secant bracket is accepted below this x goal
+/// A converged secant bracket is accepted below this multiple of the tolerance (the verification
+/// and its corrections then take over).
+constexpr double kSecantAcceptTolerances = 5.0;
 /// A plan's scan stops once the implant point is this far past the target along the needle and
 /// the best error is smaller: the implant curve only moves on (4.3.2: no later depth is better).
 constexpr double kStopPastTarget_m = 5e-4;
 /// The height search stops once a height's error is below this fraction of the placement
-/// tolerance: the rest is headroom for what the plan cannot see (the live loop steps the tissue
-/// on its own clock, not on the plan's grid).
-constexpr double kGoalFraction = 0.5;
+/// tolerance. The live loop executes the verified FEM steps (the depth grid), so no headroom is
+/// kept for it: the search stops at the scene's tolerance, less a margin for rounding.
+constexpr double kGoalFraction = 0.9;
 /// A seed at rest moves less than this per step with the needle out [m].
 constexpr double kRest_m = 1e-9;
 
@@ -299,7 +300,7 @@ void RigidPlanner::searchHeights(RigidPlan& plan,
           return l.second.error_m < r.second.error_m;
         })->second.error_m;
     plan.secant = (goal_met && !plan.budget_expired) ||
-                  (plan.secant && best_error <= kSecantAcceptFactor * goal_m);
+                  (plan.secant && best_error <= kSecantAcceptTolerances * tolerance());
     goal_met = plan.secant || plan.budget_expired;
   }
   if (!goal_met) {
@@ -497,7 +498,9 @@ void RigidPlanner::searchPlan(RigidPlan& plan, tissue::TissueSimulation& sim, co
         const DepthScan& s = plan.scans.back();
         return HeightResult{s.best_error_m, s.best_depth_m, s.best_implant, s.lateral_m};
       },
-      /*early_stop=*/true, aim, std::min(options_.error_goal_m, kGoalFraction * tolerance()),
+      /*early_stop=*/true, aim,
+      options_.error_goal_m > 0.0 ? std::min(options_.error_goal_m, kGoalFraction * tolerance())
+                                  : kGoalFraction * tolerance(),
       first_offset_m, expired);
 }
 

@@ -48,10 +48,10 @@ struct PlannerOptions {
   int grid_points = 5;             ///< coarse heights that detect a non-unimodal error
   int secant_iterations = 6;       ///< secant steps on the lateral offset before the grid (0 = off)
   /// Stop searching heights once a scan's best error is below this (the target height is scanned
-  /// first; 0 searches the whole window) [m].
-  double error_goal_m = 5e-5;
-  /// Placement tolerance [m]; 0: the scene's needle.placement_tolerance_m. The search stops once
-  /// a height's error is below kGoalFraction of it (not at the fixed error_goal_m floor).
+  /// first) [m]; 0: at 0.9 of the tolerance (issue 22: stop at the scene's tolerance, not at a
+  /// fixed floor).
+  double error_goal_m = 0.0;
+  /// Placement tolerance [m]; 0: the scene's needle.placement_tolerance_m.
   double tolerance_m = 0.0;
   /// Verify every plan with a full insert-release-retract simulation on the procedure's step
   /// schedule (below) and correct it on the verified error when the two disagree.
