@@ -17,15 +17,16 @@ namespace needle_guidance::rigid_planning {
 namespace {
 
 constexpr double kGolden = 0.6180339887498949;  // (sqrt(5) - 1) / 2
-constexpr double kSecantAcceptFactor =
-    10.0;  // a converged secant bracket is accepted below this x goal
+/// A converged secant bracket is accepted below this multiple of the tolerance (the verification
+/// and its corrections then take over).
+constexpr double kSecantAcceptTolerances = 5.0;
 /// A plan's scan stops once the implant point is this far past the target along the needle and
 /// the best error is smaller: the implant curve only moves on (4.3.2: no later depth is better).
 constexpr double kStopPastTarget_m = 5e-4;
 /// The height search stops once a height's error is below this fraction of the placement
-/// tolerance: the rest is headroom for what the plan cannot see (the live loop steps the tissue
-/// on its own clock, not on the plan's grid).
-constexpr double kGoalFraction = 0.5;
+/// tolerance. The live loop executes the verified FEM steps (the depth grid), so no headroom is
+/// kept for it: the search stops at the scene's tolerance, less a margin for rounding.
+constexpr double kGoalFraction = 0.9;
 /// A seed at rest moves less than this per step with the needle out [m].
 constexpr double kRest_m = 1e-9;
 
@@ -89,6 +90,8 @@ const char* toString(PlanCode code) {
       return "beyond max depth";
     case PlanCode::kSimulationFailed:
       return "simulation failed";
+    case PlanCode::kOutOfTolerance:
+      return "out of tolerance";
   }
   return "?";
 }
@@ -112,6 +115,7 @@ Point2 DepthScan::implantAt(double z) const {
 RigidPlanner::RigidPlanner(scene::Scene scene, tissue::TissueSimOptions sim_options,
                            PlannerOptions options)
     : scene_(std::move(scene)), sim_options_(std::move(sim_options)), options_(options) {
+  sim_options_.depth_grid.step_m = options_.procedure_grid ? options_.depth_step_m : 0.0;
   if (!scene_.hasTissue()) {
     throw std::invalid_argument("RigidPlanner: scene '" + scene_.name + "' has no tissue model");
   }
@@ -159,9 +163,13 @@ RigidPlan RigidPlanner::check(const Point2& target) const {
 
 std::unique_ptr<tissue::TissueSimulation> RigidPlanner::makeSimulation(const Point2& target) const {
   tissue::TissueSimOptions options = sim_options_;
-  // Fine along this target's needle path, whatever the scene's own targets are.
-  options.meshing.refine_points.push_back(target);
-  options.meshing.refine_lines.push_back({Point2(scene_.workspace_min.x(), target.y()), target});
+  // Fine along this target's needle path, whatever the scene's own targets are; a scene target
+  // is refined already, and the mesh is then the live tissue_sim's.
+  auto& points = options.meshing.refine_points;
+  if (std::find(points.begin(), points.end(), target) == points.end()) {
+    points.push_back(target);
+    options.meshing.refine_lines.push_back({Point2(scene_.workspace_min.x(), target.y()), target});
+  }
   return std::make_unique<tissue::TissueSimulation>(scene_, options);
 }
 
@@ -292,7 +300,7 @@ void RigidPlanner::searchHeights(RigidPlan& plan,
           return l.second.error_m < r.second.error_m;
         })->second.error_m;
     plan.secant = (goal_met && !plan.budget_expired) ||
-                  (plan.secant && best_error <= kSecantAcceptFactor * goal_m);
+                  (plan.secant && best_error <= kSecantAcceptTolerances * tolerance());
     goal_met = plan.secant || plan.budget_expired;
   }
   if (!goal_met) {
@@ -370,38 +378,12 @@ RigidPlan RigidPlanner::timed(const Point2& target,
   return plan;
 }
 
-std::vector<double> ImplantSchedule::depths(double max_x_m) const {
-  std::vector<double> out;
-  if (approach_step_m > 0.0) {
-    for (long k = 1; start_x_m + static_cast<double>(k) * approach_step_m < fine_from_x_m; ++k) {
-      out.push_back(std::min(max_x_m, start_x_m + static_cast<double>(k) * approach_step_m));
-      if (out.back() >= max_x_m) {
-        return out;
-      }
-    }
-  }
-  const double fine_start = approach_step_m > 0.0 ? std::max(start_x_m, fine_from_x_m) : start_x_m;
-  for (long j = approach_step_m > 0.0 ? 0 : 1;; ++j) {
-    const double x = std::min(max_x_m, fine_start + static_cast<double>(j) * step_m);
-    if (!out.empty() && x <= out.back()) {
-      continue;
-    }
-    out.push_back(x);
-    if (x >= max_x_m) {
-      return out;
-    }
-  }
-}
-
-ImplantSchedule RigidPlanner::schedule(const Point2& target) const {
+ImplantSchedule RigidPlanner::schedule() const {
   ImplantSchedule schedule;
-  schedule.approach_step_m = options_.approach_step_m;
-  schedule.fine_from_x_m = target.x() - options_.approach_zone_m;
   schedule.start_x_m = scene_.workspace_min.x() - 0.001;
-  schedule.step_m = options_.depth_step_m;
-  schedule.velocity_m_s = scene_.needle.insertion_velocity_m_s;
-  schedule.retract_velocity_m_s =
-      2.0 * scene_.needle.insertion_velocity_m_s;  // the procedure's default
+  schedule.sample_m =
+      sim_options_.depth_grid.step_m > 0.0 ? sim_options_.depth_grid.step_m : options_.depth_step_m;
+  schedule.dt_s = schedule.sample_m / scene_.needle.insertion_velocity_m_s;
   return schedule;
 }
 
@@ -411,34 +393,39 @@ double RigidPlanner::tolerance() const {
 
 Point2 simulateImplant(tissue::TissueSimulation& sim, const Point2& release,
                        const ImplantSchedule& schedule) {
+  if (!(schedule.sample_m > 0.0) || !(schedule.dt_s > 0.0)) {
+    throw std::invalid_argument("simulateImplant: sample and dt must be > 0");
+  }
   sim.reset();
-  auto step = [&](double dt_s, double x) {
-    const tissue::StepStatus status = sim.step(dt_s, release.y(), x);
+  auto command = [&](double x) {
+    const tissue::StepStatus status = sim.advance(schedule.dt_s, release.y(), x);
     if (!status) {
       throw std::runtime_error("simulateImplant: step refused: " + status.toString());
     }
   };
-  double previous = schedule.start_x_m;
-  for (double x : schedule.depths(release.x())) {
-    step((x - previous) / schedule.velocity_m_s, x);
-    previous = x;
-  }
+  // The commands as a robot streams them: sample k at start + k sample (from its index, no
+  // accumulated rounding), then the end point itself.
+  auto move = [&](double from, double to) {
+    const double direction = to >= from ? 1.0 : -1.0;
+    for (long k = 1;; ++k) {
+      const double x = from + direction * static_cast<double>(k) * schedule.sample_m;
+      if (direction * (x - to) >= 0.0) {
+        break;
+      }
+      command(x);
+    }
+    command(to);
+  };
+  move(schedule.start_x_m, release.x());
   std::string why;
   const std::optional<int> id = sim.implantSeed(&why);
   if (!id) {
     throw std::runtime_error("simulateImplant: seed not released: " + why);
   }
-  // Retraction cuts nothing and moves no reference node (2.3.6), so it steps as coarsely as the
-  // approach.
-  const double retract_step = std::max(schedule.step_m, schedule.approach_step_m);
-  const double dt_out = retract_step / schedule.retract_velocity_m_s;
-  for (double x = release.x(); x > schedule.start_x_m;) {
-    x = std::max(schedule.start_x_m, x - retract_step);
-    step(dt_out, x);
-  }
+  move(release.x(), schedule.start_x_m);
   Point2 seed = sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
   for (int i = 0; i < schedule.max_rest_steps; ++i) {  // wait for steady state (4.3.2)
-    step(dt_out, schedule.start_x_m);
+    command(schedule.start_x_m);
     const Point2 next = sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
     const bool at_rest = (next - seed).norm() < kRest_m;
     seed = next;
@@ -450,17 +437,17 @@ Point2 simulateImplant(tissue::TissueSimulation& sim, const Point2& release,
 }
 
 DepthScan RigidPlanner::gridScan(tissue::TissueSimulation& sim, double height_m,
-                                 const Point2& target, double max_depth_m, bool stop_past_target,
-                                 const ImplantSchedule& grid) const {
+                                 const Point2& target, double max_depth_m,
+                                 bool stop_past_target) const {
   sim.reset();
   DepthScan scan;
   scan.height_m = height_m;
   scan.best_error_m = 1e300;
-  double previous = grid.start_x_m;
-  for (double x : grid.depths(max_depth_m)) {
-    const double dt_s = (x - previous) / grid.velocity_m_s;
-    previous = x;
-    const tissue::StepStatus status = sim.step(dt_s, height_m, x);
+  const double dt_s = sim.options().depth_grid.step_m / scene_.needle.insertion_velocity_m_s;
+  const long last = sim.gridIndex(max_depth_m);
+  for (long k = 0; k <= last; ++k) {
+    const double x = sim.gridDepth(k);
+    const tissue::StepStatus status = sim.advance(dt_s, height_m, x);
     if (!status) {
       throw std::runtime_error("RigidPlanner: simulation step refused: " + status.toString());
     }
@@ -505,13 +492,15 @@ void RigidPlanner::searchPlan(RigidPlan& plan, tissue::TissueSimulation& sim, co
       plan,
       [&](double y) {
         plan.scans.push_back(options_.procedure_grid
-                                 ? gridScan(sim, y, aim, max_depth, true, schedule(plan.target))
+                                 ? gridScan(sim, y, aim, max_depth, true)
                                  : scan(sim, y, aim, max_depth, /*stop_past_target=*/true));
         ++plan.simulations;
         const DepthScan& s = plan.scans.back();
         return HeightResult{s.best_error_m, s.best_depth_m, s.best_implant, s.lateral_m};
       },
-      /*early_stop=*/true, aim, std::min(options_.error_goal_m, kGoalFraction * tolerance()),
+      /*early_stop=*/true, aim,
+      options_.error_goal_m > 0.0 ? std::min(options_.error_goal_m, kGoalFraction * tolerance())
+                                  : kGoalFraction * tolerance(),
       first_offset_m, expired);
 }
 
@@ -537,7 +526,7 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
     RigidPlan best = plan;
     Point2 aim = target;
     for (int round = 0;; ++round) {
-      const Point2 verified = simulateImplant(*sim, plan.release, schedule(target));
+      const Point2 verified = simulateImplant(*sim, plan.release, schedule());
       ++plan.simulations;
       ++plan.verifications;
       const double verified_error = (verified - target).norm();
@@ -580,6 +569,11 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
       plan.message = "verified error " + mm(plan.verified_error_m) + " exceeds the tolerance " +
                      mm(plan.tolerance_m) + (budget_expired ? " (time budget expired)" : "") +
                      "; " + plan.message;
+      if (options_.refuse_over_tolerance) {
+        plan.code = PlanCode::kOutOfTolerance;
+        plan.message = std::string("RigidPlanner: ") + toString(plan.code) +
+                       ": no release point within the tolerance found: " + plan.message;
+      }
     }
   });
 }
@@ -681,7 +675,7 @@ RigidPlan RigidPlanner::planRobust(const Point2& target,
       searchHeights(plan, evaluate, /*early_stop=*/false, target, 0.0);
     } else {
       const RigidPlan nominal = this->plan(target);  // its height; depth is where stiffness acts
-      if (!nominal) {
+      if (!nominal && nominal.code != PlanCode::kOutOfTolerance) {
         throw std::runtime_error(nominal.message);
       }
       plan.simulations += nominal.simulations;

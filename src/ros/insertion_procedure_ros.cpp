@@ -14,8 +14,10 @@
 #include "needle_guidance/ImplantSeed.h"
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/PlanRigid.h"
-#include "needle_guidance/ros/conversions.h"
+#include "needle_guidance/procedures/rigid_implant.h"
 #include "needle_guidance/report/output_path.h"
+#include "needle_guidance/ros/conversions.h"
+#include "needle_guidance/ros/node_supervisor.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 
@@ -23,38 +25,217 @@ namespace needle_guidance {
 namespace {
 
 using LinearMoveClient = actionlib::SimpleActionClient<LinearMoveAction>;
+using procedures::Fault;
+using procedures::MoveResult;
+using procedures::PlanResult;
 
-struct MoveOutcome {
-  bool ok = false;
-  LinearMoveResult result;
-  std::string state;
+constexpr double kConfirmPause_s = 0.2;  ///< between the pings that confirm a node's death
+
+/// The devices of the rigid implant procedure over ROS: the robot's actions, tissue_sim's and
+/// rigid_planner's services, and a NodeSupervisor watching all three. A move polls the
+/// supervisor every 50 ms and stops the robot when a node dies (seen within about 1 s).
+class RosRigidDevices : public procedures::RigidImplantDevices {
+public:
+  RosRigidDevices(ros::NodeHandle& nh, const std::string& robot, const std::string& tissue,
+                  const std::string& planner)
+      : nh_(nh),
+        robot_(robot),
+        tissue_(tissue),
+        planner_(planner),
+        height_(nh, robot + "/move_to_height", true),
+        insert_(nh, robot + "/insert", true),
+        retract_(nh, robot + "/retract", true),
+        start_(ros::WallTime::now()) {}
+
+  /// Waits for every interface (30 s each), then starts watching the nodes. Throws
+  /// std::runtime_error naming what did not come up.
+  void connect() {
+    for (LinearMoveClient* client : {&height_, &insert_, &retract_}) {
+      if (!client->waitForServer(ros::Duration(30.0))) {
+        throw std::runtime_error("robot action servers of " + robot_ + " did not come up in 30 s");
+      }
+    }
+    tip_sub_ = nh_.subscribe<geometry_msgs::PoseStamped>(
+        robot_ + "/measured_cp", 10, [this](const geometry_msgs::PoseStampedConstPtr& msg) {
+          std::lock_guard<std::mutex> lock(mutex_);
+          tip_ = geometry::Point2(msg->pose.position.x, msg->pose.position.y);
+        });
+    estop_ = nh_.serviceClient<std_srvs::Trigger>(robot_ + "/estop");
+    std::vector<std::string> watched{robot_};
+    if (!tissue_.empty()) {
+      implant_ = nh_.serviceClient<ImplantSeed>(tissue_ + "/implant_seed");
+      reset_ = nh_.serviceClient<std_srvs::Trigger>(tissue_ + "/reset");
+      if (!implant_.waitForExistence(ros::Duration(30.0))) {
+        throw std::runtime_error(tissue_ + "/implant_seed did not come up in 30 s");
+      }
+      seeds_sub_ = nh_.subscribe<geometry_msgs::PoseArray>(
+          tissue_ + "/seeds", 10, [this](const geometry_msgs::PoseArrayConstPtr& msg) {
+            std::lock_guard<std::mutex> lock(mutex_);
+            seeds_ = *msg;
+          });
+      watched.push_back(tissue_);
+    }
+    if (!planner_.empty()) {
+      plan_ = nh_.serviceClient<PlanRigid>(planner_ + "/plan");
+      if (!plan_.waitForExistence(ros::Duration(30.0))) {
+        throw std::runtime_error(planner_ + "/plan did not come up in 30 s");
+      }
+      watched.push_back(planner_);
+    }
+    supervisor_ = std::make_unique<NodeSupervisor>(nh_, watched);
+  }
+
+  bool hasPlanner() const override { return !planner_.empty(); }
+  bool hasTissue() const override { return !tissue_.empty(); }
+
+  PlanResult plan(const geometry::Point2& target) override {
+    PlanRigid srv;
+    srv.request.target = ros_conversions::toMessage(target);
+    PlanResult r;
+    const bool called = plan_.call(srv);
+    r.ok = called && srv.response.success;
+    r.refused = called && !r.ok && srv.response.code != "simulation failed";
+    r.message = called ? srv.response.message : "the planner service call failed";
+    if (r.ok) {
+      r.release = {srv.response.release.x, srv.response.release.y};
+      r.predicted_error_m = srv.response.predicted_error_m;
+      r.unplanned_error_m = srv.response.unplanned_error_m;
+      r.plan_s = srv.response.planning_time_s;
+      r.verified_error_m = srv.response.verified ? srv.response.verified_error_m : NAN;
+    }
+    return r;
+  }
+
+  MoveResult moveHeight(double height_m, double velocity_m_s) override {
+    return move(height_, height_m, velocity_m_s, 0.0);
+  }
+  MoveResult moveDepth(double depth_m, double velocity_m_s, double from_m, bool retract) override {
+    return move(retract ? retract_ : insert_, depth_m, velocity_m_s, from_m);
+  }
+
+  std::optional<geometry::Point2> tip() override {
+    ros::Duration(0.05).sleep();  // one more measured_cp at rest
+    std::lock_guard<std::mutex> lock(mutex_);
+    return tip_;
+  }
+
+  std::optional<int> implantSeed(std::string& why_not) override {
+    ImplantSeed srv;
+    if (implant_.call(srv) && srv.response.success) {
+      return srv.response.seed_id;
+    }
+    why_not = srv.response.message.empty() ? "the implant_seed call failed" : srv.response.message;
+    ROS_ERROR_STREAM("insertion_procedure: seed not implanted: " << why_not);
+    return std::nullopt;
+  }
+
+  std::optional<geometry::Point2> seedAtRest(int id) override {
+    ros::Duration(0.4).sleep();  // the tissue comes to rest; seeds are republished at 20 Hz
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (id < 0 || static_cast<std::size_t>(id) >= seeds_.poses.size()) {
+      return std::nullopt;
+    }
+    const auto& p = seeds_.poses[static_cast<std::size_t>(id)].position;
+    return geometry::Point2(p.x, p.y);
+  }
+
+  void resetTissue() override {
+    std_srvs::Trigger trigger;
+    reset_.call(trigger);
+    std::lock_guard<std::mutex> lock(mutex_);
+    seeds_.poses.clear();
+  }
+
+  std::optional<Fault> fault() override {
+    if (confirmed_) {
+      return confirmed_;
+    }
+    const auto death = supervisor_ ? supervisor_->death() : std::nullopt;
+    if (!death) {
+      return std::nullopt;
+    }
+    // On a loaded machine one master lookup or getPid can fail for a live node (seen: the robot
+    // "not registered" during a plan at load 8 on 2 cores): a death counts once two more pings,
+    // kConfirmPause_s apart, fail too. Detection stays within period + 2 pauses ~ 1 s.
+    for (int i = 0; i < 2; ++i) {
+      ros::WallDuration(kConfirmPause_s).sleep();
+      if (NodeSupervisor::ping(death->node, kConfirmPause_s).empty()) {
+        ROS_WARN_STREAM("insertion_procedure: " << death->toString()
+                                                << " was a false alarm: it answers again");
+        supervisor_->clear();
+        return std::nullopt;
+      }
+    }
+    confirmed_ = Fault{death->node, (death->when - start_).toSec(), death->reason};
+    return confirmed_;
+  }
+
+  std::string safeStop(double retract_depth_m, double velocity_m_s) override {
+    const auto f = fault();
+    if (f && f->node == nh_.resolveName(robot_, false)) {
+      return "none possible: the robot node itself died";
+    }
+    const MoveResult r = move(retract_, retract_depth_m, velocity_m_s, 0.06, /*supervised=*/false);
+    if (r.ok) {
+      return "needle retracted to " + std::to_string(1e3 * retract_depth_m) + " mm";
+    }
+    std_srvs::Trigger trigger;
+    const bool stopped = estop_.call(trigger) && trigger.response.success;
+    return std::string("retraction ") + r.state + "; emergency stop " +
+           (stopped ? "engaged" : "FAILED");
+  }
+
+  double now_s() const override { return (ros::WallTime::now() - start_).toSec(); }
+
+private:
+  /// Sends a goal and waits for it (twice the nominal duration plus 5 s); supervised, a node
+  /// death cancels it.
+  MoveResult move(LinearMoveClient& client, double target_m, double velocity_m_s, double from_m,
+                  bool supervised = true) {
+    LinearMoveGoal goal;
+    goal.target_m = target_m;
+    goal.velocity_m_s = velocity_m_s;
+    const ros::WallTime deadline =
+        ros::WallTime::now() +
+        ros::WallDuration(2.0 * std::abs(target_m - from_m) / velocity_m_s + 5.0);
+    client.sendGoal(goal);
+    MoveResult outcome;
+    while (!client.waitForResult(ros::Duration(0.05))) {
+      const auto f = supervised ? fault() : std::nullopt;
+      if (f || ros::WallTime::now() > deadline || !ros::ok()) {
+        client.cancelGoal();
+        client.waitForResult(ros::Duration(1.0));
+        outcome.state = f ? "stopped: " + f->node + " died" : "timed out";
+        break;
+      }
+    }
+    if (outcome.state.empty()) {
+      outcome.state = client.getState().toString();
+      outcome.ok = client.getState() == actionlib::SimpleClientGoalState::SUCCEEDED;
+    }
+    if (const auto result = client.getResult()) {
+      outcome.reached_m = result->reached_m;
+      outcome.duration_s = result->duration_s;
+      outcome.mean_velocity_m_s = result->mean_velocity_m_s;
+    }
+    if (!outcome.ok) {
+      ROS_ERROR_STREAM("insertion_procedure: move to " << target_m << " m ended " << outcome.state);
+    }
+    return outcome;
+  }
+
+  ros::NodeHandle nh_;
+  std::string robot_, tissue_, planner_;
+  LinearMoveClient height_, insert_, retract_;
+  ros::WallTime start_;
+  std::mutex mutex_;
+  std::optional<geometry::Point2> tip_;
+  geometry_msgs::PoseArray seeds_;
+  ros::Subscriber tip_sub_, seeds_sub_;
+  ros::ServiceClient implant_, reset_, plan_, estop_;
+  std::unique_ptr<NodeSupervisor> supervisor_;
+  std::optional<Fault> confirmed_;
 };
-
-/// Sends a goal and waits for it with a timeout of twice the nominal duration plus a margin.
-MoveOutcome move(LinearMoveClient& client, double target_m, double velocity_m_s, double from_m) {
-  LinearMoveGoal goal;
-  goal.target_m = target_m;
-  goal.velocity_m_s = velocity_m_s;
-  const double nominal_s = std::abs(target_m - from_m) / velocity_m_s;
-  const actionlib::SimpleClientGoalState state =
-      client.sendGoalAndWait(goal, ros::Duration(2.0 * nominal_s + 5.0), ros::Duration(1.0));
-  MoveOutcome outcome;
-  outcome.state = state.toString();
-  outcome.ok = state == actionlib::SimpleClientGoalState::SUCCEEDED;
-  if (client.getResult()) {
-    outcome.result = *client.getResult();
-  }
-  if (!outcome.ok) {
-    ROS_ERROR_STREAM("insertion_procedure: move to " << target_m << " m ended " << outcome.state
-                                                     << ": " << outcome.result.message);
-  }
-  return outcome;
-}
-
-/// A table cell: the value, or empty for a figure that does not exist (never inserted).
-report::Cell cell(double value) {
-  return std::isfinite(value) ? report::Cell(value) : report::Cell(std::string());
-}
 
 }  // namespace
 
@@ -66,326 +247,69 @@ InsertionProcedureRos::InsertionProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   robot_ns_ = ros_params::text(private_nh, "robot", "insertion_robot");
   tissue_ns_ = ros_params::text(private_nh, "tissue", "");
   planner_ns_ = ros_params::text(private_nh, "planner", "");
-  reset_between_needles_ =
+  settings_.reset_between_needles =
       ros_params::number(private_nh, "reset_between_needles", 1.0, 0.0, 1.0, "(0 or 1)") > 0.5;
   report_dir_ = ros_params::text(private_nh, "report_dir", "", true);
   // Refuses a system folder or someone else's non-empty folder before anything runs.
   report::prepareReportDir(report_dir_, private_nh.resolveName("report_dir"),
                            ros_params::flag(private_nh, "allow_system_paths", false));
-  insertion_velocity_m_s_ = ros_params::number(
+  settings_.insertion_velocity_m_s = ros_params::number(
       private_nh, "insertion_velocity_m_s", scene.needle.insertion_velocity_m_s, 1e-4, 1.0, "m/s");
-  retract_velocity_m_s_ = ros_params::number(private_nh, "retract_velocity_m_s",
-                                             2.0 * insertion_velocity_m_s_, 1e-4, 1.0, "m/s");
-  height_velocity_m_s_ =
+  settings_.retract_velocity_m_s = ros_params::number(
+      private_nh, "retract_velocity_m_s", 2.0 * settings_.insertion_velocity_m_s, 1e-4, 1.0, "m/s");
+  settings_.height_velocity_m_s =
       ros_params::number(private_nh, "height_velocity_m_s", 0.01, 1e-4, 1.0, "m/s");
-  retract_depth_m_ = ros_params::number(private_nh, "retract_depth_m", -0.005, -1.0, 0.0, "m");
-  depth_tolerance_m_ = ros_params::number(private_nh, "depth_tolerance_m", 1e-6, 0.0, 0.01, "m");
-  velocity_tolerance_ = ros_params::number(private_nh, "velocity_tolerance", 0.05, 0.0, 1.0, "1");
-  placement_tolerance_m_ = ros_params::number(private_nh, "placement_tolerance_m",
-                                              scene.needle.placement_tolerance_m, 1e-7, 0.05, "m");
-  max_targets_ =
+  settings_.retract_depth_m =
+      ros_params::number(private_nh, "retract_depth_m", -0.005, -1.0, 0.0, "m");
+  settings_.depth_tolerance_m =
+      ros_params::number(private_nh, "depth_tolerance_m", 1e-6, 0.0, 0.01, "m");
+  settings_.velocity_tolerance =
+      ros_params::number(private_nh, "velocity_tolerance", 0.05, 0.0, 1.0, "1");
+  settings_.placement_tolerance_m = ros_params::number(
+      private_nh, "placement_tolerance_m", scene.needle.placement_tolerance_m, 1e-7, 0.05, "m");
+  settings_.max_targets =
       static_cast<int>(ros_params::number(private_nh, "max_targets", 0, 0, 1000, "targets"));
+  procedures::RigidImplantProcedure(scene, settings_);  // refuses settings out of range now
 }
 
 bool InsertionProcedureRos::run() {
   const scene::Scene scene = scene::loadSceneSpec(scene_spec_);
-  LinearMoveClient height_client(nh_, robot_ns_ + "/move_to_height", true);
-  LinearMoveClient insert_client(nh_, robot_ns_ + "/insert", true);
-  LinearMoveClient retract_client(nh_, robot_ns_ + "/retract", true);
-  for (LinearMoveClient* client : {&height_client, &insert_client, &retract_client}) {
-    if (!client->waitForServer(ros::Duration(30.0))) {
-      ROS_FATAL("insertion_procedure: robot action servers did not come up in 30 s");
-      return false;
-    }
+  RosRigidDevices devices(nh_, robot_ns_, tissue_ns_, planner_ns_);
+  const procedures::RigidImplantProcedure procedure(scene, settings_);
+  procedures::RigidImplantReport report;
+  try {
+    devices.connect();
+    report = procedure.run(devices);
+  } catch (const std::exception& e) {  // a node that never came up: a report that says so
+    ROS_FATAL_STREAM("insertion_procedure: " << e.what());
+    report.scene = scene.name;
+    report.planned = !planner_ns_.empty();
+    report.with_tissue = !tissue_ns_.empty();
+    report.settings = settings_;
+    report.fault = procedures::Fault{"(start-up)", devices.now_s(), e.what()};
+    report.safe_stop = "nothing moved";
+    report.targets_in_scene = static_cast<int>(scene.targets.size());
   }
-  std::mutex mutex;
-  geometry_msgs::PoseStamped last_tip;
-  geometry_msgs::PoseArray last_seeds;
-  ros::Subscriber tip_sub = nh_.subscribe<geometry_msgs::PoseStamped>(
-      robot_ns_ + "/measured_cp", 10, [&](const geometry_msgs::PoseStampedConstPtr& msg) {
-        std::lock_guard<std::mutex> lock(mutex);
-        last_tip = *msg;
-      });
-  ros::ServiceClient implant;
-  ros::ServiceClient reset_tissue;
-  ros::Subscriber seeds_sub;
-  if (!tissue_ns_.empty()) {
-    implant = nh_.serviceClient<ImplantSeed>(tissue_ns_ + "/implant_seed");
-    reset_tissue = nh_.serviceClient<std_srvs::Trigger>(tissue_ns_ + "/reset");
-    if (!implant.waitForExistence(ros::Duration(30.0))) {
-      ROS_FATAL_STREAM("insertion_procedure: " << tissue_ns_
-                                               << "/implant_seed did not come up in 30 s");
-      return false;
-    }
-    seeds_sub = nh_.subscribe<geometry_msgs::PoseArray>(
-        tissue_ns_ + "/seeds", 10, [&](const geometry_msgs::PoseArrayConstPtr& msg) {
-          std::lock_guard<std::mutex> lock(mutex);
-          last_seeds = *msg;
-        });
+  report.write(report_dir_);
+  if (report.fault) {
+    ROS_ERROR_STREAM("insertion_procedure: stopped: "
+                     << report.fault->node << " " << report.fault->reason << " at "
+                     << report.fault->at_s << " s; robot: " << report.safe_stop);
   }
-
-  ros::ServiceClient planner;
-  if (!planner_ns_.empty()) {
-    planner = nh_.serviceClient<PlanRigid>(planner_ns_ + "/plan");
-    if (!planner.waitForExistence(ros::Duration(30.0))) {
-      ROS_FATAL_STREAM("insertion_procedure: " << planner_ns_ << "/plan did not come up in 30 s");
-      return false;
-    }
-  }
-  struct Record {
-    const scene::Target* target;
-    geometry::Point2 aim = geometry::Point2::Zero();  ///< release point commanded [m]
-    double predicted_error_m = NAN;
-    double unplanned_predicted_m = NAN;
-    double plan_s = NAN;
-    double verified_error_m = NAN;
-    std::string outcome;              ///< placed | missed | refused | error
-    std::string reason;               ///< why refused, or what went wrong
-    geometry::Point2 seed{NAN, NAN};  ///< seed position once the needle is out and at rest [m]
-    MoveOutcome insert, retract;
-    double tip_error_mm = NAN;
-    int seed_id = -1;
-    std::string status;
-  };
-  std::vector<Record> records;
-  const ros::WallTime start = ros::WallTime::now();
-  const std::size_t count = max_targets_ > 0
-                                ? std::min<std::size_t>(scene.targets.size(), max_targets_)
-                                : scene.targets.size();
-  double depth_now = retract_depth_m_;
-  for (std::size_t i = 0; i < count && ros::ok(); ++i) {
-    Record r;
-    r.target = &scene.targets[i];
-    r.aim = r.target->position;
-    if (!planner_ns_.empty()) {
-      PlanRigid srv;
-      srv.request.target = ros_conversions::toMessage(r.target->position);
-      const bool called = planner.call(srv);
-      if (!called || !srv.response.success) {
-        r.status = "plan failed: " + srv.response.message;
-        r.outcome = called && srv.response.code != "simulation failed" ? "refused" : "error";
-        r.reason = called ? srv.response.message : "the planner service call failed";
-        ROS_ERROR_STREAM("insertion_procedure: " << r.target->name << " " << r.status);
-        records.push_back(r);
-        continue;
-      }
-      r.aim = {srv.response.release.x, srv.response.release.y};
-      r.predicted_error_m = srv.response.predicted_error_m;
-      r.unplanned_predicted_m = srv.response.unplanned_error_m;
-      r.plan_s = srv.response.planning_time_s;
-      r.verified_error_m = srv.response.verified ? srv.response.verified_error_m : NAN;
-    }
-    const double height = r.aim.y();
-    const double depth = r.aim.x();
-    const MoveOutcome h = move(height_client, height, height_velocity_m_s_, 0.0);
-    if (h.ok) {
-      r.insert = move(insert_client, depth, insertion_velocity_m_s_, depth_now);
-    }
-    ros::Duration(0.05).sleep();  // one more measured_cp at rest
-    {
-      std::lock_guard<std::mutex> lock(mutex);
-      r.tip_error_mm =
-          1e3 *
-          (geometry::Point2(last_tip.pose.position.x, last_tip.pose.position.y) - r.aim).norm();
-    }
-    if (!tissue_ns_.empty() && r.insert.ok) {
-      ImplantSeed srv;
-      if (implant.call(srv) && srv.response.success) {
-        r.seed_id = srv.response.seed_id;
-      } else {
-        ROS_ERROR_STREAM("insertion_procedure: seed at "
-                         << r.target->name << " not implanted: " << srv.response.message);
-      }
-    }
-    r.retract = move(retract_client, retract_depth_m_, retract_velocity_m_s_, depth);
-    if (r.seed_id >= 0) {
-      ros::Duration(0.4).sleep();  // the tissue comes to rest; seeds are republished at 20 Hz
-      std::lock_guard<std::mutex> lock(mutex);
-      if (static_cast<std::size_t>(r.seed_id) < last_seeds.poses.size()) {
-        const auto& p = last_seeds.poses[static_cast<std::size_t>(r.seed_id)].position;
-        r.seed = {p.x, p.y};
-      }
-    }
-    if (reset_tissue && reset_between_needles_) {
-      std_srvs::Trigger trigger;
-      reset_tissue.call(trigger);  // the next needle meets undisturbed tissue (4.4)
-      std::lock_guard<std::mutex> lock(mutex);
-      last_seeds.poses.clear();
-    }
-    depth_now = r.retract.ok ? retract_depth_m_ : depth;
-    r.status = !h.ok                                    ? "height " + h.state
-               : !r.insert.ok                           ? "insert " + r.insert.state
-               : !r.retract.ok                          ? "retract " + r.retract.state
-               : (!tissue_ns_.empty() && r.seed_id < 0) ? "no seed"
-                                                        : "ok";
-    ROS_INFO_STREAM("insertion_procedure: " << r.target->name << " " << r.status << " ("
-                                            << r.insert.result.duration_s << " s)");
-    records.push_back(r);
-  }
-
-  report::Table moves({"target",
-                       "target_x_mm",
-                       "target_y_mm",
-                       "release_x_mm",
-                       "release_y_mm",
-                       "depth_reached_mm",
-                       "depth_error_mm",
-                       "tip_error_mm",
-                       "insert_s",
-                       "insert_velocity_mm_s",
-                       "velocity_error_pct",
-                       "retract_s",
-                       "seed_x_mm",
-                       "seed_y_mm",
-                       "seed_error_mm",
-                       "predicted_error_mm",
-                       "unplanned_predicted_mm",
-                       "plan_s",
-                       "status",
-                       "outcome",
-                       "verified_error_mm",
-                       "reason"},
-                      6);
-  double sum_plan_s = 0.0;
-  bool all_ok = records.size() == count;
-  double max_depth_error_mm = 0.0, max_velocity_error_pct = 0.0, max_tip_error_mm = 0.0;
-  double max_seed_error_mm = 0.0, sum_seed_error_mm = 0.0;
-  int seeds_measured = 0;
-  const bool with_tissue = !tissue_ns_.empty();
-  const bool planned = !planner_ns_.empty();
-  int placed = 0, missed = 0, refused = 0, errors = 0;
-  for (Record& r : records) {
-    const double depth_error_mm = 1e3 * std::abs(r.insert.result.reached_m - r.aim.x());
-    sum_plan_s += std::isfinite(r.plan_s) ? r.plan_s : 0.0;
-    const double velocity_error_pct =
-        100.0 * std::abs(r.insert.result.mean_velocity_m_s - insertion_velocity_m_s_) /
-        insertion_velocity_m_s_;
-    if (r.status == "ok" && (depth_error_mm > 1e3 * depth_tolerance_m_ ||
-                             velocity_error_pct > 100.0 * velocity_tolerance_)) {
-      r.status = "out of tolerance";
-    }
-    const geometry::Point2 seed = r.seed;
-    double seed_error_mm = NAN;
-    if (seed.allFinite()) {
-      seed_error_mm = 1e3 * (seed - r.target->position).norm();
-      max_seed_error_mm = std::max(max_seed_error_mm, seed_error_mm);
-      sum_seed_error_mm += seed_error_mm;
-      ++seeds_measured;
-    } else if (!tissue_ns_.empty() && r.status == "ok") {
-      r.status = "seed not measured";
-    }
-    // Success means the seed landed: placed within the tolerance, else missed; refused and
-    // error come from planning and the moves.
-    if (r.outcome.empty()) {
-      if (r.status != "ok") {
-        r.outcome = "error";
-        r.reason = r.status;
-      } else if (with_tissue && std::isfinite(seed_error_mm)) {
-        r.outcome = seed_error_mm <= 1e3 * placement_tolerance_m_ ? "placed" : "missed";
-      } else {
-        r.outcome = with_tissue ? "error" : "placed";  // robot only: the move is the placement
-      }
-    }
-    placed += r.outcome == "placed" ? 1 : 0;
-    missed += r.outcome == "missed" ? 1 : 0;
-    refused += r.outcome == "refused" ? 1 : 0;
-    errors += r.outcome == "error" ? 1 : 0;
-    all_ok = all_ok && (planned ? r.outcome == "placed" : r.status == "ok");
-    const bool inserted = r.insert.ok || r.insert.result.duration_s > 0.0;
-    if (inserted) {  // a target never inserted has no move figures (not a 1e9 stand-in)
-      max_depth_error_mm = std::max(max_depth_error_mm, depth_error_mm);
-      max_velocity_error_pct = std::max(max_velocity_error_pct, velocity_error_pct);
-      max_tip_error_mm = std::isfinite(r.tip_error_mm) ? std::max(max_tip_error_mm, r.tip_error_mm)
-                                                       : max_tip_error_mm;
-    }
-    const double none = NAN;
-    moves.addRow({r.target->name,
-                  1e3 * r.target->position.x(),
-                  1e3 * r.target->position.y(),
-                  1e3 * r.aim.x(),
-                  1e3 * r.aim.y(),
-                  cell(inserted ? 1e3 * r.insert.result.reached_m : none),
-                  cell(inserted ? depth_error_mm : none),
-                  cell(inserted ? r.tip_error_mm : none),
-                  cell(inserted ? r.insert.result.duration_s : none),
-                  cell(inserted ? 1e3 * r.insert.result.mean_velocity_m_s : none),
-                  cell(inserted ? velocity_error_pct : none),
-                  cell(inserted ? r.retract.result.duration_s : none),
-                  cell(1e3 * seed.x()),
-                  cell(1e3 * seed.y()),
-                  cell(seed_error_mm),
-                  cell(1e3 * r.predicted_error_m),
-                  cell(1e3 * r.unplanned_predicted_m),
-                  cell(r.plan_s),
-                  r.status,
-                  r.outcome,
-                  cell(1e3 * r.verified_error_m),
-                  r.reason});
-  }
-  const double total_s = (ros::WallTime::now() - start).toSec();
-
-  std::ostringstream json;
-  json.precision(9);
-  json << "{\n  \"procedure\": \""
-       << (planned       ? "rigid_seed_implant"
-           : with_tissue ? "unplanned_seed_implant"
-                         : "robot_insertion")
-       << "\",\n  \"scene\": \"" << scene.name
-       << "\",\n  \"success\": " << (all_ok ? "true" : "false") << ",\n  \"targets\": " << count
-       << ",\n  \"max_depth_error_mm\": " << max_depth_error_mm
-       << ",\n  \"max_tip_error_mm\": " << max_tip_error_mm
-       << ",\n  \"max_velocity_error_pct\": " << max_velocity_error_pct
-       << ",\n  \"placed\": " << placed << ",\n  \"missed\": " << missed
-       << ",\n  \"refused\": " << refused << ",\n  \"error\": " << errors
-       << ",\n  \"placement_tolerance_mm\": " << 1e3 * placement_tolerance_m_
-       << ",\n  \"success_means\": \""
-       << (planned ? "every target placed (seed within the placement tolerance)"
-                   : "every move succeeded")
-       << "\"";
-  if (with_tissue) {
-    json << ",\n  \"seeds\": " << seeds_measured
-         << ",\n  \"max_seed_error_mm\": " << max_seed_error_mm << ",\n  \"mean_seed_error_mm\": "
-         << (seeds_measured > 0 ? sum_seed_error_mm / seeds_measured : -1.0);
-  }
-  if (planned) {
-    json << ",\n  \"planning_s_mean\": " << (count > 0 ? sum_plan_s / count : 0.0);
-  }
-  json << ",\n  \"wall_time_s\": " << total_s << "\n}\n";
-  std::ostringstream md;
-  md << "# "
-     << (planned       ? "Rigid seed implant with offset planning (ch. 4)"
-         : with_tissue ? "Seed implant without deformation compensation"
-                       : "Robot insertion")
-     << " — scene `" << scene.name << "`\n\n"
-     << "Each target: move to its height, insert to its depth at " << 1e3 * insertion_velocity_m_s_
-     << " mm/s" << (with_tissue ? ", implant a seed" : "") << ", retract to "
-     << 1e3 * retract_depth_m_ << " mm. Tip error is the robot's positioning error."
-     << (with_tissue ? " Seed error is where the seed ends up in the FEM tissue once the needle is "
-                       "out, against its target: the error that offset planning (dissertation "
-                       "ch. 4) cancels."
-                     : " No tissue model.")
-     << "\n\n"
-     << moves.toMarkdown() << "\nTargets: " << placed << " placed (within "
-     << 1e3 * placement_tolerance_m_ << " mm), " << missed << " missed, " << refused << " refused, "
-     << errors << " error.\nResult: "
-     << (all_ok ? (planned ? "every seed placed" : "all moves succeeded") : "FAILED")
-     << ", wall time " << total_s << " s.\n";
-  moves.writeCsv(report_dir_ + "/moves.csv");
-  report::writeTextFile(report_dir_ + "/summary.json", json.str());
-  report::writeTextFile(report_dir_ + "/summary.md", md.str());
   std::cout << "\n== "
-            << (planned       ? "Rigid seed implant (planned)"
-                : with_tissue ? "Seed implant (no compensation)"
-                              : "Robot insertion")
+            << (report.planned       ? "Rigid seed implant (planned)"
+                : report.with_tissue ? "Seed implant (no compensation)"
+                                     : "Robot insertion")
             << " on scene '" << scene.name << "' ==\n"
-            << moves.toText() << (all_ok ? "PASS" : "FAIL") << ": " << count
-            << " targets, max depth error " << max_depth_error_mm << " mm, max velocity error "
-            << max_velocity_error_pct << " %";
-  if (with_tissue) {
-    std::cout << ", seed error max " << max_seed_error_mm << " mm";
-  }
-  std::cout << ", " << total_s << " s; report in " << report_dir_ << "\n" << std::flush;
-  return all_ok;
+            << report.text() << (report.success() ? "PASS" : "FAIL") << ": "
+            << report.records.size() << " of " << report.targets_in_scene << " targets tried, "
+            << report.count(procedures::TargetOutcome::kPlaced) << " placed, "
+            << report.count(procedures::TargetOutcome::kMissed) << " missed, "
+            << report.count(procedures::TargetOutcome::kRefused) << " refused, "
+            << report.count(procedures::TargetOutcome::kError) << " error, " << report.wall_time_s
+            << " s; report in " << report_dir_ << "\n"
+            << std::flush;
+  return report.success();
 }
 
 }  // namespace needle_guidance

@@ -39,7 +39,8 @@ TissueSimRos::TissueSimRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   const scene::Scene scene =
       scene::loadSceneSpec(ros_params::text(private_nh, "scene", "prostate_sagittal"));
   if (!scene.hasTissue()) {
-    throw std::runtime_error("scene '" + scene.name + "' has no tissue model (models.tissue: none)");
+    throw std::runtime_error("scene '" + scene.name +
+                             "' has no tissue model (models.tissue: none)");
   }
   tissue::TissueSimOptions options = tissue::optionsFromScene(scene);
   options.integrator = parseIntegrator(ros_params::text(private_nh, "integrator", ""), scene);
@@ -53,28 +54,38 @@ TissueSimRos::TissueSimRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
                              "' is not one of '' (the scene's), linear, averaged_volumetric");
   }
   const double rate_hz = ros_params::number(private_nh, "rate_hz", 200.0, 1.0, 5000.0, "Hz");
-  const double marker_rate_hz = ros_params::number(private_nh, "marker_rate_hz", 20.0, 0.1, rate_hz, "Hz");
-  const double image_rate_hz = ros_params::number(private_nh, "image_rate_hz", 5.0, 0.0, 60.0, "Hz");
+  const double marker_rate_hz =
+      ros_params::number(private_nh, "marker_rate_hz", 20.0, 0.1, rate_hz, "Hz");
+  const double image_rate_hz =
+      ros_params::number(private_nh, "image_rate_hz", 5.0, 0.0, 60.0, "Hz");
   const double pixel_size_m = ros_params::number(private_nh, "image_pixel_size_m",
                                                  scene.imaging.pixel_size_m, 1e-5, 0.01, "m");
-  const int image_seed = static_cast<int>(ros_params::number(private_nh, "image_seed", 1, 0, 1e9, "1"));
+  const int image_seed =
+      static_cast<int>(ros_params::number(private_nh, "image_seed", 1, 0, 1e9, "1"));
   colour_by_ = ros_params::text(private_nh, "colour_by", "region");
   if (colour_by_ != "region" && colour_by_ != "stress") {
-    throw std::runtime_error("parameter 'colour_by' = '" + colour_by_ + "' is not region or stress");
+    throw std::runtime_error("parameter 'colour_by' = '" + colour_by_ +
+                             "' is not region or stress");
   }
   const std::string robot = ros_params::text(private_nh, "robot", "insertion_robot");
+  // The depth grid (issue 22): every joint state is sub-stepped onto it, so the seed lands where
+  // the planner's verifying simulation put it, whatever the message and timer rates.
+  options.depth_grid.step_m = ros_params::number(
+      private_nh, "depth_step_m", options.depth_grid.step_m, 0.0, 0.01, "m (0 = off)");
   marker_period_s_ = 1.0 / marker_rate_hz;
+  rate_hz_ = rate_hz;
 
   const auto start = std::chrono::steady_clock::now();
   sim_ = std::make_unique<tissue::TissueSimulation>(scene, options);
   const double build_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-  ROS_INFO_STREAM("tissue_sim: scene '" << scene.name << "', " << sim_->model().mesh().triangleCount()
-                                         << " triangles, " << sim_->model().nodeCount() << " nodes, "
-                                         << tissue::toString(options.integrator) << ", built in "
-                                         << build_ms << " ms");
+  ROS_INFO_STREAM("tissue_sim: scene '"
+                  << scene.name << "', " << sim_->model().mesh().triangleCount() << " triangles, "
+                  << sim_->model().nodeCount() << " nodes, " << tissue::toString(options.integrator)
+                  << ", built in " << build_ms << " ms");
   image_geometry_ = tissue::forWorkspace(scene, pixel_size_m);
-  reference_image_ = tissue::referenceImage(scene, image_geometry_, static_cast<std::uint32_t>(image_seed));
+  reference_image_ =
+      tissue::referenceImage(scene, image_geometry_, static_cast<std::uint32_t>(image_seed));
 
   markers_pub_ = private_nh.advertise<visualization_msgs::MarkerArray>("markers", 1);
   status_pub_ = private_nh.advertise<TissueStatus>("status", 10);
@@ -86,7 +97,8 @@ TissueSimRos::TissueSimRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   last_step_ = ros::Time::now();
   step_timer_ = nh.createTimer(ros::Duration(1.0 / rate_hz), &TissueSimRos::onStepTimer, this);
   if (image_rate_hz > 0.0) {
-    image_timer_ = nh.createTimer(ros::Duration(1.0 / image_rate_hz), &TissueSimRos::onImageTimer, this);
+    image_timer_ =
+        nh.createTimer(ros::Duration(1.0 / image_rate_hz), &TissueSimRos::onImageTimer, this);
   }
 }
 
@@ -108,10 +120,12 @@ void TissueSimRos::onStepTimer(const ros::TimerEvent& /*event*/) {
   }
   last_step_ = now;
   const auto start = std::chrono::steady_clock::now();
-  const tissue::StepStatus status = sim_->step(dt_s, *height_m_, *depth_m_);
-  last_step_ms_ = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  const tissue::StepStatus status = sim_->advance(dt_s, *height_m_, *depth_m_);
+  last_step_ms_ =
+      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
   if (!status) {
-    ROS_ERROR_STREAM_THROTTLE_NAMED(2.0, "tissue_sim", "tissue_sim: step refused: " << status.toString());
+    ROS_ERROR_STREAM_THROTTLE_NAMED(2.0, "tissue_sim",
+                                    "tissue_sim: step refused: " << status.toString());
   }
   const tissue::InsertionStepInfo& info = sim_->needle().lastStep();
   TissueStatus msg;
@@ -135,7 +149,8 @@ void TissueSimRos::onStepTimer(const ros::TimerEvent& /*event*/) {
 }
 
 void TissueSimRos::publishMarkers(const ros::Time& stamp) {
-  visualization_msgs::MarkerArray markers = ros_conversions::tissueToMarkers(*sim_, colour_by_, "scene");
+  visualization_msgs::MarkerArray markers =
+      ros_conversions::tissueToMarkers(*sim_, colour_by_, "scene");
   for (auto& m : markers.markers) {
     m.header.stamp = stamp;
   }
@@ -157,14 +172,15 @@ void TissueSimRos::onImageTimer(const ros::TimerEvent& /*event*/) {
     return;
   }
   try {
-    const cv::Mat warped = tissue::warpImage(reference_image_, image_geometry_, sim_->model().mesh(),
-                                             sim_->integrator().displacement());
+    const cv::Mat warped = tissue::warpImage(
+        reference_image_, image_geometry_, sim_->model().mesh(), sim_->integrator().displacement());
     cv_bridge::CvImage image(std_msgs::Header(), "mono8", warped);
     image.header.stamp = ros::Time::now();
     image.header.frame_id = "scene_image";
     image_pub_.publish(image.toImageMsg());
   } catch (const std::exception& e) {
-    ROS_ERROR_STREAM_THROTTLE_NAMED(5.0, "tissue_sim", "tissue_sim: image warp failed: " << e.what());
+    ROS_ERROR_STREAM_THROTTLE_NAMED(5.0, "tissue_sim",
+                                    "tissue_sim: image warp failed: " << e.what());
   }
 }
 
@@ -177,6 +193,16 @@ bool TissueSimRos::onReset(std_srvs::Trigger::Request& /*req*/, std_srvs::Trigge
 }
 
 bool TissueSimRos::onImplantSeed(ImplantSeed::Request& /*req*/, ImplantSeed::Response& res) {
+  if (height_m_ && depth_m_) {  // catch up with the robot's last state before releasing
+    const tissue::StepStatus status = sim_->advance(1.0 / rate_hz_, *height_m_, *depth_m_);
+    if (!status) {
+      res.success = false;
+      res.message =
+          "seed not implanted: the tissue could not follow the needle: " + status.toString();
+      ROS_WARN_STREAM_NAMED("tissue_sim", res.message);
+      return true;
+    }
+  }
   std::string why_not;
   const std::optional<int> id = sim_->implantSeed(&why_not);
   res.success = id.has_value();

@@ -7,6 +7,9 @@ namespace needle_guidance::tissue {
 namespace {
 
 constexpr double kOnBoundaryTol_m = 1e-9;
+/// A tip this fraction of a grid step short of a grid point stands on it (a robot that stops
+/// on a commanded grid depth reports it to rounding error).
+constexpr double kGridSnap = 1e-3;
 
 IntegratorKind integratorFor(scene::TissueModel model) {
   switch (model) {
@@ -19,7 +22,8 @@ IntegratorKind integratorFor(scene::TissueModel model) {
     case scene::TissueModel::kNone:
       break;
   }
-  throw std::invalid_argument("TissueSimulation: the scene has no tissue model (models.tissue: none)");
+  throw std::invalid_argument(
+      "TissueSimulation: the scene has no tissue model (models.tissue: none)");
 }
 
 }  // namespace
@@ -30,6 +34,8 @@ TissueSimOptions optionsFromScene(const scene::Scene& scene) {
   options.corotational = scene.models.corotational;
   options.formulation = scene.models.averaged_volumetric ? ElementFormulation::kAveragedVolumetric
                                                          : ElementFormulation::kLinear;
+  options.depth_grid.insert_velocity_m_s = scene.needle.insertion_velocity_m_s;
+  options.depth_grid.retract_velocity_m_s = 2.0 * scene.needle.insertion_velocity_m_s;
   options.meshing.max_edge_m = scene.mesh.max_edge_m;
   options.meshing.min_edge_m = scene.mesh.min_edge_m;
   options.meshing.grading_length_m = scene.mesh.grading_length_m;
@@ -49,7 +55,8 @@ TissueSimOptions optionsFromScene(const scene::Scene& scene) {
 NeedleParams needleParamsFromScene(const scene::Scene& scene) {
   NeedleParams params;
   params.cutting_force_N = scene.needle.cutting_force_N;
-  params.cut_length_m = scene.needle.cut_length_m > 0.0 ? scene.needle.cut_length_m : params.cut_length_m;
+  params.cut_length_m =
+      scene.needle.cut_length_m > 0.0 ? scene.needle.cut_length_m : params.cut_length_m;
   params.static_friction_N_per_m = scene.needle.static_friction_N_per_m;
   params.kinetic_friction_N_per_m = scene.needle.kinetic_friction_N_per_m;
   params.stick_velocity_m_s = scene.needle.stick_velocity_m_s;
@@ -60,6 +67,15 @@ NeedleParams needleParamsFromScene(const scene::Scene& scene) {
 TissueSimulation::TissueSimulation(const scene::Scene& scene, const TissueSimOptions& options)
     : scene_(scene), options_(options) {
   integratorFor(scene_.models.tissue);  // refuses scenes without tissue
+  const DepthGrid& grid = options_.depth_grid;
+  if (!(grid.step_m >= 0.0) || !std::isfinite(grid.step_m) || grid.retract_stride < 1 ||
+      !(grid.insert_velocity_m_s > 0.0) || !(grid.retract_velocity_m_s > 0.0) ||
+      !std::isfinite(grid.insert_velocity_m_s) || !std::isfinite(grid.retract_velocity_m_s)) {
+    throw std::invalid_argument(
+        "TissueSimulation: depth grid step must be >= 0 (0 = off), retract stride >= 1 and "
+        "velocities > 0 (step " +
+        std::to_string(grid.step_m) + " m, stride " + std::to_string(grid.retract_stride) + ")");
+  }
   initial_mesh_ = geometry::meshDomain(scene_.workspacePolygon(), scene_.background_material,
                                        scene_.meshRegions(), options_.meshing);
 
@@ -113,7 +129,59 @@ StepStatus TissueSimulation::step(double dt_s, double needle_height_m, double ti
   return needle_->step(dt_s, needle_height_m, tip_x_m);
 }
 
+long TissueSimulation::gridIndex(double tip_x_m) const {
+  const double step = options_.depth_grid.step_m;
+  if (!(step > 0.0)) {
+    throw std::logic_error("TissueSimulation::gridIndex: the depth grid is off");
+  }
+  const double s = (tip_x_m - scene_.workspace_min.x()) / step + kGridSnap;
+  return s < 0.0 ? -1 : static_cast<long>(std::floor(s));
+}
+
+double TissueSimulation::gridDepth(long k) const {
+  return scene_.workspace_min.x() + static_cast<double>(k) * options_.depth_grid.step_m;
+}
+
+StepStatus TissueSimulation::gridStep(long k, double needle_height_m, double dt_s) {
+  const StepStatus status = needle_->step(dt_s, needle_height_m, gridDepth(k));
+  if (status) {
+    grid_k_ = k;
+  }
+  return status;
+}
+
+StepStatus TissueSimulation::advance(double dt_s, double needle_height_m, double tip_x_m) {
+  const DepthGrid& grid = options_.depth_grid;
+  if (!(grid.step_m > 0.0) || !std::isfinite(tip_x_m) || tip_x_m >= scene_.workspace_max.x()) {
+    return step(dt_s, needle_height_m, tip_x_m);  // grid off, or step() says why it refuses
+  }
+  const long k_cmd = gridIndex(tip_x_m);
+  StepStatus status;
+  if (k_cmd > grid_k_) {  // insertion: every grid point, at the nominal speed
+    const double dt = grid.step_m / grid.insert_velocity_m_s;
+    for (long k = grid_k_ + 1; k <= k_cmd && status; ++k) {
+      status = gridStep(k, needle_height_m, dt);
+    }
+  } else if (k_cmd < grid_k_) {
+    // Retraction: the multiples of the stride below the tip, then outside; the tip waits on the
+    // last multiple until the command passes the next one.
+    const long stride = grid.retract_stride;
+    const double dt = static_cast<double>(stride) * grid.step_m / grid.retract_velocity_m_s;
+    long k = grid_k_ - 1 - ((grid_k_ - 1) % stride + stride) % stride;
+    for (; k >= std::max(k_cmd, 0L) && status; k -= stride) {
+      status = gridStep(k, needle_height_m, dt);
+    }
+    if (status && k_cmd < 0) {
+      status = gridStep(-1, needle_height_m, dt);
+    }
+  } else if (options_.integrator != IntegratorKind::kQuasiStatic) {
+    status = needle_->step(dt_s, needle_height_m, gridDepth(grid_k_));  // dynamics at rest
+  }
+  return status;
+}
+
 void TissueSimulation::reset() {
+  grid_k_ = -1;
   needle_.reset();
   integrator_.reset();
   model_.reset();

@@ -32,9 +32,12 @@ namespace {
 Point2 simulateImplant(const ng::scene::Scene& scene, const ng::tissue::TissueSimOptions& options,
                        const Point2& release, const Point2& target,
                        const ng::rigid_planning::ImplantSchedule& schedule) {
-  ng::tissue::TissueSimOptions o = options;
-  o.meshing.refine_points.push_back(target);
-  o.meshing.refine_lines.push_back({Point2(scene.workspace_min.x(), target.y()), target});
+  ng::tissue::TissueSimOptions o = options;  // meshed as the live tissue_sim meshes the scene
+  if (std::find(o.meshing.refine_points.begin(), o.meshing.refine_points.end(), target) ==
+      o.meshing.refine_points.end()) {
+    o.meshing.refine_points.push_back(target);
+    o.meshing.refine_lines.push_back({Point2(scene.workspace_min.x(), target.y()), target});
+  }
   ng::tissue::TissueSimulation sim(scene, o);
   return ng::rigid_planning::simulateImplant(sim, release, schedule);
 }
@@ -77,10 +80,15 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     const auto plan = planner.plan(target.position, previous_offset);
     if (!plan) {
       ++f.refused;
+      f.seconds.push_back(plan.seconds);           // a refusal's planning time counts too
       const ng::report::Cell none{std::string()};  // never inserted: no error figures
+      // Out of tolerance: the best plan's verified error says by how much.
+      const ng::report::Cell verified = std::isfinite(plan.verified_error_m)
+                                            ? ng::report::Cell(1e3 * plan.verified_error_m)
+                                            : none;
       rows.addRow({scene.name, target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
-                   std::string("refused"), none, none, none, none, none, none, none, none, none,
-                   none, plan.seconds, std::string(plan.message)});
+                   std::string("refused"), none, none, verified, none, none, none, none, none, none,
+                   double(plan.simulations), plan.seconds, std::string(plan.message)});
       std::cout << scene.name << "/" << target.name << ": refused: " << plan.message << "\n"
                 << std::flush;
       continue;
@@ -88,22 +96,20 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     previous_offset = plan.release.y() - target.position.y();  // warm start for the next target
     ++f.planned;
     const auto sim_options = ng::tissue::optionsFromScene(scene);
-    const Point2 seed = simulateImplant(scene, sim_options, plan.release, target.position,
-                                        planner.schedule(target.position));
-    const Point2 unplanned_seed = simulateImplant(
-        scene, sim_options, target.position, target.position, planner.schedule(target.position));
+    const Point2 seed =
+        simulateImplant(scene, sim_options, plan.release, target.position, planner.schedule());
+    const Point2 unplanned_seed =
+        simulateImplant(scene, sim_options, target.position, target.position, planner.schedule());
     const double measured = (seed - target.position).norm();
-    // The live loop steps the tissue on its own clock (tissue_sim at 200 Hz: 0.05 mm steps at
-    // 1 cm/s, from the robot's retract depth of -5 mm): the same release on that schedule shows
-    // how much the outcome depends on the step history the plan cannot know.
-    ng::rigid_planning::ImplantSchedule live = planner.schedule(target.position);
-    live.approach_step_m = 0.0;
-    live.step_m = 5e-5;
+    // The live loop commands the tissue on its own clock (tissue_sim at 200 Hz: 0.05 mm samples
+    // at 1 cm/s, from the robot's retract depth of -5 mm); the depth grid must make that land
+    // where the planner's schedule did (issue 22): the gap should be 0.
+    ng::rigid_planning::ImplantSchedule live = planner.schedule();
+    live.sample_m = 5e-5;
     live.start_x_m = scene.workspace_min.x() - 0.005;
-    const double live_error =
-        (simulateImplant(scene, sim_options, plan.release, target.position, live) - target.position)
-            .norm();
-    f.live_cm.push_back(1e2 * live_error);
+    const double live_gap =
+        (simulateImplant(scene, sim_options, plan.release, target.position, live) - seed).norm();
+    f.live_cm.push_back(1e2 * live_gap);
     const auto legacy_scan = legacy.scanHeight(target.position, plan.release.y());
     const double legacy_gap = (legacy_scan.implantAt(plan.release.x()) - seed).norm();
     const double pvm = (plan.predicted_implant - seed).norm();
@@ -120,7 +126,7 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     rows.addRow({scene.name, target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
                  std::string(placed ? "placed" : "missed"),
                  1e3 * (unplanned_seed - target.position).norm(), 1e3 * plan.predicted_error_m,
-                 1e3 * plan.verified_error_m, 1e3 * measured, 1e3 * live_error, 1e3 * pvm,
+                 1e3 * plan.verified_error_m, 1e3 * measured, 1e3 * live_gap, 1e3 * pvm,
                  1e3 * legacy_gap, 1e3 * plan.release.x(), 1e3 * plan.release.y(),
                  double(plan.simulations), plan.seconds, std::string(plan.message)});
     std::cout << scene.name << "/" << target.name << ": " << (placed ? "placed" : "MISSED")
@@ -132,6 +138,221 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
   }
   return f;
 }
+
+/// The shipped scene's figures (issue 4): unplanned, depth-only and planned errors per target,
+/// robust against nominal plans on patients with other stiffnesses (another seed).
+struct ShippedFigures {
+  std::vector<double> unplanned_cm, depth_cm, planned_cm, measured_cm, seconds, simulations;
+  std::vector<double> nominal_patient_cm, robust_patient_cm, robust_seconds;
+  std::vector<Point2> releases;
+  ng::rigid_planning::StiffnessUncertainty uncertainty;  // +-30 %, seed 1
+  int patients = 0;
+};
+
+ShippedFigures shippedScene(const ng::scene::Scene& scene,
+                            const ng::rigid_planning::RigidPlanner& planner, std::size_t count,
+                            bool quick, const std::string& out_dir, ng::report::Table& table) {
+  ShippedFigures f;
+  ng::rigid_planning::StiffnessUncertainty patients = f.uncertainty;
+  patients.samples = f.patients = quick ? 4 : 8;
+  patients.seed = 2026;
+  patients.corners_first = false;  // true patients: uniform over the box
+  const auto patient_factors = ng::rigid_planning::drawStiffnessFactors(scene, patients);
+  ng::report::Table seed_map({"kind", "x_mm", "y_mm"}, 6);  // figure 4.7
+  ng::report::Table robust_table({"target", "patient", "nominal_error_mm", "robust_error_mm"}, 6);
+  const auto options = ng::tissue::optionsFromScene(scene);
+  for (std::size_t i = 0; i < count; ++i) {
+    const auto& target = scene.targets[i];
+    const auto unplanned = planner.unplanned(target.position);
+    const auto depth_only = planner.planDepthOnly(target.position);
+    const auto plan = planner.plan(target.position);
+    const auto robust = planner.planRobust(target.position, f.uncertainty);
+    if (!unplanned || !depth_only || !plan || !robust) {
+      throw std::runtime_error(target.name + ": " + plan.toString() + " / " + robust.toString());
+    }
+    const Point2 seed =
+        simulateImplant(scene, options, plan.release, target.position, planner.schedule());
+    const double measured = (seed - target.position).norm();
+    seed_map.addRow({std::string("target"), 1e3 * target.position.x(), 1e3 * target.position.y()});
+    seed_map.addRow({std::string("unplanned seed"), 1e3 * unplanned.predicted_implant.x(),
+                     1e3 * unplanned.predicted_implant.y()});
+    seed_map.addRow({std::string("planned seed"), 1e3 * seed.x(), 1e3 * seed.y()});
+    f.robust_seconds.push_back(robust.seconds);
+    for (std::size_t k = 0; k < patient_factors.size(); ++k) {
+      const ng::scene::Scene patient =
+          ng::rigid_planning::withStiffnessFactors(scene, patient_factors[k]);
+      const auto options_k = ng::tissue::optionsFromScene(patient);
+      auto error = [&](const Point2& release) {
+        return (simulateImplant(patient, options_k, release, target.position, planner.schedule()) -
+                target.position)
+            .norm();
+      };
+      const double e_nominal = error(plan.release), e_robust = error(robust.release);
+      f.nominal_patient_cm.push_back(1e2 * e_nominal);
+      f.robust_patient_cm.push_back(1e2 * e_robust);
+      robust_table.addRow({target.name, double(k), 1e3 * e_nominal, 1e3 * e_robust});
+    }
+    f.unplanned_cm.push_back(1e2 * unplanned.predicted_error_m);
+    f.depth_cm.push_back(1e2 * depth_only.predicted_error_m);
+    f.planned_cm.push_back(1e2 * plan.predicted_error_m);
+    f.measured_cm.push_back(1e2 * measured);
+    f.seconds.push_back(plan.seconds);
+    f.simulations.push_back(plan.simulations);
+    f.releases.push_back(plan.release);
+    table.addRow({target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
+                  1e3 * unplanned.predicted_error_m, 1e3 * depth_only.predicted_error_m,
+                  1e3 * plan.predicted_error_m, 1e3 * measured, 1e3 * plan.release.x(),
+                  1e3 * plan.release.y(), double(plan.simulations), plan.seconds,
+                  std::string(plan.unimodal ? "yes" : "no")});
+    std::cout << target.name << ": unplanned " << 1e3 * unplanned.predicted_error_m
+              << " mm, planned " << 1e3 * plan.predicted_error_m << " mm (measured "
+              << 1e3 * measured << " mm), " << plan.seconds << " s; robust " << robust.seconds
+              << " s, patients nominal/robust p95 so far "
+              << 10.0 * quantile(f.nominal_patient_cm, 0.95) << "/"
+              << 10.0 * quantile(f.robust_patient_cm, 0.95) << " mm\n"
+              << std::flush;
+  }
+  robust_table.writeCsv(out_dir + "/robust.csv");
+  seed_map.writeCsv(out_dir + "/seed_map.csv");
+  return f;
+}
+
+/// Plans with a model of another mesh size or depth step and measures the plans on the scene's
+/// own model (the procedure's): speed against error.
+void speedSweep(const ng::scene::Scene& scene, const ng::rigid_planning::RigidPlanner& planner,
+                bool quick, const std::string& out_dir) {
+  ng::report::Table sweep({"mesh_scale", "nodes", "dz_mm", "seconds_per_plan", "predicted_error_mm",
+                           "measured_error_mm", "model"},
+                          6);
+  const std::vector<double> mesh_scales =
+      quick ? std::vector<double>{1.0, 2.0} : std::vector<double>{0.75, 1.0, 1.5, 2.0};
+  const std::vector<double> steps_mm =
+      quick ? std::vector<double>{0.1, 0.2} : std::vector<double>{0.05, 0.1, 0.2, 0.5};
+  const std::vector<std::size_t> sweep_targets =
+      quick ? std::vector<std::size_t>{0} : std::vector<std::size_t>{0, 5, 10};
+  for (double scale : mesh_scales) {
+    ng::tissue::TissueSimOptions sim_options = ng::tissue::optionsFromScene(scene);
+    sim_options.meshing.max_edge_m *= scale;
+    sim_options.meshing.min_edge_m *= scale;
+    const std::size_t nodes =
+        ng::tissue::TissueSimulation(scene, sim_options).model().mesh().nodeCount();
+    for (double dz_mm : steps_mm) {
+      ng::rigid_planning::PlannerOptions o = planner.options();
+      o.depth_step_m = 1e-3 * dz_mm;
+      const ng::rigid_planning::RigidPlanner model(scene, sim_options, o);
+      std::vector<double> secs, predicted, measured_mm;
+      for (std::size_t i : sweep_targets) {
+        const Point2 t = scene.targets[std::min(i, scene.targets.size() - 1)].position;
+        const auto p = model.plan(t);
+        if (!p) {
+          throw std::runtime_error("sweep: " + p.toString());
+        }
+        secs.push_back(p.seconds);
+        predicted.push_back(1e3 * p.predicted_error_m);
+        measured_mm.push_back(1e3 * (simulateImplant(scene, ng::tissue::optionsFromScene(scene),
+                                                     p.release, t, planner.schedule()) -
+                                     t)
+                                        .norm());
+      }
+      const std::string label =
+          "mesh x" + std::to_string(scale).substr(0, 4) + " (" + std::to_string(nodes) + " nodes)";
+      sweep.addRow(
+          {scale, double(nodes), dz_mm, mean(secs), mean(predicted), mean(measured_mm), label});
+      std::cout << "sweep: " << label << ", dz " << dz_mm << " mm: " << mean(secs)
+                << " s per plan, measured " << mean(measured_mm) << " mm\n"
+                << std::flush;
+    }
+  }
+  sweep.writeCsv(out_dir + "/speed_vs_error.csv");
+}
+
+/// Figures 4.5 and 4.6 for one target: error vs depth at its height, best depth and error vs
+/// height over y_t +- 3 mm.
+void depthAndHeightCurves(const ng::scene::Scene& scene,
+                          const ng::rigid_planning::RigidPlanner& planner,
+                          const std::string& out_dir) {
+  const Point2 t = scene.targets[std::min<std::size_t>(5, scene.targets.size() - 1)].position;
+  ng::report::Table by_depth({"depth_mm", "error_mm"}, 6);
+  const auto at_height = planner.scanHeight(t, t.y());
+  for (std::size_t i = 0; i < at_height.depth_m.size(); ++i) {
+    by_depth.addRow({1e3 * at_height.depth_m[i], 1e3 * (at_height.implant[i] - t).norm()});
+  }
+  by_depth.writeCsv(out_dir + "/error_vs_depth.csv");
+  ng::report::Table by_height({"height_mm", "best_depth_mm", "error_mm"}, 6);
+  for (int k = -6; k <= 6; ++k) {
+    const double y = t.y() + 0.5e-3 * k;
+    const auto s = planner.scanHeight(t, y);
+    by_height.addRow({1e3 * y, 1e3 * s.best_depth_m, 1e3 * s.best_error_m});
+  }
+  by_height.writeCsv(out_dir + "/error_vs_height.csv");
+}
+
+/// Per-scene and overall figures of the multi-scene evaluation, as JSON members.
+std::string scenesJson(const std::vector<SceneFigures>& figures) {
+  std::ostringstream json;
+  json.precision(6);
+  SceneFigures all;
+  json << ",\n  \"scenes\": [";
+  for (std::size_t k = 0; k < figures.size(); ++k) {
+    const SceneFigures& f = figures[k];
+    json << (k ? "," : "") << "\n    {\"scene\": \"" << f.name << "\", \"spec\": \"" << f.spec
+         << "\", \"targets\": " << f.targets << ", \"refused\": " << f.refused
+         << ", \"targets_over_tolerance\": " << f.over_tolerance
+         << ", \"planned_error_cm_max\": " << maxOf(f.measured_cm)
+         << ", \"planned_error_cm_mean\": " << mean(f.measured_cm)
+         << ", \"predicted_error_cm_max\": " << maxOf(f.predicted_cm)
+         << ", \"verified_error_cm_max\": " << maxOf(f.verified_cm)
+         << ", \"predicted_vs_measured_cm_max\": " << maxOf(f.pvm_cm)
+         << ", \"o1_interpolated_vs_measured_cm_max\": " << maxOf(f.legacy_gap_cm)
+         << ", \"live_schedule_vs_measured_cm_max\": " << maxOf(f.live_cm)
+         << ", \"unplanned_error_cm_mean\": " << mean(f.unplanned_cm)
+         << ", \"seconds_per_target_mean\": " << mean(f.seconds)
+         << ", \"seconds_per_target_max\": " << maxOf(f.seconds)
+         << ", \"simulations_per_plan_mean\": " << mean(f.simulations) << "}";
+    all.targets += f.targets;
+    all.refused += f.refused;
+    all.over_tolerance += f.over_tolerance;
+    for (std::vector<double> SceneFigures::*v :
+         {&SceneFigures::predicted_cm, &SceneFigures::verified_cm, &SceneFigures::measured_cm,
+          &SceneFigures::unplanned_cm, &SceneFigures::legacy_gap_cm, &SceneFigures::pvm_cm,
+          &SceneFigures::seconds, &SceneFigures::simulations, &SceneFigures::live_cm}) {
+      (all.*v).insert((all.*v).end(), (f.*v).begin(), (f.*v).end());
+    }
+  }
+  json << "\n  ],\n  \"all_scenes_targets\": " << all.targets
+       << ",\n  \"targets_refused\": " << all.refused
+       << ",\n  \"targets_over_tolerance\": " << all.over_tolerance
+       << ",\n  \"planned_error_cm_max\": " << maxOf(all.measured_cm)
+       << ",\n  \"predicted_error_cm_max\": " << maxOf(all.predicted_cm)
+       << ",\n  \"verified_error_cm_max\": " << maxOf(all.verified_cm)
+       << ",\n  \"predicted_vs_measured_cm_max\": " << maxOf(all.pvm_cm)
+       << ",\n  \"o1_interpolated_vs_measured_cm_max\": " << maxOf(all.legacy_gap_cm)
+       << ",\n  \"live_schedule_vs_measured_cm_max\": " << maxOf(all.live_cm)
+       << ",\n  \"unplanned_measured_error_cm_mean\": " << mean(all.unplanned_cm)
+       << ",\n  \"seconds_per_target_max\": " << maxOf(all.seconds)
+       << ",\n  \"seconds_per_target_mean_all_scenes\": " << mean(all.seconds)
+       << ",\n  \"simulations_per_plan_mean\": " << mean(all.simulations);
+  return json.str();
+}
+
+constexpr const char* kPlots =
+    R"json([{"csv": "speed_vs_error.csv", "x": "seconds_per_plan", "y": "measured_error_mm", "group": "model",
+  "annotate": "dz_mm", "logx": true, "logy": true, "points": true,
+  "title": "Plan time vs seed error: mesh size (colour), dz in mm (label)",
+  "png": "speed_vs_error.png"},
+ {"csv": "targets.csv", "x": "plan_s", "y": "measured_error_mm", "group": "scene", "points": true, "filter": {"status": "placed"},
+  "logy": true, "title": "Measured seed error vs planning time, every scene", "png": "scenes_error_vs_time.png"},
+ {"csv": "rigid.csv", "x": "plan_s", "y": "planned_error_mm", "annotate": "target",
+  "title": "Planned error vs planning time per target", "logy": true, "png": "planned_error_vs_time.png"},
+ {"csv": "robust.csv", "x": "nominal_error_mm", "y": "robust_error_mm", "annotate": "target",
+  "title": "Seed error on patients with +-30 % stiffness: nominal vs robust plan", "points": true,
+  "png": "robust_vs_nominal.png"},
+ {"csv": "error_vs_depth.csv", "x": "depth_mm", "y": "error_mm", "logy": true,
+  "title": "Placement error vs release depth at the target height (fig. 4.5)", "png": "error_vs_depth.png"},
+ {"csv": "error_vs_height.csv", "x": "height_mm", "y": "error_mm", "logy": true,
+  "title": "Best-depth error vs insertion height (fig. 4.6)", "png": "error_vs_height.png"},
+ {"csv": "seed_map.csv", "x": "x_mm", "y": "y_mm", "group": "kind", "points": true,
+  "title": "Targets and final seeds, unplanned vs planned (fig. 4.7)", "png": "seed_map.png"}])json";
 
 }  // namespace
 
@@ -146,9 +367,10 @@ int main(int argc, char** argv) {
         args->scenes.empty() ? std::vector<std::string>{args->scene} : args->scenes;
     ng::report::Table per_target(
         {"scene", "target", "target_x_mm", "target_y_mm", "status", "unplanned_error_mm",
-         "predicted_error_mm", "verified_error_mm", "measured_error_mm", "live_schedule_error_mm",
-         "predicted_vs_measured_mm", "o1_interpolated_vs_measured_mm", "release_x_mm",
-         "release_y_mm", "simulations", "plan_s", "message"},
+         "predicted_error_mm", "verified_error_mm", "measured_error_mm",
+         "live_schedule_vs_measured_mm", "predicted_vs_measured_mm",
+         "o1_interpolated_vs_measured_mm", "release_x_mm", "release_y_mm", "simulations", "plan_s",
+         "message"},
         6);
     std::vector<SceneFigures> figures;
     for (const std::string& spec : specs) {
@@ -156,7 +378,8 @@ int main(int argc, char** argv) {
     }
     per_target.writeCsv(args->out_dir + "/targets.csv");
     const ng::scene::Scene scene = ng::scene::loadSceneSpec(specs.front());
-    ng::rigid_planning::PlannerOptions options;  // dissertation 4.4: +-0.2 cm, 0.01 cm, 0.5 cm/s
+    ng::rigid_planning::PlannerOptions options;  // the robust and sweep figures need every plan
+    options.refuse_over_tolerance = false;
     const ng::rigid_planning::RigidPlanner planner(scene, options);
     const std::size_t count =
         args->quick ? std::min<std::size_t>(3, scene.targets.size()) : scene.targets.size();
@@ -164,79 +387,9 @@ int main(int argc, char** argv) {
                              "depth_only_error_mm", "planned_error_mm", "planned_measured_error_mm",
                              "release_x_mm", "release_y_mm", "simulations", "plan_s", "unimodal"},
                             6);
-    std::vector<double> unplanned_cm, depth_cm, planned_cm, measured_cm, seconds, simulations;
-    std::vector<Point2> releases;
-    // Robustness: plans made on the nominal model or robustly over +-30 % stiffness, executed on
-    // "true patients" whose stiffness differs from the model (another seed).
-    ng::rigid_planning::StiffnessUncertainty uncertainty;  // +-30 %, 5 samples, seed 1
-    ng::rigid_planning::StiffnessUncertainty patients = uncertainty;
-    patients.samples = args->quick ? 4 : 8;
-    patients.seed = 2026;
-    patients.corners_first = false;  // true patients: uniform over the box
-    const auto patient_factors = ng::rigid_planning::drawStiffnessFactors(scene, patients);
-    std::vector<double> nominal_patient_cm, robust_patient_cm, robust_seconds;
-    ng::report::Table seed_map({"kind", "x_mm", "y_mm"}, 6);  // figure 4.7
-    ng::report::Table robust_table({"target", "patient", "nominal_error_mm", "robust_error_mm"}, 6);
-    for (std::size_t i = 0; i < count; ++i) {
-      const auto& target = scene.targets[i];
-      const auto unplanned = planner.unplanned(target.position);
-      const auto depth_only = planner.planDepthOnly(target.position);
-      const auto plan = planner.plan(target.position);
-      if (!unplanned || !depth_only || !plan) {
-        throw std::runtime_error(target.name + ": " + plan.toString());
-      }
-      const Point2 seed = simulateImplant(scene, ng::tissue::optionsFromScene(scene), plan.release,
-                                          target.position, planner.schedule(target.position));
-      const double measured = (seed - target.position).norm();
-      seed_map.addRow(
-          {std::string("target"), 1e3 * target.position.x(), 1e3 * target.position.y()});
-      seed_map.addRow({std::string("unplanned seed"), 1e3 * unplanned.predicted_implant.x(),
-                       1e3 * unplanned.predicted_implant.y()});
-      seed_map.addRow({std::string("planned seed"), 1e3 * seed.x(), 1e3 * seed.y()});
-      const auto robust = planner.planRobust(target.position, uncertainty);
-      if (!robust) {
-        throw std::runtime_error(target.name + " robust: " + robust.toString());
-      }
-      robust_seconds.push_back(robust.seconds);
-      for (std::size_t k = 0; k < patient_factors.size(); ++k) {
-        const ng::scene::Scene patient =
-            ng::rigid_planning::withStiffnessFactors(scene, patient_factors[k]);
-        const auto options_k = ng::tissue::optionsFromScene(patient);
-        const double e_nominal = (simulateImplant(patient, options_k, plan.release, target.position,
-                                                  planner.schedule(target.position)) -
-                                  target.position)
-                                     .norm();
-        const double e_robust =
-            (simulateImplant(patient, options_k, robust.release, target.position,
-                             planner.schedule(target.position)) -
-             target.position)
-                .norm();
-        nominal_patient_cm.push_back(1e2 * e_nominal);
-        robust_patient_cm.push_back(1e2 * e_robust);
-        robust_table.addRow({target.name, double(k), 1e3 * e_nominal, 1e3 * e_robust});
-      }
-      unplanned_cm.push_back(1e2 * unplanned.predicted_error_m);
-      depth_cm.push_back(1e2 * depth_only.predicted_error_m);
-      planned_cm.push_back(1e2 * plan.predicted_error_m);
-      measured_cm.push_back(1e2 * measured);
-      seconds.push_back(plan.seconds);
-      simulations.push_back(plan.simulations);
-      releases.push_back(plan.release);
-      table.addRow({target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
-                    1e3 * unplanned.predicted_error_m, 1e3 * depth_only.predicted_error_m,
-                    1e3 * plan.predicted_error_m, 1e3 * measured, 1e3 * plan.release.x(),
-                    1e3 * plan.release.y(), double(plan.simulations), plan.seconds,
-                    std::string(plan.unimodal ? "yes" : "no")});
-      std::cout << target.name << ": unplanned " << 1e3 * unplanned.predicted_error_m
-                << " mm, depth-only " << 1e3 * depth_only.predicted_error_m << " mm, planned "
-                << 1e3 * plan.predicted_error_m << " mm (measured " << 1e3 * measured << " mm), "
-                << plan.simulations << " simulations, " << plan.seconds << " s; robust plan "
-                << robust.seconds << " s, patients nominal/robust p95 so far "
-                << 10.0 * quantile(nominal_patient_cm, 0.95) << "/"
-                << 10.0 * quantile(robust_patient_cm, 0.95) << " mm\n"
-                << std::flush;
-    }
-    // The batch the procedure plans: every target, on every core.
+    const ShippedFigures f = shippedScene(scene, planner, count, args->quick, args->out_dir, table);
+    // The batch the procedure may plan: every target, on every core, as planned one at a time
+    // (unless a time budget cut either search short: the budget depends on the machine's load).
     std::vector<Point2> positions;
     for (std::size_t i = 0; i < count; ++i) {
       positions.push_back(scene.targets[i].position);
@@ -244,207 +397,43 @@ int main(int argc, char** argv) {
     const int threads = static_cast<int>(std::max(1U, std::thread::hardware_concurrency()));
     const auto batch_start = std::chrono::steady_clock::now();
     const auto batch = planner.planAll(positions, threads);
-    int batch_differing = 0;
     const double batch_seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - batch_start).count();
+    int batch_differing = 0;
     for (std::size_t i = 0; i < count; ++i) {
-      if (!batch[i]) {
-        throw std::runtime_error(scene.targets[i].name +
-                                 ": the batch plan failed: " + batch[i].message);
-      }
-      // As planned one at a time above, unless a time budget cut either search short (the
-      // budget makes a plan depend on the machine's load).
-      batch_differing += (batch[i].release - releases[i]).norm() > 1e-12 ? 1 : 0;
+      batch_differing += !batch[i] || (batch[i].release - f.releases[i]).norm() > 1e-12 ? 1 : 0;
     }
-
-    // Speed against error over mesh size and time step: plan with a coarser or finer model, then
-    // implant in the patient simulated as the procedure does (scene mesh, dz = 0.1 mm).
-    ng::report::Table sweep({"mesh_scale", "nodes", "dz_mm", "seconds_per_plan",
-                             "predicted_error_mm", "measured_error_mm", "model"},
-                            6);
-    const std::vector<double> mesh_scales =
-        args->quick ? std::vector<double>{1.0, 2.0} : std::vector<double>{0.75, 1.0, 1.5, 2.0};
-    const std::vector<double> steps_mm =
-        args->quick ? std::vector<double>{0.1, 0.5} : std::vector<double>{0.05, 0.1, 0.2, 0.5};
-    const std::vector<std::size_t> sweep_targets =
-        args->quick ? std::vector<std::size_t>{0} : std::vector<std::size_t>{0, 5, 10};
-    for (double scale : mesh_scales) {
-      ng::tissue::TissueSimOptions sim_options = ng::tissue::optionsFromScene(scene);
-      sim_options.meshing.max_edge_m *= scale;
-      sim_options.meshing.min_edge_m *= scale;
-      const std::size_t nodes =
-          ng::tissue::TissueSimulation(scene, sim_options).model().mesh().nodeCount();
-      for (double dz_mm : steps_mm) {
-        ng::rigid_planning::PlannerOptions o = options;
-        o.depth_step_m = 1e-3 * dz_mm;
-        const ng::rigid_planning::RigidPlanner model(scene, sim_options, o);
-        std::vector<double> secs, predicted, measured_mm;
-        for (std::size_t i : sweep_targets) {
-          const Point2 t = scene.targets[std::min(i, scene.targets.size() - 1)].position;
-          const auto p = model.plan(t);
-          if (!p) {
-            throw std::runtime_error("sweep: " + p.toString());
-          }
-          secs.push_back(p.seconds);
-          predicted.push_back(1e3 * p.predicted_error_m);
-          measured_mm.push_back(1e3 * (simulateImplant(scene, ng::tissue::optionsFromScene(scene),
-                                                       p.release, t, planner.schedule(t)) -
-                                       t)
-                                          .norm());
-        }
-        const std::string label = "mesh x" + std::to_string(scale).substr(0, 4) + " (" +
-                                  std::to_string(nodes) + " nodes)";
-        sweep.addRow(
-            {scale, double(nodes), dz_mm, mean(secs), mean(predicted), mean(measured_mm), label});
-        std::cout << "sweep: mesh x" << scale << " (" << nodes << " nodes), dz " << dz_mm
-                  << " mm: " << mean(secs) << " s per plan, predicted " << mean(predicted)
-                  << " mm, measured " << mean(measured_mm) << " mm\n"
-                  << std::flush;
-      }
-    }
-    // The approach step (coarser dz until approach_zone_m before the target) on the scene's mesh.
-    for (double approach_mm :
-         args->quick ? std::vector<double>{0.0} : std::vector<double>{0.0, 0.3, 0.5, 1.0}) {
-      ng::rigid_planning::PlannerOptions o = options;
-      o.approach_step_m = 1e-3 * approach_mm;
-      const ng::rigid_planning::RigidPlanner model(scene, o);
-      std::vector<double> secs, predicted, measured_mm;
-      for (std::size_t i : sweep_targets) {
-        const Point2 t = scene.targets[std::min(i, scene.targets.size() - 1)].position;
-        const auto p = model.plan(t);
-        if (!p)
-          throw std::runtime_error("sweep: " + p.toString());
-        secs.push_back(p.seconds);
-        predicted.push_back(1e3 * p.predicted_error_m);
-        measured_mm.push_back(1e3 * (simulateImplant(scene, ng::tissue::optionsFromScene(scene),
-                                                     p.release, t, planner.schedule(t)) -
-                                     t)
-                                        .norm());
-      }
-      const std::string label =
-          approach_mm > 0.0 ? "approach dz " + std::to_string(approach_mm).substr(0, 3) + " mm"
-                            : "uniform dz";
-      sweep.addRow({1.0,
-                    double(ng::tissue::TissueSimulation(scene, ng::tissue::optionsFromScene(scene))
-                               .model()
-                               .mesh()
-                               .nodeCount()),
-                    1e3 * options.depth_step_m, mean(secs), mean(predicted), mean(measured_mm),
-                    label});
-      std::cout << "sweep: " << label << ": " << mean(secs) << " s per plan, measured "
-                << mean(measured_mm) << " mm\n"
-                << std::flush;
-    }
-    sweep.writeCsv(args->out_dir + "/speed_vs_error.csv");
-
+    speedSweep(scene, planner, args->quick, args->out_dir);
+    depthAndHeightCurves(scene, planner, args->out_dir);
     std::ostringstream json;
     json.precision(6);
     json << "{\n  \"benchmark\": \"rigid\",\n  \"scene\": \"" << scene.name << "\",\n"
          << "  \"quick\": " << (args->quick ? "true" : "false") << ",\n  \"targets\": " << count
-         << ",\n"
-         << "  \"unplanned_error_cm_mean\": " << mean(unplanned_cm) << ",\n"
-         << "  \"unplanned_error_cm_sd\": " << sampleSd(unplanned_cm) << ",\n"
-         << "  \"depth_only_error_cm_mean\": " << mean(depth_cm) << ",\n"
-         << "  \"planned_error_cm_mean\": " << mean(planned_cm) << ",\n"
-         << "  \"planned_error_cm_sd\": " << sampleSd(planned_cm) << ",\n"
-         << "  \"planned_measured_error_cm_mean\": " << mean(measured_cm) << ",\n"
-         << "  \"planned_measured_error_cm_max\": "
-         << *std::max_element(measured_cm.begin(), measured_cm.end())
+         << ",\n  \"unplanned_error_cm_mean\": " << mean(f.unplanned_cm)
+         << ",\n  \"unplanned_error_cm_sd\": " << sampleSd(f.unplanned_cm)
+         << ",\n  \"depth_only_error_cm_mean\": " << mean(f.depth_cm)
+         << ",\n  \"planned_error_cm_mean\": " << mean(f.planned_cm)
+         << ",\n  \"planned_error_cm_sd\": " << sampleSd(f.planned_cm)
+         << ",\n  \"planned_measured_error_cm_mean\": " << mean(f.measured_cm)
+         << ",\n  \"planned_measured_error_cm_max\": " << maxOf(f.measured_cm)
          << ",\n  \"seconds_per_target_mean\": " << batch_seconds / count
          << ",\n  \"seconds_per_target_note\": \"wall time of planning all targets on " << threads
          << " threads, divided by the targets\""
-         << ",\n  \"plan_latency_seconds_mean\": " << mean(seconds)
-         << ",\n  \"plan_latency_seconds_max\": "
-         << *std::max_element(seconds.begin(), seconds.end())
-         << ",\n  \"simulations_per_target_mean\": " << mean(simulations)
-         << ",\n  \"stiffness_uncertainty\": " << uncertainty.relative
-         << ",\n  \"patients_per_target\": " << patients.samples
-         << ",\n  \"nominal_p95_error_cm\": " << quantile(nominal_patient_cm, 0.95)
-         << ",\n  \"robust_p95_error_cm\": " << quantile(robust_patient_cm, 0.95)
-         << ",\n  \"nominal_mean_error_cm_patients\": " << mean(nominal_patient_cm)
-         << ",\n  \"robust_mean_error_cm_patients\": " << mean(robust_patient_cm)
-         << ",\n  \"robust_seconds_per_target_mean\": " << mean(robust_seconds)
-         << ",\n  \"batch_plans_differing_from_sequential\": " << batch_differing;
-    // Every scene: measured (independent full simulation) planned error, the planner's
-    // prediction and verification, the unplanned error, planning time and simulations.
-    SceneFigures all;
-    json << ",\n  \"scenes\": [";
-    for (std::size_t k = 0; k < figures.size(); ++k) {
-      const SceneFigures& f = figures[k];
-      json << (k ? "," : "") << "\n    {\"scene\": \"" << f.name << "\", \"spec\": \"" << f.spec
-           << "\", \"targets\": " << f.targets << ", \"refused\": " << f.refused
-           << ", \"targets_over_tolerance\": " << f.over_tolerance
-           << ", \"planned_error_cm_max\": " << maxOf(f.measured_cm)
-           << ", \"planned_error_cm_mean\": " << mean(f.measured_cm)
-           << ", \"predicted_error_cm_max\": " << maxOf(f.predicted_cm)
-           << ", \"verified_error_cm_max\": " << maxOf(f.verified_cm)
-           << ", \"predicted_vs_measured_cm_max\": " << maxOf(f.pvm_cm)
-           << ", \"o1_interpolated_vs_measured_cm_max\": " << maxOf(f.legacy_gap_cm)
-           << ", \"live_schedule_error_cm_max\": " << maxOf(f.live_cm)
-           << ", \"unplanned_error_cm_mean\": " << mean(f.unplanned_cm)
-           << ", \"seconds_per_target_mean\": " << mean(f.seconds)
-           << ", \"seconds_per_target_max\": " << maxOf(f.seconds)
-           << ", \"simulations_per_plan_mean\": " << mean(f.simulations) << "}";
-      all.targets += f.targets;
-      all.refused += f.refused;
-      all.over_tolerance += f.over_tolerance;
-      for (std::vector<double> SceneFigures::*v :
-           {&SceneFigures::predicted_cm, &SceneFigures::verified_cm, &SceneFigures::measured_cm,
-            &SceneFigures::unplanned_cm, &SceneFigures::legacy_gap_cm, &SceneFigures::pvm_cm,
-            &SceneFigures::seconds, &SceneFigures::simulations, &SceneFigures::live_cm}) {
-        (all.*v).insert((all.*v).end(), (f.*v).begin(), (f.*v).end());
-      }
-    }
-    json << "\n  ],\n  \"all_scenes_targets\": " << all.targets
-         << ",\n  \"targets_refused\": " << all.refused
-         << ",\n  \"targets_over_tolerance\": " << all.over_tolerance
-         << ",\n  \"planned_error_cm_max\": " << maxOf(all.measured_cm)
-         << ",\n  \"predicted_error_cm_max\": " << maxOf(all.predicted_cm)
-         << ",\n  \"verified_error_cm_max\": " << maxOf(all.verified_cm)
-         << ",\n  \"predicted_vs_measured_cm_max\": " << maxOf(all.pvm_cm)
-         << ",\n  \"o1_interpolated_vs_measured_cm_max\": " << maxOf(all.legacy_gap_cm)
-         << ",\n  \"live_schedule_error_cm_max\": " << maxOf(all.live_cm)
-         << ",\n  \"unplanned_measured_error_cm_mean\": " << mean(all.unplanned_cm)
-         << ",\n  \"seconds_per_target_max\": " << maxOf(all.seconds)
-         << ",\n  \"seconds_per_target_mean_all_scenes\": " << mean(all.seconds)
-         << ",\n  \"simulations_per_plan_mean\": " << mean(all.simulations) << "\n}\n";
-    robust_table.writeCsv(args->out_dir + "/robust.csv");
-    seed_map.writeCsv(args->out_dir + "/seed_map.csv");
-    // Figures 4.5 and 4.6 for one target: error vs depth at its height, best depth and error vs
-    // height over y_t +- 3 mm.
-    const Point2 t = scene.targets[std::min<std::size_t>(5, scene.targets.size() - 1)].position;
-    ng::report::Table by_depth({"depth_mm", "error_mm"}, 6);
-    const auto at_height = planner.scanHeight(t, t.y());
-    for (std::size_t i = 0; i < at_height.depth_m.size(); ++i) {
-      by_depth.addRow({1e3 * at_height.depth_m[i], 1e3 * (at_height.implant[i] - t).norm()});
-    }
-    by_depth.writeCsv(args->out_dir + "/error_vs_depth.csv");
-    ng::report::Table by_height({"height_mm", "best_depth_mm", "error_mm"}, 6);
-    for (int k = -6; k <= 6; ++k) {
-      const double y = t.y() + 0.5e-3 * k;
-      const auto s = planner.scanHeight(t, y);
-      by_height.addRow({1e3 * y, 1e3 * s.best_depth_m, 1e3 * s.best_error_m});
-    }
-    by_height.writeCsv(args->out_dir + "/error_vs_height.csv");
+         << ",\n  \"plan_latency_seconds_mean\": " << mean(f.seconds)
+         << ",\n  \"plan_latency_seconds_max\": " << maxOf(f.seconds)
+         << ",\n  \"simulations_per_target_mean\": " << mean(f.simulations)
+         << ",\n  \"stiffness_uncertainty\": " << f.uncertainty.relative
+         << ",\n  \"patients_per_target\": " << f.patients
+         << ",\n  \"nominal_p95_error_cm\": " << quantile(f.nominal_patient_cm, 0.95)
+         << ",\n  \"robust_p95_error_cm\": " << quantile(f.robust_patient_cm, 0.95)
+         << ",\n  \"nominal_mean_error_cm_patients\": " << mean(f.nominal_patient_cm)
+         << ",\n  \"robust_mean_error_cm_patients\": " << mean(f.robust_patient_cm)
+         << ",\n  \"robust_seconds_per_target_mean\": " << mean(f.robust_seconds)
+         << ",\n  \"batch_plans_differing_from_sequential\": " << batch_differing
+         << scenesJson(figures) << "\n}\n";
     table.writeCsv(args->out_dir + "/rigid.csv");
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
-    ng::report::writeTextFile(
-        args->out_dir + "/plot.json",
-        R"json([{"csv": "speed_vs_error.csv", "x": "seconds_per_plan", "y": "measured_error_mm", "group": "model",
-  "annotate": "dz_mm", "logx": true, "logy": true, "points": true,
-  "title": "Plan time vs seed error: mesh size (colour), dz in mm (label)",
-  "png": "speed_vs_error.png"},
- {"csv": "rigid.csv", "x": "plan_s", "y": "planned_error_mm", "annotate": "target",
-  "title": "Planned error vs planning time per target", "logy": true, "png": "planned_error_vs_time.png"},
- {"csv": "robust.csv", "x": "nominal_error_mm", "y": "robust_error_mm", "annotate": "target",
-  "title": "Seed error on patients with +-30 % stiffness: nominal vs robust plan", "points": true,
-  "png": "robust_vs_nominal.png"},
- {"csv": "error_vs_depth.csv", "x": "depth_mm", "y": "error_mm", "logy": true,
-  "title": "Placement error vs release depth at the target height (fig. 4.5)", "png": "error_vs_depth.png"},
- {"csv": "error_vs_height.csv", "x": "height_mm", "y": "error_mm", "logy": true,
-  "title": "Best-depth error vs insertion height (fig. 4.6)", "png": "error_vs_height.png"},
- {"csv": "seed_map.csv", "x": "x_mm", "y": "y_mm", "group": "kind", "points": true,
-  "title": "Targets and final seeds, unplanned vs planned (fig. 4.7)", "png": "seed_map.png"}])json");
+    ng::report::writeTextFile(args->out_dir + "/plot.json", kPlots);
     std::cout << table.toText() << json.str();
   } catch (const std::exception& e) {
     std::cerr << "bench_rigid: " << e.what() << "\n";

@@ -31,10 +31,12 @@ Point2 fullSimulation(const scene::Scene& scene, const Point2& release, const Po
   return sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
 }
 
-/// Options without a time budget: plans that do not depend on the machine's load.
+/// Options without a time budget: plans that do not depend on the machine's load. The search
+/// goal is 0.05 mm (not the default 0.9 x tolerance) so that t06 needs a height search.
 PlannerOptions unbudgeted() {
   PlannerOptions options;
   options.time_budget_s = 0.0;
+  options.error_goal_m = 5e-5;
   return options;
 }
 
@@ -148,7 +150,9 @@ TEST(RigidPlannerVerified, VerifiedErrorIsAnIndependentFullSimulationAndIsReport
        {Point2(0.0181, 0.030), Point2(0.0168, 0.030), Point2(0.033, 0.0185)}) {
     SCOPED_TRACE(::testing::Message() << "target " << target.transpose());
     const RigidPlan plan = planner.plan(target);
-    ASSERT_TRUE(plan) << plan.toString();
+    // Out of tolerance: refused with the reason, the best release and its verified error.
+    ASSERT_TRUE(plan || plan.code == PlanCode::kOutOfTolerance) << plan.toString();
+    EXPECT_EQ(static_cast<bool>(plan), plan.within_tolerance) << plan.toString();
     ASSERT_TRUE(plan.verified);
     EXPECT_GE(plan.verifications, 1);
     EXPECT_EQ(plan.tolerance_m, scene.needle.placement_tolerance_m);
@@ -158,7 +162,7 @@ TEST(RigidPlannerVerified, VerifiedErrorIsAnIndependentFullSimulationAndIsReport
     options.meshing.refine_points.push_back(target);
     options.meshing.refine_lines.push_back({Point2(scene.workspace_min.x(), target.y()), target});
     tissue::TissueSimulation sim(scene, options);
-    const Point2 seed = simulateImplant(sim, plan.release, planner.schedule(target));
+    const Point2 seed = simulateImplant(sim, plan.release, planner.schedule());
     EXPECT_NEAR((seed - plan.verified_implant).norm(), 0.0, 1e-9);
     EXPECT_NEAR((seed - target).norm(), plan.verified_error_m, 1e-9);
     // Never a claim the verification does not back.
@@ -171,14 +175,49 @@ TEST(RigidPlannerVerified, VerifiedErrorIsAnIndependentFullSimulationAndIsReport
   }
 }
 
+TEST(RigidPlannerVerified, TheSeedDoesNotDependOnHowTheMotionIsSampled) {
+  // Issue 22: the live loop commands the tissue in 0.05 mm samples from -5 mm (tissue_sim on the
+  // robot's 100 Hz states at 1 cm/s... or at whatever rate the machine allows); the planner's
+  // verification in grid samples from -1 mm. advance() puts both on the depth grid: the same
+  // FEM steps, the same seed, bit for bit. The 10x gland is where the raw steps differed most.
+  const scene::Scene scene = stiffGland();
+  const Point2 target(0.0181, 0.030);
+  const RigidPlanner planner(scene, unbudgeted());
+  const Point2 release(target.x() + 0.0021, target.y() + 0.0002);
+  auto seedFor = [&](double sample_m, double start_x_m) {
+    ImplantSchedule schedule = planner.schedule();
+    schedule.sample_m = sample_m;
+    schedule.start_x_m = start_x_m;
+    const auto sim = planner.makeSimulation(target);
+    return simulateImplant(*sim, release, schedule);
+  };
+  const Point2 reference = seedFor(1e-4, -0.001);
+  for (const auto& [sample_m, start_x_m] : std::vector<std::pair<double, double>>{
+           {5e-5, -0.005}, {3.7e-4, -0.002}, {1.3e-5, -0.0004}, {2e-3, -0.005}}) {
+    SCOPED_TRACE(::testing::Message() << "samples of " << sample_m << " m from " << start_x_m);
+    EXPECT_EQ(seedFor(sample_m, start_x_m), reference);
+  }
+  // Without the grid (raw steps at every command) the same release lands elsewhere: the grid is
+  // what makes the schedules agree.
+  tissue::TissueSimOptions raw = planner.simOptions();
+  raw.depth_grid.step_m = 0.0;
+  raw.meshing.refine_points.push_back(target);
+  raw.meshing.refine_lines.push_back({Point2(scene.workspace_min.x(), target.y()), target});
+  ImplantSchedule fine = planner.schedule();
+  fine.sample_m = 5e-5;
+  tissue::TissueSimulation raw_sim(scene, raw);
+  EXPECT_GT((simulateImplant(raw_sim, release, fine) - reference).norm(), 1e-6);
+}
+
 TEST(RigidPlannerVerified, AnExpiredBudgetReturnsTheBestPlanSoFarVerified) {
   PlannerOptions options;
   options.time_budget_s = 1e-6;  // expires after the first scan
+  options.error_goal_m = 5e-5;   // which does not meet this goal at t06
   const scene::Scene scene = scene::defaultScene("prostate_sagittal");
   const RigidPlanner planner(scene, options);
   const RigidPlan plan =
       planner.plan(scene.target("t06").position);  // needs a height offset (4.3.1)
-  ASSERT_TRUE(plan) << plan.toString();
+  ASSERT_TRUE(plan || plan.code == PlanCode::kOutOfTolerance) << plan.toString();
   EXPECT_TRUE(plan.budget_expired) << plan.message;
   EXPECT_TRUE(plan.verified);
   EXPECT_EQ(plan.scans.size(), 1U);

@@ -15,7 +15,9 @@
 
 namespace {
 
-constexpr double kPredictionAgreement_mm = 0.3;  // live stepping vs the planner (~3 cut steps)
+// The depth grid (issue 22): the live loop executes the planner's verified FEM steps, so the
+// measured seed error is the verified one (to the report's 6 digits).
+constexpr double kPredictionAgreement_mm = 1e-5;
 constexpr int kTargets = 2;
 constexpr double kPlacementTolerance_mm = 0.1;  // the scene's needle.placement_tolerance (default)
 
@@ -33,6 +35,8 @@ TEST(RigidSeedImplant, TwoTargetsLandWherePredicted) {
     const double predicted_mm = std::stod(row.at("predicted_error_mm"));
     const double unplanned_mm = std::stod(row.at("unplanned_predicted_mm"));
     EXPECT_NEAR(measured_mm, predicted_mm, kPredictionAgreement_mm) << row.at("target");
+    EXPECT_NEAR(measured_mm, std::stod(row.at("verified_error_mm")), kPredictionAgreement_mm)
+        << row.at("target");
     EXPECT_LT(measured_mm, 0.25 * unplanned_mm) << row.at("target") << ": planning did not help";
     // Success means the seed landed: the outcome follows the measured error and the tolerance.
     EXPECT_EQ(row.at("outcome"), measured_mm <= kPlacementTolerance_mm ? "placed" : "missed")

@@ -35,7 +35,9 @@ struct DepthScan {
 struct PlannerOptions {
   double height_window_m = 0.002;    ///< search y_t +- this (4.4.3: 0.2 cm) [m]
   double height_tolerance_m = 1e-4;  ///< golden-section stop (4.4.3: 0.01 cm) [m]
-  double depth_step_m = 1e-4;        ///< dz = v h between simulation steps [m]
+  /// dz = v h between simulation steps [m]; with procedure_grid the simulation's depth grid
+  /// (the tissue_sim node's default grid is the same 0.1 mm).
+  double depth_step_m = 1e-4;
   /// Steps of the scan farther than approach_zone_m before the target depth use this larger dz
   /// (0: depth_step_m all the way). The cuts, not the steps, dominate a scan's cost, so this
   /// saves ~20 % of the planning time for ~0.02 mm of error (bench rigid, speed_vs_error) [m]
@@ -46,47 +48,46 @@ struct PlannerOptions {
   int grid_points = 5;             ///< coarse heights that detect a non-unimodal error
   int secant_iterations = 6;       ///< secant steps on the lateral offset before the grid (0 = off)
   /// Stop searching heights once a scan's best error is below this (the target height is scanned
-  /// first; 0 searches the whole window) [m].
-  double error_goal_m = 5e-5;
-  /// Placement tolerance [m]; 0: the scene's needle.placement_tolerance_m. The search stops once
-  /// a height's error is below kGoalFraction of it (not at the fixed error_goal_m floor).
+  /// first) [m]; 0: at 0.9 of the tolerance (issue 22: stop at the scene's tolerance, not at a
+  /// fixed floor).
+  double error_goal_m = 0.0;
+  /// Placement tolerance [m]; 0: the scene's needle.placement_tolerance_m.
   double tolerance_m = 0.0;
   /// Verify every plan with a full insert-release-retract simulation on the procedure's step
   /// schedule (below) and correct it on the verified error when the two disagree.
   bool verify = true;
-  /// Scans on the procedure's grid (uniform dz from outside the tissue, release on a grid depth):
-  /// the O(1) prediction then reads the very tip node a verification would release at (no
-  /// interpolation between steps, no coarser approach history). false: today's scans.
+  /// Scans on the depth grid (TissueSimulation::advance, release on a grid depth): the O(1)
+  /// prediction then reads the very tip node a verification, and the live loop, release at (no
+  /// interpolation between steps). false: the dissertation's scans (interpolated release, the
+  /// approach steps below).
   bool procedure_grid = true;
   int max_corrections = 3;  ///< re-plans on the verified error after the first verification
   /// Wall-time budget per plan [s] (0: none). When it runs out the best plan so far is returned
   /// with its verified error (budget_expired set).
   double time_budget_s = 2.0;
+  /// A plan whose verified error exceeds the tolerance is refused (kOutOfTolerance, issue 22:
+  /// every target placed within the tolerance or refused with a reason); false: returned as ok
+  /// with within_tolerance false.
+  bool refuse_over_tolerance = true;
 };
 
-/// The step schedule of a full insert-release-retract simulation (the procedure's): the tip
-/// starts at start_x_m outside the tissue and moves in steps of step_m at velocity_m_s to the
-/// release depth, the seed is released, the needle retracts at retract_velocity_m_s to
-/// start_x_m, and the tissue is stepped with the needle out until the seed is at rest.
+/// How a full insert-release-retract simulation commands the needle (the procedure's motion): the
+/// tip starts at start_x_m outside the tissue and is commanded in samples of sample_m to the
+/// release depth, the seed is released, the tip is commanded back to start_x_m, and the tissue
+/// is stepped with the needle out until the seed is at rest. TissueSimulation::advance() puts
+/// every command on the scene's depth grid, so the seed does not depend on sample_m or start_x_m
+/// (issue 22): the live loop's 0.05 mm samples from -5 mm land where the planner's did.
 struct ImplantSchedule {
-  double start_x_m = -0.001;  ///< tip x before and after the insertion [m]
-  double step_m = 1e-4;       ///< dz per step near the release [m]
-  /// dz before fine_from_x_m (0: step_m all the way): the cuts far from the target barely move
-  /// it, and fewer steps there make a scan and a verification cheaper [m]
-  double approach_step_m = 0.0;
-  double fine_from_x_m = 0.0;  ///< fine steps from here on [m]
-  double velocity_m_s = 0.01;  ///< insertion velocity [m/s]
-  double retract_velocity_m_s = 0.02;
-  int max_rest_steps = 200;  ///< steps with the needle out, until the seed moves < 1 nm
-  /// The tip depths of the insertion up to max_x_m: coarse start + k approach_step_m before
-  /// fine_from_x_m, then fine_from_x_m + j step_m, each computed from its index so a scan and a
-  /// verification pass through bit-identical depths [m].
-  std::vector<double> depths(double max_x_m) const;
+  double start_x_m = -0.001;  ///< tip x before and after the insertion (outside the tissue) [m]
+  double sample_m = 1e-4;     ///< commanded depth change per sample [m], > 0
+  double dt_s = 0.01;         ///< time per sample (dynamic models only) [s]
+  int max_rest_steps = 200;   ///< steps with the needle out, until the seed moves < 1 nm
 };
 
 /// A full insert-release-retract simulation (4.3.2 without the O(1) shortcut) on `sim` (reset
-/// first): the seed's final position after retraction and rest [m]. Throws std::runtime_error if
-/// a step is refused or the seed cannot be released.
+/// first), commanded as `schedule` says and advanced on the depth grid: the seed's final
+/// position after retraction and rest [m]. Throws std::runtime_error if a step is refused or the
+/// seed cannot be released, std::invalid_argument for sample_m <= 0.
 Point2 simulateImplant(tissue::TissueSimulation& sim, const Point2& release,
                        const ImplantSchedule& schedule);
 
@@ -121,7 +122,11 @@ enum class PlanCode {
   kTargetOutsideTissue,
   kHeightOutOfRange,
   kBeyondMaxDepth,
-  kSimulationFailed
+  kSimulationFailed,
+  /// No release point whose verified seed lands within the tolerance was found (in the budget):
+  /// the target is refused with the best verified error; release and verified_* still say where
+  /// the best plan would put the seed, for a caller that accepts it.
+  kOutOfTolerance
 };
 
 /// A plan: release point, predicted error, and what it cost.
@@ -170,9 +175,14 @@ public:
   /// time budget. `first_height_offset_m` (warm start, e.g. the previous target's release height
   /// minus its target height) is tried right after the target height.
   RigidPlan plan(const Point2& target, double first_height_offset_m = 0.0) const;
-  /// The step schedule of scans and verifications for `target` (scene velocity, depth_step_m near
-  /// the target, approach_step_m before approach_zone_m ahead of it).
-  ImplantSchedule schedule(const Point2& target) const;
+  /// How verifications command the needle (the grid, not this, fixes the FEM steps).
+  ImplantSchedule schedule() const;
+  /// The simulation options plans use: the scene's, with depth_step_m as the depth grid when
+  /// procedure_grid (the live tissue_sim must use the same grid for plans to hold).
+  const tissue::TissueSimOptions& simOptions() const { return sim_options_; }
+  /// A simulation of the scene meshed as the live tissue_sim meshes it, refined along the path
+  /// to `target` too when the target is not one of the scene's.
+  std::unique_ptr<tissue::TissueSimulation> makeSimulation(const Point2& target) const;
   /// The tolerance plans are held to [m].
   double tolerance() const;
   /// One insertion at `height_m` scanned over depth for `target` (figures 4.5, 4.6). Throws
@@ -200,9 +210,10 @@ private:
   /// curve has passed the target (a plan needs only the best depth; figures need the whole curve).
   DepthScan scan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
                  double max_depth_m, bool stop_past_target = false) const;
-  /// scan() on the procedure's grid: depths schedule().depth(k), best depth on a grid point.
+  /// scan() on the simulation's depth grid: one advance() per grid point, best depth on a grid
+  /// point (where a verification, and the live loop, release).
   DepthScan gridScan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
-                     double max_depth_m, bool stop_past_target, const ImplantSchedule& grid) const;
+                     double max_depth_m, bool stop_past_target) const;
   /// The O(1) height search for `aim` (the target, or the target shifted by a correction).
   void searchPlan(RigidPlan& plan, tissue::TissueSimulation& sim, const Point2& aim,
                   double first_offset_m, const std::function<bool()>& expired) const;
@@ -218,7 +229,6 @@ private:
   void searchHeights(RigidPlan& plan, const std::function<HeightResult(double)>& evaluate,
                      bool early_stop, const Point2& aim, double goal_m, double first_offset_m = 0.0,
                      const std::function<bool()>& expired = nullptr) const;
-  std::unique_ptr<tissue::TissueSimulation> makeSimulation(const Point2& target) const;
   /// Depth to scan to for a target: its depth plus the margin, at most the needle's max depth.
   double maxScanDepth(const Point2& target) const;
   /// check(), then `body` (exceptions become kSimulationFailed), with the wall time recorded.

@@ -6,7 +6,7 @@
 
 #include <string>
 
-#include "needle_guidance/report/table.h"
+#include "needle_guidance/procedures/rigid_implant.h"
 
 namespace needle_guidance {
 
@@ -15,28 +15,20 @@ namespace needle_guidance {
 class InsertionProcedureRos {
 public:
   InsertionProcedureRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh);
-  /// Runs every target; returns true if every move succeeded within tolerance. Writes
-  /// moves.csv, summary.json and summary.md to report_dir.
+  /// Runs procedures::RigidImplantProcedure over ROS devices, watching the robot, tissue_sim and
+  /// rigid_planner nodes; true if every target was placed (unplanned: every move succeeded).
+  /// Writes moves.csv, summary.json, summary.md and seed_errors.png to report_dir; a node death
+  /// stops the robot safely and the report names the node, the time and the targets tried.
   bool run();
 
 private:
   ros::NodeHandle nh_;
   std::string scene_spec_;
   std::string robot_ns_;
-  std::string tissue_ns_;  ///< tissue_sim namespace; "" = no tissue (no seeds)
-  std::string planner_ns_; ///< rigid_planner namespace; "" = aim at the target (no planning)
-  /// Reset the tissue after each needle (each insertion independent, as dissertation 4.4
-  /// assumes); false keeps earlier needle tracks in the tissue.
-  bool reset_between_needles_ = true;
+  std::string tissue_ns_;   ///< tissue_sim namespace; "" = no tissue (no seeds)
+  std::string planner_ns_;  ///< rigid_planner namespace; "" = aim at the target (no planning)
   std::string report_dir_;
-  double insertion_velocity_m_s_ = 0.0;
-  double retract_velocity_m_s_ = 0.0;
-  double height_velocity_m_s_ = 0.0;
-  double retract_depth_m_ = 0.0;
-  double depth_tolerance_m_ = 0.0;
-  double velocity_tolerance_ = 0.0;
-  int max_targets_ = 0;
-  double placement_tolerance_m_ = 1e-4;  ///< a seed within this of its target is placed [m]
+  procedures::RigidImplantSettings settings_;
 };
 
 }  // namespace needle_guidance

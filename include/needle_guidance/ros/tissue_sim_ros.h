@@ -38,6 +38,7 @@ private:
   ros::Time last_step_;
   double last_step_ms_ = 0.0;
   double marker_period_s_ = 0.05;
+  double rate_hz_ = 200.0;
   ros::Time last_markers_;
   tissue::ImageGeometry image_geometry_;
   cv::Mat reference_image_;

@@ -14,8 +14,23 @@
 
 namespace needle_guidance::tissue {
 
+/// The fixed depth grid the needle advances on (issue 22). Cutting (2.3.4) and stick-slip
+/// friction (2.3.5) make the seed's release point depend on the depths the FEM is solved at, so
+/// TissueSimulation::advance() sub-steps every command onto this grid: the live node (stepping on
+/// the robot's messages), the planner's scans and verifying simulations, and the bench's
+/// independent simulation execute the same schedule however the motion is sampled.
+struct DepthGrid {
+  /// Grid spacing along +x from the entry face [m]; 0: off (every command is one FEM step).
+  double step_m = 1e-4;
+  /// Retraction visits every retract_stride-th grid point (it cuts nothing, 2.3.6), >= 1.
+  int retract_stride = 5;
+  double insert_velocity_m_s = 0.01;   ///< nominal speed: dt of an insertion sub-step [m/s]
+  double retract_velocity_m_s = 0.02;  ///< nominal speed: dt of a retraction sub-step [m/s]
+};
+
 /// Choices a scene makes, which a caller (benchmark, planner) may override.
 struct TissueSimOptions {
+  DepthGrid depth_grid;  ///< the scene's needle velocity (retraction at twice it), 0.1 mm
   IntegratorKind integrator = IntegratorKind::kQuasiStatic;
   bool corotational = false;
   ElementFormulation formulation = ElementFormulation::kLinear;
@@ -37,12 +52,29 @@ public:
   explicit TissueSimulation(const scene::Scene& scene)
       : TissueSimulation(scene, optionsFromScene(scene)) {}
 
-  /// One step: the needle at height y [m] with its tip at x [m], dt [s].
+  /// One raw FEM step: the needle at height y [m] with its tip at x [m], dt [s]. The outcome
+  /// depends on how a motion is cut into steps; advance() does not.
   StepStatus step(double dt_s, double needle_height_m, double tip_x_m);
+  /// Moves the needle to height y, tip x along the depth grid (options().depth_grid): one FEM
+  /// step per grid point passed (insertion) or per retract_stride points (retraction), each at
+  /// the grid's nominal speed, the tip held at the last grid point reached. A command that
+  /// passes no grid point steps nothing for the quasi-static model; a dynamic model keeps
+  /// integrating for dt_s at rest. With the grid off it is step(). Refuses what step() refuses;
+  /// a refused sub-step leaves the tip at the last grid point reached.
+  StepStatus advance(double dt_s, double needle_height_m, double tip_x_m);
+  /// Grid index of a tip x: floor((x - entry) / step) (x within 1e-3 step below a grid point
+  /// counts as on it), -1 for any x outside the tissue. Needs the grid on.
+  long gridIndex(double tip_x_m) const;
+  /// Tip x of grid point k (k = -1: one step outside the entry face) [m].
+  double gridDepth(long k) const;
+  /// Grid point the tip stands at (-1: outside).
+  long gridPosition() const { return grid_k_; }
   /// Back to the undeformed reference mesh, no needle, no seeds.
   void reset();
 
-  std::optional<int> implantSeed(std::string* why_not = nullptr) { return needle_->implantSeed(why_not); }
+  std::optional<int> implantSeed(std::string* why_not = nullptr) {
+    return needle_->implantSeed(why_not);
+  }
   const std::vector<Seed>& seeds() const { return needle_->seeds(); }
   Point2 seedPosition(const Seed& seed) const { return needle_->seedPosition(seed); }
   std::vector<Point2> deformedNodes() const { return needle_->deformedNodes(); }
@@ -58,6 +90,7 @@ public:
 
 private:
   void build();
+  StepStatus gridStep(long k, double needle_height_m, double dt_s);
   scene::Scene scene_;
   TissueSimOptions options_;
   geometry::TriangleMesh initial_mesh_;
@@ -67,6 +100,7 @@ private:
   std::unique_ptr<FemModel> model_;
   std::unique_ptr<Integrator> integrator_;
   std::unique_ptr<NeedleInsertion> needle_;
+  long grid_k_ = -1;
 };
 
 }  // namespace needle_guidance::tissue
