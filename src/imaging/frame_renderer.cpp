@@ -1,6 +1,9 @@
 // Simulated fluoroscopy / ultrasound frames of the scene plane (see frame_renderer.h).
 #include "needle_guidance/imaging/frame_renderer.h"
 
+#include "realistic_ultrasound.h"
+#include "render_util.h"
+
 #include <algorithm>
 #include <cmath>
 #include <opencv2/imgproc.hpp>
@@ -10,8 +13,12 @@
 namespace needle_guidance::imaging {
 namespace {
 
-constexpr int kShiftBits = 8;  // sub-pixel precision of the drawn polygons and needle
-constexpr double kShiftScale = 1 << kShiftBits;
+using render::fixedPoint;
+using render::kShiftBits;
+using render::kShiftScale;
+using render::mix;
+using render::streamSeed;
+using render::uniform01;
 constexpr double kMinBlurSigma_px = 0.05;  // a narrower Gaussian is the identity
 
 // ---- fluoroscopy (fractions of full scale as displayed: bright = little absorbed) ----
@@ -44,28 +51,6 @@ constexpr double kUsReverberationDecay = 0.45;
 constexpr double kUsEchoFullScale = 1.5;        // the needle echo canvas (8-bit) spans 0..1.5
 constexpr double kNeedleDrawStep_m = 0.25e-3;    // the needle is drawn as pieces this long
 
-// SplitMix64: decorrelated 64-bit values from (seed, index, stream).
-std::uint64_t mix(std::uint64_t x) {
-  x += 0x9E3779B97F4A7C15ULL;
-  x = (x ^ (x >> 30U)) * 0xBF58476D1CE4E5B9ULL;
-  x = (x ^ (x >> 27U)) * 0x94D049BB133111EBULL;
-  return x ^ (x >> 31U);
-}
-std::uint64_t streamSeed(std::uint64_t seed, std::uint64_t index, std::uint64_t stream) {
-  return mix(mix(mix(seed) ^ index) ^ stream);
-}
-double uniform01(std::uint64_t bits) { return double(bits >> 11U) * (1.0 / 9007199254740992.0); }
-
-std::vector<cv::Point> fixedPoint(const std::vector<Point2>& points, const ImageGeometry& g) {
-  std::vector<cv::Point> out;
-  out.reserve(points.size());
-  for (const Point2& p : points) {
-    const cv::Point2d px = g.toPixel(p);
-    out.emplace_back(int(std::lround(px.x * kShiftScale)), int(std::lround(px.y * kShiftScale)));
-  }
-  return out;
-}
-
 void fillPolygon(cv::Mat& image, const geometry::Polygon& polygon, const ImageGeometry& g,
                  double value) {
   cv::fillPoly(image, std::vector<std::vector<cv::Point>>{fixedPoint(polygon.vertices(), g)},
@@ -89,7 +74,31 @@ double shaftVisibility(double s_m, std::uint64_t seed) {
   return 1.0 - kUsNeedleDropoutDepth * std::clamp(v, 0.0, 1.0);
 }
 
+/// The frame's additive Gaussian noise (the device's electronics), fraction of full scale.
+void addNoise(cv::Mat* image, const ImagerConfig& config, std::uint64_t index) {
+  if (config.noise_std > 0.0) {
+    cv::Mat noise(image->size(), CV_32F);
+    cv::RNG rng(streamSeed(config.seed, index, 0x401));
+    rng.fill(noise, cv::RNG::NORMAL, 0.0, config.noise_std);
+    *image += noise;
+  }
+}
+
 }  // namespace
+
+std::string toString(UltrasoundModel model) {
+  return model == UltrasoundModel::kRealistic ? "realistic" : "classic";
+}
+
+std::optional<UltrasoundModel> ultrasoundModelFromString(const std::string& name) {
+  if (name == "classic") {
+    return UltrasoundModel::kClassic;
+  }
+  if (name == "realistic") {
+    return UltrasoundModel::kRealistic;
+  }
+  return std::nullopt;
+}
 
 std::string toString(Modality modality) {
   return modality == Modality::kFluoroscopy ? "fluoroscopy" : "ultrasound";
@@ -189,6 +198,10 @@ FrameRenderer::FrameRenderer(const scene::Scene& scene, const ImagerConfig& conf
     return;
   }
 
+  if (config_.ultrasound_model == UltrasoundModel::kRealistic) {
+    realistic::anatomy(scene, config_, &anatomy_, &attenuation_);
+    return;
+  }
   // Ultrasound: echogenicity map x static speckle; attenuation and shadows as a separate gain
   // so that the needle, drawn per frame, is attenuated like the tissue around it.
   cv::Mat echo(g.size(), CV_32F, cv::Scalar(kUsTissue));
@@ -266,6 +279,13 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
     return frame;
   }
   const ImageGeometry& g = config_.geometry;
+  if (config_.modality == Modality::kUltrasound &&
+      config_.ultrasound_model == UltrasoundModel::kRealistic) {
+    cv::Mat image = realistic::frame(anatomy_, attenuation_, config_, needle_points);
+    addNoise(&image, config_, index);
+    image.convertTo(frame.image, CV_8U, 255.0);
+    return frame;
+  }
   const int thickness_px = std::max(1, int(std::lround(config_.needle_diameter_m / g.pixel_size_m)));
 
   // The needle as short pieces: each piece's coverage (mask) and, in ultrasound, its echo.
@@ -276,21 +296,7 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
   }
   std::vector<Point2> pieces;  // resampled every kNeedleDrawStep_m
   std::vector<double> lengths;
-  if (needle_points.size() >= 2) {
-    double s = 0.0;
-    pieces.push_back(needle_points.front());
-    lengths.push_back(0.0);
-    for (std::size_t i = 1; i < needle_points.size(); ++i) {
-      const Point2 a = needle_points[i - 1], b = needle_points[i];
-      const double len = (b - a).norm();
-      const int n = std::max(1, int(std::ceil(len / kNeedleDrawStep_m)));
-      for (int k = 1; k <= n; ++k) {
-        pieces.push_back(a + (b - a) * (double(k) / n));
-        lengths.push_back(s + len * double(k) / n);
-      }
-      s += len;
-    }
-  }
+  render::resampleNeedle(needle_points, kNeedleDrawStep_m, &pieces, &lengths);
   const double total_m = lengths.empty() ? 0.0 : lengths.back();
   std::vector<std::vector<cv::Point>> ghosts(kUsReverberations);
   for (std::size_t i = 1; i < pieces.size(); ++i) {
@@ -333,12 +339,7 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
    
   }
   blur(image, config_.blur_sigma_m / g.pixel_size_m);
-  if (config_.noise_std > 0.0) {
-    cv::Mat noise(g.size(), CV_32F);
-    cv::RNG rng(streamSeed(config_.seed, index, 0x401));
-    rng.fill(noise, cv::RNG::NORMAL, 0.0, config_.noise_std);
-    image += noise;
-  }
+  addNoise(&image, config_, index);
   image.convertTo(frame.image, CV_8U, 255.0);  // rounds and saturates to 0..255
   return frame;
 }

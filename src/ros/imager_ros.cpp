@@ -36,6 +36,16 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
     }
     config.modality = *m;
   }
+  // classic (default): the renderer the image-guided loop and its published figures were made
+  // on; realistic: specular layers, log display, shadow, reverberation tail, out-of-plane tilt
+  // (frame_renderer.h), for trying a tracker on frames that fail it as real ones do.
+  const std::string us_model = ros_params::text(private_nh, "ultrasound_model", "classic");
+  const auto um = imaging::ultrasoundModelFromString(us_model);
+  if (!um) {
+    throw std::runtime_error("parameter '" + private_nh.resolveName("ultrasound_model") + "' = '" +
+                             us_model + "' is not classic or realistic");
+  }
+  config.ultrasound_model = *um;
   const double pixel_size_m = ros_params::number(private_nh, "pixel_size_m",
                                                  config.geometry.pixel_size_m, 1e-6, 0.01, "m");
   const int width = static_cast<int>(
@@ -71,7 +81,9 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   image_pub_ = private_nh.advertise<sensor_msgs::Image>("image", 5);
   shape_sub_ = nh.subscribe("needle_shape", 5, &ImagerRos::onShape, this);
   frame_timer_ = nh.createTimer(ros::Duration(1.0 / frame_rate_hz_), &ImagerRos::onFrameTimer, this);
-  ROS_INFO_STREAM_NAMED(kName, "imager: " << calibration.modality << " " << calibration.width
+  ROS_INFO_STREAM_NAMED(kName, "imager: " << calibration.modality << " ("
+                                          << imaging::toString(config.ultrasound_model)
+                                          << " ultrasound model) " << calibration.width
                                           << " x " << calibration.height << " px of "
                                           << pixel_size_m * 1e3 << " mm at " << frame_rate_hz_
                                           << " Hz on scene '" << scene.name << "'");

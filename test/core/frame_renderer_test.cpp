@@ -2,6 +2,7 @@
 // appearance in both modalities, dropped frames, clipping and refusals.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <opencv2/core.hpp>
@@ -171,6 +172,132 @@ TEST(FrameRenderer, RefusesBadSettingsAndPoints) {
   EXPECT_THROW(renderer.render({Point2(0.0, 0.02), Point2(nan, 0.02)}, 0), std::invalid_argument);
   EXPECT_EQ(im::modalityFromString("xray"), std::nullopt);
   EXPECT_EQ(im::modalityFromString("fluoroscopy"), im::Modality::kFluoroscopy);
+}
+
+// ---- the realistic ultrasound model (issue 17) ----
+
+namespace {
+
+/// Grey level of a bright specular structure (the display saturates at 255).
+constexpr double kBright_grey = 200.0;
+/// A layer spans the frame: bright in at least this fraction of the columns.
+constexpr double kLayerSpanFraction = 0.9;
+/// Shadow: the tissue 2-8 mm beyond the needle keeps at most this fraction of its grey level.
+constexpr double kShadowMaxRatio = 0.85;
+/// Log compression: the speckle's mean over its standard deviation (Rayleigh on a linear
+/// scale: 1.91; the in-vitro scanner's: about 6).
+constexpr double kMinLogSpeckleSnr = 3.0;
+/// Out of plane: some seed's tilt dims the tip by at least this against the entry [grey].
+constexpr double kMinFade_grey = 15.0;
+
+im::ImagerConfig realisticConfig(const ng::scene::Scene& scene, std::uint64_t seed) {
+  im::ImagerConfig c = config(scene, im::Modality::kUltrasound, 0.0);
+  c.ultrasound_model = im::UltrasoundModel::kRealistic;
+  c.seed = seed;
+  return c;
+}
+
+/// A straight horizontal needle from x = 0 to x = 40 mm at y = 20 mm (below both layers).
+std::vector<Point2> longNeedle() {
+  std::vector<Point2> points;
+  for (int i = 0; i <= 80; ++i) {
+    points.emplace_back(i * 0.5e-3, 0.02);
+  }
+  return points;
+}
+
+/// Per row, the fraction of columns whose grey level is at least kBright_grey.
+std::vector<double> brightFractionPerRow(const cv::Mat& image) {
+  std::vector<double> f;
+  for (int r = 0; r < image.rows; ++r) {
+    f.push_back(double(cv::countNonZero(image.row(r) >= kBright_grey)) / image.cols);
+  }
+  return f;
+}
+
+}  // namespace
+
+TEST(FrameRenderer, UltrasoundModelNamesRoundTrip) {
+  for (const auto m : {im::UltrasoundModel::kClassic, im::UltrasoundModel::kRealistic}) {
+    EXPECT_EQ(im::ultrasoundModelFromString(im::toString(m)), m);
+  }
+  EXPECT_FALSE(im::ultrasoundModelFromString("Realistic").has_value());
+  EXPECT_EQ(im::ImagerConfig().ultrasound_model, im::UltrasoundModel::kClassic);
+}
+
+TEST(FrameRenderer, RealisticLayersAreLongerAndBrighterThanTheNeedle) {
+  const auto scene = steeringScene();
+  const im::ImagerConfig c = realisticConfig(scene, 7);
+  const im::FrameRenderer renderer(scene, c);
+  const cv::Mat with = renderer.render(longNeedle(), 0).image;
+  EXPECT_EQ(cv::norm(with, renderer.render(longNeedle(), 0).image, cv::NORM_INF), 0.0);
+  const std::vector<double> f = brightFractionPerRow(with);
+  const int needle_row = int(std::lround(c.geometry.toPixel(Point2(0.01, 0.02)).y));
+  const double needle_span = *std::max_element(f.begin() + needle_row - 2, f.begin() + needle_row + 3);
+  // Two layers, each spanning the frame; the needle covers 40 mm of 128 mm.
+  int layer_rows = 0;
+  double layer_peak = 0.0;
+  for (int r = 0; r < int(f.size()); ++r) {
+    if (std::abs(r - needle_row) > 6 && f[std::size_t(r)] >= kLayerSpanFraction) {
+      ++layer_rows;
+      layer_peak = std::max(layer_peak, cv::mean(with.row(r))[0]);
+    }
+  }
+  EXPECT_GE(layer_rows, 2);
+  EXPECT_LT(needle_span, 0.5);
+  // Brighter: the layer's mean along its row beats the needle's mean along its shaft.
+  const cv::Rect shaft(int(std::lround(c.geometry.toPixel(Point2(0.0, 0.02)).x)), needle_row, 150, 1);
+  EXPECT_GT(layer_peak, cv::mean(with(shaft))[0]);
+}
+
+TEST(FrameRenderer, RealisticNeedleCastsAShadowAndAReverberationTail) {
+  const auto scene = steeringScene();
+  const im::ImagerConfig c = realisticConfig(scene, 7);
+  const im::FrameRenderer renderer(scene, c);
+  const cv::Mat with = renderer.render(longNeedle(), 0).image;
+  const cv::Mat without = renderer.render({}, 0).image;
+  // Beyond the needle from the probe (on the bottom row): +y in the scene.
+  const cv::Point2d a = c.geometry.toPixel(Point2(0.005, 0.028));
+  const cv::Point2d b = c.geometry.toPixel(Point2(0.025, 0.023));
+  const cv::Rect beyond(cv::Point(int(a.x), int(a.y)), cv::Point(int(b.x), int(b.y)));
+  EXPECT_LT(cv::mean(with(beyond))[0], kShadowMaxRatio * cv::mean(without(beyond))[0]);
+  // The tail: copies 0.5 and 1.0 mm deeper are brighter than the tissue there.
+  for (const double dy : {0.5e-3, 1.0e-3}) {
+    const Point2 p(0.01, 0.02 + dy);
+    EXPECT_GT(meanAround(with, c.geometry, p), meanAround(without, c.geometry, p) + 10.0) << dy;
+  }
+}
+
+TEST(FrameRenderer, RealisticSpeckleIsLogCompressedLikeAScanner) {
+  const auto scene = steeringScene();
+  const im::ImagerConfig c = realisticConfig(scene, 7);
+  const cv::Mat frame = im::FrameRenderer(scene, c).render({}, 0).image;
+  const cv::Mat classic = im::FrameRenderer(scene, config(scene, im::Modality::kUltrasound, 0.0))
+                              .render({}, 0)
+                              .image;
+  // A patch of plain tissue: below both layers, left of every obstacle.
+  const cv::Point2d a = c.geometry.toPixel(Point2(0.002, 0.018));
+  const cv::Rect patch(int(a.x), int(a.y), 60, 40);
+  cv::Scalar mean, sd, mean_classic, sd_classic;
+  cv::meanStdDev(frame(patch), mean, sd);
+  cv::meanStdDev(classic(patch), mean_classic, sd_classic);
+  EXPECT_GT(mean[0] / sd[0], kMinLogSpeckleSnr);
+  EXPECT_LT(mean_classic[0] / sd_classic[0], kMinLogSpeckleSnr);
+}
+
+TEST(FrameRenderer, RealisticNeedleFadesTowardsTheTipOutOfPlane) {
+  const auto scene = steeringScene();
+  double deepest_fade = 0.0;
+  for (std::uint64_t seed = 1; seed <= 10; ++seed) {
+    const im::ImagerConfig c = realisticConfig(scene, seed);
+    const im::FrameRenderer renderer(scene, c);
+    const cv::Mat with = renderer.render(longNeedle(), 0).image;
+    const double entry = meanAround(with, c.geometry, Point2(0.004, 0.02));
+    const double tip = meanAround(with, c.geometry, Point2(0.038, 0.02));
+    EXPECT_LE(tip, entry + 3.0) << "seed " << seed;  // never brighter towards the tip
+    deepest_fade = std::max(deepest_fade, entry - tip);
+  }
+  EXPECT_GT(deepest_fade, kMinFade_grey);
 }
 
 int main(int argc, char** argv) {
