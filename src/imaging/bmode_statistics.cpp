@@ -54,15 +54,17 @@ BModeStatistics bmodeStatistics(const cv::Mat& grey, const cv::Mat& needle_mask)
   if (grey.empty() || grey.type() != CV_8UC1) {
     throw std::invalid_argument("bmodeStatistics: the frame must be CV_8UC1 and not empty");
   }
-  if (!needle_mask.empty() && (needle_mask.size() != grey.size() || needle_mask.type() != CV_8UC1)) {
-    throw std::invalid_argument("bmodeStatistics: the needle mask must be CV_8UC1 of the frame's size");
+  if (!needle_mask.empty() &&
+      (needle_mask.size() != grey.size() || needle_mask.type() != CV_8UC1)) {
+    throw std::invalid_argument(
+        "bmodeStatistics: the needle mask must be CV_8UC1 of the frame's size");
   }
   BModeStatistics s;
   cv::Mat near(grey.size(), CV_8U, cv::Scalar(0));
   if (!needle_mask.empty()) {
     cv::dilate(needle_mask > 0, near,
-               cv::getStructuringElement(cv::MORPH_ELLIPSE,
-                                         cv::Size(2 * kNeedleClearance_px + 1, 2 * kNeedleClearance_px + 1)));
+               cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * kNeedleClearance_px + 1,
+                                                                     2 * kNeedleClearance_px + 1)));
   }
   std::vector<double> means, snrs, lateral, axial;
   for (int y = 0; y + kTile_px <= grey.rows; y += kTile_px) {
@@ -105,7 +107,8 @@ BModeStatistics bmodeStatistics(const cv::Mat& grey, const cv::Mat& needle_mask)
   if (!on.empty()) {
     s.needle_grey = quantileOf(on, kNeedleQuantile);
     s.needle_contrast = s.tissue_mean_grey > 0 ? s.needle_grey / s.tissue_mean_grey : 0.0;
-    s.brightest_other_over_needle = quantileOf(other, kOtherQuantile) / std::max(s.needle_grey, 1.0);
+    s.brightest_other_over_needle =
+        quantileOf(other, kOtherQuantile) / std::max(s.needle_grey, 1.0);
   }
   return s;
 }

@@ -23,9 +23,9 @@ constexpr double kMinBlurSigma_px = 0.05;  // a narrower Gaussian is the identit
 
 // ---- fluoroscopy (fractions of full scale as displayed: bright = little absorbed) ----
 constexpr double kFluoroSoftTissue = 0.78;
-constexpr double kFluoroRegionContrast = 0.06;  // soft-tissue regions: +- this by echogenicity
-constexpr double kFluoroBone = 0.42;            // rigid regions and obstacles
-constexpr double kFluoroVignette = 0.18;        // brightness lost at the frame's corners
+constexpr double kFluoroRegionContrast = 0.06;      // soft-tissue regions: +- this by echogenicity
+constexpr double kFluoroBone = 0.42;                // rigid regions and obstacles
+constexpr double kFluoroVignette = 0.18;            // brightness lost at the frame's corners
 constexpr double kFluoroNeedleTransmission = 0.18;  // the metal needle keeps 18 % of the light
 
 // ---- ultrasound ----
@@ -33,23 +33,23 @@ constexpr double kUsTissue = 0.25;            // background tissue echogenicity
 constexpr double kUsObstacleInterior = 0.10;  // inside an obstacle (bone-like, little comes back)
 constexpr double kUsBoundary = 0.85;          // specular tissue boundary (obstacle outline)
 constexpr double kUsBoundaryWidth_m = 0.4e-3;
-constexpr double kUsTargetEcho = 0.22;           // the target lesion is hypoechoic
-constexpr double kUsSpeckleLateral_m = 0.4e-3;   // speckle grain across the beam (x)
-constexpr double kUsSpeckleAxial_m = 0.15e-3;    // and along it (y)
-constexpr double kUsAttenuation_per_m = 6.0;     // gain exp(-k d) after time-gain compensation
-constexpr double kUsShadowGain = 0.3;            // behind an obstacle along the beam
-constexpr double kUsNeedleMin = 0.45;            // needle echo when parallel to the beam
-constexpr double kUsNeedleMax = 1.3;             // needle echo when facing the beam
-constexpr double kUsNeedleSpecularPower = 2.0;   // echo ~ |cos(angle to the probe face)|^p
-constexpr double kUsNeedleDropoutDepth = 0.5;    // partial visibility along the shaft
+constexpr double kUsTargetEcho = 0.22;          // the target lesion is hypoechoic
+constexpr double kUsSpeckleLateral_m = 0.4e-3;  // speckle grain across the beam (x)
+constexpr double kUsSpeckleAxial_m = 0.15e-3;   // and along it (y)
+constexpr double kUsAttenuation_per_m = 6.0;    // gain exp(-k d) after time-gain compensation
+constexpr double kUsShadowGain = 0.3;           // behind an obstacle along the beam
+constexpr double kUsNeedleMin = 0.45;           // needle echo when parallel to the beam
+constexpr double kUsNeedleMax = 1.3;            // needle echo when facing the beam
+constexpr double kUsNeedleSpecularPower = 2.0;  // echo ~ |cos(angle to the probe face)|^p
+constexpr double kUsNeedleDropoutDepth = 0.5;   // partial visibility along the shaft
 constexpr double kUsNeedleDropoutPeriod_m = 6e-3;
-constexpr double kUsTipEcho = 1.3;               // the bevel reflects strongly
+constexpr double kUsTipEcho = 1.3;  // the bevel reflects strongly
 constexpr double kUsTipEchoLength_m = 0.8e-3;
-constexpr int kUsReverberations = 3;             // comet-tail echoes behind the needle
+constexpr int kUsReverberations = 3;  // comet-tail echoes behind the needle
 constexpr double kUsReverberationSpacing_m = 1.6e-3;
 constexpr double kUsReverberationDecay = 0.45;
-constexpr double kUsEchoFullScale = 1.5;        // the needle echo canvas (8-bit) spans 0..1.5
-constexpr double kNeedleDrawStep_m = 0.25e-3;    // the needle is drawn as pieces this long
+constexpr double kUsEchoFullScale = 1.5;       // the needle echo canvas (8-bit) spans 0..1.5
+constexpr double kNeedleDrawStep_m = 0.25e-3;  // the needle is drawn as pieces this long
 
 void fillPolygon(cv::Mat& image, const geometry::Polygon& polygon, const ImageGeometry& g,
                  double value) {
@@ -164,7 +164,8 @@ ImageGeometry fieldOfView(const scene::Scene& scene, double pixel_size_m, int co
   const Point2 centre = 0.5 * (scene.workspace_min + scene.workspace_max);
   g.cols = cols;
   g.rows = rows;
-  g.origin_m = Point2(centre.x() - 0.5 * cols * pixel_size_m, centre.y() + 0.5 * rows * pixel_size_m);
+  g.origin_m =
+      Point2(centre.x() - 0.5 * cols * pixel_size_m, centre.y() + 0.5 * rows * pixel_size_m);
   return g;
 }
 
@@ -175,11 +176,11 @@ FrameRenderer::FrameRenderer(const scene::Scene& scene, const ImagerConfig& conf
   if (config_.modality == Modality::kFluoroscopy) {
     anatomy_ = cv::Mat(g.size(), CV_32F, cv::Scalar(kFluoroSoftTissue));
     for (const scene::Region& region : scene.regions) {
-      const double v = region.rigid ? kFluoroBone
-                                    : kFluoroSoftTissue + kFluoroRegionContrast *
-                                                              (0.35 - tissue::meanEchogenicity(
-                                                                          region.material)) /
-                                                              0.35;
+      const double v =
+          region.rigid
+              ? kFluoroBone
+              : kFluoroSoftTissue + kFluoroRegionContrast *
+                                        (0.35 - tissue::meanEchogenicity(region.material)) / 0.35;
       fillPolygon(anatomy_, region.polygon, g, v);
     }
     for (const scene::Obstacle& obstacle : scene.obstacles) {
@@ -213,10 +214,10 @@ FrameRenderer::FrameRenderer(const scene::Scene& scene, const ImagerConfig& conf
   for (const scene::Target& target : scene.targets) {
     if (target.radius_m > 0.0) {
       const cv::Point2d c = g.toPixel(target.position);
-      cv::circle(echo,
-                 cv::Point(int(std::lround(c.x * kShiftScale)), int(std::lround(c.y * kShiftScale))),
-                 int(std::lround(target.radius_m / g.pixel_size_m * kShiftScale)),
-                 cv::Scalar(kUsTargetEcho), cv::FILLED, cv::LINE_AA, kShiftBits);
+      cv::circle(
+          echo, cv::Point(int(std::lround(c.x * kShiftScale)), int(std::lround(c.y * kShiftScale))),
+          int(std::lround(target.radius_m / g.pixel_size_m * kShiftScale)),
+          cv::Scalar(kUsTargetEcho), cv::FILLED, cv::LINE_AA, kShiftBits);
     }
   }
   cv::Mat obstacle_mask(g.size(), CV_8U, cv::Scalar(0));
@@ -233,10 +234,9 @@ FrameRenderer::FrameRenderer(const scene::Scene& scene, const ImagerConfig& conf
                   std::vector<std::vector<cv::Point>>{fixedPoint(region.polygon.vertices(), g)},
                   true, cv::Scalar(0.75), boundary_px, cv::LINE_AA, kShiftBits);
   }
-  const cv::Mat speckle =
-      tissue::rayleighSpeckle(g.size(), kUsSpeckleLateral_m / g.pixel_size_m,
-                              kUsSpeckleAxial_m / g.pixel_size_m,
-                              std::uint32_t(streamSeed(config_.seed, 0, 0x5EC)));
+  const cv::Mat speckle = tissue::rayleighSpeckle(
+      g.size(), kUsSpeckleLateral_m / g.pixel_size_m, kUsSpeckleAxial_m / g.pixel_size_m,
+      std::uint32_t(streamSeed(config_.seed, 0, 0x5EC)));
   anatomy_ = echo.mul(speckle);
 
   // The probe is on the lower face (the bottom row); the beam travels up the image (+y).
@@ -252,8 +252,8 @@ FrameRenderer::FrameRenderer(const scene::Scene& scene, const ImagerConfig& conf
       }
       inside = in_obstacle;
       const double depth_m = (g.rows - 1 - r) * g.pixel_size_m;
-      attenuation_.at<float>(r, c) = float(std::exp(-kUsAttenuation_per_m * depth_m) *
-                                           (shadowed ? kUsShadowGain : 1.0));
+      attenuation_.at<float>(r, c) =
+          float(std::exp(-kUsAttenuation_per_m * depth_m) * (shadowed ? kUsShadowGain : 1.0));
     }
   }
   // Soften the shadow edges a little (diffraction).
@@ -286,7 +286,8 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
     image.convertTo(frame.image, CV_8U, 255.0);
     return frame;
   }
-  const int thickness_px = std::max(1, int(std::lround(config_.needle_diameter_m / g.pixel_size_m)));
+  const int thickness_px =
+      std::max(1, int(std::lround(config_.needle_diameter_m / g.pixel_size_m)));
 
   // The needle as short pieces: each piece's coverage (mask) and, in ultrasound, its echo.
   cv::Mat mask(g.size(), CV_8U, cv::Scalar(0));
@@ -307,19 +308,20 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
     }
     const Point2 d = pieces[i] - pieces[i - 1];
     const double cos_to_face = d.norm() > 0.0 ? std::abs(d.x()) / d.norm() : 0.0;
-    double e = kUsNeedleMin + (kUsNeedleMax - kUsNeedleMin) *
-                                  std::pow(cos_to_face, kUsNeedleSpecularPower);
+    double e = kUsNeedleMin +
+               (kUsNeedleMax - kUsNeedleMin) * std::pow(cos_to_face, kUsNeedleSpecularPower);
     e *= shaftVisibility(lengths[i], config_.seed);
     if (total_m - lengths[i] <= kUsTipEchoLength_m) {
       e = std::max(e, kUsTipEcho);
     }
-    cv::line(echo, ab[0], ab[1], cv::Scalar(255.0 * e / kUsEchoFullScale), thickness_px, cv::LINE_AA, kShiftBits);
+    cv::line(echo, ab[0], ab[1], cv::Scalar(255.0 * e / kUsEchoFullScale), thickness_px,
+             cv::LINE_AA, kShiftBits);
     for (int k = 1; k <= kUsReverberations; ++k) {
       const Point2 shift(0.0, k * kUsReverberationSpacing_m);
       const std::vector<cv::Point> gh = fixedPoint({pieces[i - 1] + shift, pieces[i] + shift}, g);
       const double ge = e * std::pow(kUsReverberationDecay, k);
-      cv::line(echo, gh[0], gh[1], cv::Scalar(255.0 * ge / kUsEchoFullScale), std::max(1, thickness_px - 1),
-               cv::LINE_AA, kShiftBits);
+      cv::line(echo, gh[0], gh[1], cv::Scalar(255.0 * ge / kUsEchoFullScale),
+               std::max(1, thickness_px - 1), cv::LINE_AA, kShiftBits);
     }
   }
 
@@ -336,7 +338,6 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
     // The needle replaces the tissue it covers; its reverberation ghosts add to the tissue.
     image = anatomy_.mul(1.0 - coverage) + needle_echo;
     image = image.mul(attenuation_);
-   
   }
   blur(image, config_.blur_sigma_m / g.pixel_size_m);
   addNoise(&image, config_, index);

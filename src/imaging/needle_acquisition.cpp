@@ -44,6 +44,7 @@ constexpr double kSymmetryPower = 3.0;
 /// and then no candidate stands out and the cue is silent.
 constexpr double kMotionTipZone = 0.3;
 constexpr double kMotionMinZone_px = 10.0;
+constexpr double kMotionBeyondGaps = 2.0;  // the zone runs on this many max_gap_px past the end
 constexpr double kMinMotionRatio = 3.0;
 /// Background model: exponential average of the frames, this weight for the newest.
 constexpr double kBackgroundRate = 0.3;
@@ -174,9 +175,10 @@ std::vector<Line> candidateLines(const RidgeMap& ridge, double min_length_px) {
 /// Step 4: the parameter range of the line inside the frame.
 bool lineSpan(const Line& l, cv::Size size, double* t_lo, double* t_hi) {
   if (l.kappa != 0.0) {
-    // An arc: up to a frame diagonal (and less than half the circle) either way; the samples
+    // An arc: up to a frame diagonal (and a quarter of the circle) either way; the samples
     // outside the frame read 0.
-    const double reach = std::min(std::hypot(size.width, size.height), 0.95 * kPi / std::abs(l.kappa));
+    const double reach =
+        std::min(std::hypot(size.width, size.height), 0.5 * kPi / std::abs(l.kappa));
     *t_lo = -reach;
     *t_hi = reach;
     return true;
@@ -460,6 +462,27 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, const C
   if (half <= 0)
     return;
   double last = 0;
+  if (path.kappa != 0.0) {
+    // An arc traced on past the tail (across a reverberation copy or the shadow's edge): the
+    // needle is the run above the level (gaps up to max_gap bridged) with the most contrast.
+    double best = 0, sum = 0, start = 0, best_start = 0, on = -1e9;
+    for (std::size_t i = 0; i < smooth.size(); ++i) {
+      const double u = static_cast<double>(i);
+      if (smooth[i] < half)
+        continue;
+      if (u - on > max_gap)
+        sum = 0, start = u;
+      sum += smooth[i];
+      on = u;
+      if (sum > best)
+        best = sum, best_start = start, last = u;
+    }
+    s->tail_px = at(path, best_start);
+    s->tip_px = at(path, last);
+    const cv::Point2d d = tangent(path, last);
+    s->angle_rad = std::atan2(d.y, d.x);
+    return;
+  }
   for (std::size_t i = 0; i < smooth.size(); ++i) {
     const double u = static_cast<double>(i);
     if (u - last > max_gap)
@@ -468,10 +491,6 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, const C
       last = u;
   }
   s->tip_px = at(path, last);
-  if (path.kappa != 0.0) {
-    const cv::Point2d d = tangent(path, last);
-    s->angle_rad = std::atan2(d.y, d.x);
-  }
 }
 
 /// Step 4 for a needle of constant curvature (options.radius_px): from the straight fit (about
@@ -617,8 +636,10 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
 
 namespace {
 
-/// Sequence cue of one oriented candidate: the motion map's mean over the tip end.
-double tipMotion(const cv::Mat& motion, const NeedleSegment& s) {
+/// Sequence cue of one oriented candidate: the motion map's mean over the tip end, which runs
+/// on past the traced end by `beyond` px (the part the needle has just advanced into is the
+/// faint, blurred end that the trace stops short of).
+double tipMotion(const cv::Mat& motion, const NeedleSegment& s, double beyond) {
   const double length = s.length_px();
   if (motion.empty() || length < 1.0)
     return 0.0;
@@ -626,7 +647,7 @@ double tipMotion(const cv::Mat& motion, const NeedleSegment& s) {
   const double zone = std::min(length, std::max(kMotionMinZone_px, kMotionTipZone * length));
   double sum = 0;
   int count = 0;
-  for (double u = length - zone; u <= length; u += 1.0) {
+  for (double u = length - zone; u <= length + beyond; u += 1.0) {
     sum += sample(motion, s.tail_px + u * d);
     ++count;
   }
@@ -641,7 +662,7 @@ std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const Acquis
   bool any_moving = false;
   for (Candidate& c : all) {
     orientByEntry(c, o.entry, size, &c.cues);
-    c.cues.motion = tipMotion(motion, c.cues);
+    c.cues.motion = tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
     any_moving = any_moving || (c.cues.motion >= kMinMotionRatio && c.score >= o.min_evidence);
   }
   std::optional<Candidate> best;
@@ -761,6 +782,18 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       candidate_.reset();
       out.segment = d;
       out.confident = agreeing_ >= kConfirmFrames;
+      return out;
+    }
+    if (d.found && d.motion >= kMinMotionRatio && track_->motion < kMinMotionRatio) {
+      // The sequence cue: the track was a still line, this detection moves at its tip (a
+      // needle advancing): the still line gives way at once, without waiting for agreement.
+      track_ = d;
+      velocity_px_ = 0;
+      agreeing_ = 1;
+      missed_ = 0;
+      candidate_.reset();
+      out.segment = d;
+      out.segment.message = "moving needle replaces a still line: " + d.message;
       return out;
     }
     if (d.found) {  // gated out: re-acquire only after agreeing frames

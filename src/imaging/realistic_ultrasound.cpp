@@ -57,10 +57,13 @@ constexpr double kMaxElevationSlope = 0.012;
 constexpr double kElevationHalfWidth_m = 0.6e-3;
 /// Acoustic shadow beyond the shaft (metal reflects most of the beam), softened laterally.
 constexpr double kNeedleShadowGain = 0.35;
-/// Reverberation tail: copies inside the shaft's wall, deeper by kReverbSpacing_m each.
+/// Reverberation tail: copies inside the shaft (about its lumen apart), deeper by
+/// kReverbSpacing_m each; the first at kReverbFirst of the shaft's echo (-9 dB), each next one
+/// kReverbDecay of the one before.
 constexpr int kReverbCopies = 5;
 constexpr double kReverbSpacing_m = 0.5e-3;
-constexpr double kReverbDecay = 0.55;
+constexpr double kReverbFirst = 0.35;
+constexpr double kReverbDecay = 0.5;
 /// The needle canvas (8-bit, anti-aliased) spans amplitudes 0..kCanvasFullScale.
 constexpr double kCanvasFullScale = 1.2;
 
@@ -98,7 +101,8 @@ cv::Mat echogenicity(const scene::Scene& scene, const ImageGeometry& g,
                      const std::vector<Layer>& layers, cv::Mat* obstacle_mask) {
   cv::Mat echo(g.size(), CV_32F, cv::Scalar(kTissueEcho));
   for (const scene::Region& region : scene.regions) {
-    cv::fillPoly(echo, std::vector<std::vector<cv::Point>>{fixedPoint(region.polygon.vertices(), g)},
+    cv::fillPoly(echo,
+                 std::vector<std::vector<cv::Point>>{fixedPoint(region.polygon.vertices(), g)},
                  cv::Scalar(region.rigid ? tissue::meanEchogenicity("bone")
                                          : tissue::meanEchogenicity(region.material)),
                  cv::LINE_AA, kShiftBits);
@@ -152,8 +156,8 @@ cv::Mat attenuationMap(const ImageGeometry& g, const cv::Mat& obstacle_mask) {
       shadowed = shadowed || (inside && !in_obstacle);
       inside = in_obstacle;
       const double depth_m = (g.rows - 1 - r) * g.pixel_size_m;
-      att.at<float>(r, c) = float(std::exp(-kAttenuation_per_m * depth_m) *
-                                  (shadowed ? kObstacleShadowGain : 1.0));
+      att.at<float>(r, c) =
+          float(std::exp(-kAttenuation_per_m * depth_m) * (shadowed ? kObstacleShadowGain : 1.0));
     }
   }
   cv::GaussianBlur(att, att, cv::Size(0, 0), 1.0);
@@ -184,8 +188,9 @@ void anatomy(const scene::Scene& scene, const ImagerConfig& config, cv::Mat* amp
   }
   const int layer_px = std::max(1, int(std::lround(kLayerWidth_m / g.pixel_size_m)));
   for (const Layer& l : layers) {
-    cv::line(specular, cv::Point2d(0.0, l.rowAt(0.0)), cv::Point2d(g.cols - 1.0, l.rowAt(g.cols - 1.0)),
-             cv::Scalar(kLayerAmplitude), layer_px, cv::LINE_AA);
+    cv::line(specular, cv::Point2d(0.0, l.rowAt(0.0)),
+             cv::Point2d(g.cols - 1.0, l.rowAt(g.cols - 1.0)), cv::Scalar(kLayerAmplitude),
+             layer_px, cv::LINE_AA);
   }
   *amplitude = cv::max(*amplitude, specular);
   *attenuation = attenuationMap(g, obstacle_mask);
@@ -197,28 +202,29 @@ cv::Mat frame(const cv::Mat& amplitude, const cv::Mat& attenuation, const Imager
   std::vector<Point2> pieces;
   std::vector<double> lengths;
   render::resampleNeedle(needle_points, kNeedleDrawStep_m, &pieces, &lengths);
-  const int thickness_px =
-      std::max(1, int(std::lround(config.needle_diameter_m / g.pixel_size_m)));
+  const int thickness_px = std::max(1, int(std::lround(config.needle_diameter_m / g.pixel_size_m)));
   const double slope = kMaxElevationSlope * uniform01(streamSeed(config.seed, 0, 0xE1E7));
   cv::Mat echo(g.size(), CV_8U, cv::Scalar(0)), reverb(g.size(), CV_8U, cv::Scalar(0));
   // Shadow: per column, the row nearest the probe where the needle is, and its echo strength.
-  std::vector<double> shadow_row(std::size_t(g.cols), -1.0), shadow_strength(std::size_t(g.cols), 0.0);
+  std::vector<double> shadow_row(std::size_t(g.cols), -1.0),
+      shadow_strength(std::size_t(g.cols), 0.0);
   for (std::size_t i = 1; i < pieces.size(); ++i) {
     const Point2 d = pieces[i] - pieces[i - 1];
     const double cos_face = d.norm() > 0.0 ? std::abs(d.x()) / d.norm() : 0.0;
     const double elevation_m = slope * lengths[i];
     const double in_plane = std::exp(-std::pow(elevation_m / kElevationHalfWidth_m, 2.0));
-    const double e = (kNeedleParallel + (kNeedleFacing - kNeedleParallel) * cos_face * cos_face) *
-                     in_plane;
+    const double e =
+        (kNeedleParallel + (kNeedleFacing - kNeedleParallel) * cos_face * cos_face) * in_plane;
     const std::vector<cv::Point> ab = fixedPoint({pieces[i - 1], pieces[i]}, g);
     cv::line(echo, ab[0], ab[1], cv::Scalar(255.0 * e / kCanvasFullScale), thickness_px,
              cv::LINE_AA, kShiftBits);
     for (int k = 1; k <= kReverbCopies; ++k) {
       const Point2 shift(0.0, k * kReverbSpacing_m);
       const std::vector<cv::Point> gh = fixedPoint({pieces[i - 1] + shift, pieces[i] + shift}, g);
-      cv::line(reverb, gh[0], gh[1],
-               cv::Scalar(255.0 * e * std::pow(kReverbDecay, k) / kCanvasFullScale),
-               std::max(1, thickness_px - 1), cv::LINE_AA, kShiftBits);
+      cv::line(
+          reverb, gh[0], gh[1],
+          cv::Scalar(255.0 * e * kReverbFirst * std::pow(kReverbDecay, k - 1) / kCanvasFullScale),
+          1, cv::LINE_AA, kShiftBits);
     }
     const cv::Point2d px = g.toPixel(pieces[i]);
     const int c = int(std::lround(px.x));

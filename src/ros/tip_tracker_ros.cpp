@@ -83,13 +83,12 @@ TipTrackerRos::TipTrackerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   scene_ = scene::loadSceneSpec(ros_params::text(private_nh, "scene", "steering_workspace"));
   // Validate that the scene can be tracked now, with the scene's own imaging settings.
   settings_ = imaging::trackerConfigFromScene(scene_, imaging::imagerConfigFromScene(scene_));
-  settings_.search_margin_m = ros_params::number(private_nh, "search_margin_m",
-                                                 settings_.search_margin_m, 0.0, 0.1, "m");
+  settings_.search_margin_m =
+      ros_params::number(private_nh, "search_margin_m", settings_.search_margin_m, 0.0, 0.1, "m");
   settings_.gate_chi2 =
       ros_params::number(private_nh, "gate_chi2", settings_.gate_chi2, 1.0, 1e6, "");
-  settings_.confident_position_std_m =
-      ros_params::number(private_nh, "confident_position_std_m",
-                         settings_.confident_position_std_m, 1e-6, 0.1, "m");
+  settings_.confident_position_std_m = ros_params::number(
+      private_nh, "confident_position_std_m", settings_.confident_position_std_m, 1e-6, 0.1, "m");
   settings_.confident_heading_std_rad =
       ros_params::number(private_nh, "confident_heading_std_rad",
                          settings_.confident_heading_std_rad, 1e-4, 1.0, "rad");
@@ -114,15 +113,17 @@ TipTrackerRos::TipTrackerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
     }
     options.entry = *side;
     // Needle model without a scene: straight, or an arc of ~radius_m (0 = straight).
-    const double radius_m = ros_params::number(private_nh, "radius_m", 0.0, 0.0, 100.0, "m (0 = straight)");
+    const double radius_m =
+        ros_params::number(private_nh, "radius_m", 0.0, 0.0, 100.0, "m (0 = straight)");
     sequence_options_ = options;
     sequence_radius_m_ = radius_m;
     // Calibration as parameters (a recording without an ImageCalibration message); a message
     // on `calibration` replaces it. 0 = wait for the message.
     geometry_.pixel_size_m =
         ros_params::number(private_nh, "pixel_size_m", 0.0, 0.0, 0.01, "m (0 = from the message)");
-    geometry_.origin_m = imaging::Point2(ros_params::number(private_nh, "origin_x_m", 0.0, -10.0, 10.0, "m"),
-                                         ros_params::number(private_nh, "origin_y_m", 0.0, -10.0, 10.0, "m"));
+    geometry_.origin_m =
+        imaging::Point2(ros_params::number(private_nh, "origin_x_m", 0.0, -10.0, 10.0, "m"),
+                        ros_params::number(private_nh, "origin_y_m", 0.0, -10.0, 10.0, "m"));
     resetSequence();
   }
   tip_pub_ = private_nh.advertise<NeedleTip>("tip", 10);
@@ -154,7 +155,8 @@ void TipTrackerRos::onCalibration(const ImageCalibrationConstPtr& msg) {
     }
     geometry_ = config.geometry;
     resetSequence();  // the arc's radius in pixels follows the pixel size
-    ROS_INFO_STREAM_NAMED(kName, "tip_tracker: calibration " << msg->pixel_size_m * 1e3 << " mm pixels");
+    ROS_INFO_STREAM_NAMED(kName,
+                          "tip_tracker: calibration " << msg->pixel_size_m * 1e3 << " mm pixels");
     if (motion_model_ == imaging::MotionModel::kAxis) {
       return;
     }
@@ -221,8 +223,9 @@ void TipTrackerRos::onImageWithoutRobot(const sensor_msgs::ImageConstPtr& msg) {
     // colour to grey and refuses the rest with the reason.
     frame = cv_bridge::toCvShare(msg)->image;
   } catch (const std::exception& e) {
-    ROS_WARN_STREAM_THROTTLE_NAMED(kThrottle_s, kName, "tip_tracker: image encoding '"
-                                                          << msg->encoding << "' unusable: " << e.what());
+    ROS_WARN_STREAM_THROTTLE_NAMED(
+        kThrottle_s, kName,
+        "tip_tracker: image encoding '" << msg->encoding << "' unusable: " << e.what());
     return;
   }
   const imaging::SequenceTracker::Output out = sequence_->onFrame(frame);
@@ -261,8 +264,7 @@ void TipTrackerRos::resetSequence() {
 
 void TipTrackerRos::onImage(const sensor_msgs::ImageConstPtr& msg) {
   // One path: the drive model when the robot's drive is there, the axis model when it is not.
-  const bool drive_available =
-      have_entry_ || !drives_.empty() || drive_sub_.getNumPublishers() > 0;
+  const bool drive_available = have_entry_ || !drives_.empty() || drive_sub_.getNumPublishers() > 0;
   if (imaging::chooseMotionModel(motion_model_, drive_available) == imaging::MotionModel::kAxis) {
     onImageWithoutRobot(msg);
     return;

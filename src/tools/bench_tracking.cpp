@@ -68,7 +68,9 @@ double secondsSince(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
-double headingError(double a, double b) { return std::abs(std::remainder(a - b, 2.0 * kPi)); }
+double headingError(double a, double b) {
+  return std::abs(std::remainder(a - b, 2.0 * kPi));
+}
 
 /// One imaging device of the sweep: modality and, in ultrasound, the renderer.
 struct Device {
@@ -78,10 +80,14 @@ struct Device {
     return modality == im::Modality::kUltrasound && model == im::UltrasoundModel::kRealistic;
   }
   /// "ultrasound", "fluoroscopy" (as in issue 6's CSV) and the renderer apart.
-  std::string renderer() const { return modality == im::Modality::kUltrasound ? im::toString(model) : "-"; }
+  std::string renderer() const {
+    return modality == im::Modality::kUltrasound ? im::toString(model) : "-";
+  }
   /// Headline key suffix: "_us", "_fluoro", "_us_realistic".
   std::string suffix() const {
-    return modality == im::Modality::kFluoroscopy ? "_fluoro" : realistic() ? "_us_realistic" : "_us";
+    return modality == im::Modality::kFluoroscopy ? "_fluoro"
+           : realistic()                          ? "_us_realistic"
+                                                  : "_us";
   }
 };
 
@@ -110,7 +116,8 @@ struct Errors {
 
 /// Fraction of all attempts (misses count as outside) with a tip error within limit_mm.
 double within(const Errors& e, double limit_mm) {
-  const auto n = std::count_if(e.tip_mm.begin(), e.tip_mm.end(), [&](double v) { return v <= limit_mm; });
+  const auto n =
+      std::count_if(e.tip_mm.begin(), e.tip_mm.end(), [&](double v) { return v <= limit_mm; });
   return e.attempts > 0 ? double(n) / e.attempts : 0.0;
 }
 
@@ -129,15 +136,14 @@ void writeExample(const std::string& path, const cv::Mat& frame, const im::Image
   arrow(truth, cv::Scalar(0, 200, 0));
   arrow(est.tip, cv::Scalar(0, 0, 255));
   if (hough.found) {
-    cv::drawMarker(bgr, g.toPixel(hough.p_SceneTip), cv::Scalar(255, 200, 0), cv::MARKER_CROSS,
-                   10, 1);
+    cv::drawMarker(bgr, g.toPixel(hough.p_SceneTip), cv::Scalar(255, 200, 0), cv::MARKER_CROSS, 10,
+                   1);
   }
   cv::putText(bgr, "green truth, red tracker (" + im::toString(est.status) + "), cyan Hough",
               cv::Point(8, 18), cv::FONT_HERSHEY_SIMPLEX, 0.45, cv::Scalar(255, 255, 255), 1,
               cv::LINE_AA);
   cv::imwrite(path, bgr);
 }
-
 
 /// What the accuracy sweep and the closed loop share.
 struct Bench {
@@ -263,12 +269,11 @@ void recordSetting(Bench& b, const Device& device, double noise, const SettingEr
                    ng::report::Table& accuracy) {
   auto addRow = [&](const std::string& method, const Errors& err) {
     const double ms = err.attempts > 0 ? 1e3 * err.seconds / err.attempts : 0.0;
-    accuracy.addRow({im::toString(device.modality), device.renderer(), noise, method,
-                     double(err.attempts),
-                     err.attempts > 0 ? double(err.tip_mm.size()) / err.attempts : 0.0,
-                     within(err, kWithin_mm), ng::report::median(err.tip_mm),
-                     ng::report::quantile(err.tip_mm, 0.9), ng::report::median(err.heading_deg),
-                     ms, ms > 0.0 ? 1e3 / ms : 0.0});
+    accuracy.addRow(
+        {im::toString(device.modality), device.renderer(), noise, method, double(err.attempts),
+         err.attempts > 0 ? double(err.tip_mm.size()) / err.attempts : 0.0, within(err, kWithin_mm),
+         ng::report::median(err.tip_mm), ng::report::quantile(err.tip_mm, 0.9),
+         ng::report::median(err.heading_deg), ms, ms > 0.0 ? 1e3 / ms : 0.0});
   };
   addRow("tracker", e.tracker);
   addRow("detection", e.detection);
@@ -289,9 +294,9 @@ void recordSetting(Bench& b, const Device& device, double noise, const SettingEr
             << ") noise " << noise << ": tracker median " << ng::report::median(e.tracker.tip_mm)
             << " mm / " << ng::report::median(e.tracker.heading_deg) << " deg, detection " << ours
             << " mm (found " << ours_found << ", within 1 mm " << ours_within << "), hough "
-            << theirs << " mm (found " << theirs_found << ", within 1 mm " << theirs_within
-            << "), " << 1e3 * e.tracker.seconds / std::max(1, e.tracker.attempts)
-            << " ms/frame, confident " << double(e.confident) / std::max(1, e.estimates) << "\n";
+            << theirs << " mm (found " << theirs_found << ", within 1 mm " << theirs_within << "), "
+            << 1e3 * e.tracker.seconds / std::max(1, e.tracker.attempts) << " ms/frame, confident "
+            << double(e.confident) / std::max(1, e.estimates) << "\n";
   const std::string sx = device.suffix();
   if (device.modality == im::Modality::kUltrasound && noise == kUsNoise) {
     b.headline["tip_error_mm_median" + sx] = ng::report::median(e.tracker.tip_mm);
@@ -318,16 +323,16 @@ void recordSetting(Bench& b, const Device& device, double noise, const SettingEr
 
 /// Section 1: every device over its noise sweep.
 void runAccuracy(Bench& b) {
-  ng::report::Table frames_csv({"modality", "renderer", "noise_std", "sequence", "step", "status",
-                                "confident", "tracker_tip_mm", "tracker_heading_deg",
-                                "detection_tip_mm", "detection_heading_deg", "hough_tip_mm",
-                                "hough_heading_deg"},
-                               6);
-  ng::report::Table accuracy({"modality", "renderer", "noise_std", "method", "frames",
-                              "found_fraction", "within_1mm_fraction", "tip_error_mm_median",
-                              "tip_error_mm_p90", "heading_error_deg_median", "ms_per_frame",
-                              "fps"},
-                             6);
+  ng::report::Table frames_csv(
+      {"modality", "renderer", "noise_std", "sequence", "step", "status", "confident",
+       "tracker_tip_mm", "tracker_heading_deg", "detection_tip_mm", "detection_heading_deg",
+       "hough_tip_mm", "hough_heading_deg"},
+      6);
+  ng::report::Table accuracy(
+      {"modality", "renderer", "noise_std", "method", "frames", "found_fraction",
+       "within_1mm_fraction", "tip_error_mm_median", "tip_error_mm_p90", "heading_error_deg_median",
+       "ms_per_frame", "fps"},
+      6);
   const std::vector<Device> devices = {
       {im::Modality::kUltrasound, im::UltrasoundModel::kClassic},
       {im::Modality::kFluoroscopy, im::UltrasoundModel::kClassic},
@@ -351,11 +356,11 @@ void runClosedLoop(Bench& b, const st::PolicyTable& table, const st::BestStart& 
   ng::robot::SteerableNeedleConfig needle_config = b.needle_config;
   needle_config.seed = kTrialSeed;
   ng::robot::SteerableNeedle world(b.problem, needle_config, start);
-  ng::report::Table loop_csv({"feedback", "modality", "renderer", "noise_std", "trials",
-                              "successes", "success_rate", "ci_low", "ci_high",
-                              "tip_error_mm_median", "heading_error_deg_median",
-                              "unconfident_decisions", "frames_per_decision", "seconds"},
-                             6);
+  ng::report::Table loop_csv(
+      {"feedback", "modality", "renderer", "noise_std", "trials", "successes", "success_rate",
+       "ci_low", "ci_high", "tip_error_mm_median", "heading_error_deg_median",
+       "unconfident_decisions", "frames_per_decision", "seconds"},
+      6);
   struct Feedback {
     std::string name;
     Device device;
@@ -366,8 +371,10 @@ void runClosedLoop(Bench& b, const st::PolicyTable& table, const st::BestStart& 
   for (const double noise : {0.05, 0.1, 0.2, 0.3}) {
     feedbacks.push_back({"image", us, noise});
   }
-  feedbacks.push_back({"image", {im::Modality::kFluoroscopy, im::UltrasoundModel::kClassic}, kFluoroNoise});
-  feedbacks.push_back({"image", {im::Modality::kUltrasound, im::UltrasoundModel::kRealistic}, kUsNoise});
+  feedbacks.push_back(
+      {"image", {im::Modality::kFluoroscopy, im::UltrasoundModel::kClassic}, kFluoroNoise});
+  feedbacks.push_back(
+      {"image", {im::Modality::kUltrasound, im::UltrasoundModel::kRealistic}, kUsNoise});
   for (const Feedback& fb : feedbacks) {
     const bool image = fb.name == "image";
     // The whole workspace in view, as the imager node images it by default.
@@ -385,8 +392,10 @@ void runClosedLoop(Bench& b, const st::PolicyTable& table, const st::BestStart& 
           im::runGuidedTrial(world, start, kTrialSeed * 100000 + std::uint64_t(k), table,
                              image ? &renderer : nullptr, image ? &tracker : nullptr, frame_index);
       successes += trial.outcome == st::TrialOutcome::kReachedTarget ? 1 : 0;
-      for (double e : trial.tip_errors_m) tip_mm.push_back(e * kMmPerM);
-      for (double e : trial.heading_errors_rad) heading_deg.push_back(e * kDegPerRad);
+      for (double e : trial.tip_errors_m)
+        tip_mm.push_back(e * kMmPerM);
+      for (double e : trial.heading_errors_rad)
+        heading_deg.push_back(e * kDegPerRad);
       unconfident += trial.unconfident_decisions;
       frames += trial.frames;
       decisions += int(trial.tip_errors_m.size());
@@ -403,8 +412,8 @@ void runClosedLoop(Bench& b, const st::PolicyTable& table, const st::BestStart& 
               << (image ? im::toString(fb.device.modality) + " (" + fb.device.renderer() + ")" : "")
               << " noise " << fb.noise << ": " << successes << "/" << b.trials << " = " << rate
               << " [" << ci.low << ", " << ci.high << "], tip error median "
-              << ng::report::median(tip_mm) << " mm, " << unconfident << " unconfident, "
-              << seconds << " s\n";
+              << ng::report::median(tip_mm) << " mm, " << unconfident << " unconfident, " << seconds
+              << " s\n";
     const std::string fx = fb.device.realistic() ? "_realistic" : "";
     if (!image) {
       b.headline["closed_loop_success_truth"] = rate;
@@ -419,9 +428,9 @@ void runClosedLoop(Bench& b, const st::PolicyTable& table, const st::BestStart& 
 
 void writeSummary(const Bench& b, const st::BestStart& best) {
   std::ostringstream json;
-  json << "{\n  \"bench\": \"tracking\",\n  \"scene\": \"" << b.scene.name << "\",\n  \"quick\": "
-       << (b.args.quick ? "true" : "false") << ",\n  \"frame_size\": [" << kCols << ", " << kRows
-       << "],\n  \"pixel_size_mm\": " << kPixel_m * kMmPerM
+  json << "{\n  \"bench\": \"tracking\",\n  \"scene\": \"" << b.scene.name
+       << "\",\n  \"quick\": " << (b.args.quick ? "true" : "false") << ",\n  \"frame_size\": ["
+       << kCols << ", " << kRows << "],\n  \"pixel_size_mm\": " << kPixel_m * kMmPerM
        << ",\n  \"default_us_noise_std\": " << kUsNoise
        << ",\n  \"default_fluoro_noise_std\": " << kFluoroNoise
        << ",\n  \"ultrasound_renderers\": [\"classic\", \"realistic\"]"

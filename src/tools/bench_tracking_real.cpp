@@ -189,7 +189,8 @@ constexpr double kUsNoise = 0.1, kUsBlur_m = 0.3e-3;  // bench tracking's ultras
 
 /// The imager on steering_workspace: 720 x 440 px of 0.1 mm from the scene's left edge, rows
 /// from y = 50 mm down to 6 mm (clear of the obstacles' middle).
-im::ImagerConfig imager(const ng::scene::Scene& scene, im::UltrasoundModel model, std::uint64_t seed) {
+im::ImagerConfig imager(const ng::scene::Scene& scene, im::UltrasoundModel model,
+                        std::uint64_t seed) {
   im::ImagerConfig c = im::imagerConfigFromScene(scene, seed);
   c.modality = im::Modality::kUltrasound;
   c.ultrasound_model = model;
@@ -212,7 +213,8 @@ std::vector<im::Point2> needlePoints(im::Point2 entry, double angle, double leng
       pts.push_back(entry + s * im::Point2(std::cos(angle), std::sin(angle)));
     } else {
       const double h = angle + kappa * s;
-      pts.push_back(entry + im::Point2(std::sin(h) - std::sin(angle), std::cos(angle) - std::cos(h)) / kappa);
+      pts.push_back(
+          entry + im::Point2(std::sin(h) - std::sin(angle), std::cos(angle) - std::cos(h)) / kappa);
     }
   }
   return pts;
@@ -277,11 +279,11 @@ std::vector<std::pair<std::string, im::BModeStatistics>> realism(
     };
     im::BModeStatistics m;
     m.tissue_patches = v.empty() ? 0 : v.front().tissue_patches;
-    for (auto f : {&im::BModeStatistics::tissue_mean_grey, &im::BModeStatistics::speckle_snr,
-                   &im::BModeStatistics::speckle_lateral_px, &im::BModeStatistics::speckle_axial_px,
-                   &im::BModeStatistics::needle_grey, &im::BModeStatistics::needle_contrast,
-                   &im::BModeStatistics::brightest_other_over_needle,
-                   &im::BModeStatistics::dark_fraction})
+    for (auto f :
+         {&im::BModeStatistics::tissue_mean_grey, &im::BModeStatistics::speckle_snr,
+          &im::BModeStatistics::speckle_lateral_px, &im::BModeStatistics::speckle_axial_px,
+          &im::BModeStatistics::needle_grey, &im::BModeStatistics::needle_contrast,
+          &im::BModeStatistics::brightest_other_over_needle, &im::BModeStatistics::dark_fraction})
       m.*f = med(f);
     return m;
   };
@@ -341,11 +343,11 @@ void writeHalvesAndHeldOut(const std::vector<Result>& fresh, const std::vector<T
   for (const HeldOut& h :
        {heldOutSequence(scene, "straight", 77, im::Point2(0.0, 0.015), 0.1, 0.0),
         heldOutSequence(scene, "arc", 91, im::Point2(0.0, 0.008), 0.25, -10.0)}) {
-    js << ",\n  \"heldout_" << h.name << "_found_fraction\": " << jsonNumber(h.summary.found_fraction)
-       << ",\n  \"heldout_" << h.name << "_tip_error_px_median\": " << jsonNumber(h.summary.median)
-       << ",\n  \"heldout_" << h.name << "_tip_error_px_p90\": " << jsonNumber(h.summary.p90)
-       << ",\n  \"heldout_" << h.name << "_angle_error_deg_median\": "
-       << jsonNumber(h.summary.angle_median)
+    js << ",\n  \"heldout_" << h.name
+       << "_found_fraction\": " << jsonNumber(h.summary.found_fraction) << ",\n  \"heldout_"
+       << h.name << "_tip_error_px_median\": " << jsonNumber(h.summary.median) << ",\n  \"heldout_"
+       << h.name << "_tip_error_px_p90\": " << jsonNumber(h.summary.p90) << ",\n  \"heldout_"
+       << h.name << "_angle_error_deg_median\": " << jsonNumber(h.summary.angle_median)
        << ",\n  \"heldout_" << h.name << "_confident_wrong\": " << h.summary.confident_wrong;
     std::cout << "[tracking_real] held-out " << h.name << ": found " << h.summary.found_fraction
               << ", median " << h.summary.median << " px, p90 " << h.summary.p90 << " px\n";

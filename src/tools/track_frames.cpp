@@ -112,15 +112,18 @@ void drawOverlay(const cv::Mat& frame, const im::SequenceTracker::Output& o, con
     const cv::Scalar colour = o.confident ? cv::Scalar(0, 255, 0) : cv::Scalar(0, 200, 255);
     // The shaft walked back from the tip (an arc when it is curved).
     const double k = o.segment.curvature_per_px, chord = o.segment.length_px();
-    const double length = k == 0.0 ? chord : 2.0 * std::asin(std::min(1.0, 0.5 * chord * std::abs(k))) / std::abs(k);
+    const double length =
+        k == 0.0 ? chord : 2.0 * std::asin(std::min(1.0, 0.5 * chord * std::abs(k))) / std::abs(k);
     std::vector<cv::Point> shaft;
     const double a0 = o.segment.angle_rad + 3.14159265358979323846;  // back along the shaft
     for (double u = 0; u <= length; u += 2.0) {
       // Backwards the curvature's sign flips; heading a0 - k u, position by the exact arc.
       const double heading = a0 - k * u;
-      const cv::Point2d p = k == 0.0 ? o.segment.tip_px + u * cv::Point2d(std::cos(a0), std::sin(a0))
-                                     : o.segment.tip_px + cv::Point2d(std::sin(heading) - std::sin(a0),
-                                                                      std::cos(a0) - std::cos(heading)) * (-1.0 / k);
+      const cv::Point2d p = k == 0.0
+                                ? o.segment.tip_px + u * cv::Point2d(std::cos(a0), std::sin(a0))
+                                : o.segment.tip_px + cv::Point2d(std::sin(heading) - std::sin(a0),
+                                                                 std::cos(a0) - std::cos(heading)) *
+                                                         (-1.0 / k);
       shaft.emplace_back(cv::Point(int(std::lround(p.x)), int(std::lround(p.y))));
     }
     cv::polylines(bgr, shaft, false, colour, 1, cv::LINE_AA);

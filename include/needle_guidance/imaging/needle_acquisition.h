@@ -60,10 +60,10 @@ struct NeedleSegment {
   /// Signed curvature of the shaft [1/px] (0 = straight): > 0 turns from the direction towards
   /// the tip to its normal (-drow, dcol), i.e. clockwise on the screen (image y down).
   double curvature_per_px = 0.0;
-  double contrast = 0.0;          ///< mean line minus side-band intensity [grey levels]
-  double evidence = 0.0;          ///< score the candidate won with (see AcquisitionOptions)
-  double symmetry = 0.0;          ///< 1 = same tissue on both sides, 0 = interface-like
-  double coherence = 0.0;         ///< fraction of ridge pixels aligned with the line
+  double contrast = 0.0;   ///< mean line minus side-band intensity [grey levels]
+  double evidence = 0.0;   ///< score the candidate won with (see AcquisitionOptions)
+  double symmetry = 0.0;   ///< 1 = same tissue on both sides, 0 = interface-like
+  double coherence = 0.0;  ///< fraction of ridge pixels aligned with the line
   /// Sequence cue: frame difference against the background at the tip end, over the frame's
   /// mean difference (0 for a single frame; >= 3 counts as moving).
   double motion = 0.0;
