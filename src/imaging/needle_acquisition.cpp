@@ -743,7 +743,11 @@ cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
   grey.convertTo(current, CV_32F);
   cv::Mat motion;
   if (!background_.empty() && background_.size() == current.size()) {
-    cv::absdiff(current, background_, motion);
+    // The signed difference smoothed at the needle's scale before its magnitude: the frame's
+    // own noise averages out, a change as wide as the needle does not.
+    cv::subtract(current, background_, motion);
+    cv::GaussianBlur(motion, motion, cv::Size(), options_.ridge_sigma_px);
+    motion = cv::abs(motion);
     motion *= 1.0 / (cv::mean(motion)[0] + 1.0);  // +1 grey level: a noise-free still frame
     cv::accumulateWeighted(current, background_, kBackgroundRate);
   } else {

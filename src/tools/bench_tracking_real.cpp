@@ -138,6 +138,19 @@ double msSince(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
 }
 
+/// One frame through the SequenceTracker, timed.
+Result trackTimed(im::SequenceTracker& tracker, const cv::Mat& frame) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const im::SequenceTracker::Output o = tracker.onFrame(frame);
+  Result r;
+  r.ms = msSince(t0);
+  r.found = o.segment.found;
+  r.confident = o.confident;
+  r.tip = o.segment.tip_px;
+  r.angle_rad = o.segment.angle_rad;
+  return r;
+}
+
 void overlay(const cv::Mat& grey, const Truth& t, const Result& r, const std::string& title,
              const std::string& path) {
   cv::Mat bgr;
@@ -249,16 +262,7 @@ HeldOut heldOutSequence(const ng::scene::Scene& scene, const std::string& name, 
   for (int k = 0; k < 20; ++k) {
     const double length = 0.02 + 1e-3 * k;
     const std::vector<im::Point2> pts = needlePoints(entry, angle, length, kappa);
-    const cv::Mat frame = renderer.render(pts, static_cast<std::uint64_t>(k)).image;
-    const auto t0 = std::chrono::steady_clock::now();
-    const im::SequenceTracker::Output o = tracker.onFrame(frame);
-    Result r;
-    r.ms = msSince(t0);
-    r.found = o.segment.found;
-    r.confident = o.confident;
-    r.tip = o.segment.tip_px;
-    r.angle_rad = o.segment.angle_rad;
-    rs.push_back(r);
+    rs.push_back(trackTimed(tracker, renderer.render(pts, static_cast<std::uint64_t>(k)).image));
     const double h = angle + kappa * length;  // heading at the tip, scene y up
     ts.push_back({c.geometry.toPixel(pts.back()), std::atan2(-std::sin(h), std::cos(h))});
   }
@@ -396,16 +400,8 @@ int main(int argc, char** argv) {
   im::SequenceTracker tracker(im::AcquisitionOptions{});
   std::vector<Result> fresh, old, hough;
   for (const cv::Mat& frame : frames) {
+    fresh.push_back(trackTimed(tracker, frame));
     auto t0 = std::chrono::steady_clock::now();
-    const im::SequenceTracker::Output o = tracker.onFrame(frame);
-    Result r;
-    r.ms = msSince(t0);
-    r.found = o.segment.found;
-    r.confident = o.confident;
-    r.tip = o.segment.tip_px;
-    r.angle_rad = o.segment.angle_rad;
-    fresh.push_back(r);
-    t0 = std::chrono::steady_clock::now();
     const im::Detection d_old = im::detectTip(frame, config, std::nullopt);
     old.push_back(fromDetection(d_old, config.geometry, msSince(t0)));
     t0 = std::chrono::steady_clock::now();
