@@ -281,8 +281,8 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
   const ImageGeometry& g = config_.geometry;
   if (config_.modality == Modality::kUltrasound &&
       config_.ultrasound_model == UltrasoundModel::kRealistic) {
-    cv::Mat image = realistic::frame(anatomy_, attenuation_, config_, needle_points);
-    addNoise(&image, config_, index);
+    // The noise enters before the log compression (realistic_ultrasound.h).
+    const cv::Mat image = realistic::frame(anatomy_, attenuation_, config_, needle_points, index);
     image.convertTo(frame.image, CV_8U, 255.0);
     return frame;
   }

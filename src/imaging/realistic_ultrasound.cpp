@@ -197,7 +197,7 @@ void anatomy(const scene::Scene& scene, const ImagerConfig& config, cv::Mat* amp
 }
 
 cv::Mat frame(const cv::Mat& amplitude, const cv::Mat& attenuation, const ImagerConfig& config,
-              const std::vector<Point2>& needle_points) {
+              const std::vector<Point2>& needle_points, std::uint64_t index) {
   const ImageGeometry& g = config.geometry;
   std::vector<Point2> pieces;
   std::vector<double> lengths;
@@ -246,6 +246,18 @@ cv::Mat frame(const cv::Mat& amplitude, const cv::Mat& attenuation, const Imager
   echo = cv::max(echo, reverb);  // a copy never hides the shaft drawn before it
   echo.convertTo(needle, CV_32F, kCanvasFullScale / 255.0);
   cv::Mat a = (amplitude.mul(shadow) + needle).mul(attenuation);
+  if (config.noise_std > 0.0) {
+    // Electronic noise enters the echo before envelope detection (a complex Gaussian: the
+    // envelope of echo plus noise is Rician) and before the display's log compression; its
+    // level is noise_std times the mean tissue echo.
+    cv::Mat re(a.size(), CV_32F), im(a.size(), CV_32F);
+    cv::RNG rng(streamSeed(config.seed, index, 0x401));
+    const double sigma = config.noise_std * kTissueAmplitude;
+    rng.fill(re, cv::RNG::NORMAL, 0.0, sigma);
+    rng.fill(im, cv::RNG::NORMAL, 0.0, sigma);
+    re += a;
+    cv::magnitude(re, im, a);
+  }
   const double blur_px = config.blur_sigma_m / g.pixel_size_m;
   if (blur_px >= 0.05) {
     cv::GaussianBlur(a, a, cv::Size(0, 0), blur_px, blur_px, cv::BORDER_REFLECT);

@@ -16,10 +16,11 @@ namespace needle_guidance::imaging::realistic {
 void anatomy(const scene::Scene& scene, const ImagerConfig& config, cv::Mat* amplitude,
              cv::Mat* attenuation);
 
-/// One frame before noise, as displayed (CV_32FC1, fractions of full scale): the tissue under
-/// the needle's shadow, plus the needle's echo and its reverberation tail, blurred by the
+/// One frame as displayed (CV_32FC1, fractions of full scale): the tissue under the needle's
+/// shadow, plus the needle's echo and its reverberation tail, plus the frame's electronic noise
+/// (config.noise_std times the mean tissue echo, seeded by (config.seed, index)), blurred by the
 /// configured point-spread function and log-compressed.
 cv::Mat frame(const cv::Mat& amplitude, const cv::Mat& attenuation, const ImagerConfig& config,
-              const std::vector<Point2>& needle_points);
+              const std::vector<Point2>& needle_points, std::uint64_t index);
 
 }  // namespace needle_guidance::imaging::realistic

@@ -45,7 +45,9 @@ enum class UltrasoundModel : std::uint8_t {
   /// 55 dB display; two seeded specular tissue layers that span the frame (longer than the
   /// needle, brighter and wider than it) with a change of echogenicity across them; the needle's
   /// acoustic shadow beyond it, a reverberation tail of five fainter copies, and a seeded tilt
-  /// out of the image plane that fades the shaft towards the tip (elevation beam profile).
+  /// out of the image plane that fades the shaft towards the tip (elevation beam profile). The
+  /// noise (noise_std) enters before the log compression, as a scanner's electronic noise does,
+  /// at noise_std times the mean tissue echo; the point-spread blur follows it.
   kRealistic,
 };
 /// "classic" | "realistic".
