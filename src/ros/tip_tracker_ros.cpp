@@ -153,8 +153,15 @@ void TipTrackerRos::onCalibration(const ImageCalibrationConstPtr& msg) {
                                         << msg->pixel_size_m << " m or origin not finite/positive");
       return;
     }
+    const imaging::ImageGeometry previous = geometry_;
     geometry_ = config.geometry;
-    resetSequence();  // the arc's radius in pixels follows the pixel size
+    try {
+      resetSequence();  // the arc's radius in pixels follows the pixel size
+    } catch (const std::invalid_argument& e) {
+      geometry_ = previous;  // refused: the state before the message stays
+      ROS_ERROR_STREAM_NAMED(kName, "tip_tracker: calibration refused: " << e.what());
+      return;
+    }
     ROS_INFO_STREAM_NAMED(kName,
                           "tip_tracker: calibration " << msg->pixel_size_m * 1e3 << " mm pixels");
     if (motion_model_ == imaging::MotionModel::kAxis) {
@@ -254,6 +261,7 @@ void TipTrackerRos::onImageWithoutRobot(const sensor_msgs::ImageConstPtr& msg) {
   tip_pub_.publish(tip);
 }
 
+/// Throws std::invalid_argument (from AcquisitionOptions) for a radius too small for the pixels.
 void TipTrackerRos::resetSequence() {
   imaging::AcquisitionOptions options = sequence_options_;
   if (sequence_radius_m_ > 0.0 && geometry_.pixel_size_m > 0.0) {
