@@ -1,6 +1,9 @@
 // Simulated fluoroscopy / ultrasound frames of the scene plane (see frame_renderer.h).
 #include "needle_guidance/imaging/frame_renderer.h"
 
+#include "realistic_ultrasound.h"
+#include "render_util.h"
+
 #include <algorithm>
 #include <cmath>
 #include <opencv2/imgproc.hpp>
@@ -10,15 +13,19 @@
 namespace needle_guidance::imaging {
 namespace {
 
-constexpr int kShiftBits = 8;  // sub-pixel precision of the drawn polygons and needle
-constexpr double kShiftScale = 1 << kShiftBits;
+using render::fixedPoint;
+using render::kShiftBits;
+using render::kShiftScale;
+using render::mix;
+using render::streamSeed;
+using render::uniform01;
 constexpr double kMinBlurSigma_px = 0.05;  // a narrower Gaussian is the identity
 
 // ---- fluoroscopy (fractions of full scale as displayed: bright = little absorbed) ----
 constexpr double kFluoroSoftTissue = 0.78;
-constexpr double kFluoroRegionContrast = 0.06;  // soft-tissue regions: +- this by echogenicity
-constexpr double kFluoroBone = 0.42;            // rigid regions and obstacles
-constexpr double kFluoroVignette = 0.18;        // brightness lost at the frame's corners
+constexpr double kFluoroRegionContrast = 0.06;      // soft-tissue regions: +- this by echogenicity
+constexpr double kFluoroBone = 0.42;                // rigid regions and obstacles
+constexpr double kFluoroVignette = 0.18;            // brightness lost at the frame's corners
 constexpr double kFluoroNeedleTransmission = 0.18;  // the metal needle keeps 18 % of the light
 
 // ---- ultrasound ----
@@ -26,45 +33,23 @@ constexpr double kUsTissue = 0.25;            // background tissue echogenicity
 constexpr double kUsObstacleInterior = 0.10;  // inside an obstacle (bone-like, little comes back)
 constexpr double kUsBoundary = 0.85;          // specular tissue boundary (obstacle outline)
 constexpr double kUsBoundaryWidth_m = 0.4e-3;
-constexpr double kUsTargetEcho = 0.22;           // the target lesion is hypoechoic
-constexpr double kUsSpeckleLateral_m = 0.4e-3;   // speckle grain across the beam (x)
-constexpr double kUsSpeckleAxial_m = 0.15e-3;    // and along it (y)
-constexpr double kUsAttenuation_per_m = 6.0;     // gain exp(-k d) after time-gain compensation
-constexpr double kUsShadowGain = 0.3;            // behind an obstacle along the beam
-constexpr double kUsNeedleMin = 0.45;            // needle echo when parallel to the beam
-constexpr double kUsNeedleMax = 1.3;             // needle echo when facing the beam
-constexpr double kUsNeedleSpecularPower = 2.0;   // echo ~ |cos(angle to the probe face)|^p
-constexpr double kUsNeedleDropoutDepth = 0.5;    // partial visibility along the shaft
+constexpr double kUsTargetEcho = 0.22;          // the target lesion is hypoechoic
+constexpr double kUsSpeckleLateral_m = 0.4e-3;  // speckle grain across the beam (x)
+constexpr double kUsSpeckleAxial_m = 0.15e-3;   // and along it (y)
+constexpr double kUsAttenuation_per_m = 6.0;    // gain exp(-k d) after time-gain compensation
+constexpr double kUsShadowGain = 0.3;           // behind an obstacle along the beam
+constexpr double kUsNeedleMin = 0.45;           // needle echo when parallel to the beam
+constexpr double kUsNeedleMax = 1.3;            // needle echo when facing the beam
+constexpr double kUsNeedleSpecularPower = 2.0;  // echo ~ |cos(angle to the probe face)|^p
+constexpr double kUsNeedleDropoutDepth = 0.5;   // partial visibility along the shaft
 constexpr double kUsNeedleDropoutPeriod_m = 6e-3;
-constexpr double kUsTipEcho = 1.3;               // the bevel reflects strongly
+constexpr double kUsTipEcho = 1.3;  // the bevel reflects strongly
 constexpr double kUsTipEchoLength_m = 0.8e-3;
-constexpr int kUsReverberations = 3;             // comet-tail echoes behind the needle
+constexpr int kUsReverberations = 3;  // comet-tail echoes behind the needle
 constexpr double kUsReverberationSpacing_m = 1.6e-3;
 constexpr double kUsReverberationDecay = 0.45;
-constexpr double kUsEchoFullScale = 1.5;        // the needle echo canvas (8-bit) spans 0..1.5
-constexpr double kNeedleDrawStep_m = 0.25e-3;    // the needle is drawn as pieces this long
-
-// SplitMix64: decorrelated 64-bit values from (seed, index, stream).
-std::uint64_t mix(std::uint64_t x) {
-  x += 0x9E3779B97F4A7C15ULL;
-  x = (x ^ (x >> 30U)) * 0xBF58476D1CE4E5B9ULL;
-  x = (x ^ (x >> 27U)) * 0x94D049BB133111EBULL;
-  return x ^ (x >> 31U);
-}
-std::uint64_t streamSeed(std::uint64_t seed, std::uint64_t index, std::uint64_t stream) {
-  return mix(mix(mix(seed) ^ index) ^ stream);
-}
-double uniform01(std::uint64_t bits) { return double(bits >> 11U) * (1.0 / 9007199254740992.0); }
-
-std::vector<cv::Point> fixedPoint(const std::vector<Point2>& points, const ImageGeometry& g) {
-  std::vector<cv::Point> out;
-  out.reserve(points.size());
-  for (const Point2& p : points) {
-    const cv::Point2d px = g.toPixel(p);
-    out.emplace_back(int(std::lround(px.x * kShiftScale)), int(std::lround(px.y * kShiftScale)));
-  }
-  return out;
-}
+constexpr double kUsEchoFullScale = 1.5;       // the needle echo canvas (8-bit) spans 0..1.5
+constexpr double kNeedleDrawStep_m = 0.25e-3;  // the needle is drawn as pieces this long
 
 void fillPolygon(cv::Mat& image, const geometry::Polygon& polygon, const ImageGeometry& g,
                  double value) {
@@ -89,7 +74,31 @@ double shaftVisibility(double s_m, std::uint64_t seed) {
   return 1.0 - kUsNeedleDropoutDepth * std::clamp(v, 0.0, 1.0);
 }
 
+/// The frame's additive Gaussian noise (the device's electronics), fraction of full scale.
+void addNoise(cv::Mat* image, const ImagerConfig& config, std::uint64_t index) {
+  if (config.noise_std > 0.0) {
+    cv::Mat noise(image->size(), CV_32F);
+    cv::RNG rng(streamSeed(config.seed, index, 0x401));
+    rng.fill(noise, cv::RNG::NORMAL, 0.0, config.noise_std);
+    *image += noise;
+  }
+}
+
 }  // namespace
+
+std::string toString(UltrasoundModel model) {
+  return model == UltrasoundModel::kRealistic ? "realistic" : "classic";
+}
+
+std::optional<UltrasoundModel> ultrasoundModelFromString(const std::string& name) {
+  if (name == "classic") {
+    return UltrasoundModel::kClassic;
+  }
+  if (name == "realistic") {
+    return UltrasoundModel::kRealistic;
+  }
+  return std::nullopt;
+}
 
 std::string toString(Modality modality) {
   return modality == Modality::kFluoroscopy ? "fluoroscopy" : "ultrasound";
@@ -155,7 +164,8 @@ ImageGeometry fieldOfView(const scene::Scene& scene, double pixel_size_m, int co
   const Point2 centre = 0.5 * (scene.workspace_min + scene.workspace_max);
   g.cols = cols;
   g.rows = rows;
-  g.origin_m = Point2(centre.x() - 0.5 * cols * pixel_size_m, centre.y() + 0.5 * rows * pixel_size_m);
+  g.origin_m =
+      Point2(centre.x() - 0.5 * cols * pixel_size_m, centre.y() + 0.5 * rows * pixel_size_m);
   return g;
 }
 
@@ -166,11 +176,11 @@ FrameRenderer::FrameRenderer(const scene::Scene& scene, const ImagerConfig& conf
   if (config_.modality == Modality::kFluoroscopy) {
     anatomy_ = cv::Mat(g.size(), CV_32F, cv::Scalar(kFluoroSoftTissue));
     for (const scene::Region& region : scene.regions) {
-      const double v = region.rigid ? kFluoroBone
-                                    : kFluoroSoftTissue + kFluoroRegionContrast *
-                                                              (0.35 - tissue::meanEchogenicity(
-                                                                          region.material)) /
-                                                              0.35;
+      const double v =
+          region.rigid
+              ? kFluoroBone
+              : kFluoroSoftTissue + kFluoroRegionContrast *
+                                        (0.35 - tissue::meanEchogenicity(region.material)) / 0.35;
       fillPolygon(anatomy_, region.polygon, g, v);
     }
     for (const scene::Obstacle& obstacle : scene.obstacles) {
@@ -189,6 +199,10 @@ FrameRenderer::FrameRenderer(const scene::Scene& scene, const ImagerConfig& conf
     return;
   }
 
+  if (config_.ultrasound_model == UltrasoundModel::kRealistic) {
+    realistic::anatomy(scene, config_, &anatomy_, &attenuation_);
+    return;
+  }
   // Ultrasound: echogenicity map x static speckle; attenuation and shadows as a separate gain
   // so that the needle, drawn per frame, is attenuated like the tissue around it.
   cv::Mat echo(g.size(), CV_32F, cv::Scalar(kUsTissue));
@@ -200,10 +214,10 @@ FrameRenderer::FrameRenderer(const scene::Scene& scene, const ImagerConfig& conf
   for (const scene::Target& target : scene.targets) {
     if (target.radius_m > 0.0) {
       const cv::Point2d c = g.toPixel(target.position);
-      cv::circle(echo,
-                 cv::Point(int(std::lround(c.x * kShiftScale)), int(std::lround(c.y * kShiftScale))),
-                 int(std::lround(target.radius_m / g.pixel_size_m * kShiftScale)),
-                 cv::Scalar(kUsTargetEcho), cv::FILLED, cv::LINE_AA, kShiftBits);
+      cv::circle(
+          echo, cv::Point(int(std::lround(c.x * kShiftScale)), int(std::lround(c.y * kShiftScale))),
+          int(std::lround(target.radius_m / g.pixel_size_m * kShiftScale)),
+          cv::Scalar(kUsTargetEcho), cv::FILLED, cv::LINE_AA, kShiftBits);
     }
   }
   cv::Mat obstacle_mask(g.size(), CV_8U, cv::Scalar(0));
@@ -220,10 +234,9 @@ FrameRenderer::FrameRenderer(const scene::Scene& scene, const ImagerConfig& conf
                   std::vector<std::vector<cv::Point>>{fixedPoint(region.polygon.vertices(), g)},
                   true, cv::Scalar(0.75), boundary_px, cv::LINE_AA, kShiftBits);
   }
-  const cv::Mat speckle =
-      tissue::rayleighSpeckle(g.size(), kUsSpeckleLateral_m / g.pixel_size_m,
-                              kUsSpeckleAxial_m / g.pixel_size_m,
-                              std::uint32_t(streamSeed(config_.seed, 0, 0x5EC)));
+  const cv::Mat speckle = tissue::rayleighSpeckle(
+      g.size(), kUsSpeckleLateral_m / g.pixel_size_m, kUsSpeckleAxial_m / g.pixel_size_m,
+      std::uint32_t(streamSeed(config_.seed, 0, 0x5EC)));
   anatomy_ = echo.mul(speckle);
 
   // The probe is on the lower face (the bottom row); the beam travels up the image (+y).
@@ -239,8 +252,8 @@ FrameRenderer::FrameRenderer(const scene::Scene& scene, const ImagerConfig& conf
       }
       inside = in_obstacle;
       const double depth_m = (g.rows - 1 - r) * g.pixel_size_m;
-      attenuation_.at<float>(r, c) = float(std::exp(-kUsAttenuation_per_m * depth_m) *
-                                           (shadowed ? kUsShadowGain : 1.0));
+      attenuation_.at<float>(r, c) =
+          float(std::exp(-kUsAttenuation_per_m * depth_m) * (shadowed ? kUsShadowGain : 1.0));
     }
   }
   // Soften the shadow edges a little (diffraction).
@@ -266,7 +279,15 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
     return frame;
   }
   const ImageGeometry& g = config_.geometry;
-  const int thickness_px = std::max(1, int(std::lround(config_.needle_diameter_m / g.pixel_size_m)));
+  if (config_.modality == Modality::kUltrasound &&
+      config_.ultrasound_model == UltrasoundModel::kRealistic) {
+    // The noise enters before the log compression (realistic_ultrasound.h).
+    const cv::Mat image = realistic::frame(anatomy_, attenuation_, config_, needle_points, index);
+    image.convertTo(frame.image, CV_8U, 255.0);
+    return frame;
+  }
+  const int thickness_px =
+      std::max(1, int(std::lround(config_.needle_diameter_m / g.pixel_size_m)));
 
   // The needle as short pieces: each piece's coverage (mask) and, in ultrasound, its echo.
   cv::Mat mask(g.size(), CV_8U, cv::Scalar(0));
@@ -276,21 +297,7 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
   }
   std::vector<Point2> pieces;  // resampled every kNeedleDrawStep_m
   std::vector<double> lengths;
-  if (needle_points.size() >= 2) {
-    double s = 0.0;
-    pieces.push_back(needle_points.front());
-    lengths.push_back(0.0);
-    for (std::size_t i = 1; i < needle_points.size(); ++i) {
-      const Point2 a = needle_points[i - 1], b = needle_points[i];
-      const double len = (b - a).norm();
-      const int n = std::max(1, int(std::ceil(len / kNeedleDrawStep_m)));
-      for (int k = 1; k <= n; ++k) {
-        pieces.push_back(a + (b - a) * (double(k) / n));
-        lengths.push_back(s + len * double(k) / n);
-      }
-      s += len;
-    }
-  }
+  render::resampleNeedle(needle_points, kNeedleDrawStep_m, &pieces, &lengths);
   const double total_m = lengths.empty() ? 0.0 : lengths.back();
   std::vector<std::vector<cv::Point>> ghosts(kUsReverberations);
   for (std::size_t i = 1; i < pieces.size(); ++i) {
@@ -301,19 +308,20 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
     }
     const Point2 d = pieces[i] - pieces[i - 1];
     const double cos_to_face = d.norm() > 0.0 ? std::abs(d.x()) / d.norm() : 0.0;
-    double e = kUsNeedleMin + (kUsNeedleMax - kUsNeedleMin) *
-                                  std::pow(cos_to_face, kUsNeedleSpecularPower);
+    double e = kUsNeedleMin +
+               (kUsNeedleMax - kUsNeedleMin) * std::pow(cos_to_face, kUsNeedleSpecularPower);
     e *= shaftVisibility(lengths[i], config_.seed);
     if (total_m - lengths[i] <= kUsTipEchoLength_m) {
       e = std::max(e, kUsTipEcho);
     }
-    cv::line(echo, ab[0], ab[1], cv::Scalar(255.0 * e / kUsEchoFullScale), thickness_px, cv::LINE_AA, kShiftBits);
+    cv::line(echo, ab[0], ab[1], cv::Scalar(255.0 * e / kUsEchoFullScale), thickness_px,
+             cv::LINE_AA, kShiftBits);
     for (int k = 1; k <= kUsReverberations; ++k) {
       const Point2 shift(0.0, k * kUsReverberationSpacing_m);
       const std::vector<cv::Point> gh = fixedPoint({pieces[i - 1] + shift, pieces[i] + shift}, g);
       const double ge = e * std::pow(kUsReverberationDecay, k);
-      cv::line(echo, gh[0], gh[1], cv::Scalar(255.0 * ge / kUsEchoFullScale), std::max(1, thickness_px - 1),
-               cv::LINE_AA, kShiftBits);
+      cv::line(echo, gh[0], gh[1], cv::Scalar(255.0 * ge / kUsEchoFullScale),
+               std::max(1, thickness_px - 1), cv::LINE_AA, kShiftBits);
     }
   }
 
@@ -330,15 +338,9 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
     // The needle replaces the tissue it covers; its reverberation ghosts add to the tissue.
     image = anatomy_.mul(1.0 - coverage) + needle_echo;
     image = image.mul(attenuation_);
-   
   }
   blur(image, config_.blur_sigma_m / g.pixel_size_m);
-  if (config_.noise_std > 0.0) {
-    cv::Mat noise(g.size(), CV_32F);
-    cv::RNG rng(streamSeed(config_.seed, index, 0x401));
-    rng.fill(noise, cv::RNG::NORMAL, 0.0, config_.noise_std);
-    image += noise;
-  }
+  addNoise(&image, config_, index);
   image.convertTo(frame.image, CV_8U, 255.0);  // rounds and saturates to 0..255
   return frame;
 }

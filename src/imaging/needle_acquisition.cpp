@@ -36,6 +36,18 @@ constexpr double kBorderMargin_px = 3.0;
 /// Step 5: power of the side symmetry in the score: an interface between media whose
 /// echogenicity differs by half scores an eighth, a needle inside one medium nearly 1.
 constexpr double kSymmetryPower = 3.0;
+/// Sequence cue (SequenceTracker): a candidate moves if the frame difference against the
+/// background model, averaged over the tip end of its segment (the last kMotionTipZone of it,
+/// at least kMotionMinZone_px), is kMinMotionRatio times the frame's mean difference (noise,
+/// speckle flicker). A needle advancing along its own axis changes the pixels at its tip while
+/// still tissue, a still interface or a still wire does not; a moving probe changes everything,
+/// and then no candidate stands out and the cue is silent.
+constexpr double kMotionTipZone = 0.3;
+constexpr double kMotionMinZone_px = 10.0;
+constexpr double kMotionBeyondGaps = 2.0;  // the zone runs on this many max_gap_px past the end
+constexpr double kMinMotionRatio = 3.0;
+/// Background model: exponential average of the frames, this weight for the newest.
+constexpr double kBackgroundRate = 0.3;
 /// Step 5: a ridge pixel is aligned with the line if its orientation is within this [rad].
 constexpr double kAlignedTolerance_rad = 15.0 * kPi / 180.0;
 
@@ -47,9 +59,12 @@ struct RidgeMap {
   float threshold = 0.0F;
 };
 
+/// A straight line, or with kappa != 0 an arc of constant curvature (a steerable needle):
+/// through `point` with tangent `dir` there, turning towards n = (-dir.y, dir.x) at kappa [1/px].
 struct Line {
-  cv::Point2d point;  ///< a point on the line
-  cv::Point2d dir;    ///< unit direction
+  cv::Point2d point;   ///< a point on the curve
+  cv::Point2d dir;     ///< unit tangent at `point`
+  double kappa = 0.0;  ///< signed curvature [1/px], 0 = straight
 };
 
 struct Candidate {
@@ -59,8 +74,27 @@ struct Candidate {
   double score = 0.0;
 };
 
+/// The point at arc length t from l.point.
 cv::Point2d at(const Line& l, double t) {
-  return l.point + t * l.dir;
+  if (l.kappa == 0.0)
+    return l.point + t * l.dir;
+  const cv::Point2d n(-l.dir.y, l.dir.x);
+  return l.point + (std::sin(l.kappa * t) / l.kappa) * l.dir +
+         ((1.0 - std::cos(l.kappa * t)) / l.kappa) * n;
+}
+
+/// Unit tangent at arc length t.
+cv::Point2d tangent(const Line& l, double t) {
+  if (l.kappa == 0.0)
+    return l.dir;
+  const cv::Point2d n(-l.dir.y, l.dir.x);
+  return std::cos(l.kappa * t) * l.dir + std::sin(l.kappa * t) * n;
+}
+
+/// Unit normal at arc length t (the tangent turned by +90 degrees in image coordinates).
+cv::Point2d normal(const Line& l, double t) {
+  const cv::Point2d d = tangent(l, t);
+  return {-d.y, d.x};
 }
 
 float sample(const cv::Mat& m, cv::Point2d p) {
@@ -140,6 +174,15 @@ std::vector<Line> candidateLines(const RidgeMap& ridge, double min_length_px) {
 
 /// Step 4: the parameter range of the line inside the frame.
 bool lineSpan(const Line& l, cv::Size size, double* t_lo, double* t_hi) {
+  if (l.kappa != 0.0) {
+    // An arc: up to a frame diagonal (and a quarter of the circle) either way; the samples
+    // outside the frame read 0.
+    const double reach =
+        std::min(std::hypot(size.width, size.height), 0.5 * kPi / std::abs(l.kappa));
+    *t_lo = -reach;
+    *t_hi = reach;
+    return true;
+  }
   double lo = -1e9, hi = 1e9;
   const double p[2] = {l.point.x, l.point.y}, d[2] = {l.dir.x, l.dir.y};
   const double mx[2] = {size.width - 1.0, size.height - 1.0};
@@ -162,17 +205,17 @@ bool lineSpan(const Line& l, cv::Size size, double* t_lo, double* t_hi) {
 
 /// Step 4: the strongest run of ridge along the line (gaps up to max_gap bridged).
 bool traceSegment(const RidgeMap& ridge, const Line& l, double sigma, double max_gap, double* t0,
-                  double* t1) {
+                  double* t1, double* strength = nullptr) {
   double lo = 0, hi = 0;
   if (!lineSpan(l, ridge.strength.size(), &lo, &hi))
     return false;
-  const cv::Point2d n(-l.dir.y, l.dir.x);
   const int reach = std::max(1, static_cast<int>(std::lround(kNearLineSigmas * sigma)));
   double best = 0, run_sum = 0, run_start = lo, last_on = lo - 2 * max_gap;
   for (double t = lo; t <= hi; t += 1.0) {
+    const cv::Point2d n = normal(l, t), p = at(l, t);
     float v = 0.0F;
     for (int k = -reach; k <= reach; ++k)
-      v = std::max(v, sample(ridge.strength, at(l, t) + k * n));
+      v = std::max(v, sample(ridge.strength, p + k * n));
     if (v <= ridge.threshold)
       continue;
     if (t - last_on > max_gap) {
@@ -187,6 +230,8 @@ bool traceSegment(const RidgeMap& ridge, const Line& l, double sigma, double max
       *t1 = t;
     }
   }
+  if (strength)
+    *strength = best;
   return best > 0;
 }
 
@@ -216,15 +261,62 @@ Line refitLine(const RidgeMap& ridge, const Line& l, double t0, double t1, doubl
   return {cv::Point2d(mx, my), dir};
 }
 
+/// Step 4 (arc of known radius 1 / |l.kappa|): the centre that minimises the weighted squared
+/// distance of the ridge pixels near the arc from the circle (Gauss-Newton), re-expressed as an
+/// arc through the point nearest the old segment's middle.
+Line refitArc(const RidgeMap& ridge, const Line& l, double t0, double t1, double sigma) {
+  const double radius = 1.0 / std::abs(l.kappa);
+  const double tm = 0.5 * (t0 + t1);
+  const cv::Point2d pm = at(l, tm);
+  cv::Point2d c = pm + (1.0 / l.kappa) * normal(l, tm);
+  std::vector<cv::Point3d> pts;  // x, y, weight
+  const int reach = std::max(1, static_cast<int>(std::lround(kNearLineSigmas * sigma)));
+  for (double t = t0; t <= t1; t += 1.0) {
+    const cv::Point2d n = normal(l, t), p = at(l, t);
+    for (int k = -reach; k <= reach; ++k) {
+      const cv::Point2d q = p + k * n;
+      const double w = sample(ridge.strength, q) - ridge.threshold;
+      if (w > 0)
+        pts.emplace_back(std::round(q.x), std::round(q.y), w);
+    }
+  }
+  if (pts.size() < 3)
+    return l;
+  for (int iter = 0; iter < 5; ++iter) {
+    double a11 = 0, a12 = 0, a22 = 0, b1 = 0, b2 = 0;
+    for (const cv::Point3d& q : pts) {
+      const cv::Point2d d(q.x - c.x, q.y - c.y);
+      const double r = std::max(cv::norm(d), 1e-9);
+      const cv::Point2d j = -d / r;  // d(r - R)/dc
+      const double e = r - radius;
+      a11 += q.z * j.x * j.x, a12 += q.z * j.x * j.y, a22 += q.z * j.y * j.y;
+      b1 -= q.z * j.x * e, b2 -= q.z * j.y * e;
+    }
+    const double det = a11 * a22 - a12 * a12;
+    if (std::abs(det) < 1e-12)
+      break;
+    c += cv::Point2d((a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det);
+  }
+  const cv::Point2d radial = (pm - c) / std::max(cv::norm(pm - c), 1e-9);
+  Line out;
+  out.point = c + radius * radial;
+  out.dir = cv::Point2d(-radial.y, radial.x);
+  if (out.dir.dot(tangent(l, tm)) < 0)
+    out.dir = -out.dir;
+  // The centre lies on the side of the normal when kappa > 0.
+  const cv::Point2d n(-out.dir.y, out.dir.x);
+  out.kappa = (c - out.point).dot(n) > 0 ? 1.0 / radius : -1.0 / radius;
+  return out;
+}
+
 /// Step 5: contrast, side symmetry, coherence and evidence of a candidate segment.
 void measureCues(const RidgeMap& ridge, Candidate* c, double sigma) {
-  const cv::Point2d n(-c->line.dir.y, c->line.dir.x);
   double on = 0, a = 0, b = 0, a2 = 0, b2 = 0, aligned = 0, ridge_px = 0;
   int count = 0, band = 0;
   const double lo = kBandInnerSigmas * sigma, hi = kBandOuterSigmas * sigma;
-  const double line_angle = std::atan2(c->line.dir.y, c->line.dir.x);
   for (double t = c->t0; t <= c->t1; t += 1.0) {
-    const cv::Point2d p = at(c->line, t);
+    const cv::Point2d p = at(c->line, t), n = normal(c->line, t), d = tangent(c->line, t);
+    const double line_angle = std::atan2(d.y, d.x);
     on += sample(ridge.smooth, p);
     ++count;
     for (double o = lo; o <= hi; o += 1.0) {
@@ -294,15 +386,26 @@ void orientByEntry(const Candidate& c, EntrySide entry, cv::Size size, NeedleSeg
       break;
     case EntrySide::kAuto: {
       // The needle comes in from the border its shaft points to: the end with the shorter
-      // way out along the shaft is the entry.
-      const cv::Point2d d = (b - a) / std::max(cv::norm(b - a), 1e-9);
-      a_is_tail = rayToBorder(a, -d, size) <= rayToBorder(b, d, size);
+      // way out along the shaft (its tangent there, for an arc) is the entry.
+      if (c.line.kappa == 0.0) {
+        const cv::Point2d d = (b - a) / std::max(cv::norm(b - a), 1e-9);
+        a_is_tail = rayToBorder(a, -d, size) <= rayToBorder(b, d, size);
+      } else {
+        a_is_tail = rayToBorder(a, -tangent(c.line, c.t0), size) <=
+                    rayToBorder(b, tangent(c.line, c.t1), size);
+      }
       break;
     }
   }
   s->tail_px = a_is_tail ? a : b;
   s->tip_px = a_is_tail ? b : a;
   s->angle_rad = std::atan2(s->tip_px.y - s->tail_px.y, s->tip_px.x - s->tail_px.x);
+  s->curvature_per_px = 0.0;
+  if (c.line.kappa != 0.0) {
+    const cv::Point2d d = a_is_tail ? tangent(c.line, c.t1) : -tangent(c.line, c.t0);
+    s->angle_rad = std::atan2(d.y, d.x);
+    s->curvature_per_px = a_is_tail ? c.line.kappa : -c.line.kappa;
+  }
 }
 
 /// Cross-line contrast at p: the smoothed frame on the line minus its mean in the side bands.
@@ -325,14 +428,25 @@ double crossContrast(const RidgeMap& ridge, cv::Point2d p, cv::Point2d n, double
 /// Step 6 (tip): walking from the tail, the needle ends where its cross-line contrast stays
 /// below kTipLevel of the shaft's level for more than max_gap (a faint
 /// streak beyond the tip passes the ridge threshold but not this).
-void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, NeedleSegment* s) {
-  const double length = cv::norm(s->tip_px - s->tail_px);
-  if (length < 1.0)
-    return;
-  const cv::Point2d d = (s->tip_px - s->tail_px) / length, n(-d.y, d.x);
+void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, const Candidate& cand,
+                    NeedleSegment* s) {
+  // The shaft from the tail towards the tip: straight, or the candidate's arc walked from
+  // whichever end is the tail.
+  Line path;
+  double length = cv::norm(s->tip_px - s->tail_px);
+  if (cand.line.kappa == 0.0) {
+    if (length < 1.0)
+      return;
+    path = {s->tail_px, (s->tip_px - s->tail_px) / length, 0.0};
+  } else {
+    const bool from_t0 = cv::norm(s->tail_px - at(cand.line, cand.t0)) < 0.5;
+    length = cand.t1 - cand.t0;
+    path = {s->tail_px, from_t0 ? tangent(cand.line, cand.t0) : -tangent(cand.line, cand.t1),
+            s->curvature_per_px};
+  }
   std::vector<double> c;
   for (double u = 0; u <= length; u += 1.0)
-    c.push_back(crossContrast(ridge, s->tail_px + u * d, n, sigma));
+    c.push_back(crossContrast(ridge, at(path, u), normal(path, u), sigma));
   std::vector<double> smooth(c.size());
   for (std::size_t i = 0; i < c.size(); ++i) {
     const std::size_t a = i < 2 ? 0 : i - 2, b = std::min(c.size() - 1, i + 2);
@@ -348,6 +462,27 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, NeedleS
   if (half <= 0)
     return;
   double last = 0;
+  if (path.kappa != 0.0) {
+    // An arc traced on past the tail (across a reverberation copy or the shadow's edge): the
+    // needle is the run above the level (gaps up to max_gap bridged) with the most contrast.
+    double best = 0, sum = 0, start = 0, best_start = 0, on = -1e9;
+    for (std::size_t i = 0; i < smooth.size(); ++i) {
+      const double u = static_cast<double>(i);
+      if (smooth[i] < half)
+        continue;
+      if (u - on > max_gap)
+        sum = 0, start = u;
+      sum += smooth[i];
+      on = u;
+      if (sum > best)
+        best = sum, best_start = start, last = u;
+    }
+    s->tail_px = at(path, best_start);
+    s->tip_px = at(path, last);
+    const cv::Point2d d = tangent(path, last);
+    s->angle_rad = std::atan2(d.y, d.x);
+    return;
+  }
   for (std::size_t i = 0; i < smooth.size(); ++i) {
     const double u = static_cast<double>(i);
     if (u - last > max_gap)
@@ -355,7 +490,35 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, NeedleS
     if (smooth[i] >= half)
       last = u;
   }
-  s->tip_px = s->tail_px + last * d;
+  s->tip_px = at(path, last);
+}
+
+/// Step 4 for a needle of constant curvature (options.radius_px): from the straight fit (about
+/// the chord of the visible part), an arc of that radius bending either way, each refit to the
+/// ridge and traced again; the way that traces more ridge wins.
+bool bendToArc(const RidgeMap& ridge, const AcquisitionOptions& o, Candidate* c) {
+  double best_strength = 0.0;
+  Candidate best = *c;
+  for (const double sign : {1.0, -1.0}) {
+    Candidate arc = *c;
+    const double tm = 0.5 * (arc.t0 + arc.t1);
+    arc.line = {at(c->line, tm), c->line.dir, sign / o.radius_px};
+    arc.t0 -= tm;
+    arc.t1 -= tm;
+    double strength = 0.0;
+    bool ok = true;
+    for (int pass = 0; pass < 3 && ok; ++pass) {
+      arc.line = refitArc(ridge, arc.line, arc.t0, arc.t1, o.ridge_sigma_px);
+      ok = traceSegment(ridge, arc.line, o.ridge_sigma_px, o.max_gap_px, &arc.t0, &arc.t1,
+                        &strength);
+    }
+    if (ok && strength > best_strength) {
+      best_strength = strength;
+      best = arc;
+    }
+  }
+  *c = best;
+  return best_strength > 0.0;
 }
 
 /// Steps 4-5 for one Hough line: trace, refit, trace again, measure.
@@ -370,6 +533,8 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
     if (!traceSegment(ridge, c.line, o.ridge_sigma_px, o.max_gap_px, &c.t0, &c.t1))
       return {};
   }
+  if (o.radius_px > 0.0 && !bendToArc(ridge, o, &c))
+    return {};
   if (c.t1 - c.t0 < o.min_length_px)
     return {};
   // A line running from border to border has no tip in view: an interface, not a needle.
@@ -428,6 +593,8 @@ void AcquisitionOptions::validate() const {
   check(std::isfinite(min_length_px) && min_length_px >= 5, "min_length_px", min_length_px);
   check(std::isfinite(max_gap_px) && max_gap_px >= 0, "max_gap_px", max_gap_px);
   check(std::isfinite(min_evidence) && min_evidence >= 0, "min_evidence", min_evidence);
+  check(std::isfinite(radius_px) && (radius_px == 0 || radius_px >= min_length_px / kPi),
+        "radius_px", radius_px);
 }
 
 double NeedleSegment::length_px() const {
@@ -464,6 +631,54 @@ cv::Mat toGrey8(const cv::Mat& frame, std::string* problem) {
 }
 
 NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options) {
+  return acquireNeedle(frame, options, cv::Mat());
+}
+
+namespace {
+
+/// Sequence cue of one oriented candidate: the motion map's mean over the tip end, which runs
+/// on past the traced end by `beyond` px (the part the needle has just advanced into is the
+/// faint, blurred end that the trace stops short of).
+double tipMotion(const cv::Mat& motion, const NeedleSegment& s, double beyond) {
+  const double length = s.length_px();
+  if (motion.empty() || length < 1.0)
+    return 0.0;
+  const cv::Point2d d = (s.tip_px - s.tail_px) / length;
+  const double zone = std::min(length, std::max(kMotionMinZone_px, kMotionTipZone * length));
+  double sum = 0;
+  int count = 0;
+  for (double u = length - zone; u <= length + beyond; u += 1.0) {
+    sum += sample(motion, s.tail_px + u * d);
+    ++count;
+  }
+  return count > 0 ? sum / count : 0.0;
+}
+
+/// Step 6 with the sequence cue: orient every candidate, measure its motion; when one that
+/// passes the evidence threshold moves, the still ones drop out (never a still line over a
+/// moving needle); the best score wins.
+std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const AcquisitionOptions& o,
+                                       cv::Size size, const cv::Mat& motion) {
+  bool any_moving = false;
+  for (Candidate& c : all) {
+    orientByEntry(c, o.entry, size, &c.cues);
+    c.cues.motion = tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
+    any_moving = any_moving || (c.cues.motion >= kMinMotionRatio && c.score >= o.min_evidence);
+  }
+  std::optional<Candidate> best;
+  for (const Candidate& c : all) {
+    if (any_moving && c.cues.motion < kMinMotionRatio)
+      continue;
+    if (!best || c.score > best->score)
+      best = c;
+  }
+  return best;
+}
+
+}  // namespace
+
+NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options,
+                            const cv::Mat& motion) {
   NeedleSegment none;
   try {
     options.validate();
@@ -477,21 +692,24 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
     none.message = problem;
     return none;
   }
+  if (!motion.empty() && (motion.size() != grey.size() || motion.type() != CV_32FC1)) {
+    none.message = "motion map is not CV_32FC1 of the frame's size";
+    return none;
+  }
   RidgeMap ridge = ridgeFilter(grey, options.ridge_sigma_px);  // step 2
   ridge.threshold = ridgeThreshold(ridge.strength);
-  std::optional<Candidate> best;
+  std::vector<Candidate> all;
   for (const Line& line : candidateLines(ridge, options.min_length_px)) {  // step 3
-    std::optional<Candidate> c = examine(ridge, line, options);            // steps 4-5
-    if (c && (!best || c->score > best->score))
-      best = c;
+    if (std::optional<Candidate> c = examine(ridge, line, options))        // steps 4-5
+      all.push_back(*c);
   }
+  const std::optional<Candidate> best = bestCandidate(all, options, grey.size(), motion);
   if (!best) {
     none.message = "no line of at least " + std::to_string(options.min_length_px) + " px";
     return none;
   }
   NeedleSegment s = best->cues;  // step 6
-  orientByEntry(*best, options.entry, grey.size(), &s);
-  tipAtHalfLevel(ridge, options.ridge_sigma_px, options.max_gap_px, &s);
+  tipAtHalfLevel(ridge, options.ridge_sigma_px, options.max_gap_px, *best, &s);
   if (best->score < options.min_evidence) {
     s.found = false;
     s.message = "best line too weak to be a needle: " + summary(s);
@@ -516,6 +734,28 @@ bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, dou
   return da < kGateAngle_rad && off_line < kGateLine_px && cv::norm(b.tip_px - a.tip_px) < tip_px;
 }
 
+cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
+  std::string problem;
+  const cv::Mat grey = toGrey8(frame, &problem);
+  if (grey.empty())
+    return {};
+  cv::Mat current;
+  grey.convertTo(current, CV_32F);
+  cv::Mat motion;
+  if (!background_.empty() && background_.size() == current.size()) {
+    // The signed difference smoothed at the needle's scale before its magnitude: the frame's
+    // own noise averages out, a change as wide as the needle does not.
+    cv::subtract(current, background_, motion);
+    cv::GaussianBlur(motion, motion, cv::Size(), options_.ridge_sigma_px);
+    motion = cv::abs(motion);
+    motion *= 1.0 / (cv::mean(motion)[0] + 1.0);  // +1 grey level: a noise-free still frame
+    cv::accumulateWeighted(current, background_, kBackgroundRate);
+  } else {
+    background_ = current;
+  }
+  return motion;
+}
+
 SequenceTracker::Output SequenceTracker::onFrame(const cv::Mat& frame) {
   if (!frame.empty() && !last_frame_.empty() && frame.size() == last_frame_.size() &&
       frame.type() == last_frame_.type() && cv::norm(frame, last_frame_, cv::NORM_INF) == 0) {
@@ -526,7 +766,7 @@ SequenceTracker::Output SequenceTracker::onFrame(const cv::Mat& frame) {
     return repeated;
   }
   last_frame_ = frame.clone();
-  last_output_ = update(acquireNeedle(frame, options_));
+  last_output_ = update(acquireNeedle(frame, options_, motionMap(frame)));
   return last_output_;
 }
 
@@ -546,6 +786,18 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       candidate_.reset();
       out.segment = d;
       out.confident = agreeing_ >= kConfirmFrames;
+      return out;
+    }
+    if (d.found && d.motion >= kMinMotionRatio && track_->motion < kMinMotionRatio) {
+      // The sequence cue: the track was a still line, this detection moves at its tip (a
+      // needle advancing): the still line gives way at once, without waiting for agreement.
+      track_ = d;
+      velocity_px_ = 0;
+      agreeing_ = 1;
+      missed_ = 0;
+      candidate_.reset();
+      out.segment = d;
+      out.segment.message = "moving needle replaces a still line: " + d.message;
       return out;
     }
     if (d.found) {  // gated out: re-acquire only after agreeing frames

@@ -1,6 +1,8 @@
 // Synthetic B-mode frames (issue 17); see synthetic_bmode.h.
 #include "needle_guidance/imaging/synthetic_bmode.h"
 
+#include <algorithm>
+#include <cmath>
 #include <opencv2/imgproc.hpp>
 
 namespace needle_guidance::imaging {
@@ -39,14 +41,20 @@ void addInterface(const BModeInterface& f, cv::Mat* img, cv::Mat* add) {
            cv::LINE_AA);
 }
 
+/// Heading at the tail: the chord's, turned back by half the arc's total turn.
+double tailHeading(const BModeNeedle& n) {
+  const cv::Point2d chord = n.tip - n.tail;
+  const double k = n.curvature_per_px;
+  return std::atan2(chord.y, chord.x) - std::asin(std::clamp(0.5 * cv::norm(chord) * k, -1.0, 1.0));
+}
+
 void addNeedle(const BModeNeedle& n, cv::Mat* img, cv::Mat* add) {
-  const double len = cv::norm(n.tip - n.tail);
+  const double len = n.length();
   if (len < 1.0)
     return;
-  const cv::Point2d u = (n.tip - n.tail) / len;
   const double fade_start = (1.0 - n.fade_fraction) * len;
   for (double s = 0; s <= len; s += 0.5) {
-    const cv::Point2d p = n.tail + s * u;
+    const cv::Point2d p = n.at(s);
     const double w = s < fade_start ? 1.0 : 1.0 - (s - fade_start) / (len - fade_start + 1e-9);
     cv::circle(*add, p, 1, n.brightness * w, cv::FILLED, cv::LINE_AA);
     for (int k = 1; k <= 2; ++k) {
@@ -63,6 +71,27 @@ void addNeedle(const BModeNeedle& n, cv::Mat* img, cv::Mat* add) {
 }
 
 }  // namespace
+
+double BModeNeedle::length() const {
+  const double chord = cv::norm(tip - tail), k = std::abs(curvature_per_px);
+  return k == 0.0 ? chord : 2.0 * std::asin(std::min(1.0, 0.5 * chord * k)) / k;
+}
+
+cv::Point2d BModeNeedle::at(double s) const {
+  const double k = curvature_per_px;
+  if (k == 0.0) {
+    const double chord = cv::norm(tip - tail);
+    return chord > 0.0 ? tail + s * ((tip - tail) / chord) : tail;
+  }
+  const double h0 = tailHeading(*this), h = h0 + k * s;
+  return tail + cv::Point2d(std::sin(h) - std::sin(h0), std::cos(h0) - std::cos(h)) * (1.0 / k);
+}
+
+double BModeNeedle::tipAngle() const {
+  if (curvature_per_px == 0.0)
+    return std::atan2(tip.y - tail.y, tip.x - tail.x);
+  return tailHeading(*this) + curvature_per_px * length();
+}
 
 cv::Mat syntheticBMode(cv::Size size, std::uint64_t seed,
                        const std::optional<BModeInterface>& interface_line,

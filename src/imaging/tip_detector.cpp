@@ -29,8 +29,8 @@
 #include <string>
 #include <vector>
 
-#include "needle_guidance/imaging/tip_tracker.h"
 #include "detection_util.h"
+#include "needle_guidance/imaging/tip_tracker.h"
 
 namespace needle_guidance::imaging {
 namespace {
@@ -38,7 +38,6 @@ namespace {
 using detail::fail;
 using detail::fmt;
 using detail::wrapAngle;
-
 
 using Vec = Eigen::Vector2d;
 constexpr double kPi = 3.14159265358979323846;
@@ -1024,91 +1023,163 @@ cv::Rect searchWindow(const TrackerConfig& config, const std::optional<SearchPri
 
 namespace {
 
-Detection detectTipUnguarded(const cv::Mat& frame, const TrackerConfig& config,
-                             const std::optional<SearchPrior>& prior) {
-  const ImageGeometry& g = config.geometry;
+/// What the numbered steps of one detection share; each step reads what the earlier ones left
+/// and returns an empty string, or why the detection fails.
+struct DetectState {
+  DetectState(const TrackerConfig& c, const std::optional<SearchPrior>& p)
+      : config(c), prior(p), g(c.geometry) {}
+  DetectState(const DetectState&) = delete;  // the tracer refers to ri
+  DetectState& operator=(const DetectState&) = delete;
+  const TrackerConfig& config;
+  const std::optional<SearchPrior>& prior;
+  const ImageGeometry& g;
+  double ps = 0.0, radius_px = 0.0, diameter_px = 0.0, smoothing_px = 0.0;
+  cv::Rect window;
+  std::optional<PriorQ> pq;
+  // 1-2. ridge candidates and the arc
+  RidgeImages ri;
+  std::vector<Candidate> cands;
+  RansacResult rs;
+  int echo_moves = 0;
+  std::optional<Tracer> tracer;
+  std::vector<double> inlier_s;
+  // 3. contrast levels
+  double shaft_level = 0.0, s_mid = 0.0, s_stop = 0.0, background_level = 0.0;
+  double visible = 0.0, reliable = 0.0;
+  std::vector<double> background;
+  // 4. the tip along the arc
+  std::vector<TraceSample> fwd;
+  std::size_t change = 0;
+  std::vector<double> tip_levels;
+  double tip_level = 0.0, run_start_s = 0.0, s_tip = 0.0, slope_per_px = 0.0;
+  // 5. centre-line points behind the tip
+  std::vector<TraceSample> pts_s;
+  std::vector<Vec> pts;
+  std::vector<double> w, ss;
+  // 6. the arc models and the chosen one
+  struct Model {
+    LocalFit tip_arc;
+    double total_rss = 0.0;
+    int params = 2;
+    double kink_s = std::numeric_limits<double>::quiet_NaN();
+    double log_prior = 0.0;
+    double unseen_deflection_var = 0.0;  ///< heading variance of a deflection not yet visible
+    double log_w = 0.0;
+    Vec p = Vec::Zero();
+    double theta = 0.0;
+  };
+  std::vector<Model> models;
+  Vec along_point = Vec::Zero();
+  double s_lo = 0.0, s_hi = 0.0, tip_side = 0.0, sigma2 = 0.0;
+  double flip_kink = 0.0, step_kink = 0.0;
+  std::size_t map = 0;
+  Vec tip_q = Vec::Zero();
+  double theta = 0.0;
+  Eigen::Matrix3d model_spread = Eigen::Matrix3d::Zero();
+  // 7. covariance
+  Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
+
+  /// The tip pose on `arc` at the tip's point along the needle.
+  void tipPose(const Arc& arc, Vec& p, double& th) const {
+    const Vec d = along_point - arc.centre;
+    p = arc.centre + radius_px * d / d.norm();
+    const Vec t = arc.side * leftNormal(d / d.norm());
+    th = std::atan2(t.y(), t.x());
+  }
+};
+
+/// Step 0: the configuration, the frame, the search window and its contrast; the prior in
+/// pixel coordinates.
+std::string checkInputs(const cv::Mat& frame, DetectState& st) {
+  const TrackerConfig& config = st.config;
+  const ImageGeometry& g = st.g;
   if (!(std::isfinite(g.pixel_size_m) && g.pixel_size_m > 0.0 && g.rows > 0 && g.cols > 0) ||
       !(std::isfinite(config.radius_of_curvature_m) && config.radius_of_curvature_m > 0.0)) {
-    return fail("invalid tracker configuration (pixel grid or radius of curvature)");
+    return "invalid tracker configuration (pixel grid or radius of curvature)";
   }
   const std::string problem = frameProblem(frame, g);
   if (!problem.empty()) {
-    return fail(problem);
+    return problem;
   }
   const double ps = g.pixel_size_m;
-  const double radius_px = config.radius_of_curvature_m / ps;
-  const cv::Rect window = searchWindow(config, prior);
+  st.ps = ps;
+  st.radius_px = config.radius_of_curvature_m / ps;
+  st.window = searchWindow(config, st.prior);
   const int min_window_px = static_cast<int>(std::ceil(kMinArcSpan_m / ps)) + 4;
-  if (window.width < min_window_px || window.height < 4) {
-    return fail("search window outside the frame or too small");
+  if (st.window.width < min_window_px || st.window.height < 4) {
+    return "search window outside the frame or too small";
   }
   double lo = 0.0;
   double hi = 0.0;
-  cv::minMaxLoc(frame(window), &lo, &hi);
+  cv::minMaxLoc(frame(st.window), &lo, &hi);
   if (hi - lo < kMinFrameContrast_grey) {
-    return fail("no contrast in the search window");
+    return "no contrast in the search window";
   }
-
-  std::optional<PriorQ> pq;
-  if (prior) {
+  if (st.prior) {
+    const SearchPrior& prior = *st.prior;
     PriorQ p;
-    p.tip = sceneToQ(g, prior->tip.p_SceneTip);
-    p.dir = Vec(std::cos(prior->tip.theta_rad), std::sin(prior->tip.theta_rad));
-    p.side = prior->tip.bevel == steering::Bevel::kLeft ? 1.0 : -1.0;
-    const Eigen::Matrix2d pos = prior->covariance.topLeftCorner<2, 2>();
+    p.tip = sceneToQ(g, prior.tip.p_SceneTip);
+    p.dir = Vec(std::cos(prior.tip.theta_rad), std::sin(prior.tip.theta_rad));
+    p.side = prior.tip.bevel == steering::Bevel::kLeft ? 1.0 : -1.0;
+    const Eigen::Matrix2d pos = prior.covariance.topLeftCorner<2, 2>();
     const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> es(0.5 * (pos + pos.transpose()));
     p.pos_sigma3_px = 3.0 * std::sqrt(std::max(0.0, es.eigenvalues().maxCoeff())) / ps;
-    p.heading_sigma3_rad = std::min(3.0 * std::sqrt(std::max(0.0, prior->covariance(2, 2))), kPi);
-    pq = p;
+    p.heading_sigma3_rad = std::min(3.0 * std::sqrt(std::max(0.0, prior.covariance(2, 2))), kPi);
+    st.pq = p;
   }
+  return "";
+}
 
-  // 1. Ridge filter and candidates.
-  const double diameter_px = config.needle_diameter_m / ps;
-  const double smoothing_px = std::max(kMinSmoothing_px, kSmoothingPerDiameter * diameter_px);
-  const RidgeImages ri = filterRegion(frame, window, config.modality, smoothing_px);
-  const std::vector<Candidate> cands = ridgeCandidates(ri);
+/// Steps 1-2: ridge filter and candidates; RANSAC arc of the known radius (the prior's sense,
+/// or both); the tracer along it and the inliers' arc lengths.
+std::string fitNeedleArc(const cv::Mat& frame, DetectState& st) {
+  const TrackerConfig& config = st.config;
+  const double ps = st.ps;
+  st.diameter_px = config.needle_diameter_m / ps;
+  st.smoothing_px = std::max(kMinSmoothing_px, kSmoothingPerDiameter * st.diameter_px);
+  st.ri = filterRegion(frame, st.window, config.modality, st.smoothing_px);
+  st.cands = ridgeCandidates(st.ri);
+  const std::vector<Candidate>& cands = st.cands;
   if (static_cast<int>(cands.size()) < kMinInliers) {
-    return fail("too few ridge points in the search window (" + std::to_string(cands.size()) + ")");
+    return "too few ridge points in the search window (" + std::to_string(cands.size()) + ")";
   }
-
-  // 2. RANSAC arc of the known radius (the prior's sense, or both).
-  RansacResult rs = ransacArc(cands, radius_px, ps, pq);
-  int echo_moves = 0;
+  RansacResult& rs = st.rs;
+  rs = ransacArc(cands, st.radius_px, ps, st.pq);
   if (rs.ok && config.modality == Modality::kUltrasound) {
-    preferShallowestCopy(rs, cands, radius_px, ps, pq, echo_moves);
+    preferShallowestCopy(rs, cands, st.radius_px, ps, st.pq, st.echo_moves);
   }
   if (!rs.ok || static_cast<int>(rs.inliers.size()) < kMinInliers) {
-    return fail("no arc of the needle's radius found (" +
-                std::to_string(rs.ok ? rs.inliers.size() : 0) + " inliers of " +
-                std::to_string(cands.size()) + " ridge points)");
+    return "no arc of the needle's radius found (" + std::to_string(rs.ok ? rs.inliers.size() : 0) +
+           " inliers of " + std::to_string(cands.size()) + " ridge points)";
   }
   // Reference point of the arc length s: the inliers' mean.
-  Vec reference;
-  {
-    Vec mean = Vec::Zero();
-    for (int k : rs.inliers) {
-      mean += cands[static_cast<std::size_t>(k)].q;
-    }
-    mean /= static_cast<double>(rs.inliers.size());
-    reference = mean;
-  }
-  Tracer tracer(ri, rs.arc, radius_px, reference,
-                0.5 * diameter_px + smoothing_px + kSideDistanceExtra_px);
-  std::vector<double> inlier_s;
+  Vec mean = Vec::Zero();
   for (int k : rs.inliers) {
-    inlier_s.push_back(tracer.sOf(cands[static_cast<std::size_t>(k)].q));
+    mean += cands[static_cast<std::size_t>(k)].q;
   }
-  std::sort(inlier_s.begin(), inlier_s.end());
-  const double span_px = inlier_s.back() - inlier_s.front();
+  mean /= static_cast<double>(rs.inliers.size());
+  st.tracer.emplace(st.ri, rs.arc, st.radius_px, mean,
+                    0.5 * st.diameter_px + st.smoothing_px + kSideDistanceExtra_px);
+  for (int k : rs.inliers) {
+    st.inlier_s.push_back(st.tracer->sOf(cands[static_cast<std::size_t>(k)].q));
+  }
+  std::sort(st.inlier_s.begin(), st.inlier_s.end());
+  const double span_px = st.inlier_s.back() - st.inlier_s.front();
   if (span_px * ps < kMinArcSpan_m) {
-    return fail("arc inliers span only " + fmt(span_px * ps * 1e3, 2) + " mm");
+    return "arc inliers span only " + fmt(span_px * ps * 1e3, 2) + " mm";
   }
   // Without a prior the insertion direction is the sense whose tangent points along +x at the
   // inliers' middle; RANSAC oriented every chord that way already, so the sense is the arc's.
+  return "";
+}
 
-  // 3. Contrast levels: of the shaft (at the inliers) and of the background (the same
-  // statistic on arcs parallel to the fit, off the needle; the median over several offsets, so
-  // an echo or boundary along one of them does not matter).
+/// Step 3: contrast levels of the shaft (at the inliers) and of the background (the same
+/// statistic on arcs parallel to the fit, off the needle; the median over several offsets, so
+/// an echo or boundary along one of them does not matter).
+std::string contrastLevels(DetectState& st) {
+  const Tracer& tracer = *st.tracer;
+  const std::vector<double>& inlier_s = st.inlier_s;
+  const double ps = st.ps;
   std::vector<double> inlier_contrast;
   for (std::size_t k = 0; k < inlier_s.size();
        k += std::max<std::size_t>(1, inlier_s.size() / 40)) {
@@ -1117,16 +1188,17 @@ Detection detectTipUnguarded(const cv::Mat& frame, const TrackerConfig& config,
       inlier_contrast.push_back(t.contrast);
     }
   }
-  const double shaft_level = median(inlier_contrast);
-  const double s_mid = inlier_s[inlier_s.size() / 2];
-  double s_stop = inlier_s.back() + (pq ? kMaxGap_m : kNoPriorLookahead_m) / ps;
-  if (pq) {
-    const double s_prior = tracer.sOf(pq->tip);
-    s_stop = std::max(s_stop, s_prior + pq->pos_sigma3_px + config.search_margin_m / ps);
+  st.shaft_level = median(inlier_contrast);
+  st.s_mid = inlier_s[inlier_s.size() / 2];
+  st.s_stop = inlier_s.back() + (st.pq ? kMaxGap_m : kNoPriorLookahead_m) / ps;
+  if (st.pq) {
+    const double s_prior = tracer.sOf(st.pq->tip);
+    st.s_stop =
+        std::max(st.s_stop, s_prior + st.pq->pos_sigma3_px + st.config.search_margin_m / ps);
   }
-  std::vector<double> background;
+  std::vector<double>& background = st.background;
   for (double off : kBackgroundOffsets_px) {
-    const int count = static_cast<int>((s_stop - inlier_s.front()) / kBackgroundStep_px);
+    const int count = static_cast<int>((st.s_stop - inlier_s.front()) / kBackgroundStep_px);
     for (int i = 0; i <= count; ++i) {
       const TraceSample t = tracer.sampleAt(inlier_s.front() + i * kBackgroundStep_px, off);
       if (t.inside) {
@@ -1134,84 +1206,94 @@ Detection detectTipUnguarded(const cv::Mat& frame, const TrackerConfig& config,
       }
     }
   }
-  const double background_level = median(background);
+  st.background_level = median(background);
+  const double shaft_level = st.shaft_level, background_level = st.background_level;
   if (!(shaft_level > 0.0) || background.size() < 8 ||
       shaft_level - background_level <
           kMinContrastOverBackground * std::max(background_level, 1.0)) {
-    return fail("the fitted arc does not stand out from the background (shaft " +
-                fmt(shaft_level, 1) + ", background " + fmt(background_level, 1) + " grey)");
+    return "the fitted arc does not stand out from the background (shaft " + fmt(shaft_level, 1) +
+           ", background " + fmt(background_level, 1) + " grey)";
   }
   // A sample is needle-like above `visible` (the change point's threshold); only samples above
   // the higher `reliable` steer the tracing (so it does not wander off along noise).
-  const double visible =
-      std::max(quantile(background, kBackgroundQuantile),
-               background_level + kVisibleFraction * (shaft_level - background_level));
-  const double reliable = background_level + kReliableFraction * (shaft_level - background_level);
+  st.visible = std::max(quantile(background, kBackgroundQuantile),
+                        background_level + kVisibleFraction * (shaft_level - background_level));
+  st.reliable = background_level + kReliableFraction * (shaft_level - background_level);
+  return "";
+}
 
-  // 4. Walk forward from the inliers' middle to beyond the expected tip; the tip is the change
-  // point of the contrast (the last sample of the largest partial sum of contrast - visible):
-  // gaps of the partly visible needle are bridged when more needle follows, a short bright
-  // structure after a gap is not.
+/// Step 4a: walk forward from the inliers' middle to beyond the expected tip; the tip is the
+/// change point of the contrast (the last sample of the largest partial sum of contrast -
+/// visible): gaps of the partly visible needle are bridged when more needle follows, a short
+/// bright structure after a gap is not. Then the plateau just before the end: the largest
+/// running median over the last stretch (the tip may echo brighter than the shaft, and the
+/// shaft's brightness varies along it).
+std::string changePointAndPlateau(DetectState& st) {
+  const double ps = st.ps;
   bool fwd_edge = false;
-  const std::vector<TraceSample> fwd =
-      tracer.walk(s_mid, s_stop, kTraceStep_px, reliable, fwd_edge);
+  st.fwd = st.tracer->walk(st.s_mid, st.s_stop, kTraceStep_px, st.reliable, fwd_edge);
+  const std::vector<TraceSample>& fwd = st.fwd;
   if (fwd.size() < 4) {
-    return fail("the fitted arc leaves the search region");
+    return "the fitted arc leaves the search region";
   }
   std::size_t change = 0;
-  {
-    double sum = 0.0;
-    double best_sum = -std::numeric_limits<double>::infinity();
-    for (std::size_t i = 0; i < fwd.size(); ++i) {
-      sum += fwd[i].contrast - visible;
-      if (sum > best_sum) {
-        best_sum = sum;
-        change = i;
-      }
+  double sum = 0.0;
+  double best_sum = -std::numeric_limits<double>::infinity();
+  for (std::size_t i = 0; i < fwd.size(); ++i) {
+    sum += fwd[i].contrast - st.visible;
+    if (sum > best_sum) {
+      best_sum = sum;
+      change = i;
     }
   }
+  st.change = change;
   if (fwd_edge && (fwd.back().s - fwd[change].s) < kEdgeClearance_px) {
-    return fail("the needle runs out of the search region (tip not inside it)");
+    return "the needle runs out of the search region (tip not inside it)";
   }
-  // The plateau just before the end: the largest running median over the last stretch (the
-  // tip may echo brighter than the shaft, and the shaft's brightness varies along it).
-  std::vector<double> tip_levels;
+  std::vector<double>& tip_levels = st.tip_levels;
   int visible_count = 0;
   for (std::size_t i = change + 1; i-- > 0;) {
     if (fwd[change].s - fwd[i].s > kPlateauSearch_m / ps) {
       break;
     }
     tip_levels.push_back(fwd[i].contrast);
-    visible_count += fwd[i].contrast >= visible ? 1 : 0;
+    visible_count += fwd[i].contrast >= st.visible ? 1 : 0;
   }
   if (visible_count * kTraceStep_px * ps < kMinTipRun_m) {
-    return fail("too little visible needle before the tip (" +
-                fmt(visible_count * kTraceStep_px * ps * 1e3, 2) + " mm)");
+    return "too little visible needle before the tip (" +
+           fmt(visible_count * kTraceStep_px * ps * 1e3, 2) + " mm)";
   }
   double tip_level = median(tip_levels);
-  {
-    const std::size_t half_window =
-        static_cast<std::size_t>(kPlateauWindow_px / kTraceStep_px / 2.0);
-    for (std::size_t i = change + 1; i-- > half_window;) {
-      if (fwd[change].s - fwd[i].s > kPlateauSearch_m / ps) {
-        break;
-      }
-      if (i + half_window > change) {
-        continue;
-      }
-      std::vector<double> win;
-      for (std::size_t k = i - half_window; k <= i + half_window; ++k) {
-        win.push_back(fwd[k].contrast);
-      }
-      tip_level = std::max(tip_level, median(win));
+  const std::size_t half_window = static_cast<std::size_t>(kPlateauWindow_px / kTraceStep_px / 2.0);
+  for (std::size_t i = change + 1; i-- > half_window;) {
+    if (fwd[change].s - fwd[i].s > kPlateauSearch_m / ps) {
+      break;
     }
+    if (i + half_window > change) {
+      continue;
+    }
+    std::vector<double> win;
+    for (std::size_t k = i - half_window; k <= i + half_window; ++k) {
+      win.push_back(fwd[k].contrast);
+    }
+    tip_level = std::max(tip_level, median(win));
   }
-  const double run_start_s = std::min(fwd.front().s, inlier_s.front());
-  const std::size_t last_run = change;
-  const double half = background_level + kTipLevelFraction * (tip_level - background_level);
+  st.tip_level = tip_level;
+  return "";
+}
+
+/// Step 4b: the tip where the contrast falls through kTipLevelFraction of the plateau over the
+/// background, then refined to the steepest descent of the (lightly smoothed) contrast near it:
+/// the end's edge, whatever the level the tip's brighter echo or the shaft reaches.
+void tipAtEdge(DetectState& st) {
+  const std::vector<TraceSample>& fwd = st.fwd;
+  st.run_start_s = std::min(fwd.front().s, st.inlier_s.front());
+  const std::size_t last_run = st.change;
+  const double half =
+      st.background_level + kTipLevelFraction * (st.tip_level - st.background_level);
   std::size_t last_above = last_run;
   while (last_above + 1 < fwd.size() && fwd[last_above + 1].contrast >= half &&
-         fwd[last_above + 1].s - fwd[last_run].s < 2.0 * diameter_px + 2.0) {
+         fwd[last_above + 1].s - fwd[last_run].s < 2.0 * st.diameter_px + 2.0) {
     ++last_above;
   }
   while (last_above > 0 && fwd[last_above].contrast < half) {
@@ -1228,312 +1310,313 @@ Detection detectTipUnguarded(const cv::Mat& frame, const TrackerConfig& config,
       slope_per_px = (g0 - g1) / ds;
     }
   }
-  // Refine to the steepest descent of the (lightly smoothed) contrast near the half-maximum:
-  // the end's edge, whatever the level the tip's brighter echo or the shaft reaches.
-  {
-    const double s_half = s_tip;
-    constexpr std::array<double, 5> kSmooth = {1.0, 2.0, 3.0, 2.0, 1.0};
-    const auto smoothed = [&](std::size_t i) {
-      double sum = 0.0;
-      double wsum = 0.0;
-      for (std::size_t k = 0; k < kSmooth.size(); ++k) {
-        const auto j = static_cast<std::ptrdiff_t>(i + k) - 2;
-        if (j >= 0 && j < static_cast<std::ptrdiff_t>(fwd.size())) {
-          sum += kSmooth[k] * fwd[static_cast<std::size_t>(j)].contrast;
-          wsum += kSmooth[k];
-        }
+  const double s_half = s_tip;
+  constexpr std::array<double, 5> kSmooth = {1.0, 2.0, 3.0, 2.0, 1.0};
+  const auto smoothed = [&](std::size_t i) {
+    double sum = 0.0;
+    double wsum = 0.0;
+    for (std::size_t k = 0; k < kSmooth.size(); ++k) {
+      const auto j = static_cast<std::ptrdiff_t>(i + k) - 2;
+      if (j >= 0 && j < static_cast<std::ptrdiff_t>(fwd.size())) {
+        sum += kSmooth[k] * fwd[static_cast<std::size_t>(j)].contrast;
+        wsum += kSmooth[k];
       }
-      return sum / wsum;
-    };
-    std::vector<std::size_t> idx;
-    std::vector<double> deriv;
-    for (std::size_t i = 2; i + 2 < fwd.size(); ++i) {
-      if (std::abs(fwd[i].s - s_half) > kEdgeSearch_px) {
-        continue;
-      }
-      idx.push_back(i);
-      deriv.push_back((smoothed(i + 2) - smoothed(i - 2)) / (fwd[i + 2].s - fwd[i - 2].s));
     }
-    if (deriv.size() >= 3) {
-      const auto k =
-          static_cast<std::size_t>(std::min_element(deriv.begin(), deriv.end()) - deriv.begin());
-      if (deriv[k] < 0.0) {
-        double frac = 0.0;
-        if (k > 0 && k + 1 < deriv.size()) {
-          const double den = deriv[k - 1] - 2.0 * deriv[k] + deriv[k + 1];
-          if (den > 0.0) {
-            frac = std::clamp(0.5 * (deriv[k - 1] - deriv[k + 1]) / den, -0.5, 0.5);
-          }
+    return sum / wsum;
+  };
+  std::vector<std::size_t> idx;
+  std::vector<double> deriv;
+  for (std::size_t i = 2; i + 2 < fwd.size(); ++i) {
+    if (std::abs(fwd[i].s - s_half) > kEdgeSearch_px) {
+      continue;
+    }
+    idx.push_back(i);
+    deriv.push_back((smoothed(i + 2) - smoothed(i - 2)) / (fwd[i + 2].s - fwd[i - 2].s));
+  }
+  if (deriv.size() >= 3) {
+    const auto k =
+        static_cast<std::size_t>(std::min_element(deriv.begin(), deriv.end()) - deriv.begin());
+    if (deriv[k] < 0.0) {
+      double frac = 0.0;
+      if (k > 0 && k + 1 < deriv.size()) {
+        const double den = deriv[k - 1] - 2.0 * deriv[k] + deriv[k + 1];
+        if (den > 0.0) {
+          frac = std::clamp(0.5 * (deriv[k - 1] - deriv[k + 1]) / den, -0.5, 0.5);
         }
-        s_tip = fwd[idx[k]].s + frac * kTraceStep_px;
-        slope_per_px = -deriv[k];
       }
+      s_tip = fwd[idx[k]].s + frac * kTraceStep_px;
+      slope_per_px = -deriv[k];
     }
   }
-  // 5. Centre-line points behind the tip: the forward walk, plus a backward walk if needed.
+  st.s_tip = s_tip;
+  st.slope_per_px = slope_per_px;
+}
+
+/// Step 5: centre-line points behind the tip: the forward walk, plus a backward walk if needed.
+std::string centreLinePoints(DetectState& st) {
+  const double ps = st.ps;
+  const double s_tip = st.s_tip;
   const double fit_len_px = kLocalFitLength_m / ps;
-  std::vector<TraceSample> pts_s;
-  for (const auto& t : fwd) {
+  std::vector<TraceSample>& pts_s = st.pts_s;
+  for (const auto& t : st.fwd) {
     if (t.s <= s_tip && t.s >= s_tip - fit_len_px) {
       pts_s.push_back(t);
     }
   }
-  if (s_mid > s_tip - fit_len_px) {
+  if (st.s_mid > s_tip - fit_len_px) {
     bool back_edge = false;
-    std::vector<TraceSample> bwd =
-        tracer.walk(s_mid - kTraceStep_px, s_tip - fit_len_px, -kTraceStep_px, reliable, back_edge);
+    std::vector<TraceSample> bwd = st.tracer->walk(st.s_mid - kTraceStep_px, s_tip - fit_len_px,
+                                                   -kTraceStep_px, st.reliable, back_edge);
     pts_s.insert(pts_s.end(), bwd.begin(), bwd.end());
   }
-  std::vector<Vec> pts;
-  std::vector<double> w;
-  std::vector<double> ss;
   const double exclusion_px = kLocalFitTipExclusion_m / ps;
   for (const auto& t : pts_s) {
-    if (t.contrast < visible || t.s > s_tip - exclusion_px) {
+    if (t.contrast < st.visible || t.s > s_tip - exclusion_px) {
       continue;
     }
-    pts.push_back(tracer.point(t.s, t.offset));
-    const double rel = std::min(1.0, t.contrast / std::max(tip_level, 1e-9));
-    w.push_back(rel * rel);
-    ss.push_back(t.s);
+    st.pts.push_back(st.tracer->point(t.s, t.offset));
+    const double rel = std::min(1.0, t.contrast / std::max(st.tip_level, 1e-9));
+    st.w.push_back(rel * rel);
+    st.ss.push_back(t.s);
   }
-  if (pts.size() < 6) {
-    return fail("too few centre-line points behind the tip (" + std::to_string(pts.size()) + ")");
+  if (st.pts.size() < 6) {
+    return "too few centre-line points behind the tip (" + std::to_string(st.pts.size()) + ")";
   }
-  // 6. Kink-aware local refit. Models: one arc over the whole span, or a kink (the deflection
-  // at the start of an insertion step, or a flip) at s_k with the tip arc after it. Each model's
-  // weight is its likelihood (residuals, counted as n / kResidualCorrelationSamples independent
-  // ones, with a BIC penalty for the tip arc's two extra parameters) times its prior; the
-  // estimate is the most probable model's and the spread of the models' tip poses is added to
-  // its covariance, so a kink that cannot be told apart (just behind the tip) shows as heading
-  // uncertainty rather than as a confident wrong heading.
-  s_tip -= kTipRoundingRadii * 0.5 * diameter_px;
-  double offset_tip = 0.0;
+  return "";
+}
+
+/// Step 6 (one model): a kink at sk: the arc before it (either sense, or forced), and the tip
+/// arc through the kink point with a free heading there (the deflection). Too few samples after
+/// the kink (a flip just now): the tip arc continues the tangent and the flip's deflection,
+/// unseen, is added to the heading variance.
+void addKinkModel(DetectState& st, double sk, int before_side_required, double prior_mass) {
+  const std::vector<Vec>& pts = st.pts;
+  const std::vector<double>& w = st.w;
+  const std::vector<double>& ss = st.ss;
+  const double radius_px = st.radius_px, s_lo = st.s_lo, s_hi = st.s_hi;
+  const double tip_side = st.tip_side;
+  const Arc start = st.rs.arc;
+  const double blur_gap_px = kKinkBlurExclusion_m / st.ps;
+  // The image blur rounds the corner: samples within kKinkBlurExclusion_m of it are left out.
+  const Arc mirror = mirrored(start, st.tracer->point(sk, 0.0), radius_px);
+  LocalFit before;
+  if (before_side_required == 0 || before_side_required == static_cast<int>(start.side)) {
+    before = fitSpan(pts, w, ss, s_lo, sk - blur_gap_px, start, radius_px);
+  }
+  if (before_side_required == 0 || before_side_required == static_cast<int>(mirror.side)) {
+    const LocalFit before_m = fitSpan(pts, w, ss, s_lo, sk - blur_gap_px, mirror, radius_px);
+    if (!before.ok || (before_m.ok && before_m.rss < before.rss)) {
+      before = before_m;
+    }
+  }
+  if (!before.ok) {
+    return;
+  }
+  Vec near = Vec::Zero();
+  int count = 0;
+  for (std::size_t i = 0; i < pts.size(); ++i) {
+    if (std::abs(ss[i] - sk) <= 2.0) {
+      near += pts[i];
+      ++count;
+    }
+  }
+  // The kink point: the centre line there (the arc before it is least certain at its end).
+  const Vec kink_point = count > 0 ? Vec(near / count) : st.tracer->point(sk, 0.0);
+  const Vec dk = (kink_point - before.arc.centre).normalized();
+  const Vec t_before = before.arc.side * leftNormal(dk);
+  const LocalFit free_tip =
+      fitSpan(pts, w, ss, sk + blur_gap_px, s_hi, Arc{start.centre, tip_side}, radius_px);
+  const Vec t0 = free_tip.ok ? tangentAt(free_tip.arc, kink_point) : t_before;
+  DetectState::Model m;
+  m.tip_arc =
+      fitThroughPoint(pts, w, ss, sk + blur_gap_px, s_hi, kink_point, std::atan2(t0.y(), t0.x()),
+                      tip_side, radius_px, 1.0 / std::max(before.weight_sum, 1.0));
+  if (!m.tip_arc.ok) {
+    const double phi = std::atan2(t_before.y(), t_before.x());
+    m.tip_arc.arc = {kink_point + tip_side * radius_px * Vec(-std::sin(phi), std::cos(phi)),
+                     tip_side};
+    m.tip_arc.ok = true;
+    m.tip_arc.rss = 0.0;
+    m.tip_arc.n = 0;
+    m.tip_arc.weight_sum = 0.0;
+    m.tip_arc.centre_cov_unit = before.centre_cov_unit;
+    m.unseen_deflection_var = st.config.sigma_flip_rad * st.config.sigma_flip_rad;
+  }
+  // Same data as the single arc: the samples around the corner count with the nearer arc.
+  m.total_rss = m.tip_arc.rss + before.rss;
+  for (std::size_t i = 0; i < pts.size(); ++i) {
+    if (std::abs(ss[i] - sk) < blur_gap_px && ss[i] >= s_lo && ss[i] <= s_hi) {
+      const double rb = (pts[i] - before.arc.centre).norm() - radius_px;
+      const double rt = (pts[i] - m.tip_arc.arc.centre).norm() - radius_px;
+      m.total_rss += w[i] * std::min(rb * rb, rt * rt);
+    }
+  }
+  m.params = 3;
+  m.kink_s = sk;
+  m.log_prior = std::log(prior_mass);
+  st.models.push_back(m);
+}
+
+/// Step 6 (models): one arc over the whole span, or a kink (the deflection at the start of an
+/// insertion step, or a flip) at s_k with the tip arc after it, where the robot says the kinks
+/// are (the prior's lengths since the flip and the step) or anywhere.
+std::string arcModels(DetectState& st) {
+  const double ps = st.ps;
+  const double diameter_px = st.diameter_px;
+  st.s_tip -= kTipRoundingRadii * 0.5 * diameter_px;
+  const double s_tip = st.s_tip;
   {
     // The centre line's offset at the tip: that of the last visible samples.
     std::vector<double> o;
-    for (const auto& t : pts_s) {
-      if (t.contrast >= visible && t.s <= s_tip && t.s >= s_tip - 2.0 * diameter_px) {
+    for (const auto& t : st.pts_s) {
+      if (t.contrast >= st.visible && t.s <= s_tip && t.s >= s_tip - 2.0 * diameter_px) {
         o.push_back(t.offset);
       }
     }
-    offset_tip = o.empty() ? 0.0 : median(o);
+    st.along_point = st.tracer->point(s_tip, o.empty() ? 0.0 : median(o));
   }
-  const Vec along_point = tracer.point(s_tip, offset_tip);
-  const auto tip_pose = [&](const Arc& arc, Vec& p, double& theta) {
-    const Vec d = along_point - arc.centre;
-    p = arc.centre + radius_px * d / d.norm();
-    const Vec t = arc.side * leftNormal(d / d.norm());
-    theta = std::atan2(t.y(), t.x());
-  };
-  struct Model {
-    LocalFit tip_arc;
-    double total_rss = 0.0;
-    int params = 2;
-    double kink_s = std::numeric_limits<double>::quiet_NaN();
-    double log_prior = 0.0;
-    double unseen_deflection_var = 0.0;  ///< heading variance of a deflection not yet visible
-    double log_w = 0.0;
-    Vec p = Vec::Zero();
-    double theta = 0.0;
-  };
-  std::vector<Model> models;
-  const double s_lo = *std::min_element(ss.begin(), ss.end());
-  const double s_hi = s_tip + kTipRoundingRadii * 0.5 * diameter_px;
-  const Arc start = rs.arc;
+  st.s_lo = *std::min_element(st.ss.begin(), st.ss.end());
+  st.s_hi = s_tip + kTipRoundingRadii * 0.5 * diameter_px;
   {
-    Model m;
-    m.tip_arc = fitSpan(pts, w, ss, s_lo, s_hi, start, radius_px);
+    DetectState::Model m;
+    m.tip_arc = fitSpan(st.pts, st.w, st.ss, st.s_lo, st.s_hi, st.rs.arc, st.radius_px);
     if (!m.tip_arc.ok) {
-      return fail("local arc refit did not converge");
+      return "local arc refit did not converge";
     }
     m.total_rss = m.tip_arc.rss;
     m.log_prior = std::log(1.0 - kKinkPrior);
-    models.push_back(m);
+    st.models.push_back(m);
   }
+  st.tip_side = st.models.front().tip_arc.arc.side;
   const double min_tip_arc_px = kMinTipArc_m / ps;
   const double min_before_px = kMinArcBeforeKink_m / ps;
-  const double tip_side = models.front().tip_arc.arc.side;
-  const double blur_gap_px = kKinkBlurExclusion_m / ps;
-  // A kink model at sk: the arc before it (either sense, or forced), and the tip arc through
-  // the kink point with a free heading there (the deflection). Too few samples after the kink
-  // (a flip just now): the tip arc continues the tangent and the flip's deflection, unseen, is
-  // added to the heading variance.
-  const auto add_kink = [&](double sk, int before_side_required, double prior_mass) {
-    // The image blur rounds the corner: samples within kKinkBlurExclusion_m of it are left out.
-    const Arc mirror = mirrored(start, tracer.point(sk, 0.0), radius_px);
-    LocalFit before;
-    if (before_side_required == 0 || before_side_required == static_cast<int>(start.side)) {
-      before = fitSpan(pts, w, ss, s_lo, sk - blur_gap_px, start, radius_px);
-    }
-    if (before_side_required == 0 || before_side_required == static_cast<int>(mirror.side)) {
-      const LocalFit before_m = fitSpan(pts, w, ss, s_lo, sk - blur_gap_px, mirror, radius_px);
-      if (!before.ok || (before_m.ok && before_m.rss < before.rss)) {
-        before = before_m;
-      }
-    }
-    if (!before.ok) {
-      return;
-    }
-    Vec near = Vec::Zero();
-    int count = 0;
-    for (std::size_t i = 0; i < pts.size(); ++i) {
-      if (std::abs(ss[i] - sk) <= 2.0) {
-        near += pts[i];
-        ++count;
-      }
-    }
-    // The kink point: the centre line there (the arc before it is least certain at its end).
-    const Vec kink_point = count > 0 ? Vec(near / count) : tracer.point(sk, 0.0);
-    const Vec dk = (kink_point - before.arc.centre).normalized();
-    const Vec t_before = before.arc.side * leftNormal(dk);
-    const LocalFit free_tip =
-        fitSpan(pts, w, ss, sk + blur_gap_px, s_hi, Arc{start.centre, tip_side}, radius_px);
-    const Vec t0 = free_tip.ok ? tangentAt(free_tip.arc, kink_point) : t_before;
-    Model m;
-    m.tip_arc =
-        fitThroughPoint(pts, w, ss, sk + blur_gap_px, s_hi, kink_point, std::atan2(t0.y(), t0.x()),
-                        tip_side, radius_px, 1.0 / std::max(before.weight_sum, 1.0));
-    if (!m.tip_arc.ok) {
-      const double phi = std::atan2(t_before.y(), t_before.x());
-      m.tip_arc.arc = {kink_point + tip_side * radius_px * Vec(-std::sin(phi), std::cos(phi)),
-                       tip_side};
-      m.tip_arc.ok = true;
-      m.tip_arc.rss = 0.0;
-      m.tip_arc.n = 0;
-      m.tip_arc.weight_sum = 0.0;
-      m.tip_arc.centre_cov_unit = before.centre_cov_unit;
-      m.unseen_deflection_var = config.sigma_flip_rad * config.sigma_flip_rad;
-    }
-    // Same data as the single arc: the samples around the corner count with the nearer arc.
-    m.total_rss = m.tip_arc.rss + before.rss;
-    for (std::size_t i = 0; i < pts.size(); ++i) {
-      if (std::abs(ss[i] - sk) < blur_gap_px && ss[i] >= s_lo && ss[i] <= s_hi) {
-        const double rb = (pts[i] - before.arc.centre).norm() - radius_px;
-        const double rt = (pts[i] - m.tip_arc.arc.centre).norm() - radius_px;
-        m.total_rss += w[i] * std::min(rb * rb, rt * rt);
-      }
-    }
-    m.params = 3;
-    m.kink_s = sk;
-    m.log_prior = std::log(prior_mass);
-    models.push_back(m);
-  };
-  // Where the robot says the kinks are (the prior's lengths since the flip and the step).
   const double tol_px = kKinkHintTolerance_m / ps;
   const auto hinted_at = [&](double length_m) {
-    return pq && std::isfinite(length_m) && length_m >= 0.0
+    return st.pq && std::isfinite(length_m) && length_m >= 0.0
                ? s_tip - length_m / ps
                : std::numeric_limits<double>::quiet_NaN();
   };
-  const double flip_kink = hinted_at(prior ? prior->length_since_flip_m : 0.0);
-  const double step_kink = hinted_at(prior ? prior->length_since_step_m : 0.0);
-  const double kink_lo = s_lo + min_before_px;
+  st.flip_kink = hinted_at(st.prior ? st.prior->length_since_flip_m : 0.0);
+  st.step_kink = hinted_at(st.prior ? st.prior->length_since_step_m : 0.0);
+  const double flip_kink = st.flip_kink, step_kink = st.step_kink;
+  const double kink_lo = st.s_lo + min_before_px;
   if (std::isfinite(flip_kink) && flip_kink + tol_px >= kink_lo) {
     // The flip is inside the span: the needle before it curves the other way. Only kinks at
     // the flip (within the tolerance) and no single arc.
-    models.clear();
+    st.models.clear();
     std::vector<double> locations;
     const int steps = static_cast<int>(2.0 * tol_px / (kKinkStep_m / ps));
     for (int i = 0; i <= steps; ++i) {
       const double sk = flip_kink - tol_px + i * kKinkStep_m / ps;
       if (sk >= kink_lo) {
-        locations.push_back(std::min(sk, s_hi));
+        locations.push_back(std::min(sk, st.s_hi));
       }
     }
     for (double sk : locations) {
-      add_kink(sk, -static_cast<int>(tip_side), 1.0 / static_cast<double>(locations.size()));
+      addKinkModel(st, sk, -static_cast<int>(st.tip_side),
+                   1.0 / static_cast<double>(locations.size()));
     }
-    if (models.empty()) {
-      return fail("no arc fits before the bevel flip");
+    if (st.models.empty()) {
+      return "no arc fits before the bevel flip";
     }
-  } else {
-    // Kinks anywhere (a deflection at each step's start; the needle before it of either sense
-    // unless the prior says the last flip is before the span); near the step's start if the
-    // robot's steps are known.
-    const int before_side =
-        pq && std::isfinite(prior->length_since_flip_m) ? static_cast<int>(tip_side) : 0;
-    std::vector<double> locations;
-    int near_hint = 0;
-    const int steps = static_cast<int>((s_hi - min_tip_arc_px - kink_lo) / (kKinkStep_m / ps));
-    for (int i = 0; i <= steps; ++i) {
-      const double sk = s_hi - min_tip_arc_px - i * kKinkStep_m / ps;
-      locations.push_back(sk);
-      near_hint += std::abs(sk - step_kink) <= tol_px ? 1 : 0;
-    }
-    const double hint_mass = near_hint > 0 ? kStepHintPrior : 0.0;
-    models.front().log_prior = std::log((1.0 - hint_mass) * (1.0 - kKinkPrior));
-    const int others = static_cast<int>(locations.size()) - near_hint;
-    for (double sk : locations) {
-      const bool at_hint = std::abs(sk - step_kink) <= tol_px;
-      const double mass =
-          at_hint ? hint_mass / near_hint : (1.0 - hint_mass) * kKinkPrior / std::max(1, others);
-      add_kink(sk, before_side, mass);
-    }
+    return "";
   }
-  const int n_points = static_cast<int>(pts.size());
+  // Kinks anywhere (a deflection at each step's start; the needle before it of either sense
+  // unless the prior says the last flip is before the span); near the step's start if the
+  // robot's steps are known.
+  const int before_side =
+      st.pq && std::isfinite(st.prior->length_since_flip_m) ? static_cast<int>(st.tip_side) : 0;
+  std::vector<double> locations;
+  int near_hint = 0;
+  const int steps = static_cast<int>((st.s_hi - min_tip_arc_px - kink_lo) / (kKinkStep_m / ps));
+  for (int i = 0; i <= steps; ++i) {
+    const double sk = st.s_hi - min_tip_arc_px - i * kKinkStep_m / ps;
+    locations.push_back(sk);
+    near_hint += std::abs(sk - step_kink) <= tol_px ? 1 : 0;
+  }
+  const double hint_mass = near_hint > 0 ? kStepHintPrior : 0.0;
+  st.models.front().log_prior = std::log((1.0 - hint_mass) * (1.0 - kKinkPrior));
+  const int others = static_cast<int>(locations.size()) - near_hint;
+  for (double sk : locations) {
+    const bool at_hint = std::abs(sk - step_kink) <= tol_px;
+    const double mass =
+        at_hint ? hint_mass / near_hint : (1.0 - hint_mass) * kKinkPrior / std::max(1, others);
+    addKinkModel(st, sk, before_side, mass);
+  }
+  return "";
+}
+
+/// Step 6 (choice): each model's weight is its likelihood (residuals, counted as
+/// n / kResidualCorrelationSamples independent ones, with a BIC penalty for the tip arc's two
+/// extra parameters) times its prior; the estimate is the most probable model's and the spread
+/// of the models' tip poses is added to its covariance, so a kink that cannot be told apart
+/// (just behind the tip) shows as heading uncertainty rather than as a confident wrong heading.
+std::string chooseModel(DetectState& st) {
+  const ImageGeometry& g = st.g;
+  const int n_points = static_cast<int>(st.pts.size());
   double best_rate = std::numeric_limits<double>::infinity();
-  for (const auto& m : models) {
+  for (const auto& m : st.models) {
     best_rate = std::min(best_rate, m.total_rss / std::max(1, n_points - m.params - 1));
   }
-  const double sigma2 = std::max(best_rate, kMinResidualStd_px * kMinResidualStd_px);
+  st.sigma2 = std::max(best_rate, kMinResidualStd_px * kMinResidualStd_px);
   const double n_eff = std::max(1.0, n_points / kResidualCorrelationSamples);
   double max_log_w = -std::numeric_limits<double>::infinity();
-  std::size_t map = 0;
-  for (std::size_t i = 0; i < models.size(); ++i) {
-    Model& m = models[i];
+  for (std::size_t i = 0; i < st.models.size(); ++i) {
+    DetectState::Model& m = st.models[i];
     const bool kink = std::isfinite(m.kink_s);
-    m.log_w = -0.5 * m.total_rss / (sigma2 * kResidualCorrelationSamples) -
+    m.log_w = -0.5 * m.total_rss / (st.sigma2 * kResidualCorrelationSamples) -
               (kink ? std::log(n_eff) : 0.0) + m.log_prior;
-    tip_pose(m.tip_arc.arc, m.p, m.theta);
+    st.tipPose(m.tip_arc.arc, m.p, m.theta);
     if (!finitePose(m.p, m.theta)) {
       m.log_w = -std::numeric_limits<double>::infinity();
     }
     if (m.log_w > max_log_w) {
       max_log_w = m.log_w;
-      map = i;
+      st.map = i;
     }
   }
-  const Model& chosen_model = models[map];
-  const LocalFit& chosen = chosen_model.tip_arc;
-  const double kink_s = chosen_model.kink_s;
-  Vec tip_q = chosen_model.p;
-  double theta = chosen_model.theta;
-  if (!finitePose(tip_q, theta)) {
-    return fail("non-finite tip pose");
+  const DetectState::Model& chosen_model = st.models[st.map];
+  st.tip_q = chosen_model.p;
+  st.theta = chosen_model.theta;
+  const Vec tip_q = st.tip_q;
+  if (!finitePose(tip_q, st.theta)) {
+    return "non-finite tip pose";
   }
   if (tip_q.x() < -0.5 || -tip_q.y() < -0.5 || tip_q.x() > g.cols - 0.5 ||
       -tip_q.y() > g.rows - 0.5) {
-    return fail("the needle runs out of the frame (tip not inside it)");
+    return "the needle runs out of the frame (tip not inside it)";
   }
-  Eigen::Matrix3d model_spread = Eigen::Matrix3d::Zero();
-  {
-    double wsum = 0.0;
-    for (const auto& m : models) {
-      const double wm = std::exp(m.log_w - max_log_w);
-      if (!(wm > 0.0)) {
-        continue;
-      }
-      const Eigen::Vector3d d(m.p.x() - tip_q.x(), m.p.y() - tip_q.y(), wrapAngle(m.theta - theta));
-      model_spread += wm * d * d.transpose();
-      if (m.unseen_deflection_var > 0.0) {
-        // A heading change at the kink turns the tip arc about the kink point.
-        const double h = std::max(0.0, s_tip - m.kink_s);
-        const Eigen::Vector3d g(-std::sin(m.theta) * h, std::cos(m.theta) * h, 1.0);
-        model_spread += wm * m.unseen_deflection_var * g * g.transpose();
-      }
-      wsum += wm;
+  double wsum = 0.0;
+  for (const auto& m : st.models) {
+    const double wm = std::exp(m.log_w - max_log_w);
+    if (!(wm > 0.0)) {
+      continue;
     }
-    model_spread /= std::max(wsum, 1e-300);
+    const Eigen::Vector3d d(m.p.x() - tip_q.x(), m.p.y() - tip_q.y(),
+                            wrapAngle(m.theta - st.theta));
+    st.model_spread += wm * d * d.transpose();
+    if (m.unseen_deflection_var > 0.0) {
+      // A heading change at the kink turns the tip arc about the kink point.
+      const double h = std::max(0.0, st.s_tip - m.kink_s);
+      const Eigen::Vector3d gr(-std::sin(m.theta) * h, std::cos(m.theta) * h, 1.0);
+      st.model_spread += wm * m.unseen_deflection_var * gr * gr.transpose();
+    }
+    wsum += wm;
   }
+  st.model_spread /= std::max(wsum, 1e-300);
+  return "";
+}
 
-  // 7. Covariance: the chosen fit's (residuals through the tip pose's dependence on the arc's
-  // centre), the models' spread, the along-needle uncertainty of the end and floors.
+/// Step 7: covariance: the chosen fit's (residuals through the tip pose's dependence on the
+/// arc's centre), the models' spread, the along-needle uncertainty of the end and floors.
+std::string detectionCovariance(DetectState& st) {
+  const LocalFit& chosen = st.models[st.map].tip_arc;
+  const double ps = st.ps, theta = st.theta, s_tip = st.s_tip;
   const int dof = std::max(1, chosen.n - 2);
   // The residual variance: the chosen fit's own, but not below that of the best model over
   // all the points (a short tip arc's few residuals say little about the noise).
   const double res_var =
-      std::max(chosen.rss / std::max(chosen.weight_sum, 1e-9) * chosen.n / dof, sigma2) *
+      std::max(chosen.rss / std::max(chosen.weight_sum, 1e-9) * chosen.n / dof, st.sigma2) *
       kResidualCorrelationSamples;
   const Eigen::Matrix2d cov_c = res_var * chosen.centre_cov_unit;  // sigma^2 (J^T W J)^-1
   Eigen::Matrix<double, 3, 2> jac;
@@ -1544,39 +1627,39 @@ Detection detectTipUnguarded(const cv::Mat& frame, const TrackerConfig& config,
     Vec p1, p0;
     double t1 = 0.0;
     double t0 = 0.0;
-    tip_pose(Arc{chosen.arc.centre + dc, chosen.arc.side}, p1, t1);
-    tip_pose(Arc{chosen.arc.centre - dc, chosen.arc.side}, p0, t0);
+    st.tipPose(Arc{chosen.arc.centre + dc, chosen.arc.side}, p1, t1);
+    st.tipPose(Arc{chosen.arc.centre - dc, chosen.arc.side}, p0, t0);
     jac.block<2, 1>(0, k) = (p1 - p0) / (2.0 * kFiniteDiff_px);
     jac(2, k) = wrapAngle(t1 - t0) / (2.0 * kFiniteDiff_px);
   }
-  Eigen::Matrix3d cov_px = jac * cov_c * jac.transpose() + model_spread;
+  Eigen::Matrix3d cov_px = jac * cov_c * jac.transpose() + st.model_spread;
   // The fit ends before the tip (the exclusion at the end, or a stretch the needle is not
   // visible): a step's deflection may kink the needle in between, unseen. Its variance is
   // added with the probability that a step starts there (known from the prior's length since
   // the step, else the gap's share of a step length).
   {
-    const double last_fitted = *std::max_element(ss.begin(), ss.end());
+    const double last_fitted = *std::max_element(st.ss.begin(), st.ss.end());
     const double gap_px = std::max(0.0, s_tip - last_fitted);
-    double p_kink = std::min(1.0, gap_px * ps / config.step_length_m);
-    if (std::isfinite(step_kink)) {
-      p_kink = step_kink > last_fitted && step_kink <= s_tip ? 1.0 : 0.0;
+    double p_kink = std::min(1.0, gap_px * ps / st.config.step_length_m);
+    if (std::isfinite(st.step_kink)) {
+      p_kink = st.step_kink > last_fitted && st.step_kink <= s_tip ? 1.0 : 0.0;
     }
     const bool flip_in_gap =
-        std::isfinite(flip_kink) && flip_kink > last_fitted && flip_kink <= s_tip;
-    const double sigma = flip_in_gap ? config.sigma_flip_rad : config.sigma_insert_rad;
+        std::isfinite(st.flip_kink) && st.flip_kink > last_fitted && st.flip_kink <= s_tip;
+    const double sigma = flip_in_gap ? st.config.sigma_flip_rad : st.config.sigma_insert_rad;
     if (gap_px > 0.0 && p_kink > 0.0 && sigma > 0.0) {
-      const Eigen::Vector3d g(-std::sin(theta) * gap_px, std::cos(theta) * gap_px, 1.0);
-      cov_px += p_kink * sigma * sigma * g * g.transpose();
+      const Eigen::Vector3d gr(-std::sin(theta) * gap_px, std::cos(theta) * gap_px, 1.0);
+      cov_px += p_kink * sigma * sigma * gr * gr.transpose();
     }
   }
   // Along the needle: the half-maximum's noise over the contrast profile's slope.
   std::vector<double> dev;
-  dev.reserve(tip_levels.size());
-  for (double v : tip_levels) {
-    dev.push_back(std::abs(v - tip_level));
+  dev.reserve(st.tip_levels.size());
+  for (double v : st.tip_levels) {
+    dev.push_back(std::abs(v - st.tip_level));
   }
   const double contrast_noise = 1.4826 * median(dev);
-  double along_std_px = slope_per_px > 0.0 ? contrast_noise / slope_per_px : kMaxAlongStd_px;
+  double along_std_px = st.slope_per_px > 0.0 ? contrast_noise / st.slope_per_px : kMaxAlongStd_px;
   along_std_px = std::clamp(along_std_px, kMinAlongStd_px, kMaxAlongStd_px);
   const Vec tdir(std::cos(theta), std::sin(theta));
   cov_px.topLeftCorner<2, 2>() += along_std_px * along_std_px * tdir * tdir.transpose();
@@ -1589,38 +1672,70 @@ Detection detectTipUnguarded(const cv::Mat& frame, const TrackerConfig& config,
   cov.block<1, 2>(2, 0) *= ps;
   cov = 0.5 * (cov + cov.transpose());
   if (!cov.allFinite()) {
-    return fail("non-finite detection covariance");
+    return "non-finite detection covariance";
   }
+  st.cov = cov;
+  return "";
+}
 
-  // 8. Consistency with the prior's direction.
-  if (pq) {
-    const double dtheta = std::abs(wrapAngle(theta - prior->tip.theta_rad));
-    if (dtheta > pq->heading_sigma3_rad + kPriorHeadingSlack_rad) {
-      return fail("detected heading " + fmt(theta / kDeg, 1) + " deg inconsistent with the prior " +
-                  fmt(prior->tip.theta_rad / kDeg, 1) + " deg");
+/// Step 8: consistency with the prior's direction, and the detection with its message.
+Detection assembleDetection(const DetectState& st) {
+  if (st.pq) {
+    const double dtheta = std::abs(wrapAngle(st.theta - st.prior->tip.theta_rad));
+    if (dtheta > st.pq->heading_sigma3_rad + kPriorHeadingSlack_rad) {
+      return fail("detected heading " + fmt(st.theta / kDeg, 1) +
+                  " deg inconsistent with the prior " + fmt(st.prior->tip.theta_rad / kDeg, 1) +
+                  " deg");
     }
   }
-
+  const LocalFit& chosen = st.models[st.map].tip_arc;
+  const double kink_s = st.models[st.map].kink_s;
+  const double ps = st.ps;
   Detection d;
   d.found = true;
-  d.p_SceneTip = qToScene(g, tip_q);
-  d.theta_rad = theta;
-  d.covariance = cov;
-  d.inliers = static_cast<int>(rs.inliers.size());
+  d.p_SceneTip = qToScene(st.g, st.tip_q);
+  d.theta_rad = st.theta;
+  d.covariance = st.cov;
+  d.inliers = static_cast<int>(st.rs.inliers.size());
   d.residual_rms_m = std::sqrt(chosen.rss / std::max(chosen.weight_sum, 1e-9)) * ps;
   std::ostringstream msg;
-  msg << "arc fit: " << d.inliers << " inliers of " << cands.size() << ", bevel "
+  msg << "arc fit: " << d.inliers << " inliers of " << st.cands.size() << ", bevel "
       << (chosen.arc.side > 0 ? "left" : "right") << ", rms " << fmt(d.residual_rms_m * 1e3)
-      << " mm, traced " << fmt((s_tip - run_start_s) * ps * 1e3, 1) << " mm, contrast "
-      << fmt(tip_level - background_level, 0) << " over " << fmt(background_level, 0) << " grey";
-  if (echo_moves > 0) {
-    msg << ", moved off " << echo_moves << " reverberation echo(es)";
+      << " mm, traced " << fmt((st.s_tip - st.run_start_s) * ps * 1e3, 1) << " mm, contrast "
+      << fmt(st.tip_level - st.background_level, 0) << " over " << fmt(st.background_level, 0)
+      << " grey";
+  if (st.echo_moves > 0) {
+    msg << ", moved off " << st.echo_moves << " reverberation echo(es)";
   }
   if (std::isfinite(kink_s)) {
-    msg << ", kink " << fmt((s_tip - kink_s) * ps * 1e3, 1) << " mm behind the tip";
+    msg << ", kink " << fmt((st.s_tip - kink_s) * ps * 1e3, 1) << " mm behind the tip";
   }
   d.message = msg.str();
   return d;
+}
+
+/// The detector's steps in order (tip_tracker.h): the first that fails names why.
+Detection detectTipUnguarded(const cv::Mat& frame, const TrackerConfig& config,
+                             const std::optional<SearchPrior>& prior) {
+  DetectState st(config, prior);
+  std::string why = checkInputs(frame, st);
+  if (why.empty())
+    why = fitNeedleArc(frame, st);
+  if (why.empty())
+    why = contrastLevels(st);
+  if (why.empty())
+    why = changePointAndPlateau(st);
+  if (why.empty()) {
+    tipAtEdge(st);
+    why = centreLinePoints(st);
+  }
+  if (why.empty())
+    why = arcModels(st);
+  if (why.empty())
+    why = chooseModel(st);
+  if (why.empty())
+    why = detectionCovariance(st);
+  return why.empty() ? assembleDetection(st) : fail(why);
 }
 
 }  // namespace

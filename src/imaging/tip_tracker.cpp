@@ -17,7 +17,6 @@ namespace {
 using detail::fmt;
 using detail::wrapAngle;
 
-
 constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 /// The prediction is applied in sub-steps of at most this fraction of step_length_m, so the
@@ -91,6 +90,34 @@ TrackerConfig trackerConfigFromScene(const scene::Scene& scene, const ImagerConf
   c.step_length_m = 2.0 * kPi * c.radius_of_curvature_m / scene.steering->orientations;
   c.validate();
   return c;
+}
+
+std::string toString(MotionModel model) {
+  switch (model) {
+    case MotionModel::kDrive:
+      return "drive";
+    case MotionModel::kAxis:
+      return "axis";
+    case MotionModel::kAuto:
+      break;
+  }
+  return "auto";
+}
+
+std::optional<MotionModel> motionModelFromString(const std::string& name) {
+  for (const MotionModel m : {MotionModel::kAuto, MotionModel::kDrive, MotionModel::kAxis}) {
+    if (toString(m) == name) {
+      return m;
+    }
+  }
+  return std::nullopt;
+}
+
+MotionModel chooseMotionModel(MotionModel setting, bool drive_available) {
+  if (setting != MotionModel::kAuto) {
+    return setting;
+  }
+  return drive_available ? MotionModel::kDrive : MotionModel::kAxis;
 }
 
 std::string toString(TrackStatus status) {
@@ -317,6 +344,49 @@ TipEstimate TipTracker::onFrame(const cv::Mat& frame) {
     return estimate_;
   }
   if (!initialized_) {
+    return acquireWithoutPrior(frame);
+  }
+  if (have_entry_ && length_m_ == 0.0) {
+    estimate_.status = TrackStatus::kEntry;
+    estimate_.message = "nothing inserted: the needle guide's pose";
+    updateConfidence();
+    return estimate_;
+  }
+  const ImageGeometry& g = config_.geometry;
+  const cv::Point2d px = g.toPixel(estimate_.tip.p_SceneTip);
+  if (px.x < -0.5 - kOutOfViewTolerance_px || px.y < -0.5 - kOutOfViewTolerance_px ||
+      px.x > g.cols - 0.5 + kOutOfViewTolerance_px ||
+      px.y > g.rows - 0.5 + kOutOfViewTolerance_px) {
+    estimate_.status = TrackStatus::kOutOfView;
+    estimate_.message = "predicted tip outside the frame (pixel " + fmt(px.x, 1) + ", " +
+                        fmt(px.y, 1) + "): predicted only";
+    updateConfidence();
+    return estimate_;
+  }
+  const Detection d = detectTip(frame, config_, searchPrior());
+  estimate_.detection = d;
+  if (!d.found) {
+    estimate_.status = TrackStatus::kPredicted;
+    estimate_.message = "no detection (" + d.message + "): predicted only";
+    updateConfidence();
+    return estimate_;
+  }
+  // Chi-square gate on the innovation.
+  const Eigen::Vector3d x = poseVector(estimate_.tip);
+  Eigen::Vector3d nu(d.p_SceneTip.x() - x.x(), d.p_SceneTip.y() - x.y(),
+                     wrapAngle(d.theta_rad - x.z()));
+  const Eigen::Matrix3d innovation_cov = symmetrised(estimate_.covariance + d.covariance);
+  const Eigen::LDLT<Eigen::Matrix3d> ldlt(innovation_cov);
+  const double d2 = nu.dot(ldlt.solve(nu));
+  if (!std::isfinite(d2) || d2 > config_.gate_chi2) {
+    return onGatedOut(d, d2);
+  }
+  rejected_.reset();
+  return fuse(d, nu, ldlt, d2);
+}
+
+TipEstimate TipTracker::acquireWithoutPrior(const cv::Mat& frame) {
+  {  // (indented as it was inside onFrame)
     // Acquisition without any prior: the whole frame, both curvature senses.
     Detection d = detectTip(frame, config_, std::nullopt);
     estimate_.detection = d;
@@ -339,23 +409,9 @@ TipEstimate TipTracker::onFrame(const cv::Mat& frame) {
     updateConfidence();
     return estimate_;
   }
-  if (have_entry_ && length_m_ == 0.0) {
-    estimate_.status = TrackStatus::kEntry;
-    estimate_.message = "nothing inserted: the needle guide's pose";
-    updateConfidence();
-    return estimate_;
-  }
-  const ImageGeometry& g = config_.geometry;
-  const cv::Point2d px = g.toPixel(estimate_.tip.p_SceneTip);
-  if (px.x < -0.5 - kOutOfViewTolerance_px || px.y < -0.5 - kOutOfViewTolerance_px ||
-      px.x > g.cols - 0.5 + kOutOfViewTolerance_px ||
-      px.y > g.rows - 0.5 + kOutOfViewTolerance_px) {
-    estimate_.status = TrackStatus::kOutOfView;
-    estimate_.message = "predicted tip outside the frame (pixel " + fmt(px.x, 1) + ", " +
-                        fmt(px.y, 1) + "): predicted only";
-    updateConfidence();
-    return estimate_;
-  }
+}
+
+SearchPrior TipTracker::searchPrior() const {
   SearchPrior prior;
   prior.tip = estimate_.tip;
   prior.covariance = estimate_.covariance;
@@ -370,81 +426,71 @@ TipEstimate TipTracker::onFrame(const cv::Mat& frame) {
     // Steps of step_length_m from the entry or the last flip, as the robot inserts them.
     prior.length_since_step_m = length_m_ - (deflected_until_m_ - config_.step_length_m);
   }
-  const Detection d = detectTip(frame, config_, prior);
-  estimate_.detection = d;
-  if (!d.found) {
-    estimate_.status = TrackStatus::kPredicted;
-    estimate_.message = "no detection (" + d.message + "): predicted only";
+  return prior;
+}
+
+TipEstimate TipTracker::onGatedOut(const Detection& d, double d2) {
+  // Gated out. Does it agree with the previous rejected detections (moved by the robot)?
+  Rejected now;
+  now.pose = {d.p_SceneTip, d.theta_rad, estimate_.tip.bevel};
+  now.covariance = d.covariance;
+  now.inserted_length_m = length_m_;
+  now.agreeing = 1;
+  if (rejected_) {
+    const double travel = length_m_ - rejected_->inserted_length_m;
+    steering::TipPose moved = rejected_->pose;
+    moved.bevel = estimate_.tip.bevel;
+    if (travel > 0.0) {
+      moved = steering::advanceTip(moved, steering::Control::kInsert, 0.0, travel,
+                                   config_.radius_of_curvature_m);
+    }
+    const double sig2 = std::max(config_.sigma_insert_rad, config_.sigma_flip_rad);
+    Eigen::Matrix3d agree_cov = rejected_->covariance + d.covariance;
+    agree_cov(2, 2) += sig2 * sig2 * std::max(travel, 0.0) / config_.step_length_m;
+    const double q = std::max(travel, 0.0) * std::max(sig2, 1e-3);
+    agree_cov(0, 0) += q * q;
+    agree_cov(1, 1) += q * q;
+    Eigen::Vector3d e(d.p_SceneTip.x() - moved.p_SceneTip.x(),
+                      d.p_SceneTip.y() - moved.p_SceneTip.y(),
+                      wrapAngle(d.theta_rad - moved.theta_rad));
+    const double a2 = e.dot(symmetrised(agree_cov).ldlt().solve(e));
+    // ... and they must move with the needle: the detected advance along the needle matches
+    // the robot's (a static structure, e.g. where the needle enters an acoustic shadow, does
+    // not move when the needle does).
+    const Point2 dir(std::cos(rejected_->pose.theta_rad), std::sin(rejected_->pose.theta_rad));
+    const double advance = (d.p_SceneTip - rejected_->pose.p_SceneTip).dot(dir);
+    const bool moves_with_needle =
+        std::abs(advance - travel) <=
+        std::max(kReacquireAdvanceTolerance_m, kReacquireAdvanceFraction * travel);
+    if (travel >= 0.0 && std::isfinite(a2) && a2 <= config_.gate_chi2 && moves_with_needle) {
+      now.agreeing = rejected_->agreeing + 1;
+      now.travel_m = rejected_->travel_m + travel;
+    }
+  }
+  rejected_ = now;
+  if (now.agreeing >= kReacquireAfter && now.travel_m >= kReacquireMinTravel_m) {
+    estimate_.tip = now.pose;
+    estimate_.covariance = symmetrised(kReacquireInflation * d.covariance);
+    estimate_.status = TrackStatus::kTracked;
+    estimate_.message = "re-acquired: " + std::to_string(now.agreeing) +
+                        " consecutive detections agreed with each other but not with the "
+                        "prediction (last d2 = " +
+                        fmt(d2, 1) + "); covariance inflated";
+    rejected_.reset();
+    confirmWith(d, true);
     updateConfidence();
     return estimate_;
   }
-  // Chi-square gate on the innovation.
-  const Eigen::Vector3d x = poseVector(estimate_.tip);
-  Eigen::Vector3d nu(d.p_SceneTip.x() - x.x(), d.p_SceneTip.y() - x.y(),
-                     wrapAngle(d.theta_rad - x.z()));
-  const Eigen::Matrix3d innovation_cov = symmetrised(estimate_.covariance + d.covariance);
-  const Eigen::LDLT<Eigen::Matrix3d> ldlt(innovation_cov);
-  const double d2 = nu.dot(ldlt.solve(nu));
-  if (!std::isfinite(d2) || d2 > config_.gate_chi2) {
-    // Gated out. Does it agree with the previous rejected detections (moved by the robot)?
-    Rejected now;
-    now.pose = {d.p_SceneTip, d.theta_rad, estimate_.tip.bevel};
-    now.covariance = d.covariance;
-    now.inserted_length_m = length_m_;
-    now.agreeing = 1;
-    if (rejected_) {
-      const double travel = length_m_ - rejected_->inserted_length_m;
-      steering::TipPose moved = rejected_->pose;
-      moved.bevel = estimate_.tip.bevel;
-      if (travel > 0.0) {
-        moved = steering::advanceTip(moved, steering::Control::kInsert, 0.0, travel,
-                                     config_.radius_of_curvature_m);
-      }
-      const double sig2 = std::max(config_.sigma_insert_rad, config_.sigma_flip_rad);
-      Eigen::Matrix3d agree_cov = rejected_->covariance + d.covariance;
-      agree_cov(2, 2) += sig2 * sig2 * std::max(travel, 0.0) / config_.step_length_m;
-      const double q = std::max(travel, 0.0) * std::max(sig2, 1e-3);
-      agree_cov(0, 0) += q * q;
-      agree_cov(1, 1) += q * q;
-      Eigen::Vector3d e(d.p_SceneTip.x() - moved.p_SceneTip.x(),
-                        d.p_SceneTip.y() - moved.p_SceneTip.y(),
-                        wrapAngle(d.theta_rad - moved.theta_rad));
-      const double a2 = e.dot(symmetrised(agree_cov).ldlt().solve(e));
-      // ... and they must move with the needle: the detected advance along the needle matches
-      // the robot's (a static structure, e.g. where the needle enters an acoustic shadow, does
-      // not move when the needle does).
-      const Point2 dir(std::cos(rejected_->pose.theta_rad), std::sin(rejected_->pose.theta_rad));
-      const double advance = (d.p_SceneTip - rejected_->pose.p_SceneTip).dot(dir);
-      const bool moves_with_needle =
-          std::abs(advance - travel) <=
-          std::max(kReacquireAdvanceTolerance_m, kReacquireAdvanceFraction * travel);
-      if (travel >= 0.0 && std::isfinite(a2) && a2 <= config_.gate_chi2 && moves_with_needle) {
-        now.agreeing = rejected_->agreeing + 1;
-        now.travel_m = rejected_->travel_m + travel;
-      }
-    }
-    rejected_ = now;
-    if (now.agreeing >= kReacquireAfter && now.travel_m >= kReacquireMinTravel_m) {
-      estimate_.tip = now.pose;
-      estimate_.covariance = symmetrised(kReacquireInflation * d.covariance);
-      estimate_.status = TrackStatus::kTracked;
-      estimate_.message = "re-acquired: " + std::to_string(now.agreeing) +
-                          " consecutive detections agreed with each other but not with the "
-                          "prediction (last d2 = " +
-                          fmt(d2, 1) + "); covariance inflated";
-      rejected_.reset();
-      confirmWith(d, true);
-      updateConfidence();
-      return estimate_;
-    }
-    estimate_.status = TrackStatus::kPredicted;
-    estimate_.message = "detection gated out (d2 = " + fmt(d2, 1) + " > " +
-                        fmt(config_.gate_chi2, 2) + ", " + std::to_string(now.agreeing) +
-                        " in a row agree): predicted only";
-    updateConfidence();
-    return estimate_;
-  }
-  rejected_.reset();
+  estimate_.status = TrackStatus::kPredicted;
+  estimate_.message = "detection gated out (d2 = " + fmt(d2, 1) + " > " +
+                      fmt(config_.gate_chi2, 2) + ", " + std::to_string(now.agreeing) +
+                      " in a row agree): predicted only";
+  updateConfidence();
+  return estimate_;
+}
+
+TipEstimate TipTracker::fuse(const Detection& d, const Eigen::Vector3d& nu,
+                             const Eigen::LDLT<Eigen::Matrix3d>& ldlt, double d2) {
   // Kalman update (Joseph form).
   const TipEstimate before = estimate_;
   const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> prior_es(

@@ -23,9 +23,9 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   ROS_INFO("imager parameters:");
   const scene::Scene scene =
       scene::loadSceneSpec(ros_params::text(private_nh, "scene", "steering_workspace"));
-  imaging::ImagerConfig config =
-      imaging::imagerConfigFromScene(scene, static_cast<std::uint64_t>(ros_params::integer(
-                                                private_nh, "seed", 1, 0, 1L << 53, "")));
+  imaging::ImagerConfig config = imaging::imagerConfigFromScene(
+      scene,
+      static_cast<std::uint64_t>(ros_params::integer(private_nh, "seed", 1, 0, 1L << 53, "")));
   // Every device setting defaults to the scene's imaging section.
   const std::string modality = ros_params::text(private_nh, "modality", "");
   if (!modality.empty()) {
@@ -36,8 +36,18 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
     }
     config.modality = *m;
   }
-  const double pixel_size_m = ros_params::number(private_nh, "pixel_size_m",
-                                                 config.geometry.pixel_size_m, 1e-6, 0.01, "m");
+  // classic (default): the renderer the image-guided loop and its published figures were made
+  // on; realistic: specular layers, log display, shadow, reverberation tail, out-of-plane tilt
+  // (frame_renderer.h), for trying a tracker on frames that fail it as real ones do.
+  const std::string us_model = ros_params::text(private_nh, "ultrasound_model", "classic");
+  const auto um = imaging::ultrasoundModelFromString(us_model);
+  if (!um) {
+    throw std::runtime_error("parameter '" + private_nh.resolveName("ultrasound_model") + "' = '" +
+                             us_model + "' is not classic or realistic");
+  }
+  config.ultrasound_model = *um;
+  const double pixel_size_m =
+      ros_params::number(private_nh, "pixel_size_m", config.geometry.pixel_size_m, 1e-6, 0.01, "m");
   const int width = static_cast<int>(
       ros_params::integer(private_nh, "width_px", 0, 0, kMaxImageSide_px, "px (0 = workspace)"));
   const int height = static_cast<int>(
@@ -46,10 +56,10 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   config.noise_std = ros_params::number(private_nh, "noise_std", config.noise_std, 0.0, 10.0, "");
   config.blur_sigma_m =
       ros_params::number(private_nh, "blur_sigma_m", config.blur_sigma_m, 0.0, 0.01, "m");
-  config.drop_probability = ros_params::number(private_nh, "drop_probability",
-                                               config.drop_probability, 0.0, 0.99, "");
-  frame_rate_hz_ = ros_params::number(private_nh, "frame_rate_hz", scene.imaging.frame_rate_hz,
-                                      0.1, kMaxFrameRate_hz, "Hz");
+  config.drop_probability =
+      ros_params::number(private_nh, "drop_probability", config.drop_probability, 0.0, 0.99, "");
+  frame_rate_hz_ = ros_params::number(private_nh, "frame_rate_hz", scene.imaging.frame_rate_hz, 0.1,
+                                      kMaxFrameRate_hz, "Hz");
   renderer_ = std::make_unique<imaging::FrameRenderer>(scene, config);
 
   ImageCalibration calibration;
@@ -70,16 +80,19 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   calibration_pub_.publish(calibration);
   image_pub_ = private_nh.advertise<sensor_msgs::Image>("image", 5);
   shape_sub_ = nh.subscribe("needle_shape", 5, &ImagerRos::onShape, this);
-  frame_timer_ = nh.createTimer(ros::Duration(1.0 / frame_rate_hz_), &ImagerRos::onFrameTimer, this);
-  ROS_INFO_STREAM_NAMED(kName, "imager: " << calibration.modality << " " << calibration.width
-                                          << " x " << calibration.height << " px of "
-                                          << pixel_size_m * 1e3 << " mm at " << frame_rate_hz_
-                                          << " Hz on scene '" << scene.name << "'");
+  frame_timer_ =
+      nh.createTimer(ros::Duration(1.0 / frame_rate_hz_), &ImagerRos::onFrameTimer, this);
+  ROS_INFO_STREAM_NAMED(kName, "imager: " << calibration.modality << " ("
+                                          << imaging::toString(config.ultrasound_model)
+                                          << " ultrasound model) " << calibration.width << " x "
+                                          << calibration.height << " px of " << pixel_size_m * 1e3
+                                          << " mm at " << frame_rate_hz_ << " Hz on scene '"
+                                          << scene.name << "'");
 }
 
 ImagerRos::~ImagerRos() {
-  ROS_INFO_STREAM_NAMED(kName, "imager: " << published_ << " frames published, " << dropped_
-                                          << " dropped");
+  ROS_INFO_STREAM_NAMED(
+      kName, "imager: " << published_ << " frames published, " << dropped_ << " dropped");
 }
 
 void ImagerRos::onShape(const NeedleShapeConstPtr& msg) {

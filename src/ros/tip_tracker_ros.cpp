@@ -83,26 +83,27 @@ TipTrackerRos::TipTrackerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   scene_ = scene::loadSceneSpec(ros_params::text(private_nh, "scene", "steering_workspace"));
   // Validate that the scene can be tracked now, with the scene's own imaging settings.
   settings_ = imaging::trackerConfigFromScene(scene_, imaging::imagerConfigFromScene(scene_));
-  settings_.search_margin_m = ros_params::number(private_nh, "search_margin_m",
-                                                 settings_.search_margin_m, 0.0, 0.1, "m");
+  settings_.search_margin_m =
+      ros_params::number(private_nh, "search_margin_m", settings_.search_margin_m, 0.0, 0.1, "m");
   settings_.gate_chi2 =
       ros_params::number(private_nh, "gate_chi2", settings_.gate_chi2, 1.0, 1e6, "");
-  settings_.confident_position_std_m =
-      ros_params::number(private_nh, "confident_position_std_m",
-                         settings_.confident_position_std_m, 1e-6, 0.1, "m");
+  settings_.confident_position_std_m = ros_params::number(
+      private_nh, "confident_position_std_m", settings_.confident_position_std_m, 1e-6, 0.1, "m");
   settings_.confident_heading_std_rad =
       ros_params::number(private_nh, "confident_heading_std_rad",
                          settings_.confident_heading_std_rad, 1e-4, 1.0, "rad");
   // drive: the robot's NeedleDrive predicts the tip (the image-guided loop); axis: no robot (a
   // bag, a recorded or freehand sequence): the needle is acquired without a prior and followed
-  // along its own axis (SequenceTracker).
-  const std::string model = ros_params::text(private_nh, "motion_model", "drive");
-  if (model != "drive" && model != "axis") {
+  // along its own axis (SequenceTracker); auto (default): drive while the robot's drive is
+  // available, axis otherwise, decided per frame (imaging::chooseMotionModel).
+  const std::string model = ros_params::text(private_nh, "motion_model", "auto");
+  const auto motion_model = imaging::motionModelFromString(model);
+  if (!motion_model) {
     throw std::runtime_error("parameter " + private_nh.resolveName("motion_model") +
-                             " must be drive or axis, not '" + model + "'");
+                             " must be auto, drive or axis, not '" + model + "'");
   }
-  axis_model_ = model == "axis";
-  if (axis_model_) {
+  motion_model_ = *motion_model;
+  if (motion_model_ != imaging::MotionModel::kDrive) {
     imaging::AcquisitionOptions options;
     const std::string entry = ros_params::text(private_nh, "entry", "auto");
     const auto side = imaging::entrySideFromString(entry);
@@ -111,13 +112,19 @@ TipTrackerRos::TipTrackerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
                                " must be auto, left, right, top or bottom, not '" + entry + "'");
     }
     options.entry = *side;
-    sequence_ = std::make_unique<imaging::SequenceTracker>(options);
+    // Needle model without a scene: straight, or an arc of ~radius_m (0 = straight).
+    const double radius_m =
+        ros_params::number(private_nh, "radius_m", 0.0, 0.0, 100.0, "m (0 = straight)");
+    sequence_options_ = options;
+    sequence_radius_m_ = radius_m;
     // Calibration as parameters (a recording without an ImageCalibration message); a message
     // on `calibration` replaces it. 0 = wait for the message.
     geometry_.pixel_size_m =
         ros_params::number(private_nh, "pixel_size_m", 0.0, 0.0, 0.01, "m (0 = from the message)");
-    geometry_.origin_m = imaging::Point2(ros_params::number(private_nh, "origin_x_m", 0.0, -10.0, 10.0, "m"),
-                                         ros_params::number(private_nh, "origin_y_m", 0.0, -10.0, 10.0, "m"));
+    geometry_.origin_m =
+        imaging::Point2(ros_params::number(private_nh, "origin_x_m", 0.0, -10.0, 10.0, "m"),
+                        ros_params::number(private_nh, "origin_y_m", 0.0, -10.0, 10.0, "m"));
+    resetSequence();
   }
   tip_pub_ = private_nh.advertise<NeedleTip>("tip", 10);
   debug_pub_ = private_nh.advertise<sensor_msgs::Image>("debug_image", 2);
@@ -139,16 +146,27 @@ void TipTrackerRos::onCalibration(const ImageCalibrationConstPtr& msg) {
   config.geometry.pixel_size_m = msg->pixel_size_m;
   config.geometry.cols = static_cast<int>(msg->width);
   config.geometry.rows = static_cast<int>(msg->height);
-  if (axis_model_) {
+  if (motion_model_ != imaging::MotionModel::kDrive) {
     if (!(msg->pixel_size_m > 0.0) || !std::isfinite(msg->pixel_size_m) ||
         !std::isfinite(msg->origin_x_m) || !std::isfinite(msg->origin_y_m)) {
       ROS_ERROR_STREAM_NAMED(kName, "tip_tracker: calibration refused: pixel size "
                                         << msg->pixel_size_m << " m or origin not finite/positive");
       return;
     }
+    const imaging::ImageGeometry previous = geometry_;
     geometry_ = config.geometry;
-    ROS_INFO_STREAM_NAMED(kName, "tip_tracker: calibration " << msg->pixel_size_m * 1e3 << " mm pixels");
-    return;
+    try {
+      resetSequence();  // the arc's radius in pixels follows the pixel size
+    } catch (const std::invalid_argument& e) {
+      geometry_ = previous;  // refused: the state before the message stays
+      ROS_ERROR_STREAM_NAMED(kName, "tip_tracker: calibration refused: " << e.what());
+      return;
+    }
+    ROS_INFO_STREAM_NAMED(kName,
+                          "tip_tracker: calibration " << msg->pixel_size_m * 1e3 << " mm pixels");
+    if (motion_model_ == imaging::MotionModel::kAxis) {
+      return;
+    }
   }
   try {
     auto tracker = std::make_unique<imaging::TipTracker>(config);
@@ -212,8 +230,9 @@ void TipTrackerRos::onImageWithoutRobot(const sensor_msgs::ImageConstPtr& msg) {
     // colour to grey and refuses the rest with the reason.
     frame = cv_bridge::toCvShare(msg)->image;
   } catch (const std::exception& e) {
-    ROS_WARN_STREAM_THROTTLE_NAMED(kThrottle_s, kName, "tip_tracker: image encoding '"
-                                                          << msg->encoding << "' unusable: " << e.what());
+    ROS_WARN_STREAM_THROTTLE_NAMED(
+        kThrottle_s, kName,
+        "tip_tracker: image encoding '" << msg->encoding << "' unusable: " << e.what());
     return;
   }
   const imaging::SequenceTracker::Output out = sequence_->onFrame(frame);
@@ -242,8 +261,19 @@ void TipTrackerRos::onImageWithoutRobot(const sensor_msgs::ImageConstPtr& msg) {
   tip_pub_.publish(tip);
 }
 
+/// Throws std::invalid_argument (from AcquisitionOptions) for a radius too small for the pixels.
+void TipTrackerRos::resetSequence() {
+  imaging::AcquisitionOptions options = sequence_options_;
+  if (sequence_radius_m_ > 0.0 && geometry_.pixel_size_m > 0.0) {
+    options.radius_px = sequence_radius_m_ / geometry_.pixel_size_m;
+  }
+  sequence_ = std::make_unique<imaging::SequenceTracker>(options);
+}
+
 void TipTrackerRos::onImage(const sensor_msgs::ImageConstPtr& msg) {
-  if (axis_model_) {
+  // One path: the drive model when the robot's drive is there, the axis model when it is not.
+  const bool drive_available = have_entry_ || !drives_.empty() || drive_sub_.getNumPublishers() > 0;
+  if (imaging::chooseMotionModel(motion_model_, drive_available) == imaging::MotionModel::kAxis) {
     onImageWithoutRobot(msg);
     return;
   }

@@ -11,6 +11,13 @@
 // Overlays of the best and worst frames (best.png, worst.png). The pixel size (not recorded
 // with the data) is assumed 0.1 mm for the old detector's metric settings. Without the data it
 // runs on a synthetic B-mode sequence (synthetic_bmode.h) and says so (summary key data).
+// The held-out halves: the acquisition's constants were chosen on the even frames; the odd ones
+// are reported apart (keys ..._even, ..._odd). Held out entirely: two sequences of the imager's
+// realistic ultrasound renderer (frame_renderer.h), a straight needle and a steerable one (arc
+// of 10 cm radius, tracked with the arc model), seeds and geometry never used for tuning (keys
+// heldout_straight_*, heldout_arc_*). Realism: speckle, needle and interface statistics
+// (bmode_statistics.h) of the recorded frames against the imager's classic and realistic
+// renderers at the same assumed 0.1 mm pixels (realism.csv, keys realism_*).
 // Usage: bench_tracking_real --out DIR [--quick]
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -25,11 +32,14 @@
 #include <string>
 #include <vector>
 
+#include "needle_guidance/imaging/bmode_statistics.h"
+#include "needle_guidance/imaging/frame_renderer.h"
 #include "needle_guidance/imaging/needle_acquisition.h"
 #include "needle_guidance/imaging/synthetic_bmode.h"
 #include "needle_guidance/imaging/tip_tracker.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
+#include "needle_guidance/scene/scene.h"
 
 namespace fs = std::filesystem;
 namespace ng = needle_guidance;
@@ -128,6 +138,19 @@ double msSince(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
 }
 
+/// One frame through the SequenceTracker, timed.
+Result trackTimed(im::SequenceTracker& tracker, const cv::Mat& frame) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const im::SequenceTracker::Output o = tracker.onFrame(frame);
+  Result r;
+  r.ms = msSince(t0);
+  r.found = o.segment.found;
+  r.confident = o.confident;
+  r.tip = o.segment.tip_px;
+  r.angle_rad = o.segment.angle_rad;
+  return r;
+}
+
 void overlay(const cv::Mat& grey, const Truth& t, const Result& r, const std::string& title,
              const std::string& path) {
   cv::Mat bgr;
@@ -145,11 +168,16 @@ struct Summary {
   int confident_wrong = 0;
 };
 
-Summary summarise(const std::vector<Result>& rs, const std::vector<Truth>& ts) {
+/// parity -1: every frame; 0: the even ones; 1: the odd ones.
+Summary summarise(const std::vector<Result>& rs, const std::vector<Truth>& ts, int parity = -1) {
   Summary s;
   std::vector<double> e, a;
   double ms = 0;
+  std::size_t counted = 0;
   for (std::size_t i = 0; i < rs.size(); ++i) {
+    if (parity >= 0 && static_cast<int>(i % 2) != parity)
+      continue;
+    ++counted;
     ms += rs[i].ms;
     if (!rs[i].found)
       continue;
@@ -159,12 +187,175 @@ Summary summarise(const std::vector<Result>& rs, const std::vector<Truth>& ts) {
     if (rs[i].confident && err > kConfidentWrong_px)
       ++s.confident_wrong;
   }
-  s.found_fraction = rs.empty() ? 0 : static_cast<double>(e.size()) / rs.size();
+  s.found_fraction = counted == 0 ? 0 : static_cast<double>(e.size()) / counted;
   s.median = quantile(e, 0.5);
   s.p90 = quantile(e, 0.9);
   s.angle_median = quantile(a, 0.5);
-  s.fps = ms > 0 ? 1000.0 * rs.size() / ms : 0;
+  s.fps = ms > 0 ? 1000.0 * counted / ms : 0;
   return s;
+}
+
+// ---- held-out sequences and realism: the imager's frames at the assumed 0.1 mm pixels ----
+
+constexpr int kCols = 720, kRows = 440;
+constexpr double kUsNoise = 0.1, kUsBlur_m = 0.3e-3;  // bench tracking's ultrasound device
+
+/// The imager on steering_workspace: 720 x 440 px of 0.1 mm from the scene's left edge, rows
+/// from y = 50 mm down to 6 mm (clear of the obstacles' middle).
+im::ImagerConfig imager(const ng::scene::Scene& scene, im::UltrasoundModel model,
+                        std::uint64_t seed) {
+  im::ImagerConfig c = im::imagerConfigFromScene(scene, seed);
+  c.modality = im::Modality::kUltrasound;
+  c.ultrasound_model = model;
+  c.geometry.pixel_size_m = kAssumedPixel_m;
+  c.geometry.cols = kCols;
+  c.geometry.rows = kRows;
+  c.geometry.origin_m = im::Point2(0.0, 0.05);
+  c.noise_std = kUsNoise;
+  c.blur_sigma_m = kUsBlur_m;
+  c.drop_probability = 0.0;
+  return c;
+}
+
+/// A needle from `entry` [m] at `angle` [rad above +x], `length` [m] inserted, straight or on
+/// an arc of curvature `kappa` [1/m] (> 0 turning up in the scene), as points 0.25 mm apart.
+std::vector<im::Point2> needlePoints(im::Point2 entry, double angle, double length, double kappa) {
+  std::vector<im::Point2> pts;
+  for (double s = 0.0; s <= length + 1e-12; s += 0.25e-3) {
+    if (kappa == 0.0) {
+      pts.push_back(entry + s * im::Point2(std::cos(angle), std::sin(angle)));
+    } else {
+      const double h = angle + kappa * s;
+      pts.push_back(
+          entry + im::Point2(std::sin(h) - std::sin(angle), std::cos(angle) - std::cos(h)) / kappa);
+    }
+  }
+  return pts;
+}
+
+/// The needle's mask (5 px wide) in the frame, as a hand-drawn one would cover it.
+cv::Mat needleMask(const std::vector<im::Point2>& pts, const im::ImageGeometry& g) {
+  cv::Mat mask(g.size(), CV_8U, cv::Scalar(0));
+  for (std::size_t i = 1; i < pts.size(); ++i)
+    cv::line(mask, g.toPixel(pts[i - 1]), g.toPixel(pts[i]), cv::Scalar(255), 5);
+  return mask;
+}
+
+struct HeldOut {
+  std::string name;
+  Summary summary;
+};
+
+/// A held-out sequence: 20 frames of the realistic imager, the needle advancing 1 mm a frame,
+/// tracked by SequenceTracker (with the arc model when kappa != 0) against the true tip.
+HeldOut heldOutSequence(const ng::scene::Scene& scene, const std::string& name, std::uint64_t seed,
+                        im::Point2 entry, double angle, double kappa) {
+  const im::ImagerConfig c = imager(scene, im::UltrasoundModel::kRealistic, seed);
+  const im::FrameRenderer renderer(scene, c);
+  im::AcquisitionOptions options;
+  options.entry = im::EntrySide::kLeft;
+  if (kappa != 0.0)
+    options.radius_px = 1.0 / std::abs(kappa) / kAssumedPixel_m;
+  im::SequenceTracker tracker(options);
+  std::vector<Result> rs;
+  std::vector<Truth> ts;
+  for (int k = 0; k < 20; ++k) {
+    const double length = 0.02 + 1e-3 * k;
+    const std::vector<im::Point2> pts = needlePoints(entry, angle, length, kappa);
+    rs.push_back(trackTimed(tracker, renderer.render(pts, static_cast<std::uint64_t>(k)).image));
+    const double h = angle + kappa * length;  // heading at the tip, scene y up
+    ts.push_back({c.geometry.toPixel(pts.back()), std::atan2(-std::sin(h), std::cos(h))});
+  }
+  return {name, summarise(rs, ts)};
+}
+
+/// Realism rows: the recorded frames' statistics (median over frames) and the imager's, classic
+/// and realistic, on 5 frames of a needle entering from the left 8 degrees up (as recorded).
+std::vector<std::pair<std::string, im::BModeStatistics>> realism(
+    const ng::scene::Scene& scene, const std::vector<cv::Mat>& frames,
+    const std::vector<cv::Mat>& masks) {
+  auto median_of = [](const std::vector<im::BModeStatistics>& v) {
+    auto med = [&](double im::BModeStatistics::*field) {
+      std::vector<double> x;
+      for (const auto& s : v)
+        x.push_back(s.*field);
+      return quantile(x, 0.5);
+    };
+    im::BModeStatistics m;
+    m.tissue_patches = v.empty() ? 0 : v.front().tissue_patches;
+    for (auto f :
+         {&im::BModeStatistics::tissue_mean_grey, &im::BModeStatistics::speckle_snr,
+          &im::BModeStatistics::speckle_lateral_px, &im::BModeStatistics::speckle_axial_px,
+          &im::BModeStatistics::needle_grey, &im::BModeStatistics::needle_contrast,
+          &im::BModeStatistics::brightest_other_over_needle, &im::BModeStatistics::dark_fraction})
+      m.*f = med(f);
+    return m;
+  };
+  std::vector<std::pair<std::string, im::BModeStatistics>> rows;
+  std::vector<im::BModeStatistics> recorded;
+  for (std::size_t i = 0; i < frames.size() && i < masks.size(); ++i)
+    recorded.push_back(im::bmodeStatistics(frames[i], masks[i]));
+  if (!recorded.empty())
+    rows.emplace_back("recorded", median_of(recorded));
+  for (const auto model : {im::UltrasoundModel::kClassic, im::UltrasoundModel::kRealistic}) {
+    const im::ImagerConfig c = imager(scene, model, 5);
+    const im::FrameRenderer renderer(scene, c);
+    std::vector<im::BModeStatistics> v;
+    for (int k = 0; k < 5; ++k) {
+      const auto pts = needlePoints(im::Point2(0.0, 0.012), 8.0 / kDegPerRad, 0.02 + 2e-3 * k, 0.0);
+      v.push_back(im::bmodeStatistics(renderer.render(pts, static_cast<std::uint64_t>(k)).image,
+                                      needleMask(pts, c.geometry)));
+    }
+    rows.emplace_back("imager_" + im::toString(model), median_of(v));
+  }
+  return rows;
+}
+
+void writeRealism(const std::vector<std::pair<std::string, im::BModeStatistics>>& rows,
+                  const std::string& dir, std::ostringstream& js) {
+  ng::report::Table t({"source", "tissue_patches", "tissue_mean_grey", "speckle_snr",
+                       "speckle_lateral_px", "speckle_axial_px", "needle_grey", "needle_contrast",
+                       "brightest_other_over_needle", "dark_fraction"},
+                      4);
+  for (const auto& [name, s] : rows) {
+    t.addRow({name, double(s.tissue_patches), s.tissue_mean_grey, s.speckle_snr,
+              s.speckle_lateral_px, s.speckle_axial_px, s.needle_grey, s.needle_contrast,
+              s.brightest_other_over_needle, s.dark_fraction});
+    using ng::report::jsonNumber;
+    js << ",\n  \"realism_speckle_snr_" << name << "\": " << jsonNumber(s.speckle_snr)
+       << ",\n  \"realism_speckle_lateral_px_" << name << "\": " << jsonNumber(s.speckle_lateral_px)
+       << ",\n  \"realism_speckle_axial_px_" << name << "\": " << jsonNumber(s.speckle_axial_px)
+       << ",\n  \"realism_needle_contrast_" << name << "\": " << jsonNumber(s.needle_contrast)
+       << ",\n  \"realism_brightest_other_over_needle_" << name
+       << "\": " << jsonNumber(s.brightest_other_over_needle);
+  }
+  t.writeCsv(dir + "/realism.csv");
+}
+
+/// The even (tuned on) and odd (held-out) halves, and the held-out imager sequences.
+void writeHalvesAndHeldOut(const std::vector<Result>& fresh, const std::vector<Truth>& truth,
+                           std::ostringstream& js) {
+  using ng::report::jsonNumber;
+  for (const auto& [name, parity] : {std::pair<std::string, int>{"even", 0}, {"odd", 1}}) {
+    const Summary h = summarise(fresh, truth, parity);
+    js << ",\n  \"tip_error_px_median_" << name << "\": " << jsonNumber(h.median)
+       << ",\n  \"tip_error_px_p90_" << name << "\": " << jsonNumber(h.p90)
+       << ",\n  \"found_fraction_" << name << "\": " << jsonNumber(h.found_fraction)
+       << ",\n  \"confident_wrong_" << name << "\": " << h.confident_wrong;
+  }
+  const ng::scene::Scene scene = ng::scene::loadSceneSpec("steering_workspace");
+  for (const HeldOut& h :
+       {heldOutSequence(scene, "straight", 77, im::Point2(0.0, 0.015), 0.1, 0.0),
+        heldOutSequence(scene, "arc", 91, im::Point2(0.0, 0.008), 0.25, -10.0)}) {
+    js << ",\n  \"heldout_" << h.name
+       << "_found_fraction\": " << jsonNumber(h.summary.found_fraction) << ",\n  \"heldout_"
+       << h.name << "_tip_error_px_median\": " << jsonNumber(h.summary.median) << ",\n  \"heldout_"
+       << h.name << "_tip_error_px_p90\": " << jsonNumber(h.summary.p90) << ",\n  \"heldout_"
+       << h.name << "_angle_error_deg_median\": " << jsonNumber(h.summary.angle_median)
+       << ",\n  \"heldout_" << h.name << "_confident_wrong\": " << h.summary.confident_wrong;
+    std::cout << "[tracking_real] held-out " << h.name << ": found " << h.summary.found_fraction
+              << ", median " << h.summary.median << " px, p90 " << h.summary.p90 << " px\n";
+  }
 }
 
 }  // namespace
@@ -178,6 +369,7 @@ int main(int argc, char** argv) {
   std::vector<fs::path> files;
   std::vector<cv::Mat> frames;
   std::vector<Truth> truth;
+  std::vector<cv::Mat> masks;
   const bool real = fs::is_directory(data / "image");
   if (!real) {
     std::cerr << "bench_tracking_real: " << data
@@ -198,6 +390,7 @@ int main(int argc, char** argv) {
       return 1;
     }
     truth.push_back(truthFromMask(mask));
+    masks.push_back(mask);
   }
   im::TrackerConfig config;
   config.geometry.pixel_size_m = kAssumedPixel_m;
@@ -207,16 +400,8 @@ int main(int argc, char** argv) {
   im::SequenceTracker tracker(im::AcquisitionOptions{});
   std::vector<Result> fresh, old, hough;
   for (const cv::Mat& frame : frames) {
+    fresh.push_back(trackTimed(tracker, frame));
     auto t0 = std::chrono::steady_clock::now();
-    const im::SequenceTracker::Output o = tracker.onFrame(frame);
-    Result r;
-    r.ms = msSince(t0);
-    r.found = o.segment.found;
-    r.confident = o.confident;
-    r.tip = o.segment.tip_px;
-    r.angle_rad = o.segment.angle_rad;
-    fresh.push_back(r);
-    t0 = std::chrono::steady_clock::now();
     const im::Detection d_old = im::detectTip(frame, config, std::nullopt);
     old.push_back(fromDetection(d_old, config.geometry, msSince(t0)));
     t0 = std::chrono::steady_clock::now();
@@ -262,7 +447,11 @@ int main(int argc, char** argv) {
      << ",\n  \"baseline_tip_error_px_median\": " << jsonNumber(h.median)
      << ",\n  \"baseline_found_fraction\": " << jsonNumber(h.found_fraction)
      << ",\n  \"old_found_fraction\": " << jsonNumber(o.found_fraction)
-     << ",\n  \"old_tip_error_px_median\": " << jsonNumber(o.median) << ",\n  \"targets_met\": "
+     << ",\n  \"old_tip_error_px_median\": " << jsonNumber(o.median);
+  writeHalvesAndHeldOut(fresh, truth, js);
+  writeRealism(realism(ng::scene::loadSceneSpec("steering_workspace"), frames, masks),
+               args->out_dir, js);
+  js << ",\n  \"targets_met\": "
      << ((n.found_fraction >= 0.95 && n.median <= 8 && n.p90 <= 15 && n.angle_median <= 3 &&
           n.confident_wrong == 0 && n.fps >= 30 && !(h.median < n.median))
              ? "true"

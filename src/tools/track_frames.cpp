@@ -76,7 +76,11 @@ bool parse(int argc, char** argv, Args* a, std::string* why) {
     return *why = "--needle " + a->needle + ": need straight or arc", false;
   }
   if (a->needle == "arc" && a->radius_mm <= 0)
-    return *why = "--needle arc needs --radius-mm", false;
+    return *why = "--needle arc needs --radius-mm (the needle's radius of curvature)", false;
+  if (a->needle == "straight" && a->radius_mm > 0)
+    return *why = "--radius-mm is for --needle arc (the needle is straight by default)", false;
+  if (a->radius_mm > 0 && a->pixel_size_mm <= 0)
+    return *why = "--radius-mm needs --pixel-size-mm to convert the radius to pixels", false;
   if (!im::entrySideFromString(a->entry)) {
     return *why = "--entry " + a->entry + ": need left, right, top, bottom or auto", false;
   }
@@ -106,7 +110,23 @@ void drawOverlay(const cv::Mat& frame, const im::SequenceTracker::Output& o, con
   cv::cvtColor(im::toGrey8(frame, &ignored), bgr, cv::COLOR_GRAY2BGR);
   if (o.segment.found) {
     const cv::Scalar colour = o.confident ? cv::Scalar(0, 255, 0) : cv::Scalar(0, 200, 255);
-    cv::line(bgr, o.segment.tail_px, o.segment.tip_px, colour, 1, cv::LINE_AA);
+    // The shaft walked back from the tip (an arc when it is curved).
+    const double k = o.segment.curvature_per_px, chord = o.segment.length_px();
+    const double length =
+        k == 0.0 ? chord : 2.0 * std::asin(std::min(1.0, 0.5 * chord * std::abs(k))) / std::abs(k);
+    std::vector<cv::Point> shaft;
+    const double a0 = o.segment.angle_rad + 3.14159265358979323846;  // back along the shaft
+    for (double u = 0; u <= length; u += 2.0) {
+      // Backwards the curvature's sign flips; heading a0 - k u, position by the exact arc.
+      const double heading = a0 - k * u;
+      const cv::Point2d p = k == 0.0
+                                ? o.segment.tip_px + u * cv::Point2d(std::cos(a0), std::sin(a0))
+                                : o.segment.tip_px + cv::Point2d(std::sin(heading) - std::sin(a0),
+                                                                 std::cos(a0) - std::cos(heading)) *
+                                                         (-1.0 / k);
+      shaft.emplace_back(cv::Point(int(std::lround(p.x)), int(std::lround(p.y))));
+    }
+    cv::polylines(bgr, shaft, false, colour, 1, cv::LINE_AA);
     cv::drawMarker(bgr, o.segment.tip_px, cv::Scalar(0, 0, 255), cv::MARKER_CROSS, 15, 2);
   }
   cv::putText(bgr, o.segment.found ? (o.confident ? "confident" : "found") : "not found",
@@ -128,6 +148,13 @@ int main(int argc, char** argv) {
     fs::create_directories(a.overlay);
   im::AcquisitionOptions options;
   options.entry = *im::entrySideFromString(a.entry);
+  if (a.needle == "arc")
+    options.radius_px = a.radius_mm / a.pixel_size_mm;
+  try {
+    options.validate();
+  } catch (const std::invalid_argument& e) {
+    return usage(std::string("--radius-mm ") + std::to_string(a.radius_mm) + ": " + e.what());
+  }
   im::SequenceTracker tracker(options);
   std::ofstream csv(a.out);
   if (!csv)

@@ -2,9 +2,11 @@
 // appearance in both modalities, dropped frames, clipping and refusals.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
 #include <stdexcept>
 #include <vector>
 
@@ -27,7 +29,9 @@ constexpr int kDropFrames = 4000;
 constexpr double kDropProbability = 0.3;
 constexpr double kDropRateTol = 0.035;
 
-ng::scene::Scene steeringScene() { return ng::scene::loadSceneSpec("steering_workspace"); }
+ng::scene::Scene steeringScene() {
+  return ng::scene::loadSceneSpec("steering_workspace");
+}
 
 im::ImagerConfig config(const ng::scene::Scene& scene, im::Modality modality, double noise) {
   im::ImagerConfig c = im::imagerConfigFromScene(scene, 7);
@@ -123,8 +127,10 @@ TEST(FrameRenderer, UltrasoundNeedleIsBrightWhereItFacesTheBeam) {
             kMinNeedleContrast_grey);
   // A reverberation ghost lies 1.6 mm deeper (+y) and is fainter than the needle.
   const Point2 shaft(0.01, 0.02), ghost(0.01, 0.0216);
-  const double needle_gain = meanAround(with, c.geometry, shaft) - meanAround(without, c.geometry, shaft);
-  const double ghost_gain = meanAround(with, c.geometry, ghost) - meanAround(without, c.geometry, ghost);
+  const double needle_gain =
+      meanAround(with, c.geometry, shaft) - meanAround(without, c.geometry, shaft);
+  const double ghost_gain =
+      meanAround(with, c.geometry, ghost) - meanAround(without, c.geometry, ghost);
   EXPECT_GT(ghost_gain, 0.0);
   EXPECT_LT(ghost_gain, needle_gain);
 }
@@ -171,6 +177,127 @@ TEST(FrameRenderer, RefusesBadSettingsAndPoints) {
   EXPECT_THROW(renderer.render({Point2(0.0, 0.02), Point2(nan, 0.02)}, 0), std::invalid_argument);
   EXPECT_EQ(im::modalityFromString("xray"), std::nullopt);
   EXPECT_EQ(im::modalityFromString("fluoroscopy"), im::Modality::kFluoroscopy);
+}
+
+// ---- the realistic ultrasound model (issue 17) ----
+
+namespace {
+
+/// Grey level of a bright specular structure (the display saturates at 255).
+constexpr double kBright_grey = 200.0;
+/// A layer spans the frame: bright over at least this fraction of its width.
+constexpr double kLayerSpanFraction = 0.9;
+/// Shadow: the tissue 2-8 mm beyond the needle keeps at most this fraction of its grey level.
+constexpr double kShadowMaxRatio = 0.85;
+/// Log compression: the speckle's mean over its standard deviation (Rayleigh on a linear
+/// scale: 1.91; the in-vitro scanner's: about 6).
+constexpr double kMinLogSpeckleSnr = 3.0;
+/// Out of plane: some seed's tilt dims the tip by at least this against the entry [grey].
+constexpr double kMinFade_grey = 15.0;
+
+im::ImagerConfig realisticConfig(const ng::scene::Scene& scene, std::uint64_t seed) {
+  im::ImagerConfig c = config(scene, im::Modality::kUltrasound, 0.0);
+  c.ultrasound_model = im::UltrasoundModel::kRealistic;
+  c.seed = seed;
+  return c;
+}
+
+/// A straight horizontal needle from x = 0 to x = 40 mm at y = 20 mm (below both layers).
+std::vector<Point2> longNeedle() {
+  std::vector<Point2> points;
+  for (int i = 0; i <= 80; ++i) {
+    points.emplace_back(i * 0.5e-3, 0.02);
+  }
+  return points;
+}
+
+}  // namespace
+
+TEST(FrameRenderer, UltrasoundModelNamesRoundTrip) {
+  for (const auto m : {im::UltrasoundModel::kClassic, im::UltrasoundModel::kRealistic}) {
+    EXPECT_EQ(im::ultrasoundModelFromString(im::toString(m)), m);
+  }
+  EXPECT_FALSE(im::ultrasoundModelFromString("Realistic").has_value());
+  EXPECT_EQ(im::ImagerConfig().ultrasound_model, im::UltrasoundModel::kClassic);
+}
+
+TEST(FrameRenderer, RealisticLayersAreLongerAndBrighterThanTheNeedle) {
+  // Without the obstacles (their shadows would cut the layers into pieces).
+  auto scene = steeringScene();
+  scene.obstacles.clear();
+  const im::ImagerConfig c = realisticConfig(scene, 7);
+  const im::FrameRenderer renderer(scene, c);
+  const cv::Mat with = renderer.render(longNeedle(), 0).image;
+  EXPECT_EQ(cv::norm(with, renderer.render(longNeedle(), 0).image, cv::NORM_INF), 0.0);
+  // Bright structures as connected components: each layer spans the frame, the needle 40 mm of
+  // its 128 mm.
+  cv::Mat labels, stats, centroids;
+  const int n = cv::connectedComponentsWithStats(with >= kBright_grey, labels, stats, centroids, 8);
+  const cv::Point needle_px = c.geometry.toPixel(Point2(0.02, 0.02));
+  const int needle_label = labels.at<int>(needle_px.y, needle_px.x);
+  ASSERT_GT(needle_label, 0) << "the needle's shaft is not bright";
+  const int needle_width = stats.at<int>(needle_label, cv::CC_STAT_WIDTH);
+  const double needle_grey = cv::mean(with, labels == needle_label)[0];
+  int layers = 0;
+  for (int k = 1; k < n; ++k) {
+    if (k != needle_label &&
+        stats.at<int>(k, cv::CC_STAT_WIDTH) >= kLayerSpanFraction * with.cols) {
+      ++layers;
+      EXPECT_GT(stats.at<int>(k, cv::CC_STAT_WIDTH), 2 * needle_width);
+      EXPECT_GT(cv::mean(with, labels == k)[0], needle_grey) << "layer " << k;
+    }
+  }
+  EXPECT_EQ(layers, 2);
+  EXPECT_LT(needle_width, 0.5 * with.cols);
+}
+
+TEST(FrameRenderer, RealisticNeedleCastsAShadowAndAReverberationTail) {
+  const auto scene = steeringScene();
+  const im::ImagerConfig c = realisticConfig(scene, 7);
+  const im::FrameRenderer renderer(scene, c);
+  const cv::Mat with = renderer.render(longNeedle(), 0).image;
+  const cv::Mat without = renderer.render({}, 0).image;
+  // Beyond the needle from the probe (on the bottom row): +y in the scene.
+  const cv::Point2d a = c.geometry.toPixel(Point2(0.005, 0.028));
+  const cv::Point2d b = c.geometry.toPixel(Point2(0.025, 0.023));
+  const cv::Rect beyond(cv::Point(int(a.x), int(a.y)), cv::Point(int(b.x), int(b.y)));
+  EXPECT_LT(cv::mean(with(beyond))[0], kShadowMaxRatio * cv::mean(without(beyond))[0]);
+  // The tail: copies 0.5 and 1.0 mm deeper are brighter than the tissue there.
+  for (const double dy : {0.5e-3, 1.0e-3}) {
+    const Point2 p(0.01, 0.02 + dy);
+    EXPECT_GT(meanAround(with, c.geometry, p), meanAround(without, c.geometry, p) + 10.0) << dy;
+  }
+}
+
+TEST(FrameRenderer, RealisticSpeckleIsLogCompressedLikeAScanner) {
+  const auto scene = steeringScene();
+  const im::ImagerConfig c = realisticConfig(scene, 7);
+  const cv::Mat frame = im::FrameRenderer(scene, c).render({}, 0).image;
+  const cv::Mat classic =
+      im::FrameRenderer(scene, config(scene, im::Modality::kUltrasound, 0.0)).render({}, 0).image;
+  // A patch of plain tissue: below both layers, left of every obstacle.
+  const cv::Point2d a = c.geometry.toPixel(Point2(0.002, 0.018));
+  const cv::Rect patch(int(a.x), int(a.y), 60, 40);
+  cv::Scalar mean, sd, mean_classic, sd_classic;
+  cv::meanStdDev(frame(patch), mean, sd);
+  cv::meanStdDev(classic(patch), mean_classic, sd_classic);
+  EXPECT_GT(mean[0] / sd[0], kMinLogSpeckleSnr);
+  EXPECT_LT(mean_classic[0] / sd_classic[0], kMinLogSpeckleSnr);
+}
+
+TEST(FrameRenderer, RealisticNeedleFadesTowardsTheTipOutOfPlane) {
+  const auto scene = steeringScene();
+  double deepest_fade = 0.0;
+  for (std::uint64_t seed = 1; seed <= 10; ++seed) {
+    const im::ImagerConfig c = realisticConfig(scene, seed);
+    const im::FrameRenderer renderer(scene, c);
+    const cv::Mat with = renderer.render(longNeedle(), 0).image;
+    const double entry = meanAround(with, c.geometry, Point2(0.004, 0.02));
+    const double tip = meanAround(with, c.geometry, Point2(0.038, 0.02));
+    EXPECT_LE(tip, entry + 3.0) << "seed " << seed;  // never brighter towards the tip
+    deepest_fade = std::max(deepest_fade, entry - tip);
+  }
+  EXPECT_GT(deepest_fade, kMinFade_grey);
 }
 
 int main(int argc, char** argv) {

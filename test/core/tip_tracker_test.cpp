@@ -830,6 +830,20 @@ TEST(TipTrackerTest, AcquiresWithoutAnEntryButNotConfidently) {
 }  // namespace
 }  // namespace needle_guidance::imaging
 
+TEST(MotionModelTest, AutoTakesTheDriveWhenThereAndTheAxisOtherwise) {
+  namespace im = needle_guidance::imaging;
+  using im::MotionModel;
+  EXPECT_EQ(im::chooseMotionModel(MotionModel::kAuto, true), MotionModel::kDrive);
+  EXPECT_EQ(im::chooseMotionModel(MotionModel::kAuto, false), MotionModel::kAxis);
+  // A stated model is kept whatever is available.
+  EXPECT_EQ(im::chooseMotionModel(MotionModel::kAxis, true), MotionModel::kAxis);
+  EXPECT_EQ(im::chooseMotionModel(MotionModel::kDrive, false), MotionModel::kDrive);
+  for (const auto m : {MotionModel::kAuto, MotionModel::kDrive, MotionModel::kAxis}) {
+    EXPECT_EQ(im::motionModelFromString(im::toString(m)), m);
+  }
+  EXPECT_FALSE(im::motionModelFromString("robot").has_value());
+}
+
 int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);
   return RUN_ALL_TESTS();

@@ -33,6 +33,27 @@ enum class Modality : std::uint8_t {
 };
 /// "fluoroscopy" | "ultrasound".
 std::string toString(Modality modality);
+
+/// How the ultrasound mode renders (issue 17). Both are pure functions of (seed, index, needle).
+enum class UltrasoundModel : std::uint8_t {
+  /// The issue-6 renderer: Rayleigh speckle multiplied by echogenicity on a linear display
+  /// scale, obstacle outlines, a needle brighter than anything else with three ghosts. The
+  /// image-guided loop and its published figures were made on it (the default).
+  kClassic,
+  /// Closer to a clinical scanner (checked against the in-vitro set, bench tracking_real):
+  /// scatterer amplitudes through an anisotropic point-spread function, log-compressed to a
+  /// 55 dB display; two seeded specular tissue layers that span the frame (longer than the
+  /// needle, brighter and wider than it) with a change of echogenicity across them; the needle's
+  /// acoustic shadow beyond it, a reverberation tail of five fainter copies, and a seeded tilt
+  /// out of the image plane that fades the shaft towards the tip (elevation beam profile). The
+  /// noise (noise_std) enters before the log compression, as a scanner's electronic noise does,
+  /// at noise_std times the mean tissue echo; the point-spread blur follows it.
+  kRealistic,
+};
+/// "classic" | "realistic".
+std::string toString(UltrasoundModel model);
+/// Inverse of toString(UltrasoundModel); nullopt for anything else.
+std::optional<UltrasoundModel> ultrasoundModelFromString(const std::string& name);
 /// Inverse of toString(Modality); nullopt for anything else.
 std::optional<Modality> modalityFromString(const std::string& name);
 
@@ -40,12 +61,14 @@ std::optional<Modality> modalityFromString(const std::string& name);
 /// full scale (255 grey levels).
 struct ImagerConfig {
   Modality modality = Modality::kUltrasound;
-  ImageGeometry geometry;         ///< the pixel grid (calibration); validated
-  double noise_std = 0.0;         ///< additive Gaussian noise per frame, fraction of full scale, >= 0
-  double blur_sigma_m = 0.0;      ///< Gaussian point-spread function, >= 0 [m]
-  double drop_probability = 0.0;  ///< probability that a frame is lost, in [0, 1)
+  ImageGeometry geometry;     ///< the pixel grid (calibration); validated
+  double noise_std = 0.0;     ///< additive Gaussian noise per frame, fraction of full scale, >= 0
+  double blur_sigma_m = 0.0;  ///< Gaussian point-spread function, >= 0 [m]
+  double drop_probability = 0.0;      ///< probability that a frame is lost, in [0, 1)
   double needle_diameter_m = 0.5e-3;  ///< drawn width of the needle, > 0 [m]
-  std::uint64_t seed = 1;         ///< seed of everything random (speckle, noise, drops)
+  std::uint64_t seed = 1;             ///< seed of everything random (speckle, noise, drops)
+  /// Ultrasound renderer (ignored in fluoroscopy).
+  UltrasoundModel ultrasound_model = UltrasoundModel::kClassic;
   /// Throws std::invalid_argument naming the field and its value when anything is out of range.
   void validate() const;
 };
@@ -63,8 +86,9 @@ ImageGeometry fieldOfView(const scene::Scene& scene, double pixel_size_m, int co
 
 /// One frame. `image` is CV_8UC1 of config.geometry.size(); empty when dropped.
 struct Frame {
-  std::uint64_t index = 0;  ///< frame number (0, 1, 2, ...): with the seed it fixes every random draw
-  bool dropped = false;     ///< true: the device lost this frame (image empty)
+  std::uint64_t index =
+      0;                 ///< frame number (0, 1, 2, ...): with the seed it fixes every random draw
+  bool dropped = false;  ///< true: the device lost this frame (image empty)
   cv::Mat image;
 };
 
@@ -87,7 +111,8 @@ public:
   bool dropped(std::uint64_t index) const;
 
   const ImagerConfig& config() const { return config_; }
-  /// The static anatomy before blur and noise, as fractions of full scale (CV_32FC1).
+  /// The static anatomy before blur and noise, as fractions of full scale (CV_32FC1); with the
+  /// realistic ultrasound model, echo amplitudes before log compression (1 = full scale).
   const cv::Mat& anatomy() const { return anatomy_; }
 
 private:

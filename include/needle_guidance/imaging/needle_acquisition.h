@@ -5,13 +5,16 @@
 //   step 2  ridge filter (Hessian, bright thin lines) and its orientation;
 //   step 3  candidate lines (cv::HoughLines on the strongest ridge pixels);
 //   step 4  each candidate's visible segment along the line (gaps bridged), refit by weighted
-//           least squares on the ridge pixels near it;
+//           least squares on the ridge pixels near it (a steerable needle, options.radius_px:
+//           then bent into an arc of that radius either way, the circle's centre refit by
+//           Gauss-Newton, the way that traces more ridge kept);
 //   step 5  needle-vs-interface cues per candidate: cross-line contrast, orientation coherence
 //           along the segment, symmetry of the tissue on both sides (an interface separates two
 //           media: one side differs from the other; a needle lies inside one medium), length,
 //           and distance from the image border;
 //   step 6  the best candidate, if its evidence beats the thresholds (else "not found"),
-//           and its tip: the end away from the entry side (calibrated or worked out).
+//           and its tip: the end away from the entry side (calibrated or worked out); over a
+//           sequence, a candidate moving at its tip end beats every still one (motion map).
 // Plain C++ and OpenCV; no ROS (STYLE.md rules 1-2).
 #pragma once
 
@@ -40,6 +43,9 @@ struct AcquisitionOptions {
   /// line intensity over the side bands' spread, times sqrt of the segment length in PSF
   /// lengths), below which the frame is "not found".
   double min_evidence = 6.0;
+  /// Needle model: 0 = straight; > 0 = a constant-curvature (steerable) needle whose shaft is an
+  /// arc of this radius [px] (from the scene, or track_frames --radius-mm over the pixel size).
+  double radius_px = 0.0;
   /// Throws std::invalid_argument naming the field when out of range.
   void validate() const;
 };
@@ -50,11 +56,17 @@ struct NeedleSegment {
   std::string message;            ///< why not found, or a one-line summary
   cv::Point2d tip_px{0.0, 0.0};   ///< tip, pixel coordinates (origin at pixel centre)
   cv::Point2d tail_px{0.0, 0.0};  ///< the other visible end
-  double angle_rad = 0.0;         ///< direction tail -> tip, atan2(drow, dcol)
-  double contrast = 0.0;          ///< mean line minus side-band intensity [grey levels]
-  double evidence = 0.0;          ///< score the candidate won with (see AcquisitionOptions)
-  double symmetry = 0.0;          ///< 1 = same tissue on both sides, 0 = interface-like
-  double coherence = 0.0;         ///< fraction of ridge pixels aligned with the line
+  double angle_rad = 0.0;         ///< direction towards the tip at the tip, atan2(drow, dcol)
+  /// Signed curvature of the shaft [1/px] (0 = straight): > 0 turns from the direction towards
+  /// the tip to its normal (-drow, dcol), i.e. clockwise on the screen (image y down).
+  double curvature_per_px = 0.0;
+  double contrast = 0.0;   ///< mean line minus side-band intensity [grey levels]
+  double evidence = 0.0;   ///< score the candidate won with (see AcquisitionOptions)
+  double symmetry = 0.0;   ///< 1 = same tissue on both sides, 0 = interface-like
+  double coherence = 0.0;  ///< fraction of ridge pixels aligned with the line
+  /// Sequence cue: frame difference against the background at the tip end, over the frame's
+  /// mean difference (0 for a single frame; >= 3 counts as moving).
+  double motion = 0.0;
   double length_px() const;
 };
 
@@ -67,11 +79,21 @@ cv::Mat toGrey8(const cv::Mat& frame, std::string* problem);
 /// one without a needle gives found = false with the reason.
 NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options);
 
+/// The same with the sequence cue: `motion` (CV_32FC1 of the frame's size, or empty for none)
+/// is the frame's absolute difference from a background model of the sequence over its mean.
+/// When a candidate strong enough to be a needle moves at its tip end (the needle advancing
+/// along its own axis in still tissue), the still candidates drop out: a still bright line never
+/// wins over a moving needle. Never throws.
+NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options,
+                            const cv::Mat& motion);
+
 /// Acquisition over a sequence: acquireNeedle per frame, a constant-velocity motion model of
 /// the tip along the needle's own axis (no robot drive needed), a gate on the tip and the
 /// angle, and confidence earned by consecutive agreeing detections. A still background plus a
 /// tip moving along the axis is what a needle does; a candidate that jumps is gated out and
-/// only replaces the track after kReacquireAfter agreeing frames.
+/// only replaces the track after kReacquireAfter agreeing frames. Each frame's acquisition uses
+/// the sequence cue: the frame's difference from an exponential background of the previous
+/// frames (acquireNeedle with a motion map).
 class SequenceTracker {
 public:
   explicit SequenceTracker(const AcquisitionOptions& options);
@@ -97,6 +119,10 @@ public:
 private:
   bool agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px) const;
   Output update(const NeedleSegment& d);
+  /// |frame - background| over its mean (empty for the first frame), then the background
+  /// takes the frame in.
+  cv::Mat motionMap(const cv::Mat& frame);
+  cv::Mat background_;  ///< CV_32F exponential average of the frames
   cv::Mat last_frame_;
   Output last_output_;
   AcquisitionOptions options_;

@@ -16,6 +16,15 @@ struct BModeNeedle {
   cv::Point2d tail, tip;       ///< visible ends [px]
   double brightness = 170.0;   ///< grey levels added on the shaft
   double fade_fraction = 0.0;  ///< last part of the shaft fading linearly to 0 (out of plane)
+  /// 0: straight; otherwise the arc from tail to tip of radius 1 / |curvature| that turns
+  /// clockwise on the screen (image y down) for > 0 (a steerable needle) [1/px]; |curvature|
+  /// times the tail-tip distance must be below 2.
+  double curvature_per_px = 0.0;
+  /// Point at arc length s [px] from the tail, and the arc's length [px].
+  cv::Point2d at(double s) const;
+  double length() const;
+  /// Direction towards the tip at the tip, atan2(drow, dcol) [rad].
+  double tipAngle() const;
 };
 struct BModeInterface {
   double y0 = 0.0, y1 = 0.0;  ///< rows at the first and the last column

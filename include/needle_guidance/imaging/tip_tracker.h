@@ -126,6 +126,21 @@ enum class TrackStatus : std::uint8_t {
 std::string toString(TrackStatus status);
 
 /// The tracker's output for one frame (or one motion update).
+/// How the tip is predicted between frames (issue 17).
+enum class MotionModel : std::uint8_t {
+  kAuto,   ///< the robot's drive when it is available, otherwise the needle's own axis
+  kDrive,  ///< TipTracker: the EKF predicts from the robot's drive (inserted length, bevel, flips)
+  kAxis,   ///< SequenceTracker: acquisition without a prior, constant speed along the axis
+};
+/// "auto" | "drive" | "axis".
+std::string toString(MotionModel model);
+/// Inverse of toString(MotionModel); nullopt for anything else.
+std::optional<MotionModel> motionModelFromString(const std::string& name);
+/// The model a frame is tracked with: `setting` itself unless it is kAuto, which takes kDrive
+/// when the robot's drive is available (a publisher of it or a message received) and kAxis
+/// otherwise (a bag or a freehand recording). Never kAuto.
+MotionModel chooseMotionModel(MotionModel setting, bool drive_available);
+
 struct TipEstimate {
   TrackStatus status = TrackStatus::kUninitialized;
   std::string message;    ///< one line: what happened and why
@@ -224,6 +239,13 @@ private:
   void move(double ds_m, steering::Bevel bevel);
   /// Fills estimate_.confident from the status and the covariance.
   void updateConfidence();
+  /// onFrame's parts: the first frame without any prior; the prior the detector searches
+  /// around; a detection outside the gate (re-acquisition after agreeing ones); the fusion.
+  TipEstimate acquireWithoutPrior(const cv::Mat& frame);
+  SearchPrior searchPrior() const;
+  TipEstimate onGatedOut(const Detection& d, double d2);
+  TipEstimate fuse(const Detection& d, const Eigen::Vector3d& nu,
+                   const Eigen::LDLT<Eigen::Matrix3d>& ldlt, double d2);
   /// Whether the mean and covariance are finite (and the covariance symmetric PSD-ish).
   bool stateFinite() const;
 

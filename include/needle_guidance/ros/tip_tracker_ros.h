@@ -46,7 +46,11 @@ private:
   bool have_entry_ = false;
   NeedleDrive last_drive_;
   std::uint64_t frames_ = 0;
-  bool axis_model_ = false;  ///< ~motion_model: false = drive (the robot's), true = axis
+  void resetSequence();
+  /// ~motion_model: auto (default) chooses per frame by whether the robot's drive is there.
+  imaging::MotionModel motion_model_ = imaging::MotionModel::kAuto;
+  imaging::AcquisitionOptions sequence_options_;  ///< axis model: ~entry
+  double sequence_radius_m_ = 0.0;                ///< axis model: ~radius_m (0 = straight)
   std::unique_ptr<imaging::SequenceTracker> sequence_;
   imaging::ImageGeometry geometry_;  ///< calibration (axis model)
   ros::Subscriber image_sub_;
