@@ -262,7 +262,7 @@ def kill_run(out_dir, name, spec, node, rng, index):
                 rec["named"] = int(summary.get("dead_node", "").strip("/") == node or
                                    f"/{node} " in text)
                 rec["outcome"] = summary.get("status", "") + ": " + summary.get("cause", "")[:120]
-            if "detected_unix_s" in summary:
+            if summary.get("detected_unix_s", 0) > 0:
                 rec["detect_s"] = round(summary["detected_unix_s"] - t_kill, 3)
         time.sleep(0.5)  # the devices' last states after the procedure ended
     finally:

@@ -12,7 +12,8 @@ namespace needle_guidance::delivery {
 
 double ir192DecayFactor(double days) {
   if (!std::isfinite(days) || days < 0.0) {
-    throw std::invalid_argument("days since source calibration must be finite and >= 0, got " + std::to_string(days));
+    throw std::invalid_argument("days since source calibration must be finite and >= 0, got " +
+                                std::to_string(days));
   }
   return std::exp(-std::log(2.0) * days / kIr192HalfLifeDays);
 }
@@ -32,9 +33,10 @@ double parseUtcSeconds(const std::string& text) {
     ok = true;
   }
   static const int kDays[] = {31, 29, 31, 30, 31, 30, 31, 31, 30, 31, 30, 31};
-  if (!ok || y < 1970 || mo < 1 || mo > 12 || d < 1 || d > kDays[mo - 1] || h > 23 || mi > 59 || s > 59 ||
-      h < 0 || mi < 0 || s < 0) {
-    throw std::invalid_argument("'" + text + "' is not a UTC date YYYY-MM-DD or YYYY-MM-DDTHH:MM[:SS]");
+  if (!ok || y < 1970 || mo < 1 || mo > 12 || d < 1 || d > kDays[mo - 1] || h > 23 || mi > 59 ||
+      s > 59 || h < 0 || mi < 0 || s < 0) {
+    throw std::invalid_argument("'" + text +
+                                "' is not a UTC date YYYY-MM-DD or YYYY-MM-DDTHH:MM[:SS]");
   }
   std::tm tm{};
   tm.tm_year = y - 1900;
@@ -46,7 +48,8 @@ double parseUtcSeconds(const std::string& text) {
   const std::time_t seconds = timegm(&tm);
   std::tm back{};
   gmtime_r(&seconds, &back);
-  if (back.tm_mday != d) throw std::invalid_argument("'" + text + "': no such day");
+  if (back.tm_mday != d)
+    throw std::invalid_argument("'" + text + "': no such day");
   return static_cast<double>(seconds);
 }
 
@@ -54,23 +57,27 @@ namespace {
 
 double pathLength(const std::vector<Point3>& path) {
   double length = 0.0;
-  for (std::size_t k = 1; k < path.size(); ++k) length += (path[k] - path[k - 1]).norm();
+  for (std::size_t k = 1; k < path.size(); ++k)
+    length += (path[k] - path[k - 1]).norm();
   return length;
 }
 
 /// Point at arc length `arc` from the path's first point (extended straight past its last).
 Point3 pointAtArc(const std::vector<Point3>& path, double arc, Point3* axis_to_tip = nullptr) {
   if (path.size() < 2) {
-    if (axis_to_tip) *axis_to_tip = Point3::UnitZ();
+    if (axis_to_tip)
+      *axis_to_tip = Point3::UnitZ();
     return path.empty() ? Point3::Zero() : path.front();
   }
   double walked = 0.0;
   for (std::size_t k = 1; k < path.size(); ++k) {
     const Point3 seg = path[k] - path[k - 1];
     const double len = seg.norm();
-    if (len <= 0.0) continue;
+    if (len <= 0.0)
+      continue;
     if (walked + len >= arc || k + 1 == path.size()) {
-      if (axis_to_tip) *axis_to_tip = -seg / len;
+      if (axis_to_tip)
+        *axis_to_tip = -seg / len;
       return path[k - 1] + seg * ((arc - walked) / len);
     }
     walked += len;
@@ -111,20 +118,23 @@ Point3 ChannelSchedule::sourcePosition(double distance) const {
 
 std::size_t Schedule::dwellCount() const {
   std::size_t n = 0;
-  for (const auto& c : channels) n += c.time_s.size();
+  for (const auto& c : channels)
+    n += c.time_s.size();
   return n;
 }
 
 double Schedule::totalDwellTime() const {
   double t = 0.0;
   for (const auto& c : channels)
-    for (double x : c.time_s) t += x;
+    for (double x : c.time_s)
+      t += x;
   return t;
 }
 
 int Schedule::channelIndex(int channel) const {
   for (std::size_t k = 0; k < channels.size(); ++k)
-    if (channels[k].channel == channel) return static_cast<int>(k);
+    if (channels[k].channel == channel)
+      return static_cast<int>(k);
   return -1;
 }
 
@@ -142,11 +152,12 @@ std::uint64_t Schedule::contentHash() const {
   return h;
 }
 
-Schedule makeSchedule(const dose::HdrCase& c, const std::vector<double>& times_s, const std::string& plan_id,
-                      const ScheduleOptions& options) {
+Schedule makeSchedule(const dose::HdrCase& c, const std::vector<double>& times_s,
+                      const std::string& plan_id, const ScheduleOptions& options) {
   if (times_s.size() != c.dwells.size()) {
-    throw std::invalid_argument("makeSchedule: " + std::to_string(times_s.size()) + " dwell times for " +
-                                std::to_string(c.dwells.size()) + " dwell positions");
+    throw std::invalid_argument("makeSchedule: " + std::to_string(times_s.size()) +
+                                " dwell times for " + std::to_string(c.dwells.size()) +
+                                " dwell positions");
   }
   if (!(options.transfer_length_m >= 0.0) || !std::isfinite(options.transfer_length_m)) {
     throw std::invalid_argument("makeSchedule: transfer length must be finite and >= 0");
@@ -156,13 +167,14 @@ Schedule makeSchedule(const dose::HdrCase& c, const std::vector<double>& times_s
   s.source = c.source;
   s.plan_air_kerma_strength_U = c.air_kerma_strength_U;
   s.decay_days = options.days_since_calibration;
-  s.current_air_kerma_strength_U =
-      options.calibration_air_kerma_strength_U > 0.0
-          ? options.calibration_air_kerma_strength_U * ir192DecayFactor(options.days_since_calibration)
-          : c.air_kerma_strength_U;
+  s.current_air_kerma_strength_U = options.calibration_air_kerma_strength_U > 0.0
+                                       ? options.calibration_air_kerma_strength_U *
+                                             ir192DecayFactor(options.days_since_calibration)
+                                       : c.air_kerma_strength_U;
   if (!(s.current_air_kerma_strength_U >= 0.01 * s.plan_air_kerma_strength_U)) {
     throw std::invalid_argument("makeSchedule: the source's current air-kerma strength " +
-                                std::to_string(s.current_air_kerma_strength_U) + " U is under 1 % of the plan's " +
+                                std::to_string(s.current_air_kerma_strength_U) +
+                                " U is under 1 % of the plan's " +
                                 std::to_string(s.plan_air_kerma_strength_U) + " U");
   }
   const double scale = s.plan_air_kerma_strength_U / s.current_air_kerma_strength_U;
@@ -177,22 +189,25 @@ Schedule makeSchedule(const dose::HdrCase& c, const std::vector<double>& times_s
     // Dwells of this catheter, tip first.
     std::vector<std::pair<double, std::size_t>> order;
     for (std::size_t j = 0; j < c.dwells.size(); ++j) {
-      if (c.dwells[j].catheter != static_cast<int>(k)) continue;
+      if (c.dwells[j].catheter != static_cast<int>(k))
+        continue;
       const double t = times_s[j];
       if (!std::isfinite(t) || t < 0.0) {
-        throw std::invalid_argument("makeSchedule: dwell " + std::to_string(j) + " has time " + std::to_string(t) +
-                                    " s (must be finite and >= 0)");
+        throw std::invalid_argument("makeSchedule: dwell " + std::to_string(j) + " has time " +
+                                    std::to_string(t) + " s (must be finite and >= 0)");
       }
-      if (t <= options.min_dwell_s) continue;
+      if (t <= options.min_dwell_s)
+        continue;
       double off = 0.0;
       const double arc = arcOfClosest(cath.points_m, c.dwells[j].position_m, off);
       if (off > 1e-4) {
-        throw std::invalid_argument("makeSchedule: dwell " + std::to_string(j) + " lies " + std::to_string(off * 1e3) +
-                                    " mm off catheter " + cath.name);
+        throw std::invalid_argument("makeSchedule: dwell " + std::to_string(j) + " lies " +
+                                    std::to_string(off * 1e3) + " mm off catheter " + cath.name);
       }
       order.emplace_back(arc, j);
     }
-    if (order.empty()) continue;
+    if (order.empty())
+      continue;
     std::sort(order.begin(), order.end());
     for (const auto& [arc, j] : order) {
       ch.dwell_index.push_back(c.dwells[j].index);
@@ -213,27 +228,33 @@ bool isValidPlanId(const std::string& id) {
 std::vector<std::string> validateSchedule(const Schedule& s, const DeviceLimits& limits) {
   std::vector<std::string> problems;
   if (!isValidPlanId(s.plan_id)) {
-    problems.push_back("plan_id '" + s.plan_id + "' must be 1-100 characters of [A-Za-z0-9_.-], not starting with '.'");
+    problems.push_back("plan_id '" + s.plan_id +
+                       "' must be 1-100 characters of [A-Za-z0-9_.-], not starting with '.'");
   }
   std::set<int> seen;
   double total = 0.0;
   for (const auto& c : s.channels) {
     const std::string where = "channel " + std::to_string(c.channel);
     if (c.channel < 1 || c.channel > limits.channels) {
-      problems.push_back(where + ": unknown (the afterloader has channels 1-" + std::to_string(limits.channels) + ")");
+      problems.push_back(where + ": unknown (the afterloader has channels 1-" +
+                         std::to_string(limits.channels) + ")");
     }
-    if (!seen.insert(c.channel).second) problems.push_back(where + ": listed twice");
+    if (!seen.insert(c.channel).second)
+      problems.push_back(where + ": listed twice");
     if (!std::isfinite(c.length_m) || c.length_m <= 0.0 || c.length_m > limits.max_length_m) {
       problems.push_back(where + ": length " + std::to_string(c.length_m) + " m outside (0, " +
                          std::to_string(limits.max_length_m) + "] m");
     }
-    if (!std::isfinite(c.transfer_length_m) || c.transfer_length_m < 0.0 || c.transfer_length_m >= c.length_m) {
-      problems.push_back(where + ": transfer length " + std::to_string(c.transfer_length_m) + " m not in [0, length)");
+    if (!std::isfinite(c.transfer_length_m) || c.transfer_length_m < 0.0 ||
+        c.transfer_length_m >= c.length_m) {
+      problems.push_back(where + ": transfer length " + std::to_string(c.transfer_length_m) +
+                         " m not in [0, length)");
     }
     const std::size_t n = c.time_s.size();
     if (c.distance_m.size() != n || c.dwell_index.size() != n) {
-      problems.push_back(where + ": " + std::to_string(n) + " times, " + std::to_string(c.distance_m.size()) +
-                         " distances and " + std::to_string(c.dwell_index.size()) + " dwell indices");
+      problems.push_back(where + ": " + std::to_string(n) + " times, " +
+                         std::to_string(c.distance_m.size()) + " distances and " +
+                         std::to_string(c.dwell_index.size()) + " dwell indices");
       continue;
     }
     for (std::size_t k = 0; k < n; ++k) {
@@ -248,24 +269,27 @@ std::vector<std::string> validateSchedule(const Schedule& s, const DeviceLimits&
       if (!std::isfinite(d) || d <= 0.0 || d > c.length_m) {
         problems.push_back(dwell + ": distance " + std::to_string(d) + " m outside (0, length]");
       } else if (k > 0 && !(d < c.distance_m[k - 1])) {
-        problems.push_back(dwell + ": distances must decrease from the tip (" + std::to_string(d) + " m after " +
-                           std::to_string(c.distance_m[k - 1]) + " m)");
+        problems.push_back(dwell + ": distances must decrease from the tip (" + std::to_string(d) +
+                           " m after " + std::to_string(c.distance_m[k - 1]) + " m)");
       }
     }
   }
-  if (problems.empty() && !(total > 0.0)) problems.push_back("the schedule has no dwell time");
+  if (problems.empty() && !(total > 0.0))
+    problems.push_back("the schedule has no dwell time");
   return problems;
 }
 
 double tripTransitSeconds(const ChannelSchedule& channel, double speed_m_s) {
   double distal = 0.0;
   for (std::size_t k = 0; k < channel.time_s.size() && k < channel.distance_m.size(); ++k) {
-    if (channel.time_s[k] > 0.0) distal = std::max(distal, channel.distance_m[k]);
+    if (channel.time_s[k] > 0.0)
+      distal = std::max(distal, channel.distance_m[k]);
   }
   return 2.0 * std::max(0.0, distal - channel.transfer_length_m) / speed_m_s;
 }
 
-std::vector<TransitSample> tripTransitSamples(const ChannelSchedule& channel, double speed_m_s, double step_m) {
+std::vector<TransitSample> tripTransitSamples(const ChannelSchedule& channel, double speed_m_s,
+                                              double step_m) {
   std::vector<TransitSample> samples;
   const double in_patient = tripTransitSeconds(channel, speed_m_s) * speed_m_s / 2.0;
   const int n = static_cast<int>(std::ceil(in_patient / step_m - 1e-9));

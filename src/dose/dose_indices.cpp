@@ -11,7 +11,8 @@ namespace needle_guidance::dose {
 namespace {
 
 std::string lower(std::string s) {
-  std::transform(s.begin(), s.end(), s.begin(), [](unsigned char ch) { return static_cast<char>(std::tolower(ch)); });
+  std::transform(s.begin(), s.end(), s.begin(),
+                 [](unsigned char ch) { return static_cast<char>(std::tolower(ch)); });
   return s;
 }
 
@@ -27,14 +28,16 @@ std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& so
                                           const std::vector<ExtraDwell>& extra, double spacing_m) {
   for (std::size_t k = 0; k < extra.size(); ++k) {
     const ExtraDwell& e = extra[k];
-    if (!std::isfinite(e.time_s) || e.time_s < 0.0 || !e.dwell.position_m.allFinite() || !e.dwell.axis.allFinite()) {
+    if (!std::isfinite(e.time_s) || e.time_s < 0.0 || !e.dwell.position_m.allFinite() ||
+        !e.dwell.axis.allFinite()) {
       throw std::invalid_argument("structureDoses: extra stop " + std::to_string(k) +
                                   " needs a finite time >= 0 and a finite position and axis");
     }
   }
   if (times_s.size() != c.dwells.size()) {
-    throw std::invalid_argument("structureDoses: " + std::to_string(times_s.size()) + " dwell times for " +
-                                std::to_string(c.dwells.size()) + " dwell positions");
+    throw std::invalid_argument("structureDoses: " + std::to_string(times_s.size()) +
+                                " dwell times for " + std::to_string(c.dwells.size()) +
+                                " dwell positions");
   }
   if (!(spacing_m > 0.0)) {
     throw std::invalid_argument("structureDoses: grid spacing must be > 0");
@@ -75,7 +78,8 @@ double volumePercentAbove(const StructureDose& s, double dose_Gy) {
   if (s.dose_Gy.empty()) {
     return 0.0;
   }
-  const auto count = std::count_if(s.dose_Gy.begin(), s.dose_Gy.end(), [&](double d) { return d >= dose_Gy; });
+  const auto count =
+      std::count_if(s.dose_Gy.begin(), s.dose_Gy.end(), [&](double d) { return d >= dose_Gy; });
   return 100.0 * static_cast<double>(count) / static_cast<double>(s.dose_Gy.size());
 }
 
@@ -85,8 +89,9 @@ double doseCoveringPercent(const StructureDose& s, double percent) {
   }
   std::vector<double> sorted = s.dose_Gy;
   std::sort(sorted.begin(), sorted.end(), std::greater<double>());
-  const std::size_t k = std::min(sorted.size() - 1,
-                                 static_cast<std::size_t>(std::ceil(percent / 100.0 * sorted.size())) - (percent > 0 ? 1 : 0));
+  const std::size_t k = std::min(
+      sorted.size() - 1,
+      static_cast<std::size_t>(std::ceil(percent / 100.0 * sorted.size())) - (percent > 0 ? 1 : 0));
   return sorted[k];
 }
 
@@ -97,11 +102,13 @@ double doseCoveringVolume(const StructureDose& s, double volume_m3) {
   std::vector<double> sorted = s.dose_Gy;
   std::sort(sorted.begin(), sorted.end(), std::greater<double>());
   const double voxels = volume_m3 / s.voxel_volume_m3;
-  const std::size_t k = std::min(sorted.size() - 1, static_cast<std::size_t>(std::max(1.0, std::ceil(voxels))) - 1);
+  const std::size_t k =
+      std::min(sorted.size() - 1, static_cast<std::size_t>(std::max(1.0, std::ceil(voxels))) - 1);
   return sorted[k];
 }
 
-std::map<std::string, double> dosimetricIndices(const std::vector<StructureDose>& doses, double rx) {
+std::map<std::string, double> dosimetricIndices(const std::vector<StructureDose>& doses,
+                                                double rx) {
   std::map<std::string, double> out;
   for (const StructureDose& s : doses) {
     const std::string name = lower(s.name);

@@ -17,26 +17,34 @@ using Clock = std::chrono::steady_clock;
 /// (bench hdr), 10 % leaves a 10-100 % gap after 100,000 moves, 0.2 % a 0.1-2.4 % gap.
 constexpr double kDefaultT0Fraction = 0.002;
 
-double since(Clock::time_point start) { return std::chrono::duration<double>(Clock::now() - start).count(); }
+double since(Clock::time_point start) {
+  return std::chrono::duration<double>(Clock::now() - start).count();
+}
 
 void checkSizes(const HdrCase& c, const Eigen::MatrixXd& d, const char* who) {
   if (c.dwells.empty()) {
-    throw std::invalid_argument(std::string(who) + ": case '" + c.name + "' has no active dwell positions");
+    throw std::invalid_argument(std::string(who) + ": case '" + c.name +
+                                "' has no active dwell positions");
   }
-  if (d.rows() != static_cast<Eigen::Index>(c.points.size()) || d.cols() != static_cast<Eigen::Index>(c.dwells.size())) {
-    throw std::invalid_argument(std::string(who) + ": dose-rate matrix is " + std::to_string(d.rows()) + " x " +
-                                std::to_string(d.cols()) + ", the case has " + std::to_string(c.points.size()) +
-                                " points and " + std::to_string(c.dwells.size()) + " dwell positions");
+  if (d.rows() != static_cast<Eigen::Index>(c.points.size()) ||
+      d.cols() != static_cast<Eigen::Index>(c.dwells.size())) {
+    throw std::invalid_argument(
+        std::string(who) + ": dose-rate matrix is " + std::to_string(d.rows()) + " x " +
+        std::to_string(d.cols()) + ", the case has " + std::to_string(c.points.size()) +
+        " points and " + std::to_string(c.dwells.size()) + " dwell positions");
   }
   if (!d.allFinite() || d.minCoeff() < 0.0) {
-    throw std::invalid_argument(std::string(who) + ": dose-rate matrix has a negative or non-finite entry");
+    throw std::invalid_argument(std::string(who) +
+                                ": dose-rate matrix has a negative or non-finite entry");
   }
 }
 
 /// Per-point penalty of dose D.
 inline double pointPenalty(const PenaltyModel& m, Eigen::Index i, double dose) {
-  if (dose < m.lo[i]) return m.w_under[i] * (m.lo[i] - dose);
-  if (dose > m.hi[i]) return m.w_over[i] * (dose - m.hi[i]);
+  if (dose < m.lo[i])
+    return m.w_under[i] * (m.lo[i] - dose);
+  if (dose > m.hi[i])
+    return m.w_over[i] * (dose - m.hi[i]);
   return 0.0;
 }
 
@@ -88,9 +96,10 @@ void buildLp(const Eigen::MatrixXd& d, const PenaltyModel& pm, ClpSimplex& model
   for (int k = 0; k < columns; ++k) {
     lengths[k] = starts[k + 1] - starts[k];
   }
-  CoinPackedMatrix matrix(true, m, columns, static_cast<CoinBigIndex>(values.size()), values.data(), rows.data(),
-                          starts.data(), lengths.data());
-  model.loadProblem(matrix, col_lo.data(), col_hi.data(), cost.data(), row_lo.data(), row_hi.data());
+  CoinPackedMatrix matrix(true, m, columns, static_cast<CoinBigIndex>(values.size()), values.data(),
+                          rows.data(), starts.data(), lengths.data());
+  model.loadProblem(matrix, col_lo.data(), col_hi.data(), cost.data(), row_lo.data(),
+                    row_hi.data());
   model.setOptimizationDirection(1.0);
   model.setLogLevel(0);
 }
@@ -131,9 +140,10 @@ void buildDualLp(const Eigen::MatrixXd& d, const PenaltyModel& pm, ClpSimplex& m
     lengths[k] = starts[k + 1] - starts[k];
   }
   const std::vector<double> row_lo(n, -COIN_DBL_MAX), row_hi(n, 0.0);
-  CoinPackedMatrix matrix(true, n, columns, static_cast<CoinBigIndex>(values.size()), values.data(), rows.data(),
-                          starts.data(), lengths.data());
-  model.loadProblem(matrix, col_lo.data(), col_hi.data(), cost.data(), row_lo.data(), row_hi.data());
+  CoinPackedMatrix matrix(true, n, columns, static_cast<CoinBigIndex>(values.size()), values.data(),
+                          rows.data(), starts.data(), lengths.data());
+  model.loadProblem(matrix, col_lo.data(), col_hi.data(), cost.data(), row_lo.data(),
+                    row_hi.data());
   model.setLogLevel(0);
 }
 
@@ -156,7 +166,8 @@ PenaltyModel penaltyModel(const HdrCase& c) {
   pm.w_over = Eigen::VectorXd::Zero(m);
   for (std::size_t k = 0; k < c.criteria.size(); ++k) {
     const Criterion& cr = c.criteria[k];
-    const std::string where = "case '" + c.name + "' criterion " + std::to_string(k) + " (" + cr.structure + ")";
+    const std::string where =
+        "case '" + c.name + "' criterion " + std::to_string(k) + " (" + cr.structure + ")";
     if (!std::isfinite(cr.min_Gy) || !std::isfinite(cr.max_Gy) || cr.min_Gy < 0.0) {
       throw std::invalid_argument(where + ": doses must be finite and >= 0");
     }
@@ -244,7 +255,8 @@ DwellResult optimizeLp(const HdrCase& c, const Eigen::MatrixXd& d, const LpOptio
   return r;
 }
 
-DwellResult optimizeAnnealing(const HdrCase& c, const Eigen::MatrixXd& d, const AnnealingOptions& o) {
+DwellResult optimizeAnnealing(const HdrCase& c, const Eigen::MatrixXd& d,
+                              const AnnealingOptions& o) {
   checkSizes(c, d, "optimizeAnnealing");
   if (o.iterations < 1 || !(o.final_temperature_ratio > 0.0 && o.final_temperature_ratio < 1.0) ||
       !(o.initial_temperature >= 0.0)) {
@@ -265,15 +277,18 @@ DwellResult optimizeAnnealing(const HdrCase& c, const Eigen::MatrixXd& d, const 
       ++target_points;
     }
   }
-  const double mean_rate = target_points > 0 ? target_rate / target_points : d.rowwise().sum().mean();
+  const double mean_rate =
+      target_points > 0 ? target_rate / target_points : d.rowwise().sum().mean();
   const double t0 = mean_rate > 0.0 ? c.prescription_Gy / mean_rate : 1.0;
   Eigen::VectorXd t = Eigen::VectorXd::Constant(n, t0);
   Eigen::VectorXd dose = d * t;
   double e = pm(dose);
   Eigen::VectorXd best_t = t;
   double best_e = e;
-  const double temp0 = o.initial_temperature > 0.0 ? o.initial_temperature : std::max(1e-9, kDefaultT0Fraction * e);
-  const double cooling = std::pow(o.final_temperature_ratio, 1.0 / static_cast<double>(o.iterations));
+  const double temp0 =
+      o.initial_temperature > 0.0 ? o.initial_temperature : std::max(1e-9, kDefaultT0Fraction * e);
+  const double cooling =
+      std::pow(o.final_temperature_ratio, 1.0 / static_cast<double>(o.iterations));
   std::mt19937 rng(o.seed);
   std::uniform_int_distribution<Eigen::Index> pick(0, n - 1);
   std::uniform_real_distribution<double> unit(0.0, 1.0);

@@ -117,15 +117,16 @@ int HdrCase::structureIndex(const std::string& wanted) const {
   return -1;
 }
 
-double dwellDoseRate(const HdrCase& c, const Tg43Source& source, const DwellPosition& dwell, const Point3& p,
-                     SourceModel model, double min_distance_m) {
+double dwellDoseRate(const HdrCase& c, const Tg43Source& source, const DwellPosition& dwell,
+                     const Point3& p, SourceModel model, double min_distance_m) {
   const Point3 q = (p - dwell.position_m).norm() < min_distance_m
                        ? Point3(dwell.position_m + min_distance_m * dwell.axis.unitOrthogonal())
                        : p;
   return c.air_kerma_strength_U * source.doseRatePerU(q, dwell.position_m, dwell.axis, model);
 }
 
-double doseAt(const HdrCase& c, const Tg43Source& source, const std::vector<double>& times_s, const Point3& p) {
+double doseAt(const HdrCase& c, const Tg43Source& source, const std::vector<double>& times_s,
+              const Point3& p) {
   double dose = 0.0;
   for (std::size_t j = 0; j < c.dwells.size() && j < times_s.size(); ++j) {
     if (times_s[j] > 0.0) {
@@ -138,9 +139,11 @@ double doseAt(const HdrCase& c, const Tg43Source& source, const std::vector<doub
 Eigen::MatrixXd doseRateMatrix(const HdrCase& c, const Tg43Source& source, SourceModel model,
                                double min_distance_m) {
   if (!(c.air_kerma_strength_U > 0.0) || !std::isfinite(c.air_kerma_strength_U)) {
-    throw std::invalid_argument("doseRateMatrix: case '" + c.name + "': air-kerma strength must be > 0 U");
+    throw std::invalid_argument("doseRateMatrix: case '" + c.name +
+                                "': air-kerma strength must be > 0 U");
   }
-  Eigen::MatrixXd d(static_cast<Eigen::Index>(c.points.size()), static_cast<Eigen::Index>(c.dwells.size()));
+  Eigen::MatrixXd d(static_cast<Eigen::Index>(c.points.size()),
+                    static_cast<Eigen::Index>(c.dwells.size()));
   for (std::size_t j = 0; j < c.dwells.size(); ++j) {
     for (std::size_t i = 0; i < c.points.size(); ++i) {
       d(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j)) =

@@ -48,7 +48,8 @@ std::vector<Criterion> table61Criteria(double rx) {
 
 std::vector<DosePoint> makeDosePoints(const HdrCase& c, const DosePointOptions& options) {
   if (!(options.surface_spacing_m > 0.0) || options.volume_points < 0) {
-    throw std::invalid_argument("makeDosePoints: surface spacing must be > 0 and volume points >= 0");
+    throw std::invalid_argument(
+        "makeDosePoints: surface spacing must be > 0 and volume points >= 0");
   }
   std::mt19937 rng(options.seed);
   std::vector<DosePoint> points;
@@ -72,17 +73,20 @@ std::vector<DosePoint> makeDosePoints(const HdrCase& c, const DosePointOptions& 
     };
     for (const Contour& contour : s.contours) {
       const double length = perimeter(contour.xy_m);
-      const int count = std::max(3, static_cast<int>(std::round(length / options.surface_spacing_m)));
+      const int count =
+          std::max(3, static_cast<int>(std::round(length / options.surface_spacing_m)));
       // Walk the contour at equal arc length.
       double next = 0.0, walked = 0.0;
       const double step = length / count;
-      for (std::size_t i = 0; i < contour.xy_m.size() && static_cast<int>(points.size()) >= 0; ++i) {
+      for (std::size_t i = 0; i < contour.xy_m.size() && static_cast<int>(points.size()) >= 0;
+           ++i) {
         const Point2d& a = contour.xy_m[i];
         const Point2d& b = contour.xy_m[(i + 1) % contour.xy_m.size()];
         const double edge = (b - a).norm();
         while (next <= walked + edge && next < length - 1e-12) {
           const Point2d p = a + (edge > 0.0 ? (next - walked) / edge : 0.0) * (b - a);
-          points.push_back({static_cast<int>(si), PointKind::kSurface, Point3(p.x(), p.y(), contour.z_m)});
+          points.push_back(
+              {static_cast<int>(si), PointKind::kSurface, Point3(p.x(), p.y(), contour.z_m)});
           next += step;
         }
         walked += edge;
@@ -96,7 +100,8 @@ std::vector<DosePoint> makeDosePoints(const HdrCase& c, const DosePointOptions& 
     const double half = 0.5 * s.sliceSpacing();
     lo.z() -= half;
     hi.z() += half;
-    std::uniform_real_distribution<double> ux(lo.x(), hi.x()), uy(lo.y(), hi.y()), uz(lo.z(), hi.z());
+    std::uniform_real_distribution<double> ux(lo.x(), hi.x()), uy(lo.y(), hi.y()),
+        uz(lo.z(), hi.z());
     int placed = 0;
     for (int attempt = 0; placed < wanted && attempt < 200 * wanted; ++attempt) {
       const Point3 p(ux(rng), uy(rng), uz(rng));
@@ -122,12 +127,14 @@ std::vector<DwellPosition> makeDwellPositions(const HdrCase& c, double step_m, d
     }
   }
   if (!target) {
-    throw std::invalid_argument("makeDwellPositions: case '" + c.name + "' has no target structure");
+    throw std::invalid_argument("makeDwellPositions: case '" + c.name +
+                                "' has no target structure");
   }
   for (std::size_t k = 0; k < c.catheters.size(); ++k) {
     const auto& pts = c.catheters[k].points_m;
     if (pts.size() < 2) {
-      throw std::invalid_argument("makeDwellPositions: catheter '" + c.catheters[k].name + "' needs >= 2 points");
+      throw std::invalid_argument("makeDwellPositions: catheter '" + c.catheters[k].name +
+                                  "' needs >= 2 points");
     }
     int index = 0;
     double along = 0.0;  // arc length from the tip
@@ -139,8 +146,8 @@ std::vector<DwellPosition> makeDwellPositions(const HdrCase& c, double step_m, d
         continue;
       }
       const Point3 towards_tip = (a - b) / length;
-      for (double s = along == 0.0 ? 0.0 : std::ceil(along / step_m) * step_m - along; s <= length + 1e-12;
-           s += step_m) {
+      for (double s = along == 0.0 ? 0.0 : std::ceil(along / step_m) * step_m - along;
+           s <= length + 1e-12; s += step_m) {
         const Point3 p = a + s / length * (b - a);
         const bool near = target->contains(p) || target->contains(p + margin_m * towards_tip) ||
                           target->contains(p - margin_m * towards_tip);
@@ -160,9 +167,11 @@ HdrCase syntheticProstateCase(const SyntheticCaseOptions& o) {
   std::uniform_real_distribution<double> unit(0.0, 1.0);
   const double cc = o.prostate_cc > 0.0 ? o.prostate_cc : 23.0 + 80.0 * unit(rng);
   const int n_catheters = o.catheters > 0 ? o.catheters : 14 + static_cast<int>(rng() % 5);
-  const int n_points = o.dose_points > 0 ? o.dose_points : 1781 + static_cast<int>(rng() % (3510 - 1781 + 1));
+  const int n_points =
+      o.dose_points > 0 ? o.dose_points : 1781 + static_cast<int>(rng() % (3510 - 1781 + 1));
   if (cc < 5.0 || cc > 200.0 || n_catheters < 1 || n_catheters > 40 || !(o.slice_m > 0.0)) {
-    throw std::invalid_argument("syntheticProstateCase: prostate 5-200 cc, 1-40 catheters, slice > 0");
+    throw std::invalid_argument(
+        "syntheticProstateCase: prostate 5-200 cc, 1-40 catheters, slice > 0");
   }
   HdrCase c;
   c.name = "synthetic_" + std::to_string(o.seed);
@@ -194,8 +203,10 @@ HdrCase syntheticProstateCase(const SyntheticCaseOptions& o) {
       rectum.contours.push_back(ellipse(z, rectum_centre, 1.3 * rectum_r, rectum_r));
     }
     if (std::abs(z - bladder_z) < bladder_r && z > h - 1.5 * o.slice_m) {
-      const double f = std::sqrt(1.0 - ((z - bladder_z) / bladder_r) * ((z - bladder_z) / bladder_r));
-      bladder.contours.push_back(ellipse(z, Point2d(0.0, -0.2 * b), 1.2 * bladder_r * f, bladder_r * f));
+      const double f =
+          std::sqrt(1.0 - ((z - bladder_z) / bladder_r) * ((z - bladder_z) / bladder_r));
+      bladder.contours.push_back(
+          ellipse(z, Point2d(0.0, -0.2 * b), 1.2 * bladder_r * f, bladder_r * f));
     }
   }
   for (Structure* s : {&prostate, &urethra, &rectum, &bladder}) {
@@ -224,7 +235,8 @@ HdrCase syntheticProstateCase(const SyntheticCaseOptions& o) {
     const Point2d p = xy[i] + Point2d(jitter(rng), jitter(rng));
     Catheter cat;
     cat.name = "c" + std::to_string(i + 1);
-    cat.points_m = {Point3(p.x(), p.y(), 0.95 * h), Point3(p.x() + jitter(rng), p.y() + jitter(rng), -h - 0.04)};
+    cat.points_m = {Point3(p.x(), p.y(), 0.95 * h),
+                    Point3(p.x() + jitter(rng), p.y() + jitter(rng), -h - 0.04)};
     c.catheters.push_back(cat);
   }
   c.dwells = makeDwellPositions(c, o.dwell_step_m);

@@ -146,7 +146,6 @@ SidesVisited sidesVisited(const Point2& a, const Point2& b, const std::vector<Po
   return visited;
 }
 
-
 /// A point common to two closed segments known to intersect.
 Point2 commonPoint(const Segment& s, const Segment& t) {
   if (s.a == s.b) {

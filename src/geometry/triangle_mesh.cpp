@@ -61,7 +61,6 @@ std::string formatDouble(double value) {
   return out.str();
 }
 
-
 /// Target edge length [m] graded towards the refinement points and lines:
 /// size(p) = min + (max - min) * clamp(dist(p, features) / grading_length, 0, 1).
 class SizeField {

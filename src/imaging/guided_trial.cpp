@@ -47,7 +47,8 @@ GuidedTrial runGuidedTrial(robot::SteerableNeedle& needle, const robot::EntryPos
     if (tracker != nullptr) {
       TipEstimate estimate;
       for (int waited = 0;; ++waited) {
-        const Frame frame = renderer->render(needle.pathPoints(options.path_spacing_m), frame_index++);
+        const Frame frame =
+            renderer->render(needle.pathPoints(options.path_spacing_m), frame_index++);
         ++trial.frames;
         estimate = tracker->onFrame(frame.image);  // a dropped frame is an empty image
         if (estimate.confident || waited >= options.max_unconfident_frames) {

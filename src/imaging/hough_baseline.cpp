@@ -14,15 +14,14 @@
 #include <string>
 #include <vector>
 
-#include "needle_guidance/imaging/tip_tracker.h"
 #include "detection_util.h"
+#include "needle_guidance/imaging/tip_tracker.h"
 
 namespace needle_guidance::imaging {
 namespace {
 
 using detail::fail;
 using detail::wrapAngle;
-
 
 constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;

@@ -13,13 +13,14 @@ int main(int argc, char** argv) {
   ros::NodeHandle private_nh("~");
   try {
     ROS_INFO("scene_publisher parameters:");
-    const std::string spec = needle_guidance::ros_params::text(private_nh, "scene", "prostate_sagittal");
+    const std::string spec =
+        needle_guidance::ros_params::text(private_nh, "scene", "prostate_sagittal");
     const needle_guidance::scene::Scene scene = needle_guidance::scene::loadSceneSpec(spec);
     ros::Publisher pub = nh.advertise<visualization_msgs::MarkerArray>("scene_markers", 1, true);
     pub.publish(needle_guidance::ros_conversions::sceneToMarkers(scene, "scene"));
-    ROS_INFO_STREAM("scene_publisher: published scene '" << scene.name << "' (" << scene.regions.size()
-                                                         << " regions, " << scene.targets.size()
-                                                         << " targets)");
+    ROS_INFO_STREAM("scene_publisher: published scene '" << scene.name << "' ("
+                                                         << scene.regions.size() << " regions, "
+                                                         << scene.targets.size() << " targets)");
     ros::spin();
   } catch (const std::exception& e) {
     ROS_FATAL_STREAM("scene_publisher: " << e.what());

@@ -188,6 +188,11 @@ std::string RigidImplantReport::summaryJson() const {
   if (planned) {
     json << ",\n  \"planning_s_mean\": " << jsonNumber(plans ? sum_plan / plans : NAN);
   }
+  if (fault) {  // the same top-level keys as every procedure's report (dead_node, cause)
+    json << ",\n  \"dead_node\": \"" << fault->node << "\",\n  \"cause\": \"node " << fault->node
+         << " " << fault->reason << " at " << jsonNumber(fault->at_s) << " s; robot: " << safe_stop
+         << "\",\n  \"detected_unix_s\": " << report::jsonNumber(fault->detected_unix_s, 15);
+  }
   json << ",\n  \"fault\": ";
   if (fault) {
     json << "{\"node\": \"" << fault->node << "\", \"at_s\": " << jsonNumber(fault->at_s)

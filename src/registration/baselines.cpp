@@ -20,10 +20,12 @@ std::optional<Point2> FlowMapping::displacement(const Point2& p_m) const {
   // Continuous pixel coordinates of p (pixel centres at integer + 0.5).
   const double col = (p_m.x() - origin_.x()) / pixel_m_ - 0.5;
   const double row = flow_.rows - 0.5 - (p_m.y() - origin_.y()) / pixel_m_;
-  if (!std::isfinite(col) || !std::isfinite(row) || col < 0.0 || row < 0.0 || col > flow_.cols - 1.0 || row > flow_.rows - 1.0) {
+  if (!std::isfinite(col) || !std::isfinite(row) || col < 0.0 || row < 0.0 ||
+      col > flow_.cols - 1.0 || row > flow_.rows - 1.0) {
     return std::nullopt;
   }
-  const int c0 = std::min(static_cast<int>(col), flow_.cols - 2), r0 = std::min(static_cast<int>(row), flow_.rows - 2);
+  const int c0 = std::min(static_cast<int>(col), flow_.cols - 2),
+            r0 = std::min(static_cast<int>(row), flow_.rows - 2);
   const double fc = col - c0, fr = row - r0;
   cv::Vec2d v(0.0, 0.0);
   for (int dr = 0; dr < 2; ++dr) {
@@ -39,7 +41,8 @@ std::optional<Point2> FlowMapping::displacement(const Point2& p_m) const {
 
 std::optional<Point2> FlowMapping::inverse(const Point2& probe_in_m) const {
   const auto v = displacement(probe_in_m);
-  if (!v) return std::nullopt;
+  if (!v)
+    return std::nullopt;
   return Point2(probe_in_m + *v);
 }
 
@@ -47,13 +50,16 @@ std::optional<Point2> FlowMapping::forward(const Point2& probe_out_m) const {
   Point2 y = probe_out_m;
   for (int k = 0; k < 100; ++k) {
     const auto v = displacement(y);
-    if (!v) return std::nullopt;
+    if (!v)
+      return std::nullopt;
     const Point2 next = probe_out_m - *v;
-    if ((next - y).norm() < 1e-7) return next;
+    if ((next - y).norm() < 1e-7)
+      return next;
     y = 0.5 * (y + next);  // damped fixed-point iteration
   }
   const auto v = displacement(y);
-  if (v && (y + *v - probe_out_m).norm() < 5e-5) return y;
+  if (v && (y + *v - probe_out_m).norm() < 5e-5)
+    return y;
   return std::nullopt;
 }
 
@@ -63,7 +69,9 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-double secondsSince(Clock::time_point start) { return std::chrono::duration<double>(Clock::now() - start).count(); }
+double secondsSince(Clock::time_point start) {
+  return std::chrono::duration<double>(Clock::now() - start).count();
+}
 
 Point2 areaCentroid(const Loops& loops) {
   double a2 = 0.0;
@@ -90,18 +98,21 @@ Loops densify(const Loops& loops, double max_edge_m) {
       const Point2& p = loop[i];
       const Point2& q = loop[(i + 1) % loop.size()];
       const int pieces = std::max(1, static_cast<int>(std::ceil((q - p).norm() / max_edge_m)));
-      for (int k = 0; k < pieces; ++k) dense.push_back(p + (q - p) * (static_cast<double>(k) / pieces));
+      for (int k = 0; k < pieces; ++k)
+        dense.push_back(p + (q - p) * (static_cast<double>(k) / pieces));
     }
     out.push_back(std::move(dense));
   }
   return out;
 }
 
-double mappedDice(const PointMapping& mapping, const Loops& probe_out_prostate, const Polygon& probe_in_prostate) {
+double mappedDice(const PointMapping& mapping, const Loops& probe_out_prostate,
+                  const Polygon& probe_in_prostate) {
   Loops mapped;
   for (const auto& loop : densify(probe_out_prostate, 0.0005)) {
     const auto m = mapPolygonForward(mapping, loop);
-    if (!m) return 0.0;
+    if (!m)
+      return 0.0;
     mapped.push_back(*m);
   }
   return diceSimilarity(mapped, toLoops(probe_in_prostate));
@@ -114,13 +125,14 @@ struct Texture {
     std::uniform_real_distribution<double> unit(0.0, 1.0);
     for (int k = 0; k < 24; ++k) {
       const double wavelength = 0.003 + 0.009 * unit(rng), angle = 2.0 * M_PI * unit(rng);
-      waves.push_back({2.0 * M_PI / wavelength * std::cos(angle), 2.0 * M_PI / wavelength * std::sin(angle),
-                       2.0 * M_PI * unit(rng)});
+      waves.push_back({2.0 * M_PI / wavelength * std::cos(angle),
+                       2.0 * M_PI / wavelength * std::sin(angle), 2.0 * M_PI * unit(rng)});
     }
   }
   double operator()(const Point2& p) const {
     double v = 0.0;
-    for (const auto& w : waves) v += std::cos(w[0] * p.x() + w[1] * p.y() + w[2]);
+    for (const auto& w : waves)
+      v += std::cos(w[0] * p.x() + w[1] * p.y() + w[2]);
     return 0.06 * v / std::sqrt(0.5 * static_cast<double>(waves.size()));
   }
   std::vector<std::array<double, 3>> waves;
@@ -128,13 +140,19 @@ struct Texture {
 
 /// T2-like grey level of the probe-out anatomy at p (nullopt outside the field of view).
 std::optional<double> anatomyGrey(const SliceSegmentation& seg, const Point2& p) {
-  if (!seg.domain.contains(p)) return std::nullopt;
-  if (seg.rectum.outer.contains(p)) return 0.08;  // lumen
-  if (seg.pz.outer.contains(p)) return 0.78;      // PZ bright on T2
-  if (seg.cg.outer.contains(p)) return 0.52;
-  if (seg.bladder && seg.bladder->outer.contains(p)) return 0.95;
+  if (!seg.domain.contains(p))
+    return std::nullopt;
+  if (seg.rectum.outer.contains(p))
+    return 0.08;  // lumen
+  if (seg.pz.outer.contains(p))
+    return 0.78;  // PZ bright on T2
+  if (seg.cg.outer.contains(p))
+    return 0.52;
+  if (seg.bladder && seg.bladder->outer.contains(p))
+    return 0.95;
   for (const Outline& bone : seg.bones) {
-    if (bone.outer.contains(p)) return 0.2;
+    if (bone.outer.contains(p))
+      return 0.2;
   }
   return 0.38;  // muscle / fat mixture
 }
@@ -216,7 +234,8 @@ cv::Mat demons(const cv::Mat& fixed, const cv::Mat& moving) {
 
 }  // namespace
 
-BaselineResult rigidCentreOfMass(const SliceSegmentation& probe_out, const ProbeInSegmentation& probe_in) {
+BaselineResult rigidCentreOfMass(const SliceSegmentation& probe_out,
+                                 const ProbeInSegmentation& probe_in) {
   const Clock::time_point start = Clock::now();
   BaselineResult result;
   const SegmentationCheck check = checkSegmentation(probe_out, probe_in);
@@ -239,15 +258,18 @@ BaselineResult rigidCentreOfMass(const SliceSegmentation& probe_out, const Probe
 
 const char* toString(IntensityMethod method) {
   switch (method) {
-    case IntensityMethod::kDemons: return "demons";
-    case IntensityMethod::kDisOpticalFlow: return "dis-flow";
-    case IntensityMethod::kFarneback: return "farneback";
+    case IntensityMethod::kDemons:
+      return "demons";
+    case IntensityMethod::kDisOpticalFlow:
+      return "dis-flow";
+    case IntensityMethod::kFarneback:
+      return "farneback";
   }
   return "unknown";
 }
 
-SyntheticImagePair renderProbeImages(const ProbeCase& probe_case, double pixel_m, double noise_sd, std::uint64_t seed,
-                                     TextureMode texture_mode) {
+SyntheticImagePair renderProbeImages(const ProbeCase& probe_case, double pixel_m, double noise_sd,
+                                     std::uint64_t seed, TextureMode texture_mode) {
   SyntheticImagePair images;
   images.pixel_m = pixel_m;
   const SliceSegmentation& seg = probe_case.probe_out;
@@ -266,14 +288,17 @@ SyntheticImagePair renderProbeImages(const ProbeCase& probe_case, double pixel_m
     for (int c = 0; c < cols; ++c) {
       const Point2 p = images.origin + pixel_m * Point2(c + 0.5, rows - r - 0.5);
       const auto grey_out = anatomyGrey(seg, p);
-      images.probe_out.at<float>(r, c) = static_cast<float>((grey_out ? *grey_out + texture(p) : 0.0) + noise(rng));
+      images.probe_out.at<float>(r, c) =
+          static_cast<float>((grey_out ? *grey_out + texture(p) : 0.0) + noise(rng));
       double grey_in = 0.0;
       if (const auto x = truth ? truth->inverse(p) : std::nullopt) {
         const auto g = anatomyGrey(seg, *x);
         grey_in = g ? *g + (tracking ? texture(*x) : texture_in(p)) : 0.0;
-      } else if (probe_case.truth.probe_outline.size() >= 3 && probe_case.truth.probe_outline.contains(p)) {
+      } else if (probe_case.truth.probe_outline.size() >= 3 &&
+                 probe_case.truth.probe_outline.contains(p)) {
         grey_in = 0.05;  // probe
-      } else if (probe_case.truth.probe_in_bladder.size() >= 3 && probe_case.truth.probe_in_bladder.contains(p)) {
+      } else if (probe_case.truth.probe_in_bladder.size() >= 3 &&
+                 probe_case.truth.probe_in_bladder.contains(p)) {
         grey_in = 0.95 + (tracking ? 0.0 : texture_in(p));  // bladder cavity (not meshed)
       }
       images.probe_in.at<float>(r, c) = static_cast<float>(grey_in + noise(rng));
@@ -282,17 +307,20 @@ SyntheticImagePair renderProbeImages(const ProbeCase& probe_case, double pixel_m
   return images;
 }
 
-BaselineResult intensityRegistration(const SyntheticImagePair& images, const Loops& probe_out_prostate,
+BaselineResult intensityRegistration(const SyntheticImagePair& images,
+                                     const Loops& probe_out_prostate,
                                      const Polygon& probe_in_prostate, IntensityMethod method) {
   const Clock::time_point start = Clock::now();
   BaselineResult result;
   if (!intensityMethodAvailable(method)) {
     result.status = RegistrationStatus::kUnavailable;
-    result.message = std::string(toString(method)) + " needs opencv_video (build with NG_HAVE_OPENCV_VIDEO)";
+    result.message =
+        std::string(toString(method)) + " needs opencv_video (build with NG_HAVE_OPENCV_VIDEO)";
     return result;
   }
-  if (images.probe_in.empty() || images.probe_in.size() != images.probe_out.size() || images.probe_in.type() != CV_32F ||
-      images.probe_out.type() != CV_32F || !(images.pixel_m > 0.0)) {
+  if (images.probe_in.empty() || images.probe_in.size() != images.probe_out.size() ||
+      images.probe_in.type() != CV_32F || images.probe_out.type() != CV_32F ||
+      !(images.pixel_m > 0.0)) {
     result.status = RegistrationStatus::kInvalidSegmentation;
     result.message = "images must be non-empty CV_32F of equal size with a positive pixel size";
     return result;

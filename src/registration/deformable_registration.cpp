@@ -40,30 +40,45 @@ namespace needle_guidance::registration {
 
 const char* toString(RegistrationStatus status) {
   switch (status) {
-    case RegistrationStatus::kConverged: return "converged";
-    case RegistrationStatus::kConvergedAtBound: return "converged_at_bound";
-    case RegistrationStatus::kAlreadyAligned: return "already_aligned";
-    case RegistrationStatus::kMaxIterations: return "max_iterations";
-    case RegistrationStatus::kInvalidSegmentation: return "invalid_segmentation";
-    case RegistrationStatus::kProbeDoesNotEncloseRectum: return "probe_does_not_enclose_rectum";
-    case RegistrationStatus::kMeshingFailed: return "meshing_failed";
-    case RegistrationStatus::kSolveFailed: return "solve_failed";
-    case RegistrationStatus::kUnavailable: return "unavailable";
+    case RegistrationStatus::kConverged:
+      return "converged";
+    case RegistrationStatus::kConvergedAtBound:
+      return "converged_at_bound";
+    case RegistrationStatus::kAlreadyAligned:
+      return "already_aligned";
+    case RegistrationStatus::kMaxIterations:
+      return "max_iterations";
+    case RegistrationStatus::kInvalidSegmentation:
+      return "invalid_segmentation";
+    case RegistrationStatus::kProbeDoesNotEncloseRectum:
+      return "probe_does_not_enclose_rectum";
+    case RegistrationStatus::kMeshingFailed:
+      return "meshing_failed";
+    case RegistrationStatus::kSolveFailed:
+      return "solve_failed";
+    case RegistrationStatus::kUnavailable:
+      return "unavailable";
   }
   return "unknown";
 }
 
 bool hasMapping(RegistrationStatus status) {
-  return status == RegistrationStatus::kConverged || status == RegistrationStatus::kConvergedAtBound ||
-         status == RegistrationStatus::kAlreadyAligned || status == RegistrationStatus::kMaxIterations;
+  return status == RegistrationStatus::kConverged ||
+         status == RegistrationStatus::kConvergedAtBound ||
+         status == RegistrationStatus::kAlreadyAligned ||
+         status == RegistrationStatus::kMaxIterations;
 }
 
 const char* softClassName(int soft_class) {
   switch (soft_class) {
-    case kSurrounding: return "surrounding";
-    case kCentralGland: return "cg";
-    case kPeripheralZone: return "pz";
-    default: return "unknown";
+    case kSurrounding:
+      return "surrounding";
+    case kCentralGland:
+      return "cg";
+    case kPeripheralZone:
+      return "pz";
+    default:
+      return "unknown";
   }
 }
 
@@ -75,21 +90,26 @@ std::optional<Point2> RegistrationResult::inverse(const Point2& probe_in_m) cons
   return mapping ? mapping->inverse(probe_in_m) : std::nullopt;
 }
 
-std::optional<Point2> projectOntoProbe(const Point2& rectum_centre, const Point2& wall_point, const Polygon& probe) {
+std::optional<Point2> projectOntoProbe(const Point2& rectum_centre, const Point2& wall_point,
+                                       const Polygon& probe) {
   const Point2 d = wall_point - rectum_centre;
-  if (!(d.squaredNorm() > 0.0)) return std::nullopt;
+  if (!(d.squaredNorm() > 0.0))
+    return std::nullopt;
   double best_t = std::numeric_limits<double>::infinity();
   for (std::size_t i = 0; i < probe.size(); ++i) {
     const geometry::Segment e = probe.edge(i);
     const Point2 s = e.b - e.a;
     const double denom = d.x() * s.y() - d.y() * s.x();
-    if (std::abs(denom) < 1e-300) continue;
+    if (std::abs(denom) < 1e-300)
+      continue;
     const Point2 ac = e.a - rectum_centre;
     const double t = (ac.x() * s.y() - ac.y() * s.x()) / denom;
     const double u = (ac.x() * d.y() - ac.y() * d.x()) / denom;
-    if (t > 1e-12 && u >= -1e-12 && u <= 1.0 + 1e-12) best_t = std::min(best_t, t);
+    if (t > 1e-12 && u >= -1e-12 && u <= 1.0 + 1e-12)
+      best_t = std::min(best_t, t);
   }
-  if (!std::isfinite(best_t)) return std::nullopt;
+  if (!std::isfinite(best_t))
+    return std::nullopt;
   return Point2(rectum_centre + best_t * d);
 }
 
@@ -97,18 +117,23 @@ Loops prostateLoops(const SliceSegmentation& probe_out) {
   // Union of CG and PZ: directed edges of both (counter-clockwise) minus shared edges.
   std::vector<std::pair<Point2, Point2>> edges;
   for (const Polygon* p : {&probe_out.cg.outer, &probe_out.pz.outer}) {
-    if (p->size() < 3) continue;
+    if (p->size() < 3)
+      continue;
     const Polygon ccw = p->counterClockwise();
-    for (std::size_t i = 0; i < ccw.size(); ++i) edges.emplace_back(ccw.vertices()[i], ccw.vertices()[(i + 1) % ccw.size()]);
+    for (std::size_t i = 0; i < ccw.size(); ++i)
+      edges.emplace_back(ccw.vertices()[i], ccw.vertices()[(i + 1) % ccw.size()]);
   }
   const auto key = [](const Point2& p) { return std::make_pair(p.x(), p.y()); };
   std::map<std::pair<double, double>, std::vector<std::size_t>> from;
   std::vector<bool> removed(edges.size(), false);
-  for (std::size_t i = 0; i < edges.size(); ++i) from[key(edges[i].first)].push_back(i);
+  for (std::size_t i = 0; i < edges.size(); ++i)
+    from[key(edges[i].first)].push_back(i);
   for (std::size_t i = 0; i < edges.size(); ++i) {
-    if (removed[i]) continue;
+    if (removed[i])
+      continue;
     const auto it = from.find(key(edges[i].second));
-    if (it == from.end()) continue;
+    if (it == from.end())
+      continue;
     for (std::size_t j : it->second) {
       if (!removed[j] && key(edges[j].second) == key(edges[i].first)) {
         removed[i] = removed[j] = true;
@@ -119,7 +144,8 @@ Loops prostateLoops(const SliceSegmentation& probe_out) {
   Loops loops;
   std::vector<bool> used(removed);
   for (std::size_t i = 0; i < edges.size(); ++i) {
-    if (used[i]) continue;
+    if (used[i])
+      continue;
     std::vector<Point2> loop;
     std::size_t e = i;
     while (!used[e]) {
@@ -135,10 +161,12 @@ Loops prostateLoops(const SliceSegmentation& probe_out) {
           }
         }
       }
-      if (next == edges.size()) break;
+      if (next == edges.size())
+        break;
       e = next;
     }
-    if (loop.size() >= 3) loops.push_back(std::move(loop));
+    if (loop.size() >= 3)
+      loops.push_back(std::move(loop));
   }
   return loops;
 }
@@ -174,7 +202,8 @@ int windingNumber(const Loops& region, const Point2& p) {
       const Point2& b = loop[(i + 1) % n];
       const double c = (b.x() - a.x()) * (p.y() - a.y()) - (b.y() - a.y()) * (p.x() - a.x());
       if (a.y() <= p.y()) {
-        if (b.y() > p.y() && c > 0.0) ++w;
+        if (b.y() > p.y() && c > 0.0)
+          ++w;
       } else if (b.y() <= p.y() && c < 0.0) {
         --w;
       }
@@ -203,7 +232,8 @@ SignedDistance signedDistance(const Loops& region, const Point2& p) {
       }
     }
   }
-  if (!std::isfinite(best_d2)) return best;
+  if (!std::isfinite(best_d2))
+    return best;
   const bool inside = windingNumber(region, p) != 0;
   const auto& loop = region[best.loop];
   const Point2& a = loop[best.edge];
@@ -226,21 +256,23 @@ std::vector<double> arcWeights(const Loops& loops) {
   for (const auto& loop : loops) {
     const std::size_t n = loop.size();
     for (std::size_t i = 0; i < n; ++i) {
-      const double l = 0.5 * ((loop[(i + 1) % n] - loop[i]).norm() + (loop[i] - loop[(i + n - 1) % n]).norm());
+      const double l =
+          0.5 * ((loop[(i + 1) % n] - loop[i]).norm() + (loop[i] - loop[(i + n - 1) % n]).norm());
       w.push_back(l);
       total += l;
     }
   }
-  for (double& x : w) x = total > 0.0 ? std::sqrt(x / total) : 0.0;
+  for (double& x : w)
+    x = total > 0.0 ? std::sqrt(x / total) : 0.0;
   return w;
 }
 
 /// One evaluation of the model at theta.
 struct Evaluation {
   bool ok = false;
-  Eigen::VectorXd u;        // all DOFs [m]
-  double w0 = 0.0;          // strain energy without forces [J/m]
-  double delta_w = 0.0;     // extra strain energy due to the forces [J/m]
+  Eigen::VectorXd u;     // all DOFs [m]
+  double w0 = 0.0;       // strain energy without forces [J/m]
+  double delta_w = 0.0;  // extra strain energy due to the forces [J/m]
   double energy_share = 0.0;
   double dice = 0.0;
   double q = 0.0;
@@ -248,23 +280,26 @@ struct Evaluation {
 
 class Problem {
 public:
-  Problem(const SliceModel& model, const std::vector<Point2>& rectum_displacement, std::vector<int> force_nodes,
-          const Loops& target, const RegistrationOptions& options)
+  Problem(const SliceModel& model, const std::vector<Point2>& rectum_displacement,
+          std::vector<int> force_nodes, const Loops& target, const RegistrationOptions& options)
       : model_(model),
         solver_(model, rectum_displacement, std::move(force_nodes)),
         target_(target),
         target_weights_(arcWeights(target)),
         options_(options) {
     for (int c = 0; c < kSoftClassCount; ++c) {
-      if (c != options.reference_class) free_classes_.push_back(c);
+      if (c != options.reference_class)
+        free_classes_.push_back(c);
     }
     log_min_ = std::log(options.min_modulus_Pa);
     log_max_ = std::log(options.max_modulus_Pa);
-    force_scale_N_ = options.initial_modulus_Pa[static_cast<std::size_t>(options.reference_class)] * 1e-3;
+    force_scale_N_ =
+        options.initial_modulus_Pa[static_cast<std::size_t>(options.reference_class)] * 1e-3;
     Loops reference_loops;
     for (const auto& loop : model.prostate_loops) {
       std::vector<Point2> pts;
-      for (int node : loop) pts.push_back(model.mesh.nodes[static_cast<std::size_t>(node)]);
+      for (int node : loop)
+        pts.push_back(model.mesh.nodes[static_cast<std::size_t>(node)]);
       reference_loops.push_back(std::move(pts));
     }
     loop_weights_ = arcWeights(reference_loops);
@@ -283,13 +318,16 @@ public:
   Eigen::VectorXd initialTheta() const {
     Eigen::VectorXd theta = Eigen::VectorXd::Zero(size());
     for (int i = 0; i < freeClassCount(); ++i) {
-      theta(i) = std::clamp(std::log(options_.initial_modulus_Pa[static_cast<std::size_t>(free_classes_[static_cast<std::size_t>(i)])]), log_min_, log_max_);
+      theta(i) = std::clamp(std::log(options_.initial_modulus_Pa[static_cast<std::size_t>(
+                                free_classes_[static_cast<std::size_t>(i)])]),
+                            log_min_, log_max_);
     }
     return theta;
   }
 
   void project(Eigen::VectorXd& theta) const {
-    for (int i = 0; i < freeClassCount(); ++i) theta(i) = std::clamp(theta(i), log_min_, log_max_);
+    for (int i = 0; i < freeClassCount(); ++i)
+      theta(i) = std::clamp(theta(i), log_min_, log_max_);
   }
 
   bool atBound(const Eigen::VectorXd& theta, int i) const {
@@ -301,9 +339,13 @@ public:
     Moduli m = options_.initial_modulus_Pa;
     for (int i = 0; i < freeClassCount(); ++i) {
       const auto c = static_cast<std::size_t>(free_classes_[static_cast<std::size_t>(i)]);
-      double e = theta(i) == std::log(options_.initial_modulus_Pa[c]) ? options_.initial_modulus_Pa[c] : std::exp(theta(i));
-      if (theta(i) <= log_min_) e = options_.min_modulus_Pa;
-      if (theta(i) >= log_max_) e = options_.max_modulus_Pa;
+      double e = theta(i) == std::log(options_.initial_modulus_Pa[c])
+                     ? options_.initial_modulus_Pa[c]
+                     : std::exp(theta(i));
+      if (theta(i) <= log_min_)
+        e = options_.min_modulus_Pa;
+      if (theta(i) >= log_max_)
+        e = options_.max_modulus_Pa;
       m[c] = e;
     }
     return m;
@@ -317,7 +359,8 @@ public:
   Evaluation evaluate(const Eigen::VectorXd& theta, bool with_dice = true) {
     ++evaluations_;
     Evaluation ev;
-    if (!solver_.setModuli(moduli(theta))) return ev;
+    if (!solver_.setModuli(moduli(theta)))
+      return ev;
     const Eigen::VectorXd& u0 = solver_.u0();
     ev.w0 = solver_.strainEnergy(u0);
     ev.u = u0;
@@ -326,11 +369,13 @@ public:
       const Eigen::VectorXd w = solver_.forceResponse(f);
       ev.u += w;
       double fw = 0.0;
-      for (int k = 0; k < forceCount(); ++k) fw += f(k) * w(solver_.forceDofs()[static_cast<std::size_t>(k)]);
+      for (int k = 0; k < forceCount(); ++k)
+        fw += f(k) * w(solver_.forceDofs()[static_cast<std::size_t>(k)]);
       ev.delta_w = 0.5 * fw;  // cross term vanishes: K u0 = 0 on free DOFs, w = 0 on prescribed
     }
     ev.ok = ev.u.allFinite();
-    if (!ev.ok) return ev;
+    if (!ev.ok)
+      return ev;
     finishEvaluation(ev, with_dice);
     return ev;
   }
@@ -338,7 +383,8 @@ public:
   void finishEvaluation(Evaluation& ev, bool with_dice) const {
     const double wf = ev.w0 + ev.delta_w;
     ev.energy_share = wf > 0.0 ? std::max(0.0, ev.delta_w) / wf : 0.0;
-    if (with_dice) ev.dice = diceSimilarity(detail::deformedLoops(model_, ev.u), target_);
+    if (with_dice)
+      ev.dice = diceSimilarity(detail::deformedLoops(model_, ev.u), target_);
     ev.q = ev.dice - options_.alpha * ev.energy_share;
   }
 
@@ -350,9 +396,11 @@ public:
       Eigen::VectorXd plus = theta, minus = theta;
       plus(i) = std::min(theta(i) + h, log_max_);
       minus(i) = std::max(theta(i) - h, log_min_);
-      if (plus(i) - minus(i) <= 0.0) continue;
+      if (plus(i) - minus(i) <= 0.0)
+        continue;
       const Evaluation ep = evaluate(plus), em = evaluate(minus);
-      if (ep.ok && em.ok) grad(i) = (ep.q - em.q) / (plus(i) - minus(i));
+      if (ep.ok && em.ok)
+        grad(i) = (ep.q - em.q) / (plus(i) - minus(i));
     }
     if (forceCount() > 0) {
       solver_.setModuli(moduli(theta));
@@ -368,7 +416,8 @@ public:
           // delta_w(f + df e_k) = delta_w + df (G f)_k + df^2 G_kk / 2 (G symmetric on L)
           const int dof = solver_.forceDofs()[static_cast<std::size_t>(k)];
           double gf = 0.0;
-          for (int j = 0; j < forceCount(); ++j) gf += green(dof, j) * f(j);
+          for (int j = 0; j < forceCount(); ++j)
+            gf += green(dof, j) * f(j);
           e.delta_w = ev.delta_w + df * gf + 0.5 * df * df * green(dof, k);
           ++evaluations_;
           finishEvaluation(e, true);
@@ -379,21 +428,26 @@ public:
     }
     // Projected gradient: no ascent through an active bound.
     for (int i = 0; i < freeClassCount(); ++i) {
-      if ((theta(i) >= log_max_ && grad(i) > 0.0) || (theta(i) <= log_min_ && grad(i) < 0.0)) grad(i) = 0.0;
+      if ((theta(i) >= log_max_ && grad(i) > 0.0) || (theta(i) <= log_min_ && grad(i) < 0.0))
+        grad(i) = 0.0;
     }
     return grad;
   }
 
   // ---- kFast: residual and Jacobian ----
   /// Residual r (boundary distances both ways) at displacement u; cost adds mu dW / W0.
-  Eigen::VectorXd residual(const Eigen::VectorXd& u, Eigen::MatrixXd* du_jacobian_rows = nullptr) const {
+  Eigen::VectorXd residual(const Eigen::VectorXd& u,
+                           Eigen::MatrixXd* du_jacobian_rows = nullptr) const {
     const Loops deformed = detail::deformedLoops(model_, u);
     std::size_t n1 = 0;
-    for (const auto& loop : deformed) n1 += loop.size();
+    for (const auto& loop : deformed)
+      n1 += loop.size();
     std::size_t n2 = 0;
-    for (const auto& loop : target_) n2 += loop.size();
+    for (const auto& loop : target_)
+      n2 += loop.size();
     Eigen::VectorXd r(static_cast<Eigen::Index>(n1 + n2));
-    if (du_jacobian_rows) *du_jacobian_rows = Eigen::MatrixXd::Zero(r.size(), solver_.dofCount());
+    if (du_jacobian_rows)
+      *du_jacobian_rows = Eigen::MatrixXd::Zero(r.size(), solver_.dofCount());
     std::size_t row = 0;
     for (std::size_t l = 0; l < deformed.size(); ++l) {
       for (std::size_t i = 0; i < deformed[l].size(); ++i, ++row) {
@@ -417,9 +471,12 @@ public:
           const auto& nodes = model_.prostate_loops[sd.loop];
           const int a = nodes[sd.edge], b = nodes[(sd.edge + 1) % nodes.size()];
           // d moves against the nearest boundary point c = (1-t) y_a + t y_b.
-          for (const auto& [node, weight] : {std::make_pair(a, 1.0 - sd.t), std::make_pair(b, sd.t)}) {
-            (*du_jacobian_rows)(static_cast<Eigen::Index>(row), 2 * node) -= w * weight * sd.grad.x();
-            (*du_jacobian_rows)(static_cast<Eigen::Index>(row), 2 * node + 1) -= w * weight * sd.grad.y();
+          for (const auto& [node, weight] :
+               {std::make_pair(a, 1.0 - sd.t), std::make_pair(b, sd.t)}) {
+            (*du_jacobian_rows)(static_cast<Eigen::Index>(row), 2 * node) -=
+                w * weight * sd.grad.x();
+            (*du_jacobian_rows)(static_cast<Eigen::Index>(row), 2 * node + 1) -=
+                w * weight * sd.grad.y();
           }
         }
         ++row;
@@ -453,8 +510,8 @@ struct OptimizerOutcome {
   bool failed = false;
 };
 
-void record(RegistrationResult& result, const Problem& problem, const Eigen::VectorXd& theta, const Evaluation& ev,
-            int iteration, Clock::time_point start) {
+void record(RegistrationResult& result, const Problem& problem, const Eigen::VectorXd& theta,
+            const Evaluation& ev, int iteration, Clock::time_point start) {
   IterationRecord rec;
   rec.iteration = iteration;
   rec.q = ev.q;
@@ -466,8 +523,8 @@ void record(RegistrationResult& result, const Problem& problem, const Eigen::Vec
 }
 
 /// 3.2.4: steepest ascent with Armijo's rule and a finite-difference gradient.
-OptimizerOutcome steepestDescent(Problem& problem, const RegistrationOptions& options, RegistrationResult& result,
-                                 Clock::time_point start) {
+OptimizerOutcome steepestDescent(Problem& problem, const RegistrationOptions& options,
+                                 RegistrationResult& result, Clock::time_point start) {
   OptimizerOutcome out;
   out.theta = problem.initialTheta();
   out.best = problem.evaluate(out.theta);
@@ -492,7 +549,8 @@ OptimizerOutcome steepestDescent(Problem& problem, const RegistrationOptions& op
     if (improved) {
       for (int t = 1; t <= 30; ++t) {  // the maximum t that still improves Q
         auto [theta, ev] = candidate(t);
-        if (!ev.ok || ev.q <= best_ev.q) break;
+        if (!ev.ok || ev.q <= best_ev.q)
+          break;
         best_theta = theta;
         best_ev = ev;
       }
@@ -519,8 +577,8 @@ OptimizerOutcome steepestDescent(Problem& problem, const RegistrationOptions& op
 }
 
 /// kFast: projected Levenberg-Marquardt on the boundary-distance residual.
-OptimizerOutcome levenbergMarquardt(Problem& problem, const RegistrationOptions& options, RegistrationResult& result,
-                                    Clock::time_point start) {
+OptimizerOutcome levenbergMarquardt(Problem& problem, const RegistrationOptions& options,
+                                    RegistrationResult& result, Clock::time_point start) {
   OptimizerOutcome out;
   const int n_s = problem.freeClassCount();
   const int n = problem.size();
@@ -561,7 +619,8 @@ OptimizerOutcome levenbergMarquardt(Problem& problem, const RegistrationOptions&
     Eigen::VectorXd reg_r;
     if (problem.forceCount() > 0 && ev.w0 > 0.0 && mu > 0.0) {
       Eigen::MatrixXd h(problem.forceCount(), problem.forceCount());
-      for (int k = 0; k < problem.forceCount(); ++k) h.row(k) = green.row(solver.forceDofs()[static_cast<std::size_t>(k)]);
+      for (int k = 0; k < problem.forceCount(); ++k)
+        h.row(k) = green.row(solver.forceDofs()[static_cast<std::size_t>(k)]);
       h = 0.5 * (h + h.transpose()) * problem.forceScale() * problem.forceScale();
       const Eigen::LLT<Eigen::MatrixXd> llt(h);
       const Eigen::MatrixXd lt = llt.matrixU();  // h = U^T U
@@ -578,16 +637,19 @@ OptimizerOutcome levenbergMarquardt(Problem& problem, const RegistrationOptions&
     // Active set: moduli at a bound whose descent direction points outward stay fixed.
     std::vector<bool> active(static_cast<std::size_t>(n), false);
     for (int i = 0; i < n_s; ++i) {
-      active[static_cast<std::size_t>(i)] = (theta(i) >= problem.logMax() && b(i) < 0.0) || (theta(i) <= problem.logMin() && b(i) > 0.0);
+      active[static_cast<std::size_t>(i)] = (theta(i) >= problem.logMax() && b(i) < 0.0) ||
+                                            (theta(i) <= problem.logMin() && b(i) > 0.0);
     }
     bool accepted = false;
     double new_cost = cost;
     for (int attempt = 0; attempt < 12 && !accepted; ++attempt) {
       Eigen::MatrixXd m = a;
-      for (int i = 0; i < n; ++i) m(i, i) += lambda * std::max(a(i, i), 1e-12) + 1e-18;
+      for (int i = 0; i < n; ++i)
+        m(i, i) += lambda * std::max(a(i, i), 1e-12) + 1e-18;
       Eigen::VectorXd rhs = -b;
       for (int i = 0; i < n; ++i) {
-        if (!active[static_cast<std::size_t>(i)]) continue;
+        if (!active[static_cast<std::size_t>(i)])
+          continue;
         m.row(i).setZero();
         m.col(i).setZero();
         m(i, i) = 1.0;
@@ -634,15 +696,19 @@ OptimizerOutcome levenbergMarquardt(Problem& problem, const RegistrationOptions&
 
 void validateOptions(const RegistrationOptions& o) {
   const auto require = [](bool ok, const std::string& message) {
-    if (!ok) throw std::invalid_argument("registerSlices: " + message);
+    if (!ok)
+      throw std::invalid_argument("registerSlices: " + message);
   };
   require(o.target_nodes >= 30, "target_nodes must be >= 30");
   require(o.poisson_ratio > -1.0 && o.poisson_ratio < 0.5, "poisson_ratio must be in (-1, 0.5)");
-  require(o.min_modulus_Pa > 0.0 && o.min_modulus_Pa <= o.max_modulus_Pa, "need 0 < min_modulus_Pa <= max_modulus_Pa");
+  require(o.min_modulus_Pa > 0.0 && o.min_modulus_Pa <= o.max_modulus_Pa,
+          "need 0 < min_modulus_Pa <= max_modulus_Pa");
   for (double e : o.initial_modulus_Pa) {
-    require(e >= o.min_modulus_Pa && e <= o.max_modulus_Pa, "initial moduli must lie within the bounds");
+    require(e >= o.min_modulus_Pa && e <= o.max_modulus_Pa,
+            "initial moduli must lie within the bounds");
   }
-  require(o.reference_class >= 0 && o.reference_class < kSoftClassCount, "reference_class out of range");
+  require(o.reference_class >= 0 && o.reference_class < kSoftClassCount,
+          "reference_class out of range");
   require(o.alpha >= 0.0 && std::isfinite(o.alpha), "alpha must be >= 0");
   require(o.max_iterations >= 0, "max_iterations must be >= 0");
   require(o.step_size > 0.0 && o.fd_step > 0.0, "step_size and fd_step must be positive");
@@ -652,7 +718,22 @@ void validateOptions(const RegistrationOptions& o) {
 
 }  // namespace
 
-RegistrationResult registerSlices(const SliceSegmentation& probe_out, const ProbeInSegmentation& probe_in,
+/// One line: status, Dice before and after, energy share, moduli, iterations, mesh size.
+std::string summaryLine(const RegistrationResult& result, std::size_t mesh_nodes) {
+  std::ostringstream msg;
+  msg << toString(result.status) << ": Dice " << result.initial_dice * 100.0 << " % -> "
+      << result.dice * 100.0 << " %, E " << result.energy_share * 100.0 << " %, moduli";
+  for (int c = 0; c < kSoftClassCount; ++c)
+    msg << " " << softClassName(c) << " " << result.modulus_Pa[static_cast<std::size_t>(c)] * 1e-3
+        << " kPa";
+  msg << ", " << result.iterations << " iterations, " << mesh_nodes << " nodes";
+  if (result.mapping->invertedElements() > 0)
+    msg << ", " << result.mapping->invertedElements() << " inverted elements";
+  return msg.str();
+}
+
+RegistrationResult registerSlices(const SliceSegmentation& probe_out,
+                                  const ProbeInSegmentation& probe_in,
                                   const RegistrationOptions& options) {
   validateOptions(options);
   const Clock::time_point start = Clock::now();
@@ -667,7 +748,8 @@ RegistrationResult registerSlices(const SliceSegmentation& probe_out, const Prob
 
   // Input checks (3.2.1): simple, hole-free outlines inside the domain.
   const SegmentationCheck check = checkSegmentation(probe_out, probe_in);
-  if (!check.ok) return refuse(RegistrationStatus::kInvalidSegmentation, check.problem);
+  if (!check.ok)
+    return refuse(RegistrationStatus::kInvalidSegmentation, check.problem);
 
   // Mesh and unit stiffness (3.2.2).
   std::optional<SliceModel> model;
@@ -677,31 +759,37 @@ RegistrationResult registerSlices(const SliceSegmentation& probe_out, const Prob
     return refuse(RegistrationStatus::kMeshingFailed, std::string("meshing failed: ") + e.what());
   }
   result.meshing_seconds = secondsSince(start);
-  if (model->prostate_loops.empty()) return refuse(RegistrationStatus::kInvalidSegmentation, "no prostate elements in the mesh");
+  if (model->prostate_loops.empty())
+    return refuse(RegistrationStatus::kInvalidSegmentation, "no prostate elements in the mesh");
 
   // Homologous rectum-wall displacements H (3.3.2): along rays from the rectum centre.
   const Polygon& probe = probe_in.probe.outer;
   const Point2 centre = model->rectum_centre;
   if (!probe.contains(centre)) {
     std::ostringstream msg;
-    msg << "the rectum centre (" << centre.x() << ", " << centre.y() << ") m is not inside the probe outline";
+    msg << "the rectum centre (" << centre.x() << ", " << centre.y()
+        << ") m is not inside the probe outline";
     return refuse(RegistrationStatus::kProbeDoesNotEncloseRectum, msg.str());
   }
   double worst_outside = 0.0;
   for (const Point2& v : probe_out.rectum.outer.vertices()) {
-    if (!probe.contains(v)) worst_outside = std::max(worst_outside, probe.distanceToBoundary(v));
+    if (!probe.contains(v))
+      worst_outside = std::max(worst_outside, probe.distanceToBoundary(v));
   }
   if (worst_outside > options.max_rectum_outside_probe_m) {
     std::ostringstream msg;
-    msg << "the probe outline does not enclose the rectum: a rectum-wall point lies " << worst_outside * 1e3
-        << " mm outside it (limit " << options.max_rectum_outside_probe_m * 1e3 << " mm)";
+    msg << "the probe outline does not enclose the rectum: a rectum-wall point lies "
+        << worst_outside * 1e3 << " mm outside it (limit "
+        << options.max_rectum_outside_probe_m * 1e3 << " mm)";
     return refuse(RegistrationStatus::kProbeDoesNotEncloseRectum, msg.str());
   }
   std::vector<Point2> rectum_displacement;
   for (int node : model->rectum_nodes) {
     const Point2& x = model->mesh.nodes[static_cast<std::size_t>(node)];
     const auto y = projectOntoProbe(centre, x, probe);
-    if (!y) return refuse(RegistrationStatus::kProbeDoesNotEncloseRectum, "a ray from the rectum centre misses the probe outline");
+    if (!y)
+      return refuse(RegistrationStatus::kProbeDoesNotEncloseRectum,
+                    "a ray from the rectum centre misses the probe outline");
     rectum_displacement.push_back(*y - x);
   }
 
@@ -710,7 +798,8 @@ RegistrationResult registerSlices(const SliceSegmentation& probe_out, const Prob
   if (options.force_set == ForceSet::kBladderBoundary) {
     force_nodes = model->bladder_nodes;
   } else if (options.force_set == ForceSet::kGlandBoundary) {
-    for (const auto& loop : model->prostate_loops) force_nodes.insert(force_nodes.end(), loop.begin(), loop.end());
+    for (const auto& loop : model->prostate_loops)
+      force_nodes.insert(force_nodes.end(), loop.begin(), loop.end());
     std::sort(force_nodes.begin(), force_nodes.end());
     force_nodes.erase(std::unique(force_nodes.begin(), force_nodes.end()), force_nodes.end());
   }
@@ -723,7 +812,9 @@ RegistrationResult registerSlices(const SliceSegmentation& probe_out, const Prob
   OptimizerOutcome outcome;
   const Eigen::VectorXd theta0 = problem.initialTheta();
   const Evaluation initial = problem.evaluate(theta0);
-  if (!initial.ok) return refuse(RegistrationStatus::kSolveFailed, "the FEM factorisation failed at the initial moduli");
+  if (!initial.ok)
+    return refuse(RegistrationStatus::kSolveFailed,
+                  "the FEM factorisation failed at the initial moduli");
   if (initial.dice >= 1.0 - kAlignedDiceTol) {
     outcome.theta = theta0;
     outcome.best = initial;
@@ -731,9 +822,11 @@ RegistrationResult registerSlices(const SliceSegmentation& probe_out, const Prob
     record(result, problem, theta0, initial, 0, start);
     result.status = RegistrationStatus::kAlreadyAligned;
   } else {
-    outcome = options.optimizer == Optimizer::kSteepestDescent ? steepestDescent(problem, options, result, start)
-                                                               : levenbergMarquardt(problem, options, result, start);
-    if (outcome.failed || !outcome.best.ok) return refuse(RegistrationStatus::kSolveFailed, "the FEM solve failed during optimisation");
+    outcome = options.optimizer == Optimizer::kSteepestDescent
+                  ? steepestDescent(problem, options, result, start)
+                  : levenbergMarquardt(problem, options, result, start);
+    if (outcome.failed || !outcome.best.ok)
+      return refuse(RegistrationStatus::kSolveFailed, "the FEM solve failed during optimisation");
   }
 
   // Parameters and status.
@@ -754,7 +847,8 @@ RegistrationResult registerSlices(const SliceSegmentation& probe_out, const Prob
   if (problem.forceCount() > 0) {
     const Eigen::VectorXd f = problem.forcesN(outcome.theta);
     std::map<int, std::size_t> position;
-    for (std::size_t i = 0; i < force_nodes.size(); ++i) position[force_nodes[i]] = i;
+    for (std::size_t i = 0; i < force_nodes.size(); ++i)
+      position[force_nodes[i]] = i;
     for (int k = 0; k < problem.forceCount(); ++k) {
       const int dof = problem.solver().forceDofs()[static_cast<std::size_t>(k)];
       result.forces_N[position[dof / 2]](dof % 2) = f(k);
@@ -772,17 +866,12 @@ RegistrationResult registerSlices(const SliceSegmentation& probe_out, const Prob
   result.fixed_nodes = model->fixed_nodes;
   result.displacement_m.resize(model->mesh.nodes.size());
   for (std::size_t i = 0; i < result.displacement_m.size(); ++i) {
-    result.displacement_m[i] = Point2(outcome.best.u(static_cast<Eigen::Index>(2 * i)), outcome.best.u(static_cast<Eigen::Index>(2 * i + 1)));
+    result.displacement_m[i] = Point2(outcome.best.u(static_cast<Eigen::Index>(2 * i)),
+                                      outcome.best.u(static_cast<Eigen::Index>(2 * i + 1)));
   }
   result.mapping = std::make_shared<MeshMapping>(result.mesh, result.displacement_m);
   result.mrsi_grid = warpMrsiGrid(*result.mapping, probe_in.prostate.outer, options.mrsi_spacing_m);
-  std::ostringstream msg;
-  msg << toString(result.status) << ": Dice " << result.initial_dice * 100.0 << " % -> " << result.dice * 100.0
-      << " %, E " << result.energy_share * 100.0 << " %, moduli";
-  for (int c = 0; c < kSoftClassCount; ++c) msg << " " << softClassName(c) << " " << result.modulus_Pa[static_cast<std::size_t>(c)] * 1e-3 << " kPa";
-  msg << ", " << result.iterations << " iterations, " << model->mesh.nodes.size() << " nodes";
-  if (result.mapping->invertedElements() > 0) msg << ", " << result.mapping->invertedElements() << " inverted elements";
-  result.message = msg.str();
+  result.message = summaryLine(result, model->mesh.nodes.size());
   result.seconds = secondsSince(start);
   return result;
 }

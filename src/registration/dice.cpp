@@ -12,19 +12,23 @@ using geometry::Point2;
 /// Distance below which a sub-edge midpoint counts as lying on the other boundary [m].
 constexpr double kOnBoundaryTol_m = 1e-10;
 
-double cross(const Point2& a, const Point2& b) { return a.x() * b.y() - a.y() * b.x(); }
+double cross(const Point2& a, const Point2& b) {
+  return a.x() * b.y() - a.y() * b.x();
+}
 
 /// Winding number of the region's loops around p (non-zero = inside).
 int winding(const Loops& region, const Point2& p) {
   int w = 0;
   for (const auto& loop : region) {
     const std::size_t n = loop.size();
-    if (n < 3) continue;
+    if (n < 3)
+      continue;
     for (std::size_t i = 0; i < n; ++i) {
       const Point2& a = loop[i];
       const Point2& b = loop[(i + 1) % n];
       if (a.y() <= p.y()) {
-        if (b.y() > p.y() && cross(b - a, p - a) > 0.0) ++w;
+        if (b.y() > p.y() && cross(b - a, p - a) > 0.0)
+          ++w;
       } else if (b.y() <= p.y() && cross(b - a, p - a) < 0.0) {
         --w;
       }
@@ -38,12 +42,15 @@ int winding(const Loops& region, const Point2& p) {
 int onBoundary(const Loops& region, const Point2& p, const Point2& direction) {
   for (const auto& loop : region) {
     const std::size_t n = loop.size();
-    if (n < 3) continue;
+    if (n < 3)
+      continue;
     for (std::size_t i = 0; i < n; ++i) {
       const Point2& a = loop[i];
       const Point2& b = loop[(i + 1) % n];
-      if (p.x() < std::min(a.x(), b.x()) - kOnBoundaryTol_m || p.x() > std::max(a.x(), b.x()) + kOnBoundaryTol_m ||
-          p.y() < std::min(a.y(), b.y()) - kOnBoundaryTol_m || p.y() > std::max(a.y(), b.y()) + kOnBoundaryTol_m) {
+      if (p.x() < std::min(a.x(), b.x()) - kOnBoundaryTol_m ||
+          p.x() > std::max(a.x(), b.x()) + kOnBoundaryTol_m ||
+          p.y() < std::min(a.y(), b.y()) - kOnBoundaryTol_m ||
+          p.y() > std::max(a.y(), b.y()) + kOnBoundaryTol_m) {
         continue;
       }
       if (geometry::pointSegmentDistance(p, a, b) <= kOnBoundaryTol_m) {
@@ -61,18 +68,21 @@ double boundaryInside(const Loops& a, const Loops& b, bool same_orientation_coun
   std::vector<double> cuts;
   for (const auto& loop : a) {
     const std::size_t n = loop.size();
-    if (n < 3) continue;
+    if (n < 3)
+      continue;
     for (std::size_t i = 0; i < n; ++i) {
       const Point2& p = loop[i];
       const Point2 r = loop[(i + 1) % n] - p;
       const double rr = r.squaredNorm();
-      if (rr == 0.0) continue;
+      if (rr == 0.0)
+        continue;
       const Point2 lo = p.cwiseMin(loop[(i + 1) % n]);
       const Point2 hi = p.cwiseMax(loop[(i + 1) % n]);
       cuts.assign({0.0, 1.0});
       for (const auto& other : b) {
         const std::size_t m = other.size();
-        if (m < 3) continue;
+        if (m < 3)
+          continue;
         for (std::size_t j = 0; j < m; ++j) {
           const Point2& q = other[j];
           const Point2& q2 = other[(j + 1) % m];
@@ -86,25 +96,29 @@ double boundaryInside(const Loops& a, const Loops& b, bool same_orientation_coun
           if (std::abs(denom) > 1e-14 * std::sqrt(rr * s.squaredNorm())) {
             const double t = cross(qp, s) / denom;
             const double u = cross(qp, r) / denom;
-            if (t > 0.0 && t < 1.0 && u >= -1e-12 && u <= 1.0 + 1e-12) cuts.push_back(t);
+            if (t > 0.0 && t < 1.0 && u >= -1e-12 && u <= 1.0 + 1e-12)
+              cuts.push_back(t);
           } else if (std::abs(cross(qp, r)) <= 1e-14 * rr + kOnBoundaryTol_m * std::sqrt(rr)) {
             // Collinear: the other edge's end points split this edge.
             for (const Point2& e : {q, q2}) {
               const double t = (e - p).dot(r) / rr;
-              if (t > 0.0 && t < 1.0) cuts.push_back(t);
+              if (t > 0.0 && t < 1.0)
+                cuts.push_back(t);
             }
           }
         }
       }
       std::sort(cuts.begin(), cuts.end());
       for (std::size_t k = 0; k + 1 < cuts.size(); ++k) {
-        if (cuts[k + 1] - cuts[k] <= 1e-15) continue;
+        if (cuts[k + 1] - cuts[k] <= 1e-15)
+          continue;
         const Point2 x0 = p + cuts[k] * r;
         const Point2 x1 = p + cuts[k + 1] * r;
         const Point2 mid = 0.5 * (x0 + x1);
         const int on = onBoundary(b, mid, r);
         const bool inside = on != 0 ? (same_orientation_counts && on > 0) : winding(b, mid) != 0;
-        if (inside) sum += 0.5 * cross(x0, x1);
+        if (inside)
+          sum += 0.5 * cross(x0, x1);
       }
     }
   }
@@ -117,8 +131,10 @@ double loopsArea(const Loops& region) {
   double area = 0.0;
   for (const auto& loop : region) {
     const std::size_t n = loop.size();
-    if (n < 3) continue;
-    for (std::size_t i = 0; i < n; ++i) area += 0.5 * cross(loop[i], loop[(i + 1) % n]);
+    if (n < 3)
+      continue;
+    for (std::size_t i = 0; i < n; ++i)
+      area += 0.5 * cross(loop[i], loop[(i + 1) % n]);
   }
   return area;
 }
@@ -129,7 +145,8 @@ double intersectionArea(const Loops& a, const Loops& b) {
 
 double diceSimilarity(const Loops& a, const Loops& b) {
   const double total = loopsArea(a) + loopsArea(b);
-  if (!(total > 0.0)) return 0.0;
+  if (!(total > 0.0))
+    return 0.0;
   return std::clamp(2.0 * intersectionArea(a, b) / total, 0.0, 1.0);
 }
 

@@ -27,6 +27,7 @@ private:
 };
 
 /// Dense flow probe_in -> probe_out with OpenCV's video module; false when not compiled in.
-bool opticalFlow(const cv::Mat& probe_in_u8, const cv::Mat& probe_out_u8, IntensityMethod method, cv::Mat& flow);
+bool opticalFlow(const cv::Mat& probe_in_u8, const cv::Mat& probe_out_u8, IntensityMethod method,
+                 cv::Mat& flow);
 
 }  // namespace needle_guidance::registration::detail

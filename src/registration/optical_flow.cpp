@@ -10,7 +10,8 @@
 
 namespace needle_guidance::registration::detail {
 
-bool opticalFlow(const cv::Mat& probe_in_u8, const cv::Mat& probe_out_u8, IntensityMethod method, cv::Mat& flow) {
+bool opticalFlow(const cv::Mat& probe_in_u8, const cv::Mat& probe_out_u8, IntensityMethod method,
+                 cv::Mat& flow) {
 #ifdef NG_HAVE_OPENCV_VIDEO
   if (method == IntensityMethod::kDisOpticalFlow) {
     cv::Ptr<cv::DISOpticalFlow> dis = cv::DISOpticalFlow::create(cv::DISOpticalFlow::PRESET_MEDIUM);

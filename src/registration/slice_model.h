@@ -23,13 +23,13 @@ using Moduli = std::array<double, kSoftClassCount>;
 
 /// The meshed probe-out slice.
 struct SliceModel {
-  geometry::TriangleMesh mesh;          ///< rectum lumen and bladder cavity removed
-  std::vector<int> triangle_class;      ///< SoftClass per triangle; -1 for bone
-  std::vector<int> fixed_nodes;         ///< bone nodes (sorted)
-  std::vector<int> rectum_nodes;        ///< rectum-wall nodes (Dirichlet, 3.3.2), by angle
-  std::vector<int> bladder_nodes;       ///< bladder-wall nodes (sorted)
+  geometry::TriangleMesh mesh;      ///< rectum lumen and bladder cavity removed
+  std::vector<int> triangle_class;  ///< SoftClass per triangle; -1 for bone
+  std::vector<int> fixed_nodes;     ///< bone nodes (sorted)
+  std::vector<int> rectum_nodes;    ///< rectum-wall nodes (Dirichlet, 3.3.2), by angle
+  std::vector<int> bladder_nodes;   ///< bladder-wall nodes (sorted)
   std::vector<std::array<int, 2>> bladder_wall_edges;  ///< wall edges, cavity on the left
-  std::vector<std::vector<int>> prostate_loops;  ///< CG u PZ boundary, region on the left
+  std::vector<std::vector<int>> prostate_loops;        ///< CG u PZ boundary, region on the left
   Point2 rectum_centre = Point2::Zero();
   std::array<SparseMatrix, kSoftClassCount> unit_stiffness;  ///< K per class at E = 1 Pa [N/m]
 };
@@ -67,7 +67,8 @@ public:
   Eigen::VectorXd multiplyK(const Eigen::VectorXd& u) const;
   /// E_c K_c u: the share of K(E) u from soft class c [N].
   Eigen::VectorXd classMultiply(int soft_class, const Eigen::VectorXd& u) const {
-    return moduli_[static_cast<std::size_t>(soft_class)] * (model_.unit_stiffness[static_cast<std::size_t>(soft_class)] * u);
+    return moduli_[static_cast<std::size_t>(soft_class)] *
+           (model_.unit_stiffness[static_cast<std::size_t>(soft_class)] * u);
   }
   /// Total strain energy 1/2 u^T K u = sum of element strain energies [J per m thickness].
   double strainEnergy(const Eigen::VectorXd& u) const { return 0.5 * u.dot(multiplyK(u)); }
@@ -81,7 +82,7 @@ public:
 private:
   const SliceModel& model_;
   int n_dof_ = 0;
-  std::vector<int> free_index_;   // per DOF: index among free DOFs, or -1
+  std::vector<int> free_index_;  // per DOF: index among free DOFs, or -1
   std::vector<int> free_dofs_;
   std::vector<int> force_nodes_;
   std::vector<int> force_dofs_;

@@ -120,7 +120,9 @@ std::string Table::toText() const {
   return out.str();
 }
 
-void Table::writeCsv(const std::string& path) const { writeTextFile(path, toCsv()); }
+void Table::writeCsv(const std::string& path) const {
+  writeTextFile(path, toCsv());
+}
 
 std::string jsonNumber(double v, int precision) {
   if (!std::isfinite(v)) {

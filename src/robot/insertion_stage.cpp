@@ -22,7 +22,9 @@ std::string describe(double value, const char* unit) {
 
 }  // namespace
 
-const char* jointName(StageJoint joint) { return kJointNames[static_cast<std::size_t>(joint)]; }
+const char* jointName(StageJoint joint) {
+  return kJointNames[static_cast<std::size_t>(joint)];
+}
 
 const char* toString(OperatingState state) {
   return state == OperatingState::kEnabled ? "ENABLED" : "ESTOP";
@@ -77,19 +79,16 @@ InsertionStage::InsertionStage(const StageLimits& limits, const SceneLimits& sce
   const JointLimits& depth = limits_[StageJoint::kDepth];
   if (!(scene.min_height_m <= scene.max_height_m) || scene.min_height_m < height.lower ||
       scene.max_height_m > height.upper) {
-    throw std::invalid_argument("InsertionStage: scene height range [" +
-                                describe(scene.min_height_m, "m") + ", " +
-                                describe(scene.max_height_m, "m") +
-                                "] is not inside the stage's height limits [" +
-                                describe(height.lower, "m") + ", " + describe(height.upper, "m") +
-                                "]");
+    throw std::invalid_argument(
+        "InsertionStage: scene height range [" + describe(scene.min_height_m, "m") + ", " +
+        describe(scene.max_height_m, "m") + "] is not inside the stage's height limits [" +
+        describe(height.lower, "m") + ", " + describe(height.upper, "m") + "]");
   }
   if (!(scene.max_depth_m > scene.entry_x_m) || scene.max_depth_m > depth.upper ||
       scene.entry_x_m < depth.lower) {
     throw std::invalid_argument("InsertionStage: scene max depth " +
-                                describe(scene.max_depth_m, "m") +
-                                " is not in (entry x " + describe(scene.entry_x_m, "m") +
-                                ", stage insertion limit " +
+                                describe(scene.max_depth_m, "m") + " is not in (entry x " +
+                                describe(scene.entry_x_m, "m") + ", stage insertion limit " +
                                 describe(depth.upper, "m") + "]");
   }
   for (std::size_t i = 0; i < kStageJointCount; ++i) {
@@ -121,8 +120,8 @@ CommandStatus InsertionStage::command(StageJoint joint, double target, double ve
   }
   if (active_) {
     return refuse(joint, target, velocity,
-                  std::string("busy: joint '") + kJointNames[static_cast<std::size_t>(active_->joint)] +
-                      "' is still moving");
+                  std::string("busy: joint '") +
+                      kJointNames[static_cast<std::size_t>(active_->joint)] + "' is still moving");
   }
   if (!(velocity > 0.0) || velocity > lim.max_velocity) {
     return refuse(joint, target, velocity,

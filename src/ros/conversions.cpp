@@ -43,7 +43,8 @@ visualization_msgs::Marker baseMarker(const std::string& frame_id, const std::st
 visualization_msgs::Marker outline(const geometry::Polygon& polygon, const std::string& frame_id,
                                    const std::string& ns, int id, double width_m,
                                    const std_msgs::ColorRGBA& colour) {
-  visualization_msgs::Marker m = baseMarker(frame_id, ns, id, visualization_msgs::Marker::LINE_STRIP);
+  visualization_msgs::Marker m =
+      baseMarker(frame_id, ns, id, visualization_msgs::Marker::LINE_STRIP);
   m.scale.x = width_m;
   m.color = colour;
   for (const auto& v : polygon.vertices()) {
@@ -69,7 +70,8 @@ visualization_msgs::Marker filled(const geometry::Polygon& domain,
       baseMarker(frame_id, ns, id, visualization_msgs::Marker::TRIANGLE_LIST);
   m.color = colour(1.0F, 1.0F, 1.0F, 1.0F);  // rviz multiplies vertex colours by this
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
-    const auto& colour = colours[static_cast<std::size_t>(mesh.triangle_region[t]) % colours.size()];
+    const auto& colour =
+        colours[static_cast<std::size_t>(mesh.triangle_region[t]) % colours.size()];
     for (int node : mesh.triangles[t]) {
       m.points.push_back(toMessage(mesh.nodes[static_cast<std::size_t>(node)]));
       m.points.back().z = -0.0005;  // just behind needle and mesh overlays
@@ -123,15 +125,16 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
                                                const std::string& frame_id) {
   visualization_msgs::MarkerArray array;
   const geometry::Polygon workspace = scene.workspacePolygon();
-  array.markers.push_back(outline(workspace, frame_id, "workspace", 0, 0.0006, colour(0.2F, 0.2F, 0.2F, 1.0F)));
+  array.markers.push_back(
+      outline(workspace, frame_id, "workspace", 0, 0.0006, colour(0.2F, 0.2F, 0.2F, 1.0F)));
 
   if (!scene.regions.empty() || !scene.background_material.empty()) {
     const std::vector<geometry::MeshRegion> regions = scene.meshRegions();
-    std::vector<std_msgs::ColorRGBA> colours{scene.background_material.empty()
-                                                 ? colour(0.0F, 0.0F, 0.0F, 0.0F)
-                                                 : regionColour(0)};
+    std::vector<std_msgs::ColorRGBA> colours{
+        scene.background_material.empty() ? colour(0.0F, 0.0F, 0.0F, 0.0F) : regionColour(0)};
     for (std::size_t i = 0; i < scene.regions.size(); ++i) {
-      colours.push_back(scene.regions[i].rigid ? colour(0.9F, 0.9F, 0.85F, 1.0F) : regionColour(i + 1));
+      colours.push_back(scene.regions[i].rigid ? colour(0.9F, 0.9F, 0.85F, 1.0F)
+                                               : regionColour(i + 1));
       array.markers.push_back(outline(scene.regions[i].polygon, frame_id, "region_outlines",
                                       static_cast<int>(i), 0.0004, colour(0.4F, 0.1F, 0.1F, 1.0F)));
     }
@@ -149,13 +152,15 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
       array.markers.push_back(filled(obstacle.polygon, {}, frame_id, "obstacles", id,
                                      {colour(0.35F, 0.35F, 0.4F, 1.0F)}));
     } catch (const std::exception& e) {
-      ROS_WARN_STREAM("sceneToMarkers: obstacle '" << obstacle.name << "' outline only: " << e.what());
+      ROS_WARN_STREAM("sceneToMarkers: obstacle '" << obstacle.name
+                                                   << "' outline only: " << e.what());
     }
     array.markers.push_back(outline(obstacle.polygon, frame_id, "obstacle_outlines", id, 0.0004,
                                     colour(0.1F, 0.1F, 0.1F, 1.0F)));
     if (obstacle.clearance_m > 0.0) {
       array.markers.push_back(outline(obstacle.polygon.offset(obstacle.clearance_m), frame_id,
-                                      "obstacle_clearance", id, 0.0002, colour(0.9F, 0.5F, 0.1F, 1.0F)));
+                                      "obstacle_clearance", id, 0.0002,
+                                      colour(0.9F, 0.5F, 0.1F, 1.0F)));
     }
   }
 
@@ -164,8 +169,8 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
     if (b.condition != scene::BoundaryCondition::kFixed) {
       continue;
     }
-    visualization_msgs::Marker m =
-        baseMarker(frame_id, "fixed_boundary", static_cast<int>(i), visualization_msgs::Marker::LINE_LIST);
+    visualization_msgs::Marker m = baseMarker(frame_id, "fixed_boundary", static_cast<int>(i),
+                                              visualization_msgs::Marker::LINE_LIST);
     m.scale.x = 0.0015;
     m.color = colour(0.15F, 0.15F, 0.15F, 1.0F);
     m.points.push_back(toMessage(b.segment.a));
@@ -214,26 +219,31 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
     std::vector<double> sorted(stress.data(), stress.data() + stress.size());
     const std::size_t p95 = sorted.empty() ? 0 : (sorted.size() * 95) / 100;
     if (!sorted.empty()) {
-      std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(p95), sorted.end());
+      std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(p95),
+                       sorted.end());
       max_stress = std::max(sorted[p95], 1e-12);
     }
   }
-  visualization_msgs::Marker fill = baseMarker(frame_id, "tissue", 0, visualization_msgs::Marker::TRIANGLE_LIST);
+  visualization_msgs::Marker fill =
+      baseMarker(frame_id, "tissue", 0, visualization_msgs::Marker::TRIANGLE_LIST);
   fill.color = colour(1.0F, 1.0F, 1.0F, 1.0F);
-  visualization_msgs::Marker wire = baseMarker(frame_id, "tissue_wireframe", 0, visualization_msgs::Marker::LINE_LIST);
+  visualization_msgs::Marker wire =
+      baseMarker(frame_id, "tissue_wireframe", 0, visualization_msgs::Marker::LINE_LIST);
   wire.scale.x = 0.00008;
   wire.color = colour(0.3F, 0.3F, 0.3F, 0.6F);
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
     std_msgs::ColorRGBA tint;
     if (by_stress) {
-      const float s = static_cast<float>(std::clamp(stress[static_cast<Eigen::Index>(t)] / max_stress, 0.0, 1.0));
+      const float s = static_cast<float>(
+          std::clamp(stress[static_cast<Eigen::Index>(t)] / max_stress, 0.0, 1.0));
       tint = colour(s, 0.2F * (1.0F - s), 1.0F - s, 1.0F);
     } else {
       tint = regionColour(static_cast<std::size_t>(mesh.triangle_region[t]));
     }
     const auto& tri = mesh.triangles[t];
     for (int k = 0; k < 3; ++k) {
-      fill.points.push_back(toMessage(nodes[static_cast<std::size_t>(tri[static_cast<std::size_t>(k)])]));
+      fill.points.push_back(
+          toMessage(nodes[static_cast<std::size_t>(tri[static_cast<std::size_t>(k)])]));
       fill.points.back().z = -0.0003;  // above the scene fill, below needle and targets
       fill.colors.push_back(tint);
       const int a = tri[static_cast<std::size_t>(k)];
@@ -248,7 +258,8 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
   array.markers.push_back(fill);
   array.markers.push_back(wire);
 
-  visualization_msgs::Marker shaft = baseMarker(frame_id, "shaft_nodes", 0, visualization_msgs::Marker::SPHERE_LIST);
+  visualization_msgs::Marker shaft =
+      baseMarker(frame_id, "shaft_nodes", 0, visualization_msgs::Marker::SPHERE_LIST);
   shaft.scale.x = shaft.scale.y = shaft.scale.z = 0.0006;
   shaft.color = colour(1.0F, 0.55F, 0.0F, 1.0F);
   for (int node : sim.needle().shaftNodes()) {
@@ -259,7 +270,8 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
     shaft.action = visualization_msgs::Marker::DELETE;  // rviz rejects empty point lists
   }
   array.markers.push_back(shaft);
-  visualization_msgs::Marker tip = baseMarker(frame_id, "tip_node", 0, visualization_msgs::Marker::SPHERE);
+  visualization_msgs::Marker tip =
+      baseMarker(frame_id, "tip_node", 0, visualization_msgs::Marker::SPHERE);
   tip.scale.x = tip.scale.y = tip.scale.z = 0.0009;
   tip.color = colour(0.9F, 0.0F, 0.0F, 1.0F);
   if (sim.needle().tipNode() >= 0) {
@@ -269,7 +281,8 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
     tip.action = visualization_msgs::Marker::DELETE;
   }
   array.markers.push_back(tip);
-  visualization_msgs::Marker seeds = baseMarker(frame_id, "seeds", 0, visualization_msgs::Marker::SPHERE_LIST);
+  visualization_msgs::Marker seeds =
+      baseMarker(frame_id, "seeds", 0, visualization_msgs::Marker::SPHERE_LIST);
   seeds.scale.x = seeds.scale.y = seeds.scale.z = 0.0012;
   seeds.color = colour(1.0F, 0.9F, 0.0F, 1.0F);
   for (const auto& seed : sim.seeds()) {

@@ -10,7 +10,9 @@ geometry_msgs::Point toPointMessage(const delivery::Point3& p) {
   return m;
 }
 
-delivery::Point3 fromPointMessage(const geometry_msgs::Point& p) { return delivery::Point3(p.x, p.y, p.z); }
+delivery::Point3 fromPointMessage(const geometry_msgs::Point& p) {
+  return delivery::Point3(p.x, p.y, p.z);
+}
 
 DwellSchedule toMessage(const delivery::Schedule& s, const std::string& frame_id) {
   DwellSchedule m;
@@ -29,8 +31,10 @@ DwellSchedule toMessage(const delivery::Schedule& s, const std::string& frame_id
     ch.dwell_index = c.dwell_index;
     ch.distance_m = c.distance_m;
     ch.time_s = c.time_s;
-    for (const auto& p : c.position_m) ch.position.push_back(toPointMessage(p));
-    for (const auto& p : c.path_m) ch.path.push_back(toPointMessage(p));
+    for (const auto& p : c.position_m)
+      ch.position.push_back(toPointMessage(p));
+    for (const auto& p : c.path_m)
+      ch.path.push_back(toPointMessage(p));
     m.channels.push_back(ch);
   }
   return m;
@@ -52,8 +56,10 @@ delivery::Schedule fromMessage(const DwellSchedule& m) {
     c.dwell_index = ch.dwell_index;
     c.distance_m = ch.distance_m;
     c.time_s = ch.time_s;
-    for (const auto& p : ch.position) c.position_m.push_back(fromPointMessage(p));
-    for (const auto& p : ch.path) c.path_m.push_back(fromPointMessage(p));
+    for (const auto& p : ch.position)
+      c.position_m.push_back(fromPointMessage(p));
+    for (const auto& p : ch.path)
+      c.path_m.push_back(fromPointMessage(p));
     s.channels.push_back(c);
   }
   return s;

@@ -212,7 +212,8 @@ visualization_msgs::MarkerArray planMarkers(const dose::HdrCase& c, const dose::
     for (std::size_t level = 0; level < std::size(kIsodoseLevels); ++level)
       key.emplace_back(std::string("isodose ") + level_names[level], level_colours[level]);
     key.emplace_back("dwell: short time (blue)", colour(0.4, 0.6, 1.0));
-    key.emplace_back("dwell: longest, " + formatNumber(longest_s) + " s (red)", colour(1.0, 0.2, 0.2));
+    key.emplace_back("dwell: longest, " + formatNumber(longest_s) + " s (red)",
+                     colour(1.0, 0.2, 0.2));
     for (std::size_t k = 0; k < key.size(); ++k) {
       Marker text = marker(frame_id, "legend", static_cast<int>(k), Marker::TEXT_VIEW_FACING);
       // Stacked along the patient's z (the up axis of the default view), right of the slice.

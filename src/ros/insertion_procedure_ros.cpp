@@ -166,7 +166,8 @@ public:
         return std::nullopt;
       }
     }
-    confirmed_ = Fault{death->node, (death->when - start_).toSec(), death->reason};
+    confirmed_ =
+        Fault{death->node, (death->when - start_).toSec(), death->reason, death->when.toSec()};
     return confirmed_;
   }
 
@@ -286,7 +287,8 @@ bool InsertionProcedureRos::run() {
     report.planned = !planner_ns_.empty();
     report.with_tissue = !tissue_ns_.empty();
     report.settings = settings_;
-    report.fault = procedures::Fault{"(start-up)", devices.now_s(), e.what()};
+    report.fault =
+        procedures::Fault{"(start-up)", devices.now_s(), e.what(), ros::WallTime::now().toSec()};
     report.safe_stop = "nothing moved";
     report.targets_in_scene = static_cast<int>(scene.targets.size());
   }

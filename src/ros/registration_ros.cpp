@@ -33,18 +33,23 @@ geometry::Polygon fromMessage(const geometry_msgs::Polygon& msg) {
 std::optional<std::string> nonFinite(const Register::Request& req) {
   auto bad = [](const geometry_msgs::Polygon& p) {
     for (const auto& v : p.points) {
-      if (!std::isfinite(v.x) || !std::isfinite(v.y)) return true;
+      if (!std::isfinite(v.x) || !std::isfinite(v.y))
+        return true;
     }
     return false;
   };
   const std::vector<std::pair<const char*, const geometry_msgs::Polygon*>> named = {
-      {"domain", &req.domain}, {"cg", &req.cg}, {"pz", &req.pz}, {"rectum", &req.rectum},
-      {"bladder", &req.bladder}, {"probe_in_prostate", &req.probe_in_prostate}, {"probe", &req.probe}};
+      {"domain", &req.domain},   {"cg", &req.cg},
+      {"pz", &req.pz},           {"rectum", &req.rectum},
+      {"bladder", &req.bladder}, {"probe_in_prostate", &req.probe_in_prostate},
+      {"probe", &req.probe}};
   for (const auto& [name, polygon] : named) {
-    if (bad(*polygon)) return std::string(name);
+    if (bad(*polygon))
+      return std::string(name);
   }
   for (std::size_t i = 0; i < req.bones.size(); ++i) {
-    if (bad(req.bones[i])) return "bones[" + std::to_string(i) + "]";
+    if (bad(req.bones[i]))
+      return "bones[" + std::to_string(i) + "]";
   }
   return std::nullopt;
 }
@@ -57,8 +62,9 @@ geometry_msgs::Point point(const geometry::Point2& p, double z = 0.0) {
   return m;
 }
 
-visualization_msgs::Marker outline(int id, const std::string& ns, const std::vector<geometry::Point2>& v,
-                                   float r, float g, float b) {
+visualization_msgs::Marker outline(int id, const std::string& ns,
+                                   const std::vector<geometry::Point2>& v, float r, float g,
+                                   float b) {
   visualization_msgs::Marker m;
   m.header.frame_id = "scene";
   m.header.stamp = ros::Time::now();
@@ -72,8 +78,10 @@ visualization_msgs::Marker outline(int id, const std::string& ns, const std::vec
   m.color.g = g;
   m.color.b = b;
   m.color.a = 1.0F;
-  for (const auto& p : v) m.points.push_back(point(p));
-  if (!v.empty()) m.points.push_back(point(v.front()));
+  for (const auto& p : v)
+    m.points.push_back(point(p));
+  if (!v.empty())
+    m.points.push_back(point(v.front()));
   return m;
 }
 
@@ -102,7 +110,8 @@ bool RegistrationRos::onRegister(Register::Request& req, Register::Response& res
     res.message = "optimizer '" + req.optimizer + "' is not fast or steepest_descent";
     return true;
   }
-  if (req.alpha >= 0.0 && std::isfinite(req.alpha)) options.alpha = req.alpha;
+  if (req.alpha >= 0.0 && std::isfinite(req.alpha))
+    options.alpha = req.alpha;
   if (!std::isfinite(req.alpha)) {
     res.status = "refused";
     res.message = "alpha is not finite";
@@ -142,8 +151,10 @@ bool RegistrationRos::onRegister(Register::Request& req, Register::Response& res
     out.cg = reg::Outline(fromMessage(req.cg));
     out.pz = reg::Outline(fromMessage(req.pz));
     out.rectum = reg::Outline(fromMessage(req.rectum));
-    for (const auto& b : req.bones) out.bones.emplace_back(fromMessage(b));
-    if (!req.bladder.points.empty()) out.bladder = reg::Outline(fromMessage(req.bladder));
+    for (const auto& b : req.bones)
+      out.bones.emplace_back(fromMessage(b));
+    if (!req.bladder.points.empty())
+      out.bladder = reg::Outline(fromMessage(req.bladder));
     in.prostate = reg::Outline(fromMessage(req.probe_in_prostate));
     in.probe = reg::Outline(fromMessage(req.probe));
   }
@@ -194,13 +205,15 @@ bool RegistrationRos::onRegister(Register::Request& req, Register::Response& res
   visualization_msgs::Marker clear;
   clear.action = visualization_msgs::Marker::DELETEALL;
   markers.markers.push_back(clear);
-  markers.markers.push_back(outline(0, "probe_in_prostate", in.prostate.outer.vertices(), 0.1F, 0.7F, 0.1F));
+  markers.markers.push_back(
+      outline(0, "probe_in_prostate", in.prostate.outer.vertices(), 0.1F, 0.7F, 0.1F));
   markers.markers.push_back(outline(1, "probe", in.probe.outer.vertices(), 0.4F, 0.4F, 0.4F));
   int id = 2;
   for (const auto& loop : reg::prostateLoops(out)) {
     markers.markers.push_back(outline(id++, "probe_out_prostate", loop, 0.1F, 0.3F, 0.9F));
     if (const auto mapped = reg::mapPolygonForward(*result.mapping, loop)) {
-      markers.markers.push_back(outline(id++, "deformed_probe_out_prostate", *mapped, 0.9F, 0.1F, 0.1F));
+      markers.markers.push_back(
+          outline(id++, "deformed_probe_out_prostate", *mapped, 0.9F, 0.1F, 0.1F));
     }
   }
   visualization_msgs::Marker pts;
@@ -216,7 +229,8 @@ bool RegistrationRos::onRegister(Register::Request& req, Register::Response& res
   pts.color.g = 0.55F;
   pts.color.a = 1.0F;
   for (std::size_t i = 0; i < grid.probe_out.size(); ++i) {
-    if (grid.probe_out[i] && grid.inside_prostate[i]) pts.points.push_back(point(*grid.probe_out[i]));
+    if (grid.probe_out[i] && grid.inside_prostate[i])
+      pts.points.push_back(point(*grid.probe_out[i]));
   }
   markers.markers.push_back(pts);
   markers_pub_.publish(markers);

@@ -392,9 +392,11 @@ bool SteerableProcedureRos::run() {
     }
   }
   std::string dead_node, cause;
+  double detected_unix_s = 0.0;
   if (dead()) {
     const NodeSupervisor::Death death = *supervisor.death();
     dead_node = death.node;
+    detected_unix_s = death.when.toSec();
     cause = death.toString() + " after " + std::to_string(records.size()) + " of " +
             std::to_string(trials_) + " trials; the run was stopped";
     ROS_ERROR_STREAM("steerable_procedure: " << cause);
@@ -508,6 +510,7 @@ bool SteerableProcedureRos::run() {
        << ",\n  \"successes\": " << successes << ",\n  \"errored_trials\": " << errored
        << ",\n  \"trials_requested\": " << trials_ << ",\n  \"dead_node\": \"" << dead_node
        << "\",\n  \"cause\": \"" << cause << "\""
+       << ",\n  \"detected_unix_s\": " << report::jsonNumber(detected_unix_s, 15)
        << ",\n  \"success_rate\": " << report::jsonNumber(rate) << ",\n  \"success_rate_ci\": ["
        << report::jsonNumber(ci.low) << ", " << report::jsonNumber(ci.high)
        << "],\n  \"predicted_ps\": " << report::jsonNumber(predicted)

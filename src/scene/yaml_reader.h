@@ -37,7 +37,8 @@ inline const Dimension kVelocity{
     "velocity", {{"_m_s", "m/s", 1.0}, {"_cm_s", "cm/s", 1e-2}, {"_mm_s", "mm/s", 1e-3}}};
 inline const Dimension kForce{"force", {{"_N", "N", 1.0}, {"_mN", "mN", 1e-3}}};
 inline const Dimension kForcePerLength{
-    "force per length", {{"_N_per_m", "N/m", 1.0}, {"_N_per_cm", "N/cm", 1e2}, {"_N_per_mm", "N/mm", 1e3}}};
+    "force per length",
+    {{"_N_per_m", "N/m", 1.0}, {"_N_per_cm", "N/cm", 1e2}, {"_N_per_mm", "N/mm", 1e3}}};
 inline const Dimension kDensity{"density", {{"_kg_m3", "kg/m^3", 1.0}}};
 inline const Dimension kFrequency{"frequency", {{"_hz", "Hz", 1.0}}};
 inline const Dimension kTime{"time", {{"_s", "s", 1.0}, {"_ms", "ms", 1e-3}}};

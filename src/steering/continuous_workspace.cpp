@@ -124,9 +124,8 @@ ArcTrace ContinuousWorkspace::traceArc(const TipPose& from, Control control, dou
   ArcTrace out;
   out.end = from;
   const double r = problem_.params.radius_m;
-  if (!from.p_SceneTip.allFinite() || !std::isfinite(from.theta_rad) ||
-      !std::isfinite(beta_rad) || !std::isfinite(arc_length_m) || arc_length_m < 0.0 ||
-      !inWorkspace(from.p_SceneTip)) {
+  if (!from.p_SceneTip.allFinite() || !std::isfinite(from.theta_rad) || !std::isfinite(beta_rad) ||
+      !std::isfinite(arc_length_m) || arc_length_m < 0.0 || !inWorkspace(from.p_SceneTip)) {
     out.outcome = ArcOutcome::kLeftWorkspace;
     return out;
   }
@@ -137,8 +136,7 @@ ArcTrace ContinuousWorkspace::traceArc(const TipPose& from, Control control, dou
   }
   // Chords of angle at most max_step stay within the chord tolerance of the arc.
   const double max_step = 2.0 * std::acos(std::max(-1.0, 1.0 - chord_tolerance_m_ / r));
-  const int chords =
-      std::max(1, static_cast<int>(std::ceil(arc_length_m / r / max_step - 1e-12)));
+  const int chords = std::max(1, static_cast<int>(std::ceil(arc_length_m / r / max_step - 1e-12)));
   const double piece = arc_length_m / chords;
   const Point2 lo = problem_.workspace_min;
   const Point2 hi = problem_.workspace_max;
@@ -163,8 +161,8 @@ ArcTrace ContinuousWorkspace::traceArc(const TipPose& from, Control control, dou
     const Point2 cmin = a.cwiseMin(b);
     const Point2 cmax = a.cwiseMax(b);
     for (std::size_t o = 0; o < expanded_.size(); ++o) {
-      if (cmax.x() < box_min_[o].x() || cmin.x() > box_max_[o].x() ||
-          cmax.y() < box_min_[o].y() || cmin.y() > box_max_[o].y()) {
+      if (cmax.x() < box_min_[o].x() || cmin.x() > box_max_[o].x() || cmax.y() < box_min_[o].y() ||
+          cmin.y() > box_max_[o].y()) {
         continue;
       }
       const geometry::Polygon& poly = expanded_[o];

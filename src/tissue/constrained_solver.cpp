@@ -42,12 +42,12 @@ struct ConstrainedSolver::Impl {
   int n_red = 0;
   std::vector<int> red_of_full;  ///< full DOF -> reduced (permuted) index, -1 for fixed
   std::vector<int> full_of_red;
-  std::vector<int> entry_pos;    ///< full A value index -> CHOLMOD upper value index, or -1
+  std::vector<int> entry_pos;  ///< full A value index -> CHOLMOD upper value index, or -1
   std::vector<int> entry_row_red, entry_col_red;  ///< per CHOLMOD value: reduced row / column
-  std::vector<int> full_entry_of_pos;  ///< CHOLMOD value index -> full A value index
+  std::vector<int> full_entry_of_pos;             ///< CHOLMOD value index -> full A value index
 
   cholmod_common common{};
-  cholmod_sparse* a_chol = nullptr;   ///< upper triangle, permuted, values of the factored matrix
+  cholmod_sparse* a_chol = nullptr;  ///< upper triangle, permuted, values of the factored matrix
   cholmod_factor* l_symbolic = nullptr;
   cholmod_factor* l = nullptr;
   cholmod_dense* x_dense = nullptr;
@@ -55,21 +55,28 @@ struct ConstrainedSolver::Impl {
   cholmod_dense* y_work = nullptr;
   cholmod_dense* e_work = nullptr;
 
-  std::vector<double> base;          ///< A values (upper, reduced) represented by the factor
-  std::vector<char> deleted;         ///< per reduced index: row/column deleted (prescribed)
-  std::vector<char> pending;         ///< per reduced index: A changed since the last sync
+  std::vector<double> base;   ///< A values (upper, reduced) represented by the factor
+  std::vector<char> deleted;  ///< per reduced index: row/column deleted (prescribed)
+  std::vector<char> pending;  ///< per reduced index: A changed since the last sync
   std::vector<int> pending_list;
   bool dirty = true;
   long modifications = 0;
 
   ~Impl() {
-    if (a_chol) cholmod_free_sparse(&a_chol, &common);
-    if (l) cholmod_free_factor(&l, &common);
-    if (l_symbolic) cholmod_free_factor(&l_symbolic, &common);
-    if (x_dense) cholmod_free_dense(&x_dense, &common);
-    if (b_dense) cholmod_free_dense(&b_dense, &common);
-    if (y_work) cholmod_free_dense(&y_work, &common);
-    if (e_work) cholmod_free_dense(&e_work, &common);
+    if (a_chol)
+      cholmod_free_sparse(&a_chol, &common);
+    if (l)
+      cholmod_free_factor(&l, &common);
+    if (l_symbolic)
+      cholmod_free_factor(&l_symbolic, &common);
+    if (x_dense)
+      cholmod_free_dense(&x_dense, &common);
+    if (b_dense)
+      cholmod_free_dense(&b_dense, &common);
+    if (y_work)
+      cholmod_free_dense(&y_work, &common);
+    if (e_work)
+      cholmod_free_dense(&e_work, &common);
     cholmod_finish(&common);
   }
 
@@ -79,7 +86,8 @@ struct ConstrainedSolver::Impl {
     common.error_handler = nullptr;
     n_full = static_cast<int>(a->rows());
     std::vector<char> fixed(n_full, 0);
-    for (int d : fixed_dofs) fixed[d] = 1;
+    for (int d : fixed_dofs)
+      fixed[d] = 1;
     std::vector<int> free_of_full(n_full, -1), full_of_free;
     for (int d = 0; d < n_full; ++d) {
       if (!fixed[d]) {
@@ -93,18 +101,22 @@ struct ConstrainedSolver::Impl {
     {
       std::vector<Eigen::Triplet<double>> t;
       for (int col = 0; col < n_full; ++col) {
-        if (free_of_full[col] < 0) continue;
+        if (free_of_full[col] < 0)
+          continue;
         for (Eigen::SparseMatrix<double>::InnerIterator it(*a, col); it; ++it) {
           const int r = free_of_full[it.row()];
-          if (r >= 0 && r <= free_of_full[col]) t.emplace_back(r, free_of_full[col], 1.0);
+          if (r >= 0 && r <= free_of_full[col])
+            t.emplace_back(r, free_of_full[col], 1.0);
         }
       }
       cholmod_sparse* pat = buildUpper(t, n_red);
       common.supernodal = CHOLMOD_SIMPLICIAL;
       cholmod_factor* lp = cholmod_analyze(pat, &common);
-      if (!lp) throw std::runtime_error("ConstrainedSolver: CHOLMOD analysis failed");
+      if (!lp)
+        throw std::runtime_error("ConstrainedSolver: CHOLMOD analysis failed");
       const int* p = static_cast<const int*>(lp->Perm);
-      for (int i = 0; i < n_red; ++i) perm[i] = p[i];  // new index i <- free index p[i]
+      for (int i = 0; i < n_red; ++i)
+        perm[i] = p[i];  // new index i <- free index p[i]
       cholmod_free_factor(&lp, &common);
       cholmod_free_sparse(&pat, &common);
     }
@@ -118,10 +130,12 @@ struct ConstrainedSolver::Impl {
     std::vector<Eigen::Triplet<double>> t;
     for (int col = 0; col < n_full; ++col) {
       const int rc = red_of_full[col];
-      if (rc < 0) continue;
+      if (rc < 0)
+        continue;
       for (Eigen::SparseMatrix<double>::InnerIterator it(*a, col); it; ++it) {
         const int rr = red_of_full[it.row()];
-        if (rr >= 0 && rr <= rc) t.emplace_back(rr, rc, 0.0);
+        if (rr >= 0 && rr <= rc)
+          t.emplace_back(rr, rc, 0.0);
       }
     }
     a_chol = buildUpper(t, n_red);
@@ -141,10 +155,12 @@ struct ConstrainedSolver::Impl {
     const int* inner = a->innerIndexPtr();
     for (int col = 0; col < n_full; ++col) {
       const int rc = red_of_full[col];
-      if (rc < 0) continue;
+      if (rc < 0)
+        continue;
       for (int idx = outer[col]; idx < outer[col + 1]; ++idx) {
         const int rr = red_of_full[inner[idx]];
-        if (rr < 0 || rr > rc) continue;
+        if (rr < 0 || rr > rc)
+          continue;
         const int* it = std::lower_bound(ai + ap[rc], ai + ap[rc + 1], rr);
         entry_pos[idx] = static_cast<int>(it - ai);
         full_entry_of_pos[entry_pos[idx]] = idx;
@@ -158,7 +174,8 @@ struct ConstrainedSolver::Impl {
     common.supernodal = CHOLMOD_SIMPLICIAL;
     common.final_ll = 0;
     l_symbolic = cholmod_analyze(a_chol, &common);
-    if (!l_symbolic) throw std::runtime_error("ConstrainedSolver: CHOLMOD symbolic analysis failed");
+    if (!l_symbolic)
+      throw std::runtime_error("ConstrainedSolver: CHOLMOD symbolic analysis failed");
     base.assign(ap[n_red], 0.0);
     deleted.assign(n_red, 0);
     pending.assign(n_red, 0);
@@ -170,7 +187,9 @@ struct ConstrainedSolver::Impl {
       return x.col() != y.col() ? x.col() < y.col() : x.row() < y.row();
     });
     t.erase(std::unique(t.begin(), t.end(),
-                        [](const auto& x, const auto& y) { return x.col() == y.col() && x.row() == y.row(); }),
+                        [](const auto& x, const auto& y) {
+                          return x.col() == y.col() && x.row() == y.row();
+                        }),
             t.end());
     cholmod_sparse* s = cholmod_allocate_sparse(n, n, t.size(), 1, 1, 1, CHOLMOD_REAL, &common);
     int* p = static_cast<int*>(s->p);
@@ -182,7 +201,8 @@ struct ConstrainedSolver::Impl {
       i[k] = t[k].row();
       x[k] = t[k].value();
     }
-    for (int c = 0; c < n; ++c) p[c + 1] += p[c];
+    for (int c = 0; c < n; ++c)
+      p[c + 1] += p[c];
     return s;
   }
 
@@ -196,15 +216,18 @@ struct ConstrainedSolver::Impl {
       x[k] = (del[r] || del[c]) ? (r == c ? 1.0 : 0.0) : base[k];
     }
     deleted = del;
-    for (int r : pending_list) pending[r] = 0;
+    for (int r : pending_list)
+      pending[r] = 0;
     pending_list.clear();
-    if (l) cholmod_free_factor(&l, &common);
+    if (l)
+      cholmod_free_factor(&l, &common);
     l = cholmod_copy_factor(l_symbolic, &common);
     const int ok = cholmod_factorize(a_chol, l, &common);
     modifications = 0;
     if (!ok || common.status != CHOLMOD_OK || static_cast<int>(l->minor) != n_red) {
-      error = "ConstrainedSolver: the system matrix is not positive definite on the free DOFs (pivot " +
-              std::to_string(l->minor) + ")";
+      error =
+          "ConstrainedSolver: the system matrix is not positive definite on the free DOFs (pivot " +
+          std::to_string(l->minor) + ")";
       dirty = true;
       return false;
     }
@@ -218,10 +241,12 @@ struct ConstrainedSolver::Impl {
     std::vector<std::pair<int, double>> entries;
     for (Eigen::SparseMatrix<double>::InnerIterator it(*a, col); it; ++it) {
       const int rr = red_of_full[it.row()];
-      if (rr >= 0 && (!deleted[rr] || rr == rc)) entries.emplace_back(rr, it.value());
+      if (rr >= 0 && (!deleted[rr] || rr == rc))
+        entries.emplace_back(rr, it.value());
     }
     std::sort(entries.begin(), entries.end());
-    cholmod_sparse* r = cholmod_allocate_sparse(n_red, 1, entries.size(), 1, 1, 0, CHOLMOD_REAL, &common);
+    cholmod_sparse* r =
+        cholmod_allocate_sparse(n_red, 1, entries.size(), 1, 1, 0, CHOLMOD_REAL, &common);
     int* p = static_cast<int*>(r->p);
     int* i = static_cast<int*>(r->i);
     double* x = static_cast<double*>(r->x);
@@ -241,7 +266,8 @@ struct ConstrainedSolver::Impl {
     const int* outer = a->outerIndexPtr();
     for (int idx = outer[col]; idx < outer[col + 1]; ++idx) {
       const int pos = entry_pos[idx];
-      if (pos >= 0) base[pos] = av[idx];
+      if (pos >= 0)
+        base[pos] = av[idx];
       // the symmetric entry (rr > rc) is stored in column rr's upper part
       const int rr = red_of_full[a->innerIndexPtr()[idx]];
       if (rr > rc) {
@@ -257,13 +283,15 @@ struct ConstrainedSolver::Impl {
   bool applyPending(SolverStats& stats) {
     std::vector<int> d;
     for (int r : pending_list) {
-      if (!deleted[r]) d.push_back(r);
+      if (!deleted[r])
+        d.push_back(r);
     }
     std::sort(d.begin(), d.end());
     const int nd = static_cast<int>(d.size());
     if (nd > 0) {
       std::vector<int> local(n_red, -1);
-      for (int k = 0; k < nd; ++k) local[d[k]] = k;
+      for (int k = 0; k < nd; ++k)
+        local[d[k]] = k;
       Eigen::MatrixXd delta = Eigen::MatrixXd::Zero(nd, nd);
       const int* ap = static_cast<const int*>(a_chol->p);
       const int* ai = static_cast<const int*>(a_chol->i);
@@ -272,7 +300,8 @@ struct ConstrainedSolver::Impl {
         const int c = d[k];
         for (int pos = ap[c]; pos < ap[c + 1]; ++pos) {
           const int lr = local[ai[pos]];
-          if (lr < 0) continue;
+          if (lr < 0)
+            continue;
           const double now = av[full_entry_of_pos[pos]];
           const double change = now - base[pos];
           delta(lr, k) = change;
@@ -286,11 +315,13 @@ struct ConstrainedSolver::Impl {
       for (int sign : {+1, -1}) {
         std::vector<int> cols;
         for (int k = 0; k < nd; ++k) {
-          if (sign * lambda(k) > kDeltaEigenRelTol * lambda_max && lambda_max > 0.0) cols.push_back(k);
+          if (sign * lambda(k) > kDeltaEigenRelTol * lambda_max && lambda_max > 0.0)
+            cols.push_back(k);
         }
-        if (cols.empty()) continue;
-        cholmod_sparse* c = cholmod_allocate_sparse(n_red, cols.size(), cols.size() * nd, 1, 1, 0, CHOLMOD_REAL,
-                                                    &common);
+        if (cols.empty())
+          continue;
+        cholmod_sparse* c = cholmod_allocate_sparse(n_red, cols.size(), cols.size() * nd, 1, 1, 0,
+                                                    CHOLMOD_REAL, &common);
         int* cp = static_cast<int*>(c->p);
         int* ci = static_cast<int*>(c->i);
         double* cx = static_cast<double*>(c->x);
@@ -307,20 +338,23 @@ struct ConstrainedSolver::Impl {
         cholmod_free_sparse(&c, &common);
         stats.rank_updates += static_cast<long>(cols.size());
         modifications += static_cast<long>(cols.size());
-        if (!ok || common.status != CHOLMOD_OK) return false;
+        if (!ok || common.status != CHOLMOD_OK)
+          return false;
       }
     }
     for (int r : pending_list) {
-      if (!deleted[r]) pending[r] = 0;
+      if (!deleted[r])
+        pending[r] = 0;
     }
-    pending_list.erase(std::remove_if(pending_list.begin(), pending_list.end(), [&](int r) { return !pending[r]; }),
+    pending_list.erase(std::remove_if(pending_list.begin(), pending_list.end(),
+                                      [&](int r) { return !pending[r]; }),
                        pending_list.end());
     return true;
   }
 };
 
-ConstrainedSolver::ConstrainedSolver(const Eigen::SparseMatrix<double>& a, std::vector<int> fixed_dofs,
-                                     bool incremental)
+ConstrainedSolver::ConstrainedSolver(const Eigen::SparseMatrix<double>& a,
+                                     std::vector<int> fixed_dofs, bool incremental)
     : impl_(std::make_unique<Impl>()) {
   impl_->a = &a;
   impl_->incremental = incremental;
@@ -329,7 +363,9 @@ ConstrainedSolver::ConstrainedSolver(const Eigen::SparseMatrix<double>& a, std::
 
 ConstrainedSolver::~ConstrainedSolver() = default;
 
-void ConstrainedSolver::matrixReplaced() { impl_->dirty = true; }
+void ConstrainedSolver::matrixReplaced() {
+  impl_->dirty = true;
+}
 
 void ConstrainedSolver::matrixChanged(const std::vector<int>& dofs) {
   Impl& im = *impl_;
@@ -347,26 +383,30 @@ void ConstrainedSolver::matrixChanged(const std::vector<int>& dofs) {
 }
 
 bool ConstrainedSolver::solve(const Eigen::VectorXd& b, const std::vector<int>& p_dofs,
-                              const std::vector<double>& p_values, Eigen::VectorXd& x, Eigen::VectorXd& reactions,
-                              std::string& error) {
+                              const std::vector<double>& p_values, Eigen::VectorXd& x,
+                              Eigen::VectorXd& reactions, std::string& error) {
   Impl& im = *impl_;
   const Eigen::SparseMatrix<double>& a = *im.a;
   std::vector<char> del(im.n_red, 0);
   for (int d : p_dofs) {
     const int r = im.red_of_full[d];
-    if (r >= 0) del[r] = 1;
+    if (r >= 0)
+      del[r] = 1;
   }
   bool need_refactor = im.dirty || !im.l || !im.incremental;
   std::vector<int> to_delete, to_add;
   if (!need_refactor) {
     for (int d : p_dofs) {
       const int r = im.red_of_full[d];
-      if (r >= 0 && !im.deleted[r]) to_delete.push_back(r);
+      if (r >= 0 && !im.deleted[r])
+        to_delete.push_back(r);
     }
     for (int r = 0; r < im.n_red; ++r) {
-      if (im.deleted[r] && !del[r]) to_add.push_back(r);
+      if (im.deleted[r] && !del[r])
+        to_add.push_back(r);
     }
-    const long planned = static_cast<long>(to_delete.size() + to_add.size() + im.pending_list.size());
+    const long planned =
+        static_cast<long>(to_delete.size() + to_add.size() + im.pending_list.size());
     need_refactor = im.modifications + planned > kMaxModifications;
   }
   if (!need_refactor) {
@@ -381,7 +421,8 @@ bool ConstrainedSolver::solve(const Eigen::VectorXd& b, const std::vector<int>& 
     ok = ok && im.applyPending(stats_);
     std::sort(to_add.begin(), to_add.end());
     for (int r : to_add) {
-      if (!ok) break;
+      if (!ok)
+        break;
       im.deleted[r] = 0;
       cholmod_sparse* col = im.currentColumn(r);
       ok = cholmod_rowadd(r, col, im.l, &im.common) && im.common.status == CHOLMOD_OK;
@@ -394,44 +435,53 @@ bool ConstrainedSolver::solve(const Eigen::VectorXd& b, const std::vector<int>& 
       ++stats_.row_additions;
       ++im.modifications;
     }
-    if (!ok) need_refactor = true;  // a modification failed (e.g. lost definiteness): start over
+    if (!ok)
+      need_refactor = true;  // a modification failed (e.g. lost definiteness): start over
   }
   if (need_refactor) {
     ++stats_.factorizations;
-    if (!im.refactor(del, error)) return false;
+    if (!im.refactor(del, error))
+      return false;
   }
   // x_P = g, x_F = 0; rhs = b - A_{:,P} g on the free rows, g on the deleted (identity) rows.
   x = Eigen::VectorXd::Zero(im.n_full);
-  for (std::size_t i = 0; i < p_dofs.size(); ++i) x(p_dofs[i]) = p_values[i];
+  for (std::size_t i = 0; i < p_dofs.size(); ++i)
+    x(p_dofs[i]) = p_values[i];
   double* rhs = static_cast<double*>(im.b_dense->x);
-  for (int r = 0; r < im.n_red; ++r) rhs[r] = b(im.full_of_red[r]);
+  for (int r = 0; r < im.n_red; ++r)
+    rhs[r] = b(im.full_of_red[r]);
   for (std::size_t i = 0; i < p_dofs.size(); ++i) {
     const double g = p_values[i];
-    if (g == 0.0) continue;
+    if (g == 0.0)
+      continue;
     for (Eigen::SparseMatrix<double>::InnerIterator it(a, p_dofs[i]); it; ++it) {
       const int rr = im.red_of_full[it.row()];
-      if (rr >= 0) rhs[rr] -= it.value() * g;
+      if (rr >= 0)
+        rhs[rr] -= it.value() * g;
     }
   }
   for (std::size_t i = 0; i < p_dofs.size(); ++i) {
     const int r = im.red_of_full[p_dofs[i]];
-    if (r >= 0) rhs[r] = p_values[i];
+    if (r >= 0)
+      rhs[r] = p_values[i];
   }
-  if (!cholmod_solve2(CHOLMOD_A, im.l, im.b_dense, nullptr, &im.x_dense, nullptr, &im.y_work, &im.e_work,
-                      &im.common)) {
+  if (!cholmod_solve2(CHOLMOD_A, im.l, im.b_dense, nullptr, &im.x_dense, nullptr, &im.y_work,
+                      &im.e_work, &im.common)) {
     error = "ConstrainedSolver: CHOLMOD solve failed";
     return false;
   }
   ++stats_.solves;
   const double* xs = static_cast<const double*>(im.x_dense->x);
   for (int r = 0; r < im.n_red; ++r) {
-    if (!im.deleted[r]) x(im.full_of_red[r]) = xs[r];
+    if (!im.deleted[r])
+      x(im.full_of_red[r]) = xs[r];
   }
   reactions.resize(static_cast<Eigen::Index>(p_dofs.size()));
   for (std::size_t i = 0; i < p_dofs.size(); ++i) {
     const int d = p_dofs[i];
     double r = -b(d);
-    for (Eigen::SparseMatrix<double>::InnerIterator it(a, d); it; ++it) r += it.value() * x(it.row());  // symmetric
+    for (Eigen::SparseMatrix<double>::InnerIterator it(a, d); it; ++it)
+      r += it.value() * x(it.row());  // symmetric
     reactions(static_cast<Eigen::Index>(i)) = r;
   }
   if (!x.allFinite() || !reactions.allFinite()) {

@@ -14,11 +14,11 @@ namespace needle_guidance::tissue {
 
 /// Counters of the work a ConstrainedSolver did (for benchmarks and tests).
 struct SolverStats {
-  long factorizations = 0;   ///< full numeric factorisations
-  long row_deletions = 0;    ///< DOFs newly prescribed by a factor modification
-  long row_additions = 0;    ///< DOFs released by a factor modification
-  long rank_updates = 0;     ///< rank-1 updates/downdates for matrix changes
-  long solves = 0;           ///< solves
+  long factorizations = 0;  ///< full numeric factorisations
+  long row_deletions = 0;   ///< DOFs newly prescribed by a factor modification
+  long row_additions = 0;   ///< DOFs released by a factor modification
+  long rank_updates = 0;    ///< rank-1 updates/downdates for matrix changes
+  long solves = 0;          ///< solves
 };
 
 class ConstrainedSolver {
@@ -28,7 +28,8 @@ public:
   /// @param[in] fixed_dofs permanent zero DOFs (sorted, unique)
   /// @param[in] incremental modify the factorisation (row deletions/additions, low-rank
   ///            updates) instead of refactorising on every change
-  ConstrainedSolver(const Eigen::SparseMatrix<double>& a, std::vector<int> fixed_dofs, bool incremental);
+  ConstrainedSolver(const Eigen::SparseMatrix<double>& a, std::vector<int> fixed_dofs,
+                    bool incremental);
   ~ConstrainedSolver();
   ConstrainedSolver(const ConstrainedSolver&) = delete;
   ConstrainedSolver& operator=(const ConstrainedSolver&) = delete;
@@ -41,8 +42,9 @@ public:
   /// Solves A x = b on the free DOFs with x_F = 0 and x_P = g; reactions (order of p_dofs)
   /// = (A x - b)_P. Returns false (and an error message) when the factorisation fails (A not
   /// positive definite on the free DOFs) or the result is not finite.
-  bool solve(const Eigen::VectorXd& b, const std::vector<int>& p_dofs, const std::vector<double>& p_values,
-             Eigen::VectorXd& x, Eigen::VectorXd& reactions, std::string& error);
+  bool solve(const Eigen::VectorXd& b, const std::vector<int>& p_dofs,
+             const std::vector<double>& p_values, Eigen::VectorXd& x, Eigen::VectorXd& reactions,
+             std::string& error);
 
   const SolverStats& stats() const { return stats_; }
 

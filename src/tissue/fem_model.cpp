@@ -61,11 +61,16 @@ CstGeometry cstGeometry(const Point2& p0, const Point2& p1, const Point2& p2) {
 }
 
 double lameLambda(const ElementMaterial& m) {
-  return m.young_modulus_Pa * m.poisson_ratio / ((1.0 + m.poisson_ratio) * (1.0 - 2.0 * m.poisson_ratio));
+  return m.young_modulus_Pa * m.poisson_ratio /
+         ((1.0 + m.poisson_ratio) * (1.0 - 2.0 * m.poisson_ratio));
 }
-double shearModulus(const ElementMaterial& m) { return m.young_modulus_Pa / (2.0 * (1.0 + m.poisson_ratio)); }
+double shearModulus(const ElementMaterial& m) {
+  return m.young_modulus_Pa / (2.0 * (1.0 + m.poisson_ratio));
+}
 /// 3-D bulk modulus; with e_zz = 0 (plane strain) the 3-D volumetric strain is exx + eyy.
-double bulkModulus(const ElementMaterial& m) { return lameLambda(m) + 2.0 * shearModulus(m) / 3.0; }
+double bulkModulus(const ElementMaterial& m) {
+  return lameLambda(m) + 2.0 * shearModulus(m) / 3.0;
+}
 
 /// Plane-strain elasticity matrix (Voigt, engineering shear): lambda m m^T + mu diag(2, 2, 1).
 Eigen::Matrix3d planeStrainD(const ElementMaterial& m) {
@@ -110,20 +115,21 @@ void validateMaterial(const ElementMaterial& m, std::size_t t) {
 
 struct FemModel::Impl {
   // Element blocks (one per triangle, DOFs 2*node, 2*node+1 of its three nodes).
-  std::vector<Matrix6> element_k;            ///< stiffness (deviatoric part for averaged) [N/m]
-  std::vector<Matrix6> element_m;            ///< consistent mass [kg]
+  std::vector<Matrix6> element_k;  ///< stiffness (deviatoric part for averaged) [N/m]
+  std::vector<Matrix6> element_m;  ///< consistent mass [kg]
   std::vector<std::array<int, 36>> element_entry;  ///< value index in the shared pattern
   // Nodal volumetric blocks (kAveragedVolumetric only), one per node over its patch DOFs.
-  std::vector<std::vector<int>> patch_nodes;   ///< node itself and its 1-ring, sorted
-  std::vector<Eigen::VectorXd> nodal_g;        ///< d theta_a / d u_patch [1/m]
-  std::vector<double> nodal_coef;              ///< thickness * V_a * kappa_a [N m]
-  std::vector<double> nodal_kappa;             ///< patch-averaged bulk modulus [Pa]
-  std::vector<double> nodal_beta;              ///< patch-averaged Rayleigh beta [s]
-  std::vector<std::vector<int>> nodal_entry;   ///< value index in the shared pattern
-  std::vector<char> dof_mark;                  ///< scratch marker, size dofCount
+  std::vector<std::vector<int>> patch_nodes;  ///< node itself and its 1-ring, sorted
+  std::vector<Eigen::VectorXd> nodal_g;       ///< d theta_a / d u_patch [1/m]
+  std::vector<double> nodal_coef;             ///< thickness * V_a * kappa_a [N m]
+  std::vector<double> nodal_kappa;            ///< patch-averaged bulk modulus [Pa]
+  std::vector<double> nodal_beta;             ///< patch-averaged Rayleigh beta [s]
+  std::vector<std::vector<int>> nodal_entry;  ///< value index in the shared pattern
+  std::vector<char> dof_mark;                 ///< scratch marker, size dofCount
 
   /// Recomputes the element blocks of `triangles` and the nodal blocks of `nodes`.
-  static void recomputeBlocks(FemModel& model, const std::vector<int>& triangles, const std::vector<int>& nodes);
+  static void recomputeBlocks(FemModel& model, const std::vector<int>& triangles,
+                              const std::vector<int>& nodes);
   /// Re-sums K, M, C entries (i, j) with i, j both in `dofs` from all blocks, and the lumped
   /// mass of their nodes.
   static void resumEntries(FemModel& model, const std::vector<int>& dofs);
@@ -142,7 +148,8 @@ int entryIndex(const SparseMatrix& a, int row, int col) {
   const int begin = a.outerIndexPtr()[col];
   const int end = a.outerIndexPtr()[col + 1];
   const int* it = std::lower_bound(inner + begin, inner + end, row);
-  if (it == inner + end || *it != row) return -1;
+  if (it == inner + end || *it != row)
+    return -1;
   return static_cast<int>(it - inner);
 }
 
@@ -150,21 +157,26 @@ int entryIndex(const SparseMatrix& a, int row, int col) {
 
 FemModel::FemModel(geometry::TriangleMesh mesh, std::vector<ElementMaterial> element_materials,
                    const FemOptions& options)
-    : mesh_(std::move(mesh)), materials_(std::move(element_materials)), options_(options),
+    : mesh_(std::move(mesh)),
+      materials_(std::move(element_materials)),
+      options_(options),
       impl_(std::make_shared<Impl>()) {
   const std::size_t n_tri = mesh_.triangles.size();
   const int n_nodes = static_cast<int>(mesh_.nodes.size());
   if (!std::isfinite(options_.thickness_m) || options_.thickness_m <= 0.0) {
-    throw std::invalid_argument("FemModel: thickness " + fmt(options_.thickness_m) + " m must be finite and > 0");
+    throw std::invalid_argument("FemModel: thickness " + fmt(options_.thickness_m) +
+                                " m must be finite and > 0");
   }
   if (materials_.size() != n_tri) {
-    throw std::invalid_argument("FemModel: " + std::to_string(materials_.size()) + " materials for " +
-                                std::to_string(n_tri) + " triangles");
+    throw std::invalid_argument("FemModel: " + std::to_string(materials_.size()) +
+                                " materials for " + std::to_string(n_tri) + " triangles");
   }
-  if (n_tri == 0) throw std::invalid_argument("FemModel: the mesh has no triangles");
+  if (n_tri == 0)
+    throw std::invalid_argument("FemModel: the mesh has no triangles");
   for (int i = 0; i < n_nodes; ++i) {
     if (!mesh_.nodes[i].allFinite()) {
-      throw std::invalid_argument("FemModel: node " + std::to_string(i) + " has a non-finite coordinate");
+      throw std::invalid_argument("FemModel: node " + std::to_string(i) +
+                                  " has a non-finite coordinate");
     }
   }
   node_triangles_.assign(n_nodes, {});
@@ -174,7 +186,8 @@ FemModel::FemModel(geometry::TriangleMesh mesh, std::vector<ElementMaterial> ele
     for (int k = 0; k < 3; ++k) {
       if (tri[k] < 0 || tri[k] >= n_nodes) {
         throw std::invalid_argument("FemModel: element " + std::to_string(t) + " uses node " +
-                                    std::to_string(tri[k]) + " out of range [0, " + std::to_string(n_nodes) + ")");
+                                    std::to_string(tri[k]) + " out of range [0, " +
+                                    std::to_string(n_nodes) + ")");
       }
     }
     if (tri[0] == tri[1] || tri[1] == tri[2] || tri[0] == tri[2]) {
@@ -182,10 +195,12 @@ FemModel::FemModel(geometry::TriangleMesh mesh, std::vector<ElementMaterial> ele
     }
     const double area = signedArea(mesh_.nodes[tri[0]], mesh_.nodes[tri[1]], mesh_.nodes[tri[2]]);
     if (!(area > 0.0)) {
-      throw std::invalid_argument("FemModel: element " + std::to_string(t) + " is inverted or degenerate (signed area " +
-                                  fmt(area) + " m^2 <= 0)");
+      throw std::invalid_argument("FemModel: element " + std::to_string(t) +
+                                  " is inverted or degenerate (signed area " + fmt(area) +
+                                  " m^2 <= 0)");
     }
-    for (int k = 0; k < 3; ++k) node_triangles_[tri[k]].push_back(static_cast<int>(t));
+    for (int k = 0; k < 3; ++k)
+      node_triangles_[tri[k]].push_back(static_cast<int>(t));
   }
 
   Impl& im = *impl_;
@@ -199,7 +214,8 @@ FemModel::FemModel(geometry::TriangleMesh mesh, std::vector<ElementMaterial> ele
     for (int a = 0; a < n_nodes; ++a) {
       std::vector<int>& patch = im.patch_nodes[a];
       patch.push_back(a);
-      for (int t : node_triangles_[a]) patch.insert(patch.end(), mesh_.triangles[t].begin(), mesh_.triangles[t].end());
+      for (int t : node_triangles_[a])
+        patch.insert(patch.end(), mesh_.triangles[t].begin(), mesh_.triangles[t].end());
       std::sort(patch.begin(), patch.end());
       patch.erase(std::unique(patch.begin(), patch.end()), patch.end());
     }
@@ -218,14 +234,16 @@ FemModel::FemModel(geometry::TriangleMesh mesh, std::vector<ElementMaterial> ele
     for (int a = 0; a < 3; ++a)
       for (int b = 0; b < 3; ++b)
         for (int i = 0; i < 2; ++i)
-          for (int j = 0; j < 2; ++j) pattern.emplace_back(2 * tri[a] + i, 2 * tri[b] + j, 0.0);
+          for (int j = 0; j < 2; ++j)
+            pattern.emplace_back(2 * tri[a] + i, 2 * tri[b] + j, 0.0);
   }
   if (averaged) {
     for (int a = 0; a < n_nodes; ++a) {
       for (int p : im.patch_nodes[a])
         for (int q : im.patch_nodes[a])
           for (int i = 0; i < 2; ++i)
-            for (int j = 0; j < 2; ++j) pattern.emplace_back(2 * p + i, 2 * q + j, 0.0);
+            for (int j = 0; j < 2; ++j)
+              pattern.emplace_back(2 * p + i, 2 * q + j, 0.0);
     }
   }
   K_.resize(dofCount(), dofCount());
@@ -237,7 +255,8 @@ FemModel::FemModel(geometry::TriangleMesh mesh, std::vector<ElementMaterial> ele
     const auto& tri = mesh_.triangles[t];
     for (int r = 0; r < 6; ++r)
       for (int c = 0; c < 6; ++c)
-        im.element_entry[t][6 * c + r] = entryIndex(K_, 2 * tri[r / 2] + r % 2, 2 * tri[c / 2] + c % 2);
+        im.element_entry[t][6 * c + r] =
+            entryIndex(K_, 2 * tri[r / 2] + r % 2, 2 * tri[c / 2] + c % 2);
   }
   if (averaged) {
     for (int a = 0; a < n_nodes; ++a) {
@@ -255,25 +274,32 @@ FemModel::FemModel(geometry::TriangleMesh mesh, std::vector<ElementMaterial> ele
   m_lumped_ = Eigen::VectorXd::Zero(dofCount());
 
   std::vector<int> all_tris(n_tri);
-  for (std::size_t t = 0; t < n_tri; ++t) all_tris[t] = static_cast<int>(t);
+  for (std::size_t t = 0; t < n_tri; ++t)
+    all_tris[t] = static_cast<int>(t);
   std::vector<int> all_nodes(n_nodes);
-  for (int a = 0; a < n_nodes; ++a) all_nodes[a] = a;
+  for (int a = 0; a < n_nodes; ++a)
+    all_nodes[a] = a;
   Impl::recomputeBlocks(*this, all_tris, all_nodes);
   std::vector<int> all_dofs(dofCount());
-  for (int d = 0; d < dofCount(); ++d) all_dofs[d] = d;
+  for (int d = 0; d < dofCount(); ++d)
+    all_dofs[d] = d;
   Impl::resumEntries(*this, all_dofs);
 }
 
-int FemModel::nodeCount() const { return static_cast<int>(mesh_.nodes.size()); }
+int FemModel::nodeCount() const {
+  return static_cast<int>(mesh_.nodes.size());
+}
 
 const std::vector<int>& FemModel::trianglesOfNode(int node) const {
   if (node < 0 || node >= nodeCount()) {
-    throw std::invalid_argument("FemModel::trianglesOfNode: node " + std::to_string(node) + " out of range");
+    throw std::invalid_argument("FemModel::trianglesOfNode: node " + std::to_string(node) +
+                                " out of range");
   }
   return node_triangles_[node];
 }
 
-void FemModel::Impl::recomputeBlocks(FemModel& model, const std::vector<int>& triangles, const std::vector<int>& nodes) {
+void FemModel::Impl::recomputeBlocks(FemModel& model, const std::vector<int>& triangles,
+                                     const std::vector<int>& nodes) {
   Impl& im = *model.impl_;
   const auto& mesh_ = model.mesh_;
   const auto& materials_ = model.materials_;
@@ -284,7 +310,8 @@ void FemModel::Impl::recomputeBlocks(FemModel& model, const std::vector<int>& tr
   for (int t : triangles) {
     const auto& tri = mesh_.triangles[t];
     const ElementMaterial& mat = materials_[t];
-    const CstGeometry g = cstGeometry(mesh_.nodes[tri[0]], mesh_.nodes[tri[1]], mesh_.nodes[tri[2]]);
+    const CstGeometry g =
+        cstGeometry(mesh_.nodes[tri[0]], mesh_.nodes[tri[1]], mesh_.nodes[tri[2]]);
     const Eigen::Matrix3d d = averaged ? planeStrainDeviatoricD(mat) : planeStrainD(mat);
     im.element_k[t] = (t_m * g.area_m2) * g.B.transpose() * d * g.B;
     // Consistent mass of the linear triangle: rho A t / 12 [2 1 1; 1 2 1; 1 1 2] per direction.
@@ -293,9 +320,11 @@ void FemModel::Impl::recomputeBlocks(FemModel& model, const std::vector<int>& tr
     me.setZero();
     for (int a = 0; a < 3; ++a)
       for (int b = 0; b < 3; ++b)
-        for (int i = 0; i < 2; ++i) me(2 * a + i, 2 * b + i) = (a == b ? 2.0 : 1.0) * m12;
+        for (int i = 0; i < 2; ++i)
+          me(2 * a + i, 2 * b + i) = (a == b ? 2.0 : 1.0) * m12;
   }
-  if (!averaged) return;
+  if (!averaged)
+    return;
   // Average nodal volumetric strain (Bonet & Burton 1998, "A simple average nodal pressure
   // tetrahedral element for incompressible and nearly incompressible dynamic explicit
   // applications", Commun. Numer. Meth. Engng 14; equivalently the volumetric part of Dohrmann et
@@ -308,14 +337,16 @@ void FemModel::Impl::recomputeBlocks(FemModel& model, const std::vector<int>& tr
     double volume = 0.0, kappa_v = 0.0, kappa_beta_v = 0.0;
     for (int t : node_triangles_[a]) {
       const auto& tri = mesh_.triangles[t];
-      const CstGeometry g = cstGeometry(mesh_.nodes[tri[0]], mesh_.nodes[tri[1]], mesh_.nodes[tri[2]]);
+      const CstGeometry g =
+          cstGeometry(mesh_.nodes[tri[0]], mesh_.nodes[tri[1]], mesh_.nodes[tri[2]]);
       const double w = g.area_m2 / 3.0;
       const double kappa = bulkModulus(materials_[t]);
       volume += w;
       kappa_v += w * kappa;
       kappa_beta_v += w * kappa * materials_[t].rayleigh_beta_s;
       for (int k = 0; k < 3; ++k) {
-        const int local = static_cast<int>(std::lower_bound(patch.begin(), patch.end(), tri[k]) - patch.begin());
+        const int local =
+            static_cast<int>(std::lower_bound(patch.begin(), patch.end(), tri[k]) - patch.begin());
         gvec(2 * local) += w * g.div(2 * k);
         gvec(2 * local + 1) += w * g.div(2 * k + 1);
       }
@@ -338,7 +369,8 @@ void FemModel::Impl::resumEntries(FemModel& model, const std::vector<int>& dofs)
   auto& C_ = model.C_;
   auto& m_lumped_ = model.m_lumped_;
   std::vector<char>& mark = im.dof_mark;
-  for (int d : dofs) mark[d] = 1;
+  for (int d : dofs)
+    mark[d] = 1;
   double* k = K_.valuePtr();
   double* m = M_.valuePtr();
   double* c = C_.valuePtr();
@@ -346,18 +378,21 @@ void FemModel::Impl::resumEntries(FemModel& model, const std::vector<int>& dofs)
   const int* outer = K_.outerIndexPtr();
   for (int col : dofs) {
     for (int idx = outer[col]; idx < outer[col + 1]; ++idx) {
-      if (mark[inner[idx]]) k[idx] = m[idx] = c[idx] = 0.0;
+      if (mark[inner[idx]])
+        k[idx] = m[idx] = c[idx] = 0.0;
     }
   }
   // Blocks touching an affected DOF: triangles of the affected nodes and, for the averaged
   // formulation, the nodal blocks of the affected nodes' patches (patch membership is symmetric).
   std::vector<int> nodes;
   nodes.reserve(dofs.size());
-  for (int d : dofs) nodes.push_back(d / 2);
+  for (int d : dofs)
+    nodes.push_back(d / 2);
   std::sort(nodes.begin(), nodes.end());
   nodes.erase(std::unique(nodes.begin(), nodes.end()), nodes.end());
   std::vector<int> tris;
-  for (int a : nodes) tris.insert(tris.end(), node_triangles_[a].begin(), node_triangles_[a].end());
+  for (int a : nodes)
+    tris.insert(tris.end(), node_triangles_[a].begin(), node_triangles_[a].end());
   std::sort(tris.begin(), tris.end());
   tris.erase(std::unique(tris.begin(), tris.end()), tris.end());
   const bool full = static_cast<int>(dofs.size()) == model.dofCount();
@@ -368,9 +403,11 @@ void FemModel::Impl::resumEntries(FemModel& model, const std::vector<int>& dofs)
     const Matrix6& me = im.element_m[t];
     const auto& entry = im.element_entry[t];
     for (int cc = 0; cc < 6; ++cc) {
-      if (!full && !mark[2 * tri[cc / 2] + cc % 2]) continue;
+      if (!full && !mark[2 * tri[cc / 2] + cc % 2])
+        continue;
       for (int r = 0; r < 6; ++r) {
-        if (!full && !mark[2 * tri[r / 2] + r % 2]) continue;
+        if (!full && !mark[2 * tri[r / 2] + r % 2])
+          continue;
         const int idx = entry[6 * cc + r];
         k[idx] += ke(r, cc);
         m[idx] += me(r, cc);
@@ -380,7 +417,8 @@ void FemModel::Impl::resumEntries(FemModel& model, const std::vector<int>& dofs)
   }
   if (options_.formulation == ElementFormulation::kAveragedVolumetric) {
     std::vector<int> blocks;
-    for (int a : nodes) blocks.insert(blocks.end(), im.patch_nodes[a].begin(), im.patch_nodes[a].end());
+    for (int a : nodes)
+      blocks.insert(blocks.end(), im.patch_nodes[a].begin(), im.patch_nodes[a].end());
     std::sort(blocks.begin(), blocks.end());
     blocks.erase(std::unique(blocks.begin(), blocks.end()), blocks.end());
     for (int a : blocks) {
@@ -390,9 +428,11 @@ void FemModel::Impl::resumEntries(FemModel& model, const std::vector<int>& dofs)
       const double coef = im.nodal_coef[a];
       const double beta = im.nodal_beta[a];
       for (int cc = 0; cc < nd; ++cc) {
-        if (!full && !mark[2 * patch[cc / 2] + cc % 2]) continue;
+        if (!full && !mark[2 * patch[cc / 2] + cc % 2])
+          continue;
         for (int r = 0; r < nd; ++r) {
-          if (!full && !mark[2 * patch[r / 2] + r % 2]) continue;
+          if (!full && !mark[2 * patch[r / 2] + r % 2])
+            continue;
           const int idx = im.nodal_entry[a][static_cast<std::size_t>(cc) * nd + r];
           const double kv = coef * g(r) * g(cc);
           k[idx] += kv;
@@ -404,32 +444,38 @@ void FemModel::Impl::resumEntries(FemModel& model, const std::vector<int>& dofs)
   // Lumped mass: rho A t / 3 to each node of each triangle (row sums of the consistent mass).
   for (int a : nodes) {
     double mass = 0.0;
-    for (int t : node_triangles_[a]) mass += materials_[t].density_kg_m3 * mesh_.triangleArea(t) * options_.thickness_m / 3.0;
+    for (int t : node_triangles_[a])
+      mass += materials_[t].density_kg_m3 * mesh_.triangleArea(t) * options_.thickness_m / 3.0;
     m_lumped_(2 * a) = mass;
     m_lumped_(2 * a + 1) = mass;
   }
-  for (int d : dofs) mark[d] = 0;
+  for (int d : dofs)
+    mark[d] = 0;
 }
 
 bool FemModel::canMoveNode(int node, const Point2& p_new, double min_area_m2) const {
-  if (node < 0 || node >= nodeCount() || !p_new.allFinite()) return false;
+  if (node < 0 || node >= nodeCount() || !p_new.allFinite())
+    return false;
   for (int t : node_triangles_[node]) {
     std::array<Point2, 3> p;
     for (int k = 0; k < 3; ++k) {
       const int n = mesh_.triangles[t][k];
       p[k] = n == node ? p_new : mesh_.nodes[n];
     }
-    if (!(signedArea(p[0], p[1], p[2]) > min_area_m2)) return false;
+    if (!(signedArea(p[0], p[1], p[2]) > min_area_m2))
+      return false;
   }
   return true;
 }
 
 std::vector<int> FemModel::moveNode(int node, const Point2& p_new) {
   if (node < 0 || node >= nodeCount()) {
-    throw std::invalid_argument("FemModel::moveNode: node " + std::to_string(node) + " out of range");
+    throw std::invalid_argument("FemModel::moveNode: node " + std::to_string(node) +
+                                " out of range");
   }
   if (!p_new.allFinite()) {
-    throw std::invalid_argument("FemModel::moveNode: node " + std::to_string(node) + ": non-finite position");
+    throw std::invalid_argument("FemModel::moveNode: node " + std::to_string(node) +
+                                ": non-finite position");
   }
   for (int t : node_triangles_[node]) {
     std::array<Point2, 3> p;
@@ -439,15 +485,17 @@ std::vector<int> FemModel::moveNode(int node, const Point2& p_new) {
     }
     const double area = signedArea(p[0], p[1], p[2]);
     if (!(area > 0.0)) {
-      throw std::invalid_argument("FemModel::moveNode: moving node " + std::to_string(node) + " to (" +
-                                  fmt(p_new.x()) + ", " + fmt(p_new.y()) + ") would give element " +
-                                  std::to_string(t) + " signed area " + fmt(area) + " m^2 <= 0");
+      throw std::invalid_argument("FemModel::moveNode: moving node " + std::to_string(node) +
+                                  " to (" + fmt(p_new.x()) + ", " + fmt(p_new.y()) +
+                                  ") would give element " + std::to_string(t) + " signed area " +
+                                  fmt(area) + " m^2 <= 0");
     }
   }
   mesh_.nodes[node] = p_new;
   const std::vector<int>& tris = node_triangles_[node];
   std::vector<int> nodes;  // nodes of the changed triangles = the node's patch
-  for (int t : tris) nodes.insert(nodes.end(), mesh_.triangles[t].begin(), mesh_.triangles[t].end());
+  for (int t : tris)
+    nodes.insert(nodes.end(), mesh_.triangles[t].begin(), mesh_.triangles[t].end());
   std::sort(nodes.begin(), nodes.end());
   nodes.erase(std::unique(nodes.begin(), nodes.end()), nodes.end());
   Impl::recomputeBlocks(*this, tris, nodes);
@@ -455,9 +503,11 @@ std::vector<int> FemModel::moveNode(int node, const Point2& p_new) {
   std::vector<int> affected_nodes = nodes;
   if (options_.formulation == ElementFormulation::kAveragedVolumetric) {
     for (int a : nodes)
-      affected_nodes.insert(affected_nodes.end(), impl_->patch_nodes[a].begin(), impl_->patch_nodes[a].end());
+      affected_nodes.insert(affected_nodes.end(), impl_->patch_nodes[a].begin(),
+                            impl_->patch_nodes[a].end());
     std::sort(affected_nodes.begin(), affected_nodes.end());
-    affected_nodes.erase(std::unique(affected_nodes.begin(), affected_nodes.end()), affected_nodes.end());
+    affected_nodes.erase(std::unique(affected_nodes.begin(), affected_nodes.end()),
+                         affected_nodes.end());
   }
   std::vector<int> dofs;
   dofs.reserve(2 * affected_nodes.size());
@@ -471,8 +521,9 @@ std::vector<int> FemModel::moveNode(int node, const Point2& p_new) {
 
 Eigen::VectorXd FemModel::elementStrainEnergy(const Eigen::VectorXd& u) const {
   if (u.size() != dofCount()) {
-    throw std::invalid_argument("FemModel::elementStrainEnergy: u has size " + std::to_string(u.size()) +
-                                ", expected " + std::to_string(dofCount()));
+    throw std::invalid_argument("FemModel::elementStrainEnergy: u has size " +
+                                std::to_string(u.size()) + ", expected " +
+                                std::to_string(dofCount()));
   }
   const Impl& im = *impl_;
   const std::size_t n_tri = mesh_.triangles.size();
@@ -494,9 +545,11 @@ Eigen::VectorXd FemModel::elementStrainEnergy(const Eigen::VectorXd& u) const {
       const auto& patch = im.patch_nodes[a];
       double theta = 0.0;
       for (std::size_t p = 0; p < patch.size(); ++p) {
-        theta += im.nodal_g[a](2 * p) * u(2 * patch[p]) + im.nodal_g[a](2 * p + 1) * u(2 * patch[p] + 1);
+        theta +=
+            im.nodal_g[a](2 * p) * u(2 * patch[p]) + im.nodal_g[a](2 * p + 1) * u(2 * patch[p] + 1);
       }
-      for (int t : node_triangles_[a]) energy(t) += mesh_.triangleArea(t) / 3.0 * 0.5 * im.nodal_kappa[a] * theta * theta;
+      for (int t : node_triangles_[a])
+        energy(t) += mesh_.triangleArea(t) / 3.0 * 0.5 * im.nodal_kappa[a] * theta * theta;
     }
   }
   return energy;
@@ -504,14 +557,16 @@ Eigen::VectorXd FemModel::elementStrainEnergy(const Eigen::VectorXd& u) const {
 
 Eigen::VectorXd FemModel::elementVonMises(const Eigen::VectorXd& u) const {
   if (u.size() != dofCount()) {
-    throw std::invalid_argument("FemModel::elementVonMises: u has size " + std::to_string(u.size()) +
-                                ", expected " + std::to_string(dofCount()));
+    throw std::invalid_argument("FemModel::elementVonMises: u has size " +
+                                std::to_string(u.size()) + ", expected " +
+                                std::to_string(dofCount()));
   }
   const std::size_t n_tri = mesh_.triangles.size();
   Eigen::VectorXd vm(n_tri);
   for (std::size_t t = 0; t < n_tri; ++t) {
     const auto& tri = mesh_.triangles[t];
-    const CstGeometry g = cstGeometry(mesh_.nodes[tri[0]], mesh_.nodes[tri[1]], mesh_.nodes[tri[2]]);
+    const CstGeometry g =
+        cstGeometry(mesh_.nodes[tri[0]], mesh_.nodes[tri[1]], mesh_.nodes[tri[2]]);
     Vector6 ue;
     for (int k = 0; k < 3; ++k) {
       ue(2 * k) = u(2 * tri[k]);
@@ -546,7 +601,8 @@ Eigen::Matrix2d polarRotation(const Eigen::Matrix2d& f) {
 }
 
 /// Displacement gradient of a triangle: grad u = sum_k u_k [dN_k/dx, dN_k/dy].
-Eigen::Matrix2d displacementGradient(const CstGeometry& g, const std::array<int, 3>& tri, const Eigen::VectorXd& u) {
+Eigen::Matrix2d displacementGradient(const CstGeometry& g, const std::array<int, 3>& tri,
+                                     const Eigen::VectorXd& u) {
   Eigen::Matrix2d grad = Eigen::Matrix2d::Zero();
   for (int k = 0; k < 3; ++k) {
     const Eigen::Vector2d uk(u(2 * tri[k]), u(2 * tri[k] + 1));
@@ -558,12 +614,13 @@ Eigen::Matrix2d displacementGradient(const CstGeometry& g, const std::array<int,
 
 }  // namespace
 
-
 template <typename Visit>
-void FemModel::Impl::visitCorotational(const FemModel& model, const Eigen::VectorXd& u, Visit&& visit) {
+void FemModel::Impl::visitCorotational(const FemModel& model, const Eigen::VectorXd& u,
+                                       Visit&& visit) {
   if (u.size() != model.dofCount()) {
-    throw std::invalid_argument("FemModel: corotational displacement has size " + std::to_string(u.size()) +
-                                ", expected " + std::to_string(model.dofCount()));
+    throw std::invalid_argument("FemModel: corotational displacement has size " +
+                                std::to_string(u.size()) + ", expected " +
+                                std::to_string(model.dofCount()));
   }
   const Impl& im = *model.impl_;
   const auto& mesh = model.mesh_;
@@ -591,14 +648,17 @@ void FemModel::Impl::visitCorotational(const FemModel& model, const Eigen::Vecto
     const Matrix6 k_rot = rb * ke * rb.transpose();
     const Vector6 f_int = rb * (ke * d);
     const ElementMaterial& mat = model.materials_[t];
-    visit(dofs, im.element_entry[t].data(), Eigen::MatrixXd(k_rot), &im.element_m[t], mat.rayleigh_alpha_per_s,
-          mat.rayleigh_beta_s, Eigen::VectorXd(f_int), 0.5 * d.dot(ke * d));
+    visit(dofs, im.element_entry[t].data(), Eigen::MatrixXd(k_rot), &im.element_m[t],
+          mat.rayleigh_alpha_per_s, mat.rayleigh_beta_s, Eigen::VectorXd(f_int),
+          0.5 * d.dot(ke * d));
   }
-  if (model.options_.formulation != ElementFormulation::kAveragedVolumetric) return;
+  if (model.options_.formulation != ElementFormulation::kAveragedVolumetric)
+    return;
   for (int a = 0; a < model.nodeCount(); ++a) {
     // Patch rotation: polar rotation of the area-weighted mean deformation gradient.
     Eigen::Matrix2d f_mean = Eigen::Matrix2d::Zero();
-    for (int t : model.node_triangles_[a]) f_mean += mesh.triangleArea(t) * element_f[t];
+    for (int t : model.node_triangles_[a])
+      f_mean += mesh.triangleArea(t) * element_f[t];
     const Eigen::Matrix2d r = polarRotation(f_mean);
     const auto& patch = im.patch_nodes[a];
     const int nd = 2 * static_cast<int>(patch.size());
@@ -629,36 +689,42 @@ void FemModel::assembleCorotational(const Eigen::VectorXd& u, SparseMatrix& K_R,
   Eigen::VectorXd f_int = Eigen::VectorXd::Zero(dofCount());
   double* k = K_R.valuePtr();
   double* c = C_R.valuePtr();
-  Impl::visitCorotational(*this, u, [&](const std::vector<int>& dofs, const int* entries, const Eigen::MatrixXd& k_rot,
-                                        const Matrix6* me, double alpha, double beta, const Eigen::VectorXd& f_block,
-                                        double /*energy*/) {
-    const int nd = static_cast<int>(dofs.size());
-    for (int cc = 0; cc < nd; ++cc) {
-      f_int(dofs[cc]) += f_block(cc);
-      for (int r = 0; r < nd; ++r) {
-        const int idx = entries[static_cast<std::size_t>(cc) * nd + r];
-        k[idx] += k_rot(r, cc);
-        c[idx] += beta * k_rot(r, cc) + (me ? alpha * (*me)(r, cc) : 0.0);
-      }
-    }
-  });
+  Impl::visitCorotational(*this, u,
+                          [&](const std::vector<int>& dofs, const int* entries,
+                              const Eigen::MatrixXd& k_rot, const Matrix6* me, double alpha,
+                              double beta, const Eigen::VectorXd& f_block, double /*energy*/) {
+                            const int nd = static_cast<int>(dofs.size());
+                            for (int cc = 0; cc < nd; ++cc) {
+                              f_int(dofs[cc]) += f_block(cc);
+                              for (int r = 0; r < nd; ++r) {
+                                const int idx = entries[static_cast<std::size_t>(cc) * nd + r];
+                                k[idx] += k_rot(r, cc);
+                                c[idx] += beta * k_rot(r, cc) + (me ? alpha * (*me)(r, cc) : 0.0);
+                              }
+                            }
+                          });
   // f_int = K_R u - f0.
   f0 = K_R * u - f_int;
 }
 
 Eigen::VectorXd FemModel::corotationalForce(const Eigen::VectorXd& u) const {
   Eigen::VectorXd f_int = Eigen::VectorXd::Zero(dofCount());
-  Impl::visitCorotational(*this, u, [&](const std::vector<int>& dofs, const int*, const Eigen::MatrixXd&,
-                                        const Matrix6*, double, double, const Eigen::VectorXd& f_block, double) {
-    for (std::size_t i = 0; i < dofs.size(); ++i) f_int(dofs[i]) += f_block(static_cast<Eigen::Index>(i));
-  });
+  Impl::visitCorotational(
+      *this, u,
+      [&](const std::vector<int>& dofs, const int*, const Eigen::MatrixXd&, const Matrix6*, double,
+          double, const Eigen::VectorXd& f_block, double) {
+        for (std::size_t i = 0; i < dofs.size(); ++i)
+          f_int(dofs[i]) += f_block(static_cast<Eigen::Index>(i));
+      });
   return f_int;
 }
 
 double FemModel::corotationalStrainEnergy(const Eigen::VectorXd& u) const {
   double energy = 0.0;
-  Impl::visitCorotational(*this, u, [&](const std::vector<int>&, const int*, const Eigen::MatrixXd&, const Matrix6*,
-                                        double, double, const Eigen::VectorXd&, double e) { energy += e; });
+  Impl::visitCorotational(
+      *this, u,
+      [&](const std::vector<int>&, const int*, const Eigen::MatrixXd&, const Matrix6*, double,
+          double, const Eigen::VectorXd&, double e) { energy += e; });
   return energy;
 }
 

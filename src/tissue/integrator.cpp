@@ -28,8 +28,8 @@ Integrator::Integrator(const FemModel& model, std::vector<int> fixed_dofs)
   const int n = model_.dofCount();
   for (int d : fixed_dofs_) {
     if (d < 0 || d >= n) {
-      throw std::invalid_argument("makeIntegrator: fixed DOF " + std::to_string(d) + " out of range [0, " +
-                                  std::to_string(n) + ")");
+      throw std::invalid_argument("makeIntegrator: fixed DOF " + std::to_string(d) +
+                                  " out of range [0, " + std::to_string(n) + ")");
     }
   }
   std::sort(fixed_dofs_.begin(), fixed_dofs_.end());
@@ -39,11 +39,17 @@ Integrator::Integrator(const FemModel& model, std::vector<int> fixed_dofs)
   a_ = Eigen::VectorXd::Zero(n);
 }
 
-double Integrator::strainEnergy() const { return 0.5 * u_.dot(model_.stiffness() * u_); }
+double Integrator::strainEnergy() const {
+  return 0.5 * u_.dot(model_.stiffness() * u_);
+}
 
-double Integrator::kineticEnergy() const { return 0.5 * v_.dot(model_.mass() * v_); }
+double Integrator::kineticEnergy() const {
+  return 0.5 * v_.dot(model_.mass() * v_);
+}
 
-double Integrator::energy() const { return kineticEnergy() + strainEnergy(); }
+double Integrator::energy() const {
+  return kineticEnergy() + strainEnergy();
+}
 
 void Integrator::reset() {
   u_.setZero();
@@ -51,12 +57,13 @@ void Integrator::reset() {
   a_.setZero();
 }
 
-void Integrator::setState(const Eigen::VectorXd& u, const Eigen::VectorXd& v, const Eigen::VectorXd& a) {
+void Integrator::setState(const Eigen::VectorXd& u, const Eigen::VectorXd& v,
+                          const Eigen::VectorXd& a) {
   const Eigen::Index n = model_.dofCount();
   if (u.size() != n || v.size() != n || a.size() != n) {
     throw std::invalid_argument("Integrator::setState: sizes " + std::to_string(u.size()) + ", " +
-                                std::to_string(v.size()) + ", " + std::to_string(a.size()) + " differ from the " +
-                                std::to_string(n) + " DOFs of the model");
+                                std::to_string(v.size()) + ", " + std::to_string(a.size()) +
+                                " differ from the " + std::to_string(n) + " DOFs of the model");
   }
   u_ = u;
   v_ = v;
@@ -65,30 +72,34 @@ void Integrator::setState(const Eigen::VectorXd& u, const Eigen::VectorXd& v, co
 
 namespace detail {
 
-StepStatus checkStepInput(const FemModel& model, const std::vector<char>& fixed_mark, double dt_s, bool dynamic,
-                          const Eigen::VectorXd& f_ext, const Prescribed& prescribed) {
+StepStatus checkStepInput(const FemModel& model, const std::vector<char>& fixed_mark, double dt_s,
+                          bool dynamic, const Eigen::VectorXd& f_ext,
+                          const Prescribed& prescribed) {
   const int n = model.dofCount();
   if (f_ext.size() != n) {
-    throw std::invalid_argument("Integrator::step: f_ext has size " + std::to_string(f_ext.size()) + ", expected " +
-                                std::to_string(n));
+    throw std::invalid_argument("Integrator::step: f_ext has size " + std::to_string(f_ext.size()) +
+                                ", expected " + std::to_string(n));
   }
   if (prescribed.dofs.size() != prescribed.values.size()) {
-    throw std::invalid_argument("Integrator::step: " + std::to_string(prescribed.dofs.size()) + " prescribed DOFs but " +
-                                std::to_string(prescribed.values.size()) + " values");
+    throw std::invalid_argument("Integrator::step: " + std::to_string(prescribed.dofs.size()) +
+                                " prescribed DOFs but " + std::to_string(prescribed.values.size()) +
+                                " values");
   }
   std::vector<int> sorted = prescribed.dofs;
   std::sort(sorted.begin(), sorted.end());
   for (std::size_t i = 0; i < sorted.size(); ++i) {
     const int d = sorted[i];
     if (d < 0 || d >= n) {
-      throw std::invalid_argument("Integrator::step: prescribed DOF " + std::to_string(d) + " out of range [0, " +
-                                  std::to_string(n) + ")");
+      throw std::invalid_argument("Integrator::step: prescribed DOF " + std::to_string(d) +
+                                  " out of range [0, " + std::to_string(n) + ")");
     }
     if (i > 0 && sorted[i - 1] == d) {
-      throw std::invalid_argument("Integrator::step: prescribed DOF " + std::to_string(d) + " given twice");
+      throw std::invalid_argument("Integrator::step: prescribed DOF " + std::to_string(d) +
+                                  " given twice");
     }
     if (fixed_mark[d]) {
-      throw std::invalid_argument("Integrator::step: prescribed DOF " + std::to_string(d) + " is a fixed DOF");
+      throw std::invalid_argument("Integrator::step: prescribed DOF " + std::to_string(d) +
+                                  " is a fixed DOF");
     }
   }
   StepStatus status;
@@ -106,8 +117,8 @@ StepStatus checkStepInput(const FemModel& model, const std::vector<char>& fixed_
   for (std::size_t i = 0; i < prescribed.values.size(); ++i) {
     if (!std::isfinite(prescribed.values[i])) {
       status.ok = false;
-      status.message = "Integrator::step: prescribed value of DOF " + std::to_string(prescribed.dofs[i]) +
-                       " is not finite; state unchanged";
+      status.message = "Integrator::step: prescribed value of DOF " +
+                       std::to_string(prescribed.dofs[i]) + " is not finite; state unchanged";
       return status;
     }
   }
@@ -116,11 +127,12 @@ StepStatus checkStepInput(const FemModel& model, const std::vector<char>& fixed_
 
 }  // namespace detail
 
-std::unique_ptr<Integrator> makeIntegrator(IntegratorKind kind, const FemModel& model, std::vector<int> fixed_dofs,
+std::unique_ptr<Integrator> makeIntegrator(IntegratorKind kind, const FemModel& model,
+                                           std::vector<int> fixed_dofs,
                                            const IntegratorOptions& options) {
   if (!(options.explicit_safety > 0.0) || !(options.explicit_safety <= 1.0)) {
-    throw std::invalid_argument("makeIntegrator: explicit_safety " + std::to_string(options.explicit_safety) +
-                                " must be in (0, 1]");
+    throw std::invalid_argument("makeIntegrator: explicit_safety " +
+                                std::to_string(options.explicit_safety) + " must be in (0, 1]");
   }
   switch (kind) {
     case IntegratorKind::kQuasiStatic:

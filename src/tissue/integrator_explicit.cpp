@@ -17,28 +17,32 @@ namespace {
 
 class ExplicitIntegrator : public Integrator {
 public:
-  ExplicitIntegrator(const FemModel& model, std::vector<int> fixed_dofs, const IntegratorOptions& options)
-      : Integrator(model, std::move(fixed_dofs)), options_(options),
+  ExplicitIntegrator(const FemModel& model, std::vector<int> fixed_dofs,
+                     const IntegratorOptions& options)
+      : Integrator(model, std::move(fixed_dofs)),
+        options_(options),
         fixed_mark_(fixedMark(model.dofCount(), fixed_dofs_)) {}
 
   IntegratorKind kind() const override { return IntegratorKind::kExplicit; }
 
   double stableTimeStep() const override {
-    if (!(stable_dt_s_ > 0.0)) stable_dt_s_ = computeStableTimeStep();
+    if (!(stable_dt_s_ > 0.0))
+      stable_dt_s_ = computeStableTimeStep();
     return stable_dt_s_;
   }
 
   StepStatus step(double dt_s, const Eigen::VectorXd& f_ext, const Prescribed& prescribed,
                   Eigen::VectorXd& reactions) override {
     StepStatus status = checkStepInput(model_, fixed_mark_, dt_s, true, f_ext, prescribed);
-    if (!status) return status;
+    if (!status)
+      return status;
     const double limit_s = options_.explicit_safety * stableTimeStep();
     if (dt_s > limit_s) {
       std::ostringstream msg;
       msg.precision(6);
-      msg << "ExplicitIntegrator: time step dt = " << dt_s << " s exceeds the stability limit " << limit_s
-          << " s (explicit_safety " << options_.explicit_safety << " x stableTimeStep " << stableTimeStep()
-          << " s); step refused, state unchanged";
+      msg << "ExplicitIntegrator: time step dt = " << dt_s << " s exceeds the stability limit "
+          << limit_s << " s (explicit_safety " << options_.explicit_safety << " x stableTimeStep "
+          << stableTimeStep() << " s); step refused, state unchanged";
       status.ok = false;
       status.message = msg.str();
       return status;
@@ -46,18 +50,22 @@ public:
     const double h = dt_s;
     const int n = model_.dofCount();
     Eigen::VectorXd u_new = u_ + h * v_ + 0.5 * h * h * a_;
-    for (int d : fixed_dofs_) u_new(d) = 0.0;
-    for (std::size_t i = 0; i < prescribed.dofs.size(); ++i) u_new(prescribed.dofs[i]) = prescribed.values[i];
+    for (int d : fixed_dofs_)
+      u_new(d) = 0.0;
+    for (std::size_t i = 0; i < prescribed.dofs.size(); ++i)
+      u_new(prescribed.dofs[i]) = prescribed.values[i];
     const Eigen::VectorXd v_pred = v_ + 0.5 * h * a_;
-    const Eigen::VectorXd f_int =
-        options_.corotational ? model_.corotationalForce(u_new) : Eigen::VectorXd(model_.stiffness() * u_new);
+    const Eigen::VectorXd f_int = options_.corotational
+                                      ? model_.corotationalForce(u_new)
+                                      : Eigen::VectorXd(model_.stiffness() * u_new);
     const Eigen::VectorXd f_damp = model_.damping() * v_pred;
     const Eigen::VectorXd& m_l = model_.lumpedMass();
     const Eigen::VectorXd c_l = model_.damping() * Eigen::VectorXd::Ones(n);
     Eigen::VectorXd lhs = m_l + 0.5 * h * c_l;
     Eigen::VectorXd a_new = (f_ext - f_int - f_damp).cwiseQuotient(lhs);
     Eigen::VectorXd v_new = v_pred + 0.5 * h * a_new;
-    for (int d : fixed_dofs_) a_new(d) = v_new(d) = 0.0;
+    for (int d : fixed_dofs_)
+      a_new(d) = v_new(d) = 0.0;
     // Prescribed DOFs follow the prescribed path: backward-difference velocity and acceleration.
     Eigen::VectorXd r(static_cast<Eigen::Index>(prescribed.dofs.size()));
     for (std::size_t i = 0; i < prescribed.dofs.size(); ++i) {
@@ -84,7 +92,9 @@ protected:
   double strainEnergy() const override {
     return options_.corotational ? model_.corotationalStrainEnergy(u_) : Integrator::strainEnergy();
   }
-  double kineticEnergy() const override { return 0.5 * v_.dot(model_.lumpedMass().cwiseProduct(v_)); }
+  double kineticEnergy() const override {
+    return 0.5 * v_.dot(model_.lumpedMass().cwiseProduct(v_));
+  }
 
 private:
   /// Critical step of central differences with stiffness-proportional damping,
@@ -98,16 +108,20 @@ private:
     const Eigen::VectorXd& m = model_.lumpedMass();
     double lambda_max = 0.0;
     for (int col = 0; col < k.outerSize(); ++col) {
-      if (fixed_mark_[col]) continue;
+      if (fixed_mark_[col])
+        continue;
       double row_sum = 0.0;
       for (SparseMatrix::InnerIterator it(k, col); it; ++it) {
-        if (!fixed_mark_[it.row()]) row_sum += std::abs(it.value()) / std::sqrt(m(it.row()) * m(col));
+        if (!fixed_mark_[it.row()])
+          row_sum += std::abs(it.value()) / std::sqrt(m(it.row()) * m(col));
       }
       lambda_max = std::max(lambda_max, row_sum);
     }
-    if (!(lambda_max > 0.0)) return std::numeric_limits<double>::infinity();
+    if (!(lambda_max > 0.0))
+      return std::numeric_limits<double>::infinity();
     double beta_max_s = 0.0;
-    for (const ElementMaterial& mat : model_.materials()) beta_max_s = std::max(beta_max_s, mat.rayleigh_beta_s);
+    for (const ElementMaterial& mat : model_.materials())
+      beta_max_s = std::max(beta_max_s, mat.rayleigh_beta_s);
     const double omega = std::sqrt(lambda_max);
     const double xi = 0.5 * beta_max_s * omega;
     return 2.0 / omega * (std::sqrt(1.0 + xi * xi) - xi);

@@ -12,8 +12,8 @@ namespace needle_guidance::tissue::detail {
 /// Validates a step's inputs. Throws std::invalid_argument for broken preconditions (sizes,
 /// DOF out of range, duplicated or fixed prescribed DOF); returns a failed status for a
 /// non-finite input or a bad time step.
-StepStatus checkStepInput(const FemModel& model, const std::vector<char>& fixed_mark, double dt_s, bool dynamic,
-                          const Eigen::VectorXd& f_ext, const Prescribed& prescribed);
+StepStatus checkStepInput(const FemModel& model, const std::vector<char>& fixed_mark, double dt_s,
+                          bool dynamic, const Eigen::VectorXd& f_ext, const Prescribed& prescribed);
 
 std::unique_ptr<Integrator> makeQuasiStatic(const FemModel& model, std::vector<int> fixed_dofs,
                                             const IntegratorOptions& options);
@@ -25,7 +25,8 @@ std::unique_ptr<Integrator> makeExplicit(const FemModel& model, std::vector<int>
 /// Marker per DOF (1 = fixed).
 inline std::vector<char> fixedMark(int dof_count, const std::vector<int>& fixed_dofs) {
   std::vector<char> mark(dof_count, 0);
-  for (int d : fixed_dofs) mark[d] = 1;
+  for (int d : fixed_dofs)
+    mark[d] = 1;
   return mark;
 }
 

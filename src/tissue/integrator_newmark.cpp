@@ -15,9 +15,12 @@ namespace {
 
 class NewmarkIntegrator : public Integrator {
 public:
-  NewmarkIntegrator(const FemModel& model, std::vector<int> fixed_dofs, const IntegratorOptions& options)
-      : Integrator(model, std::move(fixed_dofs)), options_(options),
-        fixed_mark_(fixedMark(model.dofCount(), fixed_dofs_)), A_(model.stiffness()) {
+  NewmarkIntegrator(const FemModel& model, std::vector<int> fixed_dofs,
+                    const IntegratorOptions& options)
+      : Integrator(model, std::move(fixed_dofs)),
+        options_(options),
+        fixed_mark_(fixedMark(model.dofCount(), fixed_dofs_)),
+        A_(model.stiffness()) {
     solver_ = std::make_unique<ConstrainedSolver>(A_, fixed_dofs_, !options_.corotational);
   }
 
@@ -26,7 +29,8 @@ public:
   StepStatus step(double dt_s, const Eigen::VectorXd& f_ext, const Prescribed& prescribed,
                   Eigen::VectorXd& reactions) override {
     StepStatus status = checkStepInput(model_, fixed_mark_, dt_s, true, f_ext, prescribed);
-    if (!status) return status;
+    if (!status)
+      return status;
     const double h = dt_s;
     Eigen::VectorXd rhs;
     if (options_.corotational) {
@@ -41,7 +45,8 @@ public:
         assembleA(model_.stiffness(), model_.damping(), h);
         solver_->matrixReplaced();
       }
-      rhs = f_ext - model_.damping() * (v_ + 0.5 * h * a_) - model_.stiffness() * (u_ + h * v_ + 0.25 * h * h * a_);
+      rhs = f_ext - model_.damping() * (v_ + 0.5 * h * a_) -
+            model_.stiffness() * (u_ + h * v_ + 0.25 * h * h * a_);
     }
     std::vector<double> a_prescribed(prescribed.dofs.size());
     for (std::size_t i = 0; i < prescribed.dofs.size(); ++i) {
@@ -56,7 +61,8 @@ public:
     }
     Eigen::VectorXd v_new = v_ + 0.5 * h * (a_ + a_new);
     Eigen::VectorXd u_new = u_ + h * v_ + 0.25 * h * h * (a_ + a_new);
-    for (std::size_t i = 0; i < prescribed.dofs.size(); ++i) u_new(prescribed.dofs[i]) = prescribed.values[i];
+    for (std::size_t i = 0; i < prescribed.dofs.size(); ++i)
+      u_new(prescribed.dofs[i]) = prescribed.values[i];
     if (!u_new.allFinite() || !v_new.allFinite()) {
       status.ok = false;
       status.message = "NewmarkIntegrator: the step produced a non-finite value; state unchanged";
@@ -75,7 +81,8 @@ public:
   }
 
   void modelChanged(const std::vector<int>& dofs) override {
-    if (options_.corotational || !std::isfinite(factored_h_s_)) return;  // rebuilt at the next step
+    if (options_.corotational || !std::isfinite(factored_h_s_))
+      return;  // rebuilt at the next step
     // Recompute A = M + h/2 C + h^2/4 K in the changed columns (shared pattern), then tell the
     // solver (low-rank update of its factorisation).
     const double h = factored_h_s_;
@@ -85,7 +92,8 @@ public:
     double* a = A_.valuePtr();
     const int* outer = A_.outerIndexPtr();
     for (int col : dofs) {
-      for (int idx = outer[col]; idx < outer[col + 1]; ++idx) a[idx] = m[idx] + 0.5 * h * c[idx] + 0.25 * h * h * k[idx];
+      for (int idx = outer[col]; idx < outer[col + 1]; ++idx)
+        a[idx] = m[idx] + 0.5 * h * c[idx] + 0.25 * h * h * k[idx];
     }
     solver_->matrixChanged(dofs);
   }
@@ -96,7 +104,8 @@ private:
     const double* m = model_.mass().valuePtr();
     const double* c = c_mat.valuePtr();
     double* a = A_.valuePtr();
-    for (Eigen::Index idx = 0; idx < A_.nonZeros(); ++idx) a[idx] = m[idx] + 0.5 * h * c[idx] + 0.25 * h * h * k[idx];
+    for (Eigen::Index idx = 0; idx < A_.nonZeros(); ++idx)
+      a[idx] = m[idx] + 0.5 * h * c[idx] + 0.25 * h * h * k[idx];
     factored_h_s_ = h;
   }
 
@@ -108,7 +117,7 @@ protected:
 private:
   IntegratorOptions options_;
   std::vector<char> fixed_mark_;
-  SparseMatrix A_;         ///< M + h/2 C + h^2/4 K on the model's pattern
+  SparseMatrix A_;          ///< M + h/2 C + h^2/4 K on the model's pattern
   SparseMatrix K_R_, C_R_;  ///< corotational K and C
   double factored_h_s_ = std::numeric_limits<double>::quiet_NaN();
   std::unique_ptr<ConstrainedSolver> solver_;

@@ -10,8 +10,10 @@ namespace {
 
 class QuasiStaticIntegrator : public Integrator {
 public:
-  QuasiStaticIntegrator(const FemModel& model, std::vector<int> fixed_dofs, const IntegratorOptions& options)
-      : Integrator(model, std::move(fixed_dofs)), options_(options),
+  QuasiStaticIntegrator(const FemModel& model, std::vector<int> fixed_dofs,
+                        const IntegratorOptions& options)
+      : Integrator(model, std::move(fixed_dofs)),
+        options_(options),
         fixed_mark_(fixedMark(model.dofCount(), fixed_dofs_)) {
     if (options_.corotational) {
       K_R_ = model.stiffness();
@@ -28,7 +30,8 @@ public:
   StepStatus step(double dt_s, const Eigen::VectorXd& f_ext, const Prescribed& prescribed,
                   Eigen::VectorXd& reactions) override {
     StepStatus status = checkStepInput(model_, fixed_mark_, dt_s, false, f_ext, prescribed);
-    if (!status) return status;
+    if (!status)
+      return status;
     Eigen::VectorXd u_new, r;
     if (!options_.corotational) {
       if (!solver_->solve(f_ext, prescribed.dofs, prescribed.values, u_new, r, status.message)) {
@@ -44,7 +47,8 @@ public:
       for (int it = 0; it < kCorotationalMaxIterations && !converged; ++it) {
         model_.assembleCorotational(u_new, K_R_, C_R_, f0);
         solver_->matrixReplaced();
-        if (!solver_->solve(f_ext + f0, prescribed.dofs, prescribed.values, u_next, r, status.message)) {
+        if (!solver_->solve(f_ext + f0, prescribed.dofs, prescribed.values, u_next, r,
+                            status.message)) {
           status.ok = false;
           return status;
         }
@@ -61,13 +65,15 @@ public:
       if (!converged) {
         status.ok = false;
         status.message = "QuasiStaticIntegrator: corotational iterations did not converge in " +
-                         std::to_string(kCorotationalMaxIterations) + " iterations; state unchanged";
+                         std::to_string(kCorotationalMaxIterations) +
+                         " iterations; state unchanged";
         return status;
       }
     }
     if (!u_new.allFinite() || !r.allFinite()) {
       status.ok = false;
-      status.message = "QuasiStaticIntegrator: the solve produced a non-finite value; state unchanged";
+      status.message =
+          "QuasiStaticIntegrator: the solve produced a non-finite value; state unchanged";
       return status;
     }
     u_ = u_new;
@@ -83,7 +89,8 @@ public:
   }
 
   void modelChanged(const std::vector<int>& dofs) override {
-    if (!options_.corotational) solver_->matrixChanged(dofs);
+    if (!options_.corotational)
+      solver_->matrixChanged(dofs);
   }
 
 protected:

@@ -14,9 +14,13 @@ namespace {
 constexpr double kGeomTol_m = 1e-12;
 constexpr int kMoveBisections = 30;
 
-double cross2(const Point2& a, const Point2& b) { return a.x() * b.y() - a.y() * b.x(); }
+double cross2(const Point2& a, const Point2& b) {
+  return a.x() * b.y() - a.y() * b.x();
+}
 
-StepStatus refused(const std::string& message) { return StepStatus{false, message}; }
+StepStatus refused(const std::string& message) {
+  return StepStatus{false, message};
+}
 
 std::string str(double v) {
   return formatNumber(v);
@@ -37,18 +41,18 @@ NeedleInsertion::NeedleInsertion(FemModel& model, Integrator& integrator,
   auto positive = [](double v) { return std::isfinite(v) && v > 0.0; };
   auto non_negative = [](double v) { return std::isfinite(v) && v >= 0.0; };
   if (!positive(params.cut_length_m) || !non_negative(params.cutting_force_N) ||
-      !non_negative(params.static_friction_N_per_m) || !non_negative(params.kinetic_friction_N_per_m) ||
-      !non_negative(params.stick_velocity_m_s) || params.max_cuts_per_step < 1 ||
-      params.max_friction_iterations < 1 || !(params.min_area_fraction > 0.0) ||
-      !(params.min_area_fraction < 1.0)) {
+      !non_negative(params.static_friction_N_per_m) ||
+      !non_negative(params.kinetic_friction_N_per_m) || !non_negative(params.stick_velocity_m_s) ||
+      params.max_cuts_per_step < 1 || params.max_friction_iterations < 1 ||
+      !(params.min_area_fraction > 0.0) || !(params.min_area_fraction < 1.0)) {
     throw std::invalid_argument(
         "NeedleInsertion: invalid needle parameters (cut length must be > 0, forces and stick "
         "velocity >= 0, iteration bounds >= 1, min area fraction in (0, 1))");
   }
   if (params.kinetic_friction_N_per_m > params.static_friction_N_per_m) {
-    throw std::invalid_argument("NeedleInsertion: kinetic friction " +
-                                str(params.kinetic_friction_N_per_m) + " N/m exceeds static friction " +
-                                str(params.static_friction_N_per_m) + " N/m");
+    throw std::invalid_argument(
+        "NeedleInsertion: kinetic friction " + str(params.kinetic_friction_N_per_m) +
+        " N/m exceeds static friction " + str(params.static_friction_N_per_m) + " N/m");
   }
   const int n = model_.nodeCount();
   node_fixed_.assign(static_cast<std::size_t>(n), 0);
@@ -149,8 +153,10 @@ StepStatus NeedleInsertion::step(double dt_s, double needle_height_m, double tip
                    " m is beyond the tissue (max x " + str(bounds_max_.x()) + " m)");
   }
   if (in_tissue_ && std::abs(needle_height_m - height_m_) > kGeomTol_m) {
-    return refused("NeedleInsertion::step: the needle height may not change while the tip is in "
-                   "tissue (" + str(height_m_) + " m -> " + str(needle_height_m) + " m)");
+    return refused(
+        "NeedleInsertion::step: the needle height may not change while the tip is in "
+        "tissue (" +
+        str(height_m_) + " m -> " + str(needle_height_m) + " m)");
   }
 
   // Keep the step's start so a failed step leaves the state unchanged where it can.
@@ -255,8 +261,8 @@ StepStatus NeedleInsertion::step(double dt_s, double needle_height_m, double tip
   return StepStatus{};
 }
 
-bool NeedleInsertion::updateFriction(const Prescribed& prescribed,
-                                     const Eigen::VectorXd& reactions, double dt_s) {
+bool NeedleInsertion::updateFriction(const Prescribed& prescribed, const Eigen::VectorXd& reactions,
+                                     double dt_s) {
   // Stick–slip (2.3.5, after Baraff and Witkin): a stuck node slips when holding it needs more
   // than the slip force; a slipping node sticks again when it moves with the needle.
   bool changed = false;
@@ -268,7 +274,8 @@ bool NeedleInsertion::updateFriction(const Prescribed& prescribed,
     ShaftState& state = shaft_state_[s];
     if (state.stuck) {
       const int index = prescribedIndex(prescribed, dofX(node));
-      if (index >= 0 && std::abs(reactions[index]) > params_.static_friction_N_per_m * shaftShare(s)) {
+      if (index >= 0 &&
+          std::abs(reactions[index]) > params_.static_friction_N_per_m * shaftShare(s)) {
         state.stuck = false;
         const double direction = reactions[index] > 0.0 ? 1.0 : -1.0;
         f_ext_[dofX(node)] = direction * params_.kinetic_friction_N_per_m * shaftShare(s);
@@ -476,7 +483,8 @@ double NeedleInsertion::shaftShare(std::size_t s) const {
   return 0.5 * std::abs(after - before);
 }
 
-double NeedleInsertion::tipForce(const Prescribed& prescribed, const Eigen::VectorXd& reactions) const {
+double NeedleInsertion::tipForce(const Prescribed& prescribed,
+                                 const Eigen::VectorXd& reactions) const {
   double force = reactions[prescribedIndex(prescribed, dofX(tip_node_))];
   for (int node : tip_patch_) {
     force += reactions[prescribedIndex(prescribed, dofX(node))];

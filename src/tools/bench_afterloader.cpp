@@ -33,8 +33,7 @@
 #include "needle_guidance/delivery/afterloader.h"
 #include "needle_guidance/delivery/journal.h"
 #include "needle_guidance/delivery/schedule.h"
-#include "needle_guidance/dose/dwell_optimization.h"
-#include "needle_guidance/dose/prostate_case.h"
+#include "needle_guidance/procedures/hdr_pipeline.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
@@ -305,6 +304,23 @@ QuantumRow quantumTrial(const delivery::Schedule& s, double quantum, int crashes
   return {quantum, wall, static_cast<double>(journal.records().size()), device_time / wall, worst};
 }
 
+/// Schedules of synthetic cases 1..n planned by LP (the same pipeline as dwell_scheduler).
+std::vector<delivery::Schedule> casePlans(int cases) {
+  std::vector<delivery::Schedule> plans;
+  ng::procedures::SourceCache sources;
+  for (int c = 1; c <= cases; ++c) {
+    ng::procedures::HdrCaseInput input;
+    input.synthetic_seed = c;
+    plans.push_back(ng::procedures::planHdr(ng::procedures::loadHdrCase(input),
+                                            "case" + std::to_string(c), {}, sources)
+                        .schedule);
+    std::cout << "[bench] case " << c << ": " << plans.back().dwellCount() << " dwells, "
+              << plans.back().totalDwellTime() << " s in " << plans.back().channels.size()
+              << " channels\n";
+  }
+  return plans;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -319,19 +335,7 @@ int main(int argc, char** argv) {
   fs::remove_all(journal_dir);
   fs::create_directories(journal_dir);
 
-  // Plans: synthetic cases 1..5 by LP.
-  std::vector<delivery::Schedule> plans;
-  for (int c = 1; c <= cases; ++c) {
-    ng::dose::SyntheticCaseOptions o;
-    o.seed = static_cast<unsigned>(c);
-    const auto hdr = ng::dose::syntheticProstateCase(o);
-    const auto lp =
-        ng::dose::optimizeLp(hdr, ng::dose::doseRateMatrix(hdr, ng::dose::loadSource(hdr.source)));
-    plans.push_back(delivery::makeSchedule(hdr, lp.times_s, "case" + std::to_string(c)));
-    std::cout << "[bench] case " << c << ": " << plans.back().dwellCount() << " dwells, "
-              << plans.back().totalDwellTime() << " s in " << plans.back().channels.size()
-              << " channels\n";
-  }
+  const std::vector<delivery::Schedule> plans = casePlans(cases);
 
   // 1. Commit quantum: journal writes and speed against the error a crash can leave (core).
   ng::report::Table quantum(

@@ -5,9 +5,9 @@
 #include <chrono>
 #include <cmath>
 #include <iostream>
+#include <optional>
 #include <random>
 #include <sstream>
-#include <optional>
 #include <string>
 #include <vector>
 
@@ -42,7 +42,8 @@ double minAngleDeg(const ng::geometry::TriangleMesh& mesh) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  const std::optional<ng::report::BenchArgs> args = ng::report::parseBenchArgs(argc, argv, "bench_meshing");
+  const std::optional<ng::report::BenchArgs> args =
+      ng::report::parseBenchArgs(argc, argv, "bench_meshing");
   if (!args) {
     return 2;
   }
@@ -120,7 +121,8 @@ int main(int argc, char** argv) {
 
     // Headline figures: interpolate mesh time at 1,250 and 50,000 triangles (log-log).
     std::vector<Row> uniform(rows.begin(), rows.end() - 1);
-    std::sort(uniform.begin(), uniform.end(), [](const Row& a, const Row& b) { return a.triangles < b.triangles; });
+    std::sort(uniform.begin(), uniform.end(),
+              [](const Row& a, const Row& b) { return a.triangles < b.triangles; });
     auto at = [&](double n, double Row::*field) {
       for (std::size_t i = 1; i < uniform.size(); ++i) {
         if (n <= uniform[i].triangles || i + 1 == uniform.size()) {

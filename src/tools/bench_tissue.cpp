@@ -10,8 +10,8 @@
 #include <cmath>
 #include <iostream>
 #include <map>
-#include <sstream>
 #include <optional>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -26,12 +26,12 @@ using Clock = std::chrono::steady_clock;
 
 namespace {
 
-constexpr double kDt_s = 1e-3;             // haptic rate
-constexpr double kVelocity_m_s = 0.02;     // insertion and retraction speed
-constexpr double kStart_m = -0.002;        // tip just outside the entry face
-constexpr double kSettle_s = 2.0;          // dynamic integrators settle with the needle out (alpha = 1/s)
-constexpr double kMaxRunSteps = 400000;    // skip a full run that would take more steps
-constexpr double kMaxRunSeconds = 150.0;   // ... or longer than this (estimated)
+constexpr double kDt_s = 1e-3;          // haptic rate
+constexpr double kVelocity_m_s = 0.02;  // insertion and retraction speed
+constexpr double kStart_m = -0.002;     // tip just outside the entry face
+constexpr double kSettle_s = 2.0;  // dynamic integrators settle with the needle out (alpha = 1/s)
+constexpr double kMaxRunSteps = 400000;   // skip a full run that would take more steps
+constexpr double kMaxRunSeconds = 150.0;  // ... or longer than this (estimated)
 
 double peakMb() {
   rusage usage{};
@@ -69,12 +69,14 @@ RunResult run(const ng::scene::Scene& scene, const ng::tissue::TissueSimOptions&
     const ng::tissue::StepStatus status = sim.step(r.dt_s, h, next_x);
     step_ms.push_back(std::chrono::duration<double, std::milli>(Clock::now() - start).count());
     if (!status) {
-      throw std::runtime_error("step refused at x = " + std::to_string(next_x) + ": " + status.toString());
+      throw std::runtime_error("step refused at x = " + std::to_string(next_x) + ": " +
+                               status.toString());
     }
     x = next_x;
   };
   const auto wall = Clock::now();
-  while (x < target.x() - 1e-12 && (timing_steps <= 0 || static_cast<long>(step_ms.size()) < timing_steps)) {
+  while (x < target.x() - 1e-12 &&
+         (timing_steps <= 0 || static_cast<long>(step_ms.size()) < timing_steps)) {
     step(std::min(target.x(), x + dx));
   }
   if (timing_steps <= 0) {
@@ -87,7 +89,8 @@ RunResult run(const ng::scene::Scene& scene, const ng::tissue::TissueSimOptions&
     while (x > kStart_m + 1e-12) {
       step(std::max(kStart_m, x - dx));
     }
-    for (double t = 0.0; options.integrator != IntegratorKind::kQuasiStatic && t < kSettle_s; t += r.dt_s) {
+    for (double t = 0.0; options.integrator != IntegratorKind::kQuasiStatic && t < kSettle_s;
+         t += r.dt_s) {
       step(kStart_m);
     }
     r.seed = sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
@@ -106,7 +109,8 @@ RunResult run(const ng::scene::Scene& scene, const ng::tissue::TissueSimOptions&
 }  // namespace
 
 int main(int argc, char** argv) {
-  const std::optional<ng::report::BenchArgs> args = ng::report::parseBenchArgs(argc, argv, "bench_tissue");
+  const std::optional<ng::report::BenchArgs> args =
+      ng::report::parseBenchArgs(argc, argv, "bench_tissue");
   if (!args) {
     return 2;
   }
@@ -116,8 +120,8 @@ int main(int argc, char** argv) {
     const ng::scene::Scene scene = ng::scene::defaultScene("prostate_sagittal");
     const ng::geometry::Point2 target = scene.target("t06").position;
     // Graded meshes: the scene's sizes (fine at the targets) scaled down; scale 1 is the default.
-    const std::vector<double> scales = quick ? std::vector<double>{1.0, 0.5}
-                                             : std::vector<double>{1.0, 0.5, 0.3, 0.185};
+    const std::vector<double> scales =
+        quick ? std::vector<double>{1.0, 0.5} : std::vector<double>{1.0, 0.5, 0.3, 0.185};
     const std::vector<IntegratorKind> kinds{IntegratorKind::kQuasiStatic, IntegratorKind::kNewmark,
                                             IntegratorKind::kExplicit};
     std::map<std::pair<int, double>, RunResult> results;
@@ -129,20 +133,23 @@ int main(int argc, char** argv) {
         options.meshing.min_edge_m *= scale;
         // Estimate the full run from a short timed run; skip runs that would be too long.
         RunResult probe = run(scene, options, target, 60);
-        const double full_steps = 2.0 * (target.x() - kStart_m) / (kVelocity_m_s * probe.dt_s) +
-                                  (kind == IntegratorKind::kQuasiStatic ? 0.0 : kSettle_s / probe.dt_s);
+        const double full_steps =
+            2.0 * (target.x() - kStart_m) / (kVelocity_m_s * probe.dt_s) +
+            (kind == IntegratorKind::kQuasiStatic ? 0.0 : kSettle_s / probe.dt_s);
         const double full_s = full_steps / probe.steps_per_s;
         RunResult r = probe;
         if (full_steps <= kMaxRunSteps && full_s <= kMaxRunSeconds) {
           r = run(scene, options, target, 0);
         } else {
           r.note = "timing only: a full run needs " + std::to_string(long(full_steps)) +
-                   " steps (dt " + std::to_string(probe.dt_s) + " s), ~" + std::to_string(long(full_s)) + " s";
+                   " steps (dt " + std::to_string(probe.dt_s) + " s), ~" +
+                   std::to_string(long(full_s)) + " s";
         }
         std::cout << ng::tissue::toString(kind) << " scale " << scale << ": " << r.triangles
                   << " triangles, dt " << r.dt_s << " s, " << r.steps_per_s << " steps/s, p99 "
                   << r.p99_ms << " ms"
-                  << (r.complete ? ", seed short of target " + std::to_string(1e3 * (target - r.seed).norm()) + " mm"
+                  << (r.complete ? ", seed short of target " +
+                                       std::to_string(1e3 * (target - r.seed).norm()) + " mm"
                                  : " (" + r.note + ")")
                   << "\n"
                   << std::flush;
@@ -151,18 +158,21 @@ int main(int argc, char** argv) {
     }
     // Errors of each run against the finest complete run of the same integrator (numerical
     // error), and against the finest quasi-static run (numerical + modelling difference).
-    const RunResult& reference = results.at({static_cast<int>(IntegratorKind::kQuasiStatic), scales.back()});
+    const RunResult& reference =
+        results.at({static_cast<int>(IntegratorKind::kQuasiStatic), scales.back()});
     auto finest = [&](int kind) -> const RunResult* {
       for (auto it = scales.rbegin(); it != scales.rend(); ++it) {
         const RunResult& r = results.at({kind, *it});
-        if (r.complete) return &r;
+        if (r.complete)
+          return &r;
       }
       return nullptr;
     };
-    ng::report::Table table({"integrator", "mesh_scale", "triangles", "dt_s", "steps", "steps_per_s",
-                             "p50_ms", "p99_ms", "seed_error_mm", "tip_ref_error_mm",
-                             "seed_vs_quasi_static_mm", "seed_short_mm", "tip_force_N", "peak_mb", "note"},
-                            6);
+    ng::report::Table table(
+        {"integrator", "mesh_scale", "triangles", "dt_s", "steps", "steps_per_s", "p50_ms",
+         "p99_ms", "seed_error_mm", "tip_ref_error_mm", "seed_vs_quasi_static_mm", "seed_short_mm",
+         "tip_force_N", "peak_mb", "note"},
+        6);
     for (const auto& [key, r] : results) {
       const RunResult* own = finest(key.first);
       const bool has = r.complete && own != nullptr && own != &r;
@@ -170,9 +180,10 @@ int main(int argc, char** argv) {
       const double tip_error = has ? 1e3 * (r.tip_ref - own->tip_ref).norm() : NAN;
       const double vs_qs = r.complete ? 1e3 * (r.seed - reference.seed).norm() : NAN;
       const double short_mm = r.complete ? 1e3 * (target - r.seed).norm() : NAN;
-      table.addRow({std::string(ng::tissue::toString(static_cast<IntegratorKind>(key.first))), key.second,
-                    double(r.triangles), r.dt_s, double(r.steps), r.steps_per_s, r.p50_ms, r.p99_ms,
-                    seed_error, tip_error, vs_qs, short_mm, r.tip_force_N, r.peak_mb,
+      table.addRow({std::string(ng::tissue::toString(static_cast<IntegratorKind>(key.first))),
+                    key.second, double(r.triangles), r.dt_s, double(r.steps), r.steps_per_s,
+                    r.p50_ms, r.p99_ms, seed_error, tip_error, vs_qs, short_mm, r.tip_force_N,
+                    r.peak_mb,
                     r.note.empty() ? std::string(own == &r ? "reference" : "") : r.note});
     }
     auto get = [&](IntegratorKind kind, double scale) -> const RunResult& {
@@ -195,17 +206,22 @@ int main(int argc, char** argv) {
       const RunResult& big = get(IntegratorKind::kNewmark, scales.back());
       json << "  \"triangles_50k\": " << big.triangles << ",\n"
            << "  \"steps_per_s_50k_implicit\": " << big.steps_per_s << ",\n"
-           << "  \"steps_per_s_50k_quasi_static\": " << get(IntegratorKind::kQuasiStatic, scales.back()).steps_per_s
-           << ",\n"
-           << "  \"peak_mb_50k\": " << get(IntegratorKind::kExplicit, scales.back()).peak_mb << ",\n";
+           << "  \"steps_per_s_50k_quasi_static\": "
+           << get(IntegratorKind::kQuasiStatic, scales.back()).steps_per_s << ",\n"
+           << "  \"peak_mb_50k\": " << get(IntegratorKind::kExplicit, scales.back()).peak_mb
+           << ",\n";
     }
-    json << "  \"seed_error_mm_default\": " << 1e3 * (default_qs.seed - reference.seed).norm() << ",\n"
+    json << "  \"seed_error_mm_default\": " << 1e3 * (default_qs.seed - reference.seed).norm()
+         << ",\n"
          << "  \"seed_error_mm_default_implicit\": "
          << (default_nm.complete && finest(static_cast<int>(IntegratorKind::kNewmark))
-                 ? 1e3 * (default_nm.seed - finest(static_cast<int>(IntegratorKind::kNewmark))->seed).norm()
+                 ? 1e3 *
+                       (default_nm.seed - finest(static_cast<int>(IntegratorKind::kNewmark))->seed)
+                           .norm()
                  : -1.0)
          << ",\n"
-         << "  \"seed_short_of_target_mm_reference\": " << 1e3 * (target - reference.seed).norm() << "\n}\n";
+         << "  \"seed_short_of_target_mm_reference\": " << 1e3 * (target - reference.seed).norm()
+         << "\n}\n";
     table.writeCsv(out_dir + "/tissue.csv");
     ng::report::writeTextFile(out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(

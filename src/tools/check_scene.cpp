@@ -46,10 +46,11 @@ int main(int argc, char** argv) {
       // The mesh tissue_sim builds: the scene's sizes, graded towards targets and needle paths.
       const ng::geometry::MeshingOptions options = ng::tissue::optionsFromScene(s).meshing;
       const auto start = std::chrono::steady_clock::now();
-      const ng::geometry::TriangleMesh m =
-          ng::geometry::meshDomain(s.workspacePolygon(), s.background_material, s.meshRegions(), options);
+      const ng::geometry::TriangleMesh m = ng::geometry::meshDomain(
+          s.workspacePolygon(), s.background_material, s.meshRegions(), options);
       const double ms =
-          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
+              .count();
       std::cout << "  mesh: " << m.nodeCount() << " nodes, " << m.triangleCount()
                 << " triangles in " << ms << " ms\n";
     }

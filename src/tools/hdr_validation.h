@@ -41,10 +41,12 @@ inline RealPlanFigures validateRealPlan() {
   out.gamma_2pct2mm = good.gamma2pct2mm();
   out.median_relative_difference = good.median_relative_difference;
   if (std::filesystem::is_directory(data + "/hdr_example_plan_misregistered_dose")) {
-    out.misregistered_flagged = !validatePlanDir(data + "/hdr_example_plan_misregistered_dose").pass;
+    out.misregistered_flagged =
+        !validatePlanDir(data + "/hdr_example_plan_misregistered_dose").pass;
   }
   std::cout << "real plan: gamma 3%/3mm " << out.gamma_3pct3mm << ", 2%/2mm " << out.gamma_2pct2mm
-            << ", median relative difference " << out.median_relative_difference << "; misregistered plan "
-            << (out.misregistered_flagged ? "flagged" : "NOT flagged") << "\n";
+            << ", median relative difference " << out.median_relative_difference
+            << "; misregistered plan " << (out.misregistered_flagged ? "flagged" : "NOT flagged")
+            << "\n";
   return out;
 }

@@ -404,7 +404,6 @@ std::string sharedData() {
   return env != nullptr && *env != '\0' ? env : "/work/shared/data";
 }
 
-
 /// Dwell positions, times and orientations against dwell_positions.csv (pydicom export).
 void checkAgainstCsv(const std::string& dir, dose::DwellTimeEncoding expected_encoding,
                      double expected_total_s) {

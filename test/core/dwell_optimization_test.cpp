@@ -17,8 +17,8 @@
 namespace needle_guidance::dose {
 namespace {
 
-constexpr double kTime_s = 1e-6;       // LP dwell-time tolerance
-constexpr double kObjectiveRel = 1e-6; // LP objective agreement between formulations
+constexpr double kTime_s = 1e-6;        // LP dwell-time tolerance
+constexpr double kObjectiveRel = 1e-6;  // LP objective agreement between formulations
 
 /// One dwell, two points: a target point (dose rate 1 Gy/s, [10, 15] Gy, weights 100/100) and
 /// an OAR point (0.6 Gy/s, max 5 Gy, weight 20). E(t) = 100 max(0, 10 - t) + 100 max(0, t - 15)
@@ -29,11 +29,14 @@ struct TinyCase {
   Eigen::MatrixXd d;
   TinyCase() {
     c.name = "tiny";
-    c.structures = {{"target", StructureRole::kTarget, {}}, {"oar", StructureRole::kOrganAtRisk, {}}};
+    c.structures = {{"target", StructureRole::kTarget, {}},
+                    {"oar", StructureRole::kOrganAtRisk, {}}};
     c.catheters = {{"c1", {Point3(0, 0, 0.01), Point3(0, 0, -0.05)}}};
     c.dwells = {{0, 0, Point3::Zero(), Point3::UnitZ()}};
-    c.points = {{0, PointKind::kVolume, Point3(0.01, 0, 0)}, {1, PointKind::kVolume, Point3(0.02, 0, 0)}};
-    c.criteria = {{"target", PointKind::kVolume, 10.0, 15.0, 100.0, 100.0}, {"oar", PointKind::kVolume, 0.0, 5.0, 0.0, 20.0}};
+    c.points = {{0, PointKind::kVolume, Point3(0.01, 0, 0)},
+                {1, PointKind::kVolume, Point3(0.02, 0, 0)}};
+    c.criteria = {{"target", PointKind::kVolume, 10.0, 15.0, 100.0, 100.0},
+                  {"oar", PointKind::kVolume, 0.0, 5.0, 0.0, 20.0}};
     d.resize(2, 1);
     d << 1.0, 0.6;
   }
@@ -108,11 +111,13 @@ TEST_F(SyntheticCaseTest, MpsAndCaseFolderRoundTrips) {
   ASSERT_EQ(back.points.size(), c_.points.size());
   ASSERT_EQ(back.dwells.size(), c_.dwells.size());
   EXPECT_NEAR(penaltyModel(back)(doseRateMatrix(back, source_) *
-                                 Eigen::Map<const Eigen::VectorXd>(back.dwell_times_s.data(),
-                                                                   static_cast<Eigen::Index>(back.dwell_times_s.size()))),
+                                 Eigen::Map<const Eigen::VectorXd>(
+                                     back.dwell_times_s.data(),
+                                     static_cast<Eigen::Index>(back.dwell_times_s.size()))),
               lp.objective, 1e-6 * lp.objective);  // 10 significant digits in the files
   // A malformed file names itself and the line.
-  std::ofstream((dir / "folder" / "points.csv").string()) << "structure,kind,x_mm,y_mm,z_mm\nprostate,volume,1,2,abc\n";
+  std::ofstream((dir / "folder" / "points.csv").string())
+      << "structure,kind,x_mm,y_mm,z_mm\nprostate,volume,1,2,abc\n";
   try {
     readCaseFolder((dir / "folder").string());
     FAIL() << "no error for a bad number";
@@ -143,8 +148,9 @@ TEST(DwellOptimizationHardCases, RefusalsAndCorrectAnswers) {
   // Zero active dwell positions (e.g. every catheter outside the body): refused.
   HdrCase none = t.c;
   none.catheters = {{"outside", {Point3(0.5, 0.5, 0.5), Point3(0.5, 0.5, 0.4)}}};
-  none.structures[0].contours = {{-0.01, {{-0.01, -0.01}, {0.01, -0.01}, {0.01, 0.01}, {-0.01, 0.01}}},
-                                 {0.01, {{-0.01, -0.01}, {0.01, -0.01}, {0.01, 0.01}, {-0.01, 0.01}}}};
+  none.structures[0].contours = {
+      {-0.01, {{-0.01, -0.01}, {0.01, -0.01}, {0.01, 0.01}, {-0.01, 0.01}}},
+      {0.01, {{-0.01, -0.01}, {0.01, -0.01}, {0.01, 0.01}, {-0.01, 0.01}}}};
   none.dwells = makeDwellPositions(none, 5e-3);
   EXPECT_TRUE(none.dwells.empty());
   EXPECT_THROW(optimizeLp(none, Eigen::MatrixXd(2, 0)), std::invalid_argument);
@@ -172,13 +178,14 @@ TEST(DoseIndices, HandComputedValues) {
   StructureDose s;
   s.name = "prostate";
   s.voxel_volume_m3 = 1e-6;  // 1 cc voxels
-  for (int i = 1; i <= 10; ++i) s.dose_Gy.push_back(i);  // 1..10 Gy
-  EXPECT_DOUBLE_EQ(volumePercentAbove(s, 5.0), 60.0);     // 5..10: 6 of 10
-  EXPECT_DOUBLE_EQ(doseCoveringPercent(s, 90.0), 2.0);    // hottest 9 voxels: min 2 Gy
-  EXPECT_DOUBLE_EQ(doseCoveringVolume(s, 2e-6), 9.0);     // hottest 2 cc: min 9 Gy
+  for (int i = 1; i <= 10; ++i)
+    s.dose_Gy.push_back(i);                             // 1..10 Gy
+  EXPECT_DOUBLE_EQ(volumePercentAbove(s, 5.0), 60.0);   // 5..10: 6 of 10
+  EXPECT_DOUBLE_EQ(doseCoveringPercent(s, 90.0), 2.0);  // hottest 9 voxels: min 2 Gy
+  EXPECT_DOUBLE_EQ(doseCoveringVolume(s, 2e-6), 9.0);   // hottest 2 cc: min 9 Gy
   const auto idx = dosimetricIndices({s}, 5.0);
   EXPECT_DOUBLE_EQ(idx.at("prostate_V100"), 60.0);
-  EXPECT_DOUBLE_EQ(idx.at("prostate_V150"), 30.0);        // >= 7.5 Gy: 8, 9, 10
+  EXPECT_DOUBLE_EQ(idx.at("prostate_V150"), 30.0);  // >= 7.5 Gy: 8, 9, 10
   const StructureDose none{"rectum", 1e-6, {}};
   EXPECT_DOUBLE_EQ(volumePercentAbove(none, 1.0), 0.0);
   EXPECT_DOUBLE_EQ(doseCoveringVolume(none, 2e-6), 0.0);

@@ -18,21 +18,16 @@ using namespace test_support;  // NOLINT(google-build-using-namespace): test hel
 
 constexpr unsigned kSeed = 777;
 
-
-
-
-
-
-
-
 TEST(FemAccuracy, PatchTestReproducesUniformStrainToRoundOff) {
   constexpr double kPatchRel = 1e-10;  // relative to max |u|
-  for (ElementFormulation formulation : {ElementFormulation::kLinear, ElementFormulation::kAveragedVolumetric}) {
+  for (ElementFormulation formulation :
+       {ElementFormulation::kLinear, ElementFormulation::kAveragedVolumetric}) {
     const auto mesh = gridMesh(7, 6, 0.07, 0.06, 0.35, kSeed);  // irregular interior
     FemOptions options;
     options.formulation = formulation;
     std::vector<ElementMaterial> mats;
-    for (std::size_t t = 0; t < mesh.triangleCount(); ++t) mats.push_back(material(50e3, 0.45));
+    for (std::size_t t = 0; t < mesh.triangleCount(); ++t)
+      mats.push_back(material(50e3, 0.45));
     const FemModel model(mesh, mats, options);
     // u = A X + c, a uniform strain plus rigid motion.
     Eigen::Matrix2d a;
@@ -62,10 +57,12 @@ TEST(FemAccuracy, PatchTestReproducesUniformStrainToRoundOff) {
 TEST(FemAccuracy, StaticConvergenceOrderIsTwo) {
   const std::vector<int> sizes = {8, 16, 32, 64};
   std::vector<double> errors;
-  for (int n : sizes) errors.push_back(manufacturedL2Error(sineField(), n, 1.0, 0.3, ElementFormulation::kLinear));
+  for (int n : sizes)
+    errors.push_back(manufacturedL2Error(sineField(), n, 1.0, 0.3, ElementFormulation::kLinear));
   for (std::size_t k = 1; k < sizes.size(); ++k) {
     const double order = std::log(errors[k - 1] / errors[k]) / std::log(2.0);
-    std::cout << "L2 error h=1/" << sizes[k] << ": " << errors[k] << ", observed order " << order << "\n";
+    std::cout << "L2 error h=1/" << sizes[k] << ": " << errors[k] << ", observed order " << order
+              << "\n";
     EXPECT_GE(order, 1.7);
     EXPECT_LE(order, 2.3);
   }
@@ -74,15 +71,19 @@ TEST(FemAccuracy, StaticConvergenceOrderIsTwo) {
 TEST(FemAccuracy, NewmarkFreeVibrationConservesEnergy) {
   constexpr double kEnergyDriftRel = 1e-9;
   const auto mesh = gridMesh(10, 4, 0.1, 0.04, 0.2, kSeed);
-  const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(60e3, 0.45)));
-  const std::vector<int> fixed = fixedDofsWhere(mesh, [](const Point2& p) { return p.x() < 1e-12; });
+  const FemModel model(mesh,
+                       std::vector<ElementMaterial>(mesh.triangleCount(), material(60e3, 0.45)));
+  const std::vector<int> fixed =
+      fixedDofsWhere(mesh, [](const Point2& p) { return p.x() < 1e-12; });
   auto integ = makeIntegrator(IntegratorKind::kNewmark, model, fixed);
   // Start at u = 0 (a = M^-1 (-K u) = 0, consistent) with a smooth bending velocity.
   Eigen::VectorXd v = Eigen::VectorXd::Zero(model.dofCount());
   for (std::size_t i = 0; i < mesh.nodeCount(); ++i) {
-    if (mesh.nodes[i].x() > 1e-12) v(dofY(static_cast<int>(i))) = 0.1 * std::pow(mesh.nodes[i].x() / 0.1, 2);
+    if (mesh.nodes[i].x() > 1e-12)
+      v(dofY(static_cast<int>(i))) = 0.1 * std::pow(mesh.nodes[i].x() / 0.1, 2);
   }
-  integ->setState(Eigen::VectorXd::Zero(model.dofCount()), v, Eigen::VectorXd::Zero(model.dofCount()));
+  integ->setState(Eigen::VectorXd::Zero(model.dofCount()), v,
+                  Eigen::VectorXd::Zero(model.dofCount()));
   const double e0 = integ->energy();
   const Eigen::VectorXd zero = Eigen::VectorXd::Zero(model.dofCount());
   double max_drift = 0.0, max_u = 0.0;
@@ -99,8 +100,10 @@ TEST(FemAccuracy, NewmarkFreeVibrationConservesEnergy) {
 
 TEST(FemAccuracy, ExplicitStableBelowLimitAndRefusedAbove) {
   const auto mesh = gridMesh(10, 4, 0.1, 0.04, 0.2, kSeed);
-  const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(60e3, 0.45)));
-  const std::vector<int> fixed = fixedDofsWhere(mesh, [](const Point2& p) { return p.x() < 1e-12; });
+  const FemModel model(mesh,
+                       std::vector<ElementMaterial>(mesh.triangleCount(), material(60e3, 0.45)));
+  const std::vector<int> fixed =
+      fixedDofsWhere(mesh, [](const Point2& p) { return p.x() < 1e-12; });
   auto integ = makeIntegrator(IntegratorKind::kExplicit, model, fixed);
   const double limit_s = integ->stableTimeStep();
   ASSERT_TRUE(std::isfinite(limit_s));
@@ -108,8 +111,10 @@ TEST(FemAccuracy, ExplicitStableBelowLimitAndRefusedAbove) {
   std::mt19937 rng(kSeed);
   std::normal_distribution<double> normal(0.0, 1e-3);
   Eigen::VectorXd u(model.dofCount());
-  for (int i = 0; i < u.size(); ++i) u(i) = normal(rng);  // excites the highest modes
-  for (int d : fixed) u(d) = 0.0;
+  for (int i = 0; i < u.size(); ++i)
+    u(i) = normal(rng);  // excites the highest modes
+  for (int d : fixed)
+    u(d) = 0.0;
   const Eigen::VectorXd zero = Eigen::VectorXd::Zero(model.dofCount());
   integ->setState(u, zero, zero);
   const double e0 = integ->energy();

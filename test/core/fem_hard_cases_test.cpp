@@ -19,23 +19,17 @@ using namespace test_support;  // NOLINT(google-build-using-namespace): test hel
 
 constexpr unsigned kSeed = 99;
 
-
-
-
-
-
-
-
 TEST(FemHardCases, VolumetricLockingAtNu0499AndAveragedVolumetricRemedy) {
   constexpr int kN = 16;
   constexpr double kAveragedMaxRelL2 = 0.1;  // stated error of the remedy on this mesh
-  const double linear_030 = manufacturedL2Error(divergenceFreeField(), kN, 1.0, 0.3, ElementFormulation::kLinear, false);
-  const double linear_0499 = manufacturedL2Error(divergenceFreeField(), kN, 1.0, 0.499, ElementFormulation::kLinear, false);
-  const double avg_0499 =
-      manufacturedL2Error(divergenceFreeField(), kN, 1.0, 0.499, ElementFormulation::kAveragedVolumetric,
-                          false);
-  std::cout << "relative L2 error, 16x16: linear nu=0.3 " << linear_030 << ", linear nu=0.499 " << linear_0499
-            << ", averaged volumetric nu=0.499 " << avg_0499 << "\n";
+  const double linear_030 =
+      manufacturedL2Error(divergenceFreeField(), kN, 1.0, 0.3, ElementFormulation::kLinear, false);
+  const double linear_0499 = manufacturedL2Error(divergenceFreeField(), kN, 1.0, 0.499,
+                                                 ElementFormulation::kLinear, false);
+  const double avg_0499 = manufacturedL2Error(divergenceFreeField(), kN, 1.0, 0.499,
+                                              ElementFormulation::kAveragedVolumetric, false);
+  std::cout << "relative L2 error, 16x16: linear nu=0.3 " << linear_030 << ", linear nu=0.499 "
+            << linear_0499 << ", averaged volumetric nu=0.499 " << avg_0499 << "\n";
   EXPECT_GT(linear_0499, 3.0 * linear_030);  // locking: the CST error explodes as nu -> 0.5
   EXPECT_LT(avg_0499, kAveragedMaxRelL2);
   EXPECT_LT(avg_0499, 0.5 * linear_0499);
@@ -48,7 +42,8 @@ TEST(FemHardCases, StiffnessContrast1e4MatchesSeriesSprings) {
   std::vector<ElementMaterial> mats;
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
     const auto& tri = mesh.triangles[t];
-    const double cx = (mesh.nodes[tri[0]].x() + mesh.nodes[tri[1]].x() + mesh.nodes[tri[2]].x()) / 3;
+    const double cx =
+        (mesh.nodes[tri[0]].x() + mesh.nodes[tri[1]].x() + mesh.nodes[tri[2]].x()) / 3;
     mats.push_back(material(cx < l_m ? e_soft : e_stiff, 0.0));  // nu = 0: exact 1-D bar
   }
   const FemModel model(mesh, mats);
@@ -56,8 +51,10 @@ TEST(FemHardCases, StiffnessContrast1e4MatchesSeriesSprings) {
   Eigen::VectorXd f = Eigen::VectorXd::Zero(model.dofCount());
   for (std::size_t i = 0; i < mesh.nodeCount(); ++i) {
     const Point2& x = mesh.nodes[i];
-    if (x.x() < 1e-12) fixed.push_back(dofX(static_cast<int>(i)));
-    if (x.x() < 1e-12 && x.y() < 1e-12) fixed.push_back(dofY(static_cast<int>(i)));
+    if (x.x() < 1e-12)
+      fixed.push_back(dofX(static_cast<int>(i)));
+    if (x.x() < 1e-12 && x.y() < 1e-12)
+      fixed.push_back(dofY(static_cast<int>(i)));
     if (x.x() > 2 * l_m - 1e-12) {
       const bool corner = x.y() < 1e-12 || x.y() > h_m - 1e-12;
       f(dofX(static_cast<int>(i))) = force_n / 4 * (corner ? 0.5 : 1.0);
@@ -87,17 +84,20 @@ TEST(FemHardCases, SliverElementsSolveThePatchTest) {
   const int node = 3 * 7 + 3;
   const Point2 start = mesh.nodes[static_cast<std::size_t>(node)];
   double sliver_area = 0.0, regular_area = 1e300;
-  for (std::size_t t = 0; t < mesh.triangleCount(); ++t) regular_area = std::min(regular_area, mesh.triangleArea(t));
+  for (std::size_t t = 0; t < mesh.triangleCount(); ++t)
+    regular_area = std::min(regular_area, mesh.triangleArea(t));
   for (std::size_t t = 0; t < mesh.triangleCount() && sliver_area == 0.0; ++t) {
     const auto& tri = mesh.triangles[t];
     const int k = tri[0] == node ? 0 : tri[1] == node ? 1 : tri[2] == node ? 2 : -1;
-    if (k < 0) continue;
+    if (k < 0)
+      continue;
     const Point2 a = mesh.nodes[tri[(k + 1) % 3]], b = mesh.nodes[tri[(k + 2) % 3]];
     const Point2 e = (b - a).normalized();
     const Point2 foot = a + (start - a).dot(e) * e;
     mesh.nodes[node] = foot + kSliverGap_m * (start - foot).normalized();
     double min_area = 1e300;
-    for (std::size_t s2 = 0; s2 < mesh.triangleCount(); ++s2) min_area = std::min(min_area, mesh.triangleArea(s2));
+    for (std::size_t s2 = 0; s2 < mesh.triangleCount(); ++s2)
+      min_area = std::min(min_area, mesh.triangleArea(s2));
     if (min_area > 0.0) {
       sliver_area = mesh.triangleArea(t);
     } else {
@@ -106,8 +106,10 @@ TEST(FemHardCases, SliverElementsSolveThePatchTest) {
   }
   ASSERT_GT(sliver_area, 0.0) << "no sliver could be built without inverting a triangle";
   ASSERT_LT(sliver_area, 1e-8 * regular_area) << "the constructed triangle is not a sliver";
-  std::cout << "sliver area " << sliver_area << " m^2, smallest regular " << regular_area << " m^2\n";
-  const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(50e3, 0.45)));
+  std::cout << "sliver area " << sliver_area << " m^2, smallest regular " << regular_area
+            << " m^2\n";
+  const FemModel model(mesh,
+                       std::vector<ElementMaterial>(mesh.triangleCount(), material(50e3, 0.45)));
   Eigen::Matrix2d a;
   a << 1e-3, 2e-4, -3e-4, 5e-4;
   Prescribed p;
@@ -122,17 +124,20 @@ TEST(FemHardCases, SliverElementsSolveThePatchTest) {
   ASSERT_TRUE(status) << status.toString();
   double max_err = 0.0;
   for (int i = 0; i < model.nodeCount(); ++i) {
-    max_err = std::max(max_err, (integ->displacement().segment<2>(2 * i) - a * mesh.nodes[i]).norm());
+    max_err =
+        std::max(max_err, (integ->displacement().segment<2>(2 * i) - a * mesh.nodes[i]).norm());
   }
   EXPECT_LT(max_err, kPatchRel * 0.06 * a.norm());
 }
 
 TEST(FemHardCases, VeryLargeTimeStepsNewmarkStableExplicitRefuses) {
   const auto mesh = gridMesh(8, 4, 0.08, 0.04, 0.2, kSeed);
-  const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(60e3, 0.45, 2.0, 0.01)));
+  const FemModel model(
+      mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(60e3, 0.45, 2.0, 0.01)));
   std::vector<int> fixed;
   for (std::size_t i = 0; i < mesh.nodeCount(); ++i) {
-    if (mesh.nodes[i].x() < 1e-12) fixed.insert(fixed.end(), {dofX(static_cast<int>(i)), dofY(static_cast<int>(i))});
+    if (mesh.nodes[i].x() < 1e-12)
+      fixed.insert(fixed.end(), {dofX(static_cast<int>(i)), dofY(static_cast<int>(i))});
   }
   Eigen::VectorXd f = Eigen::VectorXd::Zero(model.dofCount());
   f(model.dofCount() - 1) = -0.1;  // tip load
@@ -146,8 +151,11 @@ TEST(FemHardCases, VeryLargeTimeStepsNewmarkStableExplicitRefuses) {
     ASSERT_TRUE(newmark->displacement().allFinite());
     err = (newmark->displacement() - stat->displacement()).norm() / stat->displacement().norm();
   }
-  std::cout << "Newmark dt = 10 s, 200 steps: relative distance to the static solution " << err << "\n";
-  EXPECT_LT(err, 1e-2);  // trapezoidal rule is A- but not L-stable: high modes decay only via Rayleigh damping
+  std::cout << "Newmark dt = 10 s, 200 steps: relative distance to the static solution " << err
+            << "\n";
+  EXPECT_LT(
+      err,
+      1e-2);  // trapezoidal rule is A- but not L-stable: high modes decay only via Rayleigh damping
   auto expl = makeIntegrator(IntegratorKind::kExplicit, model, fixed);
   const StepStatus status = expl->step(10.0, f, {}, r);
   EXPECT_FALSE(status);
@@ -157,9 +165,11 @@ TEST(FemHardCases, VeryLargeTimeStepsNewmarkStableExplicitRefuses) {
 
 TEST(FemHardCases, NaNInputsRefusedStateUnchanged) {
   const auto mesh = gridMesh(4, 4, 0.04, 0.04, 0.1, kSeed);
-  const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(60e3, 0.45)));
+  const FemModel model(mesh,
+                       std::vector<ElementMaterial>(mesh.triangleCount(), material(60e3, 0.45)));
   const std::vector<int> fixed = {0, 1, 2, 3};
-  for (IntegratorKind kind : {IntegratorKind::kQuasiStatic, IntegratorKind::kNewmark, IntegratorKind::kExplicit}) {
+  for (IntegratorKind kind :
+       {IntegratorKind::kQuasiStatic, IntegratorKind::kNewmark, IntegratorKind::kExplicit}) {
     auto integ = makeIntegrator(kind, model, fixed);
     const double dt = kind == IntegratorKind::kExplicit ? 0.5 * integ->stableTimeStep() : 1e-3;
     Eigen::VectorXd f = Eigen::VectorXd::Zero(model.dofCount());

@@ -3,9 +3,9 @@
 // corotational rigid rotation, element energies.
 #include <gtest/gtest.h>
 
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
-#include <Eigen/Geometry>
 #include <functional>
 #include <random>
 #include <stdexcept>
@@ -18,20 +18,22 @@ namespace {
 
 using namespace test_support;  // NOLINT(google-build-using-namespace): test helpers
 
-constexpr double kRoundOffRel = 1e-12;         // relative, matrix norms
-constexpr double kNullSpaceRel = 1e-12;        // |K r| / (|K| |r|)
-constexpr double kMassTol_kg = 1e-12;          // absolute on masses of O(1e-3 .. 1) kg
+constexpr double kRoundOffRel = 1e-12;   // relative, matrix norms
+constexpr double kNullSpaceRel = 1e-12;  // |K r| / (|K| |r|)
+constexpr double kMassTol_kg = 1e-12;    // absolute on masses of O(1e-3 .. 1) kg
 constexpr unsigned kSeed = 12345;
 
-
-ElementMaterial tissue(double e_pa = 60e3, double nu = 0.45) { return material(e_pa, nu, 2.0, 0.01, 1050.0); }
+ElementMaterial tissue(double e_pa = 60e3, double nu = 0.45) {
+  return material(e_pa, nu, 2.0, 0.01, 1050.0);
+}
 
 /// Two materials: left half soft, right half stiff.
 std::vector<ElementMaterial> mixedMaterials(const geometry::TriangleMesh& mesh) {
   std::vector<ElementMaterial> mats;
   for (std::size_t t = 0; t < mesh.triangleCount(); ++t) {
     const auto& tri = mesh.triangles[t];
-    const double cx = (mesh.nodes[tri[0]].x() + mesh.nodes[tri[1]].x() + mesh.nodes[tri[2]].x()) / 3.0;
+    const double cx =
+        (mesh.nodes[tri[0]].x() + mesh.nodes[tri[1]].x() + mesh.nodes[tri[2]].x()) / 3.0;
     mats.push_back(cx < 0.05 ? tissue(30e3, 0.45) : tissue(90e3, 0.3));
   }
   return mats;
@@ -76,7 +78,8 @@ TEST_P(FemModelTest, RigidBodyModesInNullSpace) {
   }
   // A non-rigid field is not in the null space.
   Eigen::VectorXd stretch = Eigen::VectorXd::Zero(2 * n);
-  for (int i = 0; i < n; ++i) stretch(dofX(i)) = mesh.nodes[i].x();
+  for (int i = 0; i < n; ++i)
+    stretch(dofX(i)) = mesh.nodes[i].x();
   EXPECT_GT((model.stiffness() * stretch).norm(), 1e-3 * k_norm * stretch.norm());
 }
 
@@ -89,7 +92,8 @@ TEST_P(FemModelTest, MassTotalsAndLumping) {
     expected_kg += mats[t].density_kg_m3 * mesh.triangleArea(t) * options().thickness_m;
   }
   Eigen::VectorXd ones_x = Eigen::VectorXd::Zero(model.dofCount());
-  for (int i = 0; i < model.nodeCount(); ++i) ones_x(dofX(i)) = 1.0;
+  for (int i = 0; i < model.nodeCount(); ++i)
+    ones_x(dofX(i)) = 1.0;
   EXPECT_NEAR(ones_x.dot(model.mass() * ones_x), expected_kg, kMassTol_kg);
   double lumped_x = 0.0, lumped_y = 0.0;
   for (int i = 0; i < model.nodeCount(); ++i) {
@@ -108,8 +112,9 @@ TEST_P(FemModelTest, MoveNodeMatchesFromScratchAssembly) {
   const auto mats = mixedMaterials(mesh);
   FemModel model(mesh, mats, options());
   // Several moves of different interior nodes, like the needle tip advancing.
-  const std::vector<std::pair<int, Point2>> moves = {
-      {3 * 9 + 4, Point2(0.004, 0.001)}, {3 * 9 + 5, Point2(-0.002, 0.003)}, {3 * 9 + 4, Point2(0.002, -0.002)}};
+  const std::vector<std::pair<int, Point2>> moves = {{3 * 9 + 4, Point2(0.004, 0.001)},
+                                                     {3 * 9 + 5, Point2(-0.002, 0.003)},
+                                                     {3 * 9 + 4, Point2(0.002, -0.002)}};
   for (const auto& [node, delta] : moves) {
     const Point2 p_new = mesh.nodes[node] + delta;
     ASSERT_TRUE(model.canMoveNode(node, p_new, 0.0));
@@ -122,16 +127,18 @@ TEST_P(FemModelTest, MoveNodeMatchesFromScratchAssembly) {
   EXPECT_LT(relDiff(model.stiffness(), fresh.stiffness()), kRoundOffRel);
   EXPECT_LT(relDiff(model.mass(), fresh.mass()), kRoundOffRel);
   EXPECT_LT(relDiff(model.damping(), fresh.damping()), kRoundOffRel);
-  EXPECT_LT((model.lumpedMass() - fresh.lumpedMass()).norm(), kRoundOffRel * fresh.lumpedMass().norm());
+  EXPECT_LT((model.lumpedMass() - fresh.lumpedMass()).norm(),
+            kRoundOffRel * fresh.lumpedMass().norm());
   EXPECT_EQ(model.stiffness().nonZeros(), fresh.stiffness().nonZeros());
-  for (int i = 0; i < model.nodeCount(); ++i) EXPECT_EQ(model.mesh().nodes[i], mesh.nodes[i]);
+  for (int i = 0; i < model.nodeCount(); ++i)
+    EXPECT_EQ(model.mesh().nodes[i], mesh.nodes[i]);
 }
 
 TEST_P(FemModelTest, MoveNodeThatWouldInvertThrowsAndLeavesModelUnchanged) {
   const auto mesh = gridMesh(4, 4, 0.1, 0.1, 0.0, kSeed);
   FemModel model(mesh, mixedMaterials(mesh), options());
   const SparseMatrix k_before = model.stiffness();
-  const int node = 2 * 5 + 2;  // centre node (0.05, 0.05)
+  const int node = 2 * 5 + 2;              // centre node (0.05, 0.05)
   const Point2 across(0.05 + 0.03, 0.05);  // beyond the neighbouring node at x = 0.075
   EXPECT_FALSE(model.canMoveNode(node, across, 0.0));
   try {
@@ -147,7 +154,8 @@ TEST_P(FemModelTest, MoveNodeThatWouldInvertThrowsAndLeavesModelUnchanged) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Formulations, FemModelTest,
-                         ::testing::Values(ElementFormulation::kLinear, ElementFormulation::kAveragedVolumetric));
+                         ::testing::Values(ElementFormulation::kLinear,
+                                           ElementFormulation::kAveragedVolumetric));
 
 void expectThrowNaming(const geometry::TriangleMesh& mesh, const std::vector<ElementMaterial>& mats,
                        const std::string& needle) {
@@ -183,18 +191,22 @@ TEST(FemModelInvalid, InvalidMaterialsThrowNamingTheElement) {
 TEST(FemModelInvalid, InvertedInputTriangleThrowsNamingTheElement) {
   auto mesh = gridMesh(3, 3, 0.03, 0.03, 0.0, kSeed);
   std::swap(mesh.triangles[5][1], mesh.triangles[5][2]);  // clockwise
-  expectThrowNaming(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), tissue()), "element 5");
+  expectThrowNaming(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), tissue()),
+                    "element 5");
   auto degenerate = gridMesh(3, 3, 0.03, 0.03, 0.0, kSeed);
   degenerate.nodes[5] = degenerate.nodes[4];  // collapses triangles using nodes 4 and 5
-  expectThrowNaming(degenerate, std::vector<ElementMaterial>(degenerate.triangleCount(), tissue()), "element");
+  expectThrowNaming(degenerate, std::vector<ElementMaterial>(degenerate.triangleCount(), tissue()),
+                    "element");
   auto non_finite = gridMesh(3, 3, 0.03, 0.03, 0.0, kSeed);
   non_finite.nodes[2].x() = std::nan("");
-  expectThrowNaming(non_finite, std::vector<ElementMaterial>(non_finite.triangleCount(), tissue()), "node 2");
+  expectThrowNaming(non_finite, std::vector<ElementMaterial>(non_finite.triangleCount(), tissue()),
+                    "node 2");
 }
 
 TEST(FemModelCorotational, RigidRotationHasZeroForceAndEnergy) {
   constexpr double kForceRel = 1e-10;  // |f_int| relative to |K| |u|
-  for (ElementFormulation formulation : {ElementFormulation::kLinear, ElementFormulation::kAveragedVolumetric}) {
+  for (ElementFormulation formulation :
+       {ElementFormulation::kLinear, ElementFormulation::kAveragedVolumetric}) {
     const auto mesh = gridMesh(6, 5, 0.1, 0.08, 0.25, kSeed);
     FemOptions options;
     options.formulation = formulation;
@@ -226,7 +238,8 @@ TEST(FemModelCorotational, RigidRotationHasZeroForceAndEnergy) {
 
 TEST(FemModelEnergy, ElementEnergiesSumToTotalAndVonMisesOfUniaxialStrain) {
   constexpr double kEnergyRel = 1e-12;
-  for (ElementFormulation formulation : {ElementFormulation::kLinear, ElementFormulation::kAveragedVolumetric}) {
+  for (ElementFormulation formulation :
+       {ElementFormulation::kLinear, ElementFormulation::kAveragedVolumetric}) {
     const auto mesh = gridMesh(5, 4, 0.1, 0.08, 0.2, kSeed);
     FemOptions options;
     options.formulation = formulation;
@@ -236,14 +249,16 @@ TEST(FemModelEnergy, ElementEnergiesSumToTotalAndVonMisesOfUniaxialStrain) {
     std::mt19937 rng(kSeed);
     std::normal_distribution<double> normal(0.0, 1e-3);
     Eigen::VectorXd u(model.dofCount());
-    for (int i = 0; i < u.size(); ++i) u(i) = normal(rng);
+    for (int i = 0; i < u.size(); ++i)
+      u(i) = normal(rng);
     const double total = 0.5 * u.dot(model.stiffness() * u) / options.thickness_m;
     EXPECT_NEAR(model.elementStrainEnergy(u).sum(), total, kEnergyRel * total);
     // Uniaxial strain e_xx = 1e-3 (plane strain): s_xx = (lambda + 2 mu) e, s_yy = s_zz = lambda e,
     // von Mises = |s_xx - s_yy| = 2 mu e.
     const double strain = 1e-3;
     Eigen::VectorXd uni = Eigen::VectorXd::Zero(model.dofCount());
-    for (int i = 0; i < model.nodeCount(); ++i) uni(dofX(i)) = strain * mesh.nodes[i].x();
+    for (int i = 0; i < model.nodeCount(); ++i)
+      uni(dofX(i)) = strain * mesh.nodes[i].x();
     const double mu = mat.young_modulus_Pa / (2.0 * (1.0 + mat.poisson_ratio));
     const Eigen::VectorXd vm = model.elementVonMises(uni);
     EXPECT_LT((vm.array() - 2.0 * mu * strain).abs().maxCoeff(), 1e-9 * 2.0 * mu * strain);

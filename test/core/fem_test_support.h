@@ -22,7 +22,8 @@ inline geometry::TriangleMesh gridMesh(int nx, int ny, double lx, double ly, dou
   for (int j = 0; j <= ny; ++j) {
     for (int i = 0; i <= nx; ++i) {
       Point2 p(i * hx, j * hy);
-      if (i > 0 && i < nx && j > 0 && j < ny) p += Point2(jitter * hx * uni(rng), jitter * hy * uni(rng));
+      if (i > 0 && i < nx && j > 0 && j < ny)
+        p += Point2(jitter * hx * uni(rng), jitter * hy * uni(rng));
       mesh.nodes.push_back(p);
     }
   }
@@ -59,8 +60,8 @@ inline std::vector<int> fixedDofsWhere(const geometry::TriangleMesh& mesh,
 }
 
 /// A material with density rho [kg/m^3] and Rayleigh damping C = alpha M + beta K.
-inline ElementMaterial material(double e_pa, double nu, double alpha_per_s = 0.0, double beta_s = 0.0,
-                                double density_kg_m3 = 1000.0) {
+inline ElementMaterial material(double e_pa, double nu, double alpha_per_s = 0.0,
+                                double beta_s = 0.0, double density_kg_m3 = 1000.0) {
   ElementMaterial m;
   m.young_modulus_Pa = e_pa;
   m.poisson_ratio = nu;
@@ -124,7 +125,8 @@ inline double manufacturedL2Error(const Manufactured& field, int n, double e_pa,
   const auto mesh = gridMesh(n, n, 1.0, 1.0, 0.0, /*seed=*/0, alternate);
   FemOptions options;
   options.formulation = formulation;
-  const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(e_pa, nu)), options);
+  const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), material(e_pa, nu)),
+                       options);
   const double mu = e_pa / (2 * (1 + nu));
   const double lambda = e_pa * nu / ((1 + nu) * (1 - 2 * nu));
   Eigen::VectorXd f = Eigen::VectorXd::Zero(model.dofCount());
@@ -132,9 +134,11 @@ inline double manufacturedL2Error(const Manufactured& field, int n, double e_pa,
     const auto& tri = mesh.triangles[t];
     const double area = mesh.triangleArea(t);
     for (const auto& q : kQuadPoints) {
-      const Point2 x = q[0] * mesh.nodes[tri[0]] + q[1] * mesh.nodes[tri[1]] + q[2] * mesh.nodes[tri[2]];
+      const Point2 x =
+          q[0] * mesh.nodes[tri[0]] + q[1] * mesh.nodes[tri[1]] + q[2] * mesh.nodes[tri[2]];
       const Point2 b = field.body_force(x, mu, lambda);
-      for (int k = 0; k < 3; ++k) f.segment<2>(2 * tri[k]) += area / 3.0 * q[k] * b;
+      for (int k = 0; k < 3; ++k)
+        f.segment<2>(2 * tri[k]) += area / 3.0 * q[k] * b;
     }
   }
   std::vector<int> fixed;
@@ -151,9 +155,11 @@ inline double manufacturedL2Error(const Manufactured& field, int n, double e_pa,
     const auto& tri = mesh.triangles[t];
     const double area = mesh.triangleArea(t);
     for (const auto& q : kQuadPoints) {
-      const Point2 x = q[0] * mesh.nodes[tri[0]] + q[1] * mesh.nodes[tri[1]] + q[2] * mesh.nodes[tri[2]];
+      const Point2 x =
+          q[0] * mesh.nodes[tri[0]] + q[1] * mesh.nodes[tri[1]] + q[2] * mesh.nodes[tri[2]];
       Point2 uh = Point2::Zero();
-      for (int k = 0; k < 3; ++k) uh += q[k] * Point2(u(2 * tri[k]), u(2 * tri[k] + 1));
+      for (int k = 0; k < 3; ++k)
+        uh += q[k] * Point2(u(2 * tri[k]), u(2 * tri[k] + 1));
       const Point2 ue = field.u(x);
       err2 += area / 3.0 * (uh - ue).squaredNorm();
       norm2 += area / 3.0 * ue.squaredNorm();

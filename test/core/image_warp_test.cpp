@@ -84,7 +84,6 @@ double maxAbsDiff(const cv::Mat& a, const cv::Mat& b, const cv::Mat& mask = cv::
   return max_diff;
 }
 
-
 // The default prostate mesh (1,259 triangles), meshed once for all tests.
 const geometry::TriangleMesh& prostateMesh() {
   static const geometry::TriangleMesh mesh = sceneMesh(prostateScene());

@@ -23,7 +23,8 @@ std::string readFile(const std::string& path) {
 class InsertionStageTest : public ::testing::Test {
 protected:
   InsertionStageTest()
-      : limits_(parseStageLimits(readFile(std::string(NG_SOURCE_DIR) + "/urdf/insertion_stage.urdf"))),
+      : limits_(
+            parseStageLimits(readFile(std::string(NG_SOURCE_DIR) + "/urdf/insertion_stage.urdf"))),
         stage_(limits_, SceneLimits{0.005, 0.055, 0.055}, {0.03, -0.01, 0.0}) {}
 
   void run(double seconds) {
@@ -54,8 +55,8 @@ TEST_F(InsertionStageTest, LimitsComeFromTheUrdf) {
 TEST_F(InsertionStageTest, BadUrdfIsRefusedNamingTheJoint) {
   std::string urdf = readFile(std::string(NG_SOURCE_DIR) + "/urdf/insertion_stage.urdf");
   EXPECT_THROW(parseStageLimits("<robot"), std::invalid_argument);
-  const std::string no_velocity = std::string(urdf).replace(urdf.find("velocity=\"0.05\""), 15,
-                                                            "velocity=\"0\"");
+  const std::string no_velocity =
+      std::string(urdf).replace(urdf.find("velocity=\"0.05\""), 15, "velocity=\"0\"");
   try {
     parseStageLimits(no_velocity);
     FAIL() << "a zero velocity limit was accepted";
@@ -79,12 +80,12 @@ TEST_F(InsertionStageTest, InsertMovesAtConstantVelocityAndStopsAtTarget) {
 
 TEST_F(InsertionStageTest, RefusalsLeaveStateUnchangedAndAreJournalled) {
   const StageState before = stage_.state();
-  EXPECT_FALSE(stage_.command(StageJoint::kDepth, 0.2, 0.01));          // joint limit
-  EXPECT_FALSE(stage_.command(StageJoint::kDepth, 0.06, 0.01));         // scene max depth
-  EXPECT_FALSE(stage_.command(StageJoint::kDepth, 0.02, 0.5));          // velocity limit
-  EXPECT_FALSE(stage_.command(StageJoint::kDepth, 0.02, 0.0));          // zero velocity
-  EXPECT_FALSE(stage_.command(StageJoint::kDepth, NAN, 0.01));          // NaN
-  EXPECT_FALSE(stage_.command(StageJoint::kHeight, 0.03, INFINITY));    // inf
+  EXPECT_FALSE(stage_.command(StageJoint::kDepth, 0.2, 0.01));        // joint limit
+  EXPECT_FALSE(stage_.command(StageJoint::kDepth, 0.06, 0.01));       // scene max depth
+  EXPECT_FALSE(stage_.command(StageJoint::kDepth, 0.02, 0.5));        // velocity limit
+  EXPECT_FALSE(stage_.command(StageJoint::kDepth, 0.02, 0.0));        // zero velocity
+  EXPECT_FALSE(stage_.command(StageJoint::kDepth, NAN, 0.01));        // NaN
+  EXPECT_FALSE(stage_.command(StageJoint::kHeight, 0.03, INFINITY));  // inf
   const std::size_t refusals = stage_.journal().size();
   EXPECT_EQ(refusals, 6U);
   for (const JournalEntry& e : stage_.journal()) {

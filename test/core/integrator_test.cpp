@@ -15,13 +15,14 @@ namespace {
 
 using namespace test_support;  // NOLINT(google-build-using-namespace): test helpers
 
-constexpr double kForceTol_N = 1e-9;       // reactions of O(1) N forces
-constexpr double kSolutionRel = 1e-9;      // relative to the solution's max norm
+constexpr double kForceTol_N = 1e-9;   // reactions of O(1) N forces
+constexpr double kSolutionRel = 1e-9;  // relative to the solution's max norm
 constexpr unsigned kSeed = 4242;
 constexpr double kDt_s = 1e-3;
 
-
-ElementMaterial tissue(double e_pa = 60e3, double nu = 0.45) { return material(e_pa, nu, 1.0, 0.002, 1050.0); }
+ElementMaterial tissue(double e_pa = 60e3, double nu = 0.45) {
+  return material(e_pa, nu, 1.0, 0.002, 1050.0);
+}
 
 /// Left and bottom edges fixed.
 std::vector<int> fixedEdges(const geometry::TriangleMesh& mesh) {
@@ -37,13 +38,16 @@ TEST(IntegratorReactions, ReactionEqualsAppliedForceOneAndTwoElements) {
     geometry::TriangleMesh mesh;
     mesh.nodes = {Point2(0, 0), Point2(0.01, 0), Point2(0.01, 0.01), Point2(0, 0.01)};
     mesh.triangles = {{0, 1, 2}};
-    if (n_elements == 2) mesh.triangles.push_back({0, 2, 3});
+    if (n_elements == 2)
+      mesh.triangles.push_back({0, 2, 3});
     mesh.triangle_region.assign(mesh.triangles.size(), 0);
     mesh.region_names = {"tissue"};
-    if (n_elements == 1) mesh.nodes.pop_back();
+    if (n_elements == 1)
+      mesh.nodes.pop_back();
     const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), tissue()));
     std::vector<int> fixed = {dofX(0), dofY(0), dofX(2)};
-    if (n_elements == 2) fixed.push_back(dofX(3));
+    if (n_elements == 2)
+      fixed.push_back(dofX(3));
     for (IntegratorKind kind : {IntegratorKind::kQuasiStatic, IntegratorKind::kNewmark}) {
       auto integ = makeIntegrator(kind, model, fixed);
       // Apply a force at node 1, then prescribe the displacement it produced: the constraint
@@ -84,8 +88,10 @@ void compareWithFresh(IntegratorKind kind, ElementFormulation formulation, bool 
   std::vector<int> shaft;
   for (int s = 0; s < 40; ++s) {
     const int tip_i = 11 - std::min(s / 4, 8);  // tip moves leftwards through the nodes
-    if (s % 4 == 0 && s > 0 && s / 4 <= 8) shaft.push_back(node(tip_i + 1));
-    if (s == 30) shaft.erase(shaft.begin(), shaft.begin() + 2);  // retraction releases nodes
+    if (s % 4 == 0 && s > 0 && s / 4 <= 8)
+      shaft.push_back(node(tip_i + 1));
+    if (s == 30)
+      shaft.erase(shaft.begin(), shaft.begin() + 2);  // retraction releases nodes
     const int tip = node(tip_i);
     if (move_nodes && s % 3 == 1) {
       // Cutting: move the tip node a little in the reference mesh.
@@ -174,7 +180,8 @@ TEST(IntegratorCorotational, RigidRotationOfTheBoundaryGivesZeroStrainEnergy) {
     auto dyn = makeIntegrator(kind, model, {}, corot);
     dyn->setState(rotating->displacement(), zero, zero);
     const double dt_s = kind == IntegratorKind::kExplicit ? 0.5 * dyn->stableTimeStep() : kDt_s;
-    for (int s = 0; s < 5; ++s) ASSERT_TRUE(dyn->step(dt_s, zero, {}, r)) << toString(kind);
+    for (int s = 0; s < 5; ++s)
+      ASSERT_TRUE(dyn->step(dt_s, zero, {}, r)) << toString(kind);
     EXPECT_LT(relError(dyn->displacement(), rotating->displacement()), 1e-9) << toString(kind);
   }
 }
@@ -183,15 +190,18 @@ TEST(IntegratorInput, BrokenPreconditionsThrow) {
   const auto mesh = gridMesh(3, 3, 0.03, 0.03, 0.0, kSeed);
   const FemModel model(mesh, std::vector<ElementMaterial>(mesh.triangleCount(), tissue()));
   EXPECT_THROW(makeIntegrator(IntegratorKind::kNewmark, model, {-1}), std::invalid_argument);
-  EXPECT_THROW(makeIntegrator(IntegratorKind::kNewmark, model, {model.dofCount()}), std::invalid_argument);
+  EXPECT_THROW(makeIntegrator(IntegratorKind::kNewmark, model, {model.dofCount()}),
+               std::invalid_argument);
   auto integ = makeIntegrator(IntegratorKind::kQuasiStatic, model, {0, 1});
   Eigen::VectorXd r;
   EXPECT_THROW(integ->step(kDt_s, Eigen::VectorXd::Zero(3), {}, r), std::invalid_argument);
-  EXPECT_THROW(integ->step(kDt_s, Eigen::VectorXd::Zero(model.dofCount()), {{0}, {0.0}}, r), std::invalid_argument);
+  EXPECT_THROW(integ->step(kDt_s, Eigen::VectorXd::Zero(model.dofCount()), {{0}, {0.0}}, r),
+               std::invalid_argument);
   EXPECT_THROW(integ->step(kDt_s, Eigen::VectorXd::Zero(model.dofCount()), {{4, 4}, {0.0, 0.0}}, r),
                std::invalid_argument);
-  EXPECT_THROW(integ->setState(Eigen::VectorXd::Zero(2), Eigen::VectorXd::Zero(2), Eigen::VectorXd::Zero(2)),
-               std::invalid_argument);
+  EXPECT_THROW(
+      integ->setState(Eigen::VectorXd::Zero(2), Eigen::VectorXd::Zero(2), Eigen::VectorXd::Zero(2)),
+      std::invalid_argument);
   EXPECT_STREQ(toString(IntegratorKind::kNewmark), "newmark");
 }
 

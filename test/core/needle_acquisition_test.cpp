@@ -19,7 +19,7 @@ namespace im = needle_guidance::imaging;
 namespace {
 
 constexpr double kPi = 3.14159265358979323846;
-constexpr double kTipTolerance_px = 8.0;     // the median target
+constexpr double kTipTolerance_px = 8.0;      // the median target
 constexpr double kTipP90Tolerance_px = 15.0;  // and its 90th-percentile target
 constexpr double kPsfReach_px = 3.0;  // blur of the drawn needle (sigma 1 px) and its 1 px radius
 constexpr double kAngleTolerance_rad = 3.0 * kPi / 180.0;

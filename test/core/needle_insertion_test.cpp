@@ -11,7 +11,7 @@
 namespace needle_guidance::tissue {
 namespace {
 
-constexpr double kConstraintTol_m = 1e-9;   // constrained nodes sit on the needle
+constexpr double kConstraintTol_m = 1e-9;  // constrained nodes sit on the needle
 constexpr double kDt_s = 0.005;
 constexpr double kVelocity_m_s = 0.01;
 
@@ -25,7 +25,8 @@ double minAreaRatio(const TissueSimulation& sim) {
 }
 
 /// Moves the needle tip from x0 to x1 at kVelocity_m_s, checking invariants after each step.
-void drive(TissueSimulation& sim, double height_m, double x0, double x1, double* min_ratio = nullptr) {
+void drive(TissueSimulation& sim, double height_m, double x0, double x1,
+           double* min_ratio = nullptr) {
   const int steps = static_cast<int>(std::ceil(std::abs(x1 - x0) / (kVelocity_m_s * kDt_s)));
   for (int i = 1; i <= steps; ++i) {
     const double x = x0 + (x1 - x0) * i / steps;
@@ -61,8 +62,8 @@ TEST_F(NeedleInsertionTest, InsertionCutsAndBuildsAShaft) {
   drive(sim_, target.position.y(), -0.005, target.position.x());
   EXPECT_TRUE(sim_.needle().inTissue());
   EXPECT_GE(sim_.needle().tipNode(), 0);
-  EXPECT_GE(sim_.needle().shaftNodes().size(), 5U) << "too few shaft nodes after "
-                                                   << target.position.x() << " m";
+  EXPECT_GE(sim_.needle().shaftNodes().size(), 5U)
+      << "too few shaft nodes after " << target.position.x() << " m";
   // The tissue is pushed ahead of the needle: the tip node's reference position lies behind the
   // tip (cut length b and the cutting force set how far).
   const Point2 tip_ref = *sim_.needle().tipReference();
@@ -78,7 +79,8 @@ TEST_F(NeedleInsertionTest, SeedFollowsTheTissueAndRetractionReleasesTheShaft) {
   const std::optional<int> id = sim_.implantSeed();
   ASSERT_TRUE(id.has_value());
   const Seed& seed = sim_.seeds().at(static_cast<std::size_t>(*id));
-  EXPECT_NEAR((sim_.seedPosition(seed) - Point2(target.position.x(), h)).norm(), 0.0, kConstraintTol_m);
+  EXPECT_NEAR((sim_.seedPosition(seed) - Point2(target.position.x(), h)).norm(), 0.0,
+              kConstraintTol_m);
   drive(sim_, h, target.position.x(), -0.002);
   EXPECT_FALSE(sim_.needle().inTissue());
   EXPECT_TRUE(sim_.needle().shaftNodes().empty());
@@ -99,7 +101,7 @@ TEST_F(NeedleInsertionTest, BadCommandsAreRefusedAndLeaveTheStateUnchanged) {
   EXPECT_FALSE(sim_.step(kDt_s, h, NAN));
   EXPECT_FALSE(sim_.step(kDt_s, NAN, 0.02));
   EXPECT_FALSE(sim_.step(0.0, h, 0.02));
-  EXPECT_FALSE(sim_.step(kDt_s, h + 0.001, 0.02));          // height change in tissue
+  EXPECT_FALSE(sim_.step(kDt_s, h + 0.001, 0.02));  // height change in tissue
   EXPECT_FALSE(sim_.step(kDt_s, scene_.workspace_max.y() + 0.01, 0.02));
   const StepStatus beyond = sim_.step(kDt_s, h, scene_.workspace_max.x() + 0.01);
   EXPECT_FALSE(beyond);
@@ -159,9 +161,10 @@ TEST(NeedleInsertionHardCases, NeedlePathAlongARegionBoundary) {
   stiff.young_modulus_Pa = 100.0 * scene.material("fat").young_modulus_Pa;
   scene.materials.push_back(stiff);
   scene.regions.clear();
-  scene.regions.push_back({"slab", "stiff",
-                           geometry::Polygon({{0.01, 0.01}, {0.05, 0.01}, {0.05, kBoundaryY_m}, {0.01, kBoundaryY_m}}),
-                           false});
+  scene.regions.push_back(
+      {"slab", "stiff",
+       geometry::Polygon({{0.01, 0.01}, {0.05, 0.01}, {0.05, kBoundaryY_m}, {0.01, kBoundaryY_m}}),
+       false});
   scene.targets.clear();
   scene.targets.push_back({"on_boundary", Point2(0.04, kBoundaryY_m), 0.0});
   TissueSimulation sim(scene);

@@ -16,12 +16,12 @@ namespace needle_guidance::registration {
 namespace {
 
 constexpr std::uint64_t kSeed = 3;
-constexpr double kDiceExactTol = 1e-12;          // exact polygon arithmetic [fraction]
-constexpr double kTargetDice = 0.975;            // issue target (fraction)
-constexpr double kTargetPointError_m = 0.001;    // issue target [m]
-constexpr double kTargetSeconds = 1.0;           // issue target per slice [s]
-constexpr double kRoundTripTol_m = 1e-9;         // T^-1(T(x)) = x [m]
-constexpr double kZeroDisplacementTol_m = 1e-12; // identical slices [m]
+constexpr double kDiceExactTol = 1e-12;           // exact polygon arithmetic [fraction]
+constexpr double kTargetDice = 0.975;             // issue target (fraction)
+constexpr double kTargetPointError_m = 0.001;     // issue target [m]
+constexpr double kTargetSeconds = 1.0;            // issue target per slice [s]
+constexpr double kRoundTripTol_m = 1e-9;          // T^-1(T(x)) = x [m]
+constexpr double kZeroDisplacementTol_m = 1e-12;  // identical slices [m]
 constexpr double kMm = 1e-3;
 
 Polygon square(double x0, double y0, double side) {
@@ -77,10 +77,12 @@ TEST(RegistrationCases, DeterministicWithKnownTruthOnAFinerMesh) {
   const ProbeCase a = generateProbeCase(ProbeType::kBalloon, 7);
   const ProbeCase b = generateProbeCase(ProbeType::kBalloon, 7);
   ASSERT_EQ(a.test_points_in.size(), b.test_points_in.size());
-  for (std::size_t i = 0; i < a.test_points_in.size(); ++i) EXPECT_EQ(a.test_points_in[i], b.test_points_in[i]);
+  for (std::size_t i = 0; i < a.test_points_in.size(); ++i)
+    EXPECT_EQ(a.test_points_in[i], b.test_points_in[i]);
   EXPECT_EQ(a.probe_in.prostate.outer.vertices(), b.probe_in.prostate.outer.vertices());
   EXPECT_TRUE(checkSegmentation(a.probe_out, a.probe_in).ok);
-  EXPECT_GE(a.truth.forward_mesh_nodes, 3 * RegistrationOptions{}.target_nodes);  // not the registration mesh
+  EXPECT_GE(a.truth.forward_mesh_nodes,
+            3 * RegistrationOptions{}.target_nodes);  // not the registration mesh
   EXPECT_GE(a.truth.cg_modulus_Pa, 40e3);
   EXPECT_LE(a.truth.cg_modulus_Pa, 90e3);
   // The probe moves the gland: test points are displaced by more than the target error.
@@ -113,7 +115,8 @@ void checkFastRegistration(const ProbeCase& pc) {
     EXPECT_NEAR((*x - p).norm(), 0.0, kRoundTripTol_m);
   }
   EXPECT_FALSE(r.forward(Point2(1.0, 1.0)).has_value());
-  const Point2 lumen = 0.5 * (pc.probe_out.rectum.outer.minCorner() + pc.probe_out.rectum.outer.maxCorner());
+  const Point2 lumen =
+      0.5 * (pc.probe_out.rectum.outer.minCorner() + pc.probe_out.rectum.outer.maxCorner());
   EXPECT_FALSE(r.forward(lumen).has_value());  // the rectum lumen is not tissue
   // Warped MRSI grid (3.3.3): 7 mm grid over the probe-in prostate, mapped by T^-1.
   ASSERT_GT(r.mrsi_grid.rows * r.mrsi_grid.cols, 4);
@@ -123,11 +126,16 @@ void checkFastRegistration(const ProbeCase& pc) {
       EXPECT_TRUE(r.mrsi_grid.probe_out[g].has_value());
     }
   }
-  for (const auto& rec : r.trace) EXPECT_TRUE(std::isfinite(rec.q));
+  for (const auto& rec : r.trace)
+    EXPECT_TRUE(std::isfinite(rec.q));
 }
 
-TEST(RegistrationFem, FastOptimizerMeetsTargetsOnBalloonCase) { checkFastRegistration(balloonCase()); }
-TEST(RegistrationFem, FastOptimizerMeetsTargetsOnRigidCase) { checkFastRegistration(rigidCase()); }
+TEST(RegistrationFem, FastOptimizerMeetsTargetsOnBalloonCase) {
+  checkFastRegistration(balloonCase());
+}
+TEST(RegistrationFem, FastOptimizerMeetsTargetsOnRigidCase) {
+  checkFastRegistration(rigidCase());
+}
 
 TEST(RegistrationFem, SteepestDescentWithArmijoIncreasesQ) {
   const ProbeCase& pc = rigidCase();
@@ -138,7 +146,8 @@ TEST(RegistrationFem, SteepestDescentWithArmijoIncreasesQ) {
   std::cout << "steepest descent: " << r.message << ", " << r.seconds << " s\n";
   ASSERT_TRUE(hasMapping(r.status)) << r.message;
   ASSERT_GE(r.trace.size(), 2u);
-  for (std::size_t i = 1; i < r.trace.size(); ++i) EXPECT_GT(r.trace[i].q, r.trace[i - 1].q);  // Armijo: every step improves Q
+  for (std::size_t i = 1; i < r.trace.size(); ++i)
+    EXPECT_GT(r.trace[i].q, r.trace[i - 1].q);  // Armijo: every step improves Q
   EXPECT_GE(r.dice, kTargetDice);
   EXPECT_LE(meanPointError(*r.mapping, pc), kTargetPointError_m);
 }
@@ -154,7 +163,8 @@ TEST(RegistrationFem, OnlyStiffnessRatiosAreIdentifiable) {
   ASSERT_TRUE(hasMapping(ra.status) && hasMapping(rb.status));
   EXPECT_NEAR(ra.dice, rb.dice, 1e-6);
   EXPECT_NEAR(rb.modulus_Pa[kCentralGland] / rb.modulus_Pa[kSurrounding],
-              ra.modulus_Pa[kCentralGland] / ra.modulus_Pa[kSurrounding], 1e-3 * ra.modulus_Pa[kCentralGland] / 30e3);
+              ra.modulus_Pa[kCentralGland] / ra.modulus_Pa[kSurrounding],
+              1e-3 * ra.modulus_Pa[kCentralGland] / 30e3);
 }
 
 // ---- Baselines --------------------------------------------------------------------------------
@@ -167,20 +177,25 @@ TEST(RegistrationBaselines, RigidAndIntensityBaselinesAreWorseOnPointError) {
   const BaselineResult rigid = rigidCentreOfMass(pc.probe_out, pc.probe_in);
   ASSERT_TRUE(hasMapping(rigid.status));
   const SyntheticImagePair images = renderProbeImages(pc);
-  const BaselineResult demons = intensityRegistration(images, prostateLoops(pc.probe_out), pc.probe_in.prostate.outer);
+  const BaselineResult demons =
+      intensityRegistration(images, prostateLoops(pc.probe_out), pc.probe_in.prostate.outer);
   ASSERT_TRUE(hasMapping(demons.status)) << demons.message;
-  const double rigid_error = meanPointError(*rigid.mapping, pc), demons_error = meanPointError(*demons.mapping, pc);
-  std::cout << "point error [mm]: fem " << fem_error * 1e3 << ", rigid " << rigid_error * 1e3 << ", demons "
-            << demons_error * 1e3 << "; Dice [%]: fem " << fem.dice * 100 << ", rigid " << rigid.dice * 100 << ", demons "
-            << demons.dice * 100 << "\n";
+  const double rigid_error = meanPointError(*rigid.mapping, pc),
+               demons_error = meanPointError(*demons.mapping, pc);
+  std::cout << "point error [mm]: fem " << fem_error * 1e3 << ", rigid " << rigid_error * 1e3
+            << ", demons " << demons_error * 1e3 << "; Dice [%]: fem " << fem.dice * 100
+            << ", rigid " << rigid.dice * 100 << ", demons " << demons.dice * 100 << "\n";
   EXPECT_LT(fem_error, rigid_error);
   EXPECT_LT(fem_error, demons_error);
-  EXPECT_LT(demons_error, meanPointError(TranslationMapping(Point2::Zero()), pc));  // demons does register
+  EXPECT_LT(demons_error,
+            meanPointError(TranslationMapping(Point2::Zero()), pc));  // demons does register
   if (intensityMethodAvailable(IntensityMethod::kDisOpticalFlow)) {
-    const BaselineResult dis = intensityRegistration(images, prostateLoops(pc.probe_out), pc.probe_in.prostate.outer,
-                                                     IntensityMethod::kDisOpticalFlow);
+    const BaselineResult dis =
+        intensityRegistration(images, prostateLoops(pc.probe_out), pc.probe_in.prostate.outer,
+                              IntensityMethod::kDisOpticalFlow);
     ASSERT_TRUE(hasMapping(dis.status)) << dis.message;
-    std::cout << "point error [mm]: DIS optical flow " << meanPointError(*dis.mapping, pc) * 1e3 << "\n";
+    std::cout << "point error [mm]: DIS optical flow " << meanPointError(*dis.mapping, pc) * 1e3
+              << "\n";
     EXPECT_LT(fem_error, meanPointError(*dis.mapping, pc));
   } else {
     EXPECT_EQ(intensityRegistration(images, prostateLoops(pc.probe_out), pc.probe_in.prostate.outer,
@@ -196,15 +211,18 @@ TEST(RegistrationHardCases, ProbeThatDoesNotEncloseTheRectumIsRefused) {
   const ProbeCase& pc = balloonCase();
   ProbeInSegmentation moved = pc.probe_in;
   std::vector<Point2> v = moved.probe.outer.vertices();
-  for (Point2& p : v) p += Point2(0.0, -0.03);  // 30 mm posterior: misses the rectum
+  for (Point2& p : v)
+    p += Point2(0.0, -0.03);  // 30 mm posterior: misses the rectum
   moved.probe = Polygon(v);
   const RegistrationResult r = registerSlices(pc.probe_out, moved);
   EXPECT_EQ(r.status, RegistrationStatus::kProbeDoesNotEncloseRectum) << r.message;
   expectNoMapping(r);
   // Partly outside (rectum wall 3 mm outside the probe): refused too.
   v = pc.probe_in.probe.outer.vertices();
-  const double drop_m = pc.probe_in.probe.outer.maxCorner().y() - pc.probe_out.rectum.outer.maxCorner().y() + 0.003;
-  for (Point2& p : v) p.y() -= drop_m;  // the probe's top 3 mm below the rectum's top
+  const double drop_m =
+      pc.probe_in.probe.outer.maxCorner().y() - pc.probe_out.rectum.outer.maxCorner().y() + 0.003;
+  for (Point2& p : v)
+    p.y() -= drop_m;  // the probe's top 3 mm below the rectum's top
   moved.probe = Polygon(v);
   const RegistrationResult partly = registerSlices(pc.probe_out, moved);
   EXPECT_EQ(partly.status, RegistrationStatus::kProbeDoesNotEncloseRectum) << partly.message;
@@ -225,7 +243,8 @@ TEST(RegistrationHardCases, SegmentationWithHoleOrSelfIntersectionIsRefused) {
   EXPECT_EQ(r.status, RegistrationStatus::kInvalidSegmentation);
   EXPECT_NE(r.message.find("not simple"), std::string::npos) << r.message;
   expectNoMapping(r);
-  EXPECT_EQ(rigidCentreOfMass(pc.probe_out, bow_tie).status, RegistrationStatus::kInvalidSegmentation);
+  EXPECT_EQ(rigidCentreOfMass(pc.probe_out, bow_tie).status,
+            RegistrationStatus::kInvalidSegmentation);
 
   SliceSegmentation overlapping = pc.probe_out;  // PZ overlapping the CG
   overlapping.pz = Polygon(overlapping.cg.outer);
@@ -246,7 +265,8 @@ TEST(RegistrationHardCases, IdenticalSlicesTerminateImmediatelyWithZeroDisplacem
     EXPECT_EQ(r.iterations, 0);
     EXPECT_NEAR(r.dice, 1.0, 1e-9);
     double max_u = 0.0;
-    for (const Point2& u : r.displacement_m) max_u = std::max(max_u, u.norm());
+    for (const Point2& u : r.displacement_m)
+      max_u = std::max(max_u, u.norm());
     EXPECT_LE(max_u, kZeroDisplacementTol_m);
     EXPECT_EQ(r.modulus_Pa, options.initial_modulus_Pa);
   }

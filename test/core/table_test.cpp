@@ -10,7 +10,8 @@ TEST(TableTest, FormatsCsvMarkdownAndText) {
   table.addRow({std::string("t01"), 0.12345});
   table.addRow({std::string("a,b"), 2.0});
   EXPECT_EQ(table.toCsv(), "name,error_mm\nt01,0.123\n\"a,b\",2\n");
-  EXPECT_EQ(table.toMarkdown(), "| name | error_mm |\n| --- | --- |\n| t01 | 0.123 |\n| a,b | 2 |\n");
+  EXPECT_EQ(table.toMarkdown(),
+            "| name | error_mm |\n| --- | --- |\n| t01 | 0.123 |\n| a,b | 2 |\n");
   EXPECT_EQ(table.toText(), "name  error_mm\n t01     0.123\n a,b         2\n");
   EXPECT_DOUBLE_EQ(table.number(0, "error_mm"), 0.12345);
   EXPECT_THROW(table.number(0, "name"), std::invalid_argument);

@@ -14,13 +14,13 @@
 #include <filesystem>
 #include <mutex>
 
+#include "../ros_wait.h"
 #include "needle_guidance/AfterloaderState.h"
 #include "needle_guidance/DeliverAction.h"
 #include "needle_guidance/SetChannelObstruction.h"
 #include "needle_guidance/delivery/journal.h"
 #include "needle_guidance/delivery/schedule.h"
 #include "needle_guidance/ros/delivery_conversions.h"
-#include "../ros_wait.h"
 
 namespace {
 
@@ -28,10 +28,10 @@ namespace ng = needle_guidance;
 namespace delivery = needle_guidance::delivery;
 using Client = actionlib::SimpleActionClient<ng::DeliverAction>;
 
-constexpr double kExactS = 1e-9;        // [s] journal totals against the plan
-constexpr double kQuantumS = 0.05;      // [s] the node's default commit quantum
-constexpr double kSourceSpeed = 0.5;    // [m/s] the node's default
-constexpr double kResultWaitS = 60.0;   // [s] wall time for one delivery at 10x
+constexpr double kExactS = 1e-9;       // [s] journal totals against the plan
+constexpr double kQuantumS = 0.05;     // [s] the node's default commit quantum
+constexpr double kSourceSpeed = 0.5;   // [m/s] the node's default
+constexpr double kResultWaitS = 60.0;  // [s] wall time for one delivery at 10x
 
 std::mutex g_mutex;
 ng::AfterloaderState g_state;
@@ -42,7 +42,8 @@ bool g_fraction_decreased = false;
 /// Three channels (2, 5, 7) along -z, tip at z = 0, 1 m transfer tube, 4 dwells every 5 mm.
 delivery::Schedule schedule(const std::string& name) {
   delivery::Schedule s;
-  s.plan_id = name + "_" + std::to_string(getpid()) + "_" + std::to_string(ros::WallTime::now().toNSec());
+  s.plan_id =
+      name + "_" + std::to_string(getpid()) + "_" + std::to_string(ros::WallTime::now().toNSec());
   s.plan_air_kerma_strength_U = s.current_air_kerma_strength_U = 40700.0;
   int n = 0;
   for (int ch : {2, 5, 7}) {
@@ -76,7 +77,12 @@ ng::AfterloaderState state() {
 
 /// Waits until the source dwells and at least `fraction` of the plan is delivered.
 bool waitDwelling(double fraction) {
-  return waitFor([&] { const auto s = state(); return s.dwell >= 0 && s.delivered_fraction >= fraction; }, 30.0);
+  return waitFor(
+      [&] {
+        const auto s = state();
+        return s.dwell >= 0 && s.delivered_fraction >= fraction;
+      },
+      30.0);
 }
 
 Client& client() {
@@ -95,7 +101,8 @@ void send(const delivery::Schedule& s) {
                     [](const ng::DeliverFeedbackConstPtr& f) {
                       std::lock_guard<std::mutex> lock(g_mutex);
                       ++g_feedback;
-                      if (f->delivered_fraction < g_last_fraction - 1e-12) g_fraction_decreased = true;
+                      if (f->delivered_fraction < g_last_fraction - 1e-12)
+                        g_fraction_decreased = true;
                       g_last_fraction = f->delivered_fraction;
                     });
 }
@@ -104,14 +111,16 @@ void send(const delivery::Schedule& s) {
 void expectExact(const ng::DeliverResult& r, const delivery::Schedule& s) {
   ASSERT_EQ(r.delivered_s.size(), s.dwellCount());
   for (std::size_t k = 0; k < r.delivered_s.size(); ++k) {
-    EXPECT_NEAR(r.delivered_s[k], r.planned_s[k], kExactS) << "channel " << r.channel[k] << " dwell " << r.dwell_index[k];
+    EXPECT_NEAR(r.delivered_s[k], r.planned_s[k], kExactS)
+        << "channel " << r.channel[k] << " dwell " << r.dwell_index[k];
   }
 }
 
 /// Waits for the running goal's result; it must have completed with every dwell exact.
 ng::DeliverResult expectCompleted(const delivery::Schedule& s) {
   EXPECT_TRUE(client().waitForResult(ros::Duration(kResultWaitS)));
-  EXPECT_EQ(client().getState(), actionlib::SimpleClientGoalState::SUCCEEDED) << client().getState().getText();
+  EXPECT_EQ(client().getState(), actionlib::SimpleClientGoalState::SUCCEEDED)
+      << client().getState().getText();
   const ng::DeliverResult r = client().getResult() ? *client().getResult() : ng::DeliverResult{};
   EXPECT_EQ(r.status, "completed") << r.message;
   expectExact(r, s);
@@ -147,15 +156,18 @@ int afterloaderPid() {
   XmlRpc::XmlRpcValue args, result, payload;
   args[0] = ros::this_node::getName();
   args[1] = "/afterloader";
-  if (!ros::master::execute("lookupNode", args, result, payload, true)) return -1;
+  if (!ros::master::execute("lookupNode", args, result, payload, true))
+    return -1;
   const std::string uri = payload;
   std::string host;
   uint32_t port = 0;
-  if (!ros::network::splitURI(uri, host, port)) return -1;
+  if (!ros::network::splitURI(uri, host, port))
+    return -1;
   XmlRpc::XmlRpcClient rpc(host.c_str(), static_cast<int>(port), "/");
   XmlRpc::XmlRpcValue pid_args, pid_result;
   pid_args[0] = ros::this_node::getName();
-  if (!rpc.execute("getPid", pid_args, pid_result) || pid_result.size() < 3) return -1;
+  if (!rpc.execute("getPid", pid_args, pid_result) || pid_result.size() < 3)
+    return -1;
   return static_cast<int>(pid_result[2]);
 }
 
@@ -166,9 +178,11 @@ TEST(Afterloader, DeliversAScheduleExactly) {
   const auto r = expectCompleted(s);
   ASSERT_EQ(r.trips.size(), 3u);
   double transit = 0.0;
-  for (const auto& c : s.channels) transit += delivery::tripTransitSeconds(c, kSourceSpeed);
+  for (const auto& c : s.channels)
+    transit += delivery::tripTransitSeconds(c, kSourceSpeed);
   EXPECT_NEAR(r.transit_in_patient_s, transit, 1e-6);
-  for (int t : r.trips) EXPECT_EQ(t, 1);
+  for (int t : r.trips)
+    EXPECT_EQ(t, 1);
   std::lock_guard<std::mutex> lock(g_mutex);
   EXPECT_GE(g_feedback, 3);
   EXPECT_FALSE(g_fraction_decreased);
@@ -225,11 +239,15 @@ TEST(Afterloader, ObstructionMidDwellRetractsAndSkipsTheChannel) {
   EXPECT_EQ(client().getState(), actionlib::SimpleClientGoalState::ABORTED);
   auto r = *client().getResult();
   EXPECT_EQ(r.status, "stopped");
-  EXPECT_NE(r.message.find("channel(s) " + std::to_string(channel)), std::string::npos) << r.message;
+  EXPECT_NE(r.message.find("channel(s) " + std::to_string(channel)), std::string::npos)
+      << r.message;
   double short_s = 0.0;
   for (std::size_t k = 0; k < r.channel.size(); ++k) {
-    if (r.channel[k] == channel) short_s += r.planned_s[k] - r.delivered_s[k];
-    else EXPECT_NEAR(r.delivered_s[k], r.planned_s[k], kExactS) << "other channels are delivered in full";
+    if (r.channel[k] == channel)
+      short_s += r.planned_s[k] - r.delivered_s[k];
+    else
+      EXPECT_NEAR(r.delivered_s[k], r.planned_s[k], kExactS)
+          << "other channels are delivered in full";
   }
   EXPECT_GT(short_s, 1.0);
   ASSERT_TRUE(obstruct(channel, false));
@@ -265,7 +283,8 @@ TEST(Afterloader, RefusesUnknownChannelsAndNegativeTimesBeforeAnythingMoves) {
   send(s);
   ASSERT_TRUE(client().waitForResult(ros::Duration(10.0)));
   EXPECT_EQ(client().getState(), actionlib::SimpleClientGoalState::REJECTED);
-  EXPECT_NE(client().getResult()->message.find("time -1"), std::string::npos) << client().getResult()->message;
+  EXPECT_NE(client().getResult()->message.find("time -1"), std::string::npos)
+      << client().getResult()->message;
   EXPECT_FALSE(std::filesystem::exists(journalPath(s)));
   EXPECT_EQ(state().channel, 0);  // nothing moved
 }
@@ -278,7 +297,12 @@ TEST(Afterloader, SigkillMidDwellThenRestartResumesWithExactTotals) {
   ASSERT_GT(pid, 0);
   ASSERT_EQ(::kill(pid, SIGKILL), 0);
   // roslaunch respawns the node; its first latched state comes from the new process.
-  ASSERT_TRUE(waitFor([&] { const int p = afterloaderPid(); return p > 0 && p != pid; }, 30.0));
+  ASSERT_TRUE(waitFor(
+      [&] {
+        const int p = afterloaderPid();
+        return p > 0 && p != pid;
+      },
+      30.0));
   ASSERT_TRUE(client().waitForServer(ros::Duration(30.0)));
   ros::WallDuration(1.0).sleep();  // let the goal topic connect to the new server
   send(s);
@@ -291,7 +315,8 @@ TEST(Afterloader, SigkillMidDwellThenRestartResumesWithExactTotals) {
   EXPECT_EQ(ledger.seq_gaps, 0);
   EXPECT_GE(ledger.interruptions, 1);
   double doubt = 0.0;
-  for (const auto& [key, u] : ledger.uncertainty_s) doubt += u;
+  for (const auto& [key, u] : ledger.uncertainty_s)
+    doubt += u;
   EXPECT_LE(doubt, kQuantumS + kExactS);
   for (const auto& c : s.channels) {
     for (std::size_t k = 0; k < c.time_s.size(); ++k) {
@@ -306,10 +331,11 @@ int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);
   ros::init(argc, argv, "afterloader_rostest");
   ros::NodeHandle nh;
-  const boost::function<void(const ng::AfterloaderStateConstPtr&)> on_state = [](const ng::AfterloaderStateConstPtr& m) {
-    std::lock_guard<std::mutex> lock(g_mutex);
-    g_state = *m;
-  };
+  const boost::function<void(const ng::AfterloaderStateConstPtr&)> on_state =
+      [](const ng::AfterloaderStateConstPtr& m) {
+        std::lock_guard<std::mutex> lock(g_mutex);
+        g_state = *m;
+      };
   ros::Subscriber sub = nh.subscribe<ng::AfterloaderState>("afterloader/state", 10, on_state);
   ros::AsyncSpinner spinner(2);
   spinner.start();

@@ -12,10 +12,10 @@
 #include <string>
 #include <vector>
 
+#include "../ros_wait.h"
 #include "needle_guidance/DwellPlan.h"
 #include "needle_guidance/EvaluateDelivery.h"
 #include "needle_guidance/PlanDwells.h"
-#include "../ros_wait.h"
 
 namespace {
 

@@ -13,7 +13,8 @@
 
 namespace {
 
-constexpr double kExactS = 1e-6;  // [s] delivered vs planned per dwell (journal, 1e-9 s + CSV rounding)
+constexpr double kExactS =
+    1e-6;  // [s] delivered vs planned per dwell (journal, 1e-9 s + CSV rounding)
 
 TEST(HdrDelivery, PlanDeliverEvaluateReport) {
   ros::NodeHandle private_nh("~");
@@ -25,7 +26,8 @@ TEST(HdrDelivery, PlanDeliverEvaluateReport) {
   text << std::ifstream(summary).rdbuf();
   EXPECT_NE(text.str().find("\"success\": true"), std::string::npos) << text.str();
   EXPECT_NE(text.str().find("\"status\": \"completed\""), std::string::npos) << text.str();
-  EXPECT_EQ(text.str().find("\"interruptions\": 0,"), std::string::npos) << "the operator pause is not in the record";
+  EXPECT_EQ(text.str().find("\"interruptions\": 0,"), std::string::npos)
+      << "the operator pause is not in the record";
 
   const auto dwells = readCsvRows(report_dir + "/delivery.csv");
   ASSERT_GT(dwells.size(), 20u);
@@ -42,7 +44,8 @@ TEST(HdrDelivery, PlanDeliverEvaluateReport) {
   for (const auto& row : indices) {
     const double p = std::stod(row.at("planned")), d = std::stod(row.at("delivered")),
                  t = std::stod(row.at("delivered_with_transit"));
-    EXPECT_NEAR(d, p, 1e-6 * std::max(1.0, std::abs(p))) << row.at("index") << ": delivered as planned";
+    EXPECT_NEAR(d, p, 1e-6 * std::max(1.0, std::abs(p)))
+        << row.at("index") << ": delivered as planned";
     if (row.at("index") == "prostate_D90") {
       found_d90 = true;
       EXPECT_GT(t, d) << "the transit adds dose";

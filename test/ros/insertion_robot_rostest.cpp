@@ -8,10 +8,10 @@
 #include <mutex>
 #include <vector>
 
+#include "../ros_wait.h"
 #include "needle_guidance/FlipBevelAction.h"
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/OperatingState.h"
-#include "../ros_wait.h"
 
 namespace {
 
@@ -19,9 +19,9 @@ using LinearMoveClient = actionlib::SimpleActionClient<needle_guidance::LinearMo
 using FlipBevelClient = actionlib::SimpleActionClient<needle_guidance::FlipBevelAction>;
 using State = actionlib::SimpleClientGoalState;
 
-constexpr double kDepthTol_m = 1e-6;         // reached depth vs commanded
-constexpr double kVelocityRelTol = 0.02;     // measured insertion speed vs commanded
-constexpr double kUnchangedTol = 1e-12;      // a refused command moves nothing
+constexpr double kDepthTol_m = 1e-6;      // reached depth vs commanded
+constexpr double kVelocityRelTol = 0.02;  // measured insertion speed vs commanded
+constexpr double kUnchangedTol = 1e-12;   // a refused command moves nothing
 const ros::Duration kTimeout(20.0);
 
 struct Sample {
@@ -34,8 +34,8 @@ struct Sample {
 class InsertionRobotTest : public ::testing::Test {
 protected:
   void SetUp() override {
-    js_sub_ = nh_.subscribe("insertion_robot/measured_js", 1000,
-                            &InsertionRobotTest::onJointState, this);
+    js_sub_ =
+        nh_.subscribe("insertion_robot/measured_js", 1000, &InsertionRobotTest::onJointState, this);
     op_sub_ = nh_.subscribe("insertion_robot/operating_state", 10,
                             &InsertionRobotTest::onOperatingState, this);
     ASSERT_TRUE(height_.waitForServer(kTimeout));
@@ -51,8 +51,8 @@ protected:
     EXPECT_EQ(msg->name[0], "height");
     EXPECT_EQ(msg->name[1], "insertion");
     EXPECT_EQ(msg->name[2], "bevel");
-    samples_.push_back({msg->header.stamp.toSec(), msg->position[0], msg->position[1],
-                        msg->position[2]});
+    samples_.push_back(
+        {msg->header.stamp.toSec(), msg->position[0], msg->position[1], msg->position[2]});
   }
   void onOperatingState(const needle_guidance::OperatingStateConstPtr& msg) {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -158,10 +158,10 @@ TEST_F(InsertionRobotTest, OutOfLimitsCommandsAreRefusedAndNothingMoves) {
   EXPECT_NE(insert_.getResult()->message.find("max depth"), std::string::npos);
   EXPECT_EQ(move(insert_, 0.02, 1.0), State::ABORTED);  // faster than the velocity limit
   EXPECT_NE(insert_.getResult()->message.find("velocity"), std::string::npos);
-  EXPECT_EQ(move(insert_, 0.02, -0.01), State::ABORTED);  // negative velocity
-  EXPECT_EQ(move(height_, -0.01, 0.01), State::ABORTED);  // below the height limit
+  EXPECT_EQ(move(insert_, 0.02, -0.01), State::ABORTED);    // negative velocity
+  EXPECT_EQ(move(height_, -0.01, 0.01), State::ABORTED);    // below the height limit
   EXPECT_EQ(move(height_, 0.002, 0.01), State::SUCCEEDED);  // allowed outside tissue...
-  EXPECT_EQ(move(insert_, 0.01, 0.01), State::ABORTED);    // ...but not an entry height
+  EXPECT_EQ(move(insert_, 0.01, 0.01), State::ABORTED);     // ...but not an entry height
   EXPECT_NE(insert_.getResult()->message.find("entry range"), std::string::npos);
   EXPECT_EQ(move(height_, before.height_m, 0.01), State::SUCCEEDED);
   expectUnchanged(before, settledState());

@@ -14,6 +14,7 @@
 #include <optional>
 #include <string>
 
+#include "../ros_wait.h"
 #include "needle_guidance/FlipBevelAction.h"
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/NeedleTip.h"
@@ -21,7 +22,6 @@
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/continuous_workspace.h"
 #include "needle_guidance/steering/steering_model.h"
-#include "../ros_wait.h"
 
 namespace {
 

@@ -8,14 +8,14 @@
 #include <mutex>
 #include <optional>
 
-#include "needle_guidance/Register.h"
 #include "../ros_wait.h"
+#include "needle_guidance/Register.h"
 
 namespace {
 
 using needle_guidance::Register;
-constexpr double kMinDice = 0.97;           // synthetic balloon case, default options
-constexpr double kMaxPointError_mm = 1.0;   // issue 9 target
+constexpr double kMinDice = 0.97;          // synthetic balloon case, default options
+constexpr double kMaxPointError_mm = 1.0;  // issue 9 target
 
 class RegistrationNodeTest : public ::testing::Test {
 protected:

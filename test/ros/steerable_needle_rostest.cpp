@@ -20,10 +20,11 @@
 namespace {
 
 constexpr int kTrials = 8;
-constexpr double kMmTol = 1e-3;       // [mm] CSV rounding of positions (6 significant digits)
+constexpr double kMmTol = 1e-3;  // [mm] CSV rounding of positions (6 significant digits)
 constexpr double kContactTol = 0.05;
 // [mm] a tip the tracker called confident (position sd <= 0.5 mm) is within this of the truth
-constexpr double kConfidentTipErrorMm = 2.5;  // [mm] a stopped tip lies on the workspace edge or outside no further
+constexpr double kConfidentTipErrorMm =
+    2.5;  // [mm] a stopped tip lies on the workspace edge or outside no further
 
 TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
   ros::NodeHandle private_nh("~");
@@ -46,7 +47,8 @@ TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
                                           "step_limit"};
   std::map<std::string, std::string> outcome_of;
   for (const auto& row : trials) {
-    EXPECT_TRUE(outcomes.count(row.at("outcome"))) << row.at("outcome") << ": " << row.at("message");
+    EXPECT_TRUE(outcomes.count(row.at("outcome")))
+        << row.at("outcome") << ": " << row.at("message");
     outcome_of[row.at("trial")] = row.at("outcome");
   }
 
@@ -54,7 +56,8 @@ TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
   // the target disc; every flip decision is followed by a bevel change.
   const auto decisions = readCsvRows(report_dir + "/decisions.csv");
   std::map<std::string, std::vector<std::map<std::string, std::string>>> by_trial;
-  for (const auto& row : decisions) by_trial[row.at("trial")].push_back(row);
+  for (const auto& row : decisions)
+    by_trial[row.at("trial")].push_back(row);
   ASSERT_EQ(by_trial.size(), static_cast<std::size_t>(kTrials));
   const double tx = problem.target.position.x() * 1e3, ty = problem.target.position.y() * 1e3;
   const double tr = problem.target.radius_m * 1e3;
@@ -63,9 +66,11 @@ TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
     EXPECT_NEAR(std::stod(rows.front().at("x_mm")), 0.0, kMmTol) << "trial " << trial;
     for (std::size_t i = 0; i + 1 < rows.size(); ++i) {
       if (rows[i].at("control") == "flip") {
-        EXPECT_NE(rows[i].at("bevel"), rows[i + 1].at("bevel")) << "trial " << trial << " step " << i;
+        EXPECT_NE(rows[i].at("bevel"), rows[i + 1].at("bevel"))
+            << "trial " << trial << " step " << i;
       } else if (rows[i].at("control") == "insert") {
-        EXPECT_EQ(rows[i].at("bevel"), rows[i + 1].at("bevel")) << "trial " << trial << " step " << i;
+        EXPECT_EQ(rows[i].at("bevel"), rows[i + 1].at("bevel"))
+            << "trial " << trial << " step " << i;
       }
     }
     const double x = std::stod(rows.back().at("x_mm")), y = std::stod(rows.back().at("y_mm"));
@@ -73,7 +78,8 @@ TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
       EXPECT_LE(std::hypot(x - tx, y - ty), tr + kMmTol) << "trial " << trial;
     } else if (outcome_of[trial] == "left_workspace") {
       const double edge = std::min({x, y, 100.0 - x, 100.0 - y});
-      EXPECT_NEAR(edge, 0.0, kContactTol) << "trial " << trial << " stopped at (" << x << ", " << y << ")";
+      EXPECT_NEAR(edge, 0.0, kContactTol)
+          << "trial " << trial << " stopped at (" << x << ", " << y << ")";
     }
   }
   // With image feedback (steerable_needle_image.test) the policy acted on tracked tips: every

@@ -21,9 +21,9 @@ namespace {
 using needle_guidance::NeedleTip;
 namespace im = needle_guidance::imaging;
 
-constexpr double kPixel_m = 1e-4;        // ~pixel_size_m in the .test file
-constexpr double kTipTol_px = 8.0;       // the median target on real frames [px]
-constexpr double kAdvance_px = 10.0;     // tip motion per frame along the axis [px]
+constexpr double kPixel_m = 1e-4;     // ~pixel_size_m in the .test file
+constexpr double kTipTol_px = 8.0;    // the median target on real frames [px]
+constexpr double kAdvance_px = 10.0;  // tip motion per frame along the axis [px]
 constexpr int kFrames = 14;
 const cv::Size kSize(720, 440);
 
@@ -33,7 +33,8 @@ protected:
     pub_ = nh_.advertise<sensor_msgs::Image>("frames", 10);
     sub_ = nh_.subscribe("tip_tracker/tip", 100, &RecordedSequence::onTip, this);
     const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(20.0);
-    while (ros::WallTime::now() < end && (pub_.getNumSubscribers() == 0 || sub_.getNumPublishers() == 0)) {
+    while (ros::WallTime::now() < end &&
+           (pub_.getNumSubscribers() == 0 || sub_.getNumPublishers() == 0)) {
       ros::WallDuration(0.05).sleep();
     }
     ASSERT_GT(pub_.getNumSubscribers(), 0U);
@@ -48,7 +49,8 @@ protected:
       {
         std::lock_guard<std::mutex> lock(mutex_);
         for (const auto& t : tips_) {
-          if (t.header.stamp == stamp) return t;
+          if (t.header.stamp == stamp)
+            return t;
         }
       }
       ros::WallDuration(0.01).sleep();
@@ -79,7 +81,8 @@ TEST_F(RecordedSequence, AcquiresFollowsAndEarnsConfidenceWithoutARobot) {
     const ros::Time stamp = send(im::syntheticBMode(kSize, 7, iface, needle), k);
     const auto tip = answerTo(stamp);
     ASSERT_TRUE(tip) << "no answer to frame " << k;
-    if (!tip->confident) continue;
+    if (!tip->confident)
+      continue;
     ++confident;
     // Pixel (col, row) -> scene with origin (0, 0) at the top-left corner, y up.
     const double col = tip->pose.x / kPixel_m - 0.5, row = -tip->pose.y / kPixel_m - 0.5;

@@ -10,11 +10,11 @@
 #include <string>
 #include <vector>
 
+#include "../ros_wait.h"
 #include "needle_guidance/ImageCalibration.h"
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SetEntryPose.h"
-#include "../ros_wait.h"
 
 namespace {
 
@@ -24,8 +24,8 @@ using needle_guidance::NeedleTip;
 constexpr double kPi = 3.14159265358979323846;
 constexpr double kStep_m = 2.0 * kPi * 0.05 / 40.0;  // delta of steering_workspace
 constexpr double kEntryHeight_m = 0.05;
-constexpr double kEntryTol_m = 0.2e-3;    // the guide pose is known: [m]
-constexpr double kTipTol_m = 1.0e-3;      // tracked vs true tip after an insertion [m]
+constexpr double kEntryTol_m = 0.2e-3;  // the guide pose is known: [m]
+constexpr double kTipTol_m = 1.0e-3;    // tracked vs true tip after an insertion [m]
 constexpr double kHeadingTol_rad = 5.0 * kPi / 180.0;
 constexpr double kInsertVelocity_m_s = 0.05;
 const ros::Duration kTimeout(20.0);
@@ -34,8 +34,8 @@ class TipTrackerChainTest : public ::testing::Test {
 protected:
   void SetUp() override {
     tracked_sub_ = nh_.subscribe("tip_tracker/tip", 100, &TipTrackerChainTest::onTracked, this);
-    truth_sub_ = nh_.subscribe("insertion_robot/measured_tip", 100, &TipTrackerChainTest::onTruth,
-                               this);
+    truth_sub_ =
+        nh_.subscribe("insertion_robot/measured_tip", 100, &TipTrackerChainTest::onTruth, this);
     calibration_sub_ =
         nh_.subscribe("imager/calibration", 1, &TipTrackerChainTest::onCalibration, this);
     image_pub_ = nh_.advertise<sensor_msgs::Image>("imager/image", 5);
@@ -43,10 +43,13 @@ protected:
     ASSERT_TRUE(entry_.waitForExistence(kTimeout));
     ASSERT_TRUE(insert_.waitForServer(kTimeout));
     ASSERT_TRUE(retract_.waitForServer(kTimeout));
-    ASSERT_TRUE(waitFor([this] {
-      std::lock_guard<std::mutex> lock(mutex_);
-      return truth_.has_value() && calibration_.has_value() && !tracked_.empty();
-    }, 30.0)) << "no tracked tip, true tip or calibration";
+    ASSERT_TRUE(waitFor(
+        [this] {
+          std::lock_guard<std::mutex> lock(mutex_);
+          return truth_.has_value() && calibration_.has_value() && !tracked_.empty();
+        },
+        30.0))
+        << "no tracked tip, true tip or calibration";
   }
 
   void onTracked(const needle_guidance::NeedleTipConstPtr& msg) {
@@ -66,16 +69,18 @@ protected:
   std::optional<NeedleTip> trackedAfter(const ros::Time& since, Accept accept,
                                         double timeout_s = 10.0) {
     std::optional<NeedleTip> found;
-    waitFor([&] {
-      std::lock_guard<std::mutex> lock(mutex_);
-      for (const NeedleTip& t : tracked_) {
-        if (t.header.stamp >= since && accept(t)) {
-          found = t;
-          return true;
-        }
-      }
-      return false;
-    }, timeout_s);
+    waitFor(
+        [&] {
+          std::lock_guard<std::mutex> lock(mutex_);
+          for (const NeedleTip& t : tracked_) {
+            if (t.header.stamp >= since && accept(t)) {
+              found = t;
+              return true;
+            }
+          }
+          return false;
+        },
+        timeout_s);
     return found;
   }
   NeedleTip truth() {

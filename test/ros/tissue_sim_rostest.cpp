@@ -8,18 +8,18 @@
 #include <cmath>
 #include <mutex>
 
+#include "../ros_wait.h"
 #include "needle_guidance/ImplantSeed.h"
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/TissueStatus.h"
-#include "../ros_wait.h"
 
 namespace {
 
 using LinearMoveClient = actionlib::SimpleActionClient<needle_guidance::LinearMoveAction>;
 using State = actionlib::SimpleClientGoalState;
 
-constexpr double kTarget_m = 0.03;       // depth and height of the insertion
-constexpr double kSeedAtTipTol_m = 1e-6; // a seed is implanted exactly at the tissue's tip node
+constexpr double kTarget_m = 0.03;        // depth and height of the insertion
+constexpr double kSeedAtTipTol_m = 1e-6;  // a seed is implanted exactly at the tissue's tip node
 const ros::Duration kTimeout(30.0);
 
 class TissueSimTest : public ::testing::Test {
@@ -80,7 +80,8 @@ TEST_F(TissueSimTest, SeedImplantedAtTheTipMovesWithTheTissueAndResetClearsIt) {
 
   ASSERT_EQ(move(insert_, kTarget_m, 0.02), State::SUCCEEDED);
   ASSERT_TRUE(waitLocked([this] {
-    return status_.needle_in_tissue && status_.shaft_nodes > 0 && std::isfinite(status_.tip_force_N);
+    return status_.needle_in_tissue && status_.shaft_nodes > 0 &&
+           std::isfinite(status_.tip_force_N);
   }));
   ros::WallDuration(0.3).sleep();  // the simulation catches up with the stopped robot
   ASSERT_TRUE(implant_.call(srv));

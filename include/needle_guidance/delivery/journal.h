@@ -71,25 +71,26 @@ struct Ledger {
   std::string plan_id;
   std::uint64_t content_hash = 0;
   bool begun = false;
-  bool completed = false;          ///< an "end completed" record
-  bool open_session = false;       ///< the last session has no "end" (crash, or still running)
+  bool completed = false;     ///< an "end completed" record
+  bool open_session = false;  ///< the last session has no "end" (crash, or still running)
   std::map<std::pair<int, int>, double> delivered_s;  ///< (channel, dwell) -> delivered [s]
   /// (channel, dwell) -> the most the source may have been short of `delivered_s` there
   /// because a crash cut a committed quantum (0 unless a session ended without settling).
   std::map<std::pair<int, int>, double> uncertainty_s;
-  std::map<int, int> trips;        ///< channel -> times the source entered it from the safe
+  std::map<int, int> trips;  ///< channel -> times the source entered it from the safe
   double transit_in_patient_s = 0.0;
-  int interruptions = 0;           ///< pause, abort, interlock and recover records
+  int interruptions = 0;  ///< pause, abort, interlock and recover records
   int sessions = 0;
   /// Records that contradict the write-ahead rules: a commit below what was already committed
   /// (a quantum delivered twice), a commit or settle above the planned time.
   std::vector<std::string> anomalies;
   long last_seq = 0;
-  long seq_gaps = 0;               ///< missing sequence numbers
+  long seq_gaps = 0;  ///< missing sequence numbers
 };
 
 /// Replays records. `schedule` (optional) gives planned times, transfer lengths and the source
 /// speed needs `speed_m_s` for the transit in the patient.
-Ledger replay(const std::vector<JournalRecord>& records, const Schedule* schedule, double speed_m_s);
+Ledger replay(const std::vector<JournalRecord>& records, const Schedule* schedule,
+              double speed_m_s);
 
 }  // namespace needle_guidance::delivery

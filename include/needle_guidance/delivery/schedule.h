@@ -27,15 +27,15 @@ double parseUtcSeconds(const std::string& text);
 /// source parked in the afterloader's safe); the catheter tip is at length_m and the catheter
 /// enters the patient at transfer_length_m. Dwells in delivery order: tip first, backwards.
 struct ChannelSchedule {
-  int channel = 0;                   ///< afterloader channel number, 1-based
+  int channel = 0;  ///< afterloader channel number, 1-based
   std::string catheter;
   double length_m = 0.0;
   double transfer_length_m = 0.0;
-  std::vector<int> dwell_index;      ///< DwellPosition::index (position number from the tip)
-  std::vector<double> distance_m;    ///< from the indexer, strictly decreasing [m]
-  std::vector<double> time_s;        ///< at the current air-kerma strength [s], >= 0
-  std::vector<Point3> position_m;    ///< dwell positions in the patient frame (display) [m]
-  std::vector<Point3> path_m;        ///< catheter from its tip to the patient surface [m]
+  std::vector<int> dwell_index;    ///< DwellPosition::index (position number from the tip)
+  std::vector<double> distance_m;  ///< from the indexer, strictly decreasing [m]
+  std::vector<double> time_s;      ///< at the current air-kerma strength [s], >= 0
+  std::vector<Point3> position_m;  ///< dwell positions in the patient frame (display) [m]
+  std::vector<Point3> path_m;      ///< catheter from its tip to the patient surface [m]
 
   /// Source position in the patient frame at `distance_m` from the indexer: on the catheter path
   /// inside the patient, on the path's straight extension outside it.
@@ -49,7 +49,7 @@ struct Schedule {
   double plan_air_kerma_strength_U = 0.0;     ///< S_K the plan was optimised for [U]
   double current_air_kerma_strength_U = 0.0;  ///< S_K at treatment [U]
   double decay_days = 0.0;
-  std::vector<ChannelSchedule> channels;      ///< in delivery order
+  std::vector<ChannelSchedule> channels;  ///< in delivery order
 
   std::size_t dwellCount() const;
   double totalDwellTime() const;  ///< [s]
@@ -76,23 +76,26 @@ struct ScheduleOptions {
 /// scaled by S_K(plan) / S_K(now), S_K(now) = calibration S_K x ir192DecayFactor(days). Throws
 /// std::invalid_argument for a size mismatch, negative or non-finite times, a dwell off its
 /// catheter, or a decayed source weaker than 1 % of the plan's S_K.
-Schedule makeSchedule(const dose::HdrCase& c, const std::vector<double>& times_s, const std::string& plan_id,
-                      const ScheduleOptions& options = {});
+Schedule makeSchedule(const dose::HdrCase& c, const std::vector<double>& times_s,
+                      const std::string& plan_id, const ScheduleOptions& options = {});
 
-/// Characters of a plan id (it names the journal file): [A-Za-z0-9_.-], 1-100, not starting with '.'.
-constexpr const char* kPlanIdCharacters = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-.";
+/// Characters of a plan id (it names the journal file): [A-Za-z0-9_.-], 1-100, not starting with
+/// '.'.
+constexpr const char* kPlanIdCharacters =
+    "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-.";
 bool isValidPlanId(const std::string& id);
 
 /// What the device can do; a schedule outside it is refused before anything moves.
 struct DeviceLimits {
-  int channels = 18;             ///< channel numbers 1..channels
-  double max_length_m = 1.5;     ///< longest channel (indexer to tip) [m]
-  double max_dwell_s = 999.0;    ///< longest single dwell [s]
+  int channels = 18;           ///< channel numbers 1..channels
+  double max_length_m = 1.5;   ///< longest channel (indexer to tip) [m]
+  double max_dwell_s = 999.0;  ///< longest single dwell [s]
 };
 
 /// Every problem of `s` for a device with `limits` (empty: deliverable): empty or unsafe plan id
 /// (it names a file), unknown or repeated channel, array lengths that differ, non-finite or
-/// negative times, distances outside (0, length_m] or not strictly decreasing, no dwell time at all.
+/// negative times, distances outside (0, length_m] or not strictly decreasing, no dwell time at
+/// all.
 std::vector<std::string> validateSchedule(const Schedule& s, const DeviceLimits& limits);
 
 /// Seconds the source spends moving inside the patient on one trip into `channel`: out to the
@@ -107,6 +110,7 @@ struct TransitSample {
   Point3 axis;  ///< towards the catheter tip
   double time_s = 0.0;
 };
-std::vector<TransitSample> tripTransitSamples(const ChannelSchedule& channel, double speed_m_s, double step_m = 1e-3);
+std::vector<TransitSample> tripTransitSamples(const ChannelSchedule& channel, double speed_m_s,
+                                              double step_m = 1e-3);
 
 }  // namespace needle_guidance::delivery

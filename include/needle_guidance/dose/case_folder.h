@@ -13,7 +13,8 @@
 
 namespace needle_guidance::dose {
 
-/// Writes the case into `dir` (created if missing). Throws std::runtime_error if a file cannot be written.
+/// Writes the case into `dir` (created if missing). Throws std::runtime_error if a file cannot be
+/// written.
 void writeCaseFolder(const HdrCase& c, const std::string& dir);
 
 /// Reads a case folder. Throws std::invalid_argument naming the file, line and reason for a

@@ -164,9 +164,9 @@ struct DicomExportContext {
   std::string study_date = "20260101";  ///< YYYYMMDD; also the series / plan / structure set date
   std::string study_time = "000000";
   std::string frame_uid;
-  std::string sop_instance_uid;          ///< of the object written
-  std::string structure_set_uid;         ///< RTPLAN -> RTSTRUCT (ReferencedStructureSetSequence)
-  std::string plan_uid;                  ///< RTDOSE -> RTPLAN (ReferencedRTPlanSequence)
+  std::string sop_instance_uid;   ///< of the object written
+  std::string structure_set_uid;  ///< RTPLAN -> RTSTRUCT (ReferencedStructureSetSequence)
+  std::string plan_uid;           ///< RTDOSE -> RTPLAN (ReferencedRTPlanSequence)
   int series_number = 1;
 };
 

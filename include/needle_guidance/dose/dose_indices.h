@@ -18,7 +18,8 @@ struct StructureDose {
   std::vector<double> dose_Gy;  ///< one per grid point inside the structure
 };
 std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& source,
-                                          const std::vector<double>& times_s, double spacing_m = 2e-3);
+                                          const std::vector<double>& times_s,
+                                          double spacing_m = 2e-3);
 
 /// A source stop that is not one of the case's dwell positions (e.g. the source in transit
 /// through a catheter, tripTransitSamples in delivery/schedule.h), with its time at the case's
@@ -34,7 +35,8 @@ struct ExtraDwell {
 /// with a negative or non-finite time, or a non-finite position or axis.
 std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& source,
                                           const std::vector<double>& times_s,
-                                          const std::vector<ExtraDwell>& extra, double spacing_m = 2e-3);
+                                          const std::vector<ExtraDwell>& extra,
+                                          double spacing_m = 2e-3);
 
 /// V_x: % of the volume receiving at least `fraction` x prescription; D_x: the minimum dose of
 /// the hottest x % (D90, D10) or of the hottest `cc` cubic centimetres (D2cc) [Gy]. A structure
@@ -45,7 +47,8 @@ double doseCoveringVolume(const StructureDose& s, double volume_m3);
 
 /// The dissertation's index set, keyed "prostate_V100", "urethra_D10", "rectum_D2cc", ...
 /// (structures found by name, case-insensitive; missing structures are skipped).
-std::map<std::string, double> dosimetricIndices(const std::vector<StructureDose>& doses, double prescription_Gy);
+std::map<std::string, double> dosimetricIndices(const std::vector<StructureDose>& doses,
+                                                double prescription_Gy);
 
 /// Cumulative DVH: for each dose bin edge (0..max_Gy in bins), % of volume >= that dose.
 std::vector<double> cumulativeDvh(const StructureDose& s, double max_Gy, int bins);

@@ -26,11 +26,11 @@ struct PenaltyModel {
 PenaltyModel penaltyModel(const HdrCase& c);
 
 struct DwellResult {
-  std::string method;             ///< "lp" or "sa"
-  std::vector<double> times_s;    ///< dwell times t_j >= 0 [s]
-  double objective = 0.0;         ///< E (eq. 6.3) of times_s, evaluated from the dose
-  double seconds = 0.0;           ///< wall time of the optimisation
-  long iterations = 0;            ///< simplex iterations / annealing moves
+  std::string method;           ///< "lp" or "sa"
+  std::vector<double> times_s;  ///< dwell times t_j >= 0 [s]
+  double objective = 0.0;       ///< E (eq. 6.3) of times_s, evaluated from the dose
+  double seconds = 0.0;         ///< wall time of the optimisation
+  long iterations = 0;          ///< simplex iterations / annealing moves
   /// LP only: the solver's optimum (a lower bound on E for any dwell times); objective -
   /// lower_bound is the optimality gap left by round-off.
   double lower_bound = 0.0;
@@ -47,19 +47,21 @@ struct LpOptions {
 };
 
 /// The LP of eq. 6.6 written with one ranged row per dose point,
-///   lo_i <= sum_j d_ij t_j + u_i - o_i <= hi_i,  t, u, o >= 0,  min sum_i w_under_i u_i + w_over_i o_i,
+///   lo_i <= sum_j d_ij t_j + u_i - o_i <= hi_i,  t, u, o >= 0,  min sum_i w_under_i u_i + w_over_i
+///   o_i,
 /// equivalent to 6.6 (c_i = w_under u_i + w_over o_i at the optimum) but with one row per point
 /// instead of two, and its basis mostly row slacks (the work scales with the dwell count).
 /// By default its dual is solved (see LpOptions::dual_formulation) and the dwell times are read
 /// from the dual's row prices. Throws std::invalid_argument for a case without dwell positions
 /// or a matrix of the wrong size.
-DwellResult optimizeLp(const HdrCase& c, const Eigen::MatrixXd& dose_rate, const LpOptions& options = {});
+DwellResult optimizeLp(const HdrCase& c, const Eigen::MatrixXd& dose_rate,
+                       const LpOptions& options = {});
 
 /// Writes the LP above as an MPS file (free format), without solving.
 void writeLpMps(const HdrCase& c, const Eigen::MatrixXd& dose_rate, const std::string& path);
 
 struct AnnealingOptions {
-  long iterations = 100000;      ///< moves (IPSA-style: one dwell time changed per move)
+  long iterations = 100000;  ///< moves (IPSA-style: one dwell time changed per move)
   unsigned seed = 1;
   double initial_temperature = 0.0;  ///< 0: 0.2 % of the starting objective
   double final_temperature_ratio = 1e-4;

@@ -28,7 +28,8 @@ struct Structure {
   std::string name;
   StructureRole role = StructureRole::kOrganAtRisk;
   std::vector<Contour> contours;  ///< sorted by z after normalise()
-  /// Median spacing of distinct contour z, set by normalise() (call it after changing contours) [m].
+  /// Median spacing of distinct contour z, set by normalise() (call it after changing contours)
+  /// [m].
   double slice_spacing_m = 0.0;
 
   /// Sorts the contours by z, checks them (>= 3 finite vertices) and sets slice_spacing_m.
@@ -51,10 +52,10 @@ struct Catheter {
 
 /// A dwell position of the source in a catheter.
 struct DwellPosition {
-  int catheter = 0;                       ///< index into HdrCase::catheters
-  int index = 0;                          ///< position number along the catheter from its tip
-  Point3 position_m = Point3::Zero();     ///< source centre
-  Point3 axis = Point3::UnitZ();          ///< unit source axis pointing to the catheter tip (theta = 0)
+  int catheter = 0;                    ///< index into HdrCase::catheters
+  int index = 0;                       ///< position number along the catheter from its tip
+  Point3 position_m = Point3::Zero();  ///< source centre
+  Point3 axis = Point3::UnitZ();  ///< unit source axis pointing to the catheter tip (theta = 0)
 };
 
 /// Dose calculation points (6.2.1): on a structure's surface or in its volume.
@@ -81,7 +82,7 @@ struct Criterion {
 struct HdrCase {
   std::string name;
   std::string source = "microselectron_v2_hdr";  ///< config/sources/ name
-  double air_kerma_strength_U = 40700.0;           ///< S_K [U]
+  double air_kerma_strength_U = 40700.0;         ///< S_K [U]
   double prescription_Gy = 9.5;
   std::vector<Structure> structures;
   std::vector<Catheter> catheters;
@@ -96,16 +97,19 @@ struct HdrCase {
 /// Dose rate [Gy s^-1] at p per second of dwell at `dwell`, including S_K. A point closer than
 /// min_distance_m to the dwell centre gets the dose rate at min_distance_m off the source axis
 /// (TG-43 is undefined inside the source).
-double dwellDoseRate(const HdrCase& c, const Tg43Source& source, const DwellPosition& dwell, const Point3& p,
-                     SourceModel model = SourceModel::kLine, double min_distance_m = 1e-3);
+double dwellDoseRate(const HdrCase& c, const Tg43Source& source, const DwellPosition& dwell,
+                     const Point3& p, SourceModel model = SourceModel::kLine,
+                     double min_distance_m = 1e-3);
 
 /// Dose [Gy] at p from the dwell times (one per dwell position; zero times skipped).
-double doseAt(const HdrCase& c, const Tg43Source& source, const std::vector<double>& times_s, const Point3& p);
+double doseAt(const HdrCase& c, const Tg43Source& source, const std::vector<double>& times_s,
+              const Point3& p);
 
 /// The dose-rate matrix d_ij [Gy s^-1]: dose rate at point i per unit dwell time at dwell j,
 /// including S_K. A dose point closer than min_distance_m to a dwell centre uses the dose rate
 /// at min_distance_m (TG-43 is undefined inside the source).
 Eigen::MatrixXd doseRateMatrix(const HdrCase& c, const Tg43Source& source,
-                               SourceModel model = SourceModel::kLine, double min_distance_m = 1e-3);
+                               SourceModel model = SourceModel::kLine,
+                               double min_distance_m = 1e-3);
 
 }  // namespace needle_guidance::dose

@@ -10,13 +10,13 @@
 namespace needle_guidance::dose {
 
 struct SyntheticCaseOptions {
-  unsigned seed = 1;              ///< everything random derives from it (STYLE.md rule 12)
-  double prostate_cc = 0.0;       ///< 0: drawn in [23, 103] cc
-  int catheters = 0;              ///< 0: drawn in [14, 18]
-  int dose_points = 0;            ///< total surface + volume points; 0: drawn in [1781, 3510]
-  double slice_m = 3e-3;          ///< contour slice spacing (6.3.1: 3 mm CT slices)
-  double dwell_step_m = 5e-3;     ///< dwell step along a catheter
-  double prescription_Gy = 9.5;   ///< Table 6.1: D_min of the prostate (950 cGy)
+  unsigned seed = 1;             ///< everything random derives from it (STYLE.md rule 12)
+  double prostate_cc = 0.0;      ///< 0: drawn in [23, 103] cc
+  int catheters = 0;             ///< 0: drawn in [14, 18]
+  int dose_points = 0;           ///< total surface + volume points; 0: drawn in [1781, 3510]
+  double slice_m = 3e-3;         ///< contour slice spacing (6.3.1: 3 mm CT slices)
+  double dwell_step_m = 5e-3;    ///< dwell step along a catheter
+  double prescription_Gy = 9.5;  ///< Table 6.1: D_min of the prostate (950 cGy)
 };
 
 /// Table 6.1 (cGy converted to Gy), scaled to a prescription: prostate and urethra surface and
@@ -37,7 +37,8 @@ std::vector<DosePoint> makeDosePoints(const HdrCase& c, const DosePointOptions& 
 
 /// Dwell positions every step_m from each catheter's tip whose position lies inside the target
 /// structure or within margin_m of it along the catheter. Axis: towards the catheter tip.
-std::vector<DwellPosition> makeDwellPositions(const HdrCase& c, double step_m, double margin_m = 2.5e-3);
+std::vector<DwellPosition> makeDwellPositions(const HdrCase& c, double step_m,
+                                              double margin_m = 2.5e-3);
 
 /// One synthetic case: prostate (ellipsoid), urethra through it, rectum behind and bladder
 /// above, catheters, dwell positions, dose points and Table 6.1 criteria.

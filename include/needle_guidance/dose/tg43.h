@@ -21,11 +21,11 @@ struct Tg43Data {
   std::string name;
   double dose_rate_constant_cGy_per_h_per_U = 0.0;  ///< Lambda [cGy h^-1 U^-1]
   double active_length_m = 0.0;                     ///< L [m]
-  std::vector<double> gL_r_m;                       ///< radial dose function abscissae [m], increasing
-  std::vector<double> gL;                           ///< g_L(r)
-  std::vector<double> F_theta_rad;                  ///< anisotropy rows [rad], increasing, 0..pi
-  std::vector<double> F_r_m;                        ///< anisotropy columns [m], increasing
-  Eigen::MatrixXd F;                                ///< F(theta_i, r_j)
+  std::vector<double> gL_r_m;       ///< radial dose function abscissae [m], increasing
+  std::vector<double> gL;           ///< g_L(r)
+  std::vector<double> F_theta_rad;  ///< anisotropy rows [rad], increasing, 0..pi
+  std::vector<double> F_r_m;        ///< anisotropy columns [m], increasing
+  Eigen::MatrixXd F;                ///< F(theta_i, r_j)
 };
 
 class Tg43Source {

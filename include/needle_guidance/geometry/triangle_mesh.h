@@ -38,12 +38,12 @@ struct MeshRegion {
 
 /// Element-size control for meshing. Sizes are maximum edge lengths [m].
 struct MeshingOptions {
-  double max_edge_m = 0.005;        ///< size far from the refinement features [m]
-  double min_edge_m = 0.001;        ///< size at the refinement points and lines [m]
-  double grading_length_m = 0.01;   ///< size grows linearly from min to max over this distance [m]
-  double min_angle_deg = 25.0;      ///< quality bound on the smallest angle [deg] (<= 30)
-  std::vector<Point2> refine_points;   ///< e.g. targets
-  std::vector<Segment> refine_lines;   ///< e.g. needle paths
+  double max_edge_m = 0.005;       ///< size far from the refinement features [m]
+  double min_edge_m = 0.001;       ///< size at the refinement points and lines [m]
+  double grading_length_m = 0.01;  ///< size grows linearly from min to max over this distance [m]
+  double min_angle_deg = 25.0;     ///< quality bound on the smallest angle [deg] (<= 30)
+  std::vector<Point2> refine_points;  ///< e.g. targets
+  std::vector<Segment> refine_lines;  ///< e.g. needle paths
 };
 
 /// Constrained Delaunay triangulation of the domain with the region polygons as constraints and
@@ -83,6 +83,7 @@ private:
 
 /// Barycentric coordinates of p with respect to triangle (a, b, c). Throws
 /// std::invalid_argument for a degenerate triangle.
-std::array<double, 3> barycentric(const Point2& p, const Point2& a, const Point2& b, const Point2& c);
+std::array<double, 3> barycentric(const Point2& p, const Point2& a, const Point2& b,
+                                  const Point2& c);
 
 }  // namespace needle_guidance::geometry

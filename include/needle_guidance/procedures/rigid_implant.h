@@ -47,6 +47,7 @@ struct Fault {
   std::string node;   ///< e.g. /tissue_sim
   double at_s = 0.0;  ///< seconds since the procedure started
   std::string reason;
+  double detected_unix_s = 0.0;  ///< wall clock when it was first seen [s since 1970]
 };
 
 /// What the procedure drives. Moves block until they end; a device that sees a fault during a

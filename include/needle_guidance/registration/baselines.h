@@ -19,20 +19,21 @@ struct BaselineResult {
   RegistrationStatus status = RegistrationStatus::kInvalidSegmentation;
   std::string message;
   std::shared_ptr<const PointMapping> mapping;  ///< null for refusals
-  double dice = 0.0;      ///< probe-in prostate vs the probe-out prostate mapped by T
-  double seconds = 0.0;   ///< wall time [s] (image rendering excluded for the intensity method)
+  double dice = 0.0;     ///< probe-in prostate vs the probe-out prostate mapped by T
+  double seconds = 0.0;  ///< wall time [s] (image rendering excluded for the intensity method)
 };
 
 /// Rigid registration by centre-of-mass translation of the prostate total gland (3.3.4):
 /// T(x) = x + (c_in - c_out), c = area centroid. Refuses (kInvalidSegmentation) the same
 /// segmentation defects as registerSlices.
-BaselineResult rigidCentreOfMass(const SliceSegmentation& probe_out, const ProbeInSegmentation& probe_in);
+BaselineResult rigidCentreOfMass(const SliceSegmentation& probe_out,
+                                 const ProbeInSegmentation& probe_in);
 
 /// A pair of synthetic grey-level images of a case, same pixel grid: pixel (row r, col c) has
 /// centre origin + ((c + 0.5) * pixel, (R - r - 0.5) * pixel) (row 0 at the top = anterior).
 struct SyntheticImagePair {
-  cv::Mat probe_out;  ///< CV_32F, fixed image F
-  cv::Mat probe_in;   ///< CV_32F, moving image M
+  cv::Mat probe_out;               ///< CV_32F, fixed image F
+  cv::Mat probe_in;                ///< CV_32F, moving image M
   Point2 origin = Point2::Zero();  ///< lower-left corner of the grid [m]
   double pixel_m = 0.0005;
 };
@@ -54,9 +55,9 @@ SyntheticImagePair renderProbeImages(const ProbeCase& probe_case, double pixel_m
                                      TextureMode texture = TextureMode::kIndependent);
 
 enum class IntensityMethod {
-  kDemons,            ///< multi-resolution Thirion demons with Gaussian regularisation (imgproc only)
-  kDisOpticalFlow,    ///< cv::DISOpticalFlow (needs opencv_video, see intensityMethodAvailable)
-  kFarneback,         ///< cv::calcOpticalFlowFarneback (needs opencv_video)
+  kDemons,          ///< multi-resolution Thirion demons with Gaussian regularisation (imgproc only)
+  kDisOpticalFlow,  ///< cv::DISOpticalFlow (needs opencv_video, see intensityMethodAvailable)
+  kFarneback,       ///< cv::calcOpticalFlowFarneback (needs opencv_video)
 };
 const char* toString(IntensityMethod method);
 /// False for the optical-flow methods when the core was built without NG_HAVE_OPENCV_VIDEO.
@@ -67,7 +68,8 @@ bool intensityMethodAvailable(IntensityMethod method);
 /// and T is its fixed-point inverse. Points outside the image map to nullopt. Dice is that of
 /// `probe_out_prostate` mapped by T against `probe_in_prostate`. Returns kUnavailable for a
 /// method not compiled in.
-BaselineResult intensityRegistration(const SyntheticImagePair& images, const Loops& probe_out_prostate,
+BaselineResult intensityRegistration(const SyntheticImagePair& images,
+                                     const Loops& probe_out_prostate,
                                      const Polygon& probe_in_prostate,
                                      IntensityMethod method = IntensityMethod::kDemons);
 

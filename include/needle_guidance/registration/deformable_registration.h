@@ -70,33 +70,33 @@ enum class Optimizer {
 };
 
 struct RegistrationOptions {
-  int target_nodes = 500;          ///< mesh size (3.3.2: n = 500); achieved within ~15 %
-  double poisson_ratio = 0.49;     ///< 3.2.2
+  int target_nodes = 500;       ///< mesh size (3.3.2: n = 500); achieved within ~15 %
+  double poisson_ratio = 0.49;  ///< 3.2.2
   /// Initial moduli per SoftClass [Pa] (3.3.2: CG 60 kPa, all surrounding tissues 30 kPa).
   std::array<double, kSoftClassCount> initial_modulus_Pa{30e3, 60e3, 30e3};
   int reference_class = kSurrounding;  ///< its modulus stays at the initial value (scale, see top)
-  double min_modulus_Pa = 1e3;     ///< Y_min (3.2.4)
-  double max_modulus_Pa = 600e3;   ///< Y_max (3.2.4)
+  double min_modulus_Pa = 1e3;         ///< Y_min (3.2.4)
+  double max_modulus_Pa = 600e3;       ///< Y_max (3.2.4)
   ForceSet force_set = ForceSet::kBladderBoundary;
-  double alpha = 0.005;            ///< weight of E in Q = S - alpha E (3.3.5); S, E as fractions
+  double alpha = 0.005;  ///< weight of E in Q = S - alpha E (3.3.5); S, E as fractions
   Optimizer optimizer = Optimizer::kFast;
-  int max_iterations = 200;        ///< optimiser iterations
+  int max_iterations = 200;          ///< optimiser iterations
   double gradient_tolerance = 1e-3;  ///< steepest descent: stop when |grad Q| < epsilon (3.2.4)
-  double step_size = 0.5;          ///< steepest descent: lambda, in scaled variables (see .cpp)
-  double fd_step = 1e-3;           ///< finite-difference step in scaled variables
+  double step_size = 0.5;            ///< steepest descent: lambda, in scaled variables (see .cpp)
+  double fd_step = 1e-3;             ///< finite-difference step in scaled variables
   /// kFast: weight of the force ridge term (scaled forces) relative to the boundary residual [m^2].
   double fast_force_regularisation_m2 = 1e-5;
-  double fast_tolerance = 1e-5;    ///< kFast: stop when the relative cost decrease < this
+  double fast_tolerance = 1e-5;  ///< kFast: stop when the relative cost decrease < this
   /// Refuse when a rectum-wall point lies farther than this outside the probe outline [m].
   double max_rectum_outside_probe_m = 0.001;
-  double mrsi_spacing_m = 0.007;   ///< 3.3.3
+  double mrsi_spacing_m = 0.007;  ///< 3.3.3
 };
 
 /// One optimiser iteration.
 struct IterationRecord {
   int iteration = 0;
-  double q = 0.0;        ///< objective Q = S - alpha E
-  double dice = 0.0;     ///< S
+  double q = 0.0;             ///< objective Q = S - alpha E
+  double dice = 0.0;          ///< S
   double energy_share = 0.0;  ///< E
   std::array<double, kSoftClassCount> modulus_Pa{};
   double seconds = 0.0;  ///< since the start of registerSlices
@@ -104,32 +104,32 @@ struct IterationRecord {
 
 struct RegistrationResult {
   RegistrationStatus status = RegistrationStatus::kInvalidSegmentation;
-  std::string message;   ///< human-readable reason / summary
+  std::string message;  ///< human-readable reason / summary
 
   // Estimated parameters p* (3.2.4).
-  std::array<double, kSoftClassCount> modulus_Pa{};        ///< per SoftClass [Pa]
-  std::array<bool, kSoftClassCount> modulus_at_bound{};    ///< clamped exactly at a bound
-  std::vector<int> force_nodes;                            ///< set L (mesh node indices)
+  std::array<double, kSoftClassCount> modulus_Pa{};      ///< per SoftClass [Pa]
+  std::array<bool, kSoftClassCount> modulus_at_bound{};  ///< clamped exactly at a bound
+  std::vector<int> force_nodes;                          ///< set L (mesh node indices)
   std::vector<Point2> forces_N;  ///< per node of L [N per metre of slice thickness]
 
   // Quality.
-  double dice = 0.0;            ///< S at p* (deformed probe-out prostate vs probe-in prostate)
-  double initial_dice = 0.0;    ///< S of the undeformed probe-out prostate
-  double energy_share = 0.0;    ///< E at p* (fraction)
-  double q = 0.0;               ///< Q at p*
+  double dice = 0.0;          ///< S at p* (deformed probe-out prostate vs probe-in prostate)
+  double initial_dice = 0.0;  ///< S of the undeformed probe-out prostate
+  double energy_share = 0.0;  ///< E at p* (fraction)
+  double q = 0.0;             ///< Q at p*
   int iterations = 0;
   int objective_evaluations = 0;  ///< FEM-based evaluations of Q (incl. finite differences)
   std::vector<IterationRecord> trace;
-  double seconds = 0.0;         ///< wall time of registerSlices [s]
-  double meshing_seconds = 0.0; ///< of which meshing and assembly [s]
+  double seconds = 0.0;          ///< wall time of registerSlices [s]
+  double meshing_seconds = 0.0;  ///< of which meshing and assembly [s]
 
   // Model and deformation.
-  geometry::TriangleMesh mesh;          ///< probe-out mesh (regions: see region_names) [m]
-  std::vector<Point2> displacement_m;   ///< per mesh node [m]
-  std::vector<int> rectum_nodes;        ///< Dirichlet nodes H (3.3.2)
-  std::vector<int> fixed_nodes;         ///< bone nodes
+  geometry::TriangleMesh mesh;                 ///< probe-out mesh (regions: see region_names) [m]
+  std::vector<Point2> displacement_m;          ///< per mesh node [m]
+  std::vector<int> rectum_nodes;               ///< Dirichlet nodes H (3.3.2)
+  std::vector<int> fixed_nodes;                ///< bone nodes
   std::shared_ptr<const MeshMapping> mapping;  ///< T and T^-1; null for refusals
-  WarpedGrid mrsi_grid;                 ///< 3.3.3 (empty for refusals)
+  WarpedGrid mrsi_grid;                        ///< 3.3.3 (empty for refusals)
 
   /// T (probe-out -> probe-in) [m]; nullopt outside the mesh or without a mapping.
   std::optional<Point2> forward(const Point2& probe_out_m) const;
@@ -142,7 +142,8 @@ struct RegistrationResult {
 /// failures are reported in `status` and `message` with no mapping. Throws
 /// std::invalid_argument only for invalid options (e.g. target_nodes < 30, bounds not
 /// 0 < min <= initial <= max, alpha < 0).
-RegistrationResult registerSlices(const SliceSegmentation& probe_out, const ProbeInSegmentation& probe_in,
+RegistrationResult registerSlices(const SliceSegmentation& probe_out,
+                                  const ProbeInSegmentation& probe_in,
                                   const RegistrationOptions& options = {});
 
 /// The probe-out prostate (CG union PZ) as loops, e.g. for Dice of a baseline.

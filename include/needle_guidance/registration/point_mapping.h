@@ -79,10 +79,11 @@ struct WarpedGrid {
   double spacing_m = 0.007;
   int rows = 0;
   int cols = 0;
-  Point2 origin = Point2::Zero();                  ///< probe-in position of point (0, 0) [m]
-  std::vector<Point2> probe_in;                    ///< rows * cols points [m], index r * cols + c
-  std::vector<std::optional<Point2>> probe_out;    ///< T^-1 of each point [m]; nullopt where undefined
-  std::vector<bool> inside_prostate;               ///< point inside the probe-in prostate
+  Point2 origin = Point2::Zero();  ///< probe-in position of point (0, 0) [m]
+  std::vector<Point2> probe_in;    ///< rows * cols points [m], index r * cols + c
+  std::vector<std::optional<Point2>>
+      probe_out;                      ///< T^-1 of each point [m]; nullopt where undefined
+  std::vector<bool> inside_prostate;  ///< point inside the probe-in prostate
 };
 
 /// Lays the MRSI grid (spacing_m, default 7 mm) over the bounding box of `probe_in_prostate`

@@ -34,9 +34,9 @@ enum class ProbeType { kBalloon, kRigid };
 const char* toString(ProbeType type);
 
 struct ProbeCaseOptions {
-  double noise_rms_m = 0.0003;      ///< RMS normal displacement of the probe-in outlines [m]
-  int truth_target_nodes = 2000;    ///< forward-model mesh size
-  int test_points = 8;              ///< homologous test points inside the gland
+  double noise_rms_m = 0.0003;    ///< RMS normal displacement of the probe-in outlines [m]
+  int truth_target_nodes = 2000;  ///< forward-model mesh size
+  int test_points = 8;            ///< homologous test points inside the gland
   /// Hidden moduli are drawn uniformly from these ranges [Pa] (lo, hi).
   std::array<double, 2> cg_modulus_range_Pa{40e3, 90e3};
   std::array<double, 2> pz_modulus_range_Pa{20e3, 50e3};
@@ -50,8 +50,8 @@ struct ProbeCaseTruth {
   double cg_modulus_Pa = 0.0;
   double pz_modulus_Pa = 0.0;
   double surrounding_modulus_Pa = 0.0;
-  double bladder_pressure_Pa = 0.0;   ///< > 0 pushes the bladder wall outward (filling)
-  double probe_push_m = 0.0;          ///< anterior displacement of the rectum wall's top [m]
+  double bladder_pressure_Pa = 0.0;  ///< > 0 pushes the bladder wall outward (filling)
+  double probe_push_m = 0.0;         ///< anterior displacement of the rectum wall's top [m]
   int forward_mesh_nodes = 0;
   /// The forward FEM's map (fine mesh): T_true and T_true^-1.
   std::shared_ptr<const PointMapping> mapping;
@@ -62,20 +62,23 @@ struct ProbeCaseTruth {
 struct ProbeCase {
   ProbeType type = ProbeType::kBalloon;
   std::uint64_t seed = 0;
-  SliceSegmentation probe_out;    ///< exact probe-out segmentation
-  ProbeInSegmentation probe_in;   ///< noisy probe-in segmentation (input of the registration)
-  std::vector<Point2> test_points_out;  ///< probe-out positions [m]; [0] = posterior CG border at the midline (3.3.4)
+  SliceSegmentation probe_out;          ///< exact probe-out segmentation
+  ProbeInSegmentation probe_in;         ///< noisy probe-in segmentation (input of the registration)
+  std::vector<Point2> test_points_out;  ///< probe-out positions [m]; [0] = posterior CG border at
+                                        ///< the midline (3.3.4)
   std::vector<Point2> test_points_in;   ///< their true probe-in positions [m]
   ProbeCaseTruth truth;
 };
 
 /// Generates case `seed` of the given probe type (deterministic for a given seed and
 /// options). Throws std::runtime_error only if the generator itself fails (a bug).
-ProbeCase generateProbeCase(ProbeType type, std::uint64_t seed, const ProbeCaseOptions& options = {});
+ProbeCase generateProbeCase(ProbeType type, std::uint64_t seed,
+                            const ProbeCaseOptions& options = {});
 
 /// Mean distance [m] between mapping.forward(test_points_out[i]) and test_points_in[i]; points
 /// the mapping cannot map count as the distance of the unmapped point (and are counted in
 /// *unmapped when given).
-double meanPointError(const PointMapping& mapping, const ProbeCase& probe_case, int* unmapped = nullptr);
+double meanPointError(const PointMapping& mapping, const ProbeCase& probe_case,
+                      int* unmapped = nullptr);
 
 }  // namespace needle_guidance::registration

@@ -4,8 +4,8 @@
 #pragma once
 
 #include <optional>
-#include <utility>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "needle_guidance/geometry/polygon.h"
@@ -21,22 +21,23 @@ using geometry::Polygon;
 /// Polygon, so `seg.cg = polygon;` works.
 struct Outline {
   Outline() = default;
-  Outline(Polygon outer_ring) : outer(std::move(outer_ring)) {}  // NOLINT(google-explicit-constructor)
-  Polygon outer;                ///< outer ring [m], either orientation
-  std::vector<Polygon> holes;   ///< inner rings [m] (refused by the registration)
+  Outline(Polygon outer_ring)
+      : outer(std::move(outer_ring)) {}  // NOLINT(google-explicit-constructor)
+  Polygon outer;                         ///< outer ring [m], either orientation
+  std::vector<Polygon> holes;            ///< inner rings [m] (refused by the registration)
 };
 
 /// The probe-out slice (fixed image F, 3.3.2): the biomechanical model is built on it.
 /// CG and PZ must not overlap (they may share boundary vertices); all structures lie inside
 /// `domain`. The rectum lumen is not meshed; bones are rigid and fixed (3.2.2).
 struct SliceSegmentation {
-  Polygon domain;                 ///< field of view / modelled tissue outline [m]; free boundary
-  Outline cg;                     ///< central gland [m]
-  Outline pz;                     ///< peripheral zone [m]
-  Outline rectum;                 ///< rectum wall (probe entry location) [m]
-  std::vector<Outline> bones;     ///< rigid, fixed structures (e.g. pubic bone) [m]
-  std::optional<Outline> bladder; ///< bladder [m]: a cavity (not meshed, its volume may change,
-                                  ///< 3.2.1); its wall nodes are the default force set L (3.2.4)
+  Polygon domain;                  ///< field of view / modelled tissue outline [m]; free boundary
+  Outline cg;                      ///< central gland [m]
+  Outline pz;                      ///< peripheral zone [m]
+  Outline rectum;                  ///< rectum wall (probe entry location) [m]
+  std::vector<Outline> bones;      ///< rigid, fixed structures (e.g. pubic bone) [m]
+  std::optional<Outline> bladder;  ///< bladder [m]: a cavity (not meshed, its volume may change,
+                                   ///< 3.2.1); its wall nodes are the default force set L (3.2.4)
 };
 
 /// The probe-in slice (moving image M, 3.3.2): only the prostate (total gland) and the probe
@@ -55,6 +56,7 @@ struct SegmentationCheck {
 /// Checks both slices for the defects the registration cannot handle: inner rings, fewer than
 /// 3 vertices, non-finite or self-intersecting rings, structures outside the domain, CG/PZ
 /// overlap. Never throws.
-SegmentationCheck checkSegmentation(const SliceSegmentation& probe_out, const ProbeInSegmentation& probe_in);
+SegmentationCheck checkSegmentation(const SliceSegmentation& probe_out,
+                                    const ProbeInSegmentation& probe_in);
 
 }  // namespace needle_guidance::registration

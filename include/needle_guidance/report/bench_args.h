@@ -8,10 +8,10 @@
 namespace needle_guidance::report {
 
 struct BenchArgs {
-  std::string out_dir;                  ///< where summary.json, CSV and plot.json go
-  bool quick = false;                   ///< a smaller sweep for a fast look
+  std::string out_dir;                      ///< where summary.json, CSV and plot.json go
+  bool quick = false;                       ///< a smaller sweep for a fast look
   std::string scene = "prostate_sagittal";  ///< scene file or embedded name (the last --scene)
-  std::vector<std::string> scenes;      ///< every --scene in order (a tool may run them all)
+  std::vector<std::string> scenes;          ///< every --scene in order (a tool may run them all)
 };
 
 /// Parses the arguments; on a bad or missing one prints the usage of `tool` to stderr and

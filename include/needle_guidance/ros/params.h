@@ -67,10 +67,9 @@ inline bool flag(const ros::NodeHandle& nh, const std::string& name, bool fallba
 
 /// number() that must also be a whole number.
 inline long integer(const ros::NodeHandle& nh, const std::string& name, long fallback, long lower,
-             long upper, const std::string& unit) {
-  const double value =
-      number(nh, name, static_cast<double>(fallback), static_cast<double>(lower),
-                         static_cast<double>(upper), unit);
+                    long upper, const std::string& unit) {
+  const double value = number(nh, name, static_cast<double>(fallback), static_cast<double>(lower),
+                              static_cast<double>(upper), unit);
   if (value != std::floor(value)) {
     throw std::runtime_error("parameter '" + nh.resolveName(name) + "' = " + std::to_string(value) +
                              " is not a whole number");

@@ -19,7 +19,8 @@ private:
   bool onPlan(PlanRigid::Request& req, PlanRigid::Response& res);
   std::unique_ptr<rigid_planning::RigidPlanner> planner_;
   ros::ServiceServer plan_srv_;
-  double last_height_offset_m_ = 0.0;  ///< warm start: the previous plan's release height - target height
+  double last_height_offset_m_ =
+      0.0;  ///< warm start: the previous plan's release height - target height
 };
 
 }  // namespace needle_guidance

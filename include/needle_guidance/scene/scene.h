@@ -19,9 +19,9 @@ using geometry::Segment;
 /// Linear elastic tissue (dissertation 2.2.2, 2.3.2).
 struct Material {
   std::string name;
-  double young_modulus_Pa = 0.0;   ///< E > 0 [Pa]
-  double poisson_ratio = 0.0;      ///< -1 < nu < 0.5
-  double density_kg_m3 = 1000.0;   ///< > 0 [kg/m^3]
+  double young_modulus_Pa = 0.0;      ///< E > 0 [Pa]
+  double poisson_ratio = 0.0;         ///< -1 < nu < 0.5
+  double density_kg_m3 = 1000.0;      ///< > 0 [kg/m^3]
   double rayleigh_alpha_per_s = 0.0;  ///< mass-proportional damping [1/s], >= 0
   double rayleigh_beta_s = 0.0;       ///< stiffness-proportional damping [s], >= 0
 };
@@ -30,8 +30,8 @@ struct Material {
 struct Region {
   std::string name;
   std::string material;
-  Polygon polygon;          ///< counter-clockwise after loading [m]
-  bool rigid = false;       ///< bone: its nodes are fixed (2.3.2)
+  Polygon polygon;     ///< counter-clockwise after loading [m]
+  bool rigid = false;  ///< bone: its nodes are fixed (2.3.2)
 };
 
 enum class BoundaryCondition { kFree, kFixed };
@@ -49,18 +49,18 @@ struct BoundarySegment {
 /// The needle and its tissue interaction. Insertion is along +x of frame `scene`; the tip is at
 /// x = depth_m, so the entry face of a tissue scene is the line x = 0.
 struct Needle {
-  double min_height_m = 0.0;      ///< lowest insertion height (y) allowed [m]
-  double max_height_m = 0.0;      ///< highest insertion height allowed [m]
-  double max_depth_m = 0.0;       ///< deepest tip x allowed [m]
+  double min_height_m = 0.0;             ///< lowest insertion height (y) allowed [m]
+  double max_height_m = 0.0;             ///< highest insertion height allowed [m]
+  double max_depth_m = 0.0;              ///< deepest tip x allowed [m]
   double insertion_velocity_m_s = 0.01;  ///< default insertion speed [m/s]
-  double cutting_force_N = 0.0;   ///< force to cut cut_length_m of tissue (2.3.4) [N]
-  double cut_length_m = 0.0;      ///< b of 2.3.4 [m]
+  double cutting_force_N = 0.0;          ///< force to cut cut_length_m of tissue (2.3.4) [N]
+  double cut_length_m = 0.0;             ///< b of 2.3.4 [m]
   /// Slip force f_smax per unit length of shaft (2.3.5); each shaft node gets it times its
   /// share of the shaft, so the total does not depend on the mesh [N/m].
   double static_friction_N_per_m = 0.0;
   double kinetic_friction_N_per_m = 0.0;  ///< dissipative force per unit length of shaft [N/m]
-  double stick_velocity_m_s = 0.0;///< v_s: relative speed below which a node sticks [m/s]
-  double radius_of_curvature_m = 0.0;  ///< bevel-tip arc radius; 0 for a rigid needle (5.3) [m]
+  double stick_velocity_m_s = 0.0;        ///< v_s: relative speed below which a node sticks [m/s]
+  double radius_of_curvature_m = 0.0;     ///< bevel-tip arc radius; 0 for a rigid needle (5.3) [m]
   /// Needle diameter [m]; the tip pushes the tissue across it (0 = a point tip, as in 2.3.4).
   double diameter_m = 0.0;
   /// A seed within this of its target counts as placed (rigid seed implant) [m].
@@ -138,7 +138,7 @@ struct Steering {
 struct Scene {
   std::string name;
   std::string description;
-  std::string source;          ///< file path or "<embedded:NAME>"
+  std::string source;                     ///< file path or "<embedded:NAME>"
   Point2 workspace_min = Point2::Zero();  ///< workspace rectangle [m]
   Point2 workspace_max = Point2::Zero();
   std::string background_material;  ///< material of the workspace outside all regions ("" = none)

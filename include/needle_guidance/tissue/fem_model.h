@@ -36,8 +36,12 @@ struct FemOptions {
 };
 
 /// DOF numbering: node i has DOFs 2i (x) and 2i+1 (y).
-inline int dofX(int node) { return 2 * node; }
-inline int dofY(int node) { return 2 * node + 1; }
+inline int dofX(int node) {
+  return 2 * node;
+}
+inline int dofY(int node) {
+  return 2 * node + 1;
+}
 
 /// The FEM model of a tissue slice: the reference mesh G (node positions may be moved, 2.3.4),
 /// per-element materials, and the assembled stiffness K, consistent mass M, lumped mass and
@@ -57,9 +61,9 @@ public:
   const std::vector<ElementMaterial>& materials() const { return materials_; }
   const FemOptions& options() const { return options_; }
 
-  const SparseMatrix& stiffness() const { return K_; }   ///< K [N/m]
-  const SparseMatrix& mass() const { return M_; }        ///< consistent M [kg]
-  const SparseMatrix& damping() const { return C_; }     ///< C [N s/m]
+  const SparseMatrix& stiffness() const { return K_; }             ///< K [N/m]
+  const SparseMatrix& mass() const { return M_; }                  ///< consistent M [kg]
+  const SparseMatrix& damping() const { return C_; }               ///< C [N s/m]
   const Eigen::VectorXd& lumpedMass() const { return m_lumped_; }  ///< per DOF [kg]
 
   /// Triangles that use `node`.

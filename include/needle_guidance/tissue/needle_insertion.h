@@ -18,15 +18,15 @@ namespace needle_guidance::tissue {
 
 /// Needle–tissue interaction parameters (SI). See scene::Needle.
 struct NeedleParams {
-  double cutting_force_N = 0.2;      ///< f_b: force that cuts cut_length_m of tissue (2.3.4) [N]
-  double cut_length_m = 5e-4;        ///< b [m], > 0
+  double cutting_force_N = 0.2;  ///< f_b: force that cuts cut_length_m of tissue (2.3.4) [N]
+  double cut_length_m = 5e-4;    ///< b [m], > 0
   /// f_smax per unit length of shaft (2.3.5): a stuck node slips when holding it needs more than
   /// this times its share of the shaft (half the distance to each shaft neighbour) [N/m].
   double static_friction_N_per_m = 30.0;
   double kinetic_friction_N_per_m = 20.0;  ///< f_k per unit length of shaft [N/m]
-  double stick_velocity_m_s = 5e-4;  ///< v_s: a slipping node sticks again below this [m/s]
-  int max_cuts_per_step = 64;        ///< bound on tip advances in one step
-  int max_friction_iterations = 8;   ///< bound on stick/slip re-solves in one step
+  double stick_velocity_m_s = 5e-4;        ///< v_s: a slipping node sticks again below this [m/s]
+  int max_cuts_per_step = 64;              ///< bound on tip advances in one step
+  int max_friction_iterations = 8;         ///< bound on stick/slip re-solves in one step
   /// Node moves never make a triangle smaller than this fraction of its original area
   /// (prevents figure 2.9's inverted elements).
   double min_area_fraction = 0.05;
@@ -48,13 +48,13 @@ struct Seed {
 
 /// What happened in one step, for reports and markers.
 struct InsertionStepInfo {
-  int cuts = 0;                 ///< tip advances this step
-  int promoted = 0;             ///< nodes added to the shaft
-  int released = 0;             ///< nodes released by retraction
-  int slipping = 0;             ///< shaft nodes slipping at the end of the step
-  int relocations = 0;          ///< node moves shortened to avoid an inverted element
-  double tip_force_N = 0.0;     ///< needle force on the tissue at the tip along +x [N]
-  double friction_force_N = 0.0;///< total shaft friction force on the tissue along +x [N]
+  int cuts = 0;                   ///< tip advances this step
+  int promoted = 0;               ///< nodes added to the shaft
+  int released = 0;               ///< nodes released by retraction
+  int slipping = 0;               ///< shaft nodes slipping at the end of the step
+  int relocations = 0;            ///< node moves shortened to avoid an inverted element
+  double tip_force_N = 0.0;       ///< needle force on the tissue at the tip along +x [N]
+  double friction_force_N = 0.0;  ///< total shaft friction force on the tissue along +x [N]
 };
 
 /// Needle insertion into a FEM tissue model. Frame scene: the needle moves along +x at height
@@ -85,7 +85,7 @@ public:
 
   /// Deformed position of every node [m].
   std::vector<Point2> deformedNodes() const;
-  int tipNode() const { return tip_node_; }          ///< -1 when no tip node is kept
+  int tipNode() const { return tip_node_; }  ///< -1 when no tip node is kept
   /// Nodes that move rigidly with the tip node (empty for a point tip).
   const std::vector<int>& tipPatch() const { return tip_patch_; }
   const std::vector<int>& shaftNodes() const { return shaft_; }
