@@ -42,9 +42,10 @@ std::pair<TipPose3, double> straightStart(const Scene3d& scene) {
   return {makeTipPose(p0, dir, dir.unitOrthogonal()), (c - p0).dot(dir)};
 }
 
-/// Executes one step, checks its path; false if it touched something (result filled).
-bool execute(NoisyNeedle3& needle, const CollisionWorld3& world, const Control3& control,
-             TipPose3& tip, TrialResult3& r, const TrialOptions3& options) {
+}  // namespace
+
+bool executeStep3(NoisyNeedle3& needle, const CollisionWorld3& world, const Control3& control,
+                  TipPose3& tip, TrialResult3& r, const TrialOptions3& options) {
   const StepRecord step = needle.step(tip, control);
   ++r.steps;
   const PathCheck check = world.checkPolyline(step.path);
@@ -63,15 +64,13 @@ bool execute(NoisyNeedle3& needle, const CollisionWorld3& world, const Control3&
   return true;
 }
 
-void finish(const Scene3d& scene, const TipPose3& tip, TrialResult3& r) {
+void finishTrial3(const Scene3d& scene, const TipPose3& tip, TrialResult3& r) {
   r.target_error_m = (tip.p_SceneTip - scene.target.center_m).norm();
   r.success = r.contact == Contact3::kFree && r.target_error_m <= scene.target.radius_m;
   if (!r.success && r.message.empty()) {
     r.message = "ended " + std::to_string(r.target_error_m * 1e3) + " mm from the target centre";
   }
 }
-
-}  // namespace
 
 std::string toString(Strategy3 strategy) {
   switch (strategy) {
@@ -102,11 +101,11 @@ TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strat
     while (remaining > 1e-9 && r.steps < options.max_steps) {
       const double l = std::min(step, remaining);
       remaining -= l;
-      if (!execute(needle, world, Control3{0.0, 0.0, l}, tip, r, options)) {
+      if (!executeStep3(needle, world, Control3{0.0, 0.0, l}, tip, r, options)) {
         break;
       }
     }
-    finish(scene, tip, r);
+    finishTrial3(scene, tip, r);
     return r;
   }
   PlannerParams3 params = planner_params;
@@ -130,7 +129,7 @@ TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strat
     Control3 c = queue.front();
     const bool last_piece = c.length_m <= step * (1.0 + 1e-9);
     c.length_m = std::min(c.length_m, step);
-    if (!execute(needle, world, c, tip, r, options)) {
+    if (!executeStep3(needle, world, c, tip, r, options)) {
       break;
     }
     if (last_piece) {
@@ -150,7 +149,7 @@ TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strat
       queue.assign(next.value().controls.begin(), next.value().controls.end());
     }
   }
-  finish(scene, tip, r);
+  finishTrial3(scene, tip, r);
   return r;
 }
 
