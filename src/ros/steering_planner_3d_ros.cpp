@@ -1,6 +1,8 @@
 // steering_planner_3d (steering_planner_3d_ros.h).
 #include "needle_guidance/ros/steering_planner_3d_ros.h"
 
+#include <geometry_msgs/TransformStamped.h>
+
 #include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/conversions_3d.h"
 #include "needle_guidance/ros/params.h"
@@ -31,6 +33,7 @@ SteeringPlanner3dRos::SteeringPlanner3dRos(ros::NodeHandle& nh, ros::NodeHandle&
   params.entry_time_budget_s = rp::number(private_nh, "entry_time_budget_s", 1.0, 1e-3, 60.0, "s");
   params.max_plans = static_cast<int>(rp::integer(private_nh, "max_plans", 8, 1, 1000, "plans"));
   seed_ = static_cast<std::uint64_t>(rp::integer(private_nh, "seed", 1, 0, 1L << 40, ""));
+  const std::string parent_frame = rp::text(private_nh, "scene_parent_frame", "");
   const double noise_scale = rp::number(private_nh, "noise_scale", 1.0, 0.0, 10.0, "x scene sigma");
   scene_ = std::make_unique<sd::Scene3d>(sd::loadScene3d(scene_path));
   world_ = std::make_unique<sd::CollisionWorld3>(scene_->collisionWorld());
@@ -40,6 +43,14 @@ SteeringPlanner3dRos::SteeringPlanner3dRos(ros::NodeHandle& nh, ros::NodeHandle&
   plan_pub_ = private_nh.advertise<visualization_msgs::Marker>("plan", 1, true);
   scene_pub_ = private_nh.advertise<visualization_msgs::MarkerArray>("scene_markers", 1, true);
   scene_pub_.publish(ros_conversions::sceneToMarkers(*scene_, "scene"));
+  if (!parent_frame.empty()) {  // rviz needs frame scene in tf; identity under parent_frame
+    geometry_msgs::TransformStamped t;
+    t.header.stamp = ros::Time::now();
+    t.header.frame_id = parent_frame;
+    t.child_frame_id = "scene";
+    t.transform.rotation.w = 1.0;
+    frame_broadcaster_.sendTransform(t);
+  }
   tip_sub_ = nh.subscribe("tip", 10, &SteeringPlanner3dRos::onTip, this);
   plan_srv_ = private_nh.advertiseService("plan", &SteeringPlanner3dRos::onPlan, this);
   ROS_INFO_STREAM("steering_planner_3d: scene '" << scene_->name << "' ("

@@ -7,6 +7,7 @@
 
 #include <geometry_msgs/PoseWithCovarianceStamped.h>
 #include <ros/ros.h>
+#include <tf2_ros/static_transform_broadcaster.h>
 
 #include <cstdint>
 #include <memory>
@@ -27,8 +28,9 @@ namespace needle_guidance {
 class SteeringPlanner3dRos {
 public:
   /// Reads ~scene (a steering_3d YAML file, required), ~time_budget_s, ~entry_time_budget_s,
-  /// ~max_plans, ~seed and ~noise_scale once; throws std::runtime_error naming a bad one and
-  /// scene::SceneError for a bad scene file.
+  /// ~max_plans, ~seed, ~noise_scale and ~scene_parent_frame (if set, a static identity
+  /// transform parent -> scene is broadcast, for rviz without a robot) once; throws
+  /// std::runtime_error naming a bad one and scene::SceneError for a bad scene file.
   SteeringPlanner3dRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh);
 
 private:
@@ -46,6 +48,7 @@ private:
   ros::Publisher scene_pub_;
   ros::Subscriber tip_sub_;
   ros::ServiceServer plan_srv_;
+  tf2_ros::StaticTransformBroadcaster frame_broadcaster_;
 };
 
 }  // namespace needle_guidance
