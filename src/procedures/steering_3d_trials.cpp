@@ -72,6 +72,10 @@ void SteeringTrial3::end() {
   done_ = true;
 }
 
+bool runSucceeded(const SteeringSummary3& s) {
+  return s.faults == 0 && s.trials > 0 && s.success_ci_high >= s.predicted_p_success_mean;
+}
+
 SteeringSummary3 summarize(const std::vector<TrialResult3>& results,
                            const std::vector<bool>& faulted) {
   SteeringSummary3 s;
@@ -110,13 +114,11 @@ std::string summaryJson(const steering_3d::Scene3d& scene, const SteeringSummary
                         const std::vector<double>& round_trip_ms, std::uint64_t seed) {
   const auto num = [](double v) { return report::jsonNumber(v); };
   std::ostringstream json;
-  json << "{\n  \"scene\": \"" << scene.name << "\",\n  \"seed\": " << seed
-       << ",\n  \"trials\": " << s.trials << ",\n  \"successes\": " << s.successes
-       << ",\n  \"success_rate\": " << num(s.success_rate)
+  json << "{\n  \"procedure\": \"steerable_procedure_3d\",\n  \"scene\": \"" << scene.name
+       << "\",\n  \"seed\": " << seed << ",\n  \"trials\": " << s.trials
+       << ",\n  \"successes\": " << s.successes << ",\n  \"success_rate\": " << num(s.success_rate)
        << ",\n  \"success_ci_low\": " << num(s.success_ci_low)
        << ",\n  \"success_ci_high\": " << num(s.success_ci_high)
-       << ",\n  \"success_definition\": \"tip ends in the target ball and the path touched no "
-          "expanded obstacle and stayed in the tissue\""
        << ",\n  \"target_radius_mm\": " << num(scene.target.radius_m * 1e3)
        << ",\n  \"target_error_mm_median\": " << num(s.target_error_mm_median)
        << ",\n  \"target_error_mm_max\": " << num(s.target_error_mm_max)
@@ -126,7 +128,8 @@ std::string summaryJson(const steering_3d::Scene3d& scene, const SteeringSummary
        << ",\n  \"round_trip_ms_median\": " << num(report::median(round_trip_ms))
        << ",\n  \"initial_plan_s_median\": " << num(s.initial_plan_s_median)
        << ",\n  \"predicted_p_success_mean\": " << num(s.predicted_p_success_mean)
-       << ",\n  \"faults\": " << s.faults << ",\n  \"status\": \""
+       << ",\n  \"faults\": " << s.faults
+       << ",\n  \"success\": " << (runSucceeded(s) ? "true" : "false") << ",\n  \"status\": \""
        << (s.faults == 0 ? "completed" : "fault") << "\"\n}\n";
   return json.str();
 }

@@ -71,6 +71,10 @@ struct SteeringSummary3 {
 SteeringSummary3 summarize(const std::vector<steering_3d::TrialResult3>& results,
                            const std::vector<bool>& faulted);
 
+/// The run's outcome ("success" in summary.json): no fault, and the success rate's 95 % interval
+/// reaches the mean predicted P(success) (it contains it or lies above it).
+bool runSucceeded(const SteeringSummary3& summary);
+
 /// Writes summary.json, trials.csv, paths.csv and target_error.png / replan_ms.png to
 /// report_dir (which the caller prepared). `round_trip_ms` are the tip-to-control latencies the
 /// node measured. Throws std::runtime_error naming a file it cannot write.
