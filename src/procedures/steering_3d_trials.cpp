@@ -38,21 +38,33 @@ void SteeringTrial3::refuseStart(steering_3d::PlanCode code, const std::string& 
   done_ = true;
 }
 
-bool SteeringTrial3::apply(const Control3& control, double plan_length_m) {
+void SteeringTrial3::setPlan(const std::vector<Control3>& controls) {
+  plan_.assign(controls.begin(), controls.end());
+}
+
+bool SteeringTrial3::step() {
   if (done_) {
     return false;
   }
+  if (plan_.empty()) {
+    result_.message = "no plan to follow";
+    end();
+    return false;
+  }
   const double step = scene_.step_length_m;
-  // As runTrial3: a control no longer than one step is finished by this step; it ends the
-  // trial when it is the plan's last.
-  const bool completes =
-      plan_length_m <= step * (1.0 + 1e-9) && control.length_m >= plan_length_m - 1e-9;
-  Control3 c = control;
+  Control3 c = plan_.front();
+  const bool last_piece = c.length_m <= step * (1.0 + 1e-9);
   c.length_m = std::min(c.length_m, step);
   steering_3d::TrialOptions3 options;
   options.record_path = true;
-  if (!steering_3d::executeStep3(needle_, world_, c, tip_, result_, options) || completes ||
-      result_.steps >= max_steps_) {
+  const bool free = steering_3d::executeStep3(needle_, world_, c, tip_, result_, options);
+  if (last_piece) {
+    plan_.pop_front();
+  } else {
+    plan_.front().length_m -= step;
+    plan_.front().rotate_rad = 0.0;  // the bevel was rotated at the segment's first step
+  }
+  if (!free || plan_.empty() || result_.steps >= max_steps_) {
     end();
   }
   return !done_;

@@ -4,6 +4,7 @@
 #include <Eigen/Geometry>
 #include <cmath>
 #include <sstream>
+#include <stdexcept>
 
 #include "needle_guidance/ros/conversions.h"
 
@@ -88,6 +89,37 @@ std::string fromMessage(const geometry_msgs::PoseWithCovarianceStamped& msg,
   tip.p_SceneTip = steering_3d::Vector3(p.x, p.y, p.z);
   tip.R_SceneTip = q.normalized().toRotationMatrix();
   return "";
+}
+
+std::vector<steering_3d::Control3> controlsFromArrays(const std::vector<double>& rotate_rad,
+                                                      const std::vector<double>& curvature_per_m,
+                                                      const std::vector<double>& insertion_m) {
+  if (rotate_rad.size() != curvature_per_m.size() || rotate_rad.size() != insertion_m.size()) {
+    throw std::invalid_argument(
+        "plan arrays of different lengths (" + std::to_string(rotate_rad.size()) + ", " +
+        std::to_string(curvature_per_m.size()) + ", " + std::to_string(insertion_m.size()) + ")");
+  }
+  std::vector<steering_3d::Control3> out;
+  for (std::size_t k = 0; k < rotate_rad.size(); ++k) {
+    const steering_3d::Control3 c{rotate_rad[k], curvature_per_m[k], insertion_m[k]};
+    if (!std::isfinite(c.rotate_rad) || !std::isfinite(c.curvature_per_m) ||
+        !std::isfinite(c.length_m) || c.curvature_per_m < 0.0 || c.length_m < 0.0) {
+      throw std::invalid_argument("plan control " + std::to_string(k) +
+                                  " is not finite or has a negative curvature or length");
+    }
+    out.push_back(c);
+  }
+  return out;
+}
+
+void controlsToArrays(const std::vector<steering_3d::Control3>& controls,
+                      std::vector<double>& rotate_rad, std::vector<double>& curvature_per_m,
+                      std::vector<double>& insertion_m) {
+  for (const steering_3d::Control3& c : controls) {
+    rotate_rad.push_back(c.rotate_rad);
+    curvature_per_m.push_back(c.curvature_per_m);
+    insertion_m.push_back(c.length_m);
+  }
 }
 
 visualization_msgs::MarkerArray sceneToMarkers(const steering_3d::Scene3d& scene,

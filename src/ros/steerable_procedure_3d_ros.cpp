@@ -2,6 +2,7 @@
 #include "needle_guidance/ros/steerable_procedure_3d_ros.h"
 
 #include <chrono>
+#include <stdexcept>
 
 #include "needle_guidance/PlanSteering3.h"
 #include "needle_guidance/report/output_path.h"
@@ -105,7 +106,11 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
     return false;
   }
   trial.start(entry, srv.response.p_success, srv.response.seconds);
-  SteeringControl3 previous;  // followed when a replan finds nothing (as runTrial3)
+  // As runTrial3: the entry plan's first step, then a replan from every tip.
+  trial.setPlan(ros_conversions::controlsFromArrays(
+      srv.response.rotate_rad, srv.response.curvature_per_m, srv.response.insertion_m));
+  trial.step();
+  publishPath(trial.result().path);
   while (!trial.done() && ros::ok()) {
     const auto t0 = std::chrono::steady_clock::now();
     const std::optional<SteeringControl3> answer = exchange(trial.tip());
@@ -121,18 +126,14 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
       return false;
     }
     trial.recordReplan(answer->plan_seconds);
-    if (answer->status == "ok") {
-      previous = *answer;
-    } else if (previous.insertion_m <= 1e-9) {
-      trial.abort("no plan from the tip (" + answer->message + ") and none to follow");
-      break;
+    if (answer->status == "ok") {  // otherwise keep following the previous plan (as runTrial3)
+      std::vector<sd::Control3> plan = ros_conversions::controlsFromArrays(
+          answer->next_rotate_rad, answer->next_curvature_per_m, answer->next_insertion_m);
+      plan.insert(plan.begin(),
+                  sd::Control3{answer->rotate_rad, answer->curvature_per_m, answer->insertion_m});
+      trial.setPlan(plan);
     }
-    const double executed = std::min(previous.insertion_m, scene_->step_length_m);
-    trial.apply(sd::Control3{previous.rotate_rad, previous.curvature_per_m, previous.insertion_m},
-                previous.plan_length_m);
-    previous.rotate_rad = 0.0;
-    previous.insertion_m -= executed;
-    previous.plan_length_m -= executed;
+    trial.step();
     publishPath(trial.result().path);
   }
   return true;
@@ -168,7 +169,12 @@ bool SteerableProcedure3dRos::run() {
   for (int k = 0; k < trials_ && ok && ros::ok(); ++k) {
     const std::uint64_t trial_seed = static_cast<std::uint64_t>(seed_) * 100000ULL + k;
     procedures::SteeringTrial3 trial(*scene_, *world_, noise_, trial_seed, max_steps_);
-    ok = runTrial(trial, trial_seed, round_trip_ms);
+    try {
+      ok = runTrial(trial, trial_seed, round_trip_ms);
+    } catch (const std::invalid_argument& e) {  // a malformed plan from the planner
+      trial.abort(std::string("the planner's plan: ") + e.what());
+      ok = false;
+    }
     results.push_back(trial.result());
     faulted.push_back(!ok);
     const sd::TrialResult3& r = trial.result();

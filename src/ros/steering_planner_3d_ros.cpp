@@ -86,6 +86,10 @@ void SteeringPlanner3dRos::onTip(const geometry_msgs::PoseWithCovarianceStampedC
     out.insertion_m = c.length_m;
     out.plan_length_m = plan.value().length_m;
     out.p_success = plan.value().p_success;
+    const std::vector<sd::Control3> later(plan.value().controls.begin() + 1,
+                                          plan.value().controls.end());
+    ros_conversions::controlsToArrays(later, out.next_rotate_rad, out.next_curvature_per_m,
+                                      out.next_insertion_m);
     publishPlan(plan.value());
   }
   control_pub_.publish(out);
@@ -105,6 +109,8 @@ bool SteeringPlanner3dRos::onPlan(PlanSteering3::Request& req, PlanSteering3::Re
   res.start = ros_conversions::toMessage(plan.value().start);
   res.p_success = plan.value().p_success;
   res.length_m = plan.value().length_m;
+  ros_conversions::controlsToArrays(plan.value().controls, res.rotate_rad, res.curvature_per_m,
+                                    res.insertion_m);
   publishPlan(plan.value());
   return true;
 }

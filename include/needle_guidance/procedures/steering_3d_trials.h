@@ -6,6 +6,7 @@
 #pragma once
 
 #include <cstdint>
+#include <deque>
 #include <string>
 #include <vector>
 
@@ -24,11 +25,13 @@ public:
   void start(const steering_3d::TipPose3& entry, double predicted_p_success, double initial_plan_s);
   /// Ends the trial without a start (the entry plan failed).
   void refuseStart(steering_3d::PlanCode code, const std::string& message);
-  /// Executes `control` for at most one step (scene step_length_m); `plan_length_m` is the
-  /// remaining plan's length from the tip, this control included [m]: when this step completes
-  /// it, the trial ends and is refereed. Returns false once the trial has ended (contact, plan
-  /// completed, or max_steps).
-  bool apply(const steering_3d::Control3& control, double plan_length_m);
+  /// Replaces the plan being followed (controls from the current tip, as Plan3::controls).
+  void setPlan(const std::vector<steering_3d::Control3>& controls);
+  /// Executes the plan's next control for at most one step (scene step_length_m), as runTrial3:
+  /// the trial ends when the plan is used up (the tip is refereed against the target ball), the
+  /// path touches an obstacle or leaves the tissue, or after max_steps; with no plan left it ends
+  /// where the tip is. Returns false once the trial has ended.
+  bool step();
   /// Ends a trial that stopped early (e.g. no control came): refereed where the tip is, with
   /// `message` as the reason.
   void abort(const std::string& message);
@@ -47,6 +50,7 @@ private:
   steering_3d::NoisyNeedle3 needle_;
   int max_steps_;
   steering_3d::TipPose3 tip_;
+  std::deque<steering_3d::Control3> plan_;
   steering_3d::TrialResult3 result_;
   bool done_ = false;
 };

@@ -23,6 +23,17 @@ geometry_msgs::Pose toMessage(const steering_3d::TipPose3& tip);
 std::string fromMessage(const geometry_msgs::PoseWithCovarianceStamped& msg,
                         const std::string& frame_id, steering_3d::TipPose3& tip);
 
+/// Controls from three parallel arrays (a plan in SteeringControl3 or PlanSteering3). Throws
+/// std::invalid_argument for arrays of different lengths, a non-finite value or a negative
+/// curvature or length.
+std::vector<steering_3d::Control3> controlsFromArrays(const std::vector<double>& rotate_rad,
+                                                      const std::vector<double>& curvature_per_m,
+                                                      const std::vector<double>& insertion_m);
+/// Appends `controls` to three parallel arrays.
+void controlsToArrays(const std::vector<steering_3d::Control3>& controls,
+                      std::vector<double>& rotate_rad, std::vector<double>& curvature_per_m,
+                      std::vector<double>& insertion_m);
+
 /// Markers of a 3-D scene in frame `frame_id`: the tissue mesh (translucent), the obstacle
 /// meshes (red, TRIANGLE_LIST), the target ball (green) and the entry disc (blue).
 visualization_msgs::MarkerArray sceneToMarkers(const steering_3d::Scene3d& scene,
