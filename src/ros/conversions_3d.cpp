@@ -7,28 +7,18 @@
 #include <stdexcept>
 
 #include "needle_guidance/ros/conversions.h"
+#include "needle_guidance/ros/delivery_conversions.h"
 
 namespace needle_guidance::ros_conversions {
 namespace {
 
 geometry_msgs::Point point(const steering_3d::Vector3& p) {
-  geometry_msgs::Point m;
-  m.x = p.x();
-  m.y = p.y();
-  m.z = p.z();
-  return m;
+  return toPointMessage(p);
 }
 
 visualization_msgs::Marker marker(const std::string& frame_id, const std::string& ns, int id,
                                   int type, const std_msgs::ColorRGBA& c) {
-  visualization_msgs::Marker m;
-  m.header.frame_id = frame_id;
-  m.ns = ns;
-  m.id = id;
-  m.type = type;
-  m.action = visualization_msgs::Marker::ADD;
-  m.pose.orientation.w = 1.0;
-  m.scale.x = m.scale.y = m.scale.z = 1.0;
+  visualization_msgs::Marker m = baseMarker(frame_id, ns, id, type);
   m.color = c;
   return m;
 }

@@ -6,23 +6,12 @@
 #include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/conversions_3d.h"
 #include "needle_guidance/ros/params.h"
+#include "needle_guidance/steering_3d/closed_loop_3d.h"
 #include "needle_guidance/steering_3d/scene_3d.h"
 
 namespace needle_guidance {
 
 namespace sd = steering_3d;
-
-namespace {
-
-/// The k-th replan's seed (splitmix64 of seed and k).
-std::uint64_t mixSeed(std::uint64_t seed, std::uint64_t k) {
-  std::uint64_t z = seed * 0x9e3779b97f4a7c15ULL + k + 0x632be59bd9b4e019ULL;
-  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ULL;
-  z = (z ^ (z >> 27)) * 0x94d049bb133111ebULL;
-  return z ^ (z >> 31);
-}
-
-}  // namespace
 
 SteeringPlanner3dRos::SteeringPlanner3dRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   namespace rp = ros_params;
@@ -72,7 +61,7 @@ void SteeringPlanner3dRos::onTip(const geometry_msgs::PoseWithCovarianceStampedC
   }
   sd::PlanReport report;
   const Result<sd::Plan3, sd::PlanStatus> plan =
-      planner_->planFromTip(tip, mixSeed(seed_, ++tips_), &report);
+      planner_->planFromTip(tip, sd::callSeed(seed_, ++tips_), &report);
   out.plan_seconds = report.seconds;
   out.nodes = report.nodes;
   if (!plan) {

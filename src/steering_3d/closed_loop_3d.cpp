@@ -15,14 +15,6 @@ double secondsSince(Clock::time_point t0) {
   return std::chrono::duration<double>(Clock::now() - t0).count();
 }
 
-/// Planner seed of the k-th call in a trial (splitmix64 of both).
-std::uint64_t callSeed(std::uint64_t seed, std::uint64_t k) {
-  std::uint64_t z = seed * 0x9e3779b97f4a7c15ULL + k + 0x632be59bd9b4e019ULL;
-  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ULL;
-  z = (z ^ (z >> 27)) * 0x94d049bb133111ebULL;
-  return z ^ (z >> 31);
-}
-
 /// The straight needle: from the disc point nearest the target, aimed at it (clamped into the
 /// cone), spun continuously (duty cycle alpha = 1) for the distance to the target's foot point.
 std::pair<TipPose3, double> straightStart(const Scene3d& scene) {
@@ -43,6 +35,13 @@ std::pair<TipPose3, double> straightStart(const Scene3d& scene) {
 }
 
 }  // namespace
+
+std::uint64_t callSeed(std::uint64_t seed, std::uint64_t k) {
+  std::uint64_t z = seed * 0x9e3779b97f4a7c15ULL + k + 0x632be59bd9b4e019ULL;
+  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ULL;
+  z = (z ^ (z >> 27)) * 0x94d049bb133111ebULL;
+  return z ^ (z >> 31);
+}
 
 bool executeStep3(NoisyNeedle3& needle, const CollisionWorld3& world, const Control3& control,
                   TipPose3& tip, TrialResult3& r, const TrialOptions3& options) {

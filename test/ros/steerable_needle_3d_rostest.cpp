@@ -14,6 +14,7 @@
 #include <map>
 #include <sstream>
 #include <string>
+#include <vector>
 
 #include "../csv_rows.h"
 #include "../ros_wait.h"
@@ -67,28 +68,25 @@ void expectRefused(const needle_guidance::SteeringControl3& c, const std::string
 }
 
 TEST(SteerableNeedle3d, PlannerRefusesBadTipPoses) {
-  geometry_msgs::PoseWithCovarianceStamped tip;
-  tip.header.frame_id = "scene";
-  tip.header.stamp = ros::Time(12345, 1);
-  tip.pose.pose.position.x = std::numeric_limits<double>::quiet_NaN();
-  tip.pose.pose.orientation.w = 1.0;
-  auto answer = askPlanner(tip);
-  ASSERT_TRUE(answer) << "no answer to a NaN tip";
-  expectRefused(*answer, "not finite");
-
-  tip.header.stamp = ros::Time(12345, 2);
-  tip.header.frame_id = "world";
-  tip.pose.pose.position.x = 0.01;
-  answer = askPlanner(tip);
-  ASSERT_TRUE(answer) << "no answer to a tip in frame world";
-  expectRefused(*answer, "frame 'world'");
-
-  tip.header.stamp = ros::Time(12345, 3);
-  tip.header.frame_id = "scene";
-  tip.pose.pose.orientation.w = 2.0;
-  answer = askPlanner(tip);
-  ASSERT_TRUE(answer) << "no answer to a non-unit quaternion";
-  expectRefused(*answer, "norm");
+  struct Case {
+    std::string frame;
+    double x, w;           // position x [m], quaternion w
+    std::string expected;  // in the refusal's message
+  };
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  const std::vector<Case> cases = {{"scene", nan, 1.0, "not finite"},
+                                   {"world", 0.01, 1.0, "frame 'world'"},
+                                   {"scene", 0.01, 2.0, "norm"}};
+  for (std::size_t k = 0; k < cases.size(); ++k) {
+    geometry_msgs::PoseWithCovarianceStamped tip;
+    tip.header.frame_id = cases[k].frame;
+    tip.header.stamp = ros::Time(12345, static_cast<std::uint32_t>(k + 1));
+    tip.pose.pose.position.x = cases[k].x;
+    tip.pose.pose.orientation.w = cases[k].w;
+    const auto answer = askPlanner(tip);
+    ASSERT_TRUE(answer) << "no answer to bad tip " << k << " (" << cases[k].expected << ")";
+    expectRefused(*answer, cases[k].expected);
+  }
 }
 
 TEST(SteerableNeedle3d, TrialsReachTheTargetAndTheReportMatchesTheScene) {

@@ -43,6 +43,9 @@ struct TrialResult3 {
   std::vector<Vector3> path;         ///< tip positions, when record_path
 };
 
+/// Planner seed of the k-th planning call in a trial seeded `seed` (splitmix64 of both).
+std::uint64_t callSeed(std::uint64_t seed, std::uint64_t k);
+
 /// One executed step of a trial (also the ROS procedure's world): moves `tip` by `control`
 /// through the noisy needle, counts the step, appends the path when options.record_path and
 /// checks it; false (result's contact, obstacle and message set) if it touched something.
