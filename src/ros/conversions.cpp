@@ -27,19 +27,6 @@ std_msgs::ColorRGBA regionColour(std::size_t index) {
   return colour(c[0], c[1], c[2], 1.0F);  // opaque: no blending-order artefacts in rviz
 }
 
-visualization_msgs::Marker baseMarker(const std::string& frame_id, const std::string& ns, int id,
-                                      int type) {
-  visualization_msgs::Marker m;
-  m.header.frame_id = frame_id;
-  m.ns = ns;
-  m.id = id;
-  m.type = type;
-  m.action = visualization_msgs::Marker::ADD;
-  m.pose.orientation.w = 1.0;
-  m.scale.x = m.scale.y = m.scale.z = 1.0;
-  return m;
-}
-
 visualization_msgs::Marker outline(const geometry::Polygon& polygon, const std::string& frame_id,
                                    const std::string& ns, int id, double width_m,
                                    const std_msgs::ColorRGBA& colour) {
@@ -82,6 +69,19 @@ visualization_msgs::Marker filled(const geometry::Polygon& domain,
 }
 
 }  // namespace
+
+visualization_msgs::Marker baseMarker(const std::string& frame_id, const std::string& ns, int id,
+                                      int type) {
+  visualization_msgs::Marker m;
+  m.header.frame_id = frame_id;
+  m.ns = ns;
+  m.id = id;
+  m.type = type;
+  m.action = visualization_msgs::Marker::ADD;
+  m.pose.orientation.w = 1.0;
+  m.scale.x = m.scale.y = m.scale.z = 1.0;
+  return m;
+}
 
 std_msgs::ColorRGBA colour(double r, double g, double b, double a) {
   std_msgs::ColorRGBA c;

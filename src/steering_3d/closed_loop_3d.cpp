@@ -15,14 +15,6 @@ double secondsSince(Clock::time_point t0) {
   return std::chrono::duration<double>(Clock::now() - t0).count();
 }
 
-/// Planner seed of the k-th call in a trial (splitmix64 of both).
-std::uint64_t callSeed(std::uint64_t seed, std::uint64_t k) {
-  std::uint64_t z = seed * 0x9e3779b97f4a7c15ULL + k + 0x632be59bd9b4e019ULL;
-  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ULL;
-  z = (z ^ (z >> 27)) * 0x94d049bb133111ebULL;
-  return z ^ (z >> 31);
-}
-
 /// The straight needle: from the disc point nearest the target, aimed at it (clamped into the
 /// cone), spun continuously (duty cycle alpha = 1) for the distance to the target's foot point.
 std::pair<TipPose3, double> straightStart(const Scene3d& scene) {
@@ -42,9 +34,17 @@ std::pair<TipPose3, double> straightStart(const Scene3d& scene) {
   return {makeTipPose(p0, dir, dir.unitOrthogonal()), (c - p0).dot(dir)};
 }
 
-/// Executes one step, checks its path; false if it touched something (result filled).
-bool execute(NoisyNeedle3& needle, const CollisionWorld3& world, const Control3& control,
-             TipPose3& tip, TrialResult3& r, const TrialOptions3& options) {
+}  // namespace
+
+std::uint64_t callSeed(std::uint64_t seed, std::uint64_t k) {
+  std::uint64_t z = seed * 0x9e3779b97f4a7c15ULL + k + 0x632be59bd9b4e019ULL;
+  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ULL;
+  z = (z ^ (z >> 27)) * 0x94d049bb133111ebULL;
+  return z ^ (z >> 31);
+}
+
+bool executeStep3(NoisyNeedle3& needle, const CollisionWorld3& world, const Control3& control,
+                  TipPose3& tip, TrialResult3& r, const TrialOptions3& options) {
   const StepRecord step = needle.step(tip, control);
   ++r.steps;
   const PathCheck check = world.checkPolyline(step.path);
@@ -63,15 +63,13 @@ bool execute(NoisyNeedle3& needle, const CollisionWorld3& world, const Control3&
   return true;
 }
 
-void finish(const Scene3d& scene, const TipPose3& tip, TrialResult3& r) {
+void finishTrial3(const Scene3d& scene, const TipPose3& tip, TrialResult3& r) {
   r.target_error_m = (tip.p_SceneTip - scene.target.center_m).norm();
   r.success = r.contact == Contact3::kFree && r.target_error_m <= scene.target.radius_m;
   if (!r.success && r.message.empty()) {
     r.message = "ended " + std::to_string(r.target_error_m * 1e3) + " mm from the target centre";
   }
 }
-
-}  // namespace
 
 std::string toString(Strategy3 strategy) {
   switch (strategy) {
@@ -102,11 +100,11 @@ TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strat
     while (remaining > 1e-9 && r.steps < options.max_steps) {
       const double l = std::min(step, remaining);
       remaining -= l;
-      if (!execute(needle, world, Control3{0.0, 0.0, l}, tip, r, options)) {
+      if (!executeStep3(needle, world, Control3{0.0, 0.0, l}, tip, r, options)) {
         break;
       }
     }
-    finish(scene, tip, r);
+    finishTrial3(scene, tip, r);
     return r;
   }
   PlannerParams3 params = planner_params;
@@ -130,7 +128,7 @@ TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strat
     Control3 c = queue.front();
     const bool last_piece = c.length_m <= step * (1.0 + 1e-9);
     c.length_m = std::min(c.length_m, step);
-    if (!execute(needle, world, c, tip, r, options)) {
+    if (!executeStep3(needle, world, c, tip, r, options)) {
       break;
     }
     if (last_piece) {
@@ -150,7 +148,7 @@ TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strat
       queue.assign(next.value().controls.begin(), next.value().controls.end());
     }
   }
-  finish(scene, tip, r);
+  finishTrial3(scene, tip, r);
   return r;
 }
 

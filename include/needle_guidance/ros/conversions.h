@@ -17,6 +17,10 @@ namespace needle_guidance::ros_conversions {
 /// An rviz colour from components in [0, 1].
 std_msgs::ColorRGBA colour(double r, double g, double b, double a = 1.0);
 
+/// A marker with frame, namespace, id and type set, action ADD, identity pose, unit scale.
+visualization_msgs::Marker baseMarker(const std::string& frame_id, const std::string& ns, int id,
+                                      int type);
+
 /// A point of frame scene (z = 0) [m].
 geometry_msgs::Point toMessage(const geometry::Point2& p_Scene);
 

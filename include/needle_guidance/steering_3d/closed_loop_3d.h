@@ -43,6 +43,18 @@ struct TrialResult3 {
   std::vector<Vector3> path;         ///< tip positions, when record_path
 };
 
+/// Planner seed of the k-th planning call in a trial seeded `seed` (splitmix64 of both).
+std::uint64_t callSeed(std::uint64_t seed, std::uint64_t k);
+
+/// One executed step of a trial (also the ROS procedure's world): moves `tip` by `control`
+/// through the noisy needle, counts the step, appends the path when options.record_path and
+/// checks it; false (result's contact, obstacle and message set) if it touched something.
+bool executeStep3(NoisyNeedle3& needle, const CollisionWorld3& world, const Control3& control,
+                  TipPose3& tip, TrialResult3& result, const TrialOptions3& options);
+/// Sets target_error_m and success (no contact and the tip in the target ball) from the final
+/// tip; a failure gets a message if it has none.
+void finishTrial3(const Scene3d& scene, const TipPose3& tip, TrialResult3& result);
+
 /// Runs one insertion in `scene` with noise `noise` (the world's; the planner assumes the same)
 /// from the planner's entry; `seed` seeds both the world and the planner.
 TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strategy3 strategy,

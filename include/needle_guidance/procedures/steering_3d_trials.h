@@ -1,0 +1,90 @@
+// The ROS-free part of the 3-D steerable-needle procedure (issue 18, node steerable_procedure_3d):
+// the simulated world of one trial driven by controls that come from outside (the
+// steering_planner_3d node), and the report of N trials. The world is the core's noisy needle
+// (needle_3d.h) stepped and refereed exactly as in runTrial3 (closed_loop_3d.h: executeStep3,
+// finishTrial3), so a trial's outcome means the same in the bench and in the ROS loop.
+#pragma once
+
+#include <cstdint>
+#include <deque>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/steering_3d/closed_loop_3d.h"
+
+namespace needle_guidance::procedures {
+
+/// One trial's world: the true tip, its noisy needle and the outcome so far.
+class SteeringTrial3 {
+public:
+  /// The scene and world must outlive it; `seed` seeds the needle's noise.
+  SteeringTrial3(const steering_3d::Scene3d& scene, const steering_3d::CollisionWorld3& world,
+                 const steering_3d::NoiseParams3& noise, std::uint64_t seed, int max_steps);
+
+  /// Places the tip at the entry plan's start (no motion yet).
+  void start(const steering_3d::TipPose3& entry, double predicted_p_success, double initial_plan_s);
+  /// Ends the trial without a start (the entry plan failed).
+  void refuseStart(steering_3d::PlanCode code, const std::string& message);
+  /// Replaces the plan being followed (controls from the current tip, as Plan3::controls).
+  void setPlan(const std::vector<steering_3d::Control3>& controls);
+  /// Executes the plan's next control for at most one step (scene step_length_m), as runTrial3:
+  /// the trial ends when the plan is used up (the tip is refereed against the target ball), the
+  /// path touches an obstacle or leaves the tissue, or after max_steps; with no plan left it ends
+  /// where the tip is. Returns false once the trial has ended.
+  bool step();
+  /// Ends a trial that stopped early (e.g. no control came): refereed where the tip is, with
+  /// `message` as the reason.
+  void abort(const std::string& message);
+  /// Records one replan's planner time [s].
+  void recordReplan(double seconds) { result_.replan_s.push_back(seconds); }
+
+  bool done() const { return done_; }
+  const steering_3d::TipPose3& tip() const { return tip_; }
+  const steering_3d::TrialResult3& result() const { return result_; }
+
+private:
+  void end();
+
+  const steering_3d::Scene3d& scene_;
+  const steering_3d::CollisionWorld3& world_;
+  steering_3d::NoisyNeedle3 needle_;
+  int max_steps_;
+  steering_3d::TipPose3 tip_;
+  std::deque<steering_3d::Control3> plan_;
+  steering_3d::TrialResult3 result_;
+  bool done_ = false;
+};
+
+/// Aggregate of a run's trials.
+struct SteeringSummary3 {
+  int trials = 0;
+  int successes = 0;
+  double success_rate = 0.0;
+  double success_ci_low = 0.0;  ///< 95 % Wilson interval
+  double success_ci_high = 1.0;
+  double target_error_mm_median = 0.0;  ///< over trials with a start
+  double target_error_mm_max = 0.0;
+  double replan_ms_median = 0.0;  ///< planner time of each replan, all trials
+  double replan_ms_p95 = 0.0;
+  double replan_ms_max = 0.0;
+  double initial_plan_s_median = 0.0;
+  double predicted_p_success_mean = 0.0;
+  int faults = 0;  ///< trials ended by a fault of the loop (no control, timeout), not an outcome
+};
+
+SteeringSummary3 summarize(const std::vector<steering_3d::TrialResult3>& results,
+                           const std::vector<bool>& faulted);
+
+/// The run's outcome ("success" in summary.json): no fault, and the success rate's 95 % interval
+/// reaches the mean predicted P(success) (it contains it or lies above it).
+bool runSucceeded(const SteeringSummary3& summary);
+
+/// Writes summary.json, trials.csv, paths.csv and target_error.png / replan_ms.png to
+/// report_dir (which the caller prepared). `round_trip_ms` are the tip-to-control latencies the
+/// node measured. Throws std::runtime_error naming a file it cannot write.
+void writeSteeringReport3(const std::string& report_dir, const steering_3d::Scene3d& scene,
+                          const std::vector<steering_3d::TrialResult3>& results,
+                          const std::vector<bool>& faulted,
+                          const std::vector<double>& round_trip_ms, std::uint64_t seed);
+
+}  // namespace needle_guidance::procedures

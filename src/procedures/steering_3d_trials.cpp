@@ -1,0 +1,205 @@
+// The 3-D procedure's world and report (steering_3d_trials.h).
+#include "needle_guidance/procedures/steering_3d_trials.h"
+
+#include <cmath>
+#include <limits>
+#include <sstream>
+
+#include "needle_guidance/report/plot.h"
+#include "needle_guidance/report/statistics.h"
+#include "needle_guidance/report/table.h"
+#include "needle_guidance/steering/monte_carlo.h"
+
+namespace needle_guidance::procedures {
+
+using steering_3d::Control3;
+using steering_3d::TipPose3;
+using steering_3d::TrialResult3;
+
+SteeringTrial3::SteeringTrial3(const steering_3d::Scene3d& scene,
+                               const steering_3d::CollisionWorld3& world,
+                               const steering_3d::NoiseParams3& noise, std::uint64_t seed,
+                               int max_steps)
+    : scene_(scene), world_(world), needle_(scene.needle, noise, seed), max_steps_(max_steps) {
+  result_.target_error_m = std::numeric_limits<double>::infinity();
+}
+
+void SteeringTrial3::start(const TipPose3& entry, double predicted_p_success,
+                           double initial_plan_s) {
+  tip_ = entry;
+  result_.predicted_p_success = predicted_p_success;
+  result_.initial_plan_s = initial_plan_s;
+  result_.path.assign(1, entry.p_SceneTip);
+}
+
+void SteeringTrial3::refuseStart(steering_3d::PlanCode code, const std::string& message) {
+  result_.no_plan = code;
+  result_.message = message;
+  done_ = true;
+}
+
+void SteeringTrial3::setPlan(const std::vector<Control3>& controls) {
+  plan_.assign(controls.begin(), controls.end());
+}
+
+bool SteeringTrial3::step() {
+  if (done_) {
+    return false;
+  }
+  if (plan_.empty()) {
+    result_.message = "no plan to follow";
+    end();
+    return false;
+  }
+  const double step = scene_.step_length_m;
+  Control3 c = plan_.front();
+  const bool last_piece = c.length_m <= step * (1.0 + 1e-9);
+  c.length_m = std::min(c.length_m, step);
+  steering_3d::TrialOptions3 options;
+  options.record_path = true;
+  const bool free = steering_3d::executeStep3(needle_, world_, c, tip_, result_, options);
+  if (last_piece) {
+    plan_.pop_front();
+  } else {
+    plan_.front().length_m -= step;
+    plan_.front().rotate_rad = 0.0;  // the bevel was rotated at the segment's first step
+  }
+  if (!free || plan_.empty() || result_.steps >= max_steps_) {
+    end();
+  }
+  return !done_;
+}
+
+void SteeringTrial3::abort(const std::string& message) {
+  if (done_) {
+    return;
+  }
+  result_.message = message;
+  end();
+  result_.success = false;  // a fault is not an outcome
+}
+
+void SteeringTrial3::end() {
+  steering_3d::finishTrial3(scene_, tip_, result_);
+  done_ = true;
+}
+
+bool runSucceeded(const SteeringSummary3& s) {
+  return s.faults == 0 && s.trials > 0 && s.success_ci_high >= s.predicted_p_success_mean;
+}
+
+SteeringSummary3 summarize(const std::vector<TrialResult3>& results,
+                           const std::vector<bool>& faulted) {
+  SteeringSummary3 s;
+  s.trials = static_cast<int>(results.size());
+  std::vector<double> errors_mm, replan_ms, initial_s, predicted;
+  for (std::size_t k = 0; k < results.size(); ++k) {
+    const TrialResult3& r = results[k];
+    s.successes += r.success ? 1 : 0;
+    s.faults += k < faulted.size() && faulted[k] ? 1 : 0;
+    if (std::isfinite(r.target_error_m)) {
+      errors_mm.push_back(r.target_error_m * 1e3);
+      initial_s.push_back(r.initial_plan_s);
+      predicted.push_back(r.predicted_p_success);
+    }
+    for (double t : r.replan_s) {
+      replan_ms.push_back(t * 1e3);
+    }
+  }
+  s.success_rate = s.trials > 0 ? static_cast<double>(s.successes) / s.trials : 0.0;
+  const steering::Interval ci = steering::wilsonInterval(s.successes, s.trials);
+  s.success_ci_low = ci.low;
+  s.success_ci_high = ci.high;
+  s.target_error_mm_median = report::median(errors_mm);
+  s.target_error_mm_max = report::quantile(errors_mm, 1.0);
+  s.replan_ms_median = report::median(replan_ms);
+  s.replan_ms_p95 = report::quantile(replan_ms, 0.95);
+  s.replan_ms_max = report::quantile(replan_ms, 1.0);
+  s.initial_plan_s_median = report::median(initial_s);
+  s.predicted_p_success_mean = report::mean(predicted);
+  return s;
+}
+
+namespace {
+
+std::string summaryJson(const steering_3d::Scene3d& scene, const SteeringSummary3& s,
+                        const std::vector<double>& round_trip_ms, std::uint64_t seed) {
+  const auto num = [](double v) { return report::jsonNumber(v); };
+  std::ostringstream json;
+  json << "{\n  \"procedure\": \"steerable_procedure_3d\",\n  \"scene\": \"" << scene.name
+       << "\",\n  \"seed\": " << seed << ",\n  \"trials\": " << s.trials
+       << ",\n  \"successes\": " << s.successes << ",\n  \"success_rate\": " << num(s.success_rate)
+       << ",\n  \"success_ci_low\": " << num(s.success_ci_low)
+       << ",\n  \"success_ci_high\": " << num(s.success_ci_high)
+       << ",\n  \"target_radius_mm\": " << num(scene.target.radius_m * 1e3)
+       << ",\n  \"target_error_mm_median\": " << num(s.target_error_mm_median)
+       << ",\n  \"target_error_mm_max\": " << num(s.target_error_mm_max)
+       << ",\n  \"replan_ms_median\": " << num(s.replan_ms_median)
+       << ",\n  \"replan_ms_p95\": " << num(s.replan_ms_p95)
+       << ",\n  \"replan_ms_max\": " << num(s.replan_ms_max)
+       << ",\n  \"round_trip_ms_median\": " << num(report::median(round_trip_ms))
+       << ",\n  \"initial_plan_s_median\": " << num(s.initial_plan_s_median)
+       << ",\n  \"predicted_p_success_mean\": " << num(s.predicted_p_success_mean)
+       << ",\n  \"faults\": " << s.faults
+       << ",\n  \"success\": " << (runSucceeded(s) ? "true" : "false") << ",\n  \"status\": \""
+       << (s.faults == 0 ? "completed" : "fault") << "\"\n}\n";
+  return json.str();
+}
+
+void writePlots(const std::string& dir, const steering_3d::Scene3d& scene,
+                const std::vector<TrialResult3>& results) {
+  report::LinePlot errors("Final tip error per trial (" + scene.name + ")", "trial",
+                          "tip to target centre [mm]");
+  std::vector<double> xs, ys, xf, yf, replan_x, replan_y;
+  for (std::size_t k = 0; k < results.size(); ++k) {
+    const double e = results[k].target_error_m * 1e3;
+    (results[k].success ? xs : xf).push_back(static_cast<double>(k));
+    (results[k].success ? ys : yf).push_back(e);
+    for (double t : results[k].replan_s) {
+      replan_x.push_back(static_cast<double>(replan_x.size()));
+      replan_y.push_back(t * 1e3);
+    }
+  }
+  errors.addPoints("success", xs, ys, cv::Scalar(60, 160, 60), 6);
+  errors.addPoints("failure", xf, yf, cv::Scalar(40, 40, 220), 6);
+  errors.addHorizontal("target radius", scene.target.radius_m * 1e3, cv::Scalar(120, 120, 120));
+  errors.save(dir + "/target_error.png");
+  report::LinePlot replans("Replan time of steering_planner_3d (" + scene.name + ")",
+                           "replan (all trials, in order)", "planner time [ms]");
+  replans.addPoints("replan", replan_x, replan_y, report::seriesColour(0), 2);
+  replans.save(dir + "/replan_ms.png");
+}
+
+}  // namespace
+
+void writeSteeringReport3(const std::string& report_dir, const steering_3d::Scene3d& scene,
+                          const std::vector<TrialResult3>& results,
+                          const std::vector<bool>& faulted,
+                          const std::vector<double>& round_trip_ms, std::uint64_t seed) {
+  const SteeringSummary3 s = summarize(results, faulted);
+  report::writeTextFile(report_dir + "/summary.json", summaryJson(scene, s, round_trip_ms, seed));
+  report::Table trials({"trial", "success", "contact", "obstacle", "target_error_mm", "steps",
+                        "initial_plan_s", "replans", "replan_ms_median", "predicted_p_success",
+                        "fault", "message"});
+  report::Table paths({"trial", "x_mm", "y_mm", "z_mm"});
+  for (std::size_t k = 0; k < results.size(); ++k) {
+    const TrialResult3& r = results[k];
+    std::vector<double> replan_ms;
+    for (double t : r.replan_s) {
+      replan_ms.push_back(t * 1e3);
+    }
+    trials.addRow({static_cast<double>(k), r.success ? 1.0 : 0.0, steering_3d::toString(r.contact),
+                   r.obstacle, r.target_error_m * 1e3, static_cast<double>(r.steps),
+                   r.initial_plan_s, static_cast<double>(r.replan_s.size()),
+                   report::median(replan_ms), r.predicted_p_success,
+                   k < faulted.size() && faulted[k] ? 1.0 : 0.0, r.message});
+    for (const steering_3d::Vector3& p : r.path) {
+      paths.addRow({static_cast<double>(k), p.x() * 1e3, p.y() * 1e3, p.z() * 1e3});
+    }
+  }
+  trials.writeCsv(report_dir + "/trials.csv");
+  paths.writeCsv(report_dir + "/paths.csv");
+  writePlots(report_dir, scene, results);
+}
+
+}  // namespace needle_guidance::procedures

@@ -1,0 +1,197 @@
+// steerable_procedure_3d (steerable_procedure_3d_ros.h).
+#include "needle_guidance/ros/steerable_procedure_3d_ros.h"
+
+#include <chrono>
+#include <stdexcept>
+
+#include "needle_guidance/PlanSteering3.h"
+#include "needle_guidance/report/output_path.h"
+#include "needle_guidance/ros/conversions.h"
+#include "needle_guidance/ros/conversions_3d.h"
+#include "needle_guidance/ros/params.h"
+
+namespace needle_guidance {
+
+namespace sd = steering_3d;
+
+namespace {
+
+sd::PlanCode planCodeOf(const std::string& name) {
+  for (sd::PlanCode c : {sd::PlanCode::kStartOutsideTissue, sd::PlanCode::kStartInObstacle,
+                         sd::PlanCode::kTargetOutsideTissue, sd::PlanCode::kTargetInObstacle,
+                         sd::PlanCode::kNoPathWithinBudget}) {
+    if (sd::toString(c) == name) {
+      return c;
+    }
+  }
+  return sd::PlanCode::kNoPathWithinBudget;
+}
+
+}  // namespace
+
+SteerableProcedure3dRos::SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh)
+    : nh_(nh) {
+  namespace rp = ros_params;
+  ROS_INFO("steerable_procedure_3d parameters:");
+  const std::string scene_path = rp::text(private_nh, "scene", "", true);
+  trials_ = static_cast<int>(rp::integer(private_nh, "trials", 10, 1, 100000, "trials"));
+  seed_ = rp::integer(private_nh, "seed", 1, 0, 1L << 30, "");
+  max_steps_ = static_cast<int>(rp::integer(private_nh, "max_steps", 200, 1, 100000, "steps"));
+  const double noise_scale = rp::number(private_nh, "noise_scale", 1.0, 0.0, 10.0, "x scene sigma");
+  control_timeout_s_ = rp::number(private_nh, "control_timeout_s", 10.0, 0.1, 600.0, "s");
+  startup_timeout_s_ = rp::number(private_nh, "startup_timeout_s", 30.0, 0.1, 600.0, "s");
+  tip_sigma_m_ = rp::number(private_nh, "tip_sigma_m", 0.0, 0.0, 0.1, "m");
+  planner_ns_ = rp::text(private_nh, "planner_ns", "steering_planner_3d");
+  report_dir_ = ros_params::rosHomePath(rp::text(private_nh, "report_dir", "", true));
+  scene_ = std::make_unique<sd::Scene3d>(sd::loadScene3d(scene_path));
+  world_ = std::make_unique<sd::CollisionWorld3>(scene_->collisionWorld());
+  noise_ = scene_->noise.scaled(noise_scale);
+  tip_pub_ = private_nh.advertise<geometry_msgs::PoseWithCovarianceStamped>("tip", 10);
+  path_pub_ = private_nh.advertise<visualization_msgs::Marker>("needle_path", 1, true);
+  control_sub_ =
+      nh.subscribe(planner_ns_ + "/control", 10, &SteerableProcedure3dRos::onControl, this);
+  plan_client_ = nh.serviceClient<PlanSteering3>(planner_ns_ + "/plan");
+}
+
+void SteerableProcedure3dRos::onControl(const SteeringControl3ConstPtr& msg) {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (msg->header.stamp != expected_stamp_) {
+      return;  // an answer to someone else's tip
+    }
+    last_control_ = *msg;
+  }
+  cv_.notify_all();
+}
+
+std::optional<SteeringControl3> SteerableProcedure3dRos::exchange(const sd::TipPose3& tip) {
+  geometry_msgs::PoseWithCovarianceStamped msg;
+  msg.header.frame_id = "scene";
+  msg.header.stamp = ros::Time::now();
+  msg.pose.pose = ros_conversions::toMessage(tip);
+  for (int k = 0; k < 3; ++k) {
+    msg.pose.covariance[static_cast<std::size_t>(7 * k)] = tip_sigma_m_ * tip_sigma_m_;
+  }
+  std::unique_lock<std::mutex> lock(mutex_);
+  last_control_.reset();
+  expected_stamp_ = msg.header.stamp;
+  tip_pub_.publish(msg);
+  const bool got = cv_.wait_for(lock, std::chrono::duration<double>(control_timeout_s_),
+                                [&] { return last_control_.has_value(); });
+  if (!got) {
+    return std::nullopt;
+  }
+  return last_control_;
+}
+
+bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::uint64_t trial_seed,
+                                       std::vector<double>& round_trip_ms) {
+  PlanSteering3 srv;
+  srv.request.seed = trial_seed;
+  if (!plan_client_.call(srv)) {
+    trial.abort("the call of " + plan_client_.getService() + " failed");
+    return false;
+  }
+  if (!srv.response.success) {
+    trial.refuseStart(planCodeOf(srv.response.status), srv.response.message);
+    return true;
+  }
+  geometry_msgs::PoseWithCovarianceStamped start;
+  start.header.frame_id = "scene";
+  start.pose.pose = srv.response.start;
+  sd::TipPose3 entry;
+  const std::string bad = ros_conversions::fromMessage(start, "scene", entry);
+  if (!bad.empty()) {
+    trial.abort("the planner's entry pose: " + bad);
+    return false;
+  }
+  trial.start(entry, srv.response.p_success, srv.response.seconds);
+  // As runTrial3: the entry plan's first step, then a replan from every tip.
+  trial.setPlan(ros_conversions::controlsFromArrays(
+      srv.response.rotate_rad, srv.response.curvature_per_m, srv.response.insertion_m));
+  trial.step();
+  publishPath(trial.result().path);
+  while (!trial.done() && ros::ok()) {
+    const auto t0 = std::chrono::steady_clock::now();
+    const std::optional<SteeringControl3> answer = exchange(trial.tip());
+    if (!answer) {
+      trial.abort("no control from " + planner_ns_ + " within " +
+                  std::to_string(control_timeout_s_) + " s");
+      return false;
+    }
+    round_trip_ms.push_back(
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
+    if (answer->status == "bad_input") {
+      trial.abort("the planner refused the tip: " + answer->message);
+      return false;
+    }
+    trial.recordReplan(answer->plan_seconds);
+    if (answer->status == "ok") {  // otherwise keep following the previous plan (as runTrial3)
+      std::vector<sd::Control3> plan = ros_conversions::controlsFromArrays(
+          answer->next_rotate_rad, answer->next_curvature_per_m, answer->next_insertion_m);
+      plan.insert(plan.begin(),
+                  sd::Control3{answer->rotate_rad, answer->curvature_per_m, answer->insertion_m});
+      trial.setPlan(plan);
+    }
+    trial.step();
+    publishPath(trial.result().path);
+  }
+  return true;
+}
+
+void SteerableProcedure3dRos::publishPath(const std::vector<sd::Vector3>& path) {
+  visualization_msgs::Marker m = ros_conversions::lineStrip(
+      path, "scene", "needle", ros_conversions::colour(0.95, 0.6, 0.1, 1.0), 8e-4);
+  m.header.stamp = ros::Time::now();
+  path_pub_.publish(m);
+}
+
+bool SteerableProcedure3dRos::run() {
+  report::prepareReportDir(report_dir_, "~report_dir", false);
+  if (!plan_client_.waitForExistence(ros::Duration(startup_timeout_s_))) {
+    ROS_ERROR_STREAM("steerable_procedure_3d: " << plan_client_.getService()
+                                                << " did not come up within " << startup_timeout_s_
+                                                << " s");
+    return false;
+  }
+  const ros::WallTime deadline = ros::WallTime::now() + ros::WallDuration(startup_timeout_s_);
+  while (ros::ok() && (tip_pub_.getNumSubscribers() == 0 || control_sub_.getNumPublishers() == 0)) {
+    if (ros::WallTime::now() > deadline) {
+      ROS_ERROR("steerable_procedure_3d: the planner never connected to ~tip / control");
+      return false;
+    }
+    ros::WallDuration(0.05).sleep();
+  }
+  std::vector<sd::TrialResult3> results;
+  std::vector<bool> faulted;
+  std::vector<double> round_trip_ms;
+  bool ok = true;
+  for (int k = 0; k < trials_ && ok && ros::ok(); ++k) {
+    const std::uint64_t trial_seed = static_cast<std::uint64_t>(seed_) * 100000ULL + k;
+    procedures::SteeringTrial3 trial(*scene_, *world_, noise_, trial_seed, max_steps_);
+    try {
+      ok = runTrial(trial, trial_seed, round_trip_ms);
+    } catch (const std::invalid_argument& e) {  // a malformed plan from the planner
+      trial.abort(std::string("the planner's plan: ") + e.what());
+      ok = false;
+    }
+    results.push_back(trial.result());
+    faulted.push_back(!ok);
+    const sd::TrialResult3& r = trial.result();
+    ROS_INFO_STREAM("steerable_procedure_3d: trial "
+                    << k << ": " << (r.success ? "success" : "failure") << ", "
+                    << r.target_error_m * 1e3 << " mm, " << r.steps << " steps"
+                    << (r.message.empty() ? "" : ", " + r.message));
+  }
+  procedures::writeSteeringReport3(report_dir_, *scene_, results, faulted, round_trip_ms,
+                                   static_cast<std::uint64_t>(seed_));
+  const procedures::SteeringSummary3 s = procedures::summarize(results, faulted);
+  ROS_INFO_STREAM("steerable_procedure_3d: " << s.successes << "/" << s.trials << " successes ("
+                                             << s.success_ci_low << ".." << s.success_ci_high
+                                             << "), median error " << s.target_error_mm_median
+                                             << " mm, median replan " << s.replan_ms_median
+                                             << " ms; report in " << report_dir_);
+  return ok && static_cast<int>(results.size()) == trials_;
+}
+
+}  // namespace needle_guidance

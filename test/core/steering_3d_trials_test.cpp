@@ -1,0 +1,96 @@
+// procedures::SteeringTrial3 (the ROS procedure's world, issue 18): a noiseless entry plan
+// followed step by step ends in the target; a straight push along the urethra is stopped by it;
+// a trial without a plan ends where it is, as a failure; the summary's Wilson interval.
+#include <gtest/gtest.h>
+
+#include <string>
+
+#include "needle_guidance/procedures/steering_3d_trials.h"
+#include "needle_guidance/steering_3d/planner_3d.h"
+
+namespace {
+
+namespace sd = needle_guidance::steering_3d;
+using needle_guidance::procedures::SteeringTrial3;
+
+// [mm] a noiseless plan ends at the target centre up to the duty-cycling residual (README:
+// 0.38 mm median for the noiseless open loop); well inside the 2.5 mm target.
+constexpr double kNoiselessErrorMm = 1.0;
+
+sd::Scene3d prostate() {
+  return sd::loadScene3d(std::string(NG_SOURCE_DIR) +
+                         "/config/scenes/steering_3d/prostate_3d.yaml");
+}
+
+TEST(SteeringTrial3, NoiselessEntryPlanFollowedStepByStepReachesTheTarget) {
+  const sd::Scene3d scene = prostate();
+  const sd::CollisionWorld3 world = scene.collisionWorld();
+  const sd::Planner3 planner(scene, world, sd::PlannerParams3{}, sd::NoiseParams3{});
+  const auto plan = planner.planFromEntry(11);
+  ASSERT_TRUE(plan) << plan.status().toString();
+  SteeringTrial3 trial(scene, world, sd::NoiseParams3{}, 5, 200);
+  trial.start(plan.value().start, plan.value().p_success, 0.0);
+  trial.setPlan(plan.value().controls);
+  int steps = 0;
+  while (trial.step()) {
+    ++steps;
+  }
+  const sd::TrialResult3& r = trial.result();
+  EXPECT_TRUE(r.success) << r.message;
+  EXPECT_EQ(r.contact, sd::Contact3::kFree);
+  EXPECT_LT(r.target_error_m * 1e3, kNoiselessErrorMm);
+  // whole steps of 5 mm, each segment's remainder one more step
+  EXPECT_GE(r.steps, static_cast<int>(plan.value().length_m / scene.step_length_m));
+  EXPECT_LE(r.steps, static_cast<int>(plan.value().length_m / scene.step_length_m) +
+                         static_cast<int>(plan.value().controls.size()));
+  EXPECT_EQ(steps + 1, r.steps);  // step() returned false on the last
+}
+
+TEST(SteeringTrial3, StraightPushAlongTheUrethraTouchesIt) {
+  const sd::Scene3d scene = prostate();
+  const sd::CollisionWorld3 world = scene.collisionWorld();
+  SteeringTrial3 trial(scene, world, sd::NoiseParams3{}, 5, 200);
+  trial.start(sd::makeTipPose(scene.entry.center_m, scene.entry.direction, sd::Vector3::UnitY()),
+              0.0, 0.0);
+  trial.setPlan({sd::Control3{0.0, 0.0, 0.08}});
+  while (trial.step()) {
+  }
+  EXPECT_FALSE(trial.result().success);
+  EXPECT_EQ(trial.result().contact, sd::Contact3::kObstacle);
+  EXPECT_EQ(trial.result().obstacle, "urethra");
+}
+
+TEST(SteeringTrial3, WithoutAPlanTheTrialEndsAsAFailure) {
+  const sd::Scene3d scene = prostate();
+  const sd::CollisionWorld3 world = scene.collisionWorld();
+  SteeringTrial3 trial(scene, world, sd::NoiseParams3{}, 5, 200);
+  trial.start(sd::makeTipPose(scene.entry.center_m, scene.entry.direction, sd::Vector3::UnitY()),
+              0.0, 0.0);
+  EXPECT_FALSE(trial.step());
+  EXPECT_TRUE(trial.done());
+  EXPECT_FALSE(trial.result().success);
+  EXPECT_EQ(trial.result().message, "no plan to follow");
+  EXPECT_EQ(trial.result().steps, 0);
+}
+
+TEST(SteeringTrial3, SummaryCountsSuccessesAndFaultsWithAWilsonInterval) {
+  std::vector<sd::TrialResult3> results(4);
+  results[0].success = results[1].success = results[2].success = true;
+  for (auto& r : results)
+    r.target_error_m = 1e-3;
+  const auto s = needle_guidance::procedures::summarize(results, {false, false, false, true});
+  EXPECT_EQ(s.successes, 3);
+  EXPECT_EQ(s.faults, 1);
+  EXPECT_DOUBLE_EQ(s.success_rate, 0.75);
+  // Wilson 95 % for 3/4: [0.3006, 0.9544] (closed form)
+  EXPECT_NEAR(s.success_ci_low, 0.3006, 1e-4);
+  EXPECT_NEAR(s.success_ci_high, 0.9544, 1e-4);
+  EXPECT_FALSE(needle_guidance::procedures::runSucceeded(s));  // a fault
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}
