@@ -55,17 +55,17 @@ PROCEDURES = {
         launch="rigid_seed_implant.launch",
         args=["insertion_velocity_m_s:=0.02", "retract_velocity_m_s:=0.05"],
         nodes=["tissue_sim", "rigid_planner", "insertion_robot"],
-        running=r"insertion_procedure: ", window=(0.1, 6.0)),
+        running=r"insertion_procedure: target 1/", window=(0.1, 6.0)),
     "robot_procedure": dict(
         launch="robot_procedure.launch",
         args=["insertion_velocity_m_s:=0.02", "retract_velocity_m_s:=0.05"],
         nodes=["tissue_sim", "insertion_robot"],
-        running=r"insertion_procedure: ", window=(0.1, 6.0)),
+        running=r"insertion_procedure: target 1/", window=(0.1, 6.0)),
     "registration": dict(
         launch="registration.launch",
         args=["cases_per_probe:=5"],
         nodes=["registration"],
-        running=r"registration_procedure: ", window=(0.1, 4.0)),
+        running=r"registration_procedure: balloon case 1", window=(0.1, 4.0)),
 }
 
 
@@ -290,7 +290,7 @@ BAD_INPUT_RUNS = [
          cases=["plan_dwells_bad_method", "plan_dwells_bad_id", "evaluate_nan",
                 "deliver_nan_time"]),
     dict(name="rigid", launch="rigid_seed_implant.launch", args=["max_targets:=1"],
-         ready=r"insertion_procedure: ", cases=["plan_rigid_nan", "plan_rigid_outside"]),
+         ready=r"insertion_procedure: target 1/", cases=["plan_rigid_nan", "plan_rigid_outside"]),
 ]
 
 

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <sstream>
 #include <stdexcept>
 
 namespace needle_guidance::procedures {
@@ -138,6 +139,13 @@ RigidImplantReport RigidImplantProcedure::run(RigidImplantDevices& devices) cons
       r.status += " (" + report.fault->node + " died)";
     }
     classify(r, report.with_tissue);
+    std::ostringstream line;
+    line << "target " << i + 1 << "/" << count << " " << r.name << ": " << toString(r.outcome);
+    if (std::isfinite(r.seedError_m()))
+      line << ", seed error " << 1e3 * r.seedError_m() << " mm";
+    if (!r.reason.empty())
+      line << " (" << r.reason << ")";
+    devices.progress(line.str());
     report.records.push_back(r);
     if (!carry_on || report.fault) {
       break;

@@ -114,7 +114,7 @@ cv::Mat LinePlot::render(int width_px, int height_px) const {
     fitRange(ys, y_lo, y_hi);
 
   cv::Mat image(height_px, width_px, CV_8UC3, cv::Scalar(255, 255, 255));
-  const cv::Rect area(70, 40, width_px - 90, height_px - 95);
+  const cv::Rect area(70, 50, width_px - 90, height_px - 105);
   auto px = [&](double x, double y) {
     return cv::Point(
         area.x + static_cast<int>(std::lround((x - x_lo) / (x_hi - x_lo) * area.width)),
@@ -134,9 +134,9 @@ cv::Mat LinePlot::render(int width_px, int height_px) const {
     text(image, tickLabel(y), {4, a.y + 5});
   }
   cv::rectangle(image, area, kInk, 1);
-  text(image, title_, {area.x, 25}, 0.6);
+  text(image, title_, {area.x, 20}, 0.6);  // title on its own line, the y label below it
   text(image, x_label_, {area.x + area.width / 2 - 60, height_px - 15});
-  text(image, y_label_, {4, area.y - 8});
+  text(image, y_label_, {4, area.y - 6});
 
   // Data, clipped to the axes.
   cv::Mat plot_area = image(area);

@@ -36,6 +36,9 @@ constexpr double kConfirmPause_s = 0.2;  ///< between the pings that confirm a n
 /// supervisor every 50 ms and stops the robot when a node dies (seen within about 1 s).
 class RosRigidDevices : public procedures::RigidImplantDevices {
 public:
+  void progress(const std::string& line) override {
+    ROS_INFO_STREAM("insertion_procedure: " << line);  // scripts/demo prints these lines
+  }
   RosRigidDevices(ros::NodeHandle& nh, const std::string& robot, const std::string& tissue,
                   const std::string& planner)
       : nh_(nh),

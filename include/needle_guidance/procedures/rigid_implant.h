@@ -73,6 +73,8 @@ public:
   virtual std::optional<Fault> fault() = 0;
   /// Brings the robot to a safe state after a fault (retract, else emergency stop); what it did.
   virtual std::string safeStop(double retract_depth_m, double velocity_m_s) = 0;
+  /// One line of progress per target ("target 3/12 t03: placed, ..."); a node logs it.
+  virtual void progress(const std::string& /*line*/) {}
   /// Seconds since the procedure started (the devices' clock).
   virtual double now_s() const = 0;
 };
