@@ -65,7 +65,7 @@ PROCEDURES = {
         launch="registration.launch",
         args=["cases_per_probe:=5"],
         nodes=["registration"],
-        running=r"registration_procedure: balloon case 1", window=(0.1, 4.0)),
+        running=r"registration_procedure: balloon case 1", window=(0.02, 1.0)),
 }
 
 
