@@ -2,7 +2,9 @@
 // under test) do.
 #pragma once
 
+#include <ros/network.h>
 #include <ros/ros.h>
+#include <xmlrpcpp/XmlRpcClient.h>
 
 #include <fstream>
 #include <optional>
@@ -42,4 +44,25 @@ std::optional<Msg> firstMessage(const std::string& topic, double timeout_s) {
       },
       timeout_s, 0.02);
   return received;
+}
+
+/// The pid of `node` (e.g. "/afterloader") from its own XML-RPC getPid, or -1 if it does not
+/// answer (for tests that kill a node).
+inline int nodePid(const std::string& node) {
+  XmlRpc::XmlRpcValue args, result, payload;
+  args[0] = ros::this_node::getName();
+  args[1] = node;
+  if (!ros::master::execute("lookupNode", args, result, payload, true))
+    return -1;
+  const std::string uri = payload;
+  std::string host;
+  uint32_t port = 0;
+  if (!ros::network::splitURI(uri, host, port))
+    return -1;
+  XmlRpc::XmlRpcClient rpc(host.c_str(), static_cast<int>(port), "/");
+  XmlRpc::XmlRpcValue pid_args, pid_result;
+  pid_args[0] = ros::this_node::getName();
+  if (!rpc.execute("getPid", pid_args, pid_result) || pid_result.size() < 3)
+    return -1;
+  return static_cast<int>(pid_result[2]);
 }

@@ -152,24 +152,6 @@ bool obstruct(int channel, bool obstructed) {
 }
 
 /// The afterloader's process id, asked from the node itself (what `rosnode info` does).
-int afterloaderPid() {
-  XmlRpc::XmlRpcValue args, result, payload;
-  args[0] = ros::this_node::getName();
-  args[1] = "/afterloader";
-  if (!ros::master::execute("lookupNode", args, result, payload, true))
-    return -1;
-  const std::string uri = payload;
-  std::string host;
-  uint32_t port = 0;
-  if (!ros::network::splitURI(uri, host, port))
-    return -1;
-  XmlRpc::XmlRpcClient rpc(host.c_str(), static_cast<int>(port), "/");
-  XmlRpc::XmlRpcValue pid_args, pid_result;
-  pid_args[0] = ros::this_node::getName();
-  if (!rpc.execute("getPid", pid_args, pid_result) || pid_result.size() < 3)
-    return -1;
-  return static_cast<int>(pid_result[2]);
-}
 
 TEST(Afterloader, DeliversAScheduleExactly) {
   ASSERT_TRUE(client().waitForServer(ros::Duration(30.0)));
@@ -293,13 +275,13 @@ TEST(Afterloader, SigkillMidDwellThenRestartResumesWithExactTotals) {
   const auto s = schedule("sigkill");
   send(s);
   ASSERT_TRUE(waitDwelling(0.4));
-  const int pid = afterloaderPid();
+  const int pid = nodePid("/afterloader");
   ASSERT_GT(pid, 0);
   ASSERT_EQ(::kill(pid, SIGKILL), 0);
   // roslaunch respawns the node; its first latched state comes from the new process.
   ASSERT_TRUE(waitFor(
       [&] {
-        const int p = afterloaderPid();
+        const int p = nodePid("/afterloader");
         return p > 0 && p != pid;
       },
       30.0));

@@ -25,24 +25,6 @@ constexpr double kDetectAndStop_s = 2.0;  // issue 22: death seen and robot stop
 constexpr double kRetractStart_m = 2e-4;  // the tip has moved back this far: retraction started
 
 /// A node's process id, asked from the node itself (what `rosnode info` does).
-int nodePid(const std::string& node) {
-  XmlRpc::XmlRpcValue args, result, payload;
-  args[0] = ros::this_node::getName();
-  args[1] = node;
-  if (!ros::master::execute("lookupNode", args, result, payload, true))
-    return -1;
-  const std::string uri = payload;
-  std::string host;
-  uint32_t port = 0;
-  if (!ros::network::splitURI(uri, host, port))
-    return -1;
-  XmlRpc::XmlRpcClient rpc(host.c_str(), static_cast<int>(port), "/");
-  XmlRpc::XmlRpcValue pid_args, pid_result;
-  pid_args[0] = ros::this_node::getName();
-  if (!rpc.execute("getPid", pid_args, pid_result) || pid_result.size() < 3)
-    return -1;
-  return static_cast<int>(pid_result[2]);
-}
 
 std::string readFile(const std::string& path) {
   std::ifstream in(path);
