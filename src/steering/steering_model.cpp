@@ -465,6 +465,34 @@ void SteeringModel::buildDeflections() {
   }
 }
 
+template <typename AddBin>
+void SteeringModel::fillStencils(int entries_per_bin, AddBin&& add) {
+  const int nc = grid_.nc;
+  const int s = problem_.params.orientation_subdivision;
+  stencil_.clear();
+  stencil_start_.assign(static_cast<std::size_t>(4 * nc + 1), 0);
+  max_transitions_ = 0;
+  max_row_reach_ = 0;
+  for (int k = 0; k < nc; ++k) {
+    for (int b = 0; b < 2; ++b) {
+      for (int u = 0; u < 2; ++u) {
+        const std::size_t slot = stencilSlot(k, static_cast<Bevel>(b), static_cast<Control>(u));
+        stencil_start_[slot] = stencil_.size();
+        const int traced = u == 0 ? b : 1 - b;  // insert keeps the bevel, flip turns it
+        const auto& probs = deflection_p_[u];
+        for (std::size_t i = 0; i < probs.size(); ++i) {
+          const int o = wrap(k + first_d_[u] + static_cast<int>(i), nc);
+          const int o_next = wrap(traced == 0 ? o + s : o - s, nc);
+          add(k, b, traced, traced * nc + o, o_next, probs[i]);
+        }
+        max_transitions_ =
+            std::max(max_transitions_, entries_per_bin * static_cast<int>(probs.size()));
+      }
+    }
+  }
+  stencil_start_.back() = stencil_.size();
+}
+
 void SteeringModel::buildStencils() {
   if (problem_.params.transition_model == TransitionModel::kInterpolated) {
     buildInterpolatedStencils();
@@ -495,44 +523,23 @@ void SteeringModel::buildStencils() {
     disp_y_[so + static_cast<std::size_t>(nc)] = ry[so] - ry[prev];
   }
   const std::int64_t ny = grid_.ny;
-  stencil_.clear();
-  stencil_start_.assign(static_cast<std::size_t>(4 * nc + 1), 0);
-  max_transitions_ = 0;
-  max_row_reach_ = 0;
-  for (int k = 0; k < nc; ++k) {
-    for (int b = 0; b < 2; ++b) {
-      for (int u = 0; u < 2; ++u) {
-        const std::size_t slot = stencilSlot(k, static_cast<Bevel>(b), static_cast<Control>(u));
-        stencil_start_[slot] = stencil_.size();
-        const int traced = u == 0 ? b : 1 - b;
-        const auto& probs = deflection_p_[u];
-        for (std::size_t i = 0; i < probs.size(); ++i) {
-          const int o = wrap(k + first_d_[u] + static_cast<int>(i), nc);
-          const int arc = traced * nc + o;
-          const int o_next = wrap(traced == 0 ? o + s : o - s, nc);
-          const std::int64_t dx = disp_x_[static_cast<std::size_t>(arc)];
-          const std::int64_t dy = disp_y_[static_cast<std::size_t>(arc)];
-          const std::int64_t offset =
-              (dx * ny + dy) * 2 * nc + (traced * nc + o_next) - (b * nc + k);
-          StencilEntry e;
-          e.offset = static_cast<std::int32_t>(offset);
-          e.probability = static_cast<float>(probs[i]);
-          e.arc = static_cast<std::uint16_t>(arc);
-          e.dy = static_cast<std::int16_t>(dy);
-          e.dpos = static_cast<std::int32_t>(dx * ny + dy);
-          stencil_.push_back(e);
-          max_row_reach_ = std::max(max_row_reach_, static_cast<int>(std::abs(dy)));
-        }
-        max_transitions_ = std::max(max_transitions_, static_cast<int>(probs.size()));
-      }
-    }
-  }
-  stencil_start_.back() = stencil_.size();
+  fillStencils(1, [&](int k, int b, int traced, int arc, int o_next, double p) {
+    const std::int64_t dx = disp_x_[static_cast<std::size_t>(arc)];
+    const std::int64_t dy = disp_y_[static_cast<std::size_t>(arc)];
+    StencilEntry e;
+    e.offset =
+        static_cast<std::int32_t>((dx * ny + dy) * 2 * nc + (traced * nc + o_next) - (b * nc + k));
+    e.probability = static_cast<float>(p);
+    e.arc = static_cast<std::uint16_t>(arc);
+    e.dy = static_cast<std::int16_t>(dy);
+    e.dpos = static_cast<std::int32_t>(dx * ny + dy);
+    stencil_.push_back(e);
+    max_row_reach_ = std::max(max_row_reach_, static_cast<int>(std::abs(dy)));
+  });
 }
 
 void SteeringModel::buildInterpolatedStencils() {
   const int nc = grid_.nc;
-  const int s = problem_.params.orientation_subdivision;
   const double alpha = grid_.alphaRad();
   // The exact end point of each arc from the origin, in grid steps: floor in disp_x_ / disp_y_,
   // the fraction in frac_x_ / frac_y_ (bilinear weights of the cell's four corners).
@@ -555,45 +562,26 @@ void SteeringModel::buildInterpolatedStencils() {
     frac_y_[sa] = end.y() - disp_y_[sa];
   }
   const std::int64_t ny = grid_.ny;
-  stencil_.clear();
-  stencil_start_.assign(static_cast<std::size_t>(4 * nc + 1), 0);
-  max_transitions_ = 0;
-  max_row_reach_ = 0;
-  for (int k = 0; k < nc; ++k) {
-    for (int b = 0; b < 2; ++b) {
-      for (int u = 0; u < 2; ++u) {
-        const std::size_t slot = stencilSlot(k, static_cast<Bevel>(b), static_cast<Control>(u));
-        stencil_start_[slot] = stencil_.size();
-        const int traced = u == 0 ? b : 1 - b;
-        const auto& probs = deflection_p_[u];
-        for (std::size_t i = 0; i < probs.size(); ++i) {
-          const int o = wrap(k + first_d_[u] + static_cast<int>(i), nc);
-          const int arc = traced * nc + o;
-          const auto sa = static_cast<std::size_t>(arc);
-          const int o_next = wrap(traced == 0 ? o + s : o - s, nc);
-          for (int corner = 0; corner < 4; ++corner) {
-            const int cx = corner & 1, cy = corner >> 1;
-            const double w =
-                (cx ? frac_x_[sa] : 1.0 - frac_x_[sa]) * (cy ? frac_y_[sa] : 1.0 - frac_y_[sa]);
-            const std::int64_t dx = disp_x_[sa] + cx;
-            const std::int64_t dy = disp_y_[sa] + cy;
-            StencilEntry e;
-            e.offset = static_cast<std::int32_t>((dx * ny + dy) * 2 * nc + (traced * nc + o_next) -
-                                                 (b * nc + k));
-            e.probability = static_cast<float>(probs[i] * w);
-            e.arc = static_cast<std::uint16_t>(arc);
-            e.dy = static_cast<std::int16_t>(dy);
-            e.corner = static_cast<std::uint8_t>(corner);
-            e.dpos = static_cast<std::int32_t>(dx * ny + dy);
-            stencil_.push_back(e);
-            max_row_reach_ = std::max(max_row_reach_, static_cast<int>(std::abs(dy)));
-          }
-        }
-        max_transitions_ = std::max(max_transitions_, static_cast<int>(4 * probs.size()));
-      }
+  fillStencils(4, [&](int k, int b, int traced, int arc, int o_next, double p) {
+    const auto sa = static_cast<std::size_t>(arc);
+    for (int corner = 0; corner < 4; ++corner) {
+      const int cx = corner & 1, cy = corner >> 1;
+      const double w =
+          (cx ? frac_x_[sa] : 1.0 - frac_x_[sa]) * (cy ? frac_y_[sa] : 1.0 - frac_y_[sa]);
+      const std::int64_t dx = disp_x_[sa] + cx;
+      const std::int64_t dy = disp_y_[sa] + cy;
+      StencilEntry e;
+      e.offset = static_cast<std::int32_t>((dx * ny + dy) * 2 * nc + (traced * nc + o_next) -
+                                           (b * nc + k));
+      e.probability = static_cast<float>(p * w);
+      e.arc = static_cast<std::uint16_t>(arc);
+      e.dy = static_cast<std::int16_t>(dy);
+      e.corner = static_cast<std::uint8_t>(corner);
+      e.dpos = static_cast<std::int32_t>(dx * ny + dy);
+      stencil_.push_back(e);
+      max_row_reach_ = std::max(max_row_reach_, static_cast<int>(std::abs(dy)));
     }
-  }
-  stencil_start_.back() = stencil_.size();
+  });
 }
 
 void SteeringModel::buildCells() {

@@ -307,6 +307,11 @@ private:
   void buildDeflections();
   void buildStencils();
   void buildInterpolatedStencils();
+  /// The stencil loop both transition models share: for every orientation, bevel and control,
+  /// add(k, b, traced bevel, arc, end orientation, bin probability) appends the entries of each
+  /// deflection bin (at most entries_per_bin of them).
+  template <typename AddBin>
+  void fillStencils(int entries_per_bin, AddBin&& add);
   void buildCells();
   void buildValidity(int threads);
   /// endMask of arc `arc` from grid point (ix, iy), computed from the cells (kInterpolated).
