@@ -76,6 +76,22 @@ void parallelFor(std::size_t n, int threads, const std::function<void(std::size_
   }
 }
 
+/// Signed distance of `offset` from the line along `along` (left positive) [m]; 0 if `along`
+/// has no length.
+double signedLateral(const Point2& along, const Point2& offset) {
+  const double length = along.norm();
+  return length > 0.0 ? (along.x() * offset.y() - along.y() * offset.x()) / length : 0.0;
+}
+
+/// Throws std::runtime_error when a scan has fewer than two implant points: the needle never
+/// entered the tissue at that height.
+void requireEntered(const DepthScan& scan, double height_m) {
+  if (scan.implant.size() < 2) {
+    throw std::runtime_error("RigidPlanner: the needle never entered the tissue at height " +
+                             mm(height_m));
+  }
+}
+
 }  // namespace
 
 const char* toString(PlanCode code) {
@@ -206,11 +222,7 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
       if (error < scan.best_error_m) {
         scan.best_error_m = error;
         scan.best_implant = p;
-        const Point2 along = scan.implant[n - 1] - scan.implant[n - 2];
-        const double length = along.norm();
-        scan.lateral_m =
-            length > 0.0 ? (along.x() * (target - p).y() - along.y() * (target - p).x()) / length
-                         : 0.0;
+        scan.lateral_m = signedLateral(scan.implant[n - 1] - scan.implant[n - 2], target - p);
         scan.best_depth_m = scan.depth_m[n - 2] + s * (scan.depth_m[n - 1] - scan.depth_m[n - 2]);
       }
       if (stop_past_target && tip->x() - target.x() > kStopPastTarget_m &&
@@ -219,10 +231,7 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
       }
     }
   }
-  if (scan.implant.size() < 2) {
-    throw std::runtime_error("RigidPlanner: the needle never entered the tissue at height " +
-                             mm(height_m));
-  }
+  requireEntered(scan, height_m);
   return scan;
 }
 
@@ -465,23 +474,16 @@ DepthScan RigidPlanner::gridScan(tissue::TissueSimulation& sim, double height_m,
       scan.best_error_m = error;
       scan.best_implant = *tip;
       scan.best_depth_m = x;
-      const Point2 along =
-          n >= 2 ? Point2(scan.implant[n - 1] - scan.implant[n - 2]) : Point2(1.0, 0.0);
-      const double length = along.norm();
-      scan.lateral_m =
-          length > 0.0
-              ? (along.x() * (target - *tip).y() - along.y() * (target - *tip).x()) / length
-              : 0.0;
+      scan.lateral_m = signedLateral(
+          n >= 2 ? Point2(scan.implant[n - 1] - scan.implant[n - 2]) : Point2(1.0, 0.0),
+          target - *tip);
     }
     if (stop_past_target && tip->x() - target.x() > kStopPastTarget_m &&
         scan.best_error_m < kStopPastTarget_m) {
       break;
     }
   }
-  if (scan.implant.size() < 2) {
-    throw std::runtime_error("RigidPlanner: the needle never entered the tissue at height " +
-                             mm(height_m));
-  }
+  requireEntered(scan, height_m);
   return scan;
 }
 
