@@ -17,6 +17,7 @@
 #include <dcmtk/dcmdata/dctk.h>
 #pragma GCC diagnostic pop
 
+#include "../error_of.h"
 #include "needle_guidance/dose/dicom_case.h"
 #include "needle_guidance/dose/dwell_optimization.h"
 
@@ -64,16 +65,6 @@ void writeFolder(const dose::HdrCase& c, const std::string& dir,
                  dose::DwellTimeEncoding encoding = dose::DwellTimeEncoding::kStandardCumulative) {
   dose::writeRtStruct(c, dir + "/RS.dcm");
   dose::writeRtPlan(c, dir + "/RP.dcm", encoding);
-}
-
-template <typename F>
-std::string errorOf(F&& f) {
-  try {
-    f();
-  } catch (const std::exception& e) {
-    return e.what();
-  }
-  return "";
 }
 
 /// Sets (or with value nullptr deletes) a prescription tag in the plan, with DCMTK.

@@ -18,6 +18,7 @@
 #include <string>
 #include <vector>
 
+#include "../error_of.h"
 #include "needle_guidance/dose/dicom_rt.h"
 
 namespace dose = needle_guidance::dose;
@@ -122,16 +123,6 @@ dose::DoseGrid syntheticGrid() {
 void writeCase(const dose::HdrCase& c, const std::string& dir, dose::DwellTimeEncoding encoding) {
   dose::writeRtStruct(c, dir + "/SS.dcm");
   dose::writeRtPlan(c, dir + "/PL.dcm", encoding);
-}
-
-template <typename F>
-std::string errorOf(F&& f) {
-  try {
-    f();
-  } catch (const std::exception& e) {
-    return e.what();
-  }
-  return "";
 }
 
 }  // namespace
