@@ -76,7 +76,7 @@ void LinePlot::addLine(const std::string& name, const std::vector<double>& x,
                                 std::to_string(x.size()) + " x and " + std::to_string(y.size()) +
                                 " y values");
   }
-  series_.push_back({name, x, y, bgr, thickness, true});
+  series_.push_back({name, x, y, bgr, thickness, true, {}, 0.0, 0.0});
 }
 
 void LinePlot::addPoints(const std::string& name, const std::vector<double>& x,
@@ -85,8 +85,35 @@ void LinePlot::addPoints(const std::string& name, const std::vector<double>& x,
   series_.back().line = false;
 }
 
+void LinePlot::addCells(const std::vector<double>& x, const std::vector<double>& y,
+                        const std::vector<double>& value, double cell_w, double cell_h,
+                        int colourmap, double lo, double hi) {
+  if (x.size() != y.size() || x.size() != value.size() || !(lo < hi)) {
+    throw std::invalid_argument("LinePlot::addCells: " + std::to_string(x.size()) + " x, " +
+                                std::to_string(y.size()) + " y, " + std::to_string(value.size()) +
+                                " values and range [" + std::to_string(lo) + ", " +
+                                std::to_string(hi) + "]");
+  }
+  Series s{"", x, y, kInk, 0, false, {}, cell_w, cell_h};
+  cv::Mat levels(1, static_cast<int>(value.size()), CV_8UC1), bgr;
+  for (std::size_t k = 0; k < value.size(); ++k) {
+    const double t =
+        std::isfinite(value[k]) ? std::clamp((value[k] - lo) / (hi - lo), 0.0, 1.0) : 0.0;
+    levels.at<unsigned char>(static_cast<int>(k)) =
+        static_cast<unsigned char>(std::lround(255 * t));
+  }
+  if (!value.empty()) {
+    cv::applyColorMap(levels, bgr, colourmap);
+  }
+  for (std::size_t k = 0; k < value.size(); ++k) {
+    const cv::Vec3b c = bgr.at<cv::Vec3b>(static_cast<int>(k));
+    s.cell_bgr.emplace_back(c[0], c[1], c[2]);
+  }
+  series_.push_back(std::move(s));
+}
+
 void LinePlot::addHorizontal(const std::string& name, double y, const cv::Scalar& bgr) {
-  series_.push_back({name, {}, {y}, bgr, 1, true});
+  series_.push_back({name, {}, {y}, bgr, 1, true, {}, 0.0, 0.0});
 }
 
 void LinePlot::setXRange(double lo, double hi) {
@@ -145,6 +172,14 @@ cv::Mat LinePlot::render(int width_px, int height_px) const {
     if (s.x.empty() && s.y.size() == 1) {  // horizontal reference
       cv::line(plot_area, px(x_lo, s.y[0]) - offset, px(x_hi, s.y[0]) - offset, s.bgr, 1,
                cv::LINE_AA);
+      continue;
+    }
+    if (!s.cell_bgr.empty()) {  // a map of cells
+      for (std::size_t k = 0; k < s.x.size(); ++k) {
+        cv::rectangle(plot_area, px(s.x[k] - 0.5 * s.cell_w, s.y[k] - 0.5 * s.cell_h) - offset,
+                      px(s.x[k] + 0.5 * s.cell_w, s.y[k] + 0.5 * s.cell_h) - offset, s.cell_bgr[k],
+                      cv::FILLED);
+      }
       continue;
     }
     bool have_previous = false;

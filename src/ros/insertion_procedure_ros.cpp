@@ -150,28 +150,7 @@ public:
   }
 
   std::optional<Fault> fault() override {
-    if (confirmed_) {
-      return confirmed_;
-    }
-    const auto death = supervisor_ ? supervisor_->death() : std::nullopt;
-    if (!death) {
-      return std::nullopt;
-    }
-    // On a loaded machine one master lookup or getPid can fail for a live node (seen: the robot
-    // "not registered" during a plan at load 8 on 2 cores): a death counts once two more pings,
-    // kConfirmPause_s apart, fail too. Detection stays within period + 2 pauses ~ 1 s.
-    for (int i = 0; i < 2; ++i) {
-      ros::WallDuration(kConfirmPause_s).sleep();
-      if (NodeSupervisor::ping(death->node, kConfirmPause_s).empty()) {
-        ROS_WARN_STREAM("insertion_procedure: " << death->toString()
-                                                << " was a false alarm: it answers again");
-        supervisor_->clear();
-        return std::nullopt;
-      }
-    }
-    confirmed_ =
-        Fault{death->node, (death->when - start_).toSec(), death->reason, death->when.toSec()};
-    return confirmed_;
+    return supervisor_ ? supervisor_->confirmedFault(start_, kConfirmPause_s) : std::nullopt;
   }
 
   std::string safeStop(double retract_depth_m, double velocity_m_s) override {
@@ -238,7 +217,6 @@ private:
   ros::Subscriber tip_sub_, seeds_sub_;
   ros::ServiceClient implant_, reset_, plan_, estop_;
   std::unique_ptr<NodeSupervisor> supervisor_;
-  std::optional<Fault> confirmed_;
 };
 
 }  // namespace

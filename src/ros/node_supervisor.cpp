@@ -43,6 +43,34 @@ std::optional<NodeSupervisor::Death> NodeSupervisor::death() const {
 void NodeSupervisor::clear() {
   std::lock_guard<std::mutex> lock(mutex_);
   death_.reset();
+  confirmed_.reset();
+}
+
+std::optional<procedures::Fault> NodeSupervisor::confirmedFault(const ros::WallTime& start,
+                                                                double pause_s, int pings) {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (confirmed_) {
+      return confirmed_;
+    }
+  }
+  const auto d = death();
+  if (!d) {
+    return std::nullopt;
+  }
+  for (int i = 0; i < pings; ++i) {
+    ros::WallDuration(pause_s).sleep();
+    if (ping(d->node, pause_s).empty()) {
+      ROS_WARN_STREAM_NAMED(
+          "node_supervisor",
+          "supervisor: " << d->toString() << " was a false alarm: it answers again");
+      clear();
+      return std::nullopt;
+    }
+  }
+  std::lock_guard<std::mutex> lock(mutex_);
+  confirmed_ = procedures::Fault{d->node, (d->when - start).toSec(), d->reason, d->when.toSec()};
+  return confirmed_;
 }
 
 namespace {

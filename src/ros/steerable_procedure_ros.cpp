@@ -6,12 +6,11 @@
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
-#include <filesystem>
 #include <functional>
 #include <iostream>
+#include <memory>
 #include <mutex>
 #include <optional>
-#include <sstream>
 #include <vector>
 
 #include "needle_guidance/BestStart.h"
@@ -21,15 +20,10 @@
 #include "needle_guidance/SetEntryPose.h"
 #include "needle_guidance/SteeringControl.h"
 #include "needle_guidance/report/output_path.h"
-#include "needle_guidance/report/statistics.h"
-#include "needle_guidance/report/table.h"
 #include "needle_guidance/ros/node_supervisor.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
-#include "needle_guidance/steering/continuous_workspace.h"
 #include "needle_guidance/steering/model_selection.h"
-#include "needle_guidance/steering/monte_carlo.h"
-#include "needle_guidance/steering/value_iteration.h"
 
 namespace needle_guidance {
 namespace {
@@ -37,11 +31,6 @@ namespace {
 constexpr double kPi = 3.14159265358979323846;
 constexpr double kMmPerM = 1e3;
 constexpr double kDegPerRad = 180.0 / kPi;
-/// Monte Carlo trials of the core simulator from the same start, for the report.
-constexpr std::int64_t kMonteCarloTrials = 10000;
-constexpr std::uint64_t kMonteCarloSeed = 11;
-/// Trial k's deflection stream is seed * stride + k.
-constexpr std::uint64_t kTrialSeedStride = 100000;
 
 using LinearMoveClient = actionlib::SimpleActionClient<LinearMoveAction>;
 using FlipBevelClient = actionlib::SimpleActionClient<FlipBevelAction>;
@@ -102,36 +91,6 @@ private:
   std::function<bool()> abort_;
 };
 
-/// One decision point of a trial (figure 5.8: small dots insert, large dots flip).
-struct Decision {
-  NeedleTip tip;  ///< ground truth (the robot's)
-  std::string control;
-  double probability_of_success = 0.0;
-  /// The pose the policy looked up (the tracker's estimate with image feedback) and its source.
-  geometry_msgs::Pose2D looked_up;
-  std::string source;
-  bool confident = true;
-  bool answered = false;  ///< false for the end-of-trial entries (no control)
-};
-
-struct TrialRecord {
-  /// reached_target | hit_obstacle | left_workspace | step_limit | needle_length | error
-  std::string outcome;
-  std::string message;
-  int steps = 0;
-  int flips = 0;
-  int unconfident_decisions = 0;  ///< controls taken on a tip the tracker was not confident of
-  double seconds = 0.0;
-  std::vector<Decision> decisions;
-  std::vector<NeedleTip> samples;  ///< every measured tip during the trial
-};
-
-using report::median;
-
-double maximum(const std::vector<double>& v) {
-  return v.empty() ? 0.0 : *std::max_element(v.begin(), v.end());
-}
-
 steering::TipPose toPose(const NeedleTip& tip) {
   steering::TipPose pose;
   pose.p_SceneTip = steering::Point2(tip.pose.x, tip.pose.y);
@@ -140,453 +99,315 @@ steering::TipPose toPose(const NeedleTip& tip) {
   return pose;
 }
 
-}  // namespace
-
-SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh)
-    : nh_(nh) {
-  ROS_INFO("steerable_procedure parameters:");
-  scene_spec_ = ros_params::text(private_nh, "scene", "steering_workspace");
-  target_ = ros_params::text(private_nh, "target", "");
-  robot_ns_ = ros_params::text(private_nh, "robot", "insertion_robot");
-  policy_ns_ = ros_params::text(private_nh, "policy", "steering_policy");
-  report_dir_ = ros_params::text(private_nh, "report_dir", "", true);
-  // Refuses a system folder or someone else's non-empty folder before anything runs.
-  report::prepareReportDir(report_dir_, private_nh.resolveName("report_dir"),
-                           ros_params::flag(private_nh, "allow_system_paths", false));
-  table_dir_ =
-      ros_params::rosHomePath(ros_params::text(private_nh, "table_dir", "steering_tables"));
-  trials_ = static_cast<int>(ros_params::integer(private_nh, "trials", 20, 1, 100000, "trials"));
-  max_steps_ = static_cast<int>(ros_params::integer(private_nh, "max_steps", 40, 1, 1000, "steps"));
-  insertion_velocity_m_s_ =
-      ros_params::number(private_nh, "insertion_velocity_m_s", 0.05, 1e-4, 1.0, "m/s");
-  retract_velocity_m_s_ =
-      ros_params::number(private_nh, "retract_velocity_m_s", 0.05, 1e-4, 1.0, "m/s");
-  flip_velocity_rad_s_ =
-      ros_params::number(private_nh, "flip_velocity_rad_s", 2.0 * kPi, 1e-3, 100.0, "rad/s");
-  timeout_s_ = ros_params::number(private_nh, "timeout_s", 10.0, 0.1, 600.0, "s");
-  seed_ = ros_params::integer(private_nh, "seed", 1, -1, 1L << 40, "(-1 = the robot's stream)");
-  max_unconfident_ = static_cast<int>(
-      ros_params::integer(private_nh, "max_unconfident_controls", 10, 0, 1000, "controls"));
-  feedback_ = ros_params::text(private_nh, "feedback", "ground_truth");
-  // The nodes the run depends on (the launch file adds imager and tip_tracker with images).
-  const std::string watch =
-      ros_params::text(private_nh, "watch_nodes", robot_ns_ + "," + policy_ns_);
-  for (std::size_t a = 0; a < watch.size();) {
-    const std::size_t b = std::min(watch.find(',', a), watch.size());
-    if (b > a)
-      watch_nodes_.push_back(watch.substr(a, b - a));
-    a = b + 1;
-  }
-  // Fail now, not after the robot has moved, if the scene cannot be steered.
-  steering::problemFromScene(scene::loadSceneSpec(scene_spec_), target_);
+procedures::SteerableTip toTip(const NeedleTip& tip) {
+  return {toPose(tip), tip.inserted_length_m, tip.source, tip.confident != 0};
 }
 
-bool SteerableProcedureRos::run() {
-  const auto wall_start = std::chrono::steady_clock::now();
-  const scene::Scene scene = scene::loadSceneSpec(scene_spec_);
-  const steering::SteeringProblem problem = steering::problemFromScene(scene, target_);
-  const steering::ContinuousWorkspace world(problem);
-  const double delta_m = 2.0 * kPi * problem.params.radius_m / problem.params.orientations;
-
-  LinearMoveClient insert(nh_, robot_ns_ + "/insert", true);
-  LinearMoveClient retract(nh_, robot_ns_ + "/retract", true);
-  FlipBevelClient flip(nh_, robot_ns_ + "/flip_bevel", true);
-  ros::ServiceClient set_entry = nh_.serviceClient<SetEntryPose>(robot_ns_ + "/set_entry_pose");
-  ros::ServiceClient best_start = nh_.serviceClient<BestStart>(policy_ns_ + "/best_start");
-  const ros::Duration wait_up(60.0);
-  if (!insert.waitForServer(wait_up) || !retract.waitForServer(wait_up) ||
-      !flip.waitForServer(wait_up) || !set_entry.waitForExistence(wait_up) ||
-      !best_start.waitForExistence(wait_up)) {
-    ROS_FATAL_STREAM("steerable_procedure: the robot (" << robot_ns_ << ") or the policy ("
-                                                        << policy_ns_
-                                                        << ") did not come up in 60 s");
-    return false;
+/// The robot, the policy (and with images the imager and tracker) over ROS, as the trial loop's
+/// devices: decode the messages, classify the robot's refusals, watch the nodes.
+class RosSteerableDevices : public procedures::SteerableDevices {
+public:
+  RosSteerableDevices(ros::NodeHandle& nh, const SteerableProcedureRos::Settings& s)
+      : nh_(nh),
+        s_(s),
+        insert_(nh, s.robot_ns + "/insert", true),
+        retract_(nh, s.robot_ns + "/retract", true),
+        flip_(nh, s.robot_ns + "/flip_bevel", true),
+        set_entry_(nh.serviceClient<SetEntryPose>(s.robot_ns + "/set_entry_pose")),
+        start_(ros::WallTime::now()) {
+    tip_sub_ = nh.subscribe<NeedleTip>(s.robot_ns + "/measured_tip", 100,
+                                       [this](const NeedleTipConstPtr& m) { tips_.set(*m); });
+    control_sub_ = nh.subscribe<SteeringControl>(
+        s.policy_ns + "/control", 100,
+        [this](const SteeringControlConstPtr& m) { controls_.set(*m); });
   }
-  // From here on every node the run depends on is watched; a death ends the run (no more
-  // trials waiting out their timeouts), and the report names the node.
-  NodeSupervisor supervisor(nh_, watch_nodes_);
-  const auto dead = [&] { return supervisor.death().has_value(); };
-  Latest<NeedleTip> tips;
-  Latest<SteeringControl> controls;
-  tips.setAbort(dead);
-  controls.setAbort(dead);
-  ros::Subscriber tip_sub = nh_.subscribe<NeedleTip>(
-      robot_ns_ + "/measured_tip", 100, [&](const NeedleTipConstPtr& m) { tips.set(*m); });
-  ros::Subscriber control_sub = nh_.subscribe<SteeringControl>(
-      policy_ns_ + "/control", 100, [&](const SteeringControlConstPtr& m) { controls.set(*m); });
 
-  BestStart best;
-  if (!best_start.call(best) || !best.response.found) {
-    ROS_FATAL_STREAM("steerable_procedure: no start state: " << best.response.message);
-    return false;
+  /// Waits for the robot's actions and services (false after 60 s).
+  bool waitForRobot() {
+    const ros::Duration wait_up(60.0);
+    return insert_.waitForServer(wait_up) && retract_.waitForServer(wait_up) &&
+           flip_.waitForServer(wait_up) && set_entry_.waitForExistence(wait_up);
   }
-  steering::SelectionOptions selection;
-  selection.start = steering::startOptionsFromScene(scene);
-  Result<steering::PolicySource> policy =
-      steering::solveOrLoad(problem, scene.name, table_dir_, selection);
-  if (!policy) {
-    ROS_FATAL_STREAM("steerable_procedure: no policy table: " << policy.status().toString());
-    return false;
+  /// From here on every node the run depends on is watched; a death ends the run (no more trials
+  /// waiting out their timeouts), and the report names the node.
+  void supervise(const std::vector<std::string>& nodes) {
+    supervisor_ = std::make_unique<NodeSupervisor>(nh_, nodes);
+    const auto dead = [this] { return supervisor_->death().has_value(); };
+    tips_.setAbort(dead);
+    controls_.setAbort(dead);
   }
-  ROS_INFO_STREAM("steerable_procedure: model " << policy.value().description() << " (ps_tolerance "
-                                                << problem.ps_tolerance << ")");
-  const steering::PolicyTable& table = *policy.value().table;
-  const std::string table_source = policy.value().source;
-  const double estimated_error = policy.value().estimated_error;
-  const double predicted = best.response.probability_of_success;
-  ROS_INFO_STREAM("steerable_procedure: best start y = "
-                  << best.response.pose.y * kMmPerM
-                  << " mm, theta = " << best.response.pose.theta * kDegPerRad << " deg, bevel "
-                  << best.response.bevel << ", predicted P_s = " << predicted);
 
-  auto moveTo = [&](LinearMoveClient& client, double target_m, double velocity,
-                    std::string& message) {
+  bool placeAtEntry(const steering::TipPose& start, std::uint64_t seed, bool reseed,
+                    std::string& why_not) override {
+    NeedleTip tip;
+    if (!tips_.waitFor(ros::Time(0), s_.timeout_s, tip)) {
+      why_not = "no measured tip";
+      return false;
+    }
+    if (tip.inserted_length_m > 0.0 && !move(retract_, 0.0, s_.retract_velocity_m_s, why_not)) {
+      why_not = "retract: " + why_not;
+      return false;
+    }
+    SetEntryPose entry;
+    entry.request.height_m = start.p_SceneTip.y();
+    entry.request.angle_rad = start.theta_rad;
+    entry.request.bevel = steering::toString(start.bevel);
+    entry.request.reseed = reseed;
+    entry.request.seed = seed;
+    if (!set_entry_.call(entry) || !entry.response.success) {
+      why_not = "set_entry_pose: " + entry.response.message;
+      return false;
+    }
+    tips_.startRecording();
+    since_ = ros::Time::now();
+    return true;
+  }
+
+  std::optional<procedures::SteerableTip> tip(std::string& why_not) override {
+    NeedleTip tip;
+    if (!tips_.waitFor(since_, s_.timeout_s, tip)) {
+      why_not = "no measured tip within " + std::to_string(s_.timeout_s) + " s";
+      return std::nullopt;
+    }
+    return toTip(tip);
+  }
+
+  /// The policy's answer to a tip measured after the motion ended; with image feedback, waits up
+  /// to max_unconfident_controls more frames for one the tracker is confident of.
+  std::optional<procedures::PolicyAnswer> control(std::string& why_not) override {
+    SteeringControl control;
+    bool have = false;
+    ros::Time after = since_;
+    for (int unconfident = 0; controls_.waitFor(after, s_.timeout_s, control); ++unconfident) {
+      have = true;
+      if (control.tip_confident || unconfident >= s_.max_unconfident) {
+        break;
+      }
+      after = control.header.stamp + ros::Duration(0, 1);
+    }
+    if (!have) {
+      why_not =
+          "no control from " + s_.policy_ns + " within " + std::to_string(s_.timeout_s) + " s";
+      return std::nullopt;
+    }
+    procedures::PolicyAnswer answer;
+    // The statuses with a control to act on; any other (invalid_tip: the pose was not finite,
+    // or one this procedure does not know) ends the trial.
+    answer.usable = control.status == "ok" || control.status == "in_target" ||
+                    control.status == "in_obstacle" || control.status == "outside_grid";
+    answer.status = control.status;
+    answer.control =
+        control.control == "flip" ? steering::Control::kFlip : steering::Control::kInsert;
+    answer.probability_of_success = control.probability_of_success;
+    answer.looked_up.p_SceneTip = steering::Point2(control.tip.x, control.tip.y);
+    answer.looked_up.theta_rad = control.tip.theta;
+    answer.source = control.tip_source;
+    answer.confident = control.tip_confident != 0;
+    return answer;
+  }
+
+  bool flip(std::string& why_not) override {
+    FlipBevelGoal goal;
+    goal.velocity_rad_s = s_.flip_velocity_rad_s;
+    const auto state = flip_.sendGoalAndWait(goal, ros::Duration(s_.timeout_s));
+    if (state != actionlib::SimpleClientGoalState::SUCCEEDED) {
+      why_not = flip_.getResult() ? flip_.getResult()->message : state.toString();
+      return false;
+    }
+    return true;
+  }
+
+  procedures::StepEnd insertTo(double length_m, std::string& message) override {
+    const bool moved = move(insert_, length_m, s_.insertion_velocity_m_s, message);
+    since_ = ros::Time::now();
+    if (moved) {
+      return procedures::StepEnd::kMoved;
+    }
+    // The robot's refusal, by its message: the world stopped the needle, or the joint's limit.
+    if (message.find("workspace") != std::string::npos) {
+      return procedures::StepEnd::kLeftWorkspace;
+    }
+    if (message.find("obstacle") != std::string::npos) {
+      return procedures::StepEnd::kObstacle;
+    }
+    if (message.find("outside the joint limits") != std::string::npos) {
+      return procedures::StepEnd::kJointLimit;
+    }
+    return procedures::StepEnd::kFailed;
+  }
+
+  std::vector<procedures::SteerableTip> takeSamples() override {
+    std::vector<procedures::SteerableTip> out;
+    for (const NeedleTip& m : tips_.stopRecording()) {
+      out.push_back(toTip(m));
+    }
+    return out;
+  }
+
+  std::optional<procedures::Fault> fault() override {
+    return supervisor_ ? supervisor_->confirmedFault(start_) : std::nullopt;
+  }
+
+  /// Leaves the needle out of the tissue: retracts if the robot lives, else nothing can move it.
+  std::string leaveSafe() override {
+    tips_.setAbort(nullptr);
+    const std::string robot = nh_.resolveName(s_.robot_ns, false);
+    if (!NodeSupervisor::ping(robot, 0.5).empty()) {
+      return "none possible: the robot node " + robot + " does not answer";
+    }
+    NeedleTip tip;
+    if (!tips_.waitFor(ros::Time(0), 1.0, tip) || tip.inserted_length_m <= 0.0) {
+      return "";
+    }
+    std::string message;
+    supervised_ = false;
+    return move(retract_, 0.0, s_.retract_velocity_m_s, message) ? "needle retracted"
+                                                                 : "retraction failed: " + message;
+  }
+
+  void progress(const std::string& line) override {
+    ROS_INFO_STREAM("steerable_procedure: " << line);
+  }
+
+private:
+  /// Sends a goal and waits for it (the timeout); supervised, a node death cancels it.
+  bool move(LinearMoveClient& client, double target_m, double velocity, std::string& message) {
     LinearMoveGoal goal;
     goal.target_m = target_m;
     goal.velocity_m_s = velocity;
     client.sendGoal(goal);
-    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(timeout_s_);
+    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(s_.timeout_s);
     while (!client.waitForResult(ros::Duration(0.1))) {
-      if (dead() || ros::WallTime::now() > end || !ros::ok()) {
+      const bool dead = supervised_ && supervisor_ && supervisor_->death();
+      if (dead || ros::WallTime::now() > end || !ros::ok()) {
         client.cancelGoal();
-        message = dead() ? supervisor.death()->toString() : "no result within the timeout";
+        message = dead ? supervisor_->death()->toString() : "no result within the timeout";
         return false;
       }
     }
     const auto state = client.getState();
     message = client.getResult() ? client.getResult()->message : state.toString();
     return state == actionlib::SimpleClientGoalState::SUCCEEDED;
-  };
-  // The tip after the last motion: the first measured tip stamped after `since`.
-  auto tipAfter = [&](const ros::Time& since, NeedleTip& tip) {
-    return tips.waitFor(since, timeout_s_, tip);
-  };
-
-  std::vector<TrialRecord> records;
-  bool all_ran = true;
-  for (int trial = 0; trial < trials_ && ros::ok(); ++trial) {
-    TrialRecord rec;
-    const auto t0 = std::chrono::steady_clock::now();
-    NeedleTip tip;
-    std::string message;
-    if (!tipAfter(ros::Time(0), tip)) {
-      rec.outcome = "error";
-      rec.message = "no measured tip";
-    } else if (tip.inserted_length_m > 0.0 &&
-               !moveTo(retract, 0.0, retract_velocity_m_s_, message)) {
-      rec.outcome = "error";
-      rec.message = "retract: " + message;
-    }
-    SetEntryPose entry;
-    entry.request.height_m = best.response.pose.y;
-    entry.request.angle_rad = best.response.pose.theta;
-    entry.request.bevel = best.response.bevel;
-    // Trial k draws its deflections from its own stream: runs with ground-truth and image
-    // feedback see the same needle as long as they make the same decisions.
-    entry.request.reseed = seed_ >= 0;
-    entry.request.seed =
-        static_cast<std::uint64_t>(seed_) * kTrialSeedStride + static_cast<std::uint64_t>(trial);
-    if (rec.outcome.empty() && (!set_entry.call(entry) || !entry.response.success)) {
-      rec.outcome = "error";
-      rec.message = "set_entry_pose: " + entry.response.message;
-    }
-    tips.startRecording();
-    ros::Time since = ros::Time::now();
-    while (rec.outcome.empty()) {
-      if (!tipAfter(since, tip)) {
-        rec.outcome = "error";
-        rec.message = "no measured tip within " + std::to_string(timeout_s_) + " s";
-        break;
-      }
-      const steering::TipPose pose = toPose(tip);
-      if (world.inTarget(pose.p_SceneTip)) {
-        rec.outcome = "reached_target";
-        rec.decisions.push_back({tip, "", 1.0, tip.pose, tip.source, true, false});
-        break;
-      }
-      if (rec.steps >= max_steps_) {
-        rec.outcome = "step_limit";
-        break;
-      }
-      // The policy's answer to a tip measured after the motion ended; with image feedback, wait
-      // up to max_unconfident_controls more frames for one the tracker is confident of.
-      SteeringControl control;
-      bool have_control = false;
-      ros::Time after = since;
-      for (int unconfident = 0; controls.waitFor(after, timeout_s_, control); ++unconfident) {
-        have_control = true;
-        if (control.tip_confident || unconfident >= max_unconfident_) {
-          break;
-        }
-        after = control.header.stamp + ros::Duration(0, 1);
-      }
-      if (!have_control) {
-        rec.outcome = "error";
-        rec.message =
-            "no control from " + policy_ns_ + " within " + std::to_string(timeout_s_) + " s";
-        break;
-      }
-      if (control.status != "ok" && control.status != "in_target" &&
-          control.status != "in_obstacle" && control.status != "outside_grid") {
-        // No control to act on (invalid_tip: the pose was not finite; or a status this
-        // procedure does not know): stop here. Off the grid the world referees the next step.
-        rec.outcome = "error";
-        rec.message = policy_ns_ + " answered status '" + control.status + "' for the tip (" +
-                      std::to_string(control.tip.x) + ", " + std::to_string(control.tip.y) +
-                      ") m; no control";
-        break;
-      }
-      rec.unconfident_decisions += control.tip_confident ? 0 : 1;
-      rec.decisions.push_back({tip, control.control, control.probability_of_success, control.tip,
-                               control.tip_source, control.tip_confident != 0, true});
-      if (control.control == "flip") {
-        FlipBevelGoal goal;
-        goal.velocity_rad_s = flip_velocity_rad_s_;
-        const auto state = flip.sendGoalAndWait(goal, ros::Duration(timeout_s_));
-        if (state != actionlib::SimpleClientGoalState::SUCCEEDED) {
-          rec.outcome = "error";
-          rec.message =
-              "flip_bevel: " + (flip.getResult() ? flip.getResult()->message : state.toString());
-          break;
-        }
-        ++rec.flips;
-      }
-      ++rec.steps;
-      const bool moved =
-          moveTo(insert, tip.inserted_length_m + delta_m, insertion_velocity_m_s_, message);
-      since = ros::Time::now();
-      if (!moved) {
-        // The world stopped the needle: classify by the ground-truth tip where it stopped.
-        NeedleTip stopped;
-        const bool have = tipAfter(since, stopped);
-        rec.message = message;
-        if (message.find("workspace") != std::string::npos ||
-            (have && !world.inWorkspace(toPose(stopped).p_SceneTip))) {
-          rec.outcome = "left_workspace";
-        } else if (message.find("obstacle") != std::string::npos) {
-          rec.outcome = "hit_obstacle";
-        } else if (message.find("outside the joint limits") != std::string::npos) {
-          rec.outcome = "needle_length";  // a miss: the needle was used up before the target
-        } else {
-          rec.outcome = "error";
-        }
-        if (have) {
-          rec.decisions.push_back({stopped, "", 0.0, stopped.pose, stopped.source, true, false});
-        }
-      }
-    }
-    rec.samples = tips.stopRecording();
-    rec.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    if (dead()) {
-      rec.outcome = "error";  // whatever the trial saw last, it ended because a node died
-      rec.message = supervisor.death()->toString();
-    }
-    all_ran = all_ran && rec.outcome != "error";
-    ROS_INFO_STREAM("steerable_procedure: trial "
-                    << trial + 1 << "/" << trials_ << ": " << rec.outcome << " after " << rec.steps
-                    << " steps, " << rec.flips << " flips"
-                    << (rec.message.empty() ? "" : " (" + rec.message + ")"));
-    records.push_back(std::move(rec));
-    if (dead()) {
-      break;
-    }
-  }
-  std::string dead_node, cause;
-  double detected_unix_s = 0.0;
-  if (dead()) {
-    const NodeSupervisor::Death death = *supervisor.death();
-    dead_node = death.node;
-    detected_unix_s = death.when.toSec();
-    cause = death.toString() + " after " + std::to_string(records.size()) + " of " +
-            std::to_string(trials_) + " trials; the run was stopped";
-    ROS_ERROR_STREAM("steerable_procedure: " << cause);
-  }
-  {
-    // Leave the needle out of the tissue: retract if the robot lives, else nothing can move it.
-    tips.setAbort(nullptr);
-    NeedleTip tip;
-    std::string message;
-    const bool robot_alive = NodeSupervisor::ping(nh_.resolveName(robot_ns_, false), 0.5).empty();
-    if (robot_alive && tips.waitFor(ros::Time(0), 1.0, tip) && tip.inserted_length_m > 0.0) {
-      supervisor.clear();
-      moveTo(retract, 0.0, retract_velocity_m_s_, message);
-    }
   }
 
-  // ---- report ----
-  std::int64_t successes = 0, errored = 0;
-  double sum_steps = 0.0, sum_flips = 0.0;
-  report::Table trials_table({"trial", "outcome", "steps", "flips", "seconds", "message"}, 6);
-  report::Table paths({"trial", "sample", "x_mm", "y_mm", "theta_deg", "bevel"}, 6);
-  report::Table decisions(
-      {"trial", "step", "x_mm", "y_mm", "theta_deg", "bevel", "control", "predicted_ps", "source",
-       "confident", "tip_error_mm", "heading_error_deg"},
-      6);
-  std::vector<double> tip_errors_mm, heading_errors_deg;
-  int unconfident = 0;
-  for (std::size_t i = 0; i < records.size(); ++i) {
-    const TrialRecord& r = records[i];
-    successes += r.outcome == "reached_target" ? 1 : 0;
-    errored += r.outcome == "error" ? 1 : 0;
-    sum_steps += r.steps;
-    sum_flips += r.flips;
-    trials_table.addRow(
-        {double(i + 1), r.outcome, double(r.steps), double(r.flips), r.seconds, r.message});
-    for (std::size_t k = 0; k < r.samples.size(); ++k) {
-      const NeedleTip& s = r.samples[k];
-      if (s.inserted_length_m <= 0.0 && k + 1 < r.samples.size()) {
-        continue;  // before entry (retracted or at the guide)
-      }
-      paths.addRow({double(i + 1), double(k), s.pose.x * kMmPerM, s.pose.y * kMmPerM,
-                    s.pose.theta * kDegPerRad, s.bevel});
-    }
-    unconfident += r.unconfident_decisions;
-    for (std::size_t k = 0; k < r.decisions.size(); ++k) {
-      const Decision& d = r.decisions[k];
-      // What the policy was told against the truth at the same moment (the needle is still).
-      const double tip_error_mm =
-          std::hypot(d.looked_up.x - d.tip.pose.x, d.looked_up.y - d.tip.pose.y) * kMmPerM;
-      const double heading_error_deg =
-          std::abs(std::remainder(d.looked_up.theta - d.tip.pose.theta, 2.0 * kPi)) * kDegPerRad;
-      if (d.answered) {
-        tip_errors_mm.push_back(tip_error_mm);
-        heading_errors_deg.push_back(heading_error_deg);
-      }
-      decisions.addRow({double(i + 1), double(k), d.tip.pose.x * kMmPerM, d.tip.pose.y * kMmPerM,
-                        d.tip.pose.theta * kDegPerRad, d.tip.bevel,
-                        d.control.empty() ? std::string("end") : d.control,
-                        d.probability_of_success, d.source, std::string(d.confident ? "1" : "0"),
-                        tip_error_mm, heading_error_deg});
-    }
-  }
-  // The success rate is over trials that ran to an outcome; errored trials (a node died, no
-  // control) are counted apart, not as misses.
-  const std::int64_t n = static_cast<std::int64_t>(records.size()) - errored;
-  const steering::Interval ci = steering::wilsonInterval(successes, n);
-  const double rate = n > 0 ? double(successes) / double(n) : 0.0;
+  ros::NodeHandle nh_;
+  SteerableProcedureRos::Settings s_;
+  LinearMoveClient insert_, retract_;
+  FlipBevelClient flip_;
+  ros::ServiceClient set_entry_;
+  ros::Subscriber tip_sub_, control_sub_;
+  Latest<NeedleTip> tips_;
+  Latest<SteeringControl> controls_;
+  std::unique_ptr<NodeSupervisor> supervisor_;
+  bool supervised_ = true;
+  ros::Time since_;
+  ros::WallTime start_;
+};
 
-  // The same start in the core simulator (continuous needle, same policy table) and the P_s
-  // map of figure 5.7, from the table steering_policy saved (solved here only without one).
-  std::ostringstream model_text;
-  model_text << policy.value().description();
-  const std::string model_line = model_text.str();
-  steering::TipPose start;
-  start.p_SceneTip = steering::Point2(best.response.pose.x, best.response.pose.y);
-  start.theta_rad = best.response.pose.theta;
-  start.bevel = steering::bevelFromString(best.response.bevel).value_or(steering::Bevel::kLeft);
-  const steering::MonteCarloResult mc = steering::runMonteCarlo(
-      world, start, steering::tablePolicy(table), kMonteCarloTrials, kMonteCarloSeed, 2);
-  report::Table ps_map({"bevel", "y_mm", "theta_deg", "ps"}, 6);
-  for (const auto& c : table.startCandidates(steering::startOptionsFromScene(scene))) {
-    ps_map.addRow({steering::toString(c.pose.bevel), c.pose.p_SceneTip.y() * kMmPerM,
-                   c.pose.theta_rad * kDegPerRad, double(c.probability_of_success)});
+}  // namespace
+
+SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh)
+    : nh_(nh) {
+  ROS_INFO("steerable_procedure parameters:");
+  s_.scene_spec = ros_params::text(private_nh, "scene", "steering_workspace");
+  s_.target = ros_params::text(private_nh, "target", "");
+  s_.robot_ns = ros_params::text(private_nh, "robot", "insertion_robot");
+  s_.policy_ns = ros_params::text(private_nh, "policy", "steering_policy");
+  s_.report_dir = ros_params::text(private_nh, "report_dir", "", true);
+  // Refuses a system folder or someone else's non-empty folder before anything runs.
+  report::prepareReportDir(s_.report_dir, private_nh.resolveName("report_dir"),
+                           ros_params::flag(private_nh, "allow_system_paths", false));
+  s_.table_dir =
+      ros_params::rosHomePath(ros_params::text(private_nh, "table_dir", "steering_tables"));
+  s_.trials.trials =
+      static_cast<int>(ros_params::integer(private_nh, "trials", 20, 1, 100000, "trials"));
+  s_.trials.max_steps =
+      static_cast<int>(ros_params::integer(private_nh, "max_steps", 40, 1, 1000, "steps"));
+  s_.insertion_velocity_m_s =
+      ros_params::number(private_nh, "insertion_velocity_m_s", 0.05, 1e-4, 1.0, "m/s");
+  s_.retract_velocity_m_s =
+      ros_params::number(private_nh, "retract_velocity_m_s", 0.05, 1e-4, 1.0, "m/s");
+  s_.flip_velocity_rad_s =
+      ros_params::number(private_nh, "flip_velocity_rad_s", 2.0 * kPi, 1e-3, 100.0, "rad/s");
+  s_.timeout_s = ros_params::number(private_nh, "timeout_s", 10.0, 0.1, 600.0, "s");
+  s_.trials.seed =
+      ros_params::integer(private_nh, "seed", 1, -1, 1L << 40, "(-1 = the robot's stream)");
+  s_.max_unconfident = static_cast<int>(
+      ros_params::integer(private_nh, "max_unconfident_controls", 10, 0, 1000, "controls"));
+  s_.trials.feedback = ros_params::text(private_nh, "feedback", "ground_truth");
+  // The nodes the run depends on (the launch file adds imager and tip_tracker with images).
+  const std::string watch =
+      ros_params::text(private_nh, "watch_nodes", s_.robot_ns + "," + s_.policy_ns);
+  for (std::size_t a = 0; a < watch.size();) {
+    const std::size_t b = std::min(watch.find(',', a), watch.size());
+    if (b > a)
+      s_.watch_nodes.push_back(watch.substr(a, b - a));
+    a = b + 1;
   }
-  report::Table outlines({"structure", "contour", "x_mm", "y_mm"}, 6);
-  const std::vector<geometry::Polygon>& expanded = world.expandedObstacles();
-  for (std::size_t o = 0; o < problem.obstacles.size(); ++o) {
-    for (const auto& v : problem.obstacles[o].polygon.vertices()) {
-      outlines.addRow(
-          {std::string("obstacle"), problem.obstacles[o].name, v.x() * kMmPerM, v.y() * kMmPerM});
-    }
-    for (const auto& v : expanded[o].vertices()) {
-      outlines.addRow({std::string("clearance"), problem.obstacles[o].name + "_expanded",
-                       v.x() * kMmPerM, v.y() * kMmPerM});
-    }
+  // Fail now, not after the robot has moved, if the scene cannot be steered.
+  steering::problemFromScene(scene::loadSceneSpec(s_.scene_spec), s_.target);
+}
+
+bool SteerableProcedureRos::run() {
+  const auto wall_start = std::chrono::steady_clock::now();
+  const scene::Scene scene = scene::loadSceneSpec(s_.scene_spec);
+  const steering::SteeringProblem problem = steering::problemFromScene(scene, s_.target);
+  RosSteerableDevices devices(nh_, s_);
+  ros::ServiceClient best_start = nh_.serviceClient<BestStart>(s_.policy_ns + "/best_start");
+  if (!devices.waitForRobot() || !best_start.waitForExistence(ros::Duration(60.0))) {
+    ROS_FATAL_STREAM("steerable_procedure: the robot (" << s_.robot_ns << ") or the policy ("
+                                                        << s_.policy_ns
+                                                        << ") did not come up in 60 s");
+    return false;
   }
-  const double wall_s =
+  devices.supervise(s_.watch_nodes);
+  BestStart best;
+  if (!best_start.call(best) || !best.response.found) {
+    ROS_FATAL_STREAM("steerable_procedure: no start state: " << best.response.message);
+    return false;
+  }
+  // The policy's own table (saved by steering_policy; solved here only without one) for the
+  // report's Monte Carlo and P_s map.
+  steering::SelectionOptions selection;
+  selection.start = steering::startOptionsFromScene(scene);
+  Result<steering::PolicySource> policy =
+      steering::solveOrLoad(problem, scene.name, s_.table_dir, selection);
+  if (!policy) {
+    ROS_FATAL_STREAM("steerable_procedure: no policy table: " << policy.status().toString());
+    return false;
+  }
+  ROS_INFO_STREAM("steerable_procedure: model " << policy.value().description() << " (ps_tolerance "
+                                                << problem.ps_tolerance << ")");
+  procedures::SteerableStart start;
+  start.pose.p_SceneTip = steering::Point2(best.response.pose.x, best.response.pose.y);
+  start.pose.theta_rad = best.response.pose.theta;
+  start.pose.bevel =
+      steering::bevelFromString(best.response.bevel).value_or(steering::Bevel::kLeft);
+  start.predicted_ps = best.response.probability_of_success;
+  ROS_INFO_STREAM("steerable_procedure: best start y = "
+                  << best.response.pose.y * kMmPerM
+                  << " mm, theta = " << best.response.pose.theta * kDegPerRad << " deg, bevel "
+                  << best.response.bevel << ", predicted P_s = " << start.predicted_ps);
+
+  const procedures::SteerableTrials trials(scene.name, problem, *policy.value().table,
+                                           selection.start, s_.trials);
+  procedures::SteerableReport rep = trials.run(devices, start);
+  rep.model = policy.value().description();
+  rep.policy_table = policy.value().source;
+  rep.estimated_ps_error = policy.value().estimated_error;
+  rep.wall_time_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - wall_start).count();
-  // Success of the procedure: every trial ran to an outcome, and with ground-truth feedback the
-  // closed loop did not do significantly worse than predicted (the interval reaches the
-  // prediction or lies above it). The prediction assumes an exactly localised tip, so with
-  // image feedback a lower rate is the measured cost of tracking, reported
-  // (predicted_within_ci), not a failure of the procedure.
-  const bool ground_truth = feedback_ == "ground_truth";
-  const bool success =
-      all_ran && dead_node.empty() && n == trials_ && (!ground_truth || ci.high >= predicted);
-
-  std::ostringstream json;
-  json << "{\n  \"procedure\": \"steerable_needle\",\n  \"scene\": \"" << scene.name
-       << "\",\n  \"success\": " << (success ? "true" : "false") << ",\n  \"trials\": " << n
-       << ",\n  \"successes\": " << successes << ",\n  \"errored_trials\": " << errored
-       << ",\n  \"trials_requested\": " << trials_ << ",\n  \"dead_node\": \"" << dead_node
-       << "\",\n  \"cause\": \"" << cause << "\""
-       << ",\n  \"detected_unix_s\": " << report::jsonNumber(detected_unix_s, 15)
-       << ",\n  \"success_rate\": " << report::jsonNumber(rate) << ",\n  \"success_rate_ci\": ["
-       << report::jsonNumber(ci.low) << ", " << report::jsonNumber(ci.high)
-       << "],\n  \"predicted_ps\": " << report::jsonNumber(predicted)
-       << ",\n  \"predicted_within_ci\": " << (ci.contains(predicted) ? "true" : "false")
-       << ",\n  \"monte_carlo_ps\": " << report::jsonNumber(mc.rate())
-       << ",\n  \"monte_carlo_trials\": " << mc.trials << ",\n  \"model\": \"" << model_line
-       << "\",\n  \"policy_table\": \"" << table_source << "\""
-       << ",\n  \"ps_tolerance\": " << report::jsonNumber(problem.ps_tolerance)
-       << ",\n  \"estimated_ps_error\": " << report::jsonNumber(estimated_error)
-       << ",\n  \"start_y_mm\": " << report::jsonNumber(start.p_SceneTip.y() * kMmPerM)
-       << ",\n  \"start_theta_deg\": " << report::jsonNumber(start.theta_rad * kDegPerRad)
-       << ",\n  \"start_bevel\": \"" << best.response.bevel << "\""
-       << ",\n  \"feedback\": \"" << feedback_ << "\""
-       << ",\n  \"seed\": " << seed_ << ",\n  \"decisions\": " << tip_errors_mm.size()
-       << ",\n  \"tip_error_mm_median\": " << report::jsonNumber(median(tip_errors_mm))
-       << ",\n  \"tip_error_mm_max\": " << report::jsonNumber(maximum(tip_errors_mm))
-       << ",\n  \"heading_error_deg_median\": " << report::jsonNumber(median(heading_errors_deg))
-       << ",\n  \"unconfident_decisions\": " << unconfident
-       << ",\n  \"mean_steps\": " << report::jsonNumber(n > 0 ? sum_steps / double(n) : 0.0)
-       << ",\n  \"mean_flips\": " << report::jsonNumber(n > 0 ? sum_flips / double(n) : 0.0)
-       << ",\n  \"wall_time_s\": " << report::jsonNumber(wall_s) << "\n}\n";
-  std::ostringstream md;
-  md << "# Steerable needle: " << n << " closed-loop trials on " << scene.name << "\n\n"
-     << "| figure | value |\n| --- | --- |\n"
-     << "| start | y = " << start.p_SceneTip.y() * kMmPerM
-     << " mm, theta = " << start.theta_rad * kDegPerRad << " deg, bevel " << best.response.bevel
-     << " |\n"
-     << "| predicted P_s (MDP) | " << predicted << " |\n"
-     << "| model | " << model_line << " (ps_tolerance " << problem.ps_tolerance << ") |\n"
-     << (cause.empty() ? "" : "| STOPPED | " + cause + " |\n")
-     << "| errored trials (not counted as misses) | " << errored << " |\n"
-     << "| success rate (ROS closed loop) | " << successes << " / " << n << " = " << rate
-     << ", 95 % CI [" << ci.low << ", " << ci.high << "] |\n"
-     << "| feedback | " << feedback_ << "; tip error at decisions median " << median(tip_errors_mm)
-     << " mm (max " << maximum(tip_errors_mm) << "), heading " << median(heading_errors_deg)
-     << " deg; " << unconfident << " decisions on unconfident tips |\n"
-     << "| Monte Carlo (core, " << mc.trials << " trials) | " << mc.rate() << " |\n"
-     << "| mean steps / flips | " << (n > 0 ? sum_steps / n : 0.0) << " / "
-     << (n > 0 ? sum_flips / n : 0.0) << " |\n\n"
-     << trials_table.toMarkdown();
-  if (!report_dir_.empty()) {
-    trials_table.writeCsv(report_dir_ + "/trials.csv");
-    paths.writeCsv(report_dir_ + "/paths.csv");
-    decisions.writeCsv(report_dir_ + "/decisions.csv");
-    ps_map.writeCsv(report_dir_ + "/ps_map.csv");
-    outlines.writeCsv(report_dir_ + "/obstacles.csv");
-    report::writeTextFile(report_dir_ + "/summary.json", json.str());
-    report::writeTextFile(report_dir_ + "/summary.md", md.str());
-    std::ostringstream plot;
-    plot << "[{\"kind\": \"paths\", \"paths\": \"paths.csv\", \"decisions\": \"decisions.csv\", "
-            "\"contours\": \"obstacles.csv\", \"target\": ["
-         << problem.target.position.x() * kMmPerM << ", " << problem.target.position.y() * kMmPerM
-         << ", " << problem.target.radius_m * kMmPerM << "], \"bounds\": ["
-         << problem.workspace_min.x() * kMmPerM << ", " << problem.workspace_min.y() * kMmPerM
-         << ", " << problem.workspace_max.x() * kMmPerM << ", "
-         << problem.workspace_max.y() * kMmPerM
-         << "], \"max_paths\": 6, \"title\": "
-            "\"Closed-loop trials (figure 5.8): small dots insert, large dots flip\", "
-            "\"png\": \"paths.png\"},\n"
-            " {\"kind\": \"heatmap\", \"csv\": \"ps_map.csv\", \"x\": \"theta_deg\", \"y\": "
-            "\"y_mm\", \"value\": \"ps\", \"filter\": {\"bevel\": \""
-         << best.response.bevel
-         << "\"}, \"title\": \"P_s of start states on the entry line (figure 5.7), bevel "
-         << best.response.bevel << "\", \"png\": \"ps_map.png\"}]\n";
-    report::writeTextFile(report_dir_ + "/plot.json", plot.str());
+  if (rep.fault) {
+    ROS_ERROR_STREAM("steerable_procedure: " << rep.fault->toString() << " after "
+                                             << rep.records.size() << " of " << s_.trials.trials
+                                             << " trials; the run was stopped; robot: "
+                                             << rep.safe_stop);
   }
-  std::cout << "\n== Steerable needle (" << feedback_ << " feedback; MDP model " << model_line
-            << "): " << successes << " / " << n << " closed-loop trials reached the target (rate "
-            << rate << ", 95 % CI [" << ci.low << ", " << ci.high << "]); predicted P_s "
-            << predicted << ", Monte Carlo " << mc.rate() << " ==\n"
-            << "start y = " << start.p_SceneTip.y() * kMmPerM
-            << " mm, theta = " << start.theta_rad * kDegPerRad << " deg, bevel "
-            << best.response.bevel << "; " << wall_s << " s; report in " << report_dir_ << "\n"
-            << (errored > 0 ? std::to_string(errored) + " errored trial(s), not counted\n" : "")
-            << (cause.empty() ? "" : "FAIL: " + cause + "\n") << std::flush;
-  return success;
+  if (!s_.report_dir.empty()) {
+    rep.write(s_.report_dir);
+  }
+  std::cout << rep.text() << "report in " << s_.report_dir << "\n" << std::flush;
+  return rep.success();
 }
 
 }  // namespace needle_guidance

@@ -24,8 +24,8 @@
 #include <vector>
 
 #include "needle_guidance/imaging/frame_renderer.h"
-#include "needle_guidance/imaging/guided_trial.h"
 #include "needle_guidance/imaging/tip_tracker.h"
+#include "needle_guidance/procedures/guided_trial.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
@@ -388,9 +388,9 @@ void runClosedLoop(Bench& b, const st::PolicyTable& table, const st::BestStart& 
     std::uint64_t frame_index = 0;
     const auto t0 = std::chrono::steady_clock::now();
     for (int k = 0; k < b.trials; ++k) {
-      const im::GuidedTrial trial =
-          im::runGuidedTrial(world, start, kTrialSeed * 100000 + std::uint64_t(k), table,
-                             image ? &renderer : nullptr, image ? &tracker : nullptr, frame_index);
+      const ng::procedures::GuidedTrial trial = ng::procedures::runGuidedTrial(
+          world, start, kTrialSeed * 100000 + std::uint64_t(k), table, image ? &renderer : nullptr,
+          image ? &tracker : nullptr, frame_index);
       successes += trial.outcome == st::TrialOutcome::kReachedTarget ? 1 : 0;
       for (double e : trial.tip_errors_m)
         tip_mm.push_back(e * kMmPerM);

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/procedures/fault.h"
 #include "needle_guidance/scene/scene.h"
 
 namespace needle_guidance::procedures {
@@ -40,14 +41,6 @@ struct PlanResult {
   double verified_error_m = NAN;   ///< NaN: not verified
   double unplanned_error_m = NAN;  ///< prediction for a release at the target [m]
   double plan_s = NAN;
-};
-
-/// A node (or device) the procedure depends on stopped answering.
-struct Fault {
-  std::string node;   ///< e.g. /tissue_sim
-  double at_s = 0.0;  ///< seconds since the procedure started
-  std::string reason;
-  double detected_unix_s = 0.0;  ///< wall clock when it was first seen [s since 1970]
 };
 
 /// What the procedure drives. Moves block until they end; a device that sees a fault during a

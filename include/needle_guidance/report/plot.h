@@ -23,6 +23,12 @@ public:
   /// Markers at (x[k], y[k]) (filled circles).
   void addPoints(const std::string& name, const std::vector<double>& x,
                  const std::vector<double>& y, const cv::Scalar& bgr, int radius = 4);
+  /// A map: a filled cell of cell_w x cell_h centred on each (x[k], y[k]), coloured by value[k]
+  /// on `colourmap` (cv::ColormapTypes) from lo to hi; pair the figure with withColourKey.
+  /// Throws std::invalid_argument if the sizes differ or lo >= hi.
+  void addCells(const std::vector<double>& x, const std::vector<double>& y,
+                const std::vector<double>& value, double cell_w, double cell_h, int colourmap,
+                double lo, double hi);
   /// A horizontal reference line (e.g. a tolerance) with its name in the legend.
   void addHorizontal(const std::string& name, double y, const cv::Scalar& bgr);
   /// Fixes an axis range instead of fitting the data.
@@ -41,6 +47,8 @@ private:
     cv::Scalar bgr;
     int size = 2;
     bool line = true;
+    std::vector<cv::Scalar> cell_bgr;  ///< non-empty: a map of cells
+    double cell_w = 0.0, cell_h = 0.0;
   };
   std::string title_, x_label_, y_label_;
   std::vector<Series> series_;

@@ -10,6 +10,8 @@
 #include <string>
 #include <vector>
 
+#include "needle_guidance/procedures/fault.h"
+
 namespace needle_guidance {
 
 /// Watches the nodes a procedure depends on. A node counts as alive while the master knows it
@@ -40,7 +42,15 @@ public:
   std::vector<std::string> waitForAll(double timeout_s);
   /// The first node found dead, if any (checked by the timer; `checkNow` checks at once).
   std::optional<Death> death() const;
+  /// The first death, confirmed: on a loaded machine one master lookup or getPid can fail for
+  /// a live node (seen: "not registered" at load 8 on 2 cores), so a death counts once `pings`
+  /// more pings, `pause_s` apart, fail too; otherwise it is forgotten as a false alarm. As a
+  /// procedure's Fault timed from `start`; kept once confirmed. Detection stays within
+  /// period + pings * pause (about 1 s).
+  std::optional<procedures::Fault> confirmedFault(const ros::WallTime& start, double pause_s = 0.2,
+                                                  int pings = 2);
   void checkNow();
+  /// Forgets the death (and a confirmed fault).
   void clear();
   const std::vector<std::string>& nodes() const { return nodes_; }
 
@@ -52,6 +62,7 @@ private:
   double ping_timeout_s_;
   mutable std::mutex mutex_;
   std::optional<Death> death_;
+  std::optional<procedures::Fault> confirmed_;
   // The pings run on a queue and thread of their own, so that a slow ping never delays the
   // procedure's own callbacks (action feedback, tips).
   ros::CallbackQueue queue_;
