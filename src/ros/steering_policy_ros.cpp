@@ -1,6 +1,7 @@
 #include "needle_guidance/ros/steering_policy_ros.h"
 
 #include <visualization_msgs/Marker.h>
+#include <visualization_msgs/MarkerArray.h>
 
 #include <algorithm>
 #include <chrono>
@@ -31,6 +32,9 @@ constexpr double kThrottle_s = 5.0;   ///< period of per-message warnings and er
 constexpr double kMapDepth_m = 0.02;  ///< ~ps_map sits this far below z = 0: rviz's top-down ortho
                                       ///< depth buffer loses mm separations
 constexpr double kMapThickness_m = 5e-4;  ///< cube height of ~ps_map [m]
+constexpr double kKeyOffset_m = 4e-3;     ///< ~ps_map_key's distance right of the workspace [m]
+constexpr double kKeyLine_m = 5e-3;       ///< ~ps_map_key's line spacing [m]
+constexpr double kKeyText_m = 2.5e-3;     ///< ~ps_map_key's text height [m]
 constexpr double kArrowLength_m = 0.01;   ///< ~best_start_marker [m]
 constexpr double kArrowShaft_m = 1e-3;
 constexpr double kArrowHead_m = 2e-3;
@@ -135,6 +139,40 @@ visualization_msgs::Marker probabilityMap(const st::PolicyTable& table) {
   return m;
 }
 
+/// The colour key of ~ps_map, just right of the workspace: a title, then a swatch and a short
+/// label per P_s step, and the obstacle grey.
+visualization_msgs::MarkerArray probabilityKey(const st::SteeringProblem& problem) {
+  using visualization_msgs::Marker;
+  visualization_msgs::MarkerArray key;
+  const double x = problem.workspace_max.x() + kKeyOffset_m;
+  const double top = problem.workspace_max.y() - kKeyLine_m;
+  const auto text = [&](int id, double y, const std::string& s) {
+    Marker label = marker("ps_map_key", Marker::TEXT_VIEW_FACING);
+    label.id = id;
+    // Text is centred on its position: start it half its width right of the swatch.
+    label.pose.position.x = x + 0.5 * kKeyLine_m + 0.3 * kKeyText_m * double(s.size());
+    label.pose.position.y = y;
+    label.scale.z = kKeyText_m;
+    label.color = colour(0.1, 0.1, 0.1);
+    label.text = s;
+    key.markers.push_back(label);
+  };
+  text(0, problem.workspace_max.y(), "P_s");
+  for (int k = 0; k <= 5; ++k) {
+    const bool obstacle = k == 5;
+    Marker swatch = marker("ps_map_key", Marker::CUBE);
+    swatch.id = 2 * k + 1;
+    swatch.pose.position.x = x;
+    swatch.pose.position.y = top - kKeyLine_m * k;
+    swatch.scale.x = swatch.scale.y = 0.6 * kKeyLine_m;
+    swatch.scale.z = kMapThickness_m;
+    swatch.color = obstacle ? colour(0.5, 0.5, 0.5) : probabilityColour(1.0 - 0.25 * k);
+    key.markers.push_back(swatch);
+    text(2 * k + 2, swatch.pose.position.y, obstacle ? "obst." : formatNumber(1.0 - 0.25 * k, 2));
+  }
+  return key;
+}
+
 /// An arrow at the best start pose (green), or a DELETE when there is none.
 visualization_msgs::Marker bestStartMarker(const st::BestStart& best) {
   using visualization_msgs::Marker;
@@ -205,6 +243,7 @@ SteeringPolicyRos::SteeringPolicyRos(ros::NodeHandle& nh, ros::NodeHandle& priva
 
   control_pub_ = private_nh.advertise<SteeringControl>("control", 10);
   ps_map_pub_ = private_nh.advertise<visualization_msgs::Marker>("ps_map", 1, true);
+  ps_key_pub_ = private_nh.advertise<visualization_msgs::MarkerArray>("ps_map_key", 1, true);
   best_start_pub_ = private_nh.advertise<visualization_msgs::Marker>("best_start_marker", 1, true);
 
   if (settings_.solve_on_start) {
@@ -298,6 +337,7 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
 
 void SteeringPolicyRos::publishMaps() {
   ps_map_pub_.publish(probabilityMap(*table_));
+  ps_key_pub_.publish(probabilityKey(problem_));
   const st::BestStart best = table_->bestStart(start_options_);
   best_start_pub_.publish(bestStartMarker(best));
   ROS_INFO_STREAM_NAMED(kName, "steering_policy: " << best.toString());

@@ -97,6 +97,7 @@ private:
   double estimated_error_ = 0.0;       ///< NaN when not estimated (ps_tolerance 0)
   ros::Publisher control_pub_;
   ros::Publisher ps_map_pub_;
+  ros::Publisher ps_key_pub_;  ///< ~ps_map_key: the map's colour key
   ros::Publisher best_start_pub_;
   ros::Subscriber tip_sub_;
   ros::ServiceServer solve_srv_;
