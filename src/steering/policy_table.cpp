@@ -241,8 +241,7 @@ std::optional<PolicyTable> PolicyTable::load(const std::string& path, std::uint6
                                              LoadStatus& status, double max_epsilon) {
   using Code = LoadStatus::Code;
   auto refuse = [&](Code code, const std::string& why) {
-    status.code = code;
-    status.message = "PolicyTable::load: '" + path + "': " + why;
+    status = LoadStatus(code, "PolicyTable::load: '" + path + "': " + why);
     return std::nullopt;
   };
   std::ifstream f(path, std::ios::binary);
@@ -302,8 +301,7 @@ std::optional<PolicyTable> PolicyTable::load(const std::string& path, std::uint6
   if (sum.value() != stored) {
     return refuse(Code::kCorrupt, "checksum mismatch (file damaged)");
   }
-  status.code = Code::kOk;
-  status.message = "PolicyTable::load: '" + path + "': ok";
+  status = LoadStatus::success("PolicyTable::load: '" + path + "': ok");
   return PolicyTable(g, h.hash, std::move(values), std::move(bits), std::move(cells), h.epsilon,
                      h.sweeps, h.converged != 0);
 }

@@ -533,14 +533,14 @@ TEST_F(SteeringTableTest, SaveLoadRoundTripAndRefusals) {
   SteeringProblem other = model_->problem();
   other.params.sigma_insert_rad *= 2.0;
   EXPECT_FALSE(PolicyTable::load(path, problemHash(other), status));
-  EXPECT_EQ(status.code, LoadStatus::Code::kMismatch);
-  EXPECT_NE(status.message.find("re-solve"), std::string::npos) << status.message;
+  EXPECT_EQ(status.code(), LoadStatus::Code::kMismatch);
+  EXPECT_NE(status.message().find("re-solve"), std::string::npos) << status.message();
   // Looser than requested.
   EXPECT_FALSE(PolicyTable::load(path, model_->hash(), status, 1e-5));
-  EXPECT_EQ(status.code, LoadStatus::Code::kTooLoose);
+  EXPECT_EQ(status.code(), LoadStatus::Code::kTooLoose);
   // Missing and damaged files.
   EXPECT_FALSE(PolicyTable::load(path + ".missing", model_->hash(), status));
-  EXPECT_EQ(status.code, LoadStatus::Code::kCannotOpen);
+  EXPECT_EQ(status.code(), LoadStatus::Code::kCannotOpen);
   {
     std::fstream f(path, std::ios::in | std::ios::out | std::ios::binary);
     f.seekp(200);
@@ -548,13 +548,13 @@ TEST_F(SteeringTableTest, SaveLoadRoundTripAndRefusals) {
     f.write(&junk, 1);
   }
   EXPECT_FALSE(PolicyTable::load(path, model_->hash(), status));
-  EXPECT_EQ(status.code, LoadStatus::Code::kCorrupt);
+  EXPECT_EQ(status.code(), LoadStatus::Code::kCorrupt);
   {
     std::ofstream f(path, std::ios::binary | std::ios::trunc);
     f << "not a table";
   }
   EXPECT_FALSE(PolicyTable::load(path, model_->hash(), status));
-  EXPECT_EQ(status.code, LoadStatus::Code::kCorrupt);
+  EXPECT_EQ(status.code(), LoadStatus::Code::kCorrupt);
   std::remove(path.c_str());
   EXPECT_THROW(table_->save("/nonexistent_dir/x.table"), std::runtime_error);
 }

@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "needle_guidance/status.h"
 #include "needle_guidance/steering/steering_model.h"
 
 namespace needle_guidance::steering {
@@ -60,20 +61,20 @@ struct BestStart {
   std::string toString() const;
 };
 
-/// Status of PolicyTable::load.
-struct LoadStatus {
-  enum class Code {
-    kOk,
-    kCannotOpen,  ///< missing or unreadable file
-    kCorrupt,     ///< not a table file, truncated, or its checksum does not match
-    kMismatch,    ///< solved for another scene or other parameters (hash differs)
-    kTooLoose,    ///< solved with a larger epsilon than requested
-  };
-  Code code = Code::kCannotOpen;
-  std::string message;  ///< one line naming the file and the reason
-
-  explicit operator bool() const { return code == Code::kOk; }
-  std::string toString() const { return message; }
+/// Status of PolicyTable::load (the shared Status shape, status.h).
+enum class LoadCode {
+  kOk,
+  kCannotOpen,  ///< missing or unreadable file
+  kCorrupt,     ///< not a table file, truncated, or its checksum does not match
+  kMismatch,    ///< solved for another scene or other parameters (hash differs)
+  kTooLoose,    ///< solved with a larger epsilon than requested
+};
+class LoadStatus : public Status<LoadCode, LoadCode::kOk> {
+public:
+  using Code = LoadCode;
+  using Status::Status;
+  LoadStatus() : Status(LoadCode::kCannotOpen, "not loaded yet") {}
+  LoadStatus(const Status& s) : Status(s) {}  // NOLINT: from Status::success()
 };
 
 /// P_s (float) and the optimal control (one bit) for every state, plus what the look-up needs
