@@ -1,7 +1,10 @@
 #include "needle_guidance/procedures/hdr_report.h"
 
+#include "needle_guidance/delivery/journal.h"
+
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
 #include <sstream>
 
 #include "needle_guidance/report/plot.h"
@@ -83,6 +86,37 @@ double HdrDeliveryReport::maxDwellError_s() const {
 bool HdrDeliveryReport::success() const {
   return dead_node.empty() && status == "completed" && !dwells.empty() &&
          maxDwellError_s() <= tolerance_s && !indices.empty();
+}
+
+void HdrDeliveryReport::deliveredFromJournal(const delivery::Schedule& schedule,
+                                             const std::string& journal_path) {
+  journal = journal_path;
+  delivered_from = "journal";
+  dwells.clear();
+  try {
+    if (!std::filesystem::is_regular_file(journal_path)) {  // opening would create it
+      throw std::runtime_error("no journal file at '" + journal_path + "'");
+    }
+    const delivery::Journal records(journal_path);
+    const delivery::Ledger ledger = delivery::replay(records.records(), &schedule, 0.5);
+    for (const auto& c : schedule.channels) {
+      for (std::size_t k = 0; k < c.time_s.size(); ++k) {
+        const auto key = std::make_pair(c.channel, c.dwell_index[k]);
+        const auto d = ledger.delivered_s.find(key);
+        const auto u = ledger.uncertainty_s.find(key);
+        dwells.push_back({c.channel, c.dwell_index[k], c.time_s[k],
+                          d == ledger.delivered_s.end() ? 0.0 : d->second,
+                          u == ledger.uncertainty_s.end() ? 0.0 : u->second});
+      }
+    }
+    message = std::to_string(records.records().size()) + " journal records";
+  } catch (const std::exception& e) {
+    delivered_from = std::string("nothing: journal not readable: ") + e.what();
+    for (const auto& c : schedule.channels) {
+      for (std::size_t k = 0; k < c.time_s.size(); ++k)
+        dwells.push_back({c.channel, c.dwell_index[k], c.time_s[k], 0.0, 0.0});
+    }
+  }
 }
 
 void HdrDeliveryReport::write(const std::string& dir) const {

@@ -13,7 +13,6 @@
 #include "needle_guidance/DoseVolumeHistogram.h"
 #include "needle_guidance/EvaluateDelivery.h"
 #include "needle_guidance/PlanDwells.h"
-#include "needle_guidance/delivery/journal.h"
 #include "needle_guidance/procedures/hdr_report.h"
 #include "needle_guidance/report/output_path.h"
 #include "needle_guidance/report/table.h"
@@ -75,30 +74,8 @@ bool HdrProcedureRos::reportNodeDeath(const DwellPlan& p, procedures::HdrDeliver
                                       const ros::WallTime& t0) {
   // What was given, from the afterloader's own durable journal (the device node is gone or its
   // result is not trusted): the delivered time per dwell and the trips, replayed independently.
-  const delivery::Schedule schedule = ros_conversions::fromMessage(p.schedule);
-  r.journal = journal_dir_ + "/" + p.plan_id + ".journal";
-  r.delivered_from = "journal";
-  try {
-    const delivery::Journal journal(r.journal);
-    const delivery::Ledger ledger = delivery::replay(journal.records(), &schedule, 0.5);
-    for (const auto& c : schedule.channels) {
-      for (std::size_t k = 0; k < c.time_s.size(); ++k) {
-        const auto key = std::make_pair(c.channel, c.dwell_index[k]);
-        const auto d = ledger.delivered_s.find(key);
-        const auto u = ledger.uncertainty_s.find(key);
-        r.dwells.push_back({c.channel, c.dwell_index[k], c.time_s[k],
-                            d == ledger.delivered_s.end() ? 0.0 : d->second,
-                            u == ledger.uncertainty_s.end() ? 0.0 : u->second});
-      }
-    }
-    r.message = std::to_string(journal.records().size()) + " journal records";
-  } catch (const std::exception& e) {
-    r.delivered_from = std::string("nothing: journal not readable: ") + e.what();
-    for (const auto& c : schedule.channels) {
-      for (std::size_t k = 0; k < c.time_s.size(); ++k)
-        r.dwells.push_back({c.channel, c.dwell_index[k], c.time_s[k], 0.0, 0.0});
-    }
-  }
+  r.deliveredFromJournal(ros_conversions::fromMessage(p.schedule),
+                         journal_dir_ + "/" + p.plan_id + ".journal");
   r.status = "node_died";
   r.dead_node = death.node;
   r.cause = death.toString() + "; delivery stopped " + report::jsonNumber(detect_s, 3) +

@@ -11,6 +11,7 @@
 #include "needle_guidance/delivery/journal.h"
 #include "needle_guidance/delivery/schedule.h"
 #include "needle_guidance/dose/prostate_case.h"
+#include "needle_guidance/procedures/hdr_report.h"
 
 using namespace needle_guidance::delivery;
 namespace fs = std::filesystem;
@@ -358,6 +359,45 @@ TEST(Afterloader, CrashesAtRandomMomentsNeverLoseOrRepeatDose) {
   EXPECT_LE(truth_s, s.totalDwellTime() + kExactS);
   EXPECT_GE(truth_s, s.totalDwellTime() - uncertainty - kExactS);
   EXPECT_LE(uncertainty, crashes * quantum + kExactS);
+}
+
+TEST(HdrDeliveryReport, AfterACrashTheDeliveredDoseComesFromTheJournal) {
+  TempDir dir;
+  const double quantum = 0.05;  // the journal commits in quanta [s]
+  const Schedule s = smallSchedule();
+  double given_s = 0.0;
+  {
+    Afterloader a(config(dir, quantum));
+    ASSERT_TRUE(a.start(s).ok());
+    while (a.state() == DeliveryState::kDelivering && a.deliveredTotal() < 0.4 * s.totalDwellTime())
+      a.step(0.0071);
+    ASSERT_EQ(a.state(), DeliveryState::kDelivering);  // destroyed mid-delivery: a crash
+    given_s = a.deliveredTotal();
+  }
+  ASSERT_GT(given_s, 0.0);
+  needle_guidance::procedures::HdrDeliveryReport r;
+  r.deliveredFromJournal(s, (dir.path / "test_plan.journal").string());
+  EXPECT_EQ(r.delivered_from, "journal");
+  std::size_t planned_dwells = 0;
+  for (const auto& c : s.channels)
+    planned_dwells += c.time_s.size();
+  ASSERT_EQ(r.dwells.size(), planned_dwells);
+  EXPECT_NEAR(r.plannedTotal_s(), s.totalDwellTime(), kExactS);
+  // Write-ahead: the record holds what was committed, what was given and at most one quantum
+  // more, and that quantum is the uncertainty it reports.
+  EXPECT_GE(r.deliveredTotal_s(), given_s - kExactS);
+  EXPECT_LE(r.deliveredTotal_s(), given_s + quantum + kExactS);
+  double uncertainty_s = 0.0;
+  for (const auto& d : r.dwells)
+    uncertainty_s += d.uncertainty_s;
+  EXPECT_GE(uncertainty_s, r.deliveredTotal_s() - given_s - kExactS);
+
+  needle_guidance::procedures::HdrDeliveryReport none;
+  none.deliveredFromJournal(s, (dir.path / "missing.journal").string());
+  EXPECT_EQ(none.delivered_from.rfind("nothing: journal not readable", 0), 0u)
+      << none.delivered_from;
+  EXPECT_EQ(none.dwells.size(), planned_dwells);
+  EXPECT_EQ(none.deliveredTotal_s(), 0.0);
 }
 
 int main(int argc, char** argv) {

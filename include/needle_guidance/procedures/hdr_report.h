@@ -7,6 +7,7 @@
 #include <utility>
 #include <vector>
 
+#include "needle_guidance/delivery/schedule.h"
 #include "needle_guidance/procedures/hdr_pipeline.h"
 
 namespace needle_guidance {
@@ -59,6 +60,11 @@ struct HdrDeliveryReport {
   /// The outcome: the delivery completed, every dwell within tolerance, and evaluated.
   bool success() const;
 
+  /// After the afterloader died (its result is gone or not trusted): the delivered time per dwell
+  /// of `schedule` and its uncertainty, replayed independently from the device's durable
+  /// journal at `journal_path` (delivered_from "journal"). An unreadable journal gives zero
+  /// delivered everywhere and says so in delivered_from. Replaces `dwells`.
+  void deliveredFromJournal(const delivery::Schedule& schedule, const std::string& journal_path);
   /// Writes dir/{summary.json, summary.md, delivery.csv, indices.csv (when evaluated), dvh.png
   /// (when the DVH is known), dwells.png}; throws std::runtime_error naming a file it cannot
   /// write. The folder must exist (report::prepareReportDir).
