@@ -7,8 +7,7 @@
 #include <string>
 #include <vector>
 
-#include "needle_guidance/registration/baselines.h"
-#include "needle_guidance/registration/probe_case.h"
+#include "needle_guidance/registration/registration_request.h"
 #include "needle_guidance/ros/params.h"
 
 namespace needle_guidance {
@@ -102,51 +101,19 @@ RegistrationRos::RegistrationRos(ros::NodeHandle& /*nh*/, ros::NodeHandle& priva
 bool RegistrationRos::onRegister(Register::Request& req, Register::Response& res) {
   res.success = false;
   res.point_error_mm = res.rigid_point_error_mm = res.unregistered_point_error_mm = -1.0;
-  reg::RegistrationOptions options = defaults_;
-  if (req.optimizer == "steepest_descent") {
-    options.optimizer = reg::Optimizer::kSteepestDescent;
-  } else if (!req.optimizer.empty() && req.optimizer != "fast") {
-    res.status = "refused";
-    res.message = "optimizer '" + req.optimizer + "' is not fast or steepest_descent";
-    return true;
-  }
-  if (req.alpha >= 0.0 && std::isfinite(req.alpha))
-    options.alpha = req.alpha;
-  if (!std::isfinite(req.alpha)) {
-    res.status = "refused";
-    res.message = "alpha is not finite";
-    return true;
-  }
-  if (req.target_nodes != 0) {
-    if (req.target_nodes < 30 || req.target_nodes > 20000) {
-      res.status = "refused";
-      res.message = "target_nodes " + std::to_string(req.target_nodes) + " is outside [30, 20000]";
-      return true;
-    }
-    options.target_nodes = req.target_nodes;
-  }
-
-  std::optional<reg::ProbeCase> synthetic;
-  reg::SliceSegmentation out;
-  reg::ProbeInSegmentation in;
-  if (req.synthetic_seed > 0) {
-    reg::ProbeType type = reg::ProbeType::kBalloon;
-    if (req.probe_type == "rigid") {
-      type = reg::ProbeType::kRigid;
-    } else if (!req.probe_type.empty() && req.probe_type != "balloon") {
-      res.status = "refused";
-      res.message = "probe_type '" + req.probe_type + "' is not balloon or rigid";
-      return true;
-    }
-    synthetic = reg::generateProbeCase(type, req.synthetic_seed);
-    out = synthetic->probe_out;
-    in = synthetic->probe_in;
-  } else {
+  reg::RegistrationRequest request;
+  request.optimizer = req.optimizer;
+  request.alpha = req.alpha;
+  request.target_nodes = req.target_nodes;
+  request.synthetic_seed = req.synthetic_seed;
+  request.probe_type = req.probe_type;
+  if (req.synthetic_seed == 0) {
     if (const auto bad = nonFinite(req)) {
       res.status = "refused";
       res.message = "polygon '" + *bad + "' has a non-finite vertex";
       return true;
     }
+    reg::SliceSegmentation& out = request.probe_out;
     out.domain = fromMessage(req.domain);
     out.cg = reg::Outline(fromMessage(req.cg));
     out.pz = reg::Outline(fromMessage(req.pz));
@@ -155,18 +122,18 @@ bool RegistrationRos::onRegister(Register::Request& req, Register::Response& res
       out.bones.emplace_back(fromMessage(b));
     if (!req.bladder.points.empty())
       out.bladder = reg::Outline(fromMessage(req.bladder));
-    in.prostate = reg::Outline(fromMessage(req.probe_in_prostate));
-    in.probe = reg::Outline(fromMessage(req.probe));
+    request.probe_in.prostate = reg::Outline(fromMessage(req.probe_in_prostate));
+    request.probe_in.probe = reg::Outline(fromMessage(req.probe));
   }
-
-  reg::RegistrationResult result;
-  try {
-    result = reg::registerSlices(out, in, options);
-  } catch (const std::exception& e) {
+  const Result<reg::RegistrationAnswer> answer = reg::runRegistration(request, defaults_);
+  if (!answer) {
     res.status = "refused";
-    res.message = e.what();
+    res.message = answer.status().message();
     return true;
   }
+  const reg::RegistrationResult& result = answer.value().result;
+  const reg::SliceSegmentation& out = answer.value().probe_out;
+  const reg::ProbeInSegmentation& in = answer.value().probe_in;
   res.status = reg::toString(result.status);
   res.message = result.message;
   res.success = reg::hasMapping(result.status);
@@ -183,15 +150,10 @@ bool RegistrationRos::onRegister(Register::Request& req, Register::Response& res
     ROS_WARN_STREAM_NAMED(kName, "registration: " << res.status << ": " << res.message);
     return true;
   }
-  if (synthetic && result.mapping) {
-    res.point_error_mm = reg::meanPointError(*result.mapping, *synthetic) * kMmPerM;
-    const reg::BaselineResult rigid = reg::rigidCentreOfMass(out, in);
-    if (rigid.mapping) {
-      res.rigid_point_error_mm = reg::meanPointError(*rigid.mapping, *synthetic) * kMmPerM;
-    }
-    const reg::TranslationMapping identity(geometry::Point2::Zero());
-    res.unregistered_point_error_mm = reg::meanPointError(identity, *synthetic) * kMmPerM;
-  }
+  const auto mm = [](double m) { return std::isfinite(m) ? m * kMmPerM : -1.0; };
+  res.point_error_mm = mm(answer.value().point_error_m);
+  res.rigid_point_error_mm = mm(answer.value().rigid_point_error_m);
+  res.unregistered_point_error_mm = mm(answer.value().unregistered_point_error_m);
   const reg::WarpedGrid& grid = result.mrsi_grid;
   for (std::size_t i = 0; i < grid.probe_in.size(); ++i) {
     res.grid_probe_in.push_back(point(grid.probe_in[i]));

@@ -11,6 +11,7 @@
 #include "needle_guidance/registration/deformable_registration.h"
 #include "needle_guidance/registration/dice.h"
 #include "needle_guidance/registration/probe_case.h"
+#include "needle_guidance/registration/registration_request.h"
 
 namespace needle_guidance::registration {
 namespace {
@@ -296,6 +297,45 @@ TEST(RegistrationHardCases, InvalidOptionsThrow) {
   RegistrationOptions options;
   options.target_nodes = 5;
   EXPECT_THROW(registerSlices(pc.probe_out, pc.probe_in, options), std::invalid_argument);
+}
+
+TEST(RegistrationRequests, BadFieldsAreRefusedByName) {
+  const auto refused = [](RegistrationRequest r) {
+    r.synthetic_seed = kSeed;
+    const Result<RegistrationAnswer> a = runRegistration(r, RegistrationOptions());
+    EXPECT_FALSE(a);
+    EXPECT_EQ(a.status().code(), StatusCode::kRefused);
+    return a.status().message();
+  };
+  RegistrationRequest r;
+  r.optimizer = "newton";
+  EXPECT_NE(refused(r).find("optimizer 'newton'"), std::string::npos);
+  r = {};
+  r.alpha = NAN;
+  EXPECT_NE(refused(r).find("alpha is not finite"), std::string::npos);
+  r = {};
+  r.target_nodes = 10;
+  EXPECT_NE(refused(r).find("target_nodes 10"), std::string::npos);
+  r = {};
+  r.probe_type = "cone";
+  EXPECT_NE(refused(r).find("probe_type 'cone'"), std::string::npos);
+  // Empty slices are a data problem: answered with a refusal status and no mapping.
+  const Result<RegistrationAnswer> empty = runRegistration({}, RegistrationOptions());
+  ASSERT_TRUE(empty) << empty.status().message();
+  expectNoMapping(empty.value().result);
+  EXPECT_TRUE(std::isnan(empty.value().point_error_m));
+}
+
+TEST(RegistrationRequests, SyntheticCaseIsMeasuredAgainstItsTruthAndTheBaselines) {
+  RegistrationRequest r;
+  r.synthetic_seed = kSeed;
+  r.probe_type = "balloon";
+  const Result<RegistrationAnswer> a = runRegistration(r, RegistrationOptions());
+  ASSERT_TRUE(a) << a.status().message();
+  ASSERT_TRUE(hasMapping(a.value().result.status)) << a.value().result.message;
+  EXPECT_LT(a.value().point_error_m, kTargetPointError_m);
+  EXPECT_LT(a.value().point_error_m, a.value().rigid_point_error_m);
+  EXPECT_LT(a.value().rigid_point_error_m, a.value().unregistered_point_error_m);
 }
 
 }  // namespace
