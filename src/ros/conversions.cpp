@@ -30,15 +30,7 @@ std_msgs::ColorRGBA regionColour(std::size_t index) {
 visualization_msgs::Marker outline(const geometry::Polygon& polygon, const std::string& frame_id,
                                    const std::string& ns, int id, double width_m,
                                    const std_msgs::ColorRGBA& colour) {
-  visualization_msgs::Marker m =
-      baseMarker(frame_id, ns, id, visualization_msgs::Marker::LINE_STRIP);
-  m.scale.x = width_m;
-  m.color = colour;
-  for (const auto& v : polygon.vertices()) {
-    m.points.push_back(toMessage(v));
-  }
-  m.points.push_back(toMessage(polygon.vertices().front()));
-  return m;
+  return ros_conversions::outline(polygon.vertices(), frame_id, ns, id, width_m, colour);
 }
 
 /// Filled triangles of a (coarse) mesh of `domain` with `regions`, coloured by region.
@@ -92,12 +84,28 @@ std_msgs::ColorRGBA colour(double r, double g, double b, double a) {
   return c;
 }
 
-geometry_msgs::Point toMessage(const geometry::Point2& p_Scene) {
+geometry_msgs::Point toMessage(const geometry::Point2& p_Scene, double z_m) {
   geometry_msgs::Point p;
   p.x = p_Scene.x();
   p.y = p_Scene.y();
-  p.z = 0.0;
+  p.z = z_m;
   return p;
+}
+
+visualization_msgs::Marker outline(const std::vector<geometry::Point2>& ring,
+                                   const std::string& frame_id, const std::string& ns, int id,
+                                   double width_m, const std_msgs::ColorRGBA& colour) {
+  visualization_msgs::Marker m =
+      baseMarker(frame_id, ns, id, visualization_msgs::Marker::LINE_STRIP);
+  m.scale.x = width_m;
+  m.color = colour;
+  for (const auto& v : ring) {
+    m.points.push_back(toMessage(v));
+  }
+  if (!ring.empty()) {
+    m.points.push_back(toMessage(ring.front()));
+  }
+  return m;
 }
 
 void toMessage(const robot::StageState& state, sensor_msgs::JointState& msg) {

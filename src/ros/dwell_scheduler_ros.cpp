@@ -80,24 +80,10 @@ std_msgs::ColorRGBA structureColour(const std::string& name) {
 }
 
 geometry_msgs::Point point(double x, double y, double z) {
-  geometry_msgs::Point p;
-  p.x = x;
-  p.y = y;
-  p.z = z;
-  return p;
+  return ros_conversions::toMessage(geometry::Point2(x, y), z);
 }
 
-visualization_msgs::Marker marker(const std::string& frame_id, const std::string& ns, int id,
-                                  int type) {
-  visualization_msgs::Marker m;
-  m.header.frame_id = frame_id;  // stamp 0: static geometry, rviz uses the latest transform
-  m.ns = ns;
-  m.id = id;
-  m.type = type;
-  m.action = visualization_msgs::Marker::ADD;
-  m.pose.orientation.w = 1.0;
-  return m;
-}
+using ros_conversions::baseMarker;
 
 /// The target structure (role kTarget, else named "prostate"); nullptr if none.
 const dose::Structure* targetStructure(const dose::HdrCase& c) {
@@ -126,7 +112,7 @@ visualization_msgs::MarkerArray planMarkers(const dose::HdrCase& c, const dose::
 
   for (std::size_t k = 0; k < c.structures.size(); ++k) {
     const dose::Structure& s = c.structures[k];
-    Marker m = marker(frame_id, "contours", static_cast<int>(k), Marker::LINE_LIST);
+    Marker m = baseMarker(frame_id, "contours", static_cast<int>(k), Marker::LINE_LIST);
     m.scale.x = kContourWidth_m;
     m.color = structureColour(s.name);
     for (const auto& contour : s.contours) {
@@ -142,7 +128,7 @@ visualization_msgs::MarkerArray planMarkers(const dose::HdrCase& c, const dose::
   }
 
   for (std::size_t k = 0; k < c.catheters.size(); ++k) {
-    Marker m = marker(frame_id, "catheters", static_cast<int>(k), Marker::LINE_STRIP);
+    Marker m = baseMarker(frame_id, "catheters", static_cast<int>(k), Marker::LINE_STRIP);
     m.scale.x = kCatheterWidth_m;
     m.color = colour(0.6, 0.6, 0.6);
     for (const auto& p : c.catheters[k].points_m)
@@ -151,7 +137,7 @@ visualization_msgs::MarkerArray planMarkers(const dose::HdrCase& c, const dose::
       array.markers.push_back(m);
   }
 
-  Marker dwells = marker(frame_id, "dwells", 0, Marker::SPHERE_LIST);
+  Marker dwells = baseMarker(frame_id, "dwells", 0, Marker::SPHERE_LIST);
   dwells.scale.x = dwells.scale.y = dwells.scale.z = kDwellDiameter_m;
   dwells.color = colour(1.0, 1.0, 1.0);
   double longest_s = 0.0;
@@ -190,7 +176,7 @@ visualization_msgs::MarkerArray planMarkers(const dose::HdrCase& c, const dose::
     const std_msgs::ColorRGBA level_colours[] = {colour(0.0, 0.8, 0.0), colour(0.0, 1.0, 1.0),
                                                  colour(1.0, 1.0, 0.0), colour(1.0, 0.0, 1.0)};
     for (std::size_t level = 0; level < std::size(kIsodoseLevels); ++level) {
-      Marker m = marker(frame_id, "isodose", static_cast<int>(level), Marker::LINE_LIST);
+      Marker m = baseMarker(frame_id, "isodose", static_cast<int>(level), Marker::LINE_LIST);
       m.scale.x = kContourWidth_m;
       m.color = level_colours[level];
       for (const auto& line :
@@ -215,7 +201,7 @@ visualization_msgs::MarkerArray planMarkers(const dose::HdrCase& c, const dose::
     key.emplace_back("dwell: longest, " + formatNumber(longest_s) + " s (red)",
                      colour(1.0, 0.2, 0.2));
     for (std::size_t k = 0; k < key.size(); ++k) {
-      Marker text = marker(frame_id, "legend", static_cast<int>(k), Marker::TEXT_VIEW_FACING);
+      Marker text = baseMarker(frame_id, "legend", static_cast<int>(k), Marker::TEXT_VIEW_FACING);
       // Stacked along the patient's z (the up axis of the default view), right of the slice.
       text.pose.position = point(x_hi + kIsodoseMargin_m + kLegendOffset_m, 0.5 * (y_lo + y_hi),
                                  z + kLegendLine_m * (0.5 * double(key.size()) - double(k)));

@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "needle_guidance/registration/registration_request.h"
+#include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/params.h"
 
 namespace needle_guidance {
@@ -53,35 +54,14 @@ std::optional<std::string> nonFinite(const Register::Request& req) {
   return std::nullopt;
 }
 
-geometry_msgs::Point point(const geometry::Point2& p, double z = 0.0) {
-  geometry_msgs::Point m;
-  m.x = p.x();
-  m.y = p.y();
-  m.z = z;
-  return m;
-}
+using ros_conversions::toMessage;
 
+/// A closed outline of frame scene in colour (r, g, b).
 visualization_msgs::Marker outline(int id, const std::string& ns,
                                    const std::vector<geometry::Point2>& v, float r, float g,
                                    float b) {
-  visualization_msgs::Marker m;
-  m.header.frame_id = "scene";
-  m.header.stamp = ros::Time::now();
-  m.ns = ns;
-  m.id = id;
-  m.type = visualization_msgs::Marker::LINE_STRIP;
-  m.action = visualization_msgs::Marker::ADD;
-  m.pose.orientation.w = 1.0;
-  m.scale.x = kLineWidth_m;
-  m.color.r = r;
-  m.color.g = g;
-  m.color.b = b;
-  m.color.a = 1.0F;
-  for (const auto& p : v)
-    m.points.push_back(point(p));
-  if (!v.empty())
-    m.points.push_back(point(v.front()));
-  return m;
+  return ros_conversions::outline(v, "scene", ns, id, kLineWidth_m,
+                                  ros_conversions::colour(r, g, b));
 }
 
 }  // namespace
@@ -156,9 +136,9 @@ bool RegistrationRos::onRegister(Register::Request& req, Register::Response& res
   res.unregistered_point_error_mm = mm(answer.value().unregistered_point_error_m);
   const reg::WarpedGrid& grid = result.mrsi_grid;
   for (std::size_t i = 0; i < grid.probe_in.size(); ++i) {
-    res.grid_probe_in.push_back(point(grid.probe_in[i]));
+    res.grid_probe_in.push_back(toMessage(grid.probe_in[i]));
     res.grid_valid.push_back(grid.probe_out[i].has_value());
-    res.grid_probe_out.push_back(point(grid.probe_out[i].value_or(grid.probe_in[i])));
+    res.grid_probe_out.push_back(toMessage(grid.probe_out[i].value_or(grid.probe_in[i])));
   }
 
   // rviz: probe-in prostate (green), probe outline (grey), probe-out prostate before (blue) and
@@ -178,21 +158,13 @@ bool RegistrationRos::onRegister(Register::Request& req, Register::Response& res
           outline(id++, "deformed_probe_out_prostate", *mapped, 0.9F, 0.1F, 0.1F));
     }
   }
-  visualization_msgs::Marker pts;
-  pts.header.frame_id = "scene";
-  pts.header.stamp = ros::Time::now();
-  pts.ns = "warped_mrsi_grid";
-  pts.id = id++;
-  pts.type = visualization_msgs::Marker::POINTS;
-  pts.action = visualization_msgs::Marker::ADD;
-  pts.pose.orientation.w = 1.0;
+  visualization_msgs::Marker pts = ros_conversions::baseMarker("scene", "warped_mrsi_grid", id++,
+                                                               visualization_msgs::Marker::POINTS);
   pts.scale.x = pts.scale.y = kGridPointSize_m;
-  pts.color.r = 1.0F;
-  pts.color.g = 0.55F;
-  pts.color.a = 1.0F;
+  pts.color = ros_conversions::colour(1.0, 0.55, 0.0);
   for (std::size_t i = 0; i < grid.probe_out.size(); ++i) {
     if (grid.probe_out[i] && grid.inside_prostate[i])
-      pts.points.push_back(point(*grid.probe_out[i]));
+      pts.points.push_back(toMessage(*grid.probe_out[i]));
   }
   markers.markers.push_back(pts);
   markers_pub_.publish(markers);

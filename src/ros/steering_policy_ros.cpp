@@ -95,15 +95,9 @@ std_msgs::ColorRGBA probabilityColour(double p) {
   return colour(t, t, 0.5 * (1.0 - t));
 }
 
+/// A marker of frame scene, id 0 (stamp 0: static, rviz uses the latest transform).
 visualization_msgs::Marker marker(const std::string& ns, int type) {
-  visualization_msgs::Marker m;
-  m.header.frame_id = kSceneFrame;  // stamp 0: static, rviz uses the latest transform
-  m.ns = ns;
-  m.id = 0;
-  m.type = type;
-  m.action = visualization_msgs::Marker::ADD;
-  m.pose.orientation.w = 1.0;
-  return m;
+  return ros_conversions::baseMarker(kSceneFrame, ns, 0, type);
 }
 
 /// One cube per grid position coloured by the largest P_s over its orientations and bevels

@@ -21,8 +21,13 @@ std_msgs::ColorRGBA colour(double r, double g, double b, double a = 1.0);
 visualization_msgs::Marker baseMarker(const std::string& frame_id, const std::string& ns, int id,
                                       int type);
 
-/// A point of frame scene (z = 0) [m].
-geometry_msgs::Point toMessage(const geometry::Point2& p_Scene);
+/// A point of frame scene at height z [m].
+geometry_msgs::Point toMessage(const geometry::Point2& p_Scene, double z_m = 0.0);
+
+/// A closed LINE_STRIP through `ring` (the first vertex repeated at the end) [m].
+visualization_msgs::Marker outline(const std::vector<geometry::Point2>& ring,
+                                   const std::string& frame_id, const std::string& ns, int id,
+                                   double width_m, const std_msgs::ColorRGBA& colour);
 
 /// Stage joint positions and velocities, names as in the URDF.
 void toMessage(const robot::StageState& state, sensor_msgs::JointState& msg);
