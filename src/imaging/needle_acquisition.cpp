@@ -15,11 +15,26 @@ namespace {
 constexpr double kPi = 3.14159265358979323846;
 /// Step 3: the strongest ridge pixels kept for the Hough transform (a thin needle covers well
 /// under 2 % of a frame; speckle ridges are weaker than it).
-constexpr double kRidgeQuantile = 0.98;
-/// Step 3: at most this many Hough lines are examined; lines closer than these are the same.
+constexpr double kRidgeQuantile = 0.97;
+/// Step 3: at most kMaxHoughLines distinct Hough lines are examined, until kMaxCandidates
+/// distinct segments are found; Hough lines closer than these are the same line.
+constexpr int kMaxHoughLines = 64;
 constexpr int kMaxCandidates = 24;
 constexpr double kSameLineRho_px = 8.0;
 constexpr double kSameLineTheta_rad = 4.0 * kPi / 180.0;
+/// Step 4 (hysteresis, as Canny's): along a line the Hough transform found on the strongest
+/// ridge pixels, the trace goes on over ridge this fraction of that threshold (a speckle ridge
+/// seldom lies on the line; a needle shaft saturated and merged with its reverberation copies
+/// has a weaker ridge than a thin one, about as strong as the speckle's); the segment still
+/// starts and ends on strong pixels. 0.5-0.7 equally good on the tuning sequences; 0.7 keeps
+/// the in-vitro even frames' figures. After weak ridge, the end moves on only where
+/// kStrongResume_px strong pixels follow in a row (not to a lone speckle ridge beyond the tip).
+constexpr double kTraceHysteresis = 1.0;
+constexpr int kStrongResume_px = 4;
+/// Sequence cue past the estimated tip: the signed motion map's mean from kAheadFrom_px to
+/// kAheadTo_px beyond the tip along its direction (clear of the tip's own blur). A needle
+/// whose tip is traced short keeps brightening the tissue there as it advances.
+constexpr double kAheadFrom_px = 6.0, kAheadTo_px = 30.0;
 /// Step 4: a ridge pixel belongs to a line if within this many filter scales of it.
 constexpr double kNearLineSigmas = 1.5;
 /// Step 5: side bands from 3 to 10 filter scales from the line (outside the needle's own blur,
@@ -31,6 +46,9 @@ constexpr double kNearLineSigmas = 1.5;
 constexpr double kTipLevel = 0.35;
 constexpr double kShaftLevelQuantile = 0.5;
 constexpr double kBandInnerSigmas = 3.0, kBandOuterSigmas = 10.0;
+/// Step 4: two traced segments whose ends lie within this of each other are one structure (the
+/// refit pulls the Hough lines through both shoulders of a thick layer onto the same ridge) [px].
+constexpr double kSameSegment_px = 6.0;
 /// Step 4: an end of a segment within this of the frame's border lies on the border [px].
 constexpr double kBorderMargin_px = 3.0;
 /// Step 5: power of the side symmetry in the score: an interface between media whose
@@ -104,22 +122,29 @@ float sample(const cv::Mat& m, cv::Point2d p) {
   return m.at<float>(r, c);
 }
 
-/// Step 2: Hessian of the frame smoothed at sigma; strength = -lambda_min - |lambda_max| where
-/// positive (a bright line, not a blob), direction = the eigenvector of lambda_max.
+/// Step 2 at one scale: Hessian of `image` smoothed at sigma [px of image]; strength =
+/// -lambda_min - |lambda_max| where positive (a bright line, not a blob); the Hessian parts the
+/// direction (the eigenvector of lambda_max) is computed from.
+void hessianRidge(const cv::Mat& image, double sigma_px, cv::Mat* smooth, cv::Mat* strength,
+                  cv::Mat* dxy, cv::Mat* half_diff) {
+  cv::GaussianBlur(image, *smooth, cv::Size(), sigma_px);
+  cv::Mat dxx, dyy;
+  cv::Sobel(*smooth, dxx, CV_32F, 2, 0, 3);
+  cv::Sobel(*smooth, dyy, CV_32F, 0, 2, 3);
+  cv::Sobel(*smooth, *dxy, CV_32F, 1, 1, 3);
+  cv::Mat half_trace = 0.5F * (dxx + dyy), root;
+  *half_diff = 0.5F * (dxx - dyy);
+  cv::magnitude(*half_diff, *dxy, root);
+  cv::Mat lmin = half_trace - root, lmax = cv::abs(half_trace + root);
+  *strength = cv::max(-lmin - lmax, 0.0F);
+}
+
+/// Step 2: the ridge filter at sigma.
 RidgeMap ridgeFilter(const cv::Mat& grey8, double sigma_px) {
   RidgeMap r;
-  grey8.convertTo(r.smooth, CV_32F);
-  cv::GaussianBlur(r.smooth, r.smooth, cv::Size(), sigma_px);
-  cv::Mat dxx, dyy, dxy;
-  cv::Sobel(r.smooth, dxx, CV_32F, 2, 0, 3);
-  cv::Sobel(r.smooth, dyy, CV_32F, 0, 2, 3);
-  cv::Sobel(r.smooth, dxy, CV_32F, 1, 1, 3);
-  cv::Mat half_trace = 0.5F * (dxx + dyy), half_diff = 0.5F * (dxx - dyy), root;
-  cv::magnitude(half_diff, dxy, root);
-  cv::Mat lmin = half_trace - root, lmax = cv::abs(half_trace + root);
-  r.strength = cv::max(-lmin - lmax, 0.0F);
-  r.dxy = dxy;
-  r.half_diff = half_diff;
+  cv::Mat grey;
+  grey8.convertTo(grey, CV_32F);
+  hessianRidge(grey, sigma_px, &r.smooth, &r.strength, &r.dxy, &r.half_diff);
   return r;
 }
 
@@ -144,24 +169,35 @@ float ridgeThreshold(const cv::Mat& strength) {
   return std::max(*k, 1e-3F);
 }
 
+/// Step 3: whether Hough lines h and k are the same line within the frame: directions within
+/// kSameLineTheta_rad and, where h passes nearest the frame's centre, k within kSameLineRho_px.
+/// (Comparing rho alone fails for a segment far from the origin: a 2 degree turn about it moves
+/// rho by tens of pixels, and one bright segment then fills every candidate slot.)
+bool sameHoughLine(const cv::Vec2f& h, const cv::Vec2f& k, cv::Point2d centre) {
+  double dt = std::abs(h[1] - k[1]);
+  dt = std::min(dt, kPi - dt);
+  if (dt >= kSameLineTheta_rad)
+    return false;
+  const cv::Point2d nh(std::cos(h[1]), std::sin(h[1])), nk(std::cos(k[1]), std::sin(k[1]));
+  const cv::Point2d foot = centre + (h[0] - centre.dot(nh)) * nh;  // h's point nearest centre
+  return std::abs(foot.dot(nk) - k[0]) < kSameLineRho_px;
+}
+
 /// Step 3: Hough lines on the strongest ridge pixels, strongest first, duplicates merged.
 std::vector<Line> candidateLines(const RidgeMap& ridge, double min_length_px) {
   cv::Mat binary = ridge.strength > ridge.threshold;
   std::vector<cv::Vec2f> hough;
   const int votes = std::max(10, static_cast<int>(0.5 * min_length_px));
   cv::HoughLines(binary, hough, 1.0, kPi / 180.0, votes);
+  const cv::Point2d centre(0.5 * (binary.cols - 1), 0.5 * (binary.rows - 1));
   std::vector<cv::Vec2f> kept;
   for (const cv::Vec2f& h : hough) {
     bool same = false;
-    for (const cv::Vec2f& k : kept) {
-      double dt = std::abs(h[1] - k[1]);
-      dt = std::min(dt, kPi - dt);
-      const double dr = std::abs(std::abs(h[0]) - std::abs(k[0]));
-      same = same || (dt < kSameLineTheta_rad && dr < kSameLineRho_px);
-    }
+    for (const cv::Vec2f& k : kept)
+      same = same || sameHoughLine(h, k, centre);
     if (!same)
       kept.push_back(h);
-    if (static_cast<int>(kept.size()) >= kMaxCandidates)
+    if (static_cast<int>(kept.size()) >= kMaxHoughLines)
       break;
   }
   std::vector<Line> lines;
@@ -210,21 +246,36 @@ bool traceSegment(const RidgeMap& ridge, const Line& l, double sigma, double max
   if (!lineSpan(l, ridge.strength.size(), &lo, &hi))
     return false;
   const int reach = std::max(1, static_cast<int>(std::lround(kNearLineSigmas * sigma)));
+  // A run: ridge over the weak level bridges (gaps up to max_gap), its ends are strong pixels.
   double best = 0, run_sum = 0, run_start = lo, last_on = lo - 2 * max_gap;
+  bool run_strong = false, bridged = false;  // bridged: weak ridge since the last end
+  int streak = 0;                            // strong pixels in a row
   for (double t = lo; t <= hi; t += 1.0) {
     const cv::Point2d n = normal(l, t), p = at(l, t);
     float v = 0.0F;
     for (int k = -reach; k <= reach; ++k)
       v = std::max(v, sample(ridge.strength, p + k * n));
-    if (v <= ridge.threshold)
+    if (v <= kTraceHysteresis * ridge.threshold)
       continue;
     if (t - last_on > max_gap) {
       run_sum = 0;
-      run_start = t;
+      run_strong = bridged = false;
+      streak = 0;
     }
-    run_sum += v;
     last_on = t;
-    if (run_sum > best) {
+    const bool strong = v > ridge.threshold;
+    if (!run_strong && !strong)
+      continue;  // weak ridge before the run's first strong pixel
+    if (!run_strong)
+      run_start = t;
+    run_strong = true;
+    run_sum += v;
+    bridged = strong ? bridged : true;
+    streak = strong ? streak + 1 : 0;
+    if (strong && (!bridged || streak >= kStrongResume_px)) {
+      bridged = false;
+    }
+    if (strong && !bridged && run_sum > best) {
       best = run_sum;
       *t0 = run_start;
       *t1 = t;
@@ -483,13 +534,22 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, const C
     s->angle_rad = std::atan2(d.y, d.x);
     return;
   }
-  for (std::size_t i = 0; i < smooth.size(); ++i) {
+  // The trace (hysteresis, step 4) may start in faint ridge before the shaft: the walk starts
+  // where the contrast first reaches the level, and the tail moves there.
+  std::size_t first = 0;
+  while (first < smooth.size() && smooth[first] < half)
+    ++first;
+  if (first == smooth.size())
+    return;
+  last = static_cast<double>(first);
+  for (std::size_t i = first; i < smooth.size(); ++i) {
     const double u = static_cast<double>(i);
     if (u - last > max_gap)
       break;
     if (smooth[i] >= half)
       last = u;
   }
+  s->tail_px = at(path, static_cast<double>(first));
   s->tip_px = at(path, last);
 }
 
@@ -543,6 +603,23 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
     return {};
   measureCues(ridge, &c, o.ridge_sigma_px);
   return c;
+}
+
+/// Step 4: adds c to `all` unless it is the same segment as one there (kSameSegment_px at both
+/// ends); of two the same, the better score stays.
+void keepDistinct(const Candidate& c, std::vector<Candidate>* all) {
+  const cv::Point2d a = at(c.line, c.t0), b = at(c.line, c.t1);
+  for (Candidate& k : *all) {
+    const cv::Point2d ka = at(k.line, k.t0), kb = at(k.line, k.t1);
+    const bool same = (cv::norm(a - ka) < kSameSegment_px && cv::norm(b - kb) < kSameSegment_px) ||
+                      (cv::norm(a - kb) < kSameSegment_px && cv::norm(b - ka) < kSameSegment_px);
+    if (same) {
+      if (c.score > k.score)
+        k = c;
+      return;
+    }
+  }
+  all->push_back(c);
 }
 
 std::string summary(const NeedleSegment& s) {
@@ -636,22 +713,44 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
 
 namespace {
 
-/// Sequence cue of one oriented candidate: the motion map's mean over the tip end, which runs
-/// on past the traced end by `beyond` px (the part the needle has just advanced into is the
-/// faint, blurred end that the trace stops short of).
+/// Sequence cue of one oriented candidate: the signed motion map's mean over the tip end, which
+/// runs on past the traced end by `beyond` px (the part the needle has just advanced into is the
+/// faint, blurred end that the trace stops short of), less the unsigned map's mean along the rest
+/// of the shaft. A needle advancing along its own axis brightens the tissue ahead of its tip while
+/// its shaft stays in place; a flickering band changes along its whole length, and a line whose
+/// end is an edge of a moving shadow darkens there: neither moves like a needle.
 double tipMotion(const cv::Mat& motion, const NeedleSegment& s, double beyond) {
   const double length = s.length_px();
   if (motion.empty() || length < 1.0)
     return 0.0;
   const cv::Point2d d = (s.tip_px - s.tail_px) / length;
   const double zone = std::min(length, std::max(kMotionMinZone_px, kMotionTipZone * length));
+  double tip = 0, shaft = 0;
+  int tip_count = 0, shaft_count = 0;
+  for (double u = 0.0; u <= length + beyond; u += 1.0) {
+    const float v = sample(motion, s.tail_px + u * d);
+    if (u >= length - zone) {
+      tip += v;
+      ++tip_count;
+    } else {
+      shaft += std::abs(v);
+      ++shaft_count;
+    }
+  }
+  return (tip_count > 0 ? tip / tip_count : 0.0) - (shaft_count > 0 ? shaft / shaft_count : 0.0);
+}
+
+/// Sequence cue past the tip (kAheadFrom_px to kAheadTo_px along its direction); 0 without a
+/// motion map.
+double motionAhead(const cv::Mat& motion, const NeedleSegment& s) {
+  if (motion.empty())
+    return 0.0;
+  const cv::Point2d d(std::cos(s.angle_rad), std::sin(s.angle_rad));
   double sum = 0;
   int count = 0;
-  for (double u = length - zone; u <= length + beyond; u += 1.0) {
-    sum += sample(motion, s.tail_px + u * d);
-    ++count;
-  }
-  return count > 0 ? sum / count : 0.0;
+  for (double u = kAheadFrom_px; u <= kAheadTo_px; u += 1.0, ++count)
+    sum += sample(motion, s.tip_px + u * d);
+  return sum / count;
 }
 
 /// Step 6 with the sequence cue: orient every candidate, measure its motion; when one that
@@ -660,8 +759,15 @@ double tipMotion(const cv::Mat& motion, const NeedleSegment& s, double beyond) {
 std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const AcquisitionOptions& o,
                                        cv::Size size, const cv::Mat& motion) {
   bool any_moving = false;
+  // A tip on the frame's border is no tip in view: the line runs on out of the frame (a layer
+  // seen from the stated entry side, or a needle past the field of view).
+  all.erase(std::remove_if(all.begin(), all.end(),
+                           [&](Candidate& c) {
+                             orientByEntry(c, o.entry, size, &c.cues);
+                             return onBorder(c.cues.tip_px, size);
+                           }),
+            all.end());
   for (Candidate& c : all) {
-    orientByEntry(c, o.entry, size, &c.cues);
     c.cues.motion = tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
     any_moving = any_moving || (c.cues.motion >= kMinMotionRatio && c.score >= o.min_evidence);
   }
@@ -698,10 +804,13 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
   }
   RidgeMap ridge = ridgeFilter(grey, options.ridge_sigma_px);  // step 2
   ridge.threshold = ridgeThreshold(ridge.strength);
+
   std::vector<Candidate> all;
   for (const Line& line : candidateLines(ridge, options.min_length_px)) {  // step 3
     if (std::optional<Candidate> c = examine(ridge, line, options))        // steps 4-5
-      all.push_back(*c);
+      keepDistinct(*c, &all);
+    if (static_cast<int>(all.size()) >= kMaxCandidates)
+      break;
   }
   const std::optional<Candidate> best = bestCandidate(all, options, grey.size(), motion);
   if (!best) {
@@ -710,6 +819,7 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
   }
   NeedleSegment s = best->cues;  // step 6
   tipAtHalfLevel(ridge, options.ridge_sigma_px, options.max_gap_px, *best, &s);
+  s.motion_ahead = motionAhead(motion, s);
   if (best->score < options.min_evidence) {
     s.found = false;
     s.message = "best line too weak to be a needle: " + summary(s);
@@ -743,12 +853,12 @@ cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
   grey.convertTo(current, CV_32F);
   cv::Mat motion;
   if (!background_.empty() && background_.size() == current.size()) {
-    // The signed difference smoothed at the needle's scale before its magnitude: the frame's
-    // own noise averages out, a change as wide as the needle does not.
+    // The signed difference smoothed at the needle's scale, over the mean of its magnitude: the
+    // frame's own noise averages out, a change as wide as the needle does not.
     cv::subtract(current, background_, motion);
     cv::GaussianBlur(motion, motion, cv::Size(), options_.ridge_sigma_px);
-    motion = cv::abs(motion);
-    motion *= 1.0 / (cv::mean(motion)[0] + 1.0);  // +1 grey level: a noise-free still frame
+    motion *= 1.0 / (cv::norm(motion, cv::NORM_L1) / static_cast<double>(motion.total()) +
+                     1.0);  // +1 grey level: a noise-free still frame
     cv::accumulateWeighted(current, background_, kBackgroundRate);
   } else {
     background_ = current;
@@ -770,6 +880,13 @@ SequenceTracker::Output SequenceTracker::onFrame(const cv::Mat& frame) {
   return last_output_;
 }
 
+void SequenceTracker::startTrack(const NeedleSegment& d) {
+  track_ = d;
+  velocity_px_ = 0;
+  start_tip_px_ = d.tip_px;
+  moved_ = d.motion >= kMinMotionRatio;
+}
+
 SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
   Output out;
   if (track_) {
@@ -781,18 +898,21 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       velocity_px_ = 0.5 * velocity_px_ + 0.5 * (d.tip_px - track_->tip_px).dot(axis);
       const bool close = cv::norm(d.tip_px - pred.tip_px) < kAgreeTip_px;
       agreeing_ = close ? agreeing_ + 1 : 1;
+      moved_ = moved_ || d.motion >= kMinMotionRatio ||
+               std::abs((d.tip_px - start_tip_px_).dot(axis)) >= kEarnAdvance_px;
       track_ = d;
       missed_ = 0;
       candidate_.reset();
       out.segment = d;
-      out.confident = agreeing_ >= kConfirmFrames;
+      // Never confident while the tissue ahead of the tip still brightens: the needle has
+      // advanced past the traced tip.
+      out.confident = agreeing_ >= kConfirmFrames && moved_ && d.motion_ahead < kMinMotionRatio;
       return out;
     }
     if (d.found && d.motion >= kMinMotionRatio && track_->motion < kMinMotionRatio) {
       // The sequence cue: the track was a still line, this detection moves at its tip (a
       // needle advancing): the still line gives way at once, without waiting for agreement.
-      track_ = d;
-      velocity_px_ = 0;
+      startTrack(d);
       agreeing_ = 1;
       missed_ = 0;
       candidate_.reset();
@@ -808,8 +928,7 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       }
       candidate_ = d;
       if (candidate_count_ >= kReacquireAfter) {
-        track_ = d;
-        velocity_px_ = 0;
+        startTrack(d);
         agreeing_ = candidate_count_;
         missed_ = 0;
         out.segment = d;
@@ -832,8 +951,7 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
     return out;
   }
   if (d.found) {
-    track_ = d;
-    velocity_px_ = 0;
+    startTrack(d);
     agreeing_ = 1;
     missed_ = 0;
   }
