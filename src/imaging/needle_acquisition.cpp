@@ -14,7 +14,10 @@ namespace {
 
 constexpr double kPi = 3.14159265358979323846;
 /// Step 3: the strongest ridge pixels kept for the Hough transform (a thin needle covers well
-/// under 2 % of a frame; speckle ridges are weaker than it).
+/// under 1 % of a frame). 3 %, not 2 %: a shaft saturated and merged with its first
+/// reverberation copies (realistic tuning sequences) has a weaker ridge at the filter's scale
+/// than a thin one, about as strong as the speckle's, and at 2 % its trace broke in two.
+/// (A hysteresis trace, Canny's, fixed those too but overshot faint tips.)
 constexpr double kRidgeQuantile = 0.97;
 /// Step 3: at most kMaxHoughLines distinct Hough lines are examined, until kMaxCandidates
 /// distinct segments are found; Hough lines closer than these are the same line.
@@ -22,15 +25,6 @@ constexpr int kMaxHoughLines = 64;
 constexpr int kMaxCandidates = 24;
 constexpr double kSameLineRho_px = 8.0;
 constexpr double kSameLineTheta_rad = 4.0 * kPi / 180.0;
-/// Step 4 (hysteresis, as Canny's): along a line the Hough transform found on the strongest
-/// ridge pixels, the trace goes on over ridge this fraction of that threshold (a speckle ridge
-/// seldom lies on the line; a needle shaft saturated and merged with its reverberation copies
-/// has a weaker ridge than a thin one, about as strong as the speckle's); the segment still
-/// starts and ends on strong pixels. 0.5-0.7 equally good on the tuning sequences; 0.7 keeps
-/// the in-vitro even frames' figures. After weak ridge, the end moves on only where
-/// kStrongResume_px strong pixels follow in a row (not to a lone speckle ridge beyond the tip).
-constexpr double kTraceHysteresis = 1.0;
-constexpr int kStrongResume_px = 4;
 /// Sequence cue past the estimated tip: the signed motion map's mean from kAheadFrom_px to
 /// kAheadTo_px beyond the tip along its direction (clear of the tip's own blur). A needle
 /// whose tip is traced short keeps brightening the tissue there as it advances.
@@ -246,36 +240,21 @@ bool traceSegment(const RidgeMap& ridge, const Line& l, double sigma, double max
   if (!lineSpan(l, ridge.strength.size(), &lo, &hi))
     return false;
   const int reach = std::max(1, static_cast<int>(std::lround(kNearLineSigmas * sigma)));
-  // A run: ridge over the weak level bridges (gaps up to max_gap), its ends are strong pixels.
   double best = 0, run_sum = 0, run_start = lo, last_on = lo - 2 * max_gap;
-  bool run_strong = false, bridged = false;  // bridged: weak ridge since the last end
-  int streak = 0;                            // strong pixels in a row
   for (double t = lo; t <= hi; t += 1.0) {
     const cv::Point2d n = normal(l, t), p = at(l, t);
     float v = 0.0F;
     for (int k = -reach; k <= reach; ++k)
       v = std::max(v, sample(ridge.strength, p + k * n));
-    if (v <= kTraceHysteresis * ridge.threshold)
+    if (v <= ridge.threshold)
       continue;
     if (t - last_on > max_gap) {
       run_sum = 0;
-      run_strong = bridged = false;
-      streak = 0;
-    }
-    last_on = t;
-    const bool strong = v > ridge.threshold;
-    if (!run_strong && !strong)
-      continue;  // weak ridge before the run's first strong pixel
-    if (!run_strong)
       run_start = t;
-    run_strong = true;
-    run_sum += v;
-    bridged = strong ? bridged : true;
-    streak = strong ? streak + 1 : 0;
-    if (strong && (!bridged || streak >= kStrongResume_px)) {
-      bridged = false;
     }
-    if (strong && !bridged && run_sum > best) {
+    run_sum += v;
+    last_on = t;
+    if (run_sum > best) {
       best = run_sum;
       *t0 = run_start;
       *t1 = t;
@@ -534,7 +513,7 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, const C
     s->angle_rad = std::atan2(d.y, d.x);
     return;
   }
-  // The trace (hysteresis, step 4) may start in faint ridge before the shaft: the walk starts
+  // The trace may start on a speckle ridge in line before the shaft: the walk starts
   // where the contrast first reaches the level, and the tail moves there.
   std::size_t first = 0;
   while (first < smooth.size() && smooth[first] < half)
