@@ -7,7 +7,9 @@
 //   hough: houghBaselineTip without a prior;
 // per frame found, confident, tip error [px], angle error [deg], ms; headline keys
 // found_fraction, tip_error_px_median, tip_error_px_p90, angle_error_deg_median,
-// confident_wrong (confident and > 20 px off), fps_720x440, baseline_tip_error_px_median.
+// confident_wrong (confident and > 20 px off), fps_720x440, baseline_tip_error_px_median;
+// fps_720x440_cpu is the same rate from the tracking thread's CPU time, which the other
+// processes on a shared machine leave (nearly) alone, unlike the wall clock.
 // Overlays of the best and worst frames (best.png, worst.png). The pixel size (not recorded
 // with the data) is assumed 0.1 mm for the old detector's metric settings. Without the data it
 // runs on a synthetic B-mode sequence (synthetic_bmode.h) and says so (summary key data).
@@ -26,6 +28,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
+#include <ctime>
 #include <filesystem>
 #include <iostream>
 #include <sstream>
@@ -106,6 +109,7 @@ struct Result {
   bool found = false, confident = false;
   cv::Point2d tip;
   double angle_rad = 0.0, ms = 0.0;
+  double cpu_ms = 0.0;  ///< the tracking thread's CPU time (other processes' load left out)
 };
 
 double angleError(double a, double b) {
@@ -138,11 +142,20 @@ double msSince(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
 }
 
-/// One frame through the SequenceTracker, timed.
+/// CPU time of the calling thread [ms].
+double threadCpuMs() {
+  timespec ts{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+  return 1e3 * static_cast<double>(ts.tv_sec) + 1e-6 * static_cast<double>(ts.tv_nsec);
+}
+
+/// One frame through the SequenceTracker, timed (wall clock and thread CPU time).
 Result trackTimed(im::SequenceTracker& tracker, const cv::Mat& frame) {
   const auto t0 = std::chrono::steady_clock::now();
+  const double cpu0 = threadCpuMs();
   const im::SequenceTracker::Output o = tracker.onFrame(frame);
   Result r;
+  r.cpu_ms = threadCpuMs() - cpu0;
   r.ms = msSince(t0);
   r.found = o.segment.found;
   r.confident = o.confident;
@@ -164,7 +177,7 @@ void overlay(const cv::Mat& grey, const Truth& t, const Result& r, const std::st
 }
 
 struct Summary {
-  double found_fraction = 0, median = 0, p90 = 0, angle_median = 0, fps = 0;
+  double found_fraction = 0, median = 0, p90 = 0, angle_median = 0, fps = 0, fps_cpu = 0;
   int confident_wrong = 0;
 };
 
@@ -172,13 +185,14 @@ struct Summary {
 Summary summarise(const std::vector<Result>& rs, const std::vector<Truth>& ts, int parity = -1) {
   Summary s;
   std::vector<double> e, a;
-  double ms = 0;
+  double ms = 0, cpu_ms = 0;
   std::size_t counted = 0;
   for (std::size_t i = 0; i < rs.size(); ++i) {
     if (parity >= 0 && static_cast<int>(i % 2) != parity)
       continue;
     ++counted;
     ms += rs[i].ms;
+    cpu_ms += rs[i].cpu_ms;
     if (!rs[i].found)
       continue;
     const double err = cv::norm(rs[i].tip - ts[i].tip);
@@ -192,6 +206,7 @@ Summary summarise(const std::vector<Result>& rs, const std::vector<Truth>& ts, i
   s.p90 = quantile(e, 0.9);
   s.angle_median = quantile(a, 0.5);
   s.fps = ms > 0 ? 1000.0 * counted / ms : 0;
+  s.fps_cpu = cpu_ms > 0 ? 1000.0 * counted / cpu_ms : 0;
   return s;
 }
 
@@ -428,6 +443,7 @@ int main(int argc, char** argv) {
   const auto args = ng::report::parseBenchArgs(argc, argv, "bench_tracking_real");
   if (!args)
     return 2;
+  cv::setNumThreads(1);  // every figure is for one core
   const char* shared = std::getenv("NG_SHARED_DATA");
   const fs::path data = fs::path(shared ? shared : "/work/shared/data") / "us_needle_invitro";
   std::vector<fs::path> files;
@@ -508,6 +524,7 @@ int main(int argc, char** argv) {
      << ",\n  \"angle_error_deg_median\": " << jsonNumber(n.angle_median)
      << ",\n  \"confident_wrong\": " << n.confident_wrong
      << ",\n  \"fps_720x440\": " << jsonNumber(n.fps)
+     << ",\n  \"fps_720x440_cpu\": " << jsonNumber(n.fps_cpu)
      << ",\n  \"baseline_tip_error_px_median\": " << jsonNumber(h.median)
      << ",\n  \"baseline_found_fraction\": " << jsonNumber(h.found_fraction)
      << ",\n  \"old_found_fraction\": " << jsonNumber(o.found_fraction)
