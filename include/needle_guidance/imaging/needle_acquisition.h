@@ -3,7 +3,9 @@
 // a real frame and tells it from the structures that look like one:
 //   step 1  grey conversion (8/16-bit, mono/colour; anything else refused with the reason);
 //   step 2  ridge filter (Hessian, bright thin lines) and its orientation;
-//   step 3  candidate lines (cv::HoughLines on the strongest ridge pixels);
+//   step 3  candidate lines (cv::HoughLines on the strongest ridge pixels; near-duplicate lines
+//           merged, and traced segments with the same ends kept once, so that a thick layer's
+//           many lines do not take every candidate slot);
 //   step 4  each candidate's visible segment along the line (gaps bridged), refit by weighted
 //           least squares on the ridge pixels near it (a steerable needle, options.radius_px:
 //           then bent into an arc of that radius either way, the circle's centre refit by
@@ -13,8 +15,10 @@
 //           media: one side differs from the other; a needle lies inside one medium), length,
 //           and distance from the image border;
 //   step 6  the best candidate, if its evidence beats the thresholds (else "not found"),
-//           and its tip: the end away from the entry side (calibrated or worked out); over a
-//           sequence, a candidate moving at its tip end beats every still one (motion map).
+//           and its tip: the end away from the entry side (calibrated or worked out; a tip on
+//           the frame's border is no tip in view); over a sequence, a candidate whose tip end
+//           brightens as a needle advancing along its own axis does beats every still one
+//           (signed motion map).
 // Plain C++ and OpenCV; no ROS (STYLE.md rules 1-2).
 #pragma once
 
