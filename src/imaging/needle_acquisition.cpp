@@ -42,6 +42,11 @@ constexpr double kNearLineSigmas = 1.5;
 /// good, 0.5 cuts fading tips short), checked on the odd ones.
 constexpr double kTipLevel = 0.35;
 constexpr double kShaftLevelQuantile = 0.5;
+/// Step 6, arc model: the tip walk may go on this many max_gap_px past the traced end, while the
+/// contrast stays above the tip level without a gap (the ridge of a tip fading out of the plane
+/// drops under the threshold before its contrast drops under the level: the tuning arc
+/// sequence's tip stopped 10-30 px short).
+constexpr double kArcTipBeyondGaps = 2.0;
 constexpr double kBandInnerSigmas = 3.0, kBandOuterSigmas = 10.0;
 /// Step 4: two traced segments whose ends lie within this of each other are one structure (the
 /// refit pulls the Hough lines through both shoulders of a thick layer onto the same ridge) [px].
@@ -481,7 +486,7 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, const C
     path = {s->tail_px, (s->tip_px - s->tail_px) / length, 0.0};
   } else {
     const bool from_t0 = cv::norm(s->tail_px - at(cand.line, cand.t0)) < 0.5;
-    length = cand.t1 - cand.t0;
+    length = cand.t1 - cand.t0 + kArcTipBeyondGaps * max_gap;
     path = {s->tail_px, from_t0 ? tangent(cand.line, cand.t0) : -tangent(cand.line, cand.t1),
             s->curvature_per_px};
   }
@@ -496,7 +501,10 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, const C
       sum += c[k];
     smooth[i] = sum / static_cast<double>(b - a + 1);
   }
-  std::vector<double> sorted = smooth;
+  const std::size_t traced = std::min(
+      smooth.size(),
+      static_cast<std::size_t>(cand.line.kappa == 0.0 ? smooth.size() : cand.t1 - cand.t0 + 1.0));
+  std::vector<double> sorted(smooth.begin(), smooth.begin() + static_cast<long>(traced));
   const auto k = static_cast<long>(kShaftLevelQuantile * static_cast<double>(sorted.size() - 1));
   std::nth_element(sorted.begin(), sorted.begin() + k, sorted.end());
   const double half = kTipLevel * sorted[static_cast<std::size_t>(k)];
@@ -509,6 +517,8 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, const C
     double best = 0, sum = 0, start = 0, best_start = 0, on = -1e9;
     for (std::size_t i = 0; i < smooth.size(); ++i) {
       const double u = static_cast<double>(i);
+      if (smooth[i] < half && i >= traced)
+        break;  // past the traced end: only while the contrast holds, no gap bridged
       if (smooth[i] < half)
         continue;
       if (u - on > max_gap)
