@@ -14,12 +14,24 @@ namespace {
 
 constexpr double kPi = 3.14159265358979323846;
 /// Step 3: the strongest ridge pixels kept for the Hough transform (a thin needle covers well
-/// under 2 % of a frame; speckle ridges are weaker than it).
-constexpr double kRidgeQuantile = 0.98;
-/// Step 3: at most this many Hough lines are examined; lines closer than these are the same.
+/// under 1 % of a frame). 3 %, not 2 %: a shaft saturated and merged with its first
+/// reverberation copies (realistic tuning sequences) has a weaker ridge at the filter's scale
+/// than a thin one, about as strong as the speckle's, and at 2 % its trace broke in two.
+/// (A hysteresis trace, Canny's, fixed those too but overshot faint tips.) The Hough transform
+/// votes with the strongest 2 % only: its cost grows with the pixels voting, and a line
+/// it finds is traced and refit on the 3 % anyway.
+constexpr double kRidgeQuantile = 0.97;
+constexpr double kHoughQuantile = 0.98;
+/// Step 3: at most kMaxHoughLines distinct Hough lines are examined, until kMaxCandidates
+/// distinct segments are found; Hough lines closer than these are the same line.
+constexpr int kMaxHoughLines = 64;
 constexpr int kMaxCandidates = 24;
 constexpr double kSameLineRho_px = 8.0;
 constexpr double kSameLineTheta_rad = 4.0 * kPi / 180.0;
+/// Sequence cue past the estimated tip: the signed motion map's mean from kAheadFrom_px to
+/// kAheadTo_px beyond the tip along its direction (clear of the tip's own blur). A needle
+/// whose tip is traced short keeps brightening the tissue there as it advances.
+constexpr double kAheadFrom_px = 6.0, kAheadTo_px = 30.0;
 /// Step 4: a ridge pixel belongs to a line if within this many filter scales of it.
 constexpr double kNearLineSigmas = 1.5;
 /// Step 5: side bands from 3 to 10 filter scales from the line (outside the needle's own blur,
@@ -30,7 +42,15 @@ constexpr double kNearLineSigmas = 1.5;
 /// good, 0.5 cuts fading tips short), checked on the odd ones.
 constexpr double kTipLevel = 0.35;
 constexpr double kShaftLevelQuantile = 0.5;
+/// Step 6, arc model: the tip walk may go on this many max_gap_px past the traced end, while the
+/// contrast stays above the tip level without a gap (the ridge of a tip fading out of the plane
+/// drops under the threshold before its contrast drops under the level: the tuning arc
+/// sequence's tip stopped 10-30 px short).
+constexpr double kArcTipBeyondGaps = 2.0;
 constexpr double kBandInnerSigmas = 3.0, kBandOuterSigmas = 10.0;
+/// Step 4: two traced segments whose ends lie within this of each other are one structure (the
+/// refit pulls the Hough lines through both shoulders of a thick layer onto the same ridge) [px].
+constexpr double kSameSegment_px = 6.0;
 /// Step 4: an end of a segment within this of the frame's border lies on the border [px].
 constexpr double kBorderMargin_px = 3.0;
 /// Step 5: power of the side symmetry in the score: an interface between media whose
@@ -53,10 +73,11 @@ constexpr double kAlignedTolerance_rad = 15.0 * kPi / 180.0;
 
 /// The Hessian ridge filter's output: strength (>= 0) and line direction per pixel.
 struct RidgeMap {
-  cv::Mat strength;        ///< CV_32F, bright-line strength
-  cv::Mat dxy, half_diff;  ///< CV_32F, Hessian parts the line direction is computed from
-  cv::Mat smooth;          ///< CV_32F, the frame smoothed at the filter scale
-  float threshold = 0.0F;
+  cv::Mat strength;              ///< CV_32F, bright-line strength
+  cv::Mat dxy, half_diff;        ///< CV_32F, Hessian parts the line direction is computed from
+  cv::Mat smooth;                ///< CV_32F, the frame smoothed at the filter scale
+  float threshold = 0.0F;        ///< ridge pixels traced and refit (kRidgeQuantile)
+  float hough_threshold = 0.0F;  ///< ridge pixels voting in the Hough transform
 };
 
 /// A straight line, or with kappa != 0 an arc of constant curvature (a steerable needle):
@@ -98,28 +119,37 @@ cv::Point2d normal(const Line& l, double t) {
 }
 
 float sample(const cv::Mat& m, cv::Point2d p) {
-  const int c = static_cast<int>(std::lround(p.x)), r = static_cast<int>(std::lround(p.y));
+  // cvRound (one SSE instruction; halves to even) rather than std::lround, a libm call that
+  // was a sixth of the acquisition's instructions (callgrind, track_frames on in-vitro frames).
+  const int c = cvRound(p.x), r = cvRound(p.y);
   if (c < 0 || r < 0 || c >= m.cols || r >= m.rows)
     return 0.0F;
   return m.at<float>(r, c);
 }
 
-/// Step 2: Hessian of the frame smoothed at sigma; strength = -lambda_min - |lambda_max| where
-/// positive (a bright line, not a blob), direction = the eigenvector of lambda_max.
+/// Step 2 at one scale: Hessian of `image` smoothed at sigma [px of image]; strength =
+/// -lambda_min - |lambda_max| where positive (a bright line, not a blob); the Hessian parts the
+/// direction (the eigenvector of lambda_max) is computed from.
+void hessianRidge(const cv::Mat& image, double sigma_px, cv::Mat* smooth, cv::Mat* strength,
+                  cv::Mat* dxy, cv::Mat* half_diff) {
+  cv::GaussianBlur(image, *smooth, cv::Size(), sigma_px);
+  cv::Mat dxx, dyy;
+  cv::Sobel(*smooth, dxx, CV_32F, 2, 0, 3);
+  cv::Sobel(*smooth, dyy, CV_32F, 0, 2, 3);
+  cv::Sobel(*smooth, *dxy, CV_32F, 1, 1, 3);
+  cv::Mat half_trace = 0.5F * (dxx + dyy), root;
+  *half_diff = 0.5F * (dxx - dyy);
+  cv::magnitude(*half_diff, *dxy, root);
+  cv::Mat lmin = half_trace - root, lmax = cv::abs(half_trace + root);
+  *strength = cv::max(-lmin - lmax, 0.0F);
+}
+
+/// Step 2: the ridge filter at sigma.
 RidgeMap ridgeFilter(const cv::Mat& grey8, double sigma_px) {
   RidgeMap r;
-  grey8.convertTo(r.smooth, CV_32F);
-  cv::GaussianBlur(r.smooth, r.smooth, cv::Size(), sigma_px);
-  cv::Mat dxx, dyy, dxy;
-  cv::Sobel(r.smooth, dxx, CV_32F, 2, 0, 3);
-  cv::Sobel(r.smooth, dyy, CV_32F, 0, 2, 3);
-  cv::Sobel(r.smooth, dxy, CV_32F, 1, 1, 3);
-  cv::Mat half_trace = 0.5F * (dxx + dyy), half_diff = 0.5F * (dxx - dyy), root;
-  cv::magnitude(half_diff, dxy, root);
-  cv::Mat lmin = half_trace - root, lmax = cv::abs(half_trace + root);
-  r.strength = cv::max(-lmin - lmax, 0.0F);
-  r.dxy = dxy;
-  r.half_diff = half_diff;
+  cv::Mat grey;
+  grey8.convertTo(grey, CV_32F);
+  hessianRidge(grey, sigma_px, &r.smooth, &r.strength, &r.dxy, &r.half_diff);
   return r;
 }
 
@@ -128,8 +158,9 @@ double ridgeDirection(const RidgeMap& r, cv::Point2d p) {
   return 0.5 * std::atan2(2.0 * sample(r.dxy, p), 2.0 * sample(r.half_diff, p));
 }
 
-/// Step 3 (threshold): the kRidgeQuantile quantile of the positive ridge strengths.
-float ridgeThreshold(const cv::Mat& strength) {
+/// Step 3 (thresholds): the kRidgeQuantile and kHoughQuantile quantiles of the ridge strengths.
+void ridgeThresholds(RidgeMap* ridge) {
+  const cv::Mat& strength = ridge->strength;
   std::vector<float> v;
   v.reserve(strength.total() / 4);
   for (int y = 0; y < strength.rows; y += 2) {
@@ -138,30 +169,45 @@ float ridgeThreshold(const cv::Mat& strength) {
       v.push_back(s[x]);
   }
   if (v.empty())
-    return 0.0F;
-  auto k = v.begin() + static_cast<long>(kRidgeQuantile * static_cast<double>(v.size() - 1));
-  std::nth_element(v.begin(), k, v.end());
-  return std::max(*k, 1e-3F);
+    return;
+  auto quantile = [&v](double q) {
+    auto k = v.begin() + static_cast<long>(q * static_cast<double>(v.size() - 1));
+    std::nth_element(v.begin(), k, v.end());
+    return std::max(*k, 1e-3F);
+  };
+  ridge->threshold = quantile(kRidgeQuantile);
+  ridge->hough_threshold = quantile(kHoughQuantile);
+}
+
+/// Step 3: whether Hough lines h and k are the same line within the frame: directions within
+/// kSameLineTheta_rad and, where h passes nearest the frame's centre, k within kSameLineRho_px.
+/// (Comparing rho alone fails for a segment far from the origin: a 2 degree turn about it moves
+/// rho by tens of pixels, and one bright segment then fills every candidate slot.)
+bool sameHoughLine(const cv::Vec2f& h, const cv::Vec2f& k, cv::Point2d centre) {
+  double dt = std::abs(h[1] - k[1]);
+  dt = std::min(dt, kPi - dt);
+  if (dt >= kSameLineTheta_rad)
+    return false;
+  const cv::Point2d nh(std::cos(h[1]), std::sin(h[1])), nk(std::cos(k[1]), std::sin(k[1]));
+  const cv::Point2d foot = centre + (h[0] - centre.dot(nh)) * nh;  // h's point nearest centre
+  return std::abs(foot.dot(nk) - k[0]) < kSameLineRho_px;
 }
 
 /// Step 3: Hough lines on the strongest ridge pixels, strongest first, duplicates merged.
 std::vector<Line> candidateLines(const RidgeMap& ridge, double min_length_px) {
-  cv::Mat binary = ridge.strength > ridge.threshold;
+  cv::Mat binary = ridge.strength > ridge.hough_threshold;
   std::vector<cv::Vec2f> hough;
   const int votes = std::max(10, static_cast<int>(0.5 * min_length_px));
   cv::HoughLines(binary, hough, 1.0, kPi / 180.0, votes);
+  const cv::Point2d centre(0.5 * (binary.cols - 1), 0.5 * (binary.rows - 1));
   std::vector<cv::Vec2f> kept;
   for (const cv::Vec2f& h : hough) {
     bool same = false;
-    for (const cv::Vec2f& k : kept) {
-      double dt = std::abs(h[1] - k[1]);
-      dt = std::min(dt, kPi - dt);
-      const double dr = std::abs(std::abs(h[0]) - std::abs(k[0]));
-      same = same || (dt < kSameLineTheta_rad && dr < kSameLineRho_px);
-    }
+    for (const cv::Vec2f& k : kept)
+      same = same || sameHoughLine(h, k, centre);
     if (!same)
       kept.push_back(h);
-    if (static_cast<int>(kept.size()) >= kMaxCandidates)
+    if (static_cast<int>(kept.size()) >= kMaxHoughLines)
       break;
   }
   std::vector<Line> lines;
@@ -440,7 +486,7 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, const C
     path = {s->tail_px, (s->tip_px - s->tail_px) / length, 0.0};
   } else {
     const bool from_t0 = cv::norm(s->tail_px - at(cand.line, cand.t0)) < 0.5;
-    length = cand.t1 - cand.t0;
+    length = cand.t1 - cand.t0 + kArcTipBeyondGaps * max_gap;
     path = {s->tail_px, from_t0 ? tangent(cand.line, cand.t0) : -tangent(cand.line, cand.t1),
             s->curvature_per_px};
   }
@@ -455,7 +501,10 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, const C
       sum += c[k];
     smooth[i] = sum / static_cast<double>(b - a + 1);
   }
-  std::vector<double> sorted = smooth;
+  const std::size_t traced = std::min(
+      smooth.size(),
+      static_cast<std::size_t>(cand.line.kappa == 0.0 ? smooth.size() : cand.t1 - cand.t0 + 1.0));
+  std::vector<double> sorted(smooth.begin(), smooth.begin() + static_cast<long>(traced));
   const auto k = static_cast<long>(kShaftLevelQuantile * static_cast<double>(sorted.size() - 1));
   std::nth_element(sorted.begin(), sorted.begin() + k, sorted.end());
   const double half = kTipLevel * sorted[static_cast<std::size_t>(k)];
@@ -468,6 +517,8 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, const C
     double best = 0, sum = 0, start = 0, best_start = 0, on = -1e9;
     for (std::size_t i = 0; i < smooth.size(); ++i) {
       const double u = static_cast<double>(i);
+      if (smooth[i] < half && i >= traced)
+        break;  // past the traced end: only while the contrast holds, no gap bridged
       if (smooth[i] < half)
         continue;
       if (u - on > max_gap)
@@ -483,13 +534,22 @@ void tipAtHalfLevel(const RidgeMap& ridge, double sigma, double max_gap, const C
     s->angle_rad = std::atan2(d.y, d.x);
     return;
   }
-  for (std::size_t i = 0; i < smooth.size(); ++i) {
+  // The trace may start on a speckle ridge in line before the shaft: the walk starts
+  // where the contrast first reaches the level, and the tail moves there.
+  std::size_t first = 0;
+  while (first < smooth.size() && smooth[first] < half)
+    ++first;
+  if (first == smooth.size())
+    return;
+  last = static_cast<double>(first);
+  for (std::size_t i = first; i < smooth.size(); ++i) {
     const double u = static_cast<double>(i);
     if (u - last > max_gap)
       break;
     if (smooth[i] >= half)
       last = u;
   }
+  s->tail_px = at(path, static_cast<double>(first));
   s->tip_px = at(path, last);
 }
 
@@ -543,6 +603,23 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
     return {};
   measureCues(ridge, &c, o.ridge_sigma_px);
   return c;
+}
+
+/// Step 4: adds c to `all` unless it is the same segment as one there (kSameSegment_px at both
+/// ends); of two the same, the better score stays.
+void keepDistinct(const Candidate& c, std::vector<Candidate>* all) {
+  const cv::Point2d a = at(c.line, c.t0), b = at(c.line, c.t1);
+  for (Candidate& k : *all) {
+    const cv::Point2d ka = at(k.line, k.t0), kb = at(k.line, k.t1);
+    const bool same = (cv::norm(a - ka) < kSameSegment_px && cv::norm(b - kb) < kSameSegment_px) ||
+                      (cv::norm(a - kb) < kSameSegment_px && cv::norm(b - ka) < kSameSegment_px);
+    if (same) {
+      if (c.score > k.score)
+        k = c;
+      return;
+    }
+  }
+  all->push_back(c);
 }
 
 std::string summary(const NeedleSegment& s) {
@@ -636,22 +713,44 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
 
 namespace {
 
-/// Sequence cue of one oriented candidate: the motion map's mean over the tip end, which runs
-/// on past the traced end by `beyond` px (the part the needle has just advanced into is the
-/// faint, blurred end that the trace stops short of).
+/// Sequence cue of one oriented candidate: the signed motion map's mean over the tip end, which
+/// runs on past the traced end by `beyond` px (the part the needle has just advanced into is the
+/// faint, blurred end that the trace stops short of), less the unsigned map's mean along the rest
+/// of the shaft. A needle advancing along its own axis brightens the tissue ahead of its tip while
+/// its shaft stays in place; a flickering band changes along its whole length, and a line whose
+/// end is an edge of a moving shadow darkens there: neither moves like a needle.
 double tipMotion(const cv::Mat& motion, const NeedleSegment& s, double beyond) {
   const double length = s.length_px();
   if (motion.empty() || length < 1.0)
     return 0.0;
   const cv::Point2d d = (s.tip_px - s.tail_px) / length;
   const double zone = std::min(length, std::max(kMotionMinZone_px, kMotionTipZone * length));
+  double tip = 0, shaft = 0;
+  int tip_count = 0, shaft_count = 0;
+  for (double u = 0.0; u <= length + beyond; u += 1.0) {
+    const float v = sample(motion, s.tail_px + u * d);
+    if (u >= length - zone) {
+      tip += v;
+      ++tip_count;
+    } else {
+      shaft += std::abs(v);
+      ++shaft_count;
+    }
+  }
+  return (tip_count > 0 ? tip / tip_count : 0.0) - (shaft_count > 0 ? shaft / shaft_count : 0.0);
+}
+
+/// Sequence cue past the tip (kAheadFrom_px to kAheadTo_px along its direction); 0 without a
+/// motion map.
+double motionAhead(const cv::Mat& motion, const NeedleSegment& s) {
+  if (motion.empty())
+    return 0.0;
+  const cv::Point2d d(std::cos(s.angle_rad), std::sin(s.angle_rad));
   double sum = 0;
   int count = 0;
-  for (double u = length - zone; u <= length + beyond; u += 1.0) {
-    sum += sample(motion, s.tail_px + u * d);
-    ++count;
-  }
-  return count > 0 ? sum / count : 0.0;
+  for (double u = kAheadFrom_px; u <= kAheadTo_px; u += 1.0, ++count)
+    sum += sample(motion, s.tip_px + u * d);
+  return sum / count;
 }
 
 /// Step 6 with the sequence cue: orient every candidate, measure its motion; when one that
@@ -660,8 +759,15 @@ double tipMotion(const cv::Mat& motion, const NeedleSegment& s, double beyond) {
 std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const AcquisitionOptions& o,
                                        cv::Size size, const cv::Mat& motion) {
   bool any_moving = false;
+  // A tip on the frame's border is no tip in view: the line runs on out of the frame (a layer
+  // seen from the stated entry side, or a needle past the field of view).
+  all.erase(std::remove_if(all.begin(), all.end(),
+                           [&](Candidate& c) {
+                             orientByEntry(c, o.entry, size, &c.cues);
+                             return onBorder(c.cues.tip_px, size);
+                           }),
+            all.end());
   for (Candidate& c : all) {
-    orientByEntry(c, o.entry, size, &c.cues);
     c.cues.motion = tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
     any_moving = any_moving || (c.cues.motion >= kMinMotionRatio && c.score >= o.min_evidence);
   }
@@ -697,11 +803,14 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
     return none;
   }
   RidgeMap ridge = ridgeFilter(grey, options.ridge_sigma_px);  // step 2
-  ridge.threshold = ridgeThreshold(ridge.strength);
+  ridgeThresholds(&ridge);
+
   std::vector<Candidate> all;
   for (const Line& line : candidateLines(ridge, options.min_length_px)) {  // step 3
     if (std::optional<Candidate> c = examine(ridge, line, options))        // steps 4-5
-      all.push_back(*c);
+      keepDistinct(*c, &all);
+    if (static_cast<int>(all.size()) >= kMaxCandidates)
+      break;
   }
   const std::optional<Candidate> best = bestCandidate(all, options, grey.size(), motion);
   if (!best) {
@@ -710,6 +819,7 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
   }
   NeedleSegment s = best->cues;  // step 6
   tipAtHalfLevel(ridge, options.ridge_sigma_px, options.max_gap_px, *best, &s);
+  s.motion_ahead = motionAhead(motion, s);
   if (best->score < options.min_evidence) {
     s.found = false;
     s.message = "best line too weak to be a needle: " + summary(s);
@@ -743,12 +853,12 @@ cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
   grey.convertTo(current, CV_32F);
   cv::Mat motion;
   if (!background_.empty() && background_.size() == current.size()) {
-    // The signed difference smoothed at the needle's scale before its magnitude: the frame's
-    // own noise averages out, a change as wide as the needle does not.
+    // The signed difference smoothed at the needle's scale, over the mean of its magnitude: the
+    // frame's own noise averages out, a change as wide as the needle does not.
     cv::subtract(current, background_, motion);
     cv::GaussianBlur(motion, motion, cv::Size(), options_.ridge_sigma_px);
-    motion = cv::abs(motion);
-    motion *= 1.0 / (cv::mean(motion)[0] + 1.0);  // +1 grey level: a noise-free still frame
+    motion *= 1.0 / (cv::norm(motion, cv::NORM_L1) / static_cast<double>(motion.total()) +
+                     1.0);  // +1 grey level: a noise-free still frame
     cv::accumulateWeighted(current, background_, kBackgroundRate);
   } else {
     background_ = current;
@@ -770,6 +880,13 @@ SequenceTracker::Output SequenceTracker::onFrame(const cv::Mat& frame) {
   return last_output_;
 }
 
+void SequenceTracker::startTrack(const NeedleSegment& d) {
+  track_ = d;
+  velocity_px_ = 0;
+  start_tip_px_ = d.tip_px;
+  moved_ = d.motion >= kMinMotionRatio;
+}
+
 SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
   Output out;
   if (track_) {
@@ -781,18 +898,21 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       velocity_px_ = 0.5 * velocity_px_ + 0.5 * (d.tip_px - track_->tip_px).dot(axis);
       const bool close = cv::norm(d.tip_px - pred.tip_px) < kAgreeTip_px;
       agreeing_ = close ? agreeing_ + 1 : 1;
+      moved_ = moved_ || d.motion >= kMinMotionRatio ||
+               std::abs((d.tip_px - start_tip_px_).dot(axis)) >= kEarnAdvance_px;
       track_ = d;
       missed_ = 0;
       candidate_.reset();
       out.segment = d;
-      out.confident = agreeing_ >= kConfirmFrames;
+      // Never confident while the tissue ahead of the tip still brightens: the needle has
+      // advanced past the traced tip.
+      out.confident = agreeing_ >= kConfirmFrames && moved_ && d.motion_ahead < kMinMotionRatio;
       return out;
     }
     if (d.found && d.motion >= kMinMotionRatio && track_->motion < kMinMotionRatio) {
       // The sequence cue: the track was a still line, this detection moves at its tip (a
       // needle advancing): the still line gives way at once, without waiting for agreement.
-      track_ = d;
-      velocity_px_ = 0;
+      startTrack(d);
       agreeing_ = 1;
       missed_ = 0;
       candidate_.reset();
@@ -808,8 +928,7 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       }
       candidate_ = d;
       if (candidate_count_ >= kReacquireAfter) {
-        track_ = d;
-        velocity_px_ = 0;
+        startTrack(d);
         agreeing_ = candidate_count_;
         missed_ = 0;
         out.segment = d;
@@ -832,8 +951,7 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
     return out;
   }
   if (d.found) {
-    track_ = d;
-    velocity_px_ = 0;
+    startTrack(d);
     agreeing_ = 1;
     missed_ = 0;
   }

@@ -11,8 +11,10 @@
 #include <opencv2/imgproc.hpp>
 #include <vector>
 
+#include "needle_guidance/imaging/frame_renderer.h"
 #include "needle_guidance/imaging/needle_acquisition.h"
 #include "needle_guidance/imaging/synthetic_bmode.h"
+#include "needle_guidance/scene/scene.h"
 
 namespace im = needle_guidance::imaging;
 
@@ -24,6 +26,7 @@ constexpr double kTipP90Tolerance_px = 15.0;  // and its 90th-percentile target
 constexpr double kPsfReach_px = 3.0;  // blur of the drawn needle (sigma 1 px) and its 1 px radius
 constexpr double kAngleTolerance_rad = 3.0 * kPi / 180.0;
 const cv::Size kSize(720, 440);
+constexpr double kConfidentWrong_px = 20.0;  // the "confident and > 20 px off"
 
 using Needle = im::BModeNeedle;
 using Interface = im::BModeInterface;
@@ -255,6 +258,95 @@ TEST(NeedleAcquisition, ArcRadiusShorterThanTheNeedleIsRefused) {
   const im::NeedleSegment s = im::acquireNeedle(frame(4, std::nullopt, leftNeedle()), o);
   EXPECT_FALSE(s.found);
   EXPECT_NE(s.message.find("radius_px"), std::string::npos) << s.message;
+}
+
+// ---- sequences: a still line never earns confidence; the realistic renderer's layers ----
+
+TEST(NeedleAcquisition, StillBrightLineIsNeverConfident) {
+  // Still tissue with a bright thin line (needle-like in every single-frame cue) and no
+  // needle; each frame has its own electronic noise (not a repeated frame). The line may be
+  // reported, but it never moves like a needle, so it never earns confidence.
+  const cv::Mat still = frame(31, std::nullopt, std::nullopt);
+  cv::line(still, cv::Point(200, 110), cv::Point(600, 90), cv::Scalar(235), 2, cv::LINE_AA);
+  im::SequenceTracker tracker({});
+  cv::RNG rng(7);
+  for (int k = 0; k < 10; ++k) {
+    cv::Mat noise(still.size(), CV_16S), f;
+    rng.fill(noise, cv::RNG::NORMAL, 0.0, 3.0);
+    still.convertTo(f, CV_16S);
+    f += noise;
+    f.convertTo(f, CV_8U);
+    const auto out = tracker.onFrame(f);
+    EXPECT_FALSE(out.confident) << "frame " << k << ": " << out.segment.message;
+  }
+}
+
+namespace {
+
+/// Points of a straight needle from `entry` [m] at `angle` [rad above +x], `length` [m] long.
+std::vector<im::Point2> straightNeedle(im::Point2 entry, double angle, double length) {
+  std::vector<im::Point2> pts;
+  for (double s = 0.0; s <= length + 1e-12; s += 0.25e-3)
+    pts.push_back(entry + s * im::Point2(std::cos(angle), std::sin(angle)));
+  return pts;
+}
+
+}  // namespace
+
+/// The imager's realistic ultrasound (frame_renderer.h) on steering_workspace at 0.1 mm
+/// pixels: two specular layers spanning the frame, brighter and thicker than the needle,
+/// obstacle outlines, speckle through a PSF, the needle's shadow and reverberation tail, the
+/// needle partly out of plane. The needle advances 1 mm a frame from the left, from `entry`
+/// [m] at `angle` [rad above +x]; tip errors [px] from the third frame on (the needle has
+/// moved against the background by then), and a failure for any confident tip > 20 px off.
+std::vector<double> realisticSequenceErrors(std::uint64_t seed, im::Point2 entry, double angle) {
+  const auto scene = needle_guidance::scene::loadSceneSpec("steering_workspace");
+  im::ImagerConfig c = im::imagerConfigFromScene(scene, seed);
+  c.modality = im::Modality::kUltrasound;
+  c.ultrasound_model = im::UltrasoundModel::kRealistic;
+  c.geometry.pixel_size_m = 0.1e-3;
+  c.geometry.cols = 720;
+  c.geometry.rows = 440;
+  c.geometry.origin_m = im::Point2(0.0, 0.05);
+  c.noise_std = 0.1;
+  c.blur_sigma_m = 0.1e-3;
+  c.drop_probability = 0.0;
+  const im::FrameRenderer renderer(scene, c);
+  im::AcquisitionOptions o;
+  o.entry = im::EntrySide::kLeft;
+  im::SequenceTracker tracker(o);
+  std::vector<double> errors;
+  for (int k = 0; k < 12; ++k) {
+    const auto pts = straightNeedle(entry, angle, 0.02 + 1e-3 * k);
+    const auto out = tracker.onFrame(renderer.render(pts, static_cast<std::uint64_t>(k)).image);
+    const double e =
+        out.segment.found ? cv::norm(out.segment.tip_px - c.geometry.toPixel(pts.back())) : 1e9;
+    if (out.confident) {
+      EXPECT_LT(e, kConfidentWrong_px)
+          << "frame " << k << " confident and wrong: " << out.segment.message;
+    }
+    if (k >= 2)
+      errors.push_back(e);
+  }
+  std::sort(errors.begin(), errors.end());
+  return errors;
+}
+
+TEST(NeedleAcquisition, RealisticLayersBrighterAndLongerThanTheNeedleAreRejected) {
+  // The needle below both layers, which outscore it in any single frame (bench
+  // tracking_real's tuning sequence tune_straight_b).
+  const std::vector<double> e = realisticSequenceErrors(23, im::Point2(0.0, 0.010), 0.15);
+  EXPECT_LT(e[e.size() / 2], kTipTolerance_px) << "median over frames 2-11";
+}
+
+TEST(NeedleAcquisition, RealisticNeedleWhoseTipRunsIntoALayerIsNeverConfidentlyWrong) {
+  // The needle rises into a layer and its tip lies inside the saturated layer: the advancing
+  // tip brightens nothing, and the obstacle's still outline outscores the needle. Not solved
+  // (the still outline is reported, its tip 400-500 px off); what must hold is that no wrong
+  // tip is confident (checked per frame inside realisticSequenceErrors). Seeds and geometry
+  // used by no benchmark.
+  realisticSequenceErrors(5, im::Point2(0.0, 0.018), 0.12);
+  realisticSequenceErrors(8, im::Point2(0.0, 0.030), 0.05);
 }
 
 int main(int argc, char** argv) {

@@ -3,7 +3,9 @@
 // a real frame and tells it from the structures that look like one:
 //   step 1  grey conversion (8/16-bit, mono/colour; anything else refused with the reason);
 //   step 2  ridge filter (Hessian, bright thin lines) and its orientation;
-//   step 3  candidate lines (cv::HoughLines on the strongest ridge pixels);
+//   step 3  candidate lines (cv::HoughLines on the strongest ridge pixels; near-duplicate lines
+//           merged, and traced segments with the same ends kept once, so that a thick layer's
+//           many lines do not take every candidate slot);
 //   step 4  each candidate's visible segment along the line (gaps bridged), refit by weighted
 //           least squares on the ridge pixels near it (a steerable needle, options.radius_px:
 //           then bent into an arc of that radius either way, the circle's centre refit by
@@ -13,8 +15,10 @@
 //           media: one side differs from the other; a needle lies inside one medium), length,
 //           and distance from the image border;
 //   step 6  the best candidate, if its evidence beats the thresholds (else "not found"),
-//           and its tip: the end away from the entry side (calibrated or worked out); over a
-//           sequence, a candidate moving at its tip end beats every still one (motion map).
+//           and its tip: the end away from the entry side (calibrated or worked out; a tip on
+//           the frame's border is no tip in view); over a sequence, a candidate whose tip end
+//           brightens as a needle advancing along its own axis does beats every still one
+//           (signed motion map).
 // Plain C++ and OpenCV; no ROS (STYLE.md rules 1-2).
 #pragma once
 
@@ -64,9 +68,15 @@ struct NeedleSegment {
   double evidence = 0.0;   ///< score the candidate won with (see AcquisitionOptions)
   double symmetry = 0.0;   ///< 1 = same tissue on both sides, 0 = interface-like
   double coherence = 0.0;  ///< fraction of ridge pixels aligned with the line
-  /// Sequence cue: frame difference against the background at the tip end, over the frame's
-  /// mean difference (0 for a single frame; >= 3 counts as moving).
+  /// Sequence cue: signed frame difference against the background (brightening) at the tip
+  /// end, less the unsigned difference along the rest of the shaft, both over the frame's mean
+  /// difference (0 for a single frame; >= 3 counts as moving: a needle advancing along its own
+  /// axis, not a flickering band or the moving edge of a shadow).
   double motion = 0.0;
+  /// Sequence cue past the tip: the signed difference (brightening) over the frame's mean
+  /// difference, 6 to 30 px beyond the tip along its direction (0 for a single frame; >= 3:
+  /// the needle goes on past this tip, which is then traced short).
+  double motion_ahead = 0.0;
   double length_px() const;
 };
 
@@ -80,7 +90,8 @@ cv::Mat toGrey8(const cv::Mat& frame, std::string* problem);
 NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options);
 
 /// The same with the sequence cue: `motion` (CV_32FC1 of the frame's size, or empty for none)
-/// is the frame's absolute difference from a background model of the sequence over its mean.
+/// is the frame's signed difference from a background model of the sequence over the mean of
+/// its magnitude.
 /// When a candidate strong enough to be a needle moves at its tip end (the needle advancing
 /// along its own axis in still tissue), the still candidates drop out: a still bright line never
 /// wins over a moving needle. Never throws.
@@ -98,8 +109,12 @@ class SequenceTracker {
 public:
   explicit SequenceTracker(const AcquisitionOptions& options);
   struct Output {
-    NeedleSegment segment;   ///< this frame's estimate (found = false when nothing usable)
-    bool confident = false;  ///< earned: kConfirmFrames agreeing detections in a row
+    NeedleSegment segment;  ///< this frame's estimate (found = false when nothing usable)
+    /// Earned: kConfirmFrames agreeing detections in a row, of a track that has moved like a
+    /// needle (its tip kEarnAdvance_px along its axis from where it was acquired, or a moving
+    /// tip cue): a still bright line, however steady, never earns it; nor a tip with the
+    /// tissue ahead of it still brightening (motion_ahead >= 3: traced short).
+    bool confident = false;
     bool predicted = false;  ///< no gated detection: the tip is the motion model's prediction
   };
   /// One frame. Never throws. A frame identical to the previous one (a frozen or repeated
@@ -115,19 +130,26 @@ public:
   static constexpr double kGateLine_px = 8.0;      ///< tip's distance from the track's line [px]
   static constexpr double kGateAngle_rad = 0.087;  ///< 5 degrees
   static constexpr double kAgreeTip_px = 12.0;     ///< agreement of consecutive detections [px]
+  /// Advance along the axis that shows a track is a needle being inserted [px]: more than the
+  /// agreement tolerance, so a still line's jitter never reaches it.
+  static constexpr double kEarnAdvance_px = 2.0 * kAgreeTip_px;
 
 private:
   bool agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px) const;
   Output update(const NeedleSegment& d);
-  /// |frame - background| over its mean (empty for the first frame), then the background
-  /// takes the frame in.
+  /// A new track from detection d (velocity 0, not yet moved unless d's tip moves).
+  void startTrack(const NeedleSegment& d);
+  /// frame - background over the mean of its magnitude (empty for the first frame), then the
+  /// background takes the frame in.
   cv::Mat motionMap(const cv::Mat& frame);
   cv::Mat background_;  ///< CV_32F exponential average of the frames
   cv::Mat last_frame_;
   Output last_output_;
   AcquisitionOptions options_;
   std::optional<NeedleSegment> track_;
-  double velocity_px_ = 0.0;  ///< tip speed along the axis [px / frame]
+  double velocity_px_ = 0.0;            ///< tip speed along the axis [px / frame]
+  cv::Point2d start_tip_px_{0.0, 0.0};  ///< the track's tip when it was acquired
+  bool moved_ = false;                  ///< the track has moved like a needle
   int agreeing_ = 0;
   int missed_ = 0;
   std::optional<NeedleSegment> candidate_;
