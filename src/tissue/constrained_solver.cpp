@@ -80,10 +80,52 @@ struct ConstrainedSolver::Impl {
     cholmod_finish(&common);
   }
 
-  void setup(const std::vector<int>& fixed_dofs) {
+  /// cholmod_start with the settings every factorisation after setup() uses.
+  void start() {
     cholmod_start(&common);
     common.print = 0;
     common.error_handler = nullptr;
+  }
+
+  /// The settings setup() leaves for the numeric factorisations (natural order, simplicial).
+  void numericSettings() {
+    common.nmethods = 1;
+    common.method[0].ordering = CHOLMOD_NATURAL;
+    common.postorder = 0;
+    common.supernodal = CHOLMOD_SIMPLICIAL;
+    common.final_ll = 0;
+  }
+
+  /// Copies `o`'s state (a fresh CHOLMOD workspace, copies of its matrices and factor).
+  void copyFrom(const Impl& o) {
+    start();
+    numericSettings();
+    incremental = o.incremental;
+    n_full = o.n_full;
+    n_red = o.n_red;
+    red_of_full = o.red_of_full;
+    full_of_red = o.full_of_red;
+    entry_pos = o.entry_pos;
+    entry_row_red = o.entry_row_red;
+    entry_col_red = o.entry_col_red;
+    full_entry_of_pos = o.full_entry_of_pos;
+    a_chol = cholmod_copy_sparse(o.a_chol, &common);
+    l_symbolic = cholmod_copy_factor(o.l_symbolic, &common);
+    l = o.l ? cholmod_copy_factor(o.l, &common) : nullptr;
+    b_dense = cholmod_allocate_dense(n_red, 1, n_red, CHOLMOD_REAL, &common);
+    base = o.base;
+    deleted = o.deleted;
+    pending = o.pending;
+    pending_list = o.pending_list;
+    dirty = o.dirty;
+    modifications = o.modifications;
+    if (!a_chol || !l_symbolic || (o.l && !l) || !b_dense) {
+      throw std::runtime_error("ConstrainedSolver: copying the factorisation failed");
+    }
+  }
+
+  void setup(const std::vector<int>& fixed_dofs) {
+    start();
     n_full = static_cast<int>(a->rows());
     std::vector<char> fixed(n_full, 0);
     for (int d : fixed_dofs)
@@ -168,11 +210,7 @@ struct ConstrainedSolver::Impl {
     }
     // Symbolic analysis of the permuted matrix in its natural order (kept: the pattern of A
     // never changes; every refactorisation starts from a copy of it).
-    common.nmethods = 1;
-    common.method[0].ordering = CHOLMOD_NATURAL;
-    common.postorder = 0;
-    common.supernodal = CHOLMOD_SIMPLICIAL;
-    common.final_ll = 0;
+    numericSettings();
     l_symbolic = cholmod_analyze(a_chol, &common);
     if (!l_symbolic)
       throw std::runtime_error("ConstrainedSolver: CHOLMOD symbolic analysis failed");
@@ -362,6 +400,21 @@ ConstrainedSolver::ConstrainedSolver(const Eigen::SparseMatrix<double>& a,
 }
 
 ConstrainedSolver::~ConstrainedSolver() = default;
+
+std::unique_ptr<ConstrainedSolver> ConstrainedSolver::clone(
+    const Eigen::SparseMatrix<double>& a) const {
+  if (a.rows() != impl_->n_full ||
+      a.nonZeros() != static_cast<Eigen::Index>(impl_->entry_pos.size())) {
+    throw std::invalid_argument(
+        "ConstrainedSolver::clone: the matrix is not a copy of the solver's");
+  }
+  std::unique_ptr<ConstrainedSolver> copy(new ConstrainedSolver());
+  copy->impl_ = std::make_unique<Impl>();
+  copy->impl_->a = &a;
+  copy->impl_->copyFrom(*impl_);
+  copy->stats_ = stats_;
+  return copy;
+}
 
 void ConstrainedSolver::matrixReplaced() {
   impl_->dirty = true;
