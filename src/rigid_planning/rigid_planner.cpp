@@ -27,6 +27,8 @@ constexpr double kStopPastTarget_m = 5e-4;
 /// tolerance. The live loop executes the verified FEM steps (the depth grid), so no headroom is
 /// kept for it: the search stops at the scene's tolerance, less a margin for rounding.
 constexpr double kGoalFraction = 0.9;
+/// Heights closer than this are the same height to the search (rounding of grid points) [m].
+constexpr double kSameHeight_m = 1e-12;
 /// A seed at rest moves less than this per step with the needle out [m].
 constexpr double kRest_m = 1e-9;
 
@@ -250,7 +252,12 @@ void RigidPlanner::searchHeights(RigidPlan& plan,
   std::vector<std::pair<double, HeightResult>> seen;
   bool goal_met = false;  // with early_stop: any height whose error meets the goal ends the search
   auto f = [&](double y) {
-    seen.emplace_back(y, evaluate(y));
+    // A height scanned already (the grid's points include the target height and the window's
+    // edges, which the secant may have tried) is not simulated again.
+    const auto known = std::find_if(seen.begin(), seen.end(), [&](const auto& s) {
+      return std::abs(s.first - y) <= kSameHeight_m;
+    });
+    seen.emplace_back(y, known != seen.end() ? known->second : evaluate(y));
     goal_met = goal_met || (early_stop && seen.back().second.error_m <= goal_m);
     if (!goal_met && expired && expired()) {
       plan.budget_expired = true;
