@@ -134,7 +134,10 @@ Point2 DepthScan::implantAt(double z) const {
 
 RigidPlanner::RigidPlanner(scene::Scene scene, tissue::TissueSimOptions sim_options,
                            PlannerOptions options)
-    : scene_(std::move(scene)), sim_options_(std::move(sim_options)), options_(options) {
+    : scene_(std::move(scene)),
+      sim_options_(std::move(sim_options)),
+      options_(options),
+      cache_(std::make_shared<SimulationCache>()) {
   sim_options_.depth_grid.step_m = options_.procedure_grid ? options_.depth_step_m : 0.0;
   if (!scene_.hasTissue()) {
     throw std::invalid_argument("RigidPlanner: scene '" + scene_.name + "' has no tissue model");
@@ -185,6 +188,11 @@ RigidPlan RigidPlanner::check(const Point2& target) const {
   return plan;
 }
 
+struct RigidPlanner::SimulationCache {
+  std::mutex mutex;
+  std::shared_ptr<const tissue::TissueSimulation> scene_sim;  ///< at rest; null until used
+};
+
 std::unique_ptr<tissue::TissueSimulation> RigidPlanner::makeSimulation(const Point2& target) const {
   tissue::TissueSimOptions options = sim_options_;
   // Fine along this target's needle path, whatever the scene's own targets are; a scene target
@@ -193,8 +201,19 @@ std::unique_ptr<tissue::TissueSimulation> RigidPlanner::makeSimulation(const Poi
   if (std::find(points.begin(), points.end(), target) == points.end()) {
     points.push_back(target);
     options.meshing.refine_lines.push_back({Point2(scene_.workspace_min.x(), target.y()), target});
+    return std::make_unique<tissue::TissueSimulation>(scene_, options);
   }
-  return std::make_unique<tissue::TissueSimulation>(scene_, options);
+  std::shared_ptr<const tissue::TissueSimulation> scene_sim;
+  {
+    const std::lock_guard<std::mutex> lock(cache_->mutex);
+    if (!cache_->scene_sim) {
+      cache_->scene_sim = std::make_shared<const tissue::TissueSimulation>(scene_, options);
+    }
+    scene_sim = cache_->scene_sim;
+  }
+  // A copy of the state at rest is the state a fresh build has (bit for bit).
+  return scene_sim->copyable() ? std::make_unique<tissue::TissueSimulation>(*scene_sim)
+                               : std::make_unique<tissue::TissueSimulation>(scene_, options);
 }
 
 DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, const Point2& target,

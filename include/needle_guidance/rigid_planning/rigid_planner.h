@@ -191,7 +191,7 @@ public:
   /// procedure_grid (the live tissue_sim must use the same grid for plans to hold).
   const tissue::TissueSimOptions& simOptions() const { return sim_options_; }
   /// A simulation of the scene meshed as the live tissue_sim meshes it, refined along the path
-  /// to `target` too when the target is not one of the scene's.
+  /// to `target` too when the target is not one of the scene's (else a copy of one built once).
   std::unique_ptr<tissue::TissueSimulation> makeSimulation(const Point2& target) const;
   /// The tolerance plans are held to [m].
   double tolerance() const;
@@ -254,6 +254,10 @@ private:
   scene::Scene scene_;
   tissue::TissueSimOptions sim_options_;
   PlannerOptions options_;
+  /// The scene's simulation at rest, built on first use: plans to the scene's own targets (whose
+  /// mesh is the scene's) copy it instead of meshing and assembling again. Shared by copies.
+  struct SimulationCache;
+  std::shared_ptr<SimulationCache> cache_;
 };
 
 const char* toString(PlanCode code);
