@@ -6,6 +6,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <ctime>
 #include <exception>
 #include <mutex>
 #include <random>
@@ -31,6 +32,13 @@ constexpr double kGoalFraction = 0.9;
 constexpr double kSameHeight_m = 1e-12;
 /// A seed at rest moves less than this per step with the needle out [m].
 constexpr double kRest_m = 1e-9;
+
+/// CPU time of the calling thread [s] (a plan runs on one thread).
+double threadCpuSeconds() {
+  timespec t{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
+  return static_cast<double>(t.tv_sec) + 1e-9 * static_cast<double>(t.tv_nsec);
+}
 
 std::string mm(double metres) {
   std::ostringstream out;
@@ -405,6 +413,7 @@ double RigidPlanner::maxScanDepth(const Point2& target) const {
 RigidPlan RigidPlanner::timed(const Point2& target,
                               const std::function<void(RigidPlan&)>& body) const {
   const auto start = std::chrono::steady_clock::now();
+  const double cpu_start = threadCpuSeconds();
   RigidPlan plan = check(target);
   if (!plan) {
     return plan;
@@ -416,6 +425,7 @@ RigidPlan RigidPlanner::timed(const Point2& target,
     plan.message = e.what();
   }
   plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  plan.cpu_seconds = threadCpuSeconds() - cpu_start;
   return plan;
 }
 

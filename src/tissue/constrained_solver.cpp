@@ -35,8 +35,8 @@ constexpr double kDeltaEigenRelTol = 1e-15;
 
 }  // namespace
 
-struct ConstrainedSolver::Impl {
-  const Eigen::SparseMatrix<double>* a = nullptr;
+/// The solver's state that plain copies copy (everything but the matrix and CHOLMOD's objects).
+struct ConstrainedSolverData {
   bool incremental = true;
   int n_full = 0;
   int n_red = 0;
@@ -45,7 +45,16 @@ struct ConstrainedSolver::Impl {
   std::vector<int> entry_pos;  ///< full A value index -> CHOLMOD upper value index, or -1
   std::vector<int> entry_row_red, entry_col_red;  ///< per CHOLMOD value: reduced row / column
   std::vector<int> full_entry_of_pos;             ///< CHOLMOD value index -> full A value index
+  std::vector<double> base;   ///< A values (upper, reduced) represented by the factor
+  std::vector<char> deleted;  ///< per reduced index: row/column deleted (prescribed)
+  std::vector<char> pending;  ///< per reduced index: A changed since the last sync
+  std::vector<int> pending_list;
+  bool dirty = true;
+  long modifications = 0;
+};
 
+struct ConstrainedSolver::Impl : ConstrainedSolverData {
+  const Eigen::SparseMatrix<double>* a = nullptr;
   cholmod_common common{};
   cholmod_sparse* a_chol = nullptr;  ///< upper triangle, permuted, values of the factored matrix
   cholmod_factor* l_symbolic = nullptr;
@@ -54,13 +63,6 @@ struct ConstrainedSolver::Impl {
   cholmod_dense* b_dense = nullptr;
   cholmod_dense* y_work = nullptr;
   cholmod_dense* e_work = nullptr;
-
-  std::vector<double> base;   ///< A values (upper, reduced) represented by the factor
-  std::vector<char> deleted;  ///< per reduced index: row/column deleted (prescribed)
-  std::vector<char> pending;  ///< per reduced index: A changed since the last sync
-  std::vector<int> pending_list;
-  bool dirty = true;
-  long modifications = 0;
 
   ~Impl() {
     if (a_chol)
@@ -100,25 +102,11 @@ struct ConstrainedSolver::Impl {
   void copyFrom(const Impl& o) {
     start();
     numericSettings();
-    incremental = o.incremental;
-    n_full = o.n_full;
-    n_red = o.n_red;
-    red_of_full = o.red_of_full;
-    full_of_red = o.full_of_red;
-    entry_pos = o.entry_pos;
-    entry_row_red = o.entry_row_red;
-    entry_col_red = o.entry_col_red;
-    full_entry_of_pos = o.full_entry_of_pos;
+    static_cast<ConstrainedSolverData&>(*this) = o;
     a_chol = cholmod_copy_sparse(o.a_chol, &common);
     l_symbolic = cholmod_copy_factor(o.l_symbolic, &common);
     l = o.l ? cholmod_copy_factor(o.l, &common) : nullptr;
     b_dense = cholmod_allocate_dense(n_red, 1, n_red, CHOLMOD_REAL, &common);
-    base = o.base;
-    deleted = o.deleted;
-    pending = o.pending;
-    pending_list = o.pending_list;
-    dirty = o.dirty;
-    modifications = o.modifications;
     if (!a_chol || !l_symbolic || (o.l && !l) || !b_dense) {
       throw std::runtime_error("ConstrainedSolver: copying the factorisation failed");
     }

@@ -47,7 +47,7 @@ struct SceneFigures {
   std::string name, spec;
   int targets = 0, planned = 0, refused = 0, over_tolerance = 0;
   std::vector<double> predicted_cm, verified_cm, measured_cm, unplanned_cm, legacy_gap_cm, pvm_cm,
-      live_cm, seconds, simulations, fem_steps;
+      live_cm, seconds, cpu_seconds, simulations, fem_steps;
 };
 
 double maxOf(const std::vector<double>& v) {
@@ -82,6 +82,7 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
       ++f.refused;
       f.seconds.push_back(plan.seconds);  // a refusal's planning time counts too
       f.fem_steps.push_back(static_cast<double>(plan.fem_steps));
+      f.cpu_seconds.push_back(plan.cpu_seconds);
       const ng::report::Cell none{std::string()};  // never inserted: no error figures
       // Out of tolerance: the best plan's verified error says by how much.
       const ng::report::Cell verified = std::isfinite(plan.verified_error_m)
@@ -89,7 +90,7 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
                                             : none;
       rows.addRow({scene.name, target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
                    std::string("refused"), none, none, verified, none, none, none, none, none, none,
-                   double(plan.simulations), plan.seconds, double(plan.fem_steps),
+                   double(plan.simulations), plan.seconds, plan.cpu_seconds, double(plan.fem_steps),
                    std::string(plan.message)});
       std::cout << scene.name << "/" << target.name << ": refused: " << plan.message << "\n"
                 << std::flush;
@@ -125,13 +126,14 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     f.pvm_cm.push_back(1e2 * pvm);
     f.seconds.push_back(plan.seconds);
     f.fem_steps.push_back(static_cast<double>(plan.fem_steps));
+    f.cpu_seconds.push_back(plan.cpu_seconds);
     f.simulations.push_back(plan.simulations);
     rows.addRow({scene.name, target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
                  std::string(placed ? "placed" : "missed"),
                  1e3 * (unplanned_seed - target.position).norm(), 1e3 * plan.predicted_error_m,
                  1e3 * plan.verified_error_m, 1e3 * measured, 1e3 * live_gap, 1e3 * pvm,
                  1e3 * legacy_gap, 1e3 * plan.release.x(), 1e3 * plan.release.y(),
-                 double(plan.simulations), plan.seconds, double(plan.fem_steps),
+                 double(plan.simulations), plan.seconds, plan.cpu_seconds, double(plan.fem_steps),
                  std::string(plan.message)});
     std::cout << scene.name << "/" << target.name << ": " << (placed ? "placed" : "MISSED")
               << " measured " << 1e3 * measured << " mm (predicted " << 1e3 * plan.predicted_error_m
@@ -313,6 +315,8 @@ std::string scenesJson(const std::vector<SceneFigures>& figures) {
          << ", \"seconds_per_target_mean\": " << mean(f.seconds)
          << ", \"seconds_per_target_max\": " << maxOf(f.seconds)
          << ", \"simulations_per_plan_mean\": " << mean(f.simulations)
+         << ", \"cpu_seconds_per_target_mean\": " << mean(f.cpu_seconds)
+         << ", \"cpu_seconds_per_target_max\": " << maxOf(f.cpu_seconds)
          << ", \"fem_steps_per_plan_mean\": " << mean(f.fem_steps)
          << ", \"fem_steps_per_plan_max\": " << maxOf(f.fem_steps) << "}";
     all.targets += f.targets;
@@ -322,7 +326,7 @@ std::string scenesJson(const std::vector<SceneFigures>& figures) {
          {&SceneFigures::predicted_cm, &SceneFigures::verified_cm, &SceneFigures::measured_cm,
           &SceneFigures::unplanned_cm, &SceneFigures::legacy_gap_cm, &SceneFigures::pvm_cm,
           &SceneFigures::seconds, &SceneFigures::simulations, &SceneFigures::live_cm,
-          &SceneFigures::fem_steps}) {
+          &SceneFigures::fem_steps, &SceneFigures::cpu_seconds}) {
       (all.*v).insert((all.*v).end(), (f.*v).begin(), (f.*v).end());
     }
   }
@@ -339,6 +343,8 @@ std::string scenesJson(const std::vector<SceneFigures>& figures) {
        << ",\n  \"seconds_per_target_max\": " << maxOf(all.seconds)
        << ",\n  \"seconds_per_target_mean_all_scenes\": " << mean(all.seconds)
        << ",\n  \"simulations_per_plan_mean\": " << mean(all.simulations)
+       << ",\n  \"cpu_seconds_per_target_max\": " << maxOf(all.cpu_seconds)
+       << ",\n  \"cpu_seconds_per_target_mean_all_scenes\": " << mean(all.cpu_seconds)
        << ",\n  \"fem_steps_per_plan_mean\": " << mean(all.fem_steps)
        << ",\n  \"fem_steps_per_plan_max\": " << maxOf(all.fem_steps)
        << ",\n  \"step_budget\": " << ng::rigid_planning::PlannerOptions{}.step_budget;
@@ -380,7 +386,7 @@ int main(int argc, char** argv) {
          "predicted_error_mm", "verified_error_mm", "measured_error_mm",
          "live_schedule_vs_measured_mm", "predicted_vs_measured_mm",
          "o1_interpolated_vs_measured_mm", "release_x_mm", "release_y_mm", "simulations", "plan_s",
-         "fem_steps", "message"},
+         "plan_cpu_s", "fem_steps", "message"},
         6);
     std::vector<SceneFigures> figures;
     for (const std::string& spec : specs) {

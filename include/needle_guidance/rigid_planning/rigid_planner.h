@@ -151,8 +151,9 @@ struct RigidPlan {
   /// mesh's resolution in height (a tenth of the height tolerance) with an error below 10x the
   /// goal.
   bool secant = false;
-  int simulations = 0;  ///< insertions simulated: scans + verifications
-  double seconds = 0.0;
+  int simulations = 0;           ///< insertions simulated: scans + verifications
+  double seconds = 0.0;          ///< wall time [s]
+  double cpu_seconds = 0.0;      ///< CPU time of the planning thread [s] (less load-dependent)
   std::vector<DepthScan> scans;  ///< every height simulated, in evaluation order
   /// Full insert-release-retract simulation of the plan (PlannerOptions::verify).
   bool verified = false;
