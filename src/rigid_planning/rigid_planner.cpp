@@ -18,8 +18,10 @@ namespace needle_guidance::rigid_planning {
 namespace {
 
 constexpr double kGolden = 0.6180339887498949;  // (sqrt(5) - 1) / 2
-/// A converged secant bracket is accepted below this multiple of the tolerance (the verification
-/// and its corrections then take over).
+/// A converged secant bracket is accepted below this multiple of the tolerance with the
+/// dissertation's interpolated scans (the verification and its corrections then take over). On
+/// the depth grid the prediction is the verified seed, so no correction can follow: a bracket
+/// over the tolerance goes on to the grid and golden-section search instead (within the budget).
 constexpr double kSecantAcceptTolerances = 5.0;
 /// A plan's scan stops once the implant point is this far past the target along the needle and
 /// the best error is smaller: the implant curve only moves on (4.3.2: no later depth is better).
@@ -348,8 +350,10 @@ void RigidPlanner::searchHeights(RigidPlan& plan,
         std::min_element(seen.begin(), seen.end(), [](const auto& l, const auto& r) {
           return l.second.error_m < r.second.error_m;
         })->second.error_m;
-    plan.secant = (goal_met && !plan.budget_expired) ||
-                  (plan.secant && best_error <= kSecantAcceptTolerances * tolerance());
+    plan.secant =
+        (goal_met && !plan.budget_expired) ||
+        (plan.secant &&
+         best_error <= (options_.procedure_grid ? 1.0 : kSecantAcceptTolerances) * tolerance());
     goal_met = plan.secant || plan.budget_expired;
   }
   if (!goal_met) {
@@ -400,7 +404,7 @@ void RigidPlanner::searchHeights(RigidPlan& plan,
   plan.release = Point2(best->second.depth_m, best->first);
   plan.predicted_implant = best->second.implant;
   plan.predicted_error_m = best->second.error_m;
-  plan.message = plan.budget_expired ? "ok (time budget expired: best height so far)"
+  plan.message = plan.budget_expired ? "ok (budget expired: best height so far)"
                  : plan.secant       ? "ok (secant on the lateral offset)"
                  : plan.unimodal     ? "ok"
                                      : "ok (error not unimodal over the window: grid fallback)";
