@@ -6,6 +6,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <ctime>
 #include <exception>
 #include <mutex>
 #include <random>
@@ -17,8 +18,10 @@ namespace needle_guidance::rigid_planning {
 namespace {
 
 constexpr double kGolden = 0.6180339887498949;  // (sqrt(5) - 1) / 2
-/// A converged secant bracket is accepted below this multiple of the tolerance (the verification
-/// and its corrections then take over).
+/// A converged secant bracket is accepted below this multiple of the tolerance with the
+/// dissertation's interpolated scans (the verification and its corrections then take over). On
+/// the depth grid the prediction is the verified seed, so no correction can follow: a bracket
+/// over the tolerance goes on to the grid and golden-section search instead (within the budget).
 constexpr double kSecantAcceptTolerances = 5.0;
 /// A plan's scan stops once the implant point is this far past the target along the needle and
 /// the best error is smaller: the implant curve only moves on (4.3.2: no later depth is better).
@@ -27,8 +30,17 @@ constexpr double kStopPastTarget_m = 5e-4;
 /// tolerance. The live loop executes the verified FEM steps (the depth grid), so no headroom is
 /// kept for it: the search stops at the scene's tolerance, less a margin for rounding.
 constexpr double kGoalFraction = 0.9;
+/// Heights closer than this are the same height to the search (rounding of grid points) [m].
+constexpr double kSameHeight_m = 1e-12;
 /// A seed at rest moves less than this per step with the needle out [m].
 constexpr double kRest_m = 1e-9;
+
+/// CPU time of the calling thread [s] (a plan runs on one thread).
+double threadCpuSeconds() {
+  timespec t{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
+  return static_cast<double>(t.tv_sec) + 1e-9 * static_cast<double>(t.tv_nsec);
+}
 
 std::string mm(double metres) {
   std::ostringstream out;
@@ -98,6 +110,8 @@ const char* toString(PlanCode code) {
   switch (code) {
     case PlanCode::kOk:
       return "ok";
+    case PlanCode::kTargetNotFinite:
+      return "target not finite";
     case PlanCode::kTargetOutsideTissue:
       return "target outside tissue";
     case PlanCode::kHeightOutOfRange:
@@ -130,7 +144,10 @@ Point2 DepthScan::implantAt(double z) const {
 
 RigidPlanner::RigidPlanner(scene::Scene scene, tissue::TissueSimOptions sim_options,
                            PlannerOptions options)
-    : scene_(std::move(scene)), sim_options_(std::move(sim_options)), options_(options) {
+    : scene_(std::move(scene)),
+      sim_options_(std::move(sim_options)),
+      options_(options),
+      cache_(std::make_shared<SimulationCache>()) {
   sim_options_.depth_grid.step_m = options_.procedure_grid ? options_.depth_step_m : 0.0;
   if (!scene_.hasTissue()) {
     throw std::invalid_argument("RigidPlanner: scene '" + scene_.name + "' has no tissue model");
@@ -153,7 +170,11 @@ RigidPlan RigidPlanner::check(const Point2& target) const {
     plan.message = std::string("RigidPlanner: ") + toString(code) + ": " + why;
     return plan;
   };
-  if (!target.allFinite() || !scene_.inWorkspace(target)) {
+  if (!target.allFinite()) {
+    return refuse(PlanCode::kTargetNotFinite, "target (" + mm(target.x()) + ", " + mm(target.y()) +
+                                                  ") has a non-finite coordinate");
+  }
+  if (!scene_.inWorkspace(target)) {
     return refuse(PlanCode::kTargetOutsideTissue,
                   "target (" + mm(target.x()) + ", " + mm(target.y()) + ") is not in the tissue");
   }
@@ -177,6 +198,11 @@ RigidPlan RigidPlanner::check(const Point2& target) const {
   return plan;
 }
 
+struct RigidPlanner::SimulationCache {
+  std::mutex mutex;
+  std::shared_ptr<const tissue::TissueSimulation> scene_sim;  ///< at rest; null until used
+};
+
 std::unique_ptr<tissue::TissueSimulation> RigidPlanner::makeSimulation(const Point2& target) const {
   tissue::TissueSimOptions options = sim_options_;
   // Fine along this target's needle path, whatever the scene's own targets are; a scene target
@@ -185,8 +211,19 @@ std::unique_ptr<tissue::TissueSimulation> RigidPlanner::makeSimulation(const Poi
   if (std::find(points.begin(), points.end(), target) == points.end()) {
     points.push_back(target);
     options.meshing.refine_lines.push_back({Point2(scene_.workspace_min.x(), target.y()), target});
+    return std::make_unique<tissue::TissueSimulation>(scene_, options);
   }
-  return std::make_unique<tissue::TissueSimulation>(scene_, options);
+  std::shared_ptr<const tissue::TissueSimulation> scene_sim;
+  {
+    const std::lock_guard<std::mutex> lock(cache_->mutex);
+    if (!cache_->scene_sim) {
+      cache_->scene_sim = std::make_shared<const tissue::TissueSimulation>(scene_, options);
+    }
+    scene_sim = cache_->scene_sim;
+  }
+  // A copy of the state at rest is the state a fresh build has (bit for bit).
+  return scene_sim->copyable() ? std::make_unique<tissue::TissueSimulation>(*scene_sim)
+                               : std::make_unique<tissue::TissueSimulation>(scene_, options);
 }
 
 DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
@@ -244,7 +281,12 @@ void RigidPlanner::searchHeights(RigidPlan& plan,
   std::vector<std::pair<double, HeightResult>> seen;
   bool goal_met = false;  // with early_stop: any height whose error meets the goal ends the search
   auto f = [&](double y) {
-    seen.emplace_back(y, evaluate(y));
+    // A height scanned already (the grid's points include the target height and the window's
+    // edges, which the secant may have tried) is not simulated again.
+    const auto known = std::find_if(seen.begin(), seen.end(), [&](const auto& s) {
+      return std::abs(s.first - y) <= kSameHeight_m;
+    });
+    seen.emplace_back(y, known != seen.end() ? known->second : evaluate(y));
     goal_met = goal_met || (early_stop && seen.back().second.error_m <= goal_m);
     if (!goal_met && expired && expired()) {
       plan.budget_expired = true;
@@ -308,8 +350,10 @@ void RigidPlanner::searchHeights(RigidPlan& plan,
         std::min_element(seen.begin(), seen.end(), [](const auto& l, const auto& r) {
           return l.second.error_m < r.second.error_m;
         })->second.error_m;
-    plan.secant = (goal_met && !plan.budget_expired) ||
-                  (plan.secant && best_error <= kSecantAcceptTolerances * tolerance());
+    plan.secant =
+        (goal_met && !plan.budget_expired) ||
+        (plan.secant &&
+         best_error <= (options_.procedure_grid ? 1.0 : kSecantAcceptTolerances) * tolerance());
     goal_met = plan.secant || plan.budget_expired;
   }
   if (!goal_met) {
@@ -360,7 +404,7 @@ void RigidPlanner::searchHeights(RigidPlan& plan,
   plan.release = Point2(best->second.depth_m, best->first);
   plan.predicted_implant = best->second.implant;
   plan.predicted_error_m = best->second.error_m;
-  plan.message = plan.budget_expired ? "ok (time budget expired: best height so far)"
+  plan.message = plan.budget_expired ? "ok (budget expired: best height so far)"
                  : plan.secant       ? "ok (secant on the lateral offset)"
                  : plan.unimodal     ? "ok"
                                      : "ok (error not unimodal over the window: grid fallback)";
@@ -373,6 +417,7 @@ double RigidPlanner::maxScanDepth(const Point2& target) const {
 RigidPlan RigidPlanner::timed(const Point2& target,
                               const std::function<void(RigidPlan&)>& body) const {
   const auto start = std::chrono::steady_clock::now();
+  const double cpu_start = threadCpuSeconds();
   RigidPlan plan = check(target);
   if (!plan) {
     return plan;
@@ -384,6 +429,7 @@ RigidPlan RigidPlanner::timed(const Point2& target,
     plan.message = e.what();
   }
   plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  plan.cpu_seconds = threadCpuSeconds() - cpu_start;
   return plan;
 }
 
@@ -400,41 +446,45 @@ double RigidPlanner::tolerance() const {
   return options_.tolerance_m > 0.0 ? options_.tolerance_m : scene_.needle.placement_tolerance_m;
 }
 
-Point2 simulateImplant(tissue::TissueSimulation& sim, const Point2& release,
-                       const ImplantSchedule& schedule) {
-  if (!(schedule.sample_m > 0.0) || !(schedule.dt_s > 0.0)) {
-    throw std::invalid_argument("simulateImplant: sample and dt must be > 0");
-  }
-  sim.reset();
+namespace {
+
+/// Commands the needle at `height_m` from `from` to `to` as a robot streams samples: sample k
+/// at from + k sample (from its index, no accumulated rounding), then the end point itself.
+void commandMove(tissue::TissueSimulation& sim, const ImplantSchedule& schedule, double height_m,
+                 double from, double to) {
   auto command = [&](double x) {
-    const tissue::StepStatus status = sim.advance(schedule.dt_s, release.y(), x);
+    const tissue::StepStatus status = sim.advance(schedule.dt_s, height_m, x);
     if (!status) {
       throw std::runtime_error("simulateImplant: step refused: " + status.toString());
     }
   };
-  // The commands as a robot streams them: sample k at start + k sample (from its index, no
-  // accumulated rounding), then the end point itself.
-  auto move = [&](double from, double to) {
-    const double direction = to >= from ? 1.0 : -1.0;
-    for (long k = 1;; ++k) {
-      const double x = from + direction * static_cast<double>(k) * schedule.sample_m;
-      if (direction * (x - to) >= 0.0) {
-        break;
-      }
-      command(x);
+  const double direction = to >= from ? 1.0 : -1.0;
+  for (long k = 1;; ++k) {
+    const double x = from + direction * static_cast<double>(k) * schedule.sample_m;
+    if (direction * (x - to) >= 0.0) {
+      break;
     }
-    command(to);
-  };
-  move(schedule.start_x_m, release.x());
+    command(x);
+  }
+  command(to);
+}
+
+/// The second half of simulateImplant: `sim` has the needle at `release`; releases the seed,
+/// retracts to the schedule's start and waits until the seed is at rest.
+Point2 releaseAndRetract(tissue::TissueSimulation& sim, const Point2& release,
+                         const ImplantSchedule& schedule) {
   std::string why;
   const std::optional<int> id = sim.implantSeed(&why);
   if (!id) {
     throw std::runtime_error("simulateImplant: seed not released: " + why);
   }
-  move(release.x(), schedule.start_x_m);
+  commandMove(sim, schedule, release.y(), release.x(), schedule.start_x_m);
   Point2 seed = sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
   for (int i = 0; i < schedule.max_rest_steps; ++i) {  // wait for steady state (4.3.2)
-    command(schedule.start_x_m);
+    const tissue::StepStatus status = sim.advance(schedule.dt_s, release.y(), schedule.start_x_m);
+    if (!status) {
+      throw std::runtime_error("simulateImplant: step refused: " + status.toString());
+    }
     const Point2 next = sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
     const bool at_rest = (next - seed).norm() < kRest_m;
     seed = next;
@@ -443,6 +493,18 @@ Point2 simulateImplant(tissue::TissueSimulation& sim, const Point2& release,
     }
   }
   return seed;
+}
+
+}  // namespace
+
+Point2 simulateImplant(tissue::TissueSimulation& sim, const Point2& release,
+                       const ImplantSchedule& schedule) {
+  if (!(schedule.sample_m > 0.0) || !(schedule.dt_s > 0.0)) {
+    throw std::invalid_argument("simulateImplant: sample and dt must be > 0");
+  }
+  sim.reset();
+  commandMove(sim, schedule, release.y(), schedule.start_x_m, release.x());
+  return releaseAndRetract(sim, release, schedule);
 }
 
 DepthScan RigidPlanner::gridScan(tissue::TissueSimulation& sim, double height_m,
@@ -477,9 +539,14 @@ DepthScan RigidPlanner::gridScan(tissue::TissueSimulation& sim, double height_m,
       scan.lateral_m = signedLateral(
           n >= 2 ? Point2(scan.implant[n - 1] - scan.implant[n - 2]) : Point2(1.0, 0.0),
           target - *tip);
+      // Within the tolerance: keep the state, a verification of this release continues from it.
+      scan.release_state = error <= tolerance() && sim.copyable()
+                               ? std::make_shared<const tissue::TissueSimulation>(sim)
+                               : nullptr;
     }
-    if (stop_past_target && tip->x() - target.x() > kStopPastTarget_m &&
-        scan.best_error_m < kStopPastTarget_m) {
+    // The tip's reference x only grows while inserting (cuts move it along +x) and the error is
+    // at least tip x - target x: once that exceeds the best error no later depth is better.
+    if (stop_past_target && tip->x() - target.x() > scan.best_error_m) {
       break;
     }
   }
@@ -506,20 +573,39 @@ void RigidPlanner::searchPlan(RigidPlan& plan, tissue::TissueSimulation& sim, co
       first_offset_m, expired);
 }
 
+Point2 RigidPlanner::verify(tissue::TissueSimulation& sim, RigidPlan& plan) const {
+  for (auto it = plan.scans.rbegin(); it != plan.scans.rend(); ++it) {
+    if (it->release_state && it->height_m == plan.release.y() &&
+        it->best_depth_m == plan.release.x()) {
+      tissue::TissueSimulation state(*it->release_state);  // the scan's state, bit for bit
+      const long before = state.femSteps();
+      const Point2 seed = releaseAndRetract(state, plan.release, schedule());
+      plan.fem_steps += state.femSteps() - before;
+      return seed;
+    }
+  }
+  return simulateImplant(sim, plan.release, schedule());  // counted on sim
+}
+
 RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m) const {
   const auto start = std::chrono::steady_clock::now();
-  const std::function<bool()> expired = [&] {
-    return options_.time_budget_s > 0.0 &&
-           std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() >
-               options_.time_budget_s;
-  };
   return timed(target, [&](RigidPlan& plan) {
     plan.tolerance_m = tolerance();
     const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
+    const long steps_at_start = sim->femSteps();
+    long other_steps = 0;  // FEM steps of verifications on copies, and of earlier rounds
+    auto steps = [&] { return sim->femSteps() - steps_at_start + other_steps; };
+    const std::function<bool()> expired = [&] {
+      const double seconds =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+      return (options_.step_budget > 0 && steps() > options_.step_budget) ||
+             (options_.time_budget_s > 0.0 && seconds > options_.time_budget_s);
+    };
     searchPlan(plan, *sim, target, first_height_offset_m, expired);
     plan.predicted_error_m = (plan.predicted_implant - target).norm();
     if (!options_.verify) {
       plan.within_tolerance = plan.predicted_error_m <= plan.tolerance_m;
+      plan.fem_steps = steps();
       return;
     }
     // Verify; while the verified seed misses and disagrees with the prediction, aim the O(1)
@@ -528,7 +614,9 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
     RigidPlan best = plan;
     Point2 aim = target;
     for (int round = 0;; ++round) {
-      const Point2 verified = simulateImplant(*sim, plan.release, schedule());
+      plan.fem_steps = 0;
+      const Point2 verified = verify(*sim, plan);
+      other_steps += plan.fem_steps;  // steps on a copy (sim counts its own)
       ++plan.simulations;
       ++plan.verifications;
       const double verified_error = (verified - target).norm();
@@ -556,28 +644,36 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
       plan.predicted_implant = next.predicted_implant;  // the O(1) model's own prediction
       plan.budget_expired = next.budget_expired;
     }
-    const int simulations = plan.simulations, verifications = plan.verifications,
-              corrections = plan.corrections;
-    const bool budget_expired = plan.budget_expired;
-    std::vector<DepthScan> scans = std::move(plan.scans);
-    plan = best;
-    plan.scans = std::move(scans);
-    plan.simulations = simulations;
-    plan.verifications = verifications;
-    plan.corrections = corrections;
-    plan.budget_expired = budget_expired;
-    plan.within_tolerance = plan.verified_error_m <= plan.tolerance_m;
-    if (!plan.within_tolerance) {
-      plan.message = "verified error " + mm(plan.verified_error_m) + " exceeds the tolerance " +
-                     mm(plan.tolerance_m) + (budget_expired ? " (time budget expired)" : "") +
-                     "; " + plan.message;
-      if (options_.refuse_over_tolerance) {
-        plan.code = PlanCode::kOutOfTolerance;
-        plan.message = std::string("RigidPlanner: ") + toString(plan.code) +
-                       ": no release point within the tolerance found: " + plan.message;
-      }
-    }
+    finishVerifiedPlan(plan, std::move(best), steps());
   });
+}
+
+void RigidPlanner::finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_steps) const {
+  const int simulations = plan.simulations, verifications = plan.verifications,
+            corrections = plan.corrections;
+  const bool budget_expired = plan.budget_expired;
+  std::vector<DepthScan> scans = std::move(plan.scans);
+  plan = std::move(best);
+  plan.scans = std::move(scans);
+  for (DepthScan& scan : plan.scans) {
+    scan.release_state.reset();  // the states are for verification only: free them
+  }
+  plan.simulations = simulations;
+  plan.verifications = verifications;
+  plan.corrections = corrections;
+  plan.budget_expired = budget_expired;
+  plan.fem_steps = fem_steps;
+  plan.within_tolerance = plan.verified_error_m <= plan.tolerance_m;
+  if (!plan.within_tolerance) {
+    plan.message = "verified error " + mm(plan.verified_error_m) + " exceeds the tolerance " +
+                   mm(plan.tolerance_m) + (budget_expired ? " (step/time budget expired)" : "") +
+                   "; " + plan.message;
+    if (options_.refuse_over_tolerance) {
+      plan.code = PlanCode::kOutOfTolerance;
+      plan.message = std::string("RigidPlanner: ") + toString(plan.code) +
+                     ": no release point within the tolerance found: " + plan.message;
+    }
+  }
 }
 
 std::vector<RigidPlan> RigidPlanner::planAll(const std::vector<Point2>& targets,

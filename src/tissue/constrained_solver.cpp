@@ -35,8 +35,8 @@ constexpr double kDeltaEigenRelTol = 1e-15;
 
 }  // namespace
 
-struct ConstrainedSolver::Impl {
-  const Eigen::SparseMatrix<double>* a = nullptr;
+/// The solver's state that plain copies copy (everything but the matrix and CHOLMOD's objects).
+struct ConstrainedSolverData {
   bool incremental = true;
   int n_full = 0;
   int n_red = 0;
@@ -45,7 +45,16 @@ struct ConstrainedSolver::Impl {
   std::vector<int> entry_pos;  ///< full A value index -> CHOLMOD upper value index, or -1
   std::vector<int> entry_row_red, entry_col_red;  ///< per CHOLMOD value: reduced row / column
   std::vector<int> full_entry_of_pos;             ///< CHOLMOD value index -> full A value index
+  std::vector<double> base;   ///< A values (upper, reduced) represented by the factor
+  std::vector<char> deleted;  ///< per reduced index: row/column deleted (prescribed)
+  std::vector<char> pending;  ///< per reduced index: A changed since the last sync
+  std::vector<int> pending_list;
+  bool dirty = true;
+  long modifications = 0;
+};
 
+struct ConstrainedSolver::Impl : ConstrainedSolverData {
+  const Eigen::SparseMatrix<double>* a = nullptr;
   cholmod_common common{};
   cholmod_sparse* a_chol = nullptr;  ///< upper triangle, permuted, values of the factored matrix
   cholmod_factor* l_symbolic = nullptr;
@@ -54,13 +63,6 @@ struct ConstrainedSolver::Impl {
   cholmod_dense* b_dense = nullptr;
   cholmod_dense* y_work = nullptr;
   cholmod_dense* e_work = nullptr;
-
-  std::vector<double> base;   ///< A values (upper, reduced) represented by the factor
-  std::vector<char> deleted;  ///< per reduced index: row/column deleted (prescribed)
-  std::vector<char> pending;  ///< per reduced index: A changed since the last sync
-  std::vector<int> pending_list;
-  bool dirty = true;
-  long modifications = 0;
 
   ~Impl() {
     if (a_chol)
@@ -80,10 +82,38 @@ struct ConstrainedSolver::Impl {
     cholmod_finish(&common);
   }
 
-  void setup(const std::vector<int>& fixed_dofs) {
+  /// cholmod_start with the settings every factorisation after setup() uses.
+  void start() {
     cholmod_start(&common);
     common.print = 0;
     common.error_handler = nullptr;
+  }
+
+  /// The settings setup() leaves for the numeric factorisations (natural order, simplicial).
+  void numericSettings() {
+    common.nmethods = 1;
+    common.method[0].ordering = CHOLMOD_NATURAL;
+    common.postorder = 0;
+    common.supernodal = CHOLMOD_SIMPLICIAL;
+    common.final_ll = 0;
+  }
+
+  /// Copies `o`'s state (a fresh CHOLMOD workspace, copies of its matrices and factor).
+  void copyFrom(const Impl& o) {
+    start();
+    numericSettings();
+    static_cast<ConstrainedSolverData&>(*this) = o;
+    a_chol = cholmod_copy_sparse(o.a_chol, &common);
+    l_symbolic = cholmod_copy_factor(o.l_symbolic, &common);
+    l = o.l ? cholmod_copy_factor(o.l, &common) : nullptr;
+    b_dense = cholmod_allocate_dense(n_red, 1, n_red, CHOLMOD_REAL, &common);
+    if (!a_chol || !l_symbolic || (o.l && !l) || !b_dense) {
+      throw std::runtime_error("ConstrainedSolver: copying the factorisation failed");
+    }
+  }
+
+  void setup(const std::vector<int>& fixed_dofs) {
+    start();
     n_full = static_cast<int>(a->rows());
     std::vector<char> fixed(n_full, 0);
     for (int d : fixed_dofs)
@@ -168,11 +198,7 @@ struct ConstrainedSolver::Impl {
     }
     // Symbolic analysis of the permuted matrix in its natural order (kept: the pattern of A
     // never changes; every refactorisation starts from a copy of it).
-    common.nmethods = 1;
-    common.method[0].ordering = CHOLMOD_NATURAL;
-    common.postorder = 0;
-    common.supernodal = CHOLMOD_SIMPLICIAL;
-    common.final_ll = 0;
+    numericSettings();
     l_symbolic = cholmod_analyze(a_chol, &common);
     if (!l_symbolic)
       throw std::runtime_error("ConstrainedSolver: CHOLMOD symbolic analysis failed");
@@ -362,6 +388,21 @@ ConstrainedSolver::ConstrainedSolver(const Eigen::SparseMatrix<double>& a,
 }
 
 ConstrainedSolver::~ConstrainedSolver() = default;
+
+std::unique_ptr<ConstrainedSolver> ConstrainedSolver::clone(
+    const Eigen::SparseMatrix<double>& a) const {
+  if (a.rows() != impl_->n_full ||
+      a.nonZeros() != static_cast<Eigen::Index>(impl_->entry_pos.size())) {
+    throw std::invalid_argument(
+        "ConstrainedSolver::clone: the matrix is not a copy of the solver's");
+  }
+  std::unique_ptr<ConstrainedSolver> copy(new ConstrainedSolver());
+  copy->impl_ = std::make_unique<Impl>();
+  copy->impl_->a = &a;
+  copy->impl_->copyFrom(*impl_);
+  copy->stats_ = stats_;
+  return copy;
+}
 
 void ConstrainedSolver::matrixReplaced() {
   impl_->dirty = true;

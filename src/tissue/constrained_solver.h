@@ -31,6 +31,10 @@ public:
   ConstrainedSolver(const Eigen::SparseMatrix<double>& a, std::vector<int> fixed_dofs,
                     bool incremental);
   ~ConstrainedSolver();
+  /// A copy of this solver (factor, pending changes, counters) for `a`, a copy of the matrix
+  /// this solver was given (same pattern and values): continuing with the copy gives the same
+  /// results, bit for bit, as continuing with this solver.
+  std::unique_ptr<ConstrainedSolver> clone(const Eigen::SparseMatrix<double>& a) const;
   ConstrainedSolver(const ConstrainedSolver&) = delete;
   ConstrainedSolver& operator=(const ConstrainedSolver&) = delete;
 
@@ -49,6 +53,7 @@ public:
   const SolverStats& stats() const { return stats_; }
 
 private:
+  ConstrainedSolver() = default;
   struct Impl;
   std::unique_ptr<Impl> impl_;
   SolverStats stats_;

@@ -155,6 +155,27 @@ int entryIndex(const SparseMatrix& a, int row, int col) {
 
 }  // namespace
 
+FemModel::FemModel(const FemModel& other)
+    : mesh_(other.mesh_),
+      materials_(other.materials_),
+      options_(other.options_),
+      K_(other.K_),
+      M_(other.M_),
+      C_(other.C_),
+      m_lumped_(other.m_lumped_),
+      node_triangles_(other.node_triangles_),
+      impl_(std::make_shared<Impl>(*other.impl_)) {}
+
+FemModel& FemModel::operator=(const FemModel& other) {
+  if (this != &other) {
+    FemModel copy(other);
+    *this = std::move(copy);
+  }
+  return *this;
+}
+
+FemModel::~FemModel() = default;
+
 FemModel::FemModel(geometry::TriangleMesh mesh, std::vector<ElementMaterial> element_materials,
                    const FemOptions& options)
     : mesh_(std::move(mesh)),

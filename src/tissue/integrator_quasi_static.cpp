@@ -27,6 +27,11 @@ public:
 
   IntegratorKind kind() const override { return IntegratorKind::kQuasiStatic; }
 
+  std::unique_ptr<Integrator> clone(const FemModel& model) const override {
+    std::unique_ptr<QuasiStaticIntegrator> copy(new QuasiStaticIntegrator(model, *this));
+    return copy;
+  }
+
   StepStatus step(double dt_s, const Eigen::VectorXd& f_ext, const Prescribed& prescribed,
                   Eigen::VectorXd& reactions) override {
     StepStatus status = checkStepInput(model_, fixed_mark_, dt_s, false, f_ext, prescribed);
@@ -99,6 +104,19 @@ protected:
   }
 
 private:
+  /// The copy of `other` for `model` (a copy of other's model).
+  QuasiStaticIntegrator(const FemModel& model, const QuasiStaticIntegrator& other)
+      : Integrator(model, other.fixed_dofs_),
+        options_(other.options_),
+        fixed_mark_(other.fixed_mark_),
+        K_R_(other.K_R_),
+        C_R_(other.C_R_),
+        solver_(other.solver_->clone(options_.corotational ? K_R_ : model.stiffness())) {
+    u_ = other.u_;
+    v_ = other.v_;
+    a_ = other.a_;
+  }
+
   IntegratorOptions options_;
   std::vector<char> fixed_mark_;
   SparseMatrix K_R_, C_R_;

@@ -84,6 +84,31 @@ NeedleInsertion::NeedleInsertion(FemModel& model, Integrator& integrator,
   height_m_ = 0.5 * (bounds_min_.y() + bounds_max_.y());
 }
 
+NeedleInsertion::NeedleInsertion(const NeedleInsertion& other, FemModel& model,
+                                 Integrator& integrator)
+    : model_(model),
+      integrator_(integrator),
+      entry_nodes_(other.entry_nodes_),
+      node_fixed_(other.node_fixed_),
+      bounds_min_(other.bounds_min_),
+      bounds_max_(other.bounds_max_),
+      params_(other.params_),
+      original_area_(other.original_area_),
+      original_nodes_(other.original_nodes_),
+      in_tissue_(other.in_tissue_),
+      height_m_(other.height_m_),
+      tip_x_m_(other.tip_x_m_),
+      prev_tip_x_m_(other.prev_tip_x_m_),
+      tip_node_(other.tip_node_),
+      tip_start_ref_(other.tip_start_ref_),
+      shaft_(other.shaft_),
+      tip_patch_(other.tip_patch_),
+      shaft_state_(other.shaft_state_),
+      seeds_(other.seeds_),
+      f_ext_(other.f_ext_),
+      u_prev_(other.u_prev_),
+      info_(other.info_) {}
+
 std::optional<Point2> NeedleInsertion::tipReference() const {
   if (tip_node_ < 0) {
     return std::nullopt;

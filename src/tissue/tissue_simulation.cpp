@@ -112,6 +112,46 @@ TissueSimulation::TissueSimulation(const scene::Scene& scene, const TissueSimOpt
   build();
 }
 
+struct TissueSimulation::Pristine {
+  std::unique_ptr<FemModel> model;
+  std::unique_ptr<Integrator> integrator;
+  std::unique_ptr<NeedleInsertion> needle;
+};
+
+TissueSimulation::TissueSimulation(const TissueSimulation& other)
+    : scene_(other.scene_),
+      options_(other.options_),
+      initial_mesh_(other.initial_mesh_),
+      element_materials_(other.element_materials_),
+      fixed_dofs_(other.fixed_dofs_),
+      entry_nodes_(other.entry_nodes_),
+      pristine_(other.pristine_),
+      grid_k_(other.grid_k_),
+      fem_steps_(other.fem_steps_) {
+  if (!other.copyable()) {
+    throw std::logic_error("TissueSimulation: the " +
+                           std::string(toString(other.integrator_->kind())) +
+                           " integrator's state cannot be copied");
+  }
+  copyParts(*other.model_, *other.integrator_, *other.needle_);
+}
+
+TissueSimulation::~TissueSimulation() = default;
+
+void TissueSimulation::copyParts(const FemModel& model, const Integrator& integrator,
+                                 const NeedleInsertion& needle) {
+  auto model_copy = std::make_unique<FemModel>(model);
+  std::unique_ptr<Integrator> integrator_copy = integrator.clone(*model_copy);
+  if (!integrator_copy) {
+    throw std::logic_error("TissueSimulation: the integrator cannot be copied");
+  }
+  needle_.reset();
+  integrator_.reset();
+  model_ = std::move(model_copy);
+  integrator_ = std::move(integrator_copy);
+  needle_ = std::make_unique<NeedleInsertion>(needle, *model_, *integrator_);
+}
+
 void TissueSimulation::build() {
   FemOptions fem_options;
   fem_options.formulation = options_.formulation;
@@ -123,10 +163,33 @@ void TissueSimulation::build() {
   needle_ = std::make_unique<NeedleInsertion>(*model_, *integrator_, entry_nodes_, fixed_dofs_,
                                               scene_.workspace_min, scene_.workspace_max,
                                               needleParamsFromScene(scene_));
+  if (pristine_ || options_.integrator != IntegratorKind::kQuasiStatic) {
+    return;
+  }
+  // Keep the state at rest, factorised (the unloaded solve every insertion starts with), for
+  // reset() and copies: a reset then copies instead of re-assembling and re-analysing.
+  Eigen::VectorXd reactions;
+  const StepStatus rest =
+      integrator_->step(1.0, Eigen::VectorXd::Zero(model_->dofCount()), Prescribed{}, reactions);
+  if (!rest) {
+    throw std::invalid_argument("TissueSimulation: the unloaded model cannot be solved: " +
+                                rest.toString());
+  }
+  auto pristine = std::make_shared<Pristine>();
+  pristine->model = std::move(model_);
+  pristine->integrator = std::move(integrator_);
+  pristine->needle = std::move(needle_);
+  pristine_ = pristine;
+  copyParts(*pristine->model, *pristine->integrator, *pristine->needle);
+}
+
+StepStatus TissueSimulation::needleStep(double dt_s, double needle_height_m, double tip_x_m) {
+  ++fem_steps_;
+  return needle_->step(dt_s, needle_height_m, tip_x_m);
 }
 
 StepStatus TissueSimulation::step(double dt_s, double needle_height_m, double tip_x_m) {
-  return needle_->step(dt_s, needle_height_m, tip_x_m);
+  return needleStep(dt_s, needle_height_m, tip_x_m);
 }
 
 long TissueSimulation::gridIndex(double tip_x_m) const {
@@ -143,7 +206,7 @@ double TissueSimulation::gridDepth(long k) const {
 }
 
 StepStatus TissueSimulation::gridStep(long k, double needle_height_m, double dt_s) {
-  const StepStatus status = needle_->step(dt_s, needle_height_m, gridDepth(k));
+  const StepStatus status = needleStep(dt_s, needle_height_m, gridDepth(k));
   if (status) {
     grid_k_ = k;
   }
@@ -175,13 +238,17 @@ StepStatus TissueSimulation::advance(double dt_s, double needle_height_m, double
       status = gridStep(-1, needle_height_m, dt);
     }
   } else if (options_.integrator != IntegratorKind::kQuasiStatic) {
-    status = needle_->step(dt_s, needle_height_m, gridDepth(grid_k_));  // dynamics at rest
+    status = needleStep(dt_s, needle_height_m, gridDepth(grid_k_));  // dynamics at rest
   }
   return status;
 }
 
 void TissueSimulation::reset() {
   grid_k_ = -1;
+  if (pristine_) {
+    copyParts(*pristine_->model, *pristine_->integrator, *pristine_->needle);
+    return;
+  }
   needle_.reset();
   integrator_.reset();
   model_.reset();

@@ -47,7 +47,7 @@ struct SceneFigures {
   std::string name, spec;
   int targets = 0, planned = 0, refused = 0, over_tolerance = 0;
   std::vector<double> predicted_cm, verified_cm, measured_cm, unplanned_cm, legacy_gap_cm, pvm_cm,
-      live_cm, seconds, simulations;
+      live_cm, seconds, cpu_seconds, simulations, fem_steps;
 };
 
 double maxOf(const std::vector<double>& v) {
@@ -80,7 +80,9 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     const auto plan = planner.plan(target.position, previous_offset);
     if (!plan) {
       ++f.refused;
-      f.seconds.push_back(plan.seconds);           // a refusal's planning time counts too
+      f.seconds.push_back(plan.seconds);  // a refusal's planning time counts too
+      f.fem_steps.push_back(static_cast<double>(plan.fem_steps));
+      f.cpu_seconds.push_back(plan.cpu_seconds);
       const ng::report::Cell none{std::string()};  // never inserted: no error figures
       // Out of tolerance: the best plan's verified error says by how much.
       const ng::report::Cell verified = std::isfinite(plan.verified_error_m)
@@ -88,7 +90,8 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
                                             : none;
       rows.addRow({scene.name, target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
                    std::string("refused"), none, none, verified, none, none, none, none, none, none,
-                   double(plan.simulations), plan.seconds, std::string(plan.message)});
+                   double(plan.simulations), plan.seconds, plan.cpu_seconds, double(plan.fem_steps),
+                   std::string(plan.message)});
       std::cout << scene.name << "/" << target.name << ": refused: " << plan.message << "\n"
                 << std::flush;
       continue;
@@ -122,18 +125,21 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     f.legacy_gap_cm.push_back(1e2 * legacy_gap);
     f.pvm_cm.push_back(1e2 * pvm);
     f.seconds.push_back(plan.seconds);
+    f.fem_steps.push_back(static_cast<double>(plan.fem_steps));
+    f.cpu_seconds.push_back(plan.cpu_seconds);
     f.simulations.push_back(plan.simulations);
     rows.addRow({scene.name, target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
                  std::string(placed ? "placed" : "missed"),
                  1e3 * (unplanned_seed - target.position).norm(), 1e3 * plan.predicted_error_m,
                  1e3 * plan.verified_error_m, 1e3 * measured, 1e3 * live_gap, 1e3 * pvm,
                  1e3 * legacy_gap, 1e3 * plan.release.x(), 1e3 * plan.release.y(),
-                 double(plan.simulations), plan.seconds, std::string(plan.message)});
+                 double(plan.simulations), plan.seconds, plan.cpu_seconds, double(plan.fem_steps),
+                 std::string(plan.message)});
     std::cout << scene.name << "/" << target.name << ": " << (placed ? "placed" : "MISSED")
               << " measured " << 1e3 * measured << " mm (predicted " << 1e3 * plan.predicted_error_m
               << ", verified " << 1e3 * plan.verified_error_m << ", O(1)-interpolated gap "
               << 1e3 * legacy_gap << " mm), " << plan.simulations << " simulations, "
-              << plan.seconds << " s\n"
+              << plan.seconds << " s, " << plan.fem_steps << " FEM steps\n"
               << std::flush;
   }
   return f;
@@ -308,14 +314,19 @@ std::string scenesJson(const std::vector<SceneFigures>& figures) {
          << ", \"unplanned_error_cm_mean\": " << mean(f.unplanned_cm)
          << ", \"seconds_per_target_mean\": " << mean(f.seconds)
          << ", \"seconds_per_target_max\": " << maxOf(f.seconds)
-         << ", \"simulations_per_plan_mean\": " << mean(f.simulations) << "}";
+         << ", \"simulations_per_plan_mean\": " << mean(f.simulations)
+         << ", \"cpu_seconds_per_target_mean\": " << mean(f.cpu_seconds)
+         << ", \"cpu_seconds_per_target_max\": " << maxOf(f.cpu_seconds)
+         << ", \"fem_steps_per_plan_mean\": " << mean(f.fem_steps)
+         << ", \"fem_steps_per_plan_max\": " << maxOf(f.fem_steps) << "}";
     all.targets += f.targets;
     all.refused += f.refused;
     all.over_tolerance += f.over_tolerance;
     for (std::vector<double> SceneFigures::*v :
          {&SceneFigures::predicted_cm, &SceneFigures::verified_cm, &SceneFigures::measured_cm,
           &SceneFigures::unplanned_cm, &SceneFigures::legacy_gap_cm, &SceneFigures::pvm_cm,
-          &SceneFigures::seconds, &SceneFigures::simulations, &SceneFigures::live_cm}) {
+          &SceneFigures::seconds, &SceneFigures::simulations, &SceneFigures::live_cm,
+          &SceneFigures::fem_steps, &SceneFigures::cpu_seconds}) {
       (all.*v).insert((all.*v).end(), (f.*v).begin(), (f.*v).end());
     }
   }
@@ -331,7 +342,12 @@ std::string scenesJson(const std::vector<SceneFigures>& figures) {
        << ",\n  \"unplanned_measured_error_cm_mean\": " << mean(all.unplanned_cm)
        << ",\n  \"seconds_per_target_max\": " << maxOf(all.seconds)
        << ",\n  \"seconds_per_target_mean_all_scenes\": " << mean(all.seconds)
-       << ",\n  \"simulations_per_plan_mean\": " << mean(all.simulations);
+       << ",\n  \"simulations_per_plan_mean\": " << mean(all.simulations)
+       << ",\n  \"cpu_seconds_per_target_max\": " << maxOf(all.cpu_seconds)
+       << ",\n  \"cpu_seconds_per_target_mean_all_scenes\": " << mean(all.cpu_seconds)
+       << ",\n  \"fem_steps_per_plan_mean\": " << mean(all.fem_steps)
+       << ",\n  \"fem_steps_per_plan_max\": " << maxOf(all.fem_steps)
+       << ",\n  \"step_budget\": " << ng::rigid_planning::PlannerOptions{}.step_budget;
   return json.str();
 }
 
@@ -370,7 +386,7 @@ int main(int argc, char** argv) {
          "predicted_error_mm", "verified_error_mm", "measured_error_mm",
          "live_schedule_vs_measured_mm", "predicted_vs_measured_mm",
          "o1_interpolated_vs_measured_mm", "release_x_mm", "release_y_mm", "simulations", "plan_s",
-         "message"},
+         "plan_cpu_s", "fem_steps", "message"},
         6);
     std::vector<SceneFigures> figures;
     for (const std::string& spec : specs) {

@@ -181,6 +181,55 @@ TEST(NeedleInsertionHardCases, NeedlePathAlongARegionBoundary) {
   EXPECT_LE(seed.x(), 0.04 + 1e-12);
 }
 
+/// Inserts to depth_m at height_m, implants a seed, retracts: the seed's final position.
+Point2 insertImplantRetract(TissueSimulation& sim, double height_m, double from_m, double depth_m) {
+  drive(sim, height_m, from_m, depth_m);
+  const auto id = sim.implantSeed();
+  EXPECT_TRUE(id.has_value());
+  drive(sim, height_m, depth_m, -0.002);
+  return id ? sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id))) : Point2(NAN, NAN);
+}
+
+TEST_F(NeedleInsertionTest, ACopyContinuesBitForBitAndLeavesTheOriginalAlone) {
+  // Issue 22: the planner verifies a release from a copy of its scan's state, and reset() copies
+  // the state kept at construction. Both must give exactly what the original would.
+  constexpr double kHeight_m = 0.03;
+  ASSERT_TRUE(sim_.copyable());
+  drive(sim_, kHeight_m, -0.002, 0.02);
+  TissueSimulation copy(sim_);
+  const std::vector<Point2> original_mesh = sim_.model().mesh().nodes;
+  EXPECT_EQ(copy.model().mesh().nodes, original_mesh);
+  EXPECT_EQ(copy.femSteps(), sim_.femSteps());
+  const Point2 from_copy = insertImplantRetract(copy, kHeight_m, 0.02, 0.035);
+  EXPECT_EQ(sim_.model().mesh().nodes, original_mesh) << "the copy's cuts moved the original";
+  EXPECT_TRUE(sim_.seeds().empty());
+  const Point2 from_original = insertImplantRetract(sim_, kHeight_m, 0.02, 0.035);
+  EXPECT_EQ(from_copy.x(), from_original.x());
+  EXPECT_EQ(from_copy.y(), from_original.y());
+  // reset() (a copy of the state at construction) runs as a freshly built simulation.
+  sim_.reset();
+  EXPECT_TRUE(sim_.seeds().empty());
+  EXPECT_EQ(sim_.model().mesh().nodes, sim_.initialMesh().nodes);
+  TissueSimulation fresh(scene_);
+  drive(sim_, kHeight_m, -0.002, 0.0);
+  drive(fresh, kHeight_m, -0.002, 0.0);
+  const Point2 after_reset = insertImplantRetract(sim_, kHeight_m, 0.0, 0.035);
+  const Point2 built = insertImplantRetract(fresh, kHeight_m, 0.0, 0.035);
+  EXPECT_EQ(after_reset.x(), built.x());
+  EXPECT_EQ(after_reset.y(), built.y());
+}
+
+TEST(NeedleInsertionCopy, ADynamicModelSaysItCannotBeCopied) {
+  scene::Scene scene = scene::defaultScene("prostate_sagittal");
+  scene.models.tissue = scene::TissueModel::kNewmark;
+  TissueSimulation sim(scene);
+  EXPECT_FALSE(sim.copyable());
+  EXPECT_THROW(TissueSimulation{sim}, std::logic_error);
+  ASSERT_TRUE(sim.step(0.001, 0.03, 0.001));
+  sim.reset();  // rebuilt instead
+  EXPECT_EQ(sim.model().mesh().nodes, sim.initialMesh().nodes);
+}
+
 }  // namespace
 }  // namespace needle_guidance::tissue
 

@@ -31,11 +31,12 @@ Point2 fullSimulation(const scene::Scene& scene, const Point2& release, const Po
   return sim.seedPosition(sim.seeds().at(static_cast<std::size_t>(*id)));
 }
 
-/// Options without a time budget: plans that do not depend on the machine's load. The search
-/// goal is 0.05 mm (not the default 0.9 x tolerance) so that t06 needs a height search.
+/// Options without a step or time budget: plans that do not depend on the machine's load. The
+/// search goal is 0.05 mm (not the default 0.9 x tolerance) so that t06 needs a height search.
 PlannerOptions unbudgeted() {
   PlannerOptions options;
   options.time_budget_s = 0.0;
+  options.step_budget = 0;
   options.error_goal_m = 5e-5;
   return options;
 }
@@ -50,7 +51,12 @@ protected:
 
 TEST_F(RigidPlannerTest, InfeasibleTargetsReturnAStatusSayingWhy) {
   EXPECT_EQ(planner_.plan(Point2(0.07, 0.03)).code, PlanCode::kTargetOutsideTissue);
-  EXPECT_EQ(planner_.plan(Point2(NAN, 0.03)).code, PlanCode::kTargetOutsideTissue);
+  for (const Point2& bad : {Point2(NAN, 0.03), Point2(0.03, NAN), Point2(INFINITY, 0.03)}) {
+    const RigidPlan plan = planner_.plan(bad);
+    EXPECT_EQ(plan.code, PlanCode::kTargetNotFinite);
+    EXPECT_NE(plan.message.find("not finite"), std::string::npos) << plan.message;
+    EXPECT_NE(plan.message.find("non-finite coordinate"), std::string::npos) << plan.message;
+  }
   EXPECT_EQ(planner_.plan(Point2(0.03, 0.002)).code, PlanCode::kHeightOutOfRange);
   const RigidPlan deep = planner_.plan(Point2(0.058, 0.03));
   EXPECT_EQ(deep.code, PlanCode::kBeyondMaxDepth);
@@ -226,6 +232,36 @@ TEST(RigidPlannerVerified, AnExpiredBudgetReturnsTheBestPlanSoFarVerified) {
   if (!plan.within_tolerance) {
     EXPECT_NE(plan.message.find("time budget"), std::string::npos) << plan.message;
   }
+}
+
+TEST(RigidPlannerVerified, AStepBudgetEndsTheSearchTheSameWayOnAnyMachine) {
+  // Issue 22: refusals must not depend on the load. The budget counts FEM steps, so the same
+  // plan comes back however long the steps took (the default has no time budget).
+  PlannerOptions options;
+  ASSERT_EQ(options.time_budget_s, 0.0);
+  options.step_budget = 200;    // less than one scan to t06 (~390 grid steps)
+  options.error_goal_m = 5e-5;  // which the target height's scan does not meet at t06
+  const scene::Scene scene = scene::defaultScene("prostate_sagittal");
+  const RigidPlanner planner(scene, options);
+  const Point2 target = scene.target("t06").position;
+  const RigidPlan a = planner.plan(target);
+  const RigidPlan b = planner.plan(target);
+  for (const RigidPlan* plan : {&a, &b}) {
+    ASSERT_TRUE(*plan || plan->code == PlanCode::kOutOfTolerance) << plan->toString();
+    EXPECT_TRUE(plan->budget_expired);
+    EXPECT_EQ(plan->scans.size(), 1U);
+    EXPECT_TRUE(plan->verified);
+    EXPECT_GT(plan->fem_steps, options.step_budget);  // the scan in progress is finished
+  }
+  EXPECT_EQ(a.release, b.release);
+  EXPECT_EQ(a.fem_steps, b.fem_steps);
+  EXPECT_EQ(a.verified_error_m, b.verified_error_m);
+  // Without the budget the search goes on: more steps, a smaller error.
+  options.step_budget = 0;
+  const RigidPlan unbounded = RigidPlanner(scene, options).plan(target);
+  EXPECT_FALSE(unbounded.budget_expired);
+  EXPECT_GT(unbounded.fem_steps, a.fem_steps);
+  EXPECT_LE(unbounded.verified_error_m, a.verified_error_m);
 }
 
 TEST(RigidPlannerRobust, StiffnessSamplesAreDeterministicAndValidated) {

@@ -28,6 +28,10 @@ struct DepthScan {
   /// target lies to the left of the curve's direction of travel [m]: ~linear in height, the
   /// secant search drives it to zero.
   double lateral_m = 0.0;
+  /// Grid scans of a copyable simulation: the simulation's state at best_depth_m, kept when
+  /// best_error_m is within the tolerance. A verification releases from a copy of it instead
+  /// of inserting again: the same FEM steps, bit for bit (issue 22). Null otherwise.
+  std::shared_ptr<const tissue::TissueSimulation> release_state;
   /// p_a and the error if released at depth z (linear between steps); z within the scan.
   Point2 implantAt(double depth_m) const;
 };
@@ -62,9 +66,13 @@ struct PlannerOptions {
   /// approach steps below).
   bool procedure_grid = true;
   int max_corrections = 3;  ///< re-plans on the verified error after the first verification
-  /// Wall-time budget per plan [s] (0: none). When it runs out the best plan so far is returned
-  /// with its verified error (budget_expired set).
-  double time_budget_s = 2.0;
+  /// Work budget per plan: FEM steps solved (scans and verifications; 0: none). When it runs
+  /// out the best plan so far is returned with its verified error (budget_expired set). A
+  /// count, so that what is refused does not depend on the machine's load.
+  long step_budget = 3000;
+  /// Wall-time budget per plan [s] (0: none), on top of step_budget: a plan that must answer
+  /// in time. Outcomes then depend on the machine's load.
+  double time_budget_s = 0.0;
   /// A plan whose verified error exceeds the tolerance is refused (kOutOfTolerance, issue 22:
   /// every target placed within the tolerance or refused with a reason); false: returned as ok
   /// with within_tolerance false.
@@ -119,6 +127,7 @@ std::vector<std::vector<double>> drawStiffnessFactors(const scene::Scene& scene,
 /// Why a plan failed, or kOk (STYLE.md rule 8).
 enum class PlanCode {
   kOk,
+  kTargetNotFinite,  ///< a NaN or infinite target coordinate
   kTargetOutsideTissue,
   kHeightOutOfRange,
   kBeyondMaxDepth,
@@ -142,8 +151,9 @@ struct RigidPlan {
   /// mesh's resolution in height (a tenth of the height tolerance) with an error below 10x the
   /// goal.
   bool secant = false;
-  int simulations = 0;  ///< insertions simulated: scans + verifications
-  double seconds = 0.0;
+  int simulations = 0;           ///< insertions simulated: scans + verifications
+  double seconds = 0.0;          ///< wall time [s]
+  double cpu_seconds = 0.0;      ///< CPU time of the planning thread [s] (less load-dependent)
   std::vector<DepthScan> scans;  ///< every height simulated, in evaluation order
   /// Full insert-release-retract simulation of the plan (PlannerOptions::verify).
   bool verified = false;
@@ -151,7 +161,8 @@ struct RigidPlan {
   double verified_error_m = NAN;             ///< |verified implant - target| [m]
   int verifications = 0;                     ///< full simulations among `simulations`
   int corrections = 0;                       ///< re-plans on the verified error
-  double tolerance_m = 0.0;                  ///< placement tolerance the plan was held to [m]
+  long fem_steps = 0;             ///< FEM steps solved for this plan (PlannerOptions::step_budget)
+  double tolerance_m = 0.0;       ///< placement tolerance the plan was held to [m]
   bool within_tolerance = false;  ///< verified (or, unverified, predicted) error <= tolerance
   bool budget_expired = false;    ///< the time budget ended the search
   explicit operator bool() const { return code == PlanCode::kOk; }
@@ -181,7 +192,7 @@ public:
   /// procedure_grid (the live tissue_sim must use the same grid for plans to hold).
   const tissue::TissueSimOptions& simOptions() const { return sim_options_; }
   /// A simulation of the scene meshed as the live tissue_sim meshes it, refined along the path
-  /// to `target` too when the target is not one of the scene's.
+  /// to `target` too when the target is not one of the scene's (else a copy of one built once).
   std::unique_ptr<tissue::TissueSimulation> makeSimulation(const Point2& target) const;
   /// The tolerance plans are held to [m].
   double tolerance() const;
@@ -214,6 +225,13 @@ private:
   /// point (where a verification, and the live loop, release).
   DepthScan gridScan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
                      double max_depth_m, bool stop_past_target) const;
+  /// The seed after releasing at plan.release and retracting: from the release state of the
+  /// scan that found the release when it has one, else a full simulation on `sim`. Adds the
+  /// FEM steps run on a copy to plan.fem_steps (steps on `sim` count in sim.femSteps()).
+  Point2 verify(tissue::TissueSimulation& sim, RigidPlan& plan) const;
+  /// The plan to return after the verification rounds: `best` (the best verified plan) with
+  /// plan's counters and scans, refused (kOutOfTolerance) when over the tolerance.
+  void finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_steps) const;
   /// The O(1) height search for `aim` (the target, or the target shifted by a correction).
   void searchPlan(RigidPlan& plan, tissue::TissueSimulation& sim, const Point2& aim,
                   double first_offset_m, const std::function<bool()>& expired) const;
@@ -237,6 +255,10 @@ private:
   scene::Scene scene_;
   tissue::TissueSimOptions sim_options_;
   PlannerOptions options_;
+  /// The scene's simulation at rest, built on first use: plans to the scene's own targets (whose
+  /// mesh is the scene's) copy it instead of meshing and assembling again. Shared by copies.
+  struct SimulationCache;
+  std::shared_ptr<SimulationCache> cache_;
 };
 
 const char* toString(PlanCode code);

@@ -54,6 +54,12 @@ public:
   /// @param[in] element_materials one per triangle
   FemModel(geometry::TriangleMesh mesh, std::vector<ElementMaterial> element_materials,
            const FemOptions& options = {});
+  /// Deep copies: moving a node of the copy leaves the original unchanged.
+  FemModel(const FemModel& other);
+  FemModel& operator=(const FemModel& other);
+  FemModel(FemModel&&) = default;
+  FemModel& operator=(FemModel&&) = default;
+  ~FemModel();
 
   const geometry::TriangleMesh& mesh() const { return mesh_; }
   int nodeCount() const;

@@ -69,6 +69,13 @@ public:
   };
   /// Counters since construction (for benchmarks and tests).
   virtual SolverCounters solverCounters() const { return {}; }
+  /// A copy of this integrator (state, factorisation) for `model`, a copy of the model this
+  /// integrator steps: stepping the copy gives the same results, bit for bit, as stepping this
+  /// one. nullptr when the integrator cannot be copied (the caller rebuilds instead).
+  virtual std::unique_ptr<Integrator> clone(const FemModel& model) const {
+    (void)model;
+    return nullptr;
+  }
 
   const Eigen::VectorXd& displacement() const { return u_; }  ///< u [m]
   const Eigen::VectorXd& velocity() const { return v_; }      ///< v [m/s]

@@ -71,6 +71,12 @@ public:
                   const std::vector<int>& fixed_dofs, const Point2& bounds_min,
                   const Point2& bounds_max, const NeedleParams& params);
 
+  /// A copy of `other`'s state (needle, shaft, friction, seeds) acting on `model` and
+  /// `integrator`, copies of other's.
+  NeedleInsertion(const NeedleInsertion& other, FemModel& model, Integrator& integrator);
+  NeedleInsertion(const NeedleInsertion&) = delete;
+  NeedleInsertion& operator=(const NeedleInsertion&) = delete;
+
   /// Advances by dt_s with the needle at height needle_height_m and its tip at x = tip_x_m.
   /// The height may only change while the tip is outside the tissue. Refuses (status not ok,
   /// state unchanged) non-finite input, a height outside the tissue, a height change in tissue,

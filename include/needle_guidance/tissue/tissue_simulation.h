@@ -51,6 +51,15 @@ public:
   TissueSimulation(const scene::Scene& scene, const TissueSimOptions& options);
   explicit TissueSimulation(const scene::Scene& scene)
       : TissueSimulation(scene, optionsFromScene(scene)) {}
+  /// A deep copy of the whole state (mesh as cut, factorisation, needle, seeds): stepping the
+  /// copy gives the same results, bit for bit, as stepping the original (issue 22: a planner
+  /// verifies a release from the state its scan reached there). Throws std::logic_error when
+  /// the integrator cannot be copied (copyable() is false).
+  TissueSimulation(const TissueSimulation& other);
+  TissueSimulation& operator=(const TissueSimulation&) = delete;
+  ~TissueSimulation();
+  /// The state can be copied (the quasi-static integrator can; the dynamic ones cannot).
+  bool copyable() const { return pristine_ != nullptr; }
 
   /// One raw FEM step: the needle at height y [m] with its tip at x [m], dt [s]. The outcome
   /// depends on how a motion is cut into steps; advance() does not.
@@ -69,8 +78,13 @@ public:
   double gridDepth(long k) const;
   /// Grid point the tip stands at (-1: outside).
   long gridPosition() const { return grid_k_; }
-  /// Back to the undeformed reference mesh, no needle, no seeds.
+  /// Back to the undeformed reference mesh, no needle, no seeds: a copy of the state kept
+  /// after construction (mesh, model and its factorisation are not rebuilt) when copyable().
   void reset();
+  /// FEM steps solved since construction (each step() and each grid sub-step of advance();
+  /// reset() keeps counting; a copy starts from its original's count): a measure of work that
+  /// does not depend on the machine's load.
+  long femSteps() const { return fem_steps_; }
 
   std::optional<int> implantSeed(std::string* why_not = nullptr) {
     return needle_->implantSeed(why_not);
@@ -89,7 +103,13 @@ public:
   const geometry::TriangleMesh& initialMesh() const { return initial_mesh_; }
 
 private:
+  /// Model, integrator and needle at rest, factorised: what reset() copies.
+  struct Pristine;
   void build();
+  /// Copies model, integrator and needle from `model`, `integrator`, `needle`.
+  void copyParts(const FemModel& model, const Integrator& integrator,
+                 const NeedleInsertion& needle);
+  StepStatus needleStep(double dt_s, double needle_height_m, double tip_x_m);
   StepStatus gridStep(long k, double needle_height_m, double dt_s);
   scene::Scene scene_;
   TissueSimOptions options_;
@@ -100,7 +120,9 @@ private:
   std::unique_ptr<FemModel> model_;
   std::unique_ptr<Integrator> integrator_;
   std::unique_ptr<NeedleInsertion> needle_;
+  std::shared_ptr<const Pristine> pristine_;  ///< shared by copies; null: not copyable
   long grid_k_ = -1;
+  long fem_steps_ = 0;
 };
 
 }  // namespace needle_guidance::tissue
