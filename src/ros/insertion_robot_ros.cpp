@@ -22,6 +22,7 @@
 namespace needle_guidance {
 namespace {
 
+using robot::LinearCommand;
 using robot::StageJoint;
 
 constexpr double kRadPerDeg = 3.14159265358979323846 / 180.0;
@@ -139,7 +140,7 @@ void InsertionRobotRos::setUpSteerableNeedle(const ros::NodeHandle& private_nh,
   }
   // The initial entry goes into the journal like every later one.
   needle_->setEntry(entry);
-  ++entry_id_;
+  steerable_ = std::make_unique<robot::SteerableStage>(*stage_, *needle_);
 }
 
 void InsertionRobotRos::advertiseInterfaces(const ros::NodeHandle& private_nh) {
@@ -303,7 +304,13 @@ void InsertionRobotRos::onLinearGoal(Owner owner, const LinearMoveGoal& goal_msg
     status = robot::CommandStatus::refused(
         "retract command refused: target depth " + std::to_string(goal->target_m) +
         " m is deeper than the current depth " + std::to_string(current) + " m; use insert");
-  } else if (const std::string why = steerable() ? steerableRefusal(owner, goal->target_m) : "";
+  } else if (const std::string why =
+                 steerable()
+                     ? steerable_->refusal(owner == Owner::kHeight   ? LinearCommand::kHeight
+                                           : owner == Owner::kInsert ? LinearCommand::kInsert
+                                                                     : LinearCommand::kRetract,
+                                           goal->target_m)
+                     : "";
              !why.empty()) {
     status = robot::CommandStatus::refused(why);
   } else {
@@ -384,9 +391,8 @@ void InsertionRobotRos::finishActiveGoal(bool success, const std::string& messag
   last_message_ = message;
   const ros::Time now = ros::Time::now();
   if (steerable()) {
-    if (owner == Owner::kFlip && success && bevelAtEnd() && jointBevel() != needle_->bevel()) {
-      needle_->flip();  // the rotation is complete: the world's bevel turns
-      ++flips_since_entry_;
+    if (owner == Owner::kFlip && success) {
+      steerable_->finishFlip();
     }
     publishNeedle(now);  // the pose at the goal's end, before its result
   }
@@ -421,7 +427,17 @@ void InsertionRobotRos::onControlTimer(const ros::TimerEvent& /*event*/) {
   const double dt_s = std::max(0.0, (now - last_step_).toSec()) * time_scale_;
   last_step_ = now;
   if (steerable()) {
-    stepSteerable(dt_s);
+    const auto r = steerable_->step(
+        dt_s, owner_ == Owner::kInsert ? std::optional(std::pair(goal_target_, goal_velocity_))
+                                       : std::nullopt);
+    if (r.stopped) {
+      if (r.contact) {
+        ROS_WARN_STREAM_NAMED("insertion_robot", r.message);
+      } else {
+        ROS_ERROR_STREAM_NAMED("insertion_robot", "needle refused a step: " << r.message);
+      }
+      finishActiveGoal(false, r.message);
+    }
   } else {
     stage_->step(dt_s);
   }
@@ -499,119 +515,6 @@ bool InsertionRobotRos::onResetEstop(std_srvs::Trigger::Request& /*req*/,
   return true;
 }
 
-std::string InsertionRobotRos::steerableRefusal(Owner owner, double target_m) const {
-  const char* command = owner == Owner::kHeight   ? "move_to_height"
-                        : owner == Owner::kInsert ? "insert"
-                                                  : "retract";
-  std::ostringstream out;
-  out << std::setprecision(6) << command << " command refused: ";
-  if (owner == Owner::kHeight) {
-    const robot::SteerableNeedleConfig& c = needle_->config();
-    if (target_m < c.min_height_m || target_m > c.max_height_m) {
-      out << "height " << target_m << " m is not an entry height of the scene [" << c.min_height_m
-          << ", " << c.max_height_m << "] m (steerable mode: the height is the entry height)";
-      return out.str();
-    }
-    return "";
-  }
-  if (!std::isfinite(target_m)) {
-    out << "target " << target_m << " m is not a finite number";
-    return out.str();
-  }
-  if (!(target_m >= 0.0)) {
-    out << "target " << target_m << " m is negative; in steerable mode the insertion joint is "
-        << "the inserted needle length, 0 at the entry";
-    return out.str();
-  }
-  if (owner == Owner::kInsert) {
-    if (needle_->inContact()) {
-      out << "the needle tip is in contact (" << needle_->contact().toString()
-          << "); retract past the contact first";
-      return out.str();
-    }
-    if (!bevelAtEnd()) {
-      out << "the bevel is mid-rotation (" << stage_->state().bevel_rad()
-          << " rad); finish a flip first";
-      return out.str();
-    }
-  }
-  return "";
-}
-
-steering::Bevel InsertionRobotRos::jointBevel() const {
-  const robot::JointLimits& b = stage_->limits()[StageJoint::kBevel];
-  return stage_->state().bevel_rad() < 0.5 * (b.lower + b.upper) ? steering::Bevel::kLeft
-                                                                 : steering::Bevel::kRight;
-}
-
-bool InsertionRobotRos::bevelAtEnd() const {
-  const robot::JointLimits& b = stage_->limits()[StageJoint::kBevel];
-  const double bevel = stage_->state().bevel_rad();
-  return bevel == b.lower || bevel == b.upper;
-}
-
-void InsertionRobotRos::stepSteerable(double dt_s) {
-  const std::size_t depth = static_cast<std::size_t>(StageJoint::kDepth);
-  if (owner_ == Owner::kInsert && stage_->busy() && stage_->activeJoint() == StageJoint::kDepth) {
-    // Where this step takes the stage (InsertionStage::step's rule): trace the needle there
-    // first, so that on contact the stage can stop exactly at the contact point.
-    const double position = stage_->state().position[depth];
-    const double remaining = goal_target_ - position;
-    const double travel = goal_velocity_ * dt_s;
-    const double next = std::abs(remaining) <= travel ? goal_target_ : position + travel;
-    const robot::MotionStatus motion =
-        next > needle_->insertedLength_m()
-            ? needle_->advanceTo(next)
-            : robot::MotionStatus(robot::MotionOutcome::kMoved, "no travel");
-    if (motion.outcome() == robot::MotionOutcome::kMoved) {
-      stage_->step(dt_s);
-      return;
-    }
-    // Contact (or an unexpected refusal): move the stage to where the needle stopped, stop.
-    const double dt_stop_s =
-        goal_velocity_ > 0.0
-            ? std::clamp((needle_->insertedLength_m() - position) / goal_velocity_, 0.0, dt_s)
-            : 0.0;
-    stage_->step(dt_stop_s);
-    stage_->cancel();
-    stage_->step(dt_s - dt_stop_s);
-    std::string message = motion.toString();
-    if (motion.outcome() == robot::MotionOutcome::kContact) {
-      message = "insert stopped at contact: " + needle_->contact().toString() + " after " +
-                std::to_string(needle_->insertedLength_m()) +
-                " m inserted; retract past the contact before inserting again";
-      ROS_WARN_STREAM_NAMED("insertion_robot", message);
-    } else {
-      ROS_ERROR_STREAM_NAMED("insertion_robot", "needle refused a step: " << message);
-    }
-    finishActiveGoal(false, message);
-    return;
-  }
-  const double before_m = stage_->state().position[depth];
-  stage_->step(dt_s);
-  // A retraction pulls the needle back along its path. Only an actual backward motion of the
-  // joint does: after a stop at a contact the joint may sit an ulp short of the needle's length,
-  // which must not count as retracting past the contact.
-  const double after_m = stage_->state().position[depth];
-  if (after_m < before_m) {
-    const double length_m = std::max(0.0, after_m);
-    if (length_m < needle_->insertedLength_m()) {
-      needle_->retractTo(length_m);
-    }
-  }
-  // Out of tissue, the needle guide follows the height joint.
-  const double height_m = stage_->state().height_m();
-  if (needle_->insertedLength_m() == 0.0 && height_m != needle_->entry().height_m) {
-    robot::EntryPose entry = needle_->entry();
-    entry.height_m = height_m;
-    entry.bevel = needle_->bevel();
-    if (needle_->setEntry(entry)) {
-      ++entry_id_;
-      flips_since_entry_ = 0;
-    }
-  }
-}
-
 bool InsertionRobotRos::onSetEntryPose(SetEntryPose::Request& req, SetEntryPose::Response& res) {
   res.success = false;
   if (!steerable()) {
@@ -625,24 +528,8 @@ bool InsertionRobotRos::onSetEntryPose(SetEntryPose::Request& req, SetEntryPose:
     entry.height_m = req.height_m;
     entry.angle_rad = req.angle_rad;
     entry.bevel = *bevel;
-    robot::CommandStatus status = needle_->checkEntry(entry);
-    if (!status) {
-      needle_->setEntry(entry);  // refused again, so that the needle's journal records it
-    } else {
-      const robot::JointLimits& b = stage_->limits()[StageJoint::kBevel];
-      status =
-          stage_->placeGuide(req.height_m, *bevel == steering::Bevel::kLeft ? b.lower : b.upper);
-    }
-    if (status) {
-      status = needle_->setEntry(entry);
-    }
-    if (status) {
-      ++entry_id_;
-      flips_since_entry_ = 0;
-      if (req.reseed) {
-        needle_->reseed(req.seed);
-      }
-    }
+    const robot::CommandStatus status =
+        steerable_->setEntry(entry, req.reseed ? std::optional(req.seed) : std::nullopt);
     res.success = static_cast<bool>(status);
     res.message = status ? "entry set: " + needle_->journal().back().message
                          : "set_entry_pose refused: " + status.toString();
@@ -671,13 +558,13 @@ void InsertionRobotRos::publishNeedle(const ros::Time& stamp) {
   }
   NeedleDrive drive;
   drive.header = tip_msg.header;
-  drive.entry_id = entry_id_;
+  drive.entry_id = steerable_->entryId();
   drive.entry.x = needle_->entryPoint().x();
   drive.entry.y = needle_->entryPoint().y();
   drive.entry.theta = needle_->entry().angle_rad;
   drive.bevel = steering::toString(needle_->bevel());
   drive.inserted_length_m = needle_->insertedLength_m();
-  drive.flips = flips_since_entry_;
+  drive.flips = steerable_->flipsSinceEntry();
   drive_pub_.publish(drive);
   measured_cp_pub_.publish(toPoseStamped(tip, stamp));
   // The journal grows with every change of the needle's state: republish the path then only.

@@ -14,6 +14,7 @@
 #include "needle_guidance/SetEntryPose.h"
 #include "needle_guidance/robot/insertion_stage.h"
 #include "needle_guidance/robot/steerable_needle.h"
+#include "needle_guidance/robot/steerable_stage.h"
 #include "needle_guidance/scene/scene.h"
 
 namespace needle_guidance {
@@ -84,17 +85,6 @@ private:
 
   // Steerable mode.
   bool steerable() const { return static_cast<bool>(needle_); }
-  /// Why a linear goal cannot start in steerable mode ("" if it may), before the stage's own
-  /// checks.
-  std::string steerableRefusal(Owner owner, double target_m) const;
-  /// One control step of dt_s simulated seconds: advances the needle ahead of the stage so an
-  /// insertion stops exactly at a contact, then keeps the world's entry and retraction in step
-  /// with the stage.
-  void stepSteerable(double dt_s);
-  /// The world's bevel as the stage's bevel joint shows it (left at the lower end).
-  steering::Bevel jointBevel() const;
-  /// True if the bevel joint is at one end of its range (not mid-rotation).
-  bool bevelAtEnd() const;
   bool onSetEntryPose(SetEntryPose::Request& req, SetEntryPose::Response& res);
   void publishNeedle(const ros::Time& stamp);
 
@@ -131,8 +121,7 @@ private:
   ros::Publisher needle_path_pub_;
   ros::Publisher needle_shape_pub_;  ///< true needle shape (for the simulated imager)
   ros::Publisher drive_pub_;         ///< guide and joints (for the tip tracker's prediction)
-  std::uint32_t entry_id_ = 0;       ///< accepted entries so far
-  std::uint32_t flips_since_entry_ = 0;
+  std::unique_ptr<robot::SteerableStage> steerable_;  ///< the stage driving the needle
   ros::ServiceServer set_entry_srv_;
 };
 
