@@ -190,4 +190,33 @@ bool AdaptivePolicy::waitAndSwap() {
   return swapIn();
 }
 
+Result<std::vector<TableUsed>> tablesUsed(const SteeringProblem& chosen,
+                                          const std::vector<TrialNoise>& trials,
+                                          const std::string& scene_name,
+                                          const std::string& table_dir,
+                                          const SelectionOptions& options) {
+  std::vector<TableUsed> out;
+  for (std::size_t i = 0; i < trials.size(); ++i) {
+    const TrialNoise& n = trials[i];
+    auto same = std::find_if(out.begin(), out.end(), [&n](const TableUsed& t) {
+      return t.noise.sigma_insert_rad == n.sigma_insert_rad &&
+             t.noise.sigma_flip_rad == n.sigma_flip_rad;
+    });
+    if (same == out.end()) {
+      Result<PolicySource> solved = solveOrLoad(
+          withNoise(chosen, n.sigma_insert_rad, n.sigma_flip_rad), scene_name, table_dir, options);
+      if (!solved) {
+        return solved.status();
+      }
+      TableUsed t;
+      t.noise = n;
+      t.policy = std::make_shared<const PolicySource>(std::move(solved.value()));
+      out.push_back(std::move(t));
+      same = out.end() - 1;
+    }
+    same->trials.push_back(static_cast<int>(i));
+  }
+  return out;
+}
+
 }  // namespace needle_guidance::steering

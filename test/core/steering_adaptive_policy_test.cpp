@@ -95,14 +95,21 @@ TEST(AdaptivePolicy, ReSolvesForTwiceTheNoiseWithoutAGapInTheAnswers) {
   EXPECT_NEAR(policy.assumedSigma(Control::kInsert), r.sigma_insert_rad, 1e-15);
   EXPECT_GT(policy.assumedSigma(Control::kInsert), 1.3 * kSigmaI);
   EXPECT_EQ(r.trigger, Control::kInsert);
-  // The procedure's report finds the table that answered from the sigmas the answers name.
-  Result<PolicySource> used =
-      solveOrLoad(withNoise(initial->model->problem(), r.sigma_insert_rad, r.sigma_flip_rad),
-                  "adapt_test", dir.string(), SelectionOptions{});
-  ASSERT_TRUE(used) << used.status().toString();
-  EXPECT_EQ(used.value().source, "loaded");
-  EXPECT_EQ(used.value().model->hash(), now->model->hash());
+  // The procedure's report finds the tables its trials used from the sigmas the answers name:
+  // trial 0 before the re-solve, trials 1 and 2 after it (that table loaded, not solved again).
+  const std::vector<TrialNoise> trials = {{kSigmaI, kSigmaR},
+                                          {r.sigma_insert_rad, r.sigma_flip_rad},
+                                          {r.sigma_insert_rad, r.sigma_flip_rad}};
+  Result<std::vector<TableUsed>> used =
+      tablesUsed(initial->model->problem(), trials, "adapt_test", dir.string(), SelectionOptions{});
   std::filesystem::remove_all(dir);
+  ASSERT_TRUE(used) << used.status().toString();
+  ASSERT_EQ(used.value().size(), 2u);
+  EXPECT_EQ(used.value()[0].policy->model->hash(), initial->model->hash());
+  EXPECT_EQ(used.value()[0].trials, std::vector<int>({0}));
+  EXPECT_EQ(used.value()[1].policy->source, "loaded");
+  EXPECT_EQ(used.value()[1].policy->model->hash(), now->model->hash());
+  EXPECT_EQ(used.value()[1].trials, std::vector<int>({1, 2}));
   EXPECT_NEAR(policy.assumedSigma(Control::kFlip), kSigmaR, 1e-12) << "no flips seen: kept";
   EXPECT_TRUE(policy.lookup(tip));
   EXPECT_EQ(policy.trajectory().size(), static_cast<std::size_t>(fed));

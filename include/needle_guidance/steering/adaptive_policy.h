@@ -125,4 +125,30 @@ private:
   std::int64_t steps_ = 0;
 };
 
+/// The noise a trial's table assumed (SteeringControl.sigma_insert_rad / sigma_flip_rad of the
+/// trial's first answer) [rad].
+struct TrialNoise {
+  double sigma_insert_rad = 0.0;
+  double sigma_flip_rad = 0.0;
+};
+
+/// One table a run's trials used, with the trials (indices into the run's list) that used it.
+struct TableUsed {
+  TrialNoise noise;
+  std::vector<int> trials;
+  std::shared_ptr<const PolicySource> policy;  ///< its model and table
+};
+
+/// The tables behind a run whose policy may have re-solved (the procedure's report predicts P_s
+/// and runs its Monte Carlo per table): one entry per distinct noise, in order of first use, each
+/// solveOrLoad(withNoise(chosen, noise), scene_name, table_dir, options) — loaded when
+/// steering_policy saved it after the re-solve (AdaptationOptions::table_dir), else solved.
+/// `chosen` is the problem of the model the scene's tolerance chose (PolicySource::model->
+/// problem()). A failed solve comes back as its status; nothing is kept.
+Result<std::vector<TableUsed>> tablesUsed(const SteeringProblem& chosen,
+                                          const std::vector<TrialNoise>& trials,
+                                          const std::string& scene_name,
+                                          const std::string& table_dir,
+                                          const SelectionOptions& options);
+
 }  // namespace needle_guidance::steering
