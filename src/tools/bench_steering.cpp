@@ -901,7 +901,7 @@ void writePlotJson(const std::string& out_dir) {
  {"csv": "adaptation.csv", "x": "world_sigma_scale", "y": "success", "group": "arm", "points": true,
   "title": "20,000 paired closed-loop trials per arm (both scenes)", "png": "adaptation.png"},
  {"csv": "adaptation_paired.csv", "x": "world_sigma_scale", "y": "difference", "group": "pair", "points": true,
-  "title": "Paired success differences with common random numbers (both scenes)", "png": "adaptation_paired.png"},
+  "title": "Paired success differences, common random numbers (both scenes)", "png": "adaptation_paired.png"},
  {"csv": "sigma_trajectory.csv", "x": "trial", "y": "sigma_i_deg", "group": "world_sigma_scale",
   "title": "Adaptive arm: learned sigma_i after each trial", "png": "sigma_trajectory.png"},
  {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
