@@ -68,9 +68,10 @@ geometry_msgs::Pose2D toMessage(const st::TipPose& pose) {
   return msg;
 }
 
-/// The answer to `tip` (whose bevel is `bevel`): header copied (an empty frame becomes scene).
+/// The answer to `tip` (whose bevel is `bevel`) by the table of `model`: header copied (an empty
+/// frame becomes scene); the step length and the noise that model assumes.
 SteeringControl toMessage(const NeedleTip& tip, const st::ControlLookup& lookup,
-                          double step_length_m) {
+                          const st::SteeringModel& model) {
   SteeringControl msg;
   msg.header = tip.header;
   if (msg.header.frame_id.empty()) {
@@ -79,7 +80,9 @@ SteeringControl toMessage(const NeedleTip& tip, const st::ControlLookup& lookup,
   msg.status = toWire(lookup.status);
   msg.control = st::toString(lookup.control);
   msg.probability_of_success = lookup.probability_of_success;
-  msg.step_length_m = step_length_m;
+  msg.step_length_m = model.arcLength_m();
+  msg.sigma_insert_rad = model.params().sigma_insert_rad;
+  msg.sigma_flip_rad = model.params().sigma_flip_rad;
   msg.tip = tip.pose;
   msg.bevel = tip.bevel;
   msg.tip_source = tip.source;
@@ -302,6 +305,8 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
       st::AdaptationOptions adaptation;
       adaptation.solver = options.solver;
       adaptation.threads = settings_.threads;
+      adaptation.table_dir = settings_.table_dir;  // the procedure's report loads re-solved tables
+      adaptation.scene_name = scene_name_;
       adaptive_ = std::make_unique<st::AdaptivePolicy>(problem_, source, adaptation);
       last_ = LastAnswer{};
     }
@@ -400,7 +405,7 @@ void SteeringPolicyRos::onTip(const NeedleTipConstPtr& msg) {
     // Refused, but answered, so that a waiting procedure learns it at once: no control.
     ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
                                     "steering_policy: tip pose is not finite; no control given");
-    SteeringControl refusal = toMessage(*msg, st::ControlLookup{}, model_->arcLength_m());
+    SteeringControl refusal = toMessage(*msg, st::ControlLookup{}, *model_);
     refusal.status = "invalid_tip";
     refusal.control = "";
     control_pub_.publish(refusal);
@@ -413,7 +418,7 @@ void SteeringPolicyRos::onTip(const NeedleTipConstPtr& msg) {
     pose.bevel = *bevel;
     learnFrom(*msg, pose);
     const st::ControlLookup answer = table_->lookup(pose);
-    control_pub_.publish(toMessage(*msg, answer, model_->arcLength_m()));
+    control_pub_.publish(toMessage(*msg, answer, *model_));
     // Only tips the robot or an image vouches for teach the noise.
     last_.valid = answer && (msg->source == "ground_truth" || msg->confident);
     last_.pose = pose;

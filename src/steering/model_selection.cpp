@@ -203,6 +203,21 @@ void saveTableAtomically(const PolicyTable& table, const std::string& path) {
   }
 }
 
+SteeringProblem withNoise(const SteeringProblem& chosen, double sigma_insert_rad,
+                          double sigma_flip_rad) {
+  if (!(sigma_insert_rad >= 0.0) || !(sigma_flip_rad >= 0.0) || !std::isfinite(sigma_insert_rad) ||
+      !std::isfinite(sigma_flip_rad)) {
+    throw std::invalid_argument("withNoise: sigmas must be finite and >= 0, got " +
+                                formatNumber(sigma_insert_rad) + ", " +
+                                formatNumber(sigma_flip_rad) + " rad");
+  }
+  SteeringProblem out = chosen;
+  out.ps_tolerance = 0.0;
+  out.params.sigma_insert_rad = sigma_insert_rad;
+  out.params.sigma_flip_rad = sigma_flip_rad;
+  return out;
+}
+
 Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::string& scene_name,
                                  const std::string& table_dir, SelectionOptions options,
                                  bool force) {

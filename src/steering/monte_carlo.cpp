@@ -117,6 +117,38 @@ Interval wilsonInterval(std::int64_t successes, std::int64_t trials, double z) {
   return {std::max(0.0, centre - half), std::min(1.0, centre + half)};
 }
 
+PairedDifference pairedDifference(const std::vector<bool>& a, const std::vector<bool>& b,
+                                  double z) {
+  if (a.size() != b.size() || a.empty()) {
+    throw std::invalid_argument(
+        "pairedDifference: need two outcome lists of the same non-zero "
+        "length, got " +
+        std::to_string(a.size()) + " and " + std::to_string(b.size()));
+  }
+  PairedDifference out;
+  out.trials = static_cast<std::int64_t>(a.size());
+  for (std::size_t i = 0; i < a.size(); ++i) {
+    out.both += a[i] && b[i] ? 1 : 0;
+    out.only_a += a[i] && !b[i] ? 1 : 0;
+    out.only_b += !a[i] && b[i] ? 1 : 0;
+  }
+  const double n = static_cast<double>(out.trials);
+  const double n11 = double(out.both), n10 = double(out.only_a), n01 = double(out.only_b);
+  const double n00 = n - n11 - n10 - n01;
+  const double pa = (n11 + n10) / n, pb = (n11 + n01) / n;
+  out.difference = pa - pb;
+  const Interval ia = wilsonInterval(out.both + out.only_a, out.trials, z);
+  const Interval ib = wilsonInterval(out.both + out.only_b, out.trials, z);
+  // phi of the 2x2 table; 0 when a margin is empty (then the two rates are unrelated).
+  const double margins = (n11 + n10) * (n01 + n00) * (n11 + n01) * (n10 + n00);
+  const double phi = margins > 0.0 ? (n11 * n00 - n10 * n01) / std::sqrt(margins) : 0.0;
+  const double la = pa - ia.low, ua = ia.high - pa, lb = pb - ib.low, ub = ib.high - pb;
+  const double low = std::sqrt(std::max(0.0, la * la - 2.0 * phi * la * ub + ub * ub));
+  const double high = std::sqrt(std::max(0.0, ua * ua - 2.0 * phi * ua * lb + lb * lb));
+  out.interval = {std::max(-1.0, out.difference - low), std::min(1.0, out.difference + high)};
+  return out;
+}
+
 MonteCarloResult runMonteCarlo(const ContinuousWorkspace& world, const TipPose& start,
                                const SteeringPolicy& policy, std::int64_t trials,
                                std::uint64_t seed, int threads, const TrialOptions& options) {

@@ -323,12 +323,22 @@ Selection selectModel(const std::string& scene_name, const st::SteeringProblem& 
 
 // ---- adaptation experiment (issue 21) ----
 
-/// Closed-loop trials per arm and world sigma (issue 21: >= 300).
-constexpr int kAdaptTrials = 300;
+/// Closed-loop trials per arm and world sigma (issue 21: >= 300). The arms are paired (trial i
+/// of every arm uses the seed kAdaptSeed + i), so their difference is measured trial by trial;
+/// at 2x sigma knowing sigma is worth about 0.01-0.02 of P_s on these scenes, which 20,000 pairs
+/// resolve (paired standard error ~0.003) and 300 do not.
+constexpr int kAdaptTrials = 20000;
 /// Seed of trial i of every arm: kAdaptSeed + i (the arms see the same deflection streams).
 constexpr std::uint64_t kAdaptSeed = 2100;
 /// Trials after which sigma_estimate_error_pct is read.
 constexpr int kEstimateAfterTrials = 10;
+/// sigma_trajectory.csv: every trial up to this one, then every kTrajectoryEvery-th.
+constexpr int kTrajectoryDense = 100;
+constexpr int kTrajectoryEvery = 100;
+/// False re-solves at 1x: adaptive runs, each of kFalseRunTrials trials from its own seeds.
+constexpr int kFalseRuns = 200;
+constexpr int kFalseRunTrials = 300;
+constexpr std::uint64_t kFalseSeed = 210000;
 
 struct Arm {
   std::string scene;
@@ -336,11 +346,14 @@ struct Arm {
   double scale = 1.0;  ///< world sigma / scene sigma
   std::int64_t successes = 0;
   std::int64_t trials = 0;
+  std::vector<bool> outcomes;  ///< per trial, for the paired differences
   st::Interval ci;
   int resolves = 0;
   double resolve_s = 0.0;          ///< summed re-solve time [s]
   double sigma_i_error_pct = NAN;  ///< |sigma_i estimate - truth| / truth after 10 trials
   double sigma_r_error_pct = NAN;
+  st::SigmaEstimate final_insert;  ///< after every trial (the estimator's bias shows here)
+  double true_sigma_i = 0.0;
 };
 
 std::shared_ptr<const st::PolicySource> solvedFor(const st::SteeringProblem& p) {
@@ -353,9 +366,33 @@ std::shared_ptr<const st::PolicySource> solvedFor(const st::SteeringProblem& p) 
   return std::make_shared<const st::PolicySource>(std::move(r.value()));
 }
 
+/// One closed-loop trial of the table in use from its best start; the adaptive policy observes
+/// every step, the one that stopped at a contact included (by its chord).
+st::Trial adaptiveTrial(const st::ContinuousWorkspace& world, st::AdaptivePolicy& policy,
+                        const st::StartOptions& start, std::uint64_t seed) {
+  const std::shared_ptr<const st::PolicySource> table = policy.current();
+  const st::BestStart best = table->table->bestStart(start);
+  const st::SteeringPolicy control = [&table](const st::TipPose& pose, int) {
+    return table->table->lookup(pose).control;
+  };
+  st::TrialOptions trial_options;
+  trial_options.record_path = true;
+  const st::Trial t = st::simulateTrial(world, best.best.pose, control, seed, trial_options);
+  const bool stopped =
+      t.outcome == st::TrialOutcome::kHitObstacle || t.outcome == st::TrialOutcome::kLeftWorkspace;
+  const std::size_t whole = t.controls.size() - (stopped && !t.controls.empty() ? 1 : 0);
+  for (std::size_t j = 0; j < whole; ++j) {
+    policy.observe(t.path[j], t.path[j + 1], t.controls[j]);
+  }
+  if (whole < t.controls.size()) {
+    policy.observeStopped(t.path[whole], t.path[whole + 1], t.controls[whole]);
+  }
+  return t;
+}
+
 /// One arm: kAdaptTrials trials in a world whose sigmas are `scale` times the problem's, each
-/// from the best start of the table in use; the adaptive arm observes every completed step of a
-/// trial and swaps a re-solved table in before the next trial.
+/// from the best start of the table in use; the adaptive arm observes every step of a trial and
+/// swaps a re-solved table in before the next trial.
 Arm runArm(const std::string& scene_name, const st::SteeringProblem& problem,
            const st::StartOptions& start, double scale, const std::string& arm_name,
            const std::shared_ptr<const st::PolicySource>& assumed,
@@ -372,37 +409,21 @@ Arm runArm(const std::string& scene_name, const st::SteeringProblem& problem,
   out.scene = scene_name;
   out.arm = arm_name;
   out.scale = scale;
-  st::TrialOptions trial_options;
-  trial_options.record_path = true;
+  out.true_sigma_i = truth.params.sigma_insert_rad;
   for (int i = 0; i < kAdaptTrials; ++i) {
-    const std::shared_ptr<const st::PolicySource> table = policy.current();
-    const st::BestStart best = table->table->bestStart(start);
-    const st::SteeringPolicy control = [&table](const st::TipPose& pose, int) {
-      return table->table->lookup(pose).control;
-    };
-    const st::Trial t =
-        st::simulateTrial(world, best.best.pose, control, kAdaptSeed + i, trial_options);
+    const st::Trial t = adaptiveTrial(world, policy, start, kAdaptSeed + std::uint64_t(i));
     out.successes += t.success() ? 1 : 0;
+    out.outcomes.push_back(t.success());
     ++out.trials;
-    // A failing step ends at the contact point, not after a whole arc: not a deflection sample.
-    const std::size_t complete =
-        t.success() || t.outcome == st::TrialOutcome::kStepLimit
-            ? t.controls.size()
-            : t.controls.size() - std::min<std::size_t>(1, t.controls.size());
-    for (std::size_t j = 0; j < complete; ++j) {
-      policy.observe(t.path[j], t.path[j + 1], t.controls[j]);
-    }
     policy.waitAndSwap();
+    const st::SigmaEstimate ei = policy.estimator().estimate(st::Control::kInsert);
+    const st::SigmaEstimate er = policy.estimator().estimate(st::Control::kFlip);
     if (i + 1 == kEstimateAfterTrials) {
-      const st::SigmaEstimate ei = policy.estimator().estimate(st::Control::kInsert);
-      const st::SigmaEstimate er = policy.estimator().estimate(st::Control::kFlip);
       out.sigma_i_error_pct = 100.0 * std::abs(ei.sigma_rad / truth.params.sigma_insert_rad - 1.0);
       out.sigma_r_error_pct =
           er.samples > 0 ? 100.0 * std::abs(er.sigma_rad / truth.params.sigma_flip_rad - 1.0) : NAN;
     }
-    if (arm_name == "adaptive") {
-      const st::SigmaEstimate ei = policy.estimator().estimate(st::Control::kInsert);
-      const st::SigmaEstimate er = policy.estimator().estimate(st::Control::kFlip);
+    if (arm_name == "adaptive" && (i < kTrajectoryDense || (i + 1) % kTrajectoryEvery == 0)) {
       trajectory.addRow({scene_name, scale, double(i + 1), ei.sigma_rad * kDegPerRad,
                          ei.low_rad * kDegPerRad, ei.high_rad * kDegPerRad,
                          er.sigma_rad * kDegPerRad,
@@ -411,6 +432,7 @@ Arm runArm(const std::string& scene_name, const st::SteeringProblem& problem,
                          truth.params.sigma_insert_rad * kDegPerRad});
     }
   }
+  out.final_insert = policy.estimator().estimate(st::Control::kInsert);
   out.ci = st::wilsonInterval(out.successes, out.trials);
   out.resolves = static_cast<int>(policy.resolves().size());
   for (const st::Resolve& r : policy.resolves()) {
@@ -420,7 +442,10 @@ Arm runArm(const std::string& scene_name, const st::SteeringProblem& problem,
             << ": " << out.successes << " / " << out.trials << " [" << out.ci.low << ", "
             << out.ci.high << "], " << out.resolves << " re-solves (" << out.resolve_s
             << " s), sigma_i error after " << kEstimateAfterTrials << " trials "
-            << out.sigma_i_error_pct << " %\n"
+            << out.sigma_i_error_pct << " %, after all " << out.final_insert.sigma_rad * kDegPerRad
+            << " deg [" << out.final_insert.low_rad * kDegPerRad << ", "
+            << out.final_insert.high_rad * kDegPerRad << "] (truth "
+            << out.true_sigma_i * kDegPerRad << ")\n"
             << std::flush;
   return out;
 }
@@ -457,40 +482,107 @@ const Arm& findArm(const std::vector<Arm>& arms, const std::string& name, double
   throw std::runtime_error("no arm " + name);
 }
 
-/// The adaptation keys of one scene (suffix "" or "_heldout").
-std::string adaptationJson(const std::vector<Arm>& arms, const std::string& suffix) {
+std::string jsonInterval(const st::Interval& i) {
+  return "[" + ng::report::jsonNumber(i.low) + ", " + ng::report::jsonNumber(i.high) + "]";
+}
+
+/// The paired differences of one world sigma: success_diff_A_B_<level><suffix> and _ci.
+std::string pairedJson(const std::vector<Arm>& arms, double scale, const std::string& level,
+                       const std::string& suffix, ng::report::Table& paired) {
   std::ostringstream j;
-  auto interval = [](const Arm& a) {
-    return "[" + ng::report::jsonNumber(a.ci.low) + ", " + ng::report::jsonNumber(a.ci.high) + "]";
-  };
+  const std::pair<const char*, const char*> pairs[] = {
+      {"adaptive", "fixed"}, {"oracle", "fixed"}, {"adaptive", "oracle"}};
+  for (const auto& [a, b] : pairs) {
+    const Arm& arm_a = findArm(arms, a, scale);
+    const st::PairedDifference d =
+        st::pairedDifference(arm_a.outcomes, findArm(arms, b, scale).outcomes);
+    const std::string key = std::string("success_diff_") + a + "_" + b + "_" + level + suffix;
+    j << ",\n  \"" << key << "\": " << ng::report::jsonNumber(d.difference) << ",\n  \"" << key
+      << "_ci\": " << jsonInterval(d.interval);
+    paired.addRow({arm_a.scene, std::string(a) + " - " + b, scale, d.difference, d.interval.low,
+                   d.interval.high, double(d.only_a), double(d.only_b), double(d.trials)});
+    std::cout << "paired, " << arm_a.scene << ", " << level << ": " << a << " - " << b << " = "
+              << d.difference << " [" << d.interval.low << ", " << d.interval.high << "] ("
+              << d.only_a << " vs " << d.only_b << " discordant of " << d.trials << ")\n";
+  }
+  return j.str();
+}
+
+/// The adaptation keys of one scene (suffix "" or "_heldout").
+std::string adaptationJson(const std::vector<Arm>& arms, const std::string& suffix,
+                           ng::report::Table& paired) {
+  std::ostringstream j;
   for (double scale : {0.5, 1.0, 2.0}) {
     const std::string level = scale == 0.5 ? "0.5x" : scale == 1.0 ? "1x" : "2x";
     for (const char* arm : {"adaptive", "fixed", "oracle"}) {
       const Arm& a = findArm(arms, arm, scale);
       j << ",\n  \"success_" << arm << "_" << level << suffix
         << "\": " << ng::report::jsonNumber(double(a.successes) / double(a.trials))
-        << ",\n  \"success_" << arm << "_" << level << suffix << "_ci\": " << interval(a);
+        << ",\n  \"success_" << arm << "_" << level << suffix << "_ci\": " << jsonInterval(a.ci);
     }
+    j << pairedJson(arms, scale, level, suffix, paired);
   }
   const Arm& adaptive2 = findArm(arms, "adaptive", 2.0);
   const Arm& fixed2 = findArm(arms, "fixed", 2.0);
   const Arm& oracle2 = findArm(arms, "oracle", 2.0);
   const double rate = double(adaptive2.successes) / double(adaptive2.trials);
-  j << ",\n  \"adaptive_beats_fixed_2x" << suffix
+  const st::PairedDifference vs_fixed = st::pairedDifference(adaptive2.outcomes, fixed2.outcomes);
+  const st::PairedDifference vs_oracle = st::pairedDifference(adaptive2.outcomes, oracle2.outcomes);
+  const st::SigmaEstimate& fin = adaptive2.final_insert;
+  j << ",\n  \"adaptation_trials_per_arm" << suffix << "\": " << adaptive2.trials
+    << ",\n  \"adaptive_beats_fixed_2x" << suffix
     << "\": " << (adaptive2.ci.low > fixed2.ci.high ? "true" : "false")
+    << ",\n  \"adaptive_beats_fixed_2x_paired" << suffix
+    << "\": " << (vs_fixed.interval.low > 0.0 ? "true" : "false")
     << ",\n  \"adaptive_within_oracle_ci_2x" << suffix
-    << "\": " << (oracle2.ci.contains(rate) ? "true" : "false") << ",\n  \"resolves_adaptive_2x"
+    << "\": " << (oracle2.ci.contains(rate) ? "true" : "false")
+    << ",\n  \"adaptive_matches_oracle_2x_paired" << suffix
+    << "\": " << (vs_oracle.excludesZero() ? "false" : "true") << ",\n  \"resolves_adaptive_2x"
     << suffix << "\": " << adaptive2.resolves << ",\n  \"resolve_s_adaptive_2x" << suffix
     << "\": " << ng::report::jsonNumber(adaptive2.resolve_s) << ",\n  \"sigma_estimate_error_pct"
     << suffix << "\": " << ng::report::jsonNumber(adaptive2.sigma_i_error_pct)
     << ",\n  \"sigma_flip_estimate_error_pct" << suffix
-    << "\": " << ng::report::jsonNumber(adaptive2.sigma_r_error_pct);
+    << "\": " << ng::report::jsonNumber(adaptive2.sigma_r_error_pct)
+    << ",\n  \"sigma_final_error_pct_2x" << suffix
+    << "\": " << ng::report::jsonNumber(100.0 * (fin.sigma_rad / adaptive2.true_sigma_i - 1.0))
+    << ",\n  \"sigma_final_covers_truth_2x" << suffix
+    << "\": " << (fin.contains(adaptive2.true_sigma_i) ? "true" : "false");
+  return j.str();
+}
+
+/// The false re-solve rate at 1x: kFalseRuns adaptive runs of kFalseRunTrials trials each (own
+/// seeds) in a world whose sigma is the scene's; a run counts once it asks for any re-solve.
+std::string falseResolveJson(const std::string& scene_name, const st::PolicySource& chosen,
+                             const st::StartOptions& start, const std::string& suffix) {
+  const st::SteeringProblem problem = chosen.model->problem();
+  const auto assumed = solvedFor(problem);
+  const st::ContinuousWorkspace world(problem);
+  std::int64_t runs_with_resolve = 0, steps = 0;
+  for (int run = 0; run < kFalseRuns; ++run) {
+    st::AdaptivePolicy policy(problem, assumed, st::AdaptationOptions{});
+    for (int i = 0; i < kFalseRunTrials && policy.resolves().empty(); ++i) {
+      adaptiveTrial(world, policy, start,
+                    kFalseSeed + std::uint64_t(run) * kFalseRunTrials + std::uint64_t(i));
+    }
+    runs_with_resolve += policy.resolves().empty() ? 0 : 1;
+    steps += static_cast<std::int64_t>(policy.trajectory().size());
+  }
+  const st::Interval ci = st::wilsonInterval(runs_with_resolve, kFalseRuns);
+  std::cout << "false re-solves at 1x, " << scene_name << ": " << runs_with_resolve << " of "
+            << kFalseRuns << " runs of " << kFalseRunTrials << " trials (" << steps
+            << " steps observed)\n";
+  std::ostringstream j;
+  j << ",\n  \"false_resolve_rate_1x" << suffix
+    << "\": " << ng::report::jsonNumber(double(runs_with_resolve) / kFalseRuns)
+    << ",\n  \"false_resolve_rate_1x" << suffix << "_ci\": " << jsonInterval(ci)
+    << ",\n  \"false_resolve_runs_1x" << suffix << "\": " << kFalseRuns
+    << ",\n  \"false_resolve_run_trials_1x" << suffix << "\": " << kFalseRunTrials;
   return j.str();
 }
 
 /// The adaptation experiment on the scene and, with its own selection and truth check, on the
-/// held-out workspace steering_heldout; writes adaptation.csv and sigma_trajectory.csv and
-/// returns the JSON keys.
+/// held-out workspace steering_heldout; writes adaptation.csv, adaptation_paired.csv and
+/// sigma_trajectory.csv and returns the JSON keys.
 std::string adaptationAndHeldOut(const std::string& scene_name, const Selection& selected,
                                  const st::StartOptions& start, ng::report::Table& selection_table,
                                  const std::string& out_dir) {
@@ -498,6 +590,9 @@ std::string adaptationAndHeldOut(const std::string& scene_name, const Selection&
       {"scene", "arm", "world_sigma_scale", "successes", "trials", "success", "ci_low", "ci_high",
        "resolves", "resolve_s", "sigma_i_error_pct_10", "sigma_r_error_pct_10"},
       6);
+  ng::report::Table paired({"scene", "pair", "world_sigma_scale", "difference", "ci_low", "ci_high",
+                            "only_first", "only_second", "trials"},
+                           6);
   ng::report::Table trajectory(
       {"scene", "world_sigma_scale", "trial", "sigma_i_deg", "sigma_i_low_deg", "sigma_i_high_deg",
        "sigma_r_deg", "assumed_sigma_i_deg", "assumed_sigma_r_deg", "true_sigma_i_deg"},
@@ -506,7 +601,7 @@ std::string adaptationAndHeldOut(const std::string& scene_name, const Selection&
   const std::vector<Arm> main_arms =
       adaptationExperiment(scene_name, *chosen, start, arms, trajectory);
   std::ostringstream keys;
-  keys << adaptationJson(main_arms, "");
+  keys << adaptationJson(main_arms, "", paired) << falseResolveJson(scene_name, *chosen, start, "");
   // Held out: selection, truth check of the chosen model and the same experiment.
   const ng::scene::Scene held = ng::scene::loadSceneSpec("steering_heldout");
   const st::SteeringProblem held_problem = st::problemFromScene(held);
@@ -521,7 +616,8 @@ std::string adaptationAndHeldOut(const std::string& scene_name, const Selection&
   const auto held_chosen = solvedFor(held_selected.chosen);
   const std::vector<Arm> held_arms =
       adaptationExperiment(held.name, *held_chosen, held_start, arms, trajectory);
-  keys << adaptationJson(held_arms, "_heldout")
+  keys << adaptationJson(held_arms, "_heldout", paired)
+       << falseResolveJson(held.name, *held_chosen, held_start, "_heldout")
        << ",\n  \"mc_within_ci_fraction_default_heldout\": "
        << ng::report::jsonNumber(held_default.within)
        << ",\n  \"ps_mean_abs_gap_default_heldout\": "
@@ -531,8 +627,9 @@ std::string adaptationAndHeldOut(const std::string& scene_name, const Selection&
        << ",\n  \"grid_spacing_mm_default_heldout\": "
        << ng::report::jsonNumber(held_selected.chosen.params.grid_spacing_m * kMmPerM);
   arms.writeCsv(out_dir + "/adaptation.csv");
+  paired.writeCsv(out_dir + "/adaptation_paired.csv");
   trajectory.writeCsv(out_dir + "/sigma_trajectory.csv");
-  std::cout << arms.toText();
+  std::cout << arms.toText() << paired.toText();
   return keys.str();
 }
 
@@ -802,7 +899,9 @@ void writePlotJson(const std::string& out_dir) {
  {"csv": "selection.csv", "x": "estimated_error", "y": "mc_mean_abs_gap", "group": "scene", "points": true, "annotate": "grid_spacing_mm",
   "title": "ps_tolerance ladder: the solver's error estimate vs the Monte Carlo gap (label: Delta mm)", "png": "selection.png"},
  {"csv": "adaptation.csv", "x": "world_sigma_scale", "y": "success", "group": "arm", "points": true,
-  "title": "300 closed-loop trials per arm (both scenes)", "png": "adaptation.png"},
+  "title": "20,000 paired closed-loop trials per arm (both scenes)", "png": "adaptation.png"},
+ {"csv": "adaptation_paired.csv", "x": "world_sigma_scale", "y": "difference", "group": "pair", "points": true,
+  "title": "Paired success differences, common random numbers (both scenes)", "png": "adaptation_paired.png"},
  {"csv": "sigma_trajectory.csv", "x": "trial", "y": "sigma_i_deg", "group": "world_sigma_scale",
   "title": "Adaptive arm: learned sigma_i after each trial", "png": "sigma_trajectory.png"},
  {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",

@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <optional>
 #include <random>
 #include <stdexcept>
 
@@ -35,6 +36,31 @@ TEST(NoiseEstimatorTest, DeflectionIsRecoveredFromTwoPoses) {
   EXPECT_THROW(NoiseEstimator::deflection({}, {Point2::Zero(), NAN, Bevel::kLeft}, Control::kInsert,
                                           delta, r),
                std::invalid_argument);
+}
+
+TEST(NoiseEstimatorTest, DeflectionOfAStoppedStepIsRecoveredFromItsChord) {
+  const double delta = 2 * kPi * 0.05 / 40, r = 0.05;
+  for (Bevel b : {Bevel::kLeft, Bevel::kRight}) {
+    for (Control u : {Control::kInsert, Control::kFlip}) {
+      for (double fraction : {0.15, 0.5, 1.0}) {
+        for (double beta_deg : {-30.0, -3.0, 0.0, 7.5, 120.0}) {
+          const TipPose start{Point2(0.01, 0.02), -170 * kDeg, b};
+          const TipPose end = advanceTip(start, u, beta_deg * kDeg, fraction * delta, r);
+          const std::optional<double> beta =
+              NoiseEstimator::deflectionOfStoppedStep(start, end, 0.1 * delta);
+          ASSERT_TRUE(beta.has_value()) << fraction;
+          EXPECT_NEAR(*beta, beta_deg * kDeg, 1e-9) << fraction << " of delta, " << beta_deg;
+        }
+      }
+    }
+  }
+  // A chord shorter than asked for teaches nothing; a non-finite pose is refused.
+  const TipPose start{Point2(0.01, 0.02), 0.0, Bevel::kLeft};
+  const TipPose near = advanceTip(start, Control::kInsert, 0.1, 0.05 * delta, r);
+  EXPECT_FALSE(NoiseEstimator::deflectionOfStoppedStep(start, near, 0.1 * delta).has_value());
+  EXPECT_THROW(
+      NoiseEstimator::deflectionOfStoppedStep(start, {Point2(NAN, 0), 0, Bevel::kLeft}, 0.0),
+      std::invalid_argument);
 }
 
 TEST(NoiseEstimatorTest, ChiSquareQuantileMatchesTables) {
@@ -75,6 +101,21 @@ TEST(NoiseEstimatorTest, ControlsAreSeparateAndBadInputLeavesTheEstimate) {
   EXPECT_EQ(est.estimate(Control::kFlip).samples, 0);
   EXPECT_TRUE(std::isinf(est.estimate(Control::kFlip).high_rad));
   EXPECT_THROW(NoiseEstimator(1.0), std::invalid_argument);
+  EXPECT_THROW(est.estimate(Control::kInsert, 0.0), std::invalid_argument);
+}
+
+TEST(NoiseEstimatorTest, AHigherConfidenceGivesAWiderInterval) {
+  NoiseEstimator est(0.95);
+  std::mt19937_64 rng(3);
+  std::normal_distribution<double> normal(0.0, 5 * kDeg);
+  for (int i = 0; i < 50; ++i) {
+    est.add(Control::kInsert, normal(rng));
+  }
+  const SigmaEstimate a = est.estimate(Control::kInsert);
+  const SigmaEstimate b = est.estimate(Control::kInsert, 0.9999);
+  EXPECT_DOUBLE_EQ(a.sigma_rad, b.sigma_rad);
+  EXPECT_LT(b.low_rad, a.low_rad);
+  EXPECT_GT(b.high_rad, a.high_rad);
 }
 
 }  // namespace

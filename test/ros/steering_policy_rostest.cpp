@@ -170,6 +170,9 @@ TEST(SteeringPolicy, BestStartTipGetsItsControlAndProbability) {
   EXPECT_EQ(control->header.stamp, tip.header.stamp);
   EXPECT_EQ(control->header.frame_id, "scene");
   EXPECT_NEAR(control->step_length_m, 2.0 * kPi * kRadius_m / kOrientations, kStepTol_m);
+  // The noise of the answering table: the scene's 5 and 10 degrees (no re-solve yet).
+  EXPECT_NEAR(control->sigma_insert_rad, 5.0 * kPi / 180.0, 1e-12);
+  EXPECT_NEAR(control->sigma_flip_rad, 10.0 * kPi / 180.0, 1e-12);
   EXPECT_EQ(control->tip.x, tip.pose.x);
   EXPECT_EQ(control->tip.y, tip.pose.y);
   EXPECT_EQ(control->tip.theta, tip.pose.theta);
@@ -368,6 +371,11 @@ TEST(SteeringPolicyAdaptation, LearnedNoiseReSolvesWithoutAGapInTheControls) {
   }
   EXPECT_NE(after, before) << "no re-solved table within " << kSwapWait_s << " s";
   EXPECT_EQ(after.find("sigma_i 5 deg"), std::string::npos) << after;
+  // The answers now name the learned noise, for the procedure's report.
+  const auto learned =
+      client().ask(client().tip(best.pose.x, best.pose.y, best.pose.theta, best.bevel));
+  ASSERT_TRUE(learned);
+  EXPECT_GT(learned->sigma_insert_rad, 1.5 * 5.0 * kDegToRad) << "sigma_i of the swapped table";
 }
 
 }  // namespace

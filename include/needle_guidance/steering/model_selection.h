@@ -93,6 +93,14 @@ struct PolicySource {
   std::string description() const;
 };
 
+/// The problem of a table re-solved for other noise (AdaptivePolicy): `chosen` (the model a
+/// tolerance chose: its grid is kept, ps_tolerance set to 0) assuming sigma_i, sigma_r [rad].
+/// solveOrLoad(withNoise(...), scene, table_dir, ...) loads the table steering_policy saved after
+/// a re-solve (AdaptationOptions::table_dir), or solves it. Throws std::invalid_argument for a
+/// negative or non-finite sigma.
+SteeringProblem withNoise(const SteeringProblem& chosen, double sigma_insert_rad,
+                          double sigma_flip_rad);
+
 /// Writes `table` to `path` through a temporary file and a rename (readers never see half a
 /// table). Creates the folder. Throws std::runtime_error / std::filesystem errors on failure.
 void saveTableAtomically(const PolicyTable& table, const std::string& path);

@@ -70,6 +70,24 @@ struct Interval {
 };
 Interval wilsonInterval(std::int64_t successes, std::int64_t trials, double z = 1.959963984540054);
 
+/// The difference of two success rates measured on the same trials (paired: trial i of both
+/// arms used the same seed, i.e. common random numbers), with its 95 % interval.
+struct PairedDifference {
+  std::int64_t trials = 0;
+  std::int64_t both = 0;         ///< a and b succeeded
+  std::int64_t only_a = 0;       ///< a succeeded, b failed
+  std::int64_t only_b = 0;       ///< b succeeded, a failed
+  double difference = 0.0;       ///< rate(a) - rate(b)
+  Interval interval{-1.0, 1.0};  ///< Newcombe's hybrid score interval for paired proportions
+  bool excludesZero() const { return interval.low > 0.0 || interval.high < 0.0; }
+};
+
+/// rate(a) - rate(b) of paired outcomes (a[i], b[i]: trial i of each arm), with the interval of
+/// Newcombe (1998, method 10: the two Wilson intervals combined with the phi correlation of the
+/// pairs). Throws std::invalid_argument for outcome vectors of different or zero length.
+PairedDifference pairedDifference(const std::vector<bool>& a, const std::vector<bool>& b,
+                                  double z = 1.959963984540054);
+
 /// Aggregate of many trials from one start.
 struct MonteCarloResult {
   std::int64_t trials = 0;

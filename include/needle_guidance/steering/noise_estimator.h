@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <string>
 
 #include "needle_guidance/steering/steering_model.h"
@@ -33,6 +34,15 @@ public:
   /// pose or a non-positive radius.
   static double deflection(const TipPose& before, const TipPose& after, Control control,
                            double arc_length_m, double radius_m);
+  /// The deflection of a step that stopped after an unknown arc length (it touched an obstacle or
+  /// the workspace edge): the arc from `before` with heading theta + beta ends at `stopped` with
+  /// heading theta + beta +- l / r, and its chord points along theta + beta +- l / (2 r), so
+  /// beta = 2 chord angle - stopped.theta - before.theta, whatever l is. Needs a chord of at
+  /// least min_chord_m; nullopt for a shorter one (nothing to learn). Dropping such steps would
+  /// bias the estimate low: the largest deflections are the ones that stop a step. Throws
+  /// std::invalid_argument for a non-finite pose.
+  static std::optional<double> deflectionOfStoppedStep(const TipPose& before,
+                                                       const TipPose& stopped, double min_chord_m);
 
   /// Adds one deflection [rad] observed under `control`. Throws std::invalid_argument for a
   /// non-finite beta (the estimate is left unchanged).
@@ -41,8 +51,10 @@ public:
   void addStep(const TipPose& before, const TipPose& after, Control control, double arc_length_m,
                double radius_m);
 
-  /// The estimate for insertions (sigma_i) or flips (sigma_r).
+  /// The estimate for insertions (sigma_i) or flips (sigma_r), at confidence().
   SigmaEstimate estimate(Control control) const;
+  /// The same at another confidence level in (0, 1) (the re-solve test's, adaptive_policy.h).
+  SigmaEstimate estimate(Control control, double confidence) const;
   double confidence() const { return confidence_; }
 
 private:
