@@ -211,6 +211,29 @@ void writePsMap(const SteerableReport& rep, const std::string& path) {
   }
 }
 
+/// The tables that answered, when the policy re-solved (more than one, or not the scene's).
+std::string tablesMarkdown(const SteerableReport& rep) {
+  if (rep.tables.empty()) {
+    return "";
+  }
+  std::ostringstream md;
+  md << "Tables that answered (the policy re-solves for the noise it learns; each predicts its "
+        "own trials):\n\n| sigma_i / sigma_r [deg] | trials | reached | predicted P_s | "
+        "Monte Carlo |\n| --- | --- | --- | --- | --- |\n";
+  for (const SteerableTableReport& t : rep.tables) {
+    int reached = 0;
+    for (int i : t.trials) {
+      reached +=
+          rep.records[static_cast<std::size_t>(i)].outcome == SteerableOutcome::kReachedTarget;
+    }
+    md << "| " << t.noise.sigma_insert_rad * kDeg << " / " << t.noise.sigma_flip_rad * kDeg << " | "
+       << t.trials.size() << " | " << reached << " | " << t.predicted_ps << " | "
+       << t.monte_carlo.rate() << " |\n";
+  }
+  md << "\n";
+  return md.str();
+}
+
 }  // namespace
 
 int SteerableReport::successes() const {
@@ -285,7 +308,21 @@ std::string SteerableReport::summaryJson() const {
        << ",\n  \"unconfident_decisions\": " << unconfident
        << ",\n  \"mean_steps\": " << jsonNumber(n > 0 ? steps / n : 0.0)
        << ",\n  \"mean_flips\": " << jsonNumber(n > 0 ? flips / n : 0.0)
-       << ",\n  \"wall_time_s\": " << jsonNumber(wall_time_s) << "\n}\n";
+       << ",\n  \"tables_used\": [";
+  for (std::size_t k = 0; k < tables.size(); ++k) {
+    const SteerableTableReport& t = tables[k];
+    int reached = 0;
+    for (int i : t.trials) {
+      reached += records[static_cast<std::size_t>(i)].outcome == SteerableOutcome::kReachedTarget;
+    }
+    json << (k ? ", " : "")
+         << "{\"sigma_insert_deg\": " << jsonNumber(t.noise.sigma_insert_rad * kDeg)
+         << ", \"sigma_flip_deg\": " << jsonNumber(t.noise.sigma_flip_rad * kDeg)
+         << ", \"trials\": " << t.trials.size() << ", \"successes\": " << reached
+         << ", \"predicted_ps\": " << jsonNumber(t.predicted_ps)
+         << ", \"monte_carlo_ps\": " << jsonNumber(t.monte_carlo.rate()) << "}";
+  }
+  json << "],\n  \"wall_time_s\": " << jsonNumber(wall_time_s) << "\n}\n";
   return json.str();
 }
 
@@ -326,7 +363,7 @@ std::string SteerableReport::summaryMarkdown() const {
      << " |\n"
      << "| mean steps / flips | " << (n > 0 ? steps / n : 0.0) << " / " << (n > 0 ? flips / n : 0.0)
      << " |\n\n"
-     << "![paths](paths.png)\n\n![P_s map](ps_map.png)\n\n"
+     << tablesMarkdown(*this) << "![paths](paths.png)\n\n![P_s map](ps_map.png)\n\n"
      << trials.toMarkdown();
   return md.str();
 }

@@ -129,6 +129,10 @@ SteerableTrialRecord runSteerableTrial(SteerableDevices& devices,
       rec.message = m.str();
       break;
     }
+    if (!rec.noise && std::isfinite(answer->sigma_insert_rad) &&
+        std::isfinite(answer->sigma_flip_rad)) {
+      rec.noise = steering::TrialNoise{answer->sigma_insert_rad, answer->sigma_flip_rad};
+    }
     rec.unconfident_decisions += answer->confident ? 0 : 1;
     rec.decisions.push_back({*tip, *answer, true});
     if (answer->control == steering::Control::kFlip) {
@@ -194,6 +198,42 @@ SteerableReport SteerableTrials::run(SteerableDevices& devices, const SteerableS
   rep.ps_map = table_.startCandidates(starts_);
   rep.wall_time_s = secondsSince(t0);
   return rep;
+}
+
+}  // namespace needle_guidance::procedures
+
+namespace needle_guidance::procedures {
+
+std::vector<steering::TrialNoise> SteerableReport::trialNoises(
+    std::vector<int>& record_index) const {
+  std::vector<steering::TrialNoise> out;
+  record_index.clear();
+  for (std::size_t i = 0; i < records.size(); ++i) {
+    if (records[i].noise) {
+      out.push_back(*records[i].noise);
+      record_index.push_back(static_cast<int>(i));
+    }
+  }
+  return out;
+}
+
+void SteerableReport::addTablesUsed(const std::vector<steering::TableUsed>& used,
+                                    const std::vector<int>& record_index) {
+  tables.clear();
+  for (const steering::TableUsed& u : used) {
+    SteerableTableReport t;
+    t.noise = u.noise;
+    for (int k : u.trials) {
+      t.trials.push_back(record_index.at(static_cast<std::size_t>(k)));
+    }
+    const steering::PolicyTable& table = *u.policy->table;
+    t.predicted_ps = table.lookup(start.pose).probability_of_success;
+    const steering::ContinuousWorkspace world(u.policy->model->problem());
+    t.monte_carlo = steering::runMonteCarlo(world, start.pose, steering::tablePolicy(table),
+                                            SteerableTrials::kMonteCarloTrials,
+                                            SteerableTrials::kMonteCarloSeed, 2);
+    tables.push_back(std::move(t));
+  }
 }
 
 }  // namespace needle_guidance::procedures

@@ -23,6 +23,7 @@
 #include "needle_guidance/ros/node_supervisor.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/steering/adaptive_policy.h"
 #include "needle_guidance/steering/model_selection.h"
 
 namespace needle_guidance {
@@ -203,6 +204,8 @@ public:
     answer.looked_up.theta_rad = control.tip.theta;
     answer.source = control.tip_source;
     answer.confident = control.tip_confident != 0;
+    answer.sigma_insert_rad = control.sigma_insert_rad;
+    answer.sigma_flip_rad = control.sigma_flip_rad;
     return answer;
   }
 
@@ -395,6 +398,19 @@ bool SteerableProcedureRos::run() {
   rep.model = policy.value().description();
   rep.policy_table = policy.value().source;
   rep.estimated_ps_error = policy.value().estimated_error;
+  // The tables that answered (the policy may have re-solved for the noise it learned), each with
+  // its own prediction for its trials.
+  std::vector<int> record_index;
+  const auto noises = rep.trialNoises(record_index);
+  if (!noises.empty()) {
+    const auto used = steering::tablesUsed(policy.value().model->problem(), noises, scene.name,
+                                           s_.table_dir, selection);
+    if (used) {
+      rep.addTablesUsed(used.value(), record_index);
+    } else {
+      ROS_ERROR_STREAM("steerable_procedure: tables used: " << used.status().toString());
+    }
+  }
   rep.wall_time_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - wall_start).count();
   if (rep.fault) {

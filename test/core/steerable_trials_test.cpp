@@ -196,6 +196,32 @@ TEST(SteerableTrials, TheReportWritesItsTablesAndFigures) {
   EXPECT_EQ(rows, 4);
 }
 
+TEST(SteerableTrials, EachTableThatAnsweredPredictsItsOwnTrials) {
+  Fixture f;
+  InProcessSteerableDevices devices(f.needle, f.table, nullptr, nullptr, f.frame_index);
+  SteerableReport rep = f.trials(4).run(devices, f.start());
+  // In-process answers do not name a noise: no trial has one.
+  std::vector<int> index;
+  EXPECT_TRUE(rep.trialNoises(index).empty());
+  const steering::TrialNoise scene_noise{f.problem.params.sigma_insert_rad,
+                                         f.problem.params.sigma_flip_rad};
+  rep.records[1].noise = scene_noise;
+  rep.records[3].noise = scene_noise;
+  ASSERT_EQ(rep.trialNoises(index).size(), 2u);
+  EXPECT_EQ(index, (std::vector<int>{1, 3}));
+  auto source = std::make_shared<steering::PolicySource>();
+  source->model = std::make_unique<const steering::SteeringModel>(f.problem);
+  source->table = std::make_unique<const steering::PolicyTable>(f.table);
+  rep.addTablesUsed({steering::TableUsed{scene_noise, {0, 1}, source}}, index);
+  ASSERT_EQ(rep.tables.size(), 1u);
+  EXPECT_EQ(rep.tables[0].trials, (std::vector<int>{1, 3}));  // mapped back to the records
+  EXPECT_EQ(rep.tables[0].predicted_ps, f.start().predicted_ps);
+  // The scene's own table in the scene's world: the same seeded Monte Carlo as the headline.
+  EXPECT_EQ(rep.tables[0].monte_carlo.successes, rep.monte_carlo.successes);
+  EXPECT_NE(rep.summaryJson().find("\"tables_used\": [{\"sigma_insert_deg\": 5"), std::string::npos)
+      << rep.summaryJson();
+}
+
 TEST(SteerableTrials, BadSettingsAreRefused) {
   Fixture f;
   SteerableSettings s;

@@ -9,12 +9,14 @@
 // table and optional imager + tracker (guided_trial.h). Both run SteerableTrials::run.
 #pragma once
 
+#include <cmath>
 #include <cstdint>
 #include <optional>
 #include <string>
 #include <vector>
 
 #include "needle_guidance/procedures/fault.h"
+#include "needle_guidance/steering/adaptive_policy.h"
 #include "needle_guidance/steering/continuous_workspace.h"
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/policy_table.h"
@@ -53,6 +55,10 @@ struct PolicyAnswer {
   steering::TipPose looked_up;  ///< the pose the policy was given (the tracker's estimate)
   std::string source = "ground_truth";
   bool confident = true;
+  /// The noise the answering table assumes [rad] (the scene's until the policy re-solves for
+  /// the noise it learned); NaN when the policy does not say.
+  double sigma_insert_rad = NAN;
+  double sigma_flip_rad = NAN;
 };
 
 /// How an insertion step ended.
@@ -104,6 +110,18 @@ struct SteerableTrialRecord {
   double seconds = 0.0;
   std::vector<SteerableDecision> decisions;
   std::vector<SteerableTip> samples;  ///< every measured tip during the trial
+  /// The noise the trial's first answer assumed (see PolicyAnswer), if it said.
+  std::optional<steering::TrialNoise> noise;
+};
+
+/// The trials that one policy table answered, with that table's own prediction: its P_s of the
+/// start and a Monte Carlo in a world with the noise it assumes (issue 21: after a re-solve the
+/// scene's table no longer predicts the run).
+struct SteerableTableReport {
+  steering::TrialNoise noise;
+  std::vector<int> trials;  ///< indices into records
+  double predicted_ps = 0.0;
+  steering::MonteCarloResult monte_carlo;
 };
 
 struct SteerableSettings {
@@ -136,7 +154,17 @@ struct SteerableReport {
   steering::MonteCarloResult monte_carlo;
   /// Start candidates on the entry line: bevel, y [m], theta [rad], P_s.
   std::vector<steering::StartCandidate> ps_map;
+  /// Per table that answered (addTablesUsed); empty when not known.
+  std::vector<SteerableTableReport> tables;
   double wall_time_s = 0.0;
+
+  /// The noise of the trials whose answers said it, in order; `record_index` gets their indices
+  /// into records.
+  std::vector<steering::TrialNoise> trialNoises(std::vector<int>& record_index) const;
+  /// Fills `tables` from steering::tablesUsed(...) of trialNoises(record_index): each table's
+  /// P_s of the start and a Monte Carlo of kMonteCarloTrials in its own problem's world.
+  void addTablesUsed(const std::vector<steering::TableUsed>& used,
+                     const std::vector<int>& record_index);
 
   int successes() const;
   int errored() const;
