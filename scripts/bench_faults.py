@@ -20,6 +20,7 @@ import json
 import math
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -79,7 +80,8 @@ class Run:
 
     def __init__(self, out_dir, name, spec, port, extra_args=()):
         self.dir = os.path.join(out_dir, "runs", name)
-        os.makedirs(self.dir, exist_ok=True)
+        shutil.rmtree(self.dir, ignore_errors=True)  # a report left by an earlier bench is not this run's
+        os.makedirs(self.dir)
         open(os.path.join(self.dir, ".needle_guidance_report"), "w").close()
         self.report_dir = self.dir
         self.port = port
