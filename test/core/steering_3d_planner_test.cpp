@@ -188,6 +188,31 @@ TEST(ClosedLoop3d, ReplanningReachesTheTargetBehindTheArchAndStraightDoesNot) {
   EXPECT_EQ(straight, 0);
 }
 
+TEST(ClosedLoop3d, ReplanningThroughBiplaneImagingReachesTheTarget) {
+  const Scene3d s = prostate();
+  const CollisionWorld3 world = s.collisionWorld();
+  PlannerParams3 params = testParams();
+  params.time_budget_s = 0.03;
+  TrialOptions3 options;
+  options.biplane = true;  // default imaging: 0.2 mm per view, 5 % dropout, 2 % outliers
+  int successes = 0, fused = 0, missing = 0;
+  constexpr int kTrials = 6;
+  // A view's 0.2 mm noise, a 5 mm outlier passed by the 1-dof gate and dead reckoning between
+  // fused pairs: the estimate stays within this of the true tip [m].
+  constexpr double kEstimateTol_m = 6e-3;
+  for (int i = 0; i < kTrials; ++i) {
+    const TrialResult3 r =
+        runTrial3(s, world, Strategy3::kReplanFirstFound, s.noise, params, 300 + i, options);
+    successes += r.success;
+    fused += r.views_fused;
+    missing += r.views_dropped + r.views_gated;
+    EXPECT_LT(r.estimate_error_m_max, kEstimateTol_m) << "seed " << 300 + i;
+  }
+  EXPECT_GE(successes, kTrials - 1);
+  // About 13 % of pairs are lost at the default rates (1 - 0.95^2 dropped, a few outliers gated).
+  EXPECT_GT(fused, 3 * missing);
+}
+
 TEST(ClosedLoop3d, NoiselessOpenLoopHitsTheCentre) {
   const Scene3d s = prostate();
   const CollisionWorld3 world = s.collisionWorld();
