@@ -8,7 +8,10 @@
 // held-out prostate variant is reported apart. The closed loops see the true tip; on the
 // prostate-like scene at 1x and 2x they also run through biplane imaging (BiplaneObserver3:
 // two noisy views with dropout and outliers, fused with the gate), keys *_biplane.
-// Usage: bench_steering_3d --out DIR [--quick]
+// Usage: bench_steering_3d --out DIR [--quick] [--scene NAME:SIGMA[:biplane] ...]
+// With --scene, a partial run: only our replanning and the baseline on those (scene, sigma)
+// cells, 200 trials each (30 with --quick), rows appended to steering_3d.csv after every cell;
+// no summary.json (a sweep cut short by the load still leaves its finished cells).
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -255,6 +258,68 @@ void sceneKeys(std::ostringstream& json, const std::vector<Cell>& cells, const s
        << ",\n";
 }
 
+ng::report::Table cellTable() {
+  return ng::report::Table({"scene",
+                            "sigma_scale",
+                            "strategy",
+                            "biplane",
+                            "trials",
+                            "successes",
+                            "success_rate",
+                            "ci_low",
+                            "ci_high",
+                            "target_error_mm_median",
+                            "target_error_mm_p90",
+                            "hit_obstacle",
+                            "left_tissue",
+                            "no_plan",
+                            "plan_ms_median",
+                            "replan_ms_median",
+                            "replan_ms_p99",
+                            "replan_within_100ms",
+                            "replans",
+                            "predicted_p_success_mean",
+                            "predicted_p_success_lqg_mp_mean",
+                            "biplane_gated_fraction",
+                            "biplane_dropped_fraction",
+                            "estimate_error_max_mm_median"});
+}
+
+ng::report::Table trialTable() {
+  return ng::report::Table({"scene", "sigma_scale", "strategy", "biplane", "seed", "success",
+                            "target_error_mm", "steps", "predicted_p_success", "contact",
+                            "message"});
+}
+
+/// The partial run of --scene NAME:SIGMA[:biplane] specs (see the usage above).
+int runPartial(const ng::report::BenchArgs& args, const std::string& dir, int trials) {
+  ng::report::Table table = cellTable();
+  ng::report::Table per_trial = trialTable();
+  for (const std::string& spec : args.scenes) {
+    const std::size_t colon = spec.find(':');
+    if (colon == std::string::npos) {
+      throw std::invalid_argument("--scene " + spec + ": expected NAME:SIGMA[:biplane]");
+    }
+    const std::string name = spec.substr(0, colon);
+    const std::string rest = spec.substr(colon + 1);
+    const bool biplane = rest.size() > 8 && rest.substr(rest.size() - 8) == ":biplane";
+    const double sigma = std::stod(rest.substr(0, biplane ? rest.size() - 8 : rest.size()));
+    const s3::Scene3d scene = s3::loadScene3d(dir + name + ".yaml");
+    const s3::CollisionWorld3 world = scene.collisionWorld();
+    for (s3::Strategy3 strategy :
+         {s3::Strategy3::kReplanUncertainty, s3::Strategy3::kReplanFirstFound}) {
+      const Cell c = runCell(scene, world, sigma, strategy, biplane, trials, per_trial);
+      addRow(table, c);
+      table.writeCsv(args.out_dir + "/steering_3d.csv");
+      per_trial.writeCsv(args.out_dir + "/trials.csv");
+      std::cerr << "[bench_steering_3d] " << spec << " " << s3::toString(strategy) << ": "
+                << c.successes << "/" << trials << " (load " << loadAverage() << ")\n";
+    }
+  }
+  std::cout << table.toText();
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -267,39 +332,17 @@ int main(int argc, char** argv) {
     const auto started = std::chrono::steady_clock::now();
     const std::string dir = std::string(NG_SOURCE_DIR) + "/config/scenes/steering_3d/";
     const int trials = args->quick ? 30 : 200;
+    if (!args->scenes.empty()) {
+      return runPartial(*args, dir, trials);
+    }
     const std::vector<double> sigmas =
         args->quick ? std::vector<double>{1.0, 2.0} : std::vector<double>{0.0, 1.0, 2.0};
     std::vector<std::string> scenes{"prostate_3d", "liver_3d", "prostate_heldout_3d"};
     const std::vector<s3::Strategy3> strategies{s3::Strategy3::kReplanUncertainty,
                                                 s3::Strategy3::kReplanFirstFound,
                                                 s3::Strategy3::kOpenLoop, s3::Strategy3::kStraight};
-    ng::report::Table table({"scene",
-                             "sigma_scale",
-                             "strategy",
-                             "biplane",
-                             "trials",
-                             "successes",
-                             "success_rate",
-                             "ci_low",
-                             "ci_high",
-                             "target_error_mm_median",
-                             "target_error_mm_p90",
-                             "hit_obstacle",
-                             "left_tissue",
-                             "no_plan",
-                             "plan_ms_median",
-                             "replan_ms_median",
-                             "replan_ms_p99",
-                             "replan_within_100ms",
-                             "replans",
-                             "predicted_p_success_mean",
-                             "predicted_p_success_lqg_mp_mean",
-                             "biplane_gated_fraction",
-                             "biplane_dropped_fraction",
-                             "estimate_error_max_mm_median"});
-    ng::report::Table per_trial({"scene", "sigma_scale", "strategy", "biplane", "seed", "success",
-                                 "target_error_mm", "steps", "predicted_p_success", "contact",
-                                 "message"});
+    ng::report::Table table = cellTable();
+    ng::report::Table per_trial = trialTable();
     std::vector<Cell> cells;
     for (const std::string& name : scenes) {
       const s3::Scene3d scene = s3::loadScene3d(dir + name + ".yaml");
