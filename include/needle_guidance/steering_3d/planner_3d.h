@@ -75,7 +75,7 @@ struct PlannerParams3 {
   int entry_rollouts = 96;  ///< kMonteCarlo: rollouts per candidate of the plan from the entry
   /// kMonteCarlo: the rollouts of a replan end by time_budget_s + estimate_budget_s after its
   /// start (the first found always gets one; candidates not reached by then drop out) [s], > 0
-  double estimate_budget_s = 0.02;
+  double estimate_budget_s = 0.012;
   double entry_estimate_budget_s = 0.3;  ///< the same for the plan from the entry [s], > 0
 };
 
