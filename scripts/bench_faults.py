@@ -52,6 +52,11 @@ PROCEDURES = {
         args=["trials:=30", "time_scale:=20", "tracking:=image", "modality:=ultrasound"],
         nodes=["steering_policy", "insertion_robot", "imager", "tip_tracker"],
         running=r"steerable_procedure: trial 1/", window=(0.1, 6.0)),
+    "steerable_needle_3d": dict(
+        launch="steerable_needle_3d.launch",
+        args=["trials:=30"],
+        nodes=["steering_planner_3d"],
+        running=r"steerable_procedure_3d: trial 1/", window=(0.5, 6.0)),
     "rigid_seed_implant": dict(
         launch="rigid_seed_implant.launch",
         args=["insertion_velocity_m_s:=0.02", "retract_velocity_m_s:=0.05"],
@@ -97,9 +102,11 @@ class Run:
             args += [f"report_dir:={self.report_dir}", "hold:=true"]
         if spec["launch"].startswith("hdr"):
             args.append(f"journal_dir:={self.journal_dir}")
-        if spec["launch"].startswith("steerable") or spec["launch"].startswith("insertion_robot"):
+        planar = "3d" not in spec["launch"]  # the 3-D procedure simulates its needle in-process
+        if (spec["launch"].startswith("steerable") and planar) or \
+                spec["launch"].startswith("insertion_robot"):
             args += [f"journal_file:={self.robot_journal}"]
-        if spec["launch"].startswith("steer"):
+        if spec["launch"].startswith("steer") and planar:
             args += [f"table_dir:={os.path.join(self.dir, 'tables')}"]
         args += list(extra_args)
         self.log_path = os.path.join(self.dir, "roslaunch.log")
@@ -172,6 +179,7 @@ class Run:
 
 def procedure_node(spec):
     return {"hdr_delivery.launch": "hdr_procedure", "steerable_needle.launch": "steerable_procedure",
+            "steerable_needle_3d.launch": "steerable_procedure_3d",
             "rigid_seed_implant.launch": "insertion_procedure",
             "robot_procedure.launch": "insertion_procedure",
             "registration.launch": "registration_procedure"}[spec["launch"]]

@@ -123,7 +123,8 @@ SteeringSummary3 summarize(const std::vector<TrialResult3>& results,
 namespace {
 
 std::string summaryJson(const steering_3d::Scene3d& scene, const SteeringSummary3& s,
-                        const std::vector<double>& round_trip_ms, std::uint64_t seed) {
+                        const std::vector<double>& round_trip_ms, std::uint64_t seed,
+                        const NodeDeath3& death) {
   const auto num = [](double v) { return report::jsonNumber(v); };
   std::ostringstream json;
   json << "{\n  \"procedure\": \"steerable_procedure_3d\",\n  \"scene\": \"" << scene.name
@@ -140,9 +141,17 @@ std::string summaryJson(const steering_3d::Scene3d& scene, const SteeringSummary
        << ",\n  \"round_trip_ms_median\": " << num(report::median(round_trip_ms))
        << ",\n  \"initial_plan_s_median\": " << num(s.initial_plan_s_median)
        << ",\n  \"predicted_p_success_mean\": " << num(s.predicted_p_success_mean)
-       << ",\n  \"faults\": " << s.faults
-       << ",\n  \"success\": " << (runSucceeded(s) ? "true" : "false") << ",\n  \"status\": \""
-       << (s.faults == 0 ? "completed" : "fault") << "\"\n}\n";
+       << ",\n  \"faults\": " << s.faults;
+  if (!death.dead_node.empty()) {
+    json << ",\n  \"dead_node\": \"" << death.dead_node << "\",\n  \"cause\": \"" << death.cause
+         << "\",\n  \"detected_unix_s\": " << report::jsonNumber(death.detected_unix_s, 15);
+  }
+  const bool ok = runSucceeded(s) && death.dead_node.empty();
+  json << ",\n  \"success\": " << (ok ? "true" : "false") << ",\n  \"status\": \""
+       << (!death.dead_node.empty() ? "node_died"
+           : s.faults == 0          ? "completed"
+                                    : "fault")
+       << "\"\n}\n";
   return json.str();
 }
 
@@ -175,9 +184,11 @@ void writePlots(const std::string& dir, const steering_3d::Scene3d& scene,
 void writeSteeringReport3(const std::string& report_dir, const steering_3d::Scene3d& scene,
                           const std::vector<TrialResult3>& results,
                           const std::vector<bool>& faulted,
-                          const std::vector<double>& round_trip_ms, std::uint64_t seed) {
+                          const std::vector<double>& round_trip_ms, std::uint64_t seed,
+                          const NodeDeath3& death) {
   const SteeringSummary3 s = summarize(results, faulted);
-  report::writeTextFile(report_dir + "/summary.json", summaryJson(scene, s, round_trip_ms, seed));
+  report::writeTextFile(report_dir + "/summary.json",
+                        summaryJson(scene, s, round_trip_ms, seed, death));
   report::Table trials({"trial", "success", "contact", "obstacle", "target_error_mm", "steps",
                         "initial_plan_s", "replans", "replan_ms_median", "predicted_p_success",
                         "fault", "message"});

@@ -8,6 +8,7 @@
 #include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/conversions_3d.h"
+#include "needle_guidance/ros/node_supervisor.h"
 #include "needle_guidance/ros/params.h"
 
 namespace needle_guidance {
@@ -76,10 +77,13 @@ std::optional<SteeringControl3> SteerableProcedure3dRos::exchange(const sd::TipP
   last_control_.reset();
   expected_stamp_ = msg.header.stamp;
   tip_pub_.publish(msg);
-  const bool got = cv_.wait_for(lock, std::chrono::duration<double>(control_timeout_s_),
-                                [&] { return last_control_.has_value(); });
-  if (!got) {
-    return std::nullopt;
+  // In slices, so that a dead planner ends the wait within about 0.1 s of being seen.
+  const auto until = std::chrono::steady_clock::now() +
+                     std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                         std::chrono::duration<double>(control_timeout_s_));
+  while (!last_control_ && std::chrono::steady_clock::now() < until &&
+         !(supervisor_ != nullptr && supervisor_->death())) {
+    cv_.wait_for(lock, std::chrono::milliseconds(100));
   }
   return last_control_;
 }
@@ -89,7 +93,9 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
   PlanSteering3 srv;
   srv.request.seed = trial_seed;
   if (!plan_client_.call(srv)) {
-    trial.abort("the call of " + plan_client_.getService() + " failed");
+    supervisor_->checkNow();
+    trial.abort("the call of " + plan_client_.getService() + " failed" +
+                (supervisor_->death() ? ": " + supervisor_->death()->toString() : ""));
     return false;
   }
   if (!srv.response.success) {
@@ -115,8 +121,9 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
     const auto t0 = std::chrono::steady_clock::now();
     const std::optional<SteeringControl3> answer = exchange(trial.tip());
     if (!answer) {
-      trial.abort("no control from " + planner_ns_ + " within " +
-                  std::to_string(control_timeout_s_) + " s");
+      trial.abort(supervisor_->death() ? supervisor_->death()->toString()
+                                       : "no control from " + planner_ns_ + " within " +
+                                             std::to_string(control_timeout_s_) + " s");
       return false;
     }
     round_trip_ms.push_back(
@@ -162,11 +169,14 @@ bool SteerableProcedure3dRos::run() {
     }
     ros::WallDuration(0.05).sleep();
   }
+  NodeSupervisor supervisor(nh_, {planner_ns_});
+  supervisor_ = &supervisor;
   std::vector<sd::TrialResult3> results;
   std::vector<bool> faulted;
   std::vector<double> round_trip_ms;
   bool ok = true;
   for (int k = 0; k < trials_ && ok && ros::ok(); ++k) {
+    ROS_INFO_STREAM("steerable_procedure_3d: trial " << k + 1 << "/" << trials_);
     const std::uint64_t trial_seed = static_cast<std::uint64_t>(seed_) * 100000ULL + k;
     procedures::SteeringTrial3 trial(*scene_, *world_, noise_, trial_seed, max_steps_);
     try {
@@ -183,15 +193,21 @@ bool SteerableProcedure3dRos::run() {
                     << r.target_error_m * 1e3 << " mm, " << r.steps << " steps"
                     << (r.message.empty() ? "" : ", " + r.message));
   }
+  procedures::NodeDeath3 death;
+  if (const auto d = supervisor.death()) {
+    death = {d->node, d->toString(), d->when.toSec()};
+    ROS_ERROR_STREAM("steerable_procedure_3d: stopped: " << death.cause);
+  }
+  supervisor_ = nullptr;
   procedures::writeSteeringReport3(report_dir_, *scene_, results, faulted, round_trip_ms,
-                                   static_cast<std::uint64_t>(seed_));
+                                   static_cast<std::uint64_t>(seed_), death);
   const procedures::SteeringSummary3 s = procedures::summarize(results, faulted);
   ROS_INFO_STREAM("steerable_procedure_3d: " << s.successes << "/" << s.trials << " successes ("
                                              << s.success_ci_low << ".." << s.success_ci_high
                                              << "), median error " << s.target_error_mm_median
                                              << " mm, median replan " << s.replan_ms_median
                                              << " ms; report in " << report_dir_);
-  return ok && static_cast<int>(results.size()) == trials_;
+  return ok && death.dead_node.empty() && static_cast<int>(results.size()) == trials_;
 }
 
 }  // namespace needle_guidance

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <deque>
 #include <limits>
+#include <memory>
 
 namespace needle_guidance::steering_3d {
 namespace {
@@ -32,6 +33,31 @@ std::pair<TipPose3, double> straightStart(const Scene3d& scene) {
     dir = std::cos(e.cone_half_angle_rad) * e.direction + std::sin(e.cone_half_angle_rad) * side;
   }
   return {makeTipPose(p0, dir, dir.unitOrthogonal()), (c - p0).dot(dir)};
+}
+
+/// The tip the planner sees after a step: the truth, or the biplane estimate (else the previous
+/// estimate advanced by the control, without noise).
+TipPose3 estimateTip(const TipPose3& truth, const TipPose3& previous, const Control3& control,
+                     const NeedleParams3& needle, BiplaneObserver3* observer, TrialResult3& r) {
+  if (observer == nullptr) {
+    return truth;
+  }
+  const DutyCycle cycle =
+      dutyCycleFor(control.curvature_per_m, needle, cycleLength(control.length_m, needle));
+  const TipPose3 predicted =
+      advanceArc(rotateBevel(previous, control.rotate_rad), cycle.kappa_per_m, control.length_m);
+  const Result<TipPose3, BiplaneStatus> seen = observer->observe(truth, predicted);
+  if (seen) {
+    ++r.views_fused;
+  } else if (seen.status().code() == BiplaneCode::kDisagree) {
+    ++r.views_gated;
+  } else {
+    ++r.views_dropped;
+  }
+  const TipPose3 estimate = seen ? seen.value() : predicted;
+  r.estimate_error_m_max =
+      std::max(r.estimate_error_m_max, (estimate.p_SceneTip - truth.p_SceneTip).norm());
+  return estimate;
 }
 
 }  // namespace
@@ -120,7 +146,13 @@ TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strat
     return r;
   }
   r.predicted_p_success = initial.value().p_success;
+  r.predicted_p_success_lqg_mp = initial.value().p_success_lqg_mp;
   tip = initial.value().start;
+  TipPose3 estimate = tip;  // the entry pose is where the robot put the needle
+  std::unique_ptr<BiplaneObserver3> observer;
+  if (options.biplane) {
+    observer = std::make_unique<BiplaneObserver3>(options.imaging, callSeed(seed, 0xb1b1a4eULL));
+  }
   r.path.push_back(tip.p_SceneTip);
   std::deque<Control3> queue(initial.value().controls.begin(), initial.value().controls.end());
   const bool replan = strategy != Strategy3::kOpenLoop;
@@ -131,6 +163,7 @@ TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strat
     if (!executeStep3(needle, world, c, tip, r, options)) {
       break;
     }
+    estimate = estimateTip(tip, estimate, c, scene.needle, observer.get(), r);
     if (last_piece) {
       queue.pop_front();
     } else {
@@ -142,7 +175,7 @@ TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strat
     }
     const auto t1 = Clock::now();
     const Result<Plan3, PlanStatus> next =
-        planner.planFromTip(tip, callSeed(seed, static_cast<std::uint64_t>(r.steps)));
+        planner.planFromTip(estimate, callSeed(seed, static_cast<std::uint64_t>(r.steps)));
     r.replan_s.push_back(secondsSince(t1));
     if (next) {  // otherwise keep following the previous plan
       queue.assign(next.value().controls.begin(), next.value().controls.end());

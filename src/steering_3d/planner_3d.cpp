@@ -8,6 +8,8 @@
 #include <limits>
 #include <random>
 
+#include "needle_guidance/steering_3d/closed_loop_3d.h"
+
 namespace needle_guidance::steering_3d {
 namespace {
 
@@ -214,6 +216,73 @@ void growTree(const TreeContext& ctx, const std::vector<Node>& roots, std::mt199
   rep.nodes += static_cast<int>(nodes.size());
 }
 
+/// The plan's pose after arc length s (clamped to the plan) [m].
+TipPose3 poseAlong(const Plan3& plan, double s) {
+  TipPose3 pose = plan.start;
+  for (const Control3& c : plan.controls) {
+    const TipPose3 rotated = rotateBevel(pose, c.rotate_rad);
+    if (s <= c.length_m) {
+      return advanceArc(rotated, c.curvature_per_m, std::max(0.0, s));
+    }
+    s -= c.length_m;
+    pose = advanceArc(rotated, c.curvature_per_m, c.length_m);
+  }
+  return pose;
+}
+
+/// One rollout of monteCarloSuccesses.
+bool rolloutSucceeds(const Plan3& plan, const Scene3d& scene, const CollisionWorld3& world,
+                     const PlannerParams3& params, NoisyNeedle3& needle) {
+  const double step = scene.step_length_m;
+  const NeedleParams3& np = scene.needle;
+  const double cycle = np.duty_cycle_length_m;
+  const int max_steps = static_cast<int>(std::ceil(plan.length_m / step)) + 4;
+  TipPose3 pose = plan.start;
+  // Once a free single arc into the target is found the rollout keeps steering into the target
+  // without checking the arc again: the tip stays within a fraction of a millimetre of it, and
+  // the executed steps are checked anyway (the check dominates the rollout's cost).
+  bool homing = false;
+  for (int k = 0; k < max_steps; ++k) {
+    Control3 c{0.0, 0.0, step};
+    bool last = false;
+    if (k == 0 && !plan.controls.empty()) {
+      // The candidate's own first step: the decision being scored.
+      c = plan.controls.front();
+      last = plan.controls.size() == 1 && c.length_m <= step * (1.0 + 1e-9);
+      c.length_m = std::min(c.length_m, step);
+    } else {
+      const Steer g = goalArc(pose, scene.target, np, cycle, params.rotation_snap_rad);
+      homing =
+          g.ok &&
+          (homing ||
+           world.checkArc(rotateBevel(pose, g.rotate), g.kappa, g.length, params.safety_margin_m)
+               .free());
+      if (homing) {
+        c = Control3{g.rotate, g.kappa, std::min(g.length, step)};
+        last = g.length <= step * (1.0 + 1e-9);
+      } else {
+        const Steer s = steerTo(pose, poseAlong(plan, (k + 2) * step).p_SceneTip, np, cycle,
+                                params.rotation_snap_rad);
+        if (s.ok) {
+          c = Control3{s.rotate, s.kappa, step};
+        }
+      }
+    }
+    // The step's path (arc length c.length_m) stays within the free ball about its start when
+    // the margin exceeds it: one query instead of tracing the path.
+    const double free_radius = world.margin(pose.p_SceneTip);
+    const StepRecord r = needle.step(pose, c);
+    pose = r.pose;
+    if (!(free_radius > c.length_m + world.tolerance()) && !world.checkPolyline(r.path).free()) {
+      return false;
+    }
+    if (last) {
+      break;
+    }
+  }
+  return (pose.p_SceneTip - scene.target.center_m).norm() <= scene.target.radius_m;
+}
+
 }  // namespace
 
 std::string toString(PlanCode code) {
@@ -285,6 +354,17 @@ double successProbability(const Plan3& plan, const CollisionWorld3& world, const
   return p * (1.0 - tail(target.radius_m, P(0, 0), noise.in_plane_only));
 }
 
+int monteCarloSuccesses(const Plan3& plan, const Scene3d& scene, const CollisionWorld3& world,
+                        const NoiseParams3& noise, const PlannerParams3& params, int rollouts,
+                        std::uint64_t seed) {
+  int successes = 0;
+  for (int j = 0; j < rollouts; ++j) {
+    NoisyNeedle3 needle(scene.needle, noise, callSeed(seed, static_cast<std::uint64_t>(j)));
+    successes += rolloutSucceeds(plan, scene, world, params, needle) ? 1 : 0;
+  }
+  return successes;
+}
+
 Planner3::Planner3(const Scene3d& scene, const CollisionWorld3& world, PlannerParams3 params,
                    NoiseParams3 noise)
     : scene_(scene), world_(world), params_(params), noise_(noise) {
@@ -292,10 +372,12 @@ Planner3::Planner3(const Scene3d& scene, const CollisionWorld3& world, PlannerPa
       params_.max_plans < 1 || params_.max_nodes < 1 ||
       !(params_.goal_bias >= 0.0 && params_.goal_bias <= 1.0) ||
       !(params_.max_edge_length_m > 0.0) || params_.entry_samples < 1 ||
-      !(params_.safety_margin_m >= 0.0)) {
+      !(params_.safety_margin_m >= 0.0) || params_.rollouts < 1 || params_.entry_rollouts < 1 ||
+      !(params_.estimate_budget_s > 0.0) || !(params_.entry_estimate_budget_s > 0.0)) {
     throw std::invalid_argument(
         "Planner3: needs time budgets > 0, max_plans >= 1, max_nodes >= 1, goal_bias in "
-        "[0, 1], max_edge_length_m > 0, entry_samples >= 1, safety_margin_m >= 0");
+        "[0, 1], max_edge_length_m > 0, entry_samples >= 1, safety_margin_m >= 0, rollouts >= 1, "
+        "entry_rollouts >= 1, estimate budgets > 0");
   }
   noise_.validate();
 }
@@ -334,16 +416,19 @@ Result<Plan3, PlanStatus> Planner3::planFromEntry(std::uint64_t seed, PlanReport
     const Vector3 d0 = t.unitOrthogonal();
     roots.push_back(makeTipPose(p, t, std::cos(bevel) * d0 + std::sin(bevel) * t.cross(d0)));
   }
-  return plan(roots, seed, params_.entry_time_budget_s, report);
+  return plan(roots, seed, params_.entry_time_budget_s, params_.entry_rollouts,
+              params_.entry_estimate_budget_s, report);
 }
 
 Result<Plan3, PlanStatus> Planner3::planFromTip(const TipPose3& tip, std::uint64_t seed,
                                                 PlanReport* report) const {
-  return plan({tip}, seed, params_.time_budget_s, report);
+  return plan({tip}, seed, params_.time_budget_s, params_.rollouts, params_.estimate_budget_s,
+              report);
 }
 
 Result<Plan3, PlanStatus> Planner3::plan(const std::vector<TipPose3>& roots, std::uint64_t seed,
-                                         double budget_s, PlanReport* report) const {
+                                         double budget_s, int rollouts, double estimate_budget_s,
+                                         PlanReport* report) const {
   const auto started = Clock::now();
   PlanReport local;
   PlanReport& rep = report != nullptr ? *report : local;
@@ -404,19 +489,83 @@ Result<Plan3, PlanStatus> Planner3::plan(const std::vector<TipPose3>& roots, std
                           " nodes; closest approach " +
                           std::to_string(rep.closest_approach_m * 1e3) + " mm)");
   }
+  const std::size_t chosen =
+      choose(plans, rollouts,
+             context.deadline + std::chrono::duration_cast<Clock::duration>(
+                                    std::chrono::duration<double>(estimate_budget_s)),
+             seed);
+  rep.seconds = std::chrono::duration<double>(Clock::now() - started).count();
+  return plans[chosen];
+}
+
+std::size_t Planner3::choose(std::vector<Plan3>& plans, int rollouts,
+                             std::chrono::steady_clock::time_point deadline,
+                             std::uint64_t seed) const {
+  for (Plan3& p : plans) {
+    p.p_success_lqg_mp = successProbability(p, world_, scene_.target, noise_, scene_.step_length_m,
+                                            scene_.needle.kappa_max_per_m);
+    p.p_success = p.p_success_lqg_mp;
+  }
+  if (params_.choice == PlanChoice::kFirstFound) {
+    return 0;
+  }
   std::size_t chosen = 0;
+  if (params_.estimate == SuccessEstimate::kLqgMp) {
+    for (std::size_t i = 1; i < plans.size(); ++i) {
+      const bool better = plans[i].p_success > plans[chosen].p_success ||
+                          (plans[i].p_success == plans[chosen].p_success &&
+                           plans[i].length_m < plans[chosen].length_m);
+      chosen = better ? i : chosen;
+    }
+    return chosen;
+  }
+  // Rollout j of every candidate uses the same seed (common random numbers), so the comparison
+  // is paired. Rounds of one rollout per candidate run until `rollouts` rounds or the estimate
+  // budget is spent (a round cut short is dropped, except the first). Another plan
+  // replaces the first found (the baseline's) only if, over the paired rollouts, it succeeds
+  // where the first fails at least kSwitchMargin times more often than the reverse: the
+  // maximum of several noisy estimates is biased upwards, and a tie must keep the baseline.
+  constexpr int kSwitchMargin = 2;
+  if (noise_.sigma_insert_rad == 0.0 && noise_.sigma_spin_rad == 0.0 &&
+      noise_.sigma_roll_rad == 0.0) {
+    rollouts = 1;  // every rollout would be the same
+  }
+  const std::uint64_t mc_seed = seed ^ 0x5851f42d4c957f2dULL;
+  std::vector<std::vector<char>> outcome(plans.size());
+  std::vector<char> round(plans.size());
+  for (int j = 0; j < rollouts; ++j) {
+    const std::uint64_t rollout_seed = callSeed(mc_seed, static_cast<std::uint64_t>(j));
+    bool complete = true;
+    for (std::size_t i = 0; i < plans.size() && complete; ++i) {
+      NoisyNeedle3 needle(scene_.needle, noise_, rollout_seed);
+      round[i] = rolloutSucceeds(plans[i], scene_, world_, params_, needle) ? 1 : 0;
+      complete = Clock::now() < deadline;
+      if (!complete && j == 0) {  // the candidates not reached drop out
+        plans.resize(i + 1);
+      }
+    }
+    if (!complete && j > 0) {
+      break;
+    }
+    for (std::size_t i = 0; i < plans.size(); ++i) {
+      outcome[i].push_back(round[i]);
+    }
+  }
+  const std::size_t done = outcome[0].size();
+  int best_gain = kSwitchMargin - 1;
   for (std::size_t i = 0; i < plans.size(); ++i) {
-    plans[i].p_success = successProbability(plans[i], world_, target, noise_, scene_.step_length_m,
-                                            needle.kappa_max_per_m);
-    const bool better = plans[i].p_success > plans[chosen].p_success ||
-                        (plans[i].p_success == plans[chosen].p_success &&
-                         plans[i].length_m < plans[chosen].length_m);
-    if (params_.choice == PlanChoice::kMaxSuccessProbability && better) {
+    int successes = 0, gain = 0;
+    for (std::size_t j = 0; j < done; ++j) {
+      successes += outcome[i][j];
+      gain += outcome[i][j] - outcome[0][j];
+    }
+    plans[i].p_success = double(successes) / double(done);
+    if (gain > best_gain) {
+      best_gain = gain;
       chosen = i;
     }
   }
-  rep.seconds = std::chrono::duration<double>(Clock::now() - started).count();
-  return plans[chosen];
+  return chosen;
 }
 
 }  // namespace needle_guidance::steering_3d

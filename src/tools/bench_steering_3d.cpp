@@ -3,9 +3,15 @@
 // our replanning with the P(success) choice, the Patil-style first-found replanning baseline,
 // the open-loop plan and a straight needle: success rate with its 95 % Wilson interval over
 // seeded trials (the same seeds for every strategy), targeting error, initial planning and
-// replanning time (median, p99, fraction within 100 ms), and the LQG-MP-style estimate against
-// the Monte Carlo rate. The held-out prostate variant is reported apart.
-// Usage: bench_steering_3d --out DIR [--quick]
+// replanning time (median, p99, fraction within 100 ms), and both P(success) estimates (the
+// planner's rollouts and the LQG-MP-style propagation) against the Monte Carlo rate. The
+// held-out prostate variant is reported apart. The closed loops see the true tip; on the
+// prostate-like scene at 1x and 2x they also run through biplane imaging (BiplaneObserver3:
+// two noisy views with dropout and outliers, fused with the gate), keys *_biplane.
+// Usage: bench_steering_3d --out DIR [--quick] [--scene NAME:SIGMA[:biplane] ...]
+// With --scene, a partial run: only our replanning and the baseline on those (scene, sigma)
+// cells, 200 trials each (30 with --quick), rows appended to steering_3d.csv after every cell;
+// no summary.json (a sweep cut short by the load still leaves its finished cells).
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -39,6 +45,7 @@ struct Cell {
   std::string scene;
   double sigma_scale = 1.0;
   s3::Strategy3 strategy = s3::Strategy3::kReplanUncertainty;
+  bool biplane = false;
   std::int64_t trials = 0;
   std::int64_t successes = 0;
   std::int64_t hit_obstacle = 0;
@@ -48,6 +55,9 @@ struct Cell {
   std::vector<double> replan_ms;
   std::vector<double> plan_ms;
   double predicted_mean = 0.0;
+  double predicted_lqg_mp_mean = 0.0;
+  std::int64_t views_fused = 0, views_dropped = 0, views_gated = 0;
+  std::vector<double> estimate_error_max_mm;
   ng::steering::Interval interval() const {
     return ng::steering::wilsonInterval(successes, trials);
   }
@@ -63,14 +73,16 @@ double loadAverage() {
 
 /// Runs `trials` seeded trials on two threads (trial i uses seed kFirstSeed + i).
 Cell runCell(const s3::Scene3d& scene, const s3::CollisionWorld3& world, double sigma_scale,
-             s3::Strategy3 strategy, int trials, ng::report::Table& per_trial) {
+             s3::Strategy3 strategy, bool biplane, int trials, ng::report::Table& per_trial) {
   std::vector<s3::TrialResult3> results(static_cast<std::size_t>(trials));
   const s3::NoiseParams3 noise = scene.noise.scaled(sigma_scale);
   const s3::PlannerParams3 params;
+  s3::TrialOptions3 options;
+  options.biplane = biplane;
   const auto worker = [&](int first) {
     for (int i = first; i < trials; i += 2) {
       results[static_cast<std::size_t>(i)] =
-          s3::runTrial3(scene, world, strategy, noise, params, kFirstSeed + i);
+          s3::runTrial3(scene, world, strategy, noise, params, kFirstSeed + i, options);
     }
   };
   std::thread other(worker, 1);
@@ -80,6 +92,7 @@ Cell runCell(const s3::Scene3d& scene, const s3::CollisionWorld3& world, double 
   c.scene = scene.name;
   c.sigma_scale = sigma_scale;
   c.strategy = strategy;
+  c.biplane = biplane;
   c.trials = trials;
   for (int i = 0; i < trials; ++i) {
     const s3::TrialResult3& r = results[static_cast<std::size_t>(i)];
@@ -97,13 +110,21 @@ Cell runCell(const s3::Scene3d& scene, const s3::CollisionWorld3& world, double 
       c.plan_ms.push_back(r.initial_plan_s * kMsPerS);
     }
     c.predicted_mean += r.predicted_p_success;
-    per_trial.addRow({scene.name, sigma_scale, s3::toString(strategy),
+    c.predicted_lqg_mp_mean += r.predicted_p_success_lqg_mp;
+    c.views_fused += r.views_fused;
+    c.views_dropped += r.views_dropped;
+    c.views_gated += r.views_gated;
+    if (biplane) {
+      c.estimate_error_max_mm.push_back(r.estimate_error_m_max * kMmPerM);
+    }
+    per_trial.addRow({scene.name, sigma_scale, s3::toString(strategy), biplane ? 1.0 : 0.0,
                       static_cast<double>(kFirstSeed + i), r.success ? 1.0 : 0.0,
                       r.target_error_m * kMmPerM, static_cast<double>(r.steps),
                       r.predicted_p_success, s3::toString(r.contact), r.message});
   }
   // Sum first, divide once: 200 x (1 / 200) can exceed 1 by an ulp and leave the interval.
   c.predicted_mean = std::min(1.0, c.predicted_mean / trials);
+  c.predicted_lqg_mp_mean = std::min(1.0, c.predicted_lqg_mp_mean / trials);
   return c;
 }
 
@@ -121,12 +142,31 @@ double fractionWithin(const std::vector<double>& v, double limit) {
 
 void addRow(ng::report::Table& table, const Cell& c) {
   const ng::steering::Interval ci = c.interval();
-  table.addRow({c.scene, c.sigma_scale, s3::toString(c.strategy), double(c.trials),
-                double(c.successes), c.rate(), ci.low, ci.high, quantileOr(c.errors_mm, 0.5),
-                quantileOr(c.errors_mm, 0.9), double(c.hit_obstacle), double(c.left_tissue),
-                double(c.no_plan), quantileOr(c.plan_ms, 0.5), quantileOr(c.replan_ms, 0.5),
-                quantileOr(c.replan_ms, 0.99), fractionWithin(c.replan_ms, kReplanBudgetMs),
-                double(c.replan_ms.size()), c.predicted_mean});
+  const double views = double(c.views_fused + c.views_dropped + c.views_gated);
+  table.addRow({c.scene,
+                c.sigma_scale,
+                s3::toString(c.strategy),
+                c.biplane ? 1.0 : 0.0,
+                double(c.trials),
+                double(c.successes),
+                c.rate(),
+                ci.low,
+                ci.high,
+                quantileOr(c.errors_mm, 0.5),
+                quantileOr(c.errors_mm, 0.9),
+                double(c.hit_obstacle),
+                double(c.left_tissue),
+                double(c.no_plan),
+                quantileOr(c.plan_ms, 0.5),
+                quantileOr(c.replan_ms, 0.5),
+                quantileOr(c.replan_ms, 0.99),
+                fractionWithin(c.replan_ms, kReplanBudgetMs),
+                double(c.replan_ms.size()),
+                c.predicted_mean,
+                c.predicted_lqg_mp_mean,
+                views > 0 ? double(c.views_gated) / views : std::nan(""),
+                views > 0 ? double(c.views_dropped) / views : std::nan(""),
+                quantileOr(c.estimate_error_max_mm, 0.5)});
 }
 
 /// The planar special case (planar_check_3d.h) on steering_workspace: its MDP (the scene's own
@@ -162,9 +202,10 @@ s3::PlanarConsistency planarCheck(const ng::report::BenchArgs& args, int trials,
 }
 
 const Cell* find(const std::vector<Cell>& cells, const std::string& scene, double sigma,
-                 s3::Strategy3 strategy) {
+                 s3::Strategy3 strategy, bool biplane = false) {
   for (const Cell& c : cells) {
-    if (c.scene == scene && c.sigma_scale == sigma && c.strategy == strategy) {
+    if (c.scene == scene && c.sigma_scale == sigma && c.strategy == strategy &&
+        c.biplane == biplane) {
       return &c;
     }
   }
@@ -188,21 +229,23 @@ double rateOf(const Cell* c) {
 
 /// Headline keys for one scene (suffix "" for the prostate-like scene, else "_" + tag).
 void sceneKeys(std::ostringstream& json, const std::vector<Cell>& cells, const std::string& scene,
-               const std::string& suffix) {
+               const std::string& suffix, bool biplane = false) {
   using S = s3::Strategy3;
-  const Cell* ours = find(cells, scene, 1.0, S::kReplanUncertainty);
-  const Cell* base = find(cells, scene, 1.0, S::kReplanFirstFound);
-  const Cell* open = find(cells, scene, 1.0, S::kOpenLoop);
-  const Cell* straight = find(cells, scene, 1.0, S::kStraight);
-  const Cell* ours2 = find(cells, scene, 2.0, S::kReplanUncertainty);
-  const Cell* base2 = find(cells, scene, 2.0, S::kReplanFirstFound);
+  const Cell* ours = find(cells, scene, 1.0, S::kReplanUncertainty, biplane);
+  const Cell* base = find(cells, scene, 1.0, S::kReplanFirstFound, biplane);
+  const Cell* open = find(cells, scene, 1.0, S::kOpenLoop, biplane);
+  const Cell* straight = find(cells, scene, 1.0, S::kStraight, biplane);
+  const Cell* ours2 = find(cells, scene, 2.0, S::kReplanUncertainty, biplane);
+  const Cell* base2 = find(cells, scene, 2.0, S::kReplanFirstFound, biplane);
   json << "  \"success_rate_3d" << suffix << "\": " << num(rateOf(ours)) << ",\n"
        << "  \"success_rate_3d" << suffix << "_ci\": " << interval(ours) << ",\n"
        << "  \"success_rate_3d_baseline" << suffix << "\": " << num(rateOf(base)) << ",\n"
-       << "  \"success_rate_3d_baseline" << suffix << "_ci\": " << interval(base) << ",\n"
-       << "  \"success_rate_3d_open_loop" << suffix << "\": " << num(rateOf(open)) << ",\n"
-       << "  \"success_rate_3d_straight" << suffix << "\": " << num(rateOf(straight)) << ",\n"
-       << "  \"target_error_mm_median_3d" << suffix
+       << "  \"success_rate_3d_baseline" << suffix << "_ci\": " << interval(base) << ",\n";
+  if (!biplane) {
+    json << "  \"success_rate_3d_open_loop" << suffix << "\": " << num(rateOf(open)) << ",\n"
+         << "  \"success_rate_3d_straight" << suffix << "\": " << num(rateOf(straight)) << ",\n";
+  }
+  json << "  \"target_error_mm_median_3d" << suffix
        << "\": " << num(ours != nullptr ? quantileOr(ours->errors_mm, 0.5) : std::nan("")) << ",\n"
        << "  \"success_rate_3d_2x" << suffix << "\": " << num(rateOf(ours2)) << ",\n"
        << "  \"success_rate_3d_2x" << suffix << "_ci\": " << interval(ours2) << ",\n"
@@ -213,6 +256,68 @@ void sceneKeys(std::ostringstream& json, const std::vector<Cell>& cells, const s
                ? 1
                : 0)
        << ",\n";
+}
+
+ng::report::Table cellTable() {
+  return ng::report::Table({"scene",
+                            "sigma_scale",
+                            "strategy",
+                            "biplane",
+                            "trials",
+                            "successes",
+                            "success_rate",
+                            "ci_low",
+                            "ci_high",
+                            "target_error_mm_median",
+                            "target_error_mm_p90",
+                            "hit_obstacle",
+                            "left_tissue",
+                            "no_plan",
+                            "plan_ms_median",
+                            "replan_ms_median",
+                            "replan_ms_p99",
+                            "replan_within_100ms",
+                            "replans",
+                            "predicted_p_success_mean",
+                            "predicted_p_success_lqg_mp_mean",
+                            "biplane_gated_fraction",
+                            "biplane_dropped_fraction",
+                            "estimate_error_max_mm_median"});
+}
+
+ng::report::Table trialTable() {
+  return ng::report::Table({"scene", "sigma_scale", "strategy", "biplane", "seed", "success",
+                            "target_error_mm", "steps", "predicted_p_success", "contact",
+                            "message"});
+}
+
+/// The partial run of --scene NAME:SIGMA[:biplane] specs (see the usage above).
+int runPartial(const ng::report::BenchArgs& args, const std::string& dir, int trials) {
+  ng::report::Table table = cellTable();
+  ng::report::Table per_trial = trialTable();
+  for (const std::string& spec : args.scenes) {
+    const std::size_t colon = spec.find(':');
+    if (colon == std::string::npos) {
+      throw std::invalid_argument("--scene " + spec + ": expected NAME:SIGMA[:biplane]");
+    }
+    const std::string name = spec.substr(0, colon);
+    const std::string rest = spec.substr(colon + 1);
+    const bool biplane = rest.size() > 8 && rest.substr(rest.size() - 8) == ":biplane";
+    const double sigma = std::stod(rest.substr(0, biplane ? rest.size() - 8 : rest.size()));
+    const s3::Scene3d scene = s3::loadScene3d(dir + name + ".yaml");
+    const s3::CollisionWorld3 world = scene.collisionWorld();
+    for (s3::Strategy3 strategy :
+         {s3::Strategy3::kReplanUncertainty, s3::Strategy3::kReplanFirstFound}) {
+      const Cell c = runCell(scene, world, sigma, strategy, biplane, trials, per_trial);
+      addRow(table, c);
+      table.writeCsv(args.out_dir + "/steering_3d.csv");
+      per_trial.writeCsv(args.out_dir + "/trials.csv");
+      std::cerr << "[bench_steering_3d] " << spec << " " << s3::toString(strategy) << ": "
+                << c.successes << "/" << trials << " (load " << loadAverage() << ")\n";
+    }
+  }
+  std::cout << table.toText();
+  return 0;
 }
 
 }  // namespace
@@ -227,31 +332,41 @@ int main(int argc, char** argv) {
     const auto started = std::chrono::steady_clock::now();
     const std::string dir = std::string(NG_SOURCE_DIR) + "/config/scenes/steering_3d/";
     const int trials = args->quick ? 30 : 200;
+    if (!args->scenes.empty()) {
+      return runPartial(*args, dir, trials);
+    }
     const std::vector<double> sigmas =
         args->quick ? std::vector<double>{1.0, 2.0} : std::vector<double>{0.0, 1.0, 2.0};
     std::vector<std::string> scenes{"prostate_3d", "liver_3d", "prostate_heldout_3d"};
     const std::vector<s3::Strategy3> strategies{s3::Strategy3::kReplanUncertainty,
                                                 s3::Strategy3::kReplanFirstFound,
                                                 s3::Strategy3::kOpenLoop, s3::Strategy3::kStraight};
-    ng::report::Table table({"scene", "sigma_scale", "strategy", "trials", "successes",
-                             "success_rate", "ci_low", "ci_high", "target_error_mm_median",
-                             "target_error_mm_p90", "hit_obstacle", "left_tissue", "no_plan",
-                             "plan_ms_median", "replan_ms_median", "replan_ms_p99",
-                             "replan_within_100ms", "replans", "predicted_p_success_mean"});
-    ng::report::Table per_trial({"scene", "sigma_scale", "strategy", "seed", "success",
-                                 "target_error_mm", "steps", "predicted_p_success", "contact",
-                                 "message"});
+    ng::report::Table table = cellTable();
+    ng::report::Table per_trial = trialTable();
     std::vector<Cell> cells;
     for (const std::string& name : scenes) {
       const s3::Scene3d scene = s3::loadScene3d(dir + name + ".yaml");
       const s3::CollisionWorld3 world = scene.collisionWorld();
       for (double sigma : sigmas) {
         for (s3::Strategy3 strategy : strategies) {
-          cells.push_back(runCell(scene, world, sigma, strategy, trials, per_trial));
+          cells.push_back(runCell(scene, world, sigma, strategy, false, trials, per_trial));
           addRow(table, cells.back());
           std::cerr << "[bench_steering_3d] " << name << " sigma x" << sigma << " "
                     << s3::toString(strategy) << ": " << cells.back().successes << "/" << trials
                     << "\n";
+        }
+      }
+      if (name != "prostate_3d") {
+        continue;
+      }
+      for (double sigma : {1.0, 2.0}) {  // the closed loops through biplane imaging
+        for (s3::Strategy3 strategy :
+             {s3::Strategy3::kReplanUncertainty, s3::Strategy3::kReplanFirstFound}) {
+          cells.push_back(runCell(scene, world, sigma, strategy, true, trials, per_trial));
+          addRow(table, cells.back());
+          std::cerr << "[bench_steering_3d] " << name << " sigma x" << sigma << " "
+                    << s3::toString(strategy) << " biplane: " << cells.back().successes << "/"
+                    << trials << "\n";
         }
       }
     }
@@ -264,14 +379,19 @@ int main(int argc, char** argv) {
         all_replans.insert(all_replans.end(), c.replan_ms.begin(), c.replan_ms.end());
       }
     }
-    // The LQG-MP-style estimate against Monte Carlo: cells of ours whose mean estimate lies in
-    // the Monte Carlo rate's 95 % interval.
-    int calibrated = 0, calibration_cells = 0;
+    // Both estimates against Monte Carlo of the closed loop: cells of ours (true tip) whose
+    // mean estimate of the first plan lies in the Monte Carlo rate's 95 % interval.
+    int calibrated = 0, calibrated_lqg_mp = 0, calibration_cells = 0;
+    std::int64_t views = 0, gated = 0, dropped = 0;
     for (const Cell& c : cells) {
-      if (c.strategy == s3::Strategy3::kReplanUncertainty) {
+      if (c.strategy == s3::Strategy3::kReplanUncertainty && !c.biplane) {
         ++calibration_cells;
         calibrated += c.interval().contains(c.predicted_mean) ? 1 : 0;
+        calibrated_lqg_mp += c.interval().contains(c.predicted_lqg_mp_mean) ? 1 : 0;
       }
+      views += c.views_fused + c.views_dropped + c.views_gated;
+      gated += c.views_gated;
+      dropped += c.views_dropped;
     }
     bool straight_fails = true;
     for (const Cell& c : cells) {
@@ -286,6 +406,7 @@ int main(int argc, char** argv) {
     sceneKeys(json, cells, "prostate_3d", "");
     sceneKeys(json, cells, "liver_3d", "_liver");
     sceneKeys(json, cells, "prostate_heldout_3d", "_heldout");
+    sceneKeys(json, cells, "prostate_3d", "_biplane", true);
     json << "  \"replan_ms_median\": " << num(quantileOr(ours->replan_ms, 0.5)) << ",\n"
          << "  \"replan_ms_p99\": " << num(quantileOr(ours->replan_ms, 0.99)) << ",\n"
          << "  \"replan_within_100ms_fraction\": "
@@ -295,6 +416,12 @@ int main(int argc, char** argv) {
          << "  \"plan_ms_median\": " << num(quantileOr(ours->plan_ms, 0.5)) << ",\n"
          << "  \"p_success_estimate_within_ci_fraction\": "
          << num(double(calibrated) / std::max(1, calibration_cells)) << ",\n"
+         << "  \"p_success_lqg_mp_within_ci_fraction\": "
+         << num(double(calibrated_lqg_mp) / std::max(1, calibration_cells)) << ",\n"
+         << "  \"biplane_gated_fraction\": "
+         << num(double(gated) / double(std::max<std::int64_t>(1, views))) << ",\n"
+         << "  \"biplane_dropped_fraction\": "
+         << num(double(dropped) / double(std::max<std::int64_t>(1, views))) << ",\n"
          << "  \"straight_fails_behind_arch\": " << (straight_fails ? 1 : 0) << ",\n"
          << "  \"planar_consistency_within_ci\": " << (planar.withinCi() ? 1 : 0) << ",\n"
          << "  \"planar_predicted_ps\": " << num(planar.predicted_ps) << ",\n"
@@ -312,13 +439,15 @@ int main(int argc, char** argv) {
     ng::report::writeTextFile(
         args->out_dir + "/plot.json",
         R"json([{"csv": "steering_3d.csv", "x": "sigma_scale", "y": "success_rate", "group": "strategy",
-  "filter": {"scene": "prostate_3d"}, "title": "Prostate-like: success rate vs sigma (x default)", "png": "success_prostate.png"},
+  "filter": {"scene": "prostate_3d", "biplane": "0"}, "title": "Prostate-like (true tip): success rate vs sigma (x default)", "png": "success_prostate.png"},
  {"csv": "steering_3d.csv", "x": "sigma_scale", "y": "success_rate", "group": "strategy",
   "filter": {"scene": "liver_3d"}, "title": "Liver-like: success rate vs sigma (x default)", "png": "success_liver.png"},
  {"csv": "steering_3d.csv", "x": "replan_ms_median", "y": "target_error_mm_median", "group": "strategy", "points": true,
   "annotate": "scene", "title": "Replanning time vs targeting error (median)", "png": "speed_vs_error.png"},
  {"csv": "steering_3d.csv", "x": "predicted_p_success_mean", "y": "success_rate", "group": "strategy", "points": true,
-  "annotate": "sigma_scale", "title": "LQG-MP-style estimate vs Monte Carlo success", "png": "calibration.png"}])json");
+  "annotate": "sigma_scale", "title": "Rollout estimate vs Monte Carlo success", "png": "calibration.png"},
+ {"csv": "steering_3d.csv", "x": "predicted_p_success_lqg_mp_mean", "y": "success_rate", "group": "strategy", "points": true,
+  "annotate": "sigma_scale", "title": "LQG-MP-style estimate vs Monte Carlo success", "png": "calibration_lqg_mp.png"}])json");
     std::cout << table.toText();
   } catch (const std::exception& e) {
     std::cerr << "bench_steering_3d: " << e.what() << "\n";

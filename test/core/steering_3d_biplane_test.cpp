@@ -88,6 +88,50 @@ TEST(Biplane3d, BadInputIsRefused) {
   EXPECT_EQ(triangulateBiplane(a, b).status().code(), BiplaneCode::kBadInput);
 }
 
+TEST(BiplaneObserver3d, CleanViewsRecoverPositionAndTangentAndKeepThePredictedBevel) {
+  BiplaneImaging3 imaging;
+  imaging.sigma_position_m = 1e-5;
+  imaging.sigma_heading_rad = 1e-4;
+  imaging.dropout = 0.0;
+  imaging.outlier = 0.0;
+  BiplaneObserver3 observer(imaging, 5);
+  const TipPose3 truth =
+      makeTipPose(Vector3(0.04, 0.01, -0.005), Vector3(1.0, 0.2, -0.1), Vector3::UnitY());
+  const TipPose3 predicted = rotateBevel(truth, 0.3);  // the views cannot see the roll
+  constexpr double kPositionTol_m = 1e-4;              // 10 sigma of one view's noise
+  constexpr double kTangentTol_rad = 2e-3;             // 20 sigma of the heading noise
+  for (int i = 0; i < 50; ++i) {
+    const auto seen = observer.observe(truth, predicted);
+    ASSERT_TRUE(seen) << seen.status().toString();
+    EXPECT_LT((seen.value().p_SceneTip - truth.p_SceneTip).norm(), kPositionTol_m);
+    EXPECT_LT(std::acos(std::min(1.0, seen.value().tangent().dot(truth.tangent()))),
+              kTangentTol_rad);
+    EXPECT_GT(seen.value().bevel().dot(predicted.bevel()), 0.999);
+  }
+}
+
+TEST(BiplaneObserver3d, DroppedViewsAndFalseDetectionsAreNotFused) {
+  const TipPose3 truth = makeTipPose(Vector3(0.04, 0.01, 0.0), Vector3::UnitX(), Vector3::UnitY());
+  BiplaneImaging3 imaging;
+  imaging.dropout = 1.0;
+  BiplaneObserver3 blind(imaging, 5);
+  EXPECT_EQ(blind.observe(truth, truth).status().code(), BiplaneCode::kNoDetection);
+  // Every view a false tip 20 mm off in a random direction: the shared x disagrees by more than
+  // the gate's 3.3 sigma (0.93 mm at 0.2 mm per view) unless both offsets nearly share their x.
+  imaging.dropout = 0.0;
+  imaging.outlier = 1.0;
+  imaging.outlier_offset_m = 0.02;
+  BiplaneObserver3 fooled(imaging, 5);
+  int gated = 0;
+  constexpr int kCalls = 200;
+  for (int i = 0; i < kCalls; ++i) {
+    gated += fooled.observe(truth, truth).status().code() == BiplaneCode::kDisagree ? 1 : 0;
+  }
+  EXPECT_GE(gated, kCalls * 9 / 10);
+  imaging.outlier = 1.5;
+  EXPECT_THROW(BiplaneObserver3(imaging, 5), std::invalid_argument);
+}
+
 }  // namespace
 }  // namespace needle_guidance::steering_3d
 

@@ -79,12 +79,21 @@ SteeringSummary3 summarize(const std::vector<steering_3d::TrialResult3>& results
 /// reaches the mean predicted P(success) (it contains it or lies above it).
 bool runSucceeded(const SteeringSummary3& summary);
 
+/// A node the run depended on died (the same report keys as every procedure's: dead_node, cause).
+struct NodeDeath3 {
+  std::string dead_node;         ///< e.g. /steering_planner_3d; empty: no death
+  std::string cause;             ///< one line
+  double detected_unix_s = 0.0;  ///< when the death was seen [s since the epoch]
+};
+
 /// Writes summary.json, trials.csv, paths.csv and target_error.png / replan_ms.png to
 /// report_dir (which the caller prepared). `round_trip_ms` are the tip-to-control latencies the
-/// node measured. Throws std::runtime_error naming a file it cannot write.
+/// node measured; with a `death` the status is node_died and the report names the node. Throws
+/// std::runtime_error naming a file it cannot write.
 void writeSteeringReport3(const std::string& report_dir, const steering_3d::Scene3d& scene,
                           const std::vector<steering_3d::TrialResult3>& results,
                           const std::vector<bool>& faulted,
-                          const std::vector<double>& round_trip_ms, std::uint64_t seed);
+                          const std::vector<double>& round_trip_ms, std::uint64_t seed,
+                          const NodeDeath3& death = {});
 
 }  // namespace needle_guidance::procedures

@@ -4,8 +4,9 @@
 // plan from the entry (~plan), places the tip at its start, then publishes the true tip pose,
 // waits for the planner's control for it, inserts one step with noise, and repeats until the
 // plan is completed (the tip refereed against the target ball) or the path touches an obstacle
-// or leaves the tissue. The trial loop and the report are ROS-free
-// (procedures/steering_3d_trials.h).
+// or leaves the tissue. The planner node is watched (NodeSupervisor): if it dies the run stops,
+// the report names it (status node_died) and run() returns false. The trial loop and the report
+// are ROS-free (procedures/steering_3d_trials.h).
 #pragma once
 
 #include <geometry_msgs/PoseWithCovarianceStamped.h>
@@ -22,6 +23,8 @@
 
 namespace needle_guidance {
 
+class NodeSupervisor;
+
 /// Reads its parameters once (throws std::runtime_error on a bad one, scene::SceneError on a bad
 /// scene); run() executes the trials. Needs a spinner running (AsyncSpinner).
 class SteerableProcedure3dRos {
@@ -29,15 +32,16 @@ public:
   SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh);
   /// Runs the trials and writes the report (procedures::writeSteeringReport3) to ~report_dir.
   /// False on a fault: the planner never came up, a control did not come within
-  /// ~control_timeout_s, a tip was refused, or the report could not be written. A fault ends
-  /// the run (the report covers the trials run so far).
+  /// ~control_timeout_s, a tip was refused, the planner node died, or the report could not be
+  /// written. A fault ends the run (the report covers the trials run so far).
   bool run();
 
 private:
   /// One trial; false on a fault (the trial is then marked as such).
   bool runTrial(procedures::SteeringTrial3& trial, std::uint64_t trial_seed,
                 std::vector<double>& round_trip_ms);
-  /// Publishes the tip and waits for the control answering it; nullopt after the timeout.
+  /// Publishes the tip and waits for the control answering it; nullopt after the timeout or
+  /// once the supervisor has seen the planner die.
   std::optional<SteeringControl3> exchange(const steering_3d::TipPose3& tip);
   void onControl(const SteeringControl3ConstPtr& msg);
   void publishPath(const std::vector<steering_3d::Vector3>& path);
@@ -61,6 +65,7 @@ private:
   std::mutex mutex_;
   std::condition_variable cv_;
   std::optional<SteeringControl3> last_control_;  ///< the answer to the tip stamped expected_stamp_
+  NodeSupervisor* supervisor_ = nullptr;          ///< watches the planner while run() runs
   ros::Time expected_stamp_;
 };
 

@@ -7,6 +7,8 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <cstdint>
+#include <random>
 #include <string>
 
 #include "needle_guidance/status.h"
@@ -31,6 +33,7 @@ enum class BiplaneCode {
   kOk = 0,
   kDisagree,  ///< the views' shared coordinate disagrees beyond the gate: not fused
   kBadInput,  ///< non-finite values, a covariance not positive definite, or two views on one axis
+  kNoDetection,  ///< a view found no tip (dropped frame or detection): nothing to fuse
 };
 using BiplaneStatus = Status<BiplaneCode, BiplaneCode::kOk>;
 
@@ -49,5 +52,40 @@ constexpr double kBiplaneGateChiSquare = 10.827566170662733;
 Result<TipEstimate3, BiplaneStatus> triangulateBiplane(const ViewDetection& a,
                                                        const ViewDetection& b,
                                                        double gate = kBiplaneGateChiSquare);
+
+/// The simulated biplane imaging of the closed loop (issue 18): each view detects the tip's
+/// projection with Gaussian noise, and the projected shaft direction with angular noise; a view
+/// may find nothing (dropout) or a false tip (an outlier displaced by outlier_offset_m in a random
+/// direction of its image plane). The two views are fused by triangulateBiplane with its gate.
+struct BiplaneImaging3 {
+  double sigma_position_m = 2e-4;       ///< per axis per view [m], > 0
+  double sigma_heading_rad = 0.01;      ///< projected shaft angle per view [rad], >= 0
+  double dropout = 0.05;                ///< probability that a view has no detection, [0, 1]
+  double outlier = 0.02;                ///< probability of a false detection in a view, [0, 1]
+  double outlier_offset_m = 5e-3;       ///< a false detection's displacement [m], >= 0
+  double gate = kBiplaneGateChiSquare;  ///< chi-square gate (1 degree of freedom), > 0
+  /// Throws std::invalid_argument naming the first value out of range.
+  void validate() const;
+};
+
+/// Seeded biplane imaging of a true tip.
+class BiplaneObserver3 {
+public:
+  BiplaneObserver3(BiplaneImaging3 imaging, std::uint64_t seed);
+  /// Images `truth` in both views and fuses them. The estimate has the fused position, the
+  /// tangent from the two projected shaft directions (frame scene +x must point along the shaft's
+  /// insertion, t_x > 0) and the bevel of `predicted` (the views do not see the bevel's roll).
+  /// kNoDetection when a view dropped out, kDisagree when the gate refused the pair. Every call
+  /// makes the same number of draws.
+  Result<TipPose3, BiplaneStatus> observe(const TipPose3& truth, const TipPose3& predicted);
+
+private:
+  ViewDetection detect(const TipPose3& truth, ViewAxis axis, double& heading_rad, bool& found);
+
+  BiplaneImaging3 imaging_;
+  std::mt19937_64 rng_;
+  std::normal_distribution<double> normal_{0.0, 1.0};
+  std::uniform_real_distribution<double> unit_{0.0, 1.0};
+};
 
 }  // namespace needle_guidance::steering_3d

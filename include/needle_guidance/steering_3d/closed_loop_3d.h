@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "needle_guidance/steering_3d/biplane_3d.h"
 #include "needle_guidance/steering_3d/planner_3d.h"
 
 namespace needle_guidance::steering_3d {
@@ -26,6 +27,11 @@ std::string toString(Strategy3 strategy);
 struct TrialOptions3 {
   int max_steps = 200;       ///< steps before giving up, >= 1
   bool record_path = false;  ///< keep the tip path in TrialResult3::path
+  /// Replanning strategies replan from the tip imaged by these two views (BiplaneObserver3,
+  /// seeded from the trial's seed) instead of the true tip; after a dropped or gated pair, from
+  /// the previous estimate advanced by the executed control.
+  bool biplane = false;
+  BiplaneImaging3 imaging;
 };
 
 /// How one trial ended.
@@ -37,10 +43,15 @@ struct TrialResult3 {
   std::string message;                 ///< a one-line reason for a failure
   double target_error_m = 0.0;         ///< final tip to target centre [m] (inf without a start)
   int steps = 0;
-  double initial_plan_s = 0.0;       ///< the first plan's wall time [s]
-  std::vector<double> replan_s;      ///< each replan's wall time [s]
-  double predicted_p_success = 0.0;  ///< the first plan's estimate (successProbability)
-  std::vector<Vector3> path;         ///< tip positions, when record_path
+  double initial_plan_s = 0.0;              ///< the first plan's wall time [s]
+  std::vector<double> replan_s;             ///< each replan's wall time [s]
+  double predicted_p_success = 0.0;         ///< the first plan's estimate (Plan3::p_success)
+  double predicted_p_success_lqg_mp = 0.0;  ///< the first plan's LQG-MP-style estimate
+  int views_fused = 0;                      ///< biplane: tip estimates fused from both views
+  int views_dropped = 0;                    ///< biplane: pairs with a view that found no tip
+  int views_gated = 0;                      ///< biplane: pairs refused by the gate
+  double estimate_error_m_max = 0.0;        ///< biplane: largest estimate-to-true-tip distance [m]
+  std::vector<Vector3> path;                ///< tip positions, when record_path
 };
 
 /// Planner seed of the k-th planning call in a trial seeded `seed` (splitmix64 of both).

@@ -3,10 +3,11 @@
 // spin-rate gap excluded) with the reachability-aware metric of Patil et al. (T-RO 2014: the
 // arc length to a sample the needle can reach with one arc, infinite otherwise), run from the
 // entry region or from the current tip under a time budget. Among the plans found within the
-// budget the planner chooses by the probability of success estimated with an LQG-MP-style
-// propagation of the closed loop's deviation covariance (van den Berg, Abbeel and Goldberg,
-// IJRR 2011) against the clearance along the plan and the target radius; the bench checks that
-// estimate against Monte Carlo of the noisy closed loop.
+// budget the planner chooses by the probability of success estimated with a short seeded Monte
+// Carlo of the noisy closed loop (monteCarloSuccess: the same noise draws for every candidate),
+// by default, or with an LQG-MP-style propagation of the closed loop's deviation covariance
+// (van den Berg, Abbeel and Goldberg, IJRR 2011); the bench checks both against Monte Carlo of
+// the real replanning loop.
 //
 // OMPL is not used here: its geometric planners need a symmetric interpolation between states
 // and its control planners propagate random controls; the reachability steer of Patil 2014 is
@@ -14,6 +15,7 @@
 // collision world's AABB trees. Plain C++; no ROS.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <string>
 #include <vector>
@@ -44,6 +46,14 @@ enum class PlanChoice {
   kMaxSuccessProbability,  ///< the plan with the highest estimated P(success) (ours)
 };
 
+/// How kMaxSuccessProbability estimates P(success).
+enum class SuccessEstimate {
+  /// monteCarloSuccess: rollouts of the noisy needle under a cheap model of the replanning loop,
+  /// with common random numbers across the candidates; ties go to the earlier-found plan.
+  kMonteCarlo,
+  kLqgMp,  ///< successProbability (LQG-MP-style covariance propagation; pessimistic, issue 18)
+};
+
 struct PlannerParams3 {
   double time_budget_s = 0.03;       ///< wall-clock budget of a replan [s], > 0
   double entry_time_budget_s = 1.0;  ///< budget of the plan from the entry region [s], > 0
@@ -60,6 +70,13 @@ struct PlannerParams3 {
   /// ones by ~0.1 mm over a plan even without noise [m], >= 0.
   double safety_margin_m = 3e-4;
   PlanChoice choice = PlanChoice::kMaxSuccessProbability;
+  SuccessEstimate estimate = SuccessEstimate::kMonteCarlo;
+  int rollouts = 24;        ///< kMonteCarlo: rollouts per candidate of a replan, >= 1
+  int entry_rollouts = 96;  ///< kMonteCarlo: rollouts per candidate of the plan from the entry
+  /// kMonteCarlo: the rollouts of a replan end by time_budget_s + estimate_budget_s after its
+  /// start (the first found always gets one; candidates not reached by then drop out) [s], > 0
+  double estimate_budget_s = 0.012;
+  double entry_estimate_budget_s = 0.3;  ///< the same for the plan from the entry [s], > 0
 };
 
 /// A plan: controls from `start`; the last one ends at the target centre.
@@ -67,7 +84,10 @@ struct Plan3 {
   TipPose3 start;
   std::vector<Control3> controls;
   double length_m = 0.0;
-  double p_success = 0.0;  ///< estimated probability of success (successProbability)
+  /// The chooser's estimate of P(success) (PlannerParams3::estimate); for kFirstFound, the
+  /// LQG-MP-style one.
+  double p_success = 0.0;
+  double p_success_lqg_mp = 0.0;  ///< successProbability's estimate
   /// Positions every <= 1 mm along the plan, start and end included [m].
   std::vector<Vector3> points() const;
 };
@@ -95,6 +115,17 @@ struct PlanReport {
 double successProbability(const Plan3& plan, const CollisionWorld3& world, const Target3& target,
                           const NoiseParams3& noise, double step_length_m, double kappa_max_per_m);
 
+/// Monte Carlo estimate of a plan's probability of success under the replanning loop, for
+/// choosing among candidates: `rollouts` runs of the noisy needle (NoisyNeedle3 seeded
+/// callSeed-style from `seed` and the rollout's index, so every candidate meets the same draws)
+/// that execute the plan's first step, then at every step follow the single arc into the target
+/// when one is free (what a replan finds first) and otherwise steer towards the plan two steps
+/// ahead. A rollout succeeds when it ends in the target ball without touching an expanded
+/// obstacle (with the planner's safety margin) or leaving the tissue. Returns the successes.
+int monteCarloSuccesses(const Plan3& plan, const Scene3d& scene, const CollisionWorld3& world,
+                        const NoiseParams3& noise, const PlannerParams3& params, int rollouts,
+                        std::uint64_t seed);
+
 /// The planner of one scene. The world must outlive it.
 class Planner3 {
 public:
@@ -113,7 +144,12 @@ public:
 
 private:
   Result<Plan3, PlanStatus> plan(const std::vector<TipPose3>& roots, std::uint64_t seed,
-                                 double budget_s, PlanReport* report) const;
+                                 double budget_s, int rollouts, double estimate_budget_s,
+                                 PlanReport* report) const;
+  /// Index of the plan to keep; sets each plan's estimates. Plans whose first rollout would
+  /// start after `deadline` are dropped.
+  std::size_t choose(std::vector<Plan3>& plans, int rollouts,
+                     std::chrono::steady_clock::time_point deadline, std::uint64_t seed) const;
   PlanStatus checkTarget() const;
 
   const Scene3d& scene_;
