@@ -123,7 +123,13 @@ public:
 
   static constexpr int kConfirmFrames = 3;
   static constexpr int kReacquireAfter = 3;
-  static constexpr int kMaxPredicted = 3;  ///< frames bridged by prediction
+  static constexpr int kMaxPredicted = 3;  ///< frames bridged by prediction (a still track)
+  /// Frames an earned moving track (see Output::confident) coasts on its motion model while its
+  /// tip is hidden: the detection gated out or missing, or its tip stopping more than
+  /// kAgreeTip_px short of the prediction on the same line (the tip inside a saturated layer or
+  /// an obstacle's shadow, where nothing of it shows). A velocity error of 1.5 px / frame (the
+  /// jitter of a detected tip) keeps the coasting tip within kAgreeTip_px over these frames.
+  static constexpr int kMaxCoast = 8;
   /// Tip innovation gate along the axis [px]: a hand-held or recorded insertion moves the tip
   /// by tens of pixels between frames along its axis, while the shaft stays on its line.
   static constexpr double kGateTip_px = 60.0;
@@ -137,6 +143,14 @@ public:
 private:
   bool agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px) const;
   Output update(const NeedleSegment& d);
+  /// The track's motion model one frame on (the tip along the axis at the last speed).
+  NeedleSegment predicted() const;
+  /// A frame whose detection shows no tip of the moving track (gated out, missing, or stopped
+  /// short on its line): coast on the motion model within kMaxCoast frames and the frame.
+  std::optional<Output> coast(const NeedleSegment& d, const std::string& why);
+  /// A detection gated out of the track: re-acquire after kReacquireAfter agreeing frames (a
+  /// moving track only for a moving detection).
+  std::optional<Output> reacquire(const NeedleSegment& d);
   /// A new track from detection d (velocity 0, not yet moved unless d's tip moves).
   void startTrack(const NeedleSegment& d);
   /// frame - background over the mean of its magnitude (empty for the first frame), then the
@@ -144,12 +158,17 @@ private:
   cv::Mat motionMap(const cv::Mat& frame);
   cv::Mat background_;  ///< CV_32F exponential average of the frames
   cv::Mat last_frame_;
+  cv::Size size_;  ///< the last frame's size
   Output last_output_;
   AcquisitionOptions options_;
   std::optional<NeedleSegment> track_;
   double velocity_px_ = 0.0;            ///< tip speed along the axis [px / frame]
   cv::Point2d start_tip_px_{0.0, 0.0};  ///< the track's tip when it was acquired
   bool moved_ = false;                  ///< the track has moved like a needle
+  /// A track has moved like a needle in this sequence: from then on a still line is not the
+  /// needle (found = false) until it moves, and never replaces a moving track.
+  bool seen_moving_ = false;
+  int coasted_ = 0;  ///< consecutive frames the moving track coasted (tip hidden)
   int agreeing_ = 0;
   int missed_ = 0;
   std::optional<NeedleSegment> candidate_;
