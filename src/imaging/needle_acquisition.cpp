@@ -70,7 +70,6 @@ constexpr double kMinMotionRatio = 3.0;
 constexpr double kBackgroundRate = 0.3;
 /// Step 5: a ridge pixel is aligned with the line if its orientation is within this [rad].
 constexpr double kAlignedTolerance_rad = 15.0 * kPi / 180.0;
-constexpr bool kCoastShortTips = false;
 
 /// The Hessian ridge filter's output: strength (>= 0) and line direction per pixel.
 struct RidgeMap {
@@ -943,12 +942,6 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
     NeedleSegment pred = predicted();
     const cv::Point2d axis(std::cos(pred.angle_rad), std::sin(pred.angle_rad));
     if (d.found && agrees(pred, d, kGateTip_px)) {
-      // The shaft is there but its tip stops short of the prediction: hidden (in a layer or a
-      // shadow) while the needle goes on.
-      if (kCoastShortTips && (pred.tip_px - d.tip_px).dot(axis) > kAgreeTip_px) {
-        if (std::optional<Output> coasting = coast(d, "the detected tip stops short"))
-          return *coasting;
-      }
       coasted_ = 0;
       velocity_px_ = 0.5 * velocity_px_ + 0.5 * (d.tip_px - track_->tip_px).dot(axis);
       const bool close = cv::norm(d.tip_px - pred.tip_px) < kAgreeTip_px;

@@ -124,11 +124,13 @@ public:
   static constexpr int kConfirmFrames = 3;
   static constexpr int kReacquireAfter = 3;
   static constexpr int kMaxPredicted = 3;  ///< frames bridged by prediction (a still track)
-  /// Frames an earned moving track (see Output::confident) coasts on its motion model while its
-  /// tip is hidden: the detection gated out or missing, or its tip stopping more than
-  /// kAgreeTip_px short of the prediction on the same line (the tip inside a saturated layer or
-  /// an obstacle's shadow, where nothing of it shows). A velocity error of 1.5 px / frame (the
-  /// jitter of a detected tip) keeps the coasting tip within kAgreeTip_px over these frames.
+  /// Frames a track that has moved like a needle coasts on its motion model while its tip is
+  /// hidden (the detection gated out or missing: the needle inside an obstacle's shadow or a
+  /// saturated layer, where nothing of it shows), reported as predicted, never confident. A
+  /// velocity error of 1.5 px / frame (the jitter of a detected tip) keeps the coasting tip
+  /// within kAgreeTip_px over these frames. (A detection on the track's line whose tip stops
+  /// short is taken as it is: a stopped needle looks the same as a hidden tip, and coasting
+  /// then ran 30 px past the in-vitro needle's tip.)
   static constexpr int kMaxCoast = 8;
   /// Tip innovation gate along the axis [px]: a hand-held or recorded insertion moves the tip
   /// by tens of pixels between frames along its axis, while the shaft stays on its line.
@@ -145,8 +147,8 @@ private:
   Output update(const NeedleSegment& d);
   /// The track's motion model one frame on (the tip along the axis at the last speed).
   NeedleSegment predicted() const;
-  /// A frame whose detection shows no tip of the moving track (gated out, missing, or stopped
-  /// short on its line): coast on the motion model within kMaxCoast frames and the frame.
+  /// A frame whose detection shows no tip of the moving track (gated out or missing): coast on
+  /// the motion model within kMaxCoast frames and the frame.
   std::optional<Output> coast(const NeedleSegment& d, const std::string& why);
   /// A detection gated out of the track: re-acquire after kReacquireAfter agreeing frames (a
   /// moving track only for a moving detection).
