@@ -836,12 +836,19 @@ SequenceTracker::SequenceTracker(const AcquisitionOptions& options) : options_(o
   options_.validate();
 }
 
-bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px) const {
+bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px,
+                             double ahead_px) const {
   double da = std::abs(a.angle_rad - b.angle_rad);
   da = std::min(da, 2 * kPi - da);
   const cv::Point2d n(-std::sin(a.angle_rad), std::cos(a.angle_rad));
-  const double off_line = std::abs((b.tip_px - a.tip_px).dot(n));
-  return da < kGateAngle_rad && off_line < kGateLine_px && cv::norm(b.tip_px - a.tip_px) < tip_px;
+  const cv::Point2d nb(-std::sin(b.angle_rad), std::cos(b.angle_rad));
+  // Off the line both ways: a line that only meets the other's far extension (a layer in line
+  // with the needle hundreds of pixels on) is not the same line.
+  const double off_line =
+      std::max(std::abs((b.tip_px - a.tip_px).dot(n)), std::abs((a.tip_px - b.tip_px).dot(nb)));
+  const double along = (b.tip_px - a.tip_px).dot(cv::Point2d(-n.y, n.x));
+  return da < kGateAngle_rad && off_line < kGateLine_px && along > -tip_px &&
+         along < std::max(tip_px, ahead_px);
 }
 
 cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
@@ -918,7 +925,7 @@ std::optional<SequenceTracker::Output> SequenceTracker::coast(const NeedleSegmen
 std::optional<SequenceTracker::Output> SequenceTracker::reacquire(const NeedleSegment& d) {
   if (moved_ && d.motion < kMinMotionRatio)
     return std::nullopt;  // a still line never replaces a moving needle
-  if (candidate_ && agrees(*candidate_, d, kAgreeTip_px)) {
+  if (candidate_ && agrees(*candidate_, d, kAgreeTip_px, kAgreeTip_px)) {
     ++candidate_count_;
   } else {
     candidate_count_ = 1;
@@ -941,7 +948,7 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
     // Motion model: the tip moves along the needle's axis at the last speed.
     NeedleSegment pred = predicted();
     const cv::Point2d axis(std::cos(pred.angle_rad), std::sin(pred.angle_rad));
-    if (d.found && agrees(pred, d, kGateTip_px)) {
+    if (d.found && agrees(pred, d, kGateTip_px, moved_ ? kGateAhead_px : kGateTip_px)) {
       coasted_ = 0;
       velocity_px_ = 0.5 * velocity_px_ + 0.5 * (d.tip_px - track_->tip_px).dot(axis);
       const bool close = cv::norm(d.tip_px - pred.tip_px) < kAgreeTip_px;
@@ -988,7 +995,7 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       out.segment.message = "track lost: " + d.message;
       return out;
     }
-    pred.found = true;
+    pred.found = !seen_moving_;  // after a needle has moved, a still line is not it
     pred.message =
         "predicted along the axis (" + (d.found ? "detection gated out" : d.message) + ")";
     out.segment = pred;

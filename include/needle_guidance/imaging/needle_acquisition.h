@@ -135,6 +135,10 @@ public:
   /// Tip innovation gate along the axis [px]: a hand-held or recorded insertion moves the tip
   /// by tens of pixels between frames along its axis, while the shaft stays on its line.
   static constexpr double kGateTip_px = 60.0;
+  /// The gate ahead of a moving track's prediction along its own line [px]: a tip traced short
+  /// (fading, in a layer's glare) leaves the track behind the needle; a detection further along
+  /// the same line is the same needle.
+  static constexpr double kGateAhead_px = 2.0 * kGateTip_px;
   static constexpr double kGateLine_px = 8.0;      ///< tip's distance from the track's line [px]
   static constexpr double kGateAngle_rad = 0.087;  ///< 5 degrees
   static constexpr double kAgreeTip_px = 12.0;     ///< agreement of consecutive detections [px]
@@ -143,7 +147,8 @@ public:
   static constexpr double kEarnAdvance_px = 2.0 * kAgreeTip_px;
 
 private:
-  bool agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px) const;
+  /// b on a's line (both ways), its tip from tip_px behind a's to max(tip_px, ahead_px) ahead.
+  bool agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px, double ahead_px) const;
   Output update(const NeedleSegment& d);
   /// The track's motion model one frame on (the tip along the axis at the last speed).
   NeedleSegment predicted() const;
