@@ -836,12 +836,19 @@ SequenceTracker::SequenceTracker(const AcquisitionOptions& options) : options_(o
   options_.validate();
 }
 
-bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px) const {
+bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px,
+                             double ahead_px) const {
   double da = std::abs(a.angle_rad - b.angle_rad);
   da = std::min(da, 2 * kPi - da);
   const cv::Point2d n(-std::sin(a.angle_rad), std::cos(a.angle_rad));
-  const double off_line = std::abs((b.tip_px - a.tip_px).dot(n));
-  return da < kGateAngle_rad && off_line < kGateLine_px && cv::norm(b.tip_px - a.tip_px) < tip_px;
+  const cv::Point2d nb(-std::sin(b.angle_rad), std::cos(b.angle_rad));
+  // Off the line both ways: a line that only meets the other's far extension (a layer in line
+  // with the needle hundreds of pixels on) is not the same line.
+  const double off_line =
+      std::max(std::abs((b.tip_px - a.tip_px).dot(n)), std::abs((a.tip_px - b.tip_px).dot(nb)));
+  const double along = (b.tip_px - a.tip_px).dot(cv::Point2d(-n.y, n.x));
+  return da < kGateAngle_rad && off_line < kGateLine_px && along > -tip_px &&
+         along < std::max(tip_px, ahead_px);
 }
 
 cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
@@ -876,6 +883,7 @@ SequenceTracker::Output SequenceTracker::onFrame(const cv::Mat& frame) {
     return repeated;
   }
   last_frame_ = frame.clone();
+  size_ = frame.size();
   last_output_ = update(acquireNeedle(frame, options_, motionMap(frame)));
   return last_output_;
 }
@@ -887,19 +895,67 @@ void SequenceTracker::startTrack(const NeedleSegment& d) {
   moved_ = d.motion >= kMinMotionRatio;
 }
 
+NeedleSegment SequenceTracker::predicted() const {
+  NeedleSegment pred = *track_;
+  const cv::Point2d axis(std::cos(pred.angle_rad), std::sin(pred.angle_rad));
+  pred.tip_px += velocity_px_ * axis;
+  pred.tail_px += velocity_px_ * axis;
+  return pred;
+}
+
+std::optional<SequenceTracker::Output> SequenceTracker::coast(const NeedleSegment& d,
+                                                              const std::string& why) {
+  if (!moved_ || velocity_px_ <= 0.0 || coasted_ >= kMaxCoast)
+    return std::nullopt;
+  NeedleSegment pred = predicted();
+  if (onBorder(pred.tip_px, size_))
+    return std::nullopt;  // the tip has left the field of view
+  ++coasted_;
+  pred.found = true;
+  pred.motion = d.found ? d.motion : 0.0;
+  pred.message = "tip hidden, coasting on the motion model (" + why + ")";
+  track_ = pred;
+  missed_ = 0;
+  Output out;
+  out.segment = pred;
+  out.predicted = true;
+  return out;
+}
+
+std::optional<SequenceTracker::Output> SequenceTracker::reacquire(const NeedleSegment& d) {
+  if (moved_ && d.motion < kMinMotionRatio)
+    return std::nullopt;  // a still line never replaces a moving needle
+  if (candidate_ && agrees(*candidate_, d, kAgreeTip_px, kAgreeTip_px)) {
+    ++candidate_count_;
+  } else {
+    candidate_count_ = 1;
+  }
+  candidate_ = d;
+  if (candidate_count_ < kReacquireAfter)
+    return std::nullopt;
+  startTrack(d);
+  agreeing_ = candidate_count_;
+  missed_ = 0;
+  Output out;
+  out.segment = d;
+  out.segment.message = "re-acquired: " + d.message;
+  return out;
+}
+
 SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
   Output out;
   if (track_) {
     // Motion model: the tip moves along the needle's axis at the last speed.
-    NeedleSegment pred = *track_;
+    NeedleSegment pred = predicted();
     const cv::Point2d axis(std::cos(pred.angle_rad), std::sin(pred.angle_rad));
-    pred.tip_px += velocity_px_ * axis;
-    if (d.found && agrees(pred, d, kGateTip_px)) {
+    if (d.found && agrees(pred, d, kGateTip_px, moved_ ? kGateAhead_px : kGateTip_px)) {
+      coasted_ = 0;
       velocity_px_ = 0.5 * velocity_px_ + 0.5 * (d.tip_px - track_->tip_px).dot(axis);
       const bool close = cv::norm(d.tip_px - pred.tip_px) < kAgreeTip_px;
       agreeing_ = close ? agreeing_ + 1 : 1;
       moved_ = moved_ || d.motion >= kMinMotionRatio ||
                std::abs((d.tip_px - start_tip_px_).dot(axis)) >= kEarnAdvance_px;
+      seen_moving_ = seen_moving_ || moved_;
       track_ = d;
       missed_ = 0;
       candidate_.reset();
@@ -907,9 +963,13 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       // Never confident while the tissue ahead of the tip still brightens: the needle has
       // advanced past the traced tip.
       out.confident = agreeing_ >= kConfirmFrames && moved_ && d.motion_ahead < kMinMotionRatio;
+      if (seen_moving_ && !moved_) {
+        out.segment.found = false;  // the needle moved before: a still line is not it
+        out.segment.message = "a still line, and the needle moved before: " + d.message;
+      }
       return out;
     }
-    if (d.found && d.motion >= kMinMotionRatio && track_->motion < kMinMotionRatio) {
+    if (d.found && d.motion >= kMinMotionRatio && track_->motion < kMinMotionRatio && !moved_) {
       // The sequence cue: the track was a still line, this detection moves at its tip (a
       // needle advancing): the still line gives way at once, without waiting for agreement.
       startTrack(d);
@@ -921,41 +981,38 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       return out;
     }
     if (d.found) {  // gated out: re-acquire only after agreeing frames
-      if (candidate_ && agrees(*candidate_, d, kAgreeTip_px)) {
-        ++candidate_count_;
-      } else {
-        candidate_count_ = 1;
-      }
-      candidate_ = d;
-      if (candidate_count_ >= kReacquireAfter) {
-        startTrack(d);
-        agreeing_ = candidate_count_;
-        missed_ = 0;
-        out.segment = d;
-        out.segment.message = "re-acquired: " + d.message;
-        return out;
-      }
+      if (std::optional<Output> again = reacquire(d))
+        return *again;
     }
-    if (++missed_ > kMaxPredicted) {
+    if (std::optional<Output> coasting = coast(d, d.found ? "detection gated out" : d.message))
+      return *coasting;
+    if (moved_ || ++missed_ > kMaxPredicted) {
       track_.reset();
       agreeing_ = 0;
+      coasted_ = 0;
       out.segment = d;
       out.segment.found = false;
+      out.segment.message = "track lost: " + d.message;
       return out;
     }
-    pred.found = true;
+    pred.found = !seen_moving_;  // after a needle has moved, a still line is not it
     pred.message =
         "predicted along the axis (" + (d.found ? "detection gated out" : d.message) + ")";
     out.segment = pred;
     out.predicted = true;
     return out;
   }
+  out.segment = d;
   if (d.found) {
     startTrack(d);
     agreeing_ = 1;
     missed_ = 0;
+    coasted_ = 0;
+    if (seen_moving_ && !moved_) {
+      out.segment.found = false;  // the needle moved before: a still line is not it
+      out.segment.message = "a still line, and the needle moved before: " + d.message;
+    }
   }
-  out.segment = d;
   return out;
 }
 

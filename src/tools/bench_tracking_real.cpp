@@ -110,6 +110,8 @@ struct Result {
   cv::Point2d tip;
   double angle_rad = 0.0, ms = 0.0;
   double cpu_ms = 0.0;  ///< the tracking thread's CPU time (other processes' load left out)
+  bool predicted = false;
+  std::string message;
 };
 
 double angleError(double a, double b) {
@@ -161,6 +163,8 @@ Result trackTimed(im::SequenceTracker& tracker, const cv::Mat& frame) {
   r.confident = o.confident;
   r.tip = o.segment.tip_px;
   r.angle_rad = o.segment.angle_rad;
+  r.predicted = o.predicted;
+  r.message = o.segment.message;
   return r;
 }
 
@@ -279,6 +283,15 @@ const std::vector<SyntheticSpec>& syntheticSpecs() {
       {"tune_straight_a", 11, im::Point2(0.0, 0.020), 0.05, 0.0, false},
       {"tune_straight_b", 23, im::Point2(0.0, 0.010), 0.15, 0.0, false},
       {"tune_arc", 35, im::Point2(0.0, 0.012), 0.20, -8.0, false},
+      // Second tuning round (seeds never used before): more layouts of the seeded layers, the
+      // needle passing under and into them.
+      {"tune_straight_c", 201, im::Point2(0.0, 0.018), 0.08, 0.0, false},
+      {"tune_straight_d", 203, im::Point2(0.0, 0.025), 0.02, 0.0, false},
+      {"tune_straight_e", 207, im::Point2(0.0, 0.012), 0.12, 0.0, false},
+      {"tune_straight_f", 211, im::Point2(0.0, 0.030), -0.03, 0.0, false},
+      {"tune_arc_c", 205, im::Point2(0.0, 0.015), 0.15, -9.0, false},
+      {"tune_arc_d", 209, im::Point2(0.0, 0.020), 0.02, 7.0, false},
+      {"tune_arc_e", 213, im::Point2(0.0, 0.010), 0.22, -6.0, false},
       {"straight", 77, im::Point2(0.0, 0.015), 0.10, 0.0, true},
       {"arc", 91, im::Point2(0.0, 0.008), 0.25, -10.0, true},
       {"straight_b", 105, im::Point2(0.0, 0.028), 0.0, 0.0, true},
@@ -317,6 +330,17 @@ SyntheticRun syntheticRun(const ng::scene::Scene& scene, const SyntheticSpec& sp
                    r.found ? 1.0 : 0.0, r.confident ? 1.0 : 0.0,
                    r.found ? cv::norm(r.tip - ts.back().tip) : std::nan(""),
                    r.found ? angleError(r.angle_rad, ts.back().angle_rad) : std::nan(""), r.ms});
+    // NG_TRACKING_STUDY=1: every tuning frame's estimate, truth and message on stderr, and its
+    // overlay (never a held-out one).
+    const char* study = std::getenv("NG_TRACKING_STUDY");
+    if (study && std::string(study) == "1" && !spec.held_out) {
+      std::cerr << spec.name << " " << k << ": truth (" << ts.back().tip.x << ", "
+                << ts.back().tip.y << ") est (" << r.tip.x << ", " << r.tip.y << ") found "
+                << r.found << " conf " << r.confident << " pred " << r.predicted << ": "
+                << r.message << "\n";
+      overlay(image, ts.back(), r, spec.name + " " + std::to_string(k),
+              overlay_dir + "/study_" + spec.name + "_" + std::to_string(k) + ".png");
+    }
     if (!overlay_dir.empty() && (k == 0 || k == 19)) {
       overlay(image, ts.back(), r, spec.name + " " + std::to_string(k),
               overlay_dir + "/synthetic_" + spec.name + "_" + std::to_string(k) + ".png");
@@ -403,8 +427,14 @@ void writeHalvesAndHeldOut(const std::vector<Result>& fresh, const std::vector<T
   ng::report::Table table({"sequence", "frame", "held_out", "found", "confident", "tip_error_px",
                            "angle_error_deg", "ms"});
   std::vector<SyntheticRun> runs;
-  for (const SyntheticSpec& spec : syntheticSpecs())
-    runs.push_back(syntheticRun(scene, spec, &table, dir));
+  // NG_TRACKING_TUNING_ONLY=1: the tuning sequences only (for studying failures without ever
+  // seeing a held-out frame or error).
+  const char* tuning_only = std::getenv("NG_TRACKING_TUNING_ONLY");
+  const bool skip_held_out = tuning_only && std::string(tuning_only) == "1";
+  for (const SyntheticSpec& spec : syntheticSpecs()) {
+    if (!(skip_held_out && spec.held_out))
+      runs.push_back(syntheticRun(scene, spec, &table, dir));
+  }
   table.writeCsv(dir + "/synthetic.csv");
   // Pooled over each set: the tuning set and the held-out set, reported apart.
   for (const bool held_out : {false, true}) {
@@ -428,6 +458,8 @@ void writeHalvesAndHeldOut(const std::vector<Result>& fresh, const std::vector<T
                 << ", median " << r.summary.median << " px, p90 " << r.summary.p90
                 << " px, confident wrong " << r.summary.confident_wrong << "\n";
     }
+    if (medians.empty())
+      continue;
     const std::string set = held_out ? "synthetic_heldout" : "synthetic_tuning";
     js << ",\n  \"" << set << "_tip_error_px_median_worst\": "
        << jsonNumber(*std::max_element(medians.begin(), medians.end())) << ",\n  \"" << set

@@ -123,10 +123,22 @@ public:
 
   static constexpr int kConfirmFrames = 3;
   static constexpr int kReacquireAfter = 3;
-  static constexpr int kMaxPredicted = 3;  ///< frames bridged by prediction
+  static constexpr int kMaxPredicted = 3;  ///< frames bridged by prediction (a still track)
+  /// Frames a track that has moved like a needle coasts on its motion model while its tip is
+  /// hidden (the detection gated out or missing: the needle inside an obstacle's shadow or a
+  /// saturated layer, where nothing of it shows), reported as predicted, never confident. A
+  /// velocity error of 1.5 px / frame (the jitter of a detected tip) keeps the coasting tip
+  /// within kAgreeTip_px over these frames. (A detection on the track's line whose tip stops
+  /// short is taken as it is: a stopped needle looks the same as a hidden tip, and coasting
+  /// then ran 30 px past the in-vitro needle's tip.)
+  static constexpr int kMaxCoast = 8;
   /// Tip innovation gate along the axis [px]: a hand-held or recorded insertion moves the tip
   /// by tens of pixels between frames along its axis, while the shaft stays on its line.
   static constexpr double kGateTip_px = 60.0;
+  /// The gate ahead of a moving track's prediction along its own line [px]: a tip traced short
+  /// (fading, in a layer's glare) leaves the track behind the needle; a detection further along
+  /// the same line is the same needle.
+  static constexpr double kGateAhead_px = 2.0 * kGateTip_px;
   static constexpr double kGateLine_px = 8.0;      ///< tip's distance from the track's line [px]
   static constexpr double kGateAngle_rad = 0.087;  ///< 5 degrees
   static constexpr double kAgreeTip_px = 12.0;     ///< agreement of consecutive detections [px]
@@ -135,8 +147,17 @@ public:
   static constexpr double kEarnAdvance_px = 2.0 * kAgreeTip_px;
 
 private:
-  bool agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px) const;
+  /// b on a's line (both ways), its tip from tip_px behind a's to max(tip_px, ahead_px) ahead.
+  bool agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px, double ahead_px) const;
   Output update(const NeedleSegment& d);
+  /// The track's motion model one frame on (the tip along the axis at the last speed).
+  NeedleSegment predicted() const;
+  /// A frame whose detection shows no tip of the moving track (gated out or missing): coast on
+  /// the motion model within kMaxCoast frames and the frame.
+  std::optional<Output> coast(const NeedleSegment& d, const std::string& why);
+  /// A detection gated out of the track: re-acquire after kReacquireAfter agreeing frames (a
+  /// moving track only for a moving detection).
+  std::optional<Output> reacquire(const NeedleSegment& d);
   /// A new track from detection d (velocity 0, not yet moved unless d's tip moves).
   void startTrack(const NeedleSegment& d);
   /// frame - background over the mean of its magnitude (empty for the first frame), then the
@@ -144,12 +165,17 @@ private:
   cv::Mat motionMap(const cv::Mat& frame);
   cv::Mat background_;  ///< CV_32F exponential average of the frames
   cv::Mat last_frame_;
+  cv::Size size_;  ///< the last frame's size
   Output last_output_;
   AcquisitionOptions options_;
   std::optional<NeedleSegment> track_;
   double velocity_px_ = 0.0;            ///< tip speed along the axis [px / frame]
   cv::Point2d start_tip_px_{0.0, 0.0};  ///< the track's tip when it was acquired
   bool moved_ = false;                  ///< the track has moved like a needle
+  /// A track has moved like a needle in this sequence: from then on a still line is not the
+  /// needle (found = false) until it moves, and never replaces a moving track.
+  bool seen_moving_ = false;
+  int coasted_ = 0;  ///< consecutive frames the moving track coasted (tip hidden)
   int agreeing_ = 0;
   int missed_ = 0;
   std::optional<NeedleSegment> candidate_;
