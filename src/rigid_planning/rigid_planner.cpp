@@ -34,6 +34,9 @@ constexpr double kGoalFraction = 0.9;
 constexpr double kSameHeight_m = 1e-12;
 /// A seed at rest moves less than this per step with the needle out [m].
 constexpr double kRest_m = 1e-9;
+/// Insertion prefixes (one per height, the deepest) kept for scans of later targets: a scene's
+/// targets share a few heights; each prefix holds a copy of the simulation (a few MB).
+constexpr std::size_t kMaxPrefixes = 8;
 
 /// CPU time of the calling thread [s] (a plan runs on one thread).
 double threadCpuSeconds() {
@@ -198,9 +201,20 @@ RigidPlan RigidPlanner::check(const Point2& target) const {
   return plan;
 }
 
+/// An insertion at one height on the scene's mesh, as far as a scan went: its implant points and
+/// its state there. A scan at that height for a deeper target continues from a copy of it.
+struct InsertionPrefix {
+  double height_m = 0.0;
+  long grid_k = -1;  ///< the state's grid position (grid_k + 1 FEM steps from the entry face)
+  std::vector<double> depth_m;
+  std::vector<Point2> implant;
+  std::shared_ptr<const tissue::TissueSimulation> state;
+};
+
 struct RigidPlanner::SimulationCache {
   std::mutex mutex;
-  std::shared_ptr<const tissue::TissueSimulation> scene_sim;  ///< at rest; null until used
+  std::shared_ptr<const tissue::TissueSimulation> scene_sim;     ///< at rest; null until used
+  std::vector<std::shared_ptr<const InsertionPrefix>> prefixes;  ///< oldest first
 };
 
 std::unique_ptr<tissue::TissueSimulation> RigidPlanner::makeSimulation(const Point2& target) const {
@@ -507,61 +521,146 @@ Point2 simulateImplant(tissue::TissueSimulation& sim, const Point2& release,
   return releaseAndRetract(sim, release, schedule);
 }
 
-DepthScan RigidPlanner::gridScan(tissue::TissueSimulation& sim, double height_m,
-                                 const Point2& target, double max_depth_m,
-                                 bool stop_past_target) const {
-  sim.reset();
-  DepthScan scan;
-  scan.height_m = height_m;
-  scan.best_error_m = 1e300;
+bool RigidPlanner::addGridPoint(DepthScan& scan, double x, const Point2& tip, const Point2& target,
+                                const tissue::TissueSimulation* state,
+                                bool stop_past_target) const {
+  scan.depth_m.push_back(x);
+  scan.implant.push_back(tip);
+  const std::size_t n = scan.implant.size();
+  // A release on this grid depth lands on the tip node's reference position exactly (4.3.2);
+  // the side of the target is read against the implant curve's last segment.
+  const double error = (tip - target).norm();
+  if (error < scan.best_error_m) {
+    scan.best_error_m = error;
+    scan.best_implant = tip;
+    scan.best_depth_m = x;
+    scan.lateral_m =
+        signedLateral(n >= 2 ? Point2(scan.implant[n - 1] - scan.implant[n - 2]) : Point2(1.0, 0.0),
+                      target - tip);
+    // Within the tolerance: keep the state, a verification of this release continues from it.
+    scan.release_state = error <= tolerance() && state && state->copyable()
+                             ? std::make_shared<const tissue::TissueSimulation>(*state)
+                             : nullptr;
+  }
+  // The tip's reference x only grows while inserting (cuts move it along +x) and the error is
+  // at least tip x - target x: once that exceeds the best error no later depth is better.
+  return stop_past_target && tip.x() - target.x() > scan.best_error_m;
+}
+
+void RigidPlanner::runGridScan(tissue::TissueSimulation& sim, DepthScan& scan, const Point2& target,
+                               long last, bool stop_past_target) const {
   const double dt_s = sim.options().depth_grid.step_m / scene_.needle.insertion_velocity_m_s;
-  const long last = sim.gridIndex(max_depth_m);
-  for (long k = 0; k <= last; ++k) {
+  for (long k = sim.gridPosition() + 1; k <= last; ++k) {
     const double x = sim.gridDepth(k);
-    const tissue::StepStatus status = sim.advance(dt_s, height_m, x);
+    const tissue::StepStatus status = sim.advance(dt_s, scan.height_m, x);
     if (!status) {
       throw std::runtime_error("RigidPlanner: simulation step refused: " + status.toString());
     }
     const std::optional<Point2> tip = sim.needle().tipReference();
-    if (!tip) {
-      continue;
-    }
-    scan.depth_m.push_back(x);
-    scan.implant.push_back(*tip);
-    const std::size_t n = scan.implant.size();
-    // A release on this grid depth lands on the tip node's reference position exactly (4.3.2);
-    // the side of the target is read against the implant curve's last segment.
-    const double error = (*tip - target).norm();
-    if (error < scan.best_error_m) {
-      scan.best_error_m = error;
-      scan.best_implant = *tip;
-      scan.best_depth_m = x;
-      scan.lateral_m = signedLateral(
-          n >= 2 ? Point2(scan.implant[n - 1] - scan.implant[n - 2]) : Point2(1.0, 0.0),
-          target - *tip);
-      // Within the tolerance: keep the state, a verification of this release continues from it.
-      scan.release_state = error <= tolerance() && sim.copyable()
-                               ? std::make_shared<const tissue::TissueSimulation>(sim)
-                               : nullptr;
-    }
-    // The tip's reference x only grows while inserting (cuts move it along +x) and the error is
-    // at least tip x - target x: once that exceeds the best error no later depth is better.
-    if (stop_past_target && tip->x() - target.x() > scan.best_error_m) {
+    if (tip && addGridPoint(scan, x, *tip, target, &sim, stop_past_target)) {
       break;
     }
   }
+}
+
+void RigidPlanner::storePrefix(const tissue::TissueSimulation& sim, const DepthScan& scan) const {
+  auto deeper = [&] {  // no prefix at this height reaches as far (call under the lock)
+    return std::none_of(cache_->prefixes.begin(), cache_->prefixes.end(), [&](const auto& p) {
+      return p->height_m == scan.height_m && p->grid_k >= sim.gridPosition();
+    });
+  };
+  {
+    const std::lock_guard<std::mutex> lock(cache_->mutex);
+    if (!sim.copyable() || !deeper()) {
+      return;
+    }
+  }
+  auto prefix = std::make_shared<InsertionPrefix>();
+  prefix->height_m = scan.height_m;
+  prefix->grid_k = sim.gridPosition();
+  prefix->depth_m = scan.depth_m;
+  prefix->implant = scan.implant;
+  prefix->state = std::make_shared<const tissue::TissueSimulation>(sim);
+  const std::lock_guard<std::mutex> lock(cache_->mutex);
+  if (!deeper()) {
+    return;  // another thread cached a deeper one meanwhile
+  }
+  auto& prefixes = cache_->prefixes;
+  prefixes.erase(std::remove_if(prefixes.begin(), prefixes.end(),
+                                [&](const auto& p) { return p->height_m == scan.height_m; }),
+                 prefixes.end());
+  prefixes.push_back(std::move(prefix));
+  if (prefixes.size() > kMaxPrefixes) {
+    prefixes.erase(prefixes.begin());
+  }
+}
+
+std::optional<DepthScan> RigidPlanner::resumeScan(double height_m, const Point2& target, long last,
+                                                  ResumeCounters& counters) const {
+  std::shared_ptr<const InsertionPrefix> prefix;
+  {
+    const std::lock_guard<std::mutex> lock(cache_->mutex);
+    for (const auto& p : cache_->prefixes) {
+      if (p->height_m == height_m && p->grid_k < last) {
+        prefix = p;
+      }
+    }
+  }
+  if (!prefix) {
+    return std::nullopt;
+  }
+  DepthScan scan;
+  scan.height_m = height_m;
+  scan.best_error_m = 1e300;
+  for (std::size_t i = 0; i < prefix->depth_m.size(); ++i) {
+    if (addGridPoint(scan, prefix->depth_m[i], prefix->implant[i], target, nullptr, true)) {
+      return std::nullopt;  // ends within the prefix: a scan from the entry face keeps its state
+    }
+  }
+  tissue::TissueSimulation sim(*prefix->state);
+  const long before = sim.femSteps();
+  runGridScan(sim, scan, target, last, true);
+  if (scan.best_error_m <= tolerance() && !scan.release_state) {
+    return std::nullopt;  // the best release lies in the prefix, whose states are not kept
+  }
   requireEntered(scan, height_m);
+  counters.reused += prefix->grid_k + 1;
+  counters.steps += prefix->grid_k + 1 + (sim.femSteps() - before);
+  storePrefix(sim, scan);
+  return scan;
+}
+
+DepthScan RigidPlanner::gridScan(tissue::TissueSimulation& sim, double height_m,
+                                 const Point2& target, double max_depth_m, bool stop_past_target,
+                                 ResumeCounters* resume) const {
+  const long last = sim.gridIndex(max_depth_m);
+  const bool resumable = resume && resume->resume && stop_past_target;
+  if (resumable) {
+    if (std::optional<DepthScan> resumed = resumeScan(height_m, target, last, *resume)) {
+      return std::move(*resumed);
+    }
+  }
+  sim.reset();
+  DepthScan scan;
+  scan.height_m = height_m;
+  scan.best_error_m = 1e300;
+  runGridScan(sim, scan, target, last, stop_past_target);
+  requireEntered(scan, height_m);
+  if (resumable) {
+    storePrefix(sim, scan);
+  }
   return scan;
 }
 
 void RigidPlanner::searchPlan(RigidPlan& plan, tissue::TissueSimulation& sim, const Point2& aim,
-                              double first_offset_m, const std::function<bool()>& expired) const {
+                              double first_offset_m, const std::function<bool()>& expired,
+                              ResumeCounters& resume) const {
   const double max_depth = maxScanDepth(aim);
   searchHeights(
       plan,
       [&](double y) {
         plan.scans.push_back(options_.procedure_grid
-                                 ? gridScan(sim, y, aim, max_depth, true)
+                                 ? gridScan(sim, y, aim, max_depth, true, &resume)
                                  : scan(sim, y, aim, max_depth, /*stop_past_target=*/true));
         ++plan.simulations;
         const DepthScan& s = plan.scans.back();
@@ -594,18 +693,24 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
     const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
     const long steps_at_start = sim->femSteps();
     long other_steps = 0;  // FEM steps of verifications on copies, and of earlier rounds
-    auto steps = [&] { return sim->femSteps() - steps_at_start + other_steps; };
+    // Scans of the scene's own targets (its mesh) may resume an earlier plan's insertion.
+    const auto& refined = sim_options_.meshing.refine_points;
+    ResumeCounters resume;
+    resume.resume =
+        sim->copyable() && std::find(refined.begin(), refined.end(), target) != refined.end();
+    auto steps = [&] { return sim->femSteps() - steps_at_start + other_steps + resume.steps; };
     const std::function<bool()> expired = [&] {
       const double seconds =
           std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
       return (options_.step_budget > 0 && steps() > options_.step_budget) ||
              (options_.time_budget_s > 0.0 && seconds > options_.time_budget_s);
     };
-    searchPlan(plan, *sim, target, first_height_offset_m, expired);
+    searchPlan(plan, *sim, target, first_height_offset_m, expired, resume);
     plan.predicted_error_m = (plan.predicted_implant - target).norm();
     if (!options_.verify) {
       plan.within_tolerance = plan.predicted_error_m <= plan.tolerance_m;
       plan.fem_steps = steps();
+      plan.fem_steps_reused = resume.reused;
       return;
     }
     // Verify; while the verified seed misses and disagrees with the prediction, aim the O(1)
@@ -637,7 +742,7 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
       aim -= verified - target;  // next aim: cancel the verified miss
       ++plan.corrections;
       RigidPlan next = plan;
-      searchPlan(next, *sim, aim, plan.release.y() - aim.y(), expired);
+      searchPlan(next, *sim, aim, plan.release.y() - aim.y(), expired, resume);
       plan.scans = std::move(next.scans);
       plan.simulations = next.simulations;
       plan.release = next.release;
@@ -645,6 +750,7 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
       plan.budget_expired = next.budget_expired;
     }
     finishVerifiedPlan(plan, std::move(best), steps());
+    plan.fem_steps_reused = resume.reused;
   });
 }
 

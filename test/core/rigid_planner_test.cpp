@@ -141,6 +141,34 @@ TEST_F(RigidPlannerTest, ParallelBatchEqualsSequentialPlans) {
   EXPECT_EQ(batch.back().code, PlanCode::kTargetOutsideTissue);
 }
 
+TEST_F(RigidPlannerTest, AScanResumingAnEarlierInsertionIsTheScanFromTheEntryFace) {
+  // t01 and t02 share a height and t02 lies deeper: t02's scan at that height continues t01's
+  // cached insertion. The plan must be the one a fresh planner makes, bit for bit, and count
+  // the same FEM steps (the budget does not depend on what earlier plans cached).
+  const Point2 first = scene_.target("t01").position, second = scene_.target("t02").position;
+  ASSERT_EQ(first.y(), second.y());
+  ASSERT_LT(first.x(), second.x());
+  ASSERT_TRUE(planner_.plan(first));
+  const RigidPlan resumed = planner_.plan(second);
+  const RigidPlan fresh = RigidPlanner(scene_, unbudgeted()).plan(second);
+  ASSERT_TRUE(resumed) << resumed.toString();
+  ASSERT_TRUE(fresh) << fresh.toString();
+  EXPECT_GT(resumed.fem_steps_reused, 0);
+  EXPECT_EQ(fresh.fem_steps_reused, 0);
+  EXPECT_EQ(resumed.release, fresh.release);
+  EXPECT_EQ(resumed.verified_implant, fresh.verified_implant);
+  EXPECT_EQ(resumed.fem_steps, fresh.fem_steps);
+  EXPECT_EQ(resumed.simulations, fresh.simulations);
+  ASSERT_EQ(resumed.scans.size(), fresh.scans.size());
+  for (std::size_t i = 0; i < fresh.scans.size(); ++i) {
+    EXPECT_EQ(resumed.scans[i].implant, fresh.scans[i].implant) << i;
+    EXPECT_EQ(resumed.scans[i].depth_m, fresh.scans[i].depth_m) << i;
+  }
+  // A shallower target at that height stops within the cached insertion: scanned afresh.
+  const RigidPlan again = planner_.plan(first);
+  EXPECT_EQ(again.fem_steps_reused, 0);
+}
+
 /// The shipped scene with a 10x stiffer gland (issue 22's hard case: a stiffness jump at the
 /// gland's edge, targets within 1 mm of it).
 scene::Scene stiffGland() {

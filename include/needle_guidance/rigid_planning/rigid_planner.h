@@ -4,6 +4,7 @@
 
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -161,7 +162,14 @@ struct RigidPlan {
   double verified_error_m = NAN;             ///< |verified implant - target| [m]
   int verifications = 0;                     ///< full simulations among `simulations`
   int corrections = 0;                       ///< re-plans on the verified error
-  long fem_steps = 0;             ///< FEM steps solved for this plan (PlannerOptions::step_budget)
+  /// FEM steps this plan stands for (PlannerOptions::step_budget): every scan counted from the
+  /// entry face, also when it resumed a cached insertion (so outcomes do not depend on what
+  /// earlier plans cached).
+  long fem_steps = 0;
+  /// Of fem_steps: steps of cached insertion prefixes at the same height that this plan's scans
+  /// resumed instead of solving again (scans of the scene's own targets; fem_steps - this were
+  /// solved).
+  long fem_steps_reused = 0;
   double tolerance_m = 0.0;       ///< placement tolerance the plan was held to [m]
   bool within_tolerance = false;  ///< verified (or, unverified, predicted) error <= tolerance
   bool budget_expired = false;    ///< the time budget ended the search
@@ -223,8 +231,33 @@ private:
                  double max_depth_m, bool stop_past_target = false) const;
   /// scan() on the simulation's depth grid: one advance() per grid point, best depth on a grid
   /// point (where a verification, and the live loop, release).
+  /// With `resume` (a scan on the scene's own mesh): an insertion at the same height that an
+  /// earlier scan stopped short of this one's end is continued from a copy of its state, bit for
+  /// bit the same scan as from the entry face; `steps` adds the FEM steps the scan stands for
+  /// when it ran on a copy (prefix and new steps), `reused` the prefix's.
+  struct ResumeCounters {
+    bool resume = false;
+    long steps = 0;
+    long reused = 0;
+  };
   DepthScan gridScan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
-                     double max_depth_m, bool stop_past_target) const;
+                     double max_depth_m, bool stop_past_target,
+                     ResumeCounters* resume = nullptr) const;
+  /// gridScan from a cached insertion prefix at height_m, if one ends short of grid index `last`
+  /// and the scan does not end within it; nullopt otherwise (then a scan from the entry face).
+  std::optional<DepthScan> resumeScan(double height_m, const Point2& target, long last,
+                                      ResumeCounters& counters) const;
+  /// Steps `sim` on the grid from its position to `last` (or until the scan passes the target),
+  /// adding the implant points to `scan`.
+  void runGridScan(tissue::TissueSimulation& sim, DepthScan& scan, const Point2& target, long last,
+                   bool stop_past_target) const;
+  /// Adds one grid point of an insertion to `scan` (`state`: the simulation there, or null when
+  /// replaying a cached prefix); true when the scan may stop (the target is passed).
+  bool addGridPoint(DepthScan& scan, double x, const Point2& tip, const Point2& target,
+                    const tissue::TissueSimulation* state, bool stop_past_target) const;
+  /// Caches `sim`'s state at the end of `scan` as the insertion prefix at its height (if deeper
+  /// than the one cached).
+  void storePrefix(const tissue::TissueSimulation& sim, const DepthScan& scan) const;
   /// The seed after releasing at plan.release and retracting: from the release state of the
   /// scan that found the release when it has one, else a full simulation on `sim`. Adds the
   /// FEM steps run on a copy to plan.fem_steps (steps on `sim` count in sim.femSteps()).
@@ -234,7 +267,8 @@ private:
   void finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_steps) const;
   /// The O(1) height search for `aim` (the target, or the target shifted by a correction).
   void searchPlan(RigidPlan& plan, tissue::TissueSimulation& sim, const Point2& aim,
-                  double first_offset_m, const std::function<bool()>& expired) const;
+                  double first_offset_m, const std::function<bool()>& expired,
+                  ResumeCounters& resume) const;
   /// One height's result for the search: objective, best depth, predicted implant.
   struct HeightResult {
     double error_m;
