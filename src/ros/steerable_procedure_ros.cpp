@@ -212,12 +212,7 @@ public:
   bool flip(std::string& why_not) override {
     FlipBevelGoal goal;
     goal.velocity_rad_s = s_.flip_velocity_rad_s;
-    const auto state = flip_.sendGoalAndWait(goal, ros::Duration(s_.timeout_s));
-    if (state != actionlib::SimpleClientGoalState::SUCCEEDED) {
-      why_not = flip_.getResult() ? flip_.getResult()->message : state.toString();
-      return false;
-    }
-    return true;
+    return runGoal(flip_, goal, why_not);
   }
 
   procedures::StepEnd insertTo(double length_m, std::string& message) override {
@@ -273,11 +268,17 @@ public:
   }
 
 private:
-  /// Sends a goal and waits for it (the timeout); supervised, a node death cancels it.
   bool move(LinearMoveClient& client, double target_m, double velocity, std::string& message) {
     LinearMoveGoal goal;
     goal.target_m = target_m;
     goal.velocity_m_s = velocity;
+    return runGoal(client, goal, message);
+  }
+
+  /// Sends a goal and waits for it, at most the timeout; supervised, a node death cancels it at
+  /// once (a dead robot never answers a cancel either: nothing waits for one).
+  template <class Client, class Goal>
+  bool runGoal(Client& client, const Goal& goal, std::string& message) {
     client.sendGoal(goal);
     const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(s_.timeout_s);
     while (!client.waitForResult(ros::Duration(0.1))) {
