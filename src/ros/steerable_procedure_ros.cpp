@@ -242,8 +242,16 @@ public:
     return out;
   }
 
+  /// Checks at once as well as on the supervisor's timer: a trial that fails on a dead device
+  /// ends in milliseconds, and the next ones must not run before the timer's next check.
   std::optional<procedures::Fault> fault() override {
-    return supervisor_ ? supervisor_->confirmedFault(start_) : std::nullopt;
+    if (!supervisor_) {
+      return std::nullopt;
+    }
+    if (!supervisor_->death()) {
+      supervisor_->checkNow();
+    }
+    return supervisor_->confirmedFault(start_);
   }
 
   /// Leaves the needle out of the tissue: retracts if the robot lives, else nothing can move it.
