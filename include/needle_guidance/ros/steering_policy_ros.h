@@ -71,7 +71,7 @@ private:
   /// Feeds the step from the last answered tip to this one to adaptive_ when it is one whole
   /// insertion of delta under the control given (inserted length and bevel agree); swaps in a
   /// finished re-solve.
-  void learnFrom(const NeedleTip& tip, const steering::TipPose& pose, bool vouched);
+  void learnFrom(const NeedleTip& tip, const steering::TipPose& pose);
   bool onSolve(SolvePolicy::Request& req, SolvePolicy::Response& res);
   bool onBestStart(BestStart::Request& req, BestStart::Response& res);
   /// Publishes ~ps_map and ~best_start_marker for table_ (which must be set).
@@ -84,10 +84,9 @@ private:
   std::shared_ptr<const steering::PolicyTable> table_;
   /// Learns sigma_i / sigma_r from the tips answered and swaps in re-solved tables (~adapt_noise).
   std::unique_ptr<steering::AdaptivePolicy> adaptive_;
-  /// The first tip at the last step boundary (learnFrom), for the deflection of the next step.
+  /// The last tip answered with a control, for the deflection of the next step.
   struct LastAnswer {
-    bool anchored = false;  ///< a boundary tip is known
-    bool valid = false;     ///< ... and vouched for (ground truth or a confident image)
+    bool valid = false;
     steering::TipPose pose;
     double inserted_length_m = 0.0;
     steering::Control control = steering::Control::kInsert;
