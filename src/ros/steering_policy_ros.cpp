@@ -32,10 +32,13 @@ constexpr double kThrottle_s = 5.0;   ///< period of per-message warnings and er
 constexpr double kMapDepth_m = 0.02;  ///< ~ps_map sits this far below z = 0: rviz's top-down ortho
                                       ///< depth buffer loses mm separations
 constexpr double kMapThickness_m = 5e-4;  ///< cube height of ~ps_map [m]
-constexpr double kKeyOffset_m = 4e-3;     ///< ~ps_map_key's distance right of the workspace [m]
-constexpr double kKeyLine_m = 5e-3;       ///< ~ps_map_key's line spacing [m]
-constexpr double kKeyText_m = 2.5e-3;     ///< ~ps_map_key's text height [m]
-constexpr double kArrowLength_m = 0.01;   ///< ~best_start_marker [m]
+/// A tip is at rest at a step boundary when its inserted length is within this fraction of a
+/// step (delta) of a whole number of steps.
+constexpr double kAtRestFraction = 1e-3;
+constexpr double kKeyOffset_m = 4e-3;    ///< ~ps_map_key's distance right of the workspace [m]
+constexpr double kKeyLine_m = 5e-3;      ///< ~ps_map_key's line spacing [m]
+constexpr double kKeyText_m = 2.5e-3;    ///< ~ps_map_key's text height [m]
+constexpr double kArrowLength_m = 0.01;  ///< ~best_start_marker [m]
 constexpr double kArrowShaft_m = 1e-3;
 constexpr double kArrowHead_m = 2e-3;
 
@@ -293,7 +296,10 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
       ROS_INFO_STREAM_NAMED(kName, "steering_policy: model grid "
                                        << rung.grid_spacing_m * 1e3 << " mm, " << rung.states
                                        << " states, solved in " << rung.solve_s
-                                       << " s, estimated mean P_s error " << rung.estimated_error);
+                                       << " s, estimated mean P_s error "
+                                       << (std::isnan(rung.estimated_error)
+                                               ? std::string("not estimated (coarsest model)")
+                                               : formatNumber(rung.estimated_error, 2)));
     }
     description_ = p.description();  // before the model moves out
     estimated_error_ = p.estimated_error;
@@ -347,19 +353,36 @@ void SteeringPolicyRos::adopt(const std::shared_ptr<const st::PolicySource>& sou
   table_ = std::shared_ptr<const st::PolicyTable>(source, source->table.get());
 }
 
-void SteeringPolicyRos::learnFrom(const NeedleTip& tip, const st::TipPose& pose) {
+void SteeringPolicyRos::learnFrom(const NeedleTip& tip, const st::TipPose& pose, bool vouched) {
   if (!adaptive_) {
     return;
   }
+  // A step is learned from the first tip at rest at a step boundary (k delta from the entry) to
+  // the first one at the next (k + 1) delta. The robot also publishes tips mid-motion, and during
+  // a flip at rest, so: only tips at a boundary count; at a boundary only the first (before any
+  // flip) anchors the step; its control is whether the bevel changed (a flip draws sigma_r, even
+  // when the policy's answer to the post-flip tip was "insert"). The first step of a needle is not
+  // learned: in the tips a new entry with another bevel looks like a flip.
   const double delta = model_->arcLength_m();
+  const double steps = tip.inserted_length_m / delta;
+  if (!(std::abs(steps - std::round(steps)) <= kAtRestFraction)) {
+    return;  // mid-motion (or stopped at a contact)
+  }
+  if (last_.anchored && std::abs(steps - last_.inserted_length_m / delta) <= kAtRestFraction) {
+    return;  // the same boundary: keep its first tip
+  }
   const bool whole_step =
-      last_.valid &&
-      std::abs(tip.inserted_length_m - last_.inserted_length_m - delta) <= 0.1 * delta &&
-      pose.bevel ==
-          (last_.control == st::Control::kFlip ? st::flipped(last_.pose.bevel) : last_.pose.bevel);
+      last_.valid && vouched && last_.inserted_length_m > kAtRestFraction * delta &&
+      std::abs(steps - last_.inserted_length_m / delta - 1.0) <= kAtRestFraction;
+  last_.control = pose.bevel != last_.pose.bevel ? st::Control::kFlip : st::Control::kInsert;
+  const st::TipPose before = last_.pose;
+  last_.anchored = true;
+  last_.valid = vouched;
+  last_.pose = pose;
+  last_.inserted_length_m = tip.inserted_length_m;
   if (whole_step) {
     const bool was_solving = adaptive_->solving();
-    adaptive_->observe(last_.pose, pose, last_.control);
+    adaptive_->observe(before, pose, last_.control);
     if (!was_solving && adaptive_->solving()) {
       const st::Resolve& r = adaptive_->resolves().back();
       ROS_INFO_STREAM_NAMED(kName, "steering_policy: learned noise left the assumed interval after "
@@ -369,7 +392,17 @@ void SteeringPolicyRos::learnFrom(const NeedleTip& tip, const st::TipPose& pose)
                                        << " deg (the current table answers meanwhile)");
     }
   }
-  if (adaptive_->poll()) {
+}
+
+void SteeringPolicyRos::adoptFinishedResolve() {
+  bool finished = false;
+  try {
+    finished = adaptive_ && adaptive_->poll();
+  } catch (const std::exception& e) {  // the current table stays in use
+    ROS_ERROR_STREAM_NAMED(kName, "steering_policy: " << e.what() << "; keeping " << description_);
+    return;
+  }
+  if (finished) {
     adopt(adaptive_->current());
     const st::Resolve& r = adaptive_->resolves().back();
     description_ = adaptive_->current()->description();
@@ -416,14 +449,11 @@ void SteeringPolicyRos::onTip(const NeedleTipConstPtr& msg) {
     pose.p_SceneTip = geometry::Point2(msg->pose.x, msg->pose.y);
     pose.theta_rad = msg->pose.theta;
     pose.bevel = *bevel;
-    learnFrom(*msg, pose);
+    adoptFinishedResolve();
     const st::ControlLookup answer = table_->lookup(pose);
-    control_pub_.publish(toMessage(*msg, answer, *model_));
     // Only tips the robot or an image vouches for teach the noise.
-    last_.valid = answer && (msg->source == "ground_truth" || msg->confident);
-    last_.pose = pose;
-    last_.inserted_length_m = msg->inserted_length_m;
-    last_.control = answer.control;
+    learnFrom(*msg, pose, msg->source == "ground_truth" || msg->confident);
+    control_pub_.publish(toMessage(*msg, answer, *model_));
   } catch (const std::exception& e) {
     ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
                                     "steering_policy: tip not answered: " << e.what());

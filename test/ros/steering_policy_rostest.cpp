@@ -338,7 +338,9 @@ TEST(SteeringPolicyAdaptation, LearnedNoiseReSolvesWithoutAGapInTheControls) {
   std::normal_distribution<double> unit(0.0, 1.0);
   double inserted_m = 0.0;
   for (int k = 0; k < kSteps; ++k) {
-    inserted_m += 1.0;  // not one step after the previous tip: no sample from that pair
+    // At rest at a step boundary, two steps after the previous tip (no sample from that pair),
+    // and not at the entry (a needle's first step is not learned).
+    inserted_m = 3.0 * (k + 1) * kDelta_m;
     NeedleTip a = client().tip(best.pose.x, best.pose.y, best.pose.theta, best.bevel);
     a.source = "ground_truth";
     a.inserted_length_m = inserted_m;

@@ -68,10 +68,11 @@ private:
   void onTip(const NeedleTipConstPtr& msg);
   /// Makes `source` the table in use (model_, table_ share it).
   void adopt(const std::shared_ptr<const steering::PolicySource>& source);
-  /// Feeds the step from the last answered tip to this one to adaptive_ when it is one whole
-  /// insertion of delta under the control given (inserted length and bevel agree); swaps in a
-  /// finished re-solve.
-  void learnFrom(const NeedleTip& tip, const steering::TipPose& pose);
+  /// Feeds adaptive_ the step from the first tip at rest at one step boundary to the first at
+  /// the next; its control is whether the bevel changed.
+  void learnFrom(const NeedleTip& tip, const steering::TipPose& pose, bool vouched);
+  /// Swaps in a re-solved table once its background solve has finished (checked on every tip).
+  void adoptFinishedResolve();
   bool onSolve(SolvePolicy::Request& req, SolvePolicy::Response& res);
   bool onBestStart(BestStart::Request& req, BestStart::Response& res);
   /// Publishes ~ps_map and ~best_start_marker for table_ (which must be set).
@@ -84,9 +85,10 @@ private:
   std::shared_ptr<const steering::PolicyTable> table_;
   /// Learns sigma_i / sigma_r from the tips answered and swaps in re-solved tables (~adapt_noise).
   std::unique_ptr<steering::AdaptivePolicy> adaptive_;
-  /// The last tip answered with a control, for the deflection of the next step.
+  /// The first tip at the last step boundary (learnFrom), for the deflection of the next step.
   struct LastAnswer {
-    bool valid = false;
+    bool anchored = false;  ///< a boundary tip is known
+    bool valid = false;     ///< ... and vouched for (ground truth or a confident image)
     steering::TipPose pose;
     double inserted_length_m = 0.0;
     steering::Control control = steering::Control::kInsert;
