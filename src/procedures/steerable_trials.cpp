@@ -228,10 +228,16 @@ void SteerableReport::addTablesUsed(const std::vector<steering::TableUsed>& used
     }
     const steering::PolicyTable& table = *u.policy->table;
     t.predicted_ps = table.lookup(start.pose).probability_of_success;
-    const steering::ContinuousWorkspace world(u.policy->model->problem());
-    t.monte_carlo = steering::runMonteCarlo(world, start.pose, steering::tablePolicy(table),
-                                            SteerableTrials::kMonteCarloTrials,
-                                            SteerableTrials::kMonteCarloSeed, 2);
+    const steering::SteeringParams& scene = problem.params;
+    if (u.noise.sigma_insert_rad == scene.sigma_insert_rad &&
+        u.noise.sigma_flip_rad == scene.sigma_flip_rad && t.predicted_ps == start.predicted_ps) {
+      t.monte_carlo = monte_carlo;  // the run's own table: the same seeded trials as the headline
+    } else {
+      const steering::ContinuousWorkspace world(u.policy->model->problem());
+      t.monte_carlo = steering::runMonteCarlo(world, start.pose, steering::tablePolicy(table),
+                                              SteerableTrials::kMonteCarloTrials,
+                                              SteerableTrials::kMonteCarloSeed, 2);
+    }
     tables.push_back(std::move(t));
   }
 }

@@ -32,13 +32,10 @@ constexpr double kThrottle_s = 5.0;   ///< period of per-message warnings and er
 constexpr double kMapDepth_m = 0.02;  ///< ~ps_map sits this far below z = 0: rviz's top-down ortho
                                       ///< depth buffer loses mm separations
 constexpr double kMapThickness_m = 5e-4;  ///< cube height of ~ps_map [m]
-/// A tip is at rest at a step boundary when its inserted length is within this fraction of a
-/// step (delta) of a whole number of steps.
-constexpr double kAtRestFraction = 1e-3;
-constexpr double kKeyOffset_m = 4e-3;    ///< ~ps_map_key's distance right of the workspace [m]
-constexpr double kKeyLine_m = 5e-3;      ///< ~ps_map_key's line spacing [m]
-constexpr double kKeyText_m = 2.5e-3;    ///< ~ps_map_key's text height [m]
-constexpr double kArrowLength_m = 0.01;  ///< ~best_start_marker [m]
+constexpr double kKeyOffset_m = 4e-3;     ///< ~ps_map_key's distance right of the workspace [m]
+constexpr double kKeyLine_m = 5e-3;       ///< ~ps_map_key's line spacing [m]
+constexpr double kKeyText_m = 2.5e-3;     ///< ~ps_map_key's text height [m]
+constexpr double kArrowLength_m = 0.01;   ///< ~best_start_marker [m]
 constexpr double kArrowShaft_m = 1e-3;
 constexpr double kArrowHead_m = 2e-3;
 
@@ -314,7 +311,7 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
       adaptation.table_dir = settings_.table_dir;  // the procedure's report loads re-solved tables
       adaptation.scene_name = scene_name_;
       adaptive_ = std::make_unique<st::AdaptivePolicy>(problem_, source, adaptation);
-      last_ = LastAnswer{};
+      steps_.emplace(model_->arcLength_m());
     }
     table_source_ = out.source;
     out.success = true;
@@ -354,35 +351,13 @@ void SteeringPolicyRos::adopt(const std::shared_ptr<const st::PolicySource>& sou
 }
 
 void SteeringPolicyRos::learnFrom(const NeedleTip& tip, const st::TipPose& pose, bool vouched) {
-  if (!adaptive_) {
+  if (!adaptive_ || !steps_) {
     return;
   }
-  // A step is learned from the first tip at rest at a step boundary (k delta from the entry) to
-  // the first one at the next (k + 1) delta. The robot also publishes tips mid-motion, and during
-  // a flip at rest, so: only tips at a boundary count; at a boundary only the first (before any
-  // flip) anchors the step; its control is whether the bevel changed (a flip draws sigma_r, even
-  // when the policy's answer to the post-flip tip was "insert"). The first step of a needle is not
-  // learned: in the tips a new entry with another bevel looks like a flip.
-  const double delta = model_->arcLength_m();
-  const double steps = tip.inserted_length_m / delta;
-  if (!(std::abs(steps - std::round(steps)) <= kAtRestFraction)) {
-    return;  // mid-motion (or stopped at a contact)
-  }
-  if (last_.anchored && std::abs(steps - last_.inserted_length_m / delta) <= kAtRestFraction) {
-    return;  // the same boundary: keep its first tip
-  }
-  const bool whole_step =
-      last_.valid && vouched && last_.inserted_length_m > kAtRestFraction * delta &&
-      std::abs(steps - last_.inserted_length_m / delta - 1.0) <= kAtRestFraction;
-  last_.control = pose.bevel != last_.pose.bevel ? st::Control::kFlip : st::Control::kInsert;
-  const st::TipPose before = last_.pose;
-  last_.anchored = true;
-  last_.valid = vouched;
-  last_.pose = pose;
-  last_.inserted_length_m = tip.inserted_length_m;
-  if (whole_step) {
+  if (const std::optional<st::ObservedStep> step =
+          steps_->add(tip.inserted_length_m, pose, vouched)) {
     const bool was_solving = adaptive_->solving();
-    adaptive_->observe(before, pose, last_.control);
+    adaptive_->observe(step->before, step->after, step->control);
     if (!was_solving && adaptive_->solving()) {
       const st::Resolve& r = adaptive_->resolves().back();
       ROS_INFO_STREAM_NAMED(kName, "steering_policy: learned noise left the assumed interval after "

@@ -190,6 +190,42 @@ bool AdaptivePolicy::waitAndSwap() {
   return swapIn();
 }
 
+StepPairing::StepPairing(double delta_m) : delta_m_(delta_m) {
+  if (!(delta_m > 0.0) || !std::isfinite(delta_m)) {
+    throw std::invalid_argument("StepPairing: step length must be finite and > 0, got " +
+                                std::to_string(delta_m));
+  }
+}
+
+std::optional<ObservedStep> StepPairing::add(double inserted_length_m, const TipPose& pose,
+                                             bool vouched) {
+  /// A tip is at a step boundary when its inserted length is within this fraction of a step of
+  /// a whole number of steps.
+  constexpr double kAtRestFraction = 1e-3;
+  const double steps = inserted_length_m / delta_m_;
+  if (!(std::abs(steps - std::round(steps)) <= kAtRestFraction)) {
+    return std::nullopt;  // mid-motion, stopped at a contact, or not finite
+  }
+  if (anchored_ && std::abs(steps - anchor_steps_) <= kAtRestFraction) {
+    return std::nullopt;  // the same boundary: keep its first tip (before any flip)
+  }
+  const bool whole_step = anchored_ && vouched_ && vouched &&
+                          anchor_steps_ >= 1.0 - kAtRestFraction &&
+                          std::abs(steps - anchor_steps_ - 1.0) <= kAtRestFraction;
+  ObservedStep step;
+  step.before = anchor_;
+  step.after = pose;
+  step.control = pose.bevel != anchor_.bevel ? Control::kFlip : Control::kInsert;
+  anchored_ = true;
+  vouched_ = vouched;
+  anchor_ = pose;
+  anchor_steps_ = steps;
+  if (!whole_step) {
+    return std::nullopt;
+  }
+  return step;
+}
+
 Result<std::vector<TableUsed>> tablesUsed(const SteeringProblem& chosen,
                                           const std::vector<TrialNoise>& trials,
                                           const std::string& scene_name,

@@ -194,6 +194,59 @@ TEST(AdaptivePolicy, StoppedStepsKeepTheEstimateUnbiased) {
   EXPECT_EQ(policy.estimator().estimate(Control::kInsert).samples, kBiasSteps);
 }
 
+TipPose poseAt(double x_m, double y_m, double theta_rad, Bevel bevel) {
+  TipPose pose;
+  pose.p_SceneTip = Point2(x_m, y_m);
+  pose.theta_rad = theta_rad;
+  pose.bevel = bevel;
+  return pose;
+}
+
+TEST(StepPairing, AStepAfterAFlipIsAFlipFromThePreFlipTip) {
+  // What a robot publishes at a high time scale: at rest at 1 delta (bevel left), the same place
+  // after a flip (bevel right, answered "insert" by the policy), mid-motion, at rest at 2 delta.
+  constexpr double kDelta_m = 0.0079;
+  StepPairing pairing(kDelta_m);
+  const TipPose entry = poseAt(0.0, 0.0, 0.0, Bevel::kLeft);
+  const TipPose rest = poseAt(kDelta_m, 0.0, 0.01, Bevel::kLeft);
+  const TipPose flipped = poseAt(kDelta_m, 0.0, 0.01, Bevel::kRight);
+  const TipPose moving = poseAt(1.5 * kDelta_m, 0.0, 0.02, Bevel::kRight);
+  const TipPose next = poseAt(2.0 * kDelta_m, 0.0, 0.03, Bevel::kRight);
+  EXPECT_FALSE(pairing.add(0.0, entry, true));
+  EXPECT_FALSE(pairing.add(kDelta_m, rest, true)) << "a needle's first step is not paired";
+  EXPECT_FALSE(pairing.add(kDelta_m, flipped, true)) << "the same boundary";
+  EXPECT_FALSE(pairing.add(1.5 * kDelta_m, moving, true)) << "mid-motion";
+  const std::optional<ObservedStep> step = pairing.add(2.0 * kDelta_m, next, true);
+  ASSERT_TRUE(step);
+  EXPECT_EQ(step->control, Control::kFlip);
+  EXPECT_EQ(step->before.bevel, Bevel::kLeft) << "from the first tip at the boundary";
+  EXPECT_EQ(step->before.theta_rad, rest.theta_rad);
+  EXPECT_EQ(step->after.theta_rad, next.theta_rad);
+  // The next boundary with the same bevel: an insertion.
+  const std::optional<ObservedStep> insert =
+      pairing.add(3.0 * kDelta_m, poseAt(3.0 * kDelta_m, 0.0, 0.04, Bevel::kRight), true);
+  ASSERT_TRUE(insert);
+  EXPECT_EQ(insert->control, Control::kInsert);
+}
+
+TEST(StepPairing, SkipsUnvouchedGappedAndNewNeedles) {
+  constexpr double kDelta_m = 0.005;
+  StepPairing pairing(kDelta_m);
+  const TipPose pose = poseAt(0.0, 0.0, 0.0, Bevel::kLeft);
+  EXPECT_FALSE(pairing.add(kDelta_m, pose, true));
+  EXPECT_FALSE(pairing.add(2.0 * kDelta_m, pose, false)) << "its end is not vouched for";
+  EXPECT_FALSE(pairing.add(3.0 * kDelta_m, pose, true)) << "its start is not vouched for";
+  EXPECT_FALSE(pairing.add(5.0 * kDelta_m, pose, true)) << "two steps: not one";
+  EXPECT_TRUE(pairing.add(6.0 * kDelta_m, pose, true));
+  EXPECT_FALSE(pairing.add(0.0, pose, true)) << "retracted: a new needle";
+  EXPECT_FALSE(pairing.add(kDelta_m, poseAt(0.0, 0.0, 0.0, Bevel::kRight), true))
+      << "a new needle's first step, bevel changed by the new entry, is not a flip";
+  EXPECT_FALSE(pairing.add(std::nan(""), pose, true)) << "a non-finite length is skipped";
+  EXPECT_TRUE(pairing.add(2.0 * kDelta_m, pose, true));
+  EXPECT_THROW(StepPairing(0.0), std::invalid_argument);
+  EXPECT_THROW(StepPairing(std::nan("")), std::invalid_argument);
+}
+
 TEST(AdaptivePolicy, BadOptionsAreRefused) {
   const SteeringProblem p = problem();
   AdaptationOptions o;

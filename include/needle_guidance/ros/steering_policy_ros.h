@@ -9,6 +9,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 
 #include "needle_guidance/BestStart.h"
@@ -85,14 +86,8 @@ private:
   std::shared_ptr<const steering::PolicyTable> table_;
   /// Learns sigma_i / sigma_r from the tips answered and swaps in re-solved tables (~adapt_noise).
   std::unique_ptr<steering::AdaptivePolicy> adaptive_;
-  /// The first tip at the last step boundary (learnFrom), for the deflection of the next step.
-  struct LastAnswer {
-    bool anchored = false;  ///< a boundary tip is known
-    bool valid = false;     ///< ... and vouched for (ground truth or a confident image)
-    steering::TipPose pose;
-    double inserted_length_m = 0.0;
-    steering::Control control = steering::Control::kInsert;
-  } last_;
+  /// Pairs the tips answered into whole steps for adaptive_ (set with it).
+  std::optional<steering::StepPairing> steps_;
   std::string table_source_;           ///< how table_ was made: solved | loaded
   steering::SteeringProblem problem_;  ///< the scene's, with its ps_tolerance
   std::string description_;            ///< model, estimated error and time of table_

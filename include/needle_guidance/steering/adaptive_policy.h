@@ -11,6 +11,7 @@
 #include <future>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -63,6 +64,36 @@ struct Resolve {
   double sigma_flip_rad = 0.0;
   double seconds = 0.0;  ///< build + solve (0 when the cache had it)
   bool cached = false;
+};
+
+/// One whole step of delta seen in a running needle's tips, for AdaptivePolicy::observe.
+struct ObservedStep {
+  TipPose before;
+  TipPose after;
+  Control control = Control::kInsert;  ///< kFlip when the bevel changed at the step's start
+};
+
+/// Pairs the tips of a running needle, as a robot or tracker publishes them (mid-motion, at rest,
+/// before and after a flip, at any rate), into whole steps. A step goes from the first tip at rest
+/// at a step boundary (k delta of inserted length) to the first at the next ((k + 1) delta); its
+/// control is whether the bevel changed between them, so a step drawn after a flip counts as a
+/// flip even when the policy's answer to the post-flip tip was "insert". Tips between boundaries
+/// (mid-motion, or stopped at a contact) are skipped; the first step of a needle is not paired (in
+/// the tips a new entry with another bevel looks like a flip); a step either end of which no one
+/// vouched for (ground truth or a confident image) is not paired.
+class StepPairing {
+public:
+  /// @param[in] delta_m the step length of the model [m], > 0
+  explicit StepPairing(double delta_m);
+  /// The step this tip completes, if any.
+  std::optional<ObservedStep> add(double inserted_length_m, const TipPose& pose, bool vouched);
+
+private:
+  double delta_m_;
+  bool anchored_ = false;  ///< a boundary tip is known
+  bool vouched_ = false;   ///< ... and vouched for
+  TipPose anchor_;
+  double anchor_steps_ = 0.0;  ///< its inserted length in steps
 };
 
 class AdaptivePolicy {
