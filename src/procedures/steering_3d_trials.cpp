@@ -57,7 +57,9 @@ bool SteeringTrial3::step() {
   c.length_m = std::min(c.length_m, step);
   steering_3d::TrialOptions3 options;
   options.record_path = true;
-  const bool free = steering_3d::executeStep3(needle_, world_, c, tip_, result_, options);
+  const bool free = world_step_
+                        ? world_step_(c, tip_, result_)
+                        : steering_3d::executeStep3(needle_, world_, c, tip_, result_, options);
   if (last_piece) {
     plan_.pop_front();
   } else {
@@ -82,6 +84,18 @@ void SteeringTrial3::abort(const std::string& message) {
 void SteeringTrial3::end() {
   steering_3d::finishTrial3(scene_, tip_, result_);
   done_ = true;
+}
+
+steering_3d::PlanCode planCodeFromName(const std::string& name) {
+  using steering_3d::PlanCode;
+  for (PlanCode c :
+       {PlanCode::kStartOutsideTissue, PlanCode::kStartInObstacle, PlanCode::kTargetOutsideTissue,
+        PlanCode::kTargetInObstacle, PlanCode::kNoPathWithinBudget}) {
+    if (steering_3d::toString(c) == name) {
+      return c;
+    }
+  }
+  return PlanCode::kNoPathWithinBudget;
 }
 
 bool runSucceeded(const SteeringSummary3& s) {

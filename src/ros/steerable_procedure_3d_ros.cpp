@@ -2,33 +2,21 @@
 #include "needle_guidance/ros/steerable_procedure_3d_ros.h"
 
 #include <chrono>
+#include <optional>
 #include <stdexcept>
 
 #include "needle_guidance/PlanSteering3.h"
+#include "needle_guidance/SetEntryPose3.h"
 #include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/conversions_3d.h"
 #include "needle_guidance/ros/node_supervisor.h"
 #include "needle_guidance/ros/params.h"
+#include "needle_guidance/ros/run_goal.h"
 
 namespace needle_guidance {
 
 namespace sd = steering_3d;
-
-namespace {
-
-sd::PlanCode planCodeOf(const std::string& name) {
-  for (sd::PlanCode c : {sd::PlanCode::kStartOutsideTissue, sd::PlanCode::kStartInObstacle,
-                         sd::PlanCode::kTargetOutsideTissue, sd::PlanCode::kTargetInObstacle,
-                         sd::PlanCode::kNoPathWithinBudget}) {
-    if (sd::toString(c) == name) {
-      return c;
-    }
-  }
-  return sd::PlanCode::kNoPathWithinBudget;
-}
-
-}  // namespace
 
 SteerableProcedure3dRos::SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh)
     : nh_(nh) {
@@ -43,26 +31,20 @@ SteerableProcedure3dRos::SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeH
   startup_timeout_s_ = rp::number(private_nh, "startup_timeout_s", 30.0, 0.1, 600.0, "s");
   tip_sigma_m_ = rp::number(private_nh, "tip_sigma_m", 0.0, 0.0, 0.1, "m");
   planner_ns_ = rp::text(private_nh, "planner_ns", "steering_planner_3d");
+  robot_ns_ = rp::text(private_nh, "robot_ns", "insertion_robot");
   report_dir_ = ros_params::rosHomePath(rp::text(private_nh, "report_dir", "", true));
   scene_ = std::make_unique<sd::Scene3d>(sd::loadScene3d(scene_path));
   world_ = std::make_unique<sd::CollisionWorld3>(scene_->collisionWorld());
   noise_ = scene_->noise.scaled(noise_scale);
   tip_pub_ = private_nh.advertise<geometry_msgs::PoseWithCovarianceStamped>("tip", 10);
-  path_pub_ = private_nh.advertise<visualization_msgs::Marker>("needle_path", 1, true);
-  control_sub_ =
-      nh.subscribe(planner_ns_ + "/control", 10, &SteerableProcedure3dRos::onControl, this);
+  steer_ = std::make_unique<actionlib::SimpleActionClient<Steer3Action>>(nh, robot_ns_ + "/steer");
+  retract_ =
+      std::make_unique<actionlib::SimpleActionClient<LinearMoveAction>>(nh, robot_ns_ + "/retract");
+  set_entry_ = nh.serviceClient<SetEntryPose3>(robot_ns_ + "/set_entry_pose_3d");
+  control_sub_ = nh.subscribe<SteeringControl3>(
+      planner_ns_ + "/control", 10,
+      [this](const SteeringControl3ConstPtr& m) { controls_.set(*m); });
   plan_client_ = nh.serviceClient<PlanSteering3>(planner_ns_ + "/plan");
-}
-
-void SteerableProcedure3dRos::onControl(const SteeringControl3ConstPtr& msg) {
-  {
-    std::lock_guard<std::mutex> lock(mutex_);
-    if (msg->header.stamp != expected_stamp_) {
-      return;  // an answer to someone else's tip
-    }
-    last_control_ = *msg;
-  }
-  cv_.notify_all();
 }
 
 std::optional<SteeringControl3> SteerableProcedure3dRos::exchange(const sd::TipPose3& tip) {
@@ -73,19 +55,10 @@ std::optional<SteeringControl3> SteerableProcedure3dRos::exchange(const sd::TipP
   for (int k = 0; k < 3; ++k) {
     msg.pose.covariance[static_cast<std::size_t>(7 * k)] = tip_sigma_m_ * tip_sigma_m_;
   }
-  std::unique_lock<std::mutex> lock(mutex_);
-  last_control_.reset();
-  expected_stamp_ = msg.header.stamp;
   tip_pub_.publish(msg);
-  // In slices, so that a dead planner ends the wait within about 0.1 s of being seen.
-  const auto until = std::chrono::steady_clock::now() +
-                     std::chrono::duration_cast<std::chrono::steady_clock::duration>(
-                         std::chrono::duration<double>(control_timeout_s_));
-  while (!last_control_ && std::chrono::steady_clock::now() < until &&
-         !(supervisor_ != nullptr && supervisor_->death())) {
-    cv_.wait_for(lock, std::chrono::milliseconds(100));
-  }
-  return last_control_;
+  SteeringControl3 answer;  // the answer to this tip (stamped with it)
+  return controls_.waitFor(msg.header.stamp, control_timeout_s_, answer) ? std::optional(answer)
+                                                                         : std::nullopt;
 }
 
 bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::uint64_t trial_seed,
@@ -99,7 +72,7 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
     return false;
   }
   if (!srv.response.success) {
-    trial.refuseStart(planCodeOf(srv.response.status), srv.response.message);
+    trial.refuseStart(procedures::planCodeFromName(srv.response.status), srv.response.message);
     return true;
   }
   geometry_msgs::PoseWithCovarianceStamped start;
@@ -112,11 +85,17 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
     return false;
   }
   trial.start(entry, srv.response.p_success, srv.response.seconds);
+  if (const std::string fault = placeRobot(entry, trial_seed); !fault.empty()) {
+    trial.abort(fault);
+    return false;
+  }
+  trial.setWorld([this](const sd::Control3& c, sd::TipPose3& tip, sd::TrialResult3& r) {
+    return robotStep(c, tip, r);
+  });
   // As runTrial3: the entry plan's first step, then a replan from every tip.
   trial.setPlan(ros_conversions::controlsFromArrays(
       srv.response.rotate_rad, srv.response.curvature_per_m, srv.response.insertion_m));
   trial.step();
-  publishPath(trial.result().path);
   while (!trial.done() && ros::ok()) {
     const auto t0 = std::chrono::steady_clock::now();
     const std::optional<SteeringControl3> answer = exchange(trial.tip());
@@ -141,24 +120,74 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
       trial.setPlan(plan);
     }
     trial.step();
-    publishPath(trial.result().path);
   }
   return true;
 }
 
-void SteerableProcedure3dRos::publishPath(const std::vector<sd::Vector3>& path) {
-  visualization_msgs::Marker m = ros_conversions::lineStrip(
-      path, "scene", "needle", ros_conversions::colour(0.95, 0.6, 0.1, 1.0), 8e-4);
-  m.header.stamp = ros::Time::now();
-  path_pub_.publish(m);
+std::optional<std::string> SteerableProcedure3dRos::deathCause() const {
+  const auto death = supervisor_ != nullptr ? supervisor_->death() : std::nullopt;
+  return death ? std::optional(death->toString()) : std::nullopt;
+}
+
+std::string SteerableProcedure3dRos::placeRobot(const sd::TipPose3& entry, std::uint64_t seed) {
+  LinearMoveGoal out;  // back to the entry (at once when the needle is out)
+  out.velocity_m_s = 0.02;
+  std::string message;
+  if (!runGoal(
+          *retract_, out, control_timeout_s_, [this] { return deathCause(); }, message)) {
+    return "the robot did not retract: " + message;
+  }
+  SetEntryPose3 srv;
+  srv.request.entry = ros_conversions::toMessage(entry);
+  srv.request.reseed = true;
+  srv.request.seed = seed;  // the trial's noise stream, as runTrial3's world
+  if (!set_entry_.call(srv) || !srv.response.success) {
+    return "the robot refused the entry: " + srv.response.message + deathCause().value_or("");
+  }
+  return "";
+}
+
+bool SteerableProcedure3dRos::robotStep(const sd::Control3& c, sd::TipPose3& tip,
+                                        sd::TrialResult3& r) {
+  Steer3Goal goal;
+  goal.rotate_rad = c.rotate_rad;
+  goal.spin_rate_rad_s = scene_->needle.spin_rate_max_rad_s;
+  goal.curvature_per_m = c.curvature_per_m;
+  goal.length_m = c.length_m;
+  goal.velocity_m_s = scene_->needle.insertion_speed_m_s;
+  std::string message;
+  const bool ok = runGoal(
+      *steer_, goal, control_timeout_s_, [this] { return deathCause(); }, message);
+  const Steer3ResultConstPtr result = steer_->getResult();
+  const bool contact = result->contact == "obstacle" || result->contact == "outside_tissue";
+  geometry_msgs::PoseWithCovarianceStamped pose;
+  pose.header.frame_id = "scene";
+  pose.pose.pose = result->tip;
+  if ((!ok && !contact) || !ros_conversions::fromMessage(pose, "scene", tip).empty()) {
+    throw std::runtime_error("the robot's steer goal: " + message);  // a fault, not an outcome
+  }
+  ++r.steps;
+  for (std::size_t i = 1; i < result->path.size(); ++i) {
+    r.path.emplace_back(result->path[i].x, result->path[i].y, result->path[i].z);
+  }
+  if (contact) {
+    r.contact =
+        result->contact == "obstacle" ? sd::Contact3::kObstacle : sd::Contact3::kOutsideTissue;
+    r.obstacle = result->obstacle;
+    r.message = result->message;
+  }
+  return !contact;
 }
 
 bool SteerableProcedure3dRos::run() {
   report::prepareReportDir(report_dir_, "~report_dir", false);
-  if (!plan_client_.waitForExistence(ros::Duration(startup_timeout_s_))) {
-    ROS_ERROR_STREAM("steerable_procedure_3d: " << plan_client_.getService()
-                                                << " did not come up within " << startup_timeout_s_
-                                                << " s");
+  if (!plan_client_.waitForExistence(ros::Duration(startup_timeout_s_)) ||
+      !set_entry_.waitForExistence(ros::Duration(startup_timeout_s_)) ||
+      !steer_->waitForServer(ros::Duration(startup_timeout_s_)) ||
+      !retract_->waitForServer(ros::Duration(startup_timeout_s_))) {
+    ROS_ERROR_STREAM("steerable_procedure_3d: " << planner_ns_ << " or " << robot_ns_
+                                                << " (steerable_3d mode) did not come up within "
+                                                << startup_timeout_s_ << " s");
     return false;
   }
   const ros::WallTime deadline = ros::WallTime::now() + ros::WallDuration(startup_timeout_s_);
@@ -169,8 +198,9 @@ bool SteerableProcedure3dRos::run() {
     }
     ros::WallDuration(0.05).sleep();
   }
-  NodeSupervisor supervisor(nh_, {planner_ns_});
+  NodeSupervisor supervisor(nh_, {planner_ns_, robot_ns_});
   supervisor_ = &supervisor;
+  controls_.setAbort([this] { return deathCause().has_value(); });
   std::vector<sd::TrialResult3> results;
   std::vector<bool> faulted;
   std::vector<double> round_trip_ms;
@@ -181,8 +211,9 @@ bool SteerableProcedure3dRos::run() {
     procedures::SteeringTrial3 trial(*scene_, *world_, noise_, trial_seed, max_steps_);
     try {
       ok = runTrial(trial, trial_seed, round_trip_ms);
-    } catch (const std::invalid_argument& e) {  // a malformed plan from the planner
-      trial.abort(std::string("the planner's plan: ") + e.what());
+    } catch (const std::exception& e) {  // a malformed plan, a robot fault
+      supervisor_->checkNow();
+      trial.abort(deathCause().value_or(e.what()));
       ok = false;
     }
     results.push_back(trial.result());
@@ -198,6 +229,7 @@ bool SteerableProcedure3dRos::run() {
     death = {d->node, d->toString(), d->when.toSec()};
     ROS_ERROR_STREAM("steerable_procedure_3d: stopped: " << death.cause);
   }
+  controls_.setAbort(nullptr);
   supervisor_ = nullptr;
   procedures::writeSteeringReport3(report_dir_, *scene_, results, faulted, round_trip_ms,
                                    static_cast<std::uint64_t>(seed_), death);

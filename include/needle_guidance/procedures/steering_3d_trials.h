@@ -7,6 +7,7 @@
 
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -20,6 +21,16 @@ public:
   /// The scene and world must outlive it; `seed` seeds the needle's noise.
   SteeringTrial3(const steering_3d::Scene3d& scene, const steering_3d::CollisionWorld3& world,
                  const steering_3d::NoiseParams3& noise, std::uint64_t seed, int max_steps);
+
+  /// The world's answer to one control: moves `tip`, counts the step in `result`, appends its
+  /// path and, on a contact, sets result.contact / obstacle / message and returns false (the
+  /// contract of closed_loop_3d's executeStep3). Throws std::runtime_error on a fault of the
+  /// device (the trial is then aborted by the caller).
+  using WorldStep3 =
+      std::function<bool(const steering_3d::Control3& control, steering_3d::TipPose3& tip,
+                         steering_3d::TrialResult3& result)>;
+  /// Replaces the in-process noisy needle by another world (e.g. the insertion robot's 3-D mode).
+  void setWorld(WorldStep3 world) { world_step_ = std::move(world); }
 
   /// Places the tip at the entry plan's start (no motion yet).
   void start(const steering_3d::TipPose3& entry, double predicted_p_success, double initial_plan_s);
@@ -48,12 +59,16 @@ private:
   const steering_3d::Scene3d& scene_;
   const steering_3d::CollisionWorld3& world_;
   steering_3d::NoisyNeedle3 needle_;
+  WorldStep3 world_step_;
   int max_steps_;
   steering_3d::TipPose3 tip_;
   std::deque<steering_3d::Control3> plan_;
   steering_3d::TrialResult3 result_;
   bool done_ = false;
 };
+
+/// The plan status a planner names ("no_path_within_budget" for any name it does not know).
+steering_3d::PlanCode planCodeFromName(const std::string& name);
 
 /// Aggregate of a run's trials.
 struct SteeringSummary3 {
