@@ -110,6 +110,11 @@ SteerableStage3d::SteerableStage3d(InsertionStage& stage, const sd::Scene3d& sce
       world_(scene.collisionWorld()),
       params_(scene.needle),
       noise_(noise) {
+  if (!(spin_rate_limit_rad_s > 0.0)) {
+    throw std::invalid_argument("SteerableStage3d: the axial rotation joint's velocity limit is " +
+                                std::to_string(spin_rate_limit_rad_s) +
+                                " rad/s (does the URDF have joint 'axial_rotation'?)");
+  }
   params_.spin_rate_max_rad_s = std::min(params_.spin_rate_max_rad_s, spin_rate_limit_rad_s);
   params_.validate();
   noise_.validate();

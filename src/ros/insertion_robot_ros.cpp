@@ -141,9 +141,6 @@ void InsertionRobotRos::setUpSteerable3d(const ros::NodeHandle& private_nh,
       steering_3d::loadScene3d(ros_params::text(private_nh, "scene_3d", "", true)));
   const double noise = ros_params::number(private_nh, "noise_scale", 1.0, 0.0, 10.0, "x sigma");
   const auto seed = ros_params::integer(private_nh, "seed", 1, 0, 9007199254740992L, "");
-  if (!(limits.spin_rate_max_rad_s > 0.0)) {
-    throw std::runtime_error("~mode steerable_3d: the URDF has no joint 'axial_rotation'");
-  }
   steer3d_ = std::make_unique<robot::SteerableStage3d>(
       *stage_, *scene3d_, scene3d_->noise.scaled(noise), limits.spin_rate_max_rad_s,
       static_cast<std::uint64_t>(seed));
@@ -624,7 +621,6 @@ void InsertionRobotRos::onSteerGoal(const Steer3Goal& goal) {
     return;
   }
   owner_ = Owner::kSteer;
-  goal_start_ = ros::Time::now();
 }
 
 Steer3Result InsertionRobotRos::steerResult(bool success, const std::string& message) const {
@@ -644,11 +640,8 @@ Steer3Result InsertionRobotRos::steerResult(bool success, const std::string& mes
 }
 
 bool InsertionRobotRos::onSetEntryPose3(SetEntryPose3::Request& req, SetEntryPose3::Response& res) {
-  geometry_msgs::PoseWithCovarianceStamped msg;
-  msg.header.frame_id = "scene";
-  msg.pose.pose = req.entry;
   steering_3d::TipPose3 entry;
-  const std::string bad = ros_conversions::fromMessage(msg, "scene", entry);
+  const std::string bad = ros_conversions::fromMessage(req.entry, entry);
   const robot::CommandStatus status =
       bad.empty() ? steer3d_->setEntry(entry, req.reseed ? std::optional(req.seed) : std::nullopt)
                   : robot::CommandStatus::refused("set entry refused: " + bad);

@@ -5,6 +5,8 @@
 #include <optional>
 #include <stdexcept>
 
+#include <cv_bridge/cv_bridge.h>
+
 #include "needle_guidance/PlanSteering3.h"
 #include "needle_guidance/SetEntryPose3.h"
 #include "needle_guidance/report/output_path.h"
@@ -26,35 +28,62 @@ SteerableProcedure3dRos::SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeH
   trials_ = static_cast<int>(rp::integer(private_nh, "trials", 10, 1, 100000, "trials"));
   seed_ = rp::integer(private_nh, "seed", 1, 0, 1L << 30, "");
   max_steps_ = static_cast<int>(rp::integer(private_nh, "max_steps", 200, 1, 100000, "steps"));
-  const double noise_scale = rp::number(private_nh, "noise_scale", 1.0, 0.0, 10.0, "x scene sigma");
   control_timeout_s_ = rp::number(private_nh, "control_timeout_s", 10.0, 0.1, 600.0, "s");
   startup_timeout_s_ = rp::number(private_nh, "startup_timeout_s", 30.0, 0.1, 600.0, "s");
   tip_sigma_m_ = rp::number(private_nh, "tip_sigma_m", 0.0, 0.0, 0.1, "m");
   planner_ns_ = rp::text(private_nh, "planner_ns", "steering_planner_3d");
   robot_ns_ = rp::text(private_nh, "robot_ns", "insertion_robot");
   report_dir_ = ros_params::rosHomePath(rp::text(private_nh, "report_dir", "", true));
+  const std::string name = rp::text(private_nh, "tip_source", "truth");
+  const auto source = procedures::tipSource3FromString(name);
+  if (!source) {
+    throw std::runtime_error("parameter '" + private_nh.resolveName("tip_source") + "' = '" + name +
+                             "' is not truth or biplane");
+  }
   scene_ = std::make_unique<sd::Scene3d>(sd::loadScene3d(scene_path));
+  if (*source == procedures::TipSource3::kBiplane) {
+    imaging::BiplaneViewsConfig views;  // two fluoroscopy views of the tissue's bounds
+    views.seed = static_cast<std::uint64_t>(seed_);
+    views_ = std::make_unique<imaging::BiplaneViews3>(*scene_, views);
+    view_pubs_[0] = private_nh.advertise<sensor_msgs::Image>("view_along_z", 2);
+    view_pubs_[1] = private_nh.advertise<sensor_msgs::Image>("view_along_y", 2);
+  }
   world_ = std::make_unique<sd::CollisionWorld3>(scene_->collisionWorld());
-  noise_ = scene_->noise.scaled(noise_scale);
   tip_pub_ = private_nh.advertise<geometry_msgs::PoseWithCovarianceStamped>("tip", 10);
   steer_ = std::make_unique<actionlib::SimpleActionClient<Steer3Action>>(nh, robot_ns_ + "/steer");
   retract_ =
       std::make_unique<actionlib::SimpleActionClient<LinearMoveAction>>(nh, robot_ns_ + "/retract");
   set_entry_ = nh.serviceClient<SetEntryPose3>(robot_ns_ + "/set_entry_pose_3d");
   control_sub_ = nh.subscribe<SteeringControl3>(
-      planner_ns_ + "/control", 10,
-      [this](const SteeringControl3ConstPtr& m) { controls_.set(*m); });
+      planner_ns_ + "/control", 10, [this](const SteeringControl3ConstPtr& m) {
+        if (m->header.stamp.toNSec() == expected_ns_) {  // the answer to this node's last tip
+          controls_.set(*m);
+        }
+      });
   plan_client_ = nh.serviceClient<PlanSteering3>(planner_ns_ + "/plan");
 }
 
-std::optional<SteeringControl3> SteerableProcedure3dRos::exchange(const sd::TipPose3& tip) {
+std::optional<SteeringControl3> SteerableProcedure3dRos::exchange(
+    const procedures::SteeringTrial3& trial) {
   geometry_msgs::PoseWithCovarianceStamped msg;
   msg.header.frame_id = "scene";
   msg.header.stamp = ros::Time::now();
-  msg.pose.pose = ros_conversions::toMessage(tip);
-  for (int k = 0; k < 3; ++k) {
-    msg.pose.covariance[static_cast<std::size_t>(7 * k)] = tip_sigma_m_ * tip_sigma_m_;
+  msg.pose.pose = ros_conversions::toMessage(trial.observedTip());
+  const imaging::BiplaneObservation3& seen = trial.lastObservation();
+  const bool fused = views_ && seen.tip;
+  for (int k = 0; k < 9; ++k) {  // the fused covariance, else the configured sigma
+    msg.pose.covariance[static_cast<std::size_t>(6 * (k / 3) + k % 3)] =
+        fused        ? seen.covariance_m2(k / 3, k % 3)
+        : k % 4 == 0 ? tip_sigma_m_ * tip_sigma_m_
+                     : 0.0;
   }
+  for (const imaging::BiplaneView3* v : {&seen.along_z, &seen.along_y}) {
+    if (views_ && !v->frame.image.empty()) {
+      cv_bridge::CvImage image(msg.header, "mono8", v->frame.image);
+      view_pubs_[v->axis == sd::ViewAxis::kAlongZ ? 0 : 1].publish(image.toImageMsg());
+    }
+  }
+  expected_ns_ = msg.header.stamp.toNSec();
   tip_pub_.publish(msg);
   SteeringControl3 answer;  // the answer to this tip (stamped with it)
   return controls_.waitFor(msg.header.stamp, control_timeout_s_, answer) ? std::optional(answer)
@@ -67,20 +96,17 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
   srv.request.seed = trial_seed;
   if (!plan_client_.call(srv)) {
     supervisor_->checkNow();
-    trial.abort("the call of " + plan_client_.getService() + " failed" +
-                (supervisor_->death() ? ": " + supervisor_->death()->toString() : ""));
+    trial.abort("the call of " + plan_client_.getService() +
+                " failed: " + deathCause().value_or("no answer"));
     return false;
   }
   if (!srv.response.success) {
     trial.refuseStart(procedures::planCodeFromName(srv.response.status), srv.response.message);
     return true;
   }
-  geometry_msgs::PoseWithCovarianceStamped start;
-  start.header.frame_id = "scene";
-  start.pose.pose = srv.response.start;
   sd::TipPose3 entry;
-  const std::string bad = ros_conversions::fromMessage(start, "scene", entry);
-  if (!bad.empty()) {
+  if (const std::string bad = ros_conversions::fromMessage(srv.response.start, entry);
+      !bad.empty()) {
     trial.abort("the planner's entry pose: " + bad);
     return false;
   }
@@ -95,14 +121,13 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
   // As runTrial3: the entry plan's first step, then a replan from every tip.
   trial.setPlan(ros_conversions::controlsFromArrays(
       srv.response.rotate_rad, srv.response.curvature_per_m, srv.response.insertion_m));
-  trial.step();
-  while (!trial.done() && ros::ok()) {
+  trial.setViews(views_.get());
+  while (trial.step() && ros::ok()) {
     const auto t0 = std::chrono::steady_clock::now();
-    const std::optional<SteeringControl3> answer = exchange(trial.tip());
+    const std::optional<SteeringControl3> answer = exchange(trial);
     if (!answer) {
-      trial.abort(supervisor_->death() ? supervisor_->death()->toString()
-                                       : "no control from " + planner_ns_ + " within " +
-                                             std::to_string(control_timeout_s_) + " s");
+      trial.abort(deathCause().value_or("no control from " + planner_ns_ + " within " +
+                                        std::to_string(control_timeout_s_) + " s"));
       return false;
     }
     round_trip_ms.push_back(
@@ -119,7 +144,6 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
                   sd::Control3{answer->rotate_rad, answer->curvature_per_m, answer->insertion_m});
       trial.setPlan(plan);
     }
-    trial.step();
   }
   return true;
 }
@@ -160,10 +184,7 @@ bool SteerableProcedure3dRos::robotStep(const sd::Control3& c, sd::TipPose3& tip
       *steer_, goal, control_timeout_s_, [this] { return deathCause(); }, message);
   const Steer3ResultConstPtr result = steer_->getResult();
   const bool contact = result->contact == "obstacle" || result->contact == "outside_tissue";
-  geometry_msgs::PoseWithCovarianceStamped pose;
-  pose.header.frame_id = "scene";
-  pose.pose.pose = result->tip;
-  if ((!ok && !contact) || !ros_conversions::fromMessage(pose, "scene", tip).empty()) {
+  if ((!ok && !contact) || !ros_conversions::fromMessage(result->tip, tip).empty()) {
     throw std::runtime_error("the robot's steer goal: " + message);  // a fault, not an outcome
   }
   ++r.steps;
@@ -185,9 +206,10 @@ bool SteerableProcedure3dRos::run() {
       !set_entry_.waitForExistence(ros::Duration(startup_timeout_s_)) ||
       !steer_->waitForServer(ros::Duration(startup_timeout_s_)) ||
       !retract_->waitForServer(ros::Duration(startup_timeout_s_))) {
-    ROS_ERROR_STREAM("steerable_procedure_3d: " << planner_ns_ << " or " << robot_ns_
-                                                << " (steerable_3d mode) did not come up within "
-                                                << startup_timeout_s_ << " s");
+    ROS_ERROR_STREAM(
+        "steerable_procedure_3d: the planner or the robot (steerable_3d mode) did "
+        "not come up within "
+        << startup_timeout_s_ << " s");
     return false;
   }
   const ros::WallTime deadline = ros::WallTime::now() + ros::WallDuration(startup_timeout_s_);
@@ -208,7 +230,7 @@ bool SteerableProcedure3dRos::run() {
   for (int k = 0; k < trials_ && ok && ros::ok(); ++k) {
     ROS_INFO_STREAM("steerable_procedure_3d: trial " << k + 1 << "/" << trials_);
     const std::uint64_t trial_seed = static_cast<std::uint64_t>(seed_) * 100000ULL + k;
-    procedures::SteeringTrial3 trial(*scene_, *world_, noise_, trial_seed, max_steps_);
+    procedures::SteeringTrial3 trial(*scene_, *world_, scene_->noise, trial_seed, max_steps_);
     try {
       ok = runTrial(trial, trial_seed, round_trip_ms);
     } catch (const std::exception& e) {  // a malformed plan, a robot fault
@@ -218,11 +240,8 @@ bool SteerableProcedure3dRos::run() {
     }
     results.push_back(trial.result());
     faulted.push_back(!ok);
-    const sd::TrialResult3& r = trial.result();
-    ROS_INFO_STREAM("steerable_procedure_3d: trial "
-                    << k << ": " << (r.success ? "success" : "failure") << ", "
-                    << r.target_error_m * 1e3 << " mm, " << r.steps << " steps"
-                    << (r.message.empty() ? "" : ", " + r.message));
+    ROS_INFO_STREAM("steerable_procedure_3d: trial " << k << ": "
+                                                     << procedures::describe(trial.result()));
   }
   procedures::NodeDeath3 death;
   if (const auto d = supervisor.death()) {
@@ -234,11 +253,8 @@ bool SteerableProcedure3dRos::run() {
   procedures::writeSteeringReport3(report_dir_, *scene_, results, faulted, round_trip_ms,
                                    static_cast<std::uint64_t>(seed_), death);
   const procedures::SteeringSummary3 s = procedures::summarize(results, faulted);
-  ROS_INFO_STREAM("steerable_procedure_3d: " << s.successes << "/" << s.trials << " successes ("
-                                             << s.success_ci_low << ".." << s.success_ci_high
-                                             << "), median error " << s.target_error_mm_median
-                                             << " mm, median replan " << s.replan_ms_median
-                                             << " ms; report in " << report_dir_);
+  ROS_INFO_STREAM("steerable_procedure_3d: " << procedures::describe(s) << "; report in "
+                                             << report_dir_);
   return ok && death.dead_node.empty() && static_cast<int>(results.size()) == trials_;
 }
 

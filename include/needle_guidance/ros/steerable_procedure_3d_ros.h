@@ -7,7 +7,10 @@
 // steer action), and repeats until the plan is completed (the tip refereed against the target
 // ball) or the robot's needle touches an obstacle or leaves the tissue. The planner and the
 // robot are watched (NodeSupervisor): if one dies the run stops, the report names it (status
-// node_died) and run() returns false. The trial loop and the report are ROS-free
+// node_died) and run() returns false. ~tip_source: truth (the robot's true tip) or biplane
+// (imaging::BiplaneViews3: two orthogonal fluoroscopy views rendered with the imager's renderer,
+// published on ~view_along_z / ~view_along_y, the tip detected in each and triangulated; the
+// fused covariance goes out with ~tip). The trial loop and the report are ROS-free
 // (procedures/steering_3d_trials.h).
 #pragma once
 
@@ -15,6 +18,7 @@
 #include <geometry_msgs/PoseWithCovarianceStamped.h>
 #include <ros/ros.h>
 
+#include <atomic>
 #include <condition_variable>
 #include <memory>
 #include <mutex>
@@ -48,7 +52,8 @@ private:
                 std::vector<double>& round_trip_ms);
   /// Publishes the tip and waits for the control answering it; nullopt after the timeout or
   /// once the supervisor has seen the planner die.
-  std::optional<SteeringControl3> exchange(const steering_3d::TipPose3& tip);
+  /// With biplane views, their last frames are published first.
+  std::optional<SteeringControl3> exchange(const procedures::SteeringTrial3& trial);
   /// Retracts the robot's needle and places its guide at `entry`; "" or the fault.
   std::string placeRobot(const steering_3d::TipPose3& entry, std::uint64_t seed);
   /// SteeringTrial3::WorldStep3 through the robot's steer action.
@@ -59,7 +64,6 @@ private:
   ros::NodeHandle nh_;
   std::unique_ptr<steering_3d::Scene3d> scene_;
   std::unique_ptr<steering_3d::CollisionWorld3> world_;
-  steering_3d::NoiseParams3 noise_;
   std::string planner_ns_;
   std::string robot_ns_;
   std::string report_dir_;
@@ -73,9 +77,12 @@ private:
   std::unique_ptr<actionlib::SimpleActionClient<Steer3Action>> steer_;
   std::unique_ptr<actionlib::SimpleActionClient<LinearMoveAction>> retract_;
   ros::ServiceClient set_entry_;
+  std::unique_ptr<imaging::BiplaneViews3> views_;  ///< ~tip_source biplane; null: the truth
+  ros::Publisher view_pubs_[2];                    ///< ~view_along_z, ~view_along_y
   ros::Subscriber control_sub_;
   ros::ServiceClient plan_client_;
-  Latest<SteeringControl3> controls_;     ///< the planner's latest control
+  Latest<SteeringControl3> controls_;          ///< the planner's latest answer to this node's tip
+  std::atomic<std::uint64_t> expected_ns_{0};  ///< the stamp of this node's last tip [ns]
   NodeSupervisor* supervisor_ = nullptr;  ///< watches the planner and the robot while run() runs
 };
 
