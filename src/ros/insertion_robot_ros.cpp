@@ -225,7 +225,8 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   // the needle at the workspace boundary, so the scene's max_depth (an x) does not cap the arc
   // length, the joint's travel does.
   const robot::SceneLimits scene_limits =
-      steerable_mode || steerable3d
+      steerable3d ? robot::SceneLimits{h.lower, h.upper, d.upper, 0.0}
+      : steerable_mode
           ? robot::SceneLimits{scene.needle.min_height_m, scene.needle.max_height_m, d.upper, 0.0}
           : robot::SceneLimits{scene.needle.min_height_m, scene.needle.max_height_m,
                                scene.needle.max_depth_m, scene.workspace_min.x()};
@@ -658,12 +659,11 @@ void InsertionRobotRos::publishNeedle3(const ros::Time& stamp) {
   cp.header.frame_id = "scene";
   cp.pose = ros_conversions::toMessage(steer3d_->tip());
   measured_cp_pub_.publish(cp);
-  // Republished when the needle or the journal changes.
   const std::size_t version = steer3d_->journal().size() * 1000003 + steer3d_->path().size();
   if (version != published_path_version_) {
     published_path_version_ = version;
     visualization_msgs::Marker m = ros_conversions::lineStrip(
-        steer3d_->path(), "scene", "needle_path", ros_conversions::colour(0.95, 0.6, 0.1), 8e-4);
+        steer3d_->path(), "scene", "needle_path", ros_conversions::colour(0.95, 0.6, 0.1), 1.5e-3);
     m.header.stamp = stamp;
     needle_path_pub_.publish(m);
   }

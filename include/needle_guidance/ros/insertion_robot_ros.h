@@ -56,7 +56,8 @@ namespace needle_guidance {
 ///   velocity limit and the scene's spin-rate limit) and then inserts a length with
 ///   duty-cycled spinning; unsafe goals are refused (steerable_stage_3d.h) and a contact stops
 ///   the insertion there (success = false, the obstacle named). ~set_entry_pose_3d
-///   (SetEntryPose3) places the guide on the scene's entry disc; ~retract pulls the needle back
+///   (SetEntryPose3) places the guide on the scene's entry disc (the height joint, anywhere in
+///   its hardware range, only shows the stage); ~retract pulls the needle back
 ///   along its path; move_to_height, insert and flip_bevel are refused. Publishes ~measured_cp
 ///   (the true 3-D tip pose), ~needle_shape (the needle's points, for the imager's biplane
 ///   views) and ~needle_path (Marker); the 3-D journal goes to "X_needle3d.csv" next to
