@@ -1,6 +1,7 @@
 // The 3-D procedure's world and report (steering_3d_trials.h).
 #include "needle_guidance/procedures/steering_3d_trials.h"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <sstream>
@@ -20,13 +21,18 @@ SteeringTrial3::SteeringTrial3(const steering_3d::Scene3d& scene,
                                const steering_3d::CollisionWorld3& world,
                                const steering_3d::NoiseParams3& noise, std::uint64_t seed,
                                int max_steps)
-    : scene_(scene), world_(world), needle_(scene.needle, noise, seed), max_steps_(max_steps) {
+    : scene_(scene),
+      world_(world),
+      needle_(scene.needle, noise, seed),
+      max_steps_(max_steps),
+      seed_(seed) {
   result_.target_error_m = std::numeric_limits<double>::infinity();
 }
 
 void SteeringTrial3::start(const TipPose3& entry, double predicted_p_success,
                            double initial_plan_s) {
   tip_ = entry;
+  estimate_ = entry;  // the guide's pose is known
   result_.predicted_p_success = predicted_p_success;
   result_.initial_plan_s = initial_plan_s;
   result_.path.assign(1, entry.p_SceneTip);
@@ -57,7 +63,12 @@ bool SteeringTrial3::step() {
   c.length_m = std::min(c.length_m, step);
   steering_3d::TrialOptions3 options;
   options.record_path = true;
-  const bool free = steering_3d::executeStep3(needle_, world_, c, tip_, result_, options);
+  const bool free = world_step_
+                        ? world_step_(c, tip_, result_)
+                        : steering_3d::executeStep3(needle_, world_, c, tip_, result_, options);
+  if (views_ != nullptr) {
+    observe(c);
+  }
   if (last_piece) {
     plan_.pop_front();
   } else {
@@ -68,6 +79,33 @@ bool SteeringTrial3::step() {
     end();
   }
   return !done_;
+}
+
+void SteeringTrial3::observe(const Control3& c) {
+  using steering_3d::BiplaneCode;
+  const steering_3d::NeedleParams3& needle = scene_.needle;
+  const steering_3d::DutyCycle cycle = steering_3d::dutyCycleFor(
+      c.curvature_per_m, needle, steering_3d::cycleLength(c.length_m, needle));
+  const TipPose3 predicted = steering_3d::advanceArc(
+      steering_3d::rotateBevel(estimate_, c.rotate_rad), cycle.kappa_per_m, c.length_m);
+  observation_ = views_->observe(result_.path, predicted, seed_ * 1000 + result_.steps);
+  const BiplaneCode code = observation_.tip.status().code();
+  result_.views_fused += code == BiplaneCode::kOk ? 1 : 0;
+  result_.views_gated += code == BiplaneCode::kDisagree ? 1 : 0;
+  result_.views_dropped += code == BiplaneCode::kNoDetection ? 1 : 0;
+  estimate_ = observation_.tip ? observation_.tip.value() : predicted;
+  result_.estimate_error_m_max =
+      std::max(result_.estimate_error_m_max, (estimate_.p_SceneTip - tip_.p_SceneTip).norm());
+}
+
+std::optional<TipSource3> tipSource3FromString(const std::string& name) {
+  if (name == "truth") {
+    return TipSource3::kTruth;
+  }
+  if (name == "biplane") {
+    return TipSource3::kBiplane;
+  }
+  return std::nullopt;
 }
 
 void SteeringTrial3::abort(const std::string& message) {
@@ -82,6 +120,38 @@ void SteeringTrial3::abort(const std::string& message) {
 void SteeringTrial3::end() {
   steering_3d::finishTrial3(scene_, tip_, result_);
   done_ = true;
+}
+
+steering_3d::PlanCode planCodeFromName(const std::string& name) {
+  using steering_3d::PlanCode;
+  for (PlanCode c :
+       {PlanCode::kStartOutsideTissue, PlanCode::kStartInObstacle, PlanCode::kTargetOutsideTissue,
+        PlanCode::kTargetInObstacle, PlanCode::kNoPathWithinBudget}) {
+    if (steering_3d::toString(c) == name) {
+      return c;
+    }
+  }
+  return PlanCode::kNoPathWithinBudget;
+}
+
+std::string describe(const TrialResult3& r) {
+  std::ostringstream out;
+  out << (r.success ? "success" : "failure") << ", " << r.target_error_m * 1e3 << " mm, " << r.steps
+      << " steps" << (r.message.empty() ? "" : ", " + r.message);
+  return out.str();
+}
+
+std::string describe(const SteeringSummary3& s) {
+  std::ostringstream out;
+  out << s.successes << "/" << s.trials << " successes (" << s.success_ci_low << ".."
+      << s.success_ci_high << "), median error " << s.target_error_mm_median
+      << " mm, median replan " << s.replan_ms_median << " ms";
+  if (s.views_fused + s.views_dropped + s.views_gated > 0) {
+    out << ", biplane views fused " << s.views_fused << ", dropped " << s.views_dropped
+        << ", gated " << s.views_gated << ", estimate error max " << s.estimate_error_mm_max
+        << " mm";
+  }
+  return out.str();
 }
 
 bool runSucceeded(const SteeringSummary3& s) {
@@ -105,6 +175,10 @@ SteeringSummary3 summarize(const std::vector<TrialResult3>& results,
     for (double t : r.replan_s) {
       replan_ms.push_back(t * 1e3);
     }
+    s.views_fused += r.views_fused;
+    s.views_dropped += r.views_dropped;
+    s.views_gated += r.views_gated;
+    s.estimate_error_mm_max = std::max(s.estimate_error_mm_max, r.estimate_error_m_max * 1e3);
   }
   s.success_rate = s.trials > 0 ? static_cast<double>(s.successes) / s.trials : 0.0;
   const steering::Interval ci = steering::wilsonInterval(s.successes, s.trials);
@@ -142,6 +216,12 @@ std::string summaryJson(const steering_3d::Scene3d& scene, const SteeringSummary
        << ",\n  \"initial_plan_s_median\": " << num(s.initial_plan_s_median)
        << ",\n  \"predicted_p_success_mean\": " << num(s.predicted_p_success_mean)
        << ",\n  \"faults\": " << s.faults;
+  if (s.views_fused + s.views_dropped + s.views_gated > 0) {
+    json << ",\n  \"tip_source\": \"biplane\",\n  \"views_fused\": " << s.views_fused
+         << ",\n  \"views_dropped\": " << s.views_dropped
+         << ",\n  \"views_gated\": " << s.views_gated
+         << ",\n  \"estimate_error_mm_max\": " << num(s.estimate_error_mm_max);
+  }
   if (!death.dead_node.empty()) {
     json << ",\n  \"dead_node\": \"" << death.dead_node << "\",\n  \"cause\": \"" << death.cause
          << "\",\n  \"detected_unix_s\": " << report::jsonNumber(death.detected_unix_s, 15);

@@ -59,6 +59,14 @@ StageLimits parseStageLimits(const std::string& urdf_xml) {
                                   std::to_string(out.max_velocity) + " (must be > 0)");
     }
   }
+  if (const urdf::JointConstSharedPtr spin = model->getJoint("axial_rotation");
+      spin && spin->limits) {
+    limits.spin_rate_max_rad_s = spin->limits->velocity;
+    if (!(limits.spin_rate_max_rad_s > 0.0) || !std::isfinite(limits.spin_rate_max_rad_s)) {
+      throw std::invalid_argument("parseStageLimits: joint 'axial_rotation' has velocity limit " +
+                                  std::to_string(limits.spin_rate_max_rad_s) + " (must be > 0)");
+    }
+  }
   const urdf::JointConstSharedPtr tip = model->getJoint("needle_tip_joint");
   if (!tip) {
     throw std::invalid_argument("parseStageLimits: URDF has no joint 'needle_tip_joint'");

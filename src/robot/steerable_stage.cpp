@@ -8,6 +8,28 @@
 
 namespace needle_guidance::robot {
 
+std::string directionRefusal(LinearCommand command, double target_m, double current_m) {
+  const std::string target = std::to_string(target_m) + " m is ";
+  const std::string depth = " than the current depth " + std::to_string(current_m) + " m; use ";
+  if (command == LinearCommand::kInsert && target_m < current_m) {
+    return "insert command refused: target depth " + target + "shallower" + depth + "retract";
+  }
+  if (command == LinearCommand::kRetract && target_m > current_m) {
+    return "retract command refused: target depth " + target + "deeper" + depth + "insert";
+  }
+  return "";
+}
+
+std::string companionJournalPath(const std::string& journal_path, bool three_d) {
+  const std::string ext = ".csv";
+  const std::string suffix = three_d ? "_needle3d.csv" : "_needle.csv";
+  if (journal_path.size() > ext.size() &&
+      journal_path.compare(journal_path.size() - ext.size(), ext.size(), ext) == 0) {
+    return journal_path.substr(0, journal_path.size() - ext.size()) + suffix;
+  }
+  return journal_path + suffix;
+}
+
 SteerableStage::SteerableStage(InsertionStage& stage, SteerableNeedle& needle)
     : stage_(stage), needle_(needle) {}
 

@@ -49,13 +49,9 @@ geometry_msgs::Pose toMessage(const steering_3d::TipPose3& tip) {
   return m;
 }
 
-std::string fromMessage(const geometry_msgs::PoseWithCovarianceStamped& msg,
-                        const std::string& frame_id, steering_3d::TipPose3& tip) {
-  if (msg.header.frame_id != frame_id) {
-    return "tip pose in frame '" + msg.header.frame_id + "', expected '" + frame_id + "'";
-  }
-  const auto& p = msg.pose.pose.position;
-  const auto& o = msg.pose.pose.orientation;
+std::string fromMessage(const geometry_msgs::Pose& pose, steering_3d::TipPose3& tip) {
+  const auto& p = pose.position;
+  const auto& o = pose.orientation;
   if (!std::isfinite(p.x) || !std::isfinite(p.y) || !std::isfinite(p.z)) {
     return "tip position is not finite";
   }
@@ -68,6 +64,20 @@ std::string fromMessage(const geometry_msgs::PoseWithCovarianceStamped& msg,
     out << "tip orientation quaternion has norm " << q.norm() << ", not 1";
     return out.str();
   }
+  tip.p_SceneTip = steering_3d::Vector3(p.x, p.y, p.z);
+  tip.R_SceneTip = q.normalized().toRotationMatrix();
+  return "";
+}
+
+std::string fromMessage(const geometry_msgs::PoseWithCovarianceStamped& msg,
+                        const std::string& frame_id, steering_3d::TipPose3& tip) {
+  if (msg.header.frame_id != frame_id) {
+    return "tip pose in frame '" + msg.header.frame_id + "', expected '" + frame_id + "'";
+  }
+  steering_3d::TipPose3 decoded;
+  if (const std::string bad = fromMessage(msg.pose.pose, decoded); !bad.empty()) {
+    return bad;
+  }
   for (std::size_t k = 0; k < msg.pose.covariance.size(); ++k) {
     if (!std::isfinite(msg.pose.covariance[k])) {
       return "tip covariance entry " + std::to_string(k) + " is not finite";
@@ -76,8 +86,7 @@ std::string fromMessage(const geometry_msgs::PoseWithCovarianceStamped& msg,
       return "tip covariance has a negative variance at entry " + std::to_string(k);
     }
   }
-  tip.p_SceneTip = steering_3d::Vector3(p.x, p.y, p.z);
-  tip.R_SceneTip = q.normalized().toRotationMatrix();
+  tip = decoded;
   return "";
 }
 

@@ -15,6 +15,7 @@
 #include "needle_guidance/OperatingState.h"
 #include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/conversions.h"
+#include "needle_guidance/ros/conversions_3d.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/steering_model.h"
@@ -86,16 +87,6 @@ visualization_msgs::Marker toPathMarker(const robot::SteerableNeedle& needle,
   return m;
 }
 
-/// "dir/x.csv" -> "dir/x_needle.csv" (any other name gets "_needle.csv" appended).
-std::string needleJournalPath(const std::string& journal_path) {
-  const std::string ext = ".csv";
-  if (journal_path.size() > ext.size() &&
-      journal_path.compare(journal_path.size() - ext.size(), ext.size(), ext) == 0) {
-    return journal_path.substr(0, journal_path.size() - ext.size()) + "_needle.csv";
-  }
-  return journal_path + "_needle.csv";
-}
-
 }  // namespace
 
 void InsertionRobotRos::setUpSteerableNeedle(const ros::NodeHandle& private_nh,
@@ -131,7 +122,7 @@ void InsertionRobotRos::setUpSteerableNeedle(const ros::NodeHandle& private_nh,
     throw std::runtime_error(std::string("steerable needle: ") + e.what());
   }
   if (!journal_path.empty()) {
-    const std::string needle_path = needleJournalPath(journal_path);
+    const std::string needle_path = robot::companionJournalPath(journal_path, false);
     needle_journal_file_ = std::make_unique<robot::NeedleJournalFile>(needle_path);
     needle_->setJournalSink([this](const robot::NeedleJournalEntry& e) {
       needle_journal_file_->write(e, stage_->state().time_s);
@@ -141,6 +132,23 @@ void InsertionRobotRos::setUpSteerableNeedle(const ros::NodeHandle& private_nh,
   // The initial entry goes into the journal like every later one.
   needle_->setEntry(entry);
   steerable_ = std::make_unique<robot::SteerableStage>(*stage_, *needle_);
+}
+
+void InsertionRobotRos::setUpSteerable3d(const ros::NodeHandle& private_nh,
+                                         const robot::StageLimits& limits,
+                                         const std::string& journal_path) {
+  scene3d_ = std::make_unique<steering_3d::Scene3d>(
+      steering_3d::loadScene3d(ros_params::text(private_nh, "scene_3d", "", true)));
+  const double noise = ros_params::number(private_nh, "noise_scale", 1.0, 0.0, 10.0, "x sigma");
+  const auto seed = ros_params::integer(private_nh, "seed", 1, 0, 9007199254740992L, "");
+  steer3d_ = std::make_unique<robot::SteerableStage3d>(
+      *stage_, *scene3d_, scene3d_->noise.scaled(noise), limits.spin_rate_max_rad_s,
+      static_cast<std::uint64_t>(seed));
+  if (!journal_path.empty()) {
+    journal3_file_ =
+        std::make_unique<robot::Journal3File>(robot::companionJournalPath(journal_path, true));
+    steer3d_->setJournalSink([this](const robot::Journal3Entry& e) { journal3_file_->write(e); });
+  }
 }
 
 void InsertionRobotRos::advertiseInterfaces(const ros::NodeHandle& private_nh) {
@@ -159,6 +167,15 @@ void InsertionRobotRos::advertiseInterfaces(const ros::NodeHandle& private_nh) {
     needle_shape_pub_ = robot_nh.advertise<NeedleShape>("needle_shape", 10);
     drive_pub_ = robot_nh.advertise<NeedleDrive>("drive", 10);
     needle_path_pub_ = robot_nh.advertise<visualization_msgs::Marker>("needle_path", 1, true);
+  } else if (steer3d_) {
+    needle_path_pub_ = robot_nh.advertise<visualization_msgs::Marker>("needle_path", 1, true);
+    set_entry3_srv_ =
+        robot_nh.advertiseService("set_entry_pose_3d", &InsertionRobotRos::onSetEntryPose3, this);
+    steer_server_ = std::make_unique<Steer3Server>(
+        robot_nh, "steer", [this] { return runningMotion(); },
+        [this](const Steer3Goal& goal) { onSteerGoal(goal); },
+        [this] { onPreempt(Owner::kSteer); });
+    steer_server_->start();
   }
 
   auto make_linear = [&](const std::string& name, Owner owner) {
@@ -191,9 +208,10 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   const robot::StageLimits limits = robot::parseStageLimits(urdf_xml);
   const scene::Scene scene = scene::loadSceneSpec(scene_spec);
   const std::string mode = ros_params::text(private_nh, "mode", "auto");
-  if (mode != "auto" && mode != "rigid" && mode != "steerable") {
+  const bool steerable3d = mode == "steerable_3d";
+  if (mode != "auto" && mode != "rigid" && mode != "steerable" && !steerable3d) {
     throw std::runtime_error("parameter '" + private_nh.resolveName("mode") + "' = '" + mode +
-                             "' is not rigid, steerable or auto");
+                             "' is not rigid, steerable, steerable_3d or auto");
   }
   const bool steerable_mode = mode == "steerable" || (mode == "auto" && scene.steering);
   if (steerable_mode && !scene.steering) {
@@ -207,7 +225,8 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   // the needle at the workspace boundary, so the scene's max_depth (an x) does not cap the arc
   // length, the joint's travel does.
   const robot::SceneLimits scene_limits =
-      steerable_mode
+      steerable3d ? robot::SceneLimits{h.lower, h.upper, d.upper, 0.0}
+      : steerable_mode
           ? robot::SceneLimits{scene.needle.min_height_m, scene.needle.max_height_m, d.upper, 0.0}
           : robot::SceneLimits{scene.needle.min_height_m, scene.needle.max_height_m,
                                scene.needle.max_depth_m, scene.workspace_min.x()};
@@ -222,7 +241,7 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
       ros_params::number(private_nh, "initial_height_m", mid_height, h.lower, h.upper, "m");
   // Steerable: the needle starts at its entry point (inserted length 0).
   const double initial_depth_m =
-      steerable_mode
+      steerable_mode || steerable3d
           ? 0.0
           : ros_params::number(private_nh, "initial_depth_m", scene_limits.entry_x_m - 0.01,
                                d.lower, scene_limits.entry_x_m, "m");
@@ -240,10 +259,11 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
     const bool allow_system = ros_params::flag(private_nh, "allow_system_paths", false);
     report::checkAppendFile(journal_path, {robot::JournalFile::header()},
                             private_nh.resolveName("journal_file"), allow_system);
-    if (steerable_mode) {
-      report::checkAppendFile(needleJournalPath(journal_path), {robot::NeedleJournalFile::header()},
-                              private_nh.resolveName("journal_file") + " (needle journal)",
-                              allow_system);
+    if (steerable_mode || steerable3d) {
+      report::checkAppendFile(
+          robot::companionJournalPath(journal_path, steerable3d),
+          {steerable3d ? robot::Journal3File::header() : robot::NeedleJournalFile::header()},
+          private_nh.resolveName("journal_file") + " (needle journal)", allow_system);
     }
     journal_file_ = std::make_unique<robot::JournalFile>(journal_path);
     stage_->setJournalSink([this](const robot::JournalEntry& e) { journal_file_->write(e); });
@@ -252,6 +272,9 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
 
   if (steerable_mode)
     setUpSteerableNeedle(private_nh, scene, b, initial_height_m, initial_bevel_rad, journal_path);
+  if (steerable3d) {
+    setUpSteerable3d(private_nh, limits, journal_path);
+  }
   advertiseInterfaces(private_nh);
 
   last_step_ = ros::Time::now();
@@ -259,35 +282,25 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   publishState(last_step_);
   control_timer_ = nh.createTimer(ros::Duration(1.0 / control_rate_hz),
                                   &InsertionRobotRos::onControlTimer, this);
-  ROS_INFO_STREAM("insertion_robot: ready on scene '"
-                  << scene.name << "', needle " << limits.needle_length_m << " m, "
-                  << (steerable() ? "steerable" : "rigid") << " mode, time scale " << time_scale_);
+  ROS_INFO_STREAM("insertion_robot: ready on scene '" << scene.name << "', needle "
+                                                      << limits.needle_length_m << " m, " << mode
+                                                      << " mode, time scale " << time_scale_);
 }
 
 InsertionRobotRos::LinearMoveServer& InsertionRobotRos::linearServer(Owner owner) {
-  switch (owner) {
-    case Owner::kHeight:
-      return *height_server_;
-    case Owner::kInsert:
-      return *insert_server_;
-    default:
-      return *retract_server_;
-  }
+  return owner == Owner::kHeight   ? *height_server_
+         : owner == Owner::kInsert ? *insert_server_
+                                   : *retract_server_;
 }
 
 std::string InsertionRobotRos::runningMotion() const {
-  switch (owner_) {
-    case Owner::kNone:
-      return "";
-    case Owner::kHeight:
-      return "a move_to_height motion is running";
-    case Owner::kInsert:
-      return "an insert motion is running";
-    case Owner::kRetract:
-      return "a retract motion is running";
-    default:
-      return "a flip_bevel rotation is running";
-  }
+  static const char* const kRunning[] = {"",
+                                         "a move_to_height motion is running",
+                                         "an insert motion is running",
+                                         "a retract motion is running",
+                                         "a flip_bevel rotation is running",
+                                         "a steer motion is running"};
+  return kRunning[static_cast<int>(owner_)];  // indexed by Owner
 }
 
 void InsertionRobotRos::onLinearGoal(Owner owner, const LinearMoveGoal& goal_msg) {
@@ -296,22 +309,16 @@ void InsertionRobotRos::onLinearGoal(Owner owner, const LinearMoveGoal& goal_msg
   const StageJoint joint = owner == Owner::kHeight ? StageJoint::kHeight : StageJoint::kDepth;
   const double current = stage_->state().position[static_cast<std::size_t>(joint)];
   robot::CommandStatus status = robot::CommandStatus::accepted();
-  if (owner == Owner::kInsert && goal->target_m < current) {
-    status = robot::CommandStatus::refused(
-        "insert command refused: target depth " + std::to_string(goal->target_m) +
-        " m is shallower than the current depth " + std::to_string(current) + " m; use retract");
-  } else if (owner == Owner::kRetract && goal->target_m > current) {
-    status = robot::CommandStatus::refused(
-        "retract command refused: target depth " + std::to_string(goal->target_m) +
-        " m is deeper than the current depth " + std::to_string(current) + " m; use insert");
-  } else if (const std::string why =
-                 steerable()
-                     ? steerable_->refusal(owner == Owner::kHeight   ? LinearCommand::kHeight
-                                           : owner == Owner::kInsert ? LinearCommand::kInsert
-                                                                     : LinearCommand::kRetract,
-                                           goal->target_m)
-                     : "";
-             !why.empty()) {
+  const LinearCommand command = owner == Owner::kHeight   ? LinearCommand::kHeight
+                                : owner == Owner::kInsert ? LinearCommand::kInsert
+                                                          : LinearCommand::kRetract;
+  std::string why = robot::directionRefusal(command, goal->target_m, current);
+  if (why.empty()) {
+    why = steer3d_      ? steer3d_->linearRefusal(command, goal->target_m)
+          : steerable() ? steerable_->refusal(command, goal->target_m)
+                        : "";
+  }
+  if (!why.empty()) {
     status = robot::CommandStatus::refused(why);
   } else {
     status = stage_->command(joint, goal->target_m, goal->velocity_m_s);
@@ -346,7 +353,9 @@ void InsertionRobotRos::onLinearGoal(Owner owner, const LinearMoveGoal& goal_msg
 
 void InsertionRobotRos::onFlipGoal(const FlipBevelGoal& goal_msg) {
   const FlipBevelGoal* goal = &goal_msg;
-  const robot::CommandStatus status = stage_->flipBevel(goal->velocity_rad_s);
+  const robot::CommandStatus status =
+      steer3d_ ? robot::CommandStatus::refused("flip_bevel refused: in 3-D mode use steer")
+               : stage_->flipBevel(goal->velocity_rad_s);
   if (!status) {
     FlipBevelResult result;
     result.success = false;
@@ -366,10 +375,12 @@ void InsertionRobotRos::onPreempt(Owner owner) {
   if (owner_ != owner) {
     return;
   }
-  stage_->cancel();
+  steer3d_ ? steer3d_->cancel("goal preempted; motion stopped") : stage_->cancel();
   owner_ = Owner::kNone;
   last_message_ = "goal preempted; motion stopped";
-  if (owner == Owner::kFlip) {
+  if (owner == Owner::kSteer) {
+    steer_server_->setPreempted(steerResult(false, last_message_), last_message_);
+  } else if (owner == Owner::kFlip) {
     FlipBevelResult result;
     result.success = false;
     result.message = last_message_;
@@ -395,6 +406,14 @@ void InsertionRobotRos::finishActiveGoal(bool success, const std::string& messag
       steerable_->finishFlip();
     }
     publishNeedle(now);  // the pose at the goal's end, before its result
+  } else if (steer3d_) {
+    publishNeedle3(now);
+  }
+  if (owner == Owner::kSteer) {
+    const Steer3Result result = steerResult(success, message);
+    success ? steer_server_->setSucceeded(result, message)
+            : steer_server_->setAborted(result, message);
+    return;
   }
   if (owner == Owner::kFlip) {
     FlipBevelResult result;
@@ -426,7 +445,12 @@ void InsertionRobotRos::onControlTimer(const ros::TimerEvent& /*event*/) {
   const ros::Time now = ros::Time::now();
   const double dt_s = std::max(0.0, (now - last_step_).toSec()) * time_scale_;
   last_step_ = now;
-  if (steerable()) {
+  if (steer3d_) {
+    const auto r = steer3d_->step(dt_s);
+    if (r.ended && owner_ == Owner::kSteer) {
+      finishActiveGoal(r.success, r.message);
+    }
+  } else if (steerable()) {
     const auto r = steerable_->step(
         dt_s, owner_ == Owner::kInsert ? std::optional(std::pair(goal_target_, goal_velocity_))
                                        : std::nullopt);
@@ -441,7 +465,7 @@ void InsertionRobotRos::onControlTimer(const ros::TimerEvent& /*event*/) {
   } else {
     stage_->step(dt_s);
   }
-  if (owner_ != Owner::kNone && !stage_->busy()) {
+  if (owner_ != Owner::kNone && owner_ != Owner::kSteer && !stage_->busy()) {
     finishActiveGoal(true, "target reached");
   }
   if ((now - last_publish_).toSec() >= publish_period_s_ - 1e-6) {
@@ -454,11 +478,16 @@ void InsertionRobotRos::publishState(const ros::Time& stamp) {
   const robot::StageState& state = stage_->state();
   sensor_msgs::JointState js;
   ros_conversions::toMessage(state, js);
+  js.name.emplace_back("axial_rotation");  // the URDF's continuous joint (3-D mode's spin)
+  js.position.push_back(steer3d_ ? steer3d_->spin_rad() : 0.0);
+  js.velocity.push_back(0.0);
   js.header.stamp = stamp;
   measured_js_pub_.publish(js);
 
   if (steerable()) {
     publishNeedle(stamp);  // measured_cp is the needle's tip pose
+  } else if (steer3d_) {
+    publishNeedle3(stamp);
   } else {
     geometry_msgs::PoseStamped cp;
     ros_conversions::tipPoseToMessage(state, cp);
@@ -480,13 +509,19 @@ void InsertionRobotRos::publishState(const ros::Time& stamp) {
     FlipBevelFeedback fb;
     fb.bevel_rad = state.bevel_rad();
     flip_server_->publishFeedback(fb);
+  } else if (owner_ == Owner::kSteer) {
+    Steer3Feedback fb;
+    fb.inserted_length_m = steer3d_->insertedLength_m();
+    fb.spin_rad = steer3d_->spin_rad();
+    steer_server_->publishFeedback(fb);
   } else if (owner_ != Owner::kNone) {
     const StageJoint j = owner_ == Owner::kHeight ? StageJoint::kHeight : StageJoint::kDepth;
     LinearMoveFeedback fb;
     fb.position_m = state.position[static_cast<std::size_t>(j)];
     fb.velocity_m_s = state.velocity[static_cast<std::size_t>(j)];
-    fb.tip =
-        ros_conversions::toMessage(steerable() ? needle_->tip().p_SceneTip : stage_->tipPosition());
+    fb.tip = steer3d_ ? ros_conversions::toMessage(steer3d_->tip()).position
+                      : ros_conversions::toMessage(steerable() ? needle_->tip().p_SceneTip
+                                                               : stage_->tipPosition());
     linearServer(owner_).publishFeedback(fb);
   }
 }
@@ -572,6 +607,65 @@ void InsertionRobotRos::publishNeedle(const ros::Time& stamp) {
   if (version != published_path_version_) {
     published_path_version_ = version;
     needle_path_pub_.publish(toPathMarker(*needle_, stamp));
+  }
+}
+
+void InsertionRobotRos::onSteerGoal(const Steer3Goal& goal) {
+  const robot::CommandStatus status =
+      steer3d_->steer({{goal.rotate_rad, goal.curvature_per_m, goal.length_m},
+                       goal.spin_rate_rad_s,
+                       goal.velocity_m_s});
+  if (!status) {
+    last_message_ = status.toString();
+    ROS_WARN_STREAM_NAMED("insertion_robot", last_message_);
+    steer_server_->setAborted(steerResult(false, last_message_), last_message_);
+    return;
+  }
+  owner_ = Owner::kSteer;
+}
+
+Steer3Result InsertionRobotRos::steerResult(bool success, const std::string& message) const {
+  Steer3Result r;
+  r.success = success;
+  r.message = message;
+  r.contact = steering_3d::toString(steer3d_->contact());
+  r.obstacle = steer3d_->contactObstacle();
+  r.tip = ros_conversions::toMessage(steer3d_->tip());
+  for (const steering_3d::Vector3& p : steer3d_->lastPath()) {
+    r.path.push_back(ros_conversions::toMessage(geometry::Point2(p.x(), p.y()), p.z()));
+  }
+  r.inserted_length_m = steer3d_->insertedLength_m();
+  r.kappa_per_m = steer3d_->lastCycle().kappa_per_m;
+  r.saturated = steer3d_->lastCycle().saturated;
+  return r;
+}
+
+bool InsertionRobotRos::onSetEntryPose3(SetEntryPose3::Request& req, SetEntryPose3::Response& res) {
+  steering_3d::TipPose3 entry;
+  const std::string bad = ros_conversions::fromMessage(req.entry, entry);
+  const robot::CommandStatus status =
+      bad.empty() ? steer3d_->setEntry(entry, req.reseed ? std::optional(req.seed) : std::nullopt)
+                  : robot::CommandStatus::refused("set entry refused: " + bad);
+  res.success = static_cast<bool>(status);
+  res.message = status ? steer3d_->journal().back().message : status.toString();
+  last_message_ = res.message;
+  publishState(ros::Time::now());
+  return true;
+}
+
+void InsertionRobotRos::publishNeedle3(const ros::Time& stamp) {
+  geometry_msgs::PoseStamped cp;
+  cp.header.stamp = stamp;
+  cp.header.frame_id = "scene";
+  cp.pose = ros_conversions::toMessage(steer3d_->tip());
+  measured_cp_pub_.publish(cp);
+  const std::size_t version = steer3d_->journal().size() * 1000003 + steer3d_->path().size();
+  if (version != published_path_version_) {
+    published_path_version_ = version;
+    visualization_msgs::Marker m = ros_conversions::lineStrip(
+        steer3d_->path(), "scene", "needle_path", ros_conversions::colour(0.95, 0.6, 0.1), 1.5e-3);
+    m.header.stamp = stamp;
+    needle_path_pub_.publish(m);
   }
 }
 

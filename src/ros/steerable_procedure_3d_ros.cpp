@@ -2,33 +2,23 @@
 #include "needle_guidance/ros/steerable_procedure_3d_ros.h"
 
 #include <chrono>
+#include <optional>
 #include <stdexcept>
 
+#include <cv_bridge/cv_bridge.h>
+
 #include "needle_guidance/PlanSteering3.h"
+#include "needle_guidance/SetEntryPose3.h"
 #include "needle_guidance/report/output_path.h"
 #include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/conversions_3d.h"
 #include "needle_guidance/ros/node_supervisor.h"
 #include "needle_guidance/ros/params.h"
+#include "needle_guidance/ros/run_goal.h"
 
 namespace needle_guidance {
 
 namespace sd = steering_3d;
-
-namespace {
-
-sd::PlanCode planCodeOf(const std::string& name) {
-  for (sd::PlanCode c : {sd::PlanCode::kStartOutsideTissue, sd::PlanCode::kStartInObstacle,
-                         sd::PlanCode::kTargetOutsideTissue, sd::PlanCode::kTargetInObstacle,
-                         sd::PlanCode::kNoPathWithinBudget}) {
-    if (sd::toString(c) == name) {
-      return c;
-    }
-  }
-  return sd::PlanCode::kNoPathWithinBudget;
-}
-
-}  // namespace
 
 SteerableProcedure3dRos::SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh)
     : nh_(nh) {
@@ -38,54 +28,66 @@ SteerableProcedure3dRos::SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeH
   trials_ = static_cast<int>(rp::integer(private_nh, "trials", 10, 1, 100000, "trials"));
   seed_ = rp::integer(private_nh, "seed", 1, 0, 1L << 30, "");
   max_steps_ = static_cast<int>(rp::integer(private_nh, "max_steps", 200, 1, 100000, "steps"));
-  const double noise_scale = rp::number(private_nh, "noise_scale", 1.0, 0.0, 10.0, "x scene sigma");
   control_timeout_s_ = rp::number(private_nh, "control_timeout_s", 10.0, 0.1, 600.0, "s");
   startup_timeout_s_ = rp::number(private_nh, "startup_timeout_s", 30.0, 0.1, 600.0, "s");
   tip_sigma_m_ = rp::number(private_nh, "tip_sigma_m", 0.0, 0.0, 0.1, "m");
   planner_ns_ = rp::text(private_nh, "planner_ns", "steering_planner_3d");
+  robot_ns_ = rp::text(private_nh, "robot_ns", "insertion_robot");
   report_dir_ = ros_params::rosHomePath(rp::text(private_nh, "report_dir", "", true));
+  const std::string name = rp::text(private_nh, "tip_source", "truth");
+  const auto source = procedures::tipSource3FromString(name);
+  if (!source) {
+    throw std::runtime_error("parameter '" + private_nh.resolveName("tip_source") + "' = '" + name +
+                             "' is not truth or biplane");
+  }
   scene_ = std::make_unique<sd::Scene3d>(sd::loadScene3d(scene_path));
+  if (*source == procedures::TipSource3::kBiplane) {
+    imaging::BiplaneViewsConfig views;  // two fluoroscopy views of the tissue's bounds
+    views.seed = static_cast<std::uint64_t>(seed_);
+    views_ = std::make_unique<imaging::BiplaneViews3>(*scene_, views);
+    view_pubs_[0] = private_nh.advertise<sensor_msgs::Image>("view_along_z", 2);
+    view_pubs_[1] = private_nh.advertise<sensor_msgs::Image>("view_along_y", 2);
+  }
   world_ = std::make_unique<sd::CollisionWorld3>(scene_->collisionWorld());
-  noise_ = scene_->noise.scaled(noise_scale);
   tip_pub_ = private_nh.advertise<geometry_msgs::PoseWithCovarianceStamped>("tip", 10);
-  path_pub_ = private_nh.advertise<visualization_msgs::Marker>("needle_path", 1, true);
-  control_sub_ =
-      nh.subscribe(planner_ns_ + "/control", 10, &SteerableProcedure3dRos::onControl, this);
+  steer_ = std::make_unique<actionlib::SimpleActionClient<Steer3Action>>(nh, robot_ns_ + "/steer");
+  retract_ =
+      std::make_unique<actionlib::SimpleActionClient<LinearMoveAction>>(nh, robot_ns_ + "/retract");
+  set_entry_ = nh.serviceClient<SetEntryPose3>(robot_ns_ + "/set_entry_pose_3d");
+  control_sub_ = nh.subscribe<SteeringControl3>(
+      planner_ns_ + "/control", 10, [this](const SteeringControl3ConstPtr& m) {
+        if (m->header.stamp.toNSec() == expected_ns_) {  // the answer to this node's last tip
+          controls_.set(*m);
+        }
+      });
   plan_client_ = nh.serviceClient<PlanSteering3>(planner_ns_ + "/plan");
 }
 
-void SteerableProcedure3dRos::onControl(const SteeringControl3ConstPtr& msg) {
-  {
-    std::lock_guard<std::mutex> lock(mutex_);
-    if (msg->header.stamp != expected_stamp_) {
-      return;  // an answer to someone else's tip
-    }
-    last_control_ = *msg;
-  }
-  cv_.notify_all();
-}
-
-std::optional<SteeringControl3> SteerableProcedure3dRos::exchange(const sd::TipPose3& tip) {
+std::optional<SteeringControl3> SteerableProcedure3dRos::exchange(
+    const procedures::SteeringTrial3& trial) {
   geometry_msgs::PoseWithCovarianceStamped msg;
   msg.header.frame_id = "scene";
   msg.header.stamp = ros::Time::now();
-  msg.pose.pose = ros_conversions::toMessage(tip);
-  for (int k = 0; k < 3; ++k) {
-    msg.pose.covariance[static_cast<std::size_t>(7 * k)] = tip_sigma_m_ * tip_sigma_m_;
+  msg.pose.pose = ros_conversions::toMessage(trial.observedTip());
+  const imaging::BiplaneObservation3& seen = trial.lastObservation();
+  const bool fused = views_ && seen.tip;
+  for (int k = 0; k < 9; ++k) {  // the fused covariance, else the configured sigma
+    msg.pose.covariance[static_cast<std::size_t>(6 * (k / 3) + k % 3)] =
+        fused        ? seen.covariance_m2(k / 3, k % 3)
+        : k % 4 == 0 ? tip_sigma_m_ * tip_sigma_m_
+                     : 0.0;
   }
-  std::unique_lock<std::mutex> lock(mutex_);
-  last_control_.reset();
-  expected_stamp_ = msg.header.stamp;
+  for (const imaging::BiplaneView3* v : {&seen.along_z, &seen.along_y}) {
+    if (views_ && !v->frame.image.empty()) {
+      cv_bridge::CvImage image(msg.header, "mono8", v->frame.image);
+      view_pubs_[v->axis == sd::ViewAxis::kAlongZ ? 0 : 1].publish(image.toImageMsg());
+    }
+  }
+  expected_ns_ = msg.header.stamp.toNSec();
   tip_pub_.publish(msg);
-  // In slices, so that a dead planner ends the wait within about 0.1 s of being seen.
-  const auto until = std::chrono::steady_clock::now() +
-                     std::chrono::duration_cast<std::chrono::steady_clock::duration>(
-                         std::chrono::duration<double>(control_timeout_s_));
-  while (!last_control_ && std::chrono::steady_clock::now() < until &&
-         !(supervisor_ != nullptr && supervisor_->death())) {
-    cv_.wait_for(lock, std::chrono::milliseconds(100));
-  }
-  return last_control_;
+  SteeringControl3 answer;  // the answer to this tip (stamped with it)
+  return controls_.waitFor(msg.header.stamp, control_timeout_s_, answer) ? std::optional(answer)
+                                                                         : std::nullopt;
 }
 
 bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::uint64_t trial_seed,
@@ -94,36 +96,38 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
   srv.request.seed = trial_seed;
   if (!plan_client_.call(srv)) {
     supervisor_->checkNow();
-    trial.abort("the call of " + plan_client_.getService() + " failed" +
-                (supervisor_->death() ? ": " + supervisor_->death()->toString() : ""));
+    trial.abort("the call of " + plan_client_.getService() +
+                " failed: " + deathCause().value_or("no answer"));
     return false;
   }
   if (!srv.response.success) {
-    trial.refuseStart(planCodeOf(srv.response.status), srv.response.message);
+    trial.refuseStart(procedures::planCodeFromName(srv.response.status), srv.response.message);
     return true;
   }
-  geometry_msgs::PoseWithCovarianceStamped start;
-  start.header.frame_id = "scene";
-  start.pose.pose = srv.response.start;
   sd::TipPose3 entry;
-  const std::string bad = ros_conversions::fromMessage(start, "scene", entry);
-  if (!bad.empty()) {
+  if (const std::string bad = ros_conversions::fromMessage(srv.response.start, entry);
+      !bad.empty()) {
     trial.abort("the planner's entry pose: " + bad);
     return false;
   }
   trial.start(entry, srv.response.p_success, srv.response.seconds);
+  if (const std::string fault = placeRobot(entry, trial_seed); !fault.empty()) {
+    trial.abort(fault);
+    return false;
+  }
+  trial.setWorld([this](const sd::Control3& c, sd::TipPose3& tip, sd::TrialResult3& r) {
+    return robotStep(c, tip, r);
+  });
   // As runTrial3: the entry plan's first step, then a replan from every tip.
   trial.setPlan(ros_conversions::controlsFromArrays(
       srv.response.rotate_rad, srv.response.curvature_per_m, srv.response.insertion_m));
-  trial.step();
-  publishPath(trial.result().path);
-  while (!trial.done() && ros::ok()) {
+  trial.setViews(views_.get());
+  while (trial.step() && ros::ok()) {
     const auto t0 = std::chrono::steady_clock::now();
-    const std::optional<SteeringControl3> answer = exchange(trial.tip());
+    const std::optional<SteeringControl3> answer = exchange(trial);
     if (!answer) {
-      trial.abort(supervisor_->death() ? supervisor_->death()->toString()
-                                       : "no control from " + planner_ns_ + " within " +
-                                             std::to_string(control_timeout_s_) + " s");
+      trial.abort(deathCause().value_or("no control from " + planner_ns_ + " within " +
+                                        std::to_string(control_timeout_s_) + " s"));
       return false;
     }
     round_trip_ms.push_back(
@@ -140,25 +144,72 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
                   sd::Control3{answer->rotate_rad, answer->curvature_per_m, answer->insertion_m});
       trial.setPlan(plan);
     }
-    trial.step();
-    publishPath(trial.result().path);
   }
   return true;
 }
 
-void SteerableProcedure3dRos::publishPath(const std::vector<sd::Vector3>& path) {
-  visualization_msgs::Marker m = ros_conversions::lineStrip(
-      path, "scene", "needle", ros_conversions::colour(0.95, 0.6, 0.1, 1.0), 8e-4);
-  m.header.stamp = ros::Time::now();
-  path_pub_.publish(m);
+std::optional<std::string> SteerableProcedure3dRos::deathCause() const {
+  const auto death = supervisor_ != nullptr ? supervisor_->death() : std::nullopt;
+  return death ? std::optional(death->toString()) : std::nullopt;
+}
+
+std::string SteerableProcedure3dRos::placeRobot(const sd::TipPose3& entry, std::uint64_t seed) {
+  LinearMoveGoal out;  // back to the entry (at once when the needle is out)
+  out.velocity_m_s = 0.02;
+  std::string message;
+  if (!runGoal(
+          *retract_, out, control_timeout_s_, [this] { return deathCause(); }, message)) {
+    return "the robot did not retract: " + message;
+  }
+  SetEntryPose3 srv;
+  srv.request.entry = ros_conversions::toMessage(entry);
+  srv.request.reseed = true;
+  srv.request.seed = seed;  // the trial's noise stream, as runTrial3's world
+  if (!set_entry_.call(srv) || !srv.response.success) {
+    return "the robot refused the entry: " + srv.response.message + deathCause().value_or("");
+  }
+  return "";
+}
+
+bool SteerableProcedure3dRos::robotStep(const sd::Control3& c, sd::TipPose3& tip,
+                                        sd::TrialResult3& r) {
+  Steer3Goal goal;
+  goal.rotate_rad = c.rotate_rad;
+  goal.spin_rate_rad_s = scene_->needle.spin_rate_max_rad_s;
+  goal.curvature_per_m = c.curvature_per_m;
+  goal.length_m = c.length_m;
+  goal.velocity_m_s = scene_->needle.insertion_speed_m_s;
+  std::string message;
+  const bool ok = runGoal(
+      *steer_, goal, control_timeout_s_, [this] { return deathCause(); }, message);
+  const Steer3ResultConstPtr result = steer_->getResult();
+  const bool contact = result->contact == "obstacle" || result->contact == "outside_tissue";
+  if ((!ok && !contact) || !ros_conversions::fromMessage(result->tip, tip).empty()) {
+    throw std::runtime_error("the robot's steer goal: " + message);  // a fault, not an outcome
+  }
+  ++r.steps;
+  for (std::size_t i = 1; i < result->path.size(); ++i) {
+    r.path.emplace_back(result->path[i].x, result->path[i].y, result->path[i].z);
+  }
+  if (contact) {
+    r.contact =
+        result->contact == "obstacle" ? sd::Contact3::kObstacle : sd::Contact3::kOutsideTissue;
+    r.obstacle = result->obstacle;
+    r.message = result->message;
+  }
+  return !contact;
 }
 
 bool SteerableProcedure3dRos::run() {
   report::prepareReportDir(report_dir_, "~report_dir", false);
-  if (!plan_client_.waitForExistence(ros::Duration(startup_timeout_s_))) {
-    ROS_ERROR_STREAM("steerable_procedure_3d: " << plan_client_.getService()
-                                                << " did not come up within " << startup_timeout_s_
-                                                << " s");
+  if (!plan_client_.waitForExistence(ros::Duration(startup_timeout_s_)) ||
+      !set_entry_.waitForExistence(ros::Duration(startup_timeout_s_)) ||
+      !steer_->waitForServer(ros::Duration(startup_timeout_s_)) ||
+      !retract_->waitForServer(ros::Duration(startup_timeout_s_))) {
+    ROS_ERROR_STREAM(
+        "steerable_procedure_3d: the planner or the robot (steerable_3d mode) did "
+        "not come up within "
+        << startup_timeout_s_ << " s");
     return false;
   }
   const ros::WallTime deadline = ros::WallTime::now() + ros::WallDuration(startup_timeout_s_);
@@ -169,8 +220,9 @@ bool SteerableProcedure3dRos::run() {
     }
     ros::WallDuration(0.05).sleep();
   }
-  NodeSupervisor supervisor(nh_, {planner_ns_});
+  NodeSupervisor supervisor(nh_, {planner_ns_, robot_ns_});
   supervisor_ = &supervisor;
+  controls_.setAbort([this] { return deathCause().has_value(); });
   std::vector<sd::TrialResult3> results;
   std::vector<bool> faulted;
   std::vector<double> round_trip_ms;
@@ -178,35 +230,31 @@ bool SteerableProcedure3dRos::run() {
   for (int k = 0; k < trials_ && ok && ros::ok(); ++k) {
     ROS_INFO_STREAM("steerable_procedure_3d: trial " << k + 1 << "/" << trials_);
     const std::uint64_t trial_seed = static_cast<std::uint64_t>(seed_) * 100000ULL + k;
-    procedures::SteeringTrial3 trial(*scene_, *world_, noise_, trial_seed, max_steps_);
+    procedures::SteeringTrial3 trial(*scene_, *world_, scene_->noise, trial_seed, max_steps_);
     try {
       ok = runTrial(trial, trial_seed, round_trip_ms);
-    } catch (const std::invalid_argument& e) {  // a malformed plan from the planner
-      trial.abort(std::string("the planner's plan: ") + e.what());
+    } catch (const std::exception& e) {  // a malformed plan, a robot fault
+      supervisor_->checkNow();
+      trial.abort(deathCause().value_or(e.what()));
       ok = false;
     }
     results.push_back(trial.result());
     faulted.push_back(!ok);
-    const sd::TrialResult3& r = trial.result();
-    ROS_INFO_STREAM("steerable_procedure_3d: trial "
-                    << k << ": " << (r.success ? "success" : "failure") << ", "
-                    << r.target_error_m * 1e3 << " mm, " << r.steps << " steps"
-                    << (r.message.empty() ? "" : ", " + r.message));
+    ROS_INFO_STREAM("steerable_procedure_3d: trial " << k << ": "
+                                                     << procedures::describe(trial.result()));
   }
   procedures::NodeDeath3 death;
   if (const auto d = supervisor.death()) {
     death = {d->node, d->toString(), d->when.toSec()};
     ROS_ERROR_STREAM("steerable_procedure_3d: stopped: " << death.cause);
   }
+  controls_.setAbort(nullptr);
   supervisor_ = nullptr;
   procedures::writeSteeringReport3(report_dir_, *scene_, results, faulted, round_trip_ms,
                                    static_cast<std::uint64_t>(seed_), death);
   const procedures::SteeringSummary3 s = procedures::summarize(results, faulted);
-  ROS_INFO_STREAM("steerable_procedure_3d: " << s.successes << "/" << s.trials << " successes ("
-                                             << s.success_ci_low << ".." << s.success_ci_high
-                                             << "), median error " << s.target_error_mm_median
-                                             << " mm, median replan " << s.replan_ms_median
-                                             << " ms; report in " << report_dir_);
+  ROS_INFO_STREAM("steerable_procedure_3d: " << procedures::describe(s) << "; report in "
+                                             << report_dir_);
   return ok && death.dead_node.empty() && static_cast<int>(results.size()) == trials_;
 }
 

@@ -20,8 +20,10 @@
 #include "needle_guidance/SetEntryPose.h"
 #include "needle_guidance/SteeringControl.h"
 #include "needle_guidance/report/output_path.h"
+#include "needle_guidance/ros/latest.h"
 #include "needle_guidance/ros/node_supervisor.h"
 #include "needle_guidance/ros/params.h"
+#include "needle_guidance/ros/run_goal.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/adaptive_policy.h"
 #include "needle_guidance/steering/model_selection.h"
@@ -35,62 +37,6 @@ constexpr double kDegPerRad = 180.0 / kPi;
 
 using LinearMoveClient = actionlib::SimpleActionClient<LinearMoveAction>;
 using FlipBevelClient = actionlib::SimpleActionClient<FlipBevelAction>;
-
-/// The latest message of a topic, with a wait for one stamped at or after a time.
-template <class Msg>
-class Latest {
-public:
-  void set(const Msg& msg) {
-    {
-      std::lock_guard<std::mutex> lock(mutex_);
-      msg_ = msg;
-      has_ = true;
-      if (recording_) {
-        record_.push_back(msg);
-      }
-    }
-    changed_.notify_all();
-  }
-  /// Waits (wall time) for a message with header.stamp >= stamp; false on timeout, or at once
-  /// (within 0.1 s) when the abort check says a node it depends on died.
-  bool waitFor(const ros::Time& stamp, double timeout_s, Msg& out) {
-    std::unique_lock<std::mutex> lock(mutex_);
-    const auto deadline =
-        std::chrono::steady_clock::now() + std::chrono::duration<double>(timeout_s);
-    const auto ready = [&] { return has_ && msg_.header.stamp >= stamp; };
-    bool ok = ready();
-    while (!ok && std::chrono::steady_clock::now() < deadline && !(abort_ && abort_())) {
-      ok = changed_.wait_for(lock, std::chrono::milliseconds(100), ready);
-    }
-    if (ok) {
-      out = msg_;
-    }
-    return ok;
-  }
-  void setAbort(std::function<bool()> abort) {
-    std::lock_guard<std::mutex> lock(mutex_);
-    abort_ = std::move(abort);
-  }
-  void startRecording() {
-    std::lock_guard<std::mutex> lock(mutex_);
-    record_.clear();
-    recording_ = true;
-  }
-  std::vector<Msg> stopRecording() {
-    std::lock_guard<std::mutex> lock(mutex_);
-    recording_ = false;
-    return std::move(record_);
-  }
-
-private:
-  std::mutex mutex_;
-  std::condition_variable changed_;
-  Msg msg_;
-  bool has_ = false;
-  bool recording_ = false;
-  std::vector<Msg> record_;
-  std::function<bool()> abort_;
-};
 
 steering::TipPose toPose(const NeedleTip& tip) {
   steering::TipPose pose;
@@ -283,23 +229,16 @@ private:
     return runGoal(client, goal, message);
   }
 
-  /// Sends a goal and waits for it, at most the timeout; supervised, a node death cancels it at
-  /// once (a dead robot never answers a cancel either: nothing waits for one).
   template <class Client, class Goal>
   bool runGoal(Client& client, const Goal& goal, std::string& message) {
-    client.sendGoal(goal);
-    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(s_.timeout_s);
-    while (!client.waitForResult(ros::Duration(0.1))) {
-      const bool dead = supervised_ && supervisor_ && supervisor_->death();
-      if (dead || ros::WallTime::now() > end || !ros::ok()) {
-        client.cancelGoal();
-        message = dead ? supervisor_->death()->toString() : "no result within the timeout";
-        return false;
-      }
-    }
-    const auto state = client.getState();
-    message = client.getResult() ? client.getResult()->message : state.toString();
-    return state == actionlib::SimpleClientGoalState::SUCCEEDED;
+    return needle_guidance::runGoal(
+        client, goal, s_.timeout_s,
+        [this]() -> std::optional<std::string> {
+          if (supervised_ && supervisor_ && supervisor_->death())
+            return supervisor_->death()->toString();
+          return std::nullopt;
+        },
+        message);
   }
 
   ros::NodeHandle nh_;

@@ -9,14 +9,6 @@
 namespace needle_guidance::steering_3d {
 namespace {
 
-/// Rows of frame scene axes a view measures: (x, y) along z, (x, z) along y.
-Eigen::Matrix<double, 2, 3> observation(ViewAxis axis) {
-  Eigen::Matrix<double, 2, 3> H = Eigen::Matrix<double, 2, 3>::Zero();
-  H(0, 0) = 1.0;
-  H(1, axis == ViewAxis::kAlongZ ? 1 : 2) = 1.0;
-  return H;
-}
-
 bool valid(const ViewDetection& v) {
   if (!v.p_m.allFinite() || !v.covariance_m2.allFinite() ||
       (v.covariance_m2 - v.covariance_m2.transpose()).norm() > 1e-12 * v.covariance_m2.norm()) {
@@ -27,6 +19,23 @@ bool valid(const ViewDetection& v) {
 }
 
 }  // namespace
+
+Eigen::Matrix<double, 2, 3> viewRows(ViewAxis axis) {
+  Eigen::Matrix<double, 2, 3> H = Eigen::Matrix<double, 2, 3>::Zero();
+  H(0, 0) = 1.0;
+  H(1, axis == ViewAxis::kAlongZ ? 1 : 2) = 1.0;
+  return H;
+}
+
+TipPose3 tipFromViews(const Vector3& p_SceneTip, double heading_z_rad, double heading_y_rad,
+                      const Vector3& bevel_hint) {
+  // Each view sees the shaft's direction projected on its plane: (t_x, t_y) and (t_x, t_z).
+  const Vector3 tangent =
+      Vector3(1.0, std::tan(heading_z_rad), std::tan(heading_y_rad)).normalized();
+  const Vector3 bevel =
+      std::abs(bevel_hint.normalized().dot(tangent)) < 0.99 ? bevel_hint : tangent.unitOrthogonal();
+  return makeTipPose(p_SceneTip, tangent, bevel);
+}
 
 Result<TipEstimate3, BiplaneStatus> triangulateBiplane(const ViewDetection& a,
                                                        const ViewDetection& b, double gate) {
@@ -41,7 +50,7 @@ Result<TipEstimate3, BiplaneStatus> triangulateBiplane(const ViewDetection& a,
   Matrix3 information = Matrix3::Zero();
   Vector3 weighted = Vector3::Zero();
   for (const ViewDetection* v : {&a, &b}) {
-    const Eigen::Matrix<double, 2, 3> H = observation(v->axis);
+    const Eigen::Matrix<double, 2, 3> H = viewRows(v->axis);
     const Eigen::Matrix2d R_inv = v->covariance_m2.inverse();
     information += H.transpose() * R_inv * H;
     weighted += H.transpose() * R_inv * v->p_m;
@@ -50,7 +59,7 @@ Result<TipEstimate3, BiplaneStatus> triangulateBiplane(const ViewDetection& a,
   out.covariance_m2 = information.inverse();
   out.p_SceneTip = out.covariance_m2 * weighted;
   for (const ViewDetection* v : {&a, &b}) {
-    const Eigen::Vector2d r = v->p_m - observation(v->axis) * out.p_SceneTip;
+    const Eigen::Vector2d r = v->p_m - viewRows(v->axis) * out.p_SceneTip;
     out.chi_square += r.dot(v->covariance_m2.inverse() * r);
   }
   if (!(out.chi_square <= gate)) {
@@ -91,8 +100,8 @@ ViewDetection BiplaneObserver3::detect(const TipPose3& truth, ViewAxis axis, dou
   const double u_drop = unit_(rng_), u_out = unit_(rng_), u_dir = unit_(rng_);
   ViewDetection v;
   v.axis = axis;
-  const Eigen::Vector2d p = observation(axis) * truth.p_SceneTip;
-  const Eigen::Vector2d t = observation(axis) * truth.tangent();
+  const Eigen::Vector2d p = viewRows(axis) * truth.p_SceneTip;
+  const Eigen::Vector2d t = viewRows(axis) * truth.tangent();
   const double sigma = imaging_.sigma_position_m;
   v.p_m = p + sigma * Eigen::Vector2d(z0, z1);
   if (u_out < imaging_.outlier) {
@@ -121,9 +130,7 @@ Result<TipPose3, BiplaneStatus> BiplaneObserver3::observe(const TipPose3& truth,
   if (!fused) {
     return fused.status();
   }
-  // Each view sees the shaft's direction projected on its plane: (t_x, t_y) and (t_x, t_z).
-  const Vector3 tangent(1.0, std::tan(heading_z), std::tan(heading_y));
-  return makeTipPose(fused.value().p_SceneTip, tangent.normalized(), predicted.bevel());
+  return tipFromViews(fused.value().p_SceneTip, heading_z, heading_y, predicted.bevel());
 }
 
 }  // namespace needle_guidance::steering_3d

@@ -47,10 +47,12 @@ protected:
 
   void onJointState(const sensor_msgs::JointStateConstPtr& msg) {
     std::lock_guard<std::mutex> lock(mutex_);
-    ASSERT_EQ(msg->name.size(), 3U);
+    ASSERT_EQ(msg->name.size(), 4U);
     EXPECT_EQ(msg->name[0], "height");
     EXPECT_EQ(msg->name[1], "insertion");
     EXPECT_EQ(msg->name[2], "bevel");
+    EXPECT_EQ(msg->name[3], "axial_rotation");  // the URDF's continuous joint, 0 in rigid mode
+    EXPECT_EQ(msg->position[3], 0.0);
     samples_.push_back(
         {msg->header.stamp.toSec(), msg->position[0], msg->position[1], msg->position[2]});
   }

@@ -247,7 +247,8 @@ TEST_F(InsertionRobotSteerableTest, EntryPoseIsCheckedAndPlacesTheGuide) {
   expectTip(settledTip(), entryPose(0.05, 0.1, st::Bevel::kRight), 0.0, kPoseTol_m);
   // The stage's height and bevel joints follow the guide.
   const sensor_msgs::JointState js = *joints();
-  ASSERT_EQ(js.position.size(), 3u);
+  ASSERT_EQ(js.position.size(), 4u);  // height, insertion, bevel, axial_rotation (0 here)
+  EXPECT_EQ(js.position[3], 0.0);
   EXPECT_NEAR(js.position[0], 0.05, 1e-12);
   EXPECT_NEAR(js.position[1], 0.0, 1e-12);
   EXPECT_NEAR(js.position[2], kPi, 1e-9);

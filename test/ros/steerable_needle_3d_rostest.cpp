@@ -1,5 +1,7 @@
-// rostest for the 3-D closed-loop steerable-needle trials (issue 18): steering_planner_3d and
-// steerable_procedure_3d (simulated noisy needle) run 4 trials on prostate_3d; the report is
+// rostest for the 3-D closed-loop steerable-needle trials (issue 18): steering_planner_3d,
+// insertion_robot in its 3-D steerable mode (the noisy needle) and steerable_procedure_3d run 4
+// trials on prostate_3d (steerable_needle_3d_biplane.test: 3 trials whose tips come from the two
+// rendered fluoroscopy views, the report naming the source and the fused views); the report is
 // checked against the scene independently of the procedure (each recorded path re-checked for
 // contact with the scene's collision world, each success's last tip against the target ball),
 // the success count against the bench's rate, and the planner refuses non-finite and wrong-frame
@@ -23,9 +25,10 @@
 
 namespace {
 
+// Defaults (the launch may set ~trials, ~min_successes, ~biplane): the bench measures 0.98
+// [0.95, 0.99] on prostate_3d at 1x; with p = 0.95 fewer than 3 of 4 successes has probability
+// 1.4 % (fewer than 2 of 3: 0.7 %).
 constexpr int kTrials = 4;
-// The bench measures 0.98 [0.95, 0.99] on prostate_3d at 1x; with p = 0.95 fewer than 3 of 4
-// successes has probability 1.4 %.
 constexpr int kMinSuccesses = 3;
 constexpr double kMmTol = 1e-3;  // [mm] CSV rounding of positions (6 significant digits)
 constexpr double kRefusalWaitS = 10.0;
@@ -94,9 +97,18 @@ TEST(SteerableNeedle3d, TrialsReachTheTargetAndTheReportMatchesTheScene) {
   std::string report_dir, scene_path;
   ASSERT_TRUE(private_nh.getParam("report_dir", report_dir));
   ASSERT_TRUE(private_nh.getParam("scene", scene_path));
-  ASSERT_TRUE(waitForFile(report_dir + "/summary.json", 100.0)) << "no report in 100 s";
+  const int n_trials = private_nh.param("trials", kTrials);
+  const int min_successes = private_nh.param("min_successes", kMinSuccesses);
+  const double wait_s = private_nh.param("report_wait_s", 100.0);
+  ASSERT_TRUE(waitForFile(report_dir + "/summary.json", wait_s))
+      << "no report in " << wait_s << " s";
   const std::string summary = slurp(report_dir + "/summary.json");
-  EXPECT_NE(summary.find("\"trials\": 4,"), std::string::npos) << summary;
+  EXPECT_NE(summary.find("\"trials\": " + std::to_string(n_trials) + ","), std::string::npos)
+      << summary;
+  if (private_nh.param("biplane", false)) {  // the tips came from the rendered views
+    EXPECT_NE(summary.find("\"tip_source\": \"biplane\""), std::string::npos) << summary;
+    EXPECT_EQ(summary.find("\"views_fused\": 0,"), std::string::npos) << summary;
+  }
   EXPECT_NE(summary.find("\"status\": \"completed\""), std::string::npos) << summary;
   EXPECT_NE(summary.find("\"faults\": 0"), std::string::npos) << summary;
 
@@ -104,7 +116,7 @@ TEST(SteerableNeedle3d, TrialsReachTheTargetAndTheReportMatchesTheScene) {
   const sd::Scene3d scene = sd::loadScene3d(scene_path);
   const sd::CollisionWorld3 world = scene.collisionWorld();
   const auto trials = readCsvRows(report_dir + "/trials.csv");
-  ASSERT_EQ(trials.size(), static_cast<std::size_t>(kTrials));
+  ASSERT_EQ(trials.size(), static_cast<std::size_t>(n_trials));
   std::map<std::string, std::vector<sd::Vector3>> paths;
   for (const auto& row : readCsvRows(report_dir + "/paths.csv")) {
     paths[row.at("trial")].push_back(1e-3 * sd::Vector3(std::stod(row.at("x_mm")),
@@ -131,7 +143,7 @@ TEST(SteerableNeedle3d, TrialsReachTheTargetAndTheReportMatchesTheScene) {
           << "trial " << row.at("trial");
     }
   }
-  EXPECT_GE(successes, kMinSuccesses) << summary;
+  EXPECT_GE(successes, min_successes) << summary;
   EXPECT_NE(summary.find("\"successes\": " + std::to_string(successes) + ","), std::string::npos);
 }
 

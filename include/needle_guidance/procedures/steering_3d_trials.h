@@ -7,12 +7,23 @@
 
 #include <cstdint>
 #include <deque>
+#include <functional>
+#include <optional>
 #include <string>
 #include <vector>
 
+#include "needle_guidance/imaging/biplane_views.h"
 #include "needle_guidance/steering_3d/closed_loop_3d.h"
 
 namespace needle_guidance::procedures {
+
+/// Where the planner's tip comes from.
+enum class TipSource3 {
+  kTruth,    ///< the world's true tip
+  kBiplane,  ///< two rendered fluoroscopy views, detected and triangulated (biplane_views.h)
+};
+/// "truth" | "biplane"; nullopt for anything else.
+std::optional<TipSource3> tipSource3FromString(const std::string& name);
 
 /// One trial's world: the true tip, its noisy needle and the outcome so far.
 class SteeringTrial3 {
@@ -20,6 +31,26 @@ public:
   /// The scene and world must outlive it; `seed` seeds the needle's noise.
   SteeringTrial3(const steering_3d::Scene3d& scene, const steering_3d::CollisionWorld3& world,
                  const steering_3d::NoiseParams3& noise, std::uint64_t seed, int max_steps);
+
+  /// The world's answer to one control: moves `tip`, counts the step in `result`, appends its
+  /// path and, on a contact, sets result.contact / obstacle / message and returns false (the
+  /// contract of closed_loop_3d's executeStep3). Throws std::runtime_error on a fault of the
+  /// device (the trial is then aborted by the caller).
+  using WorldStep3 =
+      std::function<bool(const steering_3d::Control3& control, steering_3d::TipPose3& tip,
+                         steering_3d::TrialResult3& result)>;
+  /// Replaces the in-process noisy needle by another world (e.g. the insertion robot's 3-D mode).
+  void setWorld(WorldStep3 world) { world_step_ = std::move(world); }
+
+  /// Images the needle after every step with `views` (not owned, must outlive the trial; null:
+  /// the truth): observedTip() is then the fused estimate or, after a dropped or gated pair, the
+  /// previous estimate advanced by the control (as runTrial3's biplane option); the result counts
+  /// the pairs fused, dropped and gated and the largest estimate error.
+  void setViews(const imaging::BiplaneViews3* views) { views_ = views; }
+  /// The tip the planner is given: the truth, or the biplane estimate with setViews.
+  const steering_3d::TipPose3& observedTip() const { return views_ != nullptr ? estimate_ : tip_; }
+  /// The last biplane observation (frames, detections, fusion), with setViews.
+  const imaging::BiplaneObservation3& lastObservation() const { return observation_; }
 
   /// Places the tip at the entry plan's start (no motion yet).
   void start(const steering_3d::TipPose3& entry, double predicted_p_success, double initial_plan_s);
@@ -44,16 +75,25 @@ public:
 
 private:
   void end();
+  void observe(const steering_3d::Control3& control);
 
   const steering_3d::Scene3d& scene_;
   const steering_3d::CollisionWorld3& world_;
   steering_3d::NoisyNeedle3 needle_;
+  WorldStep3 world_step_;
+  const imaging::BiplaneViews3* views_ = nullptr;
+  steering_3d::TipPose3 estimate_;
+  imaging::BiplaneObservation3 observation_;
   int max_steps_;
+  std::uint64_t seed_;
   steering_3d::TipPose3 tip_;
   std::deque<steering_3d::Control3> plan_;
   steering_3d::TrialResult3 result_;
   bool done_ = false;
 };
+
+/// The plan status a planner names ("no_path_within_budget" for any name it does not know).
+steering_3d::PlanCode planCodeFromName(const std::string& name);
 
 /// Aggregate of a run's trials.
 struct SteeringSummary3 {
@@ -70,10 +110,21 @@ struct SteeringSummary3 {
   double initial_plan_s_median = 0.0;
   double predicted_p_success_mean = 0.0;
   int faults = 0;  ///< trials ended by a fault of the loop (no control, timeout), not an outcome
+  /// Biplane tip source: view pairs fused, dropped (a view found no tip) and gated (refused as
+  /// disagreeing), and the largest estimate-to-true-tip distance [mm]; zero with the truth.
+  int views_fused = 0;
+  int views_dropped = 0;
+  int views_gated = 0;
+  double estimate_error_mm_max = 0.0;
 };
 
 SteeringSummary3 summarize(const std::vector<steering_3d::TrialResult3>& results,
                            const std::vector<bool>& faulted);
+
+/// One line for a log: a trial's outcome, target error, steps and reason; a run's successes
+/// with their interval, median error and replan time, and with biplane views their counts.
+std::string describe(const steering_3d::TrialResult3& result);
+std::string describe(const SteeringSummary3& summary);
 
 /// The run's outcome ("success" in summary.json): no fault, and the success rate's 95 % interval
 /// reaches the mean predicted P(success) (it contains it or lies above it).

@@ -33,13 +33,17 @@ struct JointLimits {
 struct StageLimits {
   std::array<JointLimits, kStageJointCount> joints;
   double needle_length_m = 0.0;  ///< needle hub to tip [m]
+  /// Velocity limit of the continuous joint "axial_rotation" (the needle spun about its axis in
+  /// 3-D steerable mode) [rad/s]; 0 if the URDF has none.
+  double spin_rate_max_rad_s = 0.0;
   const JointLimits& operator[](StageJoint j) const { return joints[static_cast<std::size_t>(j)]; }
 };
 
 /// Reads joint limits of "height", "insertion" and "bevel" and the needle length (the origin
 /// of fixed joint "needle_tip_joint", if present, else the `needle_length_m` argument) from URDF
-/// text with urdfdom. Throws std::invalid_argument naming the joint for a missing joint, a
-/// joint without limits, non-positive velocity limits or lower >= upper.
+/// text with urdfdom, and the velocity limit of "axial_rotation" when present. Throws
+/// std::invalid_argument naming the joint for a missing joint, a joint without limits, non-positive
+/// velocity limits or lower >= upper.
 StageLimits parseStageLimits(const std::string& urdf_xml);
 
 /// Procedure limits a scene adds on top of the hardware: the needle may enter tissue only

@@ -18,6 +18,14 @@ namespace needle_guidance::robot {
 /// The linear motions a client can command.
 enum class LinearCommand { kHeight, kInsert, kRetract };
 
+/// Why a linear command goes the wrong way ("" if it may): an insert to a target shallower than
+/// `current_m`, a retract to a deeper one [m].
+std::string directionRefusal(LinearCommand command, double target_m, double current_m);
+
+/// The steerable needle's journal next to the stage's: "dir/x.csv" -> "dir/x_needle.csv"
+/// ("x_needle3d.csv" for the 3-D needle; any other name gets the suffix appended).
+std::string companionJournalPath(const std::string& journal_path, bool three_d);
+
 class SteerableStage {
 public:
   /// Both must outlive it; the needle's current entry counts as the first.

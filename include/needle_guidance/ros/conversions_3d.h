@@ -16,6 +16,10 @@ namespace needle_guidance::ros_conversions {
 /// (bevel d, binormal n, tangent t) of TipPose3.
 geometry_msgs::Pose toMessage(const steering_3d::TipPose3& tip);
 
+/// Decodes a tip pose (frame scene). Returns "" and sets `tip` on success; otherwise the reason
+/// (a non-finite position or orientation, a quaternion whose norm is not 1 within 1e-3), and
+/// `tip` is left unchanged.
+std::string fromMessage(const geometry_msgs::Pose& pose, steering_3d::TipPose3& tip);
 /// Decodes a tip pose with covariance of frame `frame_id`. Returns "" and sets `tip` on
 /// success; otherwise the reason (wrong frame, a non-finite position, orientation or
 /// covariance entry, a quaternion whose norm is not 1 within 1e-3, a negative variance), and

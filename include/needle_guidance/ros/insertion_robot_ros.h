@@ -12,9 +12,12 @@
 #include "needle_guidance/FlipBevelAction.h"
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/SetEntryPose.h"
+#include "needle_guidance/SetEntryPose3.h"
+#include "needle_guidance/Steer3Action.h"
 #include "needle_guidance/robot/insertion_stage.h"
 #include "needle_guidance/robot/steerable_needle.h"
 #include "needle_guidance/robot/steerable_stage.h"
+#include "needle_guidance/robot/steerable_stage_3d.h"
 #include "needle_guidance/scene/scene.h"
 
 namespace needle_guidance {
@@ -47,6 +50,19 @@ namespace needle_guidance {
 ///   ~needle_path (Marker LINE_STRIP, frame scene). Deflections and contacts are journaled to
 ///   a second CSV next to ~journal_file ("X.csv" -> "X_needle.csv"), flushed per line.
 ///   The tf of the URDF (robot_state_publisher) still draws a straight needle.
+/// - steerable_3d (issue 18): robot::SteerableStage3d drives the 3-D bevel-tip needle of the
+///   steering_3d scene ~scene_3d (noise scaled by ~noise_scale, seeded by ~seed). The action
+///   ~steer (Steer3) rotates the needle about its axis ("axial_rotation" joint, at most its URDF
+///   velocity limit and the scene's spin-rate limit) and then inserts a length with
+///   duty-cycled spinning; unsafe goals are refused (steerable_stage_3d.h) and a contact stops
+///   the insertion there (success = false, the obstacle named). ~set_entry_pose_3d
+///   (SetEntryPose3) places the guide on the scene's entry disc (the height joint, anywhere in
+///   its hardware range, only shows the stage); ~retract pulls the needle back
+///   along its path; move_to_height, insert and flip_bevel are refused. Publishes ~measured_cp
+///   (the true 3-D tip pose), ~needle_shape (the needle's points, for the imager's biplane
+///   views) and ~needle_path (Marker); the 3-D journal goes to "X_needle3d.csv" next to
+///   ~journal_file.
+/// measured_js also carries "axial_rotation" (0 outside steerable_3d).
 ///
 /// ~time_scale (in [1, 100], default 1): simulated seconds per wall second. The control loop
 /// advances the stage by time_scale x the wall time between ticks, so goal velocities (and the
@@ -63,7 +79,8 @@ private:
   using LinearMoveServer = ExclusiveActionServer<LinearMoveAction>;
   using FlipBevelServer = ExclusiveActionServer<FlipBevelAction>;
   /// Which action owns the running motion.
-  enum class Owner { kNone, kHeight, kInsert, kRetract, kFlip };
+  enum class Owner { kNone, kHeight, kInsert, kRetract, kFlip, kSteer };
+  using Steer3Server = ExclusiveActionServer<Steer3Action>;
 
   /// Steerable mode: the needle world (seeded deflections), its journal, the initial entry.
   void setUpSteerableNeedle(const ros::NodeHandle& private_nh, const scene::Scene& scene,
@@ -87,6 +104,14 @@ private:
   bool steerable() const { return static_cast<bool>(needle_); }
   bool onSetEntryPose(SetEntryPose::Request& req, SetEntryPose::Response& res);
   void publishNeedle(const ros::Time& stamp);
+
+  // 3-D steerable mode.
+  void setUpSteerable3d(const ros::NodeHandle& private_nh, const robot::StageLimits& limits,
+                        const std::string& journal_path);
+  void onSteerGoal(const Steer3Goal& goal);
+  Steer3Result steerResult(bool success, const std::string& message) const;
+  bool onSetEntryPose3(SetEntryPose3::Request& req, SetEntryPose3::Response& res);
+  void publishNeedle3(const ros::Time& stamp);
 
   ros::NodeHandle nh_;
   std::unique_ptr<robot::InsertionStage> stage_;
@@ -123,6 +148,13 @@ private:
   ros::Publisher drive_pub_;         ///< guide and joints (for the tip tracker's prediction)
   std::unique_ptr<robot::SteerableStage> steerable_;  ///< the stage driving the needle
   ros::ServiceServer set_entry_srv_;
+
+  // 3-D steerable mode only (steer3d_ is null otherwise).
+  std::unique_ptr<steering_3d::Scene3d> scene3d_;
+  std::unique_ptr<robot::SteerableStage3d> steer3d_;
+  std::unique_ptr<robot::Journal3File> journal3_file_;
+  std::unique_ptr<Steer3Server> steer_server_;
+  ros::ServiceServer set_entry3_srv_;
 };
 
 }  // namespace needle_guidance

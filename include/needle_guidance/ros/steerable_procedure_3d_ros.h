@@ -1,25 +1,35 @@
 // Procedure runner for 3-D closed-loop steerable-needle trials (node steerable_procedure_3d,
-// issue 18). The world is simulated in this node: the core's noisy needle (needle_3d.h, seeded)
-// stands in for a 3-D insertion robot and imager. Per trial it asks steering_planner_3d for a
-// plan from the entry (~plan), places the tip at its start, then publishes the true tip pose,
-// waits for the planner's control for it, inserts one step with noise, and repeats until the
-// plan is completed (the tip refereed against the target ball) or the path touches an obstacle
-// or leaves the tissue. The planner node is watched (NodeSupervisor): if it dies the run stops,
-// the report names it (status node_died) and run() returns false. The trial loop and the report
-// are ROS-free (procedures/steering_3d_trials.h).
+// issue 18). The world is the insertion robot in its 3-D steerable mode (insertion_robot
+// ~mode steerable_3d, ~robot_ns): per trial this node asks steering_planner_3d for a plan from
+// the entry (~plan), retracts the needle and places the robot's guide at the plan's start
+// (set_entry_pose_3d, the robot's noise reseeded with the trial's seed), then publishes the tip
+// pose, waits for the planner's control for it, has the robot rotate and insert one step (the
+// steer action), and repeats until the plan is completed (the tip refereed against the target
+// ball) or the robot's needle touches an obstacle or leaves the tissue. The planner and the
+// robot are watched (NodeSupervisor): if one dies the run stops, the report names it (status
+// node_died) and run() returns false. ~tip_source: truth (the robot's true tip) or biplane
+// (imaging::BiplaneViews3: two orthogonal fluoroscopy views rendered with the imager's renderer,
+// published on ~view_along_z / ~view_along_y, the tip detected in each and triangulated; the
+// fused covariance goes out with ~tip). The trial loop and the report are ROS-free
+// (procedures/steering_3d_trials.h).
 #pragma once
 
+#include <actionlib/client/simple_action_client.h>
 #include <geometry_msgs/PoseWithCovarianceStamped.h>
 #include <ros/ros.h>
 
+#include <atomic>
 #include <condition_variable>
 #include <memory>
 #include <mutex>
 #include <optional>
 #include <string>
 
+#include "needle_guidance/LinearMoveAction.h"
+#include "needle_guidance/Steer3Action.h"
 #include "needle_guidance/SteeringControl3.h"
 #include "needle_guidance/procedures/steering_3d_trials.h"
+#include "needle_guidance/ros/latest.h"
 
 namespace needle_guidance {
 
@@ -42,15 +52,20 @@ private:
                 std::vector<double>& round_trip_ms);
   /// Publishes the tip and waits for the control answering it; nullopt after the timeout or
   /// once the supervisor has seen the planner die.
-  std::optional<SteeringControl3> exchange(const steering_3d::TipPose3& tip);
-  void onControl(const SteeringControl3ConstPtr& msg);
-  void publishPath(const std::vector<steering_3d::Vector3>& path);
+  /// With biplane views, their last frames are published first.
+  std::optional<SteeringControl3> exchange(const procedures::SteeringTrial3& trial);
+  /// Retracts the robot's needle and places its guide at `entry`; "" or the fault.
+  std::string placeRobot(const steering_3d::TipPose3& entry, std::uint64_t seed);
+  /// SteeringTrial3::WorldStep3 through the robot's steer action.
+  bool robotStep(const steering_3d::Control3& control, steering_3d::TipPose3& tip,
+                 steering_3d::TrialResult3& result);
+  std::optional<std::string> deathCause() const;
 
   ros::NodeHandle nh_;
   std::unique_ptr<steering_3d::Scene3d> scene_;
   std::unique_ptr<steering_3d::CollisionWorld3> world_;
-  steering_3d::NoiseParams3 noise_;
   std::string planner_ns_;
+  std::string robot_ns_;
   std::string report_dir_;
   int trials_ = 10;
   int max_steps_ = 200;
@@ -59,14 +74,16 @@ private:
   double startup_timeout_s_ = 30.0;
   double tip_sigma_m_ = 0.0;  ///< position std published with the tip (0: the truth) [m]
   ros::Publisher tip_pub_;
-  ros::Publisher path_pub_;
+  std::unique_ptr<actionlib::SimpleActionClient<Steer3Action>> steer_;
+  std::unique_ptr<actionlib::SimpleActionClient<LinearMoveAction>> retract_;
+  ros::ServiceClient set_entry_;
+  std::unique_ptr<imaging::BiplaneViews3> views_;  ///< ~tip_source biplane; null: the truth
+  ros::Publisher view_pubs_[2];                    ///< ~view_along_z, ~view_along_y
   ros::Subscriber control_sub_;
   ros::ServiceClient plan_client_;
-  std::mutex mutex_;
-  std::condition_variable cv_;
-  std::optional<SteeringControl3> last_control_;  ///< the answer to the tip stamped expected_stamp_
-  NodeSupervisor* supervisor_ = nullptr;          ///< watches the planner while run() runs
-  ros::Time expected_stamp_;
+  Latest<SteeringControl3> controls_;          ///< the planner's latest answer to this node's tip
+  std::atomic<std::uint64_t> expected_ns_{0};  ///< the stamp of this node's last tip [ns]
+  NodeSupervisor* supervisor_ = nullptr;  ///< watches the planner and the robot while run() runs
 };
 
 }  // namespace needle_guidance

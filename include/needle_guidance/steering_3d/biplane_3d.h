@@ -44,6 +44,14 @@ struct TipEstimate3 {
   double chi_square = 0.0;                      ///< the views' disagreement (1 degree of freedom)
 };
 
+/// Rows of frame scene axes a view measures: (x, y) along z, (x, z) along y.
+Eigen::Matrix<double, 2, 3> viewRows(ViewAxis axis);
+/// The tip seen by both views: at p_SceneTip, its tangent from the shaft's headings in the view
+/// along z (atan2(t_y, t_x)) and along y (atan2(t_z, t_x)), with t_x > 0; the bevel as close to
+/// bevel_hint as the tangent allows (the views do not see the roll).
+TipPose3 tipFromViews(const Vector3& p_SceneTip, double heading_z_rad, double heading_y_rad,
+                      const Vector3& bevel_hint);
+
 /// 99.9 % point of the chi-square distribution with one degree of freedom.
 constexpr double kBiplaneGateChiSquare = 10.827566170662733;
 

@@ -1,0 +1,73 @@
+// Biplane fluoroscopy of the 3-D steerable needle (issue 18): two orthogonal views of a
+// steering_3d scene, one along z (it sees x, y) and one along y (it sees x, z), rendered with the
+// imager's FrameRenderer in fluoroscopy mode over the tissue's bounds, the tip found in each with
+// the tracker's single-frame detector (detectTip, no prior) and the two detections triangulated
+// with steering_3d::triangulateBiplane: views whose shared x disagrees beyond the gate are
+// refused, never fused. Plain C++ and OpenCV; no ROS (the 3-D procedure and tests call it).
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/imaging/frame_renderer.h"
+#include "needle_guidance/imaging/tip_tracker.h"
+#include "needle_guidance/steering_3d/biplane_3d.h"
+#include "needle_guidance/steering_3d/scene_3d.h"
+
+namespace needle_guidance::imaging {
+
+/// The two devices (the same settings for both).
+struct BiplaneViewsConfig {
+  double pixel_size_m = 2e-4;     ///< > 0 [m]
+  double noise_std = 0.05;        ///< fraction of full scale, >= 0
+  double blur_sigma_m = 2e-4;     ///< >= 0 [m]
+  double drop_probability = 0.0;  ///< per frame and view, in [0, 1)
+  double margin_m = 5e-3;         ///< field of view: the tissue's bounds plus this, >= 0 [m]
+  double min_sigma_m = 1e-4;      ///< floor of a detection's position std [m], > 0
+  double gate = steering_3d::kBiplaneGateChiSquare;  ///< chi-square gate (1 dof), > 0
+  std::uint64_t seed = 1;  ///< the views' noise and drops (view along y: seed + 1)
+  /// Throws std::invalid_argument naming the first value out of range.
+  void validate() const;
+};
+
+/// One view of one instant.
+struct BiplaneView3 {
+  steering_3d::ViewAxis axis = steering_3d::ViewAxis::kAlongZ;
+  Frame frame;          ///< empty image when dropped
+  Detection detection;  ///< in the view's plane coordinates ((x, y) or (x, z)) [m, rad]
+};
+
+/// Both views and their fusion.
+struct BiplaneObservation3 {
+  BiplaneView3 along_z;
+  BiplaneView3 along_y;
+  /// The fused tip: position triangulated, tangent from the two detected headings, bevel from
+  /// the caller's prediction (the views do not see the bevel's roll). kNoDetection when a view
+  /// found no tip, kDisagree when the gate refused the pair.
+  Result<steering_3d::TipPose3, steering_3d::BiplaneStatus> tip =
+      steering_3d::BiplaneStatus(steering_3d::BiplaneCode::kNoDetection, "not observed");
+  /// The fused position's covariance [m^2] (zero unless `tip` holds a value).
+  steering_3d::Matrix3 covariance_m2 = steering_3d::Matrix3::Zero();
+};
+
+class BiplaneViews3 {
+public:
+  /// Throws std::invalid_argument for a bad config.
+  BiplaneViews3(const steering_3d::Scene3d& scene, const BiplaneViewsConfig& config);
+  /// Renders frame `index` of both views of the needle `needle` (entry -> tip, frame scene [m]),
+  /// detects the tip in each and fuses them; `predicted` gives the bevel.
+  BiplaneObservation3 observe(const std::vector<steering_3d::Vector3>& needle,
+                              const steering_3d::TipPose3& predicted, std::uint64_t index) const;
+  const ImageGeometry& geometry(steering_3d::ViewAxis axis) const;
+
+private:
+  BiplaneView3 view(steering_3d::ViewAxis axis, const std::vector<steering_3d::Vector3>& needle,
+                    std::uint64_t index) const;
+
+  BiplaneViewsConfig config_;
+  std::vector<FrameRenderer> renderers_;  ///< along z, along y
+  std::vector<TrackerConfig> trackers_;
+};
+
+}  // namespace needle_guidance::imaging
