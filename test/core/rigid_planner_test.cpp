@@ -36,7 +36,7 @@ Point2 fullSimulation(const scene::Scene& scene, const Point2& release, const Po
 PlannerOptions unbudgeted() {
   PlannerOptions options;
   options.time_budget_s = 0.0;
-  options.step_budget = 0;
+  options.work_budget = 0.0;
   options.error_goal_m = 5e-5;
   return options;
 }
@@ -158,6 +158,7 @@ TEST_F(RigidPlannerTest, AScanResumingAnEarlierInsertionIsTheScanFromTheEntryFac
   EXPECT_EQ(resumed.release, fresh.release);
   EXPECT_EQ(resumed.verified_implant, fresh.verified_implant);
   EXPECT_EQ(resumed.fem_steps, fresh.fem_steps);
+  EXPECT_NEAR(resumed.solver_work, fresh.solver_work, 1e-9 * fresh.solver_work);
   EXPECT_EQ(resumed.simulations, fresh.simulations);
   ASSERT_EQ(resumed.scans.size(), fresh.scans.size());
   for (std::size_t i = 0; i < fresh.scans.size(); ++i) {
@@ -245,7 +246,7 @@ TEST(RigidPlannerVerified, TheSeedDoesNotDependOnHowTheMotionIsSampled) {
 
 TEST(RigidPlannerVerified, AnExpiredBudgetReturnsTheBestPlanSoFarVerified) {
   PlannerOptions options;
-  options.time_budget_s = 1e-6;  // expires after the first scan
+  options.time_budget_s = 1e-6;  // expires within the first scan
   options.error_goal_m = 5e-5;   // which does not meet this goal at t06
   const scene::Scene scene = scene::defaultScene("prostate_sagittal");
   const RigidPlanner planner(scene, options);
@@ -257,38 +258,47 @@ TEST(RigidPlannerVerified, AnExpiredBudgetReturnsTheBestPlanSoFarVerified) {
   EXPECT_EQ(plan.scans.size(), 1U);
   EXPECT_EQ(plan.simulations, 2);
   EXPECT_TRUE(std::isfinite(plan.verified_error_m));
+  EXPECT_TRUE(plan.scans.front().cut_short);
+  EXPECT_GE(plan.scans.front().implant.size(), 2U);  // a release to verify
   if (!plan.within_tolerance) {
-    EXPECT_NE(plan.message.find("time budget"), std::string::npos) << plan.message;
+    EXPECT_NE(plan.message.find("budget exhausted"), std::string::npos) << plan.message;
   }
 }
 
-TEST(RigidPlannerVerified, AStepBudgetEndsTheSearchTheSameWayOnAnyMachine) {
-  // Issue 22: refusals must not depend on the load. The budget counts FEM steps, so the same
-  // plan comes back however long the steps took (the default has no time budget).
+TEST(RigidPlannerVerified, AWorkBudgetEndsTheSearchTheSameWayOnAnyMachine) {
+  // Issue 22: refusals must not depend on the load, and no plan may run long on any scene. The
+  // budget counts solver work, checked after every FEM step: the scan in progress stops where
+  // it runs out, and the same plan comes back however long the steps took.
   PlannerOptions options;
   ASSERT_EQ(options.time_budget_s, 0.0);
-  options.step_budget = 200;    // less than one scan to t06 (~390 grid steps)
-  options.error_goal_m = 5e-5;  // which the target height's scan does not meet at t06
   const scene::Scene scene = scene::defaultScene("prostate_sagittal");
-  const RigidPlanner planner(scene, options);
   const Point2 target = scene.target("t06").position;
+  options.error_goal_m = 5e-5;  // which the target height's scan does not meet at t06
+  options.work_budget = 0.0;
+  const RigidPlan unbounded = RigidPlanner(scene, options).plan(target);
+  ASSERT_GE(unbounded.scans.size(), 2U) << unbounded.toString();
+  options.work_budget = 0.5 * unbounded.solver_work / unbounded.simulations;  // within scan 1
+  const RigidPlanner planner(scene, options);
   const RigidPlan a = planner.plan(target);
   const RigidPlan b = planner.plan(target);
   for (const RigidPlan* plan : {&a, &b}) {
     ASSERT_TRUE(*plan || plan->code == PlanCode::kOutOfTolerance) << plan->toString();
     EXPECT_TRUE(plan->budget_expired);
-    EXPECT_EQ(plan->scans.size(), 1U);
+    ASSERT_EQ(plan->scans.size(), 1U);
+    EXPECT_TRUE(plan->scans.front().cut_short);
+    EXPECT_LT(plan->scans.front().depth_m.back(), unbounded.scans.front().depth_m.back());
     EXPECT_TRUE(plan->verified);
-    EXPECT_GT(plan->fem_steps, options.step_budget);  // the scan in progress is finished
+    EXPECT_GT(plan->solver_work, options.work_budget);  // the last step, and the verification
+    EXPECT_LT(plan->solver_work, unbounded.solver_work);
+    if (!plan->within_tolerance) {
+      EXPECT_NE(plan->message.find("budget exhausted"), std::string::npos) << plan->message;
+    }
   }
   EXPECT_EQ(a.release, b.release);
   EXPECT_EQ(a.fem_steps, b.fem_steps);
+  EXPECT_EQ(a.solver_work, b.solver_work);
   EXPECT_EQ(a.verified_error_m, b.verified_error_m);
-  // Without the budget the search goes on: more steps, a smaller error.
-  options.step_budget = 0;
-  const RigidPlan unbounded = RigidPlanner(scene, options).plan(target);
   EXPECT_FALSE(unbounded.budget_expired);
-  EXPECT_GT(unbounded.fem_steps, a.fem_steps);
   EXPECT_LE(unbounded.verified_error_m, a.verified_error_m);
 }
 
