@@ -246,6 +246,7 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
   sim.reset();
   DepthScan scan;
   scan.height_m = height_m;
+  const double work_from = sim.solverWork();
   double x = scene_.workspace_min
                  .x();  // tip on the entry face: steps outside only solve the unloaded model
   scan.best_error_m = 1e300;
@@ -284,6 +285,7 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
     }
   }
   requireEntered(scan, height_m);
+  scan.work = sim.solverWork() - work_from;
   return scan;
 }
 
@@ -643,6 +645,7 @@ std::optional<DepthScan> RigidPlanner::resumeScan(double height_m, const Point2&
   counters.steps += prefix->grid_k + 1 + (sim.femSteps() - before);
   counters.work_reused += prefix->work;
   counters.work += prefix->work + (sim.solverWork() - work_before);
+  scan.work = prefix->work + (sim.solverWork() - work_before);
   if (!scan.cut_short) {
     storePrefix(sim, scan, work_before - prefix->work);
   }
@@ -671,6 +674,7 @@ DepthScan RigidPlanner::gridScan(tissue::TissueSimulation& sim, double height_m,
           : std::function<bool(double)>();
   runGridScan(sim, scan, target, last, stop_past_target, out_of_budget, work_from);
   requireEntered(scan, height_m);
+  scan.work = sim.solverWork() - work_from;
   if (resumable && !scan.cut_short) {
     storePrefix(sim, scan, work_from);
   }
@@ -697,10 +701,15 @@ void RigidPlanner::searchPlan(RigidPlan& plan, tissue::TissueSimulation& sim, co
       first_offset_m, expired);
 }
 
-Point2 RigidPlanner::verify(tissue::TissueSimulation& sim, RigidPlan& plan) const {
+std::optional<Point2> RigidPlanner::verify(tissue::TissueSimulation& sim, RigidPlan& plan,
+                                           double work_left) const {
+  const DepthScan* found = nullptr;
   for (auto it = plan.scans.rbegin(); it != plan.scans.rend(); ++it) {
-    if (it->release_state && it->height_m == plan.release.y() &&
-        it->best_depth_m == plan.release.x()) {
+    if (it->height_m != plan.release.y() || it->best_depth_m != plan.release.x()) {
+      continue;
+    }
+    found = found ? found : &*it;
+    if (it->release_state) {
       tissue::TissueSimulation state(*it->release_state);  // the scan's state, bit for bit
       const long before = state.femSteps();
       const double work_before = state.solverWork();
@@ -709,6 +718,10 @@ Point2 RigidPlanner::verify(tissue::TissueSimulation& sim, RigidPlan& plan) cons
       plan.solver_work += state.solverWork() - work_before;
       return seed;
     }
+  }
+  // A full simulation costs about what the scan that found the release did.
+  if (options_.work_budget > 0.0 && found && found->work > work_left) {
+    return std::nullopt;
   }
   return simulateImplant(sim, plan.release, schedule());  // counted on sim
 }
@@ -753,9 +766,15 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
     for (int round = 0;; ++round) {
       plan.fem_steps = 0;
       plan.solver_work = 0.0;
-      const Point2 verified = verify(*sim, plan);
+      const double work_left = options_.work_budget - work();
+      const std::optional<Point2> verified_or = verify(*sim, plan, work_left);
       other_steps += plan.fem_steps;  // steps on a copy (sim counts its own)
       other_work += plan.solver_work;
+      if (!verified_or) {  // over the tolerance, and no budget left to simulate it in full
+        plan.budget_expired = true;
+        break;
+      }
+      const Point2 verified = *verified_or;
       ++plan.simulations;
       ++plan.verifications;
       const double verified_error = (verified - target).norm();
@@ -811,9 +830,12 @@ void RigidPlanner::finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_
     budget.precision(4);
     budget << "budget exhausted (" << work << " of " << options_.work_budget
            << " work units), best ";
-    plan.message = (budget_expired ? budget.str() : std::string()) + "verified error " +
-                   mm(plan.verified_error_m) + " exceeds the tolerance " + mm(plan.tolerance_m) +
-                   "; " + plan.message;
+    plan.message =
+        (budget_expired ? budget.str() : std::string()) +
+        (plan.verified ? "verified error " + mm(plan.verified_error_m)
+                       : "predicted error " + mm(plan.predicted_error_m) +
+                             " (not verified: a full simulation would exceed the budget)") +
+        " exceeds the tolerance " + mm(plan.tolerance_m) + "; " + plan.message;
     if (options_.refuse_over_tolerance) {
       plan.code = PlanCode::kOutOfTolerance;
       plan.message = std::string("RigidPlanner: ") + toString(plan.code) +

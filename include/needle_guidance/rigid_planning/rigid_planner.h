@@ -33,6 +33,8 @@ struct DepthScan {
   /// best_error_m is within the tolerance. A verification releases from a copy of it instead
   /// of inserting again: the same FEM steps, bit for bit (issue 22). Null otherwise.
   std::shared_ptr<const tissue::TissueSimulation> release_state;
+  /// Solver work of this scan from the entry face (a resumed prefix included).
+  double work = 0.0;
   /// The work (or time) budget ran out during this scan: it ends there, short of its planned
   /// depth (never before it has two implant points).
   bool cut_short = false;
@@ -73,12 +75,13 @@ struct PlannerOptions {
   /// Work budget per plan, in solver work (tissue::TissueSimulation::solverWork(): millions of
   /// factor entries touched by solves, factor modifications and factorisations; 0: none), over
   /// scans and verifications. It is checked after every FEM step: a scan in progress stops
-  /// where the budget runs out, the best release found so far is verified, and the plan is
-  /// placed only if that verified error is within the tolerance (else refused: "budget
-  /// exhausted"). A count, so what is refused does not depend on the machine's load; weighted by
-  /// what each operation costs, so it bounds time on any mesh. 400 units are ~0.4 s of CPU
-  /// of CPU per plan here, verification included (bench rigid, 7 scenes; README).
-  double work_budget = 400.0;
+  /// where the budget runs out, and the best release found so far is verified (from its scan's
+  /// state when within the tolerance; a full simulation only if the budget still covers it).
+  /// The plan is placed only if its verified error is within the tolerance, else refused
+  /// ("budget exhausted"). A count, so what is refused does not depend on the machine's load;
+  /// weighted by what each operation costs, so it bounds the time on any mesh: a unit is about
+  /// 1 ms of CPU here (1.0-1.4 ms at load 6-10 on the shared 2 cores; README, bench rigid).
+  double work_budget = 350.0;
   /// Wall-time budget per plan [s] (0: none), on top of step_budget: a plan that must answer
   /// in time. Outcomes then depend on the machine's load.
   double time_budget_s = 0.0;
@@ -280,9 +283,12 @@ private:
   void storePrefix(const tissue::TissueSimulation& sim, const DepthScan& scan,
                    double work_from) const;
   /// The seed after releasing at plan.release and retracting: from the release state of the
-  /// scan that found the release when it has one, else a full simulation on `sim`. Adds the
-  /// FEM steps run on a copy to plan.fem_steps (steps on `sim` count in sim.femSteps()).
-  Point2 verify(tissue::TissueSimulation& sim, RigidPlan& plan) const;
+  /// scan that found the release when it has one (its error is within the tolerance), else a
+  /// full simulation on `sim` if the work budget has `work_left` for it (about the work of the
+  /// scan that found the release), else nullopt. Adds the FEM steps and work run on a copy to
+  /// plan.fem_steps and plan.solver_work (steps on `sim` count in sim's own counters).
+  std::optional<Point2> verify(tissue::TissueSimulation& sim, RigidPlan& plan,
+                               double work_left) const;
   /// The plan to return after the verification rounds: `best` (the best verified plan) with
   /// plan's counters and scans, refused (kOutOfTolerance) when over the tolerance.
   void finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_steps, double work) const;
