@@ -82,7 +82,7 @@ struct PlannerOptions {
   /// weighted by what each operation costs, so it bounds the time on any mesh: a unit is about
   /// 1 ms of CPU here (1.0-1.4 ms at load 6-10 on the shared 2 cores; README, bench rigid).
   double work_budget = 350.0;
-  /// Wall-time budget per plan [s] (0: none), on top of step_budget: a plan that must answer
+  /// Wall-time budget per plan [s] (0: none), on top of work_budget: a plan that must answer
   /// in time. Outcomes then depend on the machine's load.
   double time_budget_s = 0.0;
   /// A plan whose verified error exceeds the tolerance is refused (kOutOfTolerance, issue 22:
@@ -173,7 +173,7 @@ struct RigidPlan {
   double verified_error_m = NAN;             ///< |verified implant - target| [m]
   int verifications = 0;                     ///< full simulations among `simulations`
   int corrections = 0;                       ///< re-plans on the verified error
-  /// FEM steps this plan stands for (PlannerOptions::step_budget): every scan counted from the
+  /// FEM steps this plan stands for: every scan counted from the
   /// entry face, also when it resumed a cached insertion (so outcomes do not depend on what
   /// earlier plans cached).
   long fem_steps = 0;
