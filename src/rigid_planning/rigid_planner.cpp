@@ -163,6 +163,14 @@ RigidPlanner::RigidPlanner(scene::Scene scene, tissue::TissueSimOptions sim_opti
         "RigidPlanner: window, tolerance, depth step and velocity must be > 0, margin >= 0 and "
         "at least 3 grid points");
   }
+  for (const auto& [name, value] :
+       {std::pair<const char*, double>{"work_budget", options_.work_budget},
+        {"time_budget_s", options_.time_budget_s}}) {
+    if (!std::isfinite(value) || value < 0.0) {
+      throw std::invalid_argument(std::string("RigidPlanner: ") + name + " " +
+                                  std::to_string(value) + " must be finite and >= 0 (0: none)");
+    }
+  }
 }
 
 RigidPlan RigidPlanner::check(const Point2& target) const {

@@ -310,6 +310,23 @@ TEST(RigidPlannerVerified, AWorkBudgetEndsTheSearchTheSameWayOnAnyMachine) {
   EXPECT_LE(unbounded.verified_error_m, a.predicted_error_m);
 }
 
+TEST(RigidPlannerVerified, ABadBudgetIsRefusedNamingIt) {
+  const scene::Scene scene = scene::defaultScene("prostate_sagittal");
+  for (double bad : {-1.0, double(NAN), double(INFINITY)}) {
+    PlannerOptions options;
+    options.work_budget = bad;
+    try {
+      RigidPlanner planner(scene, options);
+      ADD_FAILURE() << "work_budget " << bad << " accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("work_budget"), std::string::npos) << e.what();
+    }
+    options.work_budget = 0.0;
+    options.time_budget_s = bad;
+    EXPECT_THROW(RigidPlanner(scene, options), std::invalid_argument) << bad;
+  }
+}
+
 TEST(RigidPlannerVerified, NoPlanWorksMuchPastItsBudget) {
   // Issue 22: planning time bounded on any scene. A deep target on a stiff scene whose plan
   // needs several scans: the plan may not exceed its budget by more than one FEM step's work
