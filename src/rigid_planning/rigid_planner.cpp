@@ -163,6 +163,14 @@ RigidPlanner::RigidPlanner(scene::Scene scene, tissue::TissueSimOptions sim_opti
         "RigidPlanner: window, tolerance, depth step and velocity must be > 0, margin >= 0 and "
         "at least 3 grid points");
   }
+  for (const auto& [name, value] :
+       {std::pair<const char*, double>{"work_budget", options_.work_budget},
+        {"time_budget_s", options_.time_budget_s}}) {
+    if (!std::isfinite(value) || value < 0.0) {
+      throw std::invalid_argument(std::string("RigidPlanner: ") + name + " " +
+                                  std::to_string(value) + " must be finite and >= 0 (0: none)");
+    }
+  }
 }
 
 RigidPlan RigidPlanner::check(const Point2& target) const {
@@ -205,7 +213,8 @@ RigidPlan RigidPlanner::check(const Point2& target) const {
 /// its state there. A scan at that height for a deeper target continues from a copy of it.
 struct InsertionPrefix {
   double height_m = 0.0;
-  long grid_k = -1;  ///< the state's grid position (grid_k + 1 FEM steps from the entry face)
+  long grid_k = -1;   ///< the state's grid position (grid_k + 1 FEM steps from the entry face)
+  double work = 0.0;  ///< solver work from the entry face to the state
   std::vector<double> depth_m;
   std::vector<Point2> implant;
   std::shared_ptr<const tissue::TissueSimulation> state;
@@ -245,6 +254,7 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
   sim.reset();
   DepthScan scan;
   scan.height_m = height_m;
+  const double work_from = sim.solverWork();
   double x = scene_.workspace_min
                  .x();  // tip on the entry face: steps outside only solve the unloaded model
   scan.best_error_m = 1e300;
@@ -283,6 +293,7 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
     }
   }
   requireEntered(scan, height_m);
+  scan.work = sim.solverWork() - work_from;
   return scan;
 }
 
@@ -548,7 +559,9 @@ bool RigidPlanner::addGridPoint(DepthScan& scan, double x, const Point2& tip, co
 }
 
 void RigidPlanner::runGridScan(tissue::TissueSimulation& sim, DepthScan& scan, const Point2& target,
-                               long last, bool stop_past_target) const {
+                               long last, bool stop_past_target,
+                               const std::function<bool(double)>& out_of_budget,
+                               double work_from) const {
   const double dt_s = sim.options().depth_grid.step_m / scene_.needle.insertion_velocity_m_s;
   for (long k = sim.gridPosition() + 1; k <= last; ++k) {
     const double x = sim.gridDepth(k);
@@ -560,10 +573,17 @@ void RigidPlanner::runGridScan(tissue::TissueSimulation& sim, DepthScan& scan, c
     if (tip && addGridPoint(scan, x, *tip, target, &sim, stop_past_target)) {
       break;
     }
+    // Not before the scan has a segment in tissue: a plan always has a release to verify.
+    if (out_of_budget && k < last && scan.implant.size() >= 2 &&
+        out_of_budget(sim.solverWork() - work_from)) {
+      scan.cut_short = true;
+      break;
+    }
   }
 }
 
-void RigidPlanner::storePrefix(const tissue::TissueSimulation& sim, const DepthScan& scan) const {
+void RigidPlanner::storePrefix(const tissue::TissueSimulation& sim, const DepthScan& scan,
+                               double work_from) const {
   auto deeper = [&] {  // no prefix at this height reaches as far (call under the lock)
     return std::none_of(cache_->prefixes.begin(), cache_->prefixes.end(), [&](const auto& p) {
       return p->height_m == scan.height_m && p->grid_k >= sim.gridPosition();
@@ -578,6 +598,7 @@ void RigidPlanner::storePrefix(const tissue::TissueSimulation& sim, const DepthS
   auto prefix = std::make_shared<InsertionPrefix>();
   prefix->height_m = scan.height_m;
   prefix->grid_k = sim.gridPosition();
+  prefix->work = sim.solverWork() - work_from;
   prefix->depth_m = scan.depth_m;
   prefix->implant = scan.implant;
   prefix->state = std::make_shared<const tissue::TissueSimulation>(sim);
@@ -617,16 +638,25 @@ std::optional<DepthScan> RigidPlanner::resumeScan(double height_m, const Point2&
       return std::nullopt;  // ends within the prefix: a scan from the entry face keeps its state
     }
   }
+  if (counters.out_of_budget && counters.out_of_budget(prefix->work)) {
+    return std::nullopt;  // the budget ends within the prefix: a scan from the entry face
+  }
   tissue::TissueSimulation sim(*prefix->state);
   const long before = sim.femSteps();
-  runGridScan(sim, scan, target, last, true);
+  const double work_before = sim.solverWork();
+  runGridScan(sim, scan, target, last, true, counters.out_of_budget, work_before - prefix->work);
   if (scan.best_error_m <= tolerance() && !scan.release_state) {
     return std::nullopt;  // the best release lies in the prefix, whose states are not kept
   }
   requireEntered(scan, height_m);
   counters.reused += prefix->grid_k + 1;
   counters.steps += prefix->grid_k + 1 + (sim.femSteps() - before);
-  storePrefix(sim, scan);
+  counters.work_reused += prefix->work;
+  counters.work += prefix->work + (sim.solverWork() - work_before);
+  scan.work = prefix->work + (sim.solverWork() - work_before);
+  if (!scan.cut_short) {
+    storePrefix(sim, scan, work_before - prefix->work);
+  }
   return scan;
 }
 
@@ -644,10 +674,17 @@ DepthScan RigidPlanner::gridScan(tissue::TissueSimulation& sim, double height_m,
   DepthScan scan;
   scan.height_m = height_m;
   scan.best_error_m = 1e300;
-  runGridScan(sim, scan, target, last, stop_past_target);
+  const double work_from = sim.solverWork();
+  // Work on the plan's own simulation is in the plan's counters already: no extra.
+  const std::function<bool(double)> out_of_budget =
+      resume && resume->out_of_budget
+          ? std::function<bool(double)>([&](double) { return resume->out_of_budget(0.0); })
+          : std::function<bool(double)>();
+  runGridScan(sim, scan, target, last, stop_past_target, out_of_budget, work_from);
   requireEntered(scan, height_m);
-  if (resumable) {
-    storePrefix(sim, scan);
+  scan.work = sim.solverWork() - work_from;
+  if (resumable && !scan.cut_short) {
+    storePrefix(sim, scan, work_from);
   }
   return scan;
 }
@@ -672,16 +709,27 @@ void RigidPlanner::searchPlan(RigidPlan& plan, tissue::TissueSimulation& sim, co
       first_offset_m, expired);
 }
 
-Point2 RigidPlanner::verify(tissue::TissueSimulation& sim, RigidPlan& plan) const {
+std::optional<Point2> RigidPlanner::verify(tissue::TissueSimulation& sim, RigidPlan& plan,
+                                           double work_left) const {
+  const DepthScan* found = nullptr;
   for (auto it = plan.scans.rbegin(); it != plan.scans.rend(); ++it) {
-    if (it->release_state && it->height_m == plan.release.y() &&
-        it->best_depth_m == plan.release.x()) {
+    if (it->height_m != plan.release.y() || it->best_depth_m != plan.release.x()) {
+      continue;
+    }
+    found = found ? found : &*it;
+    if (it->release_state) {
       tissue::TissueSimulation state(*it->release_state);  // the scan's state, bit for bit
       const long before = state.femSteps();
+      const double work_before = state.solverWork();
       const Point2 seed = releaseAndRetract(state, plan.release, schedule());
       plan.fem_steps += state.femSteps() - before;
+      plan.solver_work += state.solverWork() - work_before;
       return seed;
     }
+  }
+  // A full simulation costs about what the scan that found the release did.
+  if (options_.work_budget > 0.0 && found && found->work > work_left) {
+    return std::nullopt;
   }
   return simulateImplant(sim, plan.release, schedule());  // counted on sim
 }
@@ -692,25 +740,30 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
     plan.tolerance_m = tolerance();
     const std::unique_ptr<tissue::TissueSimulation> sim = makeSimulation(target);
     const long steps_at_start = sim->femSteps();
-    long other_steps = 0;  // FEM steps of verifications on copies, and of earlier rounds
+    const double work_at_start = sim->solverWork();
+    long other_steps = 0;     // FEM steps of verifications on copies
+    double other_work = 0.0;  // and their solver work
     // Scans of the scene's own targets (its mesh) may resume an earlier plan's insertion.
     const auto& refined = sim_options_.meshing.refine_points;
     ResumeCounters resume;
     resume.resume =
         sim->copyable() && std::find(refined.begin(), refined.end(), target) != refined.end();
     auto steps = [&] { return sim->femSteps() - steps_at_start + other_steps + resume.steps; };
-    const std::function<bool()> expired = [&] {
+    auto work = [&] { return sim->solverWork() - work_at_start + other_work + resume.work; };
+    resume.out_of_budget = [&](double extra_work) {
       const double seconds =
           std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-      return (options_.step_budget > 0 && steps() > options_.step_budget) ||
+      return (options_.work_budget > 0.0 && work() + extra_work > options_.work_budget) ||
              (options_.time_budget_s > 0.0 && seconds > options_.time_budget_s);
     };
+    const std::function<bool()> expired = [&] { return resume.out_of_budget(0.0); };
     searchPlan(plan, *sim, target, first_height_offset_m, expired, resume);
     plan.predicted_error_m = (plan.predicted_implant - target).norm();
     if (!options_.verify) {
       plan.within_tolerance = plan.predicted_error_m <= plan.tolerance_m;
       plan.fem_steps = steps();
       plan.fem_steps_reused = resume.reused;
+      plan.solver_work = work();
       return;
     }
     // Verify; while the verified seed misses and disagrees with the prediction, aim the O(1)
@@ -720,8 +773,16 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
     Point2 aim = target;
     for (int round = 0;; ++round) {
       plan.fem_steps = 0;
-      const Point2 verified = verify(*sim, plan);
+      plan.solver_work = 0.0;
+      const double work_left = options_.work_budget - work();
+      const std::optional<Point2> verified_or = verify(*sim, plan, work_left);
       other_steps += plan.fem_steps;  // steps on a copy (sim counts its own)
+      other_work += plan.solver_work;
+      if (!verified_or) {  // over the tolerance, and no budget left to simulate it in full
+        plan.budget_expired = true;
+        break;
+      }
+      const Point2 verified = *verified_or;
       ++plan.simulations;
       ++plan.verifications;
       const double verified_error = (verified - target).norm();
@@ -749,12 +810,13 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
       plan.predicted_implant = next.predicted_implant;  // the O(1) model's own prediction
       plan.budget_expired = next.budget_expired;
     }
-    finishVerifiedPlan(plan, std::move(best), steps());
+    finishVerifiedPlan(plan, std::move(best), steps(), work());
     plan.fem_steps_reused = resume.reused;
   });
 }
 
-void RigidPlanner::finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_steps) const {
+void RigidPlanner::finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_steps,
+                                      double work) const {
   const int simulations = plan.simulations, verifications = plan.verifications,
             corrections = plan.corrections;
   const bool budget_expired = plan.budget_expired;
@@ -769,11 +831,19 @@ void RigidPlanner::finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_
   plan.corrections = corrections;
   plan.budget_expired = budget_expired;
   plan.fem_steps = fem_steps;
+  plan.solver_work = work;
   plan.within_tolerance = plan.verified_error_m <= plan.tolerance_m;
   if (!plan.within_tolerance) {
-    plan.message = "verified error " + mm(plan.verified_error_m) + " exceeds the tolerance " +
-                   mm(plan.tolerance_m) + (budget_expired ? " (step/time budget expired)" : "") +
-                   "; " + plan.message;
+    std::ostringstream budget;
+    budget.precision(4);
+    budget << "budget exhausted (" << work << " of " << options_.work_budget
+           << " work units), best ";
+    plan.message =
+        (budget_expired ? budget.str() : std::string()) +
+        (plan.verified ? "verified error " + mm(plan.verified_error_m)
+                       : "predicted error " + mm(plan.predicted_error_m) +
+                             " (not verified: a full simulation would exceed the budget)") +
+        " exceeds the tolerance " + mm(plan.tolerance_m) + "; " + plan.message;
     if (options_.refuse_over_tolerance) {
       plan.code = PlanCode::kOutOfTolerance;
       plan.message = std::string("RigidPlanner: ") + toString(plan.code) +

@@ -30,9 +30,8 @@ RigidPlannerRos::RigidPlannerRos(ros::NodeHandle& /*nh*/, ros::NodeHandle& priva
       ros_params::number(private_nh, "error_goal_m", options.error_goal_m, 0.0, 0.01, "m");
   options.secant_iterations = static_cast<int>(ros_params::number(
       private_nh, "secant_iterations", options.secant_iterations, 0, 20, "steps"));
-  options.step_budget = static_cast<long>(
-      ros_params::number(private_nh, "step_budget", static_cast<double>(options.step_budget), 0,
-                         1e7, "FEM steps (0 = none)"));
+  options.work_budget = ros_params::number(private_nh, "work_budget", options.work_budget, 0.0, 1e7,
+                                           "solver work units (0 = none)");
   options.time_budget_s = ros_params::number(private_nh, "time_budget_s", options.time_budget_s,
                                              0.0, 600.0, "s (0 = none)");
   options.tolerance_m = ros_params::number(private_nh, "tolerance_m", options.tolerance_m, 0.0,

@@ -261,6 +261,15 @@ struct ConstrainedSolver::Impl : ConstrainedSolverData {
     return true;
   }
 
+  /// Entries of the simplicial factor (column counts, diagonal included).
+  long factorEntries() const {
+    const int* nz = static_cast<const int*>(l->nz);
+    long entries = 0;
+    for (int j = 0; j < n_red; ++j)
+      entries += nz[j];
+    return entries;
+  }
+
   /// Current A column `rc` (reduced) restricted to non-deleted rows, as an n_red x 1 sparse.
   cholmod_sparse* currentColumn(int rc) {
     const int col = full_of_red[rc];
@@ -483,6 +492,7 @@ bool ConstrainedSolver::solve(const Eigen::VectorXd& b, const std::vector<int>& 
     ++stats_.factorizations;
     if (!im.refactor(del, error))
       return false;
+    stats_.factor_entries = im.factorEntries();
   }
   // x_P = g, x_F = 0; rhs = b - A_{:,P} g on the free rows, g on the deleted (identity) rows.
   x = Eigen::VectorXd::Zero(im.n_full);

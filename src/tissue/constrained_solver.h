@@ -19,6 +19,9 @@ struct SolverStats {
   long row_additions = 0;   ///< DOFs released by a factor modification
   long rank_updates = 0;    ///< rank-1 updates/downdates for matrix changes
   long solves = 0;          ///< solves
+  /// Entries of L (strictly lower part and diagonal) at the last numeric factorisation: every
+  /// operation above touches up to this many entries, so it scales their cost with the mesh.
+  long factor_entries = 0;
 };
 
 class ConstrainedSolver {

@@ -90,7 +90,8 @@ public:
 
   SolverCounters solverCounters() const override {
     const SolverStats& s = solver_->stats();
-    return {s.factorizations, s.row_deletions, s.row_additions, s.rank_updates, s.solves};
+    return {s.factorizations, s.row_deletions, s.row_additions,
+            s.rank_updates,   s.solves,        s.factor_entries};
   }
 
   void modelChanged(const std::vector<int>& dofs) override {

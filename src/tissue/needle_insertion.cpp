@@ -251,7 +251,12 @@ StepStatus NeedleInsertion::step(double dt_s, double needle_height_m, double tip
     if (!status) {
       break;
     }
-    if (!updateFriction(prescribed, reactions, dt_s)) {
+    // Stick decisions only in the first pass: a node that slipped in this step keeps slipping
+    // until the next step, so the iteration is monotone (the stuck set only shrinks) and ends
+    // in a few passes. Letting it stick again made nodes oscillate stick -> slip -> stick until
+    // max_friction_iterations on every step of a deep insertion (issue 22: 9 solves and ~170
+    // factor modifications per step, most of a plan's time).
+    if (!updateFriction(prescribed, reactions, dt_s, /*allow_stick=*/iteration == 0)) {
       break;
     }
   }
@@ -287,7 +292,7 @@ StepStatus NeedleInsertion::step(double dt_s, double needle_height_m, double tip
 }
 
 bool NeedleInsertion::updateFriction(const Prescribed& prescribed, const Eigen::VectorXd& reactions,
-                                     double dt_s) {
+                                     double dt_s, bool allow_stick) {
   // Stick–slip (2.3.5, after Baraff and Witkin): a stuck node slips when holding it needs more
   // than the slip force; a slipping node sticks again when it moves with the needle.
   bool changed = false;
@@ -306,7 +311,7 @@ bool NeedleInsertion::updateFriction(const Prescribed& prescribed, const Eigen::
         f_ext_[dofX(node)] = direction * params_.kinetic_friction_N_per_m * shaftShare(s);
         changed = true;
       }
-    } else {
+    } else if (allow_stick) {
       const double node_velocity = (u[dofX(node)] - u_prev_[dofX(node)]) / dt_s;
       if (std::abs(needle_velocity - node_velocity) < params_.stick_velocity_m_s) {
         state.stuck = true;

@@ -47,7 +47,7 @@ struct SceneFigures {
   std::string name, spec;
   int targets = 0, planned = 0, refused = 0, over_tolerance = 0;
   std::vector<double> predicted_cm, verified_cm, measured_cm, unplanned_cm, legacy_gap_cm, pvm_cm,
-      live_cm, seconds, cpu_seconds, simulations, fem_steps;
+      live_cm, seconds, cpu_seconds, simulations, fem_steps, solver_work;
 };
 
 double maxOf(const std::vector<double>& v) {
@@ -82,15 +82,32 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
       ++f.refused;
       f.seconds.push_back(plan.seconds);  // a refusal's planning time counts too
       f.fem_steps.push_back(static_cast<double>(plan.fem_steps));
+      f.solver_work.push_back(plan.solver_work);
       f.cpu_seconds.push_back(plan.cpu_seconds);
       const ng::report::Cell none{std::string()};  // never inserted: no error figures
       // Out of tolerance: the best plan's verified error says by how much.
       const ng::report::Cell verified = std::isfinite(plan.verified_error_m)
                                             ? ng::report::Cell(1e3 * plan.verified_error_m)
                                             : none;
-      rows.addRow({scene.name, target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
-                   std::string("refused"), none, none, verified, none, none, none, none, none, none,
-                   double(plan.simulations), plan.seconds, plan.cpu_seconds, double(plan.fem_steps),
+      rows.addRow({scene.name,
+                   target.name,
+                   1e3 * target.position.x(),
+                   1e3 * target.position.y(),
+                   std::string("refused"),
+                   none,
+                   none,
+                   verified,
+                   none,
+                   none,
+                   none,
+                   none,
+                   none,
+                   none,
+                   double(plan.simulations),
+                   plan.seconds,
+                   plan.cpu_seconds,
+                   double(plan.fem_steps),
+                   plan.solver_work,
                    std::string(plan.message)});
       std::cout << scene.name << "/" << target.name << ": refused: " << plan.message << "\n"
                 << std::flush;
@@ -126,14 +143,28 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     f.pvm_cm.push_back(1e2 * pvm);
     f.seconds.push_back(plan.seconds);
     f.fem_steps.push_back(static_cast<double>(plan.fem_steps));
+    f.solver_work.push_back(plan.solver_work);
     f.cpu_seconds.push_back(plan.cpu_seconds);
     f.simulations.push_back(plan.simulations);
-    rows.addRow({scene.name, target.name, 1e3 * target.position.x(), 1e3 * target.position.y(),
+    rows.addRow({scene.name,
+                 target.name,
+                 1e3 * target.position.x(),
+                 1e3 * target.position.y(),
                  std::string(placed ? "placed" : "missed"),
-                 1e3 * (unplanned_seed - target.position).norm(), 1e3 * plan.predicted_error_m,
-                 1e3 * plan.verified_error_m, 1e3 * measured, 1e3 * live_gap, 1e3 * pvm,
-                 1e3 * legacy_gap, 1e3 * plan.release.x(), 1e3 * plan.release.y(),
-                 double(plan.simulations), plan.seconds, plan.cpu_seconds, double(plan.fem_steps),
+                 1e3 * (unplanned_seed - target.position).norm(),
+                 1e3 * plan.predicted_error_m,
+                 1e3 * plan.verified_error_m,
+                 1e3 * measured,
+                 1e3 * live_gap,
+                 1e3 * pvm,
+                 1e3 * legacy_gap,
+                 1e3 * plan.release.x(),
+                 1e3 * plan.release.y(),
+                 double(plan.simulations),
+                 plan.seconds,
+                 plan.cpu_seconds,
+                 double(plan.fem_steps),
+                 plan.solver_work,
                  std::string(plan.message)});
     std::cout << scene.name << "/" << target.name << ": " << (placed ? "placed" : "MISSED")
               << " measured " << 1e3 * measured << " mm (predicted " << 1e3 * plan.predicted_error_m
@@ -302,8 +333,8 @@ std::string scenesJson(const std::vector<SceneFigures>& figures) {
   for (std::size_t k = 0; k < figures.size(); ++k) {
     const SceneFigures& f = figures[k];
     json << (k ? "," : "") << "\n    {\"scene\": \"" << f.name << "\", \"spec\": \"" << f.spec
-         << "\", \"targets\": " << f.targets << ", \"refused\": " << f.refused
-         << ", \"targets_over_tolerance\": " << f.over_tolerance
+         << "\", \"targets\": " << f.targets << ", \"placed\": " << f.planned - f.over_tolerance
+         << ", \"refused\": " << f.refused << ", \"targets_over_tolerance\": " << f.over_tolerance
          << ", \"planned_error_cm_max\": " << maxOf(f.measured_cm)
          << ", \"planned_error_cm_mean\": " << mean(f.measured_cm)
          << ", \"predicted_error_cm_max\": " << maxOf(f.predicted_cm)
@@ -318,7 +349,10 @@ std::string scenesJson(const std::vector<SceneFigures>& figures) {
          << ", \"cpu_seconds_per_target_mean\": " << mean(f.cpu_seconds)
          << ", \"cpu_seconds_per_target_max\": " << maxOf(f.cpu_seconds)
          << ", \"fem_steps_per_plan_mean\": " << mean(f.fem_steps)
-         << ", \"fem_steps_per_plan_max\": " << maxOf(f.fem_steps) << "}";
+         << ", \"fem_steps_per_plan_max\": " << maxOf(f.fem_steps)
+         << ", \"solver_work_per_plan_mean\": " << mean(f.solver_work)
+         << ", \"solver_work_per_plan_max\": " << maxOf(f.solver_work) << "}";
+    all.planned += f.planned;
     all.targets += f.targets;
     all.refused += f.refused;
     all.over_tolerance += f.over_tolerance;
@@ -326,11 +360,12 @@ std::string scenesJson(const std::vector<SceneFigures>& figures) {
          {&SceneFigures::predicted_cm, &SceneFigures::verified_cm, &SceneFigures::measured_cm,
           &SceneFigures::unplanned_cm, &SceneFigures::legacy_gap_cm, &SceneFigures::pvm_cm,
           &SceneFigures::seconds, &SceneFigures::simulations, &SceneFigures::live_cm,
-          &SceneFigures::fem_steps, &SceneFigures::cpu_seconds}) {
+          &SceneFigures::fem_steps, &SceneFigures::cpu_seconds, &SceneFigures::solver_work}) {
       (all.*v).insert((all.*v).end(), (f.*v).begin(), (f.*v).end());
     }
   }
   json << "\n  ],\n  \"all_scenes_targets\": " << all.targets
+       << ",\n  \"targets_placed\": " << all.planned - all.over_tolerance
        << ",\n  \"targets_refused\": " << all.refused
        << ",\n  \"targets_over_tolerance\": " << all.over_tolerance
        << ",\n  \"planned_error_cm_max\": " << maxOf(all.measured_cm)
@@ -347,7 +382,9 @@ std::string scenesJson(const std::vector<SceneFigures>& figures) {
        << ",\n  \"cpu_seconds_per_target_mean_all_scenes\": " << mean(all.cpu_seconds)
        << ",\n  \"fem_steps_per_plan_mean\": " << mean(all.fem_steps)
        << ",\n  \"fem_steps_per_plan_max\": " << maxOf(all.fem_steps)
-       << ",\n  \"step_budget\": " << ng::rigid_planning::PlannerOptions{}.step_budget;
+       << ",\n  \"solver_work_per_plan_mean\": " << mean(all.solver_work)
+       << ",\n  \"solver_work_per_plan_max\": " << maxOf(all.solver_work)
+       << ",\n  \"work_budget\": " << ng::rigid_planning::PlannerOptions{}.work_budget;
   return json.str();
 }
 
@@ -381,13 +418,27 @@ int main(int argc, char** argv) {
   try {
     const std::vector<std::string> specs =
         args->scenes.empty() ? std::vector<std::string>{args->scene} : args->scenes;
-    ng::report::Table per_target(
-        {"scene", "target", "target_x_mm", "target_y_mm", "status", "unplanned_error_mm",
-         "predicted_error_mm", "verified_error_mm", "measured_error_mm",
-         "live_schedule_vs_measured_mm", "predicted_vs_measured_mm",
-         "o1_interpolated_vs_measured_mm", "release_x_mm", "release_y_mm", "simulations", "plan_s",
-         "plan_cpu_s", "fem_steps", "message"},
-        6);
+    ng::report::Table per_target({"scene",
+                                  "target",
+                                  "target_x_mm",
+                                  "target_y_mm",
+                                  "status",
+                                  "unplanned_error_mm",
+                                  "predicted_error_mm",
+                                  "verified_error_mm",
+                                  "measured_error_mm",
+                                  "live_schedule_vs_measured_mm",
+                                  "predicted_vs_measured_mm",
+                                  "o1_interpolated_vs_measured_mm",
+                                  "release_x_mm",
+                                  "release_y_mm",
+                                  "simulations",
+                                  "plan_s",
+                                  "plan_cpu_s",
+                                  "fem_steps",
+                                  "solver_work",
+                                  "message"},
+                                 6);
     std::vector<SceneFigures> figures;
     for (const std::string& spec : specs) {
       figures.push_back(evaluateScene(spec, args->quick, per_target));

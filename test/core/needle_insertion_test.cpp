@@ -219,6 +219,31 @@ TEST_F(NeedleInsertionTest, ACopyContinuesBitForBitAndLeavesTheOriginalAlone) {
   EXPECT_EQ(after_reset.y(), built.y());
 }
 
+TEST_F(NeedleInsertionTest, SolverWorkFollowsWhatAStepCostsAndCopiesCountTheSame) {
+  // Issue 22: the planner's budget is solver work, a count that must not depend on the load or
+  // on copies, and must follow what steps cost: deep steps (a long shaft with stick-slip
+  // friction, re-solved per friction pass and per cut) cost more than shallow ones.
+  constexpr double kHeight_m = 0.03;
+  constexpr double kDeepToShallowMin = 2.0;  // ~10x on the 100x scene's deepest scan
+  drive(sim_, kHeight_m, -0.002, 0.0);
+  const double at_entry = sim_.solverWork();
+  drive(sim_, kHeight_m, 0.0, 0.005);  // the first 5 mm
+  const double shallow = sim_.solverWork() - at_entry;
+  drive(sim_, kHeight_m, 0.005, 0.03);
+  TissueSimulation copy(sim_);
+  EXPECT_EQ(copy.solverWork(), sim_.solverWork());
+  const double before_deep = sim_.solverWork();
+  drive(sim_, kHeight_m, 0.03, 0.035);  // 5 mm at 3 cm depth
+  drive(copy, kHeight_m, 0.03, 0.035);
+  const double deep = sim_.solverWork() - before_deep;
+  EXPECT_EQ(copy.solverWork(), sim_.solverWork());  // the same operations, bit for bit
+  EXPECT_GT(shallow, 0.0);
+  EXPECT_GT(deep, kDeepToShallowMin * shallow) << "shallow " << shallow << " deep " << deep;
+  const double before_reset = sim_.solverWork();
+  sim_.reset();
+  EXPECT_EQ(sim_.solverWork(), before_reset);  // reset() keeps counting, like femSteps()
+}
+
 TEST(NeedleInsertionCopy, ADynamicModelSaysItCannotBeCopied) {
   scene::Scene scene = scene::defaultScene("prostate_sagittal");
   scene.models.tissue = scene::TissueModel::kNewmark;

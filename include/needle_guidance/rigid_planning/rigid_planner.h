@@ -33,6 +33,11 @@ struct DepthScan {
   /// best_error_m is within the tolerance. A verification releases from a copy of it instead
   /// of inserting again: the same FEM steps, bit for bit (issue 22). Null otherwise.
   std::shared_ptr<const tissue::TissueSimulation> release_state;
+  /// Solver work of this scan from the entry face (a resumed prefix included).
+  double work = 0.0;
+  /// The work (or time) budget ran out during this scan: it ends there, short of its planned
+  /// depth (never before it has two implant points).
+  bool cut_short = false;
   /// p_a and the error if released at depth z (linear between steps); z within the scan.
   Point2 implantAt(double depth_m) const;
 };
@@ -67,11 +72,18 @@ struct PlannerOptions {
   /// approach steps below).
   bool procedure_grid = true;
   int max_corrections = 3;  ///< re-plans on the verified error after the first verification
-  /// Work budget per plan: FEM steps solved (scans and verifications; 0: none). When it runs
-  /// out the best plan so far is returned with its verified error (budget_expired set). A
-  /// count, so that what is refused does not depend on the machine's load.
-  long step_budget = 3000;
-  /// Wall-time budget per plan [s] (0: none), on top of step_budget: a plan that must answer
+  /// Work budget per plan, in solver work (tissue::TissueSimulation::solverWork(): millions of
+  /// factor entries touched by solves, factor modifications and factorisations; 0: none), over
+  /// scans and verifications. It is checked after every FEM step: a scan in progress stops
+  /// where the budget runs out, and the best release found so far is verified (from its scan's
+  /// state when within the tolerance; a full simulation only if the budget still covers it).
+  /// The plan is placed only if its verified error is within the tolerance, else refused
+  /// ("budget exhausted"). A count, so what is refused does not depend on the machine's load;
+  /// weighted by what each operation costs, so it bounds the time on any mesh: a unit took
+  /// 1.0-1.75 ms of CPU per plan here at load ~10 (state copies and assembly are not counted;
+  /// README, bench rigid).
+  double work_budget = 350.0;
+  /// Wall-time budget per plan [s] (0: none), on top of work_budget: a plan that must answer
   /// in time. Outcomes then depend on the machine's load.
   double time_budget_s = 0.0;
   /// A plan whose verified error exceeds the tolerance is refused (kOutOfTolerance, issue 22:
@@ -162,7 +174,7 @@ struct RigidPlan {
   double verified_error_m = NAN;             ///< |verified implant - target| [m]
   int verifications = 0;                     ///< full simulations among `simulations`
   int corrections = 0;                       ///< re-plans on the verified error
-  /// FEM steps this plan stands for (PlannerOptions::step_budget): every scan counted from the
+  /// FEM steps this plan stands for: every scan counted from the
   /// entry face, also when it resumed a cached insertion (so outcomes do not depend on what
   /// earlier plans cached).
   long fem_steps = 0;
@@ -170,9 +182,11 @@ struct RigidPlan {
   /// resumed instead of solving again (scans of the scene's own targets; fem_steps - this were
   /// solved).
   long fem_steps_reused = 0;
+  /// Solver work this plan stands for (PlannerOptions::work_budget), counted like fem_steps.
+  double solver_work = 0.0;
   double tolerance_m = 0.0;       ///< placement tolerance the plan was held to [m]
   bool within_tolerance = false;  ///< verified (or, unverified, predicted) error <= tolerance
-  bool budget_expired = false;    ///< the time budget ended the search
+  bool budget_expired = false;    ///< the work (or time) budget ended the search
   explicit operator bool() const { return code == PlanCode::kOk; }
   const std::string& toString() const { return message; }
 };
@@ -235,36 +249,50 @@ private:
   /// earlier scan stopped short of this one's end is continued from a copy of its state, bit for
   /// bit the same scan as from the entry face; `steps` adds the FEM steps the scan stands for
   /// when it ran on a copy (prefix and new steps), `reused` the prefix's.
+  /// `out_of_budget(extra)`: whether the plan's budget is spent once `extra` work done on a copy
+  /// of the plan's simulation (not yet in the plan's counters) is added; checked after every
+  /// step of a scan (empty: no budget).
   struct ResumeCounters {
     bool resume = false;
     long steps = 0;
     long reused = 0;
+    double work = 0.0;
+    double work_reused = 0.0;
+    std::function<bool(double)> out_of_budget;
   };
   DepthScan gridScan(tissue::TissueSimulation& sim, double height_m, const Point2& target,
                      double max_depth_m, bool stop_past_target,
                      ResumeCounters* resume = nullptr) const;
-  /// gridScan from a cached insertion prefix at height_m, if one ends short of grid index `last`
-  /// and the scan does not end within it; nullopt otherwise (then a scan from the entry face).
+  /// gridScan from a cached insertion prefix at height_m, if one ends short of grid index `last`,
+  /// the scan does not end within it and the budget covers it; nullopt otherwise (then a scan
+  /// from the entry face, which stops where the budget runs out, as this one would).
   std::optional<DepthScan> resumeScan(double height_m, const Point2& target, long last,
                                       ResumeCounters& counters) const;
-  /// Steps `sim` on the grid from its position to `last` (or until the scan passes the target),
+  /// Steps `sim` on the grid from its position to `last` (or until the scan passes the target,
+  /// or `out_of_budget(work on sim since `work_from`)` says the budget ran out: cut_short),
   /// adding the implant points to `scan`.
   void runGridScan(tissue::TissueSimulation& sim, DepthScan& scan, const Point2& target, long last,
-                   bool stop_past_target) const;
+                   bool stop_past_target, const std::function<bool(double)>& out_of_budget = {},
+                   double work_from = 0.0) const;
   /// Adds one grid point of an insertion to `scan` (`state`: the simulation there, or null when
   /// replaying a cached prefix); true when the scan may stop (the target is passed).
   bool addGridPoint(DepthScan& scan, double x, const Point2& tip, const Point2& target,
                     const tissue::TissueSimulation* state, bool stop_past_target) const;
   /// Caches `sim`'s state at the end of `scan` as the insertion prefix at its height (if deeper
   /// than the one cached).
-  void storePrefix(const tissue::TissueSimulation& sim, const DepthScan& scan) const;
+  /// `work_from`: sim.solverWork() when the insertion was at the entry face.
+  void storePrefix(const tissue::TissueSimulation& sim, const DepthScan& scan,
+                   double work_from) const;
   /// The seed after releasing at plan.release and retracting: from the release state of the
-  /// scan that found the release when it has one, else a full simulation on `sim`. Adds the
-  /// FEM steps run on a copy to plan.fem_steps (steps on `sim` count in sim.femSteps()).
-  Point2 verify(tissue::TissueSimulation& sim, RigidPlan& plan) const;
+  /// scan that found the release when it has one (its error is within the tolerance), else a
+  /// full simulation on `sim` if the work budget has `work_left` for it (about the work of the
+  /// scan that found the release), else nullopt. Adds the FEM steps and work run on a copy to
+  /// plan.fem_steps and plan.solver_work (steps on `sim` count in sim's own counters).
+  std::optional<Point2> verify(tissue::TissueSimulation& sim, RigidPlan& plan,
+                               double work_left) const;
   /// The plan to return after the verification rounds: `best` (the best verified plan) with
   /// plan's counters and scans, refused (kOutOfTolerance) when over the tolerance.
-  void finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_steps) const;
+  void finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_steps, double work) const;
   /// The O(1) height search for `aim` (the target, or the target shifted by a correction).
   void searchPlan(RigidPlan& plan, tissue::TissueSimulation& sim, const Point2& aim,
                   double first_offset_m, const std::function<bool()>& expired,

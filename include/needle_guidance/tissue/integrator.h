@@ -66,6 +66,7 @@ public:
     long row_additions = 0;   ///< released DOFs added back to the factor
     long rank_updates = 0;    ///< rank-1 updates/downdates for model changes
     long solves = 0;          ///< triangular solves
+    long factor_entries = 0;  ///< entries of the factor at its last factorisation
   };
   /// Counters since construction (for benchmarks and tests).
   virtual SolverCounters solverCounters() const { return {}; }

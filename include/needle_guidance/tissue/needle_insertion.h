@@ -117,7 +117,10 @@ private:
   /// Length of shaft that shaft_[s] stands for: half the distance to each neighbour (the entry
   /// face and the tip at the ends) [m].
   double shaftShare(std::size_t s) const;
-  bool updateFriction(const Prescribed& prescribed, const Eigen::VectorXd& reactions, double dt_s);
+  /// Stick-slip transitions after a solve (2.3.5); slipping nodes may stick only when
+  /// `allow_stick`. True when a node changed state (the step is solved again).
+  bool updateFriction(const Prescribed& prescribed, const Eigen::VectorXd& reactions, double dt_s,
+                      bool allow_stick);
   /// Moves a reference node towards target as far as no adjacent triangle drops below its
   /// minimum area; returns the fraction of the move made, in [0, 1].
   double moveNodeSafely(int node, const Point2& target);

@@ -85,6 +85,12 @@ public:
   /// reset() keeps counting; a copy starts from its original's count): a measure of work that
   /// does not depend on the machine's load.
   long femSteps() const { return fem_steps_; }
+  /// Linear-solver work since construction (kept like femSteps()), in millions of factor entries
+  /// touched: each solve, factor modification and factorisation weighted by its measured cost
+  /// relative to a solve (TissueSimulation::needleStep), times the factor's
+  /// entries. Unlike femSteps() it follows what a step costs (deep insertions solve more per
+  /// step, a finer mesh more per solve), and unlike a clock it does not depend on the load.
+  double solverWork() const { return solver_work_; }
 
   std::optional<int> implantSeed(std::string* why_not = nullptr) {
     return needle_->implantSeed(why_not);
@@ -123,6 +129,7 @@ private:
   std::shared_ptr<const Pristine> pristine_;  ///< shared by copies; null: not copyable
   long grid_k_ = -1;
   long fem_steps_ = 0;
+  double solver_work_ = 0.0;
 };
 
 }  // namespace needle_guidance::tissue
