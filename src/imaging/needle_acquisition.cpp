@@ -4,9 +4,12 @@
 #include <algorithm>
 #include <cmath>
 #include <opencv2/imgproc.hpp>
+#include <opencv2/imgcodecs.hpp>
 #include <sstream>
 #include <stdexcept>
 #include <vector>
+#include <cstdio>
+#include <cstdlib>
 
 namespace needle_guidance::imaging {
 
@@ -66,6 +69,15 @@ constexpr double kMotionTipZone = 0.3;
 constexpr double kMotionMinZone_px = 10.0;
 constexpr double kMotionBeyondGaps = 2.0;  // the zone runs on this many max_gap_px past the end
 constexpr double kMinMotionRatio = 3.0;
+/// Motion-only tip (tipFromMotion): the motion map's level a blob is cut at, the share of the
+/// frame's brightening above it the blob must hold, its peak and its area.
+constexpr double kBlobLevel = 4.0;
+constexpr double kBlobDominance = 0.9;
+constexpr double kBlobPeak = 10.0;
+constexpr int kBlobMinArea_px = 100;
+/// A line whose tip lies within this of the blob's front is the needle seen [px] (the front lies
+/// among the reverberation copies, up to 25 px from the shaft at 0.1 mm pixels).
+constexpr double kBlobOnLine_px = 24.0;
 /// Background model: exponential average of the frames, this weight for the newest.
 constexpr double kBackgroundRate = 0.3;
 /// Step 5: a ridge pixel is aligned with the line if its orientation is within this [rad].
@@ -753,6 +765,112 @@ double motionAhead(const cv::Mat& motion, const NeedleSegment& s) {
   return sum / count;
 }
 
+/// A brightening blob of the motion map: where a needle advancing along its own axis has just
+/// gone (its echo and reverberation tail appear there) while the tissue around stays still.
+struct MotionBlob {
+  cv::Point2d front, back;  ///< its extent on its principal axis (front away from the entry)
+  double dominance = 0.0;   ///< its share of the frame's brightening above the level
+  double elongation = 0.0;  ///< sqrt of the principal moments' ratio
+  double peak = 0.0;        ///< its largest motion value
+  int area = 0;
+};
+
+std::optional<MotionBlob> motionBlob(const cv::Mat& motion, EntrySide entry) {
+  if (motion.empty())
+    return std::nullopt;
+  cv::Mat mask = motion > kBlobLevel;
+  cv::Mat labels;
+  const int n = cv::connectedComponents(mask, labels, 8, CV_32S);
+  if (n < 2)
+    return std::nullopt;
+  std::vector<double> sum(static_cast<std::size_t>(n), 0.0);
+  double total = 0.0;
+  for (int r = 0; r < labels.rows; ++r) {
+    const int* l = labels.ptr<int>(r);
+    const float* m = motion.ptr<float>(r);
+    for (int c = 0; c < labels.cols; ++c) {
+      if (l[c] > 0) {
+        sum[static_cast<std::size_t>(l[c])] += m[c];
+        total += m[c];
+      }
+    }
+  }
+  const int best = static_cast<int>(std::max_element(sum.begin() + 1, sum.end()) - sum.begin());
+  double w = 0, mx = 0, my = 0, sxx = 0, syy = 0, sxy = 0, peak = 0;
+  int area = 0;
+  std::vector<cv::Point> pts;
+  for (int r = 0; r < labels.rows; ++r) {
+    const int* l = labels.ptr<int>(r);
+    const float* m = motion.ptr<float>(r);
+    for (int c = 0; c < labels.cols; ++c) {
+      if (l[c] != best)
+        continue;
+      w += m[c], mx += m[c] * c, my += m[c] * r;
+      sxx += m[c] * c * c, syy += m[c] * r * r, sxy += m[c] * c * r;
+      peak = std::max(peak, double(m[c]));
+      ++area;
+      pts.emplace_back(c, r);
+    }
+  }
+  mx /= w, my /= w;
+  const double cxx = sxx / w - mx * mx, cyy = syy / w - my * my, cxy = sxy / w - mx * my;
+  const double phi = 0.5 * std::atan2(2 * cxy, cxx - cyy);
+  const double tr = cxx + cyy, det = cxx * cyy - cxy * cxy;
+  const double l1 = 0.5 * tr + std::sqrt(std::max(0.25 * tr * tr - det, 0.0));
+  const double l2 = std::max(0.5 * tr - std::sqrt(std::max(0.25 * tr * tr - det, 0.0)), 1e-6);
+  cv::Point2d d(std::cos(phi), std::sin(phi));
+  // kAuto: the newest change (the front) is the strongest, the trail behind it fades with the
+  // background's memory: the front is the side the weighted centroid leans to.
+  double bulk = 0.0;
+  for (const cv::Point& p : pts)
+    bulk += (p.x - mx) * d.x + (p.y - my) * d.y;
+  const bool flip = (entry == EntrySide::kLeft && d.x < 0) || (entry == EntrySide::kRight && d.x > 0) ||
+                    (entry == EntrySide::kTop && d.y < 0) || (entry == EntrySide::kBottom && d.y > 0) ||
+                    (entry == EntrySide::kAuto && bulk > 0);
+  if (flip)
+    d = -d;
+  MotionBlob b;
+  double lo = 1e18, hi = -1e18;
+  for (const cv::Point& p : pts) {
+    const double u = (p.x - mx) * d.x + (p.y - my) * d.y;
+    hi = std::max(hi, u);
+    lo = std::min(lo, u);
+  }
+  b.front = cv::Point2d(mx, my) + hi * d;
+  b.back = cv::Point2d(mx, my) + lo * d;
+  b.dominance = total > 0 ? sum[static_cast<std::size_t>(best)] / total : 0.0;
+  b.elongation = std::sqrt(l1 / l2);
+  b.peak = peak;
+  b.area = area;
+  return b;
+}
+
+/// Step 6 without a moving line: a dominant, strong brightening blob (kBlobDominance of the
+/// frame's brightening, peak kBlobPeak, at least kBlobMinArea_px pixels) is where a needle has
+/// just advanced while nothing else changed: its tip is the blob's front along its principal axis.
+/// A needle inside a saturated layer or a shadow shows no line, but its tip still brightens the
+/// pixels it reaches (its echo, its reverberation tail). Tissue that moves (a hand-held probe,
+/// a deforming phantom: the recorded frames' largest blob holds 0.2-0.7 of the brightening)
+/// spreads the change over the frame and gives nothing here.
+std::optional<NeedleSegment> tipFromMotion(const cv::Mat& motion, EntrySide entry) {
+  const std::optional<MotionBlob> b = motionBlob(motion, entry);
+  if (!b || b->dominance < kBlobDominance || b->peak < kBlobPeak || b->area < kBlobMinArea_px)
+    return std::nullopt;
+  NeedleSegment s;
+  s.found = true;
+  s.from_motion = true;
+  s.tip_px = b->front;
+  s.tail_px = b->back;
+  s.angle_rad = std::atan2(b->front.y - b->back.y, b->front.x - b->back.x);
+  s.motion = b->peak;
+  std::ostringstream out;
+  out.precision(3);
+  out << "tip from the motion alone (no moving line): tip (" << s.tip_px.x << ", " << s.tip_px.y
+      << "), blob " << b->area << " px holding " << b->dominance << " of the change";
+  s.message = out.str();
+  return s;
+}
+
 /// Step 6 with the sequence cue: orient every candidate, measure its motion; when one that
 /// passes the evidence threshold moves, the still ones drop out (never a still line over a
 /// moving needle); the best score wins.
@@ -770,6 +888,12 @@ std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const Acquis
   for (Candidate& c : all) {
     c.cues.motion = tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
     any_moving = any_moving || (c.cues.motion >= kMinMotionRatio && c.score >= o.min_evidence);
+  }
+  if (std::getenv("NG_ACQ_DEBUG")) {  // DEBUG-TEMP
+    for (const Candidate& c : all)
+      std::fprintf(stderr, "   cand tail (%.0f,%.0f) tip (%.0f,%.0f) ev %.1f sym %.2f coh %.2f score %.1f mot %.2f k %.4f\n",
+                   c.cues.tail_px.x, c.cues.tail_px.y, c.cues.tip_px.x, c.cues.tip_px.y, c.cues.evidence,
+                   c.cues.symmetry, c.cues.coherence, c.score, c.cues.motion, c.line.kappa);
   }
   std::optional<Candidate> best;
   for (const Candidate& c : all) {
@@ -813,12 +937,21 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
       break;
   }
   const std::optional<Candidate> best = bestCandidate(all, options, grey.size(), motion);
+  // No line moves like a needle: the tip where the frame alone brightens, if it does and the
+  // best line does not end there (a line traced to that tip is kept: it shows the shaft).
+  const std::optional<NeedleSegment> hidden =
+      !best || best->cues.motion < kMinMotionRatio ? tipFromMotion(motion, options.entry)
+                                                   : std::nullopt;
   if (!best) {
+    if (hidden)
+      return *hidden;
     none.message = "no line of at least " + std::to_string(options.min_length_px) + " px";
     return none;
   }
   NeedleSegment s = best->cues;  // step 6
   tipAtHalfLevel(ridge, options.ridge_sigma_px, options.max_gap_px, *best, &s);
+  if (hidden && cv::norm(hidden->tip_px - s.tip_px) > kBlobOnLine_px)
+    return *hidden;
   s.motion_ahead = motionAhead(motion, s);
   if (best->score < options.min_evidence) {
     s.found = false;
@@ -842,11 +975,17 @@ bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, dou
   da = std::min(da, 2 * kPi - da);
   const cv::Point2d n(-std::sin(a.angle_rad), std::cos(a.angle_rad));
   const cv::Point2d nb(-std::sin(b.angle_rad), std::cos(b.angle_rad));
+  const double along = (b.tip_px - a.tip_px).dot(cv::Point2d(-n.y, n.x));
+  if (a.from_motion || b.from_motion) {
+    // A tip from the motion alone has no shaft: its axis is rough, and its front lies among the
+    // reverberation copies beside the needle. Only where the tip is counts.
+    const double off = std::abs((b.tip_px - a.tip_px).dot(a.from_motion ? nb : n));
+    return off < kGateMotionLine_px && along > -tip_px && along < std::max(tip_px, ahead_px);
+  }
   // Off the line both ways: a line that only meets the other's far extension (a layer in line
   // with the needle hundreds of pixels on) is not the same line.
   const double off_line =
       std::max(std::abs((b.tip_px - a.tip_px).dot(n)), std::abs((a.tip_px - b.tip_px).dot(nb)));
-  const double along = (b.tip_px - a.tip_px).dot(cv::Point2d(-n.y, n.x));
   return da < kGateAngle_rad && off_line < kGateLine_px && along > -tip_px &&
          along < std::max(tip_px, ahead_px);
 }
@@ -884,7 +1023,14 @@ SequenceTracker::Output SequenceTracker::onFrame(const cv::Mat& frame) {
   }
   last_frame_ = frame.clone();
   size_ = frame.size();
-  last_output_ = update(acquireNeedle(frame, options_, motionMap(frame)));
+  const cv::Mat mm = motionMap(frame);
+  if (const char* dbg = std::getenv("NG_MOTION_DUMP"); dbg && !mm.empty()) {  // DEBUG-TEMP
+    static int n = 0;
+    cv::Mat v;
+    mm.convertTo(v, CV_8U, 10.0, 128.0);
+    cv::imwrite(std::string(dbg) + "/motion_" + std::to_string(n++) + ".png", v);
+  }
+  last_output_ = update(acquireNeedle(frame, options_, mm));
   return last_output_;
 }
 
@@ -893,6 +1039,15 @@ void SequenceTracker::startTrack(const NeedleSegment& d) {
   velocity_px_ = 0;
   start_tip_px_ = d.tip_px;
   moved_ = d.motion >= kMinMotionRatio;
+}
+
+double SequenceTracker::motionAxis(const NeedleSegment& d) const {
+  // The tip's own path is the needle's axis once it is long enough; before that the shaft the
+  // track saw, if it saw one.
+  const cv::Point2d path = d.tip_px - start_tip_px_;
+  if (cv::norm(path) >= kEarnAdvance_px)
+    return std::atan2(path.y, path.x);
+  return track_ && !track_->from_motion ? track_->angle_rad : d.angle_rad;
 }
 
 NeedleSegment SequenceTracker::predicted() const {
@@ -957,12 +1112,15 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
                std::abs((d.tip_px - start_tip_px_).dot(axis)) >= kEarnAdvance_px;
       seen_moving_ = seen_moving_ || moved_;
       track_ = d;
+      if (d.from_motion)
+        track_->angle_rad = motionAxis(d);
       missed_ = 0;
       candidate_.reset();
-      out.segment = d;
-      // Never confident while the tissue ahead of the tip still brightens: the needle has
-      // advanced past the traced tip.
-      out.confident = agreeing_ >= kConfirmFrames && moved_ && d.motion_ahead < kMinMotionRatio;
+      out.segment = *track_;
+      // Never confident while the tissue ahead of the tip still brightens (the needle has
+      // advanced past the traced tip), nor from the motion alone (no shaft seen).
+      out.confident = agreeing_ >= kConfirmFrames && moved_ &&
+                      d.motion_ahead < kMinMotionRatio && !d.from_motion;
       if (seen_moving_ && !moved_) {
         out.segment.found = false;  // the needle moved before: a still line is not it
         out.segment.message = "a still line, and the needle moved before: " + d.message;

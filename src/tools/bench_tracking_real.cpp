@@ -292,6 +292,16 @@ const std::vector<SyntheticSpec>& syntheticSpecs() {
       {"tune_arc_c", 205, im::Point2(0.0, 0.015), 0.15, -9.0, false},
       {"tune_arc_d", 209, im::Point2(0.0, 0.020), 0.02, 7.0, false},
       {"tune_arc_e", 213, im::Point2(0.0, 0.010), 0.22, -6.0, false},
+      // Third tuning round (seeds never used before), the needle entering in, under and just
+      // above the seeded layers' band of rows, straight and bent either way.
+      {"tune_straight_g", 301, im::Point2(0.0, 0.022), 0.03, 0.0, false},
+      {"tune_straight_h", 303, im::Point2(0.0, 0.016), 0.10, 0.0, false},
+      {"tune_straight_i", 307, im::Point2(0.0, 0.034), -0.06, 0.0, false},
+      {"tune_straight_j", 311, im::Point2(0.0, 0.027), 0.04, 0.0, false},
+      {"tune_arc_f", 313, im::Point2(0.0, 0.024), -0.05, 8.0, false},
+      {"tune_arc_g", 317, im::Point2(0.0, 0.018), 0.12, -7.0, false},
+      {"tune_arc_h", 319, im::Point2(0.0, 0.031), 0.0, -9.0, false},
+      {"tune_arc_i", 323, im::Point2(0.0, 0.014), 0.05, 10.0, false},
       {"straight", 77, im::Point2(0.0, 0.015), 0.10, 0.0, true},
       {"arc", 91, im::Point2(0.0, 0.008), 0.25, -10.0, true},
       {"straight_b", 105, im::Point2(0.0, 0.028), 0.0, 0.0, true},
@@ -431,7 +441,9 @@ void writeHalvesAndHeldOut(const std::vector<Result>& fresh, const std::vector<T
   // seeing a held-out frame or error).
   const char* tuning_only = std::getenv("NG_TRACKING_TUNING_ONLY");
   const bool skip_held_out = tuning_only && std::string(tuning_only) == "1";
+  const char* only = std::getenv("NG_TRACKING_ONLY");  // DEBUG-TEMP
   for (const SyntheticSpec& spec : syntheticSpecs()) {
+    if (only && *only && spec.name != only) continue;
     if (!(skip_held_out && spec.held_out))
       runs.push_back(syntheticRun(scene, spec, &table, dir));
   }

@@ -77,6 +77,9 @@ struct NeedleSegment {
   /// difference, 6 to 30 px beyond the tip along its direction (0 for a single frame; >= 3:
   /// the needle goes on past this tip, which is then traced short).
   double motion_ahead = 0.0;
+  /// No line moved: the tip is the front of the frame's one brightening blob (a needle hidden in
+  /// a layer's glare or a shadow, advancing); tail_px is the blob's back, the angle its axis.
+  bool from_motion = false;
   double length_px() const;
 };
 
@@ -140,6 +143,9 @@ public:
   /// the same line is the same needle.
   static constexpr double kGateAhead_px = 2.0 * kGateTip_px;
   static constexpr double kGateLine_px = 8.0;      ///< tip's distance from the track's line [px]
+  /// The same for a tip from the motion alone (NeedleSegment::from_motion), whose front lies
+  /// among the needle's reverberation copies (5 of them, 0.5 mm apart: 25 px at 0.1 mm) [px].
+  static constexpr double kGateMotionLine_px = 3.0 * kGateLine_px;
   static constexpr double kGateAngle_rad = 0.087;  ///< 5 degrees
   static constexpr double kAgreeTip_px = 12.0;     ///< agreement of consecutive detections [px]
   /// Advance along the axis that shows a track is a needle being inserted [px]: more than the
@@ -150,6 +156,9 @@ private:
   /// b on a's line (both ways), its tip from tip_px behind a's to max(tip_px, ahead_px) ahead.
   bool agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px, double ahead_px) const;
   Output update(const NeedleSegment& d);
+  /// The axis of a tip from the motion alone: its path since the track began once that is
+  /// kEarnAdvance_px long, else the track's shaft, else the blob's own axis.
+  double motionAxis(const NeedleSegment& d) const;
   /// The track's motion model one frame on (the tip along the axis at the last speed).
   NeedleSegment predicted() const;
   /// A frame whose detection shows no tip of the moving track (gated out or missing): coast on
