@@ -78,6 +78,8 @@ constexpr int kBlobMinArea_px = 100;
 /// A line whose tip lies within this of the blob's front is the needle seen [px] (the front lies
 /// among the reverberation copies, up to 25 px from the shaft at 0.1 mm pixels).
 constexpr double kBlobOnLine_px = 24.0;
+/// A blob's front this far ahead of a line's tip along it: the tip was traced short [px].
+constexpr double kBlobAhead_px = 10.0;
 /// Background model: exponential average of the frames, this weight for the newest.
 constexpr double kBackgroundRate = 0.3;
 /// Step 5: a ridge pixel is aligned with the line if its orientation is within this [rad].
@@ -639,7 +641,7 @@ std::string summary(const NeedleSegment& s) {
   out.precision(3);
   out << "needle " << s.length_px() << " px, tip (" << s.tip_px.x << ", " << s.tip_px.y
       << "), evidence " << s.evidence << ", symmetry " << s.symmetry << ", coherence "
-      << s.coherence;
+      << s.coherence << (s.extended_by_motion ? ", tip moved on to the motion's front" : "");
   return out.str();
 }
 
@@ -845,6 +847,38 @@ std::optional<MotionBlob> motionBlob(const cv::Mat& motion, EntrySide entry) {
   return b;
 }
 
+/// How far along from + u dir (u in [0, reach]) the brightening goes: the last u where the motion
+/// map is at least half its largest value on the way (half the height of a blurred edge is the
+/// edge); -1 if nothing brightens.
+double motionFront(const cv::Mat& motion, cv::Point2d from, cv::Point2d dir, double reach) {
+  std::vector<float> v;
+  for (double u = 0.0; u <= reach; u += 1.0)
+    v.push_back(sample(motion, from + u * dir));
+  const float peak = v.empty() ? 0.0F : *std::max_element(v.begin(), v.end());
+  if (peak <= 0.0F)
+    return -1.0;
+  for (std::size_t i = v.size(); i-- > 0;) {
+    if (v[i] >= 0.5F * peak)
+      return static_cast<double>(i);
+  }
+  return -1.0;
+}
+
+/// A line's tip traced short of where the needle is (the ridge fades, or the shaft runs into a
+/// layer's glare) while the frame's one brightening blob lies ahead on the line: the tip moves on
+/// along the line to the motion's front.
+void extendToMotionFront(const cv::Mat& motion, const NeedleSegment& blob, NeedleSegment* s) {
+  const cv::Point2d d(std::cos(s->angle_rad), std::sin(s->angle_rad)), n(-d.y, d.x);
+  const double ahead = (blob.tip_px - s->tip_px).dot(d);
+  if (ahead < kBlobAhead_px || std::abs((blob.tip_px - s->tip_px).dot(n)) > kBlobOnLine_px)
+    return;
+  const double u = motionFront(motion, s->tip_px, d, ahead + kBlobAhead_px);
+  if (u < kBlobAhead_px)
+    return;
+  s->tip_px += u * d;
+  s->extended_by_motion = true;
+}
+
 /// Step 6 without a moving line: a dominant, strong brightening blob (kBlobDominance of the
 /// frame's brightening, peak kBlobPeak, at least kBlobMinArea_px pixels) is where a needle has
 /// just advanced while nothing else changed: its tip is the blob's front along its principal axis.
@@ -859,9 +893,11 @@ std::optional<NeedleSegment> tipFromMotion(const cv::Mat& motion, EntrySide entr
   NeedleSegment s;
   s.found = true;
   s.from_motion = true;
-  s.tip_px = b->front;
+  const double length = cv::norm(b->front - b->back);
+  const cv::Point2d d = (b->front - b->back) / std::max(length, 1e-9);
   s.tail_px = b->back;
-  s.angle_rad = std::atan2(b->front.y - b->back.y, b->front.x - b->back.x);
+  s.tip_px = b->back + std::max(0.0, motionFront(motion, b->back, d, length)) * d;
+  s.angle_rad = std::atan2(d.y, d.x);
   s.motion = b->peak;
   std::ostringstream out;
   out.precision(3);
@@ -939,9 +975,7 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
   const std::optional<Candidate> best = bestCandidate(all, options, grey.size(), motion);
   // No line moves like a needle: the tip where the frame alone brightens, if it does and the
   // best line does not end there (a line traced to that tip is kept: it shows the shaft).
-  const std::optional<NeedleSegment> hidden =
-      !best || best->cues.motion < kMinMotionRatio ? tipFromMotion(motion, options.entry)
-                                                   : std::nullopt;
+  const std::optional<NeedleSegment> hidden = tipFromMotion(motion, options.entry);
   if (!best) {
     if (hidden)
       return *hidden;
@@ -950,8 +984,17 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
   }
   NeedleSegment s = best->cues;  // step 6
   tipAtHalfLevel(ridge, options.ridge_sigma_px, options.max_gap_px, *best, &s);
-  if (hidden && cv::norm(hidden->tip_px - s.tip_px) > kBlobOnLine_px)
+  if (std::getenv("NG_ACQ_DEBUG")) {  // DEBUG-TEMP
+    const auto b = motionBlob(motion, options.entry);
+    if (b)
+      std::fprintf(stderr, "   blob front (%.0f,%.0f) dom %.2f peak %.1f area %d; best motion %.2f\n",
+                   b->front.x, b->front.y, b->dominance, b->peak, b->area, best->cues.motion);
+  }
+  if (hidden && best->cues.motion < kMinMotionRatio &&
+      cv::norm(hidden->tip_px - s.tip_px) > kBlobOnLine_px)
     return *hidden;
+  if (hidden)
+    extendToMotionFront(motion, *hidden, &s);
   s.motion_ahead = motionAhead(motion, s);
   if (best->score < options.min_evidence) {
     s.found = false;

@@ -80,6 +80,9 @@ struct NeedleSegment {
   /// No line moved: the tip is the front of the frame's one brightening blob (a needle hidden in
   /// a layer's glare or a shadow, advancing); tail_px is the blob's back, the angle its axis.
   bool from_motion = false;
+  /// The traced tip stopped short of the frame's one brightening blob ahead on the line: the tip
+  /// was moved on along the line to the front of that motion.
+  bool extended_by_motion = false;
   double length_px() const;
 };
 
