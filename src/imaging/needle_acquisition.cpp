@@ -72,6 +72,7 @@ constexpr double kMinMotionRatio = 3.0;
 /// Motion-only tip (tipFromMotion): the motion map's level a blob is cut at, the share of the
 /// frame's brightening above it the blob must hold, its peak and its area.
 constexpr double kBlobLevel = 4.0;
+constexpr int kBlobJoin_px = 4;
 constexpr double kBlobDominance = 0.9;
 constexpr double kBlobPeak = 10.0;
 constexpr int kBlobMinArea_px = 100;
@@ -770,7 +771,8 @@ double motionAhead(const cv::Mat& motion, const NeedleSegment& s) {
 /// A brightening blob of the motion map: where a needle advancing along its own axis has just
 /// gone (its echo and reverberation tail appear there) while the tissue around stays still.
 struct MotionBlob {
-  cv::Point2d front, back;  ///< its extent on its principal axis (front away from the entry)
+  cv::Point2d front;        ///< its pixel farthest along its axis (away from the entry) at half peak
+  cv::Point2d back;         ///< its extent back along its principal axis
   double dominance = 0.0;   ///< its share of the frame's brightening above the level
   double elongation = 0.0;  ///< sqrt of the principal moments' ratio
   double peak = 0.0;        ///< its largest motion value
@@ -780,9 +782,14 @@ struct MotionBlob {
 std::optional<MotionBlob> motionBlob(const cv::Mat& motion, EntrySide entry) {
   if (motion.empty())
     return std::nullopt;
-  cv::Mat mask = motion > kBlobLevel;
-  cv::Mat labels;
-  const int n = cv::connectedComponents(mask, labels, 8, CV_32S);
+  const cv::Mat mask = motion > kBlobLevel;
+  // Fragments of one change (the needle's echo and its reverberation copies, a few pixels
+  // apart) are one blob: components of the mask dilated by kBlobJoin_px, summed over the mask.
+  cv::Mat joined, labels;
+  cv::dilate(mask, joined,
+             cv::getStructuringElement(cv::MORPH_ELLIPSE,
+                                       cv::Size(2 * kBlobJoin_px + 1, 2 * kBlobJoin_px + 1)));
+  const int n = cv::connectedComponents(joined, labels, 8, CV_32S);
   if (n < 2)
     return std::nullopt;
   std::vector<double> sum(static_cast<std::size_t>(n), 0.0);
@@ -790,8 +797,9 @@ std::optional<MotionBlob> motionBlob(const cv::Mat& motion, EntrySide entry) {
   for (int r = 0; r < labels.rows; ++r) {
     const int* l = labels.ptr<int>(r);
     const float* m = motion.ptr<float>(r);
+    const std::uint8_t* in = mask.ptr<std::uint8_t>(r);
     for (int c = 0; c < labels.cols; ++c) {
-      if (l[c] > 0) {
+      if (l[c] > 0 && in[c]) {
         sum[static_cast<std::size_t>(l[c])] += m[c];
         total += m[c];
       }
@@ -804,8 +812,9 @@ std::optional<MotionBlob> motionBlob(const cv::Mat& motion, EntrySide entry) {
   for (int r = 0; r < labels.rows; ++r) {
     const int* l = labels.ptr<int>(r);
     const float* m = motion.ptr<float>(r);
+    const std::uint8_t* in = mask.ptr<std::uint8_t>(r);
     for (int c = 0; c < labels.cols; ++c) {
-      if (l[c] != best)
+      if (l[c] != best || !in[c])
         continue;
       w += m[c], mx += m[c] * c, my += m[c] * r;
       sxx += m[c] * c * c, syy += m[c] * r * r, sxy += m[c] * c * r;
@@ -833,12 +842,18 @@ std::optional<MotionBlob> motionBlob(const cv::Mat& motion, EntrySide entry) {
     d = -d;
   MotionBlob b;
   double lo = 1e18, hi = -1e18;
+  double half_hi = -1e18;
   for (const cv::Point& p : pts) {
     const double u = (p.x - mx) * d.x + (p.y - my) * d.y;
     hi = std::max(hi, u);
     lo = std::min(lo, u);
+    // The front: the blob's pixel farthest along at half its peak or more (half the height of
+    // a blurred edge is the edge).
+    if (motion.at<float>(p) >= 0.5 * peak && u > half_hi) {
+      half_hi = u;
+      b.front = cv::Point2d(p.x, p.y);
+    }
   }
-  b.front = cv::Point2d(mx, my) + hi * d;
   b.back = cv::Point2d(mx, my) + lo * d;
   b.dominance = total > 0 ? sum[static_cast<std::size_t>(best)] / total : 0.0;
   b.elongation = std::sqrt(l1 / l2);
@@ -893,11 +908,9 @@ std::optional<NeedleSegment> tipFromMotion(const cv::Mat& motion, EntrySide entr
   NeedleSegment s;
   s.found = true;
   s.from_motion = true;
-  const double length = cv::norm(b->front - b->back);
-  const cv::Point2d d = (b->front - b->back) / std::max(length, 1e-9);
   s.tail_px = b->back;
-  s.tip_px = b->back + std::max(0.0, motionFront(motion, b->back, d, length)) * d;
-  s.angle_rad = std::atan2(d.y, d.x);
+  s.tip_px = b->front;
+  s.angle_rad = std::atan2(b->front.y - b->back.y, b->front.x - b->back.x);
   s.motion = b->peak;
   std::ostringstream out;
   out.precision(3);
@@ -973,6 +986,11 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
       break;
   }
   const std::optional<Candidate> best = bestCandidate(all, options, grey.size(), motion);
+  if (std::getenv("NG_ACQ_DEBUG")) {  // DEBUG-TEMP
+    if (const auto b = motionBlob(motion, options.entry))
+      std::fprintf(stderr, "   BLOB front (%.0f,%.0f) dom %.2f peak %.1f area %d\n",
+                   b->front.x, b->front.y, b->dominance, b->peak, b->area);
+  }
   // No line moves like a needle: the tip where the frame alone brightens, if it does and the
   // best line does not end there (a line traced to that tip is kept: it shows the shaft).
   const std::optional<NeedleSegment> hidden = tipFromMotion(motion, options.entry);
@@ -984,7 +1002,7 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
   }
   NeedleSegment s = best->cues;  // step 6
   tipAtHalfLevel(ridge, options.ridge_sigma_px, options.max_gap_px, *best, &s);
-  if (std::getenv("NG_ACQ_DEBUG")) {  // DEBUG-TEMP
+  if (std::getenv("NG_ACQ_DEBUG") && !std::getenv("NG_ACQ_DEBUG2")) {  // DEBUG-TEMP
     const auto b = motionBlob(motion, options.entry);
     if (b)
       std::fprintf(stderr, "   blob front (%.0f,%.0f) dom %.2f peak %.1f area %d; best motion %.2f\n",
@@ -1019,11 +1037,17 @@ bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, dou
   const cv::Point2d n(-std::sin(a.angle_rad), std::cos(a.angle_rad));
   const cv::Point2d nb(-std::sin(b.angle_rad), std::cos(b.angle_rad));
   const double along = (b.tip_px - a.tip_px).dot(cv::Point2d(-n.y, n.x));
+  if (a.from_motion && b.from_motion) {
+    // Two tips from the motion alone: no shaft, a rough axis; only the distance counts.
+    return cv::norm(b.tip_px - a.tip_px) < std::max(tip_px, ahead_px);
+  }
   if (a.from_motion || b.from_motion) {
-    // A tip from the motion alone has no shaft: its axis is rough, and its front lies among the
-    // reverberation copies beside the needle. Only where the tip is counts.
-    const double off = std::abs((b.tip_px - a.tip_px).dot(a.from_motion ? nb : n));
-    return off < kGateMotionLine_px && along > -tip_px && along < std::max(tip_px, ahead_px);
+    // A tip from the motion alone against a shaft: its front lies among the reverberation
+    // copies beside the needle, on the shaft's line.
+    const cv::Point2d n_line = a.from_motion ? nb : n, d_line(n_line.y, -n_line.x);
+    const double along_line = (b.tip_px - a.tip_px).dot(d_line);
+    return std::abs((b.tip_px - a.tip_px).dot(n_line)) < kGateMotionLine_px &&
+           along_line > -tip_px && along_line < std::max(tip_px, ahead_px);
   }
   // Off the line both ways: a line that only meets the other's far extension (a layer in line
   // with the needle hundreds of pixels on) is not the same line.
@@ -1181,6 +1205,9 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       out.segment.message = "moving needle replaces a still line: " + d.message;
       return out;
     }
+    if (std::getenv("NG_ACQ_DEBUG"))  // DEBUG-TEMP
+      std::fprintf(stderr, "   gated out: %s (pred tip %.0f,%.0f ang %.2f; d ang %.2f)\n", d.message.c_str(),
+                   pred.tip_px.x, pred.tip_px.y, pred.angle_rad, d.angle_rad);
     if (d.found) {  // gated out: re-acquire only after agreeing frames
       if (std::optional<Output> again = reacquire(d))
         return *again;
