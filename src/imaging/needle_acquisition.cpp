@@ -73,6 +73,7 @@ constexpr double kMinMotionRatio = 3.0;
 /// frame's brightening above it the blob must hold, its peak and its area.
 constexpr double kBlobLevel = 4.0;
 constexpr int kBlobJoin_px = 4;
+constexpr int kBlobSpeck_px = 20;
 constexpr double kBlobDominance = 0.9;
 constexpr double kBlobPeak = 10.0;
 constexpr int kBlobMinArea_px = 100;
@@ -793,7 +794,7 @@ std::optional<MotionBlob> motionBlob(const cv::Mat& motion, EntrySide entry) {
   if (n < 2)
     return std::nullopt;
   std::vector<double> sum(static_cast<std::size_t>(n), 0.0);
-  double total = 0.0;
+  std::vector<int> count(static_cast<std::size_t>(n), 0);
   for (int r = 0; r < labels.rows; ++r) {
     const int* l = labels.ptr<int>(r);
     const float* m = motion.ptr<float>(r);
@@ -801,10 +802,14 @@ std::optional<MotionBlob> motionBlob(const cv::Mat& motion, EntrySide entry) {
     for (int c = 0; c < labels.cols; ++c) {
       if (l[c] > 0 && in[c]) {
         sum[static_cast<std::size_t>(l[c])] += m[c];
-        total += m[c];
+        ++count[static_cast<std::size_t>(l[c])];
       }
     }
   }
+  // Specks of noise (smaller than kBlobSpeck_px) are no change that competes with the blob.
+  double total = 0.0;
+  for (int k = 1; k < n; ++k)
+    total += count[static_cast<std::size_t>(k)] >= kBlobSpeck_px ? sum[static_cast<std::size_t>(k)] : 0.0;
   const int best = static_cast<int>(std::max_element(sum.begin() + 1, sum.end()) - sum.begin());
   double w = 0, mx = 0, my = 0, sxx = 0, syy = 0, sxy = 0, peak = 0;
   int area = 0;
