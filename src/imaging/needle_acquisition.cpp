@@ -4,12 +4,9 @@
 #include <algorithm>
 #include <cmath>
 #include <opencv2/imgproc.hpp>
-#include <opencv2/imgcodecs.hpp>
 #include <sstream>
 #include <stdexcept>
 #include <vector>
-#include <cstdio>
-#include <cstdlib>
 
 namespace needle_guidance::imaging {
 
@@ -772,9 +769,9 @@ double motionAhead(const cv::Mat& motion, const NeedleSegment& s) {
 /// A brightening blob of the motion map: where a needle advancing along its own axis has just
 /// gone (its echo and reverberation tail appear there) while the tissue around stays still.
 struct MotionBlob {
-  cv::Point2d front;        ///< its pixel farthest along its axis (away from the entry) at half peak
-  cv::Point2d back;         ///< its extent back along its principal axis
-  double dominance = 0.0;   ///< its share of the frame's brightening above the level
+  cv::Point2d front;       ///< its pixel farthest along its axis (away from the entry) at half peak
+  cv::Point2d back;        ///< its extent back along its principal axis
+  double dominance = 0.0;  ///< its share of the frame's brightening above the level
   double elongation = 0.0;  ///< sqrt of the principal moments' ratio
   double peak = 0.0;        ///< its largest motion value
   int area = 0;
@@ -809,7 +806,8 @@ std::optional<MotionBlob> motionBlob(const cv::Mat& motion, EntrySide entry) {
   // Specks of noise (smaller than kBlobSpeck_px) are no change that competes with the blob.
   double total = 0.0;
   for (int k = 1; k < n; ++k)
-    total += count[static_cast<std::size_t>(k)] >= kBlobSpeck_px ? sum[static_cast<std::size_t>(k)] : 0.0;
+    total += count[static_cast<std::size_t>(k)] >= kBlobSpeck_px ? sum[static_cast<std::size_t>(k)]
+                                                                 : 0.0;
   const int best = static_cast<int>(std::max_element(sum.begin() + 1, sum.end()) - sum.begin());
   double w = 0, mx = 0, my = 0, sxx = 0, syy = 0, sxy = 0, peak = 0;
   int area = 0;
@@ -840,9 +838,10 @@ std::optional<MotionBlob> motionBlob(const cv::Mat& motion, EntrySide entry) {
   double bulk = 0.0;
   for (const cv::Point& p : pts)
     bulk += (p.x - mx) * d.x + (p.y - my) * d.y;
-  const bool flip = (entry == EntrySide::kLeft && d.x < 0) || (entry == EntrySide::kRight && d.x > 0) ||
-                    (entry == EntrySide::kTop && d.y < 0) || (entry == EntrySide::kBottom && d.y > 0) ||
-                    (entry == EntrySide::kAuto && bulk > 0);
+  const bool flip =
+      (entry == EntrySide::kLeft && d.x < 0) || (entry == EntrySide::kRight && d.x > 0) ||
+      (entry == EntrySide::kTop && d.y < 0) || (entry == EntrySide::kBottom && d.y > 0) ||
+      (entry == EntrySide::kAuto && bulk > 0);
   if (flip)
     d = -d;
   MotionBlob b;
@@ -943,12 +942,6 @@ std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const Acquis
     c.cues.motion = tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
     any_moving = any_moving || (c.cues.motion >= kMinMotionRatio && c.score >= o.min_evidence);
   }
-  if (std::getenv("NG_ACQ_DEBUG")) {  // DEBUG-TEMP
-    for (const Candidate& c : all)
-      std::fprintf(stderr, "   cand tail (%.0f,%.0f) tip (%.0f,%.0f) ev %.1f sym %.2f coh %.2f score %.1f mot %.2f k %.4f\n",
-                   c.cues.tail_px.x, c.cues.tail_px.y, c.cues.tip_px.x, c.cues.tip_px.y, c.cues.evidence,
-                   c.cues.symmetry, c.cues.coherence, c.score, c.cues.motion, c.line.kappa);
-  }
   std::optional<Candidate> best;
   for (const Candidate& c : all) {
     if (any_moving && c.cues.motion < kMinMotionRatio)
@@ -991,11 +984,6 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
       break;
   }
   const std::optional<Candidate> best = bestCandidate(all, options, grey.size(), motion);
-  if (std::getenv("NG_ACQ_DEBUG")) {  // DEBUG-TEMP
-    if (const auto b = motionBlob(motion, options.entry))
-      std::fprintf(stderr, "   BLOB front (%.0f,%.0f) dom %.2f peak %.1f area %d\n",
-                   b->front.x, b->front.y, b->dominance, b->peak, b->area);
-  }
   // No line moves like a needle: the tip where the frame alone brightens, if it does and the
   // best line does not end there (a line traced to that tip is kept: it shows the shaft).
   const std::optional<NeedleSegment> hidden = tipFromMotion(motion, options.entry);
@@ -1007,12 +995,6 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
   }
   NeedleSegment s = best->cues;  // step 6
   tipAtHalfLevel(ridge, options.ridge_sigma_px, options.max_gap_px, *best, &s);
-  if (std::getenv("NG_ACQ_DEBUG") && !std::getenv("NG_ACQ_DEBUG2")) {  // DEBUG-TEMP
-    const auto b = motionBlob(motion, options.entry);
-    if (b)
-      std::fprintf(stderr, "   blob front (%.0f,%.0f) dom %.2f peak %.1f area %d; best motion %.2f\n",
-                   b->front.x, b->front.y, b->dominance, b->peak, b->area, best->cues.motion);
-  }
   if (hidden && best->cues.motion < kMinMotionRatio &&
       cv::norm(hidden->tip_px - s.tip_px) > kBlobOnLine_px)
     return *hidden;
@@ -1095,14 +1077,7 @@ SequenceTracker::Output SequenceTracker::onFrame(const cv::Mat& frame) {
   }
   last_frame_ = frame.clone();
   size_ = frame.size();
-  const cv::Mat mm = motionMap(frame);
-  if (const char* dbg = std::getenv("NG_MOTION_DUMP"); dbg && !mm.empty()) {  // DEBUG-TEMP
-    static int n = 0;
-    cv::Mat v;
-    mm.convertTo(v, CV_8U, 10.0, 128.0);
-    cv::imwrite(std::string(dbg) + "/motion_" + std::to_string(n++) + ".png", v);
-  }
-  last_output_ = update(acquireNeedle(frame, options_, mm));
+  last_output_ = update(acquireNeedle(frame, options_, motionMap(frame)));
   return last_output_;
 }
 
@@ -1191,8 +1166,8 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       out.segment = *track_;
       // Never confident while the tissue ahead of the tip still brightens (the needle has
       // advanced past the traced tip), nor from the motion alone (no shaft seen).
-      out.confident = agreeing_ >= kConfirmFrames && moved_ &&
-                      d.motion_ahead < kMinMotionRatio && !d.from_motion;
+      out.confident = agreeing_ >= kConfirmFrames && moved_ && d.motion_ahead < kMinMotionRatio &&
+                      !d.from_motion;
       if (seen_moving_ && !moved_) {
         out.segment.found = false;  // the needle moved before: a still line is not it
         out.segment.message = "a still line, and the needle moved before: " + d.message;
@@ -1210,9 +1185,6 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       out.segment.message = "moving needle replaces a still line: " + d.message;
       return out;
     }
-    if (std::getenv("NG_ACQ_DEBUG"))  // DEBUG-TEMP
-      std::fprintf(stderr, "   gated out: %s (pred tip %.0f,%.0f ang %.2f; d ang %.2f)\n", d.message.c_str(),
-                   pred.tip_px.x, pred.tip_px.y, pred.angle_rad, d.angle_rad);
     if (d.found) {  // gated out: re-acquire only after agreeing frames
       if (std::optional<Output> again = reacquire(d))
         return *again;

@@ -441,9 +441,11 @@ void writeHalvesAndHeldOut(const std::vector<Result>& fresh, const std::vector<T
   // seeing a held-out frame or error).
   const char* tuning_only = std::getenv("NG_TRACKING_TUNING_ONLY");
   const bool skip_held_out = tuning_only && std::string(tuning_only) == "1";
-  const char* only = std::getenv("NG_TRACKING_ONLY");  // DEBUG-TEMP
+  // NG_TRACKING_ONLY=NAME: that synthetic sequence only (with the above, never a held-out one).
+  const char* only = std::getenv("NG_TRACKING_ONLY");
   for (const SyntheticSpec& spec : syntheticSpecs()) {
-    if (only && *only && spec.name != only) continue;
+    if (only && *only && spec.name != only)
+      continue;
     if (!(skip_held_out && spec.held_out))
       runs.push_back(syntheticRun(scene, spec, &table, dir));
   }

@@ -299,8 +299,8 @@ std::vector<im::Point2> needlePoints(im::Point2 entry, double angle, double leng
       pts.push_back(entry + s * im::Point2(std::cos(angle), std::sin(angle)));
     } else {
       const double h = angle + kappa * s;
-      pts.push_back(entry + im::Point2(std::sin(h) - std::sin(angle),
-                                       std::cos(angle) - std::cos(h)) / kappa);
+      pts.push_back(
+          entry + im::Point2(std::sin(h) - std::sin(angle), std::cos(angle) - std::cos(h)) / kappa);
     }
   }
   return pts;

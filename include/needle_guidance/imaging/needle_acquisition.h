@@ -145,7 +145,7 @@ public:
   /// (fading, in a layer's glare) leaves the track behind the needle; a detection further along
   /// the same line is the same needle.
   static constexpr double kGateAhead_px = 2.0 * kGateTip_px;
-  static constexpr double kGateLine_px = 8.0;      ///< tip's distance from the track's line [px]
+  static constexpr double kGateLine_px = 8.0;  ///< tip's distance from the track's line [px]
   /// The same for a tip from the motion alone (NeedleSegment::from_motion), whose front lies
   /// among the needle's reverberation copies (5 of them, 0.5 mm apart: 25 px at 0.1 mm) [px].
   static constexpr double kGateMotionLine_px = 3.0 * kGateLine_px;
