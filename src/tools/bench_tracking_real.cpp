@@ -241,22 +241,6 @@ im::ImagerConfig imager(const ng::scene::Scene& scene, im::UltrasoundModel model
   return c;
 }
 
-/// A needle from `entry` [m] at `angle` [rad above +x], `length` [m] inserted, straight or on
-/// an arc of curvature `kappa` [1/m] (> 0 turning up in the scene), as points 0.25 mm apart.
-std::vector<im::Point2> needlePoints(im::Point2 entry, double angle, double length, double kappa) {
-  std::vector<im::Point2> pts;
-  for (double s = 0.0; s <= length + 1e-12; s += 0.25e-3) {
-    if (kappa == 0.0) {
-      pts.push_back(entry + s * im::Point2(std::cos(angle), std::sin(angle)));
-    } else {
-      const double h = angle + kappa * s;
-      pts.push_back(
-          entry + im::Point2(std::sin(h) - std::sin(angle), std::cos(angle) - std::cos(h)) / kappa);
-    }
-  }
-  return pts;
-}
-
 /// The needle's mask (5 px wide) in the frame, as a hand-drawn one would cover it.
 cv::Mat needleMask(const std::vector<im::Point2>& pts, const im::ImageGeometry& g) {
   cv::Mat mask(g.size(), CV_8U, cv::Scalar(0));
@@ -330,7 +314,8 @@ SyntheticRun syntheticRun(const ng::scene::Scene& scene, const SyntheticSpec& sp
   std::vector<Truth> ts;
   for (int k = 0; k < 20; ++k) {
     const double length = 0.02 + 1e-3 * k;
-    const std::vector<im::Point2> pts = needlePoints(spec.entry, spec.angle, length, spec.kappa);
+    const std::vector<im::Point2> pts =
+        im::insertedNeedlePoints(spec.entry, spec.angle, length, spec.kappa);
     const cv::Mat image = renderer.render(pts, static_cast<std::uint64_t>(k)).image;
     rs.push_back(trackTimed(tracker, image));
     const double h = spec.angle + spec.kappa * length;  // heading at the tip, scene y up
@@ -392,7 +377,8 @@ std::vector<std::pair<std::string, im::BModeStatistics>> realism(
     const im::FrameRenderer renderer(scene, c);
     std::vector<im::BModeStatistics> v;
     for (int k = 0; k < 5; ++k) {
-      const auto pts = needlePoints(im::Point2(0.0, 0.012), 8.0 / kDegPerRad, 0.02 + 2e-3 * k, 0.0);
+      const auto pts =
+          im::insertedNeedlePoints(im::Point2(0.0, 0.012), 8.0 / kDegPerRad, 0.02 + 2e-3 * k, 0.0);
       v.push_back(im::bmodeStatistics(renderer.render(pts, static_cast<std::uint64_t>(k)).image,
                                       needleMask(pts, c.geometry)));
     }

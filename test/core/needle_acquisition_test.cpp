@@ -287,27 +287,6 @@ TEST(NeedleAcquisition, StillBrightLineIsNeverConfident) {
   }
 }
 
-namespace {
-
-/// Points of a needle from `entry` [m] at `angle` [rad above +x], `length` [m] long, straight
-/// (kappa 0) or on an arc of curvature kappa [1/m] (> 0 turning up in the scene).
-std::vector<im::Point2> needlePoints(im::Point2 entry, double angle, double length,
-                                     double kappa = 0.0) {
-  std::vector<im::Point2> pts;
-  for (double s = 0.0; s <= length + 1e-12; s += 0.25e-3) {
-    if (kappa == 0.0) {
-      pts.push_back(entry + s * im::Point2(std::cos(angle), std::sin(angle)));
-    } else {
-      const double h = angle + kappa * s;
-      pts.push_back(
-          entry + im::Point2(std::sin(h) - std::sin(angle), std::cos(angle) - std::cos(h)) / kappa);
-    }
-  }
-  return pts;
-}
-
-}  // namespace
-
 /// The imager's realistic ultrasound (frame_renderer.h) on steering_workspace at 0.1 mm
 /// pixels: two specular layers spanning the frame, brighter and thicker than the needle,
 /// obstacle outlines, speckle through a PSF, the needle's shadow and reverberation tail, the
@@ -338,7 +317,7 @@ std::vector<double> realisticSequenceErrors(std::uint64_t seed, im::Point2 entry
   im::SequenceTracker tracker(o);
   std::vector<double> errors;
   for (int k = 0; k < frames; ++k) {
-    const auto pts = needlePoints(entry, angle, 0.02 + 1e-3 * k, kappa);
+    const auto pts = im::insertedNeedlePoints(entry, angle, 0.02 + 1e-3 * k, kappa);
     const auto out = tracker.onFrame(renderer.render(pts, static_cast<std::uint64_t>(k)).image);
     const double e =
         out.segment.found ? cv::norm(out.segment.tip_px - c.geometry.toPixel(pts.back())) : 1e9;
@@ -353,6 +332,18 @@ std::vector<double> realisticSequenceErrors(std::uint64_t seed, im::Point2 entry
   }
   std::sort(errors.begin(), errors.end());
   return errors;
+}
+
+/// A 20-frame realistic sequence (realisticSequenceErrors) followed: the median error from frame
+/// 2 on under `median_px`, and no reported tip further off than `worst_px` [px].
+void expectFollowed(std::uint64_t seed, im::Point2 entry, double angle, double kappa,
+                    double median_px, double worst_px) {
+  double worst_found_px = 0.0;
+  const std::vector<double> e =
+      realisticSequenceErrors(seed, entry, angle, 20, &worst_found_px, kappa);
+  EXPECT_LT(e[e.size() / 2], median_px) << "median over frames 2-19, seed " << seed;
+  EXPECT_LT(worst_found_px, worst_px)
+      << "a reported tip far off (the still outline), seed " << seed;
 }
 
 TEST(NeedleAcquisition, RealisticLayersBrighterAndLongerThanTheNeedleAreRejected) {
@@ -381,11 +372,7 @@ TEST(NeedleAcquisition, NeedleHiddenInAnObstacleShadowIsFollowedNotReplacedByASt
   // tracking_real's tuning sequence tune_straight_d, 20 frames). The track coasts on its motion
   // model through the shadow (predicted, never confident), the still outline never takes its
   // place, and the needle is taken up again when it moves out.
-  double worst_found_px = 0.0;
-  const std::vector<double> e =
-      realisticSequenceErrors(203, im::Point2(0.0, 0.025), 0.02, 20, &worst_found_px);
-  EXPECT_LT(e[e.size() / 2], kTipTolerance_px) << "median over frames 2-19";
-  EXPECT_LT(worst_found_px, kHiddenTipCoast_px) << "a reported tip far off: the still outline";
+  expectFollowed(203, im::Point2(0.0, 0.025), 0.02, 0.0, kTipTolerance_px, kHiddenTipCoast_px);
 }
 
 TEST(NeedleAcquisition, NeedleInsideASaturatedLayerIsFollowedByItsMotion) {
@@ -394,11 +381,7 @@ TEST(NeedleAcquisition, NeedleInsideASaturatedLayerIsFollowedByItsMotion) {
   // (230 px long) is the best line in every frame. Its advancing tip still brightens what it
   // reaches (its echo at the layer's edge, its reverberation copies): the frame's one
   // brightening blob. Reported from its front from frame 2 on, never confident.
-  double worst_found_px = 0.0;
-  const std::vector<double> e =
-      realisticSequenceErrors(11, im::Point2(0.0, 0.020), 0.05, 20, &worst_found_px);
-  EXPECT_LT(e[e.size() / 2], kHiddenTipMotion_px) << "median over frames 2-19";
-  EXPECT_LT(worst_found_px, kHiddenTipMotion_px) << "a reported tip far off: the still outline";
+  expectFollowed(11, im::Point2(0.0, 0.020), 0.05, 0.0, kHiddenTipMotion_px, kHiddenTipMotion_px);
 }
 
 TEST(NeedleAcquisition, TipTracedShortIsMovedOnToTheMotionFront) {
@@ -416,11 +399,7 @@ TEST(NeedleAcquisition, ArcNeedleWhoseTipMergesIntoALayerIsFollowed) {
   // (bench tracking_real's tuning sequence tune_arc_d): its traced arc runs on along the layer to
   // the border and is discarded, so only the still outline remained (400 px off). Now followed by
   // its motion; no reported tip far off.
-  double worst_found_px = 0.0;
-  const std::vector<double> e =
-      realisticSequenceErrors(209, im::Point2(0.0, 0.020), 0.02, 20, &worst_found_px, 7.0);
-  EXPECT_LT(e[e.size() / 2], kTipTolerance_px) << "median over frames 2-19";
-  EXPECT_LT(worst_found_px, kHiddenTipCoast_px) << "a reported tip far off: the still outline";
+  expectFollowed(209, im::Point2(0.0, 0.020), 0.02, 7.0, kTipTolerance_px, kHiddenTipCoast_px);
 }
 
 int main(int argc, char** argv) {
