@@ -18,7 +18,9 @@
 //           and its tip: the end away from the entry side (calibrated or worked out; a tip on
 //           the frame's border is no tip in view); over a sequence, a candidate whose tip end
 //           brightens as a needle advancing along its own axis does beats every still one
-//           (signed motion map).
+//           (signed motion map); in still tissue the frame's one brightening blob is where the
+//           needle has just gone: its front is the tip when no line moves (a needle hidden in a
+//           saturated layer or a shadow), and a line traced short of it is extended to it.
 // Plain C++ and OpenCV; no ROS (STYLE.md rules 1-2).
 #pragma once
 
@@ -119,7 +121,8 @@ public:
     /// Earned: kConfirmFrames agreeing detections in a row, of a track that has moved like a
     /// needle (its tip kEarnAdvance_px along its axis from where it was acquired, or a moving
     /// tip cue): a still bright line, however steady, never earns it; nor a tip with the
-    /// tissue ahead of it still brightening (motion_ahead >= 3: traced short).
+    /// tissue ahead of it still brightening (motion_ahead >= 3: traced short); nor a tip from
+    /// the motion alone (NeedleSegment::from_motion: no shaft seen).
     bool confident = false;
     bool predicted = false;  ///< no gated detection: the tip is the motion model's prediction
   };
