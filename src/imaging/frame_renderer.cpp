@@ -345,4 +345,20 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
   return frame;
 }
 
+std::vector<Point2> insertedNeedlePoints(Point2 p_SceneEntry, double angle_rad, double length_m,
+                                         double kappa_per_m, double step_m) {
+  std::vector<Point2> pts;
+  for (double s = 0.0; s <= length_m + 1e-12; s += step_m) {
+    if (kappa_per_m == 0.0) {
+      pts.push_back(p_SceneEntry + s * Point2(std::cos(angle_rad), std::sin(angle_rad)));
+    } else {
+      const double h = angle_rad + kappa_per_m * s;
+      pts.push_back(p_SceneEntry +
+                    Point2(std::sin(h) - std::sin(angle_rad), std::cos(angle_rad) - std::cos(h)) /
+                        kappa_per_m);
+    }
+  }
+  return pts;
+}
+
 }  // namespace needle_guidance::imaging

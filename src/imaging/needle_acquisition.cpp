@@ -66,6 +66,19 @@ constexpr double kMotionTipZone = 0.3;
 constexpr double kMotionMinZone_px = 10.0;
 constexpr double kMotionBeyondGaps = 2.0;  // the zone runs on this many max_gap_px past the end
 constexpr double kMinMotionRatio = 3.0;
+/// Motion-only tip (tipFromMotion): the motion map's level a blob is cut at, the share of the
+/// frame's brightening above it the blob must hold, its peak and its area.
+constexpr double kBlobLevel = 4.0;
+constexpr int kBlobJoin_px = 4;
+constexpr int kBlobSpeck_px = 20;
+constexpr double kBlobDominance = 0.9;
+constexpr double kBlobPeak = 10.0;
+constexpr int kBlobMinArea_px = 100;
+/// A line whose tip lies within this of the blob's front is the needle seen [px] (the front lies
+/// among the reverberation copies, up to 25 px from the shaft at 0.1 mm pixels).
+constexpr double kBlobOnLine_px = 24.0;
+/// A blob's front this far ahead of a line's tip along it: the tip was traced short [px].
+constexpr double kBlobAhead_px = 10.0;
 /// Background model: exponential average of the frames, this weight for the newest.
 constexpr double kBackgroundRate = 0.3;
 /// Step 5: a ridge pixel is aligned with the line if its orientation is within this [rad].
@@ -627,7 +640,7 @@ std::string summary(const NeedleSegment& s) {
   out.precision(3);
   out << "needle " << s.length_px() << " px, tip (" << s.tip_px.x << ", " << s.tip_px.y
       << "), evidence " << s.evidence << ", symmetry " << s.symmetry << ", coherence "
-      << s.coherence;
+      << s.coherence << (s.extended_by_motion ? ", tip moved on to the motion's front" : "");
   return out.str();
 }
 
@@ -753,6 +766,164 @@ double motionAhead(const cv::Mat& motion, const NeedleSegment& s) {
   return sum / count;
 }
 
+/// A brightening blob of the motion map: where a needle advancing along its own axis has just
+/// gone (its echo and reverberation tail appear there) while the tissue around stays still.
+struct MotionBlob {
+  cv::Point2d front;       ///< its pixel farthest along its axis (away from the entry) at half peak
+  cv::Point2d back;        ///< its extent back along its principal axis
+  double dominance = 0.0;  ///< its share of the frame's brightening above the level
+  double elongation = 0.0;  ///< sqrt of the principal moments' ratio
+  double peak = 0.0;        ///< its largest motion value
+  int area = 0;
+};
+
+std::optional<MotionBlob> motionBlob(const cv::Mat& motion, EntrySide entry) {
+  if (motion.empty())
+    return std::nullopt;
+  const cv::Mat mask = motion > kBlobLevel;
+  // Fragments of one change (the needle's echo and its reverberation copies, a few pixels
+  // apart) are one blob: components of the mask dilated by kBlobJoin_px, summed over the mask.
+  cv::Mat joined, labels;
+  cv::dilate(mask, joined,
+             cv::getStructuringElement(cv::MORPH_ELLIPSE,
+                                       cv::Size(2 * kBlobJoin_px + 1, 2 * kBlobJoin_px + 1)));
+  const int n = cv::connectedComponents(joined, labels, 8, CV_32S);
+  if (n < 2)
+    return std::nullopt;
+  std::vector<double> sum(static_cast<std::size_t>(n), 0.0);
+  std::vector<int> count(static_cast<std::size_t>(n), 0);
+  for (int r = 0; r < labels.rows; ++r) {
+    const int* l = labels.ptr<int>(r);
+    const float* m = motion.ptr<float>(r);
+    const std::uint8_t* in = mask.ptr<std::uint8_t>(r);
+    for (int c = 0; c < labels.cols; ++c) {
+      if (l[c] > 0 && in[c]) {
+        sum[static_cast<std::size_t>(l[c])] += m[c];
+        ++count[static_cast<std::size_t>(l[c])];
+      }
+    }
+  }
+  // Specks of noise (smaller than kBlobSpeck_px) are no change that competes with the blob.
+  double total = 0.0;
+  for (int k = 1; k < n; ++k)
+    total += count[static_cast<std::size_t>(k)] >= kBlobSpeck_px ? sum[static_cast<std::size_t>(k)]
+                                                                 : 0.0;
+  const int best = static_cast<int>(std::max_element(sum.begin() + 1, sum.end()) - sum.begin());
+  double w = 0, mx = 0, my = 0, sxx = 0, syy = 0, sxy = 0, peak = 0;
+  int area = 0;
+  std::vector<cv::Point> pts;
+  for (int r = 0; r < labels.rows; ++r) {
+    const int* l = labels.ptr<int>(r);
+    const float* m = motion.ptr<float>(r);
+    const std::uint8_t* in = mask.ptr<std::uint8_t>(r);
+    for (int c = 0; c < labels.cols; ++c) {
+      if (l[c] != best || !in[c])
+        continue;
+      w += m[c], mx += m[c] * c, my += m[c] * r;
+      sxx += m[c] * c * c, syy += m[c] * r * r, sxy += m[c] * c * r;
+      peak = std::max(peak, double(m[c]));
+      ++area;
+      pts.emplace_back(c, r);
+    }
+  }
+  mx /= w, my /= w;
+  const double cxx = sxx / w - mx * mx, cyy = syy / w - my * my, cxy = sxy / w - mx * my;
+  const double phi = 0.5 * std::atan2(2 * cxy, cxx - cyy);
+  const double tr = cxx + cyy, det = cxx * cyy - cxy * cxy;
+  const double l1 = 0.5 * tr + std::sqrt(std::max(0.25 * tr * tr - det, 0.0));
+  const double l2 = std::max(0.5 * tr - std::sqrt(std::max(0.25 * tr * tr - det, 0.0)), 1e-6);
+  cv::Point2d d(std::cos(phi), std::sin(phi));
+  // kAuto: the newest change (the front) is the strongest, the trail behind it fades with the
+  // background's memory: the front is the side the weighted centroid leans to.
+  double bulk = 0.0;
+  for (const cv::Point& p : pts)
+    bulk += (p.x - mx) * d.x + (p.y - my) * d.y;
+  const bool flip =
+      (entry == EntrySide::kLeft && d.x < 0) || (entry == EntrySide::kRight && d.x > 0) ||
+      (entry == EntrySide::kTop && d.y < 0) || (entry == EntrySide::kBottom && d.y > 0) ||
+      (entry == EntrySide::kAuto && bulk > 0);
+  if (flip)
+    d = -d;
+  MotionBlob b;
+  double lo = 1e18, hi = -1e18;
+  double half_hi = -1e18;
+  for (const cv::Point& p : pts) {
+    const double u = (p.x - mx) * d.x + (p.y - my) * d.y;
+    hi = std::max(hi, u);
+    lo = std::min(lo, u);
+    // The front: the blob's pixel farthest along at half its peak or more (half the height of
+    // a blurred edge is the edge).
+    if (motion.at<float>(p) >= 0.5 * peak && u > half_hi) {
+      half_hi = u;
+      b.front = cv::Point2d(p.x, p.y);
+    }
+  }
+  b.back = cv::Point2d(mx, my) + lo * d;
+  b.dominance = total > 0 ? sum[static_cast<std::size_t>(best)] / total : 0.0;
+  b.elongation = std::sqrt(l1 / l2);
+  b.peak = peak;
+  b.area = area;
+  return b;
+}
+
+/// How far along from + u dir (u in [0, reach]) the brightening goes: the last u where the motion
+/// map is at least half its largest value on the way (half the height of a blurred edge is the
+/// edge); -1 if nothing brightens.
+double motionFront(const cv::Mat& motion, cv::Point2d from, cv::Point2d dir, double reach) {
+  std::vector<float> v;
+  for (double u = 0.0; u <= reach; u += 1.0)
+    v.push_back(sample(motion, from + u * dir));
+  const float peak = v.empty() ? 0.0F : *std::max_element(v.begin(), v.end());
+  if (peak <= 0.0F)
+    return -1.0;
+  for (std::size_t i = v.size(); i-- > 0;) {
+    if (v[i] >= 0.5F * peak)
+      return static_cast<double>(i);
+  }
+  return -1.0;
+}
+
+/// A line's tip traced short of where the needle is (the ridge fades, or the shaft runs into a
+/// layer's glare) while the frame's one brightening blob lies ahead on the line: the tip moves on
+/// along the line to the motion's front.
+void extendToMotionFront(const cv::Mat& motion, const NeedleSegment& blob, NeedleSegment* s) {
+  const cv::Point2d d(std::cos(s->angle_rad), std::sin(s->angle_rad)), n(-d.y, d.x);
+  const double ahead = (blob.tip_px - s->tip_px).dot(d);
+  if (ahead < kBlobAhead_px || std::abs((blob.tip_px - s->tip_px).dot(n)) > kBlobOnLine_px)
+    return;
+  const double u = motionFront(motion, s->tip_px, d, ahead + kBlobAhead_px);
+  if (u < kBlobAhead_px)
+    return;
+  s->tip_px += u * d;
+  s->extended_by_motion = true;
+}
+
+/// Step 6 without a moving line: a dominant, strong brightening blob (kBlobDominance of the
+/// frame's brightening, peak kBlobPeak, at least kBlobMinArea_px pixels) is where a needle has
+/// just advanced while nothing else changed: its tip is the blob's front along its principal axis.
+/// A needle inside a saturated layer or a shadow shows no line, but its tip still brightens the
+/// pixels it reaches (its echo, its reverberation tail). Tissue that moves (a hand-held probe,
+/// a deforming phantom: the recorded frames' largest blob holds 0.2-0.7 of the brightening)
+/// spreads the change over the frame and gives nothing here.
+std::optional<NeedleSegment> tipFromMotion(const cv::Mat& motion, EntrySide entry) {
+  const std::optional<MotionBlob> b = motionBlob(motion, entry);
+  if (!b || b->dominance < kBlobDominance || b->peak < kBlobPeak || b->area < kBlobMinArea_px)
+    return std::nullopt;
+  NeedleSegment s;
+  s.found = true;
+  s.from_motion = true;
+  s.tail_px = b->back;
+  s.tip_px = b->front;
+  s.angle_rad = std::atan2(b->front.y - b->back.y, b->front.x - b->back.x);
+  s.motion = b->peak;
+  std::ostringstream out;
+  out.precision(3);
+  out << "tip from the motion alone (no moving line): tip (" << s.tip_px.x << ", " << s.tip_px.y
+      << "), blob " << b->area << " px holding " << b->dominance << " of the change";
+  s.message = out.str();
+  return s;
+}
+
 /// Step 6 with the sequence cue: orient every candidate, measure its motion; when one that
 /// passes the evidence threshold moves, the still ones drop out (never a still line over a
 /// moving needle); the best score wins.
@@ -813,12 +984,22 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
       break;
   }
   const std::optional<Candidate> best = bestCandidate(all, options, grey.size(), motion);
+  // No line moves like a needle: the tip where the frame alone brightens, if it does and the
+  // best line does not end there (a line traced to that tip is kept: it shows the shaft).
+  const std::optional<NeedleSegment> hidden = tipFromMotion(motion, options.entry);
   if (!best) {
+    if (hidden)
+      return *hidden;
     none.message = "no line of at least " + std::to_string(options.min_length_px) + " px";
     return none;
   }
   NeedleSegment s = best->cues;  // step 6
   tipAtHalfLevel(ridge, options.ridge_sigma_px, options.max_gap_px, *best, &s);
+  if (hidden && best->cues.motion < kMinMotionRatio &&
+      cv::norm(hidden->tip_px - s.tip_px) > kBlobOnLine_px)
+    return *hidden;
+  if (hidden)
+    extendToMotionFront(motion, *hidden, &s);
   s.motion_ahead = motionAhead(motion, s);
   if (best->score < options.min_evidence) {
     s.found = false;
@@ -842,11 +1023,23 @@ bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, dou
   da = std::min(da, 2 * kPi - da);
   const cv::Point2d n(-std::sin(a.angle_rad), std::cos(a.angle_rad));
   const cv::Point2d nb(-std::sin(b.angle_rad), std::cos(b.angle_rad));
+  const double along = (b.tip_px - a.tip_px).dot(cv::Point2d(-n.y, n.x));
+  if (a.from_motion && b.from_motion) {
+    // Two tips from the motion alone: no shaft, a rough axis; only the distance counts.
+    return cv::norm(b.tip_px - a.tip_px) < std::max(tip_px, ahead_px);
+  }
+  if (a.from_motion || b.from_motion) {
+    // A tip from the motion alone against a shaft: its front lies among the reverberation
+    // copies beside the needle, on the shaft's line.
+    const cv::Point2d n_line = a.from_motion ? nb : n, d_line(n_line.y, -n_line.x);
+    const double along_line = (b.tip_px - a.tip_px).dot(d_line);
+    return std::abs((b.tip_px - a.tip_px).dot(n_line)) < kGateMotionLine_px &&
+           along_line > -tip_px && along_line < std::max(tip_px, ahead_px);
+  }
   // Off the line both ways: a line that only meets the other's far extension (a layer in line
   // with the needle hundreds of pixels on) is not the same line.
   const double off_line =
       std::max(std::abs((b.tip_px - a.tip_px).dot(n)), std::abs((a.tip_px - b.tip_px).dot(nb)));
-  const double along = (b.tip_px - a.tip_px).dot(cv::Point2d(-n.y, n.x));
   return da < kGateAngle_rad && off_line < kGateLine_px && along > -tip_px &&
          along < std::max(tip_px, ahead_px);
 }
@@ -893,6 +1086,15 @@ void SequenceTracker::startTrack(const NeedleSegment& d) {
   velocity_px_ = 0;
   start_tip_px_ = d.tip_px;
   moved_ = d.motion >= kMinMotionRatio;
+}
+
+double SequenceTracker::motionAxis(const NeedleSegment& d) const {
+  // The tip's own path is the needle's axis once it is long enough; before that the shaft the
+  // track saw, if it saw one.
+  const cv::Point2d path = d.tip_px - start_tip_px_;
+  if (cv::norm(path) >= kEarnAdvance_px)
+    return std::atan2(path.y, path.x);
+  return track_ && !track_->from_motion ? track_->angle_rad : d.angle_rad;
 }
 
 NeedleSegment SequenceTracker::predicted() const {
@@ -957,12 +1159,15 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
                std::abs((d.tip_px - start_tip_px_).dot(axis)) >= kEarnAdvance_px;
       seen_moving_ = seen_moving_ || moved_;
       track_ = d;
+      if (d.from_motion)
+        track_->angle_rad = motionAxis(d);
       missed_ = 0;
       candidate_.reset();
-      out.segment = d;
-      // Never confident while the tissue ahead of the tip still brightens: the needle has
-      // advanced past the traced tip.
-      out.confident = agreeing_ >= kConfirmFrames && moved_ && d.motion_ahead < kMinMotionRatio;
+      out.segment = *track_;
+      // Never confident while the tissue ahead of the tip still brightens (the needle has
+      // advanced past the traced tip), nor from the motion alone (no shaft seen).
+      out.confident = agreeing_ >= kConfirmFrames && moved_ && d.motion_ahead < kMinMotionRatio &&
+                      !d.from_motion;
       if (seen_moving_ && !moved_) {
         out.segment.found = false;  // the needle moved before: a still line is not it
         out.segment.message = "a still line, and the needle moved before: " + d.message;

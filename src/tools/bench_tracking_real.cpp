@@ -241,22 +241,6 @@ im::ImagerConfig imager(const ng::scene::Scene& scene, im::UltrasoundModel model
   return c;
 }
 
-/// A needle from `entry` [m] at `angle` [rad above +x], `length` [m] inserted, straight or on
-/// an arc of curvature `kappa` [1/m] (> 0 turning up in the scene), as points 0.25 mm apart.
-std::vector<im::Point2> needlePoints(im::Point2 entry, double angle, double length, double kappa) {
-  std::vector<im::Point2> pts;
-  for (double s = 0.0; s <= length + 1e-12; s += 0.25e-3) {
-    if (kappa == 0.0) {
-      pts.push_back(entry + s * im::Point2(std::cos(angle), std::sin(angle)));
-    } else {
-      const double h = angle + kappa * s;
-      pts.push_back(
-          entry + im::Point2(std::sin(h) - std::sin(angle), std::cos(angle) - std::cos(h)) / kappa);
-    }
-  }
-  return pts;
-}
-
 /// The needle's mask (5 px wide) in the frame, as a hand-drawn one would cover it.
 cv::Mat needleMask(const std::vector<im::Point2>& pts, const im::ImageGeometry& g) {
   cv::Mat mask(g.size(), CV_8U, cv::Scalar(0));
@@ -292,6 +276,16 @@ const std::vector<SyntheticSpec>& syntheticSpecs() {
       {"tune_arc_c", 205, im::Point2(0.0, 0.015), 0.15, -9.0, false},
       {"tune_arc_d", 209, im::Point2(0.0, 0.020), 0.02, 7.0, false},
       {"tune_arc_e", 213, im::Point2(0.0, 0.010), 0.22, -6.0, false},
+      // Third tuning round (seeds never used before), the needle entering in, under and just
+      // above the seeded layers' band of rows, straight and bent either way.
+      {"tune_straight_g", 301, im::Point2(0.0, 0.022), 0.03, 0.0, false},
+      {"tune_straight_h", 303, im::Point2(0.0, 0.016), 0.10, 0.0, false},
+      {"tune_straight_i", 307, im::Point2(0.0, 0.034), -0.06, 0.0, false},
+      {"tune_straight_j", 311, im::Point2(0.0, 0.027), 0.04, 0.0, false},
+      {"tune_arc_f", 313, im::Point2(0.0, 0.024), -0.05, 8.0, false},
+      {"tune_arc_g", 317, im::Point2(0.0, 0.018), 0.12, -7.0, false},
+      {"tune_arc_h", 319, im::Point2(0.0, 0.031), 0.0, -9.0, false},
+      {"tune_arc_i", 323, im::Point2(0.0, 0.014), 0.05, 10.0, false},
       {"straight", 77, im::Point2(0.0, 0.015), 0.10, 0.0, true},
       {"arc", 91, im::Point2(0.0, 0.008), 0.25, -10.0, true},
       {"straight_b", 105, im::Point2(0.0, 0.028), 0.0, 0.0, true},
@@ -320,7 +314,8 @@ SyntheticRun syntheticRun(const ng::scene::Scene& scene, const SyntheticSpec& sp
   std::vector<Truth> ts;
   for (int k = 0; k < 20; ++k) {
     const double length = 0.02 + 1e-3 * k;
-    const std::vector<im::Point2> pts = needlePoints(spec.entry, spec.angle, length, spec.kappa);
+    const std::vector<im::Point2> pts =
+        im::insertedNeedlePoints(spec.entry, spec.angle, length, spec.kappa);
     const cv::Mat image = renderer.render(pts, static_cast<std::uint64_t>(k)).image;
     rs.push_back(trackTimed(tracker, image));
     const double h = spec.angle + spec.kappa * length;  // heading at the tip, scene y up
@@ -382,7 +377,8 @@ std::vector<std::pair<std::string, im::BModeStatistics>> realism(
     const im::FrameRenderer renderer(scene, c);
     std::vector<im::BModeStatistics> v;
     for (int k = 0; k < 5; ++k) {
-      const auto pts = needlePoints(im::Point2(0.0, 0.012), 8.0 / kDegPerRad, 0.02 + 2e-3 * k, 0.0);
+      const auto pts =
+          im::insertedNeedlePoints(im::Point2(0.0, 0.012), 8.0 / kDegPerRad, 0.02 + 2e-3 * k, 0.0);
       v.push_back(im::bmodeStatistics(renderer.render(pts, static_cast<std::uint64_t>(k)).image,
                                       needleMask(pts, c.geometry)));
     }
@@ -431,7 +427,11 @@ void writeHalvesAndHeldOut(const std::vector<Result>& fresh, const std::vector<T
   // seeing a held-out frame or error).
   const char* tuning_only = std::getenv("NG_TRACKING_TUNING_ONLY");
   const bool skip_held_out = tuning_only && std::string(tuning_only) == "1";
+  // NG_TRACKING_ONLY=NAME: that synthetic sequence only (with the above, never a held-out one).
+  const char* only = std::getenv("NG_TRACKING_ONLY");
   for (const SyntheticSpec& spec : syntheticSpecs()) {
+    if (only && *only && spec.name != only)
+      continue;
     if (!(skip_held_out && spec.held_out))
       runs.push_back(syntheticRun(scene, spec, &table, dir));
   }

@@ -84,6 +84,13 @@ ImagerConfig imagerConfigFromScene(const scene::Scene& scene, std::uint64_t seed
 ImageGeometry fieldOfView(const scene::Scene& scene, double pixel_size_m, int cols = 0,
                           int rows = 0);
 
+/// The points FrameRenderer::render draws for a needle inserted from p_SceneEntry [m, frame
+/// scene] at angle_rad above +x, length_m long, step_m apart: straight (kappa_per_m 0) or on an
+/// arc of curvature kappa_per_m [1/m] (> 0 turning towards +y). Scenario helper of the tracking
+/// benchmarks and tests.
+std::vector<Point2> insertedNeedlePoints(Point2 p_SceneEntry, double angle_rad, double length_m,
+                                         double kappa_per_m = 0.0, double step_m = 0.25e-3);
+
 /// One frame. `image` is CV_8UC1 of config.geometry.size(); empty when dropped.
 struct Frame {
   std::uint64_t index =

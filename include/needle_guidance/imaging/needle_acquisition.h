@@ -18,7 +18,9 @@
 //           and its tip: the end away from the entry side (calibrated or worked out; a tip on
 //           the frame's border is no tip in view); over a sequence, a candidate whose tip end
 //           brightens as a needle advancing along its own axis does beats every still one
-//           (signed motion map).
+//           (signed motion map); in still tissue the frame's one brightening blob is where the
+//           needle has just gone: its front is the tip when no line moves (a needle hidden in a
+//           saturated layer or a shadow), and a line traced short of it is extended to it.
 // Plain C++ and OpenCV; no ROS (STYLE.md rules 1-2).
 #pragma once
 
@@ -77,6 +79,12 @@ struct NeedleSegment {
   /// difference, 6 to 30 px beyond the tip along its direction (0 for a single frame; >= 3:
   /// the needle goes on past this tip, which is then traced short).
   double motion_ahead = 0.0;
+  /// No line moved: the tip is the front of the frame's one brightening blob (a needle hidden in
+  /// a layer's glare or a shadow, advancing); tail_px is the blob's back, the angle its axis.
+  bool from_motion = false;
+  /// The traced tip stopped short of the frame's one brightening blob ahead on the line: the tip
+  /// was moved on along the line to the front of that motion.
+  bool extended_by_motion = false;
   double length_px() const;
 };
 
@@ -113,7 +121,8 @@ public:
     /// Earned: kConfirmFrames agreeing detections in a row, of a track that has moved like a
     /// needle (its tip kEarnAdvance_px along its axis from where it was acquired, or a moving
     /// tip cue): a still bright line, however steady, never earns it; nor a tip with the
-    /// tissue ahead of it still brightening (motion_ahead >= 3: traced short).
+    /// tissue ahead of it still brightening (motion_ahead >= 3: traced short); nor a tip from
+    /// the motion alone (NeedleSegment::from_motion: no shaft seen).
     bool confident = false;
     bool predicted = false;  ///< no gated detection: the tip is the motion model's prediction
   };
@@ -139,7 +148,10 @@ public:
   /// (fading, in a layer's glare) leaves the track behind the needle; a detection further along
   /// the same line is the same needle.
   static constexpr double kGateAhead_px = 2.0 * kGateTip_px;
-  static constexpr double kGateLine_px = 8.0;      ///< tip's distance from the track's line [px]
+  static constexpr double kGateLine_px = 8.0;  ///< tip's distance from the track's line [px]
+  /// The same for a tip from the motion alone (NeedleSegment::from_motion), whose front lies
+  /// among the needle's reverberation copies (5 of them, 0.5 mm apart: 25 px at 0.1 mm) [px].
+  static constexpr double kGateMotionLine_px = 3.0 * kGateLine_px;
   static constexpr double kGateAngle_rad = 0.087;  ///< 5 degrees
   static constexpr double kAgreeTip_px = 12.0;     ///< agreement of consecutive detections [px]
   /// Advance along the axis that shows a track is a needle being inserted [px]: more than the
@@ -150,6 +162,9 @@ private:
   /// b on a's line (both ways), its tip from tip_px behind a's to max(tip_px, ahead_px) ahead.
   bool agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px, double ahead_px) const;
   Output update(const NeedleSegment& d);
+  /// The axis of a tip from the motion alone: its path since the track began once that is
+  /// kEarnAdvance_px long, else the track's shaft, else the blob's own axis.
+  double motionAxis(const NeedleSegment& d) const;
   /// The track's motion model one frame on (the tip along the axis at the last speed).
   NeedleSegment predicted() const;
   /// A frame whose detection shows no tip of the moving track (gated out or missing): coast on
