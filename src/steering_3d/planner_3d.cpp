@@ -231,6 +231,17 @@ TipPose3 poseAlong(const Plan3& plan, double s) {
   return pose;
 }
 
+/// A rollout's step: the noisy needle moves `pose` by `c`; false if the step touched an expanded
+/// obstacle or left the tissue. The step's path (arc length c.length_m) stays within the free
+/// ball about its start when the margin exceeds it: one query instead of tracing the path.
+bool rolloutStep(NoisyNeedle3& needle, const CollisionWorld3& world, const Control3& c,
+                 TipPose3& pose) {
+  const double free_radius = world.margin(pose.p_SceneTip);
+  const StepRecord r = needle.step(pose, c);
+  pose = r.pose;
+  return free_radius > c.length_m + world.tolerance() || world.checkPolyline(r.path).free();
+}
+
 /// A turn-then-straight approach from a tip to the target centre (the aware choice's candidates,
 /// planner_3d.h): rotate the bevel towards the target unless the rotation is below
 /// hold_bevel_rad (then turn in the current bevel plane), turn at kappa_1 = kappa_req +
@@ -369,10 +380,7 @@ double aimRollout(TipPose3 pose, const Aim& first, const AimPolicy& policy, cons
   for (int k = 0; k < 1000; ++k) {  // every step but the last advances a whole step_length_m
     const Control3 c = aimStep(aim, step);
     const bool last = aim.turn_m + aim.straight_m <= step * (1.0 + 1e-9);
-    const double free_radius = world.margin(pose.p_SceneTip);
-    const StepRecord r = needle.step(pose, c);
-    pose = r.pose;
-    if (!(free_radius > c.length_m + world.tolerance()) && !world.checkPolyline(r.path).free()) {
+    if (!rolloutStep(needle, world, c, pose)) {
       return kFail;
     }
     if (last) {
@@ -422,12 +430,7 @@ bool rolloutSucceeds(const Plan3& plan, const Scene3d& scene, const CollisionWor
         }
       }
     }
-    // The step's path (arc length c.length_m) stays within the free ball about its start when
-    // the margin exceeds it: one query instead of tracing the path.
-    const double free_radius = world.margin(pose.p_SceneTip);
-    const StepRecord r = needle.step(pose, c);
-    pose = r.pose;
-    if (!(free_radius > c.length_m + world.tolerance()) && !world.checkPolyline(r.path).free()) {
+    if (!rolloutStep(needle, world, c, pose)) {
       return false;
     }
     if (last) {
