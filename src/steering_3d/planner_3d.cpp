@@ -252,17 +252,17 @@ struct AimPolicy {
   double turn_fraction;
   double hold_bevel_rad;
 };
-/// The candidates, the default first: the single arc with the planner's rotation snap (what the
-/// baseline's replan finds first), then turns that straighten the approach and hold the bevel
-/// plane longer (a rotation costs sigma_spin instead of sigma_insert). A negative
-/// hold_bevel_rad stands for PlannerParams3::rotation_snap_rad.
-constexpr AimPolicy kAimPolicies[] = {{0.0, -1.0}, {0.6, 0.6}, {0.0, 0.6},
-                                      {0.6, -1.0}, {1.0, 0.6}, {0.6, 1.0}};
+/// The candidates, the default first: a turn that straightens the approach with the bevel held
+/// while the rotation is under 0.6 rad (a rotation costs sigma_spin instead of sigma_insert),
+/// the single arc with the bevel held, and the single arc with the planner's rotation snap (what
+/// the baseline's replan finds first). A negative hold_bevel_rad stands for
+/// PlannerParams3::rotation_snap_rad.
+constexpr AimPolicy kAimPolicies[] = {{0.6, 0.6}, {0.0, 0.6}, {0.0, -1.0}};
 constexpr int kAimPolicyCount = static_cast<int>(sizeof(kAimPolicies) / sizeof(kAimPolicies[0]));
-/// The candidate monteCarloSuccesses' rollouts home in with (straightening, bevel held): the
-/// aware loop's choice is at least as good, so this keeps the estimate of a tree's plan from
-/// scoring the baseline's single arc instead.
-constexpr int kRolloutPolicy = 1;
+/// The candidate monteCarloSuccesses' rollouts home in with: the default, which the aware loop
+/// keeps unless its rollouts show another does better, so the estimate of a tree's plan does
+/// not score the baseline's single arc instead.
+constexpr int kRolloutPolicy = 0;
 
 struct Aim {
   bool ok = false;
@@ -761,8 +761,9 @@ std::optional<Plan3> Planner3::planApproach(const TipPose3& tip, int rollouts,
   if (aims.empty()) {
     return std::nullopt;
   }
-  if (noise_.sigma_insert_rad == 0.0 && noise_.sigma_spin_rad == 0.0 &&
-      noise_.sigma_roll_rad == 0.0) {
+  const bool noiseless = noise_.sigma_insert_rad == 0.0 && noise_.sigma_spin_rad == 0.0 &&
+                         noise_.sigma_roll_rad == 0.0;
+  if (noiseless) {
     rollouts = 1;  // every rollout would be the same
   }
   // Rounds of one rollout per candidate with the same draws for all (common random numbers),
@@ -784,16 +785,16 @@ std::optional<Plan3> Planner3::planApproach(const TipPose3& tip, int rollouts,
       }
     }
   }
-  // The most successes; among equals the smallest mean final error of the successes (which
-  // keeps the default, the baseline's single arc, when there is no noise).
+  // The most successes; among equals the earlier candidate (the default first: rounds cut short
+  // by the budget fall back on it), or without noise the smallest final error (every candidate
+  // succeeds; the most exact one ends at the centre).
   std::size_t best = 0;
+  const auto meanError = [&](std::size_t k) {
+    return successes[k] > 0 ? error_sum[k] / successes[k] : std::numeric_limits<double>::infinity();
+  };
   for (std::size_t i = 1; i < n; ++i) {
-    const auto meanError = [&](std::size_t k) {
-      return successes[k] > 0 ? error_sum[k] / successes[k]
-                              : std::numeric_limits<double>::infinity();
-    };
     if (successes[i] > successes[best] ||
-        (successes[i] == successes[best] && meanError(i) < meanError(best))) {
+        (noiseless && successes[i] == successes[best] && meanError(i) < meanError(best))) {
       best = i;
     }
   }

@@ -158,7 +158,8 @@ private:
   /// The aware replan when a direct approach is free: the turn-then-straight candidates
   /// (planner_3d.cpp) that keep the clearance, each scored by `rollouts` rollouts of the
   /// replanning loop that keeps it (common random numbers; whole rounds until `deadline`); the
-  /// most successes wins, ties to the smaller mean final error. Nothing if none is free.
+  /// most successes wins, ties to the earlier candidate (without noise: to the smaller final
+  /// error). Nothing if none is free.
   std::optional<Plan3> planApproach(const TipPose3& tip, int rollouts,
                                     std::chrono::steady_clock::time_point deadline,
                                     std::uint64_t seed, PlanReport& rep) const;
