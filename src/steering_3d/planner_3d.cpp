@@ -366,6 +366,11 @@ bool aimFree(const CollisionWorld3& world, const TipPose3& pose, const Aim& aim,
              .free();
 }
 
+/// The straight rest of an approach shorter than a step (duty cycle alpha = 1).
+Control3 sliver(double length_m) {
+  return Control3{0.0, 0.0, length_m};
+}
+
 /// One rollout of an approach policy from `pose`: the noisy needle executes `first`, then the
 /// policy's next step from every new tip (the replanning loop with that candidate kept), until a
 /// step reaches the target's depth. Returns the final distance to the target centre, or infinity
@@ -386,9 +391,15 @@ double aimRollout(TipPose3 pose, const Aim& first, const AimPolicy& policy, cons
     if (last) {
       break;
     }
+    const double left = aim.turn_m + aim.straight_m - c.length_m;
     aim = aimAt(pose, scene.target.center_m, scene.needle, policy, params.rotation_snap_rad, cycle);
     if (!aim.ok) {
-      return kFail;
+      // Less than a step from the target depth it lies beside the tip: the loop then finishes
+      // the approach it has (a replan finds none), so the rollout does too.
+      if (!(left > 0.0 && left < step) || !rolloutStep(needle, world, sliver(left), pose)) {
+        return kFail;
+      }
+      break;
     }
   }
   return (pose.p_SceneTip - scene.target.center_m).norm();
@@ -407,6 +418,7 @@ bool rolloutSucceeds(const Plan3& plan, const Scene3d& scene, const CollisionWor
   // it without checking it again: the executed steps are checked anyway (the check dominates
   // the rollout's cost).
   bool homing = false;
+  double left = 0.0;  ///< what the last homing step left of its approach [m]
   const AimPolicy& policy = kAimPolicies[kRolloutPolicy];
   for (int k = 0; k < max_steps; ++k) {
     Control3 c{0.0, 0.0, step};
@@ -418,10 +430,13 @@ bool rolloutSucceeds(const Plan3& plan, const Scene3d& scene, const CollisionWor
       c.length_m = std::min(c.length_m, step);
     } else {
       const Aim a = aimAt(pose, scene.target.center_m, np, policy, params.rotation_snap_rad, cycle);
-      homing = a.ok && (homing || aimFree(world, pose, a, params.safety_margin_m));
-      if (homing) {
+      if (homing && !a.ok && left > 0.0 && left < step) {
+        c = sliver(left);  // as in aimRollout
+        last = true;
+      } else if ((homing = a.ok && (homing || aimFree(world, pose, a, params.safety_margin_m)))) {
         c = aimStep(a, step);
         last = a.turn_m + a.straight_m <= step * (1.0 + 1e-9);
+        left = a.turn_m + a.straight_m - c.length_m;
       } else {
         const Steer s = steerTo(pose, poseAlong(plan, (k + 2) * step).p_SceneTip, np, cycle,
                                 params.rotation_snap_rad);
