@@ -3,6 +3,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <ctime>
 #include <deque>
 #include <limits>
 #include <memory>
@@ -14,6 +15,13 @@ using Clock = std::chrono::steady_clock;
 
 double secondsSince(Clock::time_point t0) {
   return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+/// CPU time of the calling thread [s] (the replan's own work, whatever the machine's load).
+double threadCpuSeconds() {
+  timespec ts{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+  return double(ts.tv_sec) + 1e-9 * double(ts.tv_nsec);
 }
 
 /// The straight needle: from the disc point nearest the target, aimed at it (clamped into the
@@ -174,9 +182,12 @@ TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strat
       continue;
     }
     const auto t1 = Clock::now();
+    const double cpu1 = threadCpuSeconds();
     const Result<Plan3, PlanStatus> next =
         planner.planFromTip(estimate, callSeed(seed, static_cast<std::uint64_t>(r.steps)));
     r.replan_s.push_back(secondsSince(t1));
+    r.replan_cpu_s.push_back(threadCpuSeconds() - cpu1);
+    r.replan_approach.push_back(next ? next.value().approach : -2);
     if (next) {  // otherwise keep following the previous plan
       queue.assign(next.value().controls.begin(), next.value().controls.end());
     }

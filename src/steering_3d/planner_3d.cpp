@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <limits>
+#include <optional>
 #include <random>
 
 #include "needle_guidance/steering_3d/closed_loop_3d.h"
@@ -230,6 +231,180 @@ TipPose3 poseAlong(const Plan3& plan, double s) {
   return pose;
 }
 
+/// A rollout's step: the noisy needle moves `pose` by `c`; false if the step touched an expanded
+/// obstacle or left the tissue. The step's path (arc length c.length_m) stays within the free
+/// ball about its start when the margin exceeds it: one query instead of tracing the path.
+bool rolloutStep(NoisyNeedle3& needle, const CollisionWorld3& world, const Control3& c,
+                 TipPose3& pose) {
+  const double free_radius = world.margin(pose.p_SceneTip);
+  const StepRecord r = needle.step(pose, c);
+  pose = r.pose;
+  return free_radius > c.length_m + world.tolerance() || world.checkPolyline(r.path).free();
+}
+
+/// A turn-then-straight approach from a tip to the target centre (the aware choice's candidates,
+/// planner_3d.h): rotate the bevel towards the target unless the rotation is below
+/// hold_bevel_rad (then turn in the current bevel plane), turn at kappa_1 = kappa_req +
+/// turn_fraction (kappa_max - kappa_req) until the tangent points at the target, then go straight
+/// (duty cycle alpha = 1). turn_fraction 0 is the single arc of the baseline's goal connection; 1
+/// aims as fast as the needle can, which leaves the whole of kappa_max for later corrections.
+struct AimPolicy {
+  double turn_fraction;
+  double hold_bevel_rad;
+};
+/// The candidates, the default first: a turn that straightens the approach with the bevel held
+/// while the rotation is under 0.6 rad (a rotation costs sigma_spin instead of sigma_insert),
+/// the single arc with the bevel held, and the single arc with the planner's rotation snap (what
+/// the baseline's replan finds first). A negative hold_bevel_rad stands for
+/// PlannerParams3::rotation_snap_rad.
+constexpr AimPolicy kAimPolicies[] = {{0.6, 0.6}, {0.0, 0.6}, {0.0, -1.0}};
+constexpr int kAimPolicyCount = static_cast<int>(sizeof(kAimPolicies) / sizeof(kAimPolicies[0]));
+/// The candidate monteCarloSuccesses' rollouts home in with: the default, which the aware loop
+/// keeps unless its rollouts show another does better, so the estimate of a tree's plan does
+/// not score the baseline's single arc instead.
+constexpr int kRolloutPolicy = 0;
+
+struct Aim {
+  bool ok = false;
+  double rotate = 0.0;
+  double kappa = 0.0;       ///< kappa_1 [1/m]
+  double turn_m = 0.0;      ///< length of the turn [m]
+  double straight_m = 0.0;  ///< length of the straight part that follows [m]
+};
+
+/// The approach of `policy` from `pose` (ok = false if the target is behind the tip or needs more
+/// than kappa_max in the chosen plane).
+Aim aimAt(const TipPose3& pose, const Vector3& target, const NeedleParams3& needle,
+          const AimPolicy& policy, double rotation_snap, double cycle_length) {
+  Aim out;
+  const Vector3 w = target - pose.p_SceneTip;
+  const double x = w.dot(pose.tangent());
+  if (!(x > 0.0)) {
+    return out;
+  }
+  const Vector3 perp = w - x * pose.tangent();
+  out.rotate = std::atan2(perp.dot(pose.R_SceneTip.col(1)), perp.dot(pose.bevel()));
+  double y = perp.norm();
+  const double hold = policy.hold_bevel_rad < 0.0 ? rotation_snap : policy.hold_bevel_rad;
+  if (std::abs(out.rotate) < hold) {
+    out.rotate = 0.0;
+    y = std::max(0.0, perp.dot(pose.bevel()));
+  }
+  const double range = std::hypot(x, y);
+  const double kmax = needle.kappa_max_per_m;
+  const double kreq = 2.0 * y / (range * range);
+  if (kreq > kmax * (1.0 + 1e-9)) {
+    return out;
+  }
+  out.ok = true;
+  // In the plane of the turn (x along the tangent, y towards the target) the arc of curvature k
+  // is at angle th at (sin th, 1 - cos th) / k, heading (cos th, sin th); it is aimed at the
+  // target where g(th) = (1 - cos th) / k - range sin(th - phi) = 0, between phi and 2 phi (the
+  // single arc's end angle) when k > kreq.
+  const double phi = std::atan2(y, x);
+  double k = kreq + policy.turn_fraction * (kmax - kreq);
+  if (dutyCycleFor(k, needle, cycle_length).kappa_per_m < k * (1.0 - 1e-9)) {
+    k = kmax;  // the spin-rate gap below kappa_max: turn harder, the straight part absorbs it
+  }
+  if (y <= 1e-12 * range) {
+    out.straight_m = range;
+    return out;
+  }
+  if (k <= kreq * (1.0 + 1e-9)) {
+    out.kappa = kreq;
+    out.turn_m = 2.0 * phi / kreq;
+    return out;
+  }
+  double lo = phi, hi = 2.0 * phi;
+  for (int i = 0; i < 60; ++i) {
+    const double mid = 0.5 * (lo + hi);
+    ((1.0 - std::cos(mid)) / k - range * std::sin(mid - phi) > 0.0 ? lo : hi) = mid;
+  }
+  const double th = 0.5 * (lo + hi);
+  out.kappa = k;
+  out.turn_m = th / k;
+  out.straight_m = std::hypot(x - std::sin(th) / k, y - (1.0 - std::cos(th)) / k);
+  return out;
+}
+
+/// The next step of an approach: its first step_length_m with the turn's heading change spread
+/// over the step (a duty-cycled curvature), so that a turn shorter than a step costs one step.
+Control3 aimStep(const Aim& aim, double step_length_m) {
+  const double length = std::min(step_length_m, aim.turn_m + aim.straight_m);
+  const double turned = aim.kappa * std::min(aim.turn_m, length);
+  return Control3{aim.rotate, length > 0.0 ? turned / length : 0.0, length};
+}
+
+/// The approach as a plan from `pose`: its first step, then the rest of the turn and the straight.
+Plan3 aimPlan(const TipPose3& pose, const Aim& aim, double step_length_m) {
+  Plan3 plan;
+  plan.start = pose;
+  const Control3 first = aimStep(aim, step_length_m);
+  plan.controls.push_back(first);
+  const double turn_left = std::max(0.0, aim.turn_m - first.length_m);
+  const double straight_left = aim.turn_m + aim.straight_m - first.length_m - turn_left;
+  if (turn_left > 0.0) {
+    plan.controls.push_back(Control3{0.0, aim.kappa, turn_left});
+  }
+  if (straight_left > 1e-12) {
+    plan.controls.push_back(Control3{0.0, 0.0, straight_left});
+  }
+  for (const Control3& c : plan.controls) {
+    plan.length_m += c.length_m;
+  }
+  return plan;
+}
+
+/// Whether the approach's turn and straight keep the obstacles' clearance plus `margin`.
+bool aimFree(const CollisionWorld3& world, const TipPose3& pose, const Aim& aim, double margin) {
+  const TipPose3 turned = rotateBevel(pose, aim.rotate);
+  if (aim.turn_m > 0.0 && !world.checkArc(turned, aim.kappa, aim.turn_m, margin).free()) {
+    return false;
+  }
+  return aim.straight_m <= 0.0 ||
+         world.checkArc(advanceArc(turned, aim.kappa, aim.turn_m), 0.0, aim.straight_m, margin)
+             .free();
+}
+
+/// The straight rest of an approach shorter than a step (duty cycle alpha = 1).
+Control3 sliver(double length_m) {
+  return Control3{0.0, 0.0, length_m};
+}
+
+/// One rollout of an approach policy from `pose`: the noisy needle executes `first`, then the
+/// policy's next step from every new tip (the replanning loop with that candidate kept), until a
+/// step reaches the target's depth. Returns the final distance to the target centre, or infinity
+/// if a step touched something or the target fell out of reach.
+double aimRollout(TipPose3 pose, const Aim& first, const AimPolicy& policy, const Scene3d& scene,
+                  const CollisionWorld3& world, const PlannerParams3& params,
+                  NoisyNeedle3& needle) {
+  constexpr double kFail = std::numeric_limits<double>::infinity();
+  const double step = scene.step_length_m;
+  const double cycle = scene.needle.duty_cycle_length_m;
+  Aim aim = first;
+  for (int k = 0; k < 1000; ++k) {  // every step but the last advances a whole step_length_m
+    const Control3 c = aimStep(aim, step);
+    const bool last = aim.turn_m + aim.straight_m <= step * (1.0 + 1e-9);
+    if (!rolloutStep(needle, world, c, pose)) {
+      return kFail;
+    }
+    if (last) {
+      break;
+    }
+    const double left = aim.turn_m + aim.straight_m - c.length_m;
+    aim = aimAt(pose, scene.target.center_m, scene.needle, policy, params.rotation_snap_rad, cycle);
+    if (!aim.ok) {
+      // Less than a step from the target depth it lies beside the tip: the loop then finishes
+      // the approach it has (a replan finds none), so the rollout does too.
+      if (!(left > 0.0 && left < step) || !rolloutStep(needle, world, sliver(left), pose)) {
+        return kFail;
+      }
+      break;
+    }
+  }
+  return (pose.p_SceneTip - scene.target.center_m).norm();
+}
+
 /// One rollout of monteCarloSuccesses.
 bool rolloutSucceeds(const Plan3& plan, const Scene3d& scene, const CollisionWorld3& world,
                      const PlannerParams3& params, NoisyNeedle3& needle) {
@@ -238,10 +413,13 @@ bool rolloutSucceeds(const Plan3& plan, const Scene3d& scene, const CollisionWor
   const double cycle = np.duty_cycle_length_m;
   const int max_steps = static_cast<int>(std::ceil(plan.length_m / step)) + 4;
   TipPose3 pose = plan.start;
-  // Once a free single arc into the target is found the rollout keeps steering into the target
-  // without checking the arc again: the tip stays within a fraction of a millimetre of it, and
-  // the executed steps are checked anyway (the check dominates the rollout's cost).
+  // Once a free approach to the target is found (the replan the aware loop then takes; the
+  // robust candidate kAimPolicies[kRolloutPolicy] stands for its choice) the rollout keeps to
+  // it without checking it again: the executed steps are checked anyway (the check dominates
+  // the rollout's cost).
   bool homing = false;
+  double left = 0.0;  ///< what the last homing step left of its approach [m]
+  const AimPolicy& policy = kAimPolicies[kRolloutPolicy];
   for (int k = 0; k < max_steps; ++k) {
     Control3 c{0.0, 0.0, step};
     bool last = false;
@@ -251,15 +429,14 @@ bool rolloutSucceeds(const Plan3& plan, const Scene3d& scene, const CollisionWor
       last = plan.controls.size() == 1 && c.length_m <= step * (1.0 + 1e-9);
       c.length_m = std::min(c.length_m, step);
     } else {
-      const Steer g = goalArc(pose, scene.target, np, cycle, params.rotation_snap_rad);
-      homing =
-          g.ok &&
-          (homing ||
-           world.checkArc(rotateBevel(pose, g.rotate), g.kappa, g.length, params.safety_margin_m)
-               .free());
-      if (homing) {
-        c = Control3{g.rotate, g.kappa, std::min(g.length, step)};
-        last = g.length <= step * (1.0 + 1e-9);
+      const Aim a = aimAt(pose, scene.target.center_m, np, policy, params.rotation_snap_rad, cycle);
+      if (homing && !a.ok && left > 0.0 && left < step) {
+        c = sliver(left);  // as in aimRollout
+        last = true;
+      } else if ((homing = a.ok && (homing || aimFree(world, pose, a, params.safety_margin_m)))) {
+        c = aimStep(a, step);
+        last = a.turn_m + a.straight_m <= step * (1.0 + 1e-9);
+        left = a.turn_m + a.straight_m - c.length_m;
       } else {
         const Steer s = steerTo(pose, poseAlong(plan, (k + 2) * step).p_SceneTip, np, cycle,
                                 params.rotation_snap_rad);
@@ -268,12 +445,7 @@ bool rolloutSucceeds(const Plan3& plan, const Scene3d& scene, const CollisionWor
         }
       }
     }
-    // The step's path (arc length c.length_m) stays within the free ball about its start when
-    // the margin exceeds it: one query instead of tracing the path.
-    const double free_radius = world.margin(pose.p_SceneTip);
-    const StepRecord r = needle.step(pose, c);
-    pose = r.pose;
-    if (!(free_radius > c.length_m + world.tolerance()) && !world.checkPolyline(r.path).free()) {
+    if (!rolloutStep(needle, world, c, pose)) {
       return false;
     }
     if (last) {
@@ -469,9 +641,22 @@ Result<Plan3, PlanStatus> Planner3::plan(const std::vector<TipPose3>& roots, std
                       (hi + Vector3::Constant(kSampleMargin_m)).cwiseMin(world_.tissueMax()),
                       started + std::chrono::duration_cast<Clock::duration>(
                                     std::chrono::duration<double>(budget_s))};
+  rep.closest_approach_m = std::numeric_limits<double>::infinity();
+  if (params_.choice == PlanChoice::kMaxSuccessProbability && nodes.size() == 1) {
+    // A replan from the tip: a free direct approach needs no tree (planApproach).
+    // Its rollouts get the tree's wall budget (they cost ~5 ms of CPU at the defaults).
+    std::optional<Plan3> approach = planApproach(
+        nodes.front().pose, rollouts,
+        started +
+            std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(budget_s)),
+        seed, rep);
+    if (approach) {
+      rep.seconds = std::chrono::duration<double>(Clock::now() - started).count();
+      return *approach;
+    }
+  }
   std::mt19937_64 rng(seed);
   std::vector<Plan3> plans;
-  rep.closest_approach_m = std::numeric_limits<double>::infinity();
   // The baseline grows one tree to its first plan. Ours grows a fresh tree per plan, so the
   // candidates it chooses among differ in more than their last arc.
   const int wanted = params_.choice == PlanChoice::kFirstFound ? 1 : params_.max_plans;
@@ -566,6 +751,75 @@ std::size_t Planner3::choose(std::vector<Plan3>& plans, int rollouts,
     }
   }
   return chosen;
+}
+
+}  // namespace needle_guidance::steering_3d
+
+namespace needle_guidance::steering_3d {
+
+std::optional<Plan3> Planner3::planApproach(const TipPose3& tip, int rollouts,
+                                            std::chrono::steady_clock::time_point deadline,
+                                            std::uint64_t seed, PlanReport& rep) const {
+  const double step = scene_.step_length_m;
+  const Target3& target = scene_.target;
+  std::vector<int> policy;
+  std::vector<Aim> aims;
+  rep.closest_approach_m = (tip.p_SceneTip - target.center_m).norm();
+  for (int i = 0; i < kAimPolicyCount; ++i) {
+    const Aim a = aimAt(tip, target.center_m, scene_.needle, kAimPolicies[i],
+                        params_.rotation_snap_rad, scene_.needle.duty_cycle_length_m);
+    if (a.ok && aimFree(world_, tip, a, params_.safety_margin_m)) {
+      policy.push_back(i);
+      aims.push_back(a);
+    }
+  }
+  if (aims.empty()) {
+    return std::nullopt;
+  }
+  const bool noiseless = noise_.sigma_insert_rad == 0.0 && noise_.sigma_spin_rad == 0.0 &&
+                         noise_.sigma_roll_rad == 0.0;
+  if (noiseless) {
+    rollouts = 1;  // every rollout would be the same
+  }
+  // Rounds of one rollout per candidate with the same draws for all (common random numbers),
+  // whole rounds only, until `rollouts` rounds or the deadline (the first round always runs).
+  const std::size_t n = aims.size();
+  std::vector<int> successes(n, 0);
+  std::vector<double> error_sum(n, 0.0);
+  int done = 0;
+  const std::uint64_t mc_seed = seed ^ 0x5851f42d4c957f2dULL;
+  for (int j = 0; j < rollouts && (j == 0 || Clock::now() < deadline); ++j, ++done) {
+    const std::uint64_t rollout_seed = callSeed(mc_seed, static_cast<std::uint64_t>(j));
+    for (std::size_t i = 0; i < n; ++i) {
+      NoisyNeedle3 needle(scene_.needle, noise_, rollout_seed);
+      const double e =
+          aimRollout(tip, aims[i], kAimPolicies[policy[i]], scene_, world_, params_, needle);
+      if (e <= target.radius_m) {
+        ++successes[i];
+        error_sum[i] += e;
+      }
+    }
+  }
+  // The most successes; among equals the earlier candidate (the default first: rounds cut short
+  // by the budget fall back on it), or without noise the smallest final error (every candidate
+  // succeeds; the most exact one ends at the centre).
+  std::size_t best = 0;
+  const auto meanError = [&](std::size_t k) {
+    return successes[k] > 0 ? error_sum[k] / successes[k] : std::numeric_limits<double>::infinity();
+  };
+  for (std::size_t i = 1; i < n; ++i) {
+    if (successes[i] > successes[best] ||
+        (noiseless && successes[i] == successes[best] && meanError(i) < meanError(best))) {
+      best = i;
+    }
+  }
+  Plan3 plan = aimPlan(tip, aims[best], step);
+  plan.approach = policy[best];
+  plan.p_success = double(successes[best]) / double(done);
+  plan.p_success_lqg_mp =
+      successProbability(plan, world_, target, noise_, step, scene_.needle.kappa_max_per_m);
+  rep.plans_found = static_cast<int>(n);
+  return plan;
 }
 
 }  // namespace needle_guidance::steering_3d

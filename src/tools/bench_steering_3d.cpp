@@ -53,6 +53,11 @@ struct Cell {
   std::int64_t no_plan = 0;
   std::vector<double> errors_mm;  ///< finite errors only
   std::vector<double> replan_ms;
+  std::vector<double> replan_cpu_ms;
+  /// Replans answered by the default approach (the baseline's single arc), another approach
+  /// candidate, a tree's plan, or no plan (Plan3::approach).
+  std::int64_t replans_default = 0, replans_other_approach = 0, replans_tree = 0,
+               replans_no_plan = 0;
   std::vector<double> plan_ms;
   double predicted_mean = 0.0;
   double predicted_lqg_mp_mean = 0.0;
@@ -105,6 +110,15 @@ Cell runCell(const s3::Scene3d& scene, const s3::CollisionWorld3& world, double 
     }
     for (double s : r.replan_s) {
       c.replan_ms.push_back(s * kMsPerS);
+    }
+    for (double s : r.replan_cpu_s) {
+      c.replan_cpu_ms.push_back(s * kMsPerS);
+    }
+    for (int a : r.replan_approach) {
+      c.replans_default += a == 0 ? 1 : 0;
+      c.replans_other_approach += a > 0 ? 1 : 0;
+      c.replans_tree += a == -1 ? 1 : 0;
+      c.replans_no_plan += a == -2 ? 1 : 0;
     }
     if (strategy != s3::Strategy3::kStraight) {
       c.plan_ms.push_back(r.initial_plan_s * kMsPerS);
@@ -162,6 +176,12 @@ void addRow(ng::report::Table& table, const Cell& c) {
                 quantileOr(c.replan_ms, 0.99),
                 fractionWithin(c.replan_ms, kReplanBudgetMs),
                 double(c.replan_ms.size()),
+                quantileOr(c.replan_cpu_ms, 0.5),
+                quantileOr(c.replan_cpu_ms, 0.99),
+                double(c.replans_default),
+                double(c.replans_other_approach),
+                double(c.replans_tree),
+                double(c.replans_no_plan),
                 c.predicted_mean,
                 c.predicted_lqg_mp_mean,
                 views > 0 ? double(c.views_gated) / views : std::nan(""),
@@ -278,6 +298,12 @@ ng::report::Table cellTable() {
                             "replan_ms_p99",
                             "replan_within_100ms",
                             "replans",
+                            "replan_cpu_ms_median",
+                            "replan_cpu_ms_p99",
+                            "replans_default_approach",
+                            "replans_other_approach",
+                            "replans_tree",
+                            "replans_no_plan",
                             "predicted_p_success_mean",
                             "predicted_p_success_lqg_mp_mean",
                             "biplane_gated_fraction",
@@ -411,6 +437,8 @@ int main(int argc, char** argv) {
          << "  \"replan_ms_p99\": " << num(quantileOr(ours->replan_ms, 0.99)) << ",\n"
          << "  \"replan_within_100ms_fraction\": "
          << num(fractionWithin(ours->replan_ms, kReplanBudgetMs)) << ",\n"
+         << "  \"replan_cpu_ms_median\": " << num(quantileOr(ours->replan_cpu_ms, 0.5)) << ",\n"
+         << "  \"replan_cpu_ms_p99\": " << num(quantileOr(ours->replan_cpu_ms, 0.99)) << ",\n"
          << "  \"replan_ms_median_all\": " << num(quantileOr(all_replans, 0.5)) << ",\n"
          << "  \"replan_ms_p99_all\": " << num(quantileOr(all_replans, 0.99)) << ",\n"
          << "  \"plan_ms_median\": " << num(quantileOr(ours->plan_ms, 0.5)) << ",\n"

@@ -4,7 +4,9 @@
 // success-probability estimate's limits, and closed-loop outcomes on the prostate-like scene.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <iostream>
 #include <string>
 
 #include "needle_guidance/steering_3d/closed_loop_3d.h"
@@ -149,24 +151,77 @@ TEST(Planner3d, MonteCarloEstimateLimitsAndCommonRandomNumbers) {
   EXPECT_EQ(a, monteCarloSuccesses(plan.value(), s, world, s.noise, params, kRollouts, 11));
 }
 
-TEST(Planner3d, NoiselessChoiceKeepsTheFirstFoundPlan) {
-  // With sigma = 0 every candidate that reaches the target scores 1: a tie keeps the baseline's
-  // plan, so the aware choice differs from it only on evidence.
+TEST(Planner3d, NoiselessApproachIsCertainAndEndsAtTheCentre) {
+  // With sigma = 0 every free approach candidate succeeds: the tie goes to the smallest final
+  // error, so the plan ends at the target centre with an estimate of 1.
   const Scene3d s = prostate();
   const CollisionWorld3 world = s.collisionWorld();
   PlannerParams3 aware = testParams();
-  aware.max_nodes = 4000;  // trees bounded by size, not time: the same candidates in both runs
   aware.time_budget_s = 5.0;
-  aware.estimate_budget_s = 5.0;
-  PlannerParams3 first = aware;
-  first.choice = PlanChoice::kFirstFound;
   const TipPose3 tip = makeTipPose(Vector3(20, 2, 1) * kMm, Vector3::UnitX(), Vector3::UnitY());
   const auto a = Planner3(s, world, aware, s.noise.scaled(0.0)).planFromTip(tip, kSeed);
-  const auto b = Planner3(s, world, first, s.noise.scaled(0.0)).planFromTip(tip, kSeed);
-  ASSERT_TRUE(a && b);
-  ASSERT_EQ(a.value().controls.size(), b.value().controls.size());
-  EXPECT_DOUBLE_EQ(a.value().length_m, b.value().length_m);
+  ASSERT_TRUE(a) << a.status().toString();
+  EXPECT_GE(a.value().approach, 0);  // the direct approach is free from here
   EXPECT_DOUBLE_EQ(a.value().p_success, 1.0);
+  TipPose3 pose = a.value().start;
+  for (const Control3& c : a.value().controls) {
+    EXPECT_LE(c.curvature_per_m, s.needle.kappa_max_per_m * (1 + 1e-12));
+    pose = advanceArc(rotateBevel(pose, c.rotate_rad), c.curvature_per_m, c.length_m);
+  }
+  // The first step spreads the turn over the whole step: its end is off the exact turn by
+  // ~kappa l^2 / 8 (< 0.1 mm at 20 /m over 5 mm); the straight part keeps the heading.
+  constexpr double kSpreadTurnTol_m = 0.15 * kMm;
+  EXPECT_LE((pose.p_SceneTip - s.target.center_m).norm(), kSpreadTurnTol_m);
+  EXPECT_TRUE(world.checkPolyline(a.value().points()).free());
+}
+
+/// Successes of the replanning loop from `tip` over `trials` seeded needles (seed 500 + i).
+int successesFromTip(const Scene3d& s, const CollisionWorld3& world, const PlannerParams3& params,
+                     const NoiseParams3& noise, const TipPose3& start, int trials) {
+  const Planner3 planner(s, world, params, noise);
+  int successes = 0;
+  for (int i = 0; i < trials; ++i) {
+    NoisyNeedle3 needle(s.needle, noise, 500 + i);
+    TrialResult3 r;
+    TipPose3 tip = start;
+    auto plan = planner.planFromTip(tip, callSeed(500 + i, 0));
+    while (plan && r.steps < 40) {
+      Control3 c = plan.value().controls.front();
+      const bool last =
+          plan.value().controls.size() == 1 && c.length_m <= s.step_length_m * 1.000001;
+      c.length_m = std::min(c.length_m, s.step_length_m);
+      if (!executeStep3(needle, world, c, tip, r, TrialOptions3{}) || last) {
+        break;
+      }
+      plan = planner.planFromTip(tip, callSeed(500 + i, static_cast<std::uint64_t>(r.steps)));
+    }
+    finishTrial3(s, tip, r);
+    successes += r.success ? 1 : 0;
+  }
+  return successes;
+}
+
+TEST(ClosedLoop3d, AwareChoiceBeatsTheFirstFoundPlanAtTwiceSigma) {
+  // Past the arch, 4 cm from the target and heading off it: the baseline's single arc needs
+  // ~14 /m and a spin-deflected step can push it past kappa_max; the aware choice scores the
+  // approaches by rollouts and straightens early or holds the bevel plane. Same needles for both.
+  const Scene3d s = prostate();
+  const CollisionWorld3 world = s.collisionWorld();
+  PlannerParams3 aware = testParams();
+  // Whole rollout rounds (~5 ms of CPU) fit the budget even under load: the outcome is tested;
+  // the node limit bounds the trees of the replans that find no plan.
+  aware.time_budget_s = 0.2;
+  aware.max_nodes = 3000;
+  PlannerParams3 first = aware;
+  first.choice = PlanChoice::kFirstFound;
+  const NoiseParams3 noise = s.noise.scaled(2.0);
+  const TipPose3 tip =
+      makeTipPose(Vector3(22, 4, 0) * kMm, Vector3(1, 0.05, 0.1), Vector3::UnitY());
+  constexpr int kTrials = 60;
+  const int ours = successesFromTip(s, world, aware, noise, tip, kTrials);
+  const int base = successesFromTip(s, world, first, noise, tip, kTrials);
+  std::cout << "[ info ] aware " << ours << " vs first found " << base << " of " << kTrials << "\n";
+  EXPECT_GT(ours, base);
 }
 
 TEST(ClosedLoop3d, ReplanningReachesTheTargetBehindTheArchAndStraightDoesNot) {

@@ -43,8 +43,11 @@ struct TrialResult3 {
   std::string message;                 ///< a one-line reason for a failure
   double target_error_m = 0.0;         ///< final tip to target centre [m] (inf without a start)
   int steps = 0;
-  double initial_plan_s = 0.0;              ///< the first plan's wall time [s]
-  std::vector<double> replan_s;             ///< each replan's wall time [s]
+  double initial_plan_s = 0.0;       ///< the first plan's wall time [s]
+  std::vector<double> replan_s;      ///< each replan's wall time [s]
+  std::vector<double> replan_cpu_s;  ///< each replan's CPU time (its thread's) [s]
+  /// Each replan's answer: Plan3::approach of the plan taken (-1 a tree's plan), -2 no plan.
+  std::vector<int> replan_approach;
   double predicted_p_success = 0.0;         ///< the first plan's estimate (Plan3::p_success)
   double predicted_p_success_lqg_mp = 0.0;  ///< the first plan's LQG-MP-style estimate
   int views_fused = 0;                      ///< biplane: tip estimates fused from both views

@@ -17,6 +17,7 @@
 
 #include <chrono>
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -88,6 +89,9 @@ struct Plan3 {
   /// LQG-MP-style one.
   double p_success = 0.0;
   double p_success_lqg_mp = 0.0;  ///< successProbability's estimate
+  /// Which turn-then-straight approach the aware choice took (planner_3d.cpp's candidates; 0 is
+  /// the baseline's single arc), -1 for a plan from the tree.
+  int approach = -1;
   /// Positions every <= 1 mm along the plan, start and end included [m].
   std::vector<Vector3> points() const;
 };
@@ -151,6 +155,14 @@ private:
   std::size_t choose(std::vector<Plan3>& plans, int rollouts,
                      std::chrono::steady_clock::time_point deadline, std::uint64_t seed) const;
   PlanStatus checkTarget() const;
+  /// The aware replan when a direct approach is free: the turn-then-straight candidates
+  /// (planner_3d.cpp) that keep the clearance, each scored by `rollouts` rollouts of the
+  /// replanning loop that keeps it (common random numbers; whole rounds until `deadline`); the
+  /// most successes wins, ties to the earlier candidate (without noise: to the smaller final
+  /// error). Nothing if none is free.
+  std::optional<Plan3> planApproach(const TipPose3& tip, int rollouts,
+                                    std::chrono::steady_clock::time_point deadline,
+                                    std::uint64_t seed, PlanReport& rep) const;
 
   const Scene3d& scene_;
   const CollisionWorld3& world_;
