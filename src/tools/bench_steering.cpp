@@ -950,6 +950,30 @@ TruthCheck truthChecks(const st::ContinuousWorkspace& world, const st::SteeringP
   return truth;
 }
 
+/// The keys of the scene's chosen model (issue 21): its truth check, solve time and selection.
+std::string defaultModelJson(const Solved& scene_model, const TruthCheck::Summary& truth_default,
+                             const st::SteeringProblem& problem, const Selection& selected) {
+  std::ostringstream json;
+  json << ",\n  \"transition_model_default\": \"" << st::toString(scene_model.transition) << "\""
+       << ",\n  \"grid_spacing_mm_default\": "
+       << ng::report::jsonNumber(scene_model.spacing_m * kMmPerM)
+       << ",\n  \"subdivision_default\": " << scene_model.subdivision
+       << ",\n  \"states_default\": " << scene_model.states
+       << ",\n  \"mc_within_ci_fraction_default\": " << ng::report::jsonNumber(truth_default.within)
+       << ",\n  \"ps_mean_abs_gap_default\": " << ng::report::jsonNumber(truth_default.mean_abs_gap)
+       << ",\n  \"noise_floor_default\": " << ng::report::jsonNumber(truth_default.noise_floor)
+       << ",\n  \"solve_s_default\": " << ng::report::jsonNumber(scene_model.fastest_s)
+       << ",\n  \"solve_s_default_median\": " << ng::report::jsonNumber(scene_model.stats.seconds)
+       << ",\n  \"solve_repeats_default\": " << kDefaultSolveRepeats
+       << ",\n  \"build_s_default\": " << ng::report::jsonNumber(scene_model.build_s)
+       << ",\n  \"peak_mb_default\": " << ng::report::jsonNumber(scene_model.peak_mb)
+       << ",\n  \"ps_tolerance_default\": " << ng::report::jsonNumber(problem.ps_tolerance)
+       << ",\n  \"estimated_error_default\": " << ng::report::jsonNumber(selected.estimated_error)
+       << ",\n  \"selection_s_default\": " << ng::report::jsonNumber(selected.selection_s)
+       << ",\n  \"selection_models_default\": " << selected.rungs;
+  return json.str();
+}
+
 /// One line each: the scene's chosen model and the scene's needle.
 void printSceneModel(const std::string& scene_name, const st::SteeringProblem& problem,
                      const Solved& scene_model) {
@@ -1110,24 +1134,8 @@ int main(int argc, char** argv) {
          << ",\n  \"table_mb_800k\": " << ng::report::jsonNumber(file.mb)
          << ",\n  \"table_save_s\": " << ng::report::jsonNumber(file.save_s)
          << ",\n  \"table_load_s\": " << ng::report::jsonNumber(file.load_s)
-         << ",\n  \"transition_model_default\": \"" << st::toString(scene_model.transition) << "\""
-         << ",\n  \"grid_spacing_mm_default\": "
-         << ng::report::jsonNumber(scene_model.spacing_m * kMmPerM)
-         << ",\n  \"subdivision_default\": " << scene_model.subdivision
-         << ",\n  \"states_default\": " << scene_model.states
-         << ",\n  \"mc_within_ci_fraction_default\": "
-         << ng::report::jsonNumber(truth_default.within) << ",\n  \"ps_mean_abs_gap_default\": "
-         << ng::report::jsonNumber(truth_default.mean_abs_gap)
-         << ",\n  \"noise_floor_default\": " << ng::report::jsonNumber(truth_default.noise_floor)
-         << ",\n  \"solve_s_default\": " << ng::report::jsonNumber(scene_model.fastest_s)
-         << ",\n  \"solve_s_default_median\": " << ng::report::jsonNumber(scene_model.stats.seconds)
-         << ",\n  \"solve_repeats_default\": " << kDefaultSolveRepeats
-         << ",\n  \"build_s_default\": " << ng::report::jsonNumber(scene_model.build_s)
-         << ",\n  \"peak_mb_default\": " << ng::report::jsonNumber(scene_model.peak_mb)
-         << ",\n  \"ps_tolerance_default\": " << ng::report::jsonNumber(problem.ps_tolerance)
-         << ",\n  \"estimated_error_default\": " << ng::report::jsonNumber(selected.estimated_error)
-         << ",\n  \"selection_s_default\": " << ng::report::jsonNumber(selected.selection_s)
-         << ",\n  \"selection_models_default\": " << selected.rungs << adaptation_keys << "\n}\n";
+         << defaultModelJson(scene_model, truth_default, problem, selected) << adaptation_keys
+         << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     writePlotJson(args->out_dir);
     std::cout << scaling.toText() << truth.summaryText() << json.str();
