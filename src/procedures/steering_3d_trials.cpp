@@ -65,7 +65,7 @@ bool SteeringTrial3::step() {
   if (inserted_m_ + c.length_m > travel_m_ * (1.0 + 1e-9)) {
     std::ostringstream why;
     why << "refused: the next step would insert the needle to " << inserted_m_ + c.length_m
-        << " m, beyond the insertion joint's travel of " << travel_m_ << " m";
+        << " m beyond the insertion joint's travel of " << travel_m_ << " m";
     result_.message = why.str();
     end();
     result_.success = false;  // the plan was not completed
