@@ -98,6 +98,19 @@ steering_3d::Matrix3 SteeringTrial3::observedCovariance_m2(double sigma_m) const
              : steering_3d::Matrix3(sigma_m * sigma_m * steering_3d::Matrix3::Identity());
 }
 
+bool SteeringTrial3::followAnswer(const std::string& status, const std::string& message,
+                                  double plan_seconds, const std::vector<Control3>& controls) {
+  if (status == "bad_input") {
+    abort("the planner refused the tip: " + message);
+    return false;
+  }
+  recordReplan(plan_seconds);
+  if (status == "ok") {
+    setPlan(controls);
+  }
+  return true;
+}
+
 void SteeringTrial3::observe(const Control3& c) {
   using steering_3d::BiplaneCode;
   const steering_3d::NeedleParams3& needle = scene_.needle;

@@ -131,17 +131,12 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial,
     }
     round_trip_ms_.push_back(
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
-    if (answer->status == "bad_input") {
-      trial.abort("the planner refused the tip: " + answer->message);
+    std::vector<sd::Control3> plan = ros_conversions::controlsFromArrays(
+        answer->next_rotate_rad, answer->next_curvature_per_m, answer->next_insertion_m);
+    plan.insert(plan.begin(),
+                sd::Control3{answer->rotate_rad, answer->curvature_per_m, answer->insertion_m});
+    if (!trial.followAnswer(answer->status, answer->message, answer->plan_seconds, plan)) {
       return false;
-    }
-    trial.recordReplan(answer->plan_seconds);
-    if (answer->status == "ok") {  // otherwise keep following the previous plan (as runTrial3)
-      std::vector<sd::Control3> plan = ros_conversions::controlsFromArrays(
-          answer->next_rotate_rad, answer->next_curvature_per_m, answer->next_insertion_m);
-      plan.insert(plan.begin(),
-                  sd::Control3{answer->rotate_rad, answer->curvature_per_m, answer->insertion_m});
-      trial.setPlan(plan);
     }
   }
   return ros::ok();

@@ -120,6 +120,33 @@ TEST(SteeringTrial3, AStepBeyondTheJointsTravelEndsTheTrialAsARefusalNamingIt) {
   EXPECT_EQ(r.message.rfind("refused", 0), 0U) << r.message;
 }
 
+TEST(SteeringTrial3, PlannerAnswersReplaceKeepOrRefuse) {
+  const sd::Scene3d scene = prostate();
+  const sd::CollisionWorld3 world = scene.collisionWorld();
+  const sd::Planner3 planner(scene, world, sd::PlannerParams3{}, sd::NoiseParams3{});
+  const auto plan = planner.planFromEntry(11);
+  ASSERT_TRUE(plan) << plan.status().toString();
+  // A replan that found nothing keeps the plan being followed and counts its time.
+  SteeringTrial3 kept(scene, world, sd::NoiseParams3{}, 5, 200);
+  kept.start(plan.value().start, plan.value().p_success, 0.0);
+  kept.setPlan(plan.value().controls);
+  EXPECT_TRUE(kept.followAnswer("no_path_within_budget", "", 0.02, {}));
+  EXPECT_EQ(kept.result().replan_s.size(), 1U);
+  EXPECT_TRUE(kept.step()) << kept.result().message;
+  // "ok" replaces the plan: from none to the planner's.
+  SteeringTrial3 replaced(scene, world, sd::NoiseParams3{}, 5, 200);
+  replaced.start(plan.value().start, plan.value().p_success, 0.0);
+  EXPECT_TRUE(replaced.followAnswer("ok", "", 0.01, plan.value().controls));
+  EXPECT_TRUE(replaced.step()) << replaced.result().message;
+  // "bad_input" is a fault: the trial ends, naming the planner's reason.
+  SteeringTrial3 refused(scene, world, sd::NoiseParams3{}, 5, 200);
+  refused.start(plan.value().start, plan.value().p_success, 0.0);
+  EXPECT_FALSE(refused.followAnswer("bad_input", "position not finite", 0.0, {}));
+  EXPECT_TRUE(refused.done());
+  EXPECT_FALSE(refused.result().success);
+  EXPECT_EQ(refused.result().message, "the planner refused the tip: position not finite");
+}
+
 /// Fake devices: trial `fault_at` throws with a dead node; every other trial is refused at the
 /// start (no plan), which is an outcome. Records leaveSafe calls.
 class FakeDevices3 : public needle_guidance::procedures::SteeringDevices3 {

@@ -78,6 +78,12 @@ public:
   void setTravel(double travel_m) { travel_m_ = travel_m; }
   /// Arc length inserted so far in this trial [m].
   double insertedLength_m() const { return inserted_m_; }
+  /// The planner's answer to the last tip (SteeringControl3's status): "ok" records the replan
+  /// time and follows `controls`; "bad_input" aborts the trial ("the planner refused the tip: "
+  /// + message) and returns false (a fault); any other status records the time and keeps the
+  /// previous plan (as runTrial3 does when a replan finds none).
+  bool followAnswer(const std::string& status, const std::string& message, double plan_seconds,
+                    const std::vector<steering_3d::Control3>& controls);
   /// Records one replan's planner time [s].
   void recordReplan(double seconds) { result_.replan_s.push_back(seconds); }
 
