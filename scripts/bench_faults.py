@@ -55,8 +55,8 @@ PROCEDURES = {
     "steerable_needle_3d": dict(
         launch="steerable_needle_3d.launch",
         args=["trials:=30"],
-        nodes=["steering_planner_3d"],
-        running=r"steerable_procedure_3d: trial 1/", window=(0.5, 6.0)),
+        nodes=["steering_planner_3d", "insertion_robot"],
+        running=r"steerable_procedure_3d: trial 1/", window=(0.5, 6.0), retracts=True),
     "rigid_seed_implant": dict(
         launch="rigid_seed_implant.launch",
         args=["insertion_velocity_m_s:=0.02", "retract_velocity_m_s:=0.05"],
@@ -102,9 +102,8 @@ class Run:
             args += [f"report_dir:={self.report_dir}", "hold:=true"]
         if spec["launch"].startswith("hdr"):
             args.append(f"journal_dir:={self.journal_dir}")
-        planar = "3d" not in spec["launch"]  # the 3-D procedure simulates its needle in-process
-        if (spec["launch"].startswith("steerable") and planar) or \
-                spec["launch"].startswith("insertion_robot"):
+        planar = "3d" not in spec["launch"]
+        if spec["launch"].startswith("steerable") or spec["launch"].startswith("insertion_robot"):
             args += [f"journal_file:={self.robot_journal}"]
         if spec["launch"].startswith("steer") and planar:
             args += [f"table_dir:={os.path.join(self.dir, 'tables')}"]
@@ -213,12 +212,17 @@ def journal_losses(run, probe):
     return lost
 
 
-def unsafe_states(probe, killed):
-    """A live device left in an unsafe state when the procedure had ended."""
+def unsafe_states(probe, killed, spec):
+    """A live device left in an unsafe state when the procedure had ended (for procedures that
+    promise it, spec retracts: a live robot's needle left in the tissue)."""
     unsafe = []
     robot = probe.get("robot_state")
     if robot and killed != "insertion_robot" and robot.get("alive") and robot.get("is_busy"):
         unsafe.append("robot left moving (" + robot.get("active_joint", "") + ")")
+    inserted = probe.get("robot_insertion_m")
+    if spec.get("retracts") and robot and killed != "insertion_robot" and robot.get("alive") \
+            and inserted is not None and inserted > 1e-6:
+        unsafe.append(f"needle left in the tissue ({inserted * 1e3:.1f} mm inserted)")
     source = probe.get("afterloader_state")
     if source and killed != "afterloader" and source.get("alive") and source.get("source_in_patient"):
         unsafe.append("afterloader source left in the patient")
@@ -278,7 +282,7 @@ def kill_run(out_dir, name, spec, node, rng, index):
     finally:
         probe = run.stop_probe()
         run.shutdown()
-    rec["unsafe"] = "; ".join(unsafe_states(probe, node))
+    rec["unsafe"] = "; ".join(unsafe_states(probe, node, spec))
     rec["lost"] = journal_losses(run, probe)
     return rec
 
@@ -387,6 +391,13 @@ def probe_main(out_path):
     rospy.Subscriber("/afterloader/journal", String, on_journal, queue_size=100000)
     rospy.Subscriber("/afterloader/state", AfterloaderState, on_state, queue_size=10)
     rospy.Subscriber("/insertion_robot/operating_state", OperatingState, on_robot, queue_size=10)
+
+    def on_joints(msg):
+        if "insertion" in msg.name:
+            data["robot_insertion_m"] = msg.position[msg.name.index("insertion")]
+
+    from sensor_msgs.msg import JointState
+    rospy.Subscriber("/insertion_robot/measured_js", JointState, on_joints, queue_size=10)
     stop = []
     signal.signal(signal.SIGINT, lambda *_: stop.append(1))
     while not stop:

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <limits>
 #include <sstream>
+#include <stdexcept>
 
 #include "needle_guidance/report/plot.h"
 #include "needle_guidance/report/statistics.h"
@@ -61,11 +62,21 @@ bool SteeringTrial3::step() {
   Control3 c = plan_.front();
   const bool last_piece = c.length_m <= step * (1.0 + 1e-9);
   c.length_m = std::min(c.length_m, step);
+  if (inserted_m_ + c.length_m > travel_m_ * (1.0 + 1e-9)) {
+    std::ostringstream why;
+    why << "refused: the next step would insert the needle to " << inserted_m_ + c.length_m
+        << " m beyond the insertion joint's travel of " << travel_m_ << " m";
+    result_.message = why.str();
+    end();
+    result_.success = false;  // the plan was not completed
+    return false;
+  }
   steering_3d::TrialOptions3 options;
   options.record_path = true;
   const bool free = world_step_
                         ? world_step_(c, tip_, result_)
                         : steering_3d::executeStep3(needle_, world_, c, tip_, result_, options);
+  inserted_m_ += c.length_m;
   if (views_ != nullptr) {
     observe(c);
   }
@@ -79,6 +90,25 @@ bool SteeringTrial3::step() {
     end();
   }
   return !done_;
+}
+
+steering_3d::Matrix3 SteeringTrial3::observedCovariance_m2(double sigma_m) const {
+  return views_ != nullptr && observation_.tip
+             ? observation_.covariance_m2
+             : steering_3d::Matrix3(sigma_m * sigma_m * steering_3d::Matrix3::Identity());
+}
+
+bool SteeringTrial3::followAnswer(const std::string& status, const std::string& message,
+                                  double plan_seconds, const std::vector<Control3>& controls) {
+  if (status == "bad_input") {
+    abort("the planner refused the tip: " + message);
+    return false;
+  }
+  recordReplan(plan_seconds);
+  if (status == "ok") {
+    setPlan(controls);
+  }
+  return true;
 }
 
 void SteeringTrial3::observe(const Control3& c) {
@@ -108,6 +138,39 @@ std::optional<TipSource3> tipSource3FromString(const std::string& name) {
   return std::nullopt;
 }
 
+TipSource3 tipSource3OrThrow(const std::string& name, const std::string& where) {
+  const std::optional<TipSource3> source = tipSource3FromString(name);
+  if (!source) {
+    throw std::runtime_error("parameter '" + where + "' = '" + name + "' is not truth or biplane");
+  }
+  return *source;
+}
+
+std::optional<bool> recordRobotStep3(bool succeeded, const std::string& contact,
+                                     const std::string& obstacle, const std::string& message,
+                                     const std::vector<steering_3d::Vector3>& path,
+                                     TrialResult3& result) {
+  using steering_3d::Contact3;
+  const bool touched = contact == "obstacle" || contact == "outside_tissue";
+  if (!succeeded && !touched) {
+    return std::nullopt;
+  }
+  ++result.steps;
+  result.path.insert(result.path.end(), path.begin() + std::min<std::size_t>(1, path.size()),
+                     path.end());
+  if (touched) {
+    result.contact = contact == "obstacle" ? Contact3::kObstacle : Contact3::kOutsideTissue;
+    result.obstacle = obstacle;
+    result.message = message;
+  }
+  return !touched;
+}
+
+bool SteeringRun3::completed(int trials) const {
+  return static_cast<int>(results.size()) == trials &&
+         std::find(faulted.begin(), faulted.end(), true) == faulted.end();
+}
+
 void SteeringTrial3::abort(const std::string& message) {
   if (done_) {
     return;
@@ -120,6 +183,33 @@ void SteeringTrial3::abort(const std::string& message) {
 void SteeringTrial3::end() {
   steering_3d::finishTrial3(scene_, tip_, result_);
   done_ = true;
+}
+
+SteeringRun3 runSteeringTrials3(const steering_3d::Scene3d& scene,
+                                const steering_3d::CollisionWorld3& world,
+                                SteeringDevices3& devices, int trials, std::uint64_t seed,
+                                int max_steps, double travel_m) {
+  SteeringRun3 run;
+  for (int k = 0; k < trials; ++k) {
+    devices.progress("trial " + std::to_string(k + 1) + "/" + std::to_string(trials));
+    const std::uint64_t trial_seed = seed * 100000ULL + static_cast<std::uint64_t>(k);
+    SteeringTrial3 trial(scene, world, scene.noise, trial_seed, max_steps);
+    trial.setTravel(travel_m);
+    bool ok = false;
+    try {
+      ok = devices.runTrial(trial, trial_seed);
+    } catch (const std::exception& e) {  // a malformed plan, a robot fault
+      trial.abort(devices.fault().value_or(e.what()));
+    }
+    run.results.push_back(trial.result());
+    run.faulted.push_back(!ok);
+    devices.progress("trial " + std::to_string(k) + ": " + describe(trial.result()));
+    if (!ok || devices.fault()) {
+      break;
+    }
+  }
+  run.safe_stop = devices.leaveSafe();
+  return run;
 }
 
 steering_3d::PlanCode planCodeFromName(const std::string& name) {
@@ -198,8 +288,10 @@ namespace {
 
 std::string summaryJson(const steering_3d::Scene3d& scene, const SteeringSummary3& s,
                         const std::vector<double>& round_trip_ms, std::uint64_t seed,
-                        const NodeDeath3& death) {
+                        const NodeDeath3& death, const std::string& safe_stop) {
   const auto num = [](double v) { return report::jsonNumber(v); };
+  std::string quoted = safe_stop;  // a robot's message inside a JSON string
+  std::replace(quoted.begin(), quoted.end(), '"', '\'');
   std::ostringstream json;
   json << "{\n  \"procedure\": \"steerable_procedure_3d\",\n  \"scene\": \"" << scene.name
        << "\",\n  \"seed\": " << seed << ",\n  \"trials\": " << s.trials
@@ -215,7 +307,7 @@ std::string summaryJson(const steering_3d::Scene3d& scene, const SteeringSummary
        << ",\n  \"round_trip_ms_median\": " << num(report::median(round_trip_ms))
        << ",\n  \"initial_plan_s_median\": " << num(s.initial_plan_s_median)
        << ",\n  \"predicted_p_success_mean\": " << num(s.predicted_p_success_mean)
-       << ",\n  \"faults\": " << s.faults;
+       << ",\n  \"faults\": " << s.faults << ",\n  \"safe_stop\": \"" << quoted << "\"";
   if (s.views_fused + s.views_dropped + s.views_gated > 0) {
     json << ",\n  \"tip_source\": \"biplane\",\n  \"views_fused\": " << s.views_fused
          << ",\n  \"views_dropped\": " << s.views_dropped
@@ -262,13 +354,13 @@ void writePlots(const std::string& dir, const steering_3d::Scene3d& scene,
 }  // namespace
 
 void writeSteeringReport3(const std::string& report_dir, const steering_3d::Scene3d& scene,
-                          const std::vector<TrialResult3>& results,
-                          const std::vector<bool>& faulted,
-                          const std::vector<double>& round_trip_ms, std::uint64_t seed,
-                          const NodeDeath3& death) {
+                          const SteeringRun3& run, const std::vector<double>& round_trip_ms,
+                          std::uint64_t seed, const NodeDeath3& death) {
+  const std::vector<TrialResult3>& results = run.results;
+  const std::vector<bool>& faulted = run.faulted;
   const SteeringSummary3 s = summarize(results, faulted);
   report::writeTextFile(report_dir + "/summary.json",
-                        summaryJson(scene, s, round_trip_ms, seed, death));
+                        summaryJson(scene, s, round_trip_ms, seed, death, run.safe_stop));
   report::Table trials({"trial", "success", "contact", "obstacle", "target_error_mm", "steps",
                         "initial_plan_s", "replans", "replan_ms_median", "predicted_p_success",
                         "fault", "message"});

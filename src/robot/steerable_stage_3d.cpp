@@ -247,6 +247,12 @@ std::string SteerableStage3d::linearRefusal(LinearCommand command, double target
   return motion_ ? "retract command refused: a steer command is running" : "";
 }
 
+double SteerableStage3d::depthTarget(const Motion& m) const {
+  // refusal() let the end be up to kRelTol beyond the travel (rounding of summed steps); the
+  // stage's own limit check is exact, so an end at the travel is commanded at the travel.
+  return std::min(m.start_m + m.stop_m, stage_.limits()[StageJoint::kDepth].upper);
+}
+
 CommandStatus SteerableStage3d::steer(const Steer3Command& c) {
   if (const std::string why = refusal(c); !why.empty()) {
     const CommandStatus refused = CommandStatus::refused("steer command refused: " + why);
@@ -314,7 +320,7 @@ CommandStatus SteerableStage3d::steer(const Steer3Command& c) {
   motion_->rotating = c.control.rotate_rad != 0.0;
   if (!motion_->rotating) {
     const CommandStatus started =
-        stage_.command(StageJoint::kDepth, motion_->start_m + motion_->stop_m, c.velocity_m_s);
+        stage_.command(StageJoint::kDepth, depthTarget(*motion_), c.velocity_m_s);
     if (!started) {  // refusal() checks what the stage checks: not expected
       endMotion("stopped", started.toString());
       return started;
@@ -353,7 +359,7 @@ SteerableStage3d::StepResult SteerableStage3d::step(double dt_s) {
     record("rotated", true,
            "bevel rotated " + std::to_string(m.command.control.rotate_rad) + " rad");
     const CommandStatus started =
-        stage_.command(StageJoint::kDepth, m.start_m + m.stop_m, m.command.velocity_m_s);
+        stage_.command(StageJoint::kDepth, depthTarget(m), m.command.velocity_m_s);
     if (!started) {
       endMotion("stopped", started.toString());
       return {true, false, started.toString()};

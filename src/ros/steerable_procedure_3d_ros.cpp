@@ -2,6 +2,7 @@
 #include "needle_guidance/ros/steerable_procedure_3d_ros.h"
 
 #include <chrono>
+#include <limits>
 #include <optional>
 #include <stdexcept>
 
@@ -10,6 +11,7 @@
 #include "needle_guidance/PlanSteering3.h"
 #include "needle_guidance/SetEntryPose3.h"
 #include "needle_guidance/report/output_path.h"
+#include "needle_guidance/robot/insertion_stage.h"
 #include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/conversions_3d.h"
 #include "needle_guidance/ros/node_supervisor.h"
@@ -34,14 +36,10 @@ SteerableProcedure3dRos::SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeH
   planner_ns_ = rp::text(private_nh, "planner_ns", "steering_planner_3d");
   robot_ns_ = rp::text(private_nh, "robot_ns", "insertion_robot");
   report_dir_ = ros_params::rosHomePath(rp::text(private_nh, "report_dir", "", true));
-  const std::string name = rp::text(private_nh, "tip_source", "truth");
-  const auto source = procedures::tipSource3FromString(name);
-  if (!source) {
-    throw std::runtime_error("parameter '" + private_nh.resolveName("tip_source") + "' = '" + name +
-                             "' is not truth or biplane");
-  }
+  const procedures::TipSource3 source = procedures::tipSource3OrThrow(
+      rp::text(private_nh, "tip_source", "truth"), private_nh.resolveName("tip_source"));
   scene_ = std::make_unique<sd::Scene3d>(sd::loadScene3d(scene_path));
-  if (*source == procedures::TipSource3::kBiplane) {
+  if (source == procedures::TipSource3::kBiplane) {
     imaging::BiplaneViewsConfig views;  // two fluoroscopy views of the tissue's bounds
     views.seed = static_cast<std::uint64_t>(seed_);
     views_ = std::make_unique<imaging::BiplaneViews3>(*scene_, views);
@@ -49,6 +47,10 @@ SteerableProcedure3dRos::SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeH
     view_pubs_[1] = private_nh.advertise<sensor_msgs::Image>("view_along_y", 2);
   }
   world_ = std::make_unique<sd::CollisionWorld3>(scene_->collisionWorld());
+  std::string urdf;  // the robot's own model: the insertion joint's travel
+  travel_m_ = nh.getParam("robot_description", urdf)
+                  ? robot::parseStageLimits(urdf)[robot::StageJoint::kDepth].upper
+                  : std::numeric_limits<double>::infinity();
   tip_pub_ = private_nh.advertise<geometry_msgs::PoseWithCovarianceStamped>("tip", 10);
   steer_ = std::make_unique<actionlib::SimpleActionClient<Steer3Action>>(nh, robot_ns_ + "/steer");
   retract_ =
@@ -70,12 +72,9 @@ std::optional<SteeringControl3> SteerableProcedure3dRos::exchange(
   msg.header.stamp = ros::Time::now();
   msg.pose.pose = ros_conversions::toMessage(trial.observedTip());
   const imaging::BiplaneObservation3& seen = trial.lastObservation();
-  const bool fused = views_ && seen.tip;
-  for (int k = 0; k < 9; ++k) {  // the fused covariance, else the configured sigma
-    msg.pose.covariance[static_cast<std::size_t>(6 * (k / 3) + k % 3)] =
-        fused        ? seen.covariance_m2(k / 3, k % 3)
-        : k % 4 == 0 ? tip_sigma_m_ * tip_sigma_m_
-                     : 0.0;
+  const sd::Matrix3 covariance = trial.observedCovariance_m2(tip_sigma_m_);
+  for (int k = 0; k < 9; ++k) {
+    msg.pose.covariance[static_cast<std::size_t>(6 * (k / 3) + k % 3)] = covariance(k / 3, k % 3);
   }
   for (const imaging::BiplaneView3* v : {&seen.along_z, &seen.along_y}) {
     if (views_ && !v->frame.image.empty()) {
@@ -90,14 +89,14 @@ std::optional<SteeringControl3> SteerableProcedure3dRos::exchange(
                                                                          : std::nullopt;
 }
 
-bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::uint64_t trial_seed,
-                                       std::vector<double>& round_trip_ms) {
+bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial,
+                                       std::uint64_t trial_seed) {
   PlanSteering3 srv;
   srv.request.seed = trial_seed;
   if (!plan_client_.call(srv)) {
     supervisor_->checkNow();
     trial.abort("the call of " + plan_client_.getService() +
-                " failed: " + deathCause().value_or("no answer"));
+                " failed: " + fault().value_or("no answer"));
     return false;
   }
   if (!srv.response.success) {
@@ -111,8 +110,8 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
     return false;
   }
   trial.start(entry, srv.response.p_success, srv.response.seconds);
-  if (const std::string fault = placeRobot(entry, trial_seed); !fault.empty()) {
-    trial.abort(fault);
+  if (const std::string failed = placeRobot(entry, trial_seed); !failed.empty()) {
+    trial.abort(failed);
     return false;
   }
   trial.setWorld([this](const sd::Control3& c, sd::TipPose3& tip, sd::TrialResult3& r) {
@@ -126,47 +125,62 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial, std::u
     const auto t0 = std::chrono::steady_clock::now();
     const std::optional<SteeringControl3> answer = exchange(trial);
     if (!answer) {
-      trial.abort(deathCause().value_or("no control from " + planner_ns_ + " within " +
-                                        std::to_string(control_timeout_s_) + " s"));
+      trial.abort(fault().value_or("no control from " + planner_ns_ + " within " +
+                                   std::to_string(control_timeout_s_) + " s"));
       return false;
     }
-    round_trip_ms.push_back(
+    round_trip_ms_.push_back(
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
-    if (answer->status == "bad_input") {
-      trial.abort("the planner refused the tip: " + answer->message);
+    std::vector<sd::Control3> plan = ros_conversions::controlsFromArrays(
+        answer->next_rotate_rad, answer->next_curvature_per_m, answer->next_insertion_m);
+    plan.insert(plan.begin(),
+                sd::Control3{answer->rotate_rad, answer->curvature_per_m, answer->insertion_m});
+    if (!trial.followAnswer(answer->status, answer->message, answer->plan_seconds, plan)) {
       return false;
-    }
-    trial.recordReplan(answer->plan_seconds);
-    if (answer->status == "ok") {  // otherwise keep following the previous plan (as runTrial3)
-      std::vector<sd::Control3> plan = ros_conversions::controlsFromArrays(
-          answer->next_rotate_rad, answer->next_curvature_per_m, answer->next_insertion_m);
-      plan.insert(plan.begin(),
-                  sd::Control3{answer->rotate_rad, answer->curvature_per_m, answer->insertion_m});
-      trial.setPlan(plan);
     }
   }
-  return true;
+  return ros::ok();
 }
 
-std::optional<std::string> SteerableProcedure3dRos::deathCause() const {
+std::optional<std::string> SteerableProcedure3dRos::fault() {
   const auto death = supervisor_ != nullptr ? supervisor_->death() : std::nullopt;
-  return death ? std::optional(death->toString()) : std::nullopt;
+  return death       ? std::optional(death->toString())
+         : ros::ok() ? std::nullopt
+                     : std::optional<std::string>("ROS shut down");
+}
+
+std::string SteerableProcedure3dRos::leaveSafe() {
+  controls_.setAbort(nullptr);
+  if (const std::string robot = nh_.resolveName(robot_ns_, false);
+      !NodeSupervisor::ping(robot, 0.5).empty()) {
+    return "none possible: the robot node " + robot + " does not answer";
+  }
+  const std::string failed = retract(nullptr);
+  return failed.empty() ? "needle retracted" : "retraction failed: " + failed;
+}
+
+std::string SteerableProcedure3dRos::retract(
+    const std::function<std::optional<std::string>()>& death) {
+  LinearMoveGoal out;  // out of the tissue (at once when the needle is already out)
+  out.velocity_m_s = 0.02;
+  std::string message;
+  return runGoal(*retract_, out, control_timeout_s_, death, message) ? "" : message;
+}
+
+void SteerableProcedure3dRos::progress(const std::string& line) {
+  ROS_INFO_STREAM("steerable_procedure_3d: " << line);
 }
 
 std::string SteerableProcedure3dRos::placeRobot(const sd::TipPose3& entry, std::uint64_t seed) {
-  LinearMoveGoal out;  // back to the entry (at once when the needle is out)
-  out.velocity_m_s = 0.02;
-  std::string message;
-  if (!runGoal(
-          *retract_, out, control_timeout_s_, [this] { return deathCause(); }, message)) {
-    return "the robot did not retract: " + message;
+  if (const std::string failed = retract([this] { return fault(); }); !failed.empty()) {
+    return "the robot did not retract: " + failed;
   }
   SetEntryPose3 srv;
   srv.request.entry = ros_conversions::toMessage(entry);
   srv.request.reseed = true;
   srv.request.seed = seed;  // the trial's noise stream, as runTrial3's world
   if (!set_entry_.call(srv) || !srv.response.success) {
-    return "the robot refused the entry: " + srv.response.message + deathCause().value_or("");
+    return "the robot refused the entry: " + srv.response.message + fault().value_or("");
   }
   return "";
 }
@@ -181,31 +195,26 @@ bool SteerableProcedure3dRos::robotStep(const sd::Control3& c, sd::TipPose3& tip
   goal.velocity_m_s = scene_->needle.insertion_speed_m_s;
   std::string message;
   const bool ok = runGoal(
-      *steer_, goal, control_timeout_s_, [this] { return deathCause(); }, message);
+      *steer_, goal, control_timeout_s_, [this] { return fault(); }, message);
   const Steer3ResultConstPtr result = steer_->getResult();
-  const bool contact = result->contact == "obstacle" || result->contact == "outside_tissue";
-  if ((!ok && !contact) || !ros_conversions::fromMessage(result->tip, tip).empty()) {
+  std::vector<sd::Vector3> path;
+  for (const geometry_msgs::Point& p : result->path) {
+    path.emplace_back(p.x, p.y, p.z);
+  }
+  const std::optional<bool> free =
+      procedures::recordRobotStep3(ok, result->contact, result->obstacle, result->message, path, r);
+  if (!free || !ros_conversions::fromMessage(result->tip, tip).empty()) {
+    supervisor_->checkNow();
     throw std::runtime_error("the robot's steer goal: " + message);  // a fault, not an outcome
   }
-  ++r.steps;
-  for (std::size_t i = 1; i < result->path.size(); ++i) {
-    r.path.emplace_back(result->path[i].x, result->path[i].y, result->path[i].z);
-  }
-  if (contact) {
-    r.contact =
-        result->contact == "obstacle" ? sd::Contact3::kObstacle : sd::Contact3::kOutsideTissue;
-    r.obstacle = result->obstacle;
-    r.message = result->message;
-  }
-  return !contact;
+  return *free;
 }
 
 bool SteerableProcedure3dRos::run() {
   report::prepareReportDir(report_dir_, "~report_dir", false);
-  if (!plan_client_.waitForExistence(ros::Duration(startup_timeout_s_)) ||
-      !set_entry_.waitForExistence(ros::Duration(startup_timeout_s_)) ||
-      !steer_->waitForServer(ros::Duration(startup_timeout_s_)) ||
-      !retract_->waitForServer(ros::Duration(startup_timeout_s_))) {
+  const ros::Duration up(startup_timeout_s_);
+  if (!plan_client_.waitForExistence(up) || !set_entry_.waitForExistence(up) ||
+      !steer_->waitForServer(up) || !retract_->waitForServer(up)) {
     ROS_ERROR_STREAM(
         "steerable_procedure_3d: the planner or the robot (steerable_3d mode) did "
         "not come up within "
@@ -222,40 +231,21 @@ bool SteerableProcedure3dRos::run() {
   }
   NodeSupervisor supervisor(nh_, {planner_ns_, robot_ns_});
   supervisor_ = &supervisor;
-  controls_.setAbort([this] { return deathCause().has_value(); });
-  std::vector<sd::TrialResult3> results;
-  std::vector<bool> faulted;
-  std::vector<double> round_trip_ms;
-  bool ok = true;
-  for (int k = 0; k < trials_ && ok && ros::ok(); ++k) {
-    ROS_INFO_STREAM("steerable_procedure_3d: trial " << k + 1 << "/" << trials_);
-    const std::uint64_t trial_seed = static_cast<std::uint64_t>(seed_) * 100000ULL + k;
-    procedures::SteeringTrial3 trial(*scene_, *world_, scene_->noise, trial_seed, max_steps_);
-    try {
-      ok = runTrial(trial, trial_seed, round_trip_ms);
-    } catch (const std::exception& e) {  // a malformed plan, a robot fault
-      supervisor_->checkNow();
-      trial.abort(deathCause().value_or(e.what()));
-      ok = false;
-    }
-    results.push_back(trial.result());
-    faulted.push_back(!ok);
-    ROS_INFO_STREAM("steerable_procedure_3d: trial " << k << ": "
-                                                     << procedures::describe(trial.result()));
-  }
+  controls_.setAbort([this] { return fault().has_value(); });
+  const procedures::SteeringRun3 r = procedures::runSteeringTrials3(
+      *scene_, *world_, *this, trials_, static_cast<std::uint64_t>(seed_), max_steps_, travel_m_);
   procedures::NodeDeath3 death;
   if (const auto d = supervisor.death()) {
     death = {d->node, d->toString(), d->when.toSec()};
     ROS_ERROR_STREAM("steerable_procedure_3d: stopped: " << death.cause);
   }
-  controls_.setAbort(nullptr);
   supervisor_ = nullptr;
-  procedures::writeSteeringReport3(report_dir_, *scene_, results, faulted, round_trip_ms,
+  procedures::writeSteeringReport3(report_dir_, *scene_, r, round_trip_ms_,
                                    static_cast<std::uint64_t>(seed_), death);
-  const procedures::SteeringSummary3 s = procedures::summarize(results, faulted);
-  ROS_INFO_STREAM("steerable_procedure_3d: " << procedures::describe(s) << "; report in "
-                                             << report_dir_);
-  return ok && death.dead_node.empty() && static_cast<int>(results.size()) == trials_;
+  ROS_INFO_STREAM("steerable_procedure_3d: "
+                  << procedures::describe(procedures::summarize(r.results, r.faulted))
+                  << "; robot: " << r.safe_stop << "; report in " << report_dir_);
+  return death.dead_node.empty() && r.completed(trials_);
 }
 
 }  // namespace needle_guidance

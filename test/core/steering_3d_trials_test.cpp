@@ -1,8 +1,15 @@
 // procedures::SteeringTrial3 (the ROS procedure's world, issue 18): a noiseless entry plan
 // followed step by step ends in the target; a straight push along the urethra is stopped by it;
-// a trial without a plan ends where it is, as a failure; the summary's Wilson interval.
+// a trial without a plan ends where it is, as a failure; the summary's Wilson interval; a plan
+// beyond the insertion joint's travel ends that trial (not the run) as a refusal naming the
+// travel; the trial loop leaves the robot safe after the last trial and after a fault and the
+// report says what it did.
 #include <gtest/gtest.h>
 
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <stdexcept>
 #include <string>
 
 #include "needle_guidance/procedures/steering_3d_trials.h"
@@ -86,6 +93,125 @@ TEST(SteeringTrial3, SummaryCountsSuccessesAndFaultsWithAWilsonInterval) {
   EXPECT_NEAR(s.success_ci_low, 0.3006, 1e-4);
   EXPECT_NEAR(s.success_ci_high, 0.9544, 1e-4);
   EXPECT_FALSE(needle_guidance::procedures::runSucceeded(s));  // a fault
+}
+
+TEST(SteeringTrial3, AStepBeyondTheJointsTravelEndsTheTrialAsARefusalNamingIt) {
+  const sd::Scene3d scene = prostate();
+  const sd::CollisionWorld3 world = scene.collisionWorld();
+  const sd::Planner3 planner(scene, world, sd::PlannerParams3{}, sd::NoiseParams3{});
+  const auto plan = planner.planFromEntry(11);  // the noiseless plan that reaches the target
+  ASSERT_TRUE(plan) << plan.status().toString();
+  constexpr double kTravelM = 0.012;  // [m] far shorter than the plan
+  ASSERT_GT(plan.value().length_m, 2.0 * kTravelM);
+  SteeringTrial3 trial(scene, world, sd::NoiseParams3{}, 5, 200);
+  trial.setTravel(kTravelM);
+  trial.start(plan.value().start, plan.value().p_success, 0.0);
+  trial.setPlan(plan.value().controls);
+  while (trial.step()) {
+  }
+  const sd::TrialResult3& r = trial.result();
+  EXPECT_TRUE(trial.done());
+  EXPECT_FALSE(r.success);
+  EXPECT_EQ(r.contact, sd::Contact3::kFree);
+  EXPECT_LE(trial.insertedLength_m(), kTravelM);
+  EXPECT_GT(trial.insertedLength_m(), kTravelM - scene.step_length_m);  // stopped at the last fit
+  EXPECT_NE(r.message.find("beyond the insertion joint's travel of 0.012 m"), std::string::npos)
+      << r.message;
+  EXPECT_EQ(r.message.rfind("refused", 0), 0U) << r.message;
+}
+
+TEST(SteeringTrial3, PlannerAnswersReplaceKeepOrRefuse) {
+  const sd::Scene3d scene = prostate();
+  const sd::CollisionWorld3 world = scene.collisionWorld();
+  const sd::Planner3 planner(scene, world, sd::PlannerParams3{}, sd::NoiseParams3{});
+  const auto plan = planner.planFromEntry(11);
+  ASSERT_TRUE(plan) << plan.status().toString();
+  // A replan that found nothing keeps the plan being followed and counts its time.
+  SteeringTrial3 kept(scene, world, sd::NoiseParams3{}, 5, 200);
+  kept.start(plan.value().start, plan.value().p_success, 0.0);
+  kept.setPlan(plan.value().controls);
+  EXPECT_TRUE(kept.followAnswer("no_path_within_budget", "", 0.02, {}));
+  EXPECT_EQ(kept.result().replan_s.size(), 1U);
+  EXPECT_TRUE(kept.step()) << kept.result().message;
+  // "ok" replaces the plan: from none to the planner's.
+  SteeringTrial3 replaced(scene, world, sd::NoiseParams3{}, 5, 200);
+  replaced.start(plan.value().start, plan.value().p_success, 0.0);
+  EXPECT_TRUE(replaced.followAnswer("ok", "", 0.01, plan.value().controls));
+  EXPECT_TRUE(replaced.step()) << replaced.result().message;
+  // "bad_input" is a fault: the trial ends, naming the planner's reason.
+  SteeringTrial3 refused(scene, world, sd::NoiseParams3{}, 5, 200);
+  refused.start(plan.value().start, plan.value().p_success, 0.0);
+  EXPECT_FALSE(refused.followAnswer("bad_input", "position not finite", 0.0, {}));
+  EXPECT_TRUE(refused.done());
+  EXPECT_FALSE(refused.result().success);
+  EXPECT_EQ(refused.result().message, "the planner refused the tip: position not finite");
+}
+
+/// Fake devices: trial `fault_at` throws with a dead node; every other trial is refused at the
+/// start (no plan), which is an outcome. Records leaveSafe calls.
+class FakeDevices3 : public needle_guidance::procedures::SteeringDevices3 {
+public:
+  explicit FakeDevices3(int fault_at) : fault_at_(fault_at) {}
+  bool runTrial(SteeringTrial3& trial, std::uint64_t) override {
+    if (trials_run_++ == fault_at_) {
+      dead_ = true;
+      throw std::runtime_error("the robot's steer goal: no result within the timeout");
+    }
+    trial.refuseStart(sd::PlanCode::kNoPathWithinBudget, "no plan in the fake");
+    return true;
+  }
+  std::optional<std::string> fault() override {
+    return dead_ ? std::optional<std::string>("node /insertion_robot died") : std::nullopt;
+  }
+  std::string leaveSafe() override {
+    ++safe_calls_;
+    safe_after_trials_ = trials_run_;
+    return "needle retracted";
+  }
+  void progress(const std::string&) override {}
+
+  int trials_run_ = 0, safe_calls_ = 0, safe_after_trials_ = -1;
+
+private:
+  int fault_at_;
+  bool dead_ = false;
+};
+
+TEST(SteeringTrials3, TheRobotIsLeftSafeAfterTheLastTrial) {
+  const sd::Scene3d scene = prostate();
+  const sd::CollisionWorld3 world = scene.collisionWorld();
+  FakeDevices3 devices(-1);
+  const auto run =
+      needle_guidance::procedures::runSteeringTrials3(scene, world, devices, 3, 7, 200, 0.12);
+  EXPECT_EQ(run.results.size(), 3U);
+  EXPECT_TRUE(run.completed(3));
+  EXPECT_EQ(devices.safe_calls_, 1);
+  EXPECT_EQ(devices.safe_after_trials_, 3);  // after the last trial, not only before each
+  EXPECT_EQ(run.safe_stop, "needle retracted");
+}
+
+TEST(SteeringTrials3, AFaultStopsTheRunLeavesTheRobotSafeAndTheReportSaysSo) {
+  const sd::Scene3d scene = prostate();
+  const sd::CollisionWorld3 world = scene.collisionWorld();
+  FakeDevices3 devices(1);
+  const auto run =
+      needle_guidance::procedures::runSteeringTrials3(scene, world, devices, 5, 7, 200, 0.12);
+  ASSERT_EQ(run.results.size(), 2U);  // stopped at the fault
+  EXPECT_FALSE(run.completed(5));
+  EXPECT_FALSE(run.faulted[0]);
+  EXPECT_TRUE(run.faulted[1]);
+  EXPECT_EQ(run.results[1].message, "node /insertion_robot died");  // the cause, not the symptom
+  EXPECT_EQ(devices.safe_calls_, 1);
+  EXPECT_EQ(devices.safe_after_trials_, 2);
+  const std::string dir = testing::TempDir() + "/steering_3d_trials_safe_stop";
+  std::filesystem::create_directories(dir);
+  needle_guidance::procedures::writeSteeringReport3(dir, scene, run, {}, 7,
+                                                    {"/insertion_robot", "died", 1.0});
+  std::stringstream json;
+  json << std::ifstream(dir + "/summary.json").rdbuf();
+  EXPECT_NE(json.str().find("\"safe_stop\": \"needle retracted\""), std::string::npos)
+      << json.str();
+  EXPECT_NE(json.str().find("\"status\": \"node_died\""), std::string::npos) << json.str();
 }
 
 }  // namespace

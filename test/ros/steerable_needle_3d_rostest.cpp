@@ -5,11 +5,16 @@
 // checked against the scene independently of the procedure (each recorded path re-checked for
 // contact with the scene's collision world, each success's last tip against the target ball),
 // the success count against the bench's rate, and the planner refuses non-finite and wrong-frame
-// tip poses with status bad_input and no NaN while the procedure runs.
+// tip poses with status bad_input and no NaN while the procedure runs. After the last trial the
+// robot is left safe: summary.json says "needle retracted" and the robot's insertion joint reads
+// 0. steerable_needle_3d_travel.test gives the robot a 30 mm insertion travel: every trial ends
+// as a refusal naming the travel (success 0), none as a fault, and the run completes.
 #include <geometry_msgs/PoseWithCovarianceStamped.h>
 #include <gtest/gtest.h>
 #include <ros/ros.h>
+#include <sensor_msgs/JointState.h>
 
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <limits>
@@ -32,6 +37,7 @@ constexpr int kTrials = 4;
 constexpr int kMinSuccesses = 3;
 constexpr double kMmTol = 1e-3;  // [mm] CSV rounding of positions (6 significant digits)
 constexpr double kRefusalWaitS = 10.0;
+constexpr double kJointTolM = 1e-9;  // [m] a retracted insertion joint reads exactly 0
 
 std::string slurp(const std::string& path) {
   std::stringstream text;
@@ -144,7 +150,25 @@ TEST(SteerableNeedle3d, TrialsReachTheTargetAndTheReportMatchesTheScene) {
     }
   }
   EXPECT_GE(successes, min_successes) << summary;
+  if (private_nh.param("travel_refusals", false)) {  // the robot's travel is shorter than a plan
+    for (const auto& row : trials) {
+      EXPECT_EQ(row.at("success"), "0");
+      EXPECT_EQ(row.at("fault"), "0");
+      EXPECT_NE(row.at("message").find("beyond the insertion joint's travel of 0.03 m"),
+                std::string::npos)
+          << "trial " << row.at("trial") << ": " << row.at("message");
+    }
+  }
   EXPECT_NE(summary.find("\"successes\": " + std::to_string(successes) + ","), std::string::npos);
+
+  // The robot left safe after the last trial: the needle out of the tissue.
+  EXPECT_NE(summary.find("\"safe_stop\": \"needle retracted\""), std::string::npos) << summary;
+  const auto js = firstMessage<sensor_msgs::JointState>("/insertion_robot/measured_js", 5.0);
+  ASSERT_TRUE(js) << "no joint state from the robot";
+  const auto insertion = std::find(js->name.begin(), js->name.end(), "insertion");
+  ASSERT_NE(insertion, js->name.end());
+  EXPECT_NEAR(js->position.at(static_cast<std::size_t>(insertion - js->name.begin())), 0.0,
+              kJointTolM);
 }
 
 }  // namespace

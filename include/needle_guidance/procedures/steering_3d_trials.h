@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <deque>
 #include <functional>
+#include <limits>
 #include <optional>
 #include <string>
 #include <vector>
@@ -24,6 +25,8 @@ enum class TipSource3 {
 };
 /// "truth" | "biplane"; nullopt for anything else.
 std::optional<TipSource3> tipSource3FromString(const std::string& name);
+/// As tipSource3FromString; throws std::runtime_error naming the parameter `where` otherwise.
+TipSource3 tipSource3OrThrow(const std::string& name, const std::string& where);
 
 /// One trial's world: the true tip, its noisy needle and the outcome so far.
 class SteeringTrial3 {
@@ -49,6 +52,9 @@ public:
   void setViews(const imaging::BiplaneViews3* views) { views_ = views; }
   /// The tip the planner is given: the truth, or the biplane estimate with setViews.
   const steering_3d::TipPose3& observedTip() const { return views_ != nullptr ? estimate_ : tip_; }
+  /// The covariance of observedTip()'s position [m^2]: the fused views' with setViews and a
+  /// fused pair, else sigma_m^2 I (the truth's configured sigma, or after a dropped/gated pair).
+  steering_3d::Matrix3 observedCovariance_m2(double sigma_m) const;
   /// The last biplane observation (frames, detections, fusion), with setViews.
   const imaging::BiplaneObservation3& lastObservation() const { return observation_; }
 
@@ -66,6 +72,18 @@ public:
   /// Ends a trial that stopped early (e.g. no control came): refereed where the tip is, with
   /// `message` as the reason.
   void abort(const std::string& message);
+  /// The insertion joint's travel [m] (default: unlimited): a step that would insert the needle
+  /// beyond it is not executed; the trial ends there, a failure whose message names the travel
+  /// (the needle stays where it is, in the tissue, until the next placement retracts it).
+  void setTravel(double travel_m) { travel_m_ = travel_m; }
+  /// Arc length inserted so far in this trial [m].
+  double insertedLength_m() const { return inserted_m_; }
+  /// The planner's answer to the last tip (SteeringControl3's status): "ok" records the replan
+  /// time and follows `controls`; "bad_input" aborts the trial ("the planner refused the tip: "
+  /// + message) and returns false (a fault); any other status records the time and keeps the
+  /// previous plan (as runTrial3 does when a replan finds none).
+  bool followAnswer(const std::string& status, const std::string& message, double plan_seconds,
+                    const std::vector<steering_3d::Control3>& controls);
   /// Records one replan's planner time [s].
   void recordReplan(double seconds) { result_.replan_s.push_back(seconds); }
 
@@ -89,6 +107,8 @@ private:
   steering_3d::TipPose3 tip_;
   std::deque<steering_3d::Control3> plan_;
   steering_3d::TrialResult3 result_;
+  double travel_m_ = std::numeric_limits<double>::infinity();
+  double inserted_m_ = 0.0;
   bool done_ = false;
 };
 
@@ -137,14 +157,54 @@ struct NodeDeath3 {
   double detected_unix_s = 0.0;  ///< when the death was seen [s since the epoch]
 };
 
+/// What the 3-D procedure drives: the node's planner and robot over ROS (or fakes in a test).
+class SteeringDevices3 {
+public:
+  virtual ~SteeringDevices3() = default;
+  /// Runs one trial from its entry plan to its end (trial.start / setWorld / setPlan / step).
+  /// False, or a throw, is a fault of the loop (the trial is aborted with its reason).
+  virtual bool runTrial(SteeringTrial3& trial, std::uint64_t trial_seed) = 0;
+  /// The cause of a fault that ends the run (a dead node, a shutdown); nullopt while all is well.
+  virtual std::optional<std::string> fault() = 0;
+  /// Leaves the robot safe after the last trial or a fault: the needle retracted out of the
+  /// tissue if the robot lives. What was done, e.g. "needle retracted", "none possible: ...".
+  virtual std::string leaveSafe() = 0;
+  /// A progress line for the log.
+  virtual void progress(const std::string& line) = 0;
+};
+
+/// The trials of one run and how it ended.
+struct SteeringRun3 {
+  std::vector<steering_3d::TrialResult3> results;
+  std::vector<bool> faulted;  ///< per trial: a fault ended it
+  std::string safe_stop;      ///< what leaveSafe() did
+  /// All `trials` were run and none ended in a fault.
+  bool completed(int trials) const;
+};
+
+/// Records one step the robot made (its steer result) in `result`, as executeStep3 would:
+/// counts it, appends `path` (its first point, the start, left out) and, on contact "obstacle" or
+/// "outside_tissue", sets contact / obstacle / message. True: free; false: a contact; nullopt: a
+/// fault (the goal failed without a contact).
+std::optional<bool> recordRobotStep3(bool succeeded, const std::string& contact,
+                                     const std::string& obstacle, const std::string& message,
+                                     const std::vector<steering_3d::Vector3>& path,
+                                     steering_3d::TrialResult3& result);
+
+/// Runs `trials` trials (trial k seeded seed * 100000 + k, the travel set on each) until done or
+/// a fault, then always calls devices.leaveSafe() and records what it did.
+SteeringRun3 runSteeringTrials3(const steering_3d::Scene3d& scene,
+                                const steering_3d::CollisionWorld3& world,
+                                SteeringDevices3& devices, int trials, std::uint64_t seed,
+                                int max_steps, double travel_m);
+
 /// Writes summary.json, trials.csv, paths.csv and target_error.png / replan_ms.png to
 /// report_dir (which the caller prepared). `round_trip_ms` are the tip-to-control latencies the
-/// node measured; with a `death` the status is node_died and the report names the node. Throws
-/// std::runtime_error naming a file it cannot write.
+/// node measured; with a `death` the status is node_died and the report names the node;
+/// summary.json's safe_stop is run.safe_stop. Throws std::runtime_error naming a file it cannot
+/// write.
 void writeSteeringReport3(const std::string& report_dir, const steering_3d::Scene3d& scene,
-                          const std::vector<steering_3d::TrialResult3>& results,
-                          const std::vector<bool>& faulted,
-                          const std::vector<double>& round_trip_ms, std::uint64_t seed,
-                          const NodeDeath3& death = {});
+                          const SteeringRun3& run, const std::vector<double>& round_trip_ms,
+                          std::uint64_t seed, const NodeDeath3& death = {});
 
 }  // namespace needle_guidance::procedures

@@ -117,6 +117,8 @@ public:
 private:
   struct Motion;
   std::string refusal(const Steer3Command& command) const;
+  /// The insertion joint target at the end of `m`, at most the joint's upper limit.
+  double depthTarget(const Motion& m) const;
   StepResult stepInsertion(double dt_s);
   void placeTipAt(double inserted_m);
   void endMotion(const std::string& event, const std::string& message);

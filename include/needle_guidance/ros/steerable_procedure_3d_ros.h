@@ -37,7 +37,7 @@ class NodeSupervisor;
 
 /// Reads its parameters once (throws std::runtime_error on a bad one, scene::SceneError on a bad
 /// scene); run() executes the trials. Needs a spinner running (AsyncSpinner).
-class SteerableProcedure3dRos {
+class SteerableProcedure3dRos : private procedures::SteeringDevices3 {
 public:
   SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh);
   /// Runs the trials and writes the report (procedures::writeSteeringReport3) to ~report_dir.
@@ -47,9 +47,12 @@ public:
   bool run();
 
 private:
-  /// One trial; false on a fault (the trial is then marked as such).
-  bool runTrial(procedures::SteeringTrial3& trial, std::uint64_t trial_seed,
-                std::vector<double>& round_trip_ms);
+  // procedures::SteeringDevices3: one trial (false on a fault), the supervisor's cause, the
+  // retraction after the run (if the robot answers), the log.
+  bool runTrial(procedures::SteeringTrial3& trial, std::uint64_t trial_seed) override;
+  std::optional<std::string> fault() override;
+  std::string leaveSafe() override;
+  void progress(const std::string& line) override;
   /// Publishes the tip and waits for the control answering it; nullopt after the timeout or
   /// once the supervisor has seen the planner die.
   /// With biplane views, their last frames are published first.
@@ -59,7 +62,8 @@ private:
   /// SteeringTrial3::WorldStep3 through the robot's steer action.
   bool robotStep(const steering_3d::Control3& control, steering_3d::TipPose3& tip,
                  steering_3d::TrialResult3& result);
-  std::optional<std::string> deathCause() const;
+  /// Retracts the needle out of the tissue (`death` as runGoal's); "" or why not.
+  std::string retract(const std::function<std::optional<std::string>()>& death);
 
   ros::NodeHandle nh_;
   std::unique_ptr<steering_3d::Scene3d> scene_;
@@ -72,7 +76,9 @@ private:
   long seed_ = 1;
   double control_timeout_s_ = 10.0;
   double startup_timeout_s_ = 30.0;
-  double tip_sigma_m_ = 0.0;  ///< position std published with the tip (0: the truth) [m]
+  double travel_m_ = 0.0;              ///< the insertion joint's travel (~robot_description) [m]
+  std::vector<double> round_trip_ms_;  ///< tip-to-control latencies of the run
+  double tip_sigma_m_ = 0.0;           ///< position std published with the tip (0: the truth) [m]
   ros::Publisher tip_pub_;
   std::unique_ptr<actionlib::SimpleActionClient<Steer3Action>> steer_;
   std::unique_ptr<actionlib::SimpleActionClient<LinearMoveAction>> retract_;
