@@ -1018,15 +1018,17 @@ SequenceTracker::SequenceTracker(const AcquisitionOptions& options) : options_(o
 }
 
 bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px,
-                             double ahead_px) const {
+                             double far_px) const {
   double da = std::abs(a.angle_rad - b.angle_rad);
   da = std::min(da, 2 * kPi - da);
   const cv::Point2d n(-std::sin(a.angle_rad), std::cos(a.angle_rad));
   const cv::Point2d nb(-std::sin(b.angle_rad), std::cos(b.angle_rad));
-  const double along = (b.tip_px - a.tip_px).dot(cv::Point2d(-n.y, n.x));
+  // How far b's tip lies BEHIND a's along a's axis (cos, sin) = (n.y, -n.x): the wide gate
+  // far_px applies behind (see kGateBehind_px).
+  const double behind = (b.tip_px - a.tip_px).dot(cv::Point2d(-n.y, n.x));
   if (a.from_motion && b.from_motion) {
     // Two tips from the motion alone: no shaft, a rough axis; only the distance counts.
-    return cv::norm(b.tip_px - a.tip_px) < std::max(tip_px, ahead_px);
+    return cv::norm(b.tip_px - a.tip_px) < std::max(tip_px, far_px);
   }
   if (a.from_motion || b.from_motion) {
     // A tip from the motion alone against a shaft: its front lies among the reverberation
@@ -1034,14 +1036,14 @@ bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, dou
     const cv::Point2d n_line = a.from_motion ? nb : n, d_line(n_line.y, -n_line.x);
     const double along_line = (b.tip_px - a.tip_px).dot(d_line);
     return std::abs((b.tip_px - a.tip_px).dot(n_line)) < kGateMotionLine_px &&
-           along_line > -tip_px && along_line < std::max(tip_px, ahead_px);
+           along_line > -tip_px && along_line < std::max(tip_px, far_px);
   }
   // Off the line both ways: a line that only meets the other's far extension (a layer in line
   // with the needle hundreds of pixels on) is not the same line.
   const double off_line =
       std::max(std::abs((b.tip_px - a.tip_px).dot(n)), std::abs((a.tip_px - b.tip_px).dot(nb)));
-  return da < kGateAngle_rad && off_line < kGateLine_px && along > -tip_px &&
-         along < std::max(tip_px, ahead_px);
+  return da < kGateAngle_rad && off_line < kGateLine_px && behind > -tip_px &&
+         behind < std::max(tip_px, far_px);
 }
 
 cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
@@ -1150,7 +1152,7 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
     // Motion model: the tip moves along the needle's axis at the last speed.
     NeedleSegment pred = predicted();
     const cv::Point2d axis(std::cos(pred.angle_rad), std::sin(pred.angle_rad));
-    if (d.found && agrees(pred, d, kGateTip_px, moved_ ? kGateAhead_px : kGateTip_px)) {
+    if (d.found && agrees(pred, d, kGateTip_px, moved_ ? kGateBehind_px : kGateTip_px)) {
       coasted_ = 0;
       velocity_px_ = 0.5 * velocity_px_ + 0.5 * (d.tip_px - track_->tip_px).dot(axis);
       const bool close = cv::norm(d.tip_px - pred.tip_px) < kAgreeTip_px;
