@@ -1087,7 +1087,16 @@ void SequenceTracker::startTrack(const NeedleSegment& d) {
   track_ = d;
   velocity_px_ = 0;
   start_tip_px_ = d.tip_px;
+  start_tail_px_ = d.tail_px;
   moved_ = d.motion >= kMinMotionRatio;
+}
+
+bool SequenceTracker::advancedLikeANeedle(const NeedleSegment& d, const cv::Point2d& axis) const {
+  // The tip advanced along the axis while the shaft's far end stayed (a needle being inserted);
+  // a line of moving tissue (a layer drifting with breathing or the probe) moves at both ends.
+  const double advance = std::abs((d.tip_px - start_tip_px_).dot(axis));
+  return advance >= kEarnAdvance_px &&
+         (d.from_motion || cv::norm(d.tail_px - start_tail_px_) < 0.5 * advance);
 }
 
 double SequenceTracker::motionAxis(const NeedleSegment& d) const {
@@ -1157,8 +1166,7 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
       velocity_px_ = 0.5 * velocity_px_ + 0.5 * (d.tip_px - track_->tip_px).dot(axis);
       const bool close = cv::norm(d.tip_px - pred.tip_px) < kAgreeTip_px;
       agreeing_ = close ? agreeing_ + 1 : 1;
-      moved_ = moved_ || d.motion >= kMinMotionRatio ||
-               std::abs((d.tip_px - start_tip_px_).dot(axis)) >= kEarnAdvance_px;
+      moved_ = moved_ || d.motion >= kMinMotionRatio || advancedLikeANeedle(d, axis);
       seen_moving_ = seen_moving_ || moved_;
       track_ = d;
       if (d.from_motion)

@@ -171,6 +171,10 @@ private:
   /// The axis of a tip from the motion alone: its path since the track began once that is
   /// kEarnAdvance_px long, else the track's shaft, else the blob's own axis.
   double motionAxis(const NeedleSegment& d) const;
+  /// d's tip kEarnAdvance_px along `axis` from the track's first tip, its tail (the shaft's far
+  /// end) moved less than half that (a drifting layer of moving tissue moves at both ends); a
+  /// tip from the motion alone has no tail to check.
+  bool advancedLikeANeedle(const NeedleSegment& d, const cv::Point2d& axis) const;
   /// The track's motion model one frame on (the tip along the axis at the last speed).
   NeedleSegment predicted() const;
   /// A frame whose detection shows no tip of the moving track (gated out or missing): coast on
@@ -190,9 +194,10 @@ private:
   Output last_output_;
   AcquisitionOptions options_;
   std::optional<NeedleSegment> track_;
-  double velocity_px_ = 0.0;            ///< tip speed along the axis [px / frame]
-  cv::Point2d start_tip_px_{0.0, 0.0};  ///< the track's tip when it was acquired
-  bool moved_ = false;                  ///< the track has moved like a needle
+  double velocity_px_ = 0.0;             ///< tip speed along the axis [px / frame]
+  cv::Point2d start_tip_px_{0.0, 0.0};   ///< the track's tip when it was acquired
+  cv::Point2d start_tail_px_{0.0, 0.0};  ///< the track's tail (far end) when it was acquired
+  bool moved_ = false;                   ///< the track has moved like a needle
   /// A track has moved like a needle in this sequence: from then on a still line is not the
   /// needle (found = false) until it moves, and never replaces a moving track.
   bool seen_moving_ = false;
