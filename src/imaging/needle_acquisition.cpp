@@ -1046,6 +1046,12 @@ bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, dou
          behind < std::max(tip_px, far_px);
 }
 
+/// Moving tissue (breathing, a hand-held probe) shifts the whole frame: the background follows
+/// the tissue's global shift (phase correlation at half resolution) before the difference, when
+/// it is at least this [px]. On still tissue the estimate is biased by the advancing needle by up
+/// to 1.0 px (tuning sequences), which must not move the background.
+constexpr double kTissueShift_px = 1.5;
+
 cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
   std::string problem;
   const cv::Mat grey = toGrey8(frame, &problem);
@@ -1055,6 +1061,17 @@ cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
   grey.convertTo(current, CV_32F);
   cv::Mat motion;
   if (!background_.empty() && background_.size() == current.size()) {
+    cv::Mat bg_half, cur_half;
+    cv::pyrDown(background_, bg_half);
+    cv::pyrDown(current, cur_half);
+    if (hann_.size() != cur_half.size())
+      cv::createHanningWindow(hann_, cur_half.size(), CV_32F);
+    const cv::Point2d shift = 2.0 * cv::phaseCorrelate(bg_half, cur_half, hann_);
+    if (std::isfinite(shift.x) && std::isfinite(shift.y) && cv::norm(shift) >= kTissueShift_px) {
+      const cv::Matx23d warp(1.0, 0.0, shift.x, 0.0, 1.0, shift.y);
+      cv::warpAffine(background_, background_, warp, background_.size(), cv::INTER_LINEAR,
+                     cv::BORDER_REPLICATE);
+    }
     // The signed difference smoothed at the needle's scale, over the mean of its magnitude: the
     // frame's own noise averages out, a change as wide as the needle does not.
     cv::subtract(current, background_, motion);

@@ -188,7 +188,8 @@ private:
   /// frame - background over the mean of its magnitude (empty for the first frame), then the
   /// background takes the frame in.
   cv::Mat motionMap(const cv::Mat& frame);
-  cv::Mat background_;  ///< CV_32F exponential average of the frames
+  cv::Mat background_;  ///< CV_32F exponential average of the frames, moved with the tissue
+  cv::Mat hann_;        ///< the phase correlation's window (half the frame's size)
   cv::Mat last_frame_;
   cv::Size size_;  ///< the last frame's size
   Output last_output_;
