@@ -125,6 +125,8 @@ void ImagerConfig::validate() const {
     why << "drop_probability " << drop_probability << " is not in [0, 1)";
   } else if (!(std::isfinite(needle_diameter_m) && needle_diameter_m > 0.0)) {
     why << "needle_diameter_m " << needle_diameter_m << " is not > 0 and finite";
+  } else if (!(tissue_motion_px >= 0.0 && tissue_motion_px <= 10.0)) {
+    why << "tissue_motion_px " << tissue_motion_px << " is not in [0, 10]";
   } else {
     return;
   }

@@ -1018,15 +1018,17 @@ SequenceTracker::SequenceTracker(const AcquisitionOptions& options) : options_(o
 }
 
 bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px,
-                             double ahead_px) const {
+                             double far_px) const {
   double da = std::abs(a.angle_rad - b.angle_rad);
   da = std::min(da, 2 * kPi - da);
   const cv::Point2d n(-std::sin(a.angle_rad), std::cos(a.angle_rad));
   const cv::Point2d nb(-std::sin(b.angle_rad), std::cos(b.angle_rad));
-  const double along = (b.tip_px - a.tip_px).dot(cv::Point2d(-n.y, n.x));
+  // How far b's tip lies BEHIND a's along a's axis (cos, sin) = (n.y, -n.x): the wide gate
+  // far_px applies behind (see kGateBehind_px).
+  const double behind = (b.tip_px - a.tip_px).dot(cv::Point2d(-n.y, n.x));
   if (a.from_motion && b.from_motion) {
     // Two tips from the motion alone: no shaft, a rough axis; only the distance counts.
-    return cv::norm(b.tip_px - a.tip_px) < std::max(tip_px, ahead_px);
+    return cv::norm(b.tip_px - a.tip_px) < std::max(tip_px, far_px);
   }
   if (a.from_motion || b.from_motion) {
     // A tip from the motion alone against a shaft: its front lies among the reverberation
@@ -1034,15 +1036,21 @@ bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, dou
     const cv::Point2d n_line = a.from_motion ? nb : n, d_line(n_line.y, -n_line.x);
     const double along_line = (b.tip_px - a.tip_px).dot(d_line);
     return std::abs((b.tip_px - a.tip_px).dot(n_line)) < kGateMotionLine_px &&
-           along_line > -tip_px && along_line < std::max(tip_px, ahead_px);
+           along_line > -tip_px && along_line < std::max(tip_px, far_px);
   }
   // Off the line both ways: a line that only meets the other's far extension (a layer in line
   // with the needle hundreds of pixels on) is not the same line.
   const double off_line =
       std::max(std::abs((b.tip_px - a.tip_px).dot(n)), std::abs((a.tip_px - b.tip_px).dot(nb)));
-  return da < kGateAngle_rad && off_line < kGateLine_px && along > -tip_px &&
-         along < std::max(tip_px, ahead_px);
+  return da < kGateAngle_rad && off_line < kGateLine_px && behind > -tip_px &&
+         behind < std::max(tip_px, far_px);
 }
+
+/// Moving tissue (breathing, a hand-held probe) shifts the whole frame: the background follows
+/// the tissue's global shift (phase correlation at half resolution) before the difference, when
+/// it is at least this [px]. On still tissue the estimate is biased by the advancing needle by up
+/// to 1.0 px (tuning sequences), which must not move the background.
+constexpr double kTissueShift_px = 1.5;
 
 cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
   std::string problem;
@@ -1053,6 +1061,17 @@ cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
   grey.convertTo(current, CV_32F);
   cv::Mat motion;
   if (!background_.empty() && background_.size() == current.size()) {
+    cv::Mat bg_half, cur_half;
+    cv::pyrDown(background_, bg_half);
+    cv::pyrDown(current, cur_half);
+    if (hann_.size() != cur_half.size())
+      cv::createHanningWindow(hann_, cur_half.size(), CV_32F);
+    const cv::Point2d shift = 2.0 * cv::phaseCorrelate(bg_half, cur_half, hann_);
+    if (std::isfinite(shift.x) && std::isfinite(shift.y) && cv::norm(shift) >= kTissueShift_px) {
+      const cv::Matx23d warp(1.0, 0.0, shift.x, 0.0, 1.0, shift.y);
+      cv::warpAffine(background_, background_, warp, background_.size(), cv::INTER_LINEAR,
+                     cv::BORDER_REPLICATE);
+    }
     // The signed difference smoothed at the needle's scale, over the mean of its magnitude: the
     // frame's own noise averages out, a change as wide as the needle does not.
     cv::subtract(current, background_, motion);
@@ -1085,7 +1104,16 @@ void SequenceTracker::startTrack(const NeedleSegment& d) {
   track_ = d;
   velocity_px_ = 0;
   start_tip_px_ = d.tip_px;
+  start_tail_px_ = d.tail_px;
   moved_ = d.motion >= kMinMotionRatio;
+}
+
+bool SequenceTracker::advancedLikeANeedle(const NeedleSegment& d, const cv::Point2d& axis) const {
+  // The tip advanced along the axis while the shaft's far end stayed (a needle being inserted);
+  // a line of moving tissue (a layer drifting with breathing or the probe) moves at both ends.
+  const double advance = std::abs((d.tip_px - start_tip_px_).dot(axis));
+  return advance >= kEarnAdvance_px &&
+         (d.from_motion || cv::norm(d.tail_px - start_tail_px_) < 0.5 * advance);
 }
 
 double SequenceTracker::motionAxis(const NeedleSegment& d) const {
@@ -1150,13 +1178,12 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
     // Motion model: the tip moves along the needle's axis at the last speed.
     NeedleSegment pred = predicted();
     const cv::Point2d axis(std::cos(pred.angle_rad), std::sin(pred.angle_rad));
-    if (d.found && agrees(pred, d, kGateTip_px, moved_ ? kGateAhead_px : kGateTip_px)) {
+    if (d.found && agrees(pred, d, kGateTip_px, moved_ ? kGateBehind_px : kGateTip_px)) {
       coasted_ = 0;
       velocity_px_ = 0.5 * velocity_px_ + 0.5 * (d.tip_px - track_->tip_px).dot(axis);
       const bool close = cv::norm(d.tip_px - pred.tip_px) < kAgreeTip_px;
       agreeing_ = close ? agreeing_ + 1 : 1;
-      moved_ = moved_ || d.motion >= kMinMotionRatio ||
-               std::abs((d.tip_px - start_tip_px_).dot(axis)) >= kEarnAdvance_px;
+      moved_ = moved_ || d.motion >= kMinMotionRatio || advancedLikeANeedle(d, axis);
       seen_moving_ = seen_moving_ || moved_;
       track_ = d;
       if (d.from_motion)

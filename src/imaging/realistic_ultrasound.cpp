@@ -66,6 +66,13 @@ constexpr double kReverbFirst = 0.35;
 constexpr double kReverbDecay = 0.5;
 /// The needle canvas (8-bit, anti-aliased) spans amplitudes 0..kCanvasFullScale.
 constexpr double kCanvasFullScale = 1.2;
+/// Tissue motion (ImagerConfig::tissue_motion_px = m): a drift at m px / frame, a sway along the
+/// beam of kSwayRatio x m with a kSwayPeriod-frame period, a compression along the beam of up
+/// to kCompression, and kDecorrelation of the speckle's amplitude fresh in each frame.
+constexpr double kSwayRatio = 1.5;
+constexpr double kSwayPeriod = 10.0;
+constexpr double kCompression = 0.01;
+constexpr double kDecorrelation = 0.3;
 
 double logCompress(double amplitude) {
   const double db = 20.0 * std::log10(std::max(amplitude, 1e-9));
@@ -164,6 +171,32 @@ cv::Mat attenuationMap(const ImageGeometry& g, const cv::Mat& obstacle_mask) {
   return att;
 }
 
+/// The tissue of frame `index` moved (see ImagerConfig::tissue_motion_px): the static amplitude
+/// warped and partly decorrelated; `amplitude` itself when the tissue is still.
+cv::Mat movedTissue(const cv::Mat& amplitude, const ImagerConfig& config, std::uint64_t index) {
+  const double m = config.tissue_motion_px;
+  if (m <= 0.0)
+    return amplitude;
+  const ImageGeometry& g = config.geometry;
+  const double heading = 2.0 * M_PI * uniform01(streamSeed(config.seed, 0, 0x7155));
+  const double phase = 2.0 * M_PI * uniform01(streamSeed(config.seed, 0, 0x7156));
+  const double k = static_cast<double>(index), w = 2.0 * M_PI / kSwayPeriod;
+  // The sway's amplitude so that its peak speed is kSwayRatio x m.
+  const double sway = kSwayRatio * m / w;
+  const double dx = m * k * std::cos(heading);
+  const double dy = m * k * std::sin(heading) + sway * (std::sin(w * k + phase) - std::sin(phase));
+  const double scale = 1.0 - kCompression * 0.5 * (1.0 - std::cos(w * k));
+  // Compression along the beam about the probe face (the last row), then the shift.
+  const double face = g.rows - 1.0;
+  const cv::Matx23d warp(1.0, 0.0, dx, 0.0, scale, face * (1.0 - scale) + dy);
+  cv::Mat moved;
+  cv::warpAffine(amplitude, moved, warp, amplitude.size(), cv::INTER_LINEAR, cv::BORDER_REFLECT);
+  const cv::Mat fresh = tissue::rayleighSpeckle(
+      g.size(), kPsfLateral_m / g.pixel_size_m, kPsfAxial_m / g.pixel_size_m,
+      std::uint32_t(streamSeed(config.seed, index, 0x5EC3)));
+  return moved.mul((1.0 - kDecorrelation) + kDecorrelation * fresh);
+}
+
 }  // namespace
 
 void anatomy(const scene::Scene& scene, const ImagerConfig& config, cv::Mat* amplitude,
@@ -245,7 +278,7 @@ cv::Mat frame(const cv::Mat& amplitude, const cv::Mat& attenuation, const Imager
   cv::Mat needle;
   echo = cv::max(echo, reverb);  // a copy never hides the shaft drawn before it
   echo.convertTo(needle, CV_32F, kCanvasFullScale / 255.0);
-  cv::Mat a = (amplitude.mul(shadow) + needle).mul(attenuation);
+  cv::Mat a = (movedTissue(amplitude, config, index).mul(shadow) + needle).mul(attenuation);
   if (config.noise_std > 0.0) {
     // Electronic noise enters the echo before envelope detection (a complex Gaussian: the
     // envelope of echo plus noise is Rician) and before the display's log compression; its

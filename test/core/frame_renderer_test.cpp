@@ -221,6 +221,33 @@ TEST(FrameRenderer, UltrasoundModelNamesRoundTrip) {
   EXPECT_EQ(im::ImagerConfig().ultrasound_model, im::UltrasoundModel::kClassic);
 }
 
+TEST(FrameRenderer, RealisticTissueMotionMovesTheTissueNotTheNeedleAndIsValidated) {
+  const auto scene = ng::scene::loadSceneSpec("steering_workspace");
+  im::ImagerConfig c = realisticConfig(scene, 7);
+  // Still tissue (the default): frames 0 and 6 without needle or noise are the same.
+  const im::FrameRenderer still(scene, c);
+  const cv::Mat s0 = still.render({}, 0).image, s6 = still.render({}, 6).image;
+  EXPECT_EQ(cv::norm(s0, s6, cv::NORM_INF), 0.0);
+  // Moving at 1.5 px / frame: frame 6 is the tissue moved by about 6 x 1.5 = 9 px of drift
+  // plus the sway; phase correlation finds a shift of at least kMinMoved_px.
+  constexpr double kMinMoved_px = 3.0;
+  c.tissue_motion_px = 1.5;
+  const im::FrameRenderer moving(scene, c);
+  cv::Mat m0, m6;
+  moving.render({}, 0).image.convertTo(m0, CV_32F);
+  moving.render({}, 6).image.convertTo(m6, CV_32F);
+  EXPECT_GT(cv::norm(cv::phaseCorrelate(m0, m6)), kMinMoved_px);
+  for (const double bad : {-1.0, 11.0, std::nan("")}) {
+    c.tissue_motion_px = bad;
+    try {
+      c.validate();
+      ADD_FAILURE() << "tissue_motion_px " << bad << " accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("tissue_motion_px"), std::string::npos) << e.what();
+    }
+  }
+}
+
 TEST(FrameRenderer, RealisticLayersAreLongerAndBrighterThanTheNeedle) {
   // Without the obstacles (their shadows would cut the layers into pieces).
   auto scene = steeringScene();

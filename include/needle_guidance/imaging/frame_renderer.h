@@ -69,6 +69,12 @@ struct ImagerConfig {
   std::uint64_t seed = 1;             ///< seed of everything random (speckle, noise, drops)
   /// Ultrasound renderer (ignored in fluoroscopy).
   UltrasoundModel ultrasound_model = UltrasoundModel::kClassic;
+  /// Tissue motion of the realistic ultrasound model (breathing, a hand-held probe): the
+  /// tissue's speed [px / frame], >= 0 and <= 10; 0 = still tissue (the default). The tissue
+  /// (speckle, layers, outlines) drifts at this speed in a seeded direction, sways along the
+  /// beam by up to 1.5 times it (a 10-frame period), is compressed along the beam by up to 1 %,
+  /// and its speckle decorrelates partly from frame to frame; the needle is drawn where it is.
+  double tissue_motion_px = 0.0;
   /// Throws std::invalid_argument naming the field and its value when anything is out of range.
   void validate() const;
 };
