@@ -112,20 +112,9 @@ bool SteeringTrial3::followAnswer(const std::string& status, const std::string& 
 }
 
 void SteeringTrial3::observe(const Control3& c) {
-  using steering_3d::BiplaneCode;
-  const steering_3d::NeedleParams3& needle = scene_.needle;
-  const steering_3d::DutyCycle cycle = steering_3d::dutyCycleFor(
-      c.curvature_per_m, needle, steering_3d::cycleLength(c.length_m, needle));
-  const TipPose3 predicted = steering_3d::advanceArc(
-      steering_3d::rotateBevel(estimate_, c.rotate_rad), cycle.kappa_per_m, c.length_m);
+  const TipPose3 predicted = steering_3d::predictTip3(estimate_, c, scene_.needle);
   observation_ = views_->observe(result_.path, predicted, seed_ * 1000 + result_.steps);
-  const BiplaneCode code = observation_.tip.status().code();
-  result_.views_fused += code == BiplaneCode::kOk ? 1 : 0;
-  result_.views_gated += code == BiplaneCode::kDisagree ? 1 : 0;
-  result_.views_dropped += code == BiplaneCode::kNoDetection ? 1 : 0;
-  estimate_ = observation_.tip ? observation_.tip.value() : predicted;
-  result_.estimate_error_m_max =
-      std::max(result_.estimate_error_m_max, (estimate_.p_SceneTip - tip_.p_SceneTip).norm());
+  estimate_ = steering_3d::acceptBiplane(observation_.tip, predicted, tip_, result_);
 }
 
 std::optional<TipSource3> tipSource3FromString(const std::string& name) {

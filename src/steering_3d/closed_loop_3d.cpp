@@ -50,11 +50,21 @@ TipPose3 estimateTip(const TipPose3& truth, const TipPose3& previous, const Cont
   if (observer == nullptr) {
     return truth;
   }
+  const TipPose3 predicted = predictTip3(previous, control, needle);
+  return acceptBiplane(observer->observe(truth, predicted), predicted, truth, r);
+}
+
+}  // namespace
+
+TipPose3 predictTip3(const TipPose3& previous, const Control3& control,
+                     const NeedleParams3& needle) {
   const DutyCycle cycle =
       dutyCycleFor(control.curvature_per_m, needle, cycleLength(control.length_m, needle));
-  const TipPose3 predicted =
-      advanceArc(rotateBevel(previous, control.rotate_rad), cycle.kappa_per_m, control.length_m);
-  const Result<TipPose3, BiplaneStatus> seen = observer->observe(truth, predicted);
+  return advanceArc(rotateBevel(previous, control.rotate_rad), cycle.kappa_per_m, control.length_m);
+}
+
+TipPose3 acceptBiplane(const Result<TipPose3, BiplaneStatus>& seen, const TipPose3& predicted,
+                       const TipPose3& truth, TrialResult3& r) {
   if (seen) {
     ++r.views_fused;
   } else if (seen.status().code() == BiplaneCode::kDisagree) {
@@ -67,8 +77,6 @@ TipPose3 estimateTip(const TipPose3& truth, const TipPose3& previous, const Cont
       std::max(r.estimate_error_m_max, (estimate.p_SceneTip - truth.p_SceneTip).norm());
   return estimate;
 }
-
-}  // namespace
 
 std::uint64_t callSeed(std::uint64_t seed, std::uint64_t k) {
   std::uint64_t z = seed * 0x9e3779b97f4a7c15ULL + k + 0x632be59bd9b4e019ULL;

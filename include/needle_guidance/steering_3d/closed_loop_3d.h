@@ -57,6 +57,16 @@ struct TrialResult3 {
   std::vector<Vector3> path;                ///< tip positions, when record_path
 };
 
+/// The tip after `control` from `previous`, without noise (the duty cycle's effective curvature):
+/// the estimate when a biplane pair is dropped or gated.
+TipPose3 predictTip3(const TipPose3& previous, const Control3& control,
+                     const NeedleParams3& needle);
+
+/// Counts a biplane pair in `r` (fused, gated, else dropped) and returns the estimate: the fused
+/// tip, or `predicted` when the pair was not fused; tracks its largest distance to `truth`.
+TipPose3 acceptBiplane(const Result<TipPose3, BiplaneStatus>& seen, const TipPose3& predicted,
+                       const TipPose3& truth, TrialResult3& r);
+
 /// Planner seed of the k-th planning call in a trial seeded `seed` (splitmix64 of both).
 std::uint64_t callSeed(std::uint64_t seed, std::uint64_t k);
 
