@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <opencv2/imgproc.hpp>
+#include <opencv2/video/tracking.hpp>
 #include <sstream>
 #include <stdexcept>
 #include <vector>
@@ -72,6 +73,18 @@ constexpr double kBlobLevel = 4.0;
 constexpr int kBlobJoin_px = 4;
 constexpr int kBlobSpeck_px = 20;
 constexpr double kBlobDominance = 0.9;
+/// The share a blob must hold when its front continues a moving track (agrees with the motion
+/// model's prediction): moving tissue leaves residues of its motion over the frame (its borders,
+/// edges of layers), and the needle's tip, already found, needs no dominance to be told from them.
+constexpr double kBlobDominanceOnTrack = 0.5;
+/// Before any track has moved: a blob holding kBlobDominanceChain of the change whose front
+/// advanced kChainStepMin_px to kGateTip_px in each of the last kChainFrames - 1 frames, each step
+/// along the blob's axis and the steps within kChainTurnCos of each other, is a needle being
+/// inserted (a residue of moving tissue comes and goes, and its fronts do not advance in line).
+constexpr double kBlobDominanceChain = 0.4;
+constexpr int kChainFrames = 3;
+constexpr double kChainStepMin_px = 3.0;
+constexpr double kChainTurnCos = 0.94;  // 20 degrees
 constexpr double kBlobPeak = 10.0;
 constexpr int kBlobMinArea_px = 100;
 /// A line whose tip lies within this of the blob's front is the needle seen [px] (the front lies
@@ -905,9 +918,10 @@ void extendToMotionFront(const cv::Mat& motion, const NeedleSegment& blob, Needl
 /// pixels it reaches (its echo, its reverberation tail). Tissue that moves (a hand-held probe,
 /// a deforming phantom: the recorded frames' largest blob holds 0.2-0.7 of the brightening)
 /// spreads the change over the frame and gives nothing here.
-std::optional<NeedleSegment> tipFromMotion(const cv::Mat& motion, EntrySide entry) {
+std::optional<NeedleSegment> tipFromMotion(const cv::Mat& motion, EntrySide entry,
+                                           double min_dominance = kBlobDominance) {
   const std::optional<MotionBlob> b = motionBlob(motion, entry);
-  if (!b || b->dominance < kBlobDominance || b->peak < kBlobPeak || b->area < kBlobMinArea_px)
+  if (!b || b->dominance < min_dominance || b->peak < kBlobPeak || b->area < kBlobMinArea_px)
     return std::nullopt;
   NeedleSegment s;
   s.found = true;
@@ -1046,11 +1060,58 @@ bool SequenceTracker::agrees(const NeedleSegment& a, const NeedleSegment& b, dou
          behind < std::max(tip_px, far_px);
 }
 
-/// Moving tissue (breathing, a hand-held probe) shifts the whole frame: the background follows
-/// the tissue's global shift (phase correlation at half resolution) before the difference, when
-/// it is at least this [px]. On still tissue the estimate is biased by the advancing needle by up
-/// to 1.0 px (tuning sequences), which must not move the background.
-constexpr double kTissueShift_px = 1.5;
+/// Moving tissue (breathing, a hand-held probe, tissue pushed by the needle) moves the frame:
+/// the background follows the tissue's local motion before the difference. The motion is dense
+/// optical flow (DIS) at half resolution, averaged over cells of kFlowCell_px and median
+/// filtered over kFlowMedian x kFlowMedian cells: the needle's advancing tip (a few cells) is an
+/// outlier to the tissue around it and is left out, so the background does not follow the needle.
+/// The background moves only when some cell's motion reaches kTissueShift_px: on still tissue
+/// the flow's noise (and the needle's residue) stays below it, and the background is left as it
+/// is (an interpolated warp blurs it).
+constexpr double kTissueShift_px = 1.0;
+constexpr int kFlowCell_px = 32;
+constexpr int kFlowMedian = 5;
+
+/// The tissue's motion from `current` to `background` (both CV_32F, full size) as remap maps of
+/// the frame's size (current(p) ~ background(map(p))); empty when no cell moved kTissueShift_px.
+bool tissueFlow(const cv::Mat& background, const cv::Mat& current, cv::Mat* map_x, cv::Mat* map_y) {
+  cv::Mat bg_half, cur_half, bg8, cur8, flow;
+  cv::pyrDown(background, bg_half);
+  cv::pyrDown(current, cur_half);
+  bg_half.convertTo(bg8, CV_8U);
+  cur_half.convertTo(cur8, CV_8U);
+  const cv::Ptr<cv::DISOpticalFlow> dis =
+      cv::DISOpticalFlow::create(cv::DISOpticalFlow::PRESET_FAST);
+  dis->calc(cur8, bg8, flow);
+  const cv::Size cells(std::max(1, current.cols / kFlowCell_px),
+                       std::max(1, current.rows / kFlowCell_px));
+  cv::Mat coarse;
+  cv::resize(flow, coarse, cells, 0, 0, cv::INTER_AREA);
+  if (cells.width >= kFlowMedian && cells.height >= kFlowMedian)
+    cv::medianBlur(coarse, coarse, kFlowMedian);
+  coarse *= 2.0;  // half-resolution pixels to full
+  double largest = 0.0;
+  for (int r = 0; r < coarse.rows; ++r)
+    for (int c = 0; c < coarse.cols; ++c)
+      largest = std::max(largest, cv::norm(coarse.at<cv::Vec2f>(r, c)));
+  if (!(largest >= kTissueShift_px))
+    return false;
+  cv::Mat dense;
+  cv::resize(coarse, dense, current.size(), 0, 0, cv::INTER_LINEAR);
+  std::vector<cv::Mat> parts;
+  cv::split(dense, parts);
+  *map_x = parts[0];
+  *map_y = parts[1];
+  for (int r = 0; r < dense.rows; ++r) {
+    float* x = map_x->ptr<float>(r);
+    float* y = map_y->ptr<float>(r);
+    for (int c = 0; c < dense.cols; ++c) {
+      x[c] += static_cast<float>(c);
+      y[c] += static_cast<float>(r);
+    }
+  }
+  return true;
+}
 
 cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
   std::string problem;
@@ -1061,16 +1122,11 @@ cv::Mat SequenceTracker::motionMap(const cv::Mat& frame) {
   grey.convertTo(current, CV_32F);
   cv::Mat motion;
   if (!background_.empty() && background_.size() == current.size()) {
-    cv::Mat bg_half, cur_half;
-    cv::pyrDown(background_, bg_half);
-    cv::pyrDown(current, cur_half);
-    if (hann_.size() != cur_half.size())
-      cv::createHanningWindow(hann_, cur_half.size(), CV_32F);
-    const cv::Point2d shift = 2.0 * cv::phaseCorrelate(bg_half, cur_half, hann_);
-    if (std::isfinite(shift.x) && std::isfinite(shift.y) && cv::norm(shift) >= kTissueShift_px) {
-      const cv::Matx23d warp(1.0, 0.0, shift.x, 0.0, 1.0, shift.y);
-      cv::warpAffine(background_, background_, warp, background_.size(), cv::INTER_LINEAR,
-                     cv::BORDER_REPLICATE);
+    cv::Mat map_x, map_y;
+    if (tissueFlow(background_, current, &map_x, &map_y)) {
+      cv::Mat moved;
+      cv::remap(background_, moved, map_x, map_y, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+      background_ = moved;
     }
     // The signed difference smoothed at the needle's scale, over the mean of its magnitude: the
     // frame's own noise averages out, a change as wide as the needle does not.
@@ -1096,7 +1152,8 @@ SequenceTracker::Output SequenceTracker::onFrame(const cv::Mat& frame) {
   }
   last_frame_ = frame.clone();
   size_ = frame.size();
-  last_output_ = update(acquireNeedle(frame, options_, motionMap(frame)));
+  motion_ = motionMap(frame);
+  last_output_ = update(acquireNeedle(frame, options_, motion_));
   return last_output_;
 }
 
@@ -1172,12 +1229,69 @@ std::optional<SequenceTracker::Output> SequenceTracker::reacquire(const NeedleSe
   return out;
 }
 
-SequenceTracker::Output SequenceTracker::update(const NeedleSegment& d) {
+std::optional<NeedleSegment> SequenceTracker::blobOnTrack(const NeedleSegment& pred) const {
+  // Only a track of tips from the motion (a shaft's track keeps its gates), and only a front that
+  // advanced along the axis (the background's fading memory of an earlier change stays put).
+  if (!track_ || !track_->from_motion)
+    return std::nullopt;
+  std::optional<NeedleSegment> b = tipFromMotion(motion_, options_.entry, kBlobDominanceOnTrack);
+  const cv::Point2d axis(std::cos(pred.angle_rad), std::sin(pred.angle_rad));
+  if (!b || (b->tip_px - track_->tip_px).dot(axis) < kChainStepMin_px ||
+      !agrees(pred, *b, kGateTip_px, kGateBehind_px))
+    return std::nullopt;
+  b->message = "tip from the motion on the track: " + b->message;
+  return b;
+}
+
+std::optional<NeedleSegment> SequenceTracker::advancingBlob() {
+  const std::optional<NeedleSegment> b =
+      tipFromMotion(motion_, options_.entry, kBlobDominanceChain);
+  if (!b) {
+    chain_.clear();
+    return std::nullopt;
+  }
+  bool continues = false;
+  if (!chain_.empty()) {
+    const cv::Point2d step = b->tip_px - chain_.back();
+    const double len = cv::norm(step);
+    const cv::Point2d axis(std::cos(b->angle_rad), std::sin(b->angle_rad));
+    continues = len >= kChainStepMin_px && len <= kGateTip_px &&
+                std::abs(step.dot(axis)) >= kChainTurnCos * len;
+    if (continues && chain_.size() >= 2) {
+      const cv::Point2d before = chain_.back() - chain_[chain_.size() - 2];
+      continues = step.dot(before) >= kChainTurnCos * len * cv::norm(before);
+    }
+  }
+  if (!continues)
+    chain_.clear();
+  chain_.push_back(b->tip_px);
+  if (static_cast<int>(chain_.size()) < kChainFrames)
+    return std::nullopt;
+  NeedleSegment s = *b;
+  s.message = "tip from a brightening advancing in line over " + std::to_string(chain_.size()) +
+              " frames: " + b->message;
+  return s;
+}
+
+SequenceTracker::Output SequenceTracker::update(const NeedleSegment& detection) {
   Output out;
+  NeedleSegment d = detection;
+  if (!(track_ && moved_)) {
+    // No moving track yet: a brightening whose front advances in line, frame after frame, is a
+    // needle hidden in moving tissue, unless a line moves like a needle itself.
+    const std::optional<NeedleSegment> b = advancingBlob();
+    if (b && !(d.found && d.motion >= kMinMotionRatio))
+      d = *b;
+  }
   if (track_) {
     // Motion model: the tip moves along the needle's axis at the last speed.
     NeedleSegment pred = predicted();
     const cv::Point2d axis(std::cos(pred.angle_rad), std::sin(pred.angle_rad));
+    if (moved_ && !(d.found && agrees(pred, d, kGateTip_px, kGateBehind_px))) {
+      // The moving track's tip not seen as a line: the brightening where it went, if it is there.
+      if (std::optional<NeedleSegment> b = blobOnTrack(pred))
+        d = *b;
+    }
     if (d.found && agrees(pred, d, kGateTip_px, moved_ ? kGateBehind_px : kGateTip_px)) {
       coasted_ = 0;
       velocity_px_ = 0.5 * velocity_px_ + 0.5 * (d.tip_px - track_->tip_px).dot(axis);

@@ -27,6 +27,7 @@
 #include <opencv2/core.hpp>
 #include <optional>
 #include <string>
+#include <vector>
 
 namespace needle_guidance::imaging {
 
@@ -167,7 +168,13 @@ private:
   /// max(tip_px, far_px) ahead (its front runs ahead of the shaft, among the reverberation
   /// copies). Two motion-only tips: within max(tip_px, far_px) of each other.
   bool agrees(const NeedleSegment& a, const NeedleSegment& b, double tip_px, double far_px) const;
-  Output update(const NeedleSegment& d);
+  Output update(const NeedleSegment& detection);
+  /// The frame's brightening blob (kBlobDominanceOnTrack of the change, see the .cpp) whose front
+  /// agrees with the moving track's prediction `pred`: its tip when no line shows it.
+  std::optional<NeedleSegment> blobOnTrack(const NeedleSegment& pred) const;
+  /// The frame's brightening blob (kBlobDominanceChain of the change) when its front has advanced
+  /// in line over the last kChainFrames frames (see the .cpp); updates chain_.
+  std::optional<NeedleSegment> advancingBlob();
   /// The axis of a tip from the motion alone: its path since the track began once that is
   /// kEarnAdvance_px long, else the track's shaft, else the blob's own axis.
   double motionAxis(const NeedleSegment& d) const;
@@ -189,7 +196,8 @@ private:
   /// background takes the frame in.
   cv::Mat motionMap(const cv::Mat& frame);
   cv::Mat background_;  ///< CV_32F exponential average of the frames, moved with the tissue
-  cv::Mat hann_;        ///< the phase correlation's window (half the frame's size)
+  cv::Mat motion_;      ///< the last frame's motion map (empty for the first frame)
+  std::vector<cv::Point2d> chain_;  ///< fronts of the last frames' blobs advancing in line
   cv::Mat last_frame_;
   cv::Size size_;  ///< the last frame's size
   Output last_output_;
