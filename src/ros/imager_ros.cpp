@@ -46,6 +46,9 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
                              us_model + "' is not classic or realistic");
   }
   config.ultrasound_model = *um;
+  // Moving tissue (breathing, a hand-held probe) in the realistic model: its speed [px / frame].
+  config.tissue_motion_px = ros_params::number(private_nh, "tissue_motion_px",
+                                               config.tissue_motion_px, 0.0, 10.0, "px / frame");
   const double pixel_size_m =
       ros_params::number(private_nh, "pixel_size_m", config.geometry.pixel_size_m, 1e-6, 0.01, "m");
   const int width = static_cast<int>(

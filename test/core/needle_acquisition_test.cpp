@@ -416,6 +416,21 @@ TEST(NeedleAcquisition, DriftingTissueLayerNeverEarnsConfidence) {
   realisticSequenceErrors(603, im::Point2(0.0, 0.024), 0.04, 20, &worst, 0.0, 1.0);
 }
 
+TEST(NeedleAcquisition, NeedleInMovingTissueIsFollowedByItsMotionRelativeToTheTissue) {
+  // Moving tissue (drift, sway, compression, partly fresh speckle) around a needle that advances
+  // 1 mm a frame. With one global shift compensated, the layers' edges and the compression left
+  // residues over the frame and the still obstacle outline was reported in most frames (bench
+  // tracking_real's tune_motion_straight 404 px median); the background now follows the tissue's
+  // local motion (optical flow), so what changes is where the needle went. Median over frames
+  // 2-19 within the target, no confident tip > 20 px off (checked per frame). Seeds and
+  // geometry used by no benchmark, fixed before the run.
+  for (const auto& e :
+       {realisticSequenceErrors(611, im::Point2(0.0, 0.022), 0.05, 20, nullptr, 0.0, 1.5),
+        realisticSequenceErrors(612, im::Point2(0.0, 0.014), 0.12, 20, nullptr, -8.0, 1.0)}) {
+    EXPECT_LT(e[e.size() / 2], kTipTolerance_px) << "median over frames 2-19";
+  }
+}
+
 int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);
   return RUN_ALL_TESTS();
