@@ -113,7 +113,10 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
 /// tip moving along the axis is what a needle does; a candidate that jumps is gated out and
 /// only replaces the track after kReacquireAfter agreeing frames. Each frame's acquisition uses
 /// the sequence cue: the frame's difference from an exponential background of the previous
-/// frames (acquireNeedle with a motion map).
+/// frames (acquireNeedle with a motion map), the background moved with the tissue's local motion
+/// (optical flow, the needle's tip left out) when the tissue moves. Where no line shows the
+/// needle, the frame's brightening blob continues a track of such tips, and a blob whose front
+/// advances in line over three frames starts one (never confident: no shaft seen).
 class SequenceTracker {
 public:
   explicit SequenceTracker(const AcquisitionOptions& options);
