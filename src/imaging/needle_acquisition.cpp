@@ -1282,6 +1282,8 @@ SequenceTracker::Output SequenceTracker::update(const NeedleSegment& detection) 
     const std::optional<NeedleSegment> b = advancingBlob();
     if (b && !(d.found && d.motion >= kMinMotionRatio))
       d = *b;
+  } else {
+    chain_.clear();  // a chain starts afresh once a moving track is lost
   }
   if (track_) {
     // Motion model: the tip moves along the needle's axis at the last speed.
