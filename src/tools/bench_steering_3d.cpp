@@ -8,9 +8,10 @@
 // held-out prostate variant is reported apart. The closed loops see the true tip; on the
 // prostate-like scene at 1x and 2x they also run through biplane imaging (BiplaneObserver3:
 // two noisy views with dropout and outliers, fused with the gate), keys *_biplane.
-// Usage: bench_steering_3d --out DIR [--quick] [--scene NAME:SIGMA[:biplane] ...]
+// Usage: bench_steering_3d --out DIR [--quick] [--trials N] [--scene NAME:SIGMA[:biplane] ...]
+// Cells run 200 trials each (30 with --quick; N with --trials).
 // With --scene, a partial run: only our replanning and the baseline on those (scene, sigma)
-// cells, 200 trials each (30 with --quick), rows appended to steering_3d.csv after every cell;
+// cells, rows appended to steering_3d.csv after every cell;
 // no summary.json (a sweep cut short by the load still leaves its finished cells).
 #include <algorithm>
 #include <chrono>
@@ -357,7 +358,7 @@ int main(int argc, char** argv) {
     const double load_start = loadAverage();
     const auto started = std::chrono::steady_clock::now();
     const std::string dir = std::string(NG_SOURCE_DIR) + "/config/scenes/steering_3d/";
-    const int trials = args->quick ? 30 : 200;
+    const int trials = args->trials > 0 ? args->trials : (args->quick ? 30 : 200);
     if (!args->scenes.empty()) {
       return runPartial(*args, dir, trials);
     }
