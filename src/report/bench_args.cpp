@@ -1,6 +1,7 @@
 #include "needle_guidance/report/bench_args.h"
 
 #include <iostream>
+#include <stdexcept>
 
 namespace needle_guidance::report {
 
@@ -14,6 +15,13 @@ std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string
     } else if (arg == "--scene" && i + 1 < argc) {
       args.scene = argv[++i];
       args.scenes.push_back(args.scene);
+    } else if (arg == "--trials" && i + 1 < argc) {
+      try {
+        args.trials = std::stoi(argv[++i]);
+      } catch (const std::exception&) {
+        args.trials = -1;
+      }
+      ok = args.trials > 0;
     } else if (arg == "--quick") {
       args.quick = true;
     } else {
@@ -21,7 +29,7 @@ std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string
     }
   }
   if (!ok || args.out_dir.empty()) {
-    std::cerr << "usage: " << tool << " --out DIR [--quick] [--scene SPEC]...\n";
+    std::cerr << "usage: " << tool << " --out DIR [--quick] [--scene SPEC]... [--trials N > 0]\n";
     return std::nullopt;
   }
   return args;

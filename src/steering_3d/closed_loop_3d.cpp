@@ -170,22 +170,14 @@ TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strat
     observer = std::make_unique<BiplaneObserver3>(options.imaging, callSeed(seed, 0xb1b1a4eULL));
   }
   r.path.push_back(tip.p_SceneTip);
-  std::deque<Control3> queue(initial.value().controls.begin(), initial.value().controls.end());
+  std::deque<Control3> queue = controlQueue(initial.value());
   const bool replan = strategy != Strategy3::kOpenLoop;
   while (!queue.empty() && r.steps < options.max_steps) {
-    Control3 c = queue.front();
-    const bool last_piece = c.length_m <= step * (1.0 + 1e-9);
-    c.length_m = std::min(c.length_m, step);
+    const Control3 c = nextStep(queue, step);
     if (!executeStep3(needle, world, c, tip, r, options)) {
       break;
     }
     estimate = estimateTip(tip, estimate, c, scene.needle, observer.get(), r);
-    if (last_piece) {
-      queue.pop_front();
-    } else {
-      queue.front().length_m -= step;
-      queue.front().rotate_rad = 0.0;  // the bevel was rotated at the segment's first step
-    }
     if (!replan || queue.empty()) {
       continue;
     }
@@ -197,7 +189,7 @@ TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strat
     r.replan_cpu_s.push_back(threadCpuSeconds() - cpu1);
     r.replan_approach.push_back(next ? next.value().approach : -2);
     if (next) {  // otherwise keep following the previous plan
-      queue.assign(next.value().controls.begin(), next.value().controls.end());
+      queue = controlQueue(next.value());
     }
   }
   finishTrial3(scene, tip, r);

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <deque>
 #include <limits>
 #include <optional>
 #include <random>
@@ -366,46 +367,38 @@ bool aimFree(const CollisionWorld3& world, const TipPose3& pose, const Aim& aim,
              .free();
 }
 
-/// The straight rest of an approach shorter than a step (duty cycle alpha = 1).
-Control3 sliver(double length_m) {
-  return Control3{0.0, 0.0, length_m};
-}
-
 /// One rollout of an approach policy from `pose`: the noisy needle executes `first`, then the
-/// policy's next step from every new tip (the replanning loop with that candidate kept), until a
-/// step reaches the target's depth. Returns the final distance to the target centre, or infinity
-/// if a step touched something or the target fell out of reach.
+/// policy's approach from every new tip (the replanning loop with that candidate kept); where
+/// the policy has no approach from a tip (the target beside it, out of kappa_max's reach) the
+/// rollout keeps to the previous one, as the loop keeps its plan when a replan finds none.
+/// Ends where the approach followed ends. Returns the final distance to the target centre, or
+/// infinity if a step touched something.
 double aimRollout(TipPose3 pose, const Aim& first, const AimPolicy& policy, const Scene3d& scene,
                   const CollisionWorld3& world, const PlannerParams3& params,
                   NoisyNeedle3& needle) {
-  constexpr double kFail = std::numeric_limits<double>::infinity();
   const double step = scene.step_length_m;
   const double cycle = scene.needle.duty_cycle_length_m;
-  Aim aim = first;
-  for (int k = 0; k < 1000; ++k) {  // every step but the last advances a whole step_length_m
-    const Control3 c = aimStep(aim, step);
-    const bool last = aim.turn_m + aim.straight_m <= step * (1.0 + 1e-9);
-    if (!rolloutStep(needle, world, c, pose)) {
-      return kFail;
+  std::deque<Control3> queue = controlQueue(aimPlan(pose, first, step));
+  for (int k = 0; k < 1000 && !queue.empty(); ++k) {
+    if (!rolloutStep(needle, world, nextStep(queue, step), pose)) {
+      return std::numeric_limits<double>::infinity();
     }
-    if (last) {
-      break;
-    }
-    const double left = aim.turn_m + aim.straight_m - c.length_m;
-    aim = aimAt(pose, scene.target.center_m, scene.needle, policy, params.rotation_snap_rad, cycle);
-    if (!aim.ok) {
-      // Less than a step from the target depth it lies beside the tip: the loop then finishes
-      // the approach it has (a replan finds none), so the rollout does too.
-      if (!(left > 0.0 && left < step) || !rolloutStep(needle, world, sliver(left), pose)) {
-        return kFail;
-      }
-      break;
+    const Aim aim = queue.empty() ? Aim{}
+                                  : aimAt(pose, scene.target.center_m, scene.needle, policy,
+                                          params.rotation_snap_rad, cycle);
+    if (aim.ok) {
+      queue = controlQueue(aimPlan(pose, aim, step));
     }
   }
   return (pose.p_SceneTip - scene.target.center_m).norm();
 }
 
-/// One rollout of monteCarloSuccesses.
+/// One rollout of monteCarloSuccesses: the candidate's first step, then the replanning loop's
+/// stand-in. Once a free approach to the target is found (the replan the aware loop then takes;
+/// the robust candidate kAimPolicies[kRolloutPolicy] stands for its choice) the rollout homes in
+/// as aimRollout does, without checking the approach again (the executed steps are checked
+/// anyway: the check dominates the rollout's cost); before that it steers towards the plan two
+/// steps ahead.
 bool rolloutSucceeds(const Plan3& plan, const Scene3d& scene, const CollisionWorld3& world,
                      const PlannerParams3& params, NoisyNeedle3& needle) {
   const double step = scene.step_length_m;
@@ -413,44 +406,28 @@ bool rolloutSucceeds(const Plan3& plan, const Scene3d& scene, const CollisionWor
   const double cycle = np.duty_cycle_length_m;
   const int max_steps = static_cast<int>(std::ceil(plan.length_m / step)) + 4;
   TipPose3 pose = plan.start;
-  // Once a free approach to the target is found (the replan the aware loop then takes; the
-  // robust candidate kAimPolicies[kRolloutPolicy] stands for its choice) the rollout keeps to
-  // it without checking it again: the executed steps are checked anyway (the check dominates
-  // the rollout's cost).
+  std::deque<Control3> queue = controlQueue(plan);
   bool homing = false;
-  double left = 0.0;  ///< what the last homing step left of its approach [m]
   const AimPolicy& policy = kAimPolicies[kRolloutPolicy];
-  for (int k = 0; k < max_steps; ++k) {
-    Control3 c{0.0, 0.0, step};
-    bool last = false;
-    if (k == 0 && !plan.controls.empty()) {
-      // The candidate's own first step: the decision being scored.
-      c = plan.controls.front();
-      last = plan.controls.size() == 1 && c.length_m <= step * (1.0 + 1e-9);
-      c.length_m = std::min(c.length_m, step);
-    } else {
-      const Aim a = aimAt(pose, scene.target.center_m, np, policy, params.rotation_snap_rad, cycle);
-      if (homing && !a.ok && left > 0.0 && left < step) {
-        c = sliver(left);  // as in aimRollout
-        last = true;
-      } else if ((homing = a.ok && (homing || aimFree(world, pose, a, params.safety_margin_m)))) {
-        c = aimStep(a, step);
-        last = a.turn_m + a.straight_m <= step * (1.0 + 1e-9);
-        left = a.turn_m + a.straight_m - c.length_m;
-      } else {
-        const Steer s = steerTo(pose, poseAlong(plan, (k + 2) * step).p_SceneTip, np, cycle,
-                                params.rotation_snap_rad);
-        if (s.ok) {
-          c = Control3{s.rotate, s.kappa, step};
-        }
-      }
-    }
-    if (!rolloutStep(needle, world, c, pose)) {
+  for (int k = 0; k < max_steps && !queue.empty(); ++k) {
+    if (!rolloutStep(needle, world, nextStep(queue, step), pose)) {
       return false;
     }
-    if (last) {
-      break;
+    if (queue.empty()) {
+      break;  // the plan followed ends here
     }
+    const Aim a = aimAt(pose, scene.target.center_m, np, policy, params.rotation_snap_rad, cycle);
+    if (a.ok && (homing || aimFree(world, pose, a, params.safety_margin_m))) {
+      homing = true;
+      queue = controlQueue(aimPlan(pose, a, step));
+    } else if (!homing) {
+      const Steer st = steerTo(pose, poseAlong(plan, (k + 2) * step).p_SceneTip, np, cycle,
+                               params.rotation_snap_rad);
+      Plan3 rest = plan;  // the plan's remaining length, its first step steered back to it
+      rest.controls.assign(1, Control3{st.ok ? st.rotate : 0.0, st.ok ? st.kappa : 0.0,
+                                       std::max(0.0, plan.length_m - (k + 1) * step)});
+      queue = controlQueue(rest);
+    }  // homing without an approach from here: keep to the previous one, as aimRollout does
   }
   return (pose.p_SceneTip - scene.target.center_m).norm() <= scene.target.radius_m;
 }
@@ -473,6 +450,22 @@ std::string toString(PlanCode code) {
       return "no_path_within_budget";
   }
   return "unknown";
+}
+
+std::deque<Control3> controlQueue(const Plan3& plan) {
+  return std::deque<Control3>(plan.controls.begin(), plan.controls.end());
+}
+
+Control3 nextStep(std::deque<Control3>& queue, double step_length_m) {
+  Control3 c = queue.front();
+  if (c.length_m <= step_length_m * (1.0 + 1e-9)) {
+    queue.pop_front();
+  } else {
+    c.length_m = step_length_m;
+    queue.front().length_m -= step_length_m;
+    queue.front().rotate_rad = 0.0;  // the bevel was rotated at the control's first step
+  }
+  return c;
 }
 
 std::vector<Vector3> Plan3::points() const {

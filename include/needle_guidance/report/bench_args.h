@@ -1,4 +1,5 @@
-// Command line of the benchmark tools (bench_NAME --out DIR [--quick] [--scene SPEC]).
+// Command line of the benchmark tools (bench_NAME --out DIR [--quick] [--scene SPEC]
+// [--trials N]).
 #pragma once
 
 #include <optional>
@@ -12,6 +13,7 @@ struct BenchArgs {
   bool quick = false;                       ///< a smaller sweep for a fast look
   std::string scene = "prostate_sagittal";  ///< scene file or embedded name (the last --scene)
   std::vector<std::string> scenes;          ///< every --scene in order (a tool may run them all)
+  int trials = 0;  ///< --trials N: trials per cell for tools that run seeded trials (0 = theirs)
 };
 
 /// Parses the arguments; on a bad or missing one prints the usage of `tool` to stderr and

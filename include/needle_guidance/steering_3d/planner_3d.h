@@ -17,6 +17,7 @@
 
 #include <chrono>
 #include <cstdint>
+#include <deque>
 #include <optional>
 #include <string>
 #include <vector>
@@ -95,6 +96,12 @@ struct Plan3 {
   /// Positions every <= 1 mm along the plan, start and end included [m].
   std::vector<Vector3> points() const;
 };
+
+/// A plan's controls as the queue a loop executes step by step (nextStep).
+std::deque<Control3> controlQueue(const Plan3& plan);
+/// Takes the next step, at most step_length_m, off the front of `queue` (a control's bevel
+/// rotation goes with its first step); pops the control when the step ends it.
+Control3 nextStep(std::deque<Control3>& queue, double step_length_m);
 
 /// What a planning call did.
 struct PlanReport {
