@@ -6,6 +6,7 @@
 #include <stdexcept>
 
 #include "needle_guidance/ImageCalibration.h"
+#include "needle_guidance/imaging/biplane_views.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 
@@ -21,11 +22,25 @@ constexpr long kMaxImageSide_px = 8192;
 
 ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   ROS_INFO("imager parameters:");
+  const auto seed =
+      static_cast<std::uint64_t>(ros_params::integer(private_nh, "seed", 1, 0, 1L << 53, ""));
+  const std::string view = ros_params::text(private_nh, "view", "plane");
+  if (const auto axis = imaging::viewAxisFromString(view)) {  // a view of ~scene_3d
+    rows_ = steering_3d::viewRows(*axis);
+    imaging::BiplaneViewsConfig views;  // the biplane detector's geometry; along y seed + 1
+    views.seed = seed;
+    const imaging::BiplaneViewSetup setup = imaging::biplaneViewSetup(
+        steering_3d::loadScene3d(ros_params::text(private_nh, "scene_3d", "", true)), views, *axis);
+    start(nh, private_nh, setup.plane, setup.imager);
+    return;
+  }
+  if (view != "plane") {
+    throw std::runtime_error("parameter '" + private_nh.resolveName("view") + "' = '" + view +
+                             "' is not plane, along_z or along_y");
+  }
   const scene::Scene scene =
       scene::loadSceneSpec(ros_params::text(private_nh, "scene", "steering_workspace"));
-  imaging::ImagerConfig config = imaging::imagerConfigFromScene(
-      scene,
-      static_cast<std::uint64_t>(ros_params::integer(private_nh, "seed", 1, 0, 1L << 53, "")));
+  imaging::ImagerConfig config = imaging::imagerConfigFromScene(scene, seed);
   // Every device setting defaults to the scene's imaging section.
   const std::string modality = ros_params::text(private_nh, "modality", "");
   if (!modality.empty()) {
@@ -53,6 +68,11 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   const int height = static_cast<int>(
       ros_params::integer(private_nh, "height_px", 0, 0, kMaxImageSide_px, "px (0 = workspace)"));
   config.geometry = imaging::fieldOfView(scene, pixel_size_m, width, height);
+  start(nh, private_nh, scene, config);
+}
+
+void ImagerRos::start(ros::NodeHandle& nh, ros::NodeHandle& private_nh, const scene::Scene& scene,
+                      imaging::ImagerConfig config) {
   config.noise_std = ros_params::number(private_nh, "noise_std", config.noise_std, 0.0, 10.0, "");
   config.blur_sigma_m =
       ros_params::number(private_nh, "blur_sigma_m", config.blur_sigma_m, 0.0, 0.01, "m");
@@ -82,12 +102,12 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   shape_sub_ = nh.subscribe("needle_shape", 5, &ImagerRos::onShape, this);
   frame_timer_ =
       nh.createTimer(ros::Duration(1.0 / frame_rate_hz_), &ImagerRos::onFrameTimer, this);
-  ROS_INFO_STREAM_NAMED(kName, "imager: " << calibration.modality << " ("
-                                          << imaging::toString(config.ultrasound_model)
-                                          << " ultrasound model) " << calibration.width << " x "
-                                          << calibration.height << " px of " << pixel_size_m * 1e3
-                                          << " mm at " << frame_rate_hz_ << " Hz on scene '"
-                                          << scene.name << "'");
+  ROS_INFO_STREAM_NAMED(
+      kName, "imager: " << calibration.modality << " ("
+                        << imaging::toString(config.ultrasound_model) << " ultrasound model) "
+                        << calibration.width << " x " << calibration.height << " px of "
+                        << config.geometry.pixel_size_m * 1e3 << " mm at " << frame_rate_hz_
+                        << " Hz on scene '" << scene.name << "'");
 }
 
 ImagerRos::~ImagerRos() {
@@ -99,12 +119,13 @@ void ImagerRos::onShape(const NeedleShapeConstPtr& msg) {
   std::vector<imaging::Point2> points;
   points.reserve(msg->points.size());
   for (const geometry_msgs::Point& p : msg->points) {
-    if (!(std::isfinite(p.x) && std::isfinite(p.y))) {
+    if (!(std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z))) {
       ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
                                       "imager: needle shape with a non-finite point ignored");
       return;
     }
-    points.emplace_back(p.x, p.y);
+    points.emplace_back(rows_ ? imaging::Point2(*rows_ * Eigen::Vector3d(p.x, p.y, p.z))
+                              : imaging::Point2(p.x, p.y));
   }
   std::lock_guard<std::mutex> lock(mutex_);
   needle_points_ = std::move(points);
