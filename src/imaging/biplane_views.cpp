@@ -28,12 +28,27 @@ void BiplaneViewsConfig::validate() const {
   require(gate > 0.0, "gate must be > 0");
 }
 
-std::optional<sd::ViewAxis> viewAxisFromString(const std::string& name) {
+std::optional<ImagerView> imagerViewFromString(const std::string& name) {
+  if (name == "plane") {
+    return ImagerView::kPlane;
+  }
   if (name == "along_z") {
-    return sd::ViewAxis::kAlongZ;
+    return ImagerView::kAlongZ;
   }
   if (name == "along_y") {
-    return sd::ViewAxis::kAlongY;
+    return ImagerView::kAlongY;
+  }
+  return std::nullopt;
+}
+
+std::optional<sd::ViewAxis> viewAxis(ImagerView view) {
+  switch (view) {
+    case ImagerView::kAlongZ:
+      return sd::ViewAxis::kAlongZ;
+    case ImagerView::kAlongY:
+      return sd::ViewAxis::kAlongY;
+    case ImagerView::kPlane:
+      break;
   }
   return std::nullopt;
 }

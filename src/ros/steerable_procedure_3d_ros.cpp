@@ -114,9 +114,19 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial,
   // As runTrial3: the entry plan's first step, then a replan from every tip.
   trial.setPlan(ros_conversions::controlsFromArrays(
       srv.response.rotate_rad, srv.response.curvature_per_m, srv.response.insertion_m));
-  if (fusion_) {
-    trial.setObserver(
-        [this](const auto&, const sd::TipPose3& tip, auto) { return observeViews(tip); });
+  if (fusion_) {  // one frame of each imager after the step, fused
+    trial.setObserver([this](const auto&, const sd::TipPose3& predicted, auto) {
+      imaging::Frame frames[2];
+      for (int k = 0; k < 2; ++k) {
+        sensor_msgs::Image m;
+        if (!views_[k].waitFor(step_sent_, control_timeout_s_, m)) {
+          throw std::runtime_error(view_subs_[k].getTopic() + ": no frame after the step within " +
+                                   std::to_string(control_timeout_s_) + " s");
+        }
+        frames[k].image = cv_bridge::toCvCopy(m, "mono8")->image;
+      }
+      return fusion_->observeFrames(frames[0], frames[1], predicted);
+    });
   }
   while (trial.step() && ros::ok()) {
     const auto t0 = std::chrono::steady_clock::now();
@@ -137,21 +147,6 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial,
     }
   }
   return ros::ok();
-}
-
-imaging::BiplaneObservation3 SteerableProcedure3dRos::observeViews(const sd::TipPose3& predicted) {
-  imaging::Frame frames[2];
-  for (int k = 0; k < 2; ++k) {
-    sensor_msgs::Image m;
-    const std::string topic = view_subs_[k].getTopic();
-    if (!views_[k].waitFor(step_sent_, control_timeout_s_, m)) {
-      throw std::runtime_error("no frame on " + topic + " of the needle after the step within " +
-                               std::to_string(control_timeout_s_) + " s" +
-                               fault().value_or(" (is the imager running?)"));
-    }
-    frames[k].image = cv_bridge::toCvCopy(m, "mono8")->image;
-  }
-  return fusion_->observeFrames(frames[0], frames[1], predicted);
 }
 
 std::optional<std::string> SteerableProcedure3dRos::fault() {
@@ -228,10 +223,8 @@ bool SteerableProcedure3dRos::run() {
   const ros::Duration up(startup_timeout_s_);
   if (!plan_client_.waitForExistence(up) || !set_entry_.waitForExistence(up) ||
       !steer_->waitForServer(up) || !retract_->waitForServer(up)) {
-    ROS_ERROR_STREAM(
-        "steerable_procedure_3d: the planner or the robot (steerable_3d mode) did "
-        "not come up within "
-        << startup_timeout_s_ << " s");
+    ROS_ERROR_STREAM("steerable_procedure_3d: no planner or robot (steerable_3d mode) within "
+                     << startup_timeout_s_ << " s");
     return false;
   }
   const ros::WallTime deadline = ros::WallTime::now() + ros::WallDuration(startup_timeout_s_);
@@ -245,9 +238,6 @@ bool SteerableProcedure3dRos::run() {
   NodeSupervisor supervisor(nh_, {planner_ns_, robot_ns_});
   supervisor_ = &supervisor;
   controls_.setAbort([this] { return fault().has_value(); });
-  for (Latest<sensor_msgs::Image>& view : views_) {
-    view.setAbort([this] { return fault().has_value(); });
-  }
   const procedures::SteeringRun3 r = procedures::runSteeringTrials3(
       *scene_, *world_, *this, trials_, static_cast<std::uint64_t>(seed_), max_steps_, travel_m_);
   procedures::NodeDeath3 death;

@@ -52,8 +52,16 @@ struct BiplaneObservation3 {
   steering_3d::Matrix3 covariance_m2 = steering_3d::Matrix3::Zero();
 };
 
-/// "along_z" | "along_y" (an imager node's ~view); nullopt for anything else.
-std::optional<steering_3d::ViewAxis> viewAxisFromString(const std::string& name);
+/// What an imager node renders (its ~view).
+enum class ImagerView {
+  kPlane,   ///< the 2-D scene's plane (the planar procedures)
+  kAlongZ,  ///< the 3-D scene seen along z (x, y)
+  kAlongY,  ///< the 3-D scene seen along y (x, z)
+};
+/// "plane" | "along_z" | "along_y"; nullopt for anything else.
+std::optional<ImagerView> imagerViewFromString(const std::string& name);
+/// The axis a 3-D view looks along; nullopt for kPlane.
+std::optional<steering_3d::ViewAxis> viewAxis(ImagerView view);
 
 /// One view's device and detector: the view's plane as a 2-D scene over the tissue's projected
 /// bounds plus the margin, the fluoroscopy imager over it (seeded config.seed, along y seed + 1)

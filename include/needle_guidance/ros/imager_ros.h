@@ -32,10 +32,6 @@ public:
   ~ImagerRos();
 
 private:
-  /// The device settings common to both ~view kinds (noise, blur, drops, frame rate), then the
-  /// renderer, the latched calibration and the topics.
-  void start(ros::NodeHandle& nh, ros::NodeHandle& private_nh, const scene::Scene& scene,
-             imaging::ImagerConfig config);
   void onShape(const NeedleShapeConstPtr& msg);
   void onFrameTimer(const ros::TimerEvent& event);
 

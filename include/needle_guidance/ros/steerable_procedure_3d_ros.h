@@ -64,9 +64,6 @@ private:
   /// SteeringTrial3::WorldStep3 through the robot's steer action.
   bool robotStep(const steering_3d::Control3& control, steering_3d::TipPose3& tip,
                  steering_3d::TrialResult3& result);
-  /// ~tip_source biplane: the two imagers' frames of the needle after the step, fused; throws
-  /// std::runtime_error when a frame does not come or does not fit the view (a fault).
-  imaging::BiplaneObservation3 observeViews(const steering_3d::TipPose3& predicted);
   /// Retracts the needle out of the tissue (`death` as runGoal's); "" or why not.
   std::string retract(const std::function<std::optional<std::string>()>& death);
 
