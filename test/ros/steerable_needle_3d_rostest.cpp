@@ -10,6 +10,8 @@
 // robot is left safe: summary.json says "needle retracted" and the robot's insertion joint reads
 // 0. steerable_needle_3d_travel.test gives the robot a 30 mm insertion travel: every trial ends
 // as a refusal naming the travel (success 0), none as a fault, and the run completes.
+// steerable_needle_3d_biplane_no_imager.test: tip_source biplane with no imager running ends as a
+// fault whose message names the imager's topic.
 #include <geometry_msgs/PoseWithCovarianceStamped.h>
 #include <gtest/gtest.h>
 #include <ros/ros.h>
@@ -184,6 +186,32 @@ TEST(SteerableNeedle3d, TrialsReachTheTargetAndTheReportMatchesTheScene) {
   ASSERT_NE(insertion, js->name.end());
   EXPECT_NEAR(js->position.at(static_cast<std::size_t>(insertion - js->name.begin())), 0.0,
               kJointTolM);
+}
+
+TEST(SteerableNeedle3d, AMissingImagerIsAFaultNamingItsTopic) {
+  // steerable_needle_3d_biplane_no_imager.test: tip_source biplane but no imager runs. The first
+  // step's wait for a frame ends after ~control_timeout_s as a fault (not a miss) whose message
+  // names the topic; the run stops there, the robot is left safe.
+  ros::NodeHandle private_nh("~");
+  if (!private_nh.param("missing_imager", false)) {
+    GTEST_SKIP() << "only in steerable_needle_3d_biplane_no_imager.test";
+  }
+  std::string report_dir;
+  ASSERT_TRUE(private_nh.getParam("report_dir", report_dir));
+  const double wait_s = private_nh.param("report_wait_s", 60.0);
+  ASSERT_TRUE(waitForFile(report_dir + "/summary.json", wait_s))
+      << "no report in " << wait_s << " s";
+  const std::string summary = slurp(report_dir + "/summary.json");
+  EXPECT_NE(summary.find("\"status\": \"fault\""), std::string::npos) << summary;
+  EXPECT_NE(summary.find("\"faults\": 1"), std::string::npos) << summary;
+  EXPECT_NE(summary.find("\"safe_stop\": \"needle retracted\""), std::string::npos) << summary;
+  const auto trials = readCsvRows(report_dir + "/trials.csv");
+  ASSERT_EQ(trials.size(), 1U);
+  EXPECT_EQ(trials[0].at("fault"), "1");
+  EXPECT_EQ(trials[0].at("success"), "0");
+  EXPECT_NE(trials[0].at("message").find("/imager_along_z/image: no frame after the step within"),
+            std::string::npos)
+      << trials[0].at("message");
 }
 
 }  // namespace
