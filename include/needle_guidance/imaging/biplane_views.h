@@ -3,7 +3,10 @@
 // imager's FrameRenderer in fluoroscopy mode over the tissue's bounds, the tip found in each with
 // the tracker's single-frame detector (detectTip, no prior) and the two detections triangulated
 // with steering_3d::triangulateBiplane: views whose shared x disagrees beyond the gate are
-// refused, never fused. Plain C++ and OpenCV; no ROS (the 3-D procedure and tests call it).
+// refused, never fused. biplaneViewSetup is each view's device (the imager node's ~view along_z
+// / along_y renders with it), BiplaneFusion3 detects and fuses two received frames (the ROS
+// procedure, fed by two imager nodes), BiplaneViews3 renders both in process and fuses them (the
+// ROS-free trial and tests). Plain C++ and OpenCV; no ROS.
 #pragma once
 
 #include <cstdint>
