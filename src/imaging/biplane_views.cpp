@@ -28,81 +28,132 @@ void BiplaneViewsConfig::validate() const {
   require(gate > 0.0, "gate must be > 0");
 }
 
-BiplaneViews3::BiplaneViews3(const sd::Scene3d& scene, const BiplaneViewsConfig& config)
-    : config_(config) {
-  config_.validate();
+std::optional<ImagerView> imagerViewFromString(const std::string& name) {
+  if (name == "plane") {
+    return ImagerView::kPlane;
+  }
+  if (name == "along_z") {
+    return ImagerView::kAlongZ;
+  }
+  if (name == "along_y") {
+    return ImagerView::kAlongY;
+  }
+  return std::nullopt;
+}
+
+std::optional<sd::ViewAxis> viewAxis(ImagerView view) {
+  switch (view) {
+    case ImagerView::kAlongZ:
+      return sd::ViewAxis::kAlongZ;
+    case ImagerView::kAlongY:
+      return sd::ViewAxis::kAlongY;
+    case ImagerView::kPlane:
+      break;
+  }
+  return std::nullopt;
+}
+
+BiplaneViewSetup biplaneViewSetup(const sd::Scene3d& scene, const BiplaneViewsConfig& config,
+                                  sd::ViewAxis axis) {
+  config.validate();
   const sd::CollisionWorld3 world = scene.collisionWorld();
+  // The view's plane as a 2-D scene over the tissue's projected bounds (the renderer draws its
+  // background; the needle is what the detector looks for).
+  BiplaneViewSetup out;
+  out.plane.name = scene.name + (axis == sd::ViewAxis::kAlongZ ? " (view along z)" : " (along y)");
+  const Eigen::Matrix<double, 2, 3> rows = sd::viewRows(axis);
+  const Eigen::Vector2d margin(config.margin_m, config.margin_m);
+  out.plane.workspace_min = rows * world.tissueMin() - margin;
+  out.plane.workspace_max = rows * world.tissueMax() + margin;
+  out.plane.imaging.modality = "fluoroscopy";
+  out.imager.modality = Modality::kFluoroscopy;
+  out.imager.geometry = fieldOfView(out.plane, config.pixel_size_m);
+  out.imager.noise_std = config.noise_std;
+  out.imager.blur_sigma_m = config.blur_sigma_m;
+  out.imager.drop_probability = config.drop_probability;
+  out.imager.seed = config.seed + (axis == sd::ViewAxis::kAlongZ ? 0 : 1);
+  out.tracker.modality = Modality::kFluoroscopy;
+  out.tracker.geometry = out.imager.geometry;
+  out.tracker.radius_of_curvature_m = 1.0 / scene.needle.kappa_max_per_m;
+  out.tracker.needle_diameter_m = out.imager.needle_diameter_m;
+  out.tracker.step_length_m = scene.step_length_m;
+  out.tracker.validate();
+  return out;
+}
+
+BiplaneFusion3::BiplaneFusion3(const sd::Scene3d& scene, const BiplaneViewsConfig& config)
+    : config_(config) {
   for (const sd::ViewAxis axis : {sd::ViewAxis::kAlongZ, sd::ViewAxis::kAlongY}) {
-    // The view's plane as a 2-D scene over the tissue's projected bounds (the renderer draws its
-    // background; the needle is what the detector looks for).
-    scene::Scene plane;
-    plane.name = scene.name + (axis == sd::ViewAxis::kAlongZ ? " (view along z)" : " (along y)");
-    const Eigen::Matrix<double, 2, 3> rows = sd::viewRows(axis);
-    const Eigen::Vector2d margin(config_.margin_m, config_.margin_m);
-    plane.workspace_min = rows * world.tissueMin() - margin;
-    plane.workspace_max = rows * world.tissueMax() + margin;
-    plane.imaging.modality = "fluoroscopy";
-    ImagerConfig imager;
-    imager.modality = Modality::kFluoroscopy;
-    imager.geometry = fieldOfView(plane, config_.pixel_size_m);
-    imager.noise_std = config_.noise_std;
-    imager.blur_sigma_m = config_.blur_sigma_m;
-    imager.drop_probability = config_.drop_probability;
-    imager.seed = config_.seed + (axis == sd::ViewAxis::kAlongZ ? 0 : 1);
-    renderers_.emplace_back(plane, imager);
-    TrackerConfig tracker;
-    tracker.modality = Modality::kFluoroscopy;
-    tracker.geometry = imager.geometry;
-    tracker.radius_of_curvature_m = 1.0 / scene.needle.kappa_max_per_m;
-    tracker.needle_diameter_m = imager.needle_diameter_m;
-    tracker.step_length_m = scene.step_length_m;
-    tracker.validate();
-    trackers_.push_back(tracker);
+    trackers_.push_back(biplaneViewSetup(scene, config_, axis).tracker);
   }
 }
 
-const ImageGeometry& BiplaneViews3::geometry(sd::ViewAxis axis) const {
+const ImageGeometry& BiplaneFusion3::geometry(sd::ViewAxis axis) const {
   return trackers_[axis == sd::ViewAxis::kAlongZ ? 0 : 1].geometry;
 }
 
-BiplaneView3 BiplaneViews3::view(sd::ViewAxis axis, const std::vector<sd::Vector3>& needle,
-                                 std::uint64_t index) const {
-  const std::size_t k = axis == sd::ViewAxis::kAlongZ ? 0 : 1;
-  const Eigen::Matrix<double, 2, 3> rows = sd::viewRows(axis);
-  std::vector<Point2> points;
-  points.reserve(needle.size());
-  for (const sd::Vector3& p : needle) {
-    points.emplace_back(rows * p);
-  }
+BiplaneView3 BiplaneFusion3::detect(sd::ViewAxis axis, const Frame& frame) const {
   BiplaneView3 out;
   out.axis = axis;
-  out.frame = renderers_[k].render(points, index);
-  if (out.frame.dropped) {
+  out.frame = frame;
+  if (frame.dropped || frame.image.empty()) {
     out.detection.message = "frame dropped";
-  } else {
-    // The detector fits arcs of one known radius; a duty-cycled needle's projection bends less
-    // than kappa_max. Fit each candidate radius and keep the closest fit.
-    TrackerConfig tracker = trackers_[k];
-    const double r_min = tracker.radius_of_curvature_m;
-    for (const double factor : kRadiusFactors) {
-      tracker.radius_of_curvature_m = r_min * factor;
-      const Detection d = detectTip(out.frame.image, tracker, std::nullopt);
-      if (d.found && (!out.detection.found || d.residual_rms_m < out.detection.residual_rms_m)) {
-        out.detection = d;
-      } else if (!out.detection.found && out.detection.message.empty()) {
-        out.detection.message = d.message;
-      }
+    return out;
+  }
+  // The detector fits arcs of one known radius; a duty-cycled needle's projection bends less
+  // than kappa_max. Fit each candidate radius and keep the closest fit.
+  TrackerConfig tracker = trackers_[axis == sd::ViewAxis::kAlongZ ? 0 : 1];
+  if (frame.image.cols != tracker.geometry.cols || frame.image.rows != tracker.geometry.rows) {
+    throw std::invalid_argument(
+        std::string("BiplaneFusion3: the frame along ") +
+        (axis == sd::ViewAxis::kAlongZ ? "z" : "y") + " is " + std::to_string(frame.image.cols) +
+        " x " + std::to_string(frame.image.rows) + " px; the view is " +
+        std::to_string(tracker.geometry.cols) + " x " + std::to_string(tracker.geometry.rows) +
+        " px (another pixel size or scene?)");
+  }
+  const double r_min = tracker.radius_of_curvature_m;
+  for (const double factor : kRadiusFactors) {
+    tracker.radius_of_curvature_m = r_min * factor;
+    const Detection d = detectTip(out.frame.image, tracker, std::nullopt);
+    if (d.found && (!out.detection.found || d.residual_rms_m < out.detection.residual_rms_m)) {
+      out.detection = d;
+    } else if (!out.detection.found && out.detection.message.empty()) {
+      out.detection.message = d.message;
     }
   }
   return out;
 }
 
+BiplaneViews3::BiplaneViews3(const sd::Scene3d& scene, const BiplaneViewsConfig& config)
+    : fusion_(scene, config) {
+  for (const sd::ViewAxis axis : {sd::ViewAxis::kAlongZ, sd::ViewAxis::kAlongY}) {
+    const BiplaneViewSetup setup = biplaneViewSetup(scene, config, axis);
+    renderers_.emplace_back(setup.plane, setup.imager);
+  }
+}
+
 BiplaneObservation3 BiplaneViews3::observe(const std::vector<sd::Vector3>& needle,
                                            const sd::TipPose3& predicted,
                                            std::uint64_t index) const {
+  Frame frames[2];
+  for (const sd::ViewAxis axis : {sd::ViewAxis::kAlongZ, sd::ViewAxis::kAlongY}) {
+    const std::size_t k = axis == sd::ViewAxis::kAlongZ ? 0 : 1;
+    const Eigen::Matrix<double, 2, 3> rows = sd::viewRows(axis);
+    std::vector<Point2> points;
+    points.reserve(needle.size());
+    for (const sd::Vector3& p : needle) {
+      points.emplace_back(rows * p);
+    }
+    frames[k] = renderers_[k].render(points, index);
+  }
+  return fusion_.observeFrames(frames[0], frames[1], predicted);
+}
+
+BiplaneObservation3 BiplaneFusion3::observeFrames(const Frame& along_z, const Frame& along_y,
+                                                  const sd::TipPose3& predicted) const {
   BiplaneObservation3 out;
-  out.along_z = view(sd::ViewAxis::kAlongZ, needle, index);
-  out.along_y = view(sd::ViewAxis::kAlongY, needle, index);
+  out.along_z = detect(sd::ViewAxis::kAlongZ, along_z);
+  out.along_y = detect(sd::ViewAxis::kAlongY, along_y);
   const BiplaneView3* missing = !out.along_z.detection.found   ? &out.along_z
                                 : !out.along_y.detection.found ? &out.along_y
                                                                : nullptr;

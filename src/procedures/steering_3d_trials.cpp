@@ -77,7 +77,7 @@ bool SteeringTrial3::step() {
                         ? world_step_(c, tip_, result_)
                         : steering_3d::executeStep3(needle_, world_, c, tip_, result_, options);
   inserted_m_ += c.length_m;
-  if (views_ != nullptr) {
+  if (observe_) {
     observe(c);
   }
   if (last_piece) {
@@ -93,7 +93,7 @@ bool SteeringTrial3::step() {
 }
 
 steering_3d::Matrix3 SteeringTrial3::observedCovariance_m2(double sigma_m) const {
-  return views_ != nullptr && observation_.tip
+  return observe_ && observation_.tip
              ? observation_.covariance_m2
              : steering_3d::Matrix3(sigma_m * sigma_m * steering_3d::Matrix3::Identity());
 }
@@ -111,9 +111,18 @@ bool SteeringTrial3::followAnswer(const std::string& status, const std::string& 
   return true;
 }
 
+void SteeringTrial3::setViews(const imaging::BiplaneViews3* views) {
+  if (views == nullptr) {
+    observe_ = nullptr;
+    return;
+  }
+  observe_ = [views](const std::vector<steering_3d::Vector3>& path, const TipPose3& predicted,
+                     std::uint64_t index) { return views->observe(path, predicted, index); };
+}
+
 void SteeringTrial3::observe(const Control3& c) {
   const TipPose3 predicted = steering_3d::predictTip3(estimate_, c, scene_.needle);
-  observation_ = views_->observe(result_.path, predicted, seed_ * 1000 + result_.steps);
+  observation_ = observe_(result_.path, predicted, seed_ * 1000 + result_.steps);
   estimate_ = steering_3d::acceptBiplane(observation_.tip, predicted, tip_, result_);
 }
 

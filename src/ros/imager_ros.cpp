@@ -6,6 +6,7 @@
 #include <stdexcept>
 
 #include "needle_guidance/ImageCalibration.h"
+#include "needle_guidance/imaging/biplane_views.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 
@@ -20,49 +21,45 @@ constexpr long kMaxImageSide_px = 8192;
 }  // namespace
 
 ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
+  namespace rp = ros_params;
   ROS_INFO("imager parameters:");
-  const scene::Scene scene =
-      scene::loadSceneSpec(ros_params::text(private_nh, "scene", "steering_workspace"));
-  imaging::ImagerConfig config = imaging::imagerConfigFromScene(
-      scene,
-      static_cast<std::uint64_t>(ros_params::integer(private_nh, "seed", 1, 0, 1L << 53, "")));
-  // Every device setting defaults to the scene's imaging section.
-  const std::string modality = ros_params::text(private_nh, "modality", "");
-  if (!modality.empty()) {
-    const auto m = imaging::modalityFromString(modality);
-    if (!m) {
-      throw std::runtime_error("parameter '" + private_nh.resolveName("modality") + "' = '" +
-                               modality + "' is not ultrasound or fluoroscopy");
-    }
-    config.modality = *m;
+  const auto seed = static_cast<std::uint64_t>(rp::integer(private_nh, "seed", 1, 0, 1L << 53, ""));
+  const imaging::ImagerView view = rp::choice(
+      private_nh, "view", "plane", imaging::imagerViewFromString, "plane, along_z or along_y");
+  scene::Scene scene;
+  imaging::ImagerConfig config;
+  if (const auto axis = imaging::viewAxis(view)) {  // one fluoroscopy view of a 3-D scene
+    rows_ = steering_3d::viewRows(*axis);
+    imaging::BiplaneViewsConfig views;  // the biplane detector's geometry; along y seed + 1
+    views.seed = seed;
+    imaging::BiplaneViewSetup setup = imaging::biplaneViewSetup(
+        steering_3d::loadScene3d(rp::text(private_nh, "scene_3d", "", true)), views, *axis);
+    scene = std::move(setup.plane);
+    config = setup.imager;
+  } else {  // every device setting defaults to the scene's imaging section
+    scene = scene::loadSceneSpec(rp::text(private_nh, "scene", "steering_workspace"));
+    config = imaging::imagerConfigFromScene(scene, seed);
+    config.modality = rp::choice(private_nh, "modality", imaging::toString(config.modality),
+                                 imaging::modalityFromString, "ultrasound or fluoroscopy");
+    config.ultrasound_model =
+        rp::choice(private_nh, "ultrasound_model", "classic", imaging::ultrasoundModelFromString,
+                   "classic or realistic");
+    config.tissue_motion_px =  // the realistic model's moving tissue
+        rp::number(private_nh, "tissue_motion_px", config.tissue_motion_px, 0, 10, "px / frame");
+    const double pixel_size_m =
+        rp::number(private_nh, "pixel_size_m", config.geometry.pixel_size_m, 1e-6, 0.01, "m");
+    const auto side_px = [&](const char* name) {  // 0 = the workspace's
+      return int(rp::integer(private_nh, name, 0, 0, kMaxImageSide_px, "px (0 = workspace)"));
+    };
+    config.geometry =
+        imaging::fieldOfView(scene, pixel_size_m, side_px("width_px"), side_px("height_px"));
   }
-  // classic (default): the renderer the image-guided loop and its published figures were made
-  // on; realistic: specular layers, log display, shadow, reverberation tail, out-of-plane tilt
-  // (frame_renderer.h), for trying a tracker on frames that fail it as real ones do.
-  const std::string us_model = ros_params::text(private_nh, "ultrasound_model", "classic");
-  const auto um = imaging::ultrasoundModelFromString(us_model);
-  if (!um) {
-    throw std::runtime_error("parameter '" + private_nh.resolveName("ultrasound_model") + "' = '" +
-                             us_model + "' is not classic or realistic");
-  }
-  config.ultrasound_model = *um;
-  // Moving tissue (breathing, a hand-held probe) in the realistic model: its speed [px / frame].
-  config.tissue_motion_px = ros_params::number(private_nh, "tissue_motion_px",
-                                               config.tissue_motion_px, 0.0, 10.0, "px / frame");
-  const double pixel_size_m =
-      ros_params::number(private_nh, "pixel_size_m", config.geometry.pixel_size_m, 1e-6, 0.01, "m");
-  const int width = static_cast<int>(
-      ros_params::integer(private_nh, "width_px", 0, 0, kMaxImageSide_px, "px (0 = workspace)"));
-  const int height = static_cast<int>(
-      ros_params::integer(private_nh, "height_px", 0, 0, kMaxImageSide_px, "px (0 = workspace)"));
-  config.geometry = imaging::fieldOfView(scene, pixel_size_m, width, height);
-  config.noise_std = ros_params::number(private_nh, "noise_std", config.noise_std, 0.0, 10.0, "");
-  config.blur_sigma_m =
-      ros_params::number(private_nh, "blur_sigma_m", config.blur_sigma_m, 0.0, 0.01, "m");
+  config.noise_std = rp::number(private_nh, "noise_std", config.noise_std, 0.0, 10.0, "");
+  config.blur_sigma_m = rp::number(private_nh, "blur_sigma_m", config.blur_sigma_m, 0.0, 0.01, "m");
   config.drop_probability =
-      ros_params::number(private_nh, "drop_probability", config.drop_probability, 0.0, 0.99, "");
-  frame_rate_hz_ = ros_params::number(private_nh, "frame_rate_hz", scene.imaging.frame_rate_hz, 0.1,
-                                      kMaxFrameRate_hz, "Hz");
+      rp::number(private_nh, "drop_probability", config.drop_probability, 0.0, 0.99, "");
+  frame_rate_hz_ = rp::number(private_nh, "frame_rate_hz", scene.imaging.frame_rate_hz, 0.1,
+                              kMaxFrameRate_hz, "Hz");
   renderer_ = std::make_unique<imaging::FrameRenderer>(scene, config);
 
   ImageCalibration calibration;
@@ -85,29 +82,25 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   shape_sub_ = nh.subscribe("needle_shape", 5, &ImagerRos::onShape, this);
   frame_timer_ =
       nh.createTimer(ros::Duration(1.0 / frame_rate_hz_), &ImagerRos::onFrameTimer, this);
-  ROS_INFO_STREAM_NAMED(kName, "imager: " << calibration.modality << " ("
-                                          << imaging::toString(config.ultrasound_model)
-                                          << " ultrasound model) " << calibration.width << " x "
-                                          << calibration.height << " px of " << pixel_size_m * 1e3
-                                          << " mm at " << frame_rate_hz_ << " Hz on scene '"
-                                          << scene.name << "'");
+  ROS_INFO_STREAM_NAMED(kName, "imager: " << calibration.modality << ", " << calibration.width
+                                          << " x " << calibration.height << " px of "
+                                          << config.geometry.pixel_size_m * 1e3 << " mm at "
+                                          << frame_rate_hz_ << " Hz on '" << scene.name << "'");
 }
 
 ImagerRos::~ImagerRos() {
-  ROS_INFO_STREAM_NAMED(
-      kName, "imager: " << published_ << " frames published, " << dropped_ << " dropped");
+  ROS_INFO_STREAM_NAMED(kName, "imager: " << published_ << " frames sent, " << dropped_ << " lost");
 }
 
 void ImagerRos::onShape(const NeedleShapeConstPtr& msg) {
   std::vector<imaging::Point2> points;
-  points.reserve(msg->points.size());
   for (const geometry_msgs::Point& p : msg->points) {
-    if (!(std::isfinite(p.x) && std::isfinite(p.y))) {
-      ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
-                                      "imager: needle shape with a non-finite point ignored");
+    if (!(std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z))) {
+      ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName, "imager: non-finite shape ignored");
       return;
     }
-    points.emplace_back(p.x, p.y);
+    points.emplace_back(rows_ ? imaging::Point2(*rows_ * Eigen::Vector3d(p.x, p.y, p.z))
+                              : imaging::Point2(p.x, p.y));
   }
   std::lock_guard<std::mutex> lock(mutex_);
   needle_points_ = std::move(points);
@@ -130,13 +123,11 @@ void ImagerRos::onFrameTimer(const ros::TimerEvent& /*event*/) {
     ++dropped_;
     return;
   }
-  cv_bridge::CvImage image;
-  image.header.stamp = stamp;
-  image.header.frame_id = "imager";
-  image.header.seq = static_cast<std::uint32_t>(frame.index);
-  image.encoding = "mono8";
-  image.image = frame.image;
-  image_pub_.publish(image.toImageMsg());
+  std_msgs::Header header;
+  header.stamp = stamp;
+  header.frame_id = "imager";
+  header.seq = static_cast<std::uint32_t>(frame.index);
+  image_pub_.publish(cv_bridge::CvImage(header, "mono8", frame.image).toImageMsg());
   ++published_;
 }
 

@@ -169,6 +169,7 @@ void InsertionRobotRos::advertiseInterfaces(const ros::NodeHandle& private_nh) {
     needle_path_pub_ = robot_nh.advertise<visualization_msgs::Marker>("needle_path", 1, true);
   } else if (steer3d_) {
     needle_path_pub_ = robot_nh.advertise<visualization_msgs::Marker>("needle_path", 1, true);
+    needle_shape_pub_ = robot_nh.advertise<NeedleShape>("needle_shape", 1, true);
     set_entry3_srv_ =
         robot_nh.advertiseService("set_entry_pose_3d", &InsertionRobotRos::onSetEntryPose3, this);
     steer_server_ = std::make_unique<Steer3Server>(
@@ -407,7 +408,7 @@ void InsertionRobotRos::finishActiveGoal(bool success, const std::string& messag
     }
     publishNeedle(now);  // the pose at the goal's end, before its result
   } else if (steer3d_) {
-    publishNeedle3(now);
+    publishNeedle3(now, true);
   }
   if (owner == Owner::kSteer) {
     const Steer3Result result = steerResult(success, message);
@@ -653,19 +654,25 @@ bool InsertionRobotRos::onSetEntryPose3(SetEntryPose3::Request& req, SetEntryPos
   return true;
 }
 
-void InsertionRobotRos::publishNeedle3(const ros::Time& stamp) {
+void InsertionRobotRos::publishNeedle3(const ros::Time& stamp, bool moved) {
   geometry_msgs::PoseStamped cp;
   cp.header.stamp = stamp;
   cp.header.frame_id = "scene";
   cp.pose = ros_conversions::toMessage(steer3d_->tip());
   measured_cp_pub_.publish(cp);
   const std::size_t version = steer3d_->journal().size() * 1000003 + steer3d_->path().size();
-  if (version != published_path_version_) {
+  if (version != published_path_version_ || moved) {
     published_path_version_ = version;
     visualization_msgs::Marker m = ros_conversions::lineStrip(
         steer3d_->path(), "scene", "needle_path", ros_conversions::colour(0.95, 0.6, 0.1), 1.5e-3);
     m.header.stamp = stamp;
     needle_path_pub_.publish(m);
+    if (moved) {  // the 3-D needle where the motion ended, for the biplane imagers
+      NeedleShape shape;
+      shape.header = m.header;
+      shape.points = m.points;
+      needle_shape_pub_.publish(shape);
+    }
   }
 }
 

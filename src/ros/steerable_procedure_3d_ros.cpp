@@ -39,12 +39,13 @@ SteerableProcedure3dRos::SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeH
   const procedures::TipSource3 source = procedures::tipSource3OrThrow(
       rp::text(private_nh, "tip_source", "truth"), private_nh.resolveName("tip_source"));
   scene_ = std::make_unique<sd::Scene3d>(sd::loadScene3d(scene_path));
-  if (source == procedures::TipSource3::kBiplane) {
-    imaging::BiplaneViewsConfig views;  // two fluoroscopy views of the tissue's bounds
-    views.seed = static_cast<std::uint64_t>(seed_);
-    views_ = std::make_unique<imaging::BiplaneViews3>(*scene_, views);
-    view_pubs_[0] = private_nh.advertise<sensor_msgs::Image>("view_along_z", 2);
-    view_pubs_[1] = private_nh.advertise<sensor_msgs::Image>("view_along_y", 2);
+  if (source == procedures::TipSource3::kBiplane) {  // the frames of the two imager nodes
+    fusion_ = std::make_unique<imaging::BiplaneFusion3>(*scene_, imaging::BiplaneViewsConfig{});
+    for (int k = 0; k < 2; ++k) {
+      view_subs_[k] = nh.subscribe<sensor_msgs::Image>(
+          k == 0 ? "imager_along_z/image" : "imager_along_y/image", 2,
+          [this, k](const sensor_msgs::ImageConstPtr& m) { views_[k].set(*m); });
+    }
   }
   world_ = std::make_unique<sd::CollisionWorld3>(scene_->collisionWorld());
   std::string urdf;  // the robot's own model: the insertion joint's travel
@@ -71,16 +72,9 @@ std::optional<SteeringControl3> SteerableProcedure3dRos::exchange(
   msg.header.frame_id = "scene";
   msg.header.stamp = ros::Time::now();
   msg.pose.pose = ros_conversions::toMessage(trial.observedTip());
-  const imaging::BiplaneObservation3& seen = trial.lastObservation();
   const sd::Matrix3 covariance = trial.observedCovariance_m2(tip_sigma_m_);
   for (int k = 0; k < 9; ++k) {
     msg.pose.covariance[static_cast<std::size_t>(6 * (k / 3) + k % 3)] = covariance(k / 3, k % 3);
-  }
-  for (const imaging::BiplaneView3* v : {&seen.along_z, &seen.along_y}) {
-    if (views_ && !v->frame.image.empty()) {
-      cv_bridge::CvImage image(msg.header, "mono8", v->frame.image);
-      view_pubs_[v->axis == sd::ViewAxis::kAlongZ ? 0 : 1].publish(image.toImageMsg());
-    }
   }
   expected_ns_ = msg.header.stamp.toNSec();
   tip_pub_.publish(msg);
@@ -120,7 +114,20 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial,
   // As runTrial3: the entry plan's first step, then a replan from every tip.
   trial.setPlan(ros_conversions::controlsFromArrays(
       srv.response.rotate_rad, srv.response.curvature_per_m, srv.response.insertion_m));
-  trial.setViews(views_.get());
+  if (fusion_) {  // one frame of each imager after the step, fused
+    trial.setObserver([this](const auto&, const sd::TipPose3& predicted, auto) {
+      imaging::Frame frames[2];
+      for (int k = 0; k < 2; ++k) {
+        sensor_msgs::Image m;
+        if (!views_[k].waitFor(step_sent_, control_timeout_s_, m)) {
+          throw std::runtime_error(view_subs_[k].getTopic() + ": no frame after the step within " +
+                                   std::to_string(control_timeout_s_) + " s");
+        }
+        frames[k].image = cv_bridge::toCvCopy(m, "mono8")->image;
+      }
+      return fusion_->observeFrames(frames[0], frames[1], predicted);
+    });
+  }
   while (trial.step() && ros::ok()) {
     const auto t0 = std::chrono::steady_clock::now();
     const std::optional<SteeringControl3> answer = exchange(trial);
@@ -194,6 +201,7 @@ bool SteerableProcedure3dRos::robotStep(const sd::Control3& c, sd::TipPose3& tip
   goal.length_m = c.length_m;
   goal.velocity_m_s = scene_->needle.insertion_speed_m_s;
   std::string message;
+  step_sent_ = ros::Time::now();  // the robot publishes the shape (stamped) when the step ends
   const bool ok = runGoal(
       *steer_, goal, control_timeout_s_, [this] { return fault(); }, message);
   const Steer3ResultConstPtr result = steer_->getResult();
@@ -215,10 +223,8 @@ bool SteerableProcedure3dRos::run() {
   const ros::Duration up(startup_timeout_s_);
   if (!plan_client_.waitForExistence(up) || !set_entry_.waitForExistence(up) ||
       !steer_->waitForServer(up) || !retract_->waitForServer(up)) {
-    ROS_ERROR_STREAM(
-        "steerable_procedure_3d: the planner or the robot (steerable_3d mode) did "
-        "not come up within "
-        << startup_timeout_s_ << " s");
+    ROS_ERROR_STREAM("steerable_procedure_3d: no planner or robot (steerable_3d mode) within "
+                     << startup_timeout_s_ << " s");
     return false;
   }
   const ros::WallTime deadline = ros::WallTime::now() + ros::WallDuration(startup_timeout_s_);

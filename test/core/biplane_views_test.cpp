@@ -2,7 +2,9 @@
 // seeded duty-cycled needles in prostate_3d the fused tip lies near the true one (half the needles
 // held out; README says how far); no needle or dropped frames give a named kNoDetection, never a
 // fused tip; a bad config is refused naming the field; SteeringTrial3 with the views counts every
-// pair and hands out tips near the truth.
+// pair and hands out tips near the truth. BiplaneFusion3 (the ROS loop's path: frames of two
+// imager nodes): separately rendered frames fuse near the truth (held-out needles), frames of two
+// different needles are gated, a frame of another size is refused naming the view.
 #include <gtest/gtest.h>
 
 #include <random>
@@ -138,6 +140,79 @@ TEST(BiplaneViews3, ATrialImagedEveryStepHandsOutFusedTipsNearTheTruth) {
   EXPECT_EQ(needle_guidance::procedures::tipSource3FromString("biplane"),
             needle_guidance::procedures::TipSource3::kBiplane);
   EXPECT_FALSE(needle_guidance::procedures::tipSource3FromString("Biplane"));
+}
+
+/// Frame `index` of the view along `axis` as an imager node with ~view along_z / along_y renders
+/// it: its own renderer from biplaneViewSetup, the 3-D needle projected on the view's plane.
+im::Frame imagerFrame(const sd::Scene3d& scene, sd::ViewAxis axis,
+                      const std::vector<sd::Vector3>& needle, std::uint64_t index) {
+  const im::BiplaneViewSetup setup = im::biplaneViewSetup(scene, im::BiplaneViewsConfig{}, axis);
+  std::vector<im::Point2> points;
+  for (const sd::Vector3& p : needle) {
+    points.emplace_back(sd::viewRows(axis) * p);
+  }
+  return im::FrameRenderer(setup.plane, setup.imager).render(points, index);
+}
+
+TEST(BiplaneFusion3, FramesRenderedByTwoImagersFuseNearTheTrueTip) {
+  // The ROS loop's path: two separately rendered frames (as the two imager nodes render them)
+  // fused by observeFrames; held-out needles (seeds 201..204, not used for any tuning).
+  const sd::Scene3d scene = prostate();
+  const im::BiplaneFusion3 fusion(scene, im::BiplaneViewsConfig{});
+  for (std::uint64_t seed = 201; seed <= 204; ++seed) {
+    sd::TipPose3 truth;
+    const std::vector<sd::Vector3> path = needle(scene, seed, truth);
+    const im::BiplaneObservation3 seen =
+        fusion.observeFrames(imagerFrame(scene, sd::ViewAxis::kAlongZ, path, seed),
+                             imagerFrame(scene, sd::ViewAxis::kAlongY, path, seed), truth);
+    ASSERT_TRUE(seen.tip) << "needle " << seed << ": " << seen.tip.status().toString();
+    EXPECT_LT((seen.tip.value().p_SceneTip - truth.p_SceneTip).norm() * 1e3, kTipErrorMm)
+        << "needle " << seed;
+  }
+}
+
+TEST(BiplaneFusion3, FramesOfTwoDifferentNeedlesAreGatedNotFused) {
+  // Views that disagree (e.g. frames of two instants): the needle along y is the one along z
+  // moved 5 mm in x, the coordinate both views see; the gate refuses the pair.
+  const sd::Scene3d scene = prostate();
+  sd::TipPose3 truth;
+  const std::vector<sd::Vector3> path = needle(scene, 3, truth);
+  std::vector<sd::Vector3> moved = path;
+  for (sd::Vector3& p : moved) {
+    p.x() += 0.005;
+  }
+  const im::BiplaneObservation3 seen =
+      im::BiplaneFusion3(scene, im::BiplaneViewsConfig{})
+          .observeFrames(imagerFrame(scene, sd::ViewAxis::kAlongZ, path, 1),
+                         imagerFrame(scene, sd::ViewAxis::kAlongY, moved, 1), truth);
+  ASSERT_FALSE(seen.tip);
+  EXPECT_EQ(seen.tip.status().code(), sd::BiplaneCode::kDisagree) << seen.tip.status().toString();
+  EXPECT_EQ(seen.covariance_m2.norm(), 0.0);
+}
+
+TEST(BiplaneFusion3, AFrameOfAnotherSizeIsRefusedNamingTheView) {
+  const sd::Scene3d scene = prostate();
+  sd::TipPose3 truth;
+  const std::vector<sd::Vector3> path = needle(scene, 2, truth);
+  im::Frame small = imagerFrame(scene, sd::ViewAxis::kAlongY, path, 1);
+  small.image = small.image(cv::Rect(0, 0, small.image.cols / 2, small.image.rows));
+  try {
+    im::BiplaneFusion3(scene, im::BiplaneViewsConfig{})
+        .observeFrames(imagerFrame(scene, sd::ViewAxis::kAlongZ, path, 1), small, truth);
+    FAIL() << "accepted a frame of half the width";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("along y"), std::string::npos) << e.what();
+  }
+}
+
+TEST(BiplaneFusion3, ImagerViewNamesParse) {
+  EXPECT_EQ(im::imagerViewFromString("plane"), im::ImagerView::kPlane);
+  EXPECT_EQ(im::imagerViewFromString("along_z"), im::ImagerView::kAlongZ);
+  EXPECT_EQ(im::imagerViewFromString("along_y"), im::ImagerView::kAlongY);
+  EXPECT_FALSE(im::imagerViewFromString("along_x"));
+  EXPECT_FALSE(im::imagerViewFromString("Along_z"));
+  EXPECT_FALSE(im::viewAxis(im::ImagerView::kPlane));
+  EXPECT_EQ(im::viewAxis(im::ImagerView::kAlongY), sd::ViewAxis::kAlongY);
 }
 
 }  // namespace

@@ -45,17 +45,26 @@ public:
   /// Replaces the in-process noisy needle by another world (e.g. the insertion robot's 3-D mode).
   void setWorld(WorldStep3 world) { world_step_ = std::move(world); }
 
-  /// Images the needle after every step with `views` (not owned, must outlive the trial; null:
-  /// the truth): observedTip() is then the fused estimate or, after a dropped or gated pair, the
-  /// previous estimate advanced by the control (as runTrial3's biplane option); the result counts
-  /// the pairs fused, dropped and gated and the largest estimate error.
-  void setViews(const imaging::BiplaneViews3* views) { views_ = views; }
-  /// The tip the planner is given: the truth, or the biplane estimate with setViews.
-  const steering_3d::TipPose3& observedTip() const { return views_ != nullptr ? estimate_ : tip_; }
+  /// What sees the needle after a step: the two views' observation of the trial's true needle
+  /// `path` (entry -> tip) given the `predicted` tip (its bevel) and a frame `index` unique to the
+  /// step. Throws std::runtime_error on a fault of the device (e.g. no frame came).
+  using Observe3 = std::function<imaging::BiplaneObservation3(
+      const std::vector<steering_3d::Vector3>& path, const steering_3d::TipPose3& predicted,
+      std::uint64_t index)>;
+  /// Images the needle after every step with `observe` (empty: the truth): observedTip() is
+  /// then the fused estimate or, after a dropped or gated pair, the previous estimate advanced by
+  /// the control (as runTrial3's biplane option); the result counts the pairs fused, dropped and
+  /// gated and the largest estimate error.
+  void setObserver(Observe3 observe) { observe_ = std::move(observe); }
+  /// setObserver with `views` rendering in process (not owned, must outlive the trial; null: the
+  /// truth).
+  void setViews(const imaging::BiplaneViews3* views);
+  /// The tip the planner is given: the truth, or the biplane estimate with an observer.
+  const steering_3d::TipPose3& observedTip() const { return observe_ ? estimate_ : tip_; }
   /// The covariance of observedTip()'s position [m^2]: the fused views' with setViews and a
   /// fused pair, else sigma_m^2 I (the truth's configured sigma, or after a dropped/gated pair).
   steering_3d::Matrix3 observedCovariance_m2(double sigma_m) const;
-  /// The last biplane observation (frames, detections, fusion), with setViews.
+  /// The last biplane observation (frames, detections, fusion), with an observer.
   const imaging::BiplaneObservation3& lastObservation() const { return observation_; }
 
   /// Places the tip at the entry plan's start (no motion yet).
@@ -99,7 +108,7 @@ private:
   const steering_3d::CollisionWorld3& world_;
   steering_3d::NoisyNeedle3 needle_;
   WorldStep3 world_step_;
-  const imaging::BiplaneViews3* views_ = nullptr;
+  Observe3 observe_;
   steering_3d::TipPose3 estimate_;
   imaging::BiplaneObservation3 observation_;
   int max_steps_;

@@ -1,6 +1,9 @@
 // Simulated imaging device node (DESIGN.md, imager row): renders frames of the scene plane from
 // the robot's true needle shape (imaging::FrameRenderer) at the device's frame rate, drops the
 // frames the device loses, and publishes the images with their pixel <-> scene calibration.
+// ~view along_z / along_y (issue 18): one of the two orthogonal fluoroscopy views of the 3-D
+// scene ~scene_3d (imaging::biplaneViewSetup: the tissue's projected bounds plus a margin); the
+// robot's 3-D shape is projected on the view's plane (view along z sees x, y; along y, x, z).
 #pragma once
 
 #include <ros/ros.h>
@@ -8,6 +11,9 @@
 #include <cstdint>
 #include <memory>
 #include <mutex>
+#include <optional>
+
+#include <Eigen/Core>
 #include <vector>
 
 #include "needle_guidance/NeedleShape.h"
@@ -30,6 +36,9 @@ private:
   void onFrameTimer(const ros::TimerEvent& event);
 
   std::unique_ptr<imaging::FrameRenderer> renderer_;
+  /// ~view along_z / along_y: the view's rows projecting the 3-D shape on its plane; none for
+  /// plane (the shape's x, y).
+  std::optional<Eigen::Matrix<double, 2, 3>> rows_;
   double frame_rate_hz_ = 0.0;
   std::mutex mutex_;
   std::vector<imaging::Point2> needle_points_;

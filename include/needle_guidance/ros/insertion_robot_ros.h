@@ -59,9 +59,9 @@ namespace needle_guidance {
 ///   (SetEntryPose3) places the guide on the scene's entry disc (the height joint, anywhere in
 ///   its hardware range, only shows the stage); ~retract pulls the needle back
 ///   along its path; move_to_height, insert and flip_bevel are refused. Publishes ~measured_cp
-///   (the true 3-D tip pose), ~needle_shape (the needle's points, for the imager's biplane
-///   views) and ~needle_path (Marker); the 3-D journal goes to "X_needle3d.csv" next to
-///   ~journal_file.
+///   (the true 3-D tip pose), ~needle_shape (latched: the needle's 3-D points, entry -> tip,
+///   published and stamped when each motion ends, for the imagers' ~view along_z / along_y) and
+///   ~needle_path (Marker); the 3-D journal goes to "X_needle3d.csv" next to ~journal_file.
 /// measured_js also carries "axial_rotation" (0 outside steerable_3d).
 ///
 /// ~time_scale (in [1, 100], default 1): simulated seconds per wall second. The control loop
@@ -111,7 +111,8 @@ private:
   void onSteerGoal(const Steer3Goal& goal);
   Steer3Result steerResult(bool success, const std::string& message) const;
   bool onSetEntryPose3(SetEntryPose3::Request& req, SetEntryPose3::Response& res);
-  void publishNeedle3(const ros::Time& stamp);
+  /// `moved`: a motion just ended; the needle's 3-D shape goes out on ~needle_shape too.
+  void publishNeedle3(const ros::Time& stamp, bool moved = false);
 
   ros::NodeHandle nh_;
   std::unique_ptr<robot::InsertionStage> stage_;

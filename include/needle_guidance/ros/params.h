@@ -50,6 +50,21 @@ inline std::string text(const ros::NodeHandle& nh, const std::string& name,
   return value;
 }
 
+/// A choice parameter: the string `name` (`fallback` when unset or empty, as a launch file's ""
+/// default passes it) parsed by `parse` (text -> std::optional of an enum); throws naming the
+/// parameter, its value and the `choices` otherwise.
+template <class Parse>
+auto choice(const ros::NodeHandle& nh, const std::string& name, const std::string& fallback,
+            Parse parse, const std::string& choices) {
+  const std::string value = text(nh, name, fallback);
+  const auto parsed = parse(value.empty() ? fallback : value);
+  if (!parsed) {
+    throw std::runtime_error("parameter '" + nh.resolveName(name) + "' = '" + value + "' is not " +
+                             choices);
+  }
+  return *parsed;
+}
+
 /// A boolean parameter (0 / 1 accepted), or `fallback` when unset; echoed once; a wrong type
 /// throws naming it.
 inline bool flag(const ros::NodeHandle& nh, const std::string& name, bool fallback) {

@@ -7,16 +7,19 @@
 // steer action), and repeats until the plan is completed (the tip refereed against the target
 // ball) or the robot's needle touches an obstacle or leaves the tissue. The planner and the
 // robot are watched (NodeSupervisor): if one dies the run stops, the report names it (status
-// node_died) and run() returns false. ~tip_source: truth (the robot's true tip) or biplane
-// (imaging::BiplaneViews3: two orthogonal fluoroscopy views rendered with the imager's renderer,
-// published on ~view_along_z / ~view_along_y, the tip detected in each and triangulated; the
-// fused covariance goes out with ~tip). The trial loop and the report are ROS-free
-// (procedures/steering_3d_trials.h).
+// node_died) and run() returns false. ~tip_source: truth (the robot's true tip) or biplane: after
+// every step it waits (up to ~control_timeout_s, then a fault naming the topic) for one frame of
+// each of two imager nodes (~view along_z / along_y, subscribed as imager_along_z/image and
+// imager_along_y/image) stamped at or after the step's goal was sent (the robot stamps the
+// shape it publishes when the motion ends), detects the tip in each and triangulates them
+// (imaging::BiplaneFusion3); the fused covariance goes out with ~tip. The trial loop and the
+// report are ROS-free (procedures/steering_3d_trials.h).
 #pragma once
 
 #include <actionlib/client/simple_action_client.h>
 #include <geometry_msgs/PoseWithCovarianceStamped.h>
 #include <ros/ros.h>
+#include <sensor_msgs/Image.h>
 
 #include <atomic>
 #include <condition_variable>
@@ -55,7 +58,6 @@ private:
   void progress(const std::string& line) override;
   /// Publishes the tip and waits for the control answering it; nullopt after the timeout or
   /// once the supervisor has seen the planner die.
-  /// With biplane views, their last frames are published first.
   std::optional<SteeringControl3> exchange(const procedures::SteeringTrial3& trial);
   /// Retracts the robot's needle and places its guide at `entry`; "" or the fault.
   std::string placeRobot(const steering_3d::TipPose3& entry, std::uint64_t seed);
@@ -83,8 +85,10 @@ private:
   std::unique_ptr<actionlib::SimpleActionClient<Steer3Action>> steer_;
   std::unique_ptr<actionlib::SimpleActionClient<LinearMoveAction>> retract_;
   ros::ServiceClient set_entry_;
-  std::unique_ptr<imaging::BiplaneViews3> views_;  ///< ~tip_source biplane; null: the truth
-  ros::Publisher view_pubs_[2];                    ///< ~view_along_z, ~view_along_y
+  std::unique_ptr<imaging::BiplaneFusion3> fusion_;  ///< ~tip_source biplane; null: the truth
+  ros::Subscriber view_subs_[2];                     ///< the imagers' images, along z and y
+  Latest<sensor_msgs::Image> views_[2];              ///< their latest frames
+  ros::Time step_sent_;  ///< when the last steer goal was sent: later frames show its end
   ros::Subscriber control_sub_;
   ros::ServiceClient plan_client_;
   Latest<SteeringControl3> controls_;          ///< the planner's latest answer to this node's tip
