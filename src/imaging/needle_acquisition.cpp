@@ -57,6 +57,12 @@ constexpr double kBorderMargin_px = 3.0;
 /// Step 5: power of the side symmetry in the score: an interface between media whose
 /// echogenicity differs by half scores an eighth, a needle inside one medium nearly 1.
 constexpr double kSymmetryPower = 3.0;
+/// Step 6: the same power where the darker side is the deeper one (larger row), for the
+/// acceptance of the best candidate only (not its ranking): the needle's own acoustic shadow
+/// darkens the tissue beneath it, so that asymmetry is a needle's cue as much as an interface's.
+/// A needle in textured in-vivo tissue with its shadow then passes min_evidence; an interface
+/// still loses the ranking to a needle beside it.
+constexpr double kShadowSymmetryPower = 1.0;
 /// Sequence cue (SequenceTracker): a candidate moves if the frame difference against the
 /// background model, averaged over the tip end of its segment (the last kMotionTipZone of it,
 /// at least kMotionMinZone_px), is kMinMotionRatio times the frame's mean difference (noise,
@@ -119,6 +125,7 @@ struct Candidate {
   double t0 = 0.0, t1 = 0.0;  ///< visible segment along line.dir from line.point
   NeedleSegment cues;
   double score = 0.0;
+  double acceptance = 0.0;  ///< score with kShadowSymmetryPower when the shadow side is deeper
 };
 
 /// The point at arc length t from l.point.
@@ -383,12 +390,13 @@ Line refitArc(const RidgeMap& ridge, const Line& l, double t0, double t1, double
 
 /// Step 5: contrast, side symmetry, coherence and evidence of a candidate segment.
 void measureCues(const RidgeMap& ridge, Candidate* c, double sigma) {
-  double on = 0, a = 0, b = 0, a2 = 0, b2 = 0, aligned = 0, ridge_px = 0;
+  double on = 0, a = 0, b = 0, a2 = 0, b2 = 0, aligned = 0, ridge_px = 0, a_depth = 0;
   int count = 0, band = 0;
   const double lo = kBandInnerSigmas * sigma, hi = kBandOuterSigmas * sigma;
   for (double t = c->t0; t <= c->t1; t += 1.0) {
     const cv::Point2d p = at(c->line, t), n = normal(c->line, t), d = tangent(c->line, t);
     const double line_angle = std::atan2(d.y, d.x);
+    a_depth += n.y;  // > 0: side a (p + o n) lies deeper than side b
     on += sample(ridge.smooth, p);
     ++count;
     for (double o = lo; o <= hi; o += 1.0) {
@@ -417,6 +425,10 @@ void measureCues(const RidgeMap& ridge, Candidate* c, double sigma) {
   const double length = c->t1 - c->t0;
   s.evidence = s.contrast / noise * std::sqrt(std::max(length, 0.0) / (4.0 * sigma));
   c->score = s.evidence * std::pow(s.symmetry, kSymmetryPower) * s.coherence;
+  const bool shadow_below = (a_depth > 0.0) == (ma < mb);
+  c->acceptance = shadow_below
+                      ? s.evidence * std::pow(s.symmetry, kShadowSymmetryPower) * s.coherence
+                      : c->score;
 }
 
 /// Whether p lies within kBorderMargin_px of the frame's border.
@@ -1015,7 +1027,7 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
   if (hidden)
     extendToMotionFront(motion, *hidden, &s);
   s.motion_ahead = motionAhead(motion, s);
-  if (best->score < options.min_evidence) {
+  if (best->acceptance < options.min_evidence) {
     s.found = false;
     s.message = "best line too weak to be a needle: " + summary(s);
     return s;

@@ -435,3 +435,32 @@ int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);
   return RUN_ALL_TESTS();
 }
+
+// A short needle from the right in a frame whose tissue beneath it is darkened by the needle's
+// acoustic shadow (in-vivo frames: the textured tissue's spread makes the line's contrast-to-noise
+// modest, and the shadow makes its sides unequal). The shadow is a needle's cue: the line is
+// acquired. The same darkening on the shallow side (an interface's asymmetry, not a shadow) keeps
+// the full symmetry penalty, and the line is not accepted on that evidence.
+TEST(NeedleAcquisition, NeedleWithItsShadowBeneathIsAcquiredNotPenalisedAsAnInterface) {
+  constexpr double kShadowGain = 0.7;  // tissue beneath the needle keeps this much of its echo
+  const Needle n{{600, 296}, {440, 316}};
+  Needle faint = n;
+  faint.brightness = 60.0;
+  const cv::Mat base = frame(44, std::nullopt, faint);
+  const auto darken = [&](double side) {  // side +1: beneath the shaft (larger rows), -1: above
+    cv::Mat f = base.clone();
+    for (int x = 440; x <= 600; ++x) {
+      const double y0 = 316.0 + (x - 440) * (296.0 - 316.0) / (600.0 - 440.0);
+      for (int k = 4; k <= 40; ++k) {
+        const int y = static_cast<int>(std::lround(y0 + side * k));
+        f.at<std::uint8_t>(y, x) =
+            cv::saturate_cast<std::uint8_t>(f.at<std::uint8_t>(y, x) * kShadowGain);
+      }
+    }
+    return f;
+  };
+  const im::NeedleSegment below = im::acquireNeedle(darken(+1.0), im::AcquisitionOptions{});
+  expectTip(below, n, kTipTolerance_px);
+  const im::NeedleSegment above = im::acquireNeedle(darken(-1.0), im::AcquisitionOptions{});
+  EXPECT_FALSE(above.found && cv::norm(above.tip_px - n.tip) < kTipTolerance_px) << above.message;
+}
