@@ -59,9 +59,8 @@ bool SteeringTrial3::step() {
     return false;
   }
   const double step = scene_.step_length_m;
-  Control3 c = plan_.front();
-  const bool last_piece = c.length_m <= step * (1.0 + 1e-9);
-  c.length_m = std::min(c.length_m, step);
+  std::deque<Control3> rest = plan_;  // the plan after this step (a few controls)
+  const Control3 c = steering_3d::nextStep(rest, step);
   if (inserted_m_ + c.length_m > travel_m_ * (1.0 + 1e-9)) {
     std::ostringstream why;
     why << "refused: the next step would insert the needle to " << inserted_m_ + c.length_m
@@ -80,12 +79,7 @@ bool SteeringTrial3::step() {
   if (observe_) {
     observe(c);
   }
-  if (last_piece) {
-    plan_.pop_front();
-  } else {
-    plan_.front().length_m -= step;
-    plan_.front().rotate_rad = 0.0;  // the bevel was rotated at the segment's first step
-  }
+  plan_ = std::move(rest);
   if (!free || plan_.empty() || result_.steps >= max_steps_) {
     end();
   }

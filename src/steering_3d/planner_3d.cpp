@@ -423,10 +423,9 @@ bool rolloutSucceeds(const Plan3& plan, const Scene3d& scene, const CollisionWor
     } else if (!homing) {
       const Steer st = steerTo(pose, poseAlong(plan, (k + 2) * step).p_SceneTip, np, cycle,
                                params.rotation_snap_rad);
-      Plan3 rest = plan;  // the plan's remaining length, its first step steered back to it
-      rest.controls.assign(1, Control3{st.ok ? st.rotate : 0.0, st.ok ? st.kappa : 0.0,
-                                       std::max(0.0, plan.length_m - (k + 1) * step)});
-      queue = controlQueue(rest);
+      // The plan's remaining length, its first step steered back towards it.
+      queue.assign(1, Control3{st.ok ? st.rotate : 0.0, st.ok ? st.kappa : 0.0,
+                               std::max(0.0, plan.length_m - (k + 1) * step)});
     }  // homing without an approach from here: keep to the previous one, as aimRollout does
   }
   return (pose.p_SceneTip - scene.target.center_m).norm() <= scene.target.radius_m;
