@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""Fault campaign (issue 20): every procedure, with the nodes it depends on killed (SIGKILL) at
+"""Fault campaign: every procedure, with the nodes it depends on killed (SIGKILL) at
 seeded random times, and stray goals, non-finite poses and requests and stale parameters sent
 to the running nodes. Each run is a real roslaunch on its own master (loopback); a probe node on
 that master records the devices' last states and the afterloader's published journal.

@@ -3,7 +3,7 @@
 
 NG_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 NG_BUILD="${NG_BUILD:-$NG_ROOT/build}"
-export PATH="/usr/bin:$PATH"  # the pyenv python3 lacks catkin_pkg (ROS_ON_DEBIAN.md)
+export PATH="/usr/bin:$PATH"  # Debian's python3 has catkin_pkg; a pyenv python3 first on PATH lacks it
 
 # Debian packages the suite needs to build, run, test and benchmark (no recommends).
 NG_PACKAGES=(
@@ -19,7 +19,7 @@ NG_PACKAGES=(
   python3-actionlib python3-geometry-msgs python3-sensor-msgs python3-visualization-msgs
   python3-tf2-msgs python3-std-srvs python3-matplotlib
   rviz
-  dicom3tools python3-pydicom  # issue 19: dciodvfy and pydicom check the DICOM-RT export
+  dicom3tools python3-pydicom  # dciodvfy and pydicom check the DICOM-RT export
 )
 
 ng_install() {
@@ -69,7 +69,7 @@ ng_source() {
   export ROS_HOME="${ROS_HOME:-$NG_BUILD/ros_home}"
   export ROS_LOG_DIR="${ROS_LOG_DIR:-$NG_BUILD/ros_log}"
   # Loopback unless the caller says otherwise: ROS 1 has no authentication, and any host that
-  # reaches a node's port can command the robot or the afterloader (README, "Across hosts").
+  # reaches a node's port can command the robot or the afterloader (README.md, "Safety").
   export ROS_IP="${ROS_IP:-127.0.0.1}"
   export ROS_HOSTNAME="${ROS_HOSTNAME:-localhost}"
 }

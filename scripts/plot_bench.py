@@ -3,7 +3,7 @@
 {"csv", "x", "y", "group", "filter", "title", "logx", "logy", "points", "annotate", "png"} entries, and draws each CSV's
 y against x (one line per group) to the PNG; entries with "kind": "isodose" draw isodose lines,
 "kind": "paths" needle paths over obstacles (figure 5.8), "kind": "heatmap" a value over two
-columns (figure 5.7). Speed against error, as DESIGN.md asks."""
+columns (figure 5.7). Speed is always plotted against error."""
 import csv
 import json
 import pathlib

@@ -1,4 +1,4 @@
-// Test helper shared by gtests and rostests: a CSV file as rows of column -> text.
+// Shared by gtests and rostests: a CSV file as rows of column -> text.
 #pragma once
 
 #include <fstream>

@@ -1,4 +1,4 @@
-// Test helper: the message of the exception a call throws, for tests that check a refusal names
+// For tests: the message of the exception a call throws, for tests that check a refusal names
 // what and where.
 #pragma once
 

@@ -1,4 +1,4 @@
-// Test helper shared by the rostests: waits on wall time for what other processes (the nodes
+// Shared by the rostests: waits on wall time for what other processes (the nodes
 // under test) do.
 #pragma once
 

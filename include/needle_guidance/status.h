@@ -1,4 +1,4 @@
-// One outcome shape for every module (STYLE.md rule 8): an expected failure comes back as a
+// One outcome shape for every module: an expected failure comes back as a
 // status with a code, a one-line message, `operator bool` and `toString()`; a broken
 // precondition throws std::invalid_argument instead.
 #pragma once

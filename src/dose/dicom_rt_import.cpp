@@ -17,7 +17,7 @@
 #include <stdexcept>
 
 namespace needle_guidance::dose {
-using namespace dicom_io;  // NOLINT: the shared DICOM helpers
+using namespace dicom_io;  // NOLINT: the shared DICOM element readers and writers
 
 namespace {
 

@@ -1,4 +1,4 @@
-// DICOM-RT element reading, loading, geometry and writing helpers shared by the importer
+// DICOM-RT element reading, loading, geometry and writing functions shared by the importer
 // (dicom_rt_import.cpp), the exporter (dicom_rt_export.cpp) and the validation
 // (dicom_rt_validation.cpp). Private to src/dose/.
 #pragma once
@@ -315,7 +315,7 @@ inline Loaded load(const std::string& path, const std::string& modality,
   return l;
 }
 
-// ---- geometry helpers --------------------------------------------------------------------------
+// ---- geometry ---------------------------------------------------------------------------------
 
 /// Closest point of a polyline to p: arc length from the first point and the segment index.
 struct Projection {

@@ -1,4 +1,4 @@
-// B-mode frame statistics (issue 17); see bmode_statistics.h.
+// B-mode frame statistics; see bmode_statistics.h.
 #include "needle_guidance/imaging/bmode_statistics.h"
 
 #include <algorithm>

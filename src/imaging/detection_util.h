@@ -1,4 +1,4 @@
-// Small helpers shared by the tip detector, the Hough baseline and the tip tracker (private to
+// Small functions shared by the tip detector, the Hough baseline and the tip tracker (private to
 // src/imaging).
 #pragma once
 

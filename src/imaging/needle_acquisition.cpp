@@ -1,4 +1,4 @@
-// Needle acquisition without a prior (issue 17); see needle_acquisition.h for the steps.
+// Needle acquisition without a prior; see needle_acquisition.h for the steps.
 #include "needle_guidance/imaging/needle_acquisition.h"
 
 #include <algorithm>

@@ -1,4 +1,4 @@
-// Realistic simulated B-mode (issue 17); see realistic_ultrasound.h and
+// Realistic simulated B-mode; see realistic_ultrasound.h and
 // UltrasoundModel::kRealistic in frame_renderer.h. Every constant is a physical statement about
 // a linear probe at about 7 MHz imaging a soft-tissue phantom; none is fitted to a data set.
 // bench tracking_real compares the frames with the in-vitro set (speckle grain, speckle

@@ -1,6 +1,7 @@
-// Helpers shared by the imager's renderers (frame_renderer.cpp, realistic_ultrasound.cpp):
-// seeded random draws that are pure functions of (seed, frame, stream), sub-pixel drawing
-// coordinates, and the needle resampled into short pieces. Internal to src/imaging.
+// Drawing functions shared by the imager's renderers (frame_renderer.cpp,
+// realistic_ultrasound.cpp): seeded random draws that are pure functions of (seed, frame, stream),
+// sub-pixel drawing coordinates, and the needle resampled into short pieces. Internal to
+// src/imaging.
 #pragma once
 
 #include <cmath>

@@ -1,4 +1,4 @@
-// Synthetic B-mode frames (issue 17); see synthetic_bmode.h.
+// Synthetic B-mode frames; see synthetic_bmode.h.
 #include "needle_guidance/imaging/synthetic_bmode.h"
 
 #include <algorithm>

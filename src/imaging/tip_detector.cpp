@@ -179,7 +179,7 @@ constexpr double kMaxAlongStd_px = 15.0;
 /// sharply the kink models are told apart.
 constexpr double kMinResidualStd_px = 0.25;
 
-// ---- small helpers ----------------------------------------------------------------------
+// ---- small functions --------------------------------------------------------------------
 Vec leftNormal(const Vec& v) {
   return {-v.y(), v.x()};
 }

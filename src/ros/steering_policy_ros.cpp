@@ -43,7 +43,7 @@ double secondsSince(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
-// ---- conversions (message <-> core), kept together (STYLE.md rule 3) -----------------------
+// ---- conversions (message <-> core), kept together -----------------------
 
 /// The wire name of a look-up status (SteeringControl.status).
 std::string toWire(st::ControlLookup::Status status) {

@@ -68,7 +68,7 @@ TissueSimRos::TissueSimRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
                              "' is not region or stress");
   }
   const std::string robot = ros_params::text(private_nh, "robot", "insertion_robot");
-  // The depth grid (issue 22): every joint state is sub-stepped onto it, so the seed lands where
+  // The depth grid: every joint state is sub-stepped onto it, so the seed lands where
   // the planner's verifying simulation put it, whatever the message and timer rates.
   options.depth_grid.step_m = ros_params::number(
       private_nh, "depth_step_m", options.depth_grid.step_m, 0.0, 0.01, "m (0 = off)");

@@ -1,5 +1,5 @@
-// Scene loading and validation (DESIGN.md "Scenes"). The file format is documented at the top
-// of config/scenes/prostate_sagittal.yaml and in the README.
+// Scene loading and validation. The file format is documented at the top
+// of config/scenes/prostate_sagittal.yaml and in docs/scenes.md.
 #include "needle_guidance/scene/scene.h"
 
 #include <algorithm>

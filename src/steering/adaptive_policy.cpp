@@ -1,4 +1,4 @@
-// Online noise adaptation of the steering policy (issue 21; see adaptive_policy.h).
+// Online noise adaptation of the steering policy (see adaptive_policy.h).
 #include "needle_guidance/steering/adaptive_policy.h"
 
 #include <algorithm>

@@ -1,4 +1,4 @@
-// Choosing the discretisation from a P_s tolerance (issue 21; see model_selection.h).
+// Choosing the discretisation from a P_s tolerance (see model_selection.h).
 #include "needle_guidance/steering/model_selection.h"
 
 #include <unistd.h>

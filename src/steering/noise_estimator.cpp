@@ -1,4 +1,4 @@
-// Maximum-likelihood deflection noise with chi-square intervals (issue 21; dissertation 5.3).
+// Maximum-likelihood deflection noise with chi-square intervals (dissertation 5.3).
 #include "needle_guidance/steering/noise_estimator.h"
 
 #include <cmath>

@@ -1,4 +1,4 @@
-// Private to the tissue module: factories and shared helpers of the integrators
+// Private to the tissue module: factories and shared building blocks of the integrators
 // (dissertation 2.2.2).
 #pragma once
 

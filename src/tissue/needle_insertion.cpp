@@ -251,10 +251,10 @@ StepStatus NeedleInsertion::step(double dt_s, double needle_height_m, double tip
     if (!status) {
       break;
     }
-    // Stick decisions only in the first pass: a node that slipped in this step keeps slipping
+    // Stick decisions only in the first iteration: a node that slipped in this step keeps slipping
     // until the next step, so the iteration is monotone (the stuck set only shrinks) and ends
     // in a few passes. Letting it stick again made nodes oscillate stick -> slip -> stick until
-    // max_friction_iterations on every step of a deep insertion (issue 22: 9 solves and ~170
+    // max_friction_iterations on every step of a deep insertion (9 solves and ~170
     // factor modifications per step, most of a plan's time).
     if (!updateFriction(prescribed, reactions, dt_s, /*allow_stick=*/iteration == 0)) {
       break;

@@ -42,7 +42,7 @@ TissueSimOptions optionsFromScene(const scene::Scene& scene) {
   options.meshing.min_angle_deg = scene.mesh.min_angle_deg;
   if (scene.mesh.refine_targets) {
     // Fine at the targets and along the straight needle paths from the entry face to them
-    // (DESIGN.md: graded meshes, fine along the needle path).
+    // (graded meshes, fine along the needle path).
     for (const auto& target : scene.targets) {
       options.meshing.refine_points.push_back(target.position);
       options.meshing.refine_lines.push_back(
@@ -192,7 +192,7 @@ StepStatus TissueSimulation::needleStep(double dt_s, double needle_height_m, dou
   // Cost of each operation relative to a solve: a least-squares fit of thread CPU time to the
   // counters over 415 windows of 20 grid steps on five scenes (55k-98k factor entries; per-scene
   // totals within 4 %): a factorisation ~30 solves, a row deletion/addition ~0.12, a rank-1
-  // update ~0.10 (issue 22).
+  // update ~0.10.
   constexpr double kFactorization = 30.0, kRowChange = 0.12, kRankUpdate = 0.10;
   const double solves =
       kFactorization * static_cast<double>(after.factorizations - before.factorizations) +

@@ -1,4 +1,4 @@
-// Fault campaign of the afterloader (issue 8): seeded HDR deliveries by the real afterloader node
+// Fault campaign of the afterloader: seeded HDR deliveries by the real afterloader node
 // (its own roscore, the node started as a process) with random SIGKILLs of the node (restarted
 // and resumed from its journal), operator pauses, aborts followed by a resume, door-open and
 // catheter-obstruction interlocks. Every delivery must complete or stop safely; the journals
@@ -49,7 +49,7 @@ namespace {
 constexpr double kSpeed = 0.5;         // [m/s] source speed (node default)
 constexpr double kTimeScale = 100.0;   // device seconds per wall second in the campaign
 constexpr double kQuantum = 0.05;      // [s] the node's default commit quantum
-constexpr double kTargetErrorS = 0.1;  // [s] issue 8's bound on the dwell-time error
+constexpr double kTargetErrorS = 0.1;  // [s] bound on the dwell-time error
 
 double now() {
   return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();

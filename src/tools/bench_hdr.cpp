@@ -1,4 +1,4 @@
-// Benchmark of HDR dwell-time optimisation (issue 7, dissertation 6.3): a seeded cohort of 20
+// Benchmark of HDR dwell-time optimisation (dissertation 6.3): a seeded cohort of 20
 // synthetic prostate cases; per case the LP (Clp) and the simulated-annealing baseline, their
 // objectives, times and dosimetric indices; the LP-vs-SA table of 6.3 (paired t-test); SA's
 // objective gap against its iterations; the LP's objective error and time against dose-point

@@ -1,4 +1,4 @@
-// Benchmark of HDR planning from a DICOM-RT case (issue 19): import (dicom_case.h), dose-rate
+// Benchmark of HDR planning from a DICOM-RT case: import (dicom_case.h), dose-rate
 // matrix, LP, export (RS/RP/RD.dcm) and their times; the clinical plan's and the LP's indices on
 // the same engine, points and 1 mm grid; both DVHs; the urethra-weight front with the clinical
 // plan as a point; the export checked by dciodvfy, pydicom (scripts/check_rt_export.py), the

@@ -1,4 +1,4 @@
-// Benchmark of deformable registration with tissue-parameter estimation (issue 9, dissertation
+// Benchmark of deformable registration with tissue-parameter estimation (dissertation
 // 3.3): on 5 balloon-probe and 5 rigid-probe seeded synthetic cases, per case and method --
 // ours (fast optimiser), ours with the dissertation's steepest descent + Armijo, rigid
 // centre-of-mass translation, intensity-based registration (demons and DIS optical flow on

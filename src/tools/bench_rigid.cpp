@@ -1,4 +1,4 @@
-// Benchmark of rigid-needle offset planning (issue 4, dissertation 4.4): 12 targets in the
+// Benchmark of rigid-needle offset planning (dissertation 4.4): 12 targets in the
 // prostate, golden section over y_t +- 0.2 cm to 0.01 cm, needle at 0.5 cm/s. For each target:
 // unplanned, depth-only and planned release points, their predicted errors, the error measured
 // by an independent full simulation (insert to the release point, implant, retract), and the
@@ -123,7 +123,7 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     const double measured = (seed - target.position).norm();
     // The live loop commands the tissue on its own clock (tissue_sim at 200 Hz: 0.05 mm samples
     // at 1 cm/s, from the robot's retract depth of -5 mm); the depth grid must make that land
-    // where the planner's schedule did (issue 22): the gap should be 0.
+    // where the planner's schedule did: the gap should be 0.
     ng::rigid_planning::ImplantSchedule live = planner.schedule();
     live.sample_m = 5e-5;
     live.start_x_m = scene.workspace_min.x() - 0.005;
@@ -176,7 +176,7 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
   return f;
 }
 
-/// The shipped scene's figures (issue 4): unplanned, depth-only and planned errors per target,
+/// The shipped scene's figures: unplanned, depth-only and planned errors per target,
 /// robust against nominal plans on patients with other stiffnesses (another seed).
 struct ShippedFigures {
   std::vector<double> unplanned_cm, depth_cm, planned_cm, measured_cm, seconds, simulations;

@@ -1,4 +1,4 @@
-// Benchmark of the steerable-needle MDP planner (issue 5, dissertation 5.4.2-5.5): build and
+// Benchmark of the steerable-needle MDP planner (dissertation 5.4.2-5.5): build and
 // solve time, sweeps and peak memory against the number of states on the steering_workspace
 // scene at Delta = 4, 2, 1 mm (1 mm = the dissertation's 800,000-state problem) and 0.5 mm as
 // the finer reference; 1 vs 2 threads; epsilon against the value error (speed against error);
@@ -50,7 +50,7 @@ constexpr int kSolveRepeats = 3;
 /// Solves of the scene's chosen model: solve_s_default is the fastest (on a shared machine the
 /// others are slowed by other processes; their median is solve_s_default_median).
 constexpr int kDefaultSolveRepeats = 5;
-/// Monte Carlo trials per start state (issue 5: >= 10,000).
+/// Monte Carlo trials per start state (>= 10,000).
 constexpr std::int64_t kMonteCarloTrials = 10000;
 /// Seed of the Monte Carlo trials (trial i of every start uses the stream (seed, i)).
 constexpr std::uint64_t kMonteCarloSeed = 11;
@@ -121,7 +121,7 @@ Solved solveAt(const st::SteeringProblem& base, double spacing_m, int threads, d
   return out;
 }
 
-/// The truth check of issue 5 at one (Delta, s) after another: per start state, the table's
+/// The truth check at one (Delta, s) after another: per start state, the table's
 /// predicted P_s against (a) the continuous needle (exact arcs, continuous deflections), (b)
 /// the same needle with deflections rounded to the model's orientation step and (c) the MDP's
 /// own Markov chain, all with the same seeds, so that
@@ -257,7 +257,7 @@ private:
   std::int64_t trials_ = 0;
 };
 
-// ---- the model chosen by ps_tolerance, checked against Monte Carlo (issue 21) ----
+// ---- the model chosen by ps_tolerance, checked against Monte Carlo ----
 
 /// The truth check's start states on a scene's entry line: heights at the given fractions of
 /// the start range, angles -18, 0, 18 degrees, both bevels.
@@ -326,9 +326,9 @@ Selection selectModel(const std::string& scene_name, const st::SteeringProblem& 
   return out;
 }
 
-// ---- adaptation experiment (issue 21) ----
+// ---- adaptation experiment ----
 
-/// Closed-loop trials per arm and world sigma (issue 21: >= 300). The arms are paired (trial i
+/// Closed-loop trials per arm and world sigma (>= 300). The arms are paired (trial i
 /// of every arm uses the seed kAdaptSeed + i), so their difference is measured trial by trial;
 /// at 2x sigma knowing sigma is worth about 0.01-0.02 of P_s on these scenes, which 20,000 pairs
 /// resolve (paired standard error ~0.003) and 300 do not; the arms' own Wilson intervals (half
@@ -950,7 +950,7 @@ TruthCheck truthChecks(const st::ContinuousWorkspace& world, const st::SteeringP
   return truth;
 }
 
-/// The keys of the scene's chosen model (issue 21): its truth check, solve time and selection.
+/// The keys of the scene's chosen model: its truth check, solve time and selection.
 std::string defaultModelJson(const Solved& scene_model, const TruthCheck::Summary& truth_default,
                              const st::SteeringProblem& problem, const Selection& selected) {
   std::ostringstream json;

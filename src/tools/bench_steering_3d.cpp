@@ -1,4 +1,4 @@
-// Benchmark of 3-D steerable-needle replanning under uncertainty (issue 18). Over the shipped
+// Benchmark of 3-D steerable-needle replanning under uncertainty. Over the shipped
 // prostate-like and liver-like scenes and sigma at 0, 1x and 2x the scene's default, compares
 // our replanning with the P(success) choice, the Patil-style first-found replanning baseline,
 // the open-loop plan and a straight needle: success rate with its 95 % Wilson interval over
@@ -40,7 +40,7 @@ namespace {
 
 constexpr double kMmPerM = 1e3;
 constexpr double kMsPerS = 1e3;
-constexpr double kReplanBudgetMs = 100.0;  // issue 18: the 100 ms replanning budget
+constexpr double kReplanBudgetMs = 100.0;  // the 100 ms replanning budget
 constexpr std::uint64_t kFirstSeed = 1000;
 /// The 2x cells of the two replanning strategies run this many times the cell's trials: the
 /// issue's comparison (ours above the baseline, intervals apart) at rates near 0.9, where 200

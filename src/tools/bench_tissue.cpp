@@ -1,4 +1,4 @@
-// Benchmark of the tissue simulation (issue 3): a real needle insertion on the default prostate
+// Benchmark of the tissue simulation: a real needle insertion on the default prostate
 // scene (cutting, shaft friction, node promotion), seed implant at the target, retraction, for
 // each integrator on graded meshes from ~1k to ~50k triangles. Reports steps per second and
 // per-step latency against seed position error (vs. the finest quasi-static run), and memory.

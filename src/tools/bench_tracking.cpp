@@ -1,4 +1,4 @@
-// Benchmark of needle-tip tracking from images (issue 6) on steering_workspace:
+// Benchmark of needle-tip tracking from images on steering_workspace:
 // 1. accuracy: seeded needle insertions (entry, flips and deflections as in 5.3) imaged by the
 //    simulated imager in 640 x 480 frames (0.2 mm pixels) in both modalities over noise levels;
 //    at every step the TipTracker (ridge + RANSAC arc + filter) output, its raw single-frame
@@ -6,8 +6,8 @@
 //    true tip: tip error [mm], heading error [deg], frames per second on one core;
 // 2. closed loop: the same seeded trials from the policy's best start with ground-truth and with
 //    image feedback (runGuidedTrial), success rate with its 95 % interval against noise.
-// Ultrasound runs on both of the imager's renderers (UltrasoundModel classic and realistic,
-// issue 17): the classic keys are those of issue 6; the realistic ones end in _realistic.
+// Ultrasound runs on both of the imager's renderers (UltrasoundModel classic and realistic):
+// the keys without a suffix are the classic renderer's; the realistic ones end in _realistic.
 // Usage: bench_tracking --out DIR [--quick] [--scene SPEC]
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -79,7 +79,7 @@ struct Device {
   bool realistic() const {
     return modality == im::Modality::kUltrasound && model == im::UltrasoundModel::kRealistic;
   }
-  /// "ultrasound", "fluoroscopy" (as in issue 6's CSV) and the renderer apart.
+  /// "ultrasound", "fluoroscopy" (the modality column of the CSV) and the renderer apart.
   std::string renderer() const {
     return modality == im::Modality::kUltrasound ? im::toString(model) : "-";
   }
@@ -284,7 +284,7 @@ void recordSetting(Bench& b, const Device& device, double noise, const SettingEr
   const double theirs_found = double(e.hough.tip_mm.size()) / std::max(1, e.hough.attempts);
   // Better = a lower median error where found AND more frames within 1 mm of the truth
   // (a miss counts as outside): a detector cannot win by answering only easy frames. The
-  // realistic renderer is reported apart (issue 6's claim was made on the classic one).
+  // realistic renderer is reported apart (the comparison with Hough is made on the classic one).
   const double ours_within = within(e.detection, kWithin_mm);
   const double theirs_within = within(e.hough, kWithin_mm);
   if (!device.realistic() && !(ours < theirs && ours_within > theirs_within)) {

@@ -1,4 +1,4 @@
-// Benchmark of needle tracking on recorded B-mode frames (issue 17): the frames of
+// Benchmark of needle tracking on recorded B-mode frames: the frames of
 // $NG_SHARED_DATA/us_needle_invitro (25 frames, 720 x 440, hand-drawn needle masks; the tip is
 // the mask pixel farthest along the needle's axis, the axis the mask's principal direction
 // pointing left to right, as its README states) through
@@ -591,7 +591,7 @@ int main(int argc, char** argv) {
      << ",\n  \"old_found_fraction\": " << jsonNumber(o.found_fraction)
      << ",\n  \"old_tip_error_px_median\": " << jsonNumber(o.median);
   const bool better_synthetic = writeHalvesAndHeldOut(fresh, truth, args->out_dir, js);
-  // The recorded frames and every synthetic sequence (issue 17: "better than the Hough baseline
+  // The recorded frames and every synthetic sequence ("better than the Hough baseline
   // on every sequence").
   js << ",\n  \"better_than_hough_recorded\": " << (betterThanHough(n, h) ? "true" : "false")
      << ",\n  \"better_than_hough_every_sequence\": "

@@ -1,4 +1,4 @@
-// Needle tracking on a folder of recorded B-mode frames (issue 17), no robot and no prior:
+// Needle tracking on a folder of recorded B-mode frames, no robot and no prior:
 // track_frames --frames DIR --out FILE.csv [--pixel-size-mm S] [--needle straight|arc]
 //              [--radius-mm R] [--entry left|right|top|bottom|auto] [--overlay DIR]
 // Reads the PNG/BMP/JPEG frames of DIR in name order, runs the SequenceTracker

@@ -1,6 +1,6 @@
-// imaging::BiplaneViews3 (issue 18, the 3-D loop's tip from two rendered fluoroscopy views): on
+// imaging::BiplaneViews3 (the 3-D loop's tip from two rendered fluoroscopy views): on
 // seeded duty-cycled needles in prostate_3d the fused tip lies near the true one (half the needles
-// held out; README says how far); no needle or dropped frames give a named kNoDetection, never a
+// held out); no needle or dropped frames give a named kNoDetection, never a
 // fused tip; a bad config is refused naming the field; SteeringTrial3 with the views counts every
 // pair and hands out tips near the truth. BiplaneFusion3 (the ROS loop's path: frames of two
 // imager nodes): separately rendered frames fuse near the truth (held-out needles), frames of two

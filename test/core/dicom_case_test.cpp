@@ -1,4 +1,4 @@
-// Planning cases from DICOM-RT folders (dicom_case.h) and the issue-19 hard cases. Fixtures are
+// Planning cases from DICOM-RT folders (dicom_case.h) and their hard cases. Fixtures are
 // small DICOM-RT folders written in the test with DCMTK (the dicom_rt.h writers, and DCMTK
 // directly to break a prescription), from a synthetic prostate case whose values are set here;
 // the shared data is not needed.
@@ -26,7 +26,7 @@ namespace fs = std::filesystem;
 
 namespace {
 
-constexpr double kTimeTol_s = 0.01;       // the issue's round-trip tolerance
+constexpr double kTimeTol_s = 0.01;       // dwell-time round-trip tolerance
 constexpr double kLatticeTol_m = 0.1e-3;  // candidate vs clinical position
 constexpr double kRxTol_Gy = 1e-9;
 

@@ -447,7 +447,7 @@ TEST(DicomRtRealData, ExamplePlanMatchesCsvExport) {
   EXPECT_EQ(c.structures[0].role, dose::StructureRole::kTarget);
   EXPECT_EQ(c.structures[0].contours.size(), 39u);
   EXPECT_EQ(c.structures[2].role, dose::StructureRole::kOrganAtRisk);
-  EXPECT_NEAR(c.structures[0].volume_m3() * 1e6, 6.2, 0.3);  // README: about 6.2 cm^3
+  EXPECT_NEAR(c.structures[0].volume_m3() * 1e6, 6.2, 0.3);  // the data set: about 6.2 cm^3
 
   // RTDOSE against the exported sample voxels.
   const dose::DoseGrid g = dose::readRtDose(dir + "/DO001.dcm");

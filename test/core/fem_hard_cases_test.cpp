@@ -15,7 +15,7 @@
 namespace needle_guidance::tissue {
 namespace {
 
-using namespace test_support;  // NOLINT(google-build-using-namespace): test helpers
+using namespace test_support;  // NOLINT(google-build-using-namespace): test fixtures
 
 constexpr unsigned kSeed = 99;
 

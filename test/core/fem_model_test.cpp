@@ -16,7 +16,7 @@
 namespace needle_guidance::tissue {
 namespace {
 
-using namespace test_support;  // NOLINT(google-build-using-namespace): test helpers
+using namespace test_support;  // NOLINT(google-build-using-namespace): test fixtures
 
 constexpr double kRoundOffRel = 1e-12;   // relative, matrix norms
 constexpr double kNullSpaceRel = 1e-12;  // |K r| / (|K| |r|)

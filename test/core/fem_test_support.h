@@ -1,4 +1,4 @@
-// Shared helpers of the FEM gtests: structured meshes, materials and manufactured solutions.
+// Shared fixtures of the FEM gtests: structured meshes, materials and manufactured solutions.
 #pragma once
 
 #include <array>

@@ -179,7 +179,7 @@ TEST(FrameRenderer, RefusesBadSettingsAndPoints) {
   EXPECT_EQ(im::modalityFromString("fluoroscopy"), im::Modality::kFluoroscopy);
 }
 
-// ---- the realistic ultrasound model (issue 17) ----
+// ---- the realistic ultrasound model ----
 
 namespace {
 

@@ -13,7 +13,7 @@
 namespace needle_guidance::tissue {
 namespace {
 
-using namespace test_support;  // NOLINT(google-build-using-namespace): test helpers
+using namespace test_support;  // NOLINT(google-build-using-namespace): test fixtures
 
 constexpr double kForceTol_N = 1e-9;   // reactions of O(1) N forces
 constexpr double kSolutionRel = 1e-9;  // relative to the solution's max norm

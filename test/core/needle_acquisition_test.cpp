@@ -1,4 +1,4 @@
-// Hard cases of needle acquisition without a prior (imaging/needle_acquisition.h, issue 17) on
+// Hard cases of needle acquisition without a prior (imaging/needle_acquisition.h) on
 // synthetic B-mode frames (imaging/synthetic_bmode.h: speckle from a random scatterer field
 // convolved with an anisotropic point-spread function, specular interfaces between media of
 // different echogenicity, a needle with an acoustic shadow beneath and a reverberation tail). Fixed
@@ -21,12 +21,12 @@ namespace im = needle_guidance::imaging;
 namespace {
 
 constexpr double kPi = 3.14159265358979323846;
-constexpr double kTipTolerance_px = 8.0;      // the issue's median target
+constexpr double kTipTolerance_px = 8.0;      // median tip error target
 constexpr double kTipP90Tolerance_px = 15.0;  // and its 90th-percentile target
 constexpr double kPsfReach_px = 3.0;  // blur of the drawn needle (sigma 1 px) and its 1 px radius
 constexpr double kAngleTolerance_rad = 3.0 * kPi / 180.0;
 const cv::Size kSize(720, 440);
-constexpr double kConfidentWrong_px = 20.0;  // the issue's "confident and > 20 px off"
+constexpr double kConfidentWrong_px = 20.0;  // "confident and > 20 px off" counts as wrong
 /// A coasting (predicted) tip's error bound [px]: kMaxCoast frames at a velocity error of up to
 /// 5 px / frame; the still outlines of steering_workspace lie 200-450 px from the needle.
 constexpr double kHiddenTipCoast_px = 40.0;
@@ -422,7 +422,7 @@ TEST(NeedleAcquisition, NeedleInMovingTissueIsFollowedByItsMotionRelativeToTheTi
   // residues over the frame and the still obstacle outline was reported in most frames (bench
   // tracking_real's tune_motion_straight 404 px median); the background now follows the tissue's
   // local motion (optical flow), so what changes is where the needle went. Median over frames
-  // 2-19 within the issue's target, no confident tip > 20 px off (checked per frame). Seeds and
+  // 2-19 within the target, no confident tip > 20 px off (checked per frame). Seeds and
   // geometry used by no benchmark, fixed before the run.
   for (const auto& e :
        {realisticSequenceErrors(611, im::Point2(0.0, 0.022), 0.05, 20, nullptr, 0.0, 1.5),

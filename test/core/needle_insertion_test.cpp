@@ -191,7 +191,7 @@ Point2 insertImplantRetract(TissueSimulation& sim, double height_m, double from_
 }
 
 TEST_F(NeedleInsertionTest, ACopyContinuesBitForBitAndLeavesTheOriginalAlone) {
-  // Issue 22: the planner verifies a release from a copy of its scan's state, and reset() copies
+  // The planner verifies a release from a copy of its scan's state, and reset() copies
   // the state kept at construction. Both must give exactly what the original would.
   constexpr double kHeight_m = 0.03;
   ASSERT_TRUE(sim_.copyable());
@@ -220,7 +220,7 @@ TEST_F(NeedleInsertionTest, ACopyContinuesBitForBitAndLeavesTheOriginalAlone) {
 }
 
 TEST_F(NeedleInsertionTest, SolverWorkFollowsWhatAStepCostsAndCopiesCountTheSame) {
-  // Issue 22: the planner's budget is solver work, a count that must not depend on the load or
+  // The planner's budget is solver work, a count that must not depend on the load or
   // on copies, and must follow what steps cost: deep steps (a long shaft with stick-slip
   // friction, re-solved per friction pass and per cut) cost more than shallow ones.
   constexpr double kHeight_m = 0.03;

@@ -1,5 +1,5 @@
 // Report folders and journal files: system locations and files the suite did not make are
-// refused, with the parameter and the path named, and nothing is created (issue 20).
+// refused, with the parameter and the path named, and nothing is created.
 #include <gtest/gtest.h>
 
 #include <filesystem>

@@ -1,4 +1,4 @@
-// RigidImplantProcedure (issue 22) with in-process devices: the planner's verified error is the
+// RigidImplantProcedure with in-process devices: the planner's verified error is the
 // seed error the procedure measures when the tissue follows the robot in its own samples; a
 // refused target has no error figures; a fault stops the robot and the report counts only the
 // targets tried; the report writes its files and plot.

@@ -9,7 +9,7 @@ namespace {
 
 constexpr double kDepthStep_m = 1e-4;
 constexpr double kPredictionTol_m = 2e-4;  // full simulation vs O(1) prediction (~2 cut steps)
-constexpr double kPlannedTol_m = 1e-4;     // issue 4 target: planned error <= 0.01 cm
+constexpr double kPlannedTol_m = 1e-4;     // planned error <= 0.01 cm (dissertation 4.4)
 
 /// Inserts to `release`, implants, retracts; the seed's final position (ground truth).
 Point2 fullSimulation(const scene::Scene& scene, const Point2& release, const Point2& target) {
@@ -170,7 +170,7 @@ TEST_F(RigidPlannerTest, AScanResumingAnEarlierInsertionIsTheScanFromTheEntryFac
   EXPECT_EQ(again.fem_steps_reused, 0);
 }
 
-/// The shipped scene with a 10x stiffer gland (issue 22's hard case: a stiffness jump at the
+/// The shipped scene with a 10x stiffer gland (a hard case: a stiffness jump at the
 /// gland's edge, targets within 1 mm of it).
 scene::Scene stiffGland() {
   scene::Scene scene = scene::defaultScene("prostate_sagittal");
@@ -211,7 +211,7 @@ TEST(RigidPlannerVerified, VerifiedErrorIsAnIndependentFullSimulationAndIsReport
 }
 
 TEST(RigidPlannerVerified, TheSeedDoesNotDependOnHowTheMotionIsSampled) {
-  // Issue 22: the live loop commands the tissue in 0.05 mm samples from -5 mm (tissue_sim on the
+  // The live loop commands the tissue in 0.05 mm samples from -5 mm (tissue_sim on the
   // robot's 100 Hz states at 1 cm/s... or at whatever rate the machine allows); the planner's
   // verification in grid samples from -1 mm. advance() puts both on the depth grid: the same
   // FEM steps, the same seed, bit for bit. The 10x gland is where the raw steps differed most.
@@ -266,7 +266,7 @@ TEST(RigidPlannerVerified, AnExpiredBudgetReturnsTheBestPlanSoFarVerified) {
 }
 
 TEST(RigidPlannerVerified, AWorkBudgetEndsTheSearchTheSameWayOnAnyMachine) {
-  // Issue 22: refusals must not depend on the load, and no plan may run long on any scene. The
+  // Refusals must not depend on the load, and no plan may run long on any scene. The
   // budget counts solver work, checked after every FEM step: the scan in progress stops where
   // it runs out, and the same plan comes back however long the steps took.
   PlannerOptions options;
@@ -328,7 +328,7 @@ TEST(RigidPlannerVerified, ABadBudgetIsRefusedNamingIt) {
 }
 
 TEST(RigidPlannerVerified, NoPlanWorksMuchPastItsBudget) {
-  // Issue 22: planning time bounded on any scene. A deep target on a stiff scene whose plan
+  // Planning time bounded on any scene. A deep target on a stiff scene whose plan
   // needs several scans: the plan may not exceed its budget by more than one FEM step's work
   // plus a verification from a scan's state (a retraction), whatever it finds. Budget 100: t09
   // is placed within it (79 units), t04 and t12 need ~118 and are refused when it runs out.

@@ -235,7 +235,7 @@ TEST(SceneTest, BaseScenesParse) {
       edit(kSteeringBase, "orientations: 40", "orientations: 40\n  orientation_subdivision: 2"),
       "finer.yaml");
   EXPECT_EQ(finer.steering->orientation_subdivision, 2);
-  EXPECT_NEAR(steering.steering->ps_tolerance, 0.01, 1e-12);  // the default (README)
+  EXPECT_NEAR(steering.steering->ps_tolerance, 0.01, 1e-12);  // the default (docs/scenes.md)
   const Scene fixed = parseScene(
       edit(kSteeringBase, "orientations: 40", "orientations: 40\n  ps_tolerance: 0"), "fixed.yaml");
   EXPECT_EQ(fixed.steering->ps_tolerance, 0.0);

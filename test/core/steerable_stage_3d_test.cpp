@@ -1,4 +1,4 @@
-// SteerableStage3d (the insertion robot's 3-D steerable mode, issue 18): a command ends where the
+// SteerableStage3d (the insertion robot's 3-D steerable mode): a command ends where the
 // core's noisy needle puts it with the same seed; unsafe rotations and insertions are refused
 // with nothing changed and journalled; an insertion stops exactly at a contact and is refused
 // until a retraction, which brings the tip back to the entry; the axial joint turns with the

@@ -2,7 +2,7 @@
 // the closed loop reaches the target as often as the core Monte Carlo of the same policy says;
 // a stopped step is classified by the world and the robot's reason; a policy answer without a
 // control, a failed device and a dead node end the trial as an error counted apart from the
-// misses (issue 20); the report writes every file, figures included.
+// misses; the report writes every file, figures included.
 #include <gtest/gtest.h>
 
 #include <cmath>

@@ -1,4 +1,4 @@
-// procedures::SteeringTrial3 (the ROS procedure's world, issue 18): a noiseless entry plan
+// procedures::SteeringTrial3 (the ROS procedure's world): a noiseless entry plan
 // followed step by step ends in the target; a straight push along the urethra is stopped by it;
 // a trial without a plan ends where it is, as a failure; the summary's Wilson interval; a plan
 // beyond the insertion joint's travel ends that trial (not the run) as a refusal naming the
@@ -20,8 +20,8 @@ namespace {
 namespace sd = needle_guidance::steering_3d;
 using needle_guidance::procedures::SteeringTrial3;
 
-// [mm] a noiseless plan ends at the target centre up to the duty-cycling residual (README:
-// 0.38 mm median for the noiseless open loop); well inside the 2.5 mm target.
+// [mm] a noiseless plan ends at the target centre up to the duty-cycling residual
+// (0.38 mm median for the noiseless open loop); well inside the 2.5 mm target.
 constexpr double kNoiselessErrorMm = 1.0;
 
 sd::Scene3d prostate() {

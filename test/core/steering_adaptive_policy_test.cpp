@@ -1,4 +1,4 @@
-// AdaptivePolicy (issue 21): re-solves when the learned noise leaves the assumed interval,
+// AdaptivePolicy: re-solves when the learned noise leaves the assumed interval,
 // without a gap in the answers, and never when adaptation is off.
 #include <gtest/gtest.h>
 

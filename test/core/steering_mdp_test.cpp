@@ -1,4 +1,4 @@
-// Hard cases of the steerable-needle MDP solver (dissertation 5.4.3; issue 5 "Hard cases"), and
+// Hard cases of the steerable-needle MDP solver (dissertation 5.4.3), and
 // a problem small enough to solve by hand.
 //
 // Target inside an obstacle: not refused. The model reports it in diagnostics() and P_s is 0

@@ -1,4 +1,4 @@
-// Model selection from a P_s tolerance (issue 21) and the solver's change-bounded skipping.
+// Model selection from a P_s tolerance and the solver's change-bounded skipping.
 #include <gtest/gtest.h>
 #include <unistd.h>
 

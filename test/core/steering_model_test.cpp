@@ -30,7 +30,7 @@ constexpr double kAngleTol_rad = 1e-12;
 /// The collision check follows chords at most arc_chord_tolerance_m inside the arc; an arc
 /// that passes closer than this to an obstacle boundary may be classified either way [m].
 constexpr double kGrazeTol_m = 3e-5;
-constexpr double kLookupBudget_us = 10.0;  // issue 5 target
+constexpr double kLookupBudget_us = 10.0;  // policy look-up time target
 constexpr unsigned kSeed = 42;
 
 double normalCdf(double z) {

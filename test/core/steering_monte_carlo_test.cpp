@@ -1,4 +1,4 @@
-// The continuous needle world and the Monte Carlo truth check (issue 5 item 3): exact arcs and
+// The continuous needle world and the Monte Carlo truth check: exact arcs and
 // contacts, an analytic success probability, the Wilson interval, thread independence, and
 // agreement with the MDP where the discretisation is exact (sigma = 0).
 #include <gtest/gtest.h>

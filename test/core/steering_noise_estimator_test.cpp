@@ -1,4 +1,4 @@
-// Tests for the online deflection-noise estimator (issue 21): the deflection recovered from two
+// Tests for the online deflection-noise estimator: the deflection recovered from two
 // poses of advanceTip, the chi-square quantile against tabulated values, and the coverage of the
 // 95 % interval over seeded synthetic deflections with a known sigma.
 #include <gtest/gtest.h>

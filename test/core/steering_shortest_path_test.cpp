@@ -1,4 +1,4 @@
-// The shortest-path baseline (dissertation 5.1, 5.5; issue 5 item 4): the OMPL plan in the
+// The shortest-path baseline (dissertation 5.1, 5.5): the OMPL plan in the
 // continuous world and the breadth-first steps-to-go table on the MDP's grid.
 //
 // Two independent references check the OMPL plan:
@@ -55,7 +55,7 @@ constexpr double kUnreachableTimeLimit_s = 0.5;
 constexpr double kTimeSlack_s = 0.5;
 /// A refused start must not start the planner at all [s].
 constexpr double kRefuseTime_s = 0.05;
-/// Monte Carlo trials per policy on the real scene (issue 5: 10,000) and the seed.
+/// Monte Carlo trials per policy on the real scene (10,000) and the seed.
 constexpr std::int64_t kSceneTrials = 10000;
 constexpr std::uint64_t kMonteCarloSeed = 20070501;
 /// Deepest exhaustive search [steps].

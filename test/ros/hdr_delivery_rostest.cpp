@@ -53,7 +53,7 @@ TEST(HdrDelivery, PlanDeliverEvaluateReport) {
     }
   }
   EXPECT_TRUE(found_d90);
-  // A plain roslaunch writes the plots too (issue 20): the planned DVH and the dwell times.
+  // A plain roslaunch writes the plots too: the planned DVH and the dwell times.
   for (const char* png : {"/dvh.png", "/dwells.png"})
     EXPECT_TRUE(std::filesystem::exists(report_dir + png)) << png << " missing";
 }

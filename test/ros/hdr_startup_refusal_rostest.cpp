@@ -1,5 +1,5 @@
 // rostest: a device node that refuses its parameters at start-up makes the HDR procedure fail
-// with a report that names it (issue 20), within its start-up timeout, never a pass or a hang.
+// with a report that names it, within its start-up timeout, never a pass or a hang.
 #include <gtest/gtest.h>
 #include <ros/ros.h>
 

@@ -15,7 +15,7 @@ namespace {
 
 using needle_guidance::Register;
 constexpr double kMinDice = 0.97;          // synthetic balloon case, default options
-constexpr double kMaxPointError_mm = 1.0;  // issue 9 target
+constexpr double kMaxPointError_mm = 1.0;  // test-point error target
 
 class RegistrationNodeTest : public ::testing::Test {
 protected:

@@ -1,4 +1,4 @@
-// rostest for the rigid seed-implant procedure's fault path (issue 22): SIGKILL tissue_sim while
+// rostest for the rigid seed-implant procedure's fault path: SIGKILL tissue_sim while
 // the needle is in tissue during the second target; the procedure retracts within 2 s and its
 // report names /tissue_sim, the time, and counts only the targets actually tried.
 #include <gtest/gtest.h>
@@ -21,7 +21,7 @@
 
 namespace {
 
-constexpr double kDetectAndStop_s = 2.0;  // issue 22: death seen and robot stopped within 2 s
+constexpr double kDetectAndStop_s = 2.0;  // death seen and robot stopped within 2 s
 constexpr double kRetractStart_m = 2e-4;  // the tip has moved back this far: retraction started
 
 /// A node's process id, asked from the node itself (what `rosnode info` does).

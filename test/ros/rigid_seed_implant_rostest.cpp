@@ -15,7 +15,7 @@
 
 namespace {
 
-// The depth grid (issue 22): the live loop executes the planner's verified FEM steps, so the
+// The depth grid: the live loop executes the planner's verified FEM steps, so the
 // measured seed error is the verified one (to the report's 6 digits).
 constexpr double kPredictionAgreement_mm = 1e-5;
 constexpr int kTargets = 2;

@@ -1,4 +1,4 @@
-// rostest for the 3-D closed-loop steerable-needle trials (issue 18): steering_planner_3d,
+// rostest for the 3-D closed-loop steerable-needle trials: steering_planner_3d,
 // insertion_robot in its 3-D steerable mode (the noisy needle) and steerable_procedure_3d run 4
 // trials on prostate_3d (steerable_needle_3d_biplane.test: 3 trials whose tips come from the
 // frames of two imager nodes, views along z and along y, triangulated by the procedure; the report

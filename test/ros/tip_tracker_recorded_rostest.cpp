@@ -1,4 +1,4 @@
-// rostest node for tip_tracker without a robot (tip_tracker_recorded.test, issue 17): frames of
+// rostest node for tip_tracker without a robot (tip_tracker_recorded.test): frames of
 // a recorded-like B-mode sequence (synthetic: speckle, a brighter specular interface, a needle
 // with shadow and reverberations advancing along its axis) arrive on a sensor_msgs/Image topic
 // as from `rosbag play`, with no NeedleDrive and the calibration as parameters. The node must
@@ -22,7 +22,7 @@ using needle_guidance::NeedleTip;
 namespace im = needle_guidance::imaging;
 
 constexpr double kPixel_m = 1e-4;     // ~pixel_size_m in the .test file
-constexpr double kTipTol_px = 8.0;    // the issue's median target on real frames [px]
+constexpr double kTipTol_px = 8.0;    // median tip error target on real frames [px]
 constexpr double kAdvance_px = 10.0;  // tip motion per frame along the axis [px]
 constexpr int kFrames = 14;
 const cv::Size kSize(720, 440);

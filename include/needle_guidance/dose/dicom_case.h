@@ -72,10 +72,10 @@ std::vector<DwellPosition> candidateDwells(const HdrCase& c,
                                            const std::vector<DwellPosition>& clinical,
                                            double step_m, double margin_m);
 
-/// The comparison indices (6.3.2 plus the set), keyed "prostate_V100", "prostate_V150",
-/// "prostate_V200", "prostate_D90", "urethra_D10", "urethra_D0.1cc", "urethra_V125",
-/// "rectum_D2cc", "rectum_D0.1cc", "rectum_V75", "bladder_D2cc", "bladder_D0.1cc", "bladder_V75"
-/// (V in % of volume, D in Gy; absent structures skipped).
+/// The comparison indices (6.3.2 plus the clinical comparison set), keyed "prostate_V100",
+/// "prostate_V150", "prostate_V200", "prostate_D90", "urethra_D10", "urethra_D0.1cc",
+/// "urethra_V125", "rectum_D2cc", "rectum_D0.1cc", "rectum_V75", "bladder_D2cc", "bladder_D0.1cc",
+/// "bladder_V75" (V in % of volume, D in Gy; absent structures skipped).
 std::map<std::string, double> comparisonIndices(const std::vector<StructureDose>& doses,
                                                 double prescription_Gy);
 

@@ -1,7 +1,7 @@
 // DICOM-RT import and export of HDR brachytherapy cases (RTPLAN, RTSTRUCT, RTDOSE; DCMTK inside,
 // never in this header) and the gamma index used to validate our TG-43 dose against a vendor
 // RTDOSE. Frame: the DICOM patient frame; DICOM millimetres become metres on import and metres
-// become millimetres on export (DESIGN.md, "Frames and units").
+// become millimetres on export (docs/architecture.md, "Frames and units").
 //
 // Errors: every bad input (missing or unreadable file, wrong modality / SOP class, missing or
 // malformed tag, inconsistent sizes) throws std::invalid_argument (or std::runtime_error for I/O

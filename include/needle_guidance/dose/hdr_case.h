@@ -1,6 +1,6 @@
 // An HDR brachytherapy case (dissertation 6.2): structures as closed planar contours per slice,
 // catheters, active dwell positions, dose calculation points, the clinical criteria and the
-// dose-rate matrix d_ij. Frame: the DICOM patient frame in metres (DESIGN.md).
+// dose-rate matrix d_ij. Frame: the DICOM patient frame in metres.
 #pragma once
 
 #include <Eigen/Core>

@@ -10,7 +10,7 @@
 namespace needle_guidance::dose {
 
 struct SyntheticCaseOptions {
-  unsigned seed = 1;             ///< everything random derives from it (STYLE.md rule 12)
+  unsigned seed = 1;             ///< everything random derives from it
   double prostate_cc = 0.0;      ///< 0: drawn in [23, 103] cc
   int catheters = 0;             ///< 0: drawn in [14, 18]
   int dose_points = 0;           ///< total surface + volume points; 0: drawn in [1781, 3510]

@@ -1,4 +1,4 @@
-// Biplane fluoroscopy of the 3-D steerable needle (issue 18): two orthogonal views of a
+// Biplane fluoroscopy of the 3-D steerable needle: two orthogonal views of a
 // steering_3d scene, one along z (it sees x, y) and one along y (it sees x, z), rendered with the
 // imager's FrameRenderer in fluoroscopy mode over the tissue's bounds, the tip found in each with
 // the tracker's single-frame detector (detectTip, no prior) and the two detections triangulated

@@ -1,4 +1,4 @@
-// Image statistics that say how much a B-mode frame looks like a scanner's (issue 17): speckle
+// Image statistics that say how much a B-mode frame looks like a scanner's: speckle
 // level, its signal-to-noise and grain, the needle's contrast and how bright the brightest
 // other structure is against it. bench tracking_real compares the recorded in-vitro frames with
 // the imager's classic and realistic renderers on them. Plain C++ and OpenCV.

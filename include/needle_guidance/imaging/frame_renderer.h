@@ -1,8 +1,8 @@
-// Simulated imaging device (DESIGN.md, imager row): frames of the scene plane rendered from the
+// Simulated imaging device: frames of the scene plane rendered from the
 // true needle shape, in a fluoroscopy-like and an ultrasound-like mode, with the device's pixel
 // grid, noise, blur and dropped frames. The steering controller of dissertation 5.5 assumes the
 // tip is localised in such an image after every insertion step (figure 5.8). Plain C++ and
-// OpenCV; no ROS (STYLE.md rules 1-2).
+// OpenCV; no ROS.
 #pragma once
 
 #include <cstdint>
@@ -34,9 +34,9 @@ enum class Modality : std::uint8_t {
 /// "fluoroscopy" | "ultrasound".
 std::string toString(Modality modality);
 
-/// How the ultrasound mode renders (issue 17). Both are pure functions of (seed, index, needle).
+/// How the ultrasound mode renders. Both are pure functions of (seed, index, needle).
 enum class UltrasoundModel : std::uint8_t {
-  /// The issue-6 renderer: Rayleigh speckle multiplied by echogenicity on a linear display
+  /// The classic renderer: Rayleigh speckle multiplied by echogenicity on a linear display
   /// scale, obstacle outlines, a needle brighter than anything else with three ghosts. The
   /// image-guided loop and its published figures were made on it (the default).
   kClassic,
@@ -92,7 +92,7 @@ ImageGeometry fieldOfView(const scene::Scene& scene, double pixel_size_m, int co
 
 /// The points FrameRenderer::render draws for a needle inserted from p_SceneEntry [m, frame
 /// scene] at angle_rad above +x, length_m long, step_m apart: straight (kappa_per_m 0) or on an
-/// arc of curvature kappa_per_m [1/m] (> 0 turning towards +y). Scenario helper of the tracking
+/// arc of curvature kappa_per_m [1/m] (> 0 turning towards +y). Scenario generator of the tracking
 /// benchmarks and tests.
 std::vector<Point2> insertedNeedlePoints(Point2 p_SceneEntry, double angle_rad, double length_m,
                                          double kappa_per_m = 0.0, double step_m = 0.25e-3);

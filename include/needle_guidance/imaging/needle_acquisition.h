@@ -1,4 +1,4 @@
-// Needle acquisition without a prior on B-mode frames (issue 17), in pixels. Where detectTip
+// Needle acquisition without a prior on B-mode frames, in pixels. Where detectTip
 // (tip_tracker.h) assumes the needle the simulated imager draws, this finds a needle anywhere in
 // a real frame and tells it from the structures that look like one:
 //   step 1  grey conversion (8/16-bit, mono/colour; anything else refused with the reason);
@@ -21,7 +21,7 @@
 //           (signed motion map); in still tissue the frame's one brightening blob is where the
 //           needle has just gone: its front is the tip when no line moves (a needle hidden in a
 //           saturated layer or a shadow), and a line traced short of it is extended to it.
-// Plain C++ and OpenCV; no ROS (STYLE.md rules 1-2).
+// Plain C++ and OpenCV; no ROS.
 #pragma once
 
 #include <opencv2/core.hpp>
@@ -151,9 +151,8 @@ public:
   /// The gate behind a moving track's prediction along its own line [px] (kGateTip_px ahead of
   /// it): the constant-velocity prediction runs ahead of a tip traced short (fading, in a
   /// layer's glare) or of a needle that slows; a detection that far back on the same line is
-  /// the same needle. (Issue 17 closing check: the wide gate ahead of the prediction instead
-  /// took the worst tuning p90 from 28.7 to 79.5 px, the recorded and held-out figures
-  /// unchanged.)
+  /// the same needle. The wide gate applies behind the prediction only: ahead of it, it takes
+  /// the worst tuning p90 from 28.7 to 79.5 px.
   static constexpr double kGateBehind_px = 2.0 * kGateTip_px;
   static constexpr double kGateLine_px = 8.0;  ///< tip's distance from the track's line [px]
   /// The same for a tip from the motion alone (NeedleSegment::from_motion), whose front lies

@@ -1,4 +1,4 @@
-// Synthetic B-mode frames with the structures that fail a naive needle detector (issue 17):
+// Synthetic B-mode frames with the structures that fail a naive needle detector:
 // speckle from a random scatterer field convolved with an anisotropic point-spread function,
 // a specular interface between media of different echogenicity (longer and brighter than the
 // needle, spanning the frame), and a needle with an acoustic shadow beneath, two reverberation

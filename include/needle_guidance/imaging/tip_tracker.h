@@ -1,4 +1,4 @@
-// Needle-tip tracking from images (DESIGN.md, tip_tracker row; dissertation 5.5: the tip is
+// Needle-tip tracking from images (dissertation 5.5: the tip is
 // localised in an image after every insertion step). Per frame: enhance thin curvilinear
 // structures (ridge filter) in a window around the predicted tip, fit a constant-curvature arc
 // of the needle's known radius with RANSAC and least squares, and take the tip at the far end
@@ -6,7 +6,7 @@
 // robot's own motion (inserted length and bevel, dissertation 5.3's arcs) and fuses each
 // detection that passes a chi-square gate, so dropped or unusable frames are bridged and a
 // detection far from the prediction is never accepted silently. Baseline: OpenCV HoughLinesP.
-// Plain C++ and OpenCV; no ROS (STYLE.md rules 1-2).
+// Plain C++ and OpenCV; no ROS.
 #pragma once
 
 #include <Eigen/Core>
@@ -126,7 +126,7 @@ enum class TrackStatus : std::uint8_t {
 std::string toString(TrackStatus status);
 
 /// The tracker's output for one frame (or one motion update).
-/// How the tip is predicted between frames (issue 17).
+/// How the tip is predicted between frames.
 enum class MotionModel : std::uint8_t {
   kAuto,   ///< the robot's drive when it is available, otherwise the needle's own axis
   kDrive,  ///< TipTracker: the EKF predicts from the robot's drive (inserted length, bevel, flips)

@@ -1,5 +1,5 @@
 // A node (or device) a procedure depends on stopped answering: what every procedure's report
-// names when a fault ends it (issue 20).
+// names when a fault ends it.
 #pragma once
 
 #include <string>

@@ -1,4 +1,4 @@
-// The rigid seed-implant procedure (dissertation ch. 4, issue 22), ROS-free: for every target
+// The rigid seed-implant procedure (dissertation ch. 4), ROS-free: for every target
 // plan the release point, move to its height, insert, implant a seed, retract, measure where the
 // seed came to rest; success means the seed landed. The node drives real (simulated) devices
 // through ROS, a test or a bench through in-process ones: all call RigidImplantProcedure::run.
@@ -17,7 +17,7 @@ namespace needle_guidance::procedures {
 
 using geometry::Point2;
 
-/// Per-target outcome (issue 22): placed within the tolerance, missed (with the error), refused
+/// Per-target outcome: placed within the tolerance, missed (with the error), refused
 /// by the planner (with the reason), or error (a move, the implant or a node failed).
 enum class TargetOutcome { kPlaced, kMissed, kRefused, kError };
 const char* toString(TargetOutcome outcome);

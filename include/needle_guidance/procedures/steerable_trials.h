@@ -24,7 +24,7 @@
 namespace needle_guidance::procedures {
 
 /// How one trial ended. kError (a device failed, a node died, no usable control) is reported
-/// apart from the misses (issue 20).
+/// apart from the misses.
 enum class SteerableOutcome {
   kReachedTarget,
   kHitObstacle,
@@ -115,7 +115,7 @@ struct SteerableTrialRecord {
 };
 
 /// The trials that one policy table answered, with that table's own prediction: its P_s of the
-/// start and a Monte Carlo in a world with the noise it assumes (issue 21: after a re-solve the
+/// start and a Monte Carlo in a world with the noise it assumes (after a re-solve the
 /// scene's table no longer predicts the run).
 struct SteerableTableReport {
   steering::TrialNoise noise;

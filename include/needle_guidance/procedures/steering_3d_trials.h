@@ -1,4 +1,4 @@
-// The ROS-free part of the 3-D steerable-needle procedure (issue 18, node steerable_procedure_3d):
+// The ROS-free part of the 3-D steerable-needle procedure (node steerable_procedure_3d):
 // the simulated world of one trial driven by controls that come from outside (the
 // steering_planner_3d node), and the report of N trials. The world is the core's noisy needle
 // (needle_3d.h) stepped and refereed exactly as in runTrial3 (closed_loop_3d.h: executeStep3,

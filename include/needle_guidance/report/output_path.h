@@ -1,4 +1,4 @@
-// Where the suite may write: report folders and journal files (issue 20). Procedures run as
+// Where the suite may write: report folders and journal files. Procedures run as
 // root here, so a mistyped `report_dir` or `journal_file` must not clobber a system file or a
 // user's file the suite did not make.
 #pragma once

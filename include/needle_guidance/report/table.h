@@ -1,4 +1,5 @@
-// A table of figures written as CSV, markdown and an aligned console table (DESIGN.md Reports).
+// A table of figures written as CSV, markdown and an aligned console table (docs/architecture.md,
+// "Reports").
 #pragma once
 
 #include <string>

@@ -31,7 +31,7 @@ struct DepthScan {
   double lateral_m = 0.0;
   /// Grid scans of a copyable simulation: the simulation's state at best_depth_m, kept when
   /// best_error_m is within the tolerance. A verification releases from a copy of it instead
-  /// of inserting again: the same FEM steps, bit for bit (issue 22). Null otherwise.
+  /// of inserting again: the same FEM steps, bit for bit. Null otherwise.
   std::shared_ptr<const tissue::TissueSimulation> release_state;
   /// Solver work of this scan from the entry face (a resumed prefix included).
   double work = 0.0;
@@ -58,7 +58,7 @@ struct PlannerOptions {
   int grid_points = 5;             ///< coarse heights that detect a non-unimodal error
   int secant_iterations = 6;       ///< secant steps on the lateral offset before the grid (0 = off)
   /// Stop searching heights once a scan's best error is below this (the target height is scanned
-  /// first) [m]; 0: at 0.9 of the tolerance (issue 22: stop at the scene's tolerance, not at a
+  /// first) [m]; 0: at 0.9 of the tolerance (stop at the scene's tolerance, not at a
   /// fixed floor).
   double error_goal_m = 0.0;
   /// Placement tolerance [m]; 0: the scene's needle.placement_tolerance_m.
@@ -81,12 +81,12 @@ struct PlannerOptions {
   /// ("budget exhausted"). A count, so what is refused does not depend on the machine's load;
   /// weighted by what each operation costs, so it bounds the time on any mesh: a unit took
   /// 1.0-1.75 ms of CPU per plan here at load ~10 (state copies and assembly are not counted;
-  /// README, bench rigid).
+  /// docs/nodes/rigid_planner.md, bench rigid).
   double work_budget = 350.0;
   /// Wall-time budget per plan [s] (0: none), on top of work_budget: a plan that must answer
   /// in time. Outcomes then depend on the machine's load.
   double time_budget_s = 0.0;
-  /// A plan whose verified error exceeds the tolerance is refused (kOutOfTolerance, issue 22:
+  /// A plan whose verified error exceeds the tolerance is refused (kOutOfTolerance:
   /// every target placed within the tolerance or refused with a reason); false: returned as ok
   /// with within_tolerance false.
   bool refuse_over_tolerance = true;
@@ -96,8 +96,8 @@ struct PlannerOptions {
 /// tip starts at start_x_m outside the tissue and is commanded in samples of sample_m to the
 /// release depth, the seed is released, the tip is commanded back to start_x_m, and the tissue
 /// is stepped with the needle out until the seed is at rest. TissueSimulation::advance() puts
-/// every command on the scene's depth grid, so the seed does not depend on sample_m or start_x_m
-/// (issue 22): the live loop's 0.05 mm samples from -5 mm land where the planner's did.
+/// every command on the scene's depth grid, so the seed does not depend on sample_m or start_x_m:
+/// the live loop's 0.05 mm samples from -5 mm land where the planner's did.
 struct ImplantSchedule {
   double start_x_m = -0.001;  ///< tip x before and after the insertion (outside the tissue) [m]
   double sample_m = 1e-4;     ///< commanded depth change per sample [m], > 0
@@ -118,7 +118,7 @@ Point2 simulateImplant(tissue::TissueSimulation& sim, const Point2& release,
 struct StiffnessUncertainty {
   double relative = 0.3;       ///< u (0.3 = +-30 %)
   int samples = 16;            ///< K models planned against
-  unsigned seed = 1;           ///< generator seed (STYLE.md rule 12)
+  unsigned seed = 1;           ///< generator seed
   bool corners_first = false;  ///< start with the 2^materials corners of the box (if K allows)
   /// The plan minimises this quantile of the error over the samples: 1 = worst case, 0.95 = the
   /// 95th percentile. Compression ahead of the needle grows like 1/E (convex), so softer-than-
@@ -137,7 +137,7 @@ scene::Scene withStiffnessFactors(const scene::Scene& scene, const std::vector<d
 std::vector<std::vector<double>> drawStiffnessFactors(const scene::Scene& scene,
                                                       const StiffnessUncertainty& u);
 
-/// Why a plan failed, or kOk (STYLE.md rule 8).
+/// Why a plan failed, or kOk.
 enum class PlanCode {
   kOk,
   kTargetNotFinite,  ///< a NaN or infinite target coordinate

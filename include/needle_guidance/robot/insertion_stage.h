@@ -1,6 +1,6 @@
 // Simulated needle insertion stage: height (y), insertion depth (x) and bevel rotation about the
 // needle axis, moved at commanded constant velocities within joint, velocity and scene limits.
-// The device model behind the insertion_robot node; no ROS here (STYLE.md rule 1).
+// The device model behind the insertion_robot node; no ROS here.
 #pragma once
 
 #include <array>

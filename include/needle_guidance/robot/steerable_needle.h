@@ -1,11 +1,11 @@
-// The simulated steerable bevel-tip needle: "the world" of the insertion robot in steerable mode
-// (DESIGN.md, insertion_robot row). The needle enters on the line x = start_x at an entry height
+// The simulated steerable bevel-tip needle: "the world" of the insertion robot in steerable mode.
+// The needle enters on the line x = start_x at an entry height
 // and angle and then follows the continuous model of dissertation 5.3: it traces arcs of radius
 // r, counter-clockwise with the bevel left and clockwise with the bevel right; at the start of
 // every insertion command the tip orientation is deflected by beta ~ N(0, sigma_r) when a bevel
 // flip came before it (u = 1) and by beta ~ N(0, sigma_i) otherwise (u = 0). An insertion that
 // touches an expanded obstacle or leaves the workspace stops at the contact point. Retraction
-// follows the inserted path back exactly. Plain C++; no ROS (STYLE.md rules 1-2).
+// follows the inserted path back exactly. Plain C++; no ROS.
 #pragma once
 
 #include <cstdint>
@@ -73,7 +73,7 @@ enum class MotionOutcome {
   kRefused,  ///< refused; nothing changed
 };
 
-/// Outcome of a motion with a one-line message; true only for kMoved (STYLE.md rule 8; the
+/// Outcome of a motion with a one-line message; true only for kMoved (the
 /// shared Status shape of status.h).
 class MotionStatus : public Status<MotionOutcome, MotionOutcome::kMoved> {
 public:

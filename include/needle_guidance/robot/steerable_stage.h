@@ -1,4 +1,4 @@
-// The insertion stage in steerable mode (dissertation 5.3, issue 6), ROS-free: the stage's joints
+// The insertion stage in steerable mode (dissertation 5.3), ROS-free: the stage's joints
 // drive the steerable needle ("the world"). The insertion joint is the inserted arc length; the
 // needle is traced ahead of the stage so that an insertion stops exactly at a contact; a
 // retraction pulls the needle back along its path; out of tissue the guide follows the height

@@ -1,4 +1,4 @@
-// The insertion stage in 3-D steerable mode (issue 18), ROS-free: the stage's insertion joint
+// The insertion stage in 3-D steerable mode, ROS-free: the stage's insertion joint
 // drives the 3-D bevel-tip needle of steering_3d/needle_3d.h ("the world", seeded noise), and an
 // axial rotation joint turns the needle about its axis, both for a commanded bevel rotation and
 // for duty-cycled spinning during an insertion. A command (Steer3Command) rotates the bevel at a

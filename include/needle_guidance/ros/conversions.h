@@ -1,4 +1,4 @@
-// Conversions between core types and ROS messages: the one place for them (STYLE.md rule 3).
+// Conversions between core types and ROS messages: the one place for them.
 #pragma once
 
 #include <geometry_msgs/Point.h>

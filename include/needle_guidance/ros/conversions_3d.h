@@ -1,4 +1,4 @@
-// Conversions between the 3-D steering core (steering_3d/) and ROS messages (issue 18).
+// Conversions between the 3-D steering core (steering_3d/) and ROS messages.
 #pragma once
 
 #include <geometry_msgs/Pose.h>

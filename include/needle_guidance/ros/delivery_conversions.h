@@ -1,4 +1,4 @@
-// Conversions between the HDR delivery core types and ROS messages (STYLE.md rule 3).
+// Conversions between the HDR delivery core types and ROS messages.
 #pragma once
 
 #include <geometry_msgs/Point.h>

@@ -29,7 +29,7 @@ public:
   /// start-up plan.
   DwellSchedulerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh);
 
-  /// Parameters, read once (README, "dwell_scheduler").
+  /// Parameters, read once (docs/nodes/dwell_scheduler.md).
   struct Settings {
     std::string frame_id = "patient";
     procedures::HdrPlanSettings pipeline;  ///< method (when a request leaves it empty), schedule

@@ -1,7 +1,7 @@
-// Simulated imaging device node (DESIGN.md, imager row): renders frames of the scene plane from
+// Simulated imaging device node: renders frames of the scene plane from
 // the robot's true needle shape (imaging::FrameRenderer) at the device's frame rate, drops the
 // frames the device loses, and publishes the images with their pixel <-> scene calibration.
-// ~view along_z / along_y (issue 18): one of the two orthogonal fluoroscopy views of the 3-D
+// ~view along_z / along_y: one of the two orthogonal fluoroscopy views of the 3-D
 // scene ~scene_3d (imaging::biplaneViewSetup: the tissue's projected bounds plus a margin); the
 // robot's 3-D shape is projected on the view's plane (view along z sees x, y; along y, x, z).
 #pragma once

@@ -50,7 +50,7 @@ namespace needle_guidance {
 ///   ~needle_path (Marker LINE_STRIP, frame scene). Deflections and contacts are journaled to
 ///   a second CSV next to ~journal_file ("X.csv" -> "X_needle.csv"), flushed per line.
 ///   The tf of the URDF (robot_state_publisher) still draws a straight needle.
-/// - steerable_3d (issue 18): robot::SteerableStage3d drives the 3-D bevel-tip needle of the
+/// - steerable_3d: robot::SteerableStage3d drives the 3-D bevel-tip needle of the
 ///   steering_3d scene ~scene_3d (noise scaled by ~noise_scale, seeded by ~seed). The action
 ///   ~steer (Steer3) rotates the needle about its axis ("axial_rotation" joint, at most its URDF
 ///   velocity limit and the scene's spin-rate limit) and then inserts a length with

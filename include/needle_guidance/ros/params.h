@@ -1,5 +1,5 @@
-// Read-once parameter helpers: every value is validated, echoed once at INFO, and a missing or
-// out-of-range value stops the node with a message naming it (STYLE.md rule 10).
+// Read-once parameter readers: every value is validated, echoed once at INFO, and a missing or
+// out-of-range value stops the node with a message naming it.
 #pragma once
 
 #include <ros/ros.h>

@@ -1,4 +1,4 @@
-// Deformable registration node (DESIGN.md, registration row; dissertation ch. 3): a thin
+// Deformable registration node (dissertation ch. 3): a thin
 // wrapper of registration::registerSlices with a `~register` service and rviz markers of the
 // probe-in prostate, the deformed probe-out prostate and the warped MRSI grid.
 #pragma once

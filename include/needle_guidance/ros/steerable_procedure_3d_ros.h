@@ -1,9 +1,9 @@
-// Procedure runner for 3-D closed-loop steerable-needle trials (node steerable_procedure_3d,
-// issue 18). The world is the insertion robot in its 3-D steerable mode (insertion_robot
-// ~mode steerable_3d, ~robot_ns): per trial this node asks steering_planner_3d for a plan from
-// the entry (~plan), retracts the needle and places the robot's guide at the plan's start
-// (set_entry_pose_3d, the robot's noise reseeded with the trial's seed), then publishes the tip
-// pose, waits for the planner's control for it, has the robot rotate and insert one step (the
+// Procedure runner for 3-D closed-loop steerable-needle trials (node
+// steerable_procedure_3d). The world is the insertion robot in its 3-D steerable mode
+// (insertion_robot ~mode steerable_3d, ~robot_ns): per trial this node asks steering_planner_3d for
+// a plan from the entry (~plan), retracts the needle and places the robot's guide at the plan's
+// start (set_entry_pose_3d, the robot's noise reseeded with the trial's seed), then publishes the
+// tip pose, waits for the planner's control for it, has the robot rotate and insert one step (the
 // steer action), and repeats until the plan is completed (the tip refereed against the target
 // ball) or the robot's needle touches an obstacle or leaves the tissue. The planner and the
 // robot are watched (NodeSupervisor): if one dies the run stops, the report names it (status

@@ -1,4 +1,4 @@
-// ROS wrapper of the 3-D steerable-needle planner (node steering_planner_3d, issue 18): loads a
+// ROS wrapper of the 3-D steerable-needle planner (node steering_planner_3d): loads a
 // steering_3d scene, replans from every tip pose it receives (Planner3::planFromTip under
 // ~time_budget_s) and publishes the plan's first control and the plan; serves ~plan (from the
 // entry region). The planner is the core's (steering_3d/planner_3d.h); this class converts and

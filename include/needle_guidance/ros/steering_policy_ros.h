@@ -35,7 +35,7 @@ std::string modelDescription(const steering::SteeringModel& model);
 /// previous table.
 class SteeringPolicyRos {
 public:
-  /// Parameters, read once and echoed (STYLE.md rule 10).
+  /// Parameters, read once and echoed.
   struct Settings {
     std::string scene = "steering_workspace";  ///< ~scene: embedded scene name or YAML path
     std::string target;                        ///< ~target: target name, "" = the first

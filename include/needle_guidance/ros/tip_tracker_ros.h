@@ -1,4 +1,4 @@
-// Needle-tip tracker node (DESIGN.md, tip_tracker row): a thin wrapper around
+// Needle-tip tracker node: a thin wrapper around
 // imaging::TipTracker. Frames from the imager, the imager's calibration, and the robot's
 // proprioception (needle guide, inserted length, bevel) go in; the tip pose with its covariance,
 // source and confidence goes out, with a debug image of the detection.

@@ -1,5 +1,5 @@
 // Scenes: the anatomy, materials, needle, targets, obstacles, imaging and active models of one
-// procedure (DESIGN.md "Scenes"). Everything here is SI: the loader converts file units.
+// procedure. Everything here is SI: the loader converts file units.
 #pragma once
 
 #include <optional>
@@ -128,7 +128,7 @@ struct Steering {
   /// points) or "interpolated" (exact arc end, probability split bilinearly between the four
   /// neighbouring grid points; deflection bins matched to sigma's variance).
   std::string transition_model = "rounded";
-  /// Mean |P_s error| the scene needs at its entry line (issue 21): steering_policy refines the
+  /// Mean |P_s error| the scene needs at its entry line: steering_policy refines the
   /// grid from grid_spacing_m (the coarsest) until its own error estimate meets it. 0 = use
   /// grid_spacing_m as given, with no estimate.
   double ps_tolerance = 0.01;

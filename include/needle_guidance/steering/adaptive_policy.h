@@ -1,5 +1,5 @@
-// A steering policy that learns the needle's deflection noise from the tip poses it sees
-// (issue 21): NoiseEstimator accumulates the deflection of every observed step; when the
+// A steering policy that learns the needle's deflection noise from the tip poses it sees:
+// NoiseEstimator accumulates the deflection of every observed step; when the
 // estimate's interval (at a level that bounds the false re-solves of a whole run, see
 // AdaptationOptions) no longer contains the sigma the current table assumed, the MDP is solved
 // again for the estimate on a background thread while the old table keeps answering; the new

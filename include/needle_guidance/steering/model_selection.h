@@ -1,4 +1,4 @@
-// Choosing the discretisation from the P_s accuracy a scene asks for (issue 21): a ladder of
+// Choosing the discretisation from the P_s accuracy a scene asks for: a ladder of
 // grid spacings, coarse to fine by a factor sqrt(2) (twice the states per step), each solved;
 // the error of a model is estimated from the change of P_s against the previous, coarser model
 // (Richardson: for an error of order p in Delta, e(Delta) = D / (r^p - 1) with r = sqrt(2); p = 2,
@@ -78,7 +78,7 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
 namespace needle_guidance::steering {
 
 /// A solved or loaded policy and where it came from (the node, the procedure, the bench and the
-/// guided trial share this; issue 20: written once).
+/// guided trial share this one definition).
 struct PolicySource {
   std::unique_ptr<const SteeringModel> model;
   std::unique_ptr<const PolicyTable> table;

@@ -1,4 +1,4 @@
-// Monte Carlo truth check of the steering MDP (issue 5): the continuous needle (exact arcs,
+// Monte Carlo truth check of the steering MDP: the continuous needle (exact arcs,
 // continuous normal deflections, continuous_workspace.h) follows a policy with the tip imaged
 // after every insertion distance delta (5.3); the empirical success rate with a 95 % Wilson
 // interval is compared with the P_s the discretised MDP predicts. Plain C++; no ROS.

@@ -1,6 +1,6 @@
 // Online estimate of the needle's deflection noise (dissertation 5.3: beta ~ N(0, sigma_i) per
 // insertion, N(0, sigma_r) per insertion after a flip) from the tip poses a run observes, for a
-// policy that learns the needle's noise instead of assuming it (issue 21). Plain C++; no ROS.
+// policy that learns the needle's noise instead of assuming it. Plain C++; no ROS.
 #pragma once
 
 #include <cstdint>

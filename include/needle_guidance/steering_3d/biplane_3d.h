@@ -1,4 +1,4 @@
-// Biplane tip triangulation (issue 18, closed loop through two orthogonal fluoroscopy views):
+// Biplane tip triangulation (closed loop through two orthogonal fluoroscopy views):
 // two orthographic views of frame scene, one along z (it sees x, y) and one along y (it sees
 // x, z), each with a 2-D tip detection and its covariance, fused into a 3-D tip position with a
 // covariance by linear-Gaussian information fusion. Both views see x, so one degree of freedom
@@ -61,7 +61,7 @@ Result<TipEstimate3, BiplaneStatus> triangulateBiplane(const ViewDetection& a,
                                                        const ViewDetection& b,
                                                        double gate = kBiplaneGateChiSquare);
 
-/// The simulated biplane imaging of the closed loop (issue 18): each view detects the tip's
+/// The simulated biplane imaging of the closed loop: each view detects the tip's
 /// projection with Gaussian noise, and the projected shaft direction with angular noise; a view
 /// may find nothing (dropout) or a false tip (an outlier displaced by outlier_offset_m in a random
 /// direction of its image plane). The two views are fused by triangulateBiplane with its gate.

@@ -1,4 +1,4 @@
-// One simulated 3-D steerable-needle insertion (issue 18): the noisy needle of needle_3d.h is
+// One simulated 3-D steerable-needle insertion: the noisy needle of needle_3d.h is
 // the world, the tip is imaged after every step (step_length_m of insertion, 5.3's delta) and,
 // depending on the strategy, the planner replans from it, the plan runs open loop, or a straight
 // needle is pushed. Success means the outcome: the tip ends inside the target ball and the path

@@ -1,4 +1,4 @@
-// Collision and clearance of needle paths in a 3-D steering scene (issue 18): the tissue
+// Collision and clearance of needle paths in a 3-D steering scene: the tissue
 // boundary mesh and obstacle meshes expanded by their clearance, queried through AABB trees
 // (mesh_3d.h). Paths are checked by sphere tracing: at each point the free margin (distance to
 // the nearest expanded obstacle or to the tissue boundary) is a radius the unit-speed path

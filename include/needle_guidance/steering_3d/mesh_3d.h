@@ -1,4 +1,4 @@
-// Closed triangle meshes of the 3-D steering scenes (issue 18): reading STL / OFF / OBJ through
+// Closed triangle meshes of the 3-D steering scenes: reading STL / OFF / OBJ through
 // CGAL's IO with validation, writing, simple primitives (box, tube along a polyline, sphere)
 // for the shipped scenes and the tests, and the bounding-volume-hierarchy distance queries the
 // planner's collision checks use (CGAL AABB tree). Plain C++; CGAL stays inside the .cpp.

@@ -1,9 +1,9 @@
-// The bevel-tip steerable needle in 3-D (issue 18): a unicycle in SE(3) after Webster et al.,
+// The bevel-tip steerable needle in 3-D: a unicycle in SE(3) after Webster et al.,
 // "Nonholonomic modeling of needle steering" (IJRR 2006), with duty-cycled spinning for any
 // effective curvature in [0, kappa_max] (Minhas et al. 2007; Patil et al., T-RO 2014) and the
 // process noise of dissertation 5.3 generalised to 3-D. Plain C++ and Eigen; no ROS.
 //
-// Frames: everything is in frame `scene` (DESIGN.md: +x insertion, +y height, +z lateral; the
+// Frames: everything is in frame `scene` (+x insertion, +y height, +z lateral; the
 // planar scenes are its z = 0 plane). The tip frame's columns are (d, n, t): d the bevel
 // direction (the side the needle curves towards), n = t x d, t the tip tangent. Per unit
 // inserted length the tip frame moves with the constant body twist

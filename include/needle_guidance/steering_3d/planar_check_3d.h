@@ -1,4 +1,4 @@
-// The 3-D model's planar special case against dissertation ch. 5 (issue 18): a planar steering
+// The 3-D model's planar special case against dissertation ch. 5: a planar steering
 // workspace extruded along z into meshes (its expanded obstacles as prisms, the rectangle as a
 // box), the 3-D needle restricted to the 5.3 model (full curvature, spins only 180-degree
 // flips, deflection only in the plane), driven by the solved MDP's policy looked up from the

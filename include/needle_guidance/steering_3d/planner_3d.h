@@ -1,4 +1,4 @@
-// Rapid 3-D steerable-needle planning under uncertainty (issue 18): an RRT over the needle's
+// Rapid 3-D steerable-needle planning under uncertainty: an RRT over the needle's
 // constant-curvature arcs (any curvature in [0, kappa_max] through duty-cycled spinning, the
 // spin-rate gap excluded) with the reachability-aware metric of Patil et al. (T-RO 2014: the
 // arc length to a sample the needle can reach with one arc, infinite otherwise), run from the
@@ -53,7 +53,7 @@ enum class SuccessEstimate {
   /// monteCarloSuccess: rollouts of the noisy needle under a cheap model of the replanning loop,
   /// with common random numbers across the candidates; ties go to the earlier-found plan.
   kMonteCarlo,
-  kLqgMp,  ///< successProbability (LQG-MP-style covariance propagation; pessimistic, issue 18)
+  kLqgMp,  ///< successProbability (LQG-MP-style covariance propagation; pessimistic)
 };
 
 struct PlannerParams3 {

@@ -1,8 +1,8 @@
-// Scene kind `steering_3d` (issue 18): a YAML file naming closed triangle meshes (tissue
+// Scene kind `steering_3d`: a YAML file naming closed triangle meshes (tissue
 // boundary, obstacles with clearances), a target sphere, an entry disc with a cone of entry
 // directions, the needle and its noise. Loaded and validated here; a bad file is refused with
 // scene::SceneError naming the file, the key and the value (and the mesh file for a bad mesh).
-// The format is in README.md ("3-D steering scenes") and config/scenes/steering_3d/*.yaml.
+// The format is in docs/scenes.md and config/scenes/steering_3d/*.yaml.
 #pragma once
 
 #include <string>

@@ -21,7 +21,7 @@ struct Prescribed {
   std::vector<double> values;
 };
 
-/// Outcome of a step (STYLE.md rule 8). On failure the integrator's state is unchanged.
+/// Outcome of a step. On failure the integrator's state is unchanged.
 struct StepStatus {
   bool ok = true;
   std::string message;
@@ -38,7 +38,7 @@ struct IntegratorOptions {
   double explicit_safety = 0.9;
 };
 
-/// One interface for all integrators (STYLE.md rule 4). Holds u, v, a for every DOF.
+/// One interface for all integrators. Holds u, v, a for every DOF.
 class Integrator {
 public:
   virtual ~Integrator() = default;

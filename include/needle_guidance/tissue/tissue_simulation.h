@@ -14,7 +14,7 @@
 
 namespace needle_guidance::tissue {
 
-/// The fixed depth grid the needle advances on (issue 22). Cutting (2.3.4) and stick-slip
+/// The fixed depth grid the needle advances on. Cutting (2.3.4) and stick-slip
 /// friction (2.3.5) make the seed's release point depend on the depths the FEM is solved at, so
 /// TissueSimulation::advance() sub-steps every command onto this grid: the live node (stepping on
 /// the robot's messages), the planner's scans and verifying simulations, and the bench's
@@ -52,7 +52,7 @@ public:
   explicit TissueSimulation(const scene::Scene& scene)
       : TissueSimulation(scene, optionsFromScene(scene)) {}
   /// A deep copy of the whole state (mesh as cut, factorisation, needle, seeds): stepping the
-  /// copy gives the same results, bit for bit, as stepping the original (issue 22: a planner
+  /// copy gives the same results, bit for bit, as stepping the original (a planner
   /// verifies a release from the state its scan reached there). Throws std::logic_error when
   /// the integrator cannot be copied (copyable() is false).
   TissueSimulation(const TissueSimulation& other);
