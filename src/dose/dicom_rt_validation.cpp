@@ -16,6 +16,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "needle_guidance/math.h"
+
 namespace needle_guidance::dose {
 using namespace dicom_io;  // NOLINT: the shared DICOM element readers and writers
 
@@ -285,17 +287,6 @@ GammaResult gammaIndex(const DoseGrid& reference, const std::vector<Point3>& poi
 
 namespace {
 
-double percentile(std::vector<double> v, double q) {
-  if (v.empty()) {
-    return 0.0;
-  }
-  std::sort(v.begin(), v.end());
-  const double pos = q * static_cast<double>(v.size() - 1);
-  const auto lo = static_cast<std::size_t>(std::floor(pos));
-  const std::size_t hi = std::min(lo + 1, v.size() - 1);
-  return v[lo] + (v[hi] - v[lo]) * (pos - static_cast<double>(lo));
-}
-
 std::string percent(double fraction, int digits = 4) {
   char buf[64];
   std::snprintf(buf, sizeof(buf), "%.*g %%", digits, 100.0 * fraction);
@@ -412,14 +403,14 @@ RtDoseValidation validateAgainstRtDose(const HdrCase& c, const Tg43Source& sourc
     abs_rel.push_back(std::abs(r));
     by_frame[static_cast<std::size_t>(x.k)].push_back(r);
   }
-  v.median_relative_difference = percentile(rel, 0.5);
-  v.p95_abs_relative_difference = percentile(abs_rel, 0.95);
-  v.p99_abs_relative_difference = percentile(abs_rel, 0.99);
+  v.median_relative_difference = quantile(rel, 0.5);
+  v.p95_abs_relative_difference = quantile(abs_rel, 0.95);
+  v.p99_abs_relative_difference = quantile(abs_rel, 0.99);
   for (std::size_t k = 0; k < by_frame.size(); ++k) {
     if (by_frame[k].size() < 20) {
       continue;
     }
-    const double m = percentile(by_frame[k], 0.5);
+    const double m = quantile(by_frame[k], 0.5);
     if (v.worst_frame < 0 || std::abs(m) > std::abs(v.worst_frame_median)) {
       v.worst_frame = static_cast<int>(k);
       v.worst_frame_median = m;
@@ -427,7 +418,7 @@ RtDoseValidation validateAgainstRtDose(const HdrCase& c, const Tg43Source& sourc
     }
   }
   // Shift diagnostic: RTDOSE(x) against ours(x + s e_axis), s = -2..2 voxels.
-  v.unshifted_median_abs = percentile(abs_rel, 0.5);
+  v.unshifted_median_abs = quantile(abs_rel, 0.5);
   v.best_shift_median_abs = v.unshifted_median_abs;
   for (int axis = 0; axis < 3; ++axis) {
     for (int s = -2; s <= 2; ++s) {
@@ -453,7 +444,7 @@ RtDoseValidation validateAgainstRtDose(const HdrCase& c, const Tg43Source& sourc
       if (a.size() <= voxels.size() / 2) {
         continue;  // too little overlap to mean anything
       }
-      const double m = percentile(a, 0.5);
+      const double m = quantile(a, 0.5);
       if (m < v.best_shift_median_abs) {
         v.best_shift_median_abs = m;
         v.best_shift_m = shift;

@@ -1,4 +1,5 @@
 #include "needle_guidance/dose/prostate_case.h"
+#include "needle_guidance/math.h"
 
 #include <cmath>
 #include <random>
@@ -8,7 +9,6 @@
 namespace needle_guidance::dose {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr int kContourVertices = 36;
 
 /// Ellipse contour (centre, semi-axes) at height z.

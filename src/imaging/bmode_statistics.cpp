@@ -6,6 +6,8 @@
 #include <stdexcept>
 #include <vector>
 
+#include "needle_guidance/math.h"
+
 namespace needle_guidance::imaging {
 namespace {
 
@@ -13,14 +15,6 @@ constexpr int kTile_px = 32;
 constexpr int kNeedleClearance_px = 10;
 constexpr double kMinTissueGrey = 30.0, kMaxTissueGrey = 200.0, kDarkGrey = 10.0;
 constexpr double kNeedleQuantile = 0.9, kOtherQuantile = 0.995;
-
-double quantileOf(std::vector<double> v, double q) {
-  if (v.empty())
-    return 0.0;
-  const auto k = static_cast<std::size_t>(q * static_cast<double>(v.size() - 1));
-  std::nth_element(v.begin(), v.begin() + static_cast<long>(k), v.end());
-  return v[k];
-}
 
 /// Lag where the normalised autocorrelation along one axis first falls to 0.5 (interpolated).
 double halfWidth(const cv::Mat& ac, bool along_x) {
@@ -85,10 +79,10 @@ BModeStatistics bmodeStatistics(const cv::Mat& grey, const cv::Mat& needle_mask)
     }
   }
   s.tissue_patches = static_cast<int>(means.size());
-  s.tissue_mean_grey = quantileOf(means, 0.5);
-  s.speckle_snr = quantileOf(snrs, 0.5);
-  s.speckle_lateral_px = quantileOf(lateral, 0.5);
-  s.speckle_axial_px = quantileOf(axial, 0.5);
+  s.tissue_mean_grey = orderStatistic(means, 0.5);
+  s.speckle_snr = orderStatistic(snrs, 0.5);
+  s.speckle_lateral_px = orderStatistic(lateral, 0.5);
+  s.speckle_axial_px = orderStatistic(axial, 0.5);
   std::vector<double> on, other;
   long dark = 0;
   for (int y = 0; y < grey.rows; ++y) {
@@ -105,10 +99,10 @@ BModeStatistics bmodeStatistics(const cv::Mat& grey, const cv::Mat& needle_mask)
   }
   s.dark_fraction = static_cast<double>(dark) / static_cast<double>(grey.total());
   if (!on.empty()) {
-    s.needle_grey = quantileOf(on, kNeedleQuantile);
+    s.needle_grey = orderStatistic(on, kNeedleQuantile);
     s.needle_contrast = s.tissue_mean_grey > 0 ? s.needle_grey / s.tissue_mean_grey : 0.0;
     s.brightest_other_over_needle =
-        quantileOf(other, kOtherQuantile) / std::max(s.needle_grey, 1.0);
+        orderStatistic(other, kOtherQuantile) / std::max(s.needle_grey, 1.0);
   }
   return s;
 }

@@ -7,12 +7,12 @@
 #include <string>
 
 #include "needle_guidance/imaging/tip_tracker.h"
+#include "needle_guidance/math.h"
 
 namespace needle_guidance::imaging::detail {
 
 /// Angle wrapped into [-pi, pi) [rad].
 inline double wrapAngle(double a) {
-  constexpr double kPi = 3.14159265358979323846;
   a = std::fmod(a + kPi, 2.0 * kPi);
   if (a < 0.0) {
     a += 2.0 * kPi;

@@ -16,6 +16,7 @@
 
 #include "detection_util.h"
 #include "needle_guidance/imaging/tip_tracker.h"
+#include "needle_guidance/math.h"
 
 namespace needle_guidance::imaging {
 namespace {
@@ -23,7 +24,6 @@ namespace {
 using detail::fail;
 using detail::wrapAngle;
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 /// Blur before Canny: half the needle's diameter, at least this [px].
 constexpr double kMinBlur_px = 1.0;

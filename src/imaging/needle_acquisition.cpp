@@ -1,5 +1,6 @@
 // Needle acquisition without a prior; see needle_acquisition.h for the steps.
 #include "needle_guidance/imaging/needle_acquisition.h"
+#include "needle_guidance/math.h"
 
 #include <algorithm>
 #include <cmath>
@@ -13,7 +14,6 @@ namespace needle_guidance::imaging {
 
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 /// Step 3: the strongest ridge pixels kept for the Hough transform (a thin needle covers well
 /// under 1 % of a frame). 3 %, not 2 %: a shaft saturated and merged with its first
 /// reverberation copies (realistic tuning sequences) has a weaker ridge at the filter's scale

@@ -31,6 +31,7 @@
 
 #include "detection_util.h"
 #include "needle_guidance/imaging/tip_tracker.h"
+#include "needle_guidance/math.h"
 
 namespace needle_guidance::imaging {
 namespace {
@@ -40,7 +41,6 @@ using detail::fmt;
 using detail::wrapAngle;
 
 using Vec = Eigen::Vector2d;
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 
 // ---- frame validation -------------------------------------------------------------------
@@ -184,25 +184,6 @@ Vec leftNormal(const Vec& v) {
   return {-v.y(), v.x()};
 }
 
-double median(std::vector<double> v) {
-  if (v.empty()) {
-    return 0.0;
-  }
-  const auto mid = v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2);
-  std::nth_element(v.begin(), mid, v.end());
-  return *mid;
-}
-
-double quantile(std::vector<double> v, double q) {
-  if (v.empty()) {
-    return 0.0;
-  }
-  const auto k =
-      static_cast<std::size_t>(std::clamp(q, 0.0, 1.0) * static_cast<double>(v.size() - 1));
-  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
-  return v[k];
-}
-
 bool finitePose(const Vec& p, double theta) {
   return std::isfinite(p.x()) && std::isfinite(p.y()) && std::isfinite(theta);
 }
@@ -343,13 +324,13 @@ std::vector<Candidate> ridgeCandidates(const RidgeImages& ri) {
       values.push_back(rr[c]);
     }
   }
-  const double med = median(values);
+  const double med = upperMedian(values);
   std::vector<double> dev(values.size());
   for (std::size_t i = 0; i < values.size(); ++i) {
     dev[i] = std::abs(values[i] - med);
   }
-  const double mad_std = 1.4826 * median(dev);
-  const double strong = quantile(values, kStrongRidgeQuantile);
+  const double mad_std = 1.4826 * upperMedian(dev);
+  const double strong = orderStatistic(values, kStrongRidgeQuantile);
   const double threshold = std::max(
       {med + kCandidateThresholdSigmas * mad_std, kRelativeCandidateThreshold * strong, 1e-3});
 
@@ -386,7 +367,7 @@ std::vector<Candidate> ridgeCandidates(const RidgeImages& ri) {
   for (const auto& c : out) {
     w.push_back(c.weight);
   }
-  const double clip = std::max(quantile(w, kWeightClipQuantile), 1e-9);
+  const double clip = std::max(orderStatistic(w, kWeightClipQuantile), 1e-9);
   for (auto& c : out) {
     c.weight = std::min(c.weight, clip) / clip;
   }
@@ -537,7 +518,7 @@ double arcBrightness(const Arc& arc, const std::vector<Candidate>& cands, double
   for (int k : inliersOf(arc, cands, radius_px)) {
     v.push_back(cands[static_cast<std::size_t>(k)].strength);
   }
-  return median(v);
+  return upperMedian(v);
 }
 
 RansacResult ransacArc(const std::vector<Candidate>& cands, double radius_px, double ps,
@@ -1188,7 +1169,7 @@ std::string contrastLevels(DetectState& st) {
       inlier_contrast.push_back(t.contrast);
     }
   }
-  st.shaft_level = median(inlier_contrast);
+  st.shaft_level = upperMedian(inlier_contrast);
   st.s_mid = inlier_s[inlier_s.size() / 2];
   st.s_stop = inlier_s.back() + (st.pq ? kMaxGap_m : kNoPriorLookahead_m) / ps;
   if (st.pq) {
@@ -1206,7 +1187,7 @@ std::string contrastLevels(DetectState& st) {
       }
     }
   }
-  st.background_level = median(background);
+  st.background_level = upperMedian(background);
   const double shaft_level = st.shaft_level, background_level = st.background_level;
   if (!(shaft_level > 0.0) || background.size() < 8 ||
       shaft_level - background_level <
@@ -1216,7 +1197,7 @@ std::string contrastLevels(DetectState& st) {
   }
   // A sample is needle-like above `visible` (the change point's threshold); only samples above
   // the higher `reliable` steer the tracing (so it does not wander off along noise).
-  st.visible = std::max(quantile(background, kBackgroundQuantile),
+  st.visible = std::max(orderStatistic(background, kBackgroundQuantile),
                         background_level + kVisibleFraction * (shaft_level - background_level));
   st.reliable = background_level + kReliableFraction * (shaft_level - background_level);
   return "";
@@ -1263,7 +1244,7 @@ std::string changePointAndPlateau(DetectState& st) {
     return "too little visible needle before the tip (" +
            fmt(visible_count * kTraceStep_px * ps * 1e3, 2) + " mm)";
   }
-  double tip_level = median(tip_levels);
+  double tip_level = upperMedian(tip_levels);
   const std::size_t half_window = static_cast<std::size_t>(kPlateauWindow_px / kTraceStep_px / 2.0);
   for (std::size_t i = change + 1; i-- > half_window;) {
     if (fwd[change].s - fwd[i].s > kPlateauSearch_m / ps) {
@@ -1276,7 +1257,7 @@ std::string changePointAndPlateau(DetectState& st) {
     for (std::size_t k = i - half_window; k <= i + half_window; ++k) {
       win.push_back(fwd[k].contrast);
     }
-    tip_level = std::max(tip_level, median(win));
+    tip_level = std::max(tip_level, upperMedian(win));
   }
   st.tip_level = tip_level;
   return "";
@@ -1473,7 +1454,7 @@ std::string arcModels(DetectState& st) {
         o.push_back(t.offset);
       }
     }
-    st.along_point = st.tracer->point(s_tip, o.empty() ? 0.0 : median(o));
+    st.along_point = st.tracer->point(s_tip, o.empty() ? 0.0 : upperMedian(o));
   }
   st.s_lo = *std::min_element(st.ss.begin(), st.ss.end());
   st.s_hi = s_tip + kTipRoundingRadii * 0.5 * diameter_px;
@@ -1658,7 +1639,7 @@ std::string detectionCovariance(DetectState& st) {
   for (double v : st.tip_levels) {
     dev.push_back(std::abs(v - st.tip_level));
   }
-  const double contrast_noise = 1.4826 * median(dev);
+  const double contrast_noise = 1.4826 * upperMedian(dev);
   double along_std_px = st.slope_per_px > 0.0 ? contrast_noise / st.slope_per_px : kMaxAlongStd_px;
   along_std_px = std::clamp(along_std_px, kMinAlongStd_px, kMaxAlongStd_px);
   const Vec tdir(std::cos(theta), std::sin(theta));

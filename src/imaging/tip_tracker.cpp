@@ -2,6 +2,7 @@
 // (x, y, theta) that predicts from the robot's inserted length and bevel (dissertation 5.3's
 // arcs, steering::advanceTip) and fuses detectTip's detections behind a chi-square gate.
 #include "needle_guidance/imaging/tip_tracker.h"
+#include "needle_guidance/math.h"
 
 #include "detection_util.h"
 
@@ -17,7 +18,6 @@ namespace {
 using detail::fmt;
 using detail::wrapAngle;
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 /// The prediction is applied in sub-steps of at most this fraction of step_length_m, so the
 /// linearisation of the arc stays accurate for long drives.

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <sstream>
 
+#include "needle_guidance/math.h"
 #include "needle_guidance/procedures/steerable_trials.h"
 #include "needle_guidance/report/plot.h"
 #include "needle_guidance/report/statistics.h"
@@ -15,7 +16,6 @@
 namespace needle_guidance::procedures {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kMm = 1e3;
 constexpr double kDeg = 180.0 / kPi;
 constexpr std::size_t kMaxPlottedPaths = 6;

@@ -1,5 +1,6 @@
 // The closed-loop steerable-needle trials (see steerable_trials.h; dissertation 5.5).
 #include "needle_guidance/procedures/steerable_trials.h"
+#include "needle_guidance/math.h"
 
 #include <chrono>
 #include <cmath>
@@ -8,8 +9,6 @@
 
 namespace needle_guidance::procedures {
 namespace {
-
-constexpr double kPi = 3.14159265358979323846;
 
 double secondsSince(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();

@@ -23,17 +23,4 @@ double sampleSd(const std::vector<double>& v) {
   return std::sqrt(s / static_cast<double>(v.size() - 1));
 }
 
-double quantile(std::vector<double> v, double q) {
-  if (!(q >= 0.0 && q <= 1.0)) {
-    throw std::invalid_argument("quantile: q must be in [0, 1]");
-  }
-  if (v.empty()) {
-    return 0.0;
-  }
-  std::sort(v.begin(), v.end());
-  const double pos = q * static_cast<double>(v.size() - 1);
-  const std::size_t i = static_cast<std::size_t>(pos);
-  return i + 1 < v.size() ? v[i] + (pos - static_cast<double>(i)) * (v[i + 1] - v[i]) : v.back();
-}
-
 }  // namespace needle_guidance::report

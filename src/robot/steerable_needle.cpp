@@ -1,4 +1,5 @@
 #include "needle_guidance/robot/steerable_needle.h"
+#include "needle_guidance/math.h"
 
 #include <algorithm>
 #include <cmath>
@@ -17,7 +18,6 @@ using steering::Bevel;
 using steering::Control;
 using steering::TipPose;
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kHalfPi = 0.5 * kPi;
 
 std::string meters(double value) {

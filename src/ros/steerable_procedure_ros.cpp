@@ -1,4 +1,5 @@
 #include "needle_guidance/ros/steerable_procedure_ros.h"
+#include "needle_guidance/math.h"
 
 #include <actionlib/client/simple_action_client.h>
 
@@ -31,7 +32,6 @@
 namespace needle_guidance {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kMmPerM = 1e3;
 constexpr double kDegPerRad = 180.0 / kPi;
 

@@ -1,4 +1,5 @@
 #include "needle_guidance/ros/tip_tracker_ros.h"
+#include "needle_guidance/math.h"
 
 #include <cv_bridge/cv_bridge.h>
 
@@ -16,7 +17,6 @@ namespace {
 
 constexpr const char* kName = "tip_tracker";
 constexpr double kThrottle_s = 5.0;
-constexpr double kPi = 3.14159265358979323846;
 constexpr std::size_t kMaxBufferedDrives = 1000;
 constexpr double kDebugTipRadius_px = 6.0;
 constexpr double kDebugHeadingLength_px = 30.0;

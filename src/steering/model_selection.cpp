@@ -1,5 +1,6 @@
 // Choosing the discretisation from a P_s tolerance (see model_selection.h).
 #include "needle_guidance/steering/model_selection.h"
+#include "needle_guidance/math.h"
 
 #include <unistd.h>
 
@@ -16,7 +17,6 @@
 namespace needle_guidance::steering {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 /// Spacing ratio between rungs: twice the positions per rung.
 const double kRatio = std::sqrt(2.0);
 /// Assumed order of the error in Delta (bilinear interpolation of a smooth P_s): with kRatio,

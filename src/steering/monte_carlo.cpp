@@ -1,4 +1,5 @@
 #include "needle_guidance/steering/monte_carlo.h"
+#include "needle_guidance/math.h"
 
 #include <algorithm>
 #include <chrono>
@@ -9,8 +10,6 @@
 
 namespace needle_guidance::steering {
 namespace {
-
-constexpr double kPi = 3.14159265358979323846;
 
 /// SplitMix64: decorrelates the seeds of consecutive trials.
 std::uint64_t mixSeed(std::uint64_t seed, std::uint64_t index) {

@@ -1,5 +1,6 @@
 // Maximum-likelihood deflection noise with chi-square intervals (dissertation 5.3).
 #include "needle_guidance/steering/noise_estimator.h"
+#include "needle_guidance/math.h"
 
 #include <cmath>
 #include <limits>
@@ -8,8 +9,6 @@
 
 namespace needle_guidance::steering {
 namespace {
-
-constexpr double kPi = 3.14159265358979323846;
 
 /// Standard normal quantile: Acklam's rational approximation (relative error 1.15e-9) refined
 /// by one Halley step on erfc (then about machine precision); it is called after every observed

@@ -1,5 +1,6 @@
 // The DP look-up table (dissertation 5.4.3, 5.5): look-up, best start state, file I/O.
 #include "needle_guidance/steering/policy_table.h"
+#include "needle_guidance/math.h"
 
 #include <cmath>
 #include <cstring>
@@ -12,7 +13,6 @@
 namespace needle_guidance::steering {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr char kMagic[8] = {'N', 'G', 'S', 'T', 'E', 'E', 'R', '\0'};
 constexpr std::uint32_t kFormatVersion = 1;
 /// Angular slack when testing a grid orientation against the start range [rad].

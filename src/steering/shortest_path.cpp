@@ -1,6 +1,7 @@
 // The shortest-path baseline (dissertation 5.1, 5.5): an OMPL SST plan in the continuous world
 // and the breadth-first steps-to-go table on the MDP's discretisation (5.4.2, sigma = 0).
 #include "needle_guidance/steering/shortest_path.h"
+#include "needle_guidance/math.h"
 
 #include <algorithm>
 #include <chrono>
@@ -33,7 +34,6 @@ namespace {
 namespace ob = ompl::base;
 namespace oc = ompl::control;
 
-constexpr double kPi = 3.14159265358979323846;
 /// One planner step is one insertion of delta; OMPL's propagation step size is that unit.
 constexpr double kStepDuration = 1.0;
 /// Bevel value of a state whose last arc was not free. The propagator writes it, the validity

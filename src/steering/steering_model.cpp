@@ -1,5 +1,6 @@
 // Discretisation of the steerable-needle MDP (dissertation 5.4.2).
 #include "needle_guidance/steering/steering_model.h"
+#include "needle_guidance/math.h"
 
 #include <algorithm>
 #include <cmath>
@@ -15,7 +16,6 @@
 namespace needle_guidance::steering {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 /// Bumped whenever the discretisation changes meaning, so old table files are refused.
 constexpr const char* kModelVersion = "needle_guidance steering MDP v1";
 /// Largest state count (flat indices and stencil offsets are 32-bit in the solver).

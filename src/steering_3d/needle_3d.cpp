@@ -1,5 +1,6 @@
 // The 3-D bevel-tip needle: screw motions, duty cycles and the seeded noisy world (needle_3d.h).
 #include "needle_guidance/steering_3d/needle_3d.h"
+#include "needle_guidance/math.h"
 
 #include <algorithm>
 #include <cmath>
@@ -9,7 +10,6 @@
 namespace needle_guidance::steering_3d {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 /// Below this rotation angle the screw uses the series of its translation (relative error of the
 /// series ~ theta^4 / 120, far below double precision at 1e-4).
 constexpr double kSmallAngle_rad = 1e-4;

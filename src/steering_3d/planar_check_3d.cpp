@@ -1,5 +1,6 @@
 // Extruded planar workspaces and the 3-D loop under the MDP's policy (planar_check_3d.h).
 #include "needle_guidance/steering_3d/planar_check_3d.h"
+#include "needle_guidance/math.h"
 
 #include <cmath>
 #include <stdexcept>
@@ -8,8 +9,6 @@
 
 namespace needle_guidance::steering_3d {
 namespace {
-
-constexpr double kPi = 3.14159265358979323846;
 
 double cross(const Eigen::Vector2d& a, const Eigen::Vector2d& b, const Eigen::Vector2d& c) {
   return (b - a).x() * (c - a).y() - (b - a).y() * (c - a).x();

@@ -1,6 +1,7 @@
 // RRT with the reachability metric, goal connection by one arc, and the LQG-MP-style choice
 // (planner_3d.h).
 #include "needle_guidance/steering_3d/planner_3d.h"
+#include "needle_guidance/math.h"
 
 #include <algorithm>
 #include <chrono>
@@ -15,7 +16,6 @@
 namespace needle_guidance::steering_3d {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 /// The tree samples in the box spanning its roots and the target, grown by this much and
 /// clipped to the tissue [m]: room for the S-curves a needle of r ~ 5 cm needs.
 constexpr double kSampleMargin_m = 0.03;

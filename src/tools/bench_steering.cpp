@@ -20,6 +20,7 @@
 #include <utility>
 #include <vector>
 
+#include "needle_guidance/math.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/scene/scene.h"
@@ -36,7 +37,7 @@ namespace st = ng::steering;
 
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
+using needle_guidance::kPi;
 constexpr double kMmPerM = 1e3;
 constexpr double kDegPerRad = 180.0 / kPi;
 /// Look-ups timed for lookup_us.

@@ -25,6 +25,7 @@
 
 #include "needle_guidance/imaging/frame_renderer.h"
 #include "needle_guidance/imaging/tip_tracker.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/procedures/guided_trial.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/statistics.h"
@@ -40,7 +41,7 @@ namespace st = ng::steering;
 
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
+using needle_guidance::kPi;
 constexpr double kMmPerM = 1e3;
 constexpr double kDegPerRad = 180.0 / kPi;
 constexpr int kCols = 640;

@@ -40,6 +40,7 @@
 #include "needle_guidance/imaging/needle_acquisition.h"
 #include "needle_guidance/imaging/synthetic_bmode.h"
 #include "needle_guidance/imaging/tip_tracker.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/scene/scene.h"
@@ -50,7 +51,7 @@ namespace im = ng::imaging;
 
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
+using needle_guidance::kPi;
 constexpr double kDegPerRad = 180.0 / kPi;
 constexpr double kAssumedPixel_m = 0.1e-3;
 constexpr double kConfidentWrong_px = 20.0;
@@ -119,14 +120,9 @@ double angleError(double a, double b) {
   return std::min(d, 2 * kPi - d) * kDegPerRad;
 }
 
-double quantile(std::vector<double> v, double q) {
-  if (v.empty())
-    return std::nan("");
-  std::sort(v.begin(), v.end());
-  const double pos = q * static_cast<double>(v.size() - 1);
-  const auto i = static_cast<std::size_t>(pos);
-  const double f = pos - static_cast<double>(i);
-  return i + 1 < v.size() ? v[i] * (1 - f) + v[i + 1] * f : v[i];
+/// The q-quantile; undefined (NaN, written as null) for an empty sample.
+double quantile(const std::vector<double>& v, double q) {
+  return v.empty() ? std::nan("") : ng::quantile(v, q);
 }
 
 Result fromDetection(const im::Detection& d, const im::ImageGeometry& g, double ms) {

@@ -7,6 +7,7 @@
 #include <iostream>
 #include <vector>
 
+#include "needle_guidance/math.h"
 #include "needle_guidance/steering_3d/mesh_3d.h"
 
 namespace ns = needle_guidance::steering_3d;
@@ -14,7 +15,7 @@ using ns::Vector3;
 
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
+using needle_guidance::kPi;
 constexpr double kMm = 1e-3;
 constexpr int kSides = 16;
 

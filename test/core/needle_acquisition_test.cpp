@@ -14,13 +14,14 @@
 #include "needle_guidance/imaging/frame_renderer.h"
 #include "needle_guidance/imaging/needle_acquisition.h"
 #include "needle_guidance/imaging/synthetic_bmode.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/scene/scene.h"
 
 namespace im = needle_guidance::imaging;
 
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
+using needle_guidance::kPi;
 constexpr double kTipTolerance_px = 8.0;      // median tip error target
 constexpr double kTipP90Tolerance_px = 15.0;  // and its 90th-percentile target
 constexpr double kPsfReach_px = 3.0;  // blur of the drawn needle (sigma 1 px) and its 1 px radius

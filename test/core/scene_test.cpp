@@ -7,6 +7,7 @@
 #include <fstream>
 #include <string>
 
+#include "needle_guidance/math.h"
 #include "needle_guidance/scene/embedded_scenes.h"
 #include "needle_guidance/scene/scene.h"
 
@@ -18,7 +19,6 @@ namespace fs = std::filesystem;
 constexpr double kTol_m = 1e-12;
 constexpr double kTol_Pa = 1e-9;
 constexpr double kTol_rad = 1e-12;
-constexpr double kPi = 3.14159265358979323846;
 
 // A small valid tissue scene; each refusal test changes one line of it.
 const std::string kBase = R"(scene:

@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "needle_guidance/math.h"
 #include "needle_guidance/robot/steerable_needle.h"
 
 namespace needle_guidance::robot {
@@ -21,7 +22,6 @@ using steering::Bevel;
 using steering::Control;
 using steering::TipPose;
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 constexpr double kExactTol_m = 1e-12;  // same formula, same inputs: rounding only
 constexpr double kExactAngleTol_rad = 1e-12;

@@ -10,6 +10,7 @@
 #include <fstream>
 #include <sstream>
 
+#include "needle_guidance/math.h"
 #include "needle_guidance/procedures/guided_trial.h"
 #include "needle_guidance/procedures/steerable_trials.h"
 #include "needle_guidance/robot/steerable_needle.h"
@@ -20,7 +21,6 @@
 namespace needle_guidance::procedures {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 constexpr double kStandardErrors = 4.0;  // closed loop vs Monte Carlo, in binomial SEs
 constexpr int kTrials = 300;

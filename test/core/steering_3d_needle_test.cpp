@@ -6,13 +6,13 @@
 #include <cmath>
 #include <vector>
 
+#include "needle_guidance/math.h"
 #include "needle_guidance/steering/steering_model.h"
 #include "needle_guidance/steering_3d/needle_3d.h"
 
 namespace needle_guidance::steering_3d {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 constexpr double kExactPositionTol_m = 1e-12;  // closed forms in double over <= 0.3 m paths
 constexpr double kExactAngleTol_rad = 1e-12;

@@ -11,12 +11,12 @@
 #include <random>
 
 #include "../steering_shapes.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/steering/adaptive_policy.h"
 
 namespace needle_guidance::steering {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kSigmaI = 5.0 * kPi / 180.0;
 constexpr double kSigmaR = 10.0 * kPi / 180.0;
 constexpr unsigned kSeed = 21;

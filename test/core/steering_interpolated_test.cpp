@@ -7,6 +7,7 @@
 #include <cmath>
 
 #include "../steering_shapes.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/steering_model.h"
 #include "needle_guidance/steering/value_iteration.h"
@@ -14,7 +15,6 @@
 namespace needle_guidance::steering {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 constexpr double kVarianceTol_rad2 = 1e-10;    // bisection to ~1e-15 rad, probabilities in double
 constexpr double kFloatProbabilityTol = 1e-6;  // stencil probabilities are float

@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/steering/steering_model.h"
@@ -22,7 +23,6 @@
 namespace needle_guidance::steering {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 constexpr double kValueTol = 1e-6;            // P_s stored as float, exact problems
 constexpr double kResidualTol = 5e-3;         // Bellman residual after an epsilon = 1e-3 solve

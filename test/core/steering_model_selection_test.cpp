@@ -7,13 +7,13 @@
 #include <string>
 
 #include "../steering_shapes.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/steering/model_selection.h"
 #include "needle_guidance/steering/value_iteration.h"
 
 namespace needle_guidance::steering {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 using test_shapes::entryLine;
 /// A problem with uncertainty and a wall, small enough to solve many times in a test: the open
 /// workspace with sigma_i = 5 deg, sigma_r = 10 deg and a block in front of the target.

@@ -13,6 +13,7 @@
 
 #include "../steering_shapes.h"
 #include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/steering/steering_model.h"
@@ -21,7 +22,6 @@
 namespace needle_guidance::steering {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 constexpr double kProbabilityTol = 1e-12;      // probabilities computed in double
 constexpr double kFloatProbabilityTol = 1e-6;  // probabilities stored as float

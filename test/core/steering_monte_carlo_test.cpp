@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/continuous_workspace.h"
 #include "needle_guidance/steering/monte_carlo.h"
@@ -23,7 +24,6 @@
 namespace needle_guidance::steering {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 constexpr double kExact_m = 1e-12;       // same formula, rounding only [m]
 constexpr double kChordTol_m = 1e-5;     // ContinuousWorkspace default chord tolerance [m]

@@ -8,12 +8,12 @@
 #include <random>
 #include <stdexcept>
 
+#include "needle_guidance/math.h"
 #include "needle_guidance/steering/noise_estimator.h"
 
 namespace needle_guidance::steering {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 constexpr double kAngleTol_rad = 1e-12;
 constexpr double kQuantileRelTol = 0.01;  // Wilson-Hilferty, dof >= 3

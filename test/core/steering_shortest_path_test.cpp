@@ -23,6 +23,7 @@
 #include <vector>
 
 #include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/continuous_workspace.h"
 #include "needle_guidance/steering/monte_carlo.h"
@@ -36,7 +37,6 @@
 namespace needle_guidance::steering {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 /// End pose of a plan inside the target disc [m].
 constexpr double kInTargetTol_m = 1e-9;

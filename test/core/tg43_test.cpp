@@ -1,6 +1,7 @@
 // Tests for the TG-43 dose calculation (src/dose/tg43.cpp) against the shipped consensus data
 // in config/sources/ (no other files needed).
 #include "needle_guidance/dose/tg43.h"
+#include "needle_guidance/math.h"
 
 #include <gtest/gtest.h>
 #include <stdlib.h>  // mkdtemp
@@ -27,7 +28,7 @@ using needle_guidance::dose::Tg43Source;
 
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
+using needle_guidance::kPi;
 constexpr double kCm_m = 0.01;
 constexpr double kDeg_rad = kPi / 180.0;
 constexpr double kCGyPerH_GyPerS = 0.01 / 3600.0;  ///< 1 cGy h^-1 in Gy s^-1

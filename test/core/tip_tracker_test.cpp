@@ -21,6 +21,7 @@
 
 #include "needle_guidance/imaging/frame_renderer.h"
 #include "needle_guidance/imaging/tip_tracker.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/robot/steerable_needle.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/steering_model.h"
@@ -31,7 +32,6 @@ namespace {
 using steering::Bevel;
 using steering::TipPose;
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
 constexpr double kMm = 1e-3;
 
@@ -179,19 +179,12 @@ double tipError(const Point2& p, const TipPose& truth) {
 double headingError(double theta, const TipPose& truth) {
   return std::abs(std::remainder(theta - truth.theta_rad, 2.0 * kPi));
 }
-double median(std::vector<double> v) {
-  if (v.empty()) {
-    return std::nan("");
-  }
-  std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
-  return v[v.size() / 2];
+// NaN for an empty sample, so that a test over no frames fails instead of passing.
+double median(const std::vector<double>& v) {
+  return v.empty() ? std::nan("") : upperMedian(v);
 }
-double percentile(std::vector<double> v, double q) {
-  if (v.empty()) {
-    return std::nan("");
-  }
-  std::sort(v.begin(), v.end());
-  return v[static_cast<std::size_t>(q * static_cast<double>(v.size() - 1))];
+double percentile(const std::vector<double>& v, double q) {
+  return v.empty() ? std::nan("") : orderStatistic(v, q);
 }
 bool inFrame(const ImageGeometry& g, const Point2& p) {
   const cv::Point2d px = g.toPixel(p);

@@ -16,6 +16,7 @@
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/SetEntryPose3.h"
 #include "needle_guidance/Steer3Action.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/ros/conversions_3d.h"
 #include "needle_guidance/steering_3d/scene_3d.h"
 
@@ -27,7 +28,7 @@ using SteerClient = actionlib::SimpleActionClient<ng::Steer3Action>;
 using LinearMoveClient = actionlib::SimpleActionClient<ng::LinearMoveAction>;
 using State = actionlib::SimpleClientGoalState;
 
-constexpr double kPi = 3.14159265358979323846;
+using needle_guidance::kPi;
 constexpr double kPoseTol_m = 1e-9;       // the node's tip vs the core needle (noise 0, via a Pose)
 constexpr double kSpinRate_rad_s = 10.0;  // below the 5 rev/s spin-rate limit
 const ros::Duration kTimeout(30.0);

@@ -19,6 +19,7 @@
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SetEntryPose.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/continuous_workspace.h"
 #include "needle_guidance/steering/steering_model.h"
@@ -30,7 +31,7 @@ using LinearMoveClient = actionlib::SimpleActionClient<needle_guidance::LinearMo
 using FlipBevelClient = actionlib::SimpleActionClient<needle_guidance::FlipBevelAction>;
 using State = actionlib::SimpleClientGoalState;
 
-constexpr double kPi = 3.14159265358979323846;
+using needle_guidance::kPi;
 constexpr double kPoseTol_m = 1e-6;  // published tip vs advanceTip (sigmas are 0)
 constexpr double kAngleTol_rad = 1e-6;
 // The node checks contact step by step, the test in one trace; the two chord polylines may

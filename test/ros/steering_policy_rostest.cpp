@@ -22,6 +22,7 @@
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SolvePolicy.h"
 #include "needle_guidance/SteeringControl.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/steering/steering_model.h"
 
 namespace {
@@ -31,7 +32,7 @@ using needle_guidance::NeedleTip;
 using needle_guidance::SolvePolicy;
 using needle_guidance::SteeringControl;
 
-constexpr double kPi = 3.14159265358979323846;
+using needle_guidance::kPi;
 constexpr double kEntryLineTol_m = 1e-9;  ///< best start x vs the entry line x = 0
 constexpr double kProbabilityTol = 1e-6;  ///< P_s of the look-up vs the best start's
 constexpr double kStepTol_m = 1e-12;      ///< step_length_m vs 2 pi r / N_c

@@ -15,13 +15,14 @@
 #include "needle_guidance/LinearMoveAction.h"
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/SetEntryPose.h"
+#include "needle_guidance/math.h"
 
 namespace {
 
 using LinearMoveClient = actionlib::SimpleActionClient<needle_guidance::LinearMoveAction>;
 using needle_guidance::NeedleTip;
 
-constexpr double kPi = 3.14159265358979323846;
+using needle_guidance::kPi;
 constexpr double kStep_m = 2.0 * kPi * 0.05 / 40.0;  // delta of steering_workspace
 constexpr double kEntryHeight_m = 0.05;
 constexpr double kEntryTol_m = 0.2e-3;  // the guide pose is known: [m]

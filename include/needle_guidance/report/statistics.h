@@ -3,15 +3,16 @@
 
 #include <vector>
 
+#include "needle_guidance/math.h"
+
 namespace needle_guidance::report {
 
 /// Arithmetic mean; 0 for an empty sample.
 double mean(const std::vector<double>& v);
 /// Sample standard deviation (n - 1); 0 for fewer than two values.
 double sampleSd(const std::vector<double>& v);
-/// The q-quantile (q in [0, 1]) with linear interpolation between order statistics; 0 for an
-/// empty sample. Throws std::invalid_argument for q outside [0, 1].
-double quantile(std::vector<double> v, double q);
+/// The q-quantile with linear interpolation (needle_guidance/math.h).
+using needle_guidance::quantile;
 inline double median(std::vector<double> v) {
   return quantile(std::move(v), 0.5);
 }
