@@ -12,7 +12,7 @@
 #include <utility>
 
 #include "needle_guidance/scene/embedded_scenes.h"
-#include "yaml_reader.h"
+#include "needle_guidance/scene/yaml_reader.h"
 
 namespace needle_guidance::scene {
 namespace {
@@ -269,6 +269,12 @@ private:
       fail(m.keyPath("name"), "", "name must not be empty");
     }
     scene_.description = m.optionalString("description").value_or("");
+    if (const std::optional<std::string> kind = m.optionalString("kind");
+        kind && *kind != kPlanar) {
+      fail(m.keyPath("kind"), *kind,
+           "this reader takes planar scenes; a scene of kind '" + *kind +
+               "' is read by its own module (check_scene reads every kind)");
+    }
     m.finish();
   }
 
@@ -838,6 +844,36 @@ Scene defaultScene(const std::string& name) {
   }
   throw std::invalid_argument("defaultScene: no embedded scene '" + name + "' (known: " + known +
                               ")");
+}
+
+std::string sceneKind(const std::string& spec) {
+  std::error_code error;
+  if (!fs::exists(spec, error)) {
+    const std::vector<std::string> names = defaultSceneNames();
+    if (std::find(names.begin(), names.end(), spec) != names.end()) {
+      return kPlanar;  // the embedded scenes are planar
+    }
+    loadSceneSpec(spec);  // throws the loader's message for a missing file or unknown name
+  }
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(spec);
+  } catch (const YAML::ParserException& e) {
+    throw SceneError(spec, "", "",
+                     "YAML syntax error: " + e.msg + " (line " + std::to_string(e.mark.line + 1) +
+                         ", column " + std::to_string(e.mark.column + 1) + ")");
+  } catch (const YAML::Exception& e) {
+    throw SceneError(spec, "", "", std::string("cannot read: ") + e.what());
+  }
+  const YAML::Node kind =
+      root.IsMap() && root["scene"].IsMap() ? root["scene"]["kind"] : YAML::Node();
+  if (!kind.IsDefined() || kind.IsNull()) {
+    return kPlanar;
+  }
+  if (!kind.IsScalar()) {
+    throw SceneError(spec, "scene.kind", detail::nodeText(kind), "must be a name");
+  }
+  return kind.Scalar();
 }
 
 Scene loadSceneSpec(const std::string& spec) {

@@ -1,4 +1,4 @@
-#include "yaml_reader.h"
+#include "needle_guidance/scene/yaml_reader.h"
 
 #include <algorithm>
 #include <cmath>
@@ -245,7 +245,7 @@ double MapReader::toNumber(const std::string& key_path, const YAML::Node& node) 
   }
   double value = 0.0;
   if (!YAML::convert<double>::decode(node, value)) {
-    failAt(key_path, node, "expected a number");
+    failAt(key_path, node, "expected a finite number");
   }
   if (!std::isfinite(value)) {
     failAt(key_path, node, "not a finite number (NaN and inf are refused)");
@@ -348,6 +348,28 @@ PointValue MapReader::requiredPoint(const std::string& base, const Dimension& di
   point.unit = variant->unit;
   point.line = lineOf(variant->node);
   return point;
+}
+
+Vector3Value MapReader::requiredVector3(const std::string& base, const Dimension& dim) {
+  const std::optional<Variant> variant = findVariant(base, dim);
+  if (!variant) {
+    failMissing(base, dim);
+  }
+  Vector3Value v;
+  v.key = keyPath(variant->key);
+  v.text = nodeText(variant->node);
+  v.unit = variant->unit;
+  v.line = lineOf(variant->node);
+  const YAML::Node& node = variant->node;
+  if (!node.IsSequence() || node.size() != 3) {
+    failAt(v.key, node,
+           "expected a list [x, y, z], got " +
+               (node.IsSequence() ? "a list of " + std::to_string(node.size()) : typeName(node)));
+  }
+  for (int i = 0; i < 3; ++i) {
+    v.value[i] = toNumber(v.key + "[" + std::to_string(i) + "]", node[i]) * variant->unit.to_si;
+  }
+  return v;
 }
 
 PointList MapReader::requiredPointList(const std::string& base, const Dimension& dim) {

@@ -1,5 +1,6 @@
 // Mesh IO, validation, primitives and AABB-tree distance queries (mesh_3d.h), through CGAL.
 #include "needle_guidance/steering_3d/mesh_3d.h"
+#include "needle_guidance/math.h"
 
 #include <CGAL/AABB_face_graph_triangle_primitive.h>
 #include <CGAL/AABB_traits.h>
@@ -32,7 +33,6 @@ using Tree = CGAL::AABB_tree<CGAL::AABB_traits<Kernel, Primitive>>;
 using Inside = CGAL::Side_of_triangle_mesh<SurfaceMesh, Kernel>;
 namespace PMP = CGAL::Polygon_mesh_processing;
 
-constexpr double kPi = 3.14159265358979323846;
 /// A triangle whose area is below this fraction of its longest edge squared is degenerate.
 constexpr double kDegenerateAreaRatio = 1e-12;
 
@@ -86,30 +86,118 @@ void checkFaces(const std::string& path, const std::vector<Point>& points,
 }
 
 /// Every undirected edge must be shared by exactly two triangles (a closed 2-manifold surface).
+/// The refusal names the first such edge and the faces (0-based, after the repairs) using it.
 void checkClosed(const std::string& path, const std::vector<std::vector<std::size_t>>& faces) {
-  std::map<std::pair<std::size_t, std::size_t>, int> edge_uses;
-  for (const auto& face : faces) {
+  std::map<std::pair<std::size_t, std::size_t>, std::vector<std::size_t>> edge_faces;
+  for (std::size_t f = 0; f < faces.size(); ++f) {
     for (int i = 0; i < 3; ++i) {
-      std::size_t a = face[i], b = face[(i + 1) % 3];
-      if (a == b) {
-        continue;
+      const std::size_t a = faces[f][i], b = faces[f][(i + 1) % 3];
+      if (a != b) {
+        edge_faces[{std::min(a, b), std::max(a, b)}].push_back(f);
       }
-      ++edge_uses[{std::min(a, b), std::max(a, b)}];
     }
   }
-  for (const auto& [edge, uses] : edge_uses) {
-    if (uses != 2) {
+  for (const auto& [edge, users] : edge_faces) {
+    if (users.size() != 2) {
       std::ostringstream os;
-      os << "not closed: edge (" << edge.first << ", " << edge.second << ") is used by " << uses
-         << " triangle(s), not 2";
+      os << "not closed: edge (" << edge.first << ", " << edge.second << ") is used by "
+         << users.size() << " triangle(s), not 2 (face";
+      for (std::size_t i = 0; i < users.size() && i < 4; ++i) {
+        os << (i ? ", " : " ") << users[i];
+      }
+      os << ")";
       refuse(path, os.str());
     }
   }
 }
 
+/// The faces' cyclic vertex order, for counting which ones orienting reversed.
+bool sameCycle(const std::vector<std::size_t>& a, const std::vector<std::size_t>& b) {
+  for (int shift = 0; shift < 3; ++shift) {
+    if (a[0] == b[shift] && a[1] == b[(shift + 1) % 3] && a[2] == b[(shift + 2) % 3]) {
+      return true;
+    }
+  }
+  return false;
+}
+
+/// Repairs what is safe to repair in a polygon soup, counting each repair: vertices no face
+/// uses, duplicate vertices (not counted for STL, which repeats every corner by design) and
+/// duplicate faces. Refuses non-triangles and degenerate triangles before and after merging.
+void repairSoup(const std::string& path, std::vector<Point>& points,
+                std::vector<std::vector<std::size_t>>& faces, MeshRepairs3& repairs) {
+  checkFaces(path, points, faces);
+  const bool stl = std::filesystem::path(path).extension() == ".stl" ||
+                   std::filesystem::path(path).extension() == ".STL";
+  const std::size_t merged = PMP::merge_duplicate_points_in_polygon_soup(points, faces);
+  repairs.duplicate_vertices_merged = stl ? 0 : merged;
+  checkFaces(path, points, faces);  // merging can make a sliver collapse
+  repairs.duplicate_faces_removed = PMP::merge_duplicate_polygons_in_polygon_soup(
+      points, faces, CGAL::parameters::erase_all_duplicates(false).require_same_orientation(false));
+  repairs.unreferenced_vertices_removed =
+      PMP::remove_isolated_points_in_polygon_soup(points, faces);
+}
+
+/// The soup as a closed, consistently and outward oriented surface mesh; counts the faces whose
+/// orientation changed. Refuses a surface that is open, cannot be oriented or intersects itself,
+/// naming the first offending faces.
+SurfaceMesh orientedMesh(const std::string& path, std::vector<Point>& points,
+                         std::vector<std::vector<std::size_t>>& faces, MeshRepairs3& repairs) {
+  checkClosed(path, faces);
+  const std::vector<std::vector<std::size_t>> as_read = faces;
+  if (!PMP::orient_polygon_soup(points, faces)) {
+    refuse(path, "not a manifold surface (it cannot be oriented consistently)");
+  }
+  SurfaceMesh mesh;
+  PMP::polygon_soup_to_polygon_mesh(points, faces, mesh);
+  if (!CGAL::is_closed(mesh) || !CGAL::is_valid_polygon_mesh(mesh)) {
+    refuse(path, "not closed");
+  }
+  if (PMP::does_self_intersect(mesh)) {
+    std::vector<std::pair<SurfaceMesh::Face_index, SurfaceMesh::Face_index>> pairs;
+    PMP::self_intersections(mesh, std::back_inserter(pairs));
+    std::ostringstream os;
+    os << "self-intersecting: " << pairs.size() << " pair(s) of triangles intersect";
+    if (!pairs.empty()) {
+      os << ", the first faces " << std::size_t(pairs.front().first) << " and "
+         << std::size_t(pairs.front().second);
+    }
+    refuse(path, os.str());
+  }
+  std::size_t flipped = 0;
+  for (std::size_t f = 0; f < faces.size(); ++f) {
+    flipped += sameCycle(faces[f], as_read[f]) ? 0 : 1;
+  }
+  if (!PMP::is_outward_oriented(mesh)) {
+    PMP::reverse_face_orientations(mesh);
+    flipped = faces.size() - flipped;
+  }
+  repairs.faces_reoriented = flipped;
+  return mesh;
+}
+
 }  // namespace
 
-Mesh3 readMesh3(const std::string& path, double scale_to_m) {
+bool MeshRepairs3::empty() const {
+  return unreferenced_vertices_removed == 0 && duplicate_vertices_merged == 0 &&
+         duplicate_faces_removed == 0 && faces_reoriented == 0;
+}
+
+std::string MeshRepairs3::toString() const {
+  std::string text;
+  const auto add = [&text](std::size_t n, const char* what) {
+    if (n > 0) {
+      text += (text.empty() ? "" : ", ") + std::to_string(n) + " " + what;
+    }
+  };
+  add(unreferenced_vertices_removed, "unreferenced vertices removed");
+  add(duplicate_vertices_merged, "duplicate vertices merged");
+  add(duplicate_faces_removed, "duplicate faces removed");
+  add(faces_reoriented, "faces reoriented outwards");
+  return text.empty() ? "nothing" : text;
+}
+
+Mesh3 readMesh3(const std::string& path, double scale_to_m, MeshRepairs3* repairs_out) {
   if (!(scale_to_m > 0.0) || !std::isfinite(scale_to_m)) {
     refuse(path, "scale_to_m must be finite and > 0");
   }
@@ -127,23 +215,11 @@ Mesh3 readMesh3(const std::string& path, double scale_to_m) {
   if (!read) {
     refuse(path, "cannot be read as STL, OFF, OBJ or PLY (by its extension)");
   }
-  checkFaces(path, points, faces);
-  PMP::merge_duplicate_points_in_polygon_soup(points, faces);
-  checkFaces(path, points, faces);  // merging can make a sliver collapse
-  checkClosed(path, faces);
-  if (!PMP::orient_polygon_soup(points, faces)) {
-    refuse(path, "not a manifold surface (it cannot be oriented consistently)");
-  }
-  SurfaceMesh mesh;
-  PMP::polygon_soup_to_polygon_mesh(points, faces, mesh);
-  if (!CGAL::is_closed(mesh) || !CGAL::is_valid_polygon_mesh(mesh)) {
-    refuse(path, "not closed");
-  }
-  if (PMP::does_self_intersect(mesh)) {
-    refuse(path, "self-intersecting");
-  }
-  if (!PMP::is_outward_oriented(mesh)) {
-    PMP::reverse_face_orientations(mesh);
+  MeshRepairs3 repairs;
+  repairSoup(path, points, faces, repairs);
+  const SurfaceMesh mesh = orientedMesh(path, points, faces, repairs);
+  if (repairs_out) {
+    *repairs_out = repairs;
   }
   Mesh3 out;
   std::map<SurfaceMesh::Vertex_index, int> index;

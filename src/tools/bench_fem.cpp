@@ -4,7 +4,7 @@
 // every few steps (the tip hands over to the next node on the needle line), and a moveNode of
 // the tip node every few steps (cutting). Also runs without mesh changes (only the tip value
 // changes). Writes fem.csv, summary.json and plot.json to DIR (scripts/bench fem).
-// Usage: bench_fem --out DIR [--quick]
+// Usage: bench_fem --out DIR [--quick] [--scene SPEC]   (SPEC: a scene file or embedded name)
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -172,7 +172,7 @@ int main(int argc, char** argv) {
   const std::string& out_dir = args->out_dir;
   const bool quick = args->quick;
   try {
-    const ng::scene::Scene scene = ng::scene::defaultScene("prostate_sagittal");
+    const ng::scene::Scene scene = ng::scene::loadSceneSpec(args->scene);
     const double area_m2 = scene.workspacePolygon().area();
     const std::vector<double> targets =
         quick ? std::vector<double>{1250, 12000} : std::vector<double>{1250, 3000, 12000, 50000};

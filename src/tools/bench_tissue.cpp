@@ -2,7 +2,7 @@
 // scene (cutting, shaft friction, node promotion), seed implant at the target, retraction, for
 // each integrator on graded meshes from ~1k to ~50k triangles. Reports steps per second and
 // per-step latency against seed position error (vs. the finest quasi-static run), and memory.
-// Usage: bench_tissue --out DIR [--quick]
+// Usage: bench_tissue --out DIR [--quick] [--scene SPEC]   (SPEC: a scene file or embedded name)
 #include <sys/resource.h>
 
 #include <algorithm>
@@ -117,7 +117,7 @@ int main(int argc, char** argv) {
   const std::string& out_dir = args->out_dir;
   const bool quick = args->quick;
   try {
-    const ng::scene::Scene scene = ng::scene::defaultScene("prostate_sagittal");
+    const ng::scene::Scene scene = ng::scene::loadSceneSpec(args->scene);
     const ng::geometry::Point2 target = scene.target("t06").position;
     // Graded meshes: the scene's sizes (fine at the targets) scaled down; scale 1 is the default.
     const std::vector<double> scales =

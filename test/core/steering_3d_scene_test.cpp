@@ -7,8 +7,11 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <sstream>
 #include <string>
+#include <utility>
 
+#include "needle_guidance/math.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering_3d/collision_3d.h"
 #include "needle_guidance/steering_3d/mesh_3d.h"
@@ -17,7 +20,6 @@
 namespace needle_guidance::steering_3d {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kMm = 1e-3;
 constexpr double kDistanceTol_m = 1e-9;  // AABB distances to planar faces, in double
 constexpr double kTolerance_m = 5e-5;    // the collision world's contact tolerance
@@ -78,6 +80,7 @@ TEST(Mesh3d, RefusesOpenDegenerateAndNonTriangleMeshesNamingTheFile) {
   std::string error = meshError(open);
   EXPECT_NE(error.find(open.string()), std::string::npos) << error;
   EXPECT_NE(error.find("not closed"), std::string::npos) << error;
+  EXPECT_NE(error.find("(face "), std::string::npos) << error;  // the faces at the open edge
 
   const auto degenerate = tempDir() / "degenerate.off";
   writeText(degenerate,
@@ -94,6 +97,63 @@ TEST(Mesh3d, RefusesOpenDegenerateAndNonTriangleMeshesNamingTheFile) {
 
   error = meshError(tempDir() / "missing.off");
   EXPECT_NE(error.find("missing.off"), std::string::npos) << error;
+}
+
+/// A closed box with what an exported organ mesh often carries: vertices no face uses (SOFA's
+/// liver.obj has 42), a face written twice, and faces in the wrong order.
+Mesh3 untidyBox(int unreferenced, int reversed_faces) {
+  Mesh3 m = boxMesh(Vector3(0, 0, 0), Vector3(10, 20, 30));
+  for (int i = 0; i < unreferenced; ++i) {
+    m.vertices.emplace_back(50.0 + i, 50.0, 50.0);
+  }
+  for (int f = 0; f < reversed_faces; ++f) {
+    std::swap(m.triangles[static_cast<std::size_t>(f)][1],
+              m.triangles[static_cast<std::size_t>(f)][2]);
+  }
+  m.triangles.push_back(m.triangles.back());
+  return m;
+}
+
+TEST(Mesh3d, RepairsUnreferencedVerticesDuplicateFacesAndOrientationAndSaysSo) {
+  for (const int reversed : {3, 12}) {  // some faces against the rest; every face inwards
+    const auto path = tempDir() / ("untidy_box_" + std::to_string(reversed) + ".obj");
+    writeMesh3(path.string(), untidyBox(42, reversed), 1.0);
+    MeshRepairs3 repairs;
+    const Mesh3 read = readMesh3(path.string(), kMm, &repairs);
+    EXPECT_EQ(repairs.unreferenced_vertices_removed, 42u) << reversed;
+    EXPECT_EQ(repairs.duplicate_faces_removed, 1u) << reversed;
+    EXPECT_EQ(repairs.duplicate_vertices_merged, 0u) << reversed;
+    EXPECT_EQ(repairs.faces_reoriented, static_cast<std::size_t>(reversed));
+    EXPECT_NE(repairs.toString().find("42 unreferenced vertices removed"), std::string::npos)
+        << repairs.toString();
+    EXPECT_EQ(read.vertices.size(), 8u);
+    EXPECT_EQ(read.triangles.size(), 12u);
+    const MeshDistance d(read);  // outward: the inside test holds inside the box
+    EXPECT_TRUE(d.insideOrOn(Vector3(5, 10, 15) * kMm));
+    EXPECT_FALSE(d.insideOrOn(Vector3(5, 10, 31) * kMm));
+    EXPECT_NEAR(d.distance(Vector3(5, 10, 35) * kMm), 5 * kMm, kDistanceTol_m);
+  }
+  MeshRepairs3 clean;
+  const auto tidy = tempDir() / "tidy_box.off";
+  writeMesh3(tidy.string(), boxMesh(Vector3(0, 0, 0), Vector3(1, 1, 1)), 1.0);
+  readMesh3(tidy.string(), kMm, &clean);
+  EXPECT_TRUE(clean.empty()) << clean.toString();
+}
+
+TEST(Mesh3d, RefusesASelfIntersectingMeshNamingTheFileAndTheFaces) {
+  Mesh3 two = boxMesh(Vector3(0, 0, 0), Vector3(2, 2, 2));
+  const Mesh3 other = boxMesh(Vector3(1, 1, 1), Vector3(3, 3, 3));
+  const int offset = static_cast<int>(two.vertices.size());
+  two.vertices.insert(two.vertices.end(), other.vertices.begin(), other.vertices.end());
+  for (auto t : other.triangles) {
+    two.triangles.push_back({t[0] + offset, t[1] + offset, t[2] + offset});
+  }
+  const auto path = tempDir() / "overlapping_boxes.off";
+  writeMesh3(path.string(), two, 1.0);
+  const std::string error = meshError(path);
+  EXPECT_NE(error.find(path.string()), std::string::npos) << error;
+  EXPECT_NE(error.find("self-intersecting"), std::string::npos) << error;
+  EXPECT_NE(error.find("first faces"), std::string::npos) << error;
 }
 
 TEST(Collision3d, SegmentsStopAtTheExpandedObstacle) {
@@ -227,6 +287,56 @@ TEST(Scene3d, BadFilesAreRefusedNamingFileKeyAndValue) {
   const std::string open = (tempDir() / "open_obstacle.off").string();
   writeMesh3(open, box, 1.0);
   refuse(replaced(good, "meshes/urethra.off", open), "obstacles[1].mesh", "not closed");
+}
+
+TEST(Scene3d, AMeshRepairIsReportedWithTheSceneKeyAndTheFile) {
+  Mesh3 tissue = readMesh3(sceneDir() + "/meshes/prostate_tissue.off", 1.0);
+  for (int i = 0; i < 42; ++i) {
+    tissue.vertices.emplace_back(500.0 + i, 0.0, 0.0);
+  }
+  const auto path = tempDir() / "tissue_with_stray_vertices.off";
+  writeMesh3(path.string(), tissue, 1.0);
+  const Scene3d s =
+      parseScene3d(replaced(prostateText(), "meshes/prostate_tissue.off", path.string()),
+                   "repair.yaml", sceneDir());
+  ASSERT_EQ(s.mesh_repairs.size(), 1u);
+  EXPECT_NE(s.mesh_repairs[0].find("tissue.mesh"), std::string::npos) << s.mesh_repairs[0];
+  EXPECT_NE(s.mesh_repairs[0].find("42 unreferenced vertices removed"), std::string::npos)
+      << s.mesh_repairs[0];
+  EXPECT_TRUE(loadScene3d(sceneDir() + "/prostate_3d.yaml").mesh_repairs.empty());
+}
+
+/// One scene system: every shipped scene file names its kind (planar when absent) and loads
+/// through the reader of that kind; the planar reader refuses a 3-D scene naming its kind.
+TEST(Scene3d, EveryShippedSceneOfEveryKindLoadsThroughItsKind) {
+  int planar = 0, steering = 0;
+  const std::filesystem::path root = std::string(NG_SOURCE_DIR) + "/config/scenes";
+  for (const auto& entry : std::filesystem::recursive_directory_iterator(root)) {
+    if (entry.path().extension() != ".yaml") {
+      continue;
+    }
+    const std::string path = entry.path().string();
+    const std::string kind = scene::sceneKind(path);
+    if (kind == scene::kPlanar) {
+      EXPECT_NO_THROW(scene::loadScene(path)) << path;
+      ++planar;
+    } else if (kind == "steering_3d") {
+      EXPECT_NO_THROW(loadScene3d(path)) << path;
+      ++steering;
+    } else {
+      ADD_FAILURE() << path << ": unknown kind " << kind;
+    }
+  }
+  EXPECT_GE(planar, 9);
+  EXPECT_GE(steering, 3);
+  EXPECT_EQ(scene::sceneKind("steering_workspace"), scene::kPlanar);  // embedded names
+  try {
+    scene::loadScene(sceneDir() + "/prostate_3d.yaml");
+    ADD_FAILURE() << "the planar reader accepted a steering_3d scene";
+  } catch (const scene::SceneError& e) {
+    EXPECT_EQ(e.key(), "scene.kind");
+    EXPECT_NE(std::string(e.what()).find("steering_3d"), std::string::npos) << e.what();
+  }
 }
 
 }  // namespace

@@ -201,6 +201,13 @@ Scene parseScene(const std::string& yaml_text, const std::string& source);
 Scene defaultScene(const std::string& name);
 /// Names of the embedded scenes.
 std::vector<std::string> defaultSceneNames();
+/// The kind of planar scenes: `scene.kind` absent or "planar".
+inline constexpr const char* kPlanar = "planar";
+/// The `scene.kind` of the file `spec` ("planar" when absent; the embedded scenes are planar), so
+/// that one scene parameter can be dispatched to the reader of its kind ("steering_3d":
+/// steering_3d::loadScene3d). Throws SceneError for a missing or unreadable file, an unknown
+/// embedded name or a kind that is not a name; the kind itself is not validated here.
+std::string sceneKind(const std::string& spec);
 /// Loads `spec`: a path to a YAML file, or the name of an embedded scene. An existing file wins
 /// over an embedded name. Throws SceneError if it is neither.
 Scene loadSceneSpec(const std::string& spec);

@@ -1,8 +1,10 @@
 // Typed reading of scene YAML: unit-suffixed keys converted to SI, unknown-key detection and
-// dotted/indexed key paths for SceneError. Private to the scene module.
+// dotted/indexed key paths for SceneError. Every scene kind is read with it (planar scenes in
+// src/scene/, 3-D steering scenes in src/steering_3d/scene_3d.cpp).
 #pragma once
 
 #include <yaml-cpp/yaml.h>
+#include <Eigen/Core>
 
 #include <optional>
 #include <set>
@@ -43,6 +45,8 @@ inline const Dimension kDensity{"density", {{"_kg_m3", "kg/m^3", 1.0}}};
 inline const Dimension kFrequency{"frequency", {{"_hz", "Hz", 1.0}}};
 inline const Dimension kTime{"time", {{"_s", "s", 1.0}, {"_ms", "ms", 1e-3}}};
 inline const Dimension kPerTime{"rate", {{"_per_s", "1/s", 1.0}}};
+inline const Dimension kAngularRate{
+    "angular rate", {{"_rad_s", "rad/s", 1.0}, {"_rev_s", "rev/s", 6.283185307179586}}};
 
 /// A number read from the file, with where it came from.
 struct Quantity {
@@ -65,6 +69,15 @@ struct PointList {
 /// One point read from the file.
 struct PointValue {
   Point2 point = Point2::Zero();  ///< [m]
+  std::string key;
+  std::string text;
+  Unit unit{"", "", 1.0};
+  int line = -1;  ///< 1-based line, -1 if unknown
+};
+
+/// A 3-D point or vector read from the file.
+struct Vector3Value {
+  Eigen::Vector3d value = Eigen::Vector3d::Zero();  ///< in SI
   std::string key;
   std::string text;
   Unit unit{"", "", 1.0};
@@ -115,6 +128,8 @@ public:
   std::optional<Quantity> optionalQuantity(const std::string& base, const Dimension& dim);
   /// A point [x, y] under base + one of dim's suffixes.
   PointValue requiredPoint(const std::string& base, const Dimension& dim);
+  /// A list [x, y, z] under base + one of dim's suffixes (kDimensionless: the key `base`).
+  Vector3Value requiredVector3(const std::string& base, const Dimension& dim);
   /// A list of points [[x, y], ...] under base + one of dim's suffixes.
   PointList requiredPointList(const std::string& base, const Dimension& dim);
 

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <array>
+#include <cstddef>
 #include <memory>
 #include <string>
 #include <vector>
@@ -19,13 +20,28 @@ struct Mesh3 {
   std::vector<std::array<int, 3>> triangles;
 };
 
+/// What readMesh3 repaired in a file: each is safe to repair and leaves the surface the file
+/// describes.
+struct MeshRepairs3 {
+  std::size_t unreferenced_vertices_removed = 0;  ///< vertices no face uses
+  std::size_t duplicate_vertices_merged = 0;      ///< equal points merged (not counted for STL)
+  std::size_t duplicate_faces_removed = 0;        ///< faces on the same three vertices
+  std::size_t faces_reoriented = 0;               ///< faces turned to a consistent outward order
+  bool empty() const;
+  /// "42 unreferenced vertices removed, 10 faces reoriented outwards", or "nothing".
+  std::string toString() const;
+};
+
 /// Reads a mesh with CGAL's polygon-soup IO (the format from the extension: .stl, .off, .obj;
-/// also .ply), scales it by scale_to_m (a file in mm: 1e-3), merges duplicated points (STL) and
-/// orients it outwards. Throws std::invalid_argument naming the file for: an unreadable file or
-/// unknown extension, no triangles, a face that is not a triangle, a degenerate triangle (two
-/// equal vertices or zero area), a mesh that is not closed (an edge not shared by exactly two
-/// triangles, or not a manifold), or a self-intersecting mesh.
-Mesh3 readMesh3(const std::string& path, double scale_to_m);
+/// also .ply) and scales it by scale_to_m (a file in mm: 1e-3). Repairs what is safe with CGAL
+/// Polygon Mesh Processing and reports it in `repairs` when given: vertices no face uses and
+/// duplicate faces are removed, duplicate vertices merged, the faces oriented consistently and
+/// outwards. Throws std::invalid_argument naming the file (and the first offending faces, 0-based
+/// after the repairs) for: an unreadable file or unknown extension, no triangles, a face that is
+/// not a triangle, a degenerate triangle (two equal vertices or zero area), a mesh that is not
+/// closed (an edge not shared by exactly two triangles, or not a manifold), or a
+/// self-intersecting mesh.
+Mesh3 readMesh3(const std::string& path, double scale_to_m, MeshRepairs3* repairs = nullptr);
 /// Writes a mesh (format from the extension), coordinates divided by scale_to_m. Throws
 /// std::runtime_error naming the file if it cannot be written.
 void writeMesh3(const std::string& path, const Mesh3& mesh, double scale_to_m);

@@ -40,6 +40,9 @@ struct Scene3d {
   double step_length_m = 5e-3;          ///< insertion between two tip images (5.3's delta) [m]
   double collision_tolerance_m = 5e-5;  ///< CollisionWorld3 tolerance [m]
   std::string tissue_file;
+  /// What the mesh loader repaired, one line per mesh file ("tissue.mesh liver.obj: repaired:
+  /// 42 unreferenced vertices removed"); empty when every mesh was clean.
+  std::vector<std::string> mesh_repairs;
   Mesh3 tissue;
   std::vector<ObstacleMesh3> obstacles;
   std::vector<std::string> obstacle_files;
