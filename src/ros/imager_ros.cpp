@@ -26,18 +26,27 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   const auto seed = static_cast<std::uint64_t>(rp::integer(private_nh, "seed", 1, 0, 1L << 53, ""));
   const imaging::ImagerView view = rp::choice(
       private_nh, "view", "plane", imaging::imagerViewFromString, "plane, along_z or along_y");
+  // One ~scene, dispatched on its kind: a steering_3d file is seen along one of its axes.
+  const std::string scene_spec = rp::text(private_nh, "scene", "steering_workspace");
+  const bool scene_is_3d = scene::sceneKind(scene_spec) == "steering_3d";
+  if (scene_is_3d != imaging::viewAxis(view).has_value()) {
+    throw std::runtime_error("parameter '" + private_nh.resolveName("scene") + "' = '" +
+                             scene_spec + "': " +
+                             (scene_is_3d ? "a steering_3d scene needs ~view along_z or along_y"
+                                          : "~view along_z / along_y needs a steering_3d scene"));
+  }
   scene::Scene scene;
   imaging::ImagerConfig config;
   if (const auto axis = imaging::viewAxis(view)) {  // one fluoroscopy view of a 3-D scene
     rows_ = steering_3d::viewRows(*axis);
     imaging::BiplaneViewsConfig views;  // the biplane detector's geometry; along y seed + 1
     views.seed = seed;
-    imaging::BiplaneViewSetup setup = imaging::biplaneViewSetup(
-        steering_3d::loadScene3d(rp::text(private_nh, "scene_3d", "", true)), views, *axis);
+    imaging::BiplaneViewSetup setup =
+        imaging::biplaneViewSetup(steering_3d::loadScene3d(scene_spec), views, *axis);
     scene = std::move(setup.plane);
     config = setup.imager;
   } else {  // every device setting defaults to the scene's imaging section
-    scene = scene::loadSceneSpec(rp::text(private_nh, "scene", "steering_workspace"));
+    scene = scene::loadSceneSpec(scene_spec);
     config = imaging::imagerConfigFromScene(scene, seed);
     config.modality = rp::choice(private_nh, "modality", imaging::toString(config.modality),
                                  imaging::modalityFromString, "ultrasound or fluoroscopy");

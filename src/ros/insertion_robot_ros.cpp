@@ -135,10 +135,10 @@ void InsertionRobotRos::setUpSteerableNeedle(const ros::NodeHandle& private_nh,
 }
 
 void InsertionRobotRos::setUpSteerable3d(const ros::NodeHandle& private_nh,
+                                         const std::string& scene_file,
                                          const robot::StageLimits& limits,
                                          const std::string& journal_path) {
-  scene3d_ = std::make_unique<steering_3d::Scene3d>(
-      steering_3d::loadScene3d(ros_params::text(private_nh, "scene_3d", "", true)));
+  scene3d_ = std::make_unique<steering_3d::Scene3d>(steering_3d::loadScene3d(scene_file));
   const double noise = ros_params::number(private_nh, "noise_scale", 1.0, 0.0, 10.0, "x sigma");
   const auto seed = ros_params::integer(private_nh, "seed", 1, 0, 9007199254740992L, "");
   steer3d_ = std::make_unique<robot::SteerableStage3d>(
@@ -207,13 +207,21 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
                              "' (the stage URDF) is not set");
   }
   const robot::StageLimits limits = robot::parseStageLimits(urdf_xml);
-  const scene::Scene scene = scene::loadSceneSpec(scene_spec);
+  // One ~scene, dispatched on its kind: a steering_3d file selects the 3-D steerable mode.
+  const bool scene_is_3d = scene::sceneKind(scene_spec) == "steering_3d";
   const std::string mode = ros_params::text(private_nh, "mode", "auto");
-  const bool steerable3d = mode == "steerable_3d";
-  if (mode != "auto" && mode != "rigid" && mode != "steerable" && !steerable3d) {
+  const bool steerable3d = mode == "steerable_3d" || (mode == "auto" && scene_is_3d);
+  if (mode != "auto" && mode != "rigid" && mode != "steerable" && mode != "steerable_3d") {
     throw std::runtime_error("parameter '" + private_nh.resolveName("mode") + "' = '" + mode +
                              "' is not rigid, steerable, steerable_3d or auto");
   }
+  if (steerable3d != scene_is_3d) {
+    throw std::runtime_error("parameter '" + private_nh.resolveName("scene") + "' = '" +
+                             scene_spec + "': ~mode " + mode +
+                             (scene_is_3d ? " cannot drive a steering_3d scene (use auto)"
+                                          : " needs a steering_3d scene file"));
+  }
+  const scene::Scene scene = scene_is_3d ? scene::Scene{} : scene::loadSceneSpec(scene_spec);
   const bool steerable_mode = mode == "steerable" || (mode == "auto" && scene.steering);
   if (steerable_mode && !scene.steering) {
     throw std::runtime_error("~mode steerable needs a scene with models.steering; scene '" +
@@ -274,7 +282,7 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   if (steerable_mode)
     setUpSteerableNeedle(private_nh, scene, b, initial_height_m, initial_bevel_rad, journal_path);
   if (steerable3d) {
-    setUpSteerable3d(private_nh, limits, journal_path);
+    setUpSteerable3d(private_nh, scene_spec, limits, journal_path);
   }
   advertiseInterfaces(private_nh);
 
@@ -283,9 +291,10 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   publishState(last_step_);
   control_timer_ = nh.createTimer(ros::Duration(1.0 / control_rate_hz),
                                   &InsertionRobotRos::onControlTimer, this);
-  ROS_INFO_STREAM("insertion_robot: ready on scene '" << scene.name << "', needle "
-                                                      << limits.needle_length_m << " m, " << mode
-                                                      << " mode, time scale " << time_scale_);
+  ROS_INFO_STREAM("insertion_robot: ready on scene '" << (scene3d_ ? scene3d_->name : scene.name)
+                                                      << "', needle " << limits.needle_length_m
+                                                      << " m, " << mode << " mode, time scale "
+                                                      << time_scale_);
 }
 
 InsertionRobotRos::LinearMoveServer& InsertionRobotRos::linearServer(Owner owner) {

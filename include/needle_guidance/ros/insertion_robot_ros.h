@@ -106,8 +106,8 @@ private:
   void publishNeedle(const ros::Time& stamp);
 
   // 3-D steerable mode.
-  void setUpSteerable3d(const ros::NodeHandle& private_nh, const robot::StageLimits& limits,
-                        const std::string& journal_path);
+  void setUpSteerable3d(const ros::NodeHandle& private_nh, const std::string& scene_file,
+                        const robot::StageLimits& limits, const std::string& journal_path);
   void onSteerGoal(const Steer3Goal& goal);
   Steer3Result steerResult(bool success, const std::string& message) const;
   bool onSetEntryPose3(SetEntryPose3::Request& req, SetEntryPose3::Response& res);
