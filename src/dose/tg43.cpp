@@ -24,6 +24,7 @@
 //    It is integrated once at the tabulated F radii and interpolated linearly in r (nearest
 //    column outside). The radial distance is clamped at kMinCoreDistance_m like the 2-D model.
 #include "needle_guidance/dose/tg43.h"
+#include "needle_guidance/math.h"
 
 #include <yaml-cpp/yaml.h>
 
@@ -40,17 +41,13 @@
 #include <utility>
 
 #include "needle_guidance/format.h"
-
-#ifndef NG_CONFIG_DIR
-#error "NG_CONFIG_DIR (the package's config/ directory) must be defined by the build"
-#endif
+#include "needle_guidance/package_paths.h"
 
 namespace needle_guidance::dose {
 namespace {
 
 namespace fs = std::filesystem;
 
-constexpr double kPi = 3.14159265358979323846;
 constexpr double kCm_m = 0.01;                     ///< 1 cm in m
 constexpr double kDeg_rad = kPi / 180.0;           ///< 1 deg in rad
 constexpr double kR0_m = 1.0 * kCm_m;              ///< TG-43 reference distance r0 = 1 cm
@@ -427,7 +424,7 @@ void readSourceYaml(const fs::path& file, Tg43Data& d) {
 }
 
 fs::path sourcesDir() {
-  return fs::path(NG_CONFIG_DIR) / "sources";
+  return configDir() / "sources";
 }
 
 }  // namespace

@@ -17,6 +17,7 @@
 
 #include "needle_guidance/dose/dicom_case.h"
 #include "needle_guidance/dose/dwell_optimization.h"
+#include "needle_guidance/package_paths.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
 
@@ -195,7 +196,7 @@ int main(int argc, char** argv) {
     // Export checks.
     const double roundtrip = roundTripError(plan, out_dicom);
     const int dcio = dciodvfyErrors(out_dicom, args->out_dir + "/dciodvfy.txt");
-    const bool pydicom_ok = std::system(("/usr/bin/python3 " + std::string(NG_SOURCE_DIR) +
+    const bool pydicom_ok = std::system(("/usr/bin/python3 " + ng::packageDir().string() +
                                          "/scripts/check_rt_export.py '" + out_dicom + "' > '" +
                                          args->out_dir + "/pydicom.txt' 2>&1")
                                             .c_str()) == 0;

@@ -8,7 +8,8 @@
 // held-out prostate variant is reported apart. The closed loops see the true tip; on the
 // prostate-like scene at 1x and 2x they also run through biplane imaging (BiplaneObserver3:
 // two noisy views with dropout and outliers, fused with the gate), keys *_biplane.
-// Usage: bench_steering_3d --out DIR [--quick] [--trials N] [--scene NAME:SIGMA[:biplane] ...]
+// Usage: bench_steering_3d --out DIR [--quick] [--trials N] [--scene SCENE:SIGMA[:biplane] ...]
+// SCENE is a steering_3d YAML file path or the name of a shipped scene (config/scenes/steering_3d).
 // Cells run 200 trials each (30 with --quick; N with --trials); the 2x cells of the two
 // replanning strategies 3 times as many (kComparisonTrialsFactor).
 // With --scene, a partial run: only our replanning and the baseline on those (scene, sigma)
@@ -17,6 +18,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <filesystem>
 #include <fstream>
 #include <iostream>
 #include <map>
@@ -24,6 +26,7 @@
 #include <thread>
 #include <vector>
 
+#include "needle_guidance/package_paths.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
@@ -331,20 +334,30 @@ ng::report::Table trialTable() {
                             "message"});
 }
 
-/// The partial run of --scene NAME:SIGMA[:biplane] specs (see the usage above).
+/// A scene given on the command line: a YAML file path, or the name of a shipped scene in `dir`.
+std::string sceneFile(const std::string& dir, const std::string& spec) {
+  const std::filesystem::path path(spec);
+  const bool is_path = spec.find('/') != std::string::npos || path.extension() == ".yaml" ||
+                       path.extension() == ".yml";
+  return is_path ? spec : dir + spec + ".yaml";
+}
+
+/// The partial run of --scene SCENE:SIGMA[:biplane] specs (see the usage above).
 int runPartial(const ng::report::BenchArgs& args, const std::string& dir, int trials) {
   ng::report::Table table = cellTable();
   ng::report::Table per_trial = trialTable();
   for (const std::string& spec : args.scenes) {
-    const std::size_t colon = spec.find(':');
-    if (colon == std::string::npos) {
-      throw std::invalid_argument("--scene " + spec + ": expected NAME:SIGMA[:biplane]");
+    const std::string suffix = ":biplane";
+    const bool biplane = spec.size() > suffix.size() &&
+                         spec.compare(spec.size() - suffix.size(), suffix.size(), suffix) == 0;
+    const std::string head = biplane ? spec.substr(0, spec.size() - suffix.size()) : spec;
+    const std::size_t colon = head.rfind(':');
+    if (colon == std::string::npos || colon == 0) {
+      throw std::invalid_argument("--scene " + spec + ": expected SCENE:SIGMA[:biplane]");
     }
-    const std::string name = spec.substr(0, colon);
-    const std::string rest = spec.substr(colon + 1);
-    const bool biplane = rest.size() > 8 && rest.substr(rest.size() - 8) == ":biplane";
-    const double sigma = std::stod(rest.substr(0, biplane ? rest.size() - 8 : rest.size()));
-    const s3::Scene3d scene = s3::loadScene3d(dir + name + ".yaml");
+    const std::string name = head.substr(0, colon);
+    const double sigma = std::stod(head.substr(colon + 1));
+    const s3::Scene3d scene = s3::loadScene3d(sceneFile(dir, name));
     const s3::CollisionWorld3 world = scene.collisionWorld();
     for (s3::Strategy3 strategy :
          {s3::Strategy3::kReplanUncertainty, s3::Strategy3::kReplanFirstFound}) {
@@ -370,7 +383,7 @@ int main(int argc, char** argv) {
   try {
     const double load_start = loadAverage();
     const auto started = std::chrono::steady_clock::now();
-    const std::string dir = std::string(NG_SOURCE_DIR) + "/config/scenes/steering_3d/";
+    const std::string dir = (ng::configDir() / "scenes" / "steering_3d").string() + "/";
     const int trials = args->trials > 0 ? args->trials : (args->quick ? 30 : 200);
     if (!args->scenes.empty()) {
       return runPartial(*args, dir, trials);
