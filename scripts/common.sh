@@ -20,6 +20,7 @@ NG_PACKAGES=(
   python3-tf2-msgs python3-std-srvs python3-matplotlib
   rviz
   dicom3tools python3-pydicom  # dciodvfy and pydicom check the DICOM-RT export
+  coinor-libcbc-dev python3-dicompylercore  # dose-volume MIP; independent DVH check
 )
 
 ng_install() {

@@ -224,6 +224,14 @@ DicomCaseSettings readDicomCaseSettings(const std::string& path) {
       k.weight_over = c["weight_over"].as<double>();
       s.criteria.push_back(k);
     }
+    for (const auto& c : root["dvh_criteria"]) {
+      s.dvh_criteria.push_back(c.as<std::string>());
+      try {
+        parseDvhCriterion(s.dvh_criteria.back(), 1.0);
+      } catch (const std::invalid_argument& e) {
+        throw std::invalid_argument(where + ": dvh_criteria: " + e.what());
+      }
+    }
   } catch (const YAML::Exception& e) {
     throw std::invalid_argument(where + ": " + e.what());
   }
@@ -232,6 +240,15 @@ DicomCaseSettings readDicomCaseSettings(const std::string& path) {
         where + ": margin_mm >= 0, surface_spacing_mm > 0, volume_points >= 0 required");
   }
   return s;
+}
+
+std::vector<DvhCriterion> dvhCriteria(const DicomCaseSettings& settings, double rx) {
+  if (settings.dvh_criteria.empty())
+    return defaultDvhCriteria(rx);
+  std::vector<DvhCriterion> out;
+  for (const std::string& text : settings.dvh_criteria)
+    out.push_back(parseDvhCriterion(text, rx));
+  return out;
 }
 
 std::vector<DwellPosition> candidateDwells(const HdrCase& c,
@@ -338,29 +355,21 @@ DicomCase loadDicomCase(const std::string& dir, const DicomCaseSettings& setting
   return dc;
 }
 
+std::map<std::string, std::vector<std::string>> comparisonIndexSpecs() {
+  return {{"prostate", {"V100", "V150", "V200", "D90"}},
+          {"urethra", {"D10", "D0.1cc", "V125"}},
+          {"rectum", {"D2cc", "D0.1cc", "V75"}},
+          {"bladder", {"D2cc", "D0.1cc", "V75"}}};
+}
+
+std::map<std::string, DoseVolumeIndex> comparisonIndexSet(const std::vector<StructureDose>& doses,
+                                                          double rx) {
+  return indexSet(doses, comparisonIndexSpecs(), rx);
+}
+
 std::map<std::string, double> comparisonIndices(const std::vector<StructureDose>& doses,
                                                 double rx) {
-  std::map<std::string, double> out;
-  for (const StructureDose& s : doses) {
-    const std::string n = lower(s.name);
-    if (s.dose_Gy.empty())
-      continue;
-    if (n == "prostate") {
-      out["prostate_V100"] = volumePercentAbove(s, rx);
-      out["prostate_V150"] = volumePercentAbove(s, 1.5 * rx);
-      out["prostate_V200"] = volumePercentAbove(s, 2.0 * rx);
-      out["prostate_D90"] = doseCoveringPercent(s, 90.0);
-    } else if (n == "urethra") {
-      out["urethra_D10"] = doseCoveringPercent(s, 10.0);
-      out["urethra_D0.1cc"] = doseCoveringVolume(s, 0.1e-6);
-      out["urethra_V125"] = volumePercentAbove(s, 1.25 * rx);
-    } else if (n == "rectum" || n == "bladder") {
-      out[n + "_D2cc"] = doseCoveringVolume(s, 2e-6);
-      out[n + "_D0.1cc"] = doseCoveringVolume(s, 0.1e-6);
-      out[n + "_V75"] = volumePercentAbove(s, 0.75 * rx);
-    }
-  }
-  return out;
+  return definedValues(comparisonIndexSet(doses, rx));
 }
 
 void exportDicomRtPlan(const HdrCase& plan, const Tg43Source& source, const DoseGrid* dose_geometry,

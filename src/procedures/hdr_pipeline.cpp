@@ -11,6 +11,7 @@
 #include "needle_guidance/dose/case_folder.h"
 #include "needle_guidance/dose/dicom_case.h"
 #include "needle_guidance/dose/dose_indices.h"
+#include "needle_guidance/dose/dvh_optimization.h"
 #include "needle_guidance/dose/prostate_case.h"
 #include "needle_guidance/format.h"
 
@@ -24,14 +25,43 @@ void requireFinite(double value, const std::string& what) {
     throw std::runtime_error(what + " is not finite (" + formatNumber(value) + ")");
 }
 
+/// The dose-volume plan (default criteria at the case's prescription) as a DwellResult; its
+/// objective is the IPSA penalty of the plan on the case's points, for comparison with LP / SA.
+dose::DwellResult dvhOptimisation(const dose::HdrCase& c, const dose::Tg43Source& source,
+                                  std::vector<std::string>& notes) {
+  const dose::DvhPlanResult r =
+      dose::optimizeDvh(c, source, dose::defaultDvhCriteria(c.prescription_Gy));
+  notes.insert(notes.end(), r.notes.begin(), r.notes.end());
+  for (const auto& v : r.violated)
+    notes.push_back("dose-volume criterion gives way: " + v);
+  dose::DwellResult out;
+  out.method = "dvh";
+  out.status = r.status;
+  out.times_s = r.times_s;
+  out.seconds = r.seconds;
+  out.iterations = r.rounds;
+  if (r.ok()) {
+    Eigen::VectorXd dose(static_cast<Eigen::Index>(c.points.size()));
+    for (std::size_t i = 0; i < c.points.size(); ++i)
+      dose(static_cast<Eigen::Index>(i)) =
+          dose::doseAt(c, source, r.times_s, c.points[i].position_m);
+    out.objective = dose::penaltyModel(c)(dose);
+  }
+  return out;
+}
+
 /// Optimises the dwell times (6.2.3) and makes them exactly what the schedule delivers.
 void optimise(HdrPlan& plan, const HdrPlanSettings& settings, const std::string& where) {
   const dose::HdrCase& c = plan.hdr_case;
   const Eigen::MatrixXd d = dose::doseRateMatrix(c, *plan.source);
   plan.notes = dose::penaltyModel(c).notes;
-  plan.optimisation = settings.method == DwellMethod::kLp
-                          ? dose::optimizeLp(c, d)
-                          : dose::optimizeAnnealing(c, d, settings.annealing);
+  if (settings.method == DwellMethod::kDvh) {
+    plan.optimisation = dvhOptimisation(c, *plan.source, plan.notes);
+  } else {
+    plan.optimisation = settings.method == DwellMethod::kLp
+                            ? dose::optimizeLp(c, d)
+                            : dose::optimizeAnnealing(c, d, settings.annealing);
+  }
   const dose::DwellResult& result = plan.optimisation;
   const std::string method = toString(settings.method);
   if (!result.ok())
@@ -164,7 +194,7 @@ std::vector<dose::ExtraDwell> transitDwells(const HdrPlan& plan, const DeliveryR
 }  // namespace
 
 const char* toString(DwellMethod method) {
-  return method == DwellMethod::kLp ? "lp" : "sa";
+  return method == DwellMethod::kLp ? "lp" : method == DwellMethod::kDvh ? "dvh" : "sa";
 }
 
 DwellMethod parseDwellMethod(const std::string& text, const std::string& what) {
@@ -172,7 +202,9 @@ DwellMethod parseDwellMethod(const std::string& text, const std::string& what) {
     return DwellMethod::kLp;
   if (text == "sa")
     return DwellMethod::kAnnealing;
-  throw std::invalid_argument(what + " '" + text + "' is not lp or sa");
+  if (text == "dvh")
+    return DwellMethod::kDvh;
+  throw std::invalid_argument(what + " '" + text + "' is not lp, sa or dvh");
 }
 
 dose::HdrCase loadHdrCase(const HdrCaseInput& input) {

@@ -1,10 +1,16 @@
-// Benchmark of HDR planning from a DICOM-RT case: import (dicom_case.h), dose-rate
-// matrix, LP, export (RS/RP/RD.dcm) and their times; the clinical plan's and the LP's indices on
-// the same engine, points and 1 mm grid; both DVHs; the urethra-weight front with the clinical
-// plan as a point; the export checked by dciodvfy, pydicom (scripts/check_rt_export.py), the
-// round trip of the dwell times and our RTDOSE validation. Runs on NG_SHARED_DATA/hdr_example_plan
-// when present, else on synthetic case 1 written out as DICOM (its "clinical" plan = SA's).
+// Benchmark of HDR planning from a DICOM-RT case: import (dicom_case.h), dose-rate matrix, LP,
+// export (RS/RP/RD.dcm) and their times; the clinical plan's and the LP's indices on the same
+// engine, points and index lattice; both DVHs; the urethra-weight front with the clinical plan
+// as a point; the export checked by dciodvfy, pydicom (scripts/check_rt_export.py), the round
+// trip of the dwell times and our RTDOSE validation. Then the dose-volume planner
+// (dvh_optimization.h): its plan, the plan that dominates the clinical one (or the indices that
+// prevent it), its V100 / urethra D10 front, the indices' invariance to turning and moving the
+// case, our indices from the RTDOSE against dicompyler-core and the stored DVHs
+// (scripts/check_dvh_dicompyler.py), and every index's spread under +-1 mm catheter shifts.
+// Runs on NG_SHARED_DATA/hdr_example_plan when present, else on synthetic case 1 written out as
+// DICOM (its "clinical" plan = SA's).
 // Usage: bench_hdr_dicom --out DIR [--quick]
+#include <Eigen/Geometry>
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
@@ -16,8 +22,10 @@
 #include <vector>
 
 #include "needle_guidance/dose/dicom_case.h"
+#include "needle_guidance/dose/dvh_comparison.h"
 #include "needle_guidance/dose/dwell_optimization.h"
 #include "needle_guidance/package_paths.h"
+#include "needle_guidance/dose/plan_robustness.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
 
@@ -107,6 +115,238 @@ double at(const std::map<std::string, double>& m, const std::string& k) {
   return it == m.end() ? std::nan("") : it->second;
 }
 
+constexpr double kEvalSpacing_m = 0.5e-3;  // index lattice (dose_indices.h)
+
+/// CSV of an index set, undefined ones with their reason.
+void writeIndexCsv(const std::map<std::string, dose::DoseVolumeIndex>& set, double rx,
+                   const std::string& path) {
+  std::ofstream out(path);
+  out << "index,rx_gy,ours,reason\n";
+  for (const auto& [k, v] : set) {
+    out << k << "," << rx << ",";
+    if (v.defined)
+      out << ng::report::jsonNumber(v.value, 6);
+    out << ",\"" << v.reason << "\"\n";
+  }
+}
+
+/// Our indices from the RTDOSE and dicompyler-core's (scripts/check_dvh_dicompyler.py); the
+/// script's JSON line, or "" when it did not run (dicompyler-core missing or no RTDOSE).
+std::string dicompylerCheck(const dose::DicomCase& dc, const std::string& dir,
+                            const std::string& out_dir) {
+  if (dc.files.dose.empty())
+    return "";
+  const dose::DoseGrid grid = dose::readRtDose(dc.files.dose);
+  const auto ours = dose::comparisonIndexSet(
+      dose::structureDosesFromGrid(dc.clinical, grid, kEvalSpacing_m), dc.clinical.prescription_Gy);
+  writeIndexCsv(ours, dc.clinical.prescription_Gy, out_dir + "/indices_rtdose_ours.csv");
+  const std::string json_path = out_dir + "/dicompyler.json";
+  const int rc = std::system(("/usr/bin/python3 " + std::string(NG_SOURCE_DIR) +
+                              "/scripts/check_dvh_dicompyler.py '" + dir + "' '" + out_dir +
+                              "/indices_rtdose_ours.csv' '" + out_dir +
+                              "/indices_vs_dicompyler.csv' > '" + json_path + "' 2> /dev/null")
+                                 .c_str());
+  if (rc != 0)
+    return "";
+  std::ifstream in(json_path);
+  std::string line;
+  std::getline(in, line);
+  return line;
+}
+
+/// The number after "key": in a one-line JSON object (NaN if absent).
+double jsonField(const std::string& json, const std::string& key) {
+  const std::size_t at = json.find("\"" + key + "\":");
+  return at == std::string::npos ? std::nan("") : std::atof(json.c_str() + at + key.size() + 3);
+}
+
+/// The case turned 90 degrees about z, 180 degrees about y, and moved; largest index changes
+/// of the plan `times_s` (same times: the physics does not move) over the three copies.
+dose::IndexChange rotationChange(const dose::HdrCase& c, const dose::Tg43Source& source,
+                                 const std::vector<double>& times_s) {
+  const auto indices = [&](const dose::HdrCase& x) {
+    return dose::comparisonIndexSet(dose::structureDoses(x, source, times_s, kEvalSpacing_m),
+                                    x.prescription_Gy);
+  };
+  const auto base = indices(c);
+  dose::IndexChange worst;
+  Eigen::Isometry3d turn_z = Eigen::Isometry3d::Identity(), turn_y = turn_z, move = turn_z;
+  turn_z.linear() = Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  turn_y.linear() = Eigen::AngleAxisd(M_PI, Eigen::Vector3d::UnitY()).toRotationMatrix();
+  move.translation() = Eigen::Vector3d(41.5e-3, -17.3e-3, 63e-3);
+  for (const auto& pose : {turn_z, turn_y, move}) {
+    const dose::IndexChange ch = dose::indexChange(base, indices(dose::transformedCase(c, pose)));
+    if (ch.dose_Gy > worst.dose_Gy) {
+      worst.dose_Gy = ch.dose_Gy;
+      worst.worst_dose = ch.worst_dose;
+    }
+    if (ch.volume_pp > worst.volume_pp) {
+      worst.volume_pp = ch.volume_pp;
+      worst.worst_volume = ch.worst_volume;
+    }
+  }
+  return worst;
+}
+
+/// Spread of every index under +-1 mm catheter shifts for each plan; rows into `table`, the
+/// largest 5-95 % half-range of D [Gy] and V [pp] indices per plan into the JSON.
+struct NamedPlan {
+  std::string name;
+  const dose::HdrCase* c;
+  std::vector<double> times_s;
+};
+std::string robustness(const dose::Tg43Source& source, const std::vector<NamedPlan>& plans,
+                       int samples, ng::report::Table& table) {
+  std::ostringstream json;
+  for (const auto& [name, c, times] : plans) {
+    const auto spread =
+        dose::shiftSpread(*c, source, times, dose::comparisonIndexSpecs(), 1e-3, samples, 1, 1e-3);
+    double d_worst = 0.0, v_worst = 0.0;
+    for (const auto& [k, sp] : spread) {
+      table.addRow(
+          {name, k, sp.nominal, sp.p5, sp.p95, sp.sd, sp.worst, static_cast<double>(sp.samples)});
+      const double half = 0.5 * (sp.p95 - sp.p5);
+      (k.find("_D") != std::string::npos ? d_worst : v_worst) =
+          std::max(k.find("_D") != std::string::npos ? d_worst : v_worst, half);
+    }
+    json << ",\n  \"robust_" << name << "_d_halfrange_max_gy\": " << ng::report::jsonNumber(d_worst)
+         << ",\n  \"robust_" << name
+         << "_v_halfrange_max_pp\": " << ng::report::jsonNumber(v_worst);
+  }
+  return json.str();
+}
+
+std::string jsonList(const std::vector<std::string>& v) {
+  std::string out = "[";
+  for (std::size_t i = 0; i < v.size(); ++i)
+    out += (i ? ", \"" : "\"") + v[i] + "\"";
+  return out + "]";
+}
+
+/// JSON object of an index set: numbers, and null for undefined indices (reasons separately).
+std::string jsonIndexSet(const std::map<std::string, dose::DoseVolumeIndex>& m) {
+  std::ostringstream o;
+  o << "{";
+  bool first = true;
+  for (const auto& [k, v] : m) {
+    o << (first ? "" : ", ") << "\"" << k
+      << "\": " << (v.defined ? ng::report::jsonNumber(v.value) : "null");
+    first = false;
+  }
+  return o.str() + "}";
+}
+
+/// The dose-volume planner on the case: its plan on the case file's criteria, the plan that
+/// dominates the clinical one (or the indices that prevent it), the V100 / urethra D10 front,
+/// index invariance, the dicompyler-core check and the robustness table.
+std::string dvhStudy(const dose::DicomCase& dc, const std::string& dir,
+                     const dose::Tg43Source& source, const std::vector<double>& lp_times,
+                     const ng::report::BenchArgs& args) {
+  const dose::HdrCase& c = dc.planning;
+  const double rx = c.prescription_Gy;
+  dose::DvhPlanOptions options;
+  options.eval_spacing_m = kEvalSpacing_m;
+  const auto criteria = dose::defaultDvhCriteria(rx);
+  const auto clinical = dose::comparisonIndexSet(
+      dose::structureDoses(dc.clinical, source, dc.clinical.dwell_times_s, kEvalSpacing_m), rx);
+  const auto clinical_fine = dose::comparisonIndexSet(
+      dose::structureDoses(dc.clinical, source, dc.clinical.dwell_times_s, 0.25e-3), rx);
+  const dose::IndexChange lattice = dose::indexChange(clinical, clinical_fine);
+  const dose::DvhPlanResult plan = dose::optimizeDvh(c, source, criteria, options);
+  if (!plan.ok())
+    throw std::runtime_error("dose-volume planning: " + plan.status);
+  const auto ours =
+      dose::comparisonIndexSet(dose::structureDoses(c, source, plan.times_s, kEvalSpacing_m), rx);
+  const dose::Dominance dom = dose::dominate(c, source, clinical, "prostate", options);
+  // Front: urethra D10 limit swept around the clinical plan's, the rectum at its criteria.
+  std::vector<double> limits;
+  const double u0 = clinical.count("urethra_D10") && clinical.at("urethra_D10").defined
+                        ? clinical.at("urethra_D10").value
+                        : 1.1 * rx;
+  for (const double f : (args.quick ? std::vector<double>{0.9, 1.0, 1.1}
+                                    : std::vector<double>{0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.2}))
+    limits.push_back(f * u0);
+  dose::DvhPlanOptions front_options = options;
+  front_options.max_seconds = 4.0;
+  const auto front = dose::dvhFront(c, source, criteria, limits, front_options);
+  ng::report::Table ft({"plan", "urethra_D10_limit_Gy", "urethra_D10_Gy", "prostate_V100_pct",
+                        "plan_s", "criteria_met"},
+                       6);
+  for (const auto& p : front)
+    ft.addRow({std::string("DVH MIP"), p.urethra_d10_limit_Gy, p.urethra_d10_Gy, p.v100_pct,
+               p.seconds, p.criteria_met ? 1.0 : 0.0});
+  const auto value = [](const std::map<std::string, dose::DoseVolumeIndex>& m, const char* k) {
+    const auto it = m.find(k);
+    return it != m.end() && it->second.defined ? it->second.value : std::nan("");
+  };
+  ft.addRow({std::string("clinical"), 0.0, value(clinical, "urethra_D10"),
+             value(clinical, "prostate_V100"), 0.0, 0.0});
+  if (dom.plan.ok())
+    ft.addRow({std::string("dominating"), 0.0, value(dom.indices, "urethra_D10"),
+               value(dom.indices, "prostate_V100"), dom.plan.seconds, dom.dominated ? 1.0 : 0.0});
+  ft.writeCsv(args.out_dir + "/dvh_front.csv");
+  const dose::IndexChange rot_clinical =
+      rotationChange(dc.clinical, source, dc.clinical.dwell_times_s);
+  const dose::IndexChange rot_dvh = rotationChange(c, source, plan.times_s);
+  const std::string dpy = dicompylerCheck(dc, dir, args.out_dir);
+  ng::report::Table rt({"plan", "index", "nominal", "change_p5", "change_p95", "change_sd",
+                        "change_worst", "samples"},
+                       6);
+  const std::string robust_json = robustness(source,
+                                             {{"clinical", &dc.clinical, dc.clinical.dwell_times_s},
+                                              {"lp", &c, lp_times},
+                                              {"dvh", &c, plan.times_s}},
+                                             args.quick ? 5 : 20, rt);
+  rt.writeCsv(args.out_dir + "/robustness.csv");
+  std::ostringstream json;
+  using ng::report::jsonNumber;
+  json << ",\n  \"dvh_plan_s\": " << jsonNumber(plan.seconds)
+       << ",\n  \"dvh_v100_pct\": " << jsonNumber(plan.v100_pct)
+       << ",\n  \"dvh_urethra_d10_gy\": " << jsonNumber(value(ours, "urethra_D10"))
+       << ",\n  \"dvh_mip_gap_v100_pp\": " << jsonNumber(plan.mip_gap_pct)
+       << ",\n  \"dvh_mip_binaries\": " << plan.binaries
+       << ",\n  \"dvh_criteria_giving_way\": " << jsonList(plan.violated)
+       << ",\n  \"clinical_dominated_dvh\": " << (dom.dominated ? 1 : 0)
+       << ",\n  \"dominating_plan_s\": " << jsonNumber(dom.plan.seconds)
+       << ",\n  \"dominance_prevented_by\": " << jsonList(dom.worse)
+       << ",\n  \"index_rotation_change_max_gy\": "
+       << jsonNumber(std::max(rot_clinical.dose_Gy, rot_dvh.dose_Gy))
+       << ",\n  \"index_rotation_change_max_pp\": "
+       << jsonNumber(std::max(rot_clinical.volume_pp, rot_dvh.volume_pp))
+       << ",\n  \"index_lattice_change_gy\": " << jsonNumber(lattice.dose_Gy)
+       << ",\n  \"index_lattice_change_pp\": " << jsonNumber(lattice.volume_pp)
+       << ",\n  \"index_lattice_worst\": " << jsonList({lattice.worst_dose, lattice.worst_volume});
+  if (!dpy.empty()) {
+    json << ",\n  \"index_vs_dicompyler_max_gy\": "
+         << jsonNumber(jsonField(dpy, "max_diff_interpolated_gy"))
+         << ",\n  \"index_vs_dicompyler_max_pp\": "
+         << jsonNumber(jsonField(dpy, "max_diff_interpolated_pp"))
+         << ",\n  \"index_vs_dicompyler_default_max_gy\": "
+         << jsonNumber(jsonField(dpy, "max_diff_default_gy"))
+         << ",\n  \"index_vs_dicompyler_default_max_pp\": "
+         << jsonNumber(jsonField(dpy, "max_diff_default_pp"))
+         << ",\n  \"index_vs_stored_dvh_max_gy\": "
+         << jsonNumber(jsonField(dpy, "max_diff_stored_gy"))
+         << ",\n  \"index_vs_stored_dvh_max_pp\": "
+         << jsonNumber(jsonField(dpy, "max_diff_stored_pp")) << ",\n  \"dicompyler\": " << dpy;
+  }
+  std::map<std::string, std::string> reasons;
+  for (const auto& [k, v] : clinical) {
+    if (!v.defined)
+      reasons[k] = v.reason;
+  }
+  json << robust_json << ",\n  \"clinical_indices_05mm\": " << jsonIndexSet(clinical)
+       << ",\n  \"dvh_indices\": " << jsonIndexSet(ours)
+       << ",\n  \"dominating_indices\": " << jsonIndexSet(dom.indices) << ",\n  \"undefined\": {";
+  bool first = true;
+  for (const auto& [k, r] : reasons) {
+    json << (first ? "" : ", ") << "\"" << k << "\": \"" << r << "\"";
+    first = false;
+  }
+  json << "}";
+  return json.str();
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -157,7 +397,7 @@ int main(int argc, char** argv) {
     // the same with the urethra's D_max lowered to 0.9 and 0.8 of it (clamped to its D_min).
     const std::vector<double> max_factors = {1.0, 0.9, 0.8};
     const dose::ClinicalComparison cmp =
-        dose::compareWithClinical(dc, source, scales, 1e-3, max_factors);
+        dose::compareWithClinical(dc, source, scales, kEvalSpacing_m, max_factors);
     bool dominated_table61 = false;
     for (const auto& p : cmp.front)
       dominated_table61 =
@@ -239,6 +479,7 @@ int main(int argc, char** argv) {
          << ",\n  \"dciodvfy_errors\": " << dcio << ",\n  \"pydicom_ok\": " << (pydicom_ok ? 1 : 0)
          << ",\n  \"export_rtdose_validation_pass\": " << (validation.pass ? 1 : 0)
          << ",\n  \"export_validates\": " << (validates ? 1 : 0)
+         << dvhStudy(dc, dir, source, lp.times_s, *args)
          << ",\n  \"clinical_indices\": " << jsonMap(cmp.clinical.indices)
          << ",\n  \"lp_indices\": " << jsonMap(cmp.ours.indices) << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
@@ -247,7 +488,9 @@ int main(int argc, char** argv) {
         R"json([{"csv": "dvh.csv", "x": "dose_Gy", "y": "volume_pct", "group": "curve",
   "title": "Cumulative DVH: clinical plan vs our LP (same engine, 1 mm grid)", "png": "dvh.png"},
  {"csv": "front.csv", "x": "urethra_D10_Gy", "y": "prostate_V100_pct", "group": "plan", "annotate": "urethra_weight_scale",
-  "title": "LP trade-off front (urethra weight sweep) and the clinical plan", "png": "front.png"}])json");
+  "title": "LP trade-off front (urethra weight sweep) and the clinical plan", "png": "front.png"},
+ {"csv": "dvh_front.csv", "x": "urethra_D10_Gy", "y": "prostate_V100_pct", "group": "plan",
+  "title": "Dose-volume MIP front: V100 maximised at each urethra D10 limit (rectum at its criteria)", "png": "dvh_front.png"}])json");
     std::cout << json.str();
     return 0;
   } catch (const std::exception& e) {

@@ -1,20 +1,29 @@
-// Plans one HDR case: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both]
-//   [--mps FILE] [--write-case DIR] [--iterations N]
-// or a DICOM-RT folder: hdr_plan --dicom DIR [--case-file FILE.yaml] [--export DIR]
-// --dicom builds the case from RTSTRUCT + RTPLAN (dicom_case.h), plans the LP, prints the
-// clinical plan's and the LP's indices side by side; --export writes RS/RP/RD.dcm.
+// Plans one HDR case: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both|dvh]
+//   [--mps FILE] [--write-case DIR] [--iterations N] [--criterion "urethra D10 <= 115%"]...
+// or a DICOM-RT folder: hdr_plan --dicom DIR [--case-file FILE.yaml] [--method lp|dvh]
+//   [--export DIR]
+// --dicom builds the case from RTSTRUCT + RTPLAN (dicom_case.h), plans the LP (or, with
+// --method dvh, maximises target V100 under the case file's dose-volume criteria and then
+// looks for a plan at least as good as the clinical one on every index), prints the clinical
+// plan's and ours side by side (an index a structure cannot support is printed as undefined
+// with its reason); --export writes RS/RP/RD.dcm of our plan. --criterion replaces the default
+// dose-volume criteria of a case folder or synthetic case (repeat it for each).
 // --case reads a plain case folder (case_folder.h), --synthetic generates cohort case SEED;
 // --mps writes the case's LP (MPS) for any other solver; --write-case writes the case with the
 // LP's dwell times (or SA's with --method sa) as a case folder. Prints objectives, times and
 // dosimetric indices. Exit 0 on success, 2 on bad arguments or a bad case.
 #include <cstdio>
 #include <iostream>
+#include <map>
 #include <memory>
+#include <stdexcept>
 #include <string>
+#include <vector>
 
 #include "needle_guidance/dose/case_folder.h"
 #include "needle_guidance/dose/dicom_case.h"
 #include "needle_guidance/dose/dose_indices.h"
+#include "needle_guidance/dose/dvh_comparison.h"
 #include "needle_guidance/dose/dwell_optimization.h"
 #include "needle_guidance/dose/prostate_case.h"
 
@@ -22,8 +31,75 @@ namespace dose = needle_guidance::dose;
 
 namespace {
 
+/// Prints two index sets side by side; undefined indices as "undefined" with the reason.
+void printIndices(const std::map<std::string, dose::DoseVolumeIndex>& reference,
+                  const std::map<std::string, dose::DoseVolumeIndex>& ours,
+                  const std::string& reference_name, const std::string& ours_name) {
+  std::printf("  %-16s %10s %10s\n", "index", reference_name.c_str(), ours_name.c_str());
+  for (const auto& [name, value] : ours) {
+    const auto it = reference.find(name);
+    const auto cell = [](const dose::DoseVolumeIndex* i) {
+      char text[32];
+      if (i == nullptr || !i->defined)
+        return std::string("undefined");
+      std::snprintf(text, sizeof text, "%.2f", i->value);
+      return std::string(text);
+    };
+    std::printf("  %-16s %10s %10s %s\n", name.c_str(),
+                cell(it == reference.end() ? nullptr : &it->second).c_str(), cell(&value).c_str(),
+                name.find("_V") != std::string::npos ? "%" : "Gy");
+    if (!value.defined)
+      std::printf("    (%s)\n", value.reason.c_str());
+  }
+}
+
+/// hdr_plan --dicom --method dvh: plans on the criteria, then tries to dominate the clinical plan.
+std::vector<double> planDicomDvh(const dose::DicomCase& dc, const dose::DicomCaseSettings& settings,
+                                 const dose::Tg43Source& source) {
+  const dose::HdrCase& c = dc.planning;
+  const auto criteria = dose::dvhCriteria(settings, c.prescription_Gy);
+  const dose::DvhPlanOptions options;
+  const auto clinical = dose::comparisonIndexSet(
+      dose::structureDoses(dc.clinical, source, dc.clinical.dwell_times_s, options.eval_spacing_m),
+      c.prescription_Gy);
+  const dose::DvhPlanResult r = dose::optimizeDvh(c, source, criteria, options);
+  for (const auto& note : r.notes)
+    std::cout << "note: " << note << "\n";
+  if (!r.ok())
+    throw std::runtime_error("dose-volume planning: " + r.status);
+  std::cout << "DVH plan on " << criteria.size() << " criteria: V100 " << r.v100_pct << " %, "
+            << r.seconds << " s, " << r.binaries << " binaries, CBC gap " << r.mip_gap_pct
+            << " V100 points" << (r.mip_optimal ? " (optimal)" : "") << "\n";
+  for (const auto& v : r.violated)
+    std::cout << "  gives way: " << v << "\n";
+  const auto ours = dose::comparisonIndexSet(
+      dose::structureDoses(c, source, r.times_s, options.eval_spacing_m), c.prescription_Gy);
+  printIndices(clinical, ours, "clinical", "DVH");
+  const dose::Dominance d = dose::dominate(c, source, clinical, "prostate", options);
+  std::cout << "plan at least as good as the clinical one on every defined index: "
+            << (d.dominated ? "found" : "not found") << " (" << d.plan.seconds << " s)\n";
+  for (const auto& w : d.worse)
+    std::cout << "  worse: " << w << "\n";
+  if (d.dominated) {
+    printIndices(clinical, d.indices, "clinical", "dominant");
+    return d.plan.times_s;
+  }
+  return r.times_s;
+}
+
+/// Writes RS.dcm, RP.dcm and (with the case's RTDOSE grid) RD.dcm of `plan` into `dir`.
+void exportPlan(const dose::HdrCase& plan, const dose::DicomCase& dc,
+                const dose::Tg43Source& source, const std::string& dir) {
+  std::unique_ptr<dose::DoseGrid> grid;
+  if (!dc.files.dose.empty())
+    grid = std::make_unique<dose::DoseGrid>(dose::readRtDose(dc.files.dose));
+  dose::exportDicomRtPlan(plan, source, grid.get(), dir, dc.files.structure_set);
+  std::cout << "exported RS.dcm, RP.dcm" << (grid ? ", RD.dcm" : "") << " to " << dir << "\n";
+}
+
 /// hdr_plan --dicom: plan a DICOM-RT folder and compare with its clinical plan.
-int planDicom(const std::string& dir, const std::string& case_file, const std::string& export_dir) {
+int planDicom(const std::string& dir, const std::string& case_file, const std::string& export_dir,
+              const std::string& method) {
   const dose::DicomCaseSettings settings =
       case_file.empty() ? dose::DicomCaseSettings{} : dose::readDicomCaseSettings(case_file);
   const dose::DicomCase dc = dose::loadDicomCase(dir, settings);
@@ -39,6 +115,13 @@ int planDicom(const std::string& dir, const std::string& case_file, const std::s
             << " of them on candidate positions (largest offset " << dc.clinical_max_offset_m * 1e3
             << " mm)\n";
   const dose::Tg43Source source = dose::loadSource(c.source);
+  if (method == "dvh") {
+    dose::HdrCase plan = c;
+    plan.dwell_times_s = planDicomDvh(dc, settings, source);
+    if (!export_dir.empty())
+      exportPlan(plan, dc, source, export_dir);
+    return 0;
+  }
   const auto cmp = dose::compareWithClinical(dc, source, {});
   std::cout << "LP: objective " << cmp.lp.objective << ", " << cmp.lp.seconds
             << " s; clinical objective " << cmp.clinical.objective << "\n";
@@ -52,12 +135,7 @@ int planDicom(const std::string& dir, const std::string& case_file, const std::s
   if (!export_dir.empty()) {
     dose::HdrCase plan = c;
     plan.dwell_times_s = cmp.lp.times_s;
-    std::unique_ptr<dose::DoseGrid> grid;
-    if (!dc.files.dose.empty())
-      grid = std::make_unique<dose::DoseGrid>(dose::readRtDose(dc.files.dose));
-    dose::exportDicomRtPlan(plan, source, grid.get(), export_dir, dc.files.structure_set);
-    std::cout << "exported RS.dcm, RP.dcm" << (grid ? ", RD.dcm" : "") << " to " << export_dir
-              << "\n";
+    exportPlan(plan, dc, source, export_dir);
   }
   return 0;
 }
@@ -66,6 +144,7 @@ int planDicom(const std::string& dir, const std::string& case_file, const std::s
 
 int main(int argc, char** argv) {
   std::string case_dir, method = "both", mps, write_dir, dicom_dir, case_file, export_dir;
+  std::vector<std::string> criteria_text;
   long iterations = 100000;
   int synthetic = -1;
   for (int i = 1; i < argc; ++i) {
@@ -95,18 +174,24 @@ int main(int argc, char** argv) {
       case_file = value();
     else if (a == "--export")
       export_dir = value();
+    else if (a == "--criterion")
+      criteria_text.push_back(value());
     else {
       std::cerr
-          << "usage: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both] [--mps FILE] "
-             "[--write-case DIR] [--iterations N]\n       hdr_plan --dicom DIR [--case-file "
-             "FILE.yaml] "
-             "[--export DIR]\n";
+          << "usage: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both|dvh] [--mps "
+             "FILE] [--write-case DIR] [--iterations N] [--criterion TEXT]...\n"
+             "       hdr_plan --dicom DIR [--case-file FILE.yaml] [--method lp|dvh] [--export "
+             "DIR]\n";
       return 2;
     }
   }
   if (!dicom_dir.empty()) {
     try {
-      return planDicom(dicom_dir, case_file, export_dir);
+      if (method != "both" && method != "lp" && method != "dvh") {
+        std::cerr << "hdr_plan: --dicom plans with --method lp or dvh\n";
+        return 2;
+      }
+      return planDicom(dicom_dir, case_file, export_dir, method);
     } catch (const std::invalid_argument& e) {
       std::cerr << "hdr_plan: " << e.what() << "\n";
       return 2;
@@ -116,9 +201,9 @@ int main(int argc, char** argv) {
     }
   }
   if ((case_dir.empty() == (synthetic < 0)) ||
-      (method != "lp" && method != "sa" && method != "both")) {
-    std::cerr
-        << "hdr_plan: give exactly one of --case DIR or --synthetic SEED; --method lp|sa|both\n";
+      (method != "lp" && method != "sa" && method != "both" && method != "dvh")) {
+    std::cerr << "hdr_plan: give exactly one of --case DIR or --synthetic SEED; --method "
+                 "lp|sa|both|dvh\n";
     return 2;
   }
   try {
@@ -140,7 +225,27 @@ int main(int argc, char** argv) {
               << " dose points, source " << c.source << ", S_K " << c.air_kerma_strength_U
               << " U, Rx " << c.prescription_Gy << " Gy\n";
     std::vector<double> chosen;
-    if (method != "sa") {
+    if (method == "dvh") {
+      std::vector<dose::DvhCriterion> criteria = dose::defaultDvhCriteria(c.prescription_Gy);
+      if (!criteria_text.empty()) {
+        criteria.clear();
+        for (const auto& text : criteria_text)
+          criteria.push_back(dose::parseDvhCriterion(text, c.prescription_Gy));
+      }
+      const auto r = dose::optimizeDvh(c, source, criteria);
+      for (const auto& note : r.notes)
+        std::cout << "note: " << note << "\n";
+      if (!r.ok()) {
+        std::cerr << "hdr_plan: dose-volume planning: " << r.status << "\n";
+        return 1;
+      }
+      std::cout << "DVH: V100 " << r.v100_pct << " %, " << r.seconds << " s, CBC gap "
+                << r.mip_gap_pct << " V100 points\n";
+      for (const auto& v : r.violated)
+        std::cout << "  gives way: " << v << "\n";
+      chosen = r.times_s;
+    }
+    if (method != "sa" && method != "dvh") {
       dose::LpOptions o;
       o.mps_path = mps;
       const auto lp = dose::optimizeLp(c, d, o);
@@ -153,7 +258,7 @@ int main(int argc, char** argv) {
       if (!mps.empty())
         std::cout << "LP written to " << mps << "\n";
     }
-    if (method != "lp") {
+    if (method != "lp" && method != "dvh") {
       dose::AnnealingOptions o;
       o.iterations = iterations;
       const auto sa = dose::optimizeAnnealing(c, d, o);
@@ -162,10 +267,13 @@ int main(int argc, char** argv) {
       if (method == "sa")
         chosen = sa.times_s;
     }
-    for (const auto& [name, value] :
-         dose::dosimetricIndices(dose::structureDoses(c, source, chosen), c.prescription_Gy)) {
-      std::cout << "  " << name << " = " << value
-                << (name.find("_V") != std::string::npos ? " %" : " Gy") << "\n";
+    for (const auto& [name, value] : dose::comparisonIndexSet(
+             dose::structureDoses(c, source, chosen, 1e-3), c.prescription_Gy)) {
+      if (value.defined)
+        std::cout << "  " << name << " = " << value.value
+                  << (name.find("_V") != std::string::npos ? " %" : " Gy") << "\n";
+      else
+        std::cout << "  " << name << " undefined: " << value.reason << "\n";
     }
     if (!write_dir.empty()) {
       c.dwell_times_s = chosen;

@@ -12,6 +12,7 @@
 
 #include "needle_guidance/dose/dicom_rt.h"
 #include "needle_guidance/dose/dose_indices.h"
+#include "needle_guidance/dose/dvh_optimization.h"
 #include "needle_guidance/dose/dwell_optimization.h"
 #include "needle_guidance/dose/hdr_case.h"
 #include "needle_guidance/dose/prostate_case.h"
@@ -28,6 +29,7 @@ namespace needle_guidance::dose {
 ///   source: gammamed_plus_hdr # config/sources/ name (DICOM carries no TG-43 data set name)
 ///   criteria: [{structure: prostate, kind: surface, min_Gy: 16, max_Gy: 24, weight_under: 100,
 ///   weight_over: 100}, ...]
+///   dvh_criteria: ["urethra D10 <= 115%", "rectum D2cc <= 12 Gy", "prostate V100 >= 90", ...]
 /// The first name of `structures` is the target (its canonical name is the key: "prostate").
 /// Without `criteria`, Table 6.1 scaled to the plan's prescription.
 struct DicomCaseSettings {
@@ -41,7 +43,13 @@ struct DicomCaseSettings {
   DosePointOptions points;
   std::string source = "gammamed_plus_hdr";
   std::vector<Criterion> criteria;  ///< empty: table61Criteria(prescription)
+  /// Dose-volume criteria of the dose-volume planner, as written ("urethra D10 <= 115%", D
+  /// limits in % of the prescription or Gy); empty: defaultDvhCriteria (dvh_optimization.h).
+  std::vector<std::string> dvh_criteria;
 };
+
+/// The settings' dose-volume criteria at prescription rx. Throws std::invalid_argument.
+std::vector<DvhCriterion> dvhCriteria(const DicomCaseSettings& settings, double prescription_Gy);
 
 /// Reads a case file (see DicomCaseSettings). Throws std::invalid_argument naming the file and key.
 DicomCaseSettings readDicomCaseSettings(const std::string& path);
@@ -75,9 +83,14 @@ std::vector<DwellPosition> candidateDwells(const HdrCase& c,
 /// The comparison indices (6.3.2 plus the clinical comparison set), keyed "prostate_V100",
 /// "prostate_V150", "prostate_V200", "prostate_D90", "urethra_D10", "urethra_D0.1cc",
 /// "urethra_V125", "rectum_D2cc", "rectum_D0.1cc", "rectum_V75", "bladder_D2cc", "bladder_D0.1cc",
-/// "bladder_V75" (V in % of volume, D in Gy; absent structures skipped).
+/// "bladder_V75" (V in % of volume, D in Gy; absent structures and undefined indices left out).
 std::map<std::string, double> comparisonIndices(const std::vector<StructureDose>& doses,
                                                 double prescription_Gy);
+/// The same indices with the undefined ones and their reasons (e.g. D2cc of a 0.94 cm^3 rectum).
+std::map<std::string, DoseVolumeIndex> comparisonIndexSet(const std::vector<StructureDose>& doses,
+                                                          double prescription_Gy);
+/// The specs of the comparison set per structure ({"urethra", {"D10", "D0.1cc", "V125"}}, ...).
+std::map<std::string, std::vector<std::string>> comparisonIndexSpecs();
 
 /// Writes `plan` (planning case with dwell times) as RS.dcm (structures + BRACHY_CHANNEL ROIs),
 /// RP.dcm (Brachy RTPLAN, standard cumulative time weights, referencing RS.dcm) and, if

@@ -22,10 +22,12 @@ namespace procedures {
 enum class DwellMethod {
   kLp,         ///< the LP of eq. 6.6 (exact optimum of the IPSA penalty), Clp
   kAnnealing,  ///< simulated annealing, the clinical baseline
+  kDvh,        ///< target V100 maximised under the dose-volume criteria (MIP, CBC)
 };
-/// "lp" | "sa".
+/// "lp" | "sa" | "dvh".
 const char* toString(DwellMethod method);
-/// "lp" -> kLp, "sa" -> kAnnealing; throws std::invalid_argument naming `what` otherwise.
+/// "lp" -> kLp, "sa" -> kAnnealing, "dvh" -> kDvh; throws std::invalid_argument naming `what`
+/// otherwise.
 DwellMethod parseDwellMethod(const std::string& text, const std::string& what = "method");
 
 /// Where a case comes from: exactly one of dicom_dir, case_dir, or a synthetic seed >= 1.

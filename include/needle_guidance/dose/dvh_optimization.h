@@ -1,0 +1,91 @@
+// Dwell-time optimisation on the dose-volume criteria themselves (dissertation ch. 6; the
+// mixed-integer form of Siauw et al., Med Phys 2011 (IPIP) and Gorissen, den Hertog and Hoffmann,
+// PMB 2013): maximise the target's V100 subject to the organs' dose-volume criteria, with one
+// binary per dose point and criterion saying whether the point may break the criterion's dose
+// level. COIN-OR CBC solves it. Every criterion has an elastic budget, so a case whose criteria
+// cannot all hold gets the least-violating plan and the criteria that give way are named.
+#pragma once
+
+#include <Eigen/Core>
+#include <map>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/dose/dose_indices.h"
+#include "needle_guidance/dose/hdr_case.h"
+
+namespace needle_guidance::dose {
+
+/// One dose-volume criterion: `index` of `structure` at most (or at least) `limit`, e.g.
+/// {"urethra", "D10", 18.4} (Gy), {"rectum", "V75", 5} (%), {"prostate", "V100", 90, false}.
+struct DvhCriterion {
+  std::string structure;  ///< canonical (lower-case) structure name
+  std::string index;      ///< V<p>, D<p> or D<v>cc (doseVolumeIndex)
+  double limit = 0.0;     ///< Gy for D indices, % of the structure's volume for V indices
+  bool at_most = true;    ///< false: the index must be at least the limit
+};
+
+/// The default criteria at prescription rx (GEC-ESTRO / ABS prostate HDR monotherapy):
+/// prostate V100 >= 90 %, V150 <= 35 %, V200 <= 11 %; urethra D10 <= 115 %, D0.1cc <= 118 %,
+/// V125 <= 1 %; rectum and bladder D2cc <= 75 %, D0.1cc <= 80 %, V75 <= 5 %.
+std::vector<DvhCriterion> defaultDvhCriteria(double prescription_Gy);
+
+/// Parses "urethra D10 <= 115%" / "rectum V75 <= 5" / "prostate V100 >= 90": D limits in % of
+/// the prescription (with %) or Gy (with Gy), V limits in % of the structure's volume. Throws
+/// std::invalid_argument naming the text.
+DvhCriterion parseDvhCriterion(const std::string& text, double prescription_Gy);
+
+/// "urethra D10 <= 18.40 Gy".
+std::string describe(const DvhCriterion& k);
+
+struct DvhPlanOptions {
+  double plan_spacing_m = 2.5e-3;  ///< dose points of the MIP: structure lattice, this spacing
+  /// ... or coarser, so that no structure has more than this many dose points.
+  int max_points_per_structure = 600;
+  /// An at-most criterion's point whose dose under equal dwell times (target mean = Rx) is
+  /// below this fraction of the criterion's level is held below the level without a binary.
+  double binary_dose_ratio = 0.5;
+  double eval_spacing_m = 0.5e-3;  ///< lattice on which the criteria are checked and indices read
+  double max_seconds = 8.0;        ///< CBC time limit over all rounds [s]
+  double relative_gap = 1e-3;      ///< CBC stops within this gap of its bound
+  int rounds = 3;                  ///< re-solves with limits tightened by the fine-lattice excess
+  /// Penalty per percentage point of an organ's volume over a budget, against 1 per point of
+  /// target V100: 100 makes the criteria come first and coverage second.
+  double violation_penalty = 100.0;
+  /// Criteria whose structure is absent or cannot support them are skipped with a note.
+};
+
+struct DvhPlanResult {
+  std::string status = "ok";  ///< "ok", or why no plan was found
+  std::vector<double> times_s;
+  double seconds = 0.0;
+  double v100_pct = 0.0;       ///< target V100 on the evaluation lattice
+  double mip_v100_pct = 0.0;   ///< target V100 on the MIP's dose points
+  double mip_gap_pct = 0.0;    ///< CBC's bound minus its best objective, in V100 points
+  bool mip_optimal = false;    ///< CBC proved optimality within relative_gap
+  int binaries = 0, rows = 0;  ///< size of the last MIP
+  int rounds = 0;
+  std::map<std::string, DoseVolumeIndex> indices;  ///< on the evaluation lattice
+  std::vector<std::string> violated;               ///< criteria that give way (fine lattice)
+  std::vector<std::string> notes;
+  bool ok() const { return status == "ok"; }
+};
+
+/// Plans `c`'s dwell times on `criteria`. Throws std::invalid_argument for a case without dwell
+/// positions, a criterion on an unknown index form, or options out of range.
+DvhPlanResult optimizeDvh(const HdrCase& c, const Tg43Source& source,
+                          const std::vector<DvhCriterion>& criteria,
+                          const DvhPlanOptions& options = {});
+
+/// The index set of `criteria` (the structure's indices the criteria name), for evaluation.
+std::map<std::string, std::vector<std::string>> criteriaSpecs(
+    const std::vector<DvhCriterion>& criteria);
+
+/// Criteria from `indices` at their values: the at-most criteria become "no worse than this
+/// plan" (used to ask for a plan that dominates a reference plan). `keys` are index keys
+/// ("urethra_D10"); `at_least` keys must not decrease.
+std::vector<DvhCriterion> criteriaAt(const std::map<std::string, DoseVolumeIndex>& indices,
+                                     const std::vector<std::string>& at_most_keys,
+                                     const std::vector<std::string>& at_least_keys);
+
+}  // namespace needle_guidance::dose
