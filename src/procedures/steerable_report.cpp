@@ -294,16 +294,17 @@ std::string SteerableReport::summaryJson() const {
        << "],\n  \"predicted_ps\": " << jsonNumber(start.predicted_ps)
        << ",\n  \"predicted_within_ci\": " << (ci.contains(start.predicted_ps) ? "true" : "false")
        << ",\n  \"monte_carlo_ps\": " << jsonNumber(monte_carlo.rate())
-       << ",\n  \"monte_carlo_trials\": " << monte_carlo.trials
-       << ",\n  \"prediction_gap_mc\": " << jsonNumber(std::abs(start.predicted_ps - monte_carlo.rate()))
+       << ",\n  \"monte_carlo_trials\": " << monte_carlo.trials << ",\n  \"prediction_gap_mc\": "
+       << jsonNumber(std::abs(start.predicted_ps - monte_carlo.rate()))
        << ",\n  \"prediction_confirmed_by_mc\": "
-       << (start.confirmedBy(monte_carlo, steering::verificationTolerance(problem)) ? "true" : "false")
+       << (start.confirmedBy(monte_carlo, steering::verificationTolerance(problem)) ? "true"
+                                                                                    : "false")
        << ",\n  \"verified_ps\": " << jsonNumber(start.verified_ps) << ",\n  \"verified_ps_ci\": ["
        << jsonNumber(start.verified_ci.low) << ", " << jsonNumber(start.verified_ci.high)
        << "],\n  \"verification_trials\": " << start.verification_trials
        << ",\n  \"start_confirmed_by_policy\": " << (start.confirmed ? "true" : "false")
-       << ",\n  \"table_best_ps\": " << jsonNumber(start.table_best_ps) << ",\n  \"model\": \"" << model
-       << "\",\n  \"policy_table\": \"" << policy_table << "\""
+       << ",\n  \"table_best_ps\": " << jsonNumber(start.table_best_ps) << ",\n  \"model\": \""
+       << model << "\",\n  \"policy_table\": \"" << policy_table << "\""
        << ",\n  \"ps_tolerance\": " << jsonNumber(problem.ps_tolerance)
        << ",\n  \"estimated_ps_error\": " << jsonNumber(estimated_ps_error)
        << ",\n  \"start_y_mm\": " << jsonNumber(start.pose.p_SceneTip.y() * kMm)
@@ -357,8 +358,8 @@ std::string SteerableReport::summaryMarkdown() const {
      << "| start | y = " << start.pose.p_SceneTip.y() * kMm
      << " mm, theta = " << start.pose.theta_rad * kDeg << " deg, bevel "
      << steering::toString(start.pose.bevel) << " |\n"
-     << "| predicted P_s (MDP) | " << start.predicted_ps << " (the table's best start: "
-     << start.table_best_ps << ") |\n"
+     << "| predicted P_s (MDP) | " << start.predicted_ps
+     << " (the table's best start: " << start.table_best_ps << ") |\n"
      << "| verified by the policy | " << start.verified_ps << " [" << start.verified_ci.low << ", "
      << start.verified_ci.high << "], " << start.verification_trials << " trials, "
      << (start.confirmed ? "confirmed" : "not confirmed") << " |\n"

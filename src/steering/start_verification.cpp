@@ -6,6 +6,7 @@
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
+#include <utility>
 
 #include "needle_guidance/format.h"
 
@@ -17,20 +18,23 @@ constexpr double kPi = 3.14159265358979323846;
 constexpr int kMaxVerified = 3;
 
 void checkOptions(const StartVerificationOptions& o) {
-  const std::string where = "verifyBestStart: ";
-  auto fail = [&](const std::string& what, double value) {
-    throw std::invalid_argument(where + what + " out of range: " + formatNumber(value));
+  const std::pair<bool, std::pair<const char*, double>> checks[] = {
+      {o.candidates >= 1, {"candidates (>= 1)", o.candidates}},
+      {o.separation_m >= 0.0, {"separation_m (>= 0)", o.separation_m}},
+      {o.separation_rad >= 0.0, {"separation_rad (>= 0)", o.separation_rad}},
+      {o.screen_trials >= 1, {"screen_trials (>= 1)", double(o.screen_trials)}},
+      {o.verify_trials >= 1, {"verify_trials (>= 1)", double(o.verify_trials)}},
+      {o.tolerance >= 0.0 && o.tolerance < 1.0, {"tolerance [0, 1)", o.tolerance}},
+      {o.z > 0.0 && std::isfinite(o.z), {"z (> 0)", o.z}},
+      {o.threads >= 1, {"threads (>= 1)", o.threads}},
+      {o.max_steps >= 1, {"max_steps (>= 1)", o.max_steps}},
   };
-  if (o.candidates < 1) fail("candidates (>= 1)", o.candidates);
-  if (!(o.separation_m >= 0.0)) fail("separation_m (>= 0)", o.separation_m);
-  if (!(o.separation_rad >= 0.0)) fail("separation_rad (>= 0)", o.separation_rad);
-  if (!(o.ps_window > 0.0 && o.ps_window <= 1.0)) fail("ps_window (0, 1]", o.ps_window);
-  if (o.screen_trials < 1) fail("screen_trials (>= 1)", double(o.screen_trials));
-  if (o.verify_trials < 1) fail("verify_trials (>= 1)", double(o.verify_trials));
-  if (!(o.tolerance >= 0.0 && o.tolerance < 1.0)) fail("tolerance [0, 1)", o.tolerance);
-  if (!(o.z > 0.0 && std::isfinite(o.z))) fail("z (> 0)", o.z);
-  if (o.threads < 1) fail("threads (>= 1)", o.threads);
-  if (o.max_steps < 1) fail("max_steps (>= 1)", o.max_steps);
+  for (const auto& [ok, what] : checks) {
+    if (!ok) {  // NaN fails every comparison above
+      throw std::invalid_argument("verifyBestStart: " + std::string(what.first) +
+                                  " out of range: " + formatNumber(what.second));
+    }
+  }
 }
 
 /// The smallest angle between two orientations [rad].
@@ -66,10 +70,9 @@ std::string VerifiedStart::toString() const {
   const Interval ci = verification.interval();
   out << "y = " << formatNumber(start.pose.p_SceneTip.y() * 1e3, 4)
       << " mm, theta = " << formatNumber(start.pose.theta_rad * 180.0 / kPi, 3) << " deg, bevel "
-      << steering::toString(start.pose.bevel) << ": predicted P_s "
-      << formatNumber(predicted(), 3) << ", verified " << formatNumber(verification.rate(), 3)
-      << " [" << formatNumber(ci.low, 3) << ", " << formatNumber(ci.high, 3) << "] ("
-      << verification.trials << " trials), "
+      << steering::toString(start.pose.bevel) << ": predicted P_s " << formatNumber(predicted(), 3)
+      << ", verified " << formatNumber(verification.rate(), 3) << " [" << formatNumber(ci.low, 3)
+      << ", " << formatNumber(ci.high, 3) << "] (" << verification.trials << " trials), "
       << (confirmed ? "confirmed within " : "NOT confirmed within ") << formatNumber(tolerance, 3)
       << "; " << ordinal(rank_by_prediction + 1) << " of " << screened.size() << " screened";
   return out.str();
@@ -85,10 +88,8 @@ std::vector<StartCandidate> distinctBestStarts(const PolicyTable& table, const S
   if (all.empty() || !(all.front().probability_of_success > 0.0f)) {
     return out;
   }
-  const double floor_ps = all.front().probability_of_success - options.ps_window;
   for (const StartCandidate& c : all) {
-    if (static_cast<int>(out.size()) >= options.candidates || c.probability_of_success <= 0.0f ||
-        c.probability_of_success < floor_ps) {
+    if (static_cast<int>(out.size()) >= options.candidates || c.probability_of_success <= 0.0f) {
       break;
     }
     const bool near = std::any_of(out.begin(), out.end(), [&](const StartCandidate& kept) {
@@ -112,8 +113,8 @@ VerifiedStart verifyBestStart(const ContinuousWorkspace& world, const PolicyTabl
   const std::vector<StartCandidate> candidates = distinctBestStarts(table, start, options);
   if (candidates.empty()) {
     const BestStart best = table.bestStart(start);
-    out.message = best.message.empty() ? "verifyBestStart: no start state with P_s > 0"
-                                       : best.message;
+    out.message =
+        best.message.empty() ? "verifyBestStart: no start state with P_s > 0" : best.message;
     return out;
   }
   const SteeringPolicy policy = tablePolicy(table);
@@ -143,23 +144,24 @@ VerifiedStart verifyBestStart(const ContinuousWorkspace& world, const PolicyTabl
     }
     return sa.score > sb.score;
   });
-  double best_low = -1.0;
+  double best_gap = 1.0;
   const int tries = std::min<int>(kMaxVerified, static_cast<int>(order.size()));
   for (int i = 0; i < tries; ++i) {
     const int index = order[static_cast<std::size_t>(i)];
     const StartCandidate& c = out.screened[static_cast<std::size_t>(index)].candidate;
     const MonteCarloResult mc = runMonteCarlo(world, c.pose, policy, options.verify_trials,
                                               options.seed + 1, options.threads, trial);
-    const bool confirmed = predictionConfirmed(c.probability_of_success, mc.rate(), mc.trials,
-                                               options.tolerance, options.z);
-    const double low = wilsonInterval(mc.successes, mc.trials, options.z).low;
-    if (confirmed || (!out.confirmed && low > best_low)) {
+    // Strict: the verified gap itself within the tolerance (no allowance for the noise).
+    const bool confirmed =
+        predictionConfirmed(c.probability_of_success, mc.rate(), mc.trials, options.tolerance, 0.0);
+    const double gap = std::abs(c.probability_of_success - mc.rate());
+    if (confirmed || !out.found || gap < best_gap) {
       out.found = true;
       out.start = c;
       out.verification = mc;
       out.confirmed = confirmed;
       out.rank_by_prediction = index;
-      best_low = low;
+      best_gap = gap;
     }
     if (confirmed) {
       break;

@@ -122,10 +122,10 @@ TEST_F(StartVerificationTest, ChosenStartIsVerifiedWithFreshSeedsAndDeterministi
   EXPECT_FALSE(a.screened.empty());
   EXPECT_LE(a.screened.size(), std::size_t(options.candidates));
   // The chosen start is one of the screened, and the screen's best prediction is the table's.
-  EXPECT_EQ(a.screened.front().candidate.state, table_->bestStart(test_shapes::entryLine()).best.state);
+  EXPECT_EQ(a.screened.front().candidate.state,
+            table_->bestStart(test_shapes::entryLine()).best.state);
   EXPECT_EQ(a.start.state, a.screened[std::size_t(a.rank_by_prediction)].candidate.state);
-  EXPECT_EQ(a.confirmed, predictionConfirmed(a.predicted(), a.verification.rate(),
-                                             a.verification.trials, options.tolerance));
+  EXPECT_EQ(a.confirmed, std::abs(a.gap()) <= options.tolerance);
   const VerifiedStart b = verifyBestStart(*world_, *table_, test_shapes::entryLine(), options);
   EXPECT_EQ(a.start.state, b.start.state);
   EXPECT_EQ(a.verification.successes, b.verification.successes);
@@ -180,16 +180,14 @@ TEST_F(StartVerificationTest, DistinctStartsAreSeparated) {
   ASSERT_FALSE(starts.empty());
   EXPECT_LE(starts.size(), 6u);
   for (std::size_t i = 0; i < starts.size(); ++i) {
-    EXPECT_GE(starts[i].probability_of_success,
-              starts.front().probability_of_success - options.ps_window);
     for (std::size_t j = 0; j < i; ++j) {
       EXPECT_GE(starts[j].probability_of_success, starts[i].probability_of_success);
       const bool apart =
           starts[i].pose.bevel != starts[j].pose.bevel ||
           std::abs(starts[i].pose.p_SceneTip.y() - starts[j].pose.p_SceneTip.y()) >
               options.separation_m ||
-          std::abs(std::remainder(starts[i].pose.theta_rad - starts[j].pose.theta_rad,
-                                  2 * kPi)) > options.separation_rad;
+          std::abs(std::remainder(starts[i].pose.theta_rad - starts[j].pose.theta_rad, 2 * kPi)) >
+              options.separation_rad;
       EXPECT_TRUE(apart) << i << " and " << j;
     }
   }
@@ -232,3 +230,8 @@ TEST(PredictionConfirmed, ToleranceAndBinomialNoise) {
 
 }  // namespace
 }  // namespace needle_guidance::steering
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}

@@ -137,11 +137,11 @@ struct SteerableSettings {
 struct SteerableStart {
   steering::TipPose pose;
   double predicted_ps = 0.0;
-  double verified_ps = 0.0;              ///< the policy's Monte Carlo of the continuous needle
+  double verified_ps = 0.0;  ///< the policy's Monte Carlo of the continuous needle
   steering::Interval verified_ci{0.0, 1.0};
   std::int64_t verification_trials = 0;
-  bool confirmed = false;                ///< the policy found the prediction confirmed
-  double table_best_ps = 0.0;            ///< the table's maximum P_s on the entry line
+  bool confirmed = false;      ///< the policy found the prediction confirmed
+  double table_best_ps = 0.0;  ///< the table's maximum P_s on the entry line
   /// True if the report's own Monte Carlo confirms predicted_ps within `tolerance` (plus its
   /// binomial noise, steering::predictionConfirmed).
   bool confirmedBy(const steering::MonteCarloResult& mc, double tolerance) const;

@@ -94,10 +94,10 @@ private:
   std::optional<steering::StepPairing> steps_;
   std::optional<steering::VerifiedStart> verified_;
   const steering::PolicyTable* verified_for_ = nullptr;  ///< the table verified_ belongs to
-  std::string table_source_;           ///< how table_ was made: solved | loaded
-  steering::SteeringProblem problem_;  ///< the scene's, with its ps_tolerance
-  std::string description_;            ///< model, estimated error and time of table_
-  double estimated_error_ = 0.0;       ///< NaN when not estimated (ps_tolerance 0)
+  std::string table_source_;                             ///< how table_ was made: solved | loaded
+  steering::SteeringProblem problem_;                    ///< the scene's, with its ps_tolerance
+  std::string description_;       ///< model, estimated error and time of table_
+  double estimated_error_ = 0.0;  ///< NaN when not estimated (ps_tolerance 0)
   ros::Publisher control_pub_;
   ros::Publisher ps_map_pub_;
   ros::Publisher ps_key_pub_;  ///< ~ps_map_key: the map's colour key
