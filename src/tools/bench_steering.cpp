@@ -70,6 +70,14 @@ double peakMb() {
   return static_cast<double>(usage.ru_maxrss) / 1024.0;  // ru_maxrss is in KiB on Linux
 }
 
+/// User + system CPU time of the process so far, all threads [s].
+double cpuSeconds() {
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  return double(usage.ru_utime.tv_sec + usage.ru_stime.tv_sec) +
+         1e-6 * double(usage.ru_utime.tv_usec + usage.ru_stime.tv_usec);
+}
+
 double secondsSince(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
@@ -1017,8 +1025,11 @@ ng::report::Table selectionTable() {
 // ---- the truth check where the decision is made: the chosen start, the 10 best starts and
 // starts near every workspace edge and obstacle, each against the continuous needle ----
 
-/// Monte Carlo trials at the chosen start (its gap is the headline, so its noise is halved).
-constexpr std::int64_t kChosenStartTrials = 4 * kMonteCarloTrials;
+/// Monte Carlo trials at the chosen start: its gap is the headline, measured against a
+/// tolerance of 0.005 - 0.01, so its binomial noise (mean |noise| <= 0.0013) must be well below.
+constexpr std::int64_t kChosenStartTrials = 10 * kMonteCarloTrials;
+/// Monte Carlo trials per entry-line start (ps_mean_abs_gap_entry; noise floor <= 0.002).
+constexpr std::int64_t kEntryTrials = 4 * kMonteCarloTrials;
 /// Distance from a workspace edge or an expanded obstacle edge of the near-boundary starts [m].
 constexpr double kNearBoundary_m = 2.5e-3;
 /// Best starts by prediction in the truth check.
@@ -1141,6 +1152,9 @@ struct DecisionTruth {
   double gap_table_best = NAN;      ///< |gap| at the table's own best start (5.5's choice)
   double mean_abs_gap_entry = 0.0;  ///< the entry-line starts (ps_mean_abs_gap_default)
   double within_entry = 0.0;
+  double noise_floor_entry = 0.0;  ///< mean |gap| binomial noise alone gives there
+  double solve_cpu_s = 0.0;        ///< CPU time of the chosen model's fastest solve [s]
+  double verify_cpu_s = 0.0;       ///< CPU time of screening and verifying the start [s]
   double mean_abs_gap_top = 0.0, max_abs_gap_top = 0.0;
   double mean_abs_gap_boundary = 0.0, max_abs_gap_boundary = 0.0;
   int entry_starts = 0, top_starts = 0, boundary_starts = 0;
@@ -1151,17 +1165,19 @@ struct DecisionTruth {
 /// non-trivial ones and their count, the largest in max_gap, the fraction inside the interval
 /// in within.
 double scoreStarts(const st::ContinuousWorkspace& world, const st::PolicyTable& table,
-                   const std::vector<TruthStart>& starts, const std::string& scene,
-                   ng::report::Table& rows, int& count, double& max_gap, double& within) {
+                   const std::vector<TruthStart>& starts, std::int64_t trials,
+                   const std::string& scene, ng::report::Table& rows, int& count, double& max_gap,
+                   double& within, double& noise_floor) {
   const st::SteeringPolicy policy = st::tablePolicy(table);
   double sum = 0.0;
   count = 0;
   max_gap = 0.0;
   within = 0.0;
+  noise_floor = 0.0;
   for (const TruthStart& s : starts) {
     const double predicted = table.lookup(s.pose).probability_of_success;
     const st::MonteCarloResult mc =
-        st::runMonteCarlo(world, s.pose, policy, kMonteCarloTrials, kMonteCarloSeed, 2);
+        st::runMonteCarlo(world, s.pose, policy, trials, kMonteCarloSeed, 2);
     const st::Interval ci = mc.interval();
     rows.addRow({scene, s.group, s.pose.p_SceneTip.x() * kMmPerM, s.pose.p_SceneTip.y() * kMmPerM,
                  s.pose.theta_rad * kDegPerRad, st::toString(s.pose.bevel), predicted, mc.rate(),
@@ -1171,11 +1187,13 @@ double scoreStarts(const st::ContinuousWorkspace& world, const st::PolicyTable& 
       continue;
     }
     ++count;
+    noise_floor += std::sqrt(2.0 / kPi * predicted * (1.0 - predicted) / double(trials));
     sum += std::abs(predicted - mc.rate());
     max_gap = std::max(max_gap, std::abs(predicted - mc.rate()));
     within += ci.contains(predicted) ? 1.0 : 0.0;
   }
   within = count > 0 ? within / count : NAN;
+  noise_floor = count > 0 ? noise_floor / count : NAN;
   return count > 0 ? sum / count : NAN;
 }
 
@@ -1210,9 +1228,15 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
               chosen.params.orientation_subdivision, kSolveRepeats, chosen.params.transition_model);
   out.solve_s = solved.fastest_s;
   const st::PolicyTable& table = *solved.table;
+  st::SolverOptions solver;  // once more for its CPU time (both threads' together)
+  double c0 = cpuSeconds();
+  st::solveValueIteration(*solved.model, solver);
+  out.solve_cpu_s = cpuSeconds() - c0;
   st::StartVerificationOptions verify;
   verify.tolerance = st::verificationTolerance(problem);
+  c0 = cpuSeconds();
   out.chosen = st::verifyBestStart(world, table, start, verify);
+  out.verify_cpu_s = cpuSeconds() - c0;
   out.verify_s = out.chosen.seconds;
   if (!out.chosen) {
     throw std::runtime_error(scene.name + ": " + out.chosen.message);
@@ -1244,11 +1268,14 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
   }
   boundary = boundaryStarts(problem, start, table, world);
   int n = 0;
-  double max_gap = 0.0, within = 0.0;
-  out.mean_abs_gap_entry = scoreStarts(world, table, entry, scene.name, rows, n, max_gap, within);
+  double max_gap = 0.0, within = 0.0, noise = 0.0;
+  out.mean_abs_gap_entry =
+      scoreStarts(world, table, entry, kEntryTrials, scene.name, rows, n, max_gap, within, noise);
   out.entry_starts = n;
   out.within_entry = within;
-  out.mean_abs_gap_top = scoreStarts(world, table, top, scene.name, rows, n, max_gap, within);
+  out.noise_floor_entry = noise;
+  out.mean_abs_gap_top = scoreStarts(world, table, top, kMonteCarloTrials, scene.name, rows, n,
+                                     max_gap, within, noise);
   out.top_starts = n;
   out.max_abs_gap_top = max_gap;
   out.gap_table_best = NAN;
@@ -1259,8 +1286,8 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
                                        kMonteCarloTrials, kMonteCarloSeed, 2)
                          .rate());
   }
-  out.mean_abs_gap_boundary =
-      scoreStarts(world, table, boundary, scene.name, rows, n, max_gap, within);
+  out.mean_abs_gap_boundary = scoreStarts(world, table, boundary, kMonteCarloTrials, scene.name,
+                                          rows, n, max_gap, within, noise);
   out.boundary_starts = n;
   out.max_abs_gap_boundary = max_gap;
   out.mc_s = secondsSince(t0);
@@ -1303,6 +1330,7 @@ std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
   key("ps_gap_table_best_start", num(d.gap_table_best));
   key("ps_mean_abs_gap_entry", num(d.mean_abs_gap_entry));
   key("mc_within_ci_fraction_entry", num(d.within_entry));
+  key("noise_floor_entry", num(d.noise_floor_entry));
   key("ps_mean_abs_gap_top10", num(d.mean_abs_gap_top));
   key("ps_max_abs_gap_top10", num(d.max_abs_gap_top));
   key("ps_mean_abs_gap_boundary", num(d.mean_abs_gap_boundary));
@@ -1312,6 +1340,7 @@ std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
   key("solve_s_chosen_model", num(d.solve_s));
   key("verify_start_s", num(d.verify_s));
   key("solve_and_verify_s", num(d.solve_s + d.verify_s));
+  key("solve_and_verify_cpu_s", num(d.solve_cpu_s + d.verify_cpu_s));
   key("truth_mc_s", num(d.mc_s));
   key("targets_met", targetsMet(d) ? "true" : "false");
   return j.str();

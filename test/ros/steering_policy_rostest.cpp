@@ -156,7 +156,7 @@ TEST(SteeringPolicy, BestStartIsOnTheEntryLine) {
   EXPECT_LE(std::abs(best.pose.theta), 0.5 * kPi);
   EXPECT_TRUE(best.bevel == "left" || best.bevel == "right") << best.bevel;
   // The start is verified by the continuous needle's Monte Carlo (start_verification.h).
-  EXPECT_EQ(best.verification_trials, 10000);
+  EXPECT_EQ(best.verification_trials, 16000);
   EXPECT_LE(best.verified_ci_low, best.verified_ps);
   EXPECT_GE(best.verified_ci_high, best.verified_ps);
   EXPECT_GE(best.table_best_ps, best.probability_of_success);
