@@ -12,6 +12,7 @@
 #include "needle_guidance/report/plot.h"
 #include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
+#include "needle_guidance/steering/start_verification.h"
 
 namespace needle_guidance::procedures {
 namespace {
@@ -293,8 +294,17 @@ std::string SteerableReport::summaryJson() const {
        << "],\n  \"predicted_ps\": " << jsonNumber(start.predicted_ps)
        << ",\n  \"predicted_within_ci\": " << (ci.contains(start.predicted_ps) ? "true" : "false")
        << ",\n  \"monte_carlo_ps\": " << jsonNumber(monte_carlo.rate())
-       << ",\n  \"monte_carlo_trials\": " << monte_carlo.trials << ",\n  \"model\": \"" << model
-       << "\",\n  \"policy_table\": \"" << policy_table << "\""
+       << ",\n  \"monte_carlo_trials\": " << monte_carlo.trials << ",\n  \"prediction_gap_mc\": "
+       << jsonNumber(std::abs(start.predicted_ps - monte_carlo.rate()))
+       << ",\n  \"prediction_confirmed_by_mc\": "
+       << (start.confirmedBy(monte_carlo, steering::verificationTolerance(problem)) ? "true"
+                                                                                    : "false")
+       << ",\n  \"verified_ps\": " << jsonNumber(start.verified_ps) << ",\n  \"verified_ps_ci\": ["
+       << jsonNumber(start.verified_ci.low) << ", " << jsonNumber(start.verified_ci.high)
+       << "],\n  \"verification_trials\": " << start.verification_trials
+       << ",\n  \"start_confirmed_by_policy\": " << (start.confirmed ? "true" : "false")
+       << ",\n  \"table_best_ps\": " << jsonNumber(start.table_best_ps) << ",\n  \"model\": \""
+       << model << "\",\n  \"policy_table\": \"" << policy_table << "\""
        << ",\n  \"ps_tolerance\": " << jsonNumber(problem.ps_tolerance)
        << ",\n  \"estimated_ps_error\": " << jsonNumber(estimated_ps_error)
        << ",\n  \"start_y_mm\": " << jsonNumber(start.pose.p_SceneTip.y() * kMm)
@@ -348,7 +358,11 @@ std::string SteerableReport::summaryMarkdown() const {
      << "| start | y = " << start.pose.p_SceneTip.y() * kMm
      << " mm, theta = " << start.pose.theta_rad * kDeg << " deg, bevel "
      << steering::toString(start.pose.bevel) << " |\n"
-     << "| predicted P_s (MDP) | " << start.predicted_ps << " |\n"
+     << "| predicted P_s (MDP) | " << start.predicted_ps
+     << " (the table's best start: " << start.table_best_ps << ") |\n"
+     << "| verified by the policy | " << start.verified_ps << " [" << start.verified_ci.low << ", "
+     << start.verified_ci.high << "], " << start.verification_trials << " trials, "
+     << (start.confirmed ? "confirmed" : "not confirmed") << " |\n"
      << "| model | " << model << " (ps_tolerance " << problem.ps_tolerance << ") |\n"
      << (fault ? "| STOPPED | " + fault->toString() + "; robot: " + safe_stop + " |\n" : "")
      << "| errored trials (not counted as misses) | " << errored() << " |\n"
@@ -368,6 +382,10 @@ std::string SteerableReport::summaryMarkdown() const {
   return md.str();
 }
 
+bool SteerableStart::confirmedBy(const steering::MonteCarloResult& mc, double tolerance) const {
+  return steering::predictionConfirmed(predicted_ps, mc.rate(), mc.trials, tolerance);
+}
+
 std::string SteerableReport::text() const {
   const int n = counted();
   const steering::Interval ci = successInterval();
@@ -376,7 +394,13 @@ std::string SteerableReport::text() const {
       << "): " << successes() << " / " << n << " closed-loop trials reached the target (rate "
       << (n > 0 ? double(successes()) / n : 0.0) << ", 95 % CI [" << ci.low << ", " << ci.high
       << "]); predicted P_s " << start.predicted_ps << ", Monte Carlo " << monte_carlo.rate()
-      << " ==\nstart y = " << start.pose.p_SceneTip.y() * kMm
+      << " ("
+      << (start.confirmedBy(monte_carlo, steering::verificationTolerance(problem))
+              ? "confirms"
+              : "does NOT confirm")
+      << " the prediction within " << steering::verificationTolerance(problem)
+      << "; the policy verified " << start.verified_ps << " over " << start.verification_trials
+      << " trials) ==\nstart y = " << start.pose.p_SceneTip.y() * kMm
       << " mm, theta = " << start.pose.theta_rad * kDeg << " deg, bevel "
       << steering::toString(start.pose.bevel) << "; " << wall_time_s << " s\n"
       << (errored() > 0 ? std::to_string(errored()) + " errored trial(s), not counted\n" : "")

@@ -335,10 +335,12 @@ bool SteerableProcedureRos::run() {
   start.pose.bevel =
       steering::bevelFromString(best.response.bevel).value_or(steering::Bevel::kLeft);
   start.predicted_ps = best.response.probability_of_success;
-  ROS_INFO_STREAM("steerable_procedure: best start y = "
-                  << best.response.pose.y * kMmPerM
-                  << " mm, theta = " << best.response.pose.theta * kDegPerRad << " deg, bevel "
-                  << best.response.bevel << ", predicted P_s = " << start.predicted_ps);
+  start.verified_ps = best.response.verified_ps;
+  start.verified_ci = {best.response.verified_ci_low, best.response.verified_ci_high};
+  start.verification_trials = best.response.verification_trials;
+  start.confirmed = best.response.confirmed;
+  start.table_best_ps = best.response.table_best_ps;
+  ROS_INFO_STREAM("steerable_procedure: start " << best.response.message);
 
   const procedures::SteerableTrials trials(scene.name, problem, *policy.value().table,
                                            selection.start, s_.trials);

@@ -170,15 +170,15 @@ visualization_msgs::MarkerArray probabilityKey(const st::SteeringProblem& proble
   return key;
 }
 
-/// An arrow at the best start pose (green), or a DELETE when there is none.
-visualization_msgs::Marker bestStartMarker(const st::BestStart& best) {
+/// An arrow at the start pose in use (green), or a DELETE when there is none.
+visualization_msgs::Marker bestStartMarker(const st::VerifiedStart& best) {
   using visualization_msgs::Marker;
   Marker m = marker("best_start", Marker::ARROW);
   if (!best) {
     m.action = Marker::DELETE;
     return m;
   }
-  const st::TipPose& pose = best.best.pose;
+  const st::TipPose& pose = best.start.pose;
   m.pose.position.x = pose.p_SceneTip.x();
   m.pose.position.y = pose.p_SceneTip.y();
   m.pose.orientation.z = std::sin(0.5 * pose.theta_rad);
@@ -330,19 +330,35 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
     return out;
   }
   try {
-    publishMaps();
+    publishMaps(true);
   } catch (const std::exception& e) {
     ROS_ERROR_STREAM_NAMED(kName, "steering_policy: markers not published: " << e.what());
   }
   return out;
 }
 
-void SteeringPolicyRos::publishMaps() {
+void SteeringPolicyRos::publishMaps(bool verify_start) {
   ps_map_pub_.publish(probabilityMap(*table_));
   ps_key_pub_.publish(probabilityKey(problem_));
-  const st::BestStart best = table_->bestStart(start_options_);
+  if (!verify_start) {  // a table swapped in mid-run: the run keeps its start (~best_start
+    return;             // verifies the new table when asked)
+  }
+  const st::VerifiedStart& best = verifiedStart();
   best_start_pub_.publish(bestStartMarker(best));
-  ROS_INFO_STREAM_NAMED(kName, "steering_policy: " << best.toString());
+  ROS_INFO_STREAM_NAMED(kName, "steering_policy: start " << best.toString() << " (verified in "
+                                                         << best.seconds << " s)");
+}
+
+const st::VerifiedStart& SteeringPolicyRos::verifiedStart() {
+  if (!verified_ || verified_for_ != table_.get()) {
+    const st::ContinuousWorkspace world(model_->problem());
+    st::StartVerificationOptions options;
+    options.tolerance = st::verificationTolerance(problem_);
+    options.threads = settings_.threads;
+    verified_ = st::verifyBestStart(world, *table_, start_options_, options);
+    verified_for_ = table_.get();
+  }
+  return *verified_;
 }
 
 void SteeringPolicyRos::adopt(const std::shared_ptr<const st::PolicySource>& source) {
@@ -384,7 +400,7 @@ void SteeringPolicyRos::adoptFinishedResolve() {
     ROS_INFO_STREAM_NAMED(kName, "steering_policy: re-solved table swapped in ("
                                      << (r.cached ? "cached" : formatNumber(r.seconds, 3) + " s")
                                      << "): " << description_);
-    publishMaps();
+    publishMaps(false);
   }
 }
 
@@ -464,12 +480,19 @@ bool SteeringPolicyRos::onBestStart(BestStart::Request& /*req*/, BestStart::Resp
     res.message = "no policy table yet: call ~solve";
     return true;
   }
-  const st::BestStart best = table_->bestStart(start_options_);
+  const st::VerifiedStart& best = verifiedStart();
   res.found = best.found;
-  res.message = best.found ? best.toString() : best.message;
-  res.pose = toMessage(best.best.pose);
-  res.bevel = st::toString(best.best.pose.bevel);
-  res.probability_of_success = best.best.probability_of_success;
+  res.message = best.toString();
+  res.pose = toMessage(best.start.pose);
+  res.bevel = st::toString(best.start.pose.bevel);
+  res.probability_of_success = best.start.probability_of_success;
+  res.verified_ps = static_cast<float>(best.verification.rate());
+  res.verified_ci_low = static_cast<float>(best.verification.interval().low);
+  res.verified_ci_high = static_cast<float>(best.verification.interval().high);
+  res.verification_trials = static_cast<std::int32_t>(best.verification.trials);
+  res.confirmed = best.confirmed;
+  res.ps_tolerance = static_cast<float>(best.tolerance);
+  res.table_best_ps = table_->bestStart(start_options_).best.probability_of_success;
   return true;
 }
 

@@ -2,6 +2,7 @@
 #include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/math.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <fstream>
@@ -145,10 +146,10 @@ ControlLookup PolicyTable::lookup(const TipPose& pose) const noexcept {
 std::vector<StartCandidate> PolicyTable::startCandidates(const StartOptions& options) const {
   std::vector<StartCandidate> out;
   const double fx = (options.start_x_m - grid_.origin.x()) / grid_.spacing_m;
-  if (!(fx >= -0.5 && fx < grid_.nx - 0.5)) {
+  if (!(fx >= -0.5 && fx < grid_.nx + 1.0)) {  // as GridSpec::nearestState
     return out;
   }
-  const int ix = static_cast<int>(std::floor(fx + 0.5));
+  const int ix = std::min(grid_.nx - 1, static_cast<int>(std::floor(fx + 0.5)));
   const double lo_y = std::ceil((options.min_height_m - grid_.origin.y()) / grid_.spacing_m - 1e-9);
   const double hi_y =
       std::floor((options.max_height_m - grid_.origin.y()) / grid_.spacing_m + 1e-9);

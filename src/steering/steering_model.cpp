@@ -231,12 +231,14 @@ StateId GridSpec::nearestState(const TipPose& pose) const {
   const double fx = (pose.p_SceneTip.x() - origin.x()) / spacing_m;
   const double fy = (pose.p_SceneTip.y() - origin.y()) / spacing_m;
   const double fk = pose.theta_rad / alphaRad();
-  // The negated comparisons also reject NaN.
-  if (!(fx >= -0.5 && fx < nx - 0.5 && fy >= -0.5 && fy < ny - 0.5 && std::abs(fk) < 1e15)) {
+  // The negated comparisons also reject NaN. The grid has floor(width / Delta) columns, so the
+  // workspace reaches up to (but less than) one spacing beyond the last column and row: a pose
+  // there belongs to the last column or row, the nearest grid point it has.
+  if (!(fx >= -0.5 && fx < nx + 1.0 && fy >= -0.5 && fy < ny + 1.0 && std::abs(fk) < 1e15)) {
     return -1;
   }
-  const int ix = static_cast<int>(std::floor(fx + 0.5));
-  const int iy = static_cast<int>(std::floor(fy + 0.5));
+  const int ix = std::min(nx - 1, static_cast<int>(std::floor(fx + 0.5)));
+  const int iy = std::min(ny - 1, static_cast<int>(std::floor(fy + 0.5)));
   const std::int64_t kk = static_cast<std::int64_t>(std::floor(fk + 0.5)) % nc;
   const int k = static_cast<int>(kk < 0 ? kk + nc : kk);
   return state(ix, iy, k, pose.bevel);

@@ -5,6 +5,8 @@
 // P_s at a fixed start pose against the grid spacing; O(1) control look-up time; table file
 // size and save/load time; the start-state surface of figure 5.7.
 // Usage: bench_steering --out DIR [--quick] [--scene SPEC]
+//        bench_steering --truth-only --out DIR [--scene SPEC]... (the truth check where the start
+//        is chosen, per scene: chosen start, 10 best starts, starts near every boundary)
 #include <sys/resource.h>
 
 #include <algorithm>
@@ -13,6 +15,7 @@
 #include <cstdio>
 #include <iostream>
 #include <memory>
+#include <optional>
 #include <random>
 #include <sstream>
 #include <stdexcept>
@@ -29,6 +32,7 @@
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/steering/shortest_path.h"
+#include "needle_guidance/steering/start_verification.h"
 #include "needle_guidance/steering/steering_model.h"
 #include "needle_guidance/steering/value_iteration.h"
 
@@ -65,6 +69,14 @@ double peakMb() {
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
   return static_cast<double>(usage.ru_maxrss) / 1024.0;  // ru_maxrss is in KiB on Linux
+}
+
+/// User + system CPU time of the process so far, all threads [s].
+double cpuSeconds() {
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  return double(usage.ru_utime.tv_sec + usage.ru_stime.tv_sec) +
+         1e-6 * double(usage.ru_utime.tv_usec + usage.ru_stime.tv_usec);
 }
 
 double secondsSince(std::chrono::steady_clock::time_point t0) {
@@ -911,6 +923,8 @@ void writePlotJson(const std::string& out_dir) {
   "title": "Paired success differences, common random numbers (both scenes)", "png": "adaptation_paired.png"},
  {"csv": "sigma_trajectory.csv", "x": "trial", "y": "sigma_i_deg", "group": "world_sigma_scale",
   "title": "Adaptive arm: learned sigma_i after each trial", "png": "sigma_trajectory.png"},
+ {"csv": "truth_decision.csv", "x": "predicted_ps", "y": "mc_ps", "group": "group", "points": true,
+  "title": "Predicted P_s vs Monte Carlo where the start is chosen (scene and held out)", "png": "truth_decision.png"},
  {"csv": "start_slices.csv", "x": "y_mm", "y": "ps", "group": "theta",
   "title": "P_s of start states on the entry line (figure 5.7 slices, best bevel)", "png": "start_surface.png"}])json");
 }
@@ -1009,14 +1023,392 @@ ng::report::Table selectionTable() {
       6);
 }
 
+// ---- the truth check where the decision is made: the chosen start, the 10 best starts and
+// starts near every workspace edge and obstacle, each against the continuous needle ----
+
+/// Monte Carlo trials at the chosen start: its gap is the headline, measured against a
+/// tolerance of 0.005 - 0.01, so its binomial noise (mean |noise| <= 0.0013) must be well below.
+constexpr std::int64_t kChosenStartTrials = 10 * kMonteCarloTrials;
+/// Monte Carlo trials per entry-line start (ps_mean_abs_gap_entry; noise floor <= 0.002).
+constexpr std::int64_t kEntryTrials = 4 * kMonteCarloTrials;
+/// Distance from a workspace edge or an expanded obstacle edge of the near-boundary starts [m].
+constexpr double kNearBoundary_m = 2.5e-3;
+/// Best starts by prediction in the truth check.
+constexpr int kTopStarts = 10;
+/// Heights of the entry-line starts as fractions of the start range.
+const std::vector<double> kEntryFractions = {0.08, 0.2, 0.35, 0.5, 0.65, 0.8, 0.92};
+
+/// A start state of the truth check and the group it belongs to.
+struct TruthStart {
+  std::string group;  ///< entry | chosen | table_best | top10 | edge | obstacle
+  st::TipPose pose;
+};
+
+/// The entry-line starts at `fractions` of the start range (within the workspace).
+std::vector<double> entryHeights_mm(const st::SteeringProblem& problem,
+                                    const st::StartOptions& start,
+                                    const std::vector<double>& fractions) {
+  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
+  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
+  std::vector<double> out;
+  for (double f : fractions) {
+    out.push_back((lo + f * (hi - lo)) * kMmPerM);
+  }
+  return out;
+}
+
+/// The state of highest P_s at the grid point nearest p (any orientation and bevel), as a pose
+/// at p; nullopt when p is off the grid, not free, or every state there is below kTrivialPs.
+std::optional<st::TipPose> bestPoseAt(const st::PolicyTable& table, const st::Point2& p) {
+  st::TipPose probe;
+  probe.p_SceneTip = p;
+  const st::ControlLookup l = table.lookup(probe);
+  if (l.status != st::ControlLookup::Status::kOk) {
+    return std::nullopt;
+  }
+  const st::GridSpec& g = table.grid();
+  int ix = 0, iy = 0, k = 0;
+  st::Bevel b = st::Bevel::kLeft;
+  g.decode(l.state, ix, iy, k, b);
+  st::StateId best = -1;
+  for (int bevel = 0; bevel < 2; ++bevel) {
+    for (int kk = 0; kk < g.nc; ++kk) {
+      const st::StateId s = g.state(ix, iy, kk, static_cast<st::Bevel>(bevel));
+      if (best < 0 || table.value(s) > table.value(best)) {
+        best = s;
+      }
+    }
+  }
+  if (table.value(best) < kTrivialPs) {
+    return std::nullopt;
+  }
+  st::TipPose pose = g.pose(best);
+  pose.p_SceneTip = p;
+  return pose;
+}
+
+/// Starts within 5 mm of every boundary: on the entry line 1.5 and 4 mm from both ends of the
+/// start range (angles -18, 0, 18 degrees, both bevels); inside the workspace kNearBoundary_m
+/// from each edge at a quarter, half and three quarters of it; kNearBoundary_m outside the
+/// middle of each expanded obstacle edge. Interior starts take the best orientation and bevel
+/// of their grid point (the states a good policy passes through).
+std::vector<TruthStart> boundaryStarts(const st::SteeringProblem& problem,
+                                       const st::StartOptions& start, const st::PolicyTable& table,
+                                       const st::ContinuousWorkspace& world) {
+  std::vector<TruthStart> out;
+  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
+  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
+  std::vector<double> ends_mm;
+  for (double d : {1.5e-3, 4e-3}) {
+    ends_mm.push_back((lo + d) * kMmPerM);
+    ends_mm.push_back((hi - d) * kMmPerM);
+  }
+  for (const st::TipPose& pose : entryStarts(problem, start, ends_mm)) {
+    out.push_back({"edge", pose});
+  }
+  auto add = [&](const std::string& group, const st::Point2& p) {
+    if (!world.inWorkspace(p) || world.obstacleAt(p) >= 0 || world.inTarget(p)) {
+      return;
+    }
+    if (const auto pose = bestPoseAt(table, p)) {
+      out.push_back({group, *pose});
+    }
+  };
+  const st::Point2 lo_w = problem.workspace_min, hi_w = problem.workspace_max;
+  const st::Point2 in(kNearBoundary_m, kNearBoundary_m);
+  for (double f : {0.25, 0.5, 0.75}) {
+    const st::Point2 along = lo_w + f * (hi_w - lo_w);
+    add("edge", {along.x(), lo_w.y() + in.y()});
+    add("edge", {along.x(), hi_w.y() - in.y()});
+    add("edge", {lo_w.x() + in.x(), along.y()});
+    add("edge", {hi_w.x() - in.x(), along.y()});
+  }
+  for (const ng::geometry::Polygon& poly : world.expandedObstacles()) {
+    const std::size_t n = poly.size();
+    for (std::size_t i = 0; i < n; ++i) {
+      const st::Point2 a = poly.vertices()[i], b = poly.vertices()[(i + 1) % n];
+      const st::Point2 edge = b - a;
+      if (edge.norm() < 1e-9) {
+        continue;
+      }
+      const st::Point2 outward(edge.y() / edge.norm(), -edge.x() / edge.norm());  // CCW polygon
+      add("obstacle", 0.5 * (a + b) + kNearBoundary_m * outward);
+    }
+  }
+  return out;
+}
+
+/// The truth check of one scene where its start is chosen: per start its prediction against the
+/// continuous needle (same seeds for every start), grouped; rows go to `rows`.
+struct DecisionTruth {
+  std::string scene;
+  double ps_tolerance = 0.0;
+  std::string model;  ///< the chosen model's description
+  double estimated_error = NAN;
+  double selection_s = 0.0;  ///< the whole ladder [s]
+  double solve_s = 0.0;      ///< the chosen model's solve, fastest of kSolveRepeats [s]
+  double verify_s = 0.0;     ///< screening and verifying the start [s]
+  st::VerifiedStart chosen;
+  st::MonteCarloResult chosen_mc;   ///< kChosenStartTrials at the chosen start
+  double gap_table_best = NAN;      ///< |gap| at the table's own best start (5.5's choice)
+  double mean_abs_gap_entry = 0.0;  ///< the entry-line starts (ps_mean_abs_gap_default)
+  double within_entry = 0.0;
+  double noise_floor_entry = 0.0;  ///< mean |gap| binomial noise alone gives there
+  double solve_cpu_s = 0.0;        ///< CPU time of the chosen model's fastest solve [s]
+  double verify_cpu_s = 0.0;       ///< CPU time of screening and verifying the start [s]
+  double mean_abs_gap_top = 0.0, max_abs_gap_top = 0.0;
+  double mean_abs_gap_boundary = 0.0, max_abs_gap_boundary = 0.0;
+  int entry_starts = 0, top_starts = 0, boundary_starts = 0;
+  double mc_s = 0.0;
+};
+
+/// Prediction against Monte Carlo for each start of `starts`; returns the mean |gap| of the
+/// non-trivial ones and their count, the largest in max_gap, the fraction inside the interval
+/// in within.
+double scoreStarts(const st::ContinuousWorkspace& world, const st::PolicyTable& table,
+                   const std::vector<TruthStart>& starts, std::int64_t trials,
+                   const std::string& scene, ng::report::Table& rows, int& count, double& max_gap,
+                   double& within, double& noise_floor) {
+  const st::SteeringPolicy policy = st::tablePolicy(table);
+  double sum = 0.0;
+  count = 0;
+  max_gap = 0.0;
+  within = 0.0;
+  noise_floor = 0.0;
+  for (const TruthStart& s : starts) {
+    const double predicted = table.lookup(s.pose).probability_of_success;
+    const st::MonteCarloResult mc =
+        st::runMonteCarlo(world, s.pose, policy, trials, kMonteCarloSeed, 2);
+    const st::Interval ci = mc.interval();
+    rows.addRow({scene, s.group, s.pose.p_SceneTip.x() * kMmPerM, s.pose.p_SceneTip.y() * kMmPerM,
+                 s.pose.theta_rad * kDegPerRad, st::toString(s.pose.bevel), predicted, mc.rate(),
+                 ci.low, ci.high, ci.contains(predicted) ? 1.0 : 0.0, predicted - mc.rate(),
+                 double(mc.trials)});
+    if (predicted < kTrivialPs && mc.rate() < kTrivialPs) {
+      continue;
+    }
+    ++count;
+    noise_floor += std::sqrt(2.0 / kPi * predicted * (1.0 - predicted) / double(trials));
+    sum += std::abs(predicted - mc.rate());
+    max_gap = std::max(max_gap, std::abs(predicted - mc.rate()));
+    within += ci.contains(predicted) ? 1.0 : 0.0;
+  }
+  within = count > 0 ? within / count : NAN;
+  noise_floor = count > 0 ? noise_floor / count : NAN;
+  return count > 0 ? sum / count : NAN;
+}
+
+/// The per-start rows of decisionTruth (truth_decision.csv).
+ng::report::Table decisionRows() {
+  return ng::report::Table({"scene", "group", "x_mm", "y_mm", "theta_deg", "bevel", "predicted_ps",
+                            "mc_ps", "ci_low", "ci_high", "within_ci", "gap", "trials"},
+                           6);
+}
+
+/// The scene's model as ps_tolerance chooses it, its start screened and verified
+/// (verifyBestStart, as steering_policy does), then every truth start scored.
+DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& rows) {
+  const st::SteeringProblem problem = st::problemFromScene(scene);
+  const st::StartOptions start = st::startOptionsFromScene(scene);
+  const st::ContinuousWorkspace world(problem);
+  DecisionTruth out;
+  out.scene = scene.name;
+  out.ps_tolerance = problem.ps_tolerance;
+  st::SelectionOptions selection;
+  selection.start = start;
+  ng::Result<st::PolicySource> source = st::solveOrLoad(problem, "", "", selection);
+  if (!source) {
+    throw std::runtime_error(scene.name + ": " + source.status().toString());
+  }
+  out.model = source.value().description();
+  out.estimated_error = source.value().estimated_error;
+  out.selection_s = source.value().seconds;
+  const st::SteeringProblem chosen = source.value().model->problem();
+  const Solved solved =
+      solveAt(chosen, chosen.params.grid_spacing_m, 2, 1e-3, start,
+              chosen.params.orientation_subdivision, kSolveRepeats, chosen.params.transition_model);
+  out.solve_s = solved.fastest_s;
+  const st::PolicyTable& table = *solved.table;
+  st::SolverOptions solver;  // once more for its CPU time (both threads' together)
+  double c0 = cpuSeconds();
+  st::solveValueIteration(*solved.model, solver);
+  out.solve_cpu_s = cpuSeconds() - c0;
+  st::StartVerificationOptions verify;
+  verify.tolerance = st::verificationTolerance(problem);
+  c0 = cpuSeconds();
+  out.chosen = st::verifyBestStart(world, table, start, verify);
+  out.verify_cpu_s = cpuSeconds() - c0;
+  out.verify_s = out.chosen.seconds;
+  if (!out.chosen) {
+    throw std::runtime_error(scene.name + ": " + out.chosen.message);
+  }
+  std::cout << scene.name << ": " << out.model << "\n  start " << out.chosen.toString() << " in "
+            << out.verify_s << " s\n"
+            << std::flush;
+  const auto t0 = std::chrono::steady_clock::now();
+  out.chosen_mc = st::runMonteCarlo(world, out.chosen.start.pose, st::tablePolicy(table),
+                                    kChosenStartTrials, kMonteCarloSeed, 2);
+  rows.addRow({scene.name, "chosen", out.chosen.start.pose.p_SceneTip.x() * kMmPerM,
+               out.chosen.start.pose.p_SceneTip.y() * kMmPerM,
+               out.chosen.start.pose.theta_rad * kDegPerRad,
+               st::toString(out.chosen.start.pose.bevel), out.chosen.predicted(),
+               out.chosen_mc.rate(), out.chosen_mc.interval().low, out.chosen_mc.interval().high,
+               out.chosen_mc.interval().contains(out.chosen.predicted()) ? 1.0 : 0.0,
+               out.chosen.predicted() - out.chosen_mc.rate(), double(out.chosen_mc.trials)});
+  std::vector<TruthStart> entry, top, boundary;
+  for (const st::TipPose& p :
+       entryStarts(problem, start, entryHeights_mm(problem, start, kEntryFractions))) {
+    entry.push_back({"entry", p});
+  }
+  std::vector<st::StartCandidate> all = table.startCandidates(start);
+  std::stable_sort(all.begin(), all.end(), [](const auto& a, const auto& b) {
+    return a.probability_of_success > b.probability_of_success;
+  });
+  for (std::size_t i = 0; i < all.size() && i < std::size_t(kTopStarts); ++i) {
+    top.push_back({i == 0 ? "table_best" : "top10", all[i].pose});
+  }
+  boundary = boundaryStarts(problem, start, table, world);
+  int n = 0;
+  double max_gap = 0.0, within = 0.0, noise = 0.0;
+  out.mean_abs_gap_entry =
+      scoreStarts(world, table, entry, kEntryTrials, scene.name, rows, n, max_gap, within, noise);
+  out.entry_starts = n;
+  out.within_entry = within;
+  out.noise_floor_entry = noise;
+  out.mean_abs_gap_top = scoreStarts(world, table, top, kMonteCarloTrials, scene.name, rows, n,
+                                     max_gap, within, noise);
+  out.top_starts = n;
+  out.max_abs_gap_top = max_gap;
+  out.gap_table_best = NAN;
+  if (!top.empty()) {
+    const double p = table.lookup(top.front().pose).probability_of_success;
+    out.gap_table_best =
+        std::abs(p - st::runMonteCarlo(world, top.front().pose, st::tablePolicy(table),
+                                       kMonteCarloTrials, kMonteCarloSeed, 2)
+                         .rate());
+  }
+  out.mean_abs_gap_boundary = scoreStarts(world, table, boundary, kMonteCarloTrials, scene.name,
+                                          rows, n, max_gap, within, noise);
+  out.boundary_starts = n;
+  out.max_abs_gap_boundary = max_gap;
+  out.mc_s = secondsSince(t0);
+  return out;
+}
+
+/// ps_gap_chosen_start and the entry line's mean |gap| both within the scene's tolerance.
+bool targetsMet(const DecisionTruth& d) {
+  const double tolerance =
+      d.ps_tolerance > 0.0 ? d.ps_tolerance : st::kDefaultVerificationTolerance;
+  return std::abs(d.chosen.predicted() - d.chosen_mc.rate()) <= tolerance &&
+         d.mean_abs_gap_entry <= tolerance;
+}
+
+/// The JSON keys of one decisionTruth, each name followed by `suffix`.
+std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
+  const double gap = std::abs(d.chosen.predicted() - d.chosen_mc.rate());
+  const double p = d.chosen.predicted();
+  const double noise = std::sqrt(2.0 / kPi * p * (1.0 - p) / double(d.chosen_mc.trials));
+  std::ostringstream j;
+  auto key = [&](const std::string& name, const std::string& value) {
+    j << ",\n  \"" << name << suffix << "\": " << value;
+  };
+  auto num = [](double v) { return ng::report::jsonNumber(v); };
+  key("ps_tolerance", num(d.ps_tolerance));
+  key("model", "\"" + d.model + "\"");
+  key("estimated_error", num(d.estimated_error));
+  key("chosen_start_y_mm", num(d.chosen.start.pose.p_SceneTip.y() * kMmPerM));
+  key("chosen_start_theta_deg", num(d.chosen.start.pose.theta_rad * kDegPerRad));
+  key("chosen_start_bevel", "\"" + st::toString(d.chosen.start.pose.bevel) + "\"");
+  key("chosen_start_rank", std::to_string(d.chosen.rank_by_prediction));
+  key("chosen_start_confirmed", d.chosen.confirmed ? "true" : "false");
+  key("predicted_ps_chosen_start", num(p));
+  key("verified_ps_chosen_start", num(d.chosen.verification.rate()));
+  key("mc_ps_chosen_start", num(d.chosen_mc.rate()));
+  key("mc_ps_chosen_start_ci", jsonInterval(d.chosen_mc.interval()));
+  key("mc_trials_chosen_start", std::to_string(d.chosen_mc.trials));
+  key("ps_gap_chosen_start", num(gap));
+  key("noise_floor_chosen_start", num(noise));
+  key("ps_gap_table_best_start", num(d.gap_table_best));
+  key("ps_mean_abs_gap_entry", num(d.mean_abs_gap_entry));
+  key("mc_within_ci_fraction_entry", num(d.within_entry));
+  key("noise_floor_entry", num(d.noise_floor_entry));
+  key("ps_mean_abs_gap_top10", num(d.mean_abs_gap_top));
+  key("ps_max_abs_gap_top10", num(d.max_abs_gap_top));
+  key("ps_mean_abs_gap_boundary", num(d.mean_abs_gap_boundary));
+  key("ps_max_abs_gap_boundary", num(d.max_abs_gap_boundary));
+  key("truth_starts_boundary", std::to_string(d.boundary_starts));
+  key("selection_s", num(d.selection_s));
+  key("solve_s_chosen_model", num(d.solve_s));
+  key("verify_start_s", num(d.verify_s));
+  key("solve_and_verify_s", num(d.solve_s + d.verify_s));
+  key("solve_and_verify_cpu_s", num(d.solve_cpu_s + d.verify_cpu_s));
+  key("truth_mc_s", num(d.mc_s));
+  key("targets_met", targetsMet(d) ? "true" : "false");
+  return j.str();
+}
+
+/// --truth-only: decisionTruth of every --scene; summary.json, truth_decision.csv and its plot.
+int truthOnly(const ng::report::BenchArgs& args) {
+  ng::report::Table rows = decisionRows();
+  std::ostringstream json;
+  json << "{\n  \"benchmark\": \"steering\",\n  \"mode\": \"truth_only\"";
+  const std::vector<std::string> scenes =
+      args.scenes.empty() ? std::vector<std::string>{"steering_workspace"} : args.scenes;
+  bool all_met = true;
+  for (const std::string& spec : scenes) {
+    const ng::scene::Scene scene = ng::scene::loadSceneSpec(spec);
+    const std::string suffix = scenes.size() > 1 ? "_" + scene.name : "";
+    json << ",\n  \"scene" << suffix << "\": \"" << spec << "\"";
+    std::string keys;
+    try {
+      const DecisionTruth d = decisionTruth(scene, rows);
+      keys = decisionJson(d, suffix);
+      all_met = all_met && targetsMet(d);
+    } catch (const std::exception& e) {  // e.g. a tolerance refused: recorded, the rest run on
+      std::string why = e.what();
+      std::replace(why.begin(), why.end(), '"', '\'');
+      keys = ",\n  \"refused" + suffix + "\": \"" + why + "\",\n  \"targets_met" + suffix +
+             "\": false";
+      all_met = false;
+      std::cerr << "bench_steering: " << scene.name << ": " << e.what() << "\n";
+    }
+    json << keys;
+    rows.writeCsv(args.out_dir + "/truth_decision.csv");  // after each scene
+    std::cout << keys.substr(2) << "\n" << std::flush;
+  }
+  json << ",\n  \"all_targets_met\": " << (all_met ? "true" : "false") << "\n}\n";
+  ng::report::writeTextFile(args.out_dir + "/summary.json", json.str());
+  ng::report::writeTextFile(
+      args.out_dir + "/plot.json",
+      R"json([{"csv": "truth_decision.csv", "x": "predicted_ps", "y": "mc_ps", "group": "group", "points": true,
+  "title": "Predicted P_s vs Monte Carlo where the start is chosen (all scenes)", "png": "truth_decision.png"}])json");
+  std::cout << (all_met ? "every target met\n" : "some target missed (targets_met)\n");
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
-  const auto args = ng::report::parseBenchArgs(argc, argv, "bench_steering");
+  // --truth-only (this tool's own flag): only the truth check where the start is chosen.
+  std::vector<char*> rest;
+  bool truth_only = false;
+  for (int i = 0; i < argc; ++i) {
+    if (std::string(argv[i]) == "--truth-only") {
+      truth_only = true;
+    } else {
+      rest.push_back(argv[i]);
+    }
+  }
+  const auto args =
+      ng::report::parseBenchArgs(static_cast<int>(rest.size()), rest.data(), "bench_steering");
   if (!args) {
+    std::cerr << "       bench_steering --truth-only --out DIR [--scene SPEC]...\n";
     return 2;
   }
   try {
+    if (truth_only) {
+      return truthOnly(*args);
+    }
     // BenchArgs defaults to the prostate scene, which has no steering section.
     const std::string scene_spec =
         args->scene == "prostate_sagittal" ? "steering_workspace" : args->scene;
@@ -1053,6 +1445,13 @@ int main(int argc, char** argv) {
     selection_truth.writeCsv(args->out_dir + "/selection_");
     const std::string adaptation_keys =
         adaptationAndHeldOut(scene.name, selected, start, selection_table, args->out_dir);
+    // The truth where the start is chosen, on the scene and the held-out workspace.
+    ng::report::Table decision_rows = decisionRows();
+    const std::string decision_keys =
+        decisionJson(decisionTruth(scene, decision_rows), "") +
+        decisionJson(decisionTruth(ng::scene::loadSceneSpec("steering_heldout"), decision_rows),
+                     "_heldout");
+    decision_rows.writeCsv(args->out_dir + "/truth_decision.csv");
     selection_table.writeCsv(args->out_dir + "/selection.csv");
     const TruthCheck::Summary truth_best = truth.best();
     const double mc_seconds = truth.seconds();
@@ -1136,7 +1535,7 @@ int main(int argc, char** argv) {
          << ",\n  \"table_save_s\": " << ng::report::jsonNumber(file.save_s)
          << ",\n  \"table_load_s\": " << ng::report::jsonNumber(file.load_s)
          << defaultModelJson(scene_model, truth_default, problem, selected) << adaptation_keys
-         << "\n}\n";
+         << decision_keys << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     writePlotJson(args->out_dir);
     std::cout << scaling.toText() << truth.summaryText() << json.str();

@@ -156,6 +156,13 @@ TEST(SteeringPolicy, BestStartIsOnTheEntryLine) {
   EXPECT_LE(best.pose.y, 0.1);
   EXPECT_LE(std::abs(best.pose.theta), 0.5 * kPi);
   EXPECT_TRUE(best.bevel == "left" || best.bevel == "right") << best.bevel;
+  // The start is verified by the continuous needle's Monte Carlo (start_verification.h).
+  EXPECT_EQ(best.verification_trials, 16000);
+  EXPECT_LE(best.verified_ci_low, best.verified_ps);
+  EXPECT_GE(best.verified_ci_high, best.verified_ps);
+  EXPECT_GE(best.table_best_ps, best.probability_of_success);
+  EXPECT_NEAR(best.ps_tolerance, 0.005f, 1e-6f);  // steering_workspace's ps_tolerance
+  EXPECT_TRUE(best.confirmed) << best.message;
 }
 
 TEST(SteeringPolicy, BestStartTipGetsItsControlAndProbability) {

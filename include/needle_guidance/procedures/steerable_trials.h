@@ -132,10 +132,19 @@ struct SteerableSettings {
   static constexpr std::uint64_t kTrialSeedStride = 100000;
 };
 
-/// Where the run starts and what the policy predicts for it.
+/// Where the run starts, what the policy predicts for it and how the policy verified it
+/// (steering/start_verification.h; verification_trials 0 = not verified).
 struct SteerableStart {
   steering::TipPose pose;
   double predicted_ps = 0.0;
+  double verified_ps = 0.0;  ///< the policy's Monte Carlo of the continuous needle
+  steering::Interval verified_ci{0.0, 1.0};
+  std::int64_t verification_trials = 0;
+  bool confirmed = false;      ///< the policy found the prediction confirmed
+  double table_best_ps = 0.0;  ///< the table's maximum P_s on the entry line
+  /// True if the report's own Monte Carlo confirms predicted_ps within `tolerance` (plus its
+  /// binomial noise, steering::predictionConfirmed).
+  bool confirmedBy(const steering::MonteCarloResult& mc, double tolerance) const;
 };
 
 /// The run's report: every trial, the prediction, the core Monte Carlo from the same start with

@@ -17,6 +17,7 @@
 #include "needle_guidance/SolvePolicy.h"
 #include "needle_guidance/steering/adaptive_policy.h"
 #include "needle_guidance/steering/policy_table.h"
+#include "needle_guidance/steering/start_verification.h"
 #include "needle_guidance/steering/steering_model.h"
 
 namespace needle_guidance {
@@ -76,8 +77,11 @@ private:
   void adoptFinishedResolve();
   bool onSolve(SolvePolicy::Request& req, SolvePolicy::Response& res);
   bool onBestStart(BestStart::Request& req, BestStart::Response& res);
-  /// Publishes ~ps_map and ~best_start_marker for table_ (which must be set).
-  void publishMaps();
+  /// Publishes ~ps_map for table_ (which must be set) and, with verify_start, verifies its start
+  /// and publishes ~best_start_marker.
+  void publishMaps(bool verify_start);
+  /// The verified start of table_ (verifyBestStart), computed once per table.
+  const steering::VerifiedStart& verifiedStart();
 
   Settings settings_;
   std::string scene_name_;
@@ -88,10 +92,12 @@ private:
   std::unique_ptr<steering::AdaptivePolicy> adaptive_;
   /// Pairs the tips answered into whole steps for adaptive_ (set with it).
   std::optional<steering::StepPairing> steps_;
-  std::string table_source_;           ///< how table_ was made: solved | loaded
-  steering::SteeringProblem problem_;  ///< the scene's, with its ps_tolerance
-  std::string description_;            ///< model, estimated error and time of table_
-  double estimated_error_ = 0.0;       ///< NaN when not estimated (ps_tolerance 0)
+  std::optional<steering::VerifiedStart> verified_;
+  const steering::PolicyTable* verified_for_ = nullptr;  ///< the table verified_ belongs to
+  std::string table_source_;                             ///< how table_ was made: solved | loaded
+  steering::SteeringProblem problem_;                    ///< the scene's, with its ps_tolerance
+  std::string description_;       ///< model, estimated error and time of table_
+  double estimated_error_ = 0.0;  ///< NaN when not estimated (ps_tolerance 0)
   ros::Publisher control_pub_;
   ros::Publisher ps_map_pub_;
   ros::Publisher ps_key_pub_;  ///< ~ps_map_key: the map's colour key

@@ -161,8 +161,10 @@ struct GridSpec {
   /// Decodes a flat index (must be in [0, numStates())).
   void decode(StateId s, int& ix, int& iy, int& k, Bevel& b) const;
   /// The state nearest to a continuous pose (5.4.2: q rounded to the grid, Theta the control-
-  /// circle point whose tangent is closest to theta), or -1 when the rounded grid point is
-  /// outside the grid. O(1).
+  /// circle point whose tangent is closest to theta). Every pose of the workspace has one: a
+  /// pose beyond the last column or row (the workspace extends less than one spacing past it)
+  /// takes that column or row. -1 for a pose more than half a spacing before the first column
+  /// or row, or a spacing past the last, or not finite. O(1).
   StateId nearestState(const TipPose& pose) const;
   /// The continuous pose a state stands for.
   TipPose pose(StateId s) const;

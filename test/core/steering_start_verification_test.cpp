@@ -1,0 +1,237 @@
+// The start state chosen so that its prediction can be trusted (start_verification.h) and the
+// discrete chain from starts that are not grid points: exactly between two grid points, on the
+// workspace's edge, beyond the last grid row.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/steering/continuous_workspace.h"
+#include "needle_guidance/steering/monte_carlo.h"
+#include "needle_guidance/steering/start_verification.h"
+#include "needle_guidance/steering/value_iteration.h"
+
+#include "../steering_shapes.h"
+
+namespace needle_guidance::steering {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+constexpr double kDeg = kPi / 180.0;
+/// Spacing whose grid does not fit the 10 cm workspace: 34 rows at 0 .. 95.7 mm [m].
+constexpr double kOddSpacing_m = 2.9e-3;
+constexpr std::int64_t kChainTrials = 400;
+constexpr std::uint64_t kSeed = 7;
+
+/// The open workspace with noise (sigma_i 5 deg, sigma_r 10 deg) and a wall in front of the
+/// target, on the odd grid: a small problem with a P_s surface that is neither 0 nor 1.
+SteeringProblem noisyProblem(double spacing_m = kOddSpacing_m) {
+  SteeringProblem p = test_shapes::openProblem(spacing_m, 5 * kDeg, 10 * kDeg, 0.085);
+  p.obstacles.push_back(
+      test_shapes::obstacle("wall", test_shapes::rect(0.05, 0.035, 0.056, 0.065), 1e-3));
+  return p;
+}
+
+class StartVerificationTest : public ::testing::Test {
+protected:
+  static void SetUpTestSuite() {
+    problem_ = new SteeringProblem(noisyProblem());
+    model_ = new SteeringModel(*problem_);
+    table_ = new PolicyTable(solveValueIteration(*model_));
+    world_ = new ContinuousWorkspace(*problem_);
+  }
+  static void TearDownTestSuite() {
+    delete world_;
+    delete table_;
+    delete model_;
+    delete problem_;
+  }
+  static SteeringProblem* problem_;
+  static SteeringModel* model_;
+  static PolicyTable* table_;
+  static ContinuousWorkspace* world_;
+};
+SteeringProblem* StartVerificationTest::problem_ = nullptr;
+SteeringModel* StartVerificationTest::model_ = nullptr;
+PolicyTable* StartVerificationTest::table_ = nullptr;
+ContinuousWorkspace* StartVerificationTest::world_ = nullptr;
+
+TEST_F(StartVerificationTest, StartExactlyBetweenGridPointsTakesANeighbour) {
+  const GridSpec& g = model_->grid();
+  TipPose between;
+  between.p_SceneTip = Point2(0.0, g.point(0, 12).y() + 0.5 * g.spacing_m);
+  const StateId s = g.nearestState(between);
+  int ix = 0, iy = 0, k = 0;
+  Bevel b = Bevel::kLeft;
+  ASSERT_GE(s, 0);
+  g.decode(s, ix, iy, k, b);
+  // One of its two neighbours (12.5 rounds up, unless the sum rounds below 12.5 in binary).
+  EXPECT_TRUE(iy == 12 || iy == 13) << iy;
+  EXPECT_EQ(ix, 0);
+  TipPose on_point = between;
+  on_point.p_SceneTip = g.point(0, iy);
+  const ChainResult a = runDiscreteChain(*model_, *table_, between, kChainTrials, kSeed);
+  const ChainResult c = runDiscreteChain(*model_, *table_, on_point, kChainTrials, kSeed);
+  EXPECT_EQ(a.successes, c.successes);  // the same state, the same seeds
+  EXPECT_EQ(a.trials, kChainTrials);
+}
+
+TEST_F(StartVerificationTest, StartOnTheWorkspaceEdgeBeyondTheLastRowIsOnTheGrid) {
+  const GridSpec& g = model_->grid();
+  // 10 cm / 2.9 mm: 34 rows, the last at 95.7 mm; the edge at 100 mm is 1.5 spacings past it.
+  ASSERT_EQ(g.ny, 34);
+  for (double y : {problem_->workspace_max.y(), problem_->workspace_min.y(), 0.0985}) {
+    SCOPED_TRACE("y = " + std::to_string(y));
+    TipPose edge;
+    edge.p_SceneTip = Point2(0.0, y);
+    edge.theta_rad = y > 0.05 ? -20 * kDeg : 20 * kDeg;
+    const StateId s = g.nearestState(edge);
+    ASSERT_GE(s, 0);
+    EXPECT_TRUE(table_->lookup(edge)) << table_->lookup(edge).toString();
+    EXPECT_NO_THROW(runDiscreteChain(*model_, *table_, edge, kChainTrials, kSeed));
+  }
+  TipPose top;
+  top.p_SceneTip = problem_->workspace_max;
+  int ix = 0, iy = 0, k = 0;
+  Bevel b = Bevel::kLeft;
+  g.decode(g.nearestState(top), ix, iy, k, b);
+  EXPECT_EQ(ix, g.nx - 1);
+  EXPECT_EQ(iy, g.ny - 1);
+  // Far outside (1 cm) is still refused, with the reason.
+  TipPose outside;
+  outside.p_SceneTip = Point2(-0.01, 0.05);
+  EXPECT_EQ(g.nearestState(outside), -1);
+  try {
+    runDiscreteChain(*model_, *table_, outside, kChainTrials, kSeed);
+    ADD_FAILURE() << "a start 1 cm outside the grid was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("off the grid"), std::string::npos) << e.what();
+  }
+}
+
+TEST_F(StartVerificationTest, ChosenStartIsVerifiedWithFreshSeedsAndDeterministic) {
+  StartVerificationOptions options;
+  options.screen_trials = 500;
+  options.verify_trials = 2000;
+  options.tolerance = 0.03;
+  const VerifiedStart a = verifyBestStart(*world_, *table_, test_shapes::entryLine(), options);
+  ASSERT_TRUE(a) << a.message;
+  EXPECT_EQ(a.verification.trials, options.verify_trials);
+  EXPECT_FALSE(a.screened.empty());
+  EXPECT_LE(a.screened.size(), std::size_t(options.candidates));
+  // The chosen start is one of the screened, and the screen's best prediction is the table's.
+  EXPECT_EQ(a.screened.front().candidate.state,
+            table_->bestStart(test_shapes::entryLine()).best.state);
+  EXPECT_EQ(a.start.state, a.screened[std::size_t(a.rank_by_prediction)].candidate.state);
+  EXPECT_EQ(a.confirmed, std::abs(a.gap()) <= options.tolerance);
+  const VerifiedStart b = verifyBestStart(*world_, *table_, test_shapes::entryLine(), options);
+  EXPECT_EQ(a.start.state, b.start.state);
+  EXPECT_EQ(a.verification.successes, b.verification.successes);
+  EXPECT_NE(a.toString().find("predicted P_s"), std::string::npos) << a.toString();
+}
+
+TEST_F(StartVerificationTest, StartTheTableOverratesIsNotChosen) {
+  // Raise one mediocre start state's prediction to 0.99: the table's own best start is then
+  // that state, which the continuous needle does not confirm.
+  const StartOptions entry = test_shapes::entryLine();
+  std::vector<StartCandidate> all = table_->startCandidates(entry);
+  const StartCandidate* mediocre = nullptr;
+  for (const StartCandidate& c : all) {
+    if (c.probability_of_success > 0.2f && c.probability_of_success < 0.5f) {
+      mediocre = &c;
+      break;
+    }
+  }
+  ASSERT_NE(mediocre, nullptr);
+  std::vector<float> values = table_->values();
+  values[std::size_t(mediocre->state)] = 0.99f;
+  std::vector<std::uint64_t> bits((values.size() + 63) / 64, 0);
+  for (StateId s = 0; s < StateId(values.size()); ++s) {
+    bits[std::size_t(s) >> 6] |= std::uint64_t(table_->control(s) == Control::kFlip) << (s & 63);
+  }
+  std::vector<std::uint8_t> cells(std::size_t(table_->grid().numPositions()));
+  for (std::size_t i = 0; i < cells.size(); ++i) {
+    cells[i] = static_cast<std::uint8_t>(table_->cell(std::int64_t(i)));
+  }
+  const PolicyTable optimistic(table_->grid(), table_->problemHash(), values, bits, cells,
+                               table_->epsilon(), table_->sweeps(), table_->converged());
+  ASSERT_EQ(optimistic.bestStart(entry).best.state, mediocre->state);
+  StartVerificationOptions options;
+  options.screen_trials = 500;
+  options.verify_trials = 2000;
+  options.tolerance = 0.03;
+  const VerifiedStart v = verifyBestStart(*world_, optimistic, entry, options);
+  ASSERT_TRUE(v) << v.message;
+  EXPECT_NE(v.start.state, mediocre->state) << v.toString();
+  EXPECT_FALSE(v.screened.front().confirmed);  // the overrated state was screened and refused
+  EXPECT_TRUE(v.confirmed) << v.toString();
+  EXPECT_GT(v.rank_by_prediction, 0);
+}
+
+TEST_F(StartVerificationTest, DistinctStartsAreSeparated) {
+  StartVerificationOptions options;
+  options.candidates = 6;
+  options.separation_m = 5e-3;
+  options.separation_rad = 20 * kDeg;
+  const std::vector<StartCandidate> starts =
+      distinctBestStarts(*table_, test_shapes::entryLine(), options);
+  ASSERT_FALSE(starts.empty());
+  EXPECT_LE(starts.size(), 6u);
+  for (std::size_t i = 0; i < starts.size(); ++i) {
+    for (std::size_t j = 0; j < i; ++j) {
+      EXPECT_GE(starts[j].probability_of_success, starts[i].probability_of_success);
+      const bool apart =
+          starts[i].pose.bevel != starts[j].pose.bevel ||
+          std::abs(starts[i].pose.p_SceneTip.y() - starts[j].pose.p_SceneTip.y()) >
+              options.separation_m ||
+          std::abs(std::remainder(starts[i].pose.theta_rad - starts[j].pose.theta_rad, 2 * kPi)) >
+              options.separation_rad;
+      EXPECT_TRUE(apart) << i << " and " << j;
+    }
+  }
+}
+
+TEST_F(StartVerificationTest, UnreachableTargetIsReportedNotChosen) {
+  StartOptions nowhere = test_shapes::entryLine();
+  nowhere.min_theta_rad = nowhere.max_theta_rad = kPi;  // pointing away: P_s = 0 everywhere
+  nowhere.min_height_m = nowhere.max_height_m = 0.0;
+  const VerifiedStart v = verifyBestStart(*world_, *table_, nowhere);
+  EXPECT_FALSE(v);
+  EXPECT_FALSE(v.message.empty());
+  EXPECT_EQ(v.toString(), v.message);
+}
+
+TEST_F(StartVerificationTest, BadOptionsAreRefusedByName) {
+  StartVerificationOptions bad;
+  bad.screen_trials = 0;
+  try {
+    verifyBestStart(*world_, *table_, test_shapes::entryLine(), bad);
+    ADD_FAILURE() << "screen_trials 0 accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("screen_trials"), std::string::npos) << e.what();
+  }
+  bad = {};
+  bad.tolerance = -0.1;
+  EXPECT_THROW(verifyBestStart(*world_, *table_, test_shapes::entryLine(), bad),
+               std::invalid_argument);
+}
+
+TEST(PredictionConfirmed, ToleranceAndBinomialNoise) {
+  // 10,000 trials at p = 0.5: z * SE = 0.0098.
+  EXPECT_TRUE(predictionConfirmed(0.5, 0.5 - 0.0150, 10000, 0.01));
+  EXPECT_FALSE(predictionConfirmed(0.5, 0.5 - 0.0250, 10000, 0.01));
+  EXPECT_TRUE(predictionConfirmed(0.344, 0.344, 1, 0.0));
+  EXPECT_FALSE(predictionConfirmed(0.344, 0.250, 10000, 0.01));  // 0.094 apart
+  EXPECT_FALSE(predictionConfirmed(std::nan(""), 0.3, 10000, 0.01));
+  EXPECT_FALSE(predictionConfirmed(0.3, 0.3, 0, 0.01));
+}
+
+}  // namespace
+}  // namespace needle_guidance::steering
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}
