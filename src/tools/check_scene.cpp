@@ -6,6 +6,7 @@
 #include <string>
 
 #include "needle_guidance/geometry/triangle_mesh.h"
+#include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/tissue/tissue_simulation.h"
 
@@ -25,13 +26,15 @@ int main(int argc, char** argv) {
       break;
     }
   }
-  if (spec.empty()) {
-    std::cerr << "usage: check_scene [--mesh] SCENE   (a YAML file or one of:";
+  if (spec.empty() || ng::report::helpRequested(argc, argv)) {
+    std::ostream& out =
+        spec.empty() && !ng::report::helpRequested(argc, argv) ? std::cerr : std::cout;
+    out << "usage: check_scene [--mesh] SCENE   (a YAML file or one of:";
     for (const auto& name : ng::scene::defaultSceneNames()) {
-      std::cerr << ' ' << name;
+      out << ' ' << name;
     }
-    std::cerr << ")\n";
-    return 2;
+    out << ")\n";
+    return &out == &std::cout ? 0 : 2;
   }
   try {
     const ng::scene::Scene s = ng::scene::loadSceneSpec(spec);

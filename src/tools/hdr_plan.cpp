@@ -17,6 +17,7 @@
 #include "needle_guidance/dose/dose_indices.h"
 #include "needle_guidance/dose/dwell_optimization.h"
 #include "needle_guidance/dose/prostate_case.h"
+#include "needle_guidance/report/bench_args.h"
 
 namespace dose = needle_guidance::dose;
 
@@ -64,7 +65,16 @@ int planDicom(const std::string& dir, const std::string& case_file, const std::s
 
 }  // namespace
 
+constexpr const char* kUsage =
+    "usage: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both] [--mps FILE] "
+    "[--write-case DIR] [--iterations N]\n       hdr_plan --dicom DIR [--case-file FILE.yaml] "
+    "[--export DIR]\n";
+
 int main(int argc, char** argv) {
+  if (needle_guidance::report::helpRequested(argc, argv)) {
+    std::cout << kUsage;
+    return 0;
+  }
   std::string case_dir, method = "both", mps, write_dir, dicom_dir, case_file, export_dir;
   long iterations = 100000;
   int synthetic = -1;
@@ -96,11 +106,7 @@ int main(int argc, char** argv) {
     else if (a == "--export")
       export_dir = value();
     else {
-      std::cerr
-          << "usage: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both] [--mps FILE] "
-             "[--write-case DIR] [--iterations N]\n       hdr_plan --dicom DIR [--case-file "
-             "FILE.yaml] "
-             "[--export DIR]\n";
+      std::cerr << kUsage;
       return 2;
     }
   }
