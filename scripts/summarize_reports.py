@@ -67,4 +67,8 @@ def main(root: pathlib.Path) -> int:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) != 2 or sys.argv[1] in ("-h", "--help"):
+        help_asked = len(sys.argv) == 2
+        print(__doc__ + "\nusage: summarize_reports.py REPORTS_DIR", file=sys.stdout if help_asked else sys.stderr)
+        sys.exit(0 if help_asked else 2)
     sys.exit(main(pathlib.Path(sys.argv[1])))

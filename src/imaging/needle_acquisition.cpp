@@ -7,6 +7,9 @@
 #include <opencv2/imgproc.hpp>
 #include <opencv2/video/tracking.hpp>
 #include <sstream>
+#ifdef __GLIBC__
+#include <malloc.h>
+#endif
 #include <stdexcept>
 #include <vector>
 
@@ -52,6 +55,11 @@ constexpr double kBandInnerSigmas = 3.0, kBandOuterSigmas = 10.0;
 /// Step 4: two traced segments whose ends lie within this of each other are one structure (the
 /// refit pulls the Hough lines through both shoulders of a thick layer onto the same ridge) [px].
 constexpr double kSameSegment_px = 6.0;
+/// Step 4: a straight segment lying along another (both its ends within kSameStructure_px of
+/// the other's line and span, directions within kSameStructure_rad) is a part of the same
+/// structure: a thick, long interface otherwise fills every candidate slot with its chords.
+constexpr double kSameStructure_px = 10.0;
+constexpr double kSameStructure_rad = 6.0 * kPi / 180.0;
 /// Step 4: an end of a segment within this of the frame's border lies on the border [px].
 constexpr double kBorderMargin_px = 3.0;
 /// Step 5: power of the side symmetry in the score: an interface between media whose
@@ -102,6 +110,19 @@ constexpr double kBlobAhead_px = 10.0;
 constexpr double kBackgroundRate = 0.3;
 /// Step 5: a ridge pixel is aligned with the line if its orientation is within this [rad].
 constexpr double kAlignedTolerance_rad = 15.0 * kPi / 180.0;
+/// Imaging region (imaging_region.h), when the frame has a black margin: ridge pixels closer
+/// than this many filter scales to the region's boundary are the boundary's own response (a
+/// step from black to tissue reads as a bright line at the filter's scale) and are left out.
+constexpr double kRegionInsetSigmas = 4.0;
+/// A candidate that never goes farther than this from the region's boundary is the region's own
+/// edge (a fan's straight side, the probe face's bright arc, the rim of a linear probe's
+/// rectangle), never a needle [px]; a needle entering from that edge goes on into the image.
+constexpr double kEdgeBand_px = 24.0;
+/// Priors (AcquisitionOptions::entry_point_px, entry_angle_rad): a candidate whose curve passes
+/// farther than kPriorPoint_px from the stated entry point, or whose direction differs by more
+/// than kPriorAngle_rad from the stated angle, is not the needle.
+constexpr double kPriorPoint_px = 25.0;
+constexpr double kPriorAngle_rad = 10.0 * kPi / 180.0;
 
 /// The Hessian ridge filter's output: strength (>= 0) and line direction per pixel.
 struct RidgeMap {
@@ -192,14 +213,17 @@ double ridgeDirection(const RidgeMap& r, cv::Point2d p) {
 }
 
 /// Step 3 (thresholds): the kRidgeQuantile and kHoughQuantile quantiles of the ridge strengths.
-void ridgeThresholds(RidgeMap* ridge) {
+void ridgeThresholds(RidgeMap* ridge, const ImagingRegion& region) {
   const cv::Mat& strength = ridge->strength;
   std::vector<float> v;
   v.reserve(strength.total() / 4);
   for (int y = 0; y < strength.rows; y += 2) {
     const float* s = strength.ptr<float>(y);
-    for (int x = 0; x < strength.cols; x += 2)
-      v.push_back(s[x]);
+    const std::uint8_t* inside = region.bounded() ? region.mask.ptr<std::uint8_t>(y) : nullptr;
+    for (int x = 0; x < strength.cols; x += 2) {
+      if (!inside || inside[x])
+        v.push_back(s[x]);
+    }
   }
   if (v.empty())
     return;
@@ -227,8 +251,29 @@ bool sameHoughLine(const cv::Vec2f& h, const cv::Vec2f& k, cv::Point2d centre) {
 }
 
 /// Step 3: Hough lines on the strongest ridge pixels, strongest first, duplicates merged.
+/// Step 3: the strongest ridge pixels that are also the ridge's crest across it (not weaker
+/// than both neighbours along its normal): a thick interface votes with its centre line only,
+/// not with the many chords through its width that would take every Hough line.
+cv::Mat ridgeCrest(const RidgeMap& ridge) {
+  cv::Mat crest(ridge.strength.size(), CV_8U, cv::Scalar(0));
+  for (int y = 1; y + 1 < crest.rows; ++y) {
+    const float* s = ridge.strength.ptr<float>(y);
+    std::uint8_t* out = crest.ptr<std::uint8_t>(y);
+    for (int x = 1; x + 1 < crest.cols; ++x) {
+      if (s[x] <= ridge.hough_threshold)
+        continue;
+      const double a = ridgeDirection(ridge, cv::Point2d(x, y));
+      const int dx = cvRound(-std::sin(a)), dy = cvRound(std::cos(a));  // the normal, rounded
+      const float before = ridge.strength.at<float>(y - dy, x - dx);
+      const float after = ridge.strength.at<float>(y + dy, x + dx);
+      out[x] = s[x] >= before && s[x] >= after ? 255 : 0;
+    }
+  }
+  return crest;
+}
+
 std::vector<Line> candidateLines(const RidgeMap& ridge, double min_length_px) {
-  cv::Mat binary = ridge.strength > ridge.hough_threshold;
+  cv::Mat binary = ridgeCrest(ridge);
   std::vector<cv::Vec2f> hough;
   const int votes = std::max(10, static_cast<int>(0.5 * min_length_px));
   cv::HoughLines(binary, hough, 1.0, kPi / 180.0, votes);
@@ -431,14 +476,24 @@ void measureCues(const RidgeMap& ridge, Candidate* c, double sigma) {
                       : c->score;
 }
 
-/// Whether p lies within kBorderMargin_px of the frame's border.
-bool onBorder(cv::Point2d p, cv::Size size) {
-  return p.x < kBorderMargin_px || p.y < kBorderMargin_px ||
-         p.x > size.width - 1 - kBorderMargin_px || p.y > size.height - 1 - kBorderMargin_px;
+/// The margin of a bounded imaging region that counts as its border [px]: the ridge left out
+/// near it (kRegionInsetSigmas) and kBorderMargin_px more.
+double regionMargin(double sigma) {
+  return kRegionInsetSigmas * sigma + kBorderMargin_px;
 }
 
-/// Distance from p along dir to the frame's border.
-double rayToBorder(cv::Point2d p, cv::Point2d dir, cv::Size size) {
+/// Whether p lies within kBorderMargin_px of the frame's border, or within regionMargin of a
+/// bounded imaging region's boundary.
+bool onBorder(cv::Point2d p, const ImagingRegion& region, double sigma) {
+  const cv::Size size = region.inset.size();
+  return p.x < kBorderMargin_px || p.y < kBorderMargin_px ||
+         p.x > size.width - 1 - kBorderMargin_px || p.y > size.height - 1 - kBorderMargin_px ||
+         (region.bounded() && region.insetAt(p) < regionMargin(sigma));
+}
+
+/// Distance from p along dir to the frame's border, or to a bounded region's (regionMargin).
+double rayToBorder(cv::Point2d p, cv::Point2d dir, const ImagingRegion& region, double sigma) {
+  const cv::Size size = region.inset.size();
   double t = 1e9;
   if (dir.x > 1e-9)
     t = std::min(t, (size.width - 1 - p.x) / dir.x);
@@ -448,14 +503,24 @@ double rayToBorder(cv::Point2d p, cv::Point2d dir, cv::Size size) {
     t = std::min(t, (size.height - 1 - p.y) / dir.y);
   if (dir.y < -1e-9)
     t = std::min(t, -p.y / dir.y);
+  if (region.bounded()) {
+    for (double u = 0.0; u < t; u += 2.0) {
+      if (region.insetAt(p + u * dir) < regionMargin(sigma)) {
+        t = u;
+        break;
+      }
+    }
+  }
   return std::max(t, 0.0);
 }
 
 /// Step 6: orient the segment tail -> tip from the entry side.
-void orientByEntry(const Candidate& c, EntrySide entry, cv::Size size, NeedleSegment* s) {
+void orientByEntry(const Candidate& c, const AcquisitionOptions& o, const ImagingRegion& region,
+                   NeedleSegment* s) {
   cv::Point2d a = at(c.line, c.t0), b = at(c.line, c.t1);
   bool a_is_tail = true;
-  switch (entry) {
+  const double sigma = o.ridge_sigma_px;
+  switch (o.entry) {
     case EntrySide::kLeft:
       a_is_tail = a.x < b.x;
       break;
@@ -473,13 +538,21 @@ void orientByEntry(const Candidate& c, EntrySide entry, cv::Size size, NeedleSeg
       // way out along the shaft (its tangent there, for an arc) is the entry.
       if (c.line.kappa == 0.0) {
         const cv::Point2d d = (b - a) / std::max(cv::norm(b - a), 1e-9);
-        a_is_tail = rayToBorder(a, -d, size) <= rayToBorder(b, d, size);
+        a_is_tail = rayToBorder(a, -d, region, sigma) <= rayToBorder(b, d, region, sigma);
       } else {
-        a_is_tail = rayToBorder(a, -tangent(c.line, c.t0), size) <=
-                    rayToBorder(b, tangent(c.line, c.t1), size);
+        a_is_tail = rayToBorder(a, -tangent(c.line, c.t0), region, sigma) <=
+                    rayToBorder(b, tangent(c.line, c.t1), region, sigma);
       }
       break;
     }
+  }
+  // The priors outrank the side: the end nearer the stated entry point is the tail, and the
+  // shaft points the stated way.
+  if (o.entry_point_px) {
+    a_is_tail = cv::norm(a - *o.entry_point_px) <= cv::norm(b - *o.entry_point_px);
+  } else if (o.entry_angle_rad) {
+    a_is_tail =
+        (b - a).dot(cv::Point2d(std::cos(*o.entry_angle_rad), std::sin(*o.entry_angle_rad))) >= 0.0;
   }
   s->tail_px = a_is_tail ? a : b;
   s->tip_px = a_is_tail ? b : a;
@@ -620,8 +693,41 @@ bool bendToArc(const RidgeMap& ridge, const AcquisitionOptions& o, Candidate* c)
 }
 
 /// Steps 4-5 for one Hough line: trace, refit, trace again, measure.
+/// Whether the candidate never leaves the band of kEdgeBand_px along a bounded region's boundary.
+bool hugsRegionEdge(const Candidate& c, const ImagingRegion& region) {
+  if (!region.bounded())
+    return false;
+  for (double t = c.t0; t <= c.t1; t += 2.0) {
+    if (region.insetAt(at(c.line, t)) > kEdgeBand_px)
+      return false;
+  }
+  return true;
+}
+
+/// Whether the candidate agrees with the priors (kPriorPoint_px, kPriorAngle_rad); true without.
+bool meetsPriors(const Candidate& c, const AcquisitionOptions& o) {
+  if (o.entry_angle_rad) {
+    const cv::Point2d d = tangent(c.line, 0.5 * (c.t0 + c.t1));
+    double da = std::abs(std::atan2(d.y, d.x) - *o.entry_angle_rad);
+    da = std::fmod(da, kPi);
+    if (std::min(da, kPi - da) > kPriorAngle_rad)
+      return false;
+  }
+  if (o.entry_point_px) {
+    const cv::Point2d e = *o.entry_point_px;
+    const Line& l = c.line;
+    const cv::Point2d n(-l.dir.y, l.dir.x);
+    const double off =
+        l.kappa == 0.0 ? std::abs((e - l.point).dot(n))
+                       : std::abs(cv::norm(e - (l.point + n / l.kappa)) - 1.0 / std::abs(l.kappa));
+    if (off > kPriorPoint_px)
+      return false;
+  }
+  return true;
+}
+
 std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
-                                 const AcquisitionOptions& o) {
+                                 const AcquisitionOptions& o, const ImagingRegion& region) {
   Candidate c;
   c.line = line;
   if (!traceSegment(ridge, c.line, o.ridge_sigma_px, o.max_gap_px, &c.t0, &c.t1))
@@ -635,22 +741,46 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
     return {};
   if (c.t1 - c.t0 < o.min_length_px)
     return {};
-  // A line running from border to border has no tip in view: an interface, not a needle.
-  const cv::Size size = ridge.strength.size();
-  if (onBorder(at(c.line, c.t0), size) && onBorder(at(c.line, c.t1), size))
+  // A line running from border to border has no tip in view: an interface, not a needle; nor
+  // is the imaging region's own edge, nor a line the priors rule out.
+  const double sigma = o.ridge_sigma_px;
+  if (onBorder(at(c.line, c.t0), region, sigma) && onBorder(at(c.line, c.t1), region, sigma))
+    return {};
+  if (hugsRegionEdge(c, region) || !meetsPriors(c, o))
     return {};
   measureCues(ridge, &c, o.ridge_sigma_px);
   return c;
 }
 
+/// Step 4: whether segment (a, b) lies within the band of kSameStructure_px around segment
+/// (ka, kb) (both ends near its line and within its span), in nearly its direction.
+bool within(cv::Point2d a, cv::Point2d b, cv::Point2d ka, cv::Point2d kb) {
+  const double length = cv::norm(kb - ka);
+  if (length < 1.0)
+    return false;
+  const cv::Point2d d = (kb - ka) / length, n(-d.y, d.x);
+  const cv::Point2d e = b - a;
+  if (std::abs(e.dot(n)) > std::sin(kSameStructure_rad) * cv::norm(e))
+    return false;
+  for (const cv::Point2d& p : {a, b}) {
+    const double along = (p - ka).dot(d);
+    if (std::abs((p - ka).dot(n)) > kSameStructure_px || along < -kSameStructure_px ||
+        along > length + kSameStructure_px)
+      return false;
+  }
+  return true;
+}
+
 /// Step 4: adds c to `all` unless it is the same segment as one there (kSameSegment_px at both
-/// ends); of two the same, the better score stays.
+/// ends, or lying along it: within()); of two the same, the better score stays.
 void keepDistinct(const Candidate& c, std::vector<Candidate>* all) {
   const cv::Point2d a = at(c.line, c.t0), b = at(c.line, c.t1);
   for (Candidate& k : *all) {
     const cv::Point2d ka = at(k.line, k.t0), kb = at(k.line, k.t1);
+    const bool straight = c.line.kappa == 0.0 && k.line.kappa == 0.0;
     const bool same = (cv::norm(a - ka) < kSameSegment_px && cv::norm(b - kb) < kSameSegment_px) ||
-                      (cv::norm(a - kb) < kSameSegment_px && cv::norm(b - ka) < kSameSegment_px);
+                      (cv::norm(a - kb) < kSameSegment_px && cv::norm(b - ka) < kSameSegment_px) ||
+                      (straight && (within(a, b, ka, kb) || within(ka, kb, a, b)));
     if (same) {
       if (c.score > k.score)
         k = c;
@@ -710,6 +840,12 @@ void AcquisitionOptions::validate() const {
   check(std::isfinite(min_evidence) && min_evidence >= 0, "min_evidence", min_evidence);
   check(std::isfinite(radius_px) && (radius_px == 0 || radius_px >= min_length_px / kPi),
         "radius_px", radius_px);
+  if (entry_point_px) {
+    check(std::isfinite(entry_point_px->x), "entry_point_px.x", entry_point_px->x);
+    check(std::isfinite(entry_point_px->y), "entry_point_px.y", entry_point_px->y);
+  }
+  if (entry_angle_rad)
+    check(std::isfinite(*entry_angle_rad), "entry_angle_rad", *entry_angle_rad);
 }
 
 double NeedleSegment::length_px() const {
@@ -747,6 +883,15 @@ cv::Mat toGrey8(const cv::Mat& frame, std::string* problem) {
 
 NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options) {
   return acquireNeedle(frame, options, cv::Mat());
+}
+
+void keepFreedMemory() {
+#ifdef __GLIBC__
+  constexpr int kMmapThreshold = 256 << 20;  // blocks up to 256 MB come from the heap
+  constexpr int kTrimThreshold = 512 << 20;  // the heap is trimmed only past 512 MB free
+  mallopt(M_MMAP_THRESHOLD, kMmapThreshold);
+  mallopt(M_TRIM_THRESHOLD, kTrimThreshold);
+#endif
 }
 
 namespace {
@@ -954,19 +1099,19 @@ std::optional<NeedleSegment> tipFromMotion(const cv::Mat& motion, EntrySide entr
 /// passes the evidence threshold moves, the still ones drop out (never a still line over a
 /// moving needle); the best score wins.
 std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const AcquisitionOptions& o,
-                                       cv::Size size, const cv::Mat& motion) {
+                                       const ImagingRegion& region, const cv::Mat& motion) {
   bool any_moving = false;
   // A tip on the frame's border is no tip in view: the line runs on out of the frame (a layer
   // seen from the stated entry side, or a needle past the field of view).
   all.erase(std::remove_if(all.begin(), all.end(),
                            [&](Candidate& c) {
-                             orientByEntry(c, o.entry, size, &c.cues);
-                             return onBorder(c.cues.tip_px, size);
+                             orientByEntry(c, o, region, &c.cues);
+                             return onBorder(c.cues.tip_px, region, o.ridge_sigma_px);
                            }),
             all.end());
   for (Candidate& c : all) {
     c.cues.motion = tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
-    any_moving = any_moving || (c.cues.motion >= kMinMotionRatio && c.score >= o.min_evidence);
+    any_moving = any_moving || (c.cues.motion >= kMinMotionRatio && c.acceptance >= o.min_evidence);
   }
   std::optional<Candidate> best;
   for (const Candidate& c : all) {
@@ -982,6 +1127,13 @@ std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const Acquis
 
 NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options,
                             const cv::Mat& motion) {
+  std::string problem;
+  const cv::Mat grey = toGrey8(frame, &problem);
+  return acquireNeedle(frame, options, motion, findImagingRegion(grey));
+}
+
+NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options,
+                            const cv::Mat& motion, const ImagingRegion& region) {
   NeedleSegment none;
   try {
     options.validate();
@@ -999,17 +1151,23 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
     none.message = "motion map is not CV_32FC1 of the frame's size";
     return none;
   }
+  if (region.inset.size() != grey.size()) {
+    none.message = "imaging region is not of the frame's size";
+    return none;
+  }
   RidgeMap ridge = ridgeFilter(grey, options.ridge_sigma_px);  // step 2
-  ridgeThresholds(&ridge);
+  if (region.bounded())  // the region's own edge and the black outside it are no ridge
+    ridge.strength.setTo(0.0F, region.inset < kRegionInsetSigmas * options.ridge_sigma_px);
+  ridgeThresholds(&ridge, region);
 
   std::vector<Candidate> all;
-  for (const Line& line : candidateLines(ridge, options.min_length_px)) {  // step 3
-    if (std::optional<Candidate> c = examine(ridge, line, options))        // steps 4-5
+  for (const Line& line : candidateLines(ridge, options.min_length_px)) {    // step 3
+    if (std::optional<Candidate> c = examine(ridge, line, options, region))  // steps 4-5
       keepDistinct(*c, &all);
     if (static_cast<int>(all.size()) >= kMaxCandidates)
       break;
   }
-  const std::optional<Candidate> best = bestCandidate(all, options, grey.size(), motion);
+  const std::optional<Candidate> best = bestCandidate(all, options, region, motion);
   // No line moves like a needle: the tip where the frame alone brightens, if it does and the
   // best line does not end there (a line traced to that tip is kept: it shows the shaft).
   const std::optional<NeedleSegment> hidden = tipFromMotion(motion, options.entry);
@@ -1165,8 +1323,28 @@ SequenceTracker::Output SequenceTracker::onFrame(const cv::Mat& frame) {
   last_frame_ = frame.clone();
   size_ = frame.size();
   motion_ = motionMap(frame);
-  last_output_ = update(acquireNeedle(frame, options_, motion_));
+  updateRegion(frame);
+  last_output_ = update(acquireNeedle(frame, options_, motion_, region_));
   return last_output_;
+}
+
+void SequenceTracker::updateRegion(const cv::Mat& frame) {
+  std::string problem;
+  const cv::Mat grey = toGrey8(frame, &problem);
+  if (grey.empty())
+    return;
+  const bool resized = max_frame_.size() != grey.size();
+  if (resized) {
+    max_frame_ = grey.clone();
+    region_frames_ = 0;
+  } else {
+    max_frame_ = cv::max(max_frame_, grey);
+  }
+  // The region settles within a few frames (speckle fills the image's dark spots); then it is
+  // refreshed every kRegionRefresh frames.
+  if (region_frames_ < kRegionSettle || region_frames_ % kRegionRefresh == 0)
+    region_ = findImagingRegion(max_frame_);
+  ++region_frames_;
 }
 
 void SequenceTracker::startTrack(const NeedleSegment& d) {
@@ -1207,7 +1385,7 @@ std::optional<SequenceTracker::Output> SequenceTracker::coast(const NeedleSegmen
   if (!moved_ || velocity_px_ <= 0.0 || coasted_ >= kMaxCoast)
     return std::nullopt;
   NeedleSegment pred = predicted();
-  if (onBorder(pred.tip_px, size_))
+  if (onBorder(pred.tip_px, region_, options_.ridge_sigma_px))
     return std::nullopt;  // the tip has left the field of view
   ++coasted_;
   pred.found = true;

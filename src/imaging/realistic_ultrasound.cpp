@@ -19,13 +19,6 @@ using render::kShiftBits;
 using render::streamSeed;
 using render::uniform01;
 
-/// Display: 20 log10(amplitude) over this dynamic range maps to 0..1 (clinical B-mode shows
-/// 50-60 dB).
-constexpr double kDynamicRange_dB = 55.0;
-/// Mean speckle amplitude of the background tissue (echogenicity kTissueEcho): about 30 dB
-/// below the needle's specular echo, mid-grey on the display.
-constexpr double kTissueAmplitude = 0.03;
-constexpr double kTissueEcho = 0.25;  // the echogenicity that kTissueAmplitude stands for
 /// Speckle grain: the point-spread function's Gaussian sigmas across the beam (x) and along it
 /// (y): about 1.2 mm and 0.35 mm full width at 7 MHz.
 constexpr double kPsfLateral_m = 0.5e-3;
@@ -44,26 +37,13 @@ constexpr double kOutlineAmplitude = 0.8;
 constexpr double kOutlineWidth_m = 0.4e-3;
 constexpr double kObstacleInteriorEcho = 0.08;
 constexpr double kTargetEcho = 0.15;  // hypoechoic lesion
-/// Depth attenuation after time-gain compensation, and the shadow behind an obstacle.
-constexpr double kAttenuation_per_m = 6.0;
+/// The shadow behind an obstacle (depth attenuation: realistic_ultrasound.h).
 constexpr double kObstacleShadowGain = 0.2;
-/// Needle: specular amplitude facing the beam and parallel to it (|cos|^2 between).
-constexpr double kNeedleFacing = 1.0;
-constexpr double kNeedleParallel = 0.12;
 constexpr double kNeedleDrawStep_m = 0.25e-3;
 /// Out of plane: the needle's elevation grows along the shaft at a seeded slope in
 /// [0, kMaxElevationSlope]; the echo falls with the elevation beam profile exp(-(e / w)^2).
 constexpr double kMaxElevationSlope = 0.012;
 constexpr double kElevationHalfWidth_m = 0.6e-3;
-/// Acoustic shadow beyond the shaft (metal reflects most of the beam), softened laterally.
-constexpr double kNeedleShadowGain = 0.35;
-/// Reverberation tail: copies inside the shaft (about its lumen apart), deeper by
-/// kReverbSpacing_m each; the first at kReverbFirst of the shaft's echo (-9 dB), each next one
-/// kReverbDecay of the one before.
-constexpr int kReverbCopies = 5;
-constexpr double kReverbSpacing_m = 0.5e-3;
-constexpr double kReverbFirst = 0.35;
-constexpr double kReverbDecay = 0.5;
 /// The needle canvas (8-bit, anti-aliased) spans amplitudes 0..kCanvasFullScale.
 constexpr double kCanvasFullScale = 1.2;
 /// Tissue motion (ImagerConfig::tissue_motion_px = m): a drift at m px / frame, a sway along the
@@ -73,11 +53,6 @@ constexpr double kSwayRatio = 1.5;
 constexpr double kSwayPeriod = 10.0;
 constexpr double kCompression = 0.01;
 constexpr double kDecorrelation = 0.3;
-
-double logCompress(double amplitude) {
-  const double db = 20.0 * std::log10(std::max(amplitude, 1e-9));
-  return std::clamp((db + kDynamicRange_dB) / kDynamicRange_dB, 0.0, 1.0);
-}
 
 /// A layer's row (image y) at column x: through (0, y0) with slope.
 struct Layer {
@@ -198,6 +173,11 @@ cv::Mat movedTissue(const cv::Mat& amplitude, const ImagerConfig& config, std::u
 }
 
 }  // namespace
+
+double logCompress(double amplitude) {
+  const double db = 20.0 * std::log10(std::max(amplitude, 1e-9));
+  return std::clamp((db + kDynamicRange_dB) / kDynamicRange_dB, 0.0, 1.0);
+}
 
 void anatomy(const scene::Scene& scene, const ImagerConfig& config, cv::Mat* amplitude,
              cv::Mat* attenuation) {

@@ -10,6 +10,30 @@
 
 namespace needle_guidance::imaging::realistic {
 
+/// Display: 20 log10(amplitude) over this dynamic range maps to 0..1 (clinical B-mode shows
+/// 50-60 dB).
+constexpr double kDynamicRange_dB = 55.0;
+/// Mean speckle amplitude of the background tissue (echogenicity kTissueEcho): about 30 dB
+/// below the needle's specular echo, mid-grey on the display.
+constexpr double kTissueAmplitude = 0.03;
+constexpr double kTissueEcho = 0.25;  // the echogenicity that kTissueAmplitude stands for
+/// Needle: specular amplitude facing the beam and parallel to it (|cos|^2 between).
+constexpr double kNeedleFacing = 1.0;
+constexpr double kNeedleParallel = 0.12;
+/// Acoustic shadow beyond the shaft (metal reflects most of the beam).
+constexpr double kNeedleShadowGain = 0.35;
+/// Reverberation tail: copies kReverbSpacing_m apart along the beam, the first at kReverbFirst
+/// of the shaft's echo, each next one kReverbDecay of the one before.
+constexpr int kReverbCopies = 5;
+constexpr double kReverbSpacing_m = 0.5e-3;
+constexpr double kReverbFirst = 0.35;
+constexpr double kReverbDecay = 0.5;
+/// Depth attenuation left after time-gain compensation [1/m].
+constexpr double kAttenuation_per_m = 6.0;
+
+/// 20 log10(amplitude) over kDynamicRange_dB, to 0..1 of the display.
+double logCompress(double amplitude);
+
 /// The static part of the scene, made once: `amplitude` (CV_32FC1, echo amplitude of the tissue
 /// speckle and of the specular interfaces, 1 = full scale) and `attenuation` (CV_32FC1, gain of
 /// depth attenuation and of the obstacles' shadows).

@@ -1,5 +1,6 @@
 #include "needle_guidance/report/bench_args.h"
 
+#include <cstdlib>
 #include <iostream>
 #include <stdexcept>
 
@@ -24,6 +25,11 @@ std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string
       ok = args.trials > 0;
     } else if (arg == "--quick") {
       args.quick = true;
+    } else if (arg == "--help" || arg == "-h") {
+      std::cout << "usage: " << tool << " --out DIR [--quick] [--scene SPEC]... [--trials N > 0]\n"
+                << "Writes DIR/summary.json, its CSVs and plot.json (scripts/bench "
+                << tool.substr(tool.find('_') + 1) << " runs it and draws the plots).\n";
+      std::exit(0);
     } else {
       ok = false;
     }
@@ -33,6 +39,15 @@ std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string
     return std::nullopt;
   }
   return args;
+}
+
+bool helpRequested(int argc, char** argv) {
+  for (int i = 1; i < argc; ++i) {
+    const std::string arg = argv[i];
+    if (arg == "--help" || arg == "-h")
+      return true;
+  }
+  return false;
 }
 
 }  // namespace needle_guidance::report

@@ -112,6 +112,19 @@ TipTrackerRos::TipTrackerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
                                " must be auto, left, right, top or bottom, not '" + entry + "'");
     }
     options.entry = *side;
+    // Priors (as track_frames --entry-point X,Y --entry-angle DEG): where the needle enters the
+    // image [px] and roughly at what angle towards its tip [deg]; absent: worked out.
+    if (private_nh.hasParam("entry_point_x_px") || private_nh.hasParam("entry_point_y_px")) {
+      options.entry_point_px =
+          cv::Point2d(ros_params::number(private_nh, "entry_point_x_px", 0.0, -1e4, 1e4, "px"),
+                      ros_params::number(private_nh, "entry_point_y_px", 0.0, -1e4, 1e4, "px"));
+    }
+    if (private_nh.hasParam("entry_angle_deg")) {
+      options.entry_angle_rad =
+          ros_params::number(private_nh, "entry_angle_deg", 0.0, -360.0, 360.0, "deg") * kPi /
+          180.0;
+    }
+    imaging::keepFreedMemory();
     // Needle model without a scene: straight, or an arc of ~radius_m (0 = straight).
     const double radius_m =
         ros_params::number(private_nh, "radius_m", 0.0, 0.0, 100.0, "m (0 = straight)");

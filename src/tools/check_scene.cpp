@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "needle_guidance/geometry/triangle_mesh.h"
+#include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering_3d/scene_3d.h"
 #include "needle_guidance/tissue/tissue_simulation.h"
@@ -66,13 +67,14 @@ int main(int argc, char** argv) {
       specs.push_back(arg);
     }
   }
-  if (specs.empty()) {
-    std::cerr << "usage: check_scene [--mesh] SCENE...   (YAML files of any kind, or one of:";
+  if (specs.empty() || ng::report::helpRequested(argc, argv)) {
+    std::ostream& out = ng::report::helpRequested(argc, argv) ? std::cout : std::cerr;
+    out << "usage: check_scene [--mesh] SCENE...   (YAML files of any kind, or one of:";
     for (const auto& name : ng::scene::defaultSceneNames()) {
-      std::cerr << ' ' << name;
+      out << ' ' << name;
     }
-    std::cerr << ")\n";
-    return 2;
+    out << ")\n";
+    return &out == &std::cout ? 0 : 2;
   }
   int refused = 0;
   for (const std::string& spec : specs) {

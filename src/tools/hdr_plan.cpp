@@ -26,6 +26,7 @@
 #include "needle_guidance/dose/dvh_comparison.h"
 #include "needle_guidance/dose/dwell_optimization.h"
 #include "needle_guidance/dose/prostate_case.h"
+#include "needle_guidance/report/bench_args.h"
 
 namespace dose = needle_guidance::dose;
 
@@ -142,7 +143,16 @@ int planDicom(const std::string& dir, const std::string& case_file, const std::s
 
 }  // namespace
 
+constexpr const char* kUsage =
+    "usage: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both|dvh] [--mps FILE] "
+    "[--write-case DIR] [--iterations N] [--criterion TEXT]...\n"
+    "       hdr_plan --dicom DIR [--case-file FILE.yaml] [--method lp|dvh] [--export DIR]\n";
+
 int main(int argc, char** argv) {
+  if (needle_guidance::report::helpRequested(argc, argv)) {
+    std::cout << kUsage;
+    return 0;
+  }
   std::string case_dir, method = "both", mps, write_dir, dicom_dir, case_file, export_dir;
   std::vector<std::string> criteria_text;
   long iterations = 100000;
@@ -177,11 +187,7 @@ int main(int argc, char** argv) {
     else if (a == "--criterion")
       criteria_text.push_back(value());
     else {
-      std::cerr
-          << "usage: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both|dvh] [--mps "
-             "FILE] [--write-case DIR] [--iterations N] [--criterion TEXT]...\n"
-             "       hdr_plan --dicom DIR [--case-file FILE.yaml] [--method lp|dvh] [--export "
-             "DIR]\n";
+      std::cerr << kUsage;
       return 2;
     }
   }

@@ -22,6 +22,7 @@
 #include "needle_guidance/dose/dicom_rt.h"
 #include "needle_guidance/dose/hdr_case.h"
 #include "needle_guidance/dose/tg43.h"
+#include "needle_guidance/report/bench_args.h"
 
 namespace dose = needle_guidance::dose;
 
@@ -39,9 +40,8 @@ struct Args {
   std::uint32_t seed = 1;
 };
 
-void usage() {
-  std::cerr
-      << "usage: hdr_validate_plan DIR [--source NAME] [--out FILE.json] [--samples N] [--seed S]\n"
+void usage(std::ostream& out = std::cerr) {
+  out << "usage: hdr_validate_plan DIR [--source NAME] [--out FILE.json] [--samples N] [--seed S]\n"
          "  DIR      folder with RTPLAN, RTSTRUCT and RTDOSE\n"
          "  --source TG-43 data set in config/sources/ (default gammamed_plus_hdr)\n"
          "  --samples voxels sampled for the gamma index (default 3000, 0 = all)\n"
@@ -188,6 +188,10 @@ bool writeJson(const Args& args, const dose::DicomRtFiles& files,
 }
 
 int main(int argc, char** argv) {
+  if (needle_guidance::report::helpRequested(argc, argv)) {
+    usage(std::cout);
+    return 0;
+  }
   Args args;
   if (!parseArgs(argc, argv, args)) {
     usage();

@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "needle_guidance/math.h"
+#include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/steering_3d/mesh_3d.h"
 
 namespace ns = needle_guidance::steering_3d;
@@ -72,6 +73,10 @@ void write(const std::filesystem::path& dir, const std::string& name, const ns::
 }  // namespace
 
 int main(int argc, char** argv) {
+  if (needle_guidance::report::helpRequested(argc, argv)) {
+    std::cout << "usage: make_steering_3d_meshes OUT_DIR\n";
+    return 0;
+  }
   if (argc != 2) {
     std::cerr << "usage: make_steering_3d_meshes OUT_DIR\n";
     return 2;

@@ -11,20 +11,25 @@
 #include "needle_guidance/registration/baselines.h"
 #include "needle_guidance/registration/deformable_registration.h"
 #include "needle_guidance/registration/probe_case.h"
+#include "needle_guidance/report/bench_args.h"
 
 using namespace needle_guidance::registration;  // NOLINT(google-build-using-namespace): tool
 
 namespace {
 
-void usage() {
-  std::cerr << "usage: register_slice [--cases N] [--seed S] [--optimizer fast|sd|both] [--nodes "
-               "N] [--alpha A]\n"
-               "                      [--force-set bladder|gland|none] [--baselines] [--grid]\n";
+void usage(std::ostream& out = std::cerr) {
+  out << "usage: register_slice [--cases N] [--seed S] [--optimizer fast|sd|both] [--nodes "
+         "N] [--alpha A]\n"
+         "                      [--force-set bladder|gland|none] [--baselines] [--grid]\n";
 }
 
 }  // namespace
 
 int main(int argc, char** argv) {
+  if (needle_guidance::report::helpRequested(argc, argv)) {
+    usage(std::cout);
+    return 0;
+  }
   int cases = 5;
   std::uint64_t seed = 1;
   std::string optimizer = "fast";

@@ -1,11 +1,13 @@
-// Needle tracking on a folder of recorded B-mode frames, no robot and no prior:
+// Needle tracking on a folder of recorded B-mode frames, no robot; priors optional:
 // track_frames --frames DIR --out FILE.csv [--pixel-size-mm S] [--needle straight|arc]
-//              [--radius-mm R] [--entry left|right|top|bottom|auto] [--overlay DIR]
+//              [--radius-mm R] [--entry left|right|top|bottom|auto] [--entry-point X,Y]
+//              [--entry-angle DEG] [--overlay DIR]
 // Reads the PNG/BMP/JPEG frames of DIR in name order, runs the SequenceTracker
-// (needle_acquisition.h) and writes one CSV row per frame: frame, found, confident, tip_x_px,
-// tip_y_px, angle_deg, ms (tip in pixel columns/rows, origin at the top-left pixel's centre;
-// angle = atan2(row step, column step) towards the tip). --overlay writes the frames with the
-// detection drawn. Exit 2 with a message naming the problem for bad arguments, an empty folder,
+// (needle_acquisition.h; the imaging region, a linear probe's rectangle or a convex probe's
+// fan, worked out from the frames) and writes one CSV row per frame: frame, found, confident,
+// tip_x_px, tip_y_px, angle_deg, ms (tip in pixel columns/rows, origin at the top-left pixel's
+// centre; angle = atan2(row step, column step) towards the tip). --overlay writes the frames with
+// the detection drawn. Exit 2 with a message naming the problem for bad arguments, an empty folder,
 // an unreadable file or mixed frame sizes.
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -30,28 +32,54 @@ namespace {
 constexpr double kDegPerRad = 180.0 / 3.14159265358979323846;
 
 struct Args {
-  std::string frames, out, overlay, needle = "straight", entry = "auto";
+  std::string frames, out, overlay, needle = "straight", entry = "auto", entry_point, entry_angle;
   double pixel_size_mm = 0.0, radius_mm = 0.0;
+  bool help = false;
 };
 
+constexpr const char* kUsage =
+    "usage: track_frames --frames DIR --out FILE.csv [--pixel-size-mm S] [--needle straight|arc]\n"
+    "                    [--radius-mm R] [--entry left|right|top|bottom|auto]\n"
+    "                    [--entry-point X,Y] [--entry-angle DEG] [--overlay DIR]\n"
+    "  --entry-point X,Y  where the needle enters the image [px, column,row]: only a shaft whose\n"
+    "                     line passes within 25 px of it is the needle; its end nearer is the "
+    "tail\n"
+    "  --entry-angle DEG  the needle's rough direction towards its tip, atan2(row step, column\n"
+    "                     step) [deg]: only a shaft within 10 deg of it is the needle\n"
+    "Writes one CSV row per frame: frame,found,confident,tip_x_px,tip_y_px,angle_deg,ms.\n";
+
 int usage(const std::string& why) {
-  std::cerr << "track_frames: " << why << "\n"
-            << "usage: track_frames --frames DIR --out FILE.csv [--pixel-size-mm S] "
-               "[--needle straight|arc] [--radius-mm R] [--entry left|right|top|bottom|auto] "
-               "[--overlay DIR]\n";
+  std::cerr << "track_frames: " << why << "\n" << kUsage;
   return 2;
 }
 
+/// "X,Y" as a point; false when not two finite numbers.
+bool parsePoint(const std::string& text, cv::Point2d* p) {
+  const std::size_t comma = text.find(',');
+  if (comma == std::string::npos)
+    return false;
+  try {
+    std::size_t used_x = 0, used_y = 0;
+    const std::string xs = text.substr(0, comma), ys = text.substr(comma + 1);
+    p->x = std::stod(xs, &used_x);
+    p->y = std::stod(ys, &used_y);
+    return used_x == xs.size() && used_y == ys.size() && std::isfinite(p->x) && std::isfinite(p->y);
+  } catch (const std::exception&) {
+    return false;
+  }
+}
+
 bool parse(int argc, char** argv, Args* a, std::string* why) {
-  std::map<std::string, std::string*> text = {{"--frames", &a->frames},
-                                              {"--out", &a->out},
-                                              {"--overlay", &a->overlay},
-                                              {"--needle", &a->needle},
-                                              {"--entry", &a->entry}};
+  std::map<std::string, std::string*> text = {
+      {"--frames", &a->frames},          {"--out", &a->out},     {"--overlay", &a->overlay},
+      {"--needle", &a->needle},          {"--entry", &a->entry}, {"--entry-point", &a->entry_point},
+      {"--entry-angle", &a->entry_angle}};
   std::map<std::string, double*> number = {{"--pixel-size-mm", &a->pixel_size_mm},
                                            {"--radius-mm", &a->radius_mm}};
   for (int i = 1; i < argc; ++i) {
     const std::string key = argv[i];
+    if (key == "--help" || key == "-h")
+      return a->help = true, true;
     if (i + 1 >= argc)
       return *why = key + " needs a value", false;
     const std::string value = argv[++i];
@@ -83,6 +111,19 @@ bool parse(int argc, char** argv, Args* a, std::string* why) {
     return *why = "--radius-mm needs --pixel-size-mm to convert the radius to pixels", false;
   if (!im::entrySideFromString(a->entry)) {
     return *why = "--entry " + a->entry + ": need left, right, top, bottom or auto", false;
+  }
+  cv::Point2d point;
+  if (!a->entry_point.empty() && !parsePoint(a->entry_point, &point))
+    return *why = "--entry-point " + a->entry_point + ": need X,Y in pixels (e.g. 120,15)", false;
+  if (!a->entry_angle.empty()) {
+    try {
+      std::size_t used = 0;
+      const double deg = std::stod(a->entry_angle, &used);
+      if (used != a->entry_angle.size() || !std::isfinite(deg))
+        throw std::invalid_argument("not a number");
+    } catch (const std::exception&) {
+      return *why = "--entry-angle " + a->entry_angle + " is not a number (degrees)", false;
+    }
   }
   return true;
 }
@@ -141,6 +182,10 @@ int main(int argc, char** argv) {
   std::string why;
   if (!parse(argc, argv, &a, &why))
     return usage(why);
+  if (a.help) {
+    std::cout << kUsage;
+    return 0;
+  }
   const std::vector<fs::path> files = frameFiles(a.frames, &why);
   if (files.empty())
     return usage(why);
@@ -150,11 +195,17 @@ int main(int argc, char** argv) {
   options.entry = *im::entrySideFromString(a.entry);
   if (a.needle == "arc")
     options.radius_px = a.radius_mm / a.pixel_size_mm;
+  cv::Point2d point;
+  if (parsePoint(a.entry_point, &point))
+    options.entry_point_px = point;
+  if (!a.entry_angle.empty())
+    options.entry_angle_rad = std::stod(a.entry_angle) / kDegPerRad;
   try {
     options.validate();
   } catch (const std::invalid_argument& e) {
     return usage(std::string("--radius-mm ") + std::to_string(a.radius_mm) + ": " + e.what());
   }
+  im::keepFreedMemory();
   im::SequenceTracker tracker(options);
   std::ofstream csv(a.out);
   if (!csv)

@@ -29,6 +29,8 @@
 #include <string>
 #include <vector>
 
+#include "needle_guidance/imaging/imaging_region.h"
+
 namespace needle_guidance::imaging {
 
 /// Side of the image the needle enters from. kAuto: the end of the segment nearer the image
@@ -53,6 +55,15 @@ struct AcquisitionOptions {
   /// Needle model: 0 = straight; > 0 = a constant-curvature (steerable) needle whose shaft is an
   /// arc of this radius [px] (from the scene, or track_frames --radius-mm over the pixel size).
   double radius_px = 0.0;
+  /// Prior: where the needle enters the image [px] (track_frames --entry-point X,Y). A
+  /// candidate whose curve passes more than 25 px from it is not the needle, and the end of the
+  /// shaft nearer it is the tail. nullopt: worked out (the entry side, or the end with the
+  /// shorter way out of the imaging region).
+  std::optional<cv::Point2d> entry_point_px;
+  /// Prior: the needle's rough direction towards its tip [rad], atan2(row step, column step)
+  /// (track_frames --entry-angle DEG). A candidate more than 10 degrees off it is not the
+  /// needle, and the shaft is oriented that way. nullopt: any direction.
+  std::optional<double> entry_angle_rad;
   /// Throws std::invalid_argument naming the field when out of range.
   void validate() const;
 };
@@ -89,6 +100,14 @@ struct NeedleSegment {
   double length_px() const;
 };
 
+/// Keeps the memory the tracker frees in the process (glibc's malloc: no trimming, no mmap for
+/// frame-sized blocks) instead of returning it to the system after every frame: SequenceTracker
+/// allocates and frees frame-sized buffers each frame, and on a virtual machine the page faults
+/// of fetching them back cost more than the tracking itself (720 x 440 convex frames: 60 ms of
+/// CPU per frame without, 10 ms with). Call once in a program that tracks (track_frames, the
+/// tip_tracker node, the benchmarks). A no-op without glibc.
+void keepFreedMemory();
+
 /// Step 1: `frame` as CV_8UC1 (CV_8UC1 as is; CV_16UC1 scaled by its own maximum; 3- or
 /// 4-channel 8/16-bit converted to grey). Empty result with `problem` set for anything else
 /// (empty frame, float, 2 channels), naming type and size. Never throws.
@@ -106,6 +125,14 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
 /// wins over a moving needle. Never throws.
 NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options,
                             const cv::Mat& motion);
+
+/// The same inside a known imaging region (imaging_region.h; the other overloads find it from
+/// the frame itself): ridges within 4 filter scales of a bounded region's boundary are left
+/// out, a candidate that stays within 24 px of it is the region's own edge, and the region's
+/// boundary is a border like the frame's (no tip on it; a line from border to border is an
+/// interface; the entry is the end with the shorter way out of the region).
+NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options,
+                            const cv::Mat& motion, const ImagingRegion& region);
 
 /// Acquisition over a sequence: acquireNeedle per frame, a constant-velocity motion model of
 /// the tip along the needle's own axis (no robot drive needed), a gate on the tip and the
@@ -133,8 +160,14 @@ public:
   /// One frame. Never throws. A frame identical to the previous one (a frozen or repeated
   /// frame) repeats the previous estimate, not confident, and is no new evidence.
   Output onFrame(const cv::Mat& frame);
+  /// The imaging region worked out from the maximum of the frames so far.
+  const ImagingRegion& region() const { return region_; }
 
   static constexpr int kConfirmFrames = 3;
+  /// The imaging region is worked out on each of the first kRegionSettle frames, then every
+  /// kRegionRefresh frames (from the maximum of the frames so far).
+  static constexpr int kRegionSettle = 5;
+  static constexpr int kRegionRefresh = 10;
   static constexpr int kReacquireAfter = 3;
   static constexpr int kMaxPredicted = 3;  ///< frames bridged by prediction (a still track)
   /// Frames a track that has moved like a needle coasts on its motion model while its tip is
@@ -197,6 +230,11 @@ private:
   /// frame - background over the mean of its magnitude (empty for the first frame), then the
   /// background takes the frame in.
   cv::Mat motionMap(const cv::Mat& frame);
+  /// Takes the frame into the maximum frame and refreshes region_ (kRegionSettle, kRegionRefresh).
+  void updateRegion(const cv::Mat& frame);
+  cv::Mat max_frame_;  ///< CV_8U maximum of the frames so far
+  ImagingRegion region_;
+  int region_frames_ = 0;
   cv::Mat background_;  ///< CV_32F exponential average of the frames, moved with the tissue
   cv::Mat motion_;      ///< the last frame's motion map (empty for the first frame)
   std::vector<cv::Point2d> chain_;  ///< fronts of the last frames' blobs advancing in line

@@ -1,0 +1,210 @@
+// Needle tracking on convex-probe frames (convex_ultrasound.h): the imaging region worked out
+// from the frames, steep needles from the top of the fan, and the hard cases: a 60 degree needle
+// under a brighter, longer interface; the fan's edge at the needle's entry; a needle nearly
+// along the beam; a needle appearing part-way; a sparse sequence; a fan without a needle; the
+// priors (entry point, entry angle).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <opencv2/imgproc.hpp>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/imaging/convex_ultrasound.h"
+#include "needle_guidance/imaging/imaging_region.h"
+#include "needle_guidance/imaging/needle_acquisition.h"
+
+namespace im = needle_guidance::imaging;
+
+namespace {
+
+constexpr double kTipTolerance_px = 15.0;  ///< a found tip this close to the truth is right
+constexpr double kConfidentWrong_px = 20.0;
+constexpr double kAngleTolerance_deg = 5.0;
+constexpr double kRegionAgreement = 0.97;  ///< share of pixels the region and the probe agree on
+
+im::ConvexInsertion insertion(std::uint64_t seed, double entry, double angle_deg) {
+  im::ConvexInsertion c;
+  c.seed = seed;
+  c.entry = entry;
+  c.angle_deg = angle_deg;
+  return c;
+}
+
+struct Tracked {
+  std::vector<im::SequenceTracker::Output> out;
+  std::vector<cv::Point2d> truth;  ///< (-1, -1) where the frame has no needle
+  std::vector<double> angle;
+};
+
+Tracked track(const im::ConvexInsertion& c, const im::AcquisitionOptions& options = {}) {
+  Tracked t;
+  const im::ConvexScene scene = c.scene();
+  im::SequenceTracker tracker(options);
+  for (int k = 0; k < c.frames; ++k) {
+    cv::Point2d tip;
+    double angle = 0.0;
+    const std::vector<cv::Point2d> pts = c.needleAt(k, &tip, &angle);
+    t.out.push_back(tracker.onFrame(im::renderConvexFrame(scene, c.size, pts, std::uint64_t(k))));
+    t.truth.push_back(pts.empty() ? cv::Point2d(-1, -1) : tip);
+    t.angle.push_back(angle);
+  }
+  return t;
+}
+
+double angleDeg(double a, double b) {
+  double d = std::fmod(std::abs(a - b), 2 * CV_PI);
+  return std::min(d, 2 * CV_PI - d) * 180.0 / CV_PI;
+}
+
+/// Never a confident tip far from the truth, nor one in a frame without the needle.
+void expectNoConfidentWrong(const Tracked& t, const std::string& what) {
+  for (std::size_t k = 0; k < t.out.size(); ++k) {
+    if (!t.out[k].confident)
+      continue;
+    ASSERT_GE(t.truth[k].x, 0.0) << what << ": confident in frame " << k << " without a needle";
+    EXPECT_LT(cv::norm(t.out[k].segment.tip_px - t.truth[k]), kConfidentWrong_px)
+        << what << ": frame " << k << ": " << t.out[k].segment.message;
+  }
+}
+
+/// The last frame's tip and angle are right.
+void expectLastTipRight(const Tracked& t, const std::string& what) {
+  const auto& last = t.out.back();
+  ASSERT_TRUE(last.segment.found) << what << ": " << last.segment.message;
+  EXPECT_LT(cv::norm(last.segment.tip_px - t.truth.back()), kTipTolerance_px)
+      << what << ": " << last.segment.message;
+  EXPECT_LT(angleDeg(last.segment.angle_rad, t.angle.back()), kAngleTolerance_deg) << what;
+}
+
+TEST(ImagingRegion, FindsTheFanOfAConvexProbe) {
+  const im::ConvexInsertion c = insertion(31, -0.8, 35);
+  const im::ConvexScene scene = c.scene();
+  const cv::Mat frame = im::renderConvexFrame(scene, c.size, {}, 0);
+  const im::ImagingRegion region = im::findImagingRegion(frame);
+  EXPECT_EQ(region.shape, im::ImagingRegion::Shape::kSector);
+  int agree = 0;
+  for (int y = 0; y < frame.rows; ++y)
+    for (int x = 0; x < frame.cols; ++x)
+      agree += (region.mask.at<std::uint8_t>(y, x) != 0) == scene.probe.inside(cv::Point2d(x, y));
+  EXPECT_GT(agree, kRegionAgreement * frame.total());
+}
+
+TEST(ImagingRegion, AFrameWithoutBlackMarginIsTheWholeFrame) {
+  cv::Mat frame(200, 300, CV_8U);
+  cv::randu(frame, 20, 200);
+  EXPECT_EQ(im::findImagingRegion(frame).shape, im::ImagingRegion::Shape::kFrame);
+  cv::Mat boxed(200, 300, CV_8U, cv::Scalar(0));
+  frame(cv::Rect(40, 0, 220, 200)).copyTo(boxed(cv::Rect(40, 0, 220, 200)));
+  const im::ImagingRegion r = im::findImagingRegion(boxed);
+  EXPECT_EQ(r.shape, im::ImagingRegion::Shape::kRectangle);
+  EXPECT_NEAR(r.fraction, 220.0 / 300.0, 0.02);
+  EXPECT_EQ(im::findImagingRegion(cv::Mat()).shape, im::ImagingRegion::Shape::kFrame);
+}
+
+TEST(ConvexTracking, SteepNeedleUnderABrighterLongerInterface) {
+  im::ConvexInsertion c = insertion(33, -0.6, 60);
+  c.layer_amplitude = 2.5;
+  const Tracked t = track(c);
+  expectLastTipRight(t, "60 degrees under a brighter interface");
+  expectNoConfidentWrong(t, "60 degrees under a brighter interface");
+  EXPECT_TRUE(t.out.back().confident);
+}
+
+TEST(ConvexTracking, FanEdgeNextToTheEntry) {
+  const Tracked t = track(insertion(35, -1.1, 30));  // enters through the fan's straight edge
+  expectLastTipRight(t, "entry at the fan's edge");
+  expectNoConfidentWrong(t, "entry at the fan's edge");
+}
+
+TEST(ConvexTracking, NeedleNearlyAlongTheBeamIsRightOrRefused) {
+  // 80 degrees to the rows near the fan's middle: about 20 degrees from the beam, a weak echo.
+  const Tracked t = track(insertion(37, -0.3, 80));
+  expectNoConfidentWrong(t, "along the beam");
+  for (std::size_t k = 0; k < t.out.size(); ++k) {
+    if (t.out[k].segment.found && t.out[k].confident) {
+      EXPECT_LT(cv::norm(t.out[k].segment.tip_px - t.truth[k]), kTipTolerance_px);
+    }
+  }
+}
+
+TEST(ConvexTracking, NeedleAppearingPartWay) {
+  im::ConvexInsertion c = insertion(39, 0.8, 40);
+  c.appear_at = 6;
+  const Tracked t = track(c);
+  for (int k = 0; k < c.appear_at; ++k)
+    EXPECT_FALSE(t.out[std::size_t(k)].confident) << "frame " << k << " has no needle";
+  expectLastTipRight(t, "appearing part-way");
+  expectNoConfidentWrong(t, "appearing part-way");
+}
+
+TEST(ConvexTracking, SparseSequence) {
+  // Frames 0.2-0.5 s apart: the needle 20 px further each frame, the speckle largely new.
+  im::ConvexInsertion c = insertion(41, -0.85, 35);
+  c.step_px = 20;
+  c.decorrelation = 0.6;
+  c.frames = 10;
+  const Tracked t = track(c);
+  expectLastTipRight(t, "sparse");
+  expectNoConfidentWrong(t, "sparse");
+}
+
+TEST(ConvexTracking, FanWithoutANeedleIsNeverConfident) {
+  im::ConvexInsertion c = insertion(43, -0.8, 35);
+  c.appear_at = -1;
+  c.frames = 12;
+  c.layer_amplitude = 2.5;
+  const Tracked t = track(c);
+  for (std::size_t k = 0; k < t.out.size(); ++k)
+    EXPECT_FALSE(t.out[k].confident) << "frame " << k << ": " << t.out[k].segment.message;
+}
+
+TEST(ConvexTracking, PriorsPickTheNeedleOverADecoyAndOrientIt) {
+  const im::ConvexInsertion c = insertion(45, -0.8, 35);
+  const im::ConvexScene scene = c.scene();
+  cv::Point2d tip;
+  double angle = 0.0;
+  const std::vector<cv::Point2d> pts = c.needleAt(10, &tip, &angle);
+  cv::Mat frame = im::renderConvexFrame(scene, c.size, pts, 0);
+  // A brighter straight decoy across the other half of the fan.
+  cv::line(frame, cv::Point(420, 120), cv::Point(600, 260), cv::Scalar(250), 5, cv::LINE_AA);
+  im::AcquisitionOptions o;
+  o.entry_point_px = pts[60];  // where the needle crosses the probe face
+  o.entry_angle_rad = angle;
+  const im::NeedleSegment s = im::acquireNeedle(frame, o);
+  ASSERT_TRUE(s.found) << s.message;
+  EXPECT_LT(cv::norm(s.tip_px - tip), kTipTolerance_px) << s.message;
+  EXPECT_LT(angleDeg(s.angle_rad, angle), kAngleTolerance_deg);
+  // An angle prior the other way round: the decoy's direction rules the needle out.
+  im::AcquisitionOptions wrong;
+  wrong.entry_angle_rad = angle + CV_PI / 2.0;
+  const im::NeedleSegment w = im::acquireNeedle(frame, wrong);
+  if (w.found) {
+    EXPECT_GT(cv::norm(w.tip_px - tip), kTipTolerance_px);
+  }
+}
+
+TEST(ConvexTracking, BadPriorIsRefusedByName) {
+  im::AcquisitionOptions o;
+  o.entry_angle_rad = std::nan("");
+  EXPECT_THROW(o.validate(), std::invalid_argument);
+  const im::NeedleSegment s = im::acquireNeedle(cv::Mat(100, 100, CV_8U, cv::Scalar(50)), o);
+  EXPECT_FALSE(s.found);
+  EXPECT_NE(s.message.find("entry_angle_rad"), std::string::npos) << s.message;
+}
+
+TEST(ConvexRenderer, RefusesABadProbeAndIsDeterministic) {
+  im::ConvexInsertion c = insertion(47, -0.8, 35);
+  im::ConvexScene scene = c.scene();
+  cv::Point2d tip;
+  double angle = 0.0;
+  const auto pts = c.needleAt(3, &tip, &angle);
+  const cv::Mat a = im::renderConvexFrame(scene, c.size, pts, 3);
+  const cv::Mat b = im::renderConvexFrame(scene, c.size, pts, 3);
+  EXPECT_EQ(cv::norm(a, b, cv::NORM_INF), 0.0);
+  EXPECT_EQ(a.at<std::uint8_t>(c.size.height - 1, 0), 0) << "outside the fan is black";
+  scene.probe.half_angle_rad = 0.0;
+  EXPECT_THROW(im::renderConvexFrame(scene, c.size, pts, 0), std::invalid_argument);
+}
+
+}  // namespace
