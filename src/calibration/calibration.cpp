@@ -3,9 +3,9 @@
 #include <yaml-cpp/yaml.h>
 
 #include <algorithm>
+#include <cmath>
 #include <cstdlib>
 #include <filesystem>
-#include <cmath>
 #include <numeric>
 #include <random>
 #include <sstream>
@@ -51,8 +51,8 @@ InteractionModel interactionFromCurve(const ForceCurveParams& curve, const Inter
   const double have = prePunctureStiffness(base);
   if (!(have > 0.0) || !(wanted > 0.0)) {
     throw std::invalid_argument("interactionFromCurve: pre-puncture stiffness " +
-                                formatNumber(wanted) + " N/m cannot be reached (block: " +
-                                formatNumber(have) + " N/m)");
+                                formatNumber(wanted) +
+                                " N/m cannot be reached (block: " + formatNumber(have) + " N/m)");
   }
   model.block.young_modulus_Pa = base.block.young_modulus_Pa * wanted / have;
   // The FEM's tip force saws between the cutting force and the force just after a cut, so its
@@ -101,10 +101,9 @@ std::vector<double> compareDepths(const std::vector<ForceTrial>& trials, const C
         [](const ForceTrial& a, const ForceTrial& b) { return maxDepth(a) < maxDepth(b); });
     last = maxDepth(*shallowest) - 0.5 * kMm;
     if (!(last >= grid.first_depth_m)) {
-      throw std::invalid_argument(shallowest->path + ": reaches only " +
-                                  formatNumber(maxDepth(*shallowest) / kMm) +
-                                  " mm, too shallow to compare from " +
-                                  formatNumber(grid.first_depth_m / kMm) + " mm");
+      throw std::invalid_argument(
+          shallowest->path + ": reaches only " + formatNumber(maxDepth(*shallowest) / kMm) +
+          " mm, too shallow to compare from " + formatNumber(grid.first_depth_m / kMm) + " mm");
     }
   }
   return depthGrid(grid.first_depth_m, last, grid.step_m);
@@ -136,8 +135,8 @@ std::vector<TrialScore> scoreCurve(const std::vector<double>& model_N,
 CrossValidation crossValidate(const std::vector<ForceTrial>& trials, const CompareGrid& grid,
                               int folds, unsigned seed) {
   if (folds < 2 || trials.size() < static_cast<std::size_t>(folds)) {
-    throw std::invalid_argument("crossValidate: " + std::to_string(folds) + " folds need at least " +
-                                "2 folds and as many trials (have " +
+    throw std::invalid_argument("crossValidate: " + std::to_string(folds) +
+                                " folds need at least " + "2 folds and as many trials (have " +
                                 std::to_string(trials.size()) + ")");
   }
   CrossValidation cv;

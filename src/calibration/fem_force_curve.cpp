@@ -17,7 +17,8 @@ std::string exact(double value) {
 
 }  // namespace
 
-std::string calibrationSceneYaml(const CalibrationBlock& block, const tissue::NeedleParams& needle) {
+std::string calibrationSceneYaml(const CalibrationBlock& block,
+                                 const tissue::NeedleParams& needle) {
   const double l = block.length_m;
   // The needle may go to the far face less two fine elements; the mesh is refined along that
   // whole path, so it does not depend on how deep a particular run goes.
@@ -48,8 +49,8 @@ std::string calibrationSceneYaml(const CalibrationBlock& block, const tissue::Ne
     << "\n  diameter_m: " << exact(2.0 * needle.tip_radius_m) << "\n"
     << "targets:\n  - {name: path_end, position_m: [" << exact(max_depth_m) << ", "
     << exact(0.5 * h) << "]}\n"
-    << "mesh: {max_edge_m: " << exact(block.max_edge_m) << ", min_edge_m: "
-    << exact(block.min_edge_m) << ", grading_length_m: " << exact(0.1 * h)
+    << "mesh: {max_edge_m: " << exact(block.max_edge_m)
+    << ", min_edge_m: " << exact(block.min_edge_m) << ", grading_length_m: " << exact(0.1 * h)
     << ", min_angle_deg: 25, refine_targets: true}\n";
   return y.str();
 }
@@ -63,9 +64,10 @@ std::vector<double> femInsertionForce(const CalibrationBlock& block,
   const double max_depth = depths_m.back();
   for (std::size_t i = 0; i < depths_m.size(); ++i) {
     if (!(depths_m[i] > 0.0) || (i > 0 && !(depths_m[i] > depths_m[i - 1]))) {
-      throw std::invalid_argument("femInsertionForce: depths must be positive and ascending "
-                                  "(depth " + formatNumber(depths_m[i]) + " m at index " +
-                                  std::to_string(i) + ")");
+      throw std::invalid_argument(
+          "femInsertionForce: depths must be positive and ascending "
+          "(depth " +
+          formatNumber(depths_m[i]) + " m at index " + std::to_string(i) + ")");
     }
   }
   if (!(max_depth < block.length_m - 2.0 * block.min_edge_m)) {

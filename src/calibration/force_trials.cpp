@@ -77,13 +77,14 @@ ForceTrial readForceTrial(const std::string& path) {
       fields.push_back(field);
     }
     if (fields.size() != 3) {
-      fail(path, line, "expected 3 fields t_s,depth_mm,force_N, found " +
-                           std::to_string(fields.size()));
+      fail(path, line,
+           "expected 3 fields t_s,depth_mm,force_N, found " + std::to_string(fields.size()));
     }
     const double t = number(fields[0], path, line, "t_s");
     if (!trial.t_s.empty() && !(t > trial.t_s.back())) {
-      fail(path, line, "time " + formatNumber(t) + " s does not increase (previous " +
-                           formatNumber(trial.t_s.back()) + " s)");
+      fail(path, line,
+           "time " + formatNumber(t) + " s does not increase (previous " +
+               formatNumber(trial.t_s.back()) + " s)");
     }
     trial.t_s.push_back(t);
     trial.depth_m.push_back(number(fields[1], path, line, "depth_mm") * kMmToM);

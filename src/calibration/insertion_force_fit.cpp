@@ -53,8 +53,9 @@ std::vector<double> reducedInsertionForce(const ForceCurveParams& p,
   std::vector<double> f(depths_m.size());
   for (std::size_t i = 0; i < depths_m.size(); ++i) {
     const double d = depths_m[i];
-    f[i] = d < p.puncture_depth_m ? p.cutting_force_N * std::max(0.0, d) / p.puncture_depth_m
-                                  : p.cutting_force_N + p.friction_N_per_m * (d - p.puncture_depth_m);
+    f[i] = d < p.puncture_depth_m
+               ? p.cutting_force_N * std::max(0.0, d) / p.puncture_depth_m
+               : p.cutting_force_N + p.friction_N_per_m * (d - p.puncture_depth_m);
   }
   return f;
 }

@@ -93,8 +93,7 @@ Needle readPresetFile(const std::string& path) {
   preset.cutting_force_N = presetValue(keys, "cutting_force", detail::kForce);
   preset.cut_length_m = presetValue(keys, "cut_length", detail::kLength, true);
   preset.static_friction_N_per_m = presetValue(keys, "static_friction", detail::kForcePerLength);
-  preset.kinetic_friction_N_per_m =
-      presetValue(keys, "kinetic_friction", detail::kForcePerLength);
+  preset.kinetic_friction_N_per_m = presetValue(keys, "kinetic_friction", detail::kForcePerLength);
   preset.stick_velocity_m_s = presetValue(keys, "stick_velocity", detail::kVelocity);
   preset.diameter_m = presetValue(keys, "diameter", detail::kLength);
   keys.finish();
@@ -953,8 +952,8 @@ std::string interactionPresetPath(const std::string& name) {
 }
 
 std::string interactionPresetFile(const std::string& name_or_path) {
-  const bool is_path = name_or_path.find('/') != std::string::npos ||
-                       fs::path(name_or_path).extension() == ".yaml";
+  const bool is_path =
+      name_or_path.find('/') != std::string::npos || fs::path(name_or_path).extension() == ".yaml";
   return is_path ? name_or_path : interactionPresetPath(name_or_path);
 }
 

@@ -166,9 +166,9 @@ int check(const Args& a) {
               std::vector<std::vector<double>>(trials.size(), c.simulated_N), "simulated_fem");
   writeScores(a.out, c.scores);
   std::ostringstream j;
-  j << "{\n  \"mode\": \"check\",\n  \"preset\": \"" << a.preset << "\",\n  \"trials\": "
-    << trials.size() << ",\n  \"depth_range_mm\": [" << jsonNumber(depths.front() / kMm) << ", "
-    << jsonNumber(depths.back() / kMm) << "],\n"
+  j << "{\n  \"mode\": \"check\",\n  \"preset\": \"" << a.preset
+    << "\",\n  \"trials\": " << trials.size() << ",\n  \"depth_range_mm\": ["
+    << jsonNumber(depths.front() / kMm) << ", " << jsonNumber(depths.back() / kMm) << "],\n"
     << scoreJson(summary) << kSpreadDefinition << "  \"model\": \"2-D FEM insertion into the "
     << "preset's calibration block (quasi-static, the project's needle-tissue interaction)\"\n}\n";
   ng::report::writeTextFile(a.out + "/summary.json", j.str());
@@ -194,9 +194,9 @@ int fit(const Args& a) {
     const cal::InteractionModel m =
         cal::interactionFromCurve(cv.fold_fits[f].params, base, a.static_ratio, cv.depths_m);
     const std::vector<double> fem = cal::femInsertionForce(m.block, m.needle, cv.depths_m);
-    reduced_vs_fem = std::max(
-        reduced_vs_fem, cal::rmse(fem, cal::reducedInsertionForce(cv.fold_fits[f].params,
-                                                                  cv.depths_m)));
+    reduced_vs_fem =
+        std::max(reduced_vs_fem,
+                 cal::rmse(fem, cal::reducedInsertionForce(cv.fold_fits[f].params, cv.depths_m)));
     for (std::size_t i = 0; i < trials.size(); ++i) {
       if (cv.scores[i].fold == static_cast<int>(f)) {
         fem_predicted[i] = fem;
@@ -207,7 +207,8 @@ int fit(const Args& a) {
   const cal::ScoreSummary reduced = cal::summarise(cv.scores);
   const cal::ScoreSummary held_out = cal::summarise(fem_scores);
   const cal::ForceCurveParams& p = cv.full_fit.params;
-  const cal::InteractionModel model = cal::interactionFromCurve(p, base, a.static_ratio, cv.depths_m);
+  const cal::InteractionModel model =
+      cal::interactionFromCurve(p, base, a.static_ratio, cv.depths_m);
 
   std::ostringstream provenance;
   provenance << "# Needle-tissue interaction fitted by calibrate_insertion to " << trials.size()

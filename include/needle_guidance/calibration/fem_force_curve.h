@@ -14,15 +14,15 @@ namespace needle_guidance::calibration {
 /// The tissue block the calibration inserts into: a rectangle entered through its free face
 /// x = 0 at mid-height, its other three faces fixed (a sample held in a container).
 struct CalibrationBlock {
-  double length_m = 0.12;           ///< along the needle [m]
-  double height_m = 0.06;           ///< across the needle [m]
-  double thickness_m = 0.01;        ///< slice thickness h carrying the needle's forces [m]
-  double young_modulus_Pa = 20e3;   ///< tissue stiffness (sets the pre-puncture phase) [Pa]
-  double poisson_ratio = 0.49;      ///< nearly incompressible soft tissue
-  double max_edge_m = 6e-3;         ///< element size away from the needle path [m]
-  double min_edge_m = 1e-3;         ///< element size along the needle path [m]
+  double length_m = 0.12;                ///< along the needle [m]
+  double height_m = 0.06;                ///< across the needle [m]
+  double thickness_m = 0.01;             ///< slice thickness h carrying the needle's forces [m]
+  double young_modulus_Pa = 20e3;        ///< tissue stiffness (sets the pre-puncture phase) [Pa]
+  double poisson_ratio = 0.49;           ///< nearly incompressible soft tissue
+  double max_edge_m = 6e-3;              ///< element size away from the needle path [m]
+  double min_edge_m = 1e-3;              ///< element size along the needle path [m]
   double insertion_velocity_m_s = 5e-3;  ///< needle speed (sets the stick-slip time step) [m/s]
-  double depth_step_m = 1e-4;       ///< depth grid of the simulation [m]
+  double depth_step_m = 1e-4;            ///< depth grid of the simulation [m]
 };
 
 /// Scene YAML of the block with the needle parameters, for TissueSimulation and for users who

@@ -16,9 +16,9 @@ namespace needle_guidance::calibration {
 
 /// Parameters of the reduced force–depth curve.
 struct ForceCurveParams {
-  double cutting_force_N = 0.3;       ///< f_c: tip force while cutting [N], >= 0
-  double friction_N_per_m = 15.0;     ///< f_k: shaft friction per unit length in tissue [N/m]
-  double puncture_depth_m = 1e-3;     ///< d_p: depth of the first cut [m], > 0
+  double cutting_force_N = 0.3;    ///< f_c: tip force while cutting [N], >= 0
+  double friction_N_per_m = 15.0;  ///< f_k: shaft friction per unit length in tissue [N/m]
+  double puncture_depth_m = 1e-3;  ///< d_p: depth of the first cut [m], > 0
 };
 
 /// F(d) at each depth [N].
@@ -28,10 +28,10 @@ std::vector<double> reducedInsertionForce(const ForceCurveParams& params,
 /// Outcome of a least-squares fit.
 struct ForceFit {
   ForceCurveParams params;
-  double rmse_N = 0.0;    ///< against the mean of the fitted curves [N]
+  double rmse_N = 0.0;  ///< against the mean of the fitted curves [N]
   int iterations = 0;
   bool converged = false;
-  std::string message;    ///< what the optimiser reported
+  std::string message;  ///< what the optimiser reported
 };
 
 /// Least-squares fit of the reduced curve to the mean of `curves` (each sampled at depths_m),
