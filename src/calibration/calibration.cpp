@@ -24,6 +24,8 @@ constexpr int kStiffnessSteps = 2;
 constexpr double kNoCut_N = 1e6;
 /// The FEM-curve correction compares depths beyond this many puncture depths.
 constexpr double kSettledPunctures = 3.0;
+/// Tissue kept between the deepest compared depth and the block's fixed far face [m].
+constexpr double kFarFaceMargin_m = 0.035;
 /// Rounds of the FEM-curve correction (each one FEM insertion).
 constexpr int kCorrectionRounds = 2;
 
@@ -276,7 +278,10 @@ PresetCheck checkPreset(const InteractionModel& model, const std::vector<ForceTr
   for (const ForceTrial& trial : trials) {
     check.measured.push_back(insertionForceAt(trial, check.depths_m));
   }
-  check.simulated_N = femInsertionForce(model.block, model.needle, check.depths_m);
+  InteractionModel deep_enough = model;  // a longer block for trials deeper than the preset's
+  deep_enough.block.length_m =
+      std::max(model.block.length_m, check.depths_m.back() + kFarFaceMargin_m);
+  check.simulated_N = femInsertionForce(deep_enough.block, model.needle, check.depths_m);
   check.scores = scoreCurve(check.simulated_N, check.measured, trials);
   check.summary = summarise(check.scores);
   return check;

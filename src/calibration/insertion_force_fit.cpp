@@ -104,7 +104,10 @@ ForceFit fitInsertionForce(const std::vector<std::vector<double>>& curves,
   fit.converged = status == Eigen::LevenbergMarquardtSpace::RelativeReductionTooSmall ||
                   status == Eigen::LevenbergMarquardtSpace::RelativeErrorTooSmall ||
                   status == Eigen::LevenbergMarquardtSpace::RelativeErrorAndReductionTooSmall ||
-                  status == Eigen::LevenbergMarquardtSpace::CosinusTooSmall;
+                  status == Eigen::LevenbergMarquardtSpace::CosinusTooSmall ||
+                  status == Eigen::LevenbergMarquardtSpace::XtolTooSmall ||
+                  status == Eigen::LevenbergMarquardtSpace::FtolTooSmall ||
+                  status == Eigen::LevenbergMarquardtSpace::GtolTooSmall;
   fit.message = "Levenberg-Marquardt status " + std::to_string(static_cast<int>(status)) +
                 " after " + std::to_string(lm.iter) + " iterations";
   return fit;

@@ -1,8 +1,8 @@
-// Benchmark of the needle–tissue interaction calibrated to measured liver forces (de Jong et al.
-// 2017): the shipped preset's force error on held-out trials against the spread between the
+// Benchmark of the needle–tissue interaction calibrated to measured liver forces: the shipped
+// preset's force error on held-out trials of de Jong et al. 2017 against the spread between the
 // trials, the FEM force curve's convergence in the depth step with its CPU time, and the
 // unplanned seed error of the prostate scene with the scene's own and with the calibrated
-// interaction. Usage: bench_calibration --out DIR [--quick]
+// interaction. Usage: bench_calibration --out DIR [--quick] [--scene SPEC]
 #include <sys/resource.h>
 
 #include <cmath>

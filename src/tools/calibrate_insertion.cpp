@@ -5,10 +5,12 @@
 //   calibrate_insertion --check [PRESET] --trials DIR --out DIR
 // Writes OUT/summary.json, OUT/force_depth.csv, OUT/scores.csv, plots (plot.json drawn by
 // scripts/plot_bench.py) and, when fitting, the preset OUT/NAME.yaml.
+#include <algorithm>
 #include <cstdlib>
 #include <filesystem>
 #include <iostream>
 #include <sstream>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
@@ -25,6 +27,9 @@ using ng::report::jsonNumber;
 namespace {
 
 constexpr double kMm = 1e-3;
+/// Tissue kept between the deepest compared depth and the block's fixed far face [m] (the
+/// 120 mm block leaves 35 mm beyond the liver trials' 85 mm).
+constexpr double kFarFaceMargin_m = 0.035;
 
 const char* kUsage =
     "usage: calibrate_insertion --trials DIR --out DIR [--folds K] [--seed N] [--name NAME]\n"
@@ -185,6 +190,7 @@ int fit(const Args& a) {
   base.needle.tip_radius_m = 0.5 * 1.27e-3;  // 18 G needle
   base.needle.stick_velocity_m_s = 5e-4;
   base.block.thickness_m = a.thickness_mm * kMm;
+  base.block.length_m = std::max(base.block.length_m, cv.depths_m.back() + kFarFaceMargin_m);
 
   // Cross-validation with the FEM itself: each fold's fit carried onto the FEM.
   std::vector<std::vector<double>> fem_predicted(trials.size());
@@ -203,6 +209,10 @@ int fit(const Args& a) {
         fem_scores[i].rmse_N = cal::rmse(fem, cv.measured[i]);
       }
     }
+  }
+  if (!cv.full_fit.converged) {
+    throw std::runtime_error("the fit did not converge (" + cv.full_fit.message +
+                             "); no preset written");
   }
   const cal::ScoreSummary reduced = cal::summarise(cv.scores);
   const cal::ScoreSummary held_out = cal::summarise(fem_scores);

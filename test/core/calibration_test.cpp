@@ -214,6 +214,10 @@ TEST(InteractionPreset, SceneLoadsPresetAndItsOwnKeysOverride) {
   const auto o = needle_guidance::scene::parseScene(base + "  cutting_force_N: 0.7\n", "<test>");
   EXPECT_DOUBLE_EQ(o.needle.cutting_force_N, 0.7);
   EXPECT_DOUBLE_EQ(o.needle.static_friction_N_per_m, preset.needle.static_friction_N_per_m);
+  // A scene's own kinetic friction above the preset's static friction is refused.
+  EXPECT_THROW(
+      needle_guidance::scene::parseScene(base + "  kinetic_friction_N_per_cm: 5\n", "<test>"),
+      needle_guidance::scene::SceneError);
   try {
     needle_guidance::scene::parseScene(
         base.substr(0, base.find("liver_de_jong_2017")) + "liver_2099\n", "<unknown>");
@@ -223,6 +227,34 @@ TEST(InteractionPreset, SceneLoadsPresetAndItsOwnKeysOverride) {
     EXPECT_NE(m.find("<unknown>"), std::string::npos) << m;
     EXPECT_NE(m.find("needle.interaction"), std::string::npos) << m;
     EXPECT_NE(m.find("liver_de_jong_2017"), std::string::npos) << m;  // lists what there is
+  }
+}
+
+TEST(InteractionPreset, RefusesBadPresetsNamingTheFile) {
+  TempDir dir;
+  const std::string bad_key =
+      dir.write("bad_key.yaml",
+                "needle: {cutting_force_N: 0.3, kinetic_friction_N_per_cm: 0.1, "
+                "static_friction_N_per_cm: 0.2, cutting_speed_N: 1}\n");
+  const std::string negative = dir.write("negative.yaml", "needle: {cutting_force_N: -0.3}\n");
+  const std::string inverted = dir.write(
+      "inverted.yaml", "needle: {kinetic_friction_N_per_cm: 0.3, static_friction_N_per_cm: 0.2}\n");
+  for (const std::string& path : {bad_key, negative, inverted}) {
+    try {
+      needle_guidance::scene::loadInteractionPreset(path);
+      FAIL() << path << " must be refused";
+    } catch (const needle_guidance::scene::SceneError& e) {
+      EXPECT_NE(std::string(e.what()).find(path), std::string::npos) << e.what();
+    }
+  }
+  // A preset without the calibration block cannot be scored.
+  const std::string no_block = dir.write("no_block.yaml", "needle: {cutting_force_N: 0.3}\n");
+  try {
+    cal::loadPreset(no_block);
+    FAIL() << "a preset without calibration_block cannot be simulated";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("calibration_block.length_mm"), std::string::npos)
+        << e.what();
   }
 }
 
