@@ -11,7 +11,9 @@
 #include <sstream>
 #include <utility>
 
+#include "needle_guidance/format.h"
 #include "needle_guidance/scene/embedded_scenes.h"
+#include "needle_guidance/scene/interaction_preset.h"
 #include "needle_guidance/scene/yaml_reader.h"
 
 namespace needle_guidance::scene {
@@ -61,6 +63,45 @@ std::string pointText(const Point2& p_si, const Unit& unit) {
 
 std::string indexed(const std::string& key, std::size_t i) {
   return key + "[" + std::to_string(i) + "]";
+}
+
+/// A preset's needle keys: a number under base + one of dim's suffixes, >= 0 (> 0 when
+/// `positive`), or 0 when absent.
+double presetValue(MapReader& keys, const std::string& base, const Dimension& dim,
+                   bool positive = false) {
+  const std::optional<Quantity> q = keys.optionalQuantity(base, dim);
+  if (!q) {
+    return 0.0;
+  }
+  if (q->si < 0.0 || (positive && q->si == 0.0)) {
+    keys.fail(q->key, q->text, positive ? "must be positive" : "must not be negative", q->line);
+  }
+  return q->si;
+}
+
+/// The `needle:` section of an interaction preset file; its other sections document the fit.
+Needle readPresetFile(const std::string& path) {
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(path);
+  } catch (const YAML::Exception& e) {
+    throw SceneError(path, "", "", "cannot read the interaction preset: " + e.msg);
+  }
+  MapReader top(root, "", path);
+  MapReader keys = top.requiredMap("needle");
+  Needle preset;
+  preset.cutting_force_N = presetValue(keys, "cutting_force", detail::kForce);
+  preset.cut_length_m = presetValue(keys, "cut_length", detail::kLength, true);
+  preset.static_friction_N_per_m = presetValue(keys, "static_friction", detail::kForcePerLength);
+  preset.kinetic_friction_N_per_m = presetValue(keys, "kinetic_friction", detail::kForcePerLength);
+  preset.stick_velocity_m_s = presetValue(keys, "stick_velocity", detail::kVelocity);
+  preset.diameter_m = presetValue(keys, "diameter", detail::kLength);
+  keys.finish();
+  if (preset.kinetic_friction_N_per_m > preset.static_friction_N_per_m) {
+    throw SceneError(path, "needle.kinetic_friction", formatNumber(preset.kinetic_friction_N_per_m),
+                     "kinetic friction exceeds static friction (2.3.5)");
+  }
+  return preset;
 }
 
 /// Parses one document into a Scene, validating as it goes, then cross-checks the parts.
@@ -404,16 +445,21 @@ private:
     const Quantity min_height = m.requiredQuantity("min_height", detail::kLength);
     const Quantity max_height = m.requiredQuantity("max_height", detail::kLength);
     const Quantity max_depth = m.requiredQuantity("max_depth", detail::kLength);
+    // A calibrated interaction preset gives the defaults; the scene's own keys override them.
+    const Needle preset = readInteractionPreset(m);
     needle.insertion_velocity_m_s =
         positiveOr(m, "insertion_velocity", detail::kVelocity, needle.insertion_velocity_m_s);
-    needle.cutting_force_N = nonNegativeOr(m, "cutting_force", detail::kForce, 0.0);
+    needle.cutting_force_N =
+        nonNegativeOr(m, "cutting_force", detail::kForce, preset.cutting_force_N);
     const std::optional<Quantity> cut_length = m.optionalQuantity("cut_length", detail::kLength);
-    needle.static_friction_N_per_m =
-        nonNegativeOr(m, "static_friction", detail::kForcePerLength, 0.0);
-    needle.kinetic_friction_N_per_m =
-        nonNegativeOr(m, "kinetic_friction", detail::kForcePerLength, 0.0);
-    needle.stick_velocity_m_s = nonNegativeOr(m, "stick_velocity", detail::kVelocity, 0.0);
-    needle.diameter_m = nonNegativeOr(m, "diameter", detail::kLength, 0.0);
+    needle.cut_length_m = preset.cut_length_m;
+    needle.static_friction_N_per_m = nonNegativeOr(m, "static_friction", detail::kForcePerLength,
+                                                   preset.static_friction_N_per_m);
+    needle.kinetic_friction_N_per_m = nonNegativeOr(m, "kinetic_friction", detail::kForcePerLength,
+                                                    preset.kinetic_friction_N_per_m);
+    needle.stick_velocity_m_s =
+        nonNegativeOr(m, "stick_velocity", detail::kVelocity, preset.stick_velocity_m_s);
+    needle.diameter_m = nonNegativeOr(m, "diameter", detail::kLength, preset.diameter_m);
     needle.placement_tolerance_m =
         positiveOr(m, "placement_tolerance", detail::kLength, needle.placement_tolerance_m);
     const std::optional<Quantity> radius =
@@ -452,6 +498,12 @@ private:
            cut_length ? cut_length->text : "",
            "a positive cutting_force needs a positive cut_length (2.3.4)");
     }
+    if (needle.kinetic_friction_N_per_m > needle.static_friction_N_per_m) {
+      fail(m.keyPath("kinetic_friction"), formatNumber(needle.kinetic_friction_N_per_m) + " N/m",
+           "kinetic friction exceeds static friction (" +
+               formatNumber(needle.static_friction_N_per_m) + " N/m) (2.3.5)",
+           m.lineOfKey("kinetic_friction"));
+    }
     if (radius) {
       requireNonNegative(*radius);
       needle.radius_of_curvature_m = radius->si;
@@ -460,6 +512,37 @@ private:
       fail(radius ? radius->key : m.keyPath("radius_of_curvature"), radius ? radius->text : "",
            "a steering scene needs a positive needle radius_of_curvature (5.3)");
     }
+  }
+
+  /// The needle keys of config/interaction/NAME.yaml for `interaction: NAME` (all zero without
+  /// one). Refuses an unknown name, listing the presets there, and bad keys in the preset.
+  Needle readInteractionPreset(MapReader& m) {
+    const std::optional<std::string> name = m.optionalString("interaction");
+    if (!name) {
+      return Needle{};
+    }
+    const fs::path dir = fs::path(NG_CONFIG_DIR) / "interaction";
+    const fs::path file = interactionPresetPath(*name);
+    std::error_code error;
+    if (name->empty() || name->find_first_of("/\\.") != std::string::npos ||
+        !fs::is_regular_file(file, error)) {
+      std::vector<std::string> known;
+      for (const auto& entry : fs::directory_iterator(dir, error)) {
+        if (entry.path().extension() == ".yaml") {
+          known.push_back(entry.path().stem().string());
+        }
+      }
+      std::sort(known.begin(), known.end());
+      std::string list;
+      for (const std::string& k : known) {
+        list += (list.empty() ? "" : ", ") + k;
+      }
+      fail(m.keyPath("interaction"), *name,
+           "unknown interaction preset (presets in " + dir.string() + ": " +
+               (list.empty() ? "none" : list) + ")",
+           m.lineOfKey("interaction"));
+    }
+    return readPresetFile(file.string());
   }
 
   void readTarget(MapReader& m) {
@@ -898,6 +981,25 @@ Scene loadSceneSpec(const std::string& spec) {
   throw SceneError(
       spec, "", "",
       "no such scene file and no embedded scene of that name (embedded: " + known + ")");
+}
+
+std::string interactionPresetPath(const std::string& name) {
+  return (fs::path(NG_CONFIG_DIR) / "interaction" / (name + ".yaml")).string();
+}
+
+std::string interactionPresetFile(const std::string& name_or_path) {
+  const bool is_path =
+      name_or_path.find('/') != std::string::npos || fs::path(name_or_path).extension() == ".yaml";
+  return is_path ? name_or_path : interactionPresetPath(name_or_path);
+}
+
+Needle loadInteractionPreset(const std::string& name_or_path) {
+  const std::string path = interactionPresetFile(name_or_path);
+  std::error_code error;
+  if (!fs::is_regular_file(path, error)) {
+    throw SceneError(path, "", name_or_path, "no such interaction preset");
+  }
+  return readPresetFile(path);
 }
 
 }  // namespace needle_guidance::scene

@@ -16,6 +16,7 @@
 #include <thread>
 #include <vector>
 
+#include "needle_guidance/calibration/calibration.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/statistics.h"
 #include "needle_guidance/report/table.h"
@@ -40,6 +41,21 @@ Point2 simulateImplant(const ng::scene::Scene& scene, const ng::tissue::TissueSi
   }
   ng::tissue::TissueSimulation sim(scene, o);
   return ng::rigid_planning::simulateImplant(sim, release, schedule);
+}
+
+/// The liver interaction preset's force error on its held-out trials against the spread
+/// between those trials (scripts/bench calibration has the details), as JSON members.
+std::string calibrationJson() {
+  std::string source;
+  const auto trials = ng::calibration::liverHeldOutTrials(&source);
+  const auto check =
+      ng::calibration::checkPreset(ng::calibration::loadPreset("liver_de_jong_2017"), trials);
+  std::ostringstream j;
+  j << ",\n  \"calibration_force_rmse_N\": " << ng::report::jsonNumber(check.summary.rmse_median_N)
+    << ",\n  \"calibration_trial_spread_N\": "
+    << ng::report::jsonNumber(check.summary.spread_median_N) << ",\n  \"calibration_source\": \""
+    << trials.size() << " held-out trials in " << source << "\"";
+  return j.str();
 }
 
 /// Per-scene figures of the multi-scene part of the bench.
@@ -497,7 +513,7 @@ int main(int argc, char** argv) {
          << ",\n  \"robust_mean_error_cm_patients\": " << mean(f.robust_patient_cm)
          << ",\n  \"robust_seconds_per_target_mean\": " << mean(f.robust_seconds)
          << ",\n  \"batch_plans_differing_from_sequential\": " << batch_differing
-         << scenesJson(figures) << "\n}\n";
+         << scenesJson(figures) << calibrationJson() << "\n}\n";
     table.writeCsv(args->out_dir + "/rigid.csv");
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(args->out_dir + "/plot.json", kPlots);
