@@ -368,6 +368,7 @@ StepStatus NeedleInsertion::solveLocated(double dt_s, double from_x_m, bool inse
                          Eigen::VectorXd::Zero(a.u.size()));
     tip_x_m_ = x_event;
     applyEvents(a, b, s, inserting && !cut_blocked, cut_blocked, cuts);
+    ++info_.events;
     applyKineticForces();
     if (!(status = solveAt(x_event, dt_left * s + 1e-12, a))) {
       return status;
@@ -376,11 +377,22 @@ StepStatus NeedleInsertion::solveLocated(double dt_s, double from_x_m, bool inse
   }
 }
 
+double NeedleInsertion::cutFraction(const Solved& a, const Solved& b) const {
+  // Cutting (2.3.4): the tip force has reached the cutting force and the needle tip is a cut
+  // length ahead of the tip node's reference position (a cut never runs past the needle: with a
+  // force already past the cutting force, as with none, the tip node follows in cuts of b).
+  const double p_x = model_.mesh().nodes[static_cast<std::size_t>(tip_node_)].x();
+  const double force =
+      events::upCrossing(tipForce(a.prescribed, a.reactions), tipForce(b.prescribed, b.reactions),
+                         params_.cutting_force_N);
+  const double room = events::upCrossing(a.x_m - p_x, b.x_m - p_x, params_.cut_length_m);
+  return std::max(force, room);
+}
+
 double NeedleInsertion::firstEvent(const Solved& a, const Solved& b, bool may_cut) const {
   double s = events::kNever;
-  if (may_cut && tip_node_ >= 0) {  // cutting (2.3.4)
-    s = events::upCrossing(tipForce(a.prescribed, a.reactions), tipForce(b.prescribed, b.reactions),
-                           params_.cutting_force_N);
+  if (may_cut && tip_node_ >= 0) {
+    s = cutFraction(a, b);
   }
   const auto& nodes = model_.mesh().nodes;
   for (std::size_t k = 0; k < shaft_.size(); ++k) {
@@ -424,9 +436,7 @@ void NeedleInsertion::applyEvents(const Solved& a, const Solved& b, double s, bo
       }
     }
   }
-  if (may_cut && tip_node_ >= 0 &&
-      events::upCrossing(tipForce(a.prescribed, a.reactions), tipForce(b.prescribed, b.reactions),
-                         params_.cutting_force_N) <= s + kSameEvent) {
+  if (may_cut && tip_node_ >= 0 && cutFraction(a, b) <= s + kSameEvent) {
     const int shaft_before = static_cast<int>(shaft_.size());
     if (cut()) {
       ++cuts;

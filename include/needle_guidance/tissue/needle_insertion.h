@@ -31,7 +31,7 @@ struct NeedleParams {
   int max_friction_iterations = 8;  ///< bound on stick/slip re-solves in one step (dynamic models)
   /// Bound on stick–slip transitions and shaft releases located in one step (quasi-static
   /// model); a step that needs more is refused, state unchanged.
-  int max_events_per_step = 256;
+  int max_events_per_step = 4096;
   /// Node moves never make a triangle smaller than this fraction of its original area
   /// (prevents figure 2.9's inverted elements).
   double min_area_fraction = 0.05;
@@ -58,11 +58,12 @@ struct Seed {
 
 /// What happened in one step, for reports and markers.
 struct InsertionStepInfo {
-  int cuts = 0;                   ///< tip advances this step
-  int promoted = 0;               ///< nodes added to the shaft
-  int released = 0;               ///< nodes released by retraction
-  int slipping = 0;               ///< shaft nodes slipping at the end of the step
-  int relocations = 0;            ///< node moves shortened to avoid an inverted element
+  int cuts = 0;         ///< tip advances this step
+  int events = 0;       ///< events located in the step: cuts, stick–slip transitions, releases
+  int promoted = 0;     ///< nodes added to the shaft
+  int released = 0;     ///< nodes released by retraction
+  int slipping = 0;     ///< shaft nodes slipping at the end of the step
+  int relocations = 0;  ///< node moves shortened to avoid an inverted element
   double tip_force_N = 0.0;       ///< needle force on the tissue at the tip along +x [N]
   double friction_force_N = 0.0;  ///< total shaft friction force on the tissue along +x [N]
 };
@@ -136,6 +137,8 @@ private:
   StepStatus solveFixed(double dt_s, bool inserting, Solved& end);
   /// Solves at depth x_m for the current constraints; dt_s for a dynamic model.
   StepStatus solveAt(double x_m, double dt_s, Solved& out);
+  /// Fraction of the step a -> b where the tip cuts (events::kNever: it does not).
+  double cutFraction(const Solved& a, const Solved& b) const;
   /// First event between solutions a and b as a fraction of the step (events::kNever: none).
   double firstEvent(const Solved& a, const Solved& b, bool inserting) const;
   /// Applies every event of the step a -> b at fraction s; false when the tip cannot cut
