@@ -836,18 +836,19 @@ void RigidPlanner::finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_
   if (!plan.within_tolerance) {
     std::ostringstream budget;
     budget.precision(4);
-    budget << "budget exhausted (" << work << " of " << options_.work_budget
-           << " work units), best ";
-    plan.message =
-        (budget_expired ? budget.str() : std::string()) +
-        (plan.verified ? "verified error " + mm(plan.verified_error_m)
-                       : "predicted error " + mm(plan.predicted_error_m) +
-                             " (not verified: a full simulation would exceed the budget)") +
-        " exceeds the tolerance " + mm(plan.tolerance_m) + "; " + plan.message;
+    budget << "budget exhausted (" << work << " of " << options_.work_budget << " work units); ";
+    // The message states only what the figures show: a verified error over the tolerance, or
+    // a prediction the budget left no room to verify (whatever its size).
+    const std::string figures = plan.verified ? "best verified error " + mm(plan.verified_error_m) +
+                                                    " exceeds the tolerance " + mm(plan.tolerance_m)
+                                              : "best release not verified (predicted error " +
+                                                    mm(plan.predicted_error_m) + ", tolerance " +
+                                                    mm(plan.tolerance_m) +
+                                                    "): a full simulation would exceed the budget";
+    plan.message = (budget_expired ? budget.str() : std::string()) + figures;
     if (options_.refuse_over_tolerance) {
       plan.code = PlanCode::kOutOfTolerance;
-      plan.message = std::string("RigidPlanner: ") + toString(plan.code) +
-                     ": no release point within the tolerance found: " + plan.message;
+      plan.message = std::string("RigidPlanner: ") + toString(plan.code) + ": " + plan.message;
     }
   }
 }

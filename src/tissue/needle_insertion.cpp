@@ -7,6 +7,7 @@
 #include <stdexcept>
 
 #include "needle_guidance/format.h"
+#include "needle_guidance/tissue/interaction_events.h"
 
 namespace needle_guidance::tissue {
 namespace {
@@ -107,7 +108,11 @@ NeedleInsertion::NeedleInsertion(const NeedleInsertion& other, FemModel& model,
       seeds_(other.seeds_),
       f_ext_(other.f_ext_),
       u_prev_(other.u_prev_),
-      info_(other.info_) {}
+      info_(other.info_),
+      last_dofs_(other.last_dofs_),
+      last_f_ext_(other.last_f_ext_),
+      last_reactions_(other.last_reactions_),
+      motion_direction_(other.motion_direction_) {}
 
 std::optional<Point2> NeedleInsertion::tipReference() const {
   if (tip_node_ < 0) {
@@ -184,6 +189,15 @@ StepStatus NeedleInsertion::step(double dt_s, double needle_height_m, double tip
         str(height_m_) + " m -> " + str(needle_height_m) + " m)");
   }
 
+  const double advance = tip_x_m - std::max(tip_x_m_, bounds_min_.x());
+  if (advance > params_.cut_length_m * params_.max_cuts_per_step) {
+    return refused("NeedleInsertion::step: an advance of " + str(advance) +
+                   " m in one step may need more than " +
+                   std::to_string(params_.max_cuts_per_step) + " cuts of " +
+                   str(params_.cut_length_m) +
+                   " m (max_cuts_per_step); state unchanged (use smaller steps)");
+  }
+
   // Keep the step's start so a failed step leaves the state unchanged where it can.
   const Eigen::VectorXd u0 = integrator_.displacement();
   const Eigen::VectorXd v0 = integrator_.velocity();
@@ -197,6 +211,7 @@ StepStatus NeedleInsertion::step(double dt_s, double needle_height_m, double tip
   tip_x_m_ = tip_x_m;
   const double entry_x = bounds_min_.x();
   const bool inserting = tip_x_m_ >= prev_tip_x_m_;
+  const bool entered = !in_tissue_ && tip_x_m_ > entry_x;
 
   if (in_tissue_ && tip_x_m_ <= entry_x) {  // the needle has left the tissue
     in_tissue_ = false;
@@ -215,6 +230,7 @@ StepStatus NeedleInsertion::step(double dt_s, double needle_height_m, double tip
     if (tip_node_ >= 0) {  // retraction keeps no tip node (2.3.6)
       shaft_.push_back(tip_node_);
       shaft_state_.push_back(ShaftState{});
+      shaft_state_.back().direction = -1.0;
       tip_node_ = -1;
     }
     releaseBehind();
@@ -233,62 +249,270 @@ StepStatus NeedleInsertion::step(double dt_s, double needle_height_m, double tip
   }
 
   refreshTipPatch();
-  Eigen::VectorXd reactions;
-  f_ext_.setZero();
-  for (std::size_t s = 0; s < shaft_.size(); ++s) {
-    if (!shaft_state_[s].stuck) {  // kinetic friction drags along the needle's motion
-      const double direction = tip_x_m_ >= prev_tip_x_m_ ? 1.0 : -1.0;
-      f_ext_[dofX(shaft_[s])] = direction * params_.kinetic_friction_N_per_m * shaftShare(s);
+  const double direction = inserting ? 1.0 : -1.0;
+  if (direction != motion_direction_) {  // kinetic friction turns with the needle (2.3.6)
+    for (ShaftState& state : shaft_state_) {
+      state.direction = state.stuck ? state.direction : direction;
     }
+    motion_direction_ = direction;
   }
-  StepStatus status;
-  for (int iteration = 0; iteration < params_.max_friction_iterations; ++iteration) {
-    if (iteration > 0) {
-      integrator_.setState(u0, v0, a0);
-    }
-    const Prescribed prescribed = buildPrescribed();
-    status = integrator_.step(dt_s, f_ext_, prescribed, reactions);
-    if (!status) {
-      break;
-    }
-    // Stick decisions only in the first iteration: a node that slipped in this step keeps slipping
-    // until the next step, so the iteration is monotone (the stuck set only shrinks) and ends
-    // in a few passes. Letting it stick again made nodes oscillate stick -> slip -> stick until
-    // max_friction_iterations on every step of a deep insertion (9 solves and ~170
-    // factor modifications per step, most of a plan's time).
-    if (!updateFriction(prescribed, reactions, dt_s, /*allow_stick=*/iteration == 0)) {
-      break;
-    }
-  }
-  // Cutting (2.3.4): while the needle pushes the tip node harder than the cutting force, the
-  // tip advances b in the reference mesh and the step is solved again.
-  while (status && inserting && tip_node_ >= 0 && info_.cuts < params_.max_cuts_per_step) {
-    info_.tip_force_N = tipForce(buildPrescribed(), reactions);
-    if (info_.tip_force_N < params_.cutting_force_N || !cut()) {
-      break;
-    }
-    ++info_.cuts;
-    refreshTipPatch();
-    integrator_.setState(u0, v0, a0);
-    status = integrator_.step(dt_s, f_ext_, buildPrescribed(), reactions);
-  }
+  applyKineticForces();
+  Solved end;
+  const bool located =
+      params_.locate_events && integrator_.kind() == IntegratorKind::kQuasiStatic && in_tissue_;
+  // Entering, the tip starts at the entry face: the first cut is located from there.
+  const double from_x = entered ? std::max(prev_tip_x_m_, entry_x) : prev_tip_x_m_;
+  StepStatus status =
+      located ? solveLocated(dt_s, from_x, inserting, end) : solveFixed(dt_s, inserting, end);
   if (!status) {
     integrator_.setState(u0, v0, a0);
     height_m_ = saved_height;
     tip_x_m_ = saved_tip;
     return status;
   }
-  const Prescribed final_prescribed = buildPrescribed();
+  tip_x_m_ = tip_x_m;
   if (tip_node_ >= 0) {
-    info_.tip_force_N = tipForce(final_prescribed, reactions);
+    info_.tip_force_N = tipForce(end.prescribed, end.reactions);
   }
   for (std::size_t s = 0; s < shaft_.size(); ++s) {
-    const int index = prescribedIndex(final_prescribed, dofX(shaft_[s]));
-    info_.friction_force_N += index >= 0 ? reactions[index] : f_ext_[dofX(shaft_[s])];
+    const int index = prescribedIndex(end.prescribed, dofX(shaft_[s]));
+    info_.friction_force_N += index >= 0 ? end.reactions[index] : f_ext_[dofX(shaft_[s])];
     info_.slipping += shaft_state_[s].stuck ? 0 : 1;
   }
+  last_dofs_ = end.prescribed.dofs;
+  last_f_ext_ = f_ext_;
+  last_reactions_ = end.reactions;
   u_prev_ = integrator_.displacement();
   return StepStatus{};
+}
+
+void NeedleInsertion::applyKineticForces() {
+  f_ext_.setZero();
+  for (std::size_t s = 0; s < shaft_.size(); ++s) {
+    if (!shaft_state_[s].stuck) {
+      f_ext_[dofX(shaft_[s])] =
+          shaft_state_[s].direction * params_.kinetic_friction_N_per_m * shaftShare(s);
+    }
+  }
+}
+
+StepStatus NeedleInsertion::solveAt(double x_m, double dt_s, Solved& out) {
+  tip_x_m_ = x_m;
+  out.x_m = x_m;
+  out.prescribed = buildPrescribed();
+  const StepStatus status = integrator_.step(dt_s, f_ext_, out.prescribed, out.reactions);
+  out.u = integrator_.displacement();
+  return status;
+}
+
+StepStatus NeedleInsertion::solveLocated(double dt_s, double from_x_m, bool inserting,
+                                         Solved& end) {
+  const double to_x = tip_x_m_;
+  const double length = std::abs(to_x - from_x_m);
+  // The step's start: the last step's end when nothing changed since, else solved again.
+  Solved a;
+  a.x_m = from_x_m;
+  tip_x_m_ = from_x_m;
+  a.prescribed = buildPrescribed();
+  a.u = integrator_.displacement();
+  const bool unchanged = a.prescribed.dofs == last_dofs_ && last_f_ext_.size() == f_ext_.size() &&
+                         last_f_ext_ == f_ext_ && from_x_m == prev_tip_x_m_;
+  bool after_event = !unchanged;
+  StepStatus status;
+  if (unchanged) {
+    a.reactions = last_reactions_;
+  } else if (!(status = solveAt(from_x_m, dt_s, a))) {
+    return status;
+  }
+  bool cut_blocked = false;
+  int cuts = 0;
+  for (int events = 0;; ++events) {
+    if (events > params_.max_events_per_step + params_.max_cuts_per_step) {
+      return refused("NeedleInsertion::step: more than " +
+                     std::to_string(params_.max_events_per_step) +
+                     " stick-slip and release events in one step of " + str(length) +
+                     " m; the needle stays where it was, cuts made in the step are kept (use "
+                     "smaller steps)");
+    }
+    const double fraction_left = length > 0.0 ? std::abs(to_x - a.x_m) / length : 1.0;
+    const double dt_left = std::max(dt_s * fraction_left, 1e-12);
+    Solved b;
+    integrator_.setState(a.u, Eigen::VectorXd::Zero(a.u.size()), Eigen::VectorXd::Zero(a.u.size()));
+    if (!(status = solveAt(to_x, dt_left, b))) {
+      return status;
+    }
+    if (after_event && stickSlipping(a, b, dt_left)) {
+      integrator_.setState(a.u, Eigen::VectorXd::Zero(a.u.size()),
+                           Eigen::VectorXd::Zero(a.u.size()));
+      if (!(status = solveAt(a.x_m, dt_left, a))) {
+        return status;
+      }
+      continue;  // the stuck set grew: solve the step's end again
+    }
+    after_event = false;
+    const double s = b.x_m == a.x_m ? events::kNever : firstEvent(a, b, inserting && !cut_blocked);
+    if (!(s <= 1.0)) {
+      end = std::move(b);
+      return status;
+    }
+    if (cuts > params_.max_cuts_per_step) {
+      return refused("NeedleInsertion::step: more than " +
+                     std::to_string(params_.max_cuts_per_step) + " cuts in one step of " +
+                     str(length) + " m (cut length " + str(params_.cut_length_m) +
+                     " m); the needle stays where it was, cuts made in the step are kept (use "
+                     "smaller steps)");
+    }
+    // The state at the event: exact for the linear model between events.
+    const double x_event = a.x_m + s * (b.x_m - a.x_m);
+    integrator_.setState(a.u + s * (b.u - a.u), Eigen::VectorXd::Zero(a.u.size()),
+                         Eigen::VectorXd::Zero(a.u.size()));
+    tip_x_m_ = x_event;
+    applyEvents(a, b, s, inserting && !cut_blocked, cut_blocked, cuts);
+    ++info_.events;
+    applyKineticForces();
+    if (!(status = solveAt(x_event, dt_left * s + 1e-12, a))) {
+      return status;
+    }
+    after_event = true;
+  }
+}
+
+double NeedleInsertion::cutFraction(const Solved& a, const Solved& b) const {
+  // Cutting (2.3.4): the tip force has reached the cutting force and the needle tip is a cut
+  // length ahead of the tip node's reference position (a cut never runs past the needle: with a
+  // force already past the cutting force, as with none, the tip node follows in cuts of b).
+  const double p_x = model_.mesh().nodes[static_cast<std::size_t>(tip_node_)].x();
+  const double force =
+      events::upCrossing(tipForce(a.prescribed, a.reactions), tipForce(b.prescribed, b.reactions),
+                         params_.cutting_force_N);
+  const double room = events::upCrossing(a.x_m - p_x, b.x_m - p_x, params_.cut_length_m);
+  return std::max(force, room);
+}
+
+double NeedleInsertion::firstEvent(const Solved& a, const Solved& b, bool may_cut) const {
+  double s = events::kNever;
+  if (may_cut && tip_node_ >= 0) {
+    s = cutFraction(a, b);
+  }
+  const auto& nodes = model_.mesh().nodes;
+  for (std::size_t k = 0; k < shaft_.size(); ++k) {
+    const int dof = dofX(shaft_[k]);
+    if (shaft_state_[k].stuck) {  // static friction exceeded: slips (2.3.5)
+      const int index = prescribedIndex(b.prescribed, dof);
+      s = std::min(s, events::magnitudeCrossing(a.reactions[index], b.reactions[index],
+                                                params_.static_friction_N_per_m * shaftShare(k)));
+    } else if (tip_node_ < 0) {  // retraction passes the node: released (2.3.6)
+      const double x = nodes[static_cast<std::size_t>(shaft_[k])].x();
+      s = std::min(s, events::upCrossing(x + a.u[dof] - a.x_m, x + b.u[dof] - b.x_m, kGeomTol_m));
+    }
+  }
+  return s;
+}
+
+void NeedleInsertion::applyEvents(const Solved& a, const Solved& b, double s, bool may_cut,
+                                  bool& cut_blocked, int& cuts) {
+  constexpr double kSameEvent = 1e-9;  // fractions this close are one event
+  const auto& nodes = model_.mesh().nodes;
+  auto at = [&](double f0, double f1) { return f0 + s * (f1 - f0); };
+  for (std::size_t k = shaft_.size(); k-- > 0;) {
+    const int dof = dofX(shaft_[k]);
+    ShaftState& state = shaft_state_[k];
+    if (state.stuck) {
+      const int index = prescribedIndex(b.prescribed, dof);
+      const double limit = params_.static_friction_N_per_m * shaftShare(k);
+      if (events::magnitudeCrossing(a.reactions[index], b.reactions[index], limit) <=
+          s + kSameEvent) {
+        state.stuck = false;
+        state.direction = at(a.reactions[index], b.reactions[index]) > 0.0 ? 1.0 : -1.0;
+        state.slip_x_m = tip_x_m_;
+      }
+    } else if (tip_node_ < 0) {
+      const double x = nodes[static_cast<std::size_t>(shaft_[k])].x();
+      if (events::upCrossing(x + a.u[dof] - a.x_m, x + b.u[dof] - b.x_m, kGeomTol_m) <=
+          s + kSameEvent) {
+        shaft_.erase(shaft_.begin() + static_cast<std::ptrdiff_t>(k));
+        shaft_state_.erase(shaft_state_.begin() + static_cast<std::ptrdiff_t>(k));
+        ++info_.released;
+      }
+    }
+  }
+  if (may_cut && tip_node_ >= 0 && cutFraction(a, b) <= s + kSameEvent) {
+    const int shaft_before = static_cast<int>(shaft_.size());
+    if (cut()) {
+      ++cuts;
+      ++info_.cuts;
+      for (std::size_t k = static_cast<std::size_t>(shaft_before); k < shaft_state_.size(); ++k) {
+        shaft_state_[k].slip_x_m = -1e300;  // promoted: slipping, may stick at once
+      }
+      refreshTipPatch();
+    } else {
+      cut_blocked = true;  // nothing ahead to cut: the tip pushes on
+    }
+  }
+}
+
+bool NeedleInsertion::stickSlipping(const Solved& a, const Solved& b, double dt_s) {
+  bool stuck_any = false;
+  const auto& nodes = model_.mesh().nodes;
+  for (std::size_t k = 0; k < shaft_.size(); ++k) {
+    ShaftState& state = shaft_state_[k];
+    if (state.stuck || !(state.slip_x_m < a.x_m)) {
+      continue;
+    }
+    const int dof = dofX(shaft_[k]);
+    if (events::sticks(b.x_m - a.x_m, b.u[dof] - a.u[dof], dt_s, params_.stick_velocity_m_s)) {
+      state.stuck = true;
+      state.offset_m = nodes[static_cast<std::size_t>(shaft_[k])].x() + a.u[dof] - a.x_m;
+      stuck_any = true;
+    }
+  }
+  if (stuck_any) {
+    applyKineticForces();
+  }
+  return stuck_any;
+}
+
+StepStatus NeedleInsertion::solveFixed(double dt_s, bool inserting, Solved& end) {
+  const Eigen::VectorXd u0 = integrator_.displacement();
+  const Eigen::VectorXd v0 = integrator_.velocity();
+  const Eigen::VectorXd a0 = integrator_.acceleration();
+  const double x = tip_x_m_;
+  for (std::size_t s = 0; s < shaft_.size(); ++s) {  // slipping nodes drag along the motion
+    shaft_state_[s].direction =
+        shaft_state_[s].stuck ? shaft_state_[s].direction : (inserting ? 1.0 : -1.0);
+  }
+  applyKineticForces();
+  StepStatus status;
+  for (int iteration = 0; iteration < params_.max_friction_iterations; ++iteration) {
+    if (iteration > 0) {
+      integrator_.setState(u0, v0, a0);
+    }
+    if (!(status = solveAt(x, dt_s, end))) {
+      return status;
+    }
+    // Stick decisions only in the first solve: a node that slipped keeps slipping until the
+    // next step, so the stuck set only shrinks and the iteration ends in a few solves.
+    if (!updateFriction(end.prescribed, end.reactions, dt_s, /*allow_stick=*/iteration == 0)) {
+      break;
+    }
+  }
+  // Cutting (2.3.4): while the needle pushes the tip node harder than the cutting force, the
+  // tip advances b in the reference mesh and the step is solved again.
+  int cuts = 0;
+  while (inserting && tip_node_ >= 0 && cuts < params_.max_cuts_per_step) {
+    if (tipForce(end.prescribed, end.reactions) < params_.cutting_force_N || !cut()) {
+      break;
+    }
+    ++cuts;
+    ++info_.cuts;
+    refreshTipPatch();
+    applyKineticForces();
+    integrator_.setState(u0, v0, a0);
+    if (!(status = solveAt(x, dt_s, end))) {
+      return status;
+    }
+  }
+  return status;
 }
 
 bool NeedleInsertion::updateFriction(const Prescribed& prescribed, const Eigen::VectorXd& reactions,
@@ -307,8 +531,8 @@ bool NeedleInsertion::updateFriction(const Prescribed& prescribed, const Eigen::
       if (index >= 0 &&
           std::abs(reactions[index]) > params_.static_friction_N_per_m * shaftShare(s)) {
         state.stuck = false;
-        const double direction = reactions[index] > 0.0 ? 1.0 : -1.0;
-        f_ext_[dofX(node)] = direction * params_.kinetic_friction_N_per_m * shaftShare(s);
+        state.direction = reactions[index] > 0.0 ? 1.0 : -1.0;
+        f_ext_[dofX(node)] = state.direction * params_.kinetic_friction_N_per_m * shaftShare(s);
         changed = true;
       }
     } else if (allow_stick) {

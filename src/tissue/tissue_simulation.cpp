@@ -161,9 +161,11 @@ void TissueSimulation::build() {
   IntegratorOptions integrator_options;
   integrator_options.corotational = options_.corotational;
   integrator_ = makeIntegrator(options_.integrator, *model_, fixed_dofs_, integrator_options);
-  needle_ = std::make_unique<NeedleInsertion>(*model_, *integrator_, entry_nodes_, fixed_dofs_,
-                                              scene_.workspace_min, scene_.workspace_max,
-                                              needleParamsFromScene(scene_));
+  NeedleParams needle_params = needleParamsFromScene(scene_);
+  needle_params.locate_events = options_.locate_events;
+  needle_ =
+      std::make_unique<NeedleInsertion>(*model_, *integrator_, entry_nodes_, fixed_dofs_,
+                                        scene_.workspace_min, scene_.workspace_max, needle_params);
   if (pristine_ || options_.integrator != IntegratorKind::kQuasiStatic) {
     return;
   }

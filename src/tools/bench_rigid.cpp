@@ -62,6 +62,8 @@ std::string calibrationJson() {
 struct SceneFigures {
   std::string name, spec;
   int targets = 0, planned = 0, refused = 0, over_tolerance = 0;
+  int unreachable = 0;  ///< refused for physics: outside the tissue, in bone, out of range
+  std::vector<double> halving_mm;  ///< seed change when the depth grid step is halved [mm]
   std::vector<double> predicted_cm, verified_cm, measured_cm, unplanned_cm, legacy_gap_cm, pvm_cm,
       live_cm, seconds, cpu_seconds, simulations, fem_steps, solver_work;
 };
@@ -96,6 +98,10 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     const auto plan = planner.plan(target.position, previous_offset);
     if (!plan) {
       ++f.refused;
+      f.unreachable += plan.code == ng::rigid_planning::PlanCode::kOutOfTolerance ||
+                               plan.code == ng::rigid_planning::PlanCode::kSimulationFailed
+                           ? 0
+                           : 1;
       f.seconds.push_back(plan.seconds);  // a refusal's planning time counts too
       f.fem_steps.push_back(static_cast<double>(plan.fem_steps));
       f.solver_work.push_back(plan.solver_work);
@@ -146,6 +152,13 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     const double live_gap =
         (simulateImplant(scene, sim_options, plan.release, target.position, live) - seed).norm();
     f.live_cm.push_back(1e2 * live_gap);
+    // The same release with the depth grid's step halved: converged in the step.
+    ng::tissue::TissueSimOptions halved = sim_options;
+    halved.depth_grid.step_m *= 0.5;
+    f.halving_mm.push_back(
+        1e3 *
+        (simulateImplant(scene, halved, plan.release, target.position, planner.schedule()) - seed)
+            .norm());
     const auto legacy_scan = legacy.scanHeight(target.position, plan.release.y());
     const double legacy_gap = (legacy_scan.implantAt(plan.release.x()) - seed).norm();
     const double pvm = (plan.predicted_implant - seed).norm();
@@ -319,6 +332,64 @@ void speedSweep(const ng::scene::Scene& scene, const ng::rigid_planning::RigidPl
   sweep.writeCsv(out_dir + "/speed_vs_error.csv");
 }
 
+/// Convergence in the step: the seed of one insert-release-retract (target t06 released at the
+/// target) with every command one FEM step (depth grid off), for steps from 0.8 mm down to
+/// 0.025 mm, with events located and with events at the end of the step crossing them. Returns
+/// the JSON members: the located model's largest change from the finest step, and the
+/// step-end model's observed order (log2 of the change ratio between successive halvings;
+/// null when the changes are at rounding level and cannot show an order).
+std::string convergenceStudy(const ng::scene::Scene& scene, bool quick,
+                             const std::string& out_dir) {
+  const Point2 t = scene.targets[std::min<std::size_t>(5, scene.targets.size() - 1)].position;
+  std::vector<double> steps_mm{0.8, 0.4, 0.2, 0.1, 0.05};
+  if (!quick) {
+    steps_mm.push_back(0.025);
+  }
+  ng::report::Table table({"model", "step_mm", "seed_x_mm", "seed_y_mm", "change_vs_finest_mm"}, 9);
+  std::ostringstream json;
+  json.precision(6);
+  for (const bool located : {true, false}) {
+    ng::tissue::TissueSimOptions options = ng::tissue::optionsFromScene(scene);
+    options.depth_grid.step_m = 0.0;
+    options.locate_events = located;
+    std::vector<Point2> seeds;
+    for (double step_mm : steps_mm) {
+      ng::rigid_planning::ImplantSchedule schedule;
+      schedule.sample_m = 1e-3 * step_mm;
+      schedule.dt_s = schedule.sample_m / scene.needle.insertion_velocity_m_s;
+      seeds.push_back(simulateImplant(scene, options, t, t, schedule));
+    }
+    std::vector<double> change;
+    for (std::size_t i = 0; i < seeds.size(); ++i) {
+      change.push_back(1e3 * (seeds[i] - seeds.back()).norm());
+      table.addRow({std::string(located ? "events located" : "events at step end"), steps_mm[i],
+                    1e3 * seeds[i].x(), 1e3 * seeds[i].y(), change.back()});
+    }
+    if (located) {
+      json << ",\n  \"convergence_located_change_mm_max\": " << maxOf(change);
+      continue;
+    }
+    // Observed order from the successive differences |s(h) - s(h/2)| (no reference needed).
+    std::vector<double> orders;
+    for (std::size_t i = 0; i + 2 < seeds.size(); ++i) {
+      const double d1 = (seeds[i] - seeds[i + 1]).norm(), d2 = (seeds[i + 1] - seeds[i + 2]).norm();
+      if (d1 > 1e-9 && d2 > 1e-9) {
+        orders.push_back(std::log2(d1 / d2));
+      }
+    }
+    json << ",\n  \"convergence_step_end_change_mm_max\": " << maxOf(change)
+         << ",\n  \"convergence_step_end_observed_order\": ";
+    if (orders.empty()) {
+      json << "null";
+    } else {
+      json << ng::report::quantile(orders, 0.5);
+    }
+  }
+  table.writeCsv(out_dir + "/convergence.csv");
+  std::cout << table.toText();
+  return json.str();
+}
+
 /// Figures 4.5 and 4.6 for one target: error vs depth at its height, best depth and error vs
 /// height over y_t +- 3 mm.
 void depthAndHeightCurves(const ng::scene::Scene& scene,
@@ -340,6 +411,14 @@ void depthAndHeightCurves(const ng::scene::Scene& scene,
   by_height.writeCsv(out_dir + "/error_vs_height.csv");
 }
 
+/// Placed over reachable targets (those not refused for physics); "null" when none is reachable.
+std::string placedFraction(const SceneFigures& f) {
+  const int reachable = f.targets - f.unreachable;
+  return reachable > 0
+             ? std::to_string(static_cast<double>(f.planned - f.over_tolerance) / reachable)
+             : std::string("null");
+}
+
 /// Per-scene and overall figures of the multi-scene evaluation, as JSON members.
 std::string scenesJson(const std::vector<SceneFigures>& figures) {
   std::ostringstream json;
@@ -358,6 +437,8 @@ std::string scenesJson(const std::vector<SceneFigures>& figures) {
          << ", \"predicted_vs_measured_cm_max\": " << maxOf(f.pvm_cm)
          << ", \"o1_interpolated_vs_measured_cm_max\": " << maxOf(f.legacy_gap_cm)
          << ", \"live_schedule_vs_measured_cm_max\": " << maxOf(f.live_cm)
+         << ", \"reachable_placed_fraction\": " << placedFraction(f)
+         << ", \"step_halving_change_mm_max\": " << maxOf(f.halving_mm)
          << ", \"unplanned_error_cm_mean\": " << mean(f.unplanned_cm)
          << ", \"seconds_per_target_mean\": " << mean(f.seconds)
          << ", \"seconds_per_target_max\": " << maxOf(f.seconds)
@@ -372,6 +453,8 @@ std::string scenesJson(const std::vector<SceneFigures>& figures) {
     all.targets += f.targets;
     all.refused += f.refused;
     all.over_tolerance += f.over_tolerance;
+    all.unreachable += f.unreachable;
+    all.halving_mm.insert(all.halving_mm.end(), f.halving_mm.begin(), f.halving_mm.end());
     for (std::vector<double> SceneFigures::*v :
          {&SceneFigures::predicted_cm, &SceneFigures::verified_cm, &SceneFigures::measured_cm,
           &SceneFigures::unplanned_cm, &SceneFigures::legacy_gap_cm, &SceneFigures::pvm_cm,
@@ -390,6 +473,11 @@ std::string scenesJson(const std::vector<SceneFigures>& figures) {
        << ",\n  \"predicted_vs_measured_cm_max\": " << maxOf(all.pvm_cm)
        << ",\n  \"o1_interpolated_vs_measured_cm_max\": " << maxOf(all.legacy_gap_cm)
        << ",\n  \"live_schedule_vs_measured_cm_max\": " << maxOf(all.live_cm)
+       << ",\n  \"targets_unreachable\": " << all.unreachable
+       << ",\n  \"reachable_placed_fraction\": " << placedFraction(all)
+       << ",\n  \"live_vs_plan_mm_max\": " << 10.0 * maxOf(all.live_cm)
+       << ",\n  \"step_halving_change_mm_max\": " << maxOf(all.halving_mm)
+       << ",\n  \"cpu_seconds_per_target_mean\": " << mean(all.cpu_seconds)
        << ",\n  \"unplanned_measured_error_cm_mean\": " << mean(all.unplanned_cm)
        << ",\n  \"seconds_per_target_max\": " << maxOf(all.seconds)
        << ",\n  \"seconds_per_target_mean_all_scenes\": " << mean(all.seconds)
@@ -420,6 +508,9 @@ constexpr const char* kPlots =
   "title": "Placement error vs release depth at the target height (fig. 4.5)", "png": "error_vs_depth.png"},
  {"csv": "error_vs_height.csv", "x": "height_mm", "y": "error_mm", "logy": true,
   "title": "Best-depth error vs insertion height (fig. 4.6)", "png": "error_vs_height.png"},
+ {"csv": "convergence.csv", "x": "step_mm", "y": "change_vs_finest_mm", "group": "model",
+  "logx": true, "points": true, "title": "Seed change vs step size (finest step 0.025 mm)",
+  "png": "convergence.png"},
  {"csv": "seed_map.csv", "x": "x_mm", "y": "y_mm", "group": "kind", "points": true,
   "title": "Targets and final seeds, unplanned vs planned (fig. 4.7)", "png": "seed_map.png"}])json";
 
@@ -488,6 +579,7 @@ int main(int argc, char** argv) {
     }
     speedSweep(scene, planner, args->quick, args->out_dir);
     depthAndHeightCurves(scene, planner, args->out_dir);
+    const std::string convergence = convergenceStudy(scene, args->quick, args->out_dir);
     std::ostringstream json;
     json.precision(6);
     json << "{\n  \"benchmark\": \"rigid\",\n  \"scene\": \"" << scene.name << "\",\n"
@@ -512,7 +604,7 @@ int main(int argc, char** argv) {
          << ",\n  \"nominal_mean_error_cm_patients\": " << mean(f.nominal_patient_cm)
          << ",\n  \"robust_mean_error_cm_patients\": " << mean(f.robust_patient_cm)
          << ",\n  \"robust_seconds_per_target_mean\": " << mean(f.robust_seconds)
-         << ",\n  \"batch_plans_differing_from_sequential\": " << batch_differing
+         << ",\n  \"batch_plans_differing_from_sequential\": " << batch_differing << convergence
          << scenesJson(figures) << calibrationJson() << "\n}\n";
     table.writeCsv(args->out_dir + "/rigid.csv");
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());

@@ -8,8 +8,9 @@ namespace needle_guidance::rigid_planning {
 namespace {
 
 constexpr double kDepthStep_m = 1e-4;
-constexpr double kPredictionTol_m = 2e-4;  // full simulation vs O(1) prediction (~2 cut steps)
-constexpr double kPlannedTol_m = 1e-4;     // planned error <= 0.01 cm (dissertation 4.4)
+constexpr double kPredictionTol_m = 2e-4;     // full simulation vs O(1) prediction (~2 cut steps)
+constexpr double kPlannedTol_m = 1e-4;        // planned error <= 0.01 cm (dissertation 4.4)
+constexpr double kStepConvergedTol_m = 5e-6;  // seeds of any two step schedules
 
 /// Inserts to `release`, implants, retracts; the seed's final position (ground truth).
 Point2 fullSimulation(const scene::Scene& scene, const Point2& release, const Point2& target) {
@@ -232,16 +233,18 @@ TEST(RigidPlannerVerified, TheSeedDoesNotDependOnHowTheMotionIsSampled) {
     SCOPED_TRACE(::testing::Message() << "samples of " << sample_m << " m from " << start_x_m);
     EXPECT_EQ(seedFor(sample_m, start_x_m), reference);
   }
-  // Without the grid (raw steps at every command) the same release lands elsewhere: the grid is
-  // what makes the schedules agree.
+  // Without the grid (raw steps at every command) the same release lands at the same seed:
+  // events are located where they happen, so the model is converged in the step.
   tissue::TissueSimOptions raw = planner.simOptions();
   raw.depth_grid.step_m = 0.0;
   raw.meshing.refine_points.push_back(target);
   raw.meshing.refine_lines.push_back({Point2(scene.workspace_min.x(), target.y()), target});
   ImplantSchedule fine = planner.schedule();
   fine.sample_m = 5e-5;
+  fine.dt_s = fine.sample_m / scene.needle.insertion_velocity_m_s;  // the grid's speed (stick-slip
+                                                                    // depends on the speed)
   tissue::TissueSimulation raw_sim(scene, raw);
-  EXPECT_GT((simulateImplant(raw_sim, release, fine) - reference).norm(), 1e-6);
+  EXPECT_LT((simulateImplant(raw_sim, release, fine) - reference).norm(), kStepConvergedTol_m);
 }
 
 TEST(RigidPlannerVerified, AnExpiredBudgetReturnsTheBestPlanSoFarVerified) {

@@ -25,8 +25,13 @@ struct NeedleParams {
   double static_friction_N_per_m = 30.0;
   double kinetic_friction_N_per_m = 20.0;  ///< f_k per unit length of shaft [N/m]
   double stick_velocity_m_s = 5e-4;        ///< v_s: a slipping node sticks again below this [m/s]
-  int max_cuts_per_step = 64;              ///< bound on tip advances in one step
-  int max_friction_iterations = 8;         ///< bound on stick/slip re-solves in one step
+  /// Bound on tip advances in one step; a step that needs more is refused (state unchanged):
+  /// with event location it must cover step length / cut_length_m cuts.
+  int max_cuts_per_step = 64;
+  int max_friction_iterations = 8;  ///< bound on stick/slip re-solves in one step (dynamic models)
+  /// Bound on stick–slip transitions and shaft releases located in one step (quasi-static
+  /// model); a step that needs more is refused, state unchanged.
+  int max_events_per_step = 4096;
   /// Node moves never make a triangle smaller than this fraction of its original area
   /// (prevents figure 2.9's inverted elements).
   double min_area_fraction = 0.05;
@@ -35,6 +40,11 @@ struct NeedleParams {
   /// every free node within this radius ahead of the tip face moves with the tip node and the
   /// cutting force is their summed reaction, a finite-width load that converges with the mesh.
   double tip_radius_m = 0.0;
+  /// Place cuts, stick–slip transitions and releases at the depth where they happen
+  /// (interaction_events.h; quasi-static model), so the result does not depend on the step.
+  /// false: they happen at the end of the step that crosses them (first order in the step; the
+  /// dynamic models always do this).
+  bool locate_events = true;
 };
 
 /// A seed implanted in the tissue: fixed in the reference mesh, tracked in its triangle by
@@ -48,11 +58,12 @@ struct Seed {
 
 /// What happened in one step, for reports and markers.
 struct InsertionStepInfo {
-  int cuts = 0;                   ///< tip advances this step
-  int promoted = 0;               ///< nodes added to the shaft
-  int released = 0;               ///< nodes released by retraction
-  int slipping = 0;               ///< shaft nodes slipping at the end of the step
-  int relocations = 0;            ///< node moves shortened to avoid an inverted element
+  int cuts = 0;         ///< tip advances this step
+  int events = 0;       ///< events located in the step: cuts, stick–slip transitions, releases
+  int promoted = 0;     ///< nodes added to the shaft
+  int released = 0;     ///< nodes released by retraction
+  int slipping = 0;     ///< shaft nodes slipping at the end of the step
+  int relocations = 0;  ///< node moves shortened to avoid an inverted element
   double tip_force_N = 0.0;       ///< needle force on the tissue at the tip along +x [N]
   double friction_force_N = 0.0;  ///< total shaft friction force on the tissue along +x [N]
 };
@@ -105,8 +116,40 @@ public:
 private:
   struct ShaftState {
     bool stuck = false;
-    double offset_m = 0.0;  ///< world x - tip x while stuck (the node moves with the needle)
+    double offset_m = 0.0;   ///< world x - tip x while stuck (the node moves with the needle)
+    double direction = 1.0;  ///< sign of the kinetic friction on the tissue while slipping
+    /// Needle depth where the node last slipped: it may stick again only at a later event [m].
+    double slip_x_m = -1e300;
   };
+  /// The needle's constraints and loads at one depth and their reactions (2.3.3).
+  struct Solved {
+    double x_m = 0.0;  ///< tip x [m]
+    Prescribed prescribed;
+    Eigen::VectorXd reactions;
+    Eigen::VectorXd u;
+  };
+  /// The step for a model that answers linearly (quasi-static): advances from from_x_m to
+  /// tip_x_m_, placing every cut, stick–slip transition and release at the depth where it
+  /// happens (interaction_events.h), so the result does not depend on the step.
+  StepStatus solveLocated(double dt_s, double from_x_m, bool inserting, Solved& end);
+  /// The step for a dynamic model: one solve at the step's end, then stick–slip re-solves and
+  /// cuts at that depth (first order in the step).
+  StepStatus solveFixed(double dt_s, bool inserting, Solved& end);
+  /// Solves at depth x_m for the current constraints; dt_s for a dynamic model.
+  StepStatus solveAt(double x_m, double dt_s, Solved& out);
+  /// Fraction of the step a -> b where the tip cuts (events::kNever: it does not).
+  double cutFraction(const Solved& a, const Solved& b) const;
+  /// First event between solutions a and b as a fraction of the step (events::kNever: none).
+  double firstEvent(const Solved& a, const Solved& b, bool inserting) const;
+  /// Applies every event of the step a -> b at fraction s; false when the tip cannot cut
+  /// (blocked for the rest of the step).
+  void applyEvents(const Solved& a, const Solved& b, double s, bool inserting, bool& cut_blocked,
+                   int& cuts);
+  /// Slipping nodes (not slipped at depth a.x_m) that move with the needle over a -> b stick at
+  /// a (2.3.5). True when one did.
+  bool stickSlipping(const Solved& a, const Solved& b, double dt_s);
+  /// f_ext: kinetic friction on every slipping shaft node, its share of the shaft times f_k.
+  void applyKineticForces();
   Prescribed buildPrescribed() const;
   StepStatus solve(double dt_s, Eigen::VectorXd& reactions);
   bool enterTissue();
@@ -154,6 +197,12 @@ private:
   Eigen::VectorXd f_ext_;
   Eigen::VectorXd u_prev_;
   InsertionStepInfo info_;
+  /// The last step's end: constraints, loads and reactions, reused as the next step's start
+  /// when nothing changed in between.
+  std::vector<int> last_dofs_;
+  Eigen::VectorXd last_f_ext_;
+  Eigen::VectorXd last_reactions_;
+  double motion_direction_ = 1.0;  ///< +1 inserting, -1 retracting (the last step's)
 };
 
 }  // namespace needle_guidance::tissue

@@ -35,6 +35,7 @@ struct TissueSimOptions {
   bool corotational = false;
   ElementFormulation formulation = ElementFormulation::kLinear;
   geometry::MeshingOptions meshing;  ///< element sizes and refinement features
+  bool locate_events = true;         ///< NeedleParams::locate_events
 };
 
 /// The options a scene asks for: its tissue model, mesh sizes, refinement towards its targets.
