@@ -350,6 +350,28 @@ PointValue MapReader::requiredPoint(const std::string& base, const Dimension& di
   return point;
 }
 
+Eigen::Vector3d MapReader::requiredPoint3(const std::string& base, const Dimension& dim,
+                                          std::string* key_path) {
+  const std::optional<Variant> variant = findVariant(base, dim);
+  if (!variant) {
+    failMissing(base, dim);
+  }
+  const std::string key = keyPath(variant->key);
+  const YAML::Node& node = variant->node;
+  if (!node.IsSequence() || node.size() != 3) {
+    failAt(key, node,
+           "expected a point [x, y, z], got " +
+               (node.IsSequence() ? "a list of " + std::to_string(node.size()) : typeName(node)));
+  }
+  if (key_path != nullptr) {
+    *key_path = key;
+  }
+  const double to_si = variant->unit.to_si;
+  return Eigen::Vector3d(toNumber(key + "[0]", node[0]) * to_si,
+                         toNumber(key + "[1]", node[1]) * to_si,
+                         toNumber(key + "[2]", node[2]) * to_si);
+}
+
 PointList MapReader::requiredPointList(const std::string& base, const Dimension& dim) {
   const std::optional<Variant> variant = findVariant(base, dim);
   if (!variant) {

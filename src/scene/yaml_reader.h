@@ -115,6 +115,10 @@ public:
   std::optional<Quantity> optionalQuantity(const std::string& base, const Dimension& dim);
   /// A point [x, y] under base + one of dim's suffixes.
   PointValue requiredPoint(const std::string& base, const Dimension& dim);
+  /// A 3-D point [x, y, z] under base + one of dim's suffixes, in SI; its key path goes to
+  /// *key_path if given.
+  Eigen::Vector3d requiredPoint3(const std::string& base, const Dimension& dim,
+                                 std::string* key_path = nullptr);
   /// A list of points [[x, y], ...] under base + one of dim's suffixes.
   PointList requiredPointList(const std::string& base, const Dimension& dim);
 

@@ -8,6 +8,7 @@
 #include "needle_guidance/geometry/triangle_mesh.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/tissue/tissue_simulation.h"
+#include "needle_guidance/tissue_3d/tet_mesh_3d.h"
 
 namespace ng = needle_guidance;
 
@@ -34,6 +35,9 @@ int main(int argc, char** argv) {
     return 2;
   }
   try {
+    if (ng::tissue_3d::isTissueScene3dFile(spec)) {
+      return ng::tissue_3d::checkTissueScene3d(spec, mesh, std::cout);
+    }
     const ng::scene::Scene s = ng::scene::loadSceneSpec(spec);
     std::cout << "scene '" << s.name << "' from " << s.source << ": OK\n"
               << "  workspace " << 1e2 * (s.workspace_max - s.workspace_min).x() << " cm x "
