@@ -11,7 +11,7 @@
 namespace needle_guidance::tissue_3d {
 namespace {
 
-constexpr double kEntryInset_m = 1e-7;     // the entry point lies this far inside the face
+constexpr double kEntryInset_m = 1e-5;     // the entry point lies this far inside the face
 constexpr double kCutTol_m = 1e-10;        // root finding of the cut length
 constexpr double kEventTol_m = 1e-12;      // events closer than this to a segment end coincide
 constexpr int kMaxEventsPerMove = 100000;  // bound against a stalled event loop
@@ -258,20 +258,29 @@ Vector3 NeedleInsertion3::nodeDisplacement(int node) const {
 }
 
 Eigen::Vector3d NeedleInsertion3::cutDirection() const {
-  // F = I + grad u on the tip's element; the needle direction e_x mapped to the reference.
-  const fem::Corners<3> c = fem::corners<3>(model_.mesh(), tip_.element);
-  const Eigen::Matrix<double, 4, 3> grad = fem::shapeGradients<3>(c);
-  Eigen::Matrix3d f = Eigen::Matrix3d::Identity();
-  const auto& nodes = model_.mesh().elements[static_cast<std::size_t>(tip_.element)];
-  for (int a = 0; a < 4; ++a) {
-    f += nodeDisplacement(nodes[a]) * grad.row(a);
+  // The tissue the tip cuts next is what lies on the needle axis just ahead of it: the
+  // reference point X with X + u(X) = tip + r e_x (F^-1 e_x of 2.3.4 as a chord over r, which
+  // averages out the tip element's own shape).
+  const double r = 2.0 * needle_.track_spacing_m;
+  const Vector3 ahead(s_ + r, lateral_.x(), lateral_.y());
+  Vector3 x = tip_.reference_m + Vector3(r, 0.0, 0.0);
+  for (int it = 0; it < 4; ++it) {
+    const std::optional<EmbeddedPoint> p = model_.locate(x);
+    if (!p) {
+      return Eigen::Vector3d::UnitX();
+    }
+    Vector3 u = Vector3::Zero();
+    const auto& nodes = model_.mesh().elements[static_cast<std::size_t>(p->element)];
+    for (int a = 0; a < 4; ++a) {
+      u += p->weights(a) * nodeDisplacement(nodes[a]);
+    }
+    x = ahead - u;
   }
-  const Eigen::Vector3d d = f.partialPivLu().solve(Eigen::Vector3d::UnitX());
-  if (!d.allFinite() || d.x() <= 0.0) {
-    return Eigen::Vector3d::UnitX();
+  const Eigen::Vector3d d = x - tip_.reference_m;
+  if (!d.allFinite() || d.x() <= 0.5 * d.norm()) {
+    return Eigen::Vector3d::UnitX();  // never more than 60 deg off the needle
   }
-  const Eigen::Vector3d n = d.normalized();
-  return n.x() > 0.5 ? n : Eigen::Vector3d::UnitX();  // never more than 60 deg off the needle
+  return d.normalized();
 }
 
 bool NeedleInsertion3::insertSegment(double target) {
@@ -408,6 +417,9 @@ bool NeedleInsertion3::moveTo(const Eigen::Vector2d& lateral, double tip_x, std:
     direction_ = 1;
     commit(s_, &tip_);
     ++info_.events;
+  }
+  if (direction_ > 0 && !punctured_ && tip_x < s_ && tip_x >= entry_x_m_) {
+    tip_x = s_;  // touching the entry face: nothing to move yet
   }
   const int dir = tip_x >= s_ ? 1 : -1;
   if (dir != direction_) {

@@ -4,6 +4,7 @@
 // solve and 1-D theory; degenerate elements are refused with their index.
 #include <gtest/gtest.h>
 
+#include <Eigen/Geometry>
 #include <cmath>
 #include <stdexcept>
 
@@ -171,3 +172,8 @@ TEST(FemLinearElasticity, RefusesDegenerateElementAndFreeBody) {
 
 }  // namespace
 }  // namespace needle_guidance::fem
+
+int main(int argc, char** argv) {
+  ::testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}

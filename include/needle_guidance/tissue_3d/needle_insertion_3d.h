@@ -13,8 +13,9 @@
 //  * shaft: the cut track's tissue points, one per track_spacing of cut, lie on the needle axis;
 //    along it each is stuck (moves with the needle) or slips with the kinetic friction force
 //    (per unit length times its share of shaft); a stuck point slips when holding it needs
-//    more than the static friction (2.3.5), a slipping point sticks when its speed relative to
-//    the needle drops below stick_velocity or the needle reverses;
+//    more than the static friction (2.3.5). Points cut during insertion slip (the needle slides
+//    past them at the insertion speed, above stick_velocity); when the needle reverses their
+//    relative speed passes zero and they stick, then slip again one by one as the drag grows;
 //  * seed release at the tip (2.4); retraction releases the track points the tip passes.
 // Events (puncture, a new track point, stick to slip) are located where they happen within a
 // step (bisection on the tip position), so the result does not depend on the step length.
