@@ -257,32 +257,6 @@ Vector3 NeedleInsertion3::nodeDisplacement(int node) const {
   return u;
 }
 
-Eigen::Vector3d NeedleInsertion3::cutDirection() const {
-  // The tissue the tip cuts next is what lies on the needle axis just ahead of it: the
-  // reference point X with X + u(X) = tip + r e_x (F^-1 e_x of 2.3.4 as a chord over r, which
-  // averages out the tip element's own shape).
-  const double r = 2.0 * needle_.track_spacing_m;
-  const Vector3 ahead(s_ + r, lateral_.x(), lateral_.y());
-  Vector3 x = tip_.reference_m + Vector3(r, 0.0, 0.0);
-  for (int it = 0; it < 4; ++it) {
-    const std::optional<EmbeddedPoint> p = model_.locate(x);
-    if (!p) {
-      return Eigen::Vector3d::UnitX();
-    }
-    Vector3 u = Vector3::Zero();
-    const auto& nodes = model_.mesh().elements[static_cast<std::size_t>(p->element)];
-    for (int a = 0; a < 4; ++a) {
-      u += p->weights(a) * nodeDisplacement(nodes[a]);
-    }
-    x = ahead - u;
-  }
-  const Eigen::Vector3d d = x - tip_.reference_m;
-  if (!d.allFinite() || d.x() <= 0.5 * d.norm()) {
-    return Eigen::Vector3d::UnitX();  // never more than 60 deg off the needle
-  }
-  return d.normalized();
-}
-
 bool NeedleInsertion3::insertSegment(double target) {
   const double fb = needle_.cutting_force_N;
   if (!punctured_) {
@@ -298,7 +272,6 @@ bool NeedleInsertion3::insertSegment(double target) {
     pending_track_ = tip_;
     cut_total_m_ = 0.0;
     next_event_cut_m_ = needle_.track_spacing_m;
-    cut_dir_ = cutDirection();
     ++info_.events;
     return false;
   }
@@ -321,7 +294,6 @@ bool NeedleInsertion3::insertSegment(double target) {
   addTrackPoint(pending_track_);
   pending_track_ = p;
   commit(s_event, &p);
-  cut_dir_ = cutDirection();
   ++info_.events;
   return s_event >= target - kEventTol_m;
 }

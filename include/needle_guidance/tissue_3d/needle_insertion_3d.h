@@ -8,8 +8,11 @@
 // Interaction (the semantics of the 2-D tissue::NeedleInsertion):
 //  * tip: before puncture the tip pins the surface point it touches; when the tip force
 //    reaches the cutting force f_b the tissue is cut continuously: the tip's tissue point
-//    advances along the needle direction mapped to the reference (F^-1 e_x, 2.3.4) so that the
-//    tip force stays f_b;
+//    advances along +x in the reference so that the tip force stays f_b. The tip holds the
+//    tissue it cuts on the needle axis, so the cut track is the reference line at the needle's
+//    lateral position; the lateral shear just ahead of the tip (F^-1 e_x of 2.3.4) is
+//    neglected: evaluated on the tip's element it is dominated by the tip's own point load
+//    and made the track wander with the mesh;
 //  * shaft: the cut track's tissue points, one per track_spacing of cut, lie on the needle axis;
 //    along it each is stuck (moves with the needle) or slips with the kinetic friction force
 //    (per unit length times its share of shaft); a stuck point slips when holding it needs
@@ -132,7 +135,6 @@ private:
   void addTrackPoint(const EmbeddedPoint& p);
   void releaseShaftPoint(std::size_t k);
   Vector3 nodeDisplacement(int node) const;
-  Eigen::Vector3d cutDirection() const;
 
   TissueModel3& model_;
   Needle3 needle_;
