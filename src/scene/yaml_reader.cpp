@@ -372,6 +372,15 @@ Vector3Value MapReader::requiredVector3(const std::string& base, const Dimension
   return v;
 }
 
+Eigen::Vector3d MapReader::requiredPoint3(const std::string& base, const Dimension& dim,
+                                          std::string* key_path) {
+  const Vector3Value v = requiredVector3(base, dim);
+  if (key_path != nullptr) {
+    *key_path = v.key;
+  }
+  return v.value;
+}
+
 PointList MapReader::requiredPointList(const std::string& base, const Dimension& dim) {
   const std::optional<Variant> variant = findVariant(base, dim);
   if (!variant) {

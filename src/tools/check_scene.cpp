@@ -13,6 +13,7 @@
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering_3d/scene_3d.h"
 #include "needle_guidance/tissue/tissue_simulation.h"
+#include "needle_guidance/tissue_3d/tet_mesh_3d.h"
 
 namespace ng = needle_guidance;
 
@@ -84,9 +85,11 @@ int main(int argc, char** argv) {
         checkPlanar(spec, mesh);
       } else if (kind == "steering_3d") {
         checkSteering3d(spec);
+      } else if (kind == "tissue_3d") {
+        refused += ng::tissue_3d::checkTissueScene3d(spec, mesh, std::cout) != 0 ? 1 : 0;
       } else {
         throw ng::scene::SceneError(spec, "scene.kind", kind,
-                                    "unknown scene kind (known: planar, steering_3d)");
+                                    "unknown scene kind (known: planar, steering_3d, tissue_3d)");
       }
     } catch (const std::exception& e) {
       std::cerr << e.what() << "\n";

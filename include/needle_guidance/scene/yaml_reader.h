@@ -130,6 +130,10 @@ public:
   PointValue requiredPoint(const std::string& base, const Dimension& dim);
   /// A list [x, y, z] under base + one of dim's suffixes (kDimensionless: the key `base`).
   Vector3Value requiredVector3(const std::string& base, const Dimension& dim);
+  /// A 3-D point [x, y, z] under base + one of dim's suffixes, in SI; its key path goes to
+  /// *key_path if given.
+  Eigen::Vector3d requiredPoint3(const std::string& base, const Dimension& dim,
+                                 std::string* key_path = nullptr);
   /// A list of points [[x, y], ...] under base + one of dim's suffixes.
   PointList requiredPointList(const std::string& base, const Dimension& dim);
 

@@ -1,0 +1,61 @@
+// Condensation of a linear FEM model onto the DOFs a needle touches: the stiffness restricted to
+// the free DOFs is factored once (CHOLMOD, supernodal Cholesky) and the compliance entries
+// G = K_ff^-1 are formed column by column, only for the DOFs that constraints ever use, cached
+// and reused across steps and insertions. A step then solves a small dense system on the
+// constrained DOFs (Goksel et al. 2006 condense the same way and update it with low-rank
+// terms); the full field costs one more solve, only when it is asked for.
+#pragma once
+
+#include <Eigen/Core>
+#include <memory>
+#include <vector>
+
+#include "needle_guidance/fem/linear_elasticity.h"
+
+namespace needle_guidance::fem {
+
+class CondensedCompliance {
+public:
+  /// Factors K restricted to the DOFs with fixed_dof[i] == 0. Throws std::invalid_argument if the
+  /// sizes differ, no DOF is fixed and K is singular, or the factorisation fails (the message
+  /// says which).
+  CondensedCompliance(const SparseMatrix& stiffness, const std::vector<char>& fixed_dof);
+  ~CondensedCompliance();
+  CondensedCompliance(const CondensedCompliance&) = delete;
+  CondensedCompliance& operator=(const CondensedCompliance&) = delete;
+
+  int dofCount() const { return static_cast<int>(fixed_.size()); }
+  bool fixed(int dof) const { return fixed_[static_cast<std::size_t>(dof)] != 0; }
+
+  /// Solves the columns of the listed DOFs that are not cached yet, in one batched solve.
+  void require(const std::vector<int>& dofs);
+  /// Column of G for DOF j: the displacement of every DOF under a unit force on j [m/N]; zero
+  /// for a fixed DOF. require({j}) must have been called.
+  const Eigen::VectorXd& column(int dof) const;
+  /// G(i, j) [m/N]; zero if either DOF is fixed. require({j}) must have been called.
+  double entry(int i, int j) const;
+
+  /// Displacement of every DOF under force f (one solve) [m].
+  Eigen::VectorXd solve(const Eigen::VectorXd& force_N) const;
+
+  int cachedColumns() const { return cached_; }
+  long long solvedColumns() const { return solved_; }  ///< columns solved since construction
+  double factorCpuSeconds() const { return factor_cpu_s_; }
+  /// Bytes held by the factor and the cached columns.
+  std::size_t memoryBytes() const;
+  /// Drops every cached column (memory bound between insertions along new paths).
+  void clearCache();
+
+private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+  std::vector<char> fixed_;
+  std::vector<int> free_index_;  ///< DOF -> row of K_ff, -1 if fixed
+  std::vector<int> free_dofs_;
+  std::vector<Eigen::VectorXd> columns_;  ///< per DOF, empty until required
+  int cached_ = 0;
+  long long solved_ = 0;
+  double factor_cpu_s_ = 0.0;
+};
+
+}  // namespace needle_guidance::fem

@@ -1,0 +1,62 @@
+// Rigid-needle offset planning in 3-D (dissertation ch. 4 in 3-D): the needle's lateral
+// position (y, z) on the stage, or a template hole, and its depth, so that the seed lands on its
+// target once the tissue has deformed and relaxed. Each candidate is judged by simulating the
+// insertion (NeedleInsertion3); the plan is then verified by an independent full simulation
+// (a fresh insertion at the scene's step, seed release and complete retraction). Refusals
+// are physical, with their figures: target outside the tissue, in a fixed (bone) region,
+// needle line through a fixed region, or out of the robot's reach.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "needle_guidance/tissue_3d/needle_insertion_3d.h"
+
+namespace needle_guidance::tissue_3d {
+
+struct PlanResult3 {
+  std::string target;
+  bool placed = false;  ///< verified within tolerance
+  std::string refusal;  ///< the physical reason when not placed ("" if placed)
+  Eigen::Vector2d lateral_m = Eigen::Vector2d::Zero();  ///< planned (y, z)
+  double tip_x_m = 0.0;                                 ///< planned depth (tip x at release)
+  double predicted_error_m = -1.0;                      ///< planner's own estimate; < 0 undefined
+  double verified_error_m = -1.0;  ///< |seed - target| by the independent simulation; < 0 undefined
+  Vector3 verified_seed_m = Vector3::Zero();
+  double unplanned_error_m = -1.0;  ///< aiming straight at the target; < 0 undefined
+  double plan_cpu_s = 0.0;
+  int simulations = 0;
+};
+
+struct PlannerOptions3 {
+  double tolerance_m = 1e-4;  ///< a seed within this of its target is placed
+  double converge_m = 5e-6;   ///< planner iterations stop below this predicted error
+  int max_iterations = 8;
+  bool unplanned = true;  ///< also simulate the unplanned insertion
+};
+
+class OffsetPlanner3 {
+public:
+  OffsetPlanner3(const TissueScene3d& scene, TissueModel3& model, PlannerOptions3 options = {});
+  PlanResult3 plan(const Target3& target);
+  /// Seed position after an insertion to tip x at lateral, seed release and full retraction,
+  /// with moves of the scene's step (step_scale x the step). Throws std::runtime_error when the
+  /// simulation refuses.
+  Vector3 simulateImplant(const Eigen::Vector2d& lateral, double tip_x, double step_scale = 1.0);
+
+private:
+  /// Tip's tissue point against tip x, from one insertion to max_x (recorded after each step).
+  struct Trajectory {
+    std::vector<double> s;
+    std::vector<Vector3> tip;
+  };
+  Trajectory insertAlong(const Eigen::Vector2d& lateral, double max_x);
+  std::string physicalRefusal(const Target3& target) const;
+
+  const TissueScene3d& scene_;
+  TissueModel3& model_;
+  PlannerOptions3 options_;
+  RegionLocator3 regions_;
+};
+
+}  // namespace needle_guidance::tissue_3d

@@ -1,0 +1,151 @@
+// Condensed compliance on the needle DOFs (condensed_compliance.h).
+#include "needle_guidance/fem/condensed_compliance.h"
+
+#include <Eigen/CholmodSupport>
+#include <algorithm>
+#include <ctime>
+#include <stdexcept>
+#include <string>
+
+namespace needle_guidance::fem {
+
+struct CondensedCompliance::Impl {
+  Eigen::CholmodSupernodalLLT<SparseMatrix, Eigen::Lower> llt;
+  std::size_t factor_bytes = 0;
+};
+
+CondensedCompliance::CondensedCompliance(const SparseMatrix& k, const std::vector<char>& fixed_dof)
+    : impl_(std::make_unique<Impl>()), fixed_(fixed_dof) {
+  const int n = static_cast<int>(fixed_.size());
+  if (k.rows() != n || k.cols() != n) {
+    throw std::invalid_argument("CondensedCompliance: stiffness is " + std::to_string(k.rows()) +
+                                " x " + std::to_string(k.cols()) + " for " + std::to_string(n) +
+                                " DOFs");
+  }
+  free_index_.assign(static_cast<std::size_t>(n), -1);
+  for (int i = 0; i < n; ++i) {
+    if (!fixed_[static_cast<std::size_t>(i)]) {
+      free_index_[static_cast<std::size_t>(i)] = static_cast<int>(free_dofs_.size());
+      free_dofs_.push_back(i);
+    }
+  }
+  if (free_dofs_.empty()) {
+    throw std::invalid_argument("CondensedCompliance: every DOF is fixed");
+  }
+  if (static_cast<int>(free_dofs_.size()) == n) {
+    throw std::invalid_argument(
+        "CondensedCompliance: no DOF is fixed: the body is free to move rigidly (K singular)");
+  }
+  const int m = static_cast<int>(free_dofs_.size());
+  std::vector<Eigen::Triplet<double>> t;
+  t.reserve(static_cast<std::size_t>(k.nonZeros()));
+  for (int col = 0; col < n; ++col) {
+    const int fc = free_index_[static_cast<std::size_t>(col)];
+    if (fc < 0) {
+      continue;
+    }
+    for (SparseMatrix::InnerIterator it(k, col); it; ++it) {
+      const int fr = free_index_[static_cast<std::size_t>(it.row())];
+      if (fr >= fc) {
+        t.emplace_back(fr, fc, it.value());
+      }
+    }
+  }
+  SparseMatrix kff(m, m);
+  kff.setFromTriplets(t.begin(), t.end());
+  const std::clock_t start = std::clock();
+  impl_->llt.compute(kff);
+  factor_cpu_s_ = static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
+  if (impl_->llt.info() != Eigen::Success) {
+    throw std::invalid_argument(
+        "CondensedCompliance: the free-DOF stiffness (" + std::to_string(m) +
+        " DOFs) is not positive definite: too few fixed DOFs to hold the tissue, or a "
+        "degenerate element");
+  }
+  impl_->factor_bytes = impl_->llt.cholmod().memory_inuse;  // CHOLMOD's own accounting
+  columns_.resize(static_cast<std::size_t>(n));
+}
+
+CondensedCompliance::~CondensedCompliance() = default;
+
+void CondensedCompliance::require(const std::vector<int>& dofs) {
+  std::vector<int> todo;
+  for (int d : dofs) {
+    if (d < 0 || d >= dofCount()) {
+      throw std::out_of_range("CondensedCompliance: DOF " + std::to_string(d) + " out of range");
+    }
+    if (columns_[static_cast<std::size_t>(d)].size() == 0 &&
+        std::find(todo.begin(), todo.end(), d) == todo.end()) {
+      todo.push_back(d);
+    }
+  }
+  if (todo.empty()) {
+    return;
+  }
+  const int m = static_cast<int>(free_dofs_.size());
+  Eigen::MatrixXd rhs = Eigen::MatrixXd::Zero(m, static_cast<int>(todo.size()));
+  for (std::size_t c = 0; c < todo.size(); ++c) {
+    const int fr = free_index_[static_cast<std::size_t>(todo[c])];
+    if (fr >= 0) {
+      rhs(fr, static_cast<int>(c)) = 1.0;
+    }
+  }
+  const Eigen::MatrixXd x = impl_->llt.solve(rhs);
+  for (std::size_t c = 0; c < todo.size(); ++c) {
+    Eigen::VectorXd col = Eigen::VectorXd::Zero(dofCount());
+    if (free_index_[static_cast<std::size_t>(todo[c])] >= 0) {
+      for (int r = 0; r < m; ++r) {
+        col(free_dofs_[static_cast<std::size_t>(r)]) = x(r, static_cast<int>(c));
+      }
+      ++solved_;
+    }
+    columns_[static_cast<std::size_t>(todo[c])] = std::move(col);
+    ++cached_;
+  }
+}
+
+const Eigen::VectorXd& CondensedCompliance::column(int dof) const {
+  const Eigen::VectorXd& c = columns_.at(static_cast<std::size_t>(dof));
+  if (c.size() == 0) {
+    throw std::logic_error("CondensedCompliance: column of DOF " + std::to_string(dof) +
+                           " was not required");
+  }
+  return c;
+}
+
+double CondensedCompliance::entry(int i, int j) const {
+  return column(j)(i);
+}
+
+Eigen::VectorXd CondensedCompliance::solve(const Eigen::VectorXd& force_N) const {
+  if (force_N.size() != dofCount()) {
+    throw std::invalid_argument("CondensedCompliance::solve: force has " +
+                                std::to_string(force_N.size()) + " entries for " +
+                                std::to_string(dofCount()) + " DOFs");
+  }
+  const int m = static_cast<int>(free_dofs_.size());
+  Eigen::VectorXd b(m);
+  for (int r = 0; r < m; ++r) {
+    b(r) = force_N(free_dofs_[static_cast<std::size_t>(r)]);
+  }
+  const Eigen::VectorXd x = impl_->llt.solve(b);
+  Eigen::VectorXd u = Eigen::VectorXd::Zero(dofCount());
+  for (int r = 0; r < m; ++r) {
+    u(free_dofs_[static_cast<std::size_t>(r)]) = x(r);
+  }
+  return u;
+}
+
+std::size_t CondensedCompliance::memoryBytes() const {
+  return impl_->factor_bytes +
+         static_cast<std::size_t>(cached_) * static_cast<std::size_t>(dofCount()) * sizeof(double);
+}
+
+void CondensedCompliance::clearCache() {
+  for (Eigen::VectorXd& c : columns_) {
+    c.resize(0);
+  }
+  cached_ = 0;
+}
+
+}  // namespace needle_guidance::fem

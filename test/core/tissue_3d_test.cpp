@@ -1,0 +1,234 @@
+// tissue_3d: scene loading and refusals, CGAL tetrahedral meshing and the near-zero-volume
+// repair, needle insertion (puncture at the cutting force, track points, friction, seed
+// release, retraction), step convergence, and the 3-D offset planner's placements and
+// physical refusals (target in bone, needle line grazing a region, very stiff gland).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <string>
+
+#include "needle_guidance/scene/scene.h"
+#include "needle_guidance/tissue_3d/offset_planner_3d.h"
+
+namespace needle_guidance::tissue_3d {
+namespace {
+
+constexpr double kForceTol_N = 1e-6;      // located events: tip force at f_b
+constexpr double kStepHalving_m = 5e-6;   // target: halving the step moves a seed <= 0.005 mm
+constexpr double kPlacementTol_m = 1e-4;  // target: seeds within 0.1 mm
+constexpr double kRelaxed_m = 1e-9;       // after full retraction the tissue is back at rest
+
+std::string sceneText(double gland_kpa, const std::string& extra_targets = "") {
+  return R"(
+scene: {name: test_block, kind: tissue_3d}
+block:
+  min_mm: [0, -25, -25]
+  max_mm: [60, 25, 25]
+  material: {young_modulus_kPa: 20, poisson_ratio: 0.45}
+  fixed_faces: x_max
+regions:
+  - name: gland
+    ellipsoid: {center_mm: [35, 0, 0], semi_axes_mm: [14, 12, 12]}
+    material: {young_modulus_kPa: )" +
+         std::to_string(gland_kpa) + R"(, poisson_ratio: 0.45}
+  - name: bone
+    ellipsoid: {center_mm: [30, 19, 0], semi_axes_mm: [6, 4, 15]}
+    fixed: true
+needle:
+  cutting_force_N: 0.5
+  static_friction_N_per_cm: 0.3
+  kinetic_friction_N_per_cm: 0.2
+  insertion_velocity_mm_s: 5
+  step_s: 0.1
+workspace:
+  stage: {y_min_mm: -20, y_max_mm: 20, z_min_mm: -20, z_max_mm: 20}
+  max_tip_x_mm: 56
+mesh: {size_mm: 12, fine_size_mm: 4, fine_radius_mm: 4}
+targets:
+  - {name: center, position_mm: [36, 1, 2]}
+)" + extra_targets;
+}
+
+TissueScene3d testScene(double gland_kpa = 60, const std::string& extra = "") {
+  return parseTissueScene3d(sceneText(gland_kpa, extra), "test.yaml", ".");
+}
+
+struct Fixture {
+  TissueScene3d scene;
+  TissueModel3 model;
+  explicit Fixture(TissueScene3d s)
+      : scene(std::move(s)), model(meshTissue3d(scene, {}), scene.materialTable()) {}
+};
+
+TEST(Tissue3dScene, ShippedScenesLoadAndMesh) {
+  for (const char* name : {"prostate_block_3d", "prostate_template_3d", "heldout_3d"}) {
+    const TissueScene3d s = loadTissueScene3d(std::string(NG_SOURCE_DIR) +
+                                              "/config/scenes/tissue_3d/" + name + ".yaml");
+    EXPECT_EQ(s.name, name);
+    EXPECT_FALSE(s.targets.empty()) << name;
+    EXPECT_FALSE(s.regions.empty()) << name;
+  }
+}
+
+TEST(Tissue3dScene, BadScenesNameKeyAndReason) {
+  std::string text = sceneText(60);
+  auto refuses = [](const std::string& t, const std::string& what) {
+    try {
+      parseTissueScene3d(t, "bad.yaml", ".");
+      ADD_FAILURE() << "accepted: " << what;
+    } catch (const scene::SceneError& e) {
+      EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
+    }
+  };
+  std::string t = text;
+  t.replace(t.find("fixed_faces: x_max"), 18, "fixed_faces: x_top");
+  refuses(t, "x_top");
+  t = text;
+  t.replace(t.find("kinetic_friction_N_per_cm: 0.2"), 30, "kinetic_friction_N_per_cm: 0.5");
+  refuses(t, "kinetic friction exceeds static");
+  t = text;
+  t.replace(t.find("semi_axes_mm: [14, 12, 12]"), 26, "semi_axes_mm: [40, 12, 12]");
+  refuses(t, "leaves the block");
+  t = text;
+  t.replace(t.find("position_mm: [36, 1, 2]"), 23, "position_mm: [36, 1, 99]");
+  refuses(t, "outside the tissue block");
+}
+
+TEST(Tissue3dMesh, GradedMeshHeldAndOfGoodQuality) {
+  const TissueScene3d s = testScene();
+  TetMeshReport report;
+  const TetMesh3 m = meshTissue3d(s, {}, 1.0, &report);
+  EXPECT_GT(m.elementCount(), 500);
+  EXPECT_GT(m.fixedCount(), 4);
+  EXPECT_GE(report.min_quality, kMinTetQuality);
+  EXPECT_TRUE(report.note.empty()) << report.note;
+  // Grading: many more elements along the target's needle line than without the target.
+  TissueScene3d no_target = s;
+  no_target.targets.clear();
+  const TetMesh3 coarse = meshTissue3d(no_target, {}, 1.0);
+  auto nearLine = [](const TetMesh3& mesh) {
+    int n = 0;
+    for (int e = 0; e < mesh.elementCount(); ++e) {
+      const fem::Corners<3> c = fem::corners<3>(mesh, e);
+      const Vector3 centre = (c[0] + c[1] + c[2] + c[3]) / 4.0;
+      n += std::hypot(centre.y() - 1e-3, centre.z() - 2e-3) < 3e-3 ? 1 : 0;
+    }
+    return n;
+  };
+  EXPECT_GT(nearLine(m), 3 * nearLine(coarse));
+}
+
+TEST(Tissue3dMesh, NearZeroVolumeElementRepairedAndSaid) {
+  TetMesh3 m;
+  m.nodes = {Vector3(0, 0, 0), Vector3(1, 0, 0), Vector3(0, 1, 0), Vector3(0, 0, 1),
+             Vector3(1, 1, 1e-9)};
+  m.elements = {{0, 1, 2, 3}, {0, 1, 4, 2}};  // the second is flat (volume ~ 1e-10 of the first)
+  m.element_material = {0, 0};
+  m.node_fixed = {1, 1, 1, 0, 0};
+  TetMeshReport report;
+  repairTetMesh(m, kMinTetQuality, report);
+  EXPECT_EQ(report.dropped_elements, 1);
+  EXPECT_EQ(m.elementCount(), 1);
+  EXPECT_EQ(m.nodeCount(), 4);
+  EXPECT_NE(report.note.find("near-zero volume"), std::string::npos) << report.note;
+  // An inverted element is refused, naming it.
+  TetMesh3 inv = m;
+  std::swap(inv.elements[0][1], inv.elements[0][2]);
+  TetMeshReport r2;
+  try {
+    repairTetMesh(inv, kMinTetQuality, r2);
+    FAIL() << "inverted element accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("element 0"), std::string::npos) << e.what();
+  }
+}
+
+TEST(Tissue3dInsertion, PunctureCutFrictionSeedAndRetraction) {
+  Fixture f(testScene());
+  NeedleInsertion3 needle(f.model, f.scene.needle, 0.0);
+  const Eigen::Vector2d lateral(1e-3, 2e-3);
+  double peak_before_puncture = 0.0;
+  for (double s = 0.0; s <= 0.036 + 1e-12; s += 5e-4) {
+    ASSERT_TRUE(needle.moveTo(lateral, s));
+    if (!needle.punctured()) {
+      peak_before_puncture = std::max(peak_before_puncture, needle.lastMove().tip_force_N);
+    } else {
+      // Cutting holds the tip force at f_b; a new shaft point can relieve it for a moment.
+      EXPECT_LE(needle.lastMove().tip_force_N, f.scene.needle.cutting_force_N + kForceTol_N);
+      EXPECT_GT(needle.lastMove().tip_force_N, 0.0);
+    }
+  }
+  EXPECT_LT(peak_before_puncture, f.scene.needle.cutting_force_N + kForceTol_N);
+  ASSERT_TRUE(needle.punctured());
+  // Tissue ahead of the tip is compressed: its tissue point lags the needle tip.
+  EXPECT_LT(needle.tipReference().x(), 0.036);
+  EXPECT_GT(needle.lastMove().shaft_points, 10);
+  EXPECT_GT(needle.lastMove().friction_force_N, 0.0);
+  const std::optional<int> seed = needle.implantSeed();
+  ASSERT_TRUE(seed.has_value());
+  EXPECT_LT((needle.seedWorld(*seed) - Vector3(0.036, 1e-3, 2e-3)).norm(), 1e-6);
+  // Retraction: friction drags the tissue back, then everything is released.
+  ASSERT_TRUE(needle.moveTo(lateral, 0.030));
+  EXPECT_LT(needle.lastMove().friction_force_N, 0.0);
+  ASSERT_TRUE(needle.moveTo(lateral, -1e-3));
+  EXPECT_FALSE(needle.inTissue());
+  EXPECT_LT((needle.seedWorld(*seed) - needle.seedReference(*seed)).norm(), kRelaxed_m);
+  std::string why;
+  EXPECT_FALSE(needle.moveTo(lateral, std::nan(""), &why));
+  EXPECT_FALSE(why.empty());
+}
+
+TEST(Tissue3dInsertion, HalvingTheStepMovesNoSeed) {
+  Fixture f(testScene());
+  OffsetPlanner3 planner(f.scene, f.model);
+  const Eigen::Vector2d lateral(1e-3, 2e-3);
+  const Vector3 a = planner.simulateImplant(lateral, 0.04, 1.0);
+  const Vector3 b = planner.simulateImplant(lateral, 0.04, 0.5);
+  const Vector3 c = planner.simulateImplant(lateral, 0.04, 0.25);
+  EXPECT_LT((a - b).norm(), kStepHalving_m);
+  EXPECT_LT((b - c).norm(), kStepHalving_m);
+  EXPECT_TRUE(a.allFinite());
+}
+
+TEST(Tissue3dPlanner, PlacesReachableTargetAndRefusesBone) {
+  Fixture f(testScene(60, R"(  - {name: in_bone, position_mm: [30, 19, 0]}
+  - {name: behind_bone, position_mm: [45, 19, 0]}
+  - {name: grazing_gland, position_mm: [35, 0, 11.9]}
+)"));
+  OffsetPlanner3 planner(f.scene, f.model);
+  const PlanResult3 ok = planner.plan(f.scene.targets[0]);
+  EXPECT_TRUE(ok.placed) << ok.refusal;
+  EXPECT_LE(ok.verified_error_m, kPlacementTol_m);
+  EXPECT_GT(ok.unplanned_error_m, ok.verified_error_m);
+  const PlanResult3 bone = planner.plan(f.scene.targets[1]);
+  EXPECT_FALSE(bone.placed);
+  EXPECT_NE(bone.refusal.find("inside fixed region 'bone'"), std::string::npos) << bone.refusal;
+  EXPECT_LT(bone.verified_error_m, 0.0);  // undefined: never simulated
+  const PlanResult3 behind = planner.plan(f.scene.targets[2]);
+  EXPECT_FALSE(behind.placed);
+  EXPECT_NE(behind.refusal.find("crosses fixed region 'bone'"), std::string::npos)
+      << behind.refusal;
+  // The needle line runs along the gland's surface: placed, or refused with a figure.
+  const PlanResult3 graze = planner.plan(f.scene.targets[3]);
+  EXPECT_TRUE(graze.placed || !graze.refusal.empty());
+  if (graze.placed) {
+    EXPECT_LE(graze.verified_error_m, kPlacementTol_m);
+  }
+}
+
+TEST(Tissue3dPlanner, VeryStiffGland) {
+  Fixture f(testScene(10000));  // 10 MPa: the gland barely deforms, the tissue around it does
+  OffsetPlanner3 planner(f.scene, f.model);
+  const PlanResult3 r = planner.plan(f.scene.targets[0]);
+  EXPECT_TRUE(r.placed) << r.refusal;
+  EXPECT_LE(r.verified_error_m, kPlacementTol_m);
+  EXPECT_TRUE(r.verified_seed_m.allFinite());
+}
+
+}  // namespace
+}  // namespace needle_guidance::tissue_3d
+
+int main(int argc, char** argv) {
+  ::testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}
