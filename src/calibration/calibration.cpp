@@ -1,5 +1,7 @@
 #include "needle_guidance/calibration/calibration.h"
 
+#include "needle_guidance/package_paths.h"
+
 #include <yaml-cpp/yaml.h>
 
 #include <algorithm>
@@ -258,7 +260,7 @@ std::vector<ForceTrial> liverHeldOutTrials(std::string* source) {
   namespace fs = std::filesystem;
   const char* shared = std::getenv("NG_SHARED_DATA");
   std::error_code error;
-  fs::path dir = fs::path(NG_CONFIG_DIR) / "interaction" / "de_jong_2017_heldout";
+  fs::path dir = configDir() / "interaction" / "de_jong_2017_heldout";
   if (shared != nullptr && fs::is_directory(fs::path(shared) / "needle_force_liver", error)) {
     dir = fs::path(shared) / "needle_force_liver";
   }

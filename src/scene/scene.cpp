@@ -1,6 +1,7 @@
 // Scene loading and validation. The file format is documented at the top
 // of config/scenes/prostate_sagittal.yaml and in docs/scenes.md.
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/package_paths.h"
 
 #include <algorithm>
 #include <cerrno>
@@ -521,7 +522,7 @@ private:
     if (!name) {
       return Needle{};
     }
-    const fs::path dir = fs::path(NG_CONFIG_DIR) / "interaction";
+    const fs::path dir = configDir() / "interaction";
     const fs::path file = interactionPresetPath(*name);
     std::error_code error;
     if (name->empty() || name->find_first_of("/\\.") != std::string::npos ||
@@ -984,7 +985,7 @@ Scene loadSceneSpec(const std::string& spec) {
 }
 
 std::string interactionPresetPath(const std::string& name) {
-  return (fs::path(NG_CONFIG_DIR) / "interaction" / (name + ".yaml")).string();
+  return (configDir() / "interaction" / (name + ".yaml")).string();
 }
 
 std::string interactionPresetFile(const std::string& name_or_path) {

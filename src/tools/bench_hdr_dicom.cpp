@@ -24,8 +24,8 @@
 #include "needle_guidance/dose/dicom_case.h"
 #include "needle_guidance/dose/dvh_comparison.h"
 #include "needle_guidance/dose/dwell_optimization.h"
-#include "needle_guidance/package_paths.h"
 #include "needle_guidance/dose/plan_robustness.h"
+#include "needle_guidance/package_paths.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
 

@@ -15,6 +15,7 @@
 #include <string>
 #include <vector>
 
+#include "needle_guidance/package_paths.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/tissue_3d/offset_planner_3d.h"
@@ -37,8 +38,8 @@ double cpuNow() {
 
 std::vector<std::string> defaultScenes() {
   std::vector<std::string> files;
-  for (const auto& e : std::filesystem::directory_iterator(std::string(NG_SOURCE_DIR) +
-                                                           "/config/scenes/tissue_3d")) {
+  for (const auto& e :
+       std::filesystem::directory_iterator(needle_guidance::configDir() / "scenes" / "tissue_3d")) {
     if (e.path().extension() == ".yaml") {
       files.push_back(e.path().string());
     }

@@ -16,6 +16,7 @@
 
 #include "needle_guidance/calibration/calibration.h"
 #include "needle_guidance/format.h"
+#include "needle_guidance/package_paths.h"
 #include "needle_guidance/report/table.h"
 
 namespace ng = needle_guidance;
@@ -138,7 +139,7 @@ void writeScores(const std::string& out, const std::vector<cal::TrialScore>& sco
 
 /// Draws the plots with the repository's plotter when it is there.
 void drawPlots(const std::string& out) {
-  const fs::path script = fs::path(NG_SOURCE_DIR) / "scripts" / "plot_bench.py";
+  const fs::path script = needle_guidance::packageDir() / "scripts" / "plot_bench.py";
   if (fs::exists(script) && fs::exists("/usr/bin/python3")) {
     const std::string command = "/usr/bin/python3 '" + script.string() + "' '" + out + "'";
     if (std::system(command.c_str()) != 0) {
