@@ -141,7 +141,7 @@ std::string dicompylerCheck(const dose::DicomCase& dc, const std::string& dir,
       dose::structureDosesFromGrid(dc.clinical, grid, kEvalSpacing_m), dc.clinical.prescription_Gy);
   writeIndexCsv(ours, dc.clinical.prescription_Gy, out_dir + "/indices_rtdose_ours.csv");
   const std::string json_path = out_dir + "/dicompyler.json";
-  const int rc = std::system(("/usr/bin/python3 " + std::string(NG_SOURCE_DIR) +
+  const int rc = std::system(("/usr/bin/python3 " + needle_guidance::packageDir().string() +
                               "/scripts/check_dvh_dicompyler.py '" + dir + "' '" + out_dir +
                               "/indices_rtdose_ours.csv' '" + out_dir +
                               "/indices_vs_dicompyler.csv' > '" + json_path + "' 2> /dev/null")
