@@ -337,6 +337,19 @@ StepStatus NeedleInsertion::solveLocated(double dt_s, double from_x_m, bool inse
     }
     const double fraction_left = length > 0.0 ? std::abs(to_x - a.x_m) / length : 1.0;
     const double dt_left = std::max(dt_s * fraction_left, 1e-12);
+    if (firstEvent(a, a, inserting && !cut_blocked) == 0.0) {
+      // An event at a itself (a stuck node over its limit, a cut due): applied there without
+      // solving the step's end first.
+      tip_x_m_ = a.x_m;
+      applyEvents(a, a, 0.0, inserting && !cut_blocked, cut_blocked, cuts);
+      ++info_.events;
+      applyKineticForces();
+      if (!(status = solveAt(a.x_m, dt_left, a))) {
+        return status;
+      }
+      after_event = true;
+      continue;
+    }
     Solved b;
     integrator_.setState(a.u, Eigen::VectorXd::Zero(a.u.size()), Eigen::VectorXd::Zero(a.u.size()));
     if (!(status = solveAt(to_x, dt_left, b))) {
