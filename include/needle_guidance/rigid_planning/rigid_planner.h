@@ -81,7 +81,7 @@ struct PlannerOptions {
   /// ("budget exhausted"). A count, so what is refused does not depend on the machine's load;
   /// weighted by what each operation costs, so it bounds the time on any mesh. A safety net
   /// above what any plan of the bench's scenes needs with event-located interaction (up to
-  /// ~1500 units on the 10x non-convex gland; a unit took 1.0-1.75 ms of CPU here), so it is not
+  /// ~3300 units on the 10x non-convex gland; a unit took 1.0-1.75 ms of CPU here), so it is not
   /// what refuses a reachable target there.
   double work_budget = 6000.0;
   /// Wall-time budget per plan [s] (0: none), on top of work_budget: a plan that must answer
