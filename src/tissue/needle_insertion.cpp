@@ -5,6 +5,7 @@
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
+#include <unordered_map>
 
 #include "needle_guidance/format.h"
 #include "needle_guidance/tissue/interaction_events.h"
@@ -336,18 +337,41 @@ StepStatus NeedleInsertion::solveLocated(double dt_s, double from_x_m, bool inse
     }
     const double fraction_left = length > 0.0 ? std::abs(to_x - a.x_m) / length : 1.0;
     const double dt_left = std::max(dt_s * fraction_left, 1e-12);
+    if (firstEvent(a, a, inserting && !cut_blocked) == 0.0) {
+      // An event at a itself (a stuck node over its limit, a cut due): applied there without
+      // solving the step's end first.
+      tip_x_m_ = a.x_m;
+      applyEvents(a, a, 0.0, inserting && !cut_blocked, cut_blocked, cuts);
+      ++info_.events;
+      applyKineticForces();
+      if (!(status = solveAt(a.x_m, dt_left, a))) {
+        return status;
+      }
+      after_event = true;
+      continue;
+    }
     Solved b;
     integrator_.setState(a.u, Eigen::VectorXd::Zero(a.u.size()), Eigen::VectorXd::Zero(a.u.size()));
     if (!(status = solveAt(to_x, dt_left, b))) {
       return status;
     }
+    const Eigen::VectorXd f_before = f_ext_;
     if (after_event && stickSlipping(a, b, dt_left)) {
-      integrator_.setState(a.u, Eigen::VectorXd::Zero(a.u.size()),
-                           Eigen::VectorXd::Zero(a.u.size()));
-      if (!(status = solveAt(a.x_m, dt_left, a))) {
-        return status;
+      // The state at a stands: a node that sticks there is held where it is, by the kinetic
+      // friction it felt (no solve needed); the step's end is solved again.
+      std::unordered_map<int, double> held;
+      for (std::size_t i = 0; i < a.prescribed.dofs.size(); ++i) {
+        held[a.prescribed.dofs[i]] = a.reactions[static_cast<Eigen::Index>(i)];
       }
-      continue;  // the stuck set grew: solve the step's end again
+      tip_x_m_ = a.x_m;
+      a.prescribed = buildPrescribed();
+      a.reactions.resize(static_cast<Eigen::Index>(a.prescribed.dofs.size()));
+      for (std::size_t i = 0; i < a.prescribed.dofs.size(); ++i) {
+        const int dof = a.prescribed.dofs[i];
+        const auto it = held.find(dof);
+        a.reactions[static_cast<Eigen::Index>(i)] = it != held.end() ? it->second : f_before[dof];
+      }
+      continue;
     }
     after_event = false;
     const double s = b.x_m == a.x_m ? events::kNever : firstEvent(a, b, inserting && !cut_blocked);
