@@ -145,7 +145,7 @@ TEST(Tissue3dMesh, NearZeroVolumeElementRepairedAndSaid) {
 
 TEST(Tissue3dInsertion, PunctureCutFrictionSeedAndRetraction) {
   Fixture f(testScene());
-  NeedleInsertion3 needle(f.model, f.scene.needle, 0.0);
+  NeedleInsertion3 needle(f.model, f.scene.needle, 0.0, 0.04);
   const Eigen::Vector2d lateral(1e-3, 2e-3);
   double peak_before_puncture = 0.0;
   for (double s = 0.0; s <= 0.036 + 1e-12; s += 5e-4) {
@@ -204,6 +204,7 @@ TEST(Tissue3dPlanner, PlacesReachableTargetAndRefusesBone) {
   EXPECT_FALSE(bone.placed);
   EXPECT_NE(bone.refusal.find("inside fixed region 'bone'"), std::string::npos) << bone.refusal;
   EXPECT_LT(bone.verified_error_m, 0.0);  // undefined: never simulated
+  EXPECT_TRUE(bone.unreachable);
   const PlanResult3 behind = planner.plan(f.scene.targets[2]);
   EXPECT_FALSE(behind.placed);
   EXPECT_NE(behind.refusal.find("crosses fixed region 'bone'"), std::string::npos)

@@ -77,8 +77,11 @@ struct InsertionInfo3 {
 class NeedleInsertion3 {
 public:
   /// The needle moves along +x at lateral position (y, z); the tissue's entry face is x =
-  /// entry_x_m. Throws std::invalid_argument for invalid parameters.
-  NeedleInsertion3(TissueModel3& model, const Needle3& needle, double entry_x_m);
+  /// entry_x_m; the tip goes no deeper than max_tip_x_m (the compliance columns along the
+  /// needle line are solved up to there in one batch when the needle enters). Throws
+  /// std::invalid_argument for invalid parameters.
+  NeedleInsertion3(TissueModel3& model, const Needle3& needle, double entry_x_m,
+                   double max_tip_x_m);
 
   /// Moves the tip to x = tip_x_m (forwards or back) at lateral position `lateral` (y, z),
   /// locating every event on the way. The lateral position may change only outside tissue.
@@ -125,6 +128,7 @@ private:
   Solution solveAt(double s, const EmbeddedPoint* tip) const;
   Eigen::Matrix3d block(const EmbeddedPoint& p, const EmbeddedPoint& q) const;
   void requireColumns(const EmbeddedPoint& p) const;
+  void prefetchLine(const Eigen::Vector2d& lateral) const;
   /// Length cut beyond the current tip point for the tip at x = s (tip force then f_b).
   double cutLength(double s) const;
   EmbeddedPoint along(double cut_m) const;
@@ -139,6 +143,7 @@ private:
   TissueModel3& model_;
   Needle3 needle_;
   double entry_x_m_;
+  double max_tip_x_m_;
   Eigen::Vector2d lateral_ = Eigen::Vector2d::Zero();
   double s_ = 0.0;
   int direction_ = 1;
