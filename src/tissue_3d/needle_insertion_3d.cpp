@@ -240,8 +240,11 @@ void NeedleInsertion3::addTrackPoint(const EmbeddedPoint& p) {
   ShaftPoint sp;
   sp.point = p;
   sp.share_m = needle_.track_spacing_m;
-  sp.stuck = false;  // the needle slides past the tissue it has just cut
-  sp.world_x_m = s_;
+  // The needle slides past the tissue it has just cut at the insertion speed: the point
+  // slips unless that speed is below the stick velocity.
+  sp.world_x_m = worldOf(p.reference_m).x();
+  sp.stuck = needle_.insertion_velocity_m_s < needle_.stick_velocity_m_s;
+  sp.offset_m = sp.world_x_m - s_;
   shaft_.push_back(sp);
 }
 
@@ -282,6 +285,40 @@ Vector3 NeedleInsertion3::nodeDisplacement(int node) const {
   return u;
 }
 
+double NeedleInsertion3::stuckExcess(double s) const {
+  double worst = -1e300;
+  bool any = false;
+  for (const ShaftPoint& p : shaft_) {
+    any = any || p.stuck;
+  }
+  if (!any) {
+    return worst;
+  }
+  const double to_event = next_event_cut_m_ - cut_total_m_;
+  const EmbeddedPoint tip = along(std::min(cutLength(s), to_event));
+  const Solution sol = solveAt(s, &tip);
+  for (std::size_t k = 0; k < shaft_.size(); ++k) {
+    if (shaft_[k].stuck) {
+      worst = std::max(worst, std::abs(sol.forces(3 * static_cast<int>(k))) -
+                                  needle_.static_friction_N_per_m * shaft_[k].share_m);
+    }
+  }
+  return worst;
+}
+
+double NeedleInsertion3::firstSlip(double target) const {
+  constexpr int kBisections = 48;
+  if (!(stuckExcess(target) > 0.0)) {
+    return target;
+  }
+  double lo = s_, hi = target;
+  for (int i = 0; i < kBisections && hi - lo > kEventTol_m; ++i) {
+    const double mid = 0.5 * (lo + hi);
+    (stuckExcess(mid) > 0.0 ? hi : lo) = mid;
+  }
+  return hi;
+}
+
 bool NeedleInsertion3::insertSegment(double target) {
   const double fb = needle_.cutting_force_N;
   if (!punctured_) {
@@ -300,6 +337,41 @@ bool NeedleInsertion3::insertSegment(double target) {
     ++info_.events;
     return false;
   }
+  // A stuck shaft point slips where holding it first needs more than the static friction:
+  // located by bisection on the tip position, the cut solved at each.
+  const double end = firstSlip(target);
+  if (end < target) {
+    if (!cutTo(std::max(end, s_))) {
+      return false;  // a track point came first
+    }
+    // The point(s) at their static limit slip (at least the one nearest to it: progress).
+    std::size_t nearest = shaft_.size();
+    double nearest_ratio = -1.0;
+    bool flipped = false;
+    for (std::size_t k = 0; k < shaft_.size(); ++k) {
+      ShaftPoint& p = shaft_[k];
+      const double ratio = std::abs(committed_.forces(3 * static_cast<int>(k))) /
+                           (needle_.static_friction_N_per_m * p.share_m);
+      if (p.stuck && ratio >= 1.0 - 1e-9) {
+        p.stuck = false;
+        flipped = true;
+      } else if (p.stuck && ratio > nearest_ratio) {
+        nearest = k;
+        nearest_ratio = ratio;
+      }
+    }
+    if (!flipped && nearest < shaft_.size()) {
+      shaft_[nearest].stuck = false;
+    }
+    commit(s_, nullptr);
+    ++info_.events;
+    return false;
+  }
+  return cutTo(target);
+}
+
+bool NeedleInsertion3::cutTo(double target) {
+  const double fb = needle_.cutting_force_N;
   const double cut = cutLength(target);
   const double to_event = next_event_cut_m_ - cut_total_m_;
   if (cut < to_event - kCutTol_m) {

@@ -178,6 +178,24 @@ TEST(Tissue3dInsertion, PunctureCutFrictionSeedAndRetraction) {
   EXPECT_FALSE(why.empty());
 }
 
+TEST(Tissue3dInsertion, SlowNeedleShaftSticks) {
+  TissueScene3d scene = testScene();
+  scene.needle.stick_velocity_m_s = 2.0 * scene.needle.insertion_velocity_m_s;
+  Fixture f(scene);
+  NeedleInsertion3 needle(f.model, f.scene.needle, 0.0, 0.04);
+  for (double s = 0.0; s <= 0.03 + 1e-12; s += 1e-3) {
+    ASSERT_TRUE(needle.moveTo(Eigen::Vector2d(1e-3, 2e-3), s));
+  }
+  const InsertionInfo3& info = needle.lastMove();
+  ASSERT_GT(info.shaft_points, 10);
+  // Stuck points hold the tissue (no more than the static friction each); some stay stuck.
+  EXPECT_LT(info.slipping, info.shaft_points);
+  EXPECT_LE(
+      std::abs(info.friction_force_N),
+      f.scene.needle.static_friction_N_per_m * f.scene.needle.track_spacing_m * info.shaft_points +
+          kForceTol_N);
+}
+
 TEST(Tissue3dInsertion, HalvingTheStepMovesNoSeed) {
   Fixture f(testScene());
   OffsetPlanner3 planner(f.scene, f.model);

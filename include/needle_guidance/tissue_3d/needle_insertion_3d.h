@@ -134,6 +134,13 @@ private:
   EmbeddedPoint along(double cut_m) const;
   /// One segment of a move towards target without events inside; true when target is reached.
   bool insertSegment(double target);
+  /// Cutting towards target, up to the next track point (true when target is reached).
+  bool cutTo(double target);
+  /// Largest excess of a stuck point's force over its static friction at tip x = s, with
+  /// the cut solved there (-inf when no point is stuck) [N].
+  double stuckExcess(double s) const;
+  /// Tip x where a stuck point first slips on the way to target (target if none does).
+  double firstSlip(double target) const;
   bool retractSegment(double target);
   void commit(double s, const EmbeddedPoint* tip);
   void addTrackPoint(const EmbeddedPoint& p);
