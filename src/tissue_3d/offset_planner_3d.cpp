@@ -103,8 +103,9 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
   const Vector3& goal = target.position_m;
   r.refusal = physicalRefusal(target);
   const Workspace3& w = scene_.workspace;
+  double excluded_cpu = 0.0;
   auto finish = [&]() {
-    r.plan_cpu_s = cpuNow() - cpu_start;
+    r.plan_cpu_s = cpuNow() - cpu_start - excluded_cpu;
     return r;
   };
   if (!r.refusal.empty()) {
@@ -113,9 +114,11 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
   }
   try {
     if (options_.unplanned) {
+      // For the report only: not part of planning, so not in plan_cpu_s.
+      const double unplanned_start = cpuNow();
       const Vector3 seed = simulateImplant(goal.tail<2>(), goal.x());
       r.unplanned_error_m = (seed - goal).norm();
-      ++r.simulations;
+      excluded_cpu += cpuNow() - unplanned_start;
     }
     // Lateral and depth by fixed-point iteration on the simulated tip trajectory: the seed's
     // tissue point is the tip's at release.

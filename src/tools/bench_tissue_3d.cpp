@@ -190,7 +190,7 @@ int main(int argc, char** argv) {
   "png": "steps_per_s_vs_tets.png"},
  {"csv": "scaling.csv", "x": "tets", "y": "peak_mb", "title": "Peak memory vs tetrahedra",
   "logx": true, "logy": true, "png": "peak_mb_vs_tets.png"},
- {"csv": "plans.csv", "x": "plan_cpu_s", "y": "verified_mm", "group": "scene",
+ {"csv": "plans.csv", "x": "plan_cpu_s", "y": "verified_mm", "group": "scene", "filter": {"placed": "yes"},
   "title": "Planned seed error (independent simulation) vs planning CPU time",
   "points": true, "logy": true, "png": "plan_error_vs_cpu.png"}])json");
     std::cout << plans.toText();

@@ -27,8 +27,8 @@ struct PlanResult3 {
   double verified_error_m = -1.0;  ///< |seed - target| by the independent simulation; < 0 undefined
   Vector3 verified_seed_m = Vector3::Zero();
   double unplanned_error_m = -1.0;  ///< aiming straight at the target; < 0 undefined
-  double plan_cpu_s = 0.0;
-  int simulations = 0;
+  double plan_cpu_s = 0.0;  ///< planning and verification; the unplanned run is not included
+  int simulations = 0;      ///< insertions the plan and its verification used
 };
 
 struct PlannerOptions3 {
