@@ -82,25 +82,32 @@ void CondensedCompliance::require(const std::vector<int>& dofs) {
   if (todo.empty()) {
     return;
   }
+  // Batches of columns: the supernodal solve runs on blocks of right-hand sides (BLAS 3),
+  // bounded so the dense right-hand side stays small.
+  constexpr std::size_t kBatch = 96;
   const int m = static_cast<int>(free_dofs_.size());
-  Eigen::MatrixXd rhs = Eigen::MatrixXd::Zero(m, static_cast<int>(todo.size()));
-  for (std::size_t c = 0; c < todo.size(); ++c) {
-    const int fr = free_index_[static_cast<std::size_t>(todo[c])];
-    if (fr >= 0) {
-      rhs(fr, static_cast<int>(c)) = 1.0;
-    }
-  }
-  const Eigen::MatrixXd x = impl_->llt.solve(rhs);
-  for (std::size_t c = 0; c < todo.size(); ++c) {
-    Eigen::VectorXd col = Eigen::VectorXd::Zero(dofCount());
-    if (free_index_[static_cast<std::size_t>(todo[c])] >= 0) {
-      for (int r = 0; r < m; ++r) {
-        col(free_dofs_[static_cast<std::size_t>(r)]) = x(r, static_cast<int>(c));
+  for (std::size_t first = 0; first < todo.size(); first += kBatch) {
+    const std::size_t count = std::min(kBatch, todo.size() - first);
+    Eigen::MatrixXd rhs = Eigen::MatrixXd::Zero(m, static_cast<int>(count));
+    for (std::size_t c = 0; c < count; ++c) {
+      const int fr = free_index_[static_cast<std::size_t>(todo[first + c])];
+      if (fr >= 0) {
+        rhs(fr, static_cast<int>(c)) = 1.0;
       }
-      ++solved_;
     }
-    columns_[static_cast<std::size_t>(todo[c])] = std::move(col);
-    ++cached_;
+    const Eigen::MatrixXd x = impl_->llt.solve(rhs);
+    for (std::size_t c = 0; c < count; ++c) {
+      const int dof = todo[first + c];
+      Eigen::VectorXd col = Eigen::VectorXd::Zero(dofCount());
+      if (free_index_[static_cast<std::size_t>(dof)] >= 0) {
+        for (int r = 0; r < m; ++r) {
+          col(free_dofs_[static_cast<std::size_t>(r)]) = x(r, static_cast<int>(c));
+        }
+        ++solved_;
+      }
+      columns_[static_cast<std::size_t>(dof)] = std::move(col);
+      ++cached_;
+    }
   }
 }
 

@@ -25,8 +25,9 @@ double crossing(double sa, double fa, double sb, double fb, double level) {
 
 }  // namespace
 
-NeedleInsertion3::NeedleInsertion3(TissueModel3& model, const Needle3& needle, double entry_x_m)
-    : model_(model), needle_(needle), entry_x_m_(entry_x_m) {
+NeedleInsertion3::NeedleInsertion3(TissueModel3& model, const Needle3& needle, double entry_x_m,
+                                   double max_tip_x_m)
+    : model_(model), needle_(needle), entry_x_m_(entry_x_m), max_tip_x_m_(max_tip_x_m) {
   if (!(needle.cutting_force_N > 0.0) || !(needle.track_spacing_m > 0.0) ||
       !(needle.kinetic_friction_N_per_m >= 0.0) ||
       !(needle.static_friction_N_per_m >= needle.kinetic_friction_N_per_m) ||
@@ -36,6 +37,30 @@ NeedleInsertion3::NeedleInsertion3(TissueModel3& model, const Needle3& needle, d
         "static friction and a finite entry face");
   }
   s_ = entry_x_m - 1e-3;
+}
+
+void NeedleInsertion3::prefetchLine(const Eigen::Vector2d& lateral) const {
+  // The cut track is the reference line at this lateral position: the columns of every node
+  // of the elements it crosses are solved in one batch instead of a few per step.
+  constexpr double kSample_m = 2e-4;
+  std::vector<int> dofs;
+  std::vector<char> seen(model_.mesh().elements.size(), 0);
+  const double end = max_tip_x_m_ + 2.0 * needle_.track_spacing_m;
+  for (double x = entry_x_m_ + kEntryInset_m; x <= end; x += kSample_m) {
+    const std::optional<EmbeddedPoint> p = model_.locate(Vector3(x, lateral.x(), lateral.y()));
+    if (!p) {
+      break;
+    }
+    if (!seen[static_cast<std::size_t>(p->element)]) {
+      seen[static_cast<std::size_t>(p->element)] = 1;
+      for (int n : model_.mesh().elements[static_cast<std::size_t>(p->element)]) {
+        for (int d = 0; d < 3; ++d) {
+          dofs.push_back(3 * n + d);
+        }
+      }
+    }
+  }
+  model_.compliance().require(dofs);
 }
 
 void NeedleInsertion3::requireColumns(const EmbeddedPoint& p) const {
@@ -215,8 +240,11 @@ void NeedleInsertion3::addTrackPoint(const EmbeddedPoint& p) {
   ShaftPoint sp;
   sp.point = p;
   sp.share_m = needle_.track_spacing_m;
-  sp.stuck = false;  // the needle slides past the tissue it has just cut
-  sp.world_x_m = s_;
+  // The needle slides past the tissue it has just cut at the insertion speed: the point
+  // slips unless that speed is below the stick velocity.
+  sp.world_x_m = worldOf(p.reference_m).x();
+  sp.stuck = needle_.insertion_velocity_m_s < needle_.stick_velocity_m_s;
+  sp.offset_m = sp.world_x_m - s_;
   shaft_.push_back(sp);
 }
 
@@ -257,6 +285,40 @@ Vector3 NeedleInsertion3::nodeDisplacement(int node) const {
   return u;
 }
 
+double NeedleInsertion3::stuckExcess(double s) const {
+  double worst = -1e300;
+  bool any = false;
+  for (const ShaftPoint& p : shaft_) {
+    any = any || p.stuck;
+  }
+  if (!any) {
+    return worst;
+  }
+  const double to_event = next_event_cut_m_ - cut_total_m_;
+  const EmbeddedPoint tip = along(std::min(cutLength(s), to_event));
+  const Solution sol = solveAt(s, &tip);
+  for (std::size_t k = 0; k < shaft_.size(); ++k) {
+    if (shaft_[k].stuck) {
+      worst = std::max(worst, std::abs(sol.forces(3 * static_cast<int>(k))) -
+                                  needle_.static_friction_N_per_m * shaft_[k].share_m);
+    }
+  }
+  return worst;
+}
+
+double NeedleInsertion3::firstSlip(double target) const {
+  constexpr int kBisections = 48;
+  if (!(stuckExcess(target) > 0.0)) {
+    return target;
+  }
+  double lo = s_, hi = target;
+  for (int i = 0; i < kBisections && hi - lo > kEventTol_m; ++i) {
+    const double mid = 0.5 * (lo + hi);
+    (stuckExcess(mid) > 0.0 ? hi : lo) = mid;
+  }
+  return hi;
+}
+
 bool NeedleInsertion3::insertSegment(double target) {
   const double fb = needle_.cutting_force_N;
   if (!punctured_) {
@@ -275,6 +337,41 @@ bool NeedleInsertion3::insertSegment(double target) {
     ++info_.events;
     return false;
   }
+  // A stuck shaft point slips where holding it first needs more than the static friction:
+  // located by bisection on the tip position, the cut solved at each.
+  const double end = firstSlip(target);
+  if (end < target) {
+    if (!cutTo(std::max(end, s_))) {
+      return false;  // a track point came first
+    }
+    // The point(s) at their static limit slip (at least the one nearest to it: progress).
+    std::size_t nearest = shaft_.size();
+    double nearest_ratio = -1.0;
+    bool flipped = false;
+    for (std::size_t k = 0; k < shaft_.size(); ++k) {
+      ShaftPoint& p = shaft_[k];
+      const double ratio = std::abs(committed_.forces(3 * static_cast<int>(k))) /
+                           (needle_.static_friction_N_per_m * p.share_m);
+      if (p.stuck && ratio >= 1.0 - 1e-9) {
+        p.stuck = false;
+        flipped = true;
+      } else if (p.stuck && ratio > nearest_ratio) {
+        nearest = k;
+        nearest_ratio = ratio;
+      }
+    }
+    if (!flipped && nearest < shaft_.size()) {
+      shaft_[nearest].stuck = false;
+    }
+    commit(s_, nullptr);
+    ++info_.events;
+    return false;
+  }
+  return cutTo(target);
+}
+
+bool NeedleInsertion3::cutTo(double target) {
+  const double fb = needle_.cutting_force_N;
   const double cut = cutLength(target);
   const double to_event = next_event_cut_m_ - cut_total_m_;
   if (cut < to_event - kCutTol_m) {
@@ -382,6 +479,7 @@ bool NeedleInsertion3::moveTo(const Eigen::Vector2d& lateral, double tip_x, std:
       return refuse("the needle line (y " + std::to_string(lateral.x() * 1e3) + " mm, z " +
                     std::to_string(lateral.y() * 1e3) + " mm) misses the tissue mesh");
     }
+    prefetchLine(lateral);
     s_ = entry->reference_m.x();
     tip_ = *entry;
     in_tissue_ = tip_active_ = true;

@@ -51,7 +51,7 @@ std::string OffsetPlanner3::physicalRefusal(const Target3& t) const {
 
 OffsetPlanner3::Trajectory OffsetPlanner3::insertAlong(const Eigen::Vector2d& lateral,
                                                        double max_x) {
-  NeedleInsertion3 needle(model_, scene_.needle, scene_.block_min_m.x());
+  NeedleInsertion3 needle(model_, scene_.needle, scene_.block_min_m.x(), max_x);
   Trajectory t;
   const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s;
   std::string why;
@@ -73,7 +73,7 @@ OffsetPlanner3::Trajectory OffsetPlanner3::insertAlong(const Eigen::Vector2d& la
 
 Vector3 OffsetPlanner3::simulateImplant(const Eigen::Vector2d& lateral, double tip_x,
                                         double step_scale) {
-  NeedleInsertion3 needle(model_, scene_.needle, scene_.block_min_m.x());
+  NeedleInsertion3 needle(model_, scene_.needle, scene_.block_min_m.x(), tip_x);
   const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s * step_scale;
   std::string why;
   const double start = scene_.block_min_m.x() - step;
@@ -103,18 +103,22 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
   const Vector3& goal = target.position_m;
   r.refusal = physicalRefusal(target);
   const Workspace3& w = scene_.workspace;
+  double excluded_cpu = 0.0;
   auto finish = [&]() {
-    r.plan_cpu_s = cpuNow() - cpu_start;
+    r.plan_cpu_s = cpuNow() - cpu_start - excluded_cpu;
     return r;
   };
   if (!r.refusal.empty()) {
+    r.unreachable = true;
     return finish();
   }
   try {
     if (options_.unplanned) {
+      // For the report only: not part of planning, so not in plan_cpu_s.
+      const double unplanned_start = cpuNow();
       const Vector3 seed = simulateImplant(goal.tail<2>(), goal.x());
       r.unplanned_error_m = (seed - goal).norm();
-      ++r.simulations;
+      excluded_cpu += cpuNow() - unplanned_start;
     }
     // Lateral and depth by fixed-point iteration on the simulated tip trajectory: the seed's
     // tissue point is the tip's at release.
@@ -126,6 +130,7 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
         if (!w.use_template) {
           r.refusal = "out of reach: the stage would need (y " + mm(lateral.x()) + ", z " +
                       mm(lateral.y()) + ")";
+          r.unreachable = true;
           return finish();
         }
       }
@@ -141,6 +146,7 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
                     " the tip's tissue point is at x " +
                     mm(t.tip.empty() ? scene_.block_min_m.x() : t.tip.back().x()) +
                     ", short of the target's " + mm(goal.x());
+        r.unreachable = true;
         return finish();
       }
       Vector3 predicted = t.tip[k];
@@ -176,6 +182,7 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
       }
     }
     r.placed = r.verified_error_m <= options_.tolerance_m;
+    r.unreachable = !r.placed && w.use_template;  // the holes are where they are
     if (!r.placed) {
       r.refusal =
           w.use_template

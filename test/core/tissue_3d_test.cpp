@@ -145,7 +145,7 @@ TEST(Tissue3dMesh, NearZeroVolumeElementRepairedAndSaid) {
 
 TEST(Tissue3dInsertion, PunctureCutFrictionSeedAndRetraction) {
   Fixture f(testScene());
-  NeedleInsertion3 needle(f.model, f.scene.needle, 0.0);
+  NeedleInsertion3 needle(f.model, f.scene.needle, 0.0, 0.04);
   const Eigen::Vector2d lateral(1e-3, 2e-3);
   double peak_before_puncture = 0.0;
   for (double s = 0.0; s <= 0.036 + 1e-12; s += 5e-4) {
@@ -178,6 +178,29 @@ TEST(Tissue3dInsertion, PunctureCutFrictionSeedAndRetraction) {
   EXPECT_FALSE(why.empty());
 }
 
+TEST(Tissue3dInsertion, SlowNeedleShaftSticks) {
+  TissueScene3d scene = testScene();
+  scene.needle.stick_velocity_m_s = 2.0 * scene.needle.insertion_velocity_m_s;
+  scene.needle.static_friction_N_per_m = 300.0;  // a grippy shaft: 0.3 N per 1 mm point
+  Fixture f(scene);
+  NeedleInsertion3 needle(f.model, f.scene.needle, 0.0, 0.04);
+  bool saw_stuck = false;
+  int max_points = 0;
+  for (double s = 0.0; s <= 0.03 + 1e-12; s += 2e-4) {  // short moves: a drag below the limit
+    ASSERT_TRUE(needle.moveTo(Eigen::Vector2d(1e-3, 2e-3), s));
+    const InsertionInfo3& info = needle.lastMove();
+    saw_stuck = saw_stuck || info.slipping < info.shaft_points;
+    max_points = std::max(max_points, info.shaft_points);
+    // No shaft point is held with more than the static friction.
+    EXPECT_LE(std::abs(info.friction_force_N), f.scene.needle.static_friction_N_per_m *
+                                                       f.scene.needle.track_spacing_m *
+                                                       info.shaft_points +
+                                                   kForceTol_N);
+  }
+  EXPECT_GT(max_points, 10);
+  EXPECT_TRUE(saw_stuck);  // points cut by a slow needle stick before the drag makes them slip
+}
+
 TEST(Tissue3dInsertion, HalvingTheStepMovesNoSeed) {
   Fixture f(testScene());
   OffsetPlanner3 planner(f.scene, f.model);
@@ -204,6 +227,7 @@ TEST(Tissue3dPlanner, PlacesReachableTargetAndRefusesBone) {
   EXPECT_FALSE(bone.placed);
   EXPECT_NE(bone.refusal.find("inside fixed region 'bone'"), std::string::npos) << bone.refusal;
   EXPECT_LT(bone.verified_error_m, 0.0);  // undefined: never simulated
+  EXPECT_TRUE(bone.unreachable);
   const PlanResult3 behind = planner.plan(f.scene.targets[2]);
   EXPECT_FALSE(behind.placed);
   EXPECT_NE(behind.refusal.find("crosses fixed region 'bone'"), std::string::npos)

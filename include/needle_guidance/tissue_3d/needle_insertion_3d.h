@@ -77,8 +77,11 @@ struct InsertionInfo3 {
 class NeedleInsertion3 {
 public:
   /// The needle moves along +x at lateral position (y, z); the tissue's entry face is x =
-  /// entry_x_m. Throws std::invalid_argument for invalid parameters.
-  NeedleInsertion3(TissueModel3& model, const Needle3& needle, double entry_x_m);
+  /// entry_x_m; the tip goes no deeper than max_tip_x_m (the compliance columns along the
+  /// needle line are solved up to there in one batch when the needle enters). Throws
+  /// std::invalid_argument for invalid parameters.
+  NeedleInsertion3(TissueModel3& model, const Needle3& needle, double entry_x_m,
+                   double max_tip_x_m);
 
   /// Moves the tip to x = tip_x_m (forwards or back) at lateral position `lateral` (y, z),
   /// locating every event on the way. The lateral position may change only outside tissue.
@@ -125,11 +128,19 @@ private:
   Solution solveAt(double s, const EmbeddedPoint* tip) const;
   Eigen::Matrix3d block(const EmbeddedPoint& p, const EmbeddedPoint& q) const;
   void requireColumns(const EmbeddedPoint& p) const;
+  void prefetchLine(const Eigen::Vector2d& lateral) const;
   /// Length cut beyond the current tip point for the tip at x = s (tip force then f_b).
   double cutLength(double s) const;
   EmbeddedPoint along(double cut_m) const;
   /// One segment of a move towards target without events inside; true when target is reached.
   bool insertSegment(double target);
+  /// Cutting towards target, up to the next track point (true when target is reached).
+  bool cutTo(double target);
+  /// Largest excess of a stuck point's force over its static friction at tip x = s, with
+  /// the cut solved there (-inf when no point is stuck) [N].
+  double stuckExcess(double s) const;
+  /// Tip x where a stuck point first slips on the way to target (target if none does).
+  double firstSlip(double target) const;
   bool retractSegment(double target);
   void commit(double s, const EmbeddedPoint* tip);
   void addTrackPoint(const EmbeddedPoint& p);
@@ -139,6 +150,7 @@ private:
   TissueModel3& model_;
   Needle3 needle_;
   double entry_x_m_;
+  double max_tip_x_m_;
   Eigen::Vector2d lateral_ = Eigen::Vector2d::Zero();
   double s_ = 0.0;
   int direction_ = 1;

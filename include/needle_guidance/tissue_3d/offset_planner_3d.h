@@ -17,15 +17,18 @@ namespace needle_guidance::tissue_3d {
 struct PlanResult3 {
   std::string target;
   bool placed = false;  ///< verified within tolerance
-  std::string refusal;  ///< the physical reason when not placed ("" if placed)
+  std::string refusal;  ///< the reason when not placed ("" if placed)
+  /// Not placed for a physical reason (outside the tissue, in or behind bone, out of the
+  /// robot's reach, no template hole close enough): the target is not reachable.
+  bool unreachable = false;
   Eigen::Vector2d lateral_m = Eigen::Vector2d::Zero();  ///< planned (y, z)
   double tip_x_m = 0.0;                                 ///< planned depth (tip x at release)
   double predicted_error_m = -1.0;                      ///< planner's own estimate; < 0 undefined
   double verified_error_m = -1.0;  ///< |seed - target| by the independent simulation; < 0 undefined
   Vector3 verified_seed_m = Vector3::Zero();
   double unplanned_error_m = -1.0;  ///< aiming straight at the target; < 0 undefined
-  double plan_cpu_s = 0.0;
-  int simulations = 0;
+  double plan_cpu_s = 0.0;  ///< planning and verification; the unplanned run is not included
+  int simulations = 0;      ///< insertions the plan and its verification used
 };
 
 struct PlannerOptions3 {
