@@ -215,6 +215,7 @@ ImagingRegion findImagingRegion(const cv::Mat& grey8) {
   cv::distanceTransform(padded, dist, cv::DIST_L2, cv::DIST_MASK_PRECISE);
   region.inset = dist(cv::Rect(1, 1, grey8.cols, grey8.rows)).clone();
   region.fraction = cv::countNonZero(region.mask) / frame_area;
+  region.box = cv::boundingRect(region.mask);
   return region;
 }
 

@@ -118,6 +118,9 @@ constexpr double kRegionInsetSigmas = 4.0;
 /// edge (a fan's straight side, the probe face's bright arc, the rim of a linear probe's
 /// rectangle), never a needle [px]; a needle entering from that edge goes on into the image.
 constexpr double kEdgeBand_px = 24.0;
+/// A candidate in a bounded region whose two ends both lie within this share of the region's
+/// width from its boundary, along the shaft, crosses the image: an interface (runsThroughRegion).
+constexpr double kThroughReach = 0.15;
 /// Priors (AcquisitionOptions::entry_point_px, entry_angle_rad): a candidate whose curve passes
 /// farther than kPriorPoint_px from the stated entry point, or whose direction differs by more
 /// than kPriorAngle_rad from the stated angle, is not the needle.
@@ -704,6 +707,18 @@ bool hugsRegionEdge(const Candidate& c, const ImagingRegion& region) {
   return true;
 }
 
+/// Whether, in a bounded region, both ends of the candidate come within kThroughReach of the
+/// region's width from its boundary along the shaft: a structure crossing the image (a tissue
+/// interface spanning the fan), not a needle, whose tip lies well inside the image.
+bool runsThroughRegion(const Candidate& c, const ImagingRegion& region, double sigma) {
+  if (!region.bounded())
+    return false;
+  const double reach = kThroughReach * region.box.width;
+  const cv::Point2d a = at(c.line, c.t0), b = at(c.line, c.t1);
+  return rayToBorder(a, -tangent(c.line, c.t0), region, sigma) < reach &&
+         rayToBorder(b, tangent(c.line, c.t1), region, sigma) < reach;
+}
+
 /// Whether the candidate agrees with the priors (kPriorPoint_px, kPriorAngle_rad); true without.
 bool meetsPriors(const Candidate& c, const AcquisitionOptions& o) {
   if (o.entry_angle_rad) {
@@ -746,7 +761,7 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
   const double sigma = o.ridge_sigma_px;
   if (onBorder(at(c.line, c.t0), region, sigma) && onBorder(at(c.line, c.t1), region, sigma))
     return {};
-  if (hugsRegionEdge(c, region) || !meetsPriors(c, o))
+  if (hugsRegionEdge(c, region) || runsThroughRegion(c, region, sigma) || !meetsPriors(c, o))
     return {};
   measureCues(ridge, &c, o.ridge_sigma_px);
   return c;
