@@ -208,3 +208,8 @@ TEST(ConvexRenderer, RefusesABadProbeAndIsDeterministic) {
 }
 
 }  // namespace
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}
