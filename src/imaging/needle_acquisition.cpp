@@ -709,11 +709,13 @@ bool hugsRegionEdge(const Candidate& c, const ImagingRegion& region) {
   return true;
 }
 
-/// Whether, in a bounded region, both ends of the candidate come within kThroughReach of the
-/// region's width from its boundary along the shaft: a structure crossing the image (a tissue
-/// interface spanning the fan), not a needle, whose tip lies well inside the image.
+/// Whether, in a fan, both ends of the candidate come within kThroughReach of the fan's width
+/// from its boundary along the shaft: a structure crossing the image (a tissue interface
+/// spanning the fan), not a needle, whose tip lies well inside the image. (In a linear probe's
+/// rectangle a shallow needle from the side can come that close at both ends: the recorded
+/// in-vitro frames' tip error went from 6.5 to 11.8 px median with this rule there.)
 bool runsThroughRegion(const Candidate& c, const ImagingRegion& region, double sigma) {
-  if (!region.bounded())
+  if (region.shape != ImagingRegion::Shape::kSector)
     return false;
   const double reach = kThroughReach * region.box.width;
   const cv::Point2d a = at(c.line, c.t0), b = at(c.line, c.t1);
