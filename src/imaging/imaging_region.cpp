@@ -31,8 +31,8 @@ constexpr double kVerticalSlope = 0.03;
 constexpr int kFaceTrials = 200;
 constexpr double kFaceTolerance_px = 3.0;
 constexpr int kFaceMinColumns = 30;
-constexpr double kFaceMinSag_px = 4.0;
-constexpr double kFaceMaxRadius = 20.0;
+constexpr double kFaceMinSag_px = 12.0;
+constexpr double kFaceMaxRadius = 3.0;
 
 struct SideEdges {
   cv::Point2d left_a, left_b, right_a, right_b;
