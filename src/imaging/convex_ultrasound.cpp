@@ -311,6 +311,17 @@ ConvexScene ConvexInsertion::scene() const {
   return sc;
 }
 
+double ConvexInsertion::visibleLength(int k) const {
+  cv::Point2d tip;
+  double angle = 0.0;
+  const std::vector<cv::Point2d> pts = needleAt(k, &tip, &angle);
+  const ConvexProbe p = probeOf(*this);
+  double inside = 0.0;
+  for (std::size_t i = 1; i < pts.size(); ++i)
+    inside += p.inside(pts[i]) ? cv::norm(pts[i] - pts[i - 1]) : 0.0;
+  return inside;
+}
+
 std::vector<cv::Point2d> ConvexInsertion::needleAt(int k, cv::Point2d* tip,
                                                    double* angle_rad) const {
   const ConvexProbe p = probeOf(*this);

@@ -31,8 +31,8 @@ constexpr double kVerticalSlope = 0.03;
 constexpr int kFaceTrials = 200;
 constexpr double kFaceTolerance_px = 3.0;
 constexpr int kFaceMinColumns = 30;
-constexpr double kFaceMinSag_px = 4.0;
-constexpr double kFaceMaxRadius = 20.0;
+constexpr double kFaceMinSag_px = 12.0;
+constexpr double kFaceMaxRadius = 3.0;
 
 struct SideEdges {
   cv::Point2d left_a, left_b, right_a, right_b;
@@ -215,6 +215,7 @@ ImagingRegion findImagingRegion(const cv::Mat& grey8) {
   cv::distanceTransform(padded, dist, cv::DIST_L2, cv::DIST_MASK_PRECISE);
   region.inset = dist(cv::Rect(1, 1, grey8.cols, grey8.rows)).clone();
   region.fraction = cv::countNonZero(region.mask) / frame_area;
+  region.box = cv::boundingRect(region.mask);
   return region;
 }
 

@@ -618,7 +618,8 @@ ConvexRun convexRun(const ConvexSpec& spec, ng::report::Table* table, const std:
     const std::vector<cv::Point2d> pts = spec.c.needleAt(k, &t.tip, &t.angle_rad);
     const cv::Mat image = im::renderConvexFrame(scene, spec.c.size, pts, std::uint64_t(k));
     const Result r = trackTimed(tracker, image);
-    const bool has_needle = !pts.empty();
+    // A needle with less than the acquisition's minimum length in view is no needle yet.
+    const bool has_needle = spec.c.visibleLength(k) >= im::AcquisitionOptions{}.min_length_px;
     const double e = r.found && has_needle ? cv::norm(r.tip - t.tip) : std::nan("");
     table->addRow({spec.name, double(k), spec.held_out ? 1.0 : 0.0, has_needle ? 1.0 : 0.0,
                    r.found ? 1.0 : 0.0, r.confident ? 1.0 : 0.0, e,

@@ -83,3 +83,8 @@ TEST(CommandLineHelp, TrackFramesRefusesABadPriorNamingIt) {
 }
 
 }  // namespace
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}

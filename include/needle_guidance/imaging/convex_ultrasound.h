@@ -104,6 +104,9 @@ struct ConvexInsertion {
   /// The needle's polyline at frame k (empty before it appears), and its true tip and angle
   /// (atan2(row step, column step) towards the tip).
   std::vector<cv::Point2d> needleAt(int k, cv::Point2d* tip, double* angle_rad) const;
+  /// Length of the needle inside the sector at frame k [px] (0 before it appears): a needle
+  /// with less than a few tens of pixels in view is not yet a needle to find.
+  double visibleLength(int k) const;
 };
 
 }  // namespace needle_guidance::imaging

@@ -29,6 +29,7 @@ struct ImagingRegion {
   cv::Point2d apex_px{0.0, 0.0};  ///< centre of the probe face's arc, when curved [px]
   double top_radius_px = 0.0;     ///< radius of the probe face's arc (0: a straight face) [px]
   double fraction = 1.0;          ///< share of the frame inside the region
+  cv::Rect box;                   ///< the region's bounding box [px]
   /// Distance of p from the region's boundary [px]; 0 outside it or the frame. For kFrame, the
   /// distance from the frame's border.
   float insetAt(cv::Point2d p) const;
