@@ -73,7 +73,7 @@ def stamp(report, bench_args):
     ran = datetime.datetime.fromtimestamp(summary.stat().st_mtime, datetime.timezone.utc)
     wall = (report / ".wall_s").read_text().strip() if (report / ".wall_s").exists() else "?"
     load = " ".join(pathlib.Path("/proc/loadavg").read_text().split()[:3])
-    mode = "quick (--quick)" if "--quick" in bench_args.split() else "full"
+    mode = "quick" if "--quick" in bench_args.split() else "full"
     return [
         f"| commit | `{commit}` |",
         f"| run | {ran:%Y-%m-%d %H:%M} UTC, {wall} s wall |",
@@ -123,7 +123,7 @@ def write_index():
             for key in ("commit", "run", "command"):
                 if line.startswith(f"| {key} |"):
                     field[key] = line.split("|")[2].strip()
-        mode = "quick" if "(quick" in field.get("command", "") else "full"
+        mode = "quick" if "(quick)" in field.get("command", "") else "full"
         lines.append(f"| [{page.stem}]({page.name}) | {field.get('commit', '?')} | "
                      f"{field.get('run', '?')} | {mode} |")
     (PAGES / "README.md").write_text("\n".join(lines) + "\n")

@@ -311,12 +311,7 @@ private:
       fail(m.keyPath("name"), "", "name must not be empty");
     }
     scene_.description = m.optionalString("description").value_or("");
-    if (const std::optional<std::string> kind = m.optionalString("kind");
-        kind && *kind != kPlanar) {
-      fail(m.keyPath("kind"), *kind,
-           "this reader takes planar scenes; a scene of kind '" + *kind +
-               "' is read by its own module (check_scene reads every kind)");
-    }
+    m.optionalChoice("kind", {kPlanar});  // other kinds are refused before parsing (parseScene)
     m.finish();
   }
 
@@ -882,6 +877,14 @@ Scene parseScene(const std::string& yaml_text, const std::string& source) {
   fs::path base_dir = fs::current_path(error);
   if (source.rfind('<', 0) != 0) {
     base_dir = fs::absolute(fs::path(source), error).parent_path();
+  }
+  // A scene of another kind is named as such before its keys are taken for planar ones.
+  if (root.IsMap() && root["scene"].IsMap() && root["scene"]["kind"].IsScalar() &&
+      root["scene"]["kind"].Scalar() != kPlanar) {
+    const std::string kind = root["scene"]["kind"].Scalar();
+    throw SceneError(source, "scene.kind", kind,
+                     "this reader takes planar scenes; a scene of kind '" + kind +
+                         "' is read by its own module (check_scene reads every kind)");
   }
   try {
     return SceneParser(source, base_dir).parse(root);
