@@ -16,6 +16,7 @@
 #include "needle_guidance/steering_3d/collision_3d.h"
 #include "needle_guidance/steering_3d/mesh_3d.h"
 #include "needle_guidance/steering_3d/scene_3d.h"
+#include "needle_guidance/tissue_3d/scene_tissue_3d.h"
 
 namespace needle_guidance::steering_3d {
 namespace {
@@ -309,7 +310,7 @@ TEST(Scene3d, AMeshRepairIsReportedWithTheSceneKeyAndTheFile) {
 /// One scene system: every shipped scene file names its kind (planar when absent) and loads
 /// through the reader of that kind; the planar reader refuses a 3-D scene naming its kind.
 TEST(Scene3d, EveryShippedSceneOfEveryKindLoadsThroughItsKind) {
-  int planar = 0, steering = 0;
+  int planar = 0, steering = 0, tissue = 0;
   const std::filesystem::path root = std::string(NG_SOURCE_DIR) + "/config/scenes";
   for (const auto& entry : std::filesystem::recursive_directory_iterator(root)) {
     if (entry.path().extension() != ".yaml") {
@@ -323,12 +324,16 @@ TEST(Scene3d, EveryShippedSceneOfEveryKindLoadsThroughItsKind) {
     } else if (kind == "steering_3d") {
       EXPECT_NO_THROW(loadScene3d(path)) << path;
       ++steering;
+    } else if (kind == "tissue_3d") {
+      EXPECT_NO_THROW(tissue_3d::loadTissueScene3d(path)) << path;
+      ++tissue;
     } else {
       ADD_FAILURE() << path << ": unknown kind " << kind;
     }
   }
   EXPECT_GE(planar, 9);
   EXPECT_GE(steering, 3);
+  EXPECT_GE(tissue, 3);
   EXPECT_EQ(scene::sceneKind("steering_workspace"), scene::kPlanar);  // embedded names
   try {
     scene::loadScene(sceneDir() + "/prostate_3d.yaml");
