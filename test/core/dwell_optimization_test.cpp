@@ -1,6 +1,6 @@
 // HDR dwell-time optimisation (dissertation ch. 6): a hand-solved LP, LP <= SA, the dual and
 // ranged-row formulations agree, MPS and case-folder round trips, indices, and the hard cases
-// of issue 7 (D_min > D_max, no dose points, catheter outside the body, no dwell positions,
+// (D_min > D_max, no dose points, catheter outside the body, no dwell positions,
 // duplicate dwell positions, a dose point on a dwell position).
 #include <gtest/gtest.h>
 
