@@ -179,6 +179,10 @@ VolumeSample sampleStructure(const Structure& s, double spacing_m, double plane_
   return out;
 }
 
+double latticeSpacing(const Structure& s, double spacing_m, double max_samples) {
+  return std::max(spacing_m, std::cbrt(s.volume_m3() / max_samples));
+}
+
 double StructureDose::volume() const {
   if (volume_m3.empty())
     return voxel_volume_m3 * static_cast<double>(dose_Gy.size());
@@ -214,7 +218,7 @@ std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& so
     StructureDose sd;
     sd.name = s.name;
     sd.voxel_volume_m3 = spacing_m * spacing_m * spacing_m;
-    VolumeSample sample = sampleStructure(s, spacing_m);
+    VolumeSample sample = sampleStructure(s, latticeSpacing(s, spacing_m));
     for (const Point3& p : sample.points_m) {
       double dose = doseAt(c, source, times_s, p);
       for (const ExtraDwell& e : extra) {
@@ -242,7 +246,7 @@ std::vector<StructureDose> structureDosesFromGrid(const HdrCase& c, const DoseGr
   for (const Structure& s : c.structures) {
     StructureDose sd;
     sd.name = s.name;
-    const VolumeSample sample = sampleStructure(s, spacing_m);
+    const VolumeSample sample = sampleStructure(s, latticeSpacing(s, spacing_m));
     for (std::size_t i = 0; i < sample.points_m.size(); ++i) {
       const Point3& p = sample.points_m[i];
       double dose = 0.0;

@@ -8,6 +8,9 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
+#include <ctime>
+#include <limits>
 #include <numeric>
 #include <sstream>
 #include <stdexcept>
@@ -19,6 +22,12 @@ using Clock = std::chrono::steady_clock;
 
 double since(Clock::time_point start) {
   return std::chrono::duration<double>(Clock::now() - start).count();
+}
+
+/// Processor time of this process since `start` [s] (what the time limits count: the machine's
+/// load from other processes does not shorten the search).
+double cpuSince(std::clock_t start) {
+  return static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
 }
 
 std::string number(double v) {
@@ -126,11 +135,168 @@ PlanPoints planPoints(const HdrCase& c, const Tg43Source& source,
   return p;
 }
 
+/// Doses at the MIP's points [Gy].
+Eigen::VectorXd pointDoses(const PlanPoints& p, const std::vector<double>& t) {
+  return p.d * Eigen::Map<const Eigen::VectorXd>(t.data(), static_cast<Eigen::Index>(t.size()));
+}
+
+/// % of the condition's structure at dose >= its level.
+double coveredPct(const PlanPoints& p, const VolumeCondition& v, const std::vector<double>& t) {
+  const Eigen::VectorXd d = pointDoses(p, t);
+  const int first = p.first[static_cast<std::size_t>(v.structure)];
+  double pct = 0.0;
+  for (int i = first; i < first + p.count[static_cast<std::size_t>(v.structure)]; ++i)
+    pct += d(i) >= v.level_Gy * (1.0 - 1e-9) ? p.pct[static_cast<std::size_t>(i)] : 0.0;
+  return pct;
+}
+
+/// The MIP's objective at times t with the binaries and elastic slacks the doses imply
+/// (infinite if t breaks the total-time bound).
+double objectiveOf(const PlanPoints& p, const std::vector<VolumeCondition>& conditions,
+                   const std::vector<double>& t, double total_time_s, const DvhPlanOptions& o) {
+  double total = 0.0;
+  for (double v : t)
+    total += v;
+  if (total > total_time_s * (1.0 + 1e-9))
+    return std::numeric_limits<double>::infinity();
+  double value = 1e-6 / static_cast<double>(t.size()) * total;
+  for (std::size_t k = 0; k < conditions.size(); ++k) {
+    const VolumeCondition& v = conditions[k];
+    const double pct = coveredPct(p, v, t);
+    if (k == 0)
+      value -= pct;
+    const double slack = v.at_most ? pct - v.budget_pct : v.budget_pct - pct;
+    if (slack > 0.0 && !(k == 0 && v.budget_pct <= 0.0))
+      value += o.violation_penalty * slack;
+  }
+  return value;
+}
+
+/// The freeing LP heuristic (in the manner of IPIP): every organ point is held below its
+/// criterion's level by a linear row except a "freed" set within the criterion's volume budget;
+/// target coverage is relaxed to sum_i w_i min(d_i / Rx, 1). Each round frees, per criterion,
+/// up to half its remaining budget among the held points whose rows bind hardest (largest row
+/// price per volume), and re-solves (warm start). Returns the round with the best MIP objective.
+std::vector<double> freeingHeuristic(const PlanPoints& p,
+                                     const std::vector<VolumeCondition>& conditions,
+                                     double total_time_s, const DvhPlanOptions& o, int rounds) {
+  const int n = static_cast<int>(p.d.cols());
+  const double inf = COIN_DBL_MAX;
+  OsiClpSolverInterface lp;
+  lp.messageHandler()->setLogLevel(0);
+  // Columns: t (n), then per at-least condition its points' coverage fractions, then slacks.
+  for (int j = 0; j < n; ++j)
+    lp.addCol(0, nullptr, nullptr, 0.0, total_time_s, 1e-6 / n);
+  std::vector<std::vector<int>> held_row(conditions.size());  // per at-most condition, per point
+  for (std::size_t k = 0; k < conditions.size(); ++k) {
+    const VolumeCondition& v = conditions[k];
+    const int first = p.first[static_cast<std::size_t>(v.structure)];
+    const int count = p.count[static_cast<std::size_t>(v.structure)];
+    std::vector<int> idx(static_cast<std::size_t>(n));
+    for (int j = 0; j < n; ++j)
+      idx[static_cast<std::size_t>(j)] = j;
+    if (v.at_most) {
+      for (int i = first; i < first + count; ++i) {
+        Eigen::VectorXd r = p.d.row(i).transpose();
+        held_row[k].push_back(lp.getNumRows());
+        lp.addRow(n, idx.data(), r.data(), -inf, v.level_Gy);
+      }
+      continue;
+    }
+    // At least: u_i <= d_i / level, u in [0, 1]; budget row sum pct_i u_i + s >= budget.
+    std::vector<int> u_cols;
+    for (int i = first; i < first + count; ++i) {
+      const double w = p.pct[static_cast<std::size_t>(i)];
+      u_cols.push_back(lp.getNumCols());
+      lp.addCol(0, nullptr, nullptr, 0.0, 1.0, k == 0 ? -w : 0.0);
+      std::vector<int> ri(idx);
+      Eigen::VectorXd r = -p.d.row(i).transpose() / v.level_Gy;
+      std::vector<double> rv(r.data(), r.data() + n);
+      ri.push_back(u_cols.back());
+      rv.push_back(1.0);
+      lp.addRow(n + 1, ri.data(), rv.data(), -inf, 0.0);
+    }
+    if (!(k == 0 && v.budget_pct <= 0.0)) {
+      const int s_col = lp.getNumCols();
+      lp.addCol(0, nullptr, nullptr, 0.0, inf, o.violation_penalty);
+      std::vector<int> ri(u_cols);
+      std::vector<double> rv;
+      for (int i = first; i < first + count; ++i)
+        rv.push_back(p.pct[static_cast<std::size_t>(i)]);
+      ri.push_back(s_col);
+      rv.push_back(1.0);
+      lp.addRow(static_cast<int>(ri.size()), ri.data(), rv.data(), v.budget_pct, inf);
+    }
+  }
+  std::vector<int> idx(static_cast<std::size_t>(n));
+  std::vector<double> ones(static_cast<std::size_t>(n), 1.0);
+  for (int j = 0; j < n; ++j)
+    idx[static_cast<std::size_t>(j)] = j;
+  lp.addRow(n, idx.data(), ones.data(), -inf, total_time_s);
+  std::vector<double> freed_pct(conditions.size(), 0.0), best_t(static_cast<std::size_t>(n), 0.0);
+  double best = objectiveOf(p, conditions, best_t, total_time_s, o);
+  for (int round = 0; round < rounds; ++round) {
+    round == 0 ? lp.initialSolve() : lp.resolve();
+    if (!lp.isProvenOptimal())
+      break;
+    std::vector<double> t(lp.getColSolution(), lp.getColSolution() + n);
+    for (double& x : t)
+      x = std::max(0.0, x);
+    const double value = objectiveOf(p, conditions, t, total_time_s, o);
+    if (value < best) {
+      best = value;
+      best_t = t;
+    }
+    bool freed = false;
+    const double* price = lp.getRowPrice();
+    for (std::size_t k = 0; k < conditions.size(); ++k) {
+      const VolumeCondition& v = conditions[k];
+      if (!v.at_most)
+        continue;
+      const int first = p.first[static_cast<std::size_t>(v.structure)];
+      std::vector<std::pair<double, int>> binding;  // (price per volume, point)
+      for (std::size_t q = 0; q < held_row[k].size(); ++q) {
+        const int row = held_row[k][q];
+        const double pct = p.pct[static_cast<std::size_t>(first) + q];
+        if (lp.getRowUpper()[row] < inf && std::abs(price[row]) > 1e-12)
+          binding.emplace_back(std::abs(price[row]) / pct, row);
+      }
+      std::sort(binding.rbegin(), binding.rend());
+      double allowance =
+          round + 1 == rounds ? v.budget_pct - freed_pct[k] : 0.5 * (v.budget_pct - freed_pct[k]);
+      for (const auto& [score, row] : binding) {
+        const double pct = p.pct[static_cast<std::size_t>(first + (row - held_row[k][0]))];
+        if (pct > allowance)
+          continue;
+        lp.setRowUpper(row, inf);
+        freed_pct[k] += pct;
+        allowance -= pct;
+        freed = true;
+      }
+    }
+    if (!freed)
+      break;
+  }
+  // Scaled copies of the best round: coverage against the budgets, judged on the MIP objective.
+  const std::vector<double> base = best_t;
+  for (double scale = 0.8; scale <= 1.5 + 1e-9; scale += 0.02) {
+    std::vector<double> t = base;
+    for (double& x : t)
+      x *= scale;
+    const double value = objectiveOf(p, conditions, t, total_time_s, o);
+    if (value < best) {
+      best = value;
+      best_t = t;
+    }
+  }
+  return best_t;
+}
+
 /// The MIP's solution.
 struct MipSolution {
   std::vector<double> times_s;
   double v100_pct = 0.0, gap_pct = 0.0;
-  bool optimal = false, found = false;
+  bool optimal = false, found = false, bound_known = false;
   int binaries = 0, rows = 0;
 };
 
@@ -139,7 +305,19 @@ struct MipSolution {
 MipSolution solveMip(const PlanPoints& p, const std::vector<VolumeCondition>& conditions,
                      double total_time_s, const Eigen::VectorXd& reference_Gy,
                      const DvhPlanOptions& o, double seconds) {
+  const std::clock_t start = std::clock();
   const int n = static_cast<int>(p.d.cols());
+  MipSolution out;
+  // Incumbent: the freeing LP heuristic; CBC then looks for better within its time.
+  std::vector<double> best_t = freeingHeuristic(p, conditions, total_time_s, o, o.heuristic_rounds);
+  double best = objectiveOf(p, conditions, best_t, total_time_s, o);
+  const double cbc_seconds = std::min(o.cbc_seconds, seconds - cpuSince(start));
+  if (!(cbc_seconds > 0.0)) {
+    out.found = std::isfinite(best);
+    out.times_s = best_t;
+    out.v100_pct = coveredPct(p, conditions[0], best_t);
+    return out;
+  }
   std::vector<double> lb, ub, obj;
   std::vector<std::vector<std::pair<int, double>>> cols;  // per column: (row, value)
   std::vector<double> row_lo, row_hi;
@@ -155,7 +333,6 @@ MipSolution solveMip(const PlanPoints& p, const std::vector<VolumeCondition>& co
   row_hi.push_back(total_time_s);
   for (int j = 0; j < n; ++j)
     cols[static_cast<std::size_t>(j)].emplace_back(time_row, 1.0);
-  MipSolution out;
   std::vector<int> slack_rows;
   for (std::size_t k = 0; k < conditions.size(); ++k) {
     const VolumeCondition& v = conditions[k];
@@ -219,31 +396,38 @@ MipSolution solveMip(const PlanPoints& p, const std::vector<VolumeCondition>& co
                           starts.data(), lengths.data());
   OsiClpSolverInterface solver;
   solver.loadProblem(matrix, lb.data(), ub.data(), obj.data(), row_lo.data(), row_hi.data());
+  solver.messageHandler()->setLogLevel(0);
+  out.rows = static_cast<int>(row_lo.size());
   for (int j = n; j < n + out.binaries; ++j)
     solver.setInteger(j);
-  solver.messageHandler()->setLogLevel(0);
   CbcModel model(solver);
   CbcSolverUsefulData data;
   data.noPrinting_ = true;
   CbcMain0(model, data);
-  const std::string sec = number(std::max(0.5, seconds)), gap = std::to_string(o.relative_gap);
-  const char* argv[] = {"cbc",    "-log",      "0",      "-sec", sec.c_str(),
-                        "-ratio", gap.c_str(), "-solve", "-quit"};
+  const std::string sec = number(cbc_seconds), gap = std::to_string(o.relative_gap);
+  const std::string cutoff = std::to_string(best);
+  const char* argv[] = {"cbc",          "-log",   "0",         "-sec",
+                        sec.c_str(),    "-ratio", gap.c_str(), "-cutoff",
+                        cutoff.c_str(), "-solve", "-quit"};
   CbcMain1(
-      9, argv, model, [](CbcModel*, int) { return 0; }, data);
-  out.rows = static_cast<int>(row_lo.size());
-  if (model.bestSolution() == nullptr)
-    return out;
-  const double* x = model.bestSolution();
-  out.found = true;
-  out.times_s.assign(x, x + n);
-  for (double& t : out.times_s)
-    t = std::max(0.0, t);
-  const int first = p.first[static_cast<std::size_t>(conditions[0].structure)];
-  for (int i = 0; i < p.count[static_cast<std::size_t>(conditions[0].structure)]; ++i)
-    out.v100_pct += x[n + i] > 0.5 ? p.pct[static_cast<std::size_t>(first + i)] : 0.0;
-  out.gap_pct = std::max(0.0, model.getObjValue() - model.getBestPossibleObjValue());
-  out.optimal = model.isProvenOptimal();
+      11, argv, model, [](CbcModel*, int) { return 0; }, data);
+  if (model.bestSolution() != nullptr) {
+    std::vector<double> t(model.bestSolution(), model.bestSolution() + n);
+    for (double& v : t)
+      v = std::max(0.0, v);
+    const double value = objectiveOf(p, conditions, t, total_time_s, o);
+    if (value <= best) {
+      best = value;
+      best_t = t;
+    }
+  }
+  out.found = std::isfinite(best);
+  out.times_s = best_t;
+  out.v100_pct = coveredPct(p, conditions[0], best_t);
+  const double bound = model.getBestPossibleObjValue();
+  out.optimal = model.isProvenOptimal() || (model.isProvenInfeasible() && std::isfinite(best));
+  out.bound_known = true;
+  out.gap_pct = out.optimal ? 0.0 : std::max(0.0, best - bound);
   return out;
 }
 
@@ -338,7 +522,7 @@ struct Evaluator {
   std::vector<VolumeSample> samples;
   Evaluator(const HdrCase& hc, const Tg43Source& s, double spacing) : c(hc), source(s) {
     for (const Structure& st : c.structures)
-      samples.push_back(sampleStructure(st, spacing));
+      samples.push_back(sampleStructure(st, latticeSpacing(st, spacing)));
   }
   std::vector<StructureDose> doses(const std::vector<double>& times) const {
     std::vector<StructureDose> out;
@@ -366,6 +550,7 @@ double excess(const DvhCriterion& k, const DoseVolumeIndex& got) {
 DvhPlanResult optimizeDvh(const HdrCase& c, const Tg43Source& source,
                           const std::vector<DvhCriterion>& criteria, const DvhPlanOptions& o) {
   const auto t0 = Clock::now();
+  const std::clock_t cpu0 = std::clock();
   if (c.dwells.empty())
     throw std::invalid_argument("optimizeDvh: case '" + c.name + "' has no dwell positions");
   if (!(o.plan_spacing_m > 0.0) || !(o.eval_spacing_m > 0.0) || !(o.max_seconds > 0.0) ||
@@ -413,7 +598,7 @@ DvhPlanResult optimizeDvh(const HdrCase& c, const Tg43Source& source,
   const auto specs = criteriaSpecs(all);
   int best_violations = 1 << 30;
   for (int round = 0; round < o.rounds; ++round) {
-    const double left = o.max_seconds - since(t0);
+    const double left = o.max_seconds - cpuSince(cpu0);
     if (round > 0 && left < 0.5)
       break;
     const MipSolution m =
@@ -451,6 +636,7 @@ DvhPlanResult optimizeDvh(const HdrCase& c, const Tg43Source& source,
       r.mip_v100_pct = m.v100_pct;
       r.mip_gap_pct = m.gap_pct;
       r.mip_optimal = m.optimal;
+      r.mip_bound_known = m.bound_known;
       r.binaries = m.binaries;
       r.rows = m.rows;
     }
@@ -458,6 +644,7 @@ DvhPlanResult optimizeDvh(const HdrCase& c, const Tg43Source& source,
       break;
   }
   r.seconds = since(t0);
+  r.cpu_seconds = cpuSince(cpu0);
   if (r.times_s.empty()) {
     r.status = "CBC found no plan within " + number(o.max_seconds) + " s";
     return r;

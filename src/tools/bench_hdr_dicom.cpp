@@ -303,7 +303,9 @@ std::string dvhStudy(const dose::DicomCase& dc, const std::string& dir,
   json << ",\n  \"dvh_plan_s\": " << jsonNumber(plan.seconds)
        << ",\n  \"dvh_v100_pct\": " << jsonNumber(plan.v100_pct)
        << ",\n  \"dvh_urethra_d10_gy\": " << jsonNumber(value(ours, "urethra_D10"))
-       << ",\n  \"dvh_mip_gap_v100_pp\": " << jsonNumber(plan.mip_gap_pct)
+       << ",\n  \"dvh_plan_cpu_s\": " << jsonNumber(plan.cpu_seconds)
+       << ",\n  \"dvh_mip_gap_v100_pp\": "
+       << (plan.mip_bound_known ? jsonNumber(plan.mip_gap_pct) : std::string("null"))
        << ",\n  \"dvh_mip_binaries\": " << plan.binaries
        << ",\n  \"dvh_criteria_giving_way\": " << jsonList(plan.violated)
        << ",\n  \"clinical_dominated_dvh\": " << (dom.dominated ? 1 : 0)

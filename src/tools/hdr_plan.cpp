@@ -54,6 +54,14 @@ void printIndices(const std::map<std::string, dose::DoseVolumeIndex>& reference,
   }
 }
 
+/// CBC's gap to the MIP optimum, or that it is unknown (CBC not run).
+std::string gapText(const dose::DvhPlanResult& r) {
+  if (!r.mip_bound_known)
+    return "gap to the MIP optimum unknown (heuristic only)";
+  return "CBC gap " + std::to_string(r.mip_gap_pct) + " V100 points" +
+         (r.mip_optimal ? " (optimal)" : "");
+}
+
 /// hdr_plan --dicom --method dvh: plans on the criteria, then tries to dominate the clinical plan.
 std::vector<double> planDicomDvh(const dose::DicomCase& dc, const dose::DicomCaseSettings& settings,
                                  const dose::Tg43Source& source) {
@@ -69,8 +77,7 @@ std::vector<double> planDicomDvh(const dose::DicomCase& dc, const dose::DicomCas
   if (!r.ok())
     throw std::runtime_error("dose-volume planning: " + r.status);
   std::cout << "DVH plan on " << criteria.size() << " criteria: V100 " << r.v100_pct << " %, "
-            << r.seconds << " s, " << r.binaries << " binaries, CBC gap " << r.mip_gap_pct
-            << " V100 points" << (r.mip_optimal ? " (optimal)" : "") << "\n";
+            << r.seconds << " s (" << r.cpu_seconds << " s processor), " << gapText(r) << "\n";
   for (const auto& v : r.violated)
     std::cout << "  gives way: " << v << "\n";
   const auto ours = dose::comparisonIndexSet(
@@ -245,8 +252,8 @@ int main(int argc, char** argv) {
         std::cerr << "hdr_plan: dose-volume planning: " << r.status << "\n";
         return 1;
       }
-      std::cout << "DVH: V100 " << r.v100_pct << " %, " << r.seconds << " s, CBC gap "
-                << r.mip_gap_pct << " V100 points\n";
+      std::cout << "DVH: V100 " << r.v100_pct << " %, " << r.seconds << " s (" << r.cpu_seconds
+                << " s processor), " << gapText(r) << "\n";
       for (const auto& v : r.violated)
         std::cout << "  gives way: " << v << "\n";
       chosen = r.times_s;

@@ -186,7 +186,9 @@ TEST(DoseIndices, HandComputedValues) {
   const auto idx = dosimetricIndices({s}, 5.0);
   EXPECT_DOUBLE_EQ(idx.at("prostate_V100"), 60.0);
   EXPECT_DOUBLE_EQ(idx.at("prostate_V150"), 30.0);  // >= 7.5 Gy: 8, 9, 10
-  const StructureDose none{"rectum", 1e-6, {}};
+  StructureDose none;
+  none.name = "rectum";
+  none.voxel_volume_m3 = 1e-6;
   EXPECT_DOUBLE_EQ(volumePercentAbove(none, 1.0), 0.0);
   EXPECT_DOUBLE_EQ(doseCoveringVolume(none, 2e-6), 0.0);
 }

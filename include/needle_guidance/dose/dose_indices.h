@@ -35,6 +35,11 @@ struct VolumeSample {
 /// <= 0 or not finite.
 VolumeSample sampleStructure(const Structure& s, double spacing_m, double plane_spacing_m = 0.0);
 
+/// The lattice spacing used for structure s when spacing_m is asked: spacing_m, or coarser so
+/// that the structure has at most about max_samples samples (a 50 cm^3 prostate at 0.5 mm
+/// would need 400,000). Depends only on the structure's volume, so it moves with the patient.
+double latticeSpacing(const Structure& s, double spacing_m, double max_samples = 50000);
+
 /// Dose at the volume samples of one structure.
 struct StructureDose {
   std::string name;
@@ -74,6 +79,7 @@ std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& so
 /// outside_m3.
 std::vector<StructureDose> structureDosesFromGrid(const HdrCase& c, const DoseGrid& grid,
                                                   double spacing_m = 0.5e-3);
+// structureDoses and structureDosesFromGrid sample each structure at latticeSpacing(s, spacing).
 
 /// V_x: % of the volume receiving at least dose_Gy; D_x: the minimum dose of the hottest x %
 /// (D90, D10) or of the hottest volume_m3 (D2cc) [Gy]. A structure without samples gives 0 %

@@ -46,9 +46,12 @@ struct DvhPlanOptions {
   /// below this fraction of the criterion's level is held below the level without a binary.
   double binary_dose_ratio = 0.5;
   double eval_spacing_m = 0.5e-3;  ///< lattice on which the criteria are checked and indices read
-  double max_seconds = 8.0;        ///< CBC time limit over all rounds [s]
-  double relative_gap = 1e-3;      ///< CBC stops within this gap of its bound
-  int rounds = 3;                  ///< re-solves with limits tightened by the fine-lattice excess
+  double max_seconds = 8.0;        ///< processor-time limit over all rounds [s]
+  /// CBC's processor time per round after the heuristic [s]; 0: the heuristic alone (no bound).
+  double cbc_seconds = 0.0;
+  double relative_gap = 1e-3;  ///< CBC stops within this gap of its bound
+  int rounds = 3;              ///< re-solves with limits tightened by the fine-lattice excess
+  int heuristic_rounds = 8;    ///< LP solves of the freeing heuristic (CBC's incumbent)
   /// Penalty per percentage point of an organ's volume over a budget, against 1 per point of
   /// target V100: 100 makes the criteria come first and coverage second.
   double violation_penalty = 100.0;
@@ -58,10 +61,14 @@ struct DvhPlanOptions {
 struct DvhPlanResult {
   std::string status = "ok";  ///< "ok", or why no plan was found
   std::vector<double> times_s;
-  double seconds = 0.0;
-  double v100_pct = 0.0;       ///< target V100 on the evaluation lattice
-  double mip_v100_pct = 0.0;   ///< target V100 on the MIP's dose points
-  double mip_gap_pct = 0.0;    ///< CBC's bound minus its best objective, in V100 points
+  double seconds = 0.0;       ///< wall time
+  double cpu_seconds = 0.0;   ///< processor time of this process
+  double v100_pct = 0.0;      ///< target V100 on the evaluation lattice
+  double mip_v100_pct = 0.0;  ///< target V100 on the MIP's dose points
+  /// With cbc_seconds > 0: the MIP objective of the plan minus CBC's proven bound (V100 points
+  /// when no criterion gives way); without, unknown (mip_bound_known false).
+  double mip_gap_pct = 0.0;
+  bool mip_bound_known = false;
   bool mip_optimal = false;    ///< CBC proved optimality within relative_gap
   int binaries = 0, rows = 0;  ///< size of the last MIP
   int rounds = 0;
