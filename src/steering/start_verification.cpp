@@ -15,7 +15,7 @@ namespace {
 
 constexpr double kPi = 3.14159265358979323846;
 /// Candidates verified with fresh seeds at most, in score order.
-constexpr int kMaxVerified = 3;
+constexpr int kMaxVerified = 5;
 
 void checkOptions(const StartVerificationOptions& o) {
   const std::pair<bool, std::pair<const char*, double>> checks[] = {

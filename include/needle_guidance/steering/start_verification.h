@@ -78,7 +78,7 @@ std::vector<StartCandidate> distinctBestStarts(const PolicyTable& table, const S
 /// Screens distinctBestStarts by Monte Carlo of the continuous needle under the table's policy,
 /// takes the screen-confirmed one with the highest score (none confirmed: the highest score) and
 /// verifies it with fresh seeds; if its verified gap exceeds the tolerance, the next is verified,
-/// up to three. The start is the first verified within the tolerance, else the verified one
+/// up to five. The start is the first verified within the tolerance, else the verified one
 /// with the smallest gap (confirmed = false). found = false (with the reason) when no start
 /// has P_s > 0. Throws std::invalid_argument naming a bad option.
 VerifiedStart verifyBestStart(const ContinuousWorkspace& world, const PolicyTable& table,
