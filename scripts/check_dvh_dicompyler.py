@@ -172,4 +172,7 @@ def main():
 
 
 if __name__ == "__main__":
+    if any(a in ("-h", "--help") for a in sys.argv[1:]):
+        print(__doc__ + "\nusage: check_dvh_dicompyler.py CASE_DIR OURS_CSV OUT_CSV")
+        sys.exit(0)
     main()

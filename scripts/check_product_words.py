@@ -62,4 +62,7 @@ def main():
 
 
 if __name__ == "__main__":
+    if any(a in ("-h", "--help") for a in sys.argv[1:]):
+        print(__doc__ + "\nusage: check_product_words.py")
+        sys.exit(0)
     sys.exit(main())

@@ -166,4 +166,7 @@ def main():
 
 
 if __name__ == "__main__":
+    if any(a in ("-h", "--help") for a in sys.argv[1:]):
+        print(__doc__ + "\nusage: node_params.py [--check]")
+        sys.exit(0)
     sys.exit(main())
