@@ -9,8 +9,8 @@
 #include <fstream>
 #include <sstream>
 
-#include "needle_guidance/scene/yaml_reader.h"
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/scene/yaml_reader.h"
 
 namespace needle_guidance::tissue_3d {
 namespace {
