@@ -114,9 +114,17 @@ protected:
     frame.header.stamp = ros::Time(stamp_s);
     frame.encoding = encoding;
     frame.image = image;
-    image_pub_.publish(frame.toImageMsg());
     const ros::Time stamp(stamp_s);
-    return trackedAfter(ros::Time(0), [&](const NeedleTip& t) { return t.header.stamp == stamp; });
+    // The imager streams frames into the same topic (queue of 5), so under load one publication
+    // can be dropped before the tracker sees it: the frame is sent again, up to three times.
+    for (int attempt = 0; attempt < 3; ++attempt) {
+      image_pub_.publish(frame.toImageMsg());
+      if (auto answer = trackedAfter(ros::Time(0),
+                                     [&](const NeedleTip& t) { return t.header.stamp == stamp; })) {
+        return answer;
+      }
+    }
+    return std::nullopt;
   }
 
   ros::NodeHandle nh_;
