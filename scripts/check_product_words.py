@@ -1,8 +1,8 @@
 #!/usr/bin/python3
 """Refuses words about how the software was developed in tracked files (code, comments, docs,
-config, launch files, tests, scripts): tracker numbers ("issue 18"), work-session numbers,
-"second pass" and its kin, "helper", references to files outside the repository, and tuning
-diaries. The product describes what it does and why; history belongs in CHANGELOG.md as
+config, launch files, tests, scripts): bug-tracker numbers, work-session numbers, ordinal
+rounds of work, the names of who did it, references to files outside the repository, and
+tuning diaries (the patterns below list them). The product describes what it does and why; history belongs in CHANGELOG.md as
 release notes, which this check reads too.
 
 Words that only look alike are allowed: "tissue", "passes through", "bypass", a gate that a
