@@ -3,7 +3,6 @@
 // trials, the FEM force curve's convergence in the depth step with its CPU time, and the
 // unplanned seed error of the prostate scene with the scene's own and with the calibrated
 // interaction. Usage: bench_calibration --out DIR [--quick] [--scene SPEC]
-#include <sys/resource.h>
 
 #include <cmath>
 #include <iostream>
@@ -13,11 +12,13 @@
 
 #include "needle_guidance/calibration/calibration.h"
 #include "needle_guidance/report/bench_args.h"
+#include "needle_guidance/report/process_usage.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/rigid_planning/rigid_planner.h"
 #include "needle_guidance/scene/interaction_preset.h"
 
 namespace ng = needle_guidance;
+using needle_guidance::report::cpuSeconds;
 namespace cal = needle_guidance::calibration;
 using ng::report::jsonNumber;
 
@@ -26,13 +27,6 @@ namespace {
 constexpr const char* kPreset = "liver_de_jong_2017";
 /// Points of the 0.5 mm compare grid averaged into one trend point (2 mm).
 constexpr std::size_t kTrendWindow = 4;
-
-double cpuSeconds() {
-  rusage usage{};
-  getrusage(RUSAGE_SELF, &usage);
-  return static_cast<double>(usage.ru_utime.tv_sec + usage.ru_stime.tv_sec) +
-         1e-6 * static_cast<double>(usage.ru_utime.tv_usec + usage.ru_stime.tv_usec);
-}
 
 /// Unplanned error (release at the target, dissertation 4.4) of every target [cm].
 std::vector<double> unplannedErrors(const ng::scene::Scene& scene, std::size_t count) {

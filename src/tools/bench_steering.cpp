@@ -7,7 +7,6 @@
 // Usage: bench_steering --out DIR [--quick] [--scene SPEC]
 //        bench_steering --truth-only --out DIR [--scene SPEC]... (the truth check where the start
 //        is chosen, per scene: chosen start, 10 best starts, starts near every boundary)
-#include <sys/resource.h>
 
 #include <algorithm>
 #include <chrono>
@@ -25,6 +24,7 @@
 
 #include "needle_guidance/math.h"
 #include "needle_guidance/report/bench_args.h"
+#include "needle_guidance/report/process_usage.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/adaptive_policy.h"
@@ -37,6 +37,8 @@
 #include "needle_guidance/steering/value_iteration.h"
 
 namespace ng = needle_guidance;
+using needle_guidance::report::cpuSeconds;
+using needle_guidance::report::peakMb;
 namespace st = ng::steering;
 
 namespace {
@@ -64,20 +66,6 @@ constexpr std::uint64_t kMonteCarloSeed = 11;
 constexpr double kTrivialPs = 0.01;
 /// Heights of the truth check's start states on the entry line [mm].
 const std::vector<double> kTruthHeights_mm = {5.0, 10.0, 15.0, 30.0, 54.0, 60.0, 80.0};
-
-double peakMb() {
-  rusage usage{};
-  getrusage(RUSAGE_SELF, &usage);
-  return static_cast<double>(usage.ru_maxrss) / 1024.0;  // ru_maxrss is in KiB on Linux
-}
-
-/// User + system CPU time of the process so far, all threads [s].
-double cpuSeconds() {
-  rusage usage{};
-  getrusage(RUSAGE_SELF, &usage);
-  return double(usage.ru_utime.tv_sec + usage.ru_stime.tv_sec) +
-         1e-6 * double(usage.ru_utime.tv_usec + usage.ru_stime.tv_usec);
-}
 
 double secondsSince(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();

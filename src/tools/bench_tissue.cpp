@@ -3,7 +3,6 @@
 // each integrator on graded meshes from ~1k to ~50k triangles. Reports steps per second and
 // per-step latency against seed position error (vs. the finest quasi-static run), and memory.
 // Usage: bench_tissue --out DIR [--quick] [--scene SPEC]   (SPEC: a scene file or embedded name)
-#include <sys/resource.h>
 
 #include <algorithm>
 #include <chrono>
@@ -16,11 +15,13 @@
 #include <vector>
 
 #include "needle_guidance/report/bench_args.h"
+#include "needle_guidance/report/process_usage.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/tissue/tissue_simulation.h"
 
 namespace ng = needle_guidance;
+using needle_guidance::report::peakMb;
 using ng::tissue::IntegratorKind;
 using Clock = std::chrono::steady_clock;
 
@@ -32,12 +33,6 @@ constexpr double kStart_m = -0.002;     // tip just outside the entry face
 constexpr double kSettle_s = 2.0;  // dynamic integrators settle with the needle out (alpha = 1/s)
 constexpr double kMaxRunSteps = 400000;   // skip a full run that would take more steps
 constexpr double kMaxRunSeconds = 150.0;  // ... or longer than this (estimated)
-
-double peakMb() {
-  rusage usage{};
-  getrusage(RUSAGE_SELF, &usage);
-  return usage.ru_maxrss / 1024.0;
-}
 
 struct RunResult {
   int triangles = 0;

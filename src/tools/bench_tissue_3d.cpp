@@ -4,7 +4,6 @@
 // measured by an independent full simulation, the planning CPU time, the step convergence
 // (halving the step) and the unplanned error (aiming straight at the target).
 // Usage: bench_tissue_3d --out DIR [--quick] [--scene FILE ...]
-#include <sys/resource.h>
 
 #include <algorithm>
 #include <cmath>
@@ -17,20 +16,16 @@
 
 #include "needle_guidance/package_paths.h"
 #include "needle_guidance/report/bench_args.h"
+#include "needle_guidance/report/process_usage.h"
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/tissue_3d/offset_planner_3d.h"
 
 namespace ng = needle_guidance;
+using needle_guidance::report::peakMb;
 namespace t3 = ng::tissue_3d;
 using ng::report::jsonNumber;
 
 namespace {
-
-double peakMb() {
-  rusage usage{};
-  getrusage(RUSAGE_SELF, &usage);
-  return usage.ru_maxrss / 1024.0;
-}
 
 /// A length in mm for the CSV, empty when undefined (< 0: never computed).
 ng::report::Cell mmOrUndefined(double m) {
