@@ -29,6 +29,19 @@ bool under(const fs::path& p, const fs::path& dir) {
   return true;
 }
 
+// True when `p` holds no file at any depth: only (possibly nested) empty folders. A procedure's
+// report folder can hold such a folder before the procedure starts, when a node launched with
+// it (the afterloader's journal folder inside the report) creates its own folder first.
+bool holdsNoFile(const fs::path& p) {
+  std::error_code ec;
+  for (fs::recursive_directory_iterator it(p, ec), end; !ec && it != end; it.increment(ec)) {
+    if (!it->is_directory(ec)) {
+      return false;
+    }
+  }
+  return !ec;
+}
+
 }  // namespace
 
 std::string systemLocation(const std::string& path) {
@@ -62,7 +75,7 @@ void prepareReportDir(const std::string& dir, const std::string& what, bool allo
     if (!fs::is_directory(p, ec)) {
       throw std::runtime_error(what + ": '" + p.string() + "' is a file, not a folder");
     }
-    if (!fs::is_empty(p, ec) && !fs::exists(p / kReportMarker, ec)) {
+    if (!holdsNoFile(p) && !fs::exists(p / kReportMarker, ec)) {
       throw std::runtime_error(what + ": refused: '" + p.string() +
                                "' is a non-empty folder the suite did not create (no " +
                                kReportMarker + "); give a new or empty folder");

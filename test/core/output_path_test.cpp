@@ -52,6 +52,21 @@ TEST(OutputPath, ReportDirIsCreatedWithItsMarkerAndReused) {
       << "a folder the suite made is written again";
 }
 
+TEST(OutputPath, ReportDirHoldingOnlyEmptyFoldersIsAccepted) {
+  // The afterloader of the same launch may create its journal folder inside the report first.
+  const fs::path dir = scratch("journal_first");
+  fs::create_directories(dir / "journal" / "nested");
+  ASSERT_EQ(refusal([&] { prepareReportDir(dir.string(), "~report_dir", false); }), "");
+  EXPECT_TRUE(fs::exists(dir / kReportMarker));
+
+  const fs::path foreign = scratch("foreign_nested");
+  fs::create_directories(foreign / "journal");
+  std::ofstream(foreign / "journal" / "notes.txt") << "precious";
+  EXPECT_NE(refusal([&] { prepareReportDir(foreign.string(), "~report_dir", false); }), "")
+      << "a file at any depth makes the folder someone else's";
+  EXPECT_FALSE(fs::exists(foreign / kReportMarker));
+}
+
 TEST(OutputPath, ForeignSystemAndFileTargetsAreRefusedAndNothingIsCreated) {
   const fs::path foreign = scratch("foreign");
   fs::create_directories(foreign);

@@ -18,8 +18,9 @@ constexpr const char* kReportMarker = ".needle_guidance_report";
 
 /// Makes `dir` ready for a report: creates it (and its parents) with the marker file. Throws
 /// std::runtime_error naming `what` (e.g. the parameter) and the path when it is a system
-/// location (unless `allow_system`), is a file, or is an existing non-empty folder without the
-/// marker (one the suite did not create). Nothing is created when it throws.
+/// location (unless `allow_system`), is a file, or is an existing folder that holds a file but
+/// not the marker (one the suite did not create; empty subfolders, such as a journal folder
+/// another node of the launch made first, are accepted). Nothing is created when it throws.
 void prepareReportDir(const std::string& dir, const std::string& what, bool allow_system);
 
 /// Checks a file the suite appends to: throws (naming `what` and the path) when it is in a system
