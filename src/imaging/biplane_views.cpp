@@ -6,7 +6,7 @@
 
 namespace needle_guidance::imaging {
 
-namespace sd = steering_3d;
+namespace sd = needle_model;
 
 namespace {
 /// Radii the detector tries, in units of the needle's smallest (1 / kappa_max).

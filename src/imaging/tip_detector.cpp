@@ -973,12 +973,12 @@ cv::Rect searchWindow(const TrackerConfig& config, const std::optional<SearchPri
   double y1 = -x0;
   constexpr int kBackSamples = 4;
   // Back along the predicted arc: reverse heading, mirrored bevel traces the same circle.
-  steering::TipPose back{tip.p_SceneTip, tip.theta_rad + kPi, steering::flipped(tip.bevel)};
+  needle_model::TipPose back{tip.p_SceneTip, tip.theta_rad + kPi, needle_model::flipped(tip.bevel)};
   for (int k = 0; k <= kBackSamples; ++k) {
     const double dist = kSearchBackLength_m * k / kBackSamples;
     const Point2 p = k == 0 ? tip.p_SceneTip
-                            : steering::advanceTip(back, steering::Control::kInsert, 0.0, dist,
-                                                   config.radius_of_curvature_m)
+                            : needle_model::advanceTip(back, needle_model::Control::kInsert, 0.0,
+                                                       dist, config.radius_of_curvature_m)
                                   .p_SceneTip;
     const double rad = base_radius + dist * std::min(3.0 * heading_sigma, 1.0);
     x0 = std::min(x0, p.x() - rad);
@@ -1101,7 +1101,7 @@ std::string checkInputs(const cv::Mat& frame, DetectState& st) {
     PriorQ p;
     p.tip = sceneToQ(g, prior.tip.p_SceneTip);
     p.dir = Vec(std::cos(prior.tip.theta_rad), std::sin(prior.tip.theta_rad));
-    p.side = prior.tip.bevel == steering::Bevel::kLeft ? 1.0 : -1.0;
+    p.side = prior.tip.bevel == needle_model::Bevel::kLeft ? 1.0 : -1.0;
     const Eigen::Matrix2d pos = prior.covariance.topLeftCorner<2, 2>();
     const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> es(0.5 * (pos + pos.transpose()));
     p.pos_sigma3_px = 3.0 * std::sqrt(std::max(0.0, es.eigenvalues().maxCoeff())) / ps;

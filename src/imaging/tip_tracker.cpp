@@ -1,6 +1,6 @@
 // Needle-tip tracker (tip_tracker.h): configuration, and the extended Kalman filter over
 // (x, y, theta) that predicts from the robot's inserted length and bevel (dissertation 5.3's
-// arcs, steering::advanceTip) and fuses detectTip's detections behind a chi-square gate.
+// arcs, needle_model::advanceTip) and fuses detectTip's detections behind a chi-square gate.
 #include "needle_guidance/imaging/tip_tracker.h"
 #include "needle_guidance/math.h"
 
@@ -41,7 +41,7 @@ constexpr double kMinHeadingStd_rad = 0.3 * kDeg;
 /// (none: a tip outside the pixels cannot be seen).
 constexpr double kOutOfViewTolerance_px = 0.0;
 
-Eigen::Vector3d poseVector(const steering::TipPose& p) {
+Eigen::Vector3d poseVector(const needle_model::TipPose& p) {
   return {p.p_SceneTip.x(), p.p_SceneTip.y(), p.theta_rad};
 }
 
@@ -143,7 +143,7 @@ TipTracker::TipTracker(const TrackerConfig& config) : config_(config) {
   estimate_.message = "no entry pose yet";
 }
 
-void TipTracker::reset(const steering::TipPose& entry, double position_std_m,
+void TipTracker::reset(const needle_model::TipPose& entry, double position_std_m,
                        double heading_std_rad) {
   if (!(entry.p_SceneTip.allFinite() && std::isfinite(entry.theta_rad)) ||
       !(std::isfinite(position_std_m) && position_std_m > 0.0) ||
@@ -176,8 +176,8 @@ void TipTracker::reset(const steering::TipPose& entry, double position_std_m,
   updateConfidence();
 }
 
-void TipTracker::move(double ds_m, steering::Bevel bevel) {
-  steering::TipPose& tip = estimate_.tip;
+void TipTracker::move(double ds_m, needle_model::Bevel bevel) {
+  needle_model::TipPose& tip = estimate_.tip;
   Eigen::Matrix3d& cov = estimate_.covariance;
   const double r = config_.radius_of_curvature_m;
   const double max_sub = kMaxSubstepFraction * config_.step_length_m;
@@ -185,14 +185,15 @@ void TipTracker::move(double ds_m, steering::Bevel bevel) {
   const double ds = ds_m / substeps;
   for (int k = 0; k < substeps; ++k) {
     // Along the arc (backwards: the same circle traced with the reversed tangent).
-    steering::TipPose from = tip;
+    needle_model::TipPose from = tip;
     from.bevel = bevel;
-    steering::TipPose to;
+    needle_model::TipPose to;
     if (ds >= 0.0) {
-      to = steering::advanceTip(from, steering::Control::kInsert, 0.0, ds, r);
+      to = needle_model::advanceTip(from, needle_model::Control::kInsert, 0.0, ds, r);
     } else {
-      const steering::TipPose rev{from.p_SceneTip, from.theta_rad + kPi, steering::flipped(bevel)};
-      to = steering::advanceTip(rev, steering::Control::kInsert, 0.0, -ds, r);
+      const needle_model::TipPose rev{from.p_SceneTip, from.theta_rad + kPi,
+                                      needle_model::flipped(bevel)};
+      to = needle_model::advanceTip(rev, needle_model::Control::kInsert, 0.0, -ds, r);
       to.theta_rad -= kPi;
       to.bevel = bevel;
     }
@@ -215,7 +216,7 @@ void TipTracker::move(double ds_m, steering::Bevel bevel) {
   tip.bevel = bevel;
 }
 
-void TipTracker::predict(double from_m, double to_m, steering::Bevel bevel) {
+void TipTracker::predict(double from_m, double to_m, needle_model::Bevel bevel) {
   if (to_m < from_m) {
     move(to_m - from_m, bevel);
     // A later insertion starts a new step here.
@@ -270,7 +271,7 @@ void TipTracker::updateConfidence() {
                         heading_std <= config_.confident_heading_std_rad;
 }
 
-TipEstimate TipTracker::onDrive(double inserted_length_m, steering::Bevel bevel,
+TipEstimate TipTracker::onDrive(double inserted_length_m, needle_model::Bevel bevel,
                                 std::uint32_t flips) {
   if (!std::isfinite(inserted_length_m) || inserted_length_m < 0.0 ||
       inserted_length_m > kMaxInsertedLength_m) {
@@ -301,7 +302,7 @@ TipEstimate TipTracker::onDrive(double inserted_length_m, steering::Bevel bevel,
   const TipEstimate before = estimate_;
   if (inserted_length_m == 0.0 && have_entry_) {
     // Back at (or still at) the needle guide: its pose is known.
-    const steering::Bevel b = bevel;
+    const needle_model::Bevel b = bevel;
     estimate_.tip = entry_;
     estimate_.tip.bevel = b;
     estimate_.covariance = entry_covariance_;
@@ -318,8 +319,8 @@ TipEstimate TipTracker::onDrive(double inserted_length_m, steering::Bevel bevel,
   } else {
     predict(length_m_, inserted_length_m, bevel);
     estimate_.status = TrackStatus::kPredicted;
-    estimate_.message =
-        "predicted along the " + steering::toString(bevel) + " arc by " + fmt(delta * 1e3) + " mm";
+    estimate_.message = "predicted along the " + needle_model::toString(bevel) + " arc by " +
+                        fmt(delta * 1e3) + " mm";
   }
   if (!stateFinite()) {
     estimate_ = before;
@@ -396,7 +397,7 @@ TipEstimate TipTracker::acquireWithoutPrior(const cv::Mat& frame) {
       updateConfidence();
       return estimate_;
     }
-    const steering::Bevel bevel = estimate_.tip.bevel;
+    const needle_model::Bevel bevel = estimate_.tip.bevel;
     estimate_.tip = {d.p_SceneTip, d.theta_rad, bevel};
     estimate_.covariance = symmetrised(kReacquireInflation * d.covariance);
     estimate_.status = TrackStatus::kTracked;
@@ -438,11 +439,11 @@ TipEstimate TipTracker::onGatedOut(const Detection& d, double d2) {
   now.agreeing = 1;
   if (rejected_) {
     const double travel = length_m_ - rejected_->inserted_length_m;
-    steering::TipPose moved = rejected_->pose;
+    needle_model::TipPose moved = rejected_->pose;
     moved.bevel = estimate_.tip.bevel;
     if (travel > 0.0) {
-      moved = steering::advanceTip(moved, steering::Control::kInsert, 0.0, travel,
-                                   config_.radius_of_curvature_m);
+      moved = needle_model::advanceTip(moved, needle_model::Control::kInsert, 0.0, travel,
+                                       config_.radius_of_curvature_m);
     }
     const double sig2 = std::max(config_.sigma_insert_rad, config_.sigma_flip_rad);
     Eigen::Matrix3d agree_cov = rejected_->covariance + d.covariance;

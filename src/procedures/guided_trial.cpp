@@ -121,7 +121,7 @@ std::string InProcessSteerableDevices::leaveSafe() {
 }
 
 GuidedTrial runGuidedTrial(robot::SteerableNeedle& needle, const robot::EntryPose& entry,
-                           std::uint64_t seed, const steering::PolicyTable& table,
+                           double delta_m, std::uint64_t seed, const steering::PolicyTable& table,
                            const imaging::FrameRenderer* renderer, imaging::TipTracker* tracker,
                            std::uint64_t& frame_index, const GuidedTrialOptions& options) {
   InProcessSteerableDevices devices(needle, table, renderer, tracker, frame_index, options);
@@ -130,7 +130,7 @@ GuidedTrial runGuidedTrial(robot::SteerableNeedle& needle, const robot::EntryPos
   start.theta_rad = entry.angle_rad;
   start.bevel = entry.bevel;
   const SteerableTrialRecord rec =
-      runSteerableTrial(devices, needle.world(), start, seed, true, options.max_steps);
+      runSteerableTrial(devices, needle.world(), delta_m, start, seed, true, options.max_steps);
   GuidedTrial trial;
   switch (rec.outcome) {
     case SteerableOutcome::kReachedTarget:

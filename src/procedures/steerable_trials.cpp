@@ -17,7 +17,7 @@ double secondsSince(std::chrono::steady_clock::time_point t0) {
 /// A stopped insertion as a trial outcome: the world's referee first (a tip outside the
 /// workspace left it, whatever the device said), then the device's reason.
 SteerableOutcome stoppedOutcome(StepEnd end, const std::optional<SteerableTip>& stopped,
-                                const steering::ContinuousWorkspace& world) {
+                                const needle_model::PlanarWorld& world) {
   if (end == StepEnd::kLeftWorkspace || (stopped && !world.inWorkspace(stopped->pose.p_SceneTip))) {
     return SteerableOutcome::kLeftWorkspace;
   }
@@ -86,11 +86,9 @@ SteerableTrials::SteerableTrials(std::string scene_name, const steering::Steerin
 }
 
 SteerableTrialRecord runSteerableTrial(SteerableDevices& devices,
-                                       const steering::ContinuousWorkspace& world,
+                                       const needle_model::PlanarWorld& world, double delta_m,
                                        const steering::TipPose& start, std::uint64_t seed,
                                        bool reseed, int max_steps) {
-  const steering::SteeringParams& params = world.problem().params;
-  const double delta_m = 2.0 * kPi * params.radius_m / params.orientations;
   SteerableTrialRecord rec;
   const auto t0 = std::chrono::steady_clock::now();
   std::string why;
@@ -170,13 +168,15 @@ SteerableReport SteerableTrials::run(SteerableDevices& devices, const SteerableS
   rep.problem = problem_;
   rep.settings = settings_;
   rep.start = start;
+  const steering::SteeringParams& params = world_.problem().params;
+  const double delta_m = 2.0 * kPi * params.radius_m / params.orientations;
   for (int trial = 0; trial < settings_.trials; ++trial) {
     // Trial k draws its deflections from its own stream: runs with ground-truth and image
     // feedback see the same needle as long as they make the same decisions.
     const std::uint64_t seed =
         static_cast<std::uint64_t>(settings_.seed) * SteerableSettings::kTrialSeedStride +
         static_cast<std::uint64_t>(trial);
-    SteerableTrialRecord rec = runSteerableTrial(devices, world_, start.pose, seed,
+    SteerableTrialRecord rec = runSteerableTrial(devices, world_, delta_m, start.pose, seed,
                                                  settings_.seed >= 0, settings_.max_steps);
     std::ostringstream line;
     line << "trial " << trial + 1 << "/" << settings_.trials << ": " << toString(rec.outcome)

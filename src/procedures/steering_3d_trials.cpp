@@ -14,13 +14,13 @@
 
 namespace needle_guidance::procedures {
 
-using steering_3d::Control3;
-using steering_3d::TipPose3;
+using needle_model::Control3;
+using needle_model::TipPose3;
 using steering_3d::TrialResult3;
 
-SteeringTrial3::SteeringTrial3(const steering_3d::Scene3d& scene,
-                               const steering_3d::CollisionWorld3& world,
-                               const steering_3d::NoiseParams3& noise, std::uint64_t seed,
+SteeringTrial3::SteeringTrial3(const needle_model::Scene3d& scene,
+                               const needle_model::CollisionWorld3& world,
+                               const needle_model::NoiseParams3& noise, std::uint64_t seed,
                                int max_steps)
     : scene_(scene),
       world_(world),
@@ -86,10 +86,10 @@ bool SteeringTrial3::step() {
   return !done_;
 }
 
-steering_3d::Matrix3 SteeringTrial3::observedCovariance_m2(double sigma_m) const {
+needle_model::Matrix3 SteeringTrial3::observedCovariance_m2(double sigma_m) const {
   return observe_ && observation_.tip
              ? observation_.covariance_m2
-             : steering_3d::Matrix3(sigma_m * sigma_m * steering_3d::Matrix3::Identity());
+             : needle_model::Matrix3(sigma_m * sigma_m * needle_model::Matrix3::Identity());
 }
 
 bool SteeringTrial3::followAnswer(const std::string& status, const std::string& message,
@@ -110,7 +110,7 @@ void SteeringTrial3::setViews(const imaging::BiplaneViews3* views) {
     observe_ = nullptr;
     return;
   }
-  observe_ = [views](const std::vector<steering_3d::Vector3>& path, const TipPose3& predicted,
+  observe_ = [views](const std::vector<needle_model::Vector3>& path, const TipPose3& predicted,
                      std::uint64_t index) { return views->observe(path, predicted, index); };
 }
 
@@ -140,9 +140,9 @@ TipSource3 tipSource3OrThrow(const std::string& name, const std::string& where) 
 
 std::optional<bool> recordRobotStep3(bool succeeded, const std::string& contact,
                                      const std::string& obstacle, const std::string& message,
-                                     const std::vector<steering_3d::Vector3>& path,
+                                     const std::vector<needle_model::Vector3>& path,
                                      TrialResult3& result) {
-  using steering_3d::Contact3;
+  using needle_model::Contact3;
   const bool touched = contact == "obstacle" || contact == "outside_tissue";
   if (!succeeded && !touched) {
     return std::nullopt;
@@ -177,8 +177,8 @@ void SteeringTrial3::end() {
   done_ = true;
 }
 
-SteeringRun3 runSteeringTrials3(const steering_3d::Scene3d& scene,
-                                const steering_3d::CollisionWorld3& world,
+SteeringRun3 runSteeringTrials3(const needle_model::Scene3d& scene,
+                                const needle_model::CollisionWorld3& world,
                                 SteeringDevices3& devices, int trials, std::uint64_t seed,
                                 int max_steps, double travel_m) {
   SteeringRun3 run;
@@ -278,7 +278,7 @@ SteeringSummary3 summarize(const std::vector<TrialResult3>& results,
 
 namespace {
 
-std::string summaryJson(const steering_3d::Scene3d& scene, const SteeringSummary3& s,
+std::string summaryJson(const needle_model::Scene3d& scene, const SteeringSummary3& s,
                         const std::vector<double>& round_trip_ms, std::uint64_t seed,
                         const NodeDeath3& death, const std::string& safe_stop) {
   const auto num = [](double v) { return report::jsonNumber(v); };
@@ -319,7 +319,7 @@ std::string summaryJson(const steering_3d::Scene3d& scene, const SteeringSummary
   return json.str();
 }
 
-void writePlots(const std::string& dir, const steering_3d::Scene3d& scene,
+void writePlots(const std::string& dir, const needle_model::Scene3d& scene,
                 const std::vector<TrialResult3>& results) {
   report::LinePlot errors("Final tip error per trial (" + scene.name + ")", "trial",
                           "tip to target centre [mm]");
@@ -345,7 +345,7 @@ void writePlots(const std::string& dir, const steering_3d::Scene3d& scene,
 
 }  // namespace
 
-void writeSteeringReport3(const std::string& report_dir, const steering_3d::Scene3d& scene,
+void writeSteeringReport3(const std::string& report_dir, const needle_model::Scene3d& scene,
                           const SteeringRun3& run, const std::vector<double>& round_trip_ms,
                           std::uint64_t seed, const NodeDeath3& death) {
   const std::vector<TrialResult3>& results = run.results;
@@ -363,12 +363,12 @@ void writeSteeringReport3(const std::string& report_dir, const steering_3d::Scen
     for (double t : r.replan_s) {
       replan_ms.push_back(t * 1e3);
     }
-    trials.addRow({static_cast<double>(k), r.success ? 1.0 : 0.0, steering_3d::toString(r.contact),
+    trials.addRow({static_cast<double>(k), r.success ? 1.0 : 0.0, needle_model::toString(r.contact),
                    r.obstacle, r.target_error_m * 1e3, static_cast<double>(r.steps),
                    r.initial_plan_s, static_cast<double>(r.replan_s.size()),
                    report::median(replan_ms), r.predicted_p_success,
                    k < faulted.size() && faulted[k] ? 1.0 : 0.0, r.message});
-    for (const steering_3d::Vector3& p : r.path) {
+    for (const needle_model::Vector3& p : r.path) {
       paths.addRow({static_cast<double>(k), p.x() * 1e3, p.y() * 1e3, p.z() * 1e3});
     }
   }

@@ -13,10 +13,10 @@
 namespace needle_guidance::robot {
 namespace {
 
-using steering::ArcOutcome;
-using steering::Bevel;
-using steering::Control;
-using steering::TipPose;
+using needle_model::ArcOutcome;
+using needle_model::Bevel;
+using needle_model::Control;
+using needle_model::TipPose;
 
 constexpr double kHalfPi = 0.5 * kPi;
 
@@ -50,7 +50,7 @@ std::string NeedleContact::toString() const {
   }
 }
 
-SteerableNeedle::SteerableNeedle(const steering::SteeringProblem& problem,
+SteerableNeedle::SteerableNeedle(const needle_model::PlanarWorkspace& workspace,
                                  const SteerableNeedleConfig& config, const EntryPose& entry)
     : config_(config), rng_(config.seed) {
   requireFiniteNonNegative(config.sigma_insert_rad, "sigma_insert_rad");
@@ -65,8 +65,8 @@ SteerableNeedle::SteerableNeedle(const steering::SteeringProblem& problem,
                                 meters(config.min_height_m) + ", " + meters(config.max_height_m) +
                                 "] is empty or not finite");
   }
-  world_ = std::make_unique<steering::ContinuousWorkspace>(problem, config.chord_tolerance_m);
-  radius_m_ = problem.params.radius_m;
+  world_ = std::make_unique<needle_model::PlanarWorld>(workspace, config.chord_tolerance_m);
+  radius_m_ = workspace.radius_m;
   const CommandStatus ok = checkEntry(entry);
   if (!ok) {
     throw std::invalid_argument("SteerableNeedle: initial entry refused: " + ok.toString());
@@ -116,7 +116,7 @@ CommandStatus SteerableNeedle::setEntry(const EntryPose& entry) {
   contact_ = NeedleContact{};
   std::ostringstream out;
   out << std::setprecision(6) << "entry at " << point(entryPoint()) << ", angle " << entry.angle_rad
-      << " rad, bevel " << steering::toString(entry.bevel);
+      << " rad, bevel " << needle_model::toString(entry.bevel);
   record("set_entry", true, out.str());
   return CommandStatus::accepted();
 }
@@ -129,10 +129,10 @@ CommandStatus SteerableNeedle::reseed(std::uint64_t seed) {
 }
 
 CommandStatus SteerableNeedle::flip() {
-  bevel_ = steering::flipped(bevel_);
+  bevel_ = needle_model::flipped(bevel_);
   flip_pending_ = true;
   insertion_open_ = false;
-  record("flip", true, "bevel " + steering::toString(bevel_));
+  record("flip", true, "bevel " + needle_model::toString(bevel_));
   return CommandStatus::accepted();
 }
 
@@ -169,7 +169,7 @@ CommandStatus SteerableNeedle::beginInsertion() {
   flip_pending_ = false;
   std::ostringstream out;
   out << std::setprecision(6) << "insertion from " << length_m_ << " m ("
-      << steering::toString(segment.control) << "), beta " << segment.beta_rad << " rad";
+      << needle_model::toString(segment.control) << "), beta " << segment.beta_rad << " rad";
   record("insert", true, out.str(), &segments_.back());
   return CommandStatus::accepted();
 }
@@ -191,7 +191,7 @@ MotionStatus SteerableNeedle::advanceTo(double length_m) {
                                        "; retract instead");
   }
   NeedleSegment& segment = segments_.back();
-  const steering::ArcTrace trace =
+  const needle_model::ArcTrace trace =
       world_->traceArc(tip(), Control::kInsert, 0.0, length_m - length_m_);
   if (trace.outcome == ArcOutcome::kFree) {
     length_m_ = length_m;
@@ -255,7 +255,7 @@ TipPose SteerableNeedle::segmentPose(const NeedleSegment& segment, double along_
   if (along_m <= 0.0) {
     return segment.start;
   }
-  return steering::advanceTip(segment.start, Control::kInsert, 0.0, along_m, radius_m_);
+  return needle_model::advanceTip(segment.start, Control::kInsert, 0.0, along_m, radius_m_);
 }
 
 TipPose SteerableNeedle::tipAt(double length_m) const {
@@ -362,8 +362,8 @@ void NeedleJournalFile::write(const NeedleJournalEntry& e, double time_s) {
   impl_->out << std::setprecision(17) << time_s << ',' << e.sequence << ',' << e.event << ','
              << (e.accepted ? 1 : 0) << ',' << e.length_m << ',' << e.tip.p_SceneTip.x() << ','
              << e.tip.p_SceneTip.y() << ',' << e.tip.theta_rad << ','
-             << steering::toString(e.tip.bevel) << ',' << e.beta_rad << ',' << e.sigma_rad << ','
-             << e.draw_index << ",\"" << message << "\"\n"
+             << needle_model::toString(e.tip.bevel) << ',' << e.beta_rad << ',' << e.sigma_rad
+             << ',' << e.draw_index << ",\"" << message << "\"\n"
              << std::flush;
 }
 

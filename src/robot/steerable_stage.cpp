@@ -72,10 +72,10 @@ std::string SteerableStage::refusal(LinearCommand command, double target_m) cons
   return "";
 }
 
-steering::Bevel SteerableStage::jointBevel() const {
+needle_model::Bevel SteerableStage::jointBevel() const {
   const JointLimits& b = stage_.limits()[StageJoint::kBevel];
-  return stage_.state().bevel_rad() < 0.5 * (b.lower + b.upper) ? steering::Bevel::kLeft
-                                                                : steering::Bevel::kRight;
+  return stage_.state().bevel_rad() < 0.5 * (b.lower + b.upper) ? needle_model::Bevel::kLeft
+                                                                : needle_model::Bevel::kRight;
 }
 
 bool SteerableStage::bevelAtEnd() const {
@@ -160,8 +160,8 @@ CommandStatus SteerableStage::setEntry(const EntryPose& entry,
     return status;
   }
   const JointLimits& b = stage_.limits()[StageJoint::kBevel];
-  status =
-      stage_.placeGuide(entry.height_m, entry.bevel == steering::Bevel::kLeft ? b.lower : b.upper);
+  status = stage_.placeGuide(entry.height_m,
+                             entry.bevel == needle_model::Bevel::kLeft ? b.lower : b.upper);
   if (status) {
     status = needle_.setEntry(entry);
   }

@@ -10,8 +10,8 @@
 
 namespace needle_guidance::robot {
 
-namespace sd = steering_3d;
-using sd::Vector3;
+namespace sd = needle_model;
+using needle_model::Vector3;
 
 namespace {
 
@@ -39,14 +39,14 @@ Vector3 pointAt(const std::vector<Vector3>& p, const std::vector<double>& s, dou
 
 /// The tip at arc length `at` of a polyline: its point, the tangent of its segment, the bevel
 /// as close to `bevel_hint` as the tangent allows.
-sd::TipPose3 poseAt(const std::vector<Vector3>& p, const std::vector<double>& s, double at,
-                    const sd::TipPose3& hint) {
+needle_model::TipPose3 poseAt(const std::vector<Vector3>& p, const std::vector<double>& s,
+                              double at, const needle_model::TipPose3& hint) {
   const std::size_t i = segmentAt(s, at);
   const Vector3 d = p.size() >= 2 ? Vector3(p[i + 1] - p[i]) : Vector3::Zero();
   const Vector3 tangent = d.norm() > 1e-12 ? Vector3(d.normalized()) : hint.tangent();
   const Vector3 bevel =
       std::abs(hint.bevel().dot(tangent)) < 0.99 ? hint.bevel() : tangent.unitOrthogonal();
-  return sd::makeTipPose(pointAt(p, s, at), tangent, bevel);
+  return needle_model::makeTipPose(pointAt(p, s, at), tangent, bevel);
 }
 
 std::string csvQuoted(const std::string& text) {
@@ -74,12 +74,12 @@ struct SteerableStage3d::Motion {
     double length_m = 0.0;
     double cycle_m = 0.0;
     double spins_before = 0.0;  ///< full duty-cycle turns in earlier pieces
-    sd::DutyCycle cycle;
+    needle_model::DutyCycle cycle;
   };
   std::vector<Piece> pieces;
-  sd::TipPose3 rotated;  ///< the tip after the commanded rotation (shown while inserting)
-  sd::TipPose3 end;      ///< the drawn tip at the end of the whole length
-  sd::PathCheck check;
+  needle_model::TipPose3 rotated;  ///< the tip after the commanded rotation (shown while inserting)
+  needle_model::TipPose3 end;      ///< the drawn tip at the end of the whole length
+  needle_model::PathCheck check;
 
   /// The axial joint's duty-cycle turns after `at` metres of this insertion [rad].
   double dutySpin(double at) const {
@@ -102,9 +102,9 @@ struct SteerableStage3d::Motion {
   }
 };
 
-SteerableStage3d::SteerableStage3d(InsertionStage& stage, const sd::Scene3d& scene,
-                                   const sd::NoiseParams3& noise, double spin_rate_limit_rad_s,
-                                   std::uint64_t seed)
+SteerableStage3d::SteerableStage3d(InsertionStage& stage, const needle_model::Scene3d& scene,
+                                   const needle_model::NoiseParams3& noise,
+                                   double spin_rate_limit_rad_s, std::uint64_t seed)
     : stage_(stage),
       scene_(scene),
       world_(scene.collisionWorld()),
@@ -118,9 +118,9 @@ SteerableStage3d::SteerableStage3d(InsertionStage& stage, const sd::Scene3d& sce
   params_.spin_rate_max_rad_s = std::min(params_.spin_rate_max_rad_s, spin_rate_limit_rad_s);
   params_.validate();
   noise_.validate();
-  needle_ = std::make_unique<sd::NoisyNeedle3>(params_, noise_, seed);
-  const sd::EntryRegion3& e = scene.entry;
-  entry_ = sd::makeTipPose(e.center_m, e.direction, e.direction.unitOrthogonal());
+  needle_ = std::make_unique<needle_model::NoisyNeedle3>(params_, noise_, seed);
+  const needle_model::EntryRegion3& e = scene.entry;
+  entry_ = needle_model::makeTipPose(e.center_m, e.direction, e.direction.unitOrthogonal());
   tip_ = entry_;
   path_.assign(1, entry_.p_SceneTip);
   path_s_.assign(1, 0.0);
@@ -143,7 +143,7 @@ void SteerableStage3d::record(const std::string& event, bool accepted, const std
   }
 }
 
-CommandStatus SteerableStage3d::setEntry(const sd::TipPose3& entry,
+CommandStatus SteerableStage3d::setEntry(const needle_model::TipPose3& entry,
                                          std::optional<std::uint64_t> reseed) {
   std::ostringstream why;
   why << std::setprecision(6);
@@ -168,14 +168,14 @@ CommandStatus SteerableStage3d::setEntry(const sd::TipPose3& entry,
     record("entry", false, refused.toString());
     return refused;
   }
-  entry_ = sd::makeTipPose(p, entry.tangent(), entry.bevel());
+  entry_ = needle_model::makeTipPose(p, entry.tangent(), entry.bevel());
   tip_ = entry_;
   path_.assign(1, p);
   path_s_.assign(1, 0.0);
-  contact_ = sd::Contact3::kFree;
+  contact_ = needle_model::Contact3::kFree;
   obstacle_.clear();
   if (reseed) {
-    needle_ = std::make_unique<sd::NoisyNeedle3>(params_, noise_, *reseed);
+    needle_ = std::make_unique<needle_model::NoisyNeedle3>(params_, noise_, *reseed);
   }
   std::ostringstream msg;
   msg << std::setprecision(6) << "entry (" << p.transpose() << ") m, tangent ("
@@ -188,14 +188,14 @@ CommandStatus SteerableStage3d::setEntry(const sd::TipPose3& entry,
 std::string SteerableStage3d::refusal(const Steer3Command& c) const {
   std::ostringstream out;
   out << std::setprecision(6);
-  const sd::Control3& u = c.control;
+  const needle_model::Control3& u = c.control;
   const JointLimits& depth = stage_.limits()[StageJoint::kDepth];
   const double travel_m = std::min(stage_.sceneLimits().max_depth_m, depth.upper);
   if (stage_.operatingState() == OperatingState::kEstopped) {
     out << "the emergency stop is active";
   } else if (busy()) {
     out << "a motion is running";
-  } else if (contact_ != sd::Contact3::kFree) {
+  } else if (contact_ != needle_model::Contact3::kFree) {
     out << "the needle tip is in contact (" << sd::toString(contact_)
         << (obstacle_.empty() ? "" : " " + obstacle_) << "); retract first";
   } else if (!std::isfinite(u.rotate_rad) || !std::isfinite(u.curvature_per_m) ||
@@ -220,8 +220,8 @@ std::string SteerableStage3d::refusal(const Steer3Command& c) const {
     out << "velocity " << c.velocity_m_s << " m/s is not in (0, " << depth.max_velocity << "] m/s";
   } else {
     const double step = std::min(u.length_m, scene_.step_length_m);
-    const sd::DutyCycle cycle =
-        sd::dutyCycleFor(u.curvature_per_m, params_, sd::cycleLength(step, params_));
+    const needle_model::DutyCycle cycle = needle_model::dutyCycleFor(
+        u.curvature_per_m, params_, needle_model::cycleLength(step, params_));
     const double rate = cycle.spin_rate_rad_s * c.velocity_m_s / params_.insertion_speed_m_s;
     if (rate > params_.spin_rate_max_rad_s * (1.0 + kRelTol)) {
       out << "duty-cycled spinning for " << cycle.kappa_per_m << " /m at " << c.velocity_m_s
@@ -263,10 +263,10 @@ CommandStatus SteerableStage3d::steer(const Steer3Command& c) {
   m->command = c;
   m->spin_start_rad = spin_rad_;
   m->start_m = insertedLength_m();
-  m->rotated = sd::rotateBevel(tip_, c.control.rotate_rad);
+  m->rotated = needle_model::rotateBevel(tip_, c.control.rotate_rad);
   // The world's outcome, drawn now: one noise draw per scene step, as executeStep3.
   const double step = scene_.step_length_m;
-  sd::TipPose3 pose = tip_;
+  needle_model::TipPose3 pose = tip_;
   m->points.assign(1, tip_.p_SceneTip);
   m->s.assign(1, 0.0);
   double done_m = 0.0;
@@ -274,9 +274,9 @@ CommandStatus SteerableStage3d::steer(const Steer3Command& c) {
   while (done_m < c.control.length_m * (1.0 - kRelTol)) {
     const double left = c.control.length_m - done_m;
     const double len = left <= step * (1.0 + kRelTol) ? left : step;
-    const sd::Control3 piece{done_m == 0.0 ? c.control.rotate_rad : 0.0, c.control.curvature_per_m,
-                             len};
-    const sd::StepRecord rec = needle_->step(pose, piece);
+    const needle_model::Control3 piece{done_m == 0.0 ? c.control.rotate_rad : 0.0,
+                                       c.control.curvature_per_m, len};
+    const needle_model::StepRecord rec = needle_->step(pose, piece);
     double chord = 0.0;
     for (std::size_t i = 1; i < rec.path.size(); ++i) {
       chord += (rec.path[i] - rec.path[i - 1]).norm();
@@ -288,7 +288,7 @@ CommandStatus SteerableStage3d::steer(const Steer3Command& c) {
       m->points.push_back(rec.path[i]);
       m->s.push_back(done_m + s);
     }
-    const double cycle_m = sd::cycleLength(len, params_);
+    const double cycle_m = needle_model::cycleLength(len, params_);
     m->pieces.push_back({done_m, len, cycle_m, spins, rec.cycle});
     spins += rec.cycle.spin_fraction > 0.0 ? std::round(len / cycle_m) : 0.0;
     if (done_m == 0.0) {
@@ -423,7 +423,7 @@ void SteerableStage3d::endMotion(const std::string& event, const std::string& me
     path_s_.push_back(m.start_m + at);
   }
   // Stopped before the insertion began: the bevel turned part of the way.
-  tip_ = m.rotating ? sd::rotateBevel(tip_, spin_rad_ - m.spin_start_rad)
+  tip_ = m.rotating ? needle_model::rotateBevel(tip_, spin_rad_ - m.spin_start_rad)
          : whole    ? m.end
                     : poseAt(m.points, m.s, at, m.rotated);
   spin_rad_ = std::remainder(spin_rad_, kTwoPi);
@@ -444,8 +444,8 @@ void SteerableStage3d::placeTipAt(double inserted_m) {
     path_.push_back(tip_.p_SceneTip);
     path_s_.push_back(inserted_m);
   }
-  if (contact_ != sd::Contact3::kFree) {
-    contact_ = sd::Contact3::kFree;
+  if (contact_ != needle_model::Contact3::kFree) {
+    contact_ = needle_model::Contact3::kFree;
     record("retracted", true,
            "retracted from the contact with " + (obstacle_.empty() ? "the boundary" : obstacle_));
     obstacle_.clear();

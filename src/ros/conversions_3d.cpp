@@ -12,7 +12,7 @@
 namespace needle_guidance::ros_conversions {
 namespace {
 
-geometry_msgs::Point point(const steering_3d::Vector3& p) {
+geometry_msgs::Point point(const needle_model::Vector3& p) {
   return toPointMessage(p);
 }
 
@@ -23,7 +23,7 @@ visualization_msgs::Marker marker(const std::string& frame_id, const std::string
   return m;
 }
 
-visualization_msgs::Marker meshMarker(const steering_3d::Mesh3& mesh, const std::string& frame_id,
+visualization_msgs::Marker meshMarker(const needle_model::Mesh3& mesh, const std::string& frame_id,
                                       const std::string& ns, int id, const std_msgs::ColorRGBA& c) {
   visualization_msgs::Marker m =
       marker(frame_id, ns, id, visualization_msgs::Marker::TRIANGLE_LIST, c);
@@ -38,7 +38,7 @@ visualization_msgs::Marker meshMarker(const steering_3d::Mesh3& mesh, const std:
 
 }  // namespace
 
-geometry_msgs::Pose toMessage(const steering_3d::TipPose3& tip) {
+geometry_msgs::Pose toMessage(const needle_model::TipPose3& tip) {
   geometry_msgs::Pose m;
   m.position = point(tip.p_SceneTip);
   const Eigen::Quaterniond q(tip.R_SceneTip);
@@ -49,7 +49,7 @@ geometry_msgs::Pose toMessage(const steering_3d::TipPose3& tip) {
   return m;
 }
 
-std::string fromMessage(const geometry_msgs::Pose& pose, steering_3d::TipPose3& tip) {
+std::string fromMessage(const geometry_msgs::Pose& pose, needle_model::TipPose3& tip) {
   const auto& p = pose.position;
   const auto& o = pose.orientation;
   if (!std::isfinite(p.x) || !std::isfinite(p.y) || !std::isfinite(p.z)) {
@@ -64,17 +64,17 @@ std::string fromMessage(const geometry_msgs::Pose& pose, steering_3d::TipPose3& 
     out << "tip orientation quaternion has norm " << q.norm() << ", not 1";
     return out.str();
   }
-  tip.p_SceneTip = steering_3d::Vector3(p.x, p.y, p.z);
+  tip.p_SceneTip = needle_model::Vector3(p.x, p.y, p.z);
   tip.R_SceneTip = q.normalized().toRotationMatrix();
   return "";
 }
 
 std::string fromMessage(const geometry_msgs::PoseWithCovarianceStamped& msg,
-                        const std::string& frame_id, steering_3d::TipPose3& tip) {
+                        const std::string& frame_id, needle_model::TipPose3& tip) {
   if (msg.header.frame_id != frame_id) {
     return "tip pose in frame '" + msg.header.frame_id + "', expected '" + frame_id + "'";
   }
-  steering_3d::TipPose3 decoded;
+  needle_model::TipPose3 decoded;
   if (const std::string bad = fromMessage(msg.pose.pose, decoded); !bad.empty()) {
     return bad;
   }
@@ -90,17 +90,17 @@ std::string fromMessage(const geometry_msgs::PoseWithCovarianceStamped& msg,
   return "";
 }
 
-std::vector<steering_3d::Control3> controlsFromArrays(const std::vector<double>& rotate_rad,
-                                                      const std::vector<double>& curvature_per_m,
-                                                      const std::vector<double>& insertion_m) {
+std::vector<needle_model::Control3> controlsFromArrays(const std::vector<double>& rotate_rad,
+                                                       const std::vector<double>& curvature_per_m,
+                                                       const std::vector<double>& insertion_m) {
   if (rotate_rad.size() != curvature_per_m.size() || rotate_rad.size() != insertion_m.size()) {
     throw std::invalid_argument(
         "plan arrays of different lengths (" + std::to_string(rotate_rad.size()) + ", " +
         std::to_string(curvature_per_m.size()) + ", " + std::to_string(insertion_m.size()) + ")");
   }
-  std::vector<steering_3d::Control3> out;
+  std::vector<needle_model::Control3> out;
   for (std::size_t k = 0; k < rotate_rad.size(); ++k) {
-    const steering_3d::Control3 c{rotate_rad[k], curvature_per_m[k], insertion_m[k]};
+    const needle_model::Control3 c{rotate_rad[k], curvature_per_m[k], insertion_m[k]};
     if (!std::isfinite(c.rotate_rad) || !std::isfinite(c.curvature_per_m) ||
         !std::isfinite(c.length_m) || c.curvature_per_m < 0.0 || c.length_m < 0.0) {
       throw std::invalid_argument("plan control " + std::to_string(k) +
@@ -111,17 +111,17 @@ std::vector<steering_3d::Control3> controlsFromArrays(const std::vector<double>&
   return out;
 }
 
-void controlsToArrays(const std::vector<steering_3d::Control3>& controls,
+void controlsToArrays(const std::vector<needle_model::Control3>& controls,
                       std::vector<double>& rotate_rad, std::vector<double>& curvature_per_m,
                       std::vector<double>& insertion_m) {
-  for (const steering_3d::Control3& c : controls) {
+  for (const needle_model::Control3& c : controls) {
     rotate_rad.push_back(c.rotate_rad);
     curvature_per_m.push_back(c.curvature_per_m);
     insertion_m.push_back(c.length_m);
   }
 }
 
-visualization_msgs::MarkerArray sceneToMarkers(const steering_3d::Scene3d& scene,
+visualization_msgs::MarkerArray sceneToMarkers(const needle_model::Scene3d& scene,
                                                const std::string& frame_id) {
   visualization_msgs::MarkerArray out;
   out.markers.push_back(
@@ -139,7 +139,7 @@ visualization_msgs::MarkerArray sceneToMarkers(const steering_3d::Scene3d& scene
       frame_id, "entry", 0, visualization_msgs::Marker::CYLINDER, colour(0.2, 0.4, 0.95, 0.6));
   entry.pose.position = point(scene.entry.center_m);
   const Eigen::Quaterniond q =
-      Eigen::Quaterniond::FromTwoVectors(steering_3d::Vector3::UnitZ(), scene.entry.direction);
+      Eigen::Quaterniond::FromTwoVectors(needle_model::Vector3::UnitZ(), scene.entry.direction);
   entry.pose.orientation.w = q.w();
   entry.pose.orientation.x = q.x();
   entry.pose.orientation.y = q.y();
@@ -150,7 +150,7 @@ visualization_msgs::MarkerArray sceneToMarkers(const steering_3d::Scene3d& scene
   return out;
 }
 
-visualization_msgs::Marker lineStrip(const std::vector<steering_3d::Vector3>& points,
+visualization_msgs::Marker lineStrip(const std::vector<needle_model::Vector3>& points,
                                      const std::string& frame_id, const std::string& ns,
                                      const std_msgs::ColorRGBA& c, double width_m) {
   visualization_msgs::Marker m = marker(frame_id, ns, 0, visualization_msgs::Marker::LINE_STRIP, c);

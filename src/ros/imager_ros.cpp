@@ -38,11 +38,11 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   scene::Scene scene;
   imaging::ImagerConfig config;
   if (const auto axis = imaging::viewAxis(view)) {  // one fluoroscopy view of a 3-D scene
-    rows_ = steering_3d::viewRows(*axis);
+    rows_ = needle_model::viewRows(*axis);
     imaging::BiplaneViewsConfig views;  // the biplane detector's geometry; along y seed + 1
     views.seed = seed;
     imaging::BiplaneViewSetup setup =
-        imaging::biplaneViewSetup(steering_3d::loadScene3d(scene_spec), views, *axis);
+        imaging::biplaneViewSetup(needle_model::loadScene3d(scene_spec), views, *axis);
     scene = std::move(setup.plane);
     config = setup.imager;
   } else {  // every device setting defaults to the scene's imaging section

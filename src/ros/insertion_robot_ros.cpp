@@ -18,7 +18,7 @@
 #include "needle_guidance/ros/conversions_3d.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
-#include "needle_guidance/steering/steering_model.h"
+#include "needle_guidance/steering/continuous_workspace.h"
 
 namespace needle_guidance {
 namespace {
@@ -116,8 +116,8 @@ void InsertionRobotRos::setUpSteerableNeedle(const ros::NodeHandle& private_nh,
   entry.angle_rad = 0.0;
   entry.bevel = initial_bevel_rad == b.lower ? steering::Bevel::kLeft : steering::Bevel::kRight;
   try {
-    needle_ =
-        std::make_unique<robot::SteerableNeedle>(steering::problemFromScene(scene), config, entry);
+    needle_ = std::make_unique<robot::SteerableNeedle>(
+        steering::planarWorkspace(steering::problemFromScene(scene)), config, entry);
   } catch (const std::invalid_argument& e) {
     throw std::runtime_error(std::string("steerable needle: ") + e.what());
   }
@@ -138,7 +138,7 @@ void InsertionRobotRos::setUpSteerable3d(const ros::NodeHandle& private_nh,
                                          const std::string& scene_file,
                                          const robot::StageLimits& limits,
                                          const std::string& journal_path) {
-  scene3d_ = std::make_unique<steering_3d::Scene3d>(steering_3d::loadScene3d(scene_file));
+  scene3d_ = std::make_unique<needle_model::Scene3d>(needle_model::loadScene3d(scene_file));
   const double noise = ros_params::number(private_nh, "noise_scale", 1.0, 0.0, 10.0, "x sigma");
   const auto seed = ros_params::integer(private_nh, "seed", 1, 0, 9007199254740992L, "");
   steer3d_ = std::make_unique<robot::SteerableStage3d>(
@@ -638,10 +638,10 @@ Steer3Result InsertionRobotRos::steerResult(bool success, const std::string& mes
   Steer3Result r;
   r.success = success;
   r.message = message;
-  r.contact = steering_3d::toString(steer3d_->contact());
+  r.contact = needle_model::toString(steer3d_->contact());
   r.obstacle = steer3d_->contactObstacle();
   r.tip = ros_conversions::toMessage(steer3d_->tip());
-  for (const steering_3d::Vector3& p : steer3d_->lastPath()) {
+  for (const needle_model::Vector3& p : steer3d_->lastPath()) {
     r.path.push_back(ros_conversions::toMessage(geometry::Point2(p.x(), p.y()), p.z()));
   }
   r.inserted_length_m = steer3d_->insertedLength_m();
@@ -651,7 +651,7 @@ Steer3Result InsertionRobotRos::steerResult(bool success, const std::string& mes
 }
 
 bool InsertionRobotRos::onSetEntryPose3(SetEntryPose3::Request& req, SetEntryPose3::Response& res) {
-  steering_3d::TipPose3 entry;
+  needle_model::TipPose3 entry;
   const std::string bad = ros_conversions::fromMessage(req.entry, entry);
   const robot::CommandStatus status =
       bad.empty() ? steer3d_->setEntry(entry, req.reseed ? std::optional(req.seed) : std::nullopt)

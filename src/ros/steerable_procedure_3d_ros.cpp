@@ -38,7 +38,7 @@ SteerableProcedure3dRos::SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeH
   report_dir_ = ros_params::rosHomePath(rp::text(private_nh, "report_dir", "", true));
   const procedures::TipSource3 source = procedures::tipSource3OrThrow(
       rp::text(private_nh, "tip_source", "truth"), private_nh.resolveName("tip_source"));
-  scene_ = std::make_unique<sd::Scene3d>(sd::loadScene3d(scene_path));
+  scene_ = std::make_unique<needle_model::Scene3d>(needle_model::loadScene3d(scene_path));
   if (source == procedures::TipSource3::kBiplane) {  // the frames of the two imager nodes
     fusion_ = std::make_unique<imaging::BiplaneFusion3>(*scene_, imaging::BiplaneViewsConfig{});
     for (int k = 0; k < 2; ++k) {
@@ -47,7 +47,7 @@ SteerableProcedure3dRos::SteerableProcedure3dRos(ros::NodeHandle& nh, ros::NodeH
           [this, k](const sensor_msgs::ImageConstPtr& m) { views_[k].set(*m); });
     }
   }
-  world_ = std::make_unique<sd::CollisionWorld3>(scene_->collisionWorld());
+  world_ = std::make_unique<needle_model::CollisionWorld3>(scene_->collisionWorld());
   std::string urdf;  // the robot's own model: the insertion joint's travel
   travel_m_ = nh.getParam("robot_description", urdf)
                   ? robot::parseStageLimits(urdf)[robot::StageJoint::kDepth].upper
@@ -72,7 +72,7 @@ std::optional<SteeringControl3> SteerableProcedure3dRos::exchange(
   msg.header.frame_id = "scene";
   msg.header.stamp = ros::Time::now();
   msg.pose.pose = ros_conversions::toMessage(trial.observedTip());
-  const sd::Matrix3 covariance = trial.observedCovariance_m2(tip_sigma_m_);
+  const needle_model::Matrix3 covariance = trial.observedCovariance_m2(tip_sigma_m_);
   for (int k = 0; k < 9; ++k) {
     msg.pose.covariance[static_cast<std::size_t>(6 * (k / 3) + k % 3)] = covariance(k / 3, k % 3);
   }
@@ -97,7 +97,7 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial,
     trial.refuseStart(procedures::planCodeFromName(srv.response.status), srv.response.message);
     return true;
   }
-  sd::TipPose3 entry;
+  needle_model::TipPose3 entry;
   if (const std::string bad = ros_conversions::fromMessage(srv.response.start, entry);
       !bad.empty()) {
     trial.abort("the planner's entry pose: " + bad);
@@ -108,14 +108,13 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial,
     trial.abort(failed);
     return false;
   }
-  trial.setWorld([this](const sd::Control3& c, sd::TipPose3& tip, sd::TrialResult3& r) {
-    return robotStep(c, tip, r);
-  });
+  trial.setWorld([this](const needle_model::Control3& c, needle_model::TipPose3& tip,
+                        sd::TrialResult3& r) { return robotStep(c, tip, r); });
   // As runTrial3: the entry plan's first step, then a replan from every tip.
   trial.setPlan(ros_conversions::controlsFromArrays(
       srv.response.rotate_rad, srv.response.curvature_per_m, srv.response.insertion_m));
   if (fusion_) {  // one frame of each imager after the step, fused
-    trial.setObserver([this](const auto&, const sd::TipPose3& predicted, auto) {
+    trial.setObserver([this](const auto&, const needle_model::TipPose3& predicted, auto) {
       imaging::Frame frames[2];
       for (int k = 0; k < 2; ++k) {
         sensor_msgs::Image m;
@@ -138,10 +137,10 @@ bool SteerableProcedure3dRos::runTrial(procedures::SteeringTrial3& trial,
     }
     round_trip_ms_.push_back(
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
-    std::vector<sd::Control3> plan = ros_conversions::controlsFromArrays(
+    std::vector<needle_model::Control3> plan = ros_conversions::controlsFromArrays(
         answer->next_rotate_rad, answer->next_curvature_per_m, answer->next_insertion_m);
-    plan.insert(plan.begin(),
-                sd::Control3{answer->rotate_rad, answer->curvature_per_m, answer->insertion_m});
+    plan.insert(plan.begin(), needle_model::Control3{answer->rotate_rad, answer->curvature_per_m,
+                                                     answer->insertion_m});
     if (!trial.followAnswer(answer->status, answer->message, answer->plan_seconds, plan)) {
       return false;
     }
@@ -178,7 +177,8 @@ void SteerableProcedure3dRos::progress(const std::string& line) {
   ROS_INFO_STREAM("steerable_procedure_3d: " << line);
 }
 
-std::string SteerableProcedure3dRos::placeRobot(const sd::TipPose3& entry, std::uint64_t seed) {
+std::string SteerableProcedure3dRos::placeRobot(const needle_model::TipPose3& entry,
+                                                std::uint64_t seed) {
   if (const std::string failed = retract([this] { return fault(); }); !failed.empty()) {
     return "the robot did not retract: " + failed;
   }
@@ -192,8 +192,8 @@ std::string SteerableProcedure3dRos::placeRobot(const sd::TipPose3& entry, std::
   return "";
 }
 
-bool SteerableProcedure3dRos::robotStep(const sd::Control3& c, sd::TipPose3& tip,
-                                        sd::TrialResult3& r) {
+bool SteerableProcedure3dRos::robotStep(const needle_model::Control3& c,
+                                        needle_model::TipPose3& tip, sd::TrialResult3& r) {
   Steer3Goal goal;
   goal.rotate_rad = c.rotate_rad;
   goal.spin_rate_rad_s = scene_->needle.spin_rate_max_rad_s;
@@ -205,7 +205,7 @@ bool SteerableProcedure3dRos::robotStep(const sd::Control3& c, sd::TipPose3& tip
   const bool ok = runGoal(
       *steer_, goal, control_timeout_s_, [this] { return fault(); }, message);
   const Steer3ResultConstPtr result = steer_->getResult();
-  std::vector<sd::Vector3> path;
+  std::vector<needle_model::Vector3> path;
   for (const geometry_msgs::Point& p : result->path) {
     path.emplace_back(p.x, p.y, p.z);
   }

@@ -3,11 +3,11 @@
 
 #include <geometry_msgs/TransformStamped.h>
 
+#include "needle_guidance/needle_model/scene_3d.h"
 #include "needle_guidance/ros/conversions.h"
 #include "needle_guidance/ros/conversions_3d.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/steering_3d/closed_loop_3d.h"
-#include "needle_guidance/steering_3d/scene_3d.h"
 
 namespace needle_guidance {
 
@@ -24,8 +24,8 @@ SteeringPlanner3dRos::SteeringPlanner3dRos(ros::NodeHandle& nh, ros::NodeHandle&
   seed_ = static_cast<std::uint64_t>(rp::integer(private_nh, "seed", 1, 0, 1L << 40, ""));
   const std::string parent_frame = rp::text(private_nh, "scene_parent_frame", "");
   const double noise_scale = rp::number(private_nh, "noise_scale", 1.0, 0.0, 10.0, "x scene sigma");
-  scene_ = std::make_unique<sd::Scene3d>(sd::loadScene3d(scene_path));
-  world_ = std::make_unique<sd::CollisionWorld3>(scene_->collisionWorld());
+  scene_ = std::make_unique<needle_model::Scene3d>(needle_model::loadScene3d(scene_path));
+  world_ = std::make_unique<needle_model::CollisionWorld3>(scene_->collisionWorld());
   planner_ =
       std::make_unique<sd::Planner3>(*scene_, *world_, params, scene_->noise.scaled(noise_scale));
   control_pub_ = private_nh.advertise<SteeringControl3>("control", 10);
@@ -50,7 +50,7 @@ void SteeringPlanner3dRos::onTip(const geometry_msgs::PoseWithCovarianceStampedC
   SteeringControl3 out;
   out.header.stamp = msg->header.stamp;
   out.header.frame_id = "scene";
-  sd::TipPose3 tip;
+  needle_model::TipPose3 tip;
   const std::string refusal = ros_conversions::fromMessage(*msg, "scene", tip);
   if (!refusal.empty()) {
     out.status = "bad_input";
@@ -68,15 +68,15 @@ void SteeringPlanner3dRos::onTip(const geometry_msgs::PoseWithCovarianceStampedC
     out.status = sd::toString(plan.status().code());
     out.message = plan.status().toString();
   } else {
-    const sd::Control3& c = plan.value().controls.front();
+    const needle_model::Control3& c = plan.value().controls.front();
     out.status = "ok";
     out.rotate_rad = c.rotate_rad;
     out.curvature_per_m = c.curvature_per_m;
     out.insertion_m = c.length_m;
     out.plan_length_m = plan.value().length_m;
     out.p_success = plan.value().p_success;
-    const std::vector<sd::Control3> later(plan.value().controls.begin() + 1,
-                                          plan.value().controls.end());
+    const std::vector<needle_model::Control3> later(plan.value().controls.begin() + 1,
+                                                    plan.value().controls.end());
     ros_conversions::controlsToArrays(later, out.next_rotate_rad, out.next_curvature_per_m,
                                       out.next_insertion_m);
     publishPlan(plan.value());

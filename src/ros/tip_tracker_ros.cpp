@@ -28,7 +28,7 @@ NeedleTip toMessage(const imaging::TipEstimate& e, const std_msgs::Header& image
   msg.pose.x = e.tip.p_SceneTip.x();
   msg.pose.y = e.tip.p_SceneTip.y();
   msg.pose.theta = e.tip.theta_rad;
-  msg.bevel = steering::toString(e.tip.bevel);
+  msg.bevel = needle_model::toString(e.tip.bevel);
   msg.inserted_length_m = e.inserted_length_m;
   msg.source = imaging::toString(e.status);
   msg.confident = e.confident;
@@ -204,7 +204,7 @@ void TipTrackerRos::applyDrives(const ros::Time& stamp) {
   while (!drives_.empty() && drives_.front().header.stamp <= stamp) {
     const NeedleDrive d = drives_.front();
     drives_.pop_front();
-    const auto bevel = steering::bevelFromString(d.bevel);
+    const auto bevel = needle_model::bevelFromString(d.bevel);
     if (!bevel || !std::isfinite(d.inserted_length_m) || !std::isfinite(d.entry.x) ||
         !std::isfinite(d.entry.y) || !std::isfinite(d.entry.theta)) {
       ROS_ERROR_STREAM_THROTTLE_NAMED(kThrottle_s, kName,
@@ -213,13 +213,13 @@ void TipTrackerRos::applyDrives(const ros::Time& stamp) {
       continue;
     }
     if (!have_entry_ || d.entry_id != entry_id_) {
-      steering::TipPose entry;
+      needle_model::TipPose entry;
       entry.p_SceneTip = imaging::Point2(d.entry.x, d.entry.y);
       entry.theta_rad = d.entry.theta;
       entry.bevel = *bevel;
       // The guide is where the robot put it; the bevel at the entry is the one before any flip.
       if (d.flips % 2 == 1) {
-        entry.bevel = steering::flipped(*bevel);
+        entry.bevel = needle_model::flipped(*bevel);
       }
       tracker_->reset(entry);
       entry_id_ = d.entry_id;

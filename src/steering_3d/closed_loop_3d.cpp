@@ -9,6 +9,8 @@
 #include <memory>
 
 namespace needle_guidance::steering_3d {
+
+using namespace needle_model;  // the needle, meshes and scene the planner works on
 namespace {
 
 using Clock = std::chrono::steady_clock;

@@ -8,6 +8,8 @@
 #include "needle_guidance/steering/continuous_workspace.h"
 
 namespace needle_guidance::steering_3d {
+
+using namespace needle_model;  // the needle, meshes and scene the planner works on
 namespace {
 
 double cross(const Eigen::Vector2d& a, const Eigen::Vector2d& b, const Eigen::Vector2d& c) {

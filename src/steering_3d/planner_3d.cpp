@@ -14,6 +14,8 @@
 #include "needle_guidance/steering_3d/closed_loop_3d.h"
 
 namespace needle_guidance::steering_3d {
+
+using namespace needle_model;  // the needle, meshes and scene the planner works on
 namespace {
 
 /// The tree samples in the box spanning its roots and the target, grown by this much and
@@ -748,6 +750,8 @@ std::size_t Planner3::choose(std::vector<Plan3>& plans, int rollouts,
 }  // namespace needle_guidance::steering_3d
 
 namespace needle_guidance::steering_3d {
+
+using namespace needle_model;  // the needle, meshes and scene the planner works on
 
 std::optional<Plan3> Planner3::planApproach(const TipPose3& tip, int rollouts,
                                             std::chrono::steady_clock::time_point deadline,

@@ -126,7 +126,7 @@ private:
       r.mesh_file = *file;
       const fs::path path = fs::path(*file).is_absolute() ? fs::path(*file) : base_dir_ / *file;
       try {
-        r.surface = steering_3d::readMesh3(path.string(), scale);
+        r.surface = needle_model::readMesh3(path.string(), scale);
       } catch (const std::exception& e) {
         m.fail(m.keyPath("mesh"), *file, e.what());
       }
@@ -138,7 +138,7 @@ private:
       if (!(a.array() > 0.0).all()) {
         m.fail(key, "", "every semi-axis must be > 0");
       }
-      r.surface = steering_3d::ellipsoidMesh(c, a, 16, 24);
+      r.surface = needle_model::ellipsoidMesh(c, a, 16, 24);
     }
     if (material) {
       r.material = readMaterial(*material);
@@ -311,7 +311,7 @@ int RegionLocator3::regionAt(const Vector3& p) const {
     return -2;
   }
   for (int r = static_cast<int>(regions_.size()) - 1; r >= 0; --r) {
-    const steering_3d::MeshDistance& d = regions_[static_cast<std::size_t>(r)];
+    const needle_model::MeshDistance& d = regions_[static_cast<std::size_t>(r)];
     if (((p - d.minCorner()).array() >= 0.0).all() && ((d.maxCorner() - p).array() >= 0.0).all() &&
         d.insideOrOn(p)) {
       return r;

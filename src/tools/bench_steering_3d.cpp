@@ -38,6 +38,7 @@
 
 namespace ng = needle_guidance;
 namespace s3 = ng::steering_3d;
+namespace nm = ng::needle_model;
 
 namespace {
 
@@ -94,10 +95,10 @@ double loadAverage() {
 }
 
 /// Runs `trials` seeded trials on two threads (trial i uses seed kFirstSeed + i).
-Cell runCell(const s3::Scene3d& scene, const s3::CollisionWorld3& world, double sigma_scale,
+Cell runCell(const nm::Scene3d& scene, const nm::CollisionWorld3& world, double sigma_scale,
              s3::Strategy3 strategy, bool biplane, int trials, ng::report::Table& per_trial) {
   std::vector<s3::TrialResult3> results(static_cast<std::size_t>(trials));
-  const s3::NoiseParams3 noise = scene.noise.scaled(sigma_scale);
+  const nm::NoiseParams3 noise = scene.noise.scaled(sigma_scale);
   const s3::PlannerParams3 params;
   s3::TrialOptions3 options;
   options.biplane = biplane;
@@ -119,8 +120,8 @@ Cell runCell(const s3::Scene3d& scene, const s3::CollisionWorld3& world, double 
   for (int i = 0; i < trials; ++i) {
     const s3::TrialResult3& r = results[static_cast<std::size_t>(i)];
     c.successes += r.success ? 1 : 0;
-    c.hit_obstacle += r.contact == s3::Contact3::kObstacle ? 1 : 0;
-    c.left_tissue += r.contact == s3::Contact3::kOutsideTissue ? 1 : 0;
+    c.hit_obstacle += r.contact == nm::Contact3::kObstacle ? 1 : 0;
+    c.left_tissue += r.contact == nm::Contact3::kOutsideTissue ? 1 : 0;
     c.no_plan += r.no_plan != s3::PlanCode::kOk ? 1 : 0;
     if (std::isfinite(r.target_error_m)) {
       c.errors_mm.push_back(r.target_error_m * kMmPerM);
@@ -151,7 +152,7 @@ Cell runCell(const s3::Scene3d& scene, const s3::CollisionWorld3& world, double 
     per_trial.addRow({scene.name, sigma_scale, s3::toString(strategy), biplane ? 1.0 : 0.0,
                       static_cast<double>(kFirstSeed + i), r.success ? 1.0 : 0.0,
                       r.target_error_m * kMmPerM, static_cast<double>(r.steps),
-                      r.predicted_p_success, s3::toString(r.contact), r.message});
+                      r.predicted_p_success, nm::toString(r.contact), r.message});
   }
   // Sum first, divide once: 200 x (1 / 200) can exceed 1 by an ulp and leave the interval.
   c.predicted_mean = std::min(1.0, c.predicted_mean / trials);
@@ -357,8 +358,8 @@ int runPartial(const ng::report::BenchArgs& args, const std::string& dir, int tr
     }
     const std::string name = head.substr(0, colon);
     const double sigma = std::stod(head.substr(colon + 1));
-    const s3::Scene3d scene = s3::loadScene3d(sceneFile(dir, name));
-    const s3::CollisionWorld3 world = scene.collisionWorld();
+    const nm::Scene3d scene = nm::loadScene3d(sceneFile(dir, name));
+    const nm::CollisionWorld3 world = scene.collisionWorld();
     for (s3::Strategy3 strategy :
          {s3::Strategy3::kReplanUncertainty, s3::Strategy3::kReplanFirstFound}) {
       const Cell c = runCell(scene, world, sigma, strategy, biplane, trials, per_trial);
@@ -398,8 +399,8 @@ int main(int argc, char** argv) {
     ng::report::Table per_trial = trialTable();
     std::vector<Cell> cells;
     for (const std::string& name : scenes) {
-      const s3::Scene3d scene = s3::loadScene3d(dir + name + ".yaml");
-      const s3::CollisionWorld3 world = scene.collisionWorld();
+      const nm::Scene3d scene = nm::loadScene3d(dir + name + ".yaml");
+      const nm::CollisionWorld3 world = scene.collisionWorld();
       for (double sigma : sigmas) {
         for (s3::Strategy3 strategy : strategies) {
           cells.push_back(runCell(scene, world, sigma, strategy, false,

@@ -241,7 +241,8 @@ SettingErrors runSetting(const Bench& b, const Device& device, double noise,
     entry.angle_rad = kEntryMaxAngle_rad * (2.0 * u01(rng) - 1.0);
     entry.bevel = u01(rng) < 0.5 ? st::Bevel::kLeft : st::Bevel::kRight;
     needle_config.seed = kSequenceSeed * 1000 + std::uint64_t(seq);
-    ng::robot::SteerableNeedle needle(b.problem, needle_config, entry);
+    ng::robot::SteerableNeedle needle(ng::steering::planarWorkspace(b.problem), needle_config,
+                                      entry);
     im::TipTracker tracker(tracker_config);
     tracker.reset(needle.tip());
     std::uint32_t flips = 0;
@@ -356,7 +357,7 @@ void runClosedLoop(Bench& b, const st::PolicyTable& table, const st::BestStart& 
   start.bevel = best.best.pose.bevel;
   ng::robot::SteerableNeedleConfig needle_config = b.needle_config;
   needle_config.seed = kTrialSeed;
-  ng::robot::SteerableNeedle world(b.problem, needle_config, start);
+  ng::robot::SteerableNeedle world(ng::steering::planarWorkspace(b.problem), needle_config, start);
   ng::report::Table loop_csv(
       {"feedback", "modality", "renderer", "noise_std", "trials", "successes", "success_rate",
        "ci_low", "ci_high", "tip_error_mm_median", "heading_error_deg_median",
@@ -390,8 +391,8 @@ void runClosedLoop(Bench& b, const st::PolicyTable& table, const st::BestStart& 
     const auto t0 = std::chrono::steady_clock::now();
     for (int k = 0; k < b.trials; ++k) {
       const ng::procedures::GuidedTrial trial = ng::procedures::runGuidedTrial(
-          world, start, kTrialSeed * 100000 + std::uint64_t(k), table, image ? &renderer : nullptr,
-          image ? &tracker : nullptr, frame_index);
+          world, start, b.delta_m, kTrialSeed * 100000 + std::uint64_t(k), table,
+          image ? &renderer : nullptr, image ? &tracker : nullptr, frame_index);
       successes += trial.outcome == st::TrialOutcome::kReachedTarget ? 1 : 0;
       for (double e : trial.tip_errors_m)
         tip_mm.push_back(e * kMmPerM);

@@ -9,9 +9,9 @@
 #include <vector>
 
 #include "needle_guidance/geometry/triangle_mesh.h"
+#include "needle_guidance/needle_model/scene_3d.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/scene/scene.h"
-#include "needle_guidance/steering_3d/scene_3d.h"
 #include "needle_guidance/tissue/tissue_simulation.h"
 #include "needle_guidance/tissue_3d/tet_mesh_3d.h"
 
@@ -42,7 +42,7 @@ void checkPlanar(const std::string& spec, bool mesh) {
 }
 
 void checkSteering3d(const std::string& path) {
-  const ng::steering_3d::Scene3d s = ng::steering_3d::loadScene3d(path);
+  const ng::needle_model::Scene3d s = ng::needle_model::loadScene3d(path);
   std::cout << "scene '" << s.name << "' (steering_3d) from " << s.source << ": OK\n"
             << "  tissue " << s.tissue.triangles.size() << " triangles, " << s.obstacles.size()
             << " obstacles, target radius " << 1e3 * s.target.radius_m << " mm, step "

@@ -8,10 +8,10 @@
 #include <vector>
 
 #include "needle_guidance/math.h"
+#include "needle_guidance/needle_model/mesh_3d.h"
 #include "needle_guidance/report/bench_args.h"
-#include "needle_guidance/steering_3d/mesh_3d.h"
 
-namespace ns = needle_guidance::steering_3d;
+namespace ns = needle_guidance::needle_model;
 using ns::Vector3;
 
 namespace {

@@ -17,6 +17,7 @@
 namespace {
 
 namespace sd = needle_guidance::steering_3d;
+namespace nm = needle_guidance::needle_model;
 namespace im = needle_guidance::imaging;
 
 // [mm] fused tip vs the true tip at 0.2 mm pixels, noise 0.05, blur 0.2 mm: a couple of pixels.
@@ -24,23 +25,23 @@ constexpr double kTipErrorMm = 0.6;
 // [deg] tangent from the two detected headings.
 constexpr double kTangentErrorDeg = 5.0;
 
-sd::Scene3d prostate() {
-  return sd::loadScene3d(std::string(NG_SOURCE_DIR) +
+nm::Scene3d prostate() {
+  return nm::loadScene3d(std::string(NG_SOURCE_DIR) +
                          "/config/scenes/steering_3d/prostate_3d.yaml");
 }
 
 /// A seeded needle from the entry disc: 3 to 6 steps of 5 mm, random rotations and curvatures.
-std::vector<sd::Vector3> needle(const sd::Scene3d& scene, std::uint64_t seed, sd::TipPose3& tip) {
+std::vector<nm::Vector3> needle(const nm::Scene3d& scene, std::uint64_t seed, nm::TipPose3& tip) {
   std::mt19937_64 rng(seed);
   std::uniform_real_distribution<double> u(0.0, 1.0);
-  tip = sd::makeTipPose(
-      scene.entry.center_m + sd::Vector3(0, 0.008 * (u(rng) - 0.5), 0.008 * (u(rng) - 0.5)),
-      sd::Vector3(1.0, 0.1 * (u(rng) - 0.5), 0.1 * (u(rng) - 0.5)), sd::Vector3::UnitY());
-  sd::NoisyNeedle3 world(scene.needle, sd::NoiseParams3{}, seed);
-  std::vector<sd::Vector3> path{tip.p_SceneTip};
+  tip = nm::makeTipPose(
+      scene.entry.center_m + nm::Vector3(0, 0.008 * (u(rng) - 0.5), 0.008 * (u(rng) - 0.5)),
+      nm::Vector3(1.0, 0.1 * (u(rng) - 0.5), 0.1 * (u(rng) - 0.5)), nm::Vector3::UnitY());
+  nm::NoisyNeedle3 world(scene.needle, nm::NoiseParams3{}, seed);
+  std::vector<nm::Vector3> path{tip.p_SceneTip};
   const int steps = 3 + static_cast<int>(seed % 4);
   for (int k = 0; k < steps; ++k) {
-    const sd::StepRecord r =
+    const nm::StepRecord r =
         world.step(tip, {6.28 * u(rng) - 3.14, scene.needle.kappa_max_per_m * u(rng), 0.005});
     path.insert(path.end(), r.path.begin() + 1, r.path.end());
     tip = r.pose;
@@ -48,9 +49,9 @@ std::vector<sd::Vector3> needle(const sd::Scene3d& scene, std::uint64_t seed, sd
   return path;
 }
 
-void expectNearTruth(const sd::Scene3d& scene, const im::BiplaneViews3& views, std::uint64_t seed) {
-  sd::TipPose3 truth;
-  const std::vector<sd::Vector3> path = needle(scene, seed, truth);
+void expectNearTruth(const nm::Scene3d& scene, const im::BiplaneViews3& views, std::uint64_t seed) {
+  nm::TipPose3 truth;
+  const std::vector<nm::Vector3> path = needle(scene, seed, truth);
   const im::BiplaneObservation3 seen = views.observe(path, truth, seed);
   ASSERT_TRUE(seen.tip) << "needle " << seed << ": " << seen.tip.status().toString();
   EXPECT_LT((seen.tip.value().p_SceneTip - truth.p_SceneTip).norm() * 1e3, kTipErrorMm)
@@ -64,7 +65,7 @@ void expectNearTruth(const sd::Scene3d& scene, const im::BiplaneViews3& views, s
 }
 
 TEST(BiplaneViews3, FusedTipIsNearTheTrueTipOnTuningNeedles) {
-  const sd::Scene3d scene = prostate();
+  const nm::Scene3d scene = prostate();
   const im::BiplaneViews3 views(scene, im::BiplaneViewsConfig{});
   for (std::uint64_t seed = 1; seed <= 6; ++seed) {
     expectNearTruth(scene, views, seed);
@@ -72,7 +73,7 @@ TEST(BiplaneViews3, FusedTipIsNearTheTrueTipOnTuningNeedles) {
 }
 
 TEST(BiplaneViews3, FusedTipIsNearTheTrueTipOnHeldOutNeedles) {
-  const sd::Scene3d scene = prostate();
+  const nm::Scene3d scene = prostate();
   const im::BiplaneViews3 views(scene, im::BiplaneViewsConfig{});
   for (std::uint64_t seed = 101; seed <= 106; ++seed) {
     expectNearTruth(scene, views, seed);
@@ -80,24 +81,24 @@ TEST(BiplaneViews3, FusedTipIsNearTheTrueTipOnHeldOutNeedles) {
 }
 
 TEST(BiplaneViews3, NoNeedleOrDroppedFramesAreNamedNotFused) {
-  const sd::Scene3d scene = prostate();
-  const sd::TipPose3 entry =
-      sd::makeTipPose(scene.entry.center_m, scene.entry.direction, sd::Vector3::UnitY());
+  const nm::Scene3d scene = prostate();
+  const nm::TipPose3 entry =
+      nm::makeTipPose(scene.entry.center_m, scene.entry.direction, nm::Vector3::UnitY());
   const im::BiplaneObservation3 empty =
       im::BiplaneViews3(scene, im::BiplaneViewsConfig{}).observe({}, entry, 1);
   ASSERT_FALSE(empty.tip);
-  EXPECT_EQ(empty.tip.status().code(), sd::BiplaneCode::kNoDetection);
+  EXPECT_EQ(empty.tip.status().code(), nm::BiplaneCode::kNoDetection);
   EXPECT_NE(empty.tip.status().message().find("no tip in the view"), std::string::npos);
   im::BiplaneViewsConfig dropping;
   dropping.drop_probability = 0.99;
-  sd::TipPose3 truth;
-  const std::vector<sd::Vector3> path = needle(scene, 3, truth);
+  nm::TipPose3 truth;
+  const std::vector<nm::Vector3> path = needle(scene, 3, truth);
   const im::BiplaneViews3 views(scene, dropping);
   int dropped = 0;
   for (std::uint64_t index = 0; index < 20; ++index) {
     const im::BiplaneObservation3 seen = views.observe(path, truth, index);
     if (!seen.tip) {
-      EXPECT_EQ(seen.tip.status().code(), sd::BiplaneCode::kNoDetection);
+      EXPECT_EQ(seen.tip.status().code(), nm::BiplaneCode::kNoDetection);
       ++dropped;
     }
   }
@@ -119,13 +120,13 @@ TEST(BiplaneViews3, ATrialImagedEveryStepHandsOutFusedTipsNearTheTruth) {
   // The ROS procedure's tip source without ROS: SteeringTrial3 images the needle after every step
   // and hands out the fused tip (observedTip) near the true one, counting every pair; the
   // noiseless entry plan it follows still ends in the target.
-  const sd::Scene3d scene = prostate();
-  const sd::CollisionWorld3 world = scene.collisionWorld();
-  const sd::Planner3 planner(scene, world, sd::PlannerParams3{}, sd::NoiseParams3{});
+  const nm::Scene3d scene = prostate();
+  const nm::CollisionWorld3 world = scene.collisionWorld();
+  const sd::Planner3 planner(scene, world, sd::PlannerParams3{}, nm::NoiseParams3{});
   const auto plan = planner.planFromEntry(11);
   ASSERT_TRUE(plan) << plan.status().toString();
   const im::BiplaneViews3 views(scene, im::BiplaneViewsConfig{});
-  needle_guidance::procedures::SteeringTrial3 trial(scene, world, sd::NoiseParams3{}, 5, 200);
+  needle_guidance::procedures::SteeringTrial3 trial(scene, world, nm::NoiseParams3{}, 5, 200);
   trial.setViews(&views);
   trial.start(plan.value().start, plan.value().p_success, 0.0);
   trial.setPlan(plan.value().controls);
@@ -144,12 +145,12 @@ TEST(BiplaneViews3, ATrialImagedEveryStepHandsOutFusedTipsNearTheTruth) {
 
 /// Frame `index` of the view along `axis` as an imager node with ~view along_z / along_y renders
 /// it: its own renderer from biplaneViewSetup, the 3-D needle projected on the view's plane.
-im::Frame imagerFrame(const sd::Scene3d& scene, sd::ViewAxis axis,
-                      const std::vector<sd::Vector3>& needle, std::uint64_t index) {
+im::Frame imagerFrame(const nm::Scene3d& scene, nm::ViewAxis axis,
+                      const std::vector<nm::Vector3>& needle, std::uint64_t index) {
   const im::BiplaneViewSetup setup = im::biplaneViewSetup(scene, im::BiplaneViewsConfig{}, axis);
   std::vector<im::Point2> points;
-  for (const sd::Vector3& p : needle) {
-    points.emplace_back(sd::viewRows(axis) * p);
+  for (const nm::Vector3& p : needle) {
+    points.emplace_back(nm::viewRows(axis) * p);
   }
   return im::FrameRenderer(setup.plane, setup.imager).render(points, index);
 }
@@ -157,14 +158,14 @@ im::Frame imagerFrame(const sd::Scene3d& scene, sd::ViewAxis axis,
 TEST(BiplaneFusion3, FramesRenderedByTwoImagersFuseNearTheTrueTip) {
   // The ROS loop's path: two separately rendered frames (as the two imager nodes render them)
   // fused by observeFrames; held-out needles (seeds 201..204, not used for any tuning).
-  const sd::Scene3d scene = prostate();
+  const nm::Scene3d scene = prostate();
   const im::BiplaneFusion3 fusion(scene, im::BiplaneViewsConfig{});
   for (std::uint64_t seed = 201; seed <= 204; ++seed) {
-    sd::TipPose3 truth;
-    const std::vector<sd::Vector3> path = needle(scene, seed, truth);
+    nm::TipPose3 truth;
+    const std::vector<nm::Vector3> path = needle(scene, seed, truth);
     const im::BiplaneObservation3 seen =
-        fusion.observeFrames(imagerFrame(scene, sd::ViewAxis::kAlongZ, path, seed),
-                             imagerFrame(scene, sd::ViewAxis::kAlongY, path, seed), truth);
+        fusion.observeFrames(imagerFrame(scene, nm::ViewAxis::kAlongZ, path, seed),
+                             imagerFrame(scene, nm::ViewAxis::kAlongY, path, seed), truth);
     ASSERT_TRUE(seen.tip) << "needle " << seed << ": " << seen.tip.status().toString();
     EXPECT_LT((seen.tip.value().p_SceneTip - truth.p_SceneTip).norm() * 1e3, kTipErrorMm)
         << "needle " << seed;
@@ -174,31 +175,31 @@ TEST(BiplaneFusion3, FramesRenderedByTwoImagersFuseNearTheTrueTip) {
 TEST(BiplaneFusion3, FramesOfTwoDifferentNeedlesAreGatedNotFused) {
   // Views that disagree (e.g. frames of two instants): the needle along y is the one along z
   // moved 5 mm in x, the coordinate both views see; the gate refuses the pair.
-  const sd::Scene3d scene = prostate();
-  sd::TipPose3 truth;
-  const std::vector<sd::Vector3> path = needle(scene, 3, truth);
-  std::vector<sd::Vector3> moved = path;
-  for (sd::Vector3& p : moved) {
+  const nm::Scene3d scene = prostate();
+  nm::TipPose3 truth;
+  const std::vector<nm::Vector3> path = needle(scene, 3, truth);
+  std::vector<nm::Vector3> moved = path;
+  for (nm::Vector3& p : moved) {
     p.x() += 0.005;
   }
   const im::BiplaneObservation3 seen =
       im::BiplaneFusion3(scene, im::BiplaneViewsConfig{})
-          .observeFrames(imagerFrame(scene, sd::ViewAxis::kAlongZ, path, 1),
-                         imagerFrame(scene, sd::ViewAxis::kAlongY, moved, 1), truth);
+          .observeFrames(imagerFrame(scene, nm::ViewAxis::kAlongZ, path, 1),
+                         imagerFrame(scene, nm::ViewAxis::kAlongY, moved, 1), truth);
   ASSERT_FALSE(seen.tip);
-  EXPECT_EQ(seen.tip.status().code(), sd::BiplaneCode::kDisagree) << seen.tip.status().toString();
+  EXPECT_EQ(seen.tip.status().code(), nm::BiplaneCode::kDisagree) << seen.tip.status().toString();
   EXPECT_EQ(seen.covariance_m2.norm(), 0.0);
 }
 
 TEST(BiplaneFusion3, AFrameOfAnotherSizeIsRefusedNamingTheView) {
-  const sd::Scene3d scene = prostate();
-  sd::TipPose3 truth;
-  const std::vector<sd::Vector3> path = needle(scene, 2, truth);
-  im::Frame small = imagerFrame(scene, sd::ViewAxis::kAlongY, path, 1);
+  const nm::Scene3d scene = prostate();
+  nm::TipPose3 truth;
+  const std::vector<nm::Vector3> path = needle(scene, 2, truth);
+  im::Frame small = imagerFrame(scene, nm::ViewAxis::kAlongY, path, 1);
   small.image = small.image(cv::Rect(0, 0, small.image.cols / 2, small.image.rows));
   try {
     im::BiplaneFusion3(scene, im::BiplaneViewsConfig{})
-        .observeFrames(imagerFrame(scene, sd::ViewAxis::kAlongZ, path, 1), small, truth);
+        .observeFrames(imagerFrame(scene, nm::ViewAxis::kAlongZ, path, 1), small, truth);
     FAIL() << "accepted a frame of half the width";
   } catch (const std::invalid_argument& e) {
     EXPECT_NE(std::string(e.what()).find("along y"), std::string::npos) << e.what();
@@ -212,7 +213,7 @@ TEST(BiplaneFusion3, ImagerViewNamesParse) {
   EXPECT_FALSE(im::imagerViewFromString("along_x"));
   EXPECT_FALSE(im::imagerViewFromString("Along_z"));
   EXPECT_FALSE(im::viewAxis(im::ImagerView::kPlane));
-  EXPECT_EQ(im::viewAxis(im::ImagerView::kAlongY), sd::ViewAxis::kAlongY);
+  EXPECT_EQ(im::viewAxis(im::ImagerView::kAlongY), nm::ViewAxis::kAlongY);
 }
 
 }  // namespace

@@ -17,10 +17,10 @@
 namespace needle_guidance::robot {
 namespace {
 
-using steering::ArcOutcome;
-using steering::Bevel;
-using steering::Control;
-using steering::TipPose;
+using needle_model::ArcOutcome;
+using needle_model::Bevel;
+using needle_model::Control;
+using needle_model::TipPose;
 
 constexpr double kDeg = kPi / 180.0;
 constexpr double kExactTol_m = 1e-12;  // same formula, same inputs: rounding only
@@ -29,6 +29,7 @@ constexpr double kContactTol_m = 1e-5;  // chord tolerance of the contact check
 constexpr double kBruteStep_m = 1e-6;   // brute-force search step along an arc
 constexpr std::uint64_t kSeed = 7;
 constexpr int kSamples = 2000;
+constexpr int kOrientations = 40;  // control-circle arcs: one insertion step is 2 pi r / 40
 // Sample statistics of n = 2000 normal draws: the mean has standard error sigma / sqrt(n), the
 // standard deviation about sigma / sqrt(2 n); each is checked at 4 standard errors (two-sided
 // 6e-5 per check for an unlucky stream; the seed is fixed anyway).
@@ -36,10 +37,10 @@ constexpr double kMeanTol = 0.0894427191;  // 4 / sqrt(2000), x sigma
 constexpr double kStdTol = 0.0632455532;   // 4 / sqrt(2 * 2000), x sigma
 
 /// A 10 x 10 cm workspace with one rectangular obstacle "block" (x 3..4 cm, y 0..6 cm, 1 mm
-/// clearance) and r = 5 cm, N_c = 40: fixed here so that edits of the scene files do not move
+/// clearance) and r = 5 cm: fixed here so that edits of the scene files do not move
 /// the contacts these tests expect.
-steering::SteeringProblem blockProblem() {
-  steering::SteeringProblem p;
+needle_model::PlanarWorkspace blockProblem() {
+  needle_model::PlanarWorkspace p;
   p.workspace_min = {0.0, 0.0};
   p.workspace_max = {0.1, 0.1};
   scene::Obstacle block;
@@ -50,8 +51,7 @@ steering::SteeringProblem blockProblem() {
   p.target.name = "target";
   p.target.position = {0.085, 0.05};
   p.target.radius_m = 0.005;
-  p.params.radius_m = 0.05;
-  p.params.orientations = 40;
+  p.radius_m = 0.05;
   return p;
 }
 
@@ -128,7 +128,7 @@ double bruteForceEntry(const TipPose& from, double radius_m, const geometry::Pol
   const auto steps = static_cast<long>(max_length_m / kBruteStep_m);
   for (long i = 0; i <= steps; ++i) {
     const double s = static_cast<double>(i) * kBruteStep_m;
-    const TipPose p = steering::advanceTip(from, Control::kInsert, 0.0, s, radius_m);
+    const TipPose p = needle_model::advanceTip(from, Control::kInsert, 0.0, s, radius_m);
     if (polygon.contains(p.p_SceneTip)) {
       return s;
     }
@@ -139,10 +139,11 @@ double bruteForceEntry(const TipPose& from, double radius_m, const geometry::Pol
 class SteerableNeedleTest : public ::testing::Test {
 protected:
   SteerableNeedleTest() : problem_(blockProblem()) {}
-  double radius_m() const { return problem_.params.radius_m; }
-  double delta_m() const { return 2.0 * kPi * radius_m() / problem_.params.orientations; }
+  double radius_m() const { return problem_.radius_m; }
+  /// One insertion step: a 40th of the control circle (N_c = 40).
+  double delta_m() const { return 2.0 * kPi * radius_m() / kOrientations; }
 
-  steering::SteeringProblem problem_;
+  needle_model::PlanarWorkspace problem_;
 };
 
 TEST_F(SteerableNeedleTest, WithoutDeflectionTheTipFollowsAdvanceTipExactly) {
@@ -153,7 +154,7 @@ TEST_F(SteerableNeedleTest, WithoutDeflectionTheTipFollowsAdvanceTipExactly) {
   expectPose(needle.tip(), w0, 0.0, 0.0);
 
   ASSERT_TRUE(needle.insertTo(delta_m()));
-  const TipPose w1 = steering::advanceTip(w0, Control::kInsert, 0.0, delta_m(), radius_m());
+  const TipPose w1 = needle_model::advanceTip(w0, Control::kInsert, 0.0, delta_m(), radius_m());
   expectPose(needle.tip(), w1, kExactTol_m, kExactAngleTol_rad);
   EXPECT_DOUBLE_EQ(needle.insertedLength_m(), delta_m());
 
@@ -161,7 +162,7 @@ TEST_F(SteerableNeedleTest, WithoutDeflectionTheTipFollowsAdvanceTipExactly) {
   EXPECT_EQ(needle.bevel(), Bevel::kRight);
   EXPECT_TRUE(needle.flipPending());
   ASSERT_TRUE(needle.insertTo(2.0 * delta_m()));
-  const TipPose w2 = steering::advanceTip(w1, Control::kFlip, 0.0, delta_m(), radius_m());
+  const TipPose w2 = needle_model::advanceTip(w1, Control::kFlip, 0.0, delta_m(), radius_m());
   expectPose(needle.tip(), w2, kExactTol_m, kExactAngleTol_rad);
   EXPECT_FALSE(needle.flipPending());
   ASSERT_EQ(needle.segments().size(), 2u);
@@ -172,12 +173,13 @@ TEST_F(SteerableNeedleTest, WithoutDeflectionTheTipFollowsAdvanceTipExactly) {
   for (int i = 1; i <= 100; ++i) {
     ASSERT_TRUE(needle.advanceTo(2.0 * delta_m() + 0.5 * delta_m() * i / 100));
   }
-  const TipPose w3 = steering::advanceTip(w2, Control::kInsert, 0.0, 0.5 * delta_m(), radius_m());
+  const TipPose w3 =
+      needle_model::advanceTip(w2, Control::kInsert, 0.0, 0.5 * delta_m(), radius_m());
   expectPose(needle.tip(), w3, kExactTol_m, kExactAngleTol_rad);
   // tipAt follows the path: the end of each command and the middle of the first arc.
   expectPose(needle.tipAt(delta_m()), w1, kExactTol_m, kExactAngleTol_rad);
   expectPose(needle.tipAt(0.5 * delta_m()),
-             steering::advanceTip(w0, Control::kInsert, 0.0, 0.5 * delta_m(), radius_m()),
+             needle_model::advanceTip(w0, Control::kInsert, 0.0, 0.5 * delta_m(), radius_m()),
              kExactTol_m, kExactAngleTol_rad);
   EXPECT_THROW(needle.tipAt(3.0 * delta_m()), std::out_of_range);
   const auto points = needle.pathPoints(1e-3);
@@ -195,7 +197,7 @@ TEST_F(SteerableNeedleTest, DeflectionsTurnTheStartOfEachInsertion) {
   EXPECT_NE(s.beta_rad, 0.0);
   EXPECT_EQ(s.sigma_rad, c.sigma_insert_rad);
   expectPose(needle.tip(),
-             steering::advanceTip(w0, Control::kInsert, s.beta_rad, delta_m(), radius_m()),
+             needle_model::advanceTip(w0, Control::kInsert, s.beta_rad, delta_m(), radius_m()),
              kExactTol_m, kExactAngleTol_rad);
   const TipPose w1 = needle.tip();
   needle.flip();
@@ -204,11 +206,11 @@ TEST_F(SteerableNeedleTest, DeflectionsTurnTheStartOfEachInsertion) {
   EXPECT_EQ(f.sigma_rad, c.sigma_flip_rad);
   EXPECT_EQ(f.draw_index, 1u);
   expectPose(needle.tip(),
-             steering::advanceTip(w1, Control::kFlip, f.beta_rad, delta_m(), radius_m()),
+             needle_model::advanceTip(w1, Control::kFlip, f.beta_rad, delta_m(), radius_m()),
              kExactTol_m, kExactAngleTol_rad);
 }
 
-std::vector<double> drawBetas(const steering::SteeringProblem& problem,
+std::vector<double> drawBetas(const needle_model::PlanarWorkspace& problem,
                               const SteerableNeedleConfig& c, int n, bool flip_each) {
   SteerableNeedle needle(problem, c, entry(0.05));
   std::vector<double> betas;
@@ -315,8 +317,8 @@ TEST_F(SteerableNeedleTest, InsertionIntoAnObstacleStopsAtTheContactAndIsRefused
   EXPECT_NEAR(needle.insertedLength_m() - 2.0 * delta_m(), brute_m, 2.0 * kContactTol_m);
   // The tip is still on its arc (no deflection: sigma = 0).
   expectPose(needle.tip(),
-             steering::advanceTip(before, Control::kInsert, 0.0,
-                                  needle.insertedLength_m() - 2.0 * delta_m(), radius_m()),
+             needle_model::advanceTip(before, Control::kInsert, 0.0,
+                                      needle.insertedLength_m() - 2.0 * delta_m(), radius_m()),
              kExactTol_m, kExactAngleTol_rad);
 
   // Further insertion is refused and changes nothing (no deflection drawn either).
@@ -334,7 +336,7 @@ TEST_F(SteerableNeedleTest, InsertionIntoAnObstacleStopsAtTheContactAndIsRefused
   EXPECT_FALSE(needle.inContact());
   expectPose(
       needle.tip(),
-      steering::advanceTip(before, Control::kInsert, 0.0, back_m - 2.0 * delta_m(), radius_m()),
+      needle_model::advanceTip(before, Control::kInsert, 0.0, back_m - 2.0 * delta_m(), radius_m()),
       kExactTol_m, kExactAngleTol_rad);
   EXPECT_TRUE(needle.insertTo(back_m + 0.001));  // free again
   // Retracting to 0 restores the entry pose exactly (the bevel stays where it was turned).

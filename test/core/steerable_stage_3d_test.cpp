@@ -15,7 +15,7 @@
 namespace needle_guidance::robot {
 namespace {
 
-namespace sd = steering_3d;
+namespace sd = needle_model;
 
 constexpr double kDt_s = 0.002;
 constexpr double kPoseTol_m = 1e-12;   // the stage replays the same arithmetic

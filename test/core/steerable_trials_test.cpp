@@ -47,7 +47,8 @@ struct Fixture {
   steering::SteeringProblem problem = wallProblem();
   steering::PolicyTable table = steering::solveValueIteration(steering::SteeringModel(problem));
   steering::StartOptions starts = steering::test_shapes::entryLine();
-  robot::SteerableNeedle needle{problem, needleConfig(problem), robot::EntryPose{0.05, 0.0}};
+  robot::SteerableNeedle needle{steering::planarWorkspace(problem), needleConfig(problem),
+                                robot::EntryPose{0.05, 0.0}};
   std::uint64_t frame_index = 0;
   SteerableStart start() const {
     const steering::BestStart best = table.bestStart(starts);
@@ -134,8 +135,9 @@ TEST(SteerableTrials, AStoppedStepIsClassifiedByTheWorldAndTheRobot) {
     FaultyDevices devices(f.needle, f.table, nullptr, nullptr, f.frame_index);
     devices.end = end;
     devices.fail_at_step = 2;
+    const double delta_m = 2.0 * kPi * f.problem.params.radius_m / f.problem.params.orientations;
     const SteerableTrialRecord r = runSteerableTrial(
-        devices, steering::ContinuousWorkspace(f.problem), f.start().pose, 7, true, 40);
+        devices, steering::ContinuousWorkspace(f.problem), delta_m, f.start().pose, 7, true, 40);
     EXPECT_EQ(r.outcome, outcome) << toString(outcome);
     EXPECT_EQ(r.steps, 3);
     EXPECT_EQ(r.message, "refused: the robot says so");

@@ -6,9 +6,9 @@
 #include <cmath>
 #include <random>
 
-#include "needle_guidance/steering_3d/biplane_3d.h"
+#include "needle_guidance/needle_model/biplane_3d.h"
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 namespace {
 
 constexpr double kExactTol_m = 1e-12;
@@ -133,7 +133,7 @@ TEST(BiplaneObserver3d, DroppedViewsAndFalseDetectionsAreNotFused) {
 }
 
 }  // namespace
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model
 
 int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);

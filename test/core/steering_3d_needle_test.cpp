@@ -7,10 +7,10 @@
 #include <vector>
 
 #include "needle_guidance/math.h"
-#include "needle_guidance/steering/steering_model.h"
-#include "needle_guidance/steering_3d/needle_3d.h"
+#include "needle_guidance/needle_model/needle_2d.h"
+#include "needle_guidance/needle_model/needle_3d.h"
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 namespace {
 
 constexpr double kDeg = kPi / 180.0;
@@ -79,15 +79,15 @@ TEST(Needle3d, PlanarArcsAgreeWithTheModelOf53) {
   // Bevel left in 5.3 bends counter-clockwise in x-y: d = t rotated +90 degrees about +z.
   const double radius = 0.05;
   for (double theta : {-1.0, 0.0, 0.3, 2.0}) {
-    steering::TipPose planar;
+    TipPose planar;
     planar.p_SceneTip = geometry::Point2(0.01, 0.02);
     planar.theta_rad = theta;
-    for (auto control : {steering::Control::kInsert, steering::Control::kFlip}) {
-      const steering::TipPose expected = steering::advanceTip(planar, control, 0.0, 0.03, radius);
+    for (auto control : {Control::kInsert, Control::kFlip}) {
+      const TipPose expected = advanceTip(planar, control, 0.0, 0.03, radius);
       TipPose3 pose =
           makeTipPose(Vector3(0.01, 0.02, 0.0), Vector3(std::cos(theta), std::sin(theta), 0.0),
                       Vector3(-std::sin(theta), std::cos(theta), 0.0));
-      if (control == steering::Control::kFlip) {
+      if (control == Control::kFlip) {
         pose = rotateBevel(pose, kPi);
       }
       const TipPose3 end = advanceArc(pose, 1.0 / radius, 0.03);
@@ -282,7 +282,7 @@ TEST(Needle3d, StepRefusesBadControls) {
 }
 
 }  // namespace
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model
 
 int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);

@@ -11,6 +11,8 @@
 #include "needle_guidance/steering_3d/planar_check_3d.h"
 
 namespace needle_guidance::steering_3d {
+
+using namespace needle_model;  // the needle, meshes and scenes the planner works on
 namespace {
 
 constexpr double kDistanceTol_m = 1e-9;

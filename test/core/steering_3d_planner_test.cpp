@@ -9,11 +9,13 @@
 #include <iostream>
 #include <string>
 
+#include "needle_guidance/needle_model/scene_3d.h"
 #include "needle_guidance/steering_3d/closed_loop_3d.h"
 #include "needle_guidance/steering_3d/planner_3d.h"
-#include "needle_guidance/steering_3d/scene_3d.h"
 
 namespace needle_guidance::steering_3d {
+
+using namespace needle_model;  // the needle, meshes and scenes the planner works on
 namespace {
 
 constexpr double kMm = 1e-3;

@@ -12,13 +12,13 @@
 #include <utility>
 
 #include "needle_guidance/math.h"
+#include "needle_guidance/needle_model/collision_3d.h"
+#include "needle_guidance/needle_model/mesh_3d.h"
+#include "needle_guidance/needle_model/scene_3d.h"
 #include "needle_guidance/scene/scene.h"
-#include "needle_guidance/steering_3d/collision_3d.h"
-#include "needle_guidance/steering_3d/mesh_3d.h"
-#include "needle_guidance/steering_3d/scene_3d.h"
 #include "needle_guidance/tissue_3d/scene_tissue_3d.h"
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 namespace {
 
 constexpr double kMm = 1e-3;
@@ -345,7 +345,7 @@ TEST(Scene3d, EveryShippedSceneOfEveryKindLoadsThroughItsKind) {
 }
 
 }  // namespace
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model
 
 int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);

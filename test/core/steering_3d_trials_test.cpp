@@ -18,24 +18,25 @@
 namespace {
 
 namespace sd = needle_guidance::steering_3d;
+namespace nm = needle_guidance::needle_model;
 using needle_guidance::procedures::SteeringTrial3;
 
 // [mm] a noiseless plan ends at the target centre up to the duty-cycling residual
 // (0.38 mm median for the noiseless open loop); well inside the 2.5 mm target.
 constexpr double kNoiselessErrorMm = 1.0;
 
-sd::Scene3d prostate() {
-  return sd::loadScene3d(std::string(NG_SOURCE_DIR) +
+nm::Scene3d prostate() {
+  return nm::loadScene3d(std::string(NG_SOURCE_DIR) +
                          "/config/scenes/steering_3d/prostate_3d.yaml");
 }
 
 TEST(SteeringTrial3, NoiselessEntryPlanFollowedStepByStepReachesTheTarget) {
-  const sd::Scene3d scene = prostate();
-  const sd::CollisionWorld3 world = scene.collisionWorld();
-  const sd::Planner3 planner(scene, world, sd::PlannerParams3{}, sd::NoiseParams3{});
+  const nm::Scene3d scene = prostate();
+  const nm::CollisionWorld3 world = scene.collisionWorld();
+  const sd::Planner3 planner(scene, world, sd::PlannerParams3{}, nm::NoiseParams3{});
   const auto plan = planner.planFromEntry(11);
   ASSERT_TRUE(plan) << plan.status().toString();
-  SteeringTrial3 trial(scene, world, sd::NoiseParams3{}, 5, 200);
+  SteeringTrial3 trial(scene, world, nm::NoiseParams3{}, 5, 200);
   trial.start(plan.value().start, plan.value().p_success, 0.0);
   trial.setPlan(plan.value().controls);
   int steps = 0;
@@ -44,7 +45,7 @@ TEST(SteeringTrial3, NoiselessEntryPlanFollowedStepByStepReachesTheTarget) {
   }
   const sd::TrialResult3& r = trial.result();
   EXPECT_TRUE(r.success) << r.message;
-  EXPECT_EQ(r.contact, sd::Contact3::kFree);
+  EXPECT_EQ(r.contact, nm::Contact3::kFree);
   EXPECT_LT(r.target_error_m * 1e3, kNoiselessErrorMm);
   // whole steps of 5 mm, each segment's remainder one more step
   EXPECT_GE(r.steps, static_cast<int>(plan.value().length_m / scene.step_length_m));
@@ -54,24 +55,24 @@ TEST(SteeringTrial3, NoiselessEntryPlanFollowedStepByStepReachesTheTarget) {
 }
 
 TEST(SteeringTrial3, StraightPushAlongTheUrethraTouchesIt) {
-  const sd::Scene3d scene = prostate();
-  const sd::CollisionWorld3 world = scene.collisionWorld();
-  SteeringTrial3 trial(scene, world, sd::NoiseParams3{}, 5, 200);
-  trial.start(sd::makeTipPose(scene.entry.center_m, scene.entry.direction, sd::Vector3::UnitY()),
+  const nm::Scene3d scene = prostate();
+  const nm::CollisionWorld3 world = scene.collisionWorld();
+  SteeringTrial3 trial(scene, world, nm::NoiseParams3{}, 5, 200);
+  trial.start(nm::makeTipPose(scene.entry.center_m, scene.entry.direction, nm::Vector3::UnitY()),
               0.0, 0.0);
-  trial.setPlan({sd::Control3{0.0, 0.0, 0.08}});
+  trial.setPlan({nm::Control3{0.0, 0.0, 0.08}});
   while (trial.step()) {
   }
   EXPECT_FALSE(trial.result().success);
-  EXPECT_EQ(trial.result().contact, sd::Contact3::kObstacle);
+  EXPECT_EQ(trial.result().contact, nm::Contact3::kObstacle);
   EXPECT_EQ(trial.result().obstacle, "urethra");
 }
 
 TEST(SteeringTrial3, WithoutAPlanTheTrialEndsAsAFailure) {
-  const sd::Scene3d scene = prostate();
-  const sd::CollisionWorld3 world = scene.collisionWorld();
-  SteeringTrial3 trial(scene, world, sd::NoiseParams3{}, 5, 200);
-  trial.start(sd::makeTipPose(scene.entry.center_m, scene.entry.direction, sd::Vector3::UnitY()),
+  const nm::Scene3d scene = prostate();
+  const nm::CollisionWorld3 world = scene.collisionWorld();
+  SteeringTrial3 trial(scene, world, nm::NoiseParams3{}, 5, 200);
+  trial.start(nm::makeTipPose(scene.entry.center_m, scene.entry.direction, nm::Vector3::UnitY()),
               0.0, 0.0);
   EXPECT_FALSE(trial.step());
   EXPECT_TRUE(trial.done());
@@ -96,14 +97,14 @@ TEST(SteeringTrial3, SummaryCountsSuccessesAndFaultsWithAWilsonInterval) {
 }
 
 TEST(SteeringTrial3, AStepBeyondTheJointsTravelEndsTheTrialAsARefusalNamingIt) {
-  const sd::Scene3d scene = prostate();
-  const sd::CollisionWorld3 world = scene.collisionWorld();
-  const sd::Planner3 planner(scene, world, sd::PlannerParams3{}, sd::NoiseParams3{});
+  const nm::Scene3d scene = prostate();
+  const nm::CollisionWorld3 world = scene.collisionWorld();
+  const sd::Planner3 planner(scene, world, sd::PlannerParams3{}, nm::NoiseParams3{});
   const auto plan = planner.planFromEntry(11);  // the noiseless plan that reaches the target
   ASSERT_TRUE(plan) << plan.status().toString();
   constexpr double kTravelM = 0.012;  // [m] far shorter than the plan
   ASSERT_GT(plan.value().length_m, 2.0 * kTravelM);
-  SteeringTrial3 trial(scene, world, sd::NoiseParams3{}, 5, 200);
+  SteeringTrial3 trial(scene, world, nm::NoiseParams3{}, 5, 200);
   trial.setTravel(kTravelM);
   trial.start(plan.value().start, plan.value().p_success, 0.0);
   trial.setPlan(plan.value().controls);
@@ -112,7 +113,7 @@ TEST(SteeringTrial3, AStepBeyondTheJointsTravelEndsTheTrialAsARefusalNamingIt) {
   const sd::TrialResult3& r = trial.result();
   EXPECT_TRUE(trial.done());
   EXPECT_FALSE(r.success);
-  EXPECT_EQ(r.contact, sd::Contact3::kFree);
+  EXPECT_EQ(r.contact, nm::Contact3::kFree);
   EXPECT_LE(trial.insertedLength_m(), kTravelM);
   EXPECT_GT(trial.insertedLength_m(), kTravelM - scene.step_length_m);  // stopped at the last fit
   EXPECT_NE(r.message.find("beyond the insertion joint's travel of 0.012 m"), std::string::npos)
@@ -121,25 +122,25 @@ TEST(SteeringTrial3, AStepBeyondTheJointsTravelEndsTheTrialAsARefusalNamingIt) {
 }
 
 TEST(SteeringTrial3, PlannerAnswersReplaceKeepOrRefuse) {
-  const sd::Scene3d scene = prostate();
-  const sd::CollisionWorld3 world = scene.collisionWorld();
-  const sd::Planner3 planner(scene, world, sd::PlannerParams3{}, sd::NoiseParams3{});
+  const nm::Scene3d scene = prostate();
+  const nm::CollisionWorld3 world = scene.collisionWorld();
+  const sd::Planner3 planner(scene, world, sd::PlannerParams3{}, nm::NoiseParams3{});
   const auto plan = planner.planFromEntry(11);
   ASSERT_TRUE(plan) << plan.status().toString();
   // A replan that found nothing keeps the plan being followed and counts its time.
-  SteeringTrial3 kept(scene, world, sd::NoiseParams3{}, 5, 200);
+  SteeringTrial3 kept(scene, world, nm::NoiseParams3{}, 5, 200);
   kept.start(plan.value().start, plan.value().p_success, 0.0);
   kept.setPlan(plan.value().controls);
   EXPECT_TRUE(kept.followAnswer("no_path_within_budget", "", 0.02, {}));
   EXPECT_EQ(kept.result().replan_s.size(), 1U);
   EXPECT_TRUE(kept.step()) << kept.result().message;
   // "ok" replaces the plan: from none to the planner's.
-  SteeringTrial3 replaced(scene, world, sd::NoiseParams3{}, 5, 200);
+  SteeringTrial3 replaced(scene, world, nm::NoiseParams3{}, 5, 200);
   replaced.start(plan.value().start, plan.value().p_success, 0.0);
   EXPECT_TRUE(replaced.followAnswer("ok", "", 0.01, plan.value().controls));
   EXPECT_TRUE(replaced.step()) << replaced.result().message;
   // "bad_input" is a fault: the trial ends, naming the planner's reason.
-  SteeringTrial3 refused(scene, world, sd::NoiseParams3{}, 5, 200);
+  SteeringTrial3 refused(scene, world, nm::NoiseParams3{}, 5, 200);
   refused.start(plan.value().start, plan.value().p_success, 0.0);
   EXPECT_FALSE(refused.followAnswer("bad_input", "position not finite", 0.0, {}));
   EXPECT_TRUE(refused.done());
@@ -178,8 +179,8 @@ private:
 };
 
 TEST(SteeringTrials3, TheRobotIsLeftSafeAfterTheLastTrial) {
-  const sd::Scene3d scene = prostate();
-  const sd::CollisionWorld3 world = scene.collisionWorld();
+  const nm::Scene3d scene = prostate();
+  const nm::CollisionWorld3 world = scene.collisionWorld();
   FakeDevices3 devices(-1);
   const auto run =
       needle_guidance::procedures::runSteeringTrials3(scene, world, devices, 3, 7, 200, 0.12);
@@ -191,8 +192,8 @@ TEST(SteeringTrials3, TheRobotIsLeftSafeAfterTheLastTrial) {
 }
 
 TEST(SteeringTrials3, AFaultStopsTheRunLeavesTheRobotSafeAndTheReportSaysSo) {
-  const sd::Scene3d scene = prostate();
-  const sd::CollisionWorld3 world = scene.collisionWorld();
+  const nm::Scene3d scene = prostate();
+  const nm::CollisionWorld3 world = scene.collisionWorld();
   FakeDevices3 devices(1);
   const auto run =
       needle_guidance::procedures::runSteeringTrials3(scene, world, devices, 5, 7, 200, 0.12);

@@ -24,7 +24,7 @@
 #include "needle_guidance/math.h"
 #include "needle_guidance/robot/steerable_needle.h"
 #include "needle_guidance/scene/scene.h"
-#include "needle_guidance/steering/steering_model.h"
+#include "needle_guidance/steering/continuous_workspace.h"
 
 namespace needle_guidance::imaging {
 namespace {
@@ -97,7 +97,8 @@ std::vector<Shot> insertion(double height_m, double angle_rad, Bevel bevel, int 
   entry.height_m = height_m;
   entry.angle_rad = angle_rad;
   entry.bevel = bevel;
-  robot::SteerableNeedle needle(steering::problemFromScene(sc), cfg, entry);
+  robot::SteerableNeedle needle(steering::planarWorkspace(steering::problemFromScene(sc)), cfg,
+                                entry);
   std::mt19937 coin(static_cast<std::uint32_t>(seed * 7919u + 13u));
   std::vector<Shot> out;
   std::uint32_t flips = 0;

@@ -17,13 +17,13 @@
 #include "needle_guidance/SetEntryPose3.h"
 #include "needle_guidance/Steer3Action.h"
 #include "needle_guidance/math.h"
+#include "needle_guidance/needle_model/scene_3d.h"
 #include "needle_guidance/ros/conversions_3d.h"
-#include "needle_guidance/steering_3d/scene_3d.h"
 
 namespace {
 
 namespace ng = needle_guidance;
-namespace sd = needle_guidance::steering_3d;
+namespace sd = needle_guidance::needle_model;
 using SteerClient = actionlib::SimpleActionClient<ng::Steer3Action>;
 using LinearMoveClient = actionlib::SimpleActionClient<ng::LinearMoveAction>;
 using State = actionlib::SimpleClientGoalState;

@@ -29,7 +29,7 @@
 #include "../csv_rows.h"
 #include "../ros_wait.h"
 #include "needle_guidance/SteeringControl3.h"
-#include "needle_guidance/steering_3d/scene_3d.h"
+#include "needle_guidance/needle_model/scene_3d.h"
 
 namespace {
 
@@ -135,7 +135,7 @@ TEST(SteerableNeedle3d, TrialsReachTheTargetAndTheReportMatchesTheScene) {
   EXPECT_NE(summary.find("\"status\": \"completed\""), std::string::npos) << summary;
   EXPECT_NE(summary.find("\"faults\": 0"), std::string::npos) << summary;
 
-  namespace sd = needle_guidance::steering_3d;
+  namespace sd = needle_guidance::needle_model;
   const sd::Scene3d scene = sd::loadScene3d(scene_path);
   const sd::CollisionWorld3 world = scene.collisionWorld();
   const auto trials = readCsvRows(report_dir + "/trials.csv");

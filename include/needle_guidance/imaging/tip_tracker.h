@@ -17,7 +17,7 @@
 #include <string>
 
 #include "needle_guidance/imaging/frame_renderer.h"
-#include "needle_guidance/steering/steering_model.h"
+#include "needle_guidance/needle_model/needle_2d.h"
 
 namespace needle_guidance::imaging {
 
@@ -64,7 +64,8 @@ struct Detection {
 
 /// Where to look: the predicted tip with its uncertainty, and which way the needle curves.
 struct SearchPrior {
-  steering::TipPose tip;  ///< predicted tip; tip.bevel sets the sign of the last arc's curvature
+  needle_model::TipPose
+      tip;  ///< predicted tip; tip.bevel sets the sign of the last arc's curvature
   Eigen::Matrix3d covariance = Eigen::Matrix3d::Zero();  ///< of (x, y, theta)
   /// Inserted length since the bevel last flipped, or since the entry if it never did [m]: the
   /// needle's last arc (of tip.bevel's sense) is this long, and before it the needle curves the
@@ -143,8 +144,8 @@ MotionModel chooseMotionModel(MotionModel setting, bool drive_available);
 
 struct TipEstimate {
   TrackStatus status = TrackStatus::kUninitialized;
-  std::string message;    ///< one line: what happened and why
-  steering::TipPose tip;  ///< filtered pose; bevel from the robot [m, rad]
+  std::string message;        ///< one line: what happened and why
+  needle_model::TipPose tip;  ///< filtered pose; bevel from the robot [m, rad]
   Eigen::Matrix3d covariance = Eigen::Matrix3d::Identity();  ///< of (x, y, theta), finite
   /// Position and heading standard deviations within the configured limits, and the status is
   /// kEntry or kTracked. Never true for a pose that was not confirmed by an image (or the guide).
@@ -177,7 +178,7 @@ public:
 
   /// A new insertion starts from the needle guide: the tip is at `entry` (inserted length 0)
   /// with the given standard deviations (the guide is known precisely; small but > 0).
-  void reset(const steering::TipPose& entry, double position_std_m = 0.1e-3,
+  void reset(const needle_model::TipPose& entry, double position_std_m = 0.1e-3,
              double heading_std_rad = 0.005);
   /// The robot's proprioception: inserted length now and the current bevel; `flips` counts
   /// bevel flips since the entry. A longer length predicts the tip along an arc of the bevel's
@@ -187,7 +188,7 @@ public:
   /// confident), unchanged without one. Non-finite, negative or implausible (> 10 m) lengths
   /// are ignored, the returned message saying so. Before reset() or an acquisition it only
   /// records the length and bevel.
-  TipEstimate onDrive(double inserted_length_m, steering::Bevel bevel, std::uint32_t flips);
+  TipEstimate onDrive(double inserted_length_m, needle_model::Bevel bevel, std::uint32_t flips);
   /// One frame: validate (kBadFrame, state unchanged), nothing inserted (kEntry), predicted tip
   /// outside the frame (kOutOfView, no detection attempted), detect around the prediction, gate
   /// and fuse (kTracked) or keep the prediction (kPredicted, with the reason: no detection or
@@ -222,7 +223,7 @@ public:
 private:
   /// A gated-out detection kept to check whether the next ones agree with it.
   struct Rejected {
-    steering::TipPose pose;
+    needle_model::TipPose pose;
     Eigen::Matrix3d covariance = Eigen::Matrix3d::Identity();
     double inserted_length_m = 0.0;
     int agreeing = 0;       ///< how many consecutive rejected detections agree, this included
@@ -234,9 +235,9 @@ private:
   /// after a flip, else sigma_insert) is added whole where its step begins — steps of
   /// step_length_m counted from the entry or the last flip, as the robot's steps are — and a
   /// small position noise per length travelled.
-  void predict(double from_m, double to_m, steering::Bevel bevel);
+  void predict(double from_m, double to_m, needle_model::Bevel bevel);
   /// Propagates the state along the arc by ds (either sign) in sub-steps.
-  void move(double ds_m, steering::Bevel bevel);
+  void move(double ds_m, needle_model::Bevel bevel);
   /// Fills estimate_.confident from the status and the covariance.
   void updateConfidence();
   /// onFrame's parts: the first frame without any prior; the prior the detector searches
@@ -253,7 +254,7 @@ private:
   TipEstimate estimate_;
   bool initialized_ = false;  ///< an entry pose or an acquisition gave the state a meaning
   bool have_entry_ = false;   ///< reset() gave a guide pose (used again when retracted to 0)
-  steering::TipPose entry_;
+  needle_model::TipPose entry_;
   Eigen::Matrix3d entry_covariance_ = Eigen::Matrix3d::Identity();
   double length_m_ = 0.0;  ///< inserted length the state refers to [m]
   std::uint32_t flips_ = 0;

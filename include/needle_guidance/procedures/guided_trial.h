@@ -73,10 +73,11 @@ struct GuidedTrial {
 };
 
 /// One trial of runSteerableTrial on the in-process devices, from `entry` with deflection
-/// stream `seed`. Throws std::invalid_argument if only one of renderer/tracker is given or the
-/// needle refuses the entry, std::logic_error if it refuses an insertion.
+/// stream `seed`, one insertion of delta_m [m] per decision. Throws std::invalid_argument if only
+/// one of renderer/tracker is given or the needle refuses the entry, std::logic_error if it refuses
+/// an insertion.
 GuidedTrial runGuidedTrial(robot::SteerableNeedle& needle, const robot::EntryPose& entry,
-                           std::uint64_t seed, const steering::PolicyTable& table,
+                           double delta_m, std::uint64_t seed, const steering::PolicyTable& table,
                            const imaging::FrameRenderer* renderer, imaging::TipTracker* tracker,
                            std::uint64_t& frame_index, const GuidedTrialOptions& options = {});
 

@@ -195,11 +195,11 @@ struct SteerableReport {
 };
 
 /// One trial of the loop: the needle is placed at `start` with deflection stream `seed` (when
-/// `reseed`), then stepped by delta = 2 pi r / N_c of the world's problem until the true tip
+/// `reseed`), then stepped by delta_m (2 pi r / N_c of the steering problem) until the true tip
 /// (checked after each step) is in the target, a step stops (obstacle, workspace, joint limit,
 /// failure), a device fails, or max_steps. Never throws for device failures (kError).
 SteerableTrialRecord runSteerableTrial(SteerableDevices& devices,
-                                       const steering::ContinuousWorkspace& world,
+                                       const needle_model::PlanarWorld& world, double delta_m,
                                        const steering::TipPose& start, std::uint64_t seed,
                                        bool reseed, int max_steps);
 

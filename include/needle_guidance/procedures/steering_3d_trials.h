@@ -32,15 +32,15 @@ TipSource3 tipSource3OrThrow(const std::string& name, const std::string& where);
 class SteeringTrial3 {
 public:
   /// The scene and world must outlive it; `seed` seeds the needle's noise.
-  SteeringTrial3(const steering_3d::Scene3d& scene, const steering_3d::CollisionWorld3& world,
-                 const steering_3d::NoiseParams3& noise, std::uint64_t seed, int max_steps);
+  SteeringTrial3(const needle_model::Scene3d& scene, const needle_model::CollisionWorld3& world,
+                 const needle_model::NoiseParams3& noise, std::uint64_t seed, int max_steps);
 
   /// The world's answer to one control: moves `tip`, counts the step in `result`, appends its
   /// path and, on a contact, sets result.contact / obstacle / message and returns false (the
   /// contract of closed_loop_3d's executeStep3). Throws std::runtime_error on a fault of the
   /// device (the trial is then aborted by the caller).
   using WorldStep3 =
-      std::function<bool(const steering_3d::Control3& control, steering_3d::TipPose3& tip,
+      std::function<bool(const needle_model::Control3& control, needle_model::TipPose3& tip,
                          steering_3d::TrialResult3& result)>;
   /// Replaces the in-process noisy needle by another world (e.g. the insertion robot's 3-D mode).
   void setWorld(WorldStep3 world) { world_step_ = std::move(world); }
@@ -49,7 +49,7 @@ public:
   /// `path` (entry -> tip) given the `predicted` tip (its bevel) and a frame `index` unique to the
   /// step. Throws std::runtime_error on a fault of the device (e.g. no frame came).
   using Observe3 = std::function<imaging::BiplaneObservation3(
-      const std::vector<steering_3d::Vector3>& path, const steering_3d::TipPose3& predicted,
+      const std::vector<needle_model::Vector3>& path, const needle_model::TipPose3& predicted,
       std::uint64_t index)>;
   /// Images the needle after every step with `observe` (empty: the truth): observedTip() is
   /// then the fused estimate or, after a dropped or gated pair, the previous estimate advanced by
@@ -60,19 +60,20 @@ public:
   /// truth).
   void setViews(const imaging::BiplaneViews3* views);
   /// The tip the planner is given: the truth, or the biplane estimate with an observer.
-  const steering_3d::TipPose3& observedTip() const { return observe_ ? estimate_ : tip_; }
+  const needle_model::TipPose3& observedTip() const { return observe_ ? estimate_ : tip_; }
   /// The covariance of observedTip()'s position [m^2]: the fused views' with setViews and a
   /// fused pair, else sigma_m^2 I (the truth's configured sigma, or after a dropped/gated pair).
-  steering_3d::Matrix3 observedCovariance_m2(double sigma_m) const;
+  needle_model::Matrix3 observedCovariance_m2(double sigma_m) const;
   /// The last biplane observation (frames, detections, fusion), with an observer.
   const imaging::BiplaneObservation3& lastObservation() const { return observation_; }
 
   /// Places the tip at the entry plan's start (no motion yet).
-  void start(const steering_3d::TipPose3& entry, double predicted_p_success, double initial_plan_s);
+  void start(const needle_model::TipPose3& entry, double predicted_p_success,
+             double initial_plan_s);
   /// Ends the trial without a start (the entry plan failed).
   void refuseStart(steering_3d::PlanCode code, const std::string& message);
   /// Replaces the plan being followed (controls from the current tip, as Plan3::controls).
-  void setPlan(const std::vector<steering_3d::Control3>& controls);
+  void setPlan(const std::vector<needle_model::Control3>& controls);
   /// Executes the plan's next control for at most one step (scene step_length_m), as runTrial3:
   /// the trial ends when the plan is used up (the tip is refereed against the target ball), the
   /// path touches an obstacle or leaves the tissue, or after max_steps; with no plan left it ends
@@ -92,29 +93,29 @@ public:
   /// + message) and returns false (a fault); any other status records the time and keeps the
   /// previous plan (as runTrial3 does when a replan finds none).
   bool followAnswer(const std::string& status, const std::string& message, double plan_seconds,
-                    const std::vector<steering_3d::Control3>& controls);
+                    const std::vector<needle_model::Control3>& controls);
   /// Records one replan's planner time [s].
   void recordReplan(double seconds) { result_.replan_s.push_back(seconds); }
 
   bool done() const { return done_; }
-  const steering_3d::TipPose3& tip() const { return tip_; }
+  const needle_model::TipPose3& tip() const { return tip_; }
   const steering_3d::TrialResult3& result() const { return result_; }
 
 private:
   void end();
-  void observe(const steering_3d::Control3& control);
+  void observe(const needle_model::Control3& control);
 
-  const steering_3d::Scene3d& scene_;
-  const steering_3d::CollisionWorld3& world_;
-  steering_3d::NoisyNeedle3 needle_;
+  const needle_model::Scene3d& scene_;
+  const needle_model::CollisionWorld3& world_;
+  needle_model::NoisyNeedle3 needle_;
   WorldStep3 world_step_;
   Observe3 observe_;
-  steering_3d::TipPose3 estimate_;
+  needle_model::TipPose3 estimate_;
   imaging::BiplaneObservation3 observation_;
   int max_steps_;
   std::uint64_t seed_;
-  steering_3d::TipPose3 tip_;
-  std::deque<steering_3d::Control3> plan_;
+  needle_model::TipPose3 tip_;
+  std::deque<needle_model::Control3> plan_;
   steering_3d::TrialResult3 result_;
   double travel_m_ = std::numeric_limits<double>::infinity();
   double inserted_m_ = 0.0;
@@ -197,13 +198,13 @@ struct SteeringRun3 {
 /// fault (the goal failed without a contact).
 std::optional<bool> recordRobotStep3(bool succeeded, const std::string& contact,
                                      const std::string& obstacle, const std::string& message,
-                                     const std::vector<steering_3d::Vector3>& path,
+                                     const std::vector<needle_model::Vector3>& path,
                                      steering_3d::TrialResult3& result);
 
 /// Runs `trials` trials (trial k seeded seed * 100000 + k, the travel set on each) until done or
 /// a fault, then always calls devices.leaveSafe() and records what it did.
-SteeringRun3 runSteeringTrials3(const steering_3d::Scene3d& scene,
-                                const steering_3d::CollisionWorld3& world,
+SteeringRun3 runSteeringTrials3(const needle_model::Scene3d& scene,
+                                const needle_model::CollisionWorld3& world,
                                 SteeringDevices3& devices, int trials, std::uint64_t seed,
                                 int max_steps, double travel_m);
 
@@ -212,7 +213,7 @@ SteeringRun3 runSteeringTrials3(const steering_3d::Scene3d& scene,
 /// node measured; with a `death` the status is node_died and the report names the node;
 /// summary.json's safe_stop is run.safe_stop. Throws std::runtime_error naming a file it cannot
 /// write.
-void writeSteeringReport3(const std::string& report_dir, const steering_3d::Scene3d& scene,
+void writeSteeringReport3(const std::string& report_dir, const needle_model::Scene3d& scene,
                           const SteeringRun3& run, const std::vector<double>& round_trip_ms,
                           std::uint64_t seed, const NodeDeath3& death = {});
 

@@ -15,10 +15,9 @@
 #include <string>
 #include <vector>
 
+#include "needle_guidance/needle_model/planar_world.h"
 #include "needle_guidance/robot/insertion_stage.h"
 #include "needle_guidance/status.h"
-#include "needle_guidance/steering/continuous_workspace.h"
-#include "needle_guidance/steering/steering_model.h"
 
 namespace needle_guidance::robot {
 
@@ -38,7 +37,7 @@ struct SteerableNeedleConfig {
 struct EntryPose {
   double height_m = 0.0;   ///< y of the entry point [m]
   double angle_rad = 0.0;  ///< insertion angle from +x, in [-pi/2, pi/2] [rad]
-  steering::Bevel bevel = steering::Bevel::kLeft;
+  needle_model::Bevel bevel = needle_model::Bevel::kLeft;
 };
 
 /// One insertion command's arc of the inserted needle.
@@ -47,21 +46,22 @@ struct NeedleSegment {
   double length_m = 0.0;        ///< arc length of the segment [m], >= 0
   /// Tip pose at the segment's start after the deflection (theta = previous theta + beta) and
   /// the bevel that traces the arc [m, rad].
-  steering::TipPose start;
-  steering::Control control = steering::Control::kInsert;  ///< kFlip when a flip preceded it
-  double beta_rad = 0.0;         ///< deflection drawn for this insertion [rad]
-  double sigma_rad = 0.0;        ///< std. dev. it was drawn with [rad]
-  std::uint64_t draw_index = 0;  ///< index of the draw in the seed's stream (0 = first)
+  needle_model::TipPose start;
+  needle_model::Control control =
+      needle_model::Control::kInsert;  ///< kFlip when a flip preceded it
+  double beta_rad = 0.0;               ///< deflection drawn for this insertion [rad]
+  double sigma_rad = 0.0;              ///< std. dev. it was drawn with [rad]
+  std::uint64_t draw_index = 0;        ///< index of the draw in the seed's stream (0 = first)
 };
 
 /// Contact of the tip with an expanded obstacle or the workspace boundary.
 struct NeedleContact {
   /// kFree: no contact; kObstacle: touched `obstacle`; kLeftWorkspace: reached the boundary.
-  steering::ArcOutcome outcome = steering::ArcOutcome::kFree;
-  std::string obstacle;    ///< name of the obstacle touched ("" unless kObstacle)
-  double length_m = 0.0;   ///< inserted length at the contact [m]
-  steering::TipPose pose;  ///< tip pose at the contact [m, rad]
-  explicit operator bool() const { return outcome != steering::ArcOutcome::kFree; }
+  needle_model::ArcOutcome outcome = needle_model::ArcOutcome::kFree;
+  std::string obstacle;        ///< name of the obstacle touched ("" unless kObstacle)
+  double length_m = 0.0;       ///< inserted length at the contact [m]
+  needle_model::TipPose pose;  ///< tip pose at the contact [m, rad]
+  explicit operator bool() const { return outcome != needle_model::ArcOutcome::kFree; }
   /// "obstacle 'NAME' at (x, y) m", "left the workspace at (x, y) m" or "no contact".
   std::string toString() const;
 };
@@ -91,7 +91,7 @@ struct NeedleJournalEntry {
   bool accepted = true;
   std::string message;
   double length_m = 0.0;         ///< inserted length after the event [m]
-  steering::TipPose tip;         ///< tip() after the event [m, rad]
+  needle_model::TipPose tip;     ///< tip() after the event [m, rad]
   double beta_rad = 0.0;         ///< "insert": the deflection drawn [rad]
   double sigma_rad = 0.0;        ///< "insert": its standard deviation [rad]
   std::int64_t draw_index = -1;  ///< "insert": index in the seed's stream; -1 otherwise
@@ -107,14 +107,14 @@ struct NeedleJournalEntry {
 /// flip() was called since the last insertion (or the entry), else sigma_i.
 class SteerableNeedle {
 public:
-  /// @param[in] problem workspace and expanded obstacles (the target is not used) and
-  ///            r = problem.params.radius_m; its sigmas are ignored in favour of `config`'s
+  /// @param[in] workspace rectangle, obstacles (expanded by their clearance; the target is not
+  ///            used) and the radius of curvature r
   /// @param[in] config entry line, heights, sigmas, seed
   /// @param[in] entry the initial entry pose (must pass checkEntry)
   /// Throws std::invalid_argument for negative or non-finite sigmas, an empty height range, a
-  /// non-finite start_x, a bad entry, or whatever ContinuousWorkspace refuses.
-  SteerableNeedle(const steering::SteeringProblem& problem, const SteerableNeedleConfig& config,
-                  const EntryPose& entry);
+  /// non-finite start_x, a bad entry, or whatever PlanarWorld refuses.
+  SteerableNeedle(const needle_model::PlanarWorkspace& workspace,
+                  const SteerableNeedleConfig& config, const EntryPose& entry);
 
   /// Why `entry` cannot be set now: the needle is in tissue (inserted length > 0), the angle is
   /// outside [-pi/2, pi/2], the height outside [min_height_m, max_height_m], or a value is not
@@ -136,7 +136,7 @@ public:
   CommandStatus beginInsertion();
   /// Moves the tip of the open insertion to inserted length `length_m` (>= the current one)
   /// along its arc, checking contact over the newly travelled part with
-  /// ContinuousWorkspace::traceArc; on contact the tip stops at the contact point (kContact).
+  /// PlanarWorld::traceArc; on contact the tip stops at the contact point (kContact).
   /// Refused without an open insertion, in contact, for a non-finite or shorter length.
   MotionStatus advanceTo(double length_m);
   /// One whole insertion command: beginInsertion() then advanceTo(length_m) (refused, without
@@ -150,10 +150,10 @@ public:
 
   /// Tip pose at inserted length `length_m` in [0, insertedLength_m()] along the current path,
   /// with the bevel that traced that point (the entry pose at 0). Throws std::out_of_range.
-  steering::TipPose tipAt(double length_m) const;
+  needle_model::TipPose tipAt(double length_m) const;
   /// The current tip: the end of the path (the entry point and angle when empty, the deflected
   /// start of an open insertion that has not moved yet) with the current bevel.
-  steering::TipPose tip() const;
+  needle_model::TipPose tip() const;
   /// Points of the inserted needle from the entry to the tip, at most max_spacing_m (> 0)
   /// apart along the arcs [m].
   std::vector<geometry::Point2> pathPoints(double max_spacing_m) const;
@@ -162,7 +162,7 @@ public:
   const EntryPose& entry() const { return entry_; }
   /// The entry point (start_x, height) [m].
   geometry::Point2 entryPoint() const;
-  steering::Bevel bevel() const { return bevel_; }
+  needle_model::Bevel bevel() const { return bevel_; }
   const std::vector<NeedleSegment>& segments() const { return segments_; }
   const NeedleContact& contact() const { return contact_; }
   bool inContact() const { return static_cast<bool>(contact_); }
@@ -174,7 +174,7 @@ public:
   std::uint64_t deflectionsDrawn() const { return draws_; }
   const SteerableNeedleConfig& config() const { return config_; }
   double radius_m() const { return radius_m_; }
-  const steering::ContinuousWorkspace& world() const { return *world_; }
+  const needle_model::PlanarWorld& world() const { return *world_; }
 
   /// Everything the needle did, in order. `sink`, when set, also receives each entry as it is
   /// written (e.g. to persist it).
@@ -185,20 +185,20 @@ public:
 
 private:
   double drawStandardNormal();
-  steering::TipPose segmentPose(const NeedleSegment& segment, double along_m) const;
+  needle_model::TipPose segmentPose(const NeedleSegment& segment, double along_m) const;
   /// Appends a journal entry (with the deflection of `drawn`, if given) and passes it to sink_.
   void record(const std::string& event, bool accepted, const std::string& message,
               const NeedleSegment* drawn = nullptr);
   MotionStatus refuseMotion(const std::string& event, const std::string& reason);
 
   SteerableNeedleConfig config_;
-  std::unique_ptr<steering::ContinuousWorkspace> world_;
+  std::unique_ptr<needle_model::PlanarWorld> world_;
   double radius_m_ = 0.0;
   std::mt19937_64 rng_;
   std::uint64_t draws_ = 0;
 
   EntryPose entry_;
-  steering::Bevel bevel_ = steering::Bevel::kLeft;
+  needle_model::Bevel bevel_ = needle_model::Bevel::kLeft;
   std::vector<NeedleSegment> segments_;
   double length_m_ = 0.0;
   bool insertion_open_ = false;

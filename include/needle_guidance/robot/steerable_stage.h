@@ -54,7 +54,7 @@ public:
   CommandStatus setEntry(const EntryPose& entry, std::optional<std::uint64_t> reseed);
 
   /// The world's bevel as the stage's bevel joint shows it (left at the lower end).
-  steering::Bevel jointBevel() const;
+  needle_model::Bevel jointBevel() const;
   /// True if the bevel joint is at one end of its range (not mid-rotation).
   bool bevelAtEnd() const;
   /// Entries accepted so far (the guide pose's id) and flips since the last one.

@@ -20,16 +20,16 @@
 #include <string>
 #include <vector>
 
+#include "needle_guidance/needle_model/scene_3d.h"
 #include "needle_guidance/robot/insertion_stage.h"
 #include "needle_guidance/robot/steerable_stage.h"
-#include "needle_guidance/steering_3d/scene_3d.h"
 
 namespace needle_guidance::robot {
 
 /// One 3-D command: rotate the bevel by control.rotate_rad at spin_rate_rad_s, then insert
 /// control.length_m at velocity_m_s with duty-cycled spinning for control.curvature_per_m.
 struct Steer3Command {
-  steering_3d::Control3 control;
+  needle_model::Control3 control;
   double spin_rate_rad_s = 0.0;  ///< > 0 when rotating [rad/s]
   double velocity_m_s = 0.0;     ///< > 0 [m/s]
 };
@@ -44,7 +44,7 @@ struct Journal3Entry {
   std::string message;
   double inserted_m = 0.0;  ///< inserted length when written [m]
   double spin_rad = 0.0;    ///< axial rotation joint [rad]
-  steering_3d::Vector3 tip = steering_3d::Vector3::Zero();
+  needle_model::Vector3 tip = needle_model::Vector3::Zero();
 };
 
 /// Writes Journal3Entry lines as CSV, flushed per line. Throws std::runtime_error if the file
@@ -69,15 +69,15 @@ public:
   /// max_depth_m the travel) and `scene` must outlive it. The needle spins at most at the smaller
   /// of spin_rate_limit_rad_s (the axial rotation joint's limit) and the scene's limit. The
   /// needle starts at the centre of the scene's entry disc, along its direction.
-  SteerableStage3d(InsertionStage& stage, const steering_3d::Scene3d& scene,
-                   const steering_3d::NoiseParams3& noise, double spin_rate_limit_rad_s,
+  SteerableStage3d(InsertionStage& stage, const needle_model::Scene3d& scene,
+                   const needle_model::NoiseParams3& noise, double spin_rate_limit_rad_s,
                    std::uint64_t seed);
   ~SteerableStage3d();
 
   /// Places the guide at `entry` (a setup step, not a motion); with `reseed` a new noise stream.
   /// Refused (journalled) with the tip in tissue, while a motion runs or e-stopped, for a
   /// non-finite pose or one outside the scene's entry disc and cone.
-  CommandStatus setEntry(const steering_3d::TipPose3& entry, std::optional<std::uint64_t> reseed);
+  CommandStatus setEntry(const needle_model::TipPose3& entry, std::optional<std::uint64_t> reseed);
   /// Starts a command (see the file comment for the refusals).
   CommandStatus steer(const Steer3Command& command);
   /// Why a linear goal of the stage is refused in this mode ("" if it may): the height is set
@@ -97,19 +97,19 @@ public:
   void cancel(const std::string& why);
 
   bool busy() const { return motion_ != nullptr || stage_.busy(); }
-  const steering_3d::TipPose3& tip() const { return tip_; }
-  const steering_3d::TipPose3& entry() const { return entry_; }
+  const needle_model::TipPose3& tip() const { return tip_; }
+  const needle_model::TipPose3& entry() const { return entry_; }
   double insertedLength_m() const { return stage_.state().depth_m(); }
   double spin_rad() const { return spin_rad_; }
-  steering_3d::Contact3 contact() const { return contact_; }
+  needle_model::Contact3 contact() const { return contact_; }
   const std::string& contactObstacle() const { return obstacle_; }
   /// The inserted needle: tip positions from the entry [m].
-  const std::vector<steering_3d::Vector3>& path() const { return path_; }
+  const std::vector<needle_model::Vector3>& path() const { return path_; }
   /// The last command's duty cycle (the first step's).
-  const steering_3d::DutyCycle& lastCycle() const { return last_cycle_; }
+  const needle_model::DutyCycle& lastCycle() const { return last_cycle_; }
   double spinRateLimit_rad_s() const { return params_.spin_rate_max_rad_s; }
   /// Positions of the last command's insertion (its start included) [m].
-  const std::vector<steering_3d::Vector3>& lastPath() const { return last_path_; }
+  const std::vector<needle_model::Vector3>& lastPath() const { return last_path_; }
 
   const std::vector<Journal3Entry>& journal() const { return journal_; }
   void setJournalSink(std::function<void(const Journal3Entry&)> sink) { sink_ = std::move(sink); }
@@ -125,20 +125,20 @@ private:
   void record(const std::string& event, bool accepted, const std::string& message);
 
   InsertionStage& stage_;
-  const steering_3d::Scene3d& scene_;
-  steering_3d::CollisionWorld3 world_;
-  steering_3d::NeedleParams3 params_;
-  steering_3d::NoiseParams3 noise_;
-  std::unique_ptr<steering_3d::NoisyNeedle3> needle_;
-  steering_3d::TipPose3 entry_;
-  steering_3d::TipPose3 tip_;
+  const needle_model::Scene3d& scene_;
+  needle_model::CollisionWorld3 world_;
+  needle_model::NeedleParams3 params_;
+  needle_model::NoiseParams3 noise_;
+  std::unique_ptr<needle_model::NoisyNeedle3> needle_;
+  needle_model::TipPose3 entry_;
+  needle_model::TipPose3 tip_;
   double spin_rad_ = 0.0;
-  steering_3d::Contact3 contact_ = steering_3d::Contact3::kFree;
+  needle_model::Contact3 contact_ = needle_model::Contact3::kFree;
   std::string obstacle_;
-  std::vector<steering_3d::Vector3> path_;  ///< the inserted needle, from the entry
-  std::vector<double> path_s_;              ///< arc length at each point of path_ [m]
-  std::vector<steering_3d::Vector3> last_path_;
-  steering_3d::DutyCycle last_cycle_;
+  std::vector<needle_model::Vector3> path_;  ///< the inserted needle, from the entry
+  std::vector<double> path_s_;               ///< arc length at each point of path_ [m]
+  std::vector<needle_model::Vector3> last_path_;
+  needle_model::DutyCycle last_cycle_;
   std::unique_ptr<Motion> motion_;
   std::vector<Journal3Entry> journal_;
   std::function<void(const Journal3Entry&)> sink_;

@@ -151,7 +151,7 @@ private:
   ros::ServiceServer set_entry_srv_;
 
   // 3-D steerable mode only (steer3d_ is null otherwise).
-  std::unique_ptr<steering_3d::Scene3d> scene3d_;
+  std::unique_ptr<needle_model::Scene3d> scene3d_;
   std::unique_ptr<robot::SteerableStage3d> steer3d_;
   std::unique_ptr<robot::Journal3File> journal3_file_;
   std::unique_ptr<Steer3Server> steer_server_;

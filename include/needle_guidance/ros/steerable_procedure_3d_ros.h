@@ -60,16 +60,16 @@ private:
   /// once the supervisor has seen the planner die.
   std::optional<SteeringControl3> exchange(const procedures::SteeringTrial3& trial);
   /// Retracts the robot's needle and places its guide at `entry`; "" or the fault.
-  std::string placeRobot(const steering_3d::TipPose3& entry, std::uint64_t seed);
+  std::string placeRobot(const needle_model::TipPose3& entry, std::uint64_t seed);
   /// SteeringTrial3::WorldStep3 through the robot's steer action.
-  bool robotStep(const steering_3d::Control3& control, steering_3d::TipPose3& tip,
+  bool robotStep(const needle_model::Control3& control, needle_model::TipPose3& tip,
                  steering_3d::TrialResult3& result);
   /// Retracts the needle out of the tissue (`death` as runGoal's); "" or why not.
   std::string retract(const std::function<std::optional<std::string>()>& death);
 
   ros::NodeHandle nh_;
-  std::unique_ptr<steering_3d::Scene3d> scene_;
-  std::unique_ptr<steering_3d::CollisionWorld3> world_;
+  std::unique_ptr<needle_model::Scene3d> scene_;
+  std::unique_ptr<needle_model::CollisionWorld3> world_;
   std::string planner_ns_;
   std::string robot_ns_;
   std::string report_dir_;

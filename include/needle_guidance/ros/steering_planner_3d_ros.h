@@ -38,8 +38,8 @@ private:
   bool onPlan(PlanSteering3::Request& req, PlanSteering3::Response& res);
   void publishPlan(const steering_3d::Plan3& plan);
 
-  std::unique_ptr<steering_3d::Scene3d> scene_;
-  std::unique_ptr<steering_3d::CollisionWorld3> world_;
+  std::unique_ptr<needle_model::Scene3d> scene_;
+  std::unique_ptr<needle_model::CollisionWorld3> world_;
   std::unique_ptr<steering_3d::Planner3> planner_;
   std::uint64_t seed_ = 1;
   std::uint64_t tips_ = 0;  ///< tips answered: the k-th replan's seed mixes seed_ and k

@@ -205,7 +205,7 @@ std::vector<std::string> defaultSceneNames();
 inline constexpr const char* kPlanar = "planar";
 /// The `scene.kind` of the file `spec` ("planar" when absent; the embedded scenes are planar), so
 /// that one scene parameter can be dispatched to the reader of its kind ("steering_3d":
-/// steering_3d::loadScene3d). Throws SceneError for a missing or unreadable file, an unknown
+/// needle_model::loadScene3d). Throws SceneError for a missing or unreadable file, an unknown
 /// embedded name or a kind that is not a name; the kind itself is not validated here.
 std::string sceneKind(const std::string& spec);
 /// Loads `spec`: a path to a YAML file, or the name of an embedded scene. An existing file wins

@@ -1,69 +1,32 @@
-// The continuous steerable-needle world of dissertation 5.3, without the discretisation of
-// 5.4.2: exact constant-curvature arcs from any pose, continuous deflection angles, and
-// collision checks against the expanded obstacles and the workspace boundary along the arc.
-// Shared by the Monte Carlo truth check (monte_carlo.h), the shortest-path baseline and the
-// simulated steerable needle of the insertion robot. Plain C++; no ROS.
+// The continuous steerable-needle world of a steering problem (dissertation 5.3), without the
+// discretisation of 5.4.2: the needle model's PlanarWorld of the problem's workspace, obstacles,
+// target and radius of curvature. Shared by the Monte Carlo truth check (monte_carlo.h) and the
+// shortest-path baseline. Plain C++; no ROS.
 #pragma once
 
-#include <string>
-#include <vector>
-
-#include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/needle_model/planar_world.h"
 #include "needle_guidance/steering/steering_model.h"
 
 namespace needle_guidance::steering {
 
-/// What happened along one arc.
-enum class ArcOutcome {
-  kFree,           ///< the whole arc stays inside the workspace and outside every obstacle
-  kObstacle,       ///< the arc touches an expanded obstacle (or starts inside one)
-  kLeftWorkspace,  ///< the arc leaves the workspace rectangle (or starts outside it)
-};
-/// "free" | "obstacle" | "left_workspace".
-std::string toString(ArcOutcome outcome);
+using needle_model::ArcOutcome;
+using needle_model::ArcTrace;
 
-/// Result of ContinuousWorkspace::traceArc.
-struct ArcTrace {
-  ArcOutcome outcome = ArcOutcome::kFree;
-  /// Arc length travelled before the first contact (the whole arc when free) [m].
-  double free_length_m = 0.0;
-  /// The pose at the end of the arc, or at the first contact [m, rad].
-  TipPose end;
-  /// Name of the obstacle touched first ("" unless kObstacle).
-  std::string obstacle;
-};
+/// The needle model's workspace of a problem: its rectangle, obstacles, target and
+/// r = params.radius_m.
+needle_model::PlanarWorkspace planarWorkspace(const SteeringProblem& problem);
 
-/// The continuous workspace of a SteeringProblem: the rectangle, the obstacles expanded by
-/// their clearance (to within chord_tolerance_m, independent of any grid), and the target disc.
-class ContinuousWorkspace {
+/// The PlanarWorld of a steering problem, which it keeps.
+class ContinuousWorkspace : public needle_model::PlanarWorld {
 public:
-  /// Throws std::invalid_argument for an empty workspace, a negative clearance or target
-  /// radius, a non-positive radius of curvature or chord tolerance.
-  explicit ContinuousWorkspace(const SteeringProblem& problem, double chord_tolerance_m = 1e-5);
+  /// Throws std::invalid_argument as PlanarWorld does.
+  explicit ContinuousWorkspace(const SteeringProblem& problem, double chord_tolerance_m = 1e-5)
+      : PlanarWorld(planarWorkspace(problem), chord_tolerance_m), problem_(problem) {}
 
   const SteeringProblem& problem() const { return problem_; }
-  /// Expanded obstacles, counter-clockwise, in problem().obstacles order [m].
-  const std::vector<geometry::Polygon>& expandedObstacles() const { return expanded_; }
-
-  /// True if p lies in the closed target disc.
-  bool inTarget(const Point2& p) const;
-  /// True if p lies inside (or on) the closed workspace rectangle.
-  bool inWorkspace(const Point2& p) const;
-  /// Index of the expanded obstacle containing p, or -1.
-  int obstacleAt(const Point2& p) const;
-
-  /// Traces the arc of advanceTip(from, control, beta_rad, arc_length_m, r) and reports the
-  /// first contact with an expanded obstacle or the workspace boundary (a tip exactly on the
-  /// boundary is inside). The arc is followed as a polyline whose chords lie within the chord
-  /// tolerance of the true arc. Non-finite input gives kLeftWorkspace with free_length_m = 0.
-  ArcTrace traceArc(const TipPose& from, Control control, double beta_rad,
-                    double arc_length_m) const;
 
 private:
   SteeringProblem problem_;
-  double chord_tolerance_m_;
-  std::vector<geometry::Polygon> expanded_;
-  std::vector<Point2> box_min_, box_max_;
 };
 
 }  // namespace needle_guidance::steering

@@ -15,24 +15,22 @@
 #include <vector>
 
 #include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/needle_model/needle_2d.h"
 #include "needle_guidance/scene/scene.h"
 
 namespace needle_guidance::steering {
 
 using geometry::Point2;
 
-/// Bevel direction b of 5.3: left traces arcs counter-clockwise, right clockwise.
-enum class Bevel : std::uint8_t { kLeft = 0, kRight = 1 };
-/// The two controls u of 5.3: insert a distance delta (u = 0), or rotate the needle base by
-/// 180 degrees (bevel flip) and then insert a distance delta (u = 1).
-enum class Control : std::uint8_t { kInsert = 0, kFlip = 1 };
+// The needle's vocabulary, from the needle model the MDP discretises.
+using needle_model::advanceTip;
+using needle_model::Bevel;
+using needle_model::bevelFromString;
+using needle_model::Control;
+using needle_model::flipped;
+using needle_model::TipPose;
+using needle_model::toString;
 
-/// "left" | "right".
-std::string toString(Bevel bevel);
-/// The inverse of toString(Bevel): "left" | "right" -> bevel; nullopt for anything else.
-std::optional<Bevel> bevelFromString(const std::string& text);
-/// "insert" | "flip".
-std::string toString(Control control);
 /// How a transition's end point and deflection enter the MDP.
 enum class TransitionModel : std::uint8_t {
   /// 5.4.2 exactly: the tip moves by the vector between rounded control-circle points; the
@@ -48,29 +46,6 @@ enum class TransitionModel : std::uint8_t {
 std::string toString(TransitionModel model);
 /// The inverse of toString(TransitionModel); nullopt for anything else.
 std::optional<TransitionModel> transitionModelFromString(const std::string& text);
-
-/// The other bevel direction.
-inline Bevel flipped(Bevel bevel) {
-  return bevel == Bevel::kLeft ? Bevel::kRight : Bevel::kLeft;
-}
-
-/// Continuous needle tip state w = {p, theta, b} (5.3).
-struct TipPose {
-  Point2 p_SceneTip = Point2::Zero();  ///< tip position in frame scene [m]
-  double theta_rad = 0.0;              ///< tip tangent angle from +x, counter-clockwise [rad]
-  Bevel bevel = Bevel::kLeft;
-};
-
-/// The continuous model the discretisation approximates (5.3): apply `control` (a flip changes
-/// the bevel in place), deflect the orientation by beta, then trace an arc of length
-/// arc_length_m and radius radius_m in the (new) bevel direction. The MDP's transitions are
-/// this with beta restricted to multiples of alpha = 2 pi / N_c, the start point on the grid
-/// and the end point rounded to the grid (see SteeringModel). A Monte Carlo simulator of the
-/// "true" needle calls this with continuous beta ~ N(0, sigma_i or sigma_r).
-/// @param[in] pose tip before the step; @param[in] beta_rad deflection [rad]
-/// @param[in] arc_length_m delta [m], >= 0; @param[in] radius_m r [m], > 0
-TipPose advanceTip(const TipPose& pose, Control control, double beta_rad, double arc_length_m,
-                   double radius_m);
 
 /// Discretisation and motion-uncertainty parameters (5.4.2).
 struct SteeringParams {

@@ -10,7 +10,7 @@
 #include <string>
 #include <vector>
 
-#include "needle_guidance/steering_3d/biplane_3d.h"
+#include "needle_guidance/needle_model/biplane_3d.h"
 #include "needle_guidance/steering_3d/planner_3d.h"
 
 namespace needle_guidance::steering_3d {
@@ -31,17 +31,18 @@ struct TrialOptions3 {
   /// seeded from the trial's seed) instead of the true tip; after a dropped or gated pair, from
   /// the previous estimate advanced by the executed control.
   bool biplane = false;
-  BiplaneImaging3 imaging;
+  needle_model::BiplaneImaging3 imaging;
 };
 
 /// How one trial ended.
 struct TrialResult3 {
   bool success = false;
-  Contact3 contact = Contact3::kFree;  ///< what the path touched (kFree if nothing)
-  std::string obstacle;                ///< for kObstacle
-  PlanCode no_plan = PlanCode::kOk;    ///< the first plan's failure, if any
-  std::string message;                 ///< a one-line reason for a failure
-  double target_error_m = 0.0;         ///< final tip to target centre [m] (inf without a start)
+  needle_model::Contact3 contact =
+      needle_model::Contact3::kFree;  ///< what the path touched (kFree if nothing)
+  std::string obstacle;               ///< for kObstacle
+  PlanCode no_plan = PlanCode::kOk;   ///< the first plan's failure, if any
+  std::string message;                ///< a one-line reason for a failure
+  double target_error_m = 0.0;        ///< final tip to target centre [m] (inf without a start)
   int steps = 0;
   double initial_plan_s = 0.0;       ///< the first plan's wall time [s]
   std::vector<double> replan_s;      ///< each replan's wall time [s]
@@ -54,18 +55,20 @@ struct TrialResult3 {
   int views_dropped = 0;                    ///< biplane: pairs with a view that found no tip
   int views_gated = 0;                      ///< biplane: pairs refused by the gate
   double estimate_error_m_max = 0.0;        ///< biplane: largest estimate-to-true-tip distance [m]
-  std::vector<Vector3> path;                ///< tip positions, when record_path
+  std::vector<needle_model::Vector3> path;  ///< tip positions, when record_path
 };
 
 /// The tip after `control` from `previous`, without noise (the duty cycle's effective curvature):
 /// the estimate when a biplane pair is dropped or gated.
-TipPose3 predictTip3(const TipPose3& previous, const Control3& control,
-                     const NeedleParams3& needle);
+needle_model::TipPose3 predictTip3(const needle_model::TipPose3& previous,
+                                   const needle_model::Control3& control,
+                                   const needle_model::NeedleParams3& needle);
 
 /// Counts a biplane pair in `r` (fused, gated, else dropped) and returns the estimate: the fused
 /// tip, or `predicted` when the pair was not fused; tracks its largest distance to `truth`.
-TipPose3 acceptBiplane(const Result<TipPose3, BiplaneStatus>& seen, const TipPose3& predicted,
-                       const TipPose3& truth, TrialResult3& r);
+needle_model::TipPose3 acceptBiplane(
+    const Result<needle_model::TipPose3, needle_model::BiplaneStatus>& seen,
+    const needle_model::TipPose3& predicted, const needle_model::TipPose3& truth, TrialResult3& r);
 
 /// Planner seed of the k-th planning call in a trial seeded `seed` (splitmix64 of both).
 std::uint64_t callSeed(std::uint64_t seed, std::uint64_t k);
@@ -73,16 +76,19 @@ std::uint64_t callSeed(std::uint64_t seed, std::uint64_t k);
 /// One executed step of a trial (also the ROS procedure's world): moves `tip` by `control`
 /// through the noisy needle, counts the step, appends the path when options.record_path and
 /// checks it; false (result's contact, obstacle and message set) if it touched something.
-bool executeStep3(NoisyNeedle3& needle, const CollisionWorld3& world, const Control3& control,
-                  TipPose3& tip, TrialResult3& result, const TrialOptions3& options);
+bool executeStep3(needle_model::NoisyNeedle3& needle, const needle_model::CollisionWorld3& world,
+                  const needle_model::Control3& control, needle_model::TipPose3& tip,
+                  TrialResult3& result, const TrialOptions3& options);
 /// Sets target_error_m and success (no contact and the tip in the target ball) from the final
 /// tip; a failure gets a message if it has none.
-void finishTrial3(const Scene3d& scene, const TipPose3& tip, TrialResult3& result);
+void finishTrial3(const needle_model::Scene3d& scene, const needle_model::TipPose3& tip,
+                  TrialResult3& result);
 
 /// Runs one insertion in `scene` with noise `noise` (the world's; the planner assumes the same)
 /// from the planner's entry; `seed` seeds both the world and the planner.
-TrialResult3 runTrial3(const Scene3d& scene, const CollisionWorld3& world, Strategy3 strategy,
-                       const NoiseParams3& noise, const PlannerParams3& planner, std::uint64_t seed,
-                       const TrialOptions3& options = {});
+TrialResult3 runTrial3(const needle_model::Scene3d& scene,
+                       const needle_model::CollisionWorld3& world, Strategy3 strategy,
+                       const needle_model::NoiseParams3& noise, const PlannerParams3& planner,
+                       std::uint64_t seed, const TrialOptions3& options = {});
 
 }  // namespace needle_guidance::steering_3d

@@ -9,23 +9,24 @@
 #include <cstdint>
 #include <vector>
 
+#include "needle_guidance/needle_model/collision_3d.h"
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/steering/steering_model.h"
-#include "needle_guidance/steering_3d/collision_3d.h"
 
 namespace needle_guidance::steering_3d {
 
 /// A closed prism: the counter-clockwise polygon (x, y) [m] between z0 < z1 [m], caps by ear
 /// clipping. Collinear vertices are dropped. Throws std::invalid_argument for a polygon without
 /// positive area (or clockwise) or z1 <= z0.
-Mesh3 prismMesh(const std::vector<Eigen::Vector2d>& polygon_ccw, double z0, double z1);
+needle_model::Mesh3 prismMesh(const std::vector<Eigen::Vector2d>& polygon_ccw, double z0,
+                              double z1);
 
 /// The collision world of a planar problem extruded over z in [-half_depth, half_depth]: the
 /// workspace box as tissue and the expanded obstacles (as ContinuousWorkspace expands them) as
 /// prisms with zero clearance.
-CollisionWorld3 extrudedWorld(const steering::SteeringProblem& problem, double half_depth_m,
-                              double tolerance_m);
+needle_model::CollisionWorld3 extrudedWorld(const steering::SteeringProblem& problem,
+                                            double half_depth_m, double tolerance_m);
 
 /// One comparison.
 struct PlanarConsistency {

@@ -22,10 +22,10 @@
 #include <string>
 #include <vector>
 
+#include "needle_guidance/needle_model/collision_3d.h"
+#include "needle_guidance/needle_model/needle_3d.h"
+#include "needle_guidance/needle_model/scene_3d.h"
 #include "needle_guidance/status.h"
-#include "needle_guidance/steering_3d/collision_3d.h"
-#include "needle_guidance/steering_3d/needle_3d.h"
-#include "needle_guidance/steering_3d/scene_3d.h"
 
 namespace needle_guidance::steering_3d {
 
@@ -83,8 +83,8 @@ struct PlannerParams3 {
 
 /// A plan: controls from `start`; the last one ends at the target centre.
 struct Plan3 {
-  TipPose3 start;
-  std::vector<Control3> controls;
+  needle_model::TipPose3 start;
+  std::vector<needle_model::Control3> controls;
   double length_m = 0.0;
   /// The chooser's estimate of P(success) (PlannerParams3::estimate); for kFirstFound, the
   /// LQG-MP-style one.
@@ -94,14 +94,14 @@ struct Plan3 {
   /// the baseline's single arc), -1 for a plan from the tree.
   int approach = -1;
   /// Positions every <= 1 mm along the plan, start and end included [m].
-  std::vector<Vector3> points() const;
+  std::vector<needle_model::Vector3> points() const;
 };
 
 /// A plan's controls as the queue a loop executes step by step (nextStep).
-std::deque<Control3> controlQueue(const Plan3& plan);
+std::deque<needle_model::Control3> controlQueue(const Plan3& plan);
 /// Takes the next step, at most step_length_m, off the front of `queue` (a control's bevel
 /// rotation goes with its first step); pops the control when the step ends it.
-Control3 nextStep(std::deque<Control3>& queue, double step_length_m);
+needle_model::Control3 nextStep(std::deque<needle_model::Control3>& queue, double step_length_m);
 
 /// What a planning call did.
 struct PlanReport {
@@ -123,8 +123,10 @@ struct PlanReport {
 /// (the 2-D isotropic normal's tail beyond m; 1-D with in-plane noise). Margins are to the
 /// expanded obstacles only: the tissue boundary is where the needle enters. Zero-sigma plans
 /// score 1.
-double successProbability(const Plan3& plan, const CollisionWorld3& world, const Target3& target,
-                          const NoiseParams3& noise, double step_length_m, double kappa_max_per_m);
+double successProbability(const Plan3& plan, const needle_model::CollisionWorld3& world,
+                          const needle_model::Target3& target,
+                          const needle_model::NoiseParams3& noise, double step_length_m,
+                          double kappa_max_per_m);
 
 /// Monte Carlo estimate of a plan's probability of success under the replanning loop, for
 /// choosing among candidates: `rollouts` runs of the noisy needle (NoisyNeedle3 seeded
@@ -133,30 +135,31 @@ double successProbability(const Plan3& plan, const CollisionWorld3& world, const
 /// when one is free (what a replan finds first) and otherwise steer towards the plan two steps
 /// ahead. A rollout succeeds when it ends in the target ball without touching an expanded
 /// obstacle (with the planner's safety margin) or leaving the tissue. Returns the successes.
-int monteCarloSuccesses(const Plan3& plan, const Scene3d& scene, const CollisionWorld3& world,
-                        const NoiseParams3& noise, const PlannerParams3& params, int rollouts,
-                        std::uint64_t seed);
+int monteCarloSuccesses(const Plan3& plan, const needle_model::Scene3d& scene,
+                        const needle_model::CollisionWorld3& world,
+                        const needle_model::NoiseParams3& noise, const PlannerParams3& params,
+                        int rollouts, std::uint64_t seed);
 
 /// The planner of one scene. The world must outlive it.
 class Planner3 {
 public:
-  Planner3(const Scene3d& scene, const CollisionWorld3& world, PlannerParams3 params,
-           NoiseParams3 noise);
+  Planner3(const needle_model::Scene3d& scene, const needle_model::CollisionWorld3& world,
+           PlannerParams3 params, needle_model::NoiseParams3 noise);
 
   /// Plans from the entry region (roots: entry_samples poses on the disc, tangents in the cone,
   /// bevels at random) within the budget. Seeded.
   Result<Plan3, PlanStatus> planFromEntry(std::uint64_t seed, PlanReport* report = nullptr) const;
   /// Replans from the current tip pose within the budget. Seeded.
-  Result<Plan3, PlanStatus> planFromTip(const TipPose3& tip, std::uint64_t seed,
+  Result<Plan3, PlanStatus> planFromTip(const needle_model::TipPose3& tip, std::uint64_t seed,
                                         PlanReport* report = nullptr) const;
 
   const PlannerParams3& params() const { return params_; }
-  const NoiseParams3& noise() const { return noise_; }
+  const needle_model::NoiseParams3& noise() const { return noise_; }
 
 private:
-  Result<Plan3, PlanStatus> plan(const std::vector<TipPose3>& roots, std::uint64_t seed,
-                                 double budget_s, int rollouts, double estimate_budget_s,
-                                 PlanReport* report) const;
+  Result<Plan3, PlanStatus> plan(const std::vector<needle_model::TipPose3>& roots,
+                                 std::uint64_t seed, double budget_s, int rollouts,
+                                 double estimate_budget_s, PlanReport* report) const;
   /// Index of the plan to keep; sets each plan's estimates. Plans whose first rollout would
   /// start after `deadline` are dropped.
   std::size_t choose(std::vector<Plan3>& plans, int rollouts,
@@ -167,14 +170,14 @@ private:
   /// replanning loop that keeps it (common random numbers; whole rounds until `deadline`); the
   /// most successes wins, ties to the earlier candidate (without noise: to the smaller final
   /// error). Nothing if none is free.
-  std::optional<Plan3> planApproach(const TipPose3& tip, int rollouts,
+  std::optional<Plan3> planApproach(const needle_model::TipPose3& tip, int rollouts,
                                     std::chrono::steady_clock::time_point deadline,
                                     std::uint64_t seed, PlanReport& rep) const;
 
-  const Scene3d& scene_;
-  const CollisionWorld3& world_;
+  const needle_model::Scene3d& scene_;
+  const needle_model::CollisionWorld3& world_;
   PlannerParams3 params_;
-  NoiseParams3 noise_;
+  needle_model::NoiseParams3 noise_;
 };
 
 }  // namespace needle_guidance::steering_3d

@@ -1,5 +1,5 @@
 // Scene kind `tissue_3d`: a block of tissue with organ regions given as closed surface meshes
-// (read with steering_3d::readMesh3, the reader of the 3-D steering scenes), a material per
+// (read with needle_model::readMesh3, the reader of the 3-D steering scenes), a material per
 // region, fixed faces of the block and fixed (bone) regions, the needle and its interaction
 // parameters (the `needle:` keys of the 2-D scenes), the insertion robot's workspace (a lateral
 // x-y stage or the 5 mm template grid) and the seed targets. Frame scene: +x insertion (the
@@ -12,7 +12,7 @@
 #include <vector>
 
 #include "needle_guidance/fem/linear_elasticity.h"
-#include "needle_guidance/steering_3d/mesh_3d.h"
+#include "needle_guidance/needle_model/mesh_3d.h"
 
 namespace needle_guidance::tissue_3d {
 
@@ -23,7 +23,7 @@ using Vector3 = Eigen::Vector3d;
 struct Region3 {
   std::string name;
   std::string mesh_file;  ///< as written in the scene ("" for a generated shape)
-  steering_3d::Mesh3 surface;
+  needle_model::Mesh3 surface;
   fem::Material material;
   bool fixed = false;
 };
@@ -100,7 +100,7 @@ public:
 
 private:
   Vector3 min_, max_;
-  std::vector<steering_3d::MeshDistance> regions_;
+  std::vector<needle_model::MeshDistance> regions_;
 };
 
 /// Loads and validates a `tissue_3d` scene; mesh paths are relative to the file's directory.

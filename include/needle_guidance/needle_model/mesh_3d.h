@@ -10,9 +10,9 @@
 #include <string>
 #include <vector>
 
-#include "needle_guidance/steering_3d/needle_3d.h"
+#include "needle_guidance/needle_model/needle_3d.h"
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 
 /// A triangle mesh in frame scene [m]; triangles index vertices.
 struct Mesh3 {
@@ -80,4 +80,4 @@ private:
   Vector3 max_ = Vector3::Zero();
 };
 
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model

@@ -8,10 +8,10 @@
 #include <string>
 #include <vector>
 
-#include "needle_guidance/steering_3d/collision_3d.h"
-#include "needle_guidance/steering_3d/needle_3d.h"
+#include "needle_guidance/needle_model/collision_3d.h"
+#include "needle_guidance/needle_model/needle_3d.h"
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 
 /// Success region: the closed ball.
 struct Target3 {
@@ -60,4 +60,4 @@ Scene3d loadScene3d(const std::string& path);
 Scene3d parseScene3d(const std::string& yaml_text, const std::string& source,
                      const std::string& base_dir);
 
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model

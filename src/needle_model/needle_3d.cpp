@@ -1,5 +1,5 @@
 // The 3-D bevel-tip needle: screw motions, duty cycles and the seeded noisy world (needle_3d.h).
-#include "needle_guidance/steering_3d/needle_3d.h"
+#include "needle_guidance/needle_model/needle_3d.h"
 #include "needle_guidance/math.h"
 
 #include <algorithm>
@@ -7,7 +7,7 @@
 #include <sstream>
 #include <stdexcept>
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 namespace {
 
 /// Below this rotation angle the screw uses the series of its translation (relative error of the
@@ -256,4 +256,4 @@ StepRecord NoisyNeedle3::step(const TipPose3& pose, const Control3& control) {
   return record;
 }
 
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model

@@ -1,12 +1,12 @@
 // Sphere-traced collision checks against expanded obstacle meshes and the tissue boundary.
-#include "needle_guidance/steering_3d/collision_3d.h"
+#include "needle_guidance/needle_model/collision_3d.h"
 
 #include <algorithm>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 namespace {
 
 /// Lower bound of the distance from p to a box [m] (0 inside).
@@ -160,4 +160,4 @@ PathCheck CollisionWorld3::checkPolyline(const std::vector<Vector3>& points) con
   return total;
 }
 
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model

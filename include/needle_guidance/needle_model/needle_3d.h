@@ -19,7 +19,7 @@
 #include <string>
 #include <vector>
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 
 using Vector3 = Eigen::Vector3d;
 using Matrix3 = Eigen::Matrix3d;
@@ -152,4 +152,4 @@ private:
 /// Rotation that deflects the tangent by `deflection_rad` given about the tip axes (d, n, t).
 TipPose3 deflect(const TipPose3& pose, const Vector3& deflection_rad);
 
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model

@@ -1,5 +1,5 @@
 // Loading and validation of `steering_3d` scene files (scene_3d.h).
-#include "needle_guidance/steering_3d/scene_3d.h"
+#include "needle_guidance/needle_model/scene_3d.h"
 #include "needle_guidance/math.h"
 
 #include <yaml-cpp/yaml.h>
@@ -13,7 +13,7 @@
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/scene/yaml_reader.h"
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 namespace {
 
 using scene::SceneError;
@@ -203,4 +203,4 @@ Scene3d loadScene3d(const std::string& path) {
   return parseScene3d(buffer.str(), path, dir.empty() ? "." : dir);
 }
 
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model

@@ -1,12 +1,12 @@
 // Information fusion of two orthogonal views with a chi-square gate (biplane_3d.h).
-#include "needle_guidance/steering_3d/biplane_3d.h"
+#include "needle_guidance/needle_model/biplane_3d.h"
 
 #include <Eigen/Cholesky>
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 namespace {
 
 bool valid(const ViewDetection& v) {
@@ -133,4 +133,4 @@ Result<TipPose3, BiplaneStatus> BiplaneObserver3::observe(const TipPose3& truth,
   return tipFromViews(fused.value().p_SceneTip, heading_z, heading_y, predicted.bevel());
 }
 
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model

@@ -10,9 +10,9 @@
 #include <string>
 #include <vector>
 
-#include "needle_guidance/steering_3d/mesh_3d.h"
+#include "needle_guidance/needle_model/mesh_3d.h"
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 
 /// An obstacle: a closed mesh and the clearance it is expanded by (Minkowski sum with a ball).
 struct ObstacleMesh3 {
@@ -90,4 +90,4 @@ private:
   double tolerance_m_;
 };
 
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model

@@ -1,5 +1,5 @@
 // Mesh IO, validation, primitives and AABB-tree distance queries (mesh_3d.h), through CGAL.
-#include "needle_guidance/steering_3d/mesh_3d.h"
+#include "needle_guidance/needle_model/mesh_3d.h"
 #include "needle_guidance/math.h"
 
 #include <CGAL/AABB_face_graph_triangle_primitive.h>
@@ -22,7 +22,7 @@
 #include <sstream>
 #include <stdexcept>
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 namespace {
 
 using Kernel = CGAL::Exact_predicates_inexact_constructions_kernel;
@@ -386,4 +386,4 @@ bool MeshDistance::insideOrOn(const Vector3& p) const {
   return (*impl_->inside)(Point(p.x(), p.y(), p.z())) != CGAL::ON_UNBOUNDED_SIDE;
 }
 
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model

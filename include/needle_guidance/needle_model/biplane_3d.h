@@ -11,10 +11,10 @@
 #include <random>
 #include <string>
 
+#include "needle_guidance/needle_model/needle_3d.h"
 #include "needle_guidance/status.h"
-#include "needle_guidance/steering_3d/needle_3d.h"
 
-namespace needle_guidance::steering_3d {
+namespace needle_guidance::needle_model {
 
 /// The direction a view looks along.
 enum class ViewAxis {
@@ -96,4 +96,4 @@ private:
   std::uniform_real_distribution<double> unit_{0.0, 1.0};
 };
 
-}  // namespace needle_guidance::steering_3d
+}  // namespace needle_guidance::needle_model
