@@ -329,7 +329,9 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   publishState(last_step_);
   control_timer_ = nh.createTimer(ros::Duration(1.0 / control_rate_hz),
                                   &InsertionRobotRos::onControlTimer, this);
-  ROS_INFO_STREAM("insertion_robot: ready on scene '" << (scene3d_ ? scene3d_->name : scene.name)
+  ROS_INFO_STREAM("insertion_robot: ready on scene '" << (scene3d_   ? scene3d_->name
+                                                          : tissue3d ? scene_spec
+                                                                     : scene.name)
                                                       << "', needle " << limits.needle_length_m
                                                       << " m, " << mode << " mode, time scale "
                                                       << time_scale_);
