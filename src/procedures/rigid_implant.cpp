@@ -21,14 +21,34 @@ const char* toString(TargetOutcome outcome) {
   return "?";
 }
 
-RigidImplantProcedure::RigidImplantProcedure(scene::Scene scene, RigidImplantSettings settings)
-    : scene_(std::move(scene)), settings_(settings) {
+namespace {
+
+std::vector<ImplantTarget> planarTargets(const scene::Scene& scene) {
+  std::vector<ImplantTarget> out;
+  for (const auto& t : scene.targets) {
+    out.push_back({t.name, Point3(t.position.x(), t.position.y(), 0.0)});
+  }
+  return out;
+}
+
+}  // namespace
+
+RigidImplantProcedure::RigidImplantProcedure(const scene::Scene& scene,
+                                             RigidImplantSettings settings)
+    : RigidImplantProcedure(scene.name, planarTargets(scene), scene.workspace_min.x(), settings) {}
+
+RigidImplantProcedure::RigidImplantProcedure(std::string scene_name,
+                                             std::vector<ImplantTarget> targets, double entry_x_m,
+                                             RigidImplantSettings settings)
+    : scene_name_(std::move(scene_name)),
+      targets_(std::move(targets)),
+      entry_x_m_(entry_x_m),
+      settings_(settings) {
   auto positive = [](double v) { return std::isfinite(v) && v > 0.0; };
   if (!positive(settings_.insertion_velocity_m_s) || !positive(settings_.retract_velocity_m_s) ||
       !positive(settings_.height_velocity_m_s) || !positive(settings_.placement_tolerance_m) ||
-      !(settings_.retract_depth_m <= scene_.workspace_min.x()) ||
-      !(settings_.depth_tolerance_m >= 0.0) || !(settings_.velocity_tolerance >= 0.0) ||
-      settings_.max_targets < 0) {
+      !(settings_.retract_depth_m <= entry_x_m_) || !(settings_.depth_tolerance_m >= 0.0) ||
+      !(settings_.velocity_tolerance >= 0.0) || settings_.max_targets < 0) {
     throw std::invalid_argument(
         "RigidImplantProcedure: velocities and placement tolerance must be > 0, tolerances >= 0, "
         "max_targets >= 0 and the retract depth outside the tissue (<= the entry face x)");
@@ -52,7 +72,10 @@ bool RigidImplantProcedure::runTarget(RigidImplantDevices& devices, TargetRecord
     return false;
   }
   r.height = devices.moveHeight(r.aim.y(), settings_.height_velocity_m_s);
-  if (r.height.ok) {
+  if (r.height.ok && settings_.lateral_stage) {
+    r.lateral = devices.moveLateral(r.aim.z(), settings_.height_velocity_m_s);
+  }
+  if (r.height.ok && (r.lateral.ok || !settings_.lateral_stage)) {
     r.insert = devices.moveDepth(r.aim.x(), settings_.insertion_velocity_m_s, depth_now, false);
   }
   if (const auto tip = devices.tip()) {
@@ -71,13 +94,14 @@ bool RigidImplantProcedure::runTarget(RigidImplantDevices& devices, TargetRecord
       devices.moveDepth(settings_.retract_depth_m, settings_.retract_velocity_m_s, r.aim.x(), true);
   depth_now = r.retract.ok ? settings_.retract_depth_m : r.aim.x();
   if (r.seed_id >= 0 && r.retract.ok) {
-    r.seed = devices.seedAtRest(r.seed_id).value_or(Point2(NAN, NAN));
+    r.seed = devices.seedAtRest(r.seed_id).value_or(Point3(NAN, NAN, NAN));
   }
-  r.status = !r.height.ok                             ? "height " + r.height.state
-             : !r.insert.ok                           ? "insert " + r.insert.state
-             : !r.retract.ok                          ? "retract " + r.retract.state
-             : (devices.hasTissue() && r.seed_id < 0) ? "no seed: " + why_not
-                                                      : "ok";
+  r.status = !r.height.ok                               ? "height " + r.height.state
+             : settings_.lateral_stage && !r.lateral.ok ? "lateral " + r.lateral.state
+             : !r.insert.ok                             ? "insert " + r.insert.state
+             : !r.retract.ok                            ? "retract " + r.retract.state
+             : (devices.hasTissue() && r.seed_id < 0)   ? "no seed: " + why_not
+                                                        : "ok";
   if (devices.hasTissue() && settings_.reset_between_needles && r.retract.ok) {
     devices.resetTissue();  // the next needle meets undisturbed tissue (4.4)
   }
@@ -114,15 +138,14 @@ void RigidImplantProcedure::classify(TargetRecord& r, bool with_tissue) const {
 
 RigidImplantReport RigidImplantProcedure::run(RigidImplantDevices& devices) const {
   RigidImplantReport report;
-  report.scene = scene_.name;
+  report.scene = scene_name_;
   report.planned = devices.hasPlanner();
   report.with_tissue = devices.hasTissue();
   report.settings = settings_;
   const std::size_t count =
       settings_.max_targets > 0
-          ? std::min<std::size_t>(scene_.targets.size(),
-                                  static_cast<std::size_t>(settings_.max_targets))
-          : scene_.targets.size();
+          ? std::min<std::size_t>(targets_.size(), static_cast<std::size_t>(settings_.max_targets))
+          : targets_.size();
   report.targets_in_scene = static_cast<int>(count);
   const double start_s = devices.now_s();
   double depth_now = settings_.retract_depth_m;
@@ -131,8 +154,8 @@ RigidImplantReport RigidImplantProcedure::run(RigidImplantDevices& devices) cons
       break;
     }
     TargetRecord r;
-    r.name = scene_.targets[i].name;
-    r.target = r.aim = scene_.targets[i].position;
+    r.name = targets_[i].name;
+    r.target = r.aim = targets_[i].position;
     const bool carry_on = runTarget(devices, r, depth_now);
     report.fault = devices.fault();
     if (report.fault && r.status != "ok" && r.status != "plan failed") {

@@ -40,7 +40,10 @@ report::Table movesTable(const RigidImplantReport& rep) {
                        "status",
                        "outcome",
                        "verified_error_mm",
-                       "reason"},
+                       "reason",
+                       "target_z_mm",
+                       "release_z_mm",
+                       "seed_z_mm"},
                       6);
   const double v = rep.settings.insertion_velocity_m_s;
   for (const TargetRecord& r : rep.records) {
@@ -67,7 +70,10 @@ report::Table movesTable(const RigidImplantReport& rep) {
                   r.status,
                   std::string(toString(r.outcome)),
                   cell(1e3 * r.plan.verified_error_m),
-                  r.reason});
+                  r.reason,
+                  1e3 * r.target.z(),
+                  1e3 * r.aim.z(),
+                  cell(1e3 * r.seed.z())});
   }
   return moves;
 }
@@ -134,8 +140,16 @@ bool RigidImplantReport::success() const {
     return false;
   }
   return std::all_of(records.begin(), records.end(), [&](const TargetRecord& r) {
-    return planned ? r.outcome == TargetOutcome::kPlaced : r.status == "ok";
+    return planned ? r.outcome == TargetOutcome::kPlaced ||
+                         (r.outcome == TargetOutcome::kRefused && r.plan.unreachable)
+                   : r.status == "ok";
   });
+}
+
+int RigidImplantReport::unreachableCount() const {
+  return static_cast<int>(std::count_if(records.begin(), records.end(), [](const TargetRecord& r) {
+    return r.outcome == TargetOutcome::kRefused && r.plan.unreachable;
+  }));
 }
 
 std::string RigidImplantReport::summaryJson() const {
@@ -173,10 +187,13 @@ std::string RigidImplantReport::summaryJson() const {
        << ",\n  \"placed\": " << count(TargetOutcome::kPlaced)
        << ",\n  \"missed\": " << count(TargetOutcome::kMissed)
        << ",\n  \"refused\": " << count(TargetOutcome::kRefused)
+       << ",\n  \"refused_unreachable\": " << unreachableCount()
+       << ",\n  \"lateral_stage\": " << (settings.lateral_stage ? "true" : "false")
        << ",\n  \"error\": " << count(TargetOutcome::kError)
        << ",\n  \"placement_tolerance_mm\": " << jsonNumber(1e3 * settings.placement_tolerance_m)
        << ",\n  \"success_means\": \""
-       << (planned ? "every target placed (seed within the placement tolerance)"
+       << (planned ? "every target placed (seed within the placement tolerance) or refused as "
+                     "unreachable for a physical reason"
                    : "every move succeeded")
        << "\",\n  \"max_depth_error_mm\": " << jsonNumber(max_depth, 9)
        << ",\n  \"max_tip_error_mm\": " << jsonNumber(max_tip, 9)
@@ -211,9 +228,9 @@ std::string RigidImplantReport::summaryMarkdown() const {
          : with_tissue ? "Seed implant without deformation compensation"
                        : "Robot insertion")
      << " — scene `" << scene << "`\n\n"
-     << "Each target: move to its height, insert to its depth at "
-     << 1e3 * settings.insertion_velocity_m_s << " mm/s" << (with_tissue ? ", implant a seed" : "")
-     << ", retract to " << 1e3 * settings.retract_depth_m
+     << "Each target: move to its height" << (settings.lateral_stage ? " and lateral position" : "")
+     << ", insert to its depth at " << 1e3 * settings.insertion_velocity_m_s << " mm/s"
+     << (with_tissue ? ", implant a seed" : "") << ", retract to " << 1e3 * settings.retract_depth_m
      << " mm. Seed error is where the seed rests in the FEM tissue once the needle is out, "
         "against its target. Outcomes: placed (within "
      << 1e3 * settings.placement_tolerance_m

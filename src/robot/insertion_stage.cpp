@@ -13,8 +13,9 @@
 namespace needle_guidance::robot {
 namespace {
 
-constexpr std::array<const char*, kStageJointCount> kJointNames{"height", "insertion", "bevel"};
-constexpr std::array<const char*, kStageJointCount> kJointUnits{"m", "m", "rad"};
+constexpr std::array<const char*, kStageJointCount> kJointNames{"height", "insertion", "bevel",
+                                                                "lateral"};
+constexpr std::array<const char*, kStageJointCount> kJointUnits{"m", "m", "rad", "m"};
 
 std::string describe(double value, const char* unit) {
   return formatNumber(value) + ' ' + unit;
@@ -39,6 +40,9 @@ StageLimits parseStageLimits(const std::string& urdf_xml) {
   for (std::size_t i = 0; i < kStageJointCount; ++i) {
     const std::string name = kJointNames[i];
     const urdf::JointConstSharedPtr joint = model->getJoint(name);
+    if (!joint && static_cast<StageJoint>(i) == StageJoint::kLateral) {
+      continue;  // a stage without the lateral axis
+    }
     if (!joint) {
       throw std::invalid_argument("parseStageLimits: URDF has no joint '" + name + "'");
     }
@@ -59,6 +63,7 @@ StageLimits parseStageLimits(const std::string& urdf_xml) {
                                   std::to_string(out.max_velocity) + " (must be > 0)");
     }
   }
+  limits.has_lateral = static_cast<bool>(model->getJoint(jointName(StageJoint::kLateral)));
   if (const urdf::JointConstSharedPtr spin = model->getJoint("axial_rotation");
       spin && spin->limits) {
     limits.spin_rate_max_rad_s = spin->limits->velocity;
@@ -99,6 +104,14 @@ InsertionStage::InsertionStage(const StageLimits& limits, const SceneLimits& sce
                                 describe(scene.entry_x_m, "m") + ", stage insertion limit " +
                                 describe(depth.upper, "m") + "]");
   }
+  const JointLimits& lateral = limits_[StageJoint::kLateral];
+  if (!(scene.min_lateral_m <= scene.max_lateral_m) || scene.min_lateral_m < lateral.lower ||
+      scene.max_lateral_m > lateral.upper) {
+    throw std::invalid_argument(
+        "InsertionStage: scene lateral range [" + describe(scene.min_lateral_m, "m") + ", " +
+        describe(scene.max_lateral_m, "m") + "] is not inside the stage's lateral limits [" +
+        describe(lateral.lower, "m") + ", " + describe(lateral.upper, "m") + "]");
+  }
   for (std::size_t i = 0; i < kStageJointCount; ++i) {
     const JointLimits& joint = limits_.joints[i];
     if (!std::isfinite(initial[i]) || initial[i] < joint.lower || initial[i] > joint.upper) {
@@ -131,6 +144,9 @@ CommandStatus InsertionStage::command(StageJoint joint, double target, double ve
                   std::string("busy: joint '") +
                       kJointNames[static_cast<std::size_t>(active_->joint)] + "' is still moving");
   }
+  if (joint == StageJoint::kLateral && !limits_.has_lateral) {
+    return refuse(joint, target, velocity, "this stage has no lateral axis");
+  }
   if (!(velocity > 0.0) || velocity > lim.max_velocity) {
     return refuse(joint, target, velocity,
                   "velocity " + describe(velocity, unit) + "/s is not in (0, " +
@@ -141,10 +157,11 @@ CommandStatus InsertionStage::command(StageJoint joint, double target, double ve
                   "target " + describe(target, unit) + " is outside the joint limits [" +
                       describe(lim.lower, unit) + ", " + describe(lim.upper, unit) + "]");
   }
-  if (joint == StageJoint::kHeight && tipInTissue() && target != state_.height_m()) {
+  if ((joint == StageJoint::kHeight || joint == StageJoint::kLateral) && tipInTissue() &&
+      target != state_.position[j]) {
     return refuse(joint, target, velocity,
                   "needle tip is in tissue (depth " + describe(state_.depth_m(), "m") +
-                      "); retract out of tissue before changing height");
+                      "); retract out of tissue before changing " + kJointNames[j]);
   }
   if (joint == StageJoint::kDepth && target > scene_.entry_x_m + kTissueEntryTol_m) {
     if (target > scene_.max_depth_m) {
@@ -158,6 +175,14 @@ CommandStatus InsertionStage::command(StageJoint joint, double target, double ve
                     "height " + describe(height, "m") + " is outside the scene's entry range [" +
                         describe(scene_.min_height_m, "m") + ", " +
                         describe(scene_.max_height_m, "m") + "]; the needle may not enter here");
+    }
+    const double lateral = state_.lateral_m();
+    if (lateral < scene_.min_lateral_m || lateral > scene_.max_lateral_m) {
+      return refuse(joint, target, velocity,
+                    "lateral position " + describe(lateral, "m") +
+                        " is outside the scene's entry range [" +
+                        describe(scene_.min_lateral_m, "m") + ", " +
+                        describe(scene_.max_lateral_m, "m") + "]; the needle may not enter here");
     }
   }
   active_ = Motion{joint, target, velocity};

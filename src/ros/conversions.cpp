@@ -110,10 +110,12 @@ visualization_msgs::Marker outline(const std::vector<geometry::Point2>& ring,
 
 void toMessage(const robot::StageState& state, sensor_msgs::JointState& msg) {
   msg.name.clear();
-  msg.position.assign(state.position.begin(), state.position.end());
-  msg.velocity.assign(state.velocity.begin(), state.velocity.end());
+  // height, insertion, bevel; the lateral axis is added by the stage that has one.
+  constexpr std::size_t kJoints = static_cast<std::size_t>(robot::StageJoint::kBevel) + 1;
+  msg.position.assign(state.position.begin(), state.position.begin() + kJoints);
+  msg.velocity.assign(state.velocity.begin(), state.velocity.begin() + kJoints);
   msg.effort.clear();
-  for (std::size_t i = 0; i < robot::kStageJointCount; ++i) {
+  for (std::size_t i = 0; i < kJoints; ++i) {
     msg.name.emplace_back(robot::jointName(static_cast<robot::StageJoint>(i)));
   }
 }
@@ -122,7 +124,7 @@ void tipPoseToMessage(const robot::StageState& state, geometry_msgs::PoseStamped
   msg.header.frame_id = "scene";
   msg.pose.position.x = state.depth_m();
   msg.pose.position.y = state.height_m();
-  msg.pose.position.z = 0.0;
+  msg.pose.position.z = state.lateral_m();  // 0 without a lateral axis
   msg.pose.orientation.x = std::sin(0.5 * state.bevel_rad());
   msg.pose.orientation.y = 0.0;
   msg.pose.orientation.z = 0.0;

@@ -20,6 +20,7 @@
 #include "needle_guidance/ros/node_supervisor.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
+#include "needle_guidance/tissue_3d/scene_tissue_3d.h"
 
 namespace needle_guidance {
 namespace {
@@ -30,6 +31,43 @@ using procedures::MoveResult;
 using procedures::PlanResult;
 
 constexpr double kConfirmPause_s = 0.2;  ///< between the pings that confirm a node's death
+/// Placement tolerance of the 3-D scenes (the 3-D planner's, docs/tissue_3d.md) [m].
+constexpr double kTolerance3d_m = 1e-4;
+
+/// What the procedure needs of its scene, planar or `kind: tissue_3d`.
+struct ProcedureScene {
+  std::string name;
+  std::vector<procedures::ImplantTarget> targets;
+  double entry_x_m = 0.0;
+  double insertion_velocity_m_s = 0.0;
+  double placement_tolerance_m = 0.0;
+  bool three_d = false;  ///< on the x-y stage: the lateral axis moves too
+};
+
+ProcedureScene loadProcedureScene(const std::string& spec) {
+  ProcedureScene out;
+  if (scene::sceneKind(spec) == "tissue_3d") {
+    const tissue_3d::TissueScene3d scene = tissue_3d::loadTissueScene3d(spec);
+    out.name = scene.name;
+    for (const tissue_3d::Target3& t : scene.targets) {
+      out.targets.push_back({t.name, t.position_m});
+    }
+    out.entry_x_m = scene.block_min_m.x();
+    out.insertion_velocity_m_s = scene.needle.insertion_velocity_m_s;
+    out.placement_tolerance_m = kTolerance3d_m;
+    out.three_d = true;
+    return out;
+  }
+  const scene::Scene scene = scene::loadSceneSpec(spec);
+  out.name = scene.name;
+  for (const auto& t : scene.targets) {
+    out.targets.push_back({t.name, procedures::Point3(t.position.x(), t.position.y(), 0.0)});
+  }
+  out.entry_x_m = scene.workspace_min.x();
+  out.insertion_velocity_m_s = scene.needle.insertion_velocity_m_s;
+  out.placement_tolerance_m = scene.needle.placement_tolerance_m;
+  return out;
+}
 
 /// The devices of the rigid implant procedure over ROS: the robot's actions, tissue_sim's and
 /// rigid_planner's services, and a NodeSupervisor watching all three. A move polls the
@@ -40,12 +78,14 @@ public:
     ROS_INFO_STREAM("insertion_procedure: " << line);  // scripts/demo prints these lines
   }
   RosRigidDevices(ros::NodeHandle& nh, const std::string& robot, const std::string& tissue,
-                  const std::string& planner)
+                  const std::string& planner, bool lateral_stage)
       : nh_(nh),
         robot_(robot),
         tissue_(tissue),
         planner_(planner),
+        lateral_stage_(lateral_stage),
         height_(nh, robot + "/move_to_height", true),
+        lateral_(nh, robot + "/move_to_lateral", true),
         insert_(nh, robot + "/insert", true),
         retract_(nh, robot + "/retract", true),
         start_(ros::WallTime::now()) {}
@@ -58,10 +98,18 @@ public:
         throw std::runtime_error("robot action servers of " + robot_ + " did not come up in 30 s");
       }
     }
+    if (lateral_stage_) {
+      if (!lateral_.waitForServer(ros::Duration(30.0))) {
+        throw std::runtime_error(robot_ +
+                                 "/move_to_lateral (the x-y stage's lateral axis) did "
+                                 "not come up in 30 s");
+      }
+    }
     tip_sub_ = nh_.subscribe<geometry_msgs::PoseStamped>(
         robot_ + "/measured_cp", 10, [this](const geometry_msgs::PoseStampedConstPtr& msg) {
           std::lock_guard<std::mutex> lock(mutex_);
-          tip_ = geometry::Point2(msg->pose.position.x, msg->pose.position.y);
+          tip_ =
+              procedures::Point3(msg->pose.position.x, msg->pose.position.y, msg->pose.position.z);
         });
     estop_ = nh_.serviceClient<std_srvs::Trigger>(robot_ + "/estop");
     std::vector<std::string> watched{robot_};
@@ -91,16 +139,19 @@ public:
   bool hasPlanner() const override { return !planner_.empty(); }
   bool hasTissue() const override { return !tissue_.empty(); }
 
-  PlanResult plan(const geometry::Point2& target) override {
+  PlanResult plan(const procedures::Point3& target) override {
     PlanRigid srv;
-    srv.request.target = ros_conversions::toMessage(target);
+    srv.request.target.x = target.x();
+    srv.request.target.y = target.y();
+    srv.request.target.z = target.z();
     PlanResult r;
     const bool called = plan_.call(srv);
     r.ok = called && srv.response.success;
     r.refused = called && !r.ok && srv.response.code != "simulation failed";
+    r.unreachable = r.refused && srv.response.code == "unreachable";
     r.message = called ? srv.response.message : "the planner service call failed";
     if (r.ok) {
-      r.release = {srv.response.release.x, srv.response.release.y};
+      r.release = {srv.response.release.x, srv.response.release.y, srv.response.release.z};
       r.predicted_error_m = srv.response.predicted_error_m;
       r.unplanned_error_m = srv.response.unplanned_error_m;
       r.plan_s = srv.response.planning_time_s;
@@ -112,11 +163,14 @@ public:
   MoveResult moveHeight(double height_m, double velocity_m_s) override {
     return move(height_, height_m, velocity_m_s, 0.0);
   }
+  MoveResult moveLateral(double lateral_m, double velocity_m_s) override {
+    return move(lateral_, lateral_m, velocity_m_s, 0.0);
+  }
   MoveResult moveDepth(double depth_m, double velocity_m_s, double from_m, bool retract) override {
     return move(retract ? retract_ : insert_, depth_m, velocity_m_s, from_m);
   }
 
-  std::optional<geometry::Point2> tip() override {
+  std::optional<procedures::Point3> tip() override {
     ros::Duration(0.05).sleep();  // one more measured_cp at rest
     std::lock_guard<std::mutex> lock(mutex_);
     return tip_;
@@ -132,14 +186,27 @@ public:
     return std::nullopt;
   }
 
-  std::optional<geometry::Point2> seedAtRest(int id) override {
-    ros::Duration(0.4).sleep();  // the tissue comes to rest; seeds are republished at 20 Hz
+  std::optional<procedures::Point3> seedAtRest(int id) override {
+    // The tissue comes to rest; seeds are republished at tissue_sim's marker rate. Only seeds
+    // stamped well after the retraction ended count (tissue_sim may lag the robot).
+    const ros::Time since = ros::Time::now() + ros::Duration(0.2);
+    ros::Duration(0.4).sleep();
+    const ros::WallTime deadline = ros::WallTime::now() + ros::WallDuration(10.0);
+    while (ros::ok() && ros::WallTime::now() < deadline && !fault()) {
+      {
+        std::lock_guard<std::mutex> lock(mutex_);
+        if (seeds_.header.stamp >= since) {
+          break;
+        }
+      }
+      ros::Duration(0.05).sleep();
+    }
     std::lock_guard<std::mutex> lock(mutex_);
     if (id < 0 || static_cast<std::size_t>(id) >= seeds_.poses.size()) {
       return std::nullopt;
     }
     const auto& p = seeds_.poses[static_cast<std::size_t>(id)].position;
-    return geometry::Point2(p.x, p.y);
+    return procedures::Point3(p.x, p.y, p.z);
   }
 
   void resetTissue() override {
@@ -209,10 +276,11 @@ private:
 
   ros::NodeHandle nh_;
   std::string robot_, tissue_, planner_;
-  LinearMoveClient height_, insert_, retract_;
+  bool lateral_stage_ = false;
+  LinearMoveClient height_, lateral_, insert_, retract_;
   ros::WallTime start_;
   std::mutex mutex_;
-  std::optional<geometry::Point2> tip_;
+  std::optional<procedures::Point3> tip_;
   geometry_msgs::PoseArray seeds_;
   ros::Subscriber tip_sub_, seeds_sub_;
   ros::ServiceClient implant_, reset_, plan_, estop_;
@@ -225,7 +293,8 @@ InsertionProcedureRos::InsertionProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
     : nh_(nh) {
   ROS_INFO("insertion_procedure parameters:");
   scene_spec_ = ros_params::text(private_nh, "scene", "prostate_sagittal");
-  const scene::Scene scene = scene::loadSceneSpec(scene_spec_);
+  const ProcedureScene scene = loadProcedureScene(scene_spec_);
+  settings_.lateral_stage = scene.three_d;
   robot_ns_ = ros_params::text(private_nh, "robot", "insertion_robot");
   tissue_ns_ = ros_params::text(private_nh, "tissue", "");
   planner_ns_ = ros_params::text(private_nh, "planner", "");
@@ -236,7 +305,7 @@ InsertionProcedureRos::InsertionProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   report::prepareReportDir(report_dir_, private_nh.resolveName("report_dir"),
                            ros_params::flag(private_nh, "allow_system_paths", false));
   settings_.insertion_velocity_m_s = ros_params::number(
-      private_nh, "insertion_velocity_m_s", scene.needle.insertion_velocity_m_s, 1e-4, 1.0, "m/s");
+      private_nh, "insertion_velocity_m_s", scene.insertion_velocity_m_s, 1e-4, 1.0, "m/s");
   settings_.retract_velocity_m_s = ros_params::number(
       private_nh, "retract_velocity_m_s", 2.0 * settings_.insertion_velocity_m_s, 1e-4, 1.0, "m/s");
   settings_.height_velocity_m_s =
@@ -248,16 +317,18 @@ InsertionProcedureRos::InsertionProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   settings_.velocity_tolerance =
       ros_params::number(private_nh, "velocity_tolerance", 0.05, 0.0, 1.0, "1");
   settings_.placement_tolerance_m = ros_params::number(
-      private_nh, "placement_tolerance_m", scene.needle.placement_tolerance_m, 1e-7, 0.05, "m");
+      private_nh, "placement_tolerance_m", scene.placement_tolerance_m, 1e-7, 0.05, "m");
   settings_.max_targets =
       static_cast<int>(ros_params::number(private_nh, "max_targets", 0, 0, 1000, "targets"));
-  procedures::RigidImplantProcedure(scene, settings_);  // refuses settings out of range now
+  // Refuses settings out of range now.
+  procedures::RigidImplantProcedure(scene.name, scene.targets, scene.entry_x_m, settings_);
 }
 
 bool InsertionProcedureRos::run() {
-  const scene::Scene scene = scene::loadSceneSpec(scene_spec_);
-  RosRigidDevices devices(nh_, robot_ns_, tissue_ns_, planner_ns_);
-  const procedures::RigidImplantProcedure procedure(scene, settings_);
+  const ProcedureScene scene = loadProcedureScene(scene_spec_);
+  RosRigidDevices devices(nh_, robot_ns_, tissue_ns_, planner_ns_, scene.three_d);
+  const procedures::RigidImplantProcedure procedure(scene.name, scene.targets, scene.entry_x_m,
+                                                    settings_);
   procedures::RigidImplantReport report;
   try {
     devices.connect();
@@ -288,7 +359,8 @@ bool InsertionProcedureRos::run() {
             << report.records.size() << " of " << report.targets_in_scene << " targets tried, "
             << report.count(procedures::TargetOutcome::kPlaced) << " placed, "
             << report.count(procedures::TargetOutcome::kMissed) << " missed, "
-            << report.count(procedures::TargetOutcome::kRefused) << " refused, "
+            << report.count(procedures::TargetOutcome::kRefused) << " refused ("
+            << report.unreachableCount() << " unreachable), "
             << report.count(procedures::TargetOutcome::kError) << " error, " << report.wall_time_s
             << " s; report in " << report_dir_ << "\n"
             << std::flush;

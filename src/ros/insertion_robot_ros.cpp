@@ -19,6 +19,7 @@
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/continuous_workspace.h"
+#include "needle_guidance/tissue_3d/scene_tissue_3d.h"
 
 namespace needle_guidance {
 namespace {
@@ -31,6 +32,29 @@ constexpr double kRadPerDeg = 3.14159265358979323846 / 180.0;
 constexpr double kPathSpacing_m = 5e-4;
 /// Line width of ~needle_path [m].
 constexpr double kPathWidth_m = 1e-3;
+
+/// Entry and depth limits of a tissue_3d scene: the stage range (or the template grid's
+/// extent), the deepest tip x and the block's entry face.
+robot::SceneLimits tissue3dLimits(const std::string& scene_file) {
+  const tissue_3d::TissueScene3d scene = tissue_3d::loadTissueScene3d(scene_file);
+  const tissue_3d::Workspace3& w = scene.workspace;
+  robot::SceneLimits limits;
+  if (w.use_template) {
+    limits.min_height_m = w.template_origin_m.x();
+    limits.max_height_m = w.template_origin_m.x() + (w.template_rows - 1) * w.template_spacing_m;
+    limits.min_lateral_m = w.template_origin_m.y();
+    limits.max_lateral_m =
+        w.template_origin_m.y() + (w.template_columns - 1) * w.template_spacing_m;
+  } else {
+    limits.min_height_m = w.y_min_m;
+    limits.max_height_m = w.y_max_m;
+    limits.min_lateral_m = w.z_min_m;
+    limits.max_lateral_m = w.z_max_m;
+  }
+  limits.max_depth_m = w.max_tip_x_m;
+  limits.entry_x_m = scene.block_min_m.x();
+  return limits;
+}
 
 // Steerable-mode conversions, local to this node (its only user).
 
@@ -190,6 +214,9 @@ void InsertionRobotRos::advertiseInterfaces(const ros::NodeHandle& private_nh) {
   height_server_ = make_linear("move_to_height", Owner::kHeight);
   insert_server_ = make_linear("insert", Owner::kInsert);
   retract_server_ = make_linear("retract", Owner::kRetract);
+  if (stage_->limits().has_lateral) {
+    lateral_server_ = make_linear("move_to_lateral", Owner::kLateral);
+  }
   flip_server_ = std::make_unique<FlipBevelServer>(
       robot_nh, "flip_bevel", [this] { return runningMotion(); },
       [this](const FlipBevelGoal& goal) { onFlipGoal(goal); }, [this] { onPreempt(Owner::kFlip); });
@@ -208,7 +235,9 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   }
   const robot::StageLimits limits = robot::parseStageLimits(urdf_xml);
   // One ~scene, dispatched on its kind: a steering_3d file selects the 3-D steerable mode.
-  const bool scene_is_3d = scene::sceneKind(scene_spec) == "steering_3d";
+  const std::string kind = scene::sceneKind(scene_spec);
+  const bool scene_is_3d = kind == "steering_3d";
+  const bool tissue3d = kind == "tissue_3d";
   const std::string mode = ros_params::text(private_nh, "mode", "auto");
   const bool steerable3d = mode == "steerable_3d" || (mode == "auto" && scene_is_3d);
   if (mode != "auto" && mode != "rigid" && mode != "steerable" && mode != "steerable_3d") {
@@ -221,7 +250,14 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
                              (scene_is_3d ? " cannot drive a steering_3d scene (use auto)"
                                           : " needs a steering_3d scene file"));
   }
-  const scene::Scene scene = scene_is_3d ? scene::Scene{} : scene::loadSceneSpec(scene_spec);
+  if (tissue3d && (mode == "steerable" || mode == "steerable_3d" || !limits.has_lateral)) {
+    throw std::runtime_error(
+        "parameter '" + private_nh.resolveName("scene") + "' = '" + scene_spec +
+        "' (a tissue_3d scene) needs ~mode rigid or auto and a stage URDF with the 'lateral' "
+        "joint (urdf/insertion_stage_3d.urdf)");
+  }
+  const scene::Scene scene =
+      scene_is_3d || tissue3d ? scene::Scene{} : scene::loadSceneSpec(scene_spec);
   const bool steerable_mode = mode == "steerable" || (mode == "auto" && scene.steering);
   if (steerable_mode && !scene.steering) {
     throw std::runtime_error("~mode steerable needs a scene with models.steering; scene '" +
@@ -234,7 +270,8 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   // the needle at the workspace boundary, so the scene's max_depth (an x) does not cap the arc
   // length, the joint's travel does.
   const robot::SceneLimits scene_limits =
-      steerable3d ? robot::SceneLimits{h.lower, h.upper, d.upper, 0.0}
+      tissue3d      ? tissue3dLimits(scene_spec)
+      : steerable3d ? robot::SceneLimits{h.lower, h.upper, d.upper, 0.0}
       : steerable_mode
           ? robot::SceneLimits{scene.needle.min_height_m, scene.needle.max_height_m, d.upper, 0.0}
           : robot::SceneLimits{scene.needle.min_height_m, scene.needle.max_height_m,
@@ -256,8 +293,9 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
                                d.lower, scene_limits.entry_x_m, "m");
   const double initial_bevel_rad =
       ros_params::number(private_nh, "initial_bevel_rad", b.lower, b.lower, b.upper, "rad");
+  const double mid_lateral = 0.5 * (scene_limits.min_lateral_m + scene_limits.max_lateral_m);
   const std::array<double, robot::kStageJointCount> initial{initial_height_m, initial_depth_m,
-                                                            initial_bevel_rad};
+                                                            initial_bevel_rad, mid_lateral};
   const std::string journal_path = ros_params::rosHomePath(
       ros_params::text(private_nh, "journal_file", "insertion_robot_journal.csv"));
   publish_period_s_ = 1.0 / publish_rate_hz;
@@ -291,16 +329,25 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   publishState(last_step_);
   control_timer_ = nh.createTimer(ros::Duration(1.0 / control_rate_hz),
                                   &InsertionRobotRos::onControlTimer, this);
-  ROS_INFO_STREAM("insertion_robot: ready on scene '" << (scene3d_ ? scene3d_->name : scene.name)
+  ROS_INFO_STREAM("insertion_robot: ready on scene '" << (scene3d_   ? scene3d_->name
+                                                          : tissue3d ? scene_spec
+                                                                     : scene.name)
                                                       << "', needle " << limits.needle_length_m
                                                       << " m, " << mode << " mode, time scale "
                                                       << time_scale_);
 }
 
 InsertionRobotRos::LinearMoveServer& InsertionRobotRos::linearServer(Owner owner) {
-  return owner == Owner::kHeight   ? *height_server_
-         : owner == Owner::kInsert ? *insert_server_
-                                   : *retract_server_;
+  return owner == Owner::kHeight    ? *height_server_
+         : owner == Owner::kInsert  ? *insert_server_
+         : owner == Owner::kLateral ? *lateral_server_
+                                    : *retract_server_;
+}
+
+robot::StageJoint InsertionRobotRos::linearJoint(Owner owner) {
+  return owner == Owner::kHeight    ? StageJoint::kHeight
+         : owner == Owner::kLateral ? StageJoint::kLateral
+                                    : StageJoint::kDepth;
 }
 
 std::string InsertionRobotRos::runningMotion() const {
@@ -309,19 +356,20 @@ std::string InsertionRobotRos::runningMotion() const {
                                          "an insert motion is running",
                                          "a retract motion is running",
                                          "a flip_bevel rotation is running",
-                                         "a steer motion is running"};
+                                         "a steer motion is running",
+                                         "a move_to_lateral motion is running"};
   return kRunning[static_cast<int>(owner_)];  // indexed by Owner
 }
 
 void InsertionRobotRos::onLinearGoal(Owner owner, const LinearMoveGoal& goal_msg) {
   LinearMoveServer& server = linearServer(owner);
   const LinearMoveGoal* goal = &goal_msg;
-  const StageJoint joint = owner == Owner::kHeight ? StageJoint::kHeight : StageJoint::kDepth;
+  const StageJoint joint = linearJoint(owner);
   const double current = stage_->state().position[static_cast<std::size_t>(joint)];
   robot::CommandStatus status = robot::CommandStatus::accepted();
-  const LinearCommand command = owner == Owner::kHeight   ? LinearCommand::kHeight
-                                : owner == Owner::kInsert ? LinearCommand::kInsert
-                                                          : LinearCommand::kRetract;
+  const LinearCommand command = owner == Owner::kInsert    ? LinearCommand::kInsert
+                                : owner == Owner::kRetract ? LinearCommand::kRetract
+                                                           : LinearCommand::kHeight;
   std::string why = robot::directionRefusal(command, goal->target_m, current);
   if (why.empty()) {
     why = steer3d_      ? steer3d_->linearRefusal(command, goal->target_m)
@@ -400,7 +448,7 @@ void InsertionRobotRos::onPreempt(Owner owner) {
     LinearMoveResult result;
     result.success = false;
     result.message = last_message_;
-    const StageJoint joint = owner == Owner::kHeight ? StageJoint::kHeight : StageJoint::kDepth;
+    const StageJoint joint = linearJoint(owner);
     result.reached_m = stage_->state().position[static_cast<std::size_t>(joint)];
     linearServer(owner).setPreempted(result, result.message);
   }
@@ -437,7 +485,7 @@ void InsertionRobotRos::finishActiveGoal(bool success, const std::string& messag
   if (owner == Owner::kNone) {
     return;
   }
-  const StageJoint joint = owner == Owner::kHeight ? StageJoint::kHeight : StageJoint::kDepth;
+  const StageJoint joint = linearJoint(owner);
   LinearMoveResult result;
   result.success = success;
   result.message = message;
@@ -491,6 +539,11 @@ void InsertionRobotRos::publishState(const ros::Time& stamp) {
   js.name.emplace_back("axial_rotation");  // the URDF's continuous joint (3-D mode's spin)
   js.position.push_back(steer3d_ ? steer3d_->spin_rad() : 0.0);
   js.velocity.push_back(0.0);
+  if (stage_->limits().has_lateral) {
+    js.name.emplace_back(robot::jointName(StageJoint::kLateral));
+    js.position.push_back(state.lateral_m());
+    js.velocity.push_back(state.velocity[static_cast<std::size_t>(StageJoint::kLateral)]);
+  }
   js.header.stamp = stamp;
   measured_js_pub_.publish(js);
 
@@ -525,7 +578,7 @@ void InsertionRobotRos::publishState(const ros::Time& stamp) {
     fb.spin_rad = steer3d_->spin_rad();
     steer_server_->publishFeedback(fb);
   } else if (owner_ != Owner::kNone) {
-    const StageJoint j = owner_ == Owner::kHeight ? StageJoint::kHeight : StageJoint::kDepth;
+    const StageJoint j = linearJoint(owner_);
     LinearMoveFeedback fb;
     fb.position_m = state.position[static_cast<std::size_t>(j)];
     fb.velocity_m_s = state.velocity[static_cast<std::size_t>(j)];

@@ -9,9 +9,16 @@ namespace needle_guidance {
 
 RigidPlannerRos::RigidPlannerRos(ros::NodeHandle& /*nh*/, ros::NodeHandle& private_nh) {
   ROS_INFO("rigid_planner parameters:");
-  const scene::Scene scene =
-      scene::loadSceneSpec(ros_params::text(private_nh, "scene", "prostate_sagittal"));
+  const std::string scene_spec = ros_params::text(private_nh, "scene", "prostate_sagittal");
   rigid_planning::PlannerOptions options;
+  if (scene::sceneKind(scene_spec) == "tissue_3d") {  // the 3-D mode: same ~plan service
+    options.tolerance_m =
+        ros_params::number(private_nh, "tolerance_m", options.tolerance_m, 0.0, 0.01,
+                           "m (0 = the scene's needle.placement_tolerance)");
+    planner3_ = std::make_unique<RigidPlanner3Ros>(private_nh, scene_spec, options.tolerance_m);
+    return;
+  }
+  const scene::Scene scene = scene::loadSceneSpec(scene_spec);
   options.height_window_m =
       ros_params::number(private_nh, "height_window_m", options.height_window_m, 1e-5, 0.05, "m");
   options.height_tolerance_m = ros_params::number(private_nh, "height_tolerance_m",

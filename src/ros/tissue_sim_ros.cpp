@@ -36,8 +36,12 @@ tissue::IntegratorKind parseIntegrator(const std::string& name, const scene::Sce
 
 TissueSimRos::TissueSimRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   ROS_INFO("tissue_sim parameters:");
-  const scene::Scene scene =
-      scene::loadSceneSpec(ros_params::text(private_nh, "scene", "prostate_sagittal"));
+  const std::string scene_spec = ros_params::text(private_nh, "scene", "prostate_sagittal");
+  if (scene::sceneKind(scene_spec) == "tissue_3d") {  // the 3-D mode, same topics and services
+    sim3_ = std::make_unique<TissueSim3Ros>(nh, private_nh, scene_spec);
+    return;
+  }
+  const scene::Scene scene = scene::loadSceneSpec(scene_spec);
   if (!scene.hasTissue()) {
     throw std::runtime_error("scene '" + scene.name +
                              "' has no tissue model (models.tissue: none)");

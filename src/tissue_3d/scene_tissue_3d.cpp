@@ -9,6 +9,7 @@
 #include <fstream>
 #include <sstream>
 
+#include "needle_guidance/scene/interaction_preset.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/scene/yaml_reader.h"
 
@@ -176,6 +177,22 @@ private:
       }
       return q ? q->si : fallback;
     };
+    // A calibrated interaction preset (the planar scenes' reader) gives the defaults; the
+    // scene's own keys override them. Its cut_length has no use here: the 3-D tip cuts
+    // continuously.
+    if (const std::optional<std::string> preset = m.optionalString("interaction")) {
+      scene::Needle p;
+      try {
+        p = scene::loadInteractionPreset(*preset);
+      } catch (const scene::SceneError& e) {
+        m.fail(m.keyPath("interaction"), *preset, e.what());
+      }
+      n.cutting_force_N = p.cutting_force_N > 0.0 ? p.cutting_force_N : n.cutting_force_N;
+      n.static_friction_N_per_m = p.static_friction_N_per_m;
+      n.kinetic_friction_N_per_m = p.kinetic_friction_N_per_m;
+      n.stick_velocity_m_s = p.stick_velocity_m_s;
+      n.diameter_m = p.diameter_m > 0.0 ? p.diameter_m : n.diameter_m;
+    }
     n.diameter_m = positive("diameter", units::kLength, n.diameter_m);
     n.length_m = positive("length", units::kLength, n.length_m);
     n.insertion_velocity_m_s =

@@ -143,7 +143,12 @@ TetMesh3 meshTissue3d(const TissueScene3d& scene, const std::vector<Eigen::Vecto
   const Criteria criteria(p::facet_angle = 25.0, p::facet_size = size,
                           p::facet_distance = scene.sizing.facet_distance_m,
                           p::cell_radius_edge_ratio = 3.0, p::cell_size = size);
-  const C3t3 c3t3 = CGAL::make_mesh_3<C3t3>(domain, criteria, p::no_perturb(), p::exude());
+  // The same scene gives the same mesh in every process (the planner and tissue_sim simulate
+  // the same tissue): CGAL's default generator is seeded, and the sliver exudation runs to its
+  // end (by default it stops after as long as the refinement took, a wall-clock limit).
+  CGAL::get_default_random() = CGAL::Random(0);
+  const C3t3 c3t3 =
+      CGAL::make_mesh_3<C3t3>(domain, criteria, p::no_perturb(), p::exude(p::time_limit = 0));
 
   TetMesh3 mesh;
   std::map<Tr::Vertex_handle, int> index;

@@ -13,6 +13,8 @@
 namespace needle_guidance::procedures {
 namespace {
 
+using geometry::Point2;
+
 constexpr double kSameSeed_m = 1e-9;  // the live samples and the verification: the same FEM steps
 
 /// The robot and the tissue in process: moves are streamed to the tissue in 0.05 mm samples (the
@@ -30,14 +32,14 @@ public:
   }
   bool hasPlanner() const override { return true; }
   bool hasTissue() const override { return true; }
-  PlanResult plan(const Point2& target) override {
+  PlanResult plan(const Point3& target) override {
     ++calls_;
-    const rigid_planning::RigidPlan p = planner_.plan(target);
+    const rigid_planning::RigidPlan p = planner_.plan(Point2(target.x(), target.y()));
     PlanResult r;
     r.ok = static_cast<bool>(p);
     r.refused = !p && p.code != rigid_planning::PlanCode::kSimulationFailed;
     r.message = p.message;
-    r.release = p.release;
+    r.release = Point3(p.release.x(), p.release.y(), 0.0);
     r.predicted_error_m = p.predicted_error_m;
     r.verified_error_m = p.verified_error_m;
     r.plan_s = p.seconds;
@@ -61,13 +63,14 @@ public:
     depth_ = depth_m;
     return done(depth_m, velocity_m_s);
   }
-  std::optional<Point2> tip() override { return Point2(depth_, height_); }
+  std::optional<Point3> tip() override { return Point3(depth_, height_, 0.0); }
   std::optional<int> implantSeed(std::string& why_not) override {
     ++calls_;
     return sim_->implantSeed(&why_not);
   }
-  std::optional<Point2> seedAtRest(int id) override {
-    return sim_->seedPosition(sim_->seeds().at(static_cast<std::size_t>(id)));
+  std::optional<Point3> seedAtRest(int id) override {
+    const Point2 p = sim_->seedPosition(sim_->seeds().at(static_cast<std::size_t>(id)));
+    return Point3(p.x(), p.y(), 0.0);
   }
   void resetTissue() override { sim_->reset(); }
   std::optional<Fault> fault() override {

@@ -94,6 +94,34 @@ TEST(Tissue3dScene, BadScenesNameKeyAndReason) {
   refuses(t, "outside the tissue block");
 }
 
+TEST(Tissue3dScene, InteractionPresetGivesTheNeedleDefaults) {
+  // config/interaction/liver_de_jong_2017.yaml, read by the planar scenes' reader.
+  constexpr double kPresetCuttingForce_N = 0.3697;
+  constexpr double kPresetKineticFriction_N_per_m = 15.77;
+  constexpr double kSame = 1e-12;
+  std::string t = sceneText(60);
+  const std::string keys =
+      "  cutting_force_N: 0.5\n  static_friction_N_per_cm: 0.3\n"
+      "  kinetic_friction_N_per_cm: 0.2\n";
+  t.replace(t.find(keys), keys.size(), "  interaction: liver_de_jong_2017\n");
+  const TissueScene3d preset = parseTissueScene3d(t, "preset.yaml", ".");
+  EXPECT_NEAR(preset.needle.cutting_force_N, kPresetCuttingForce_N, kSame);
+  EXPECT_NEAR(preset.needle.kinetic_friction_N_per_m, kPresetKineticFriction_N_per_m, 1e-9);
+  // The scene's own key overrides the preset.
+  std::string own = t;
+  own.replace(own.find("  interaction: liver_de_jong_2017\n"), 0, "  cutting_force_N: 0.8\n");
+  EXPECT_NEAR(parseTissueScene3d(own, "own.yaml", ".").needle.cutting_force_N, 0.8, kSame);
+  std::string unknown = t;
+  unknown.replace(unknown.find("liver_de_jong_2017"), 18, "no_such_tissue");
+  try {
+    parseTissueScene3d(unknown, "unknown.yaml", ".");
+    ADD_FAILURE() << "an unknown preset was accepted";
+  } catch (const scene::SceneError& e) {
+    EXPECT_NE(std::string(e.what()).find("needle.interaction"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("no_such_tissue"), std::string::npos) << e.what();
+  }
+}
+
 TEST(Tissue3dMesh, GradedMeshHeldAndOfGoodQuality) {
   const TissueScene3d s = testScene();
   TetMeshReport report;

@@ -1,7 +1,9 @@
 // The rigid seed-implant procedure (dissertation ch. 4), ROS-free: for every target
-// plan the release point, move to its height, insert, implant a seed, retract, measure where the
-// seed came to rest; success means the seed landed. The node drives real (simulated) devices
-// through ROS, a test or a bench through in-process ones: all call RigidImplantProcedure::run.
+// plan the release point, move to its height (and, on a 3-D x-y stage, its lateral position),
+// insert, implant a seed, retract, measure where the seed came to rest; success means the seed
+// landed. Points are 3-D in frame scene; a planar scene's have z = 0 and no lateral move. The node
+// drives real (simulated) devices through ROS, a test or a bench through in-process ones: all call
+// RigidImplantProcedure::run.
 #pragma once
 
 #include <cmath>
@@ -9,13 +11,15 @@
 #include <string>
 #include <vector>
 
+#include <Eigen/Core>
+
 #include "needle_guidance/geometry/polygon.h"
 #include "needle_guidance/procedures/fault.h"
 #include "needle_guidance/scene/scene.h"
 
 namespace needle_guidance::procedures {
 
-using geometry::Point2;
+using Point3 = Eigen::Vector3d;
 
 /// Per-target outcome: placed within the tolerance, missed (with the error), refused
 /// by the planner (with the reason), or error (a move, the implant or a node failed).
@@ -35,8 +39,11 @@ struct MoveResult {
 struct PlanResult {
   bool ok = false;
   bool refused = false;  ///< the target is infeasible (a reason, not a failure)
+  /// Refused for a physical reason (outside the tissue, in or behind bone, out of the robot's
+  /// reach): a 3-D run succeeds without placing such a target. Never set by the planar planner.
+  bool unreachable = false;
   std::string message;
-  Point2 release = Point2::Zero();  ///< depth x, height y [m]
+  Point3 release = Point3::Zero();  ///< depth x, height y, lateral z [m]
   double predicted_error_m = NAN;
   double verified_error_m = NAN;   ///< NaN: not verified
   double unplanned_error_m = NAN;  ///< prediction for a release at the target [m]
@@ -50,17 +57,23 @@ public:
   virtual ~RigidImplantDevices() = default;
   virtual bool hasPlanner() const = 0;
   virtual bool hasTissue() const = 0;
-  virtual PlanResult plan(const Point2& target) = 0;
+  virtual PlanResult plan(const Point3& target) = 0;
   virtual MoveResult moveHeight(double height_m, double velocity_m_s) = 0;
+  /// The x-y stage's lateral axis (z) [m]; called only when the settings say lateral_stage.
+  virtual MoveResult moveLateral(double /*lateral_m*/, double /*velocity_m_s*/) {
+    MoveResult r;
+    r.state = "no lateral axis";
+    return r;
+  }
   /// Insertion (to a deeper x) or retraction (to a shallower x) from from_m [m].
   virtual MoveResult moveDepth(double depth_m, double velocity_m_s, double from_m,
                                bool retract) = 0;
   /// The robot's tip (frame scene) once at rest, if known [m].
-  virtual std::optional<Point2> tip() = 0;
+  virtual std::optional<Point3> tip() = 0;
   /// Releases a seed at the tip: its id, or nullopt with the reason.
   virtual std::optional<int> implantSeed(std::string& why_not) = 0;
   /// Where seed `id` rests once the needle is out [m].
-  virtual std::optional<Point2> seedAtRest(int id) = 0;
+  virtual std::optional<Point3> seedAtRest(int id) = 0;
   virtual void resetTissue() = 0;
   /// The first fault seen (a dead node), if any; the procedure then stops.
   virtual std::optional<Fault> fault() = 0;
@@ -82,19 +95,26 @@ struct RigidImplantSettings {
   double placement_tolerance_m = 1e-4;  ///< a seed within this of its target is placed [m]
   int max_targets = 0;                  ///< 0: all
   bool reset_between_needles = true;    ///< each needle meets undisturbed tissue (4.4)
+  bool lateral_stage = false;           ///< move the lateral axis (z) before each insertion
+};
+
+/// A seed target of the procedure [m], frame scene.
+struct ImplantTarget {
+  std::string name;
+  Point3 position = Point3::Zero();
 };
 
 /// One target tried.
 struct TargetRecord {
   std::string name;
-  Point2 target = Point2::Zero();
-  Point2 aim = Point2::Zero();  ///< release point commanded [m]
+  Point3 target = Point3::Zero();
+  Point3 aim = Point3::Zero();  ///< release point commanded [m]
   PlanResult plan;
-  MoveResult height, insert, retract;
+  MoveResult height, lateral, insert, retract;
   double tip_error_m = NAN;
   int seed_id = -1;
-  Point2 seed{NAN, NAN};      ///< where the seed rests [m]; NaN: not measured
-  std::string status = "ok";  ///< what went wrong with the moves, or ok
+  Point3 seed{NAN, NAN, NAN};  ///< where the seed rests [m]; NaN: not measured
+  std::string status = "ok";   ///< what went wrong with the moves, or ok
   TargetOutcome outcome = TargetOutcome::kError;
   std::string reason;  ///< why refused / missed / error
   bool inserted() const { return insert.ok || insert.duration_s > 0.0; }
@@ -113,7 +133,10 @@ struct RigidImplantReport {
   double wall_time_s = 0.0;
 
   int count(TargetOutcome outcome) const;
-  /// Every target of the run tried and, planned, placed (unplanned: every move ok).
+  /// Targets refused for a physical reason (PlanResult::unreachable).
+  int unreachableCount() const;
+  /// Every target of the run tried and, planned, placed or refused as unreachable (unplanned:
+  /// every move ok).
   bool success() const;
   /// moves.csv, summary.json, summary.md and seed_errors.png (seed error per target against the
   /// tolerance, coloured by outcome) in `dir`. Throws std::runtime_error if a file fails.
@@ -127,7 +150,10 @@ struct RigidImplantReport {
 class RigidImplantProcedure {
 public:
   /// Throws std::invalid_argument for settings out of range.
-  RigidImplantProcedure(scene::Scene scene, RigidImplantSettings settings);
+  RigidImplantProcedure(const scene::Scene& scene, RigidImplantSettings settings);
+  /// Any targets (a 3-D scene's): the entry face is the plane x = entry_x_m.
+  RigidImplantProcedure(std::string scene_name, std::vector<ImplantTarget> targets,
+                        double entry_x_m, RigidImplantSettings settings);
   /// Runs the targets in order until done or a fault; never throws for device failures (they
   /// are outcomes). On a fault the robot is stopped safely and the report names the fault.
   RigidImplantReport run(RigidImplantDevices& devices) const;
@@ -137,7 +163,9 @@ private:
   bool runTarget(RigidImplantDevices& devices, TargetRecord& r, double& depth_now) const;
   void classify(TargetRecord& r, bool with_tissue) const;
 
-  scene::Scene scene_;
+  std::string scene_name_;
+  std::vector<ImplantTarget> targets_;
+  double entry_x_m_ = 0.0;
   RigidImplantSettings settings_;
 };
 

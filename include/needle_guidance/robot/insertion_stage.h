@@ -15,11 +15,13 @@
 
 namespace needle_guidance::robot {
 
-/// The stage's three joints, in the order of arrays indexed by joint.
-enum class StageJoint { kHeight = 0, kDepth = 1, kBevel = 2 };
-constexpr std::size_t kStageJointCount = 3;
+/// The stage's joints, in the order of arrays indexed by joint. kLateral (z) is the lateral
+/// axis of the x-y stage of the 3-D tissue procedures; a URDF without a "lateral" joint has
+/// none (its limits stay [0, 0] and it never moves).
+enum class StageJoint { kHeight = 0, kDepth = 1, kBevel = 2, kLateral = 3 };
+constexpr std::size_t kStageJointCount = 4;
 
-/// Joint name in the URDF and on measured_js ("height", "insertion", "bevel").
+/// Joint name in the URDF and on measured_js ("height", "insertion", "bevel", "lateral").
 const char* jointName(StageJoint joint);
 
 /// Position and velocity limits of one joint [m, m/s] or [rad, rad/s].
@@ -32,6 +34,7 @@ struct JointLimits {
 /// Hardware limits of the stage, read from its URDF.
 struct StageLimits {
   std::array<JointLimits, kStageJointCount> joints;
+  bool has_lateral = false;      ///< the URDF has the "lateral" joint (z of the x-y stage)
   double needle_length_m = 0.0;  ///< needle hub to tip [m]
   /// Velocity limit of the continuous joint "axial_rotation" (the needle spun about its axis in
   /// 3-D steerable mode) [rad/s]; 0 if the URDF has none.
@@ -39,30 +42,33 @@ struct StageLimits {
   const JointLimits& operator[](StageJoint j) const { return joints[static_cast<std::size_t>(j)]; }
 };
 
-/// Reads joint limits of "height", "insertion" and "bevel" and the needle length (the origin
-/// of fixed joint "needle_tip_joint", if present, else the `needle_length_m` argument) from URDF
-/// text with urdfdom, and the velocity limit of "axial_rotation" when present. Throws
-/// std::invalid_argument naming the joint for a missing joint, a joint without limits, non-positive
-/// velocity limits or lower >= upper.
+/// Reads joint limits of "height", "insertion", "bevel" (and "lateral" when present) and the needle
+/// length (the origin of fixed joint "needle_tip_joint", if present, else the `needle_length_m`
+/// argument) from URDF text with urdfdom, and the velocity limit of "axial_rotation" when present.
+/// Throws std::invalid_argument naming the joint for a missing joint, a joint without limits,
+/// non-positive velocity limits or lower >= upper.
 StageLimits parseStageLimits(const std::string& urdf_xml);
 
 /// Procedure limits a scene adds on top of the hardware: the needle may enter tissue only
-/// between these heights and up to this depth.
+/// between these heights (and lateral positions) and up to this depth.
 struct SceneLimits {
   double min_height_m = 0.0;
   double max_height_m = 0.0;
   double max_depth_m = 0.0;
-  double entry_x_m = 0.0;  ///< the tissue's entry face is the line x = entry_x_m [m]
+  double entry_x_m = 0.0;      ///< the tissue's entry face is the plane x = entry_x_m [m]
+  double min_lateral_m = 0.0;  ///< lateral (z) range of entry; [0, 0] without a lateral stage
+  double max_lateral_m = 0.0;
 };
 
-/// Joint positions [m, m, rad] and velocities of the stage.
+/// Joint positions [m, m, rad, m] and velocities of the stage.
 struct StageState {
-  std::array<double, kStageJointCount> position{0.0, 0.0, 0.0};
-  std::array<double, kStageJointCount> velocity{0.0, 0.0, 0.0};
+  std::array<double, kStageJointCount> position{0.0, 0.0, 0.0, 0.0};
+  std::array<double, kStageJointCount> velocity{0.0, 0.0, 0.0, 0.0};
   double time_s = 0.0;  ///< simulated time since construction [s]
   double height_m() const { return position[0]; }
   double depth_m() const { return position[1]; }
   double bevel_rad() const { return position[2]; }
+  double lateral_m() const { return position[3]; }
 };
 
 /// CRTK operating states used by the stage.
@@ -88,7 +94,7 @@ struct JournalEntry {
 /// The simulated insertion stage. Moves one joint at a time at constant speed. Refuses (and
 /// leaves everything unchanged) commands that are non-finite, outside the hardware or scene
 /// limits, faster than the joint's velocity limit, issued while another motion is running or
-/// while e-stopped, or that change height while the needle tip is in tissue.
+/// while e-stopped, or that change height or lateral position while the needle tip is in tissue.
 class InsertionStage {
 public:
   /// @param[in] limits hardware limits; @param[in] scene procedure limits (must lie inside the

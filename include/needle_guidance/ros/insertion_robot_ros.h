@@ -62,7 +62,13 @@ namespace needle_guidance {
 ///   (the true 3-D tip pose), ~needle_shape (latched: the needle's 3-D points, entry -> tip,
 ///   published and stamped when each motion ends, for the imagers' ~view along_z / along_y) and
 ///   ~needle_path (Marker); the 3-D journal goes to "X_needle3d.csv" next to ~journal_file.
-/// measured_js also carries "axial_rotation" (0 outside steerable_3d).
+/// - rigid on a tissue_3d scene (~scene a `kind: tissue_3d` file): the rigid needle of the 3-D
+///   tissue procedures on the URDF's x-y stage (urdf/insertion_stage_3d.urdf): "height" is the
+///   needle's y, "lateral" its z (action ~move_to_lateral, LinearMove), "insertion" the tip's x.
+///   The scene's workspace bounds entry (stage range, or the template grid's extent) and the
+///   depth (workspace.max_tip_x); height and lateral moves are refused with the tip in tissue.
+/// measured_js also carries "axial_rotation" (0 outside steerable_3d), and "lateral" when the
+/// URDF has that joint.
 ///
 /// ~time_scale (in [1, 100], default 1): simulated seconds per wall second. The control loop
 /// advances the stage by time_scale x the wall time between ticks, so goal velocities (and the
@@ -79,7 +85,7 @@ private:
   using LinearMoveServer = ExclusiveActionServer<LinearMoveAction>;
   using FlipBevelServer = ExclusiveActionServer<FlipBevelAction>;
   /// Which action owns the running motion.
-  enum class Owner { kNone, kHeight, kInsert, kRetract, kFlip, kSteer };
+  enum class Owner { kNone, kHeight, kInsert, kRetract, kFlip, kSteer, kLateral };
   using Steer3Server = ExclusiveActionServer<Steer3Action>;
 
   /// Steerable mode: the needle world (seeded deflections), its journal, the initial entry.
@@ -89,6 +95,7 @@ private:
   /// Topics, services and the four exclusive action servers.
   void advertiseInterfaces(const ros::NodeHandle& private_nh);
   void onLinearGoal(Owner owner, const LinearMoveGoal& goal);
+  static robot::StageJoint linearJoint(Owner owner);
   void onFlipGoal(const FlipBevelGoal& goal);
   /// "" when no motion runs, else which one does (the exclusive servers' busy check).
   std::string runningMotion() const;
@@ -130,6 +137,7 @@ private:
   std::unique_ptr<LinearMoveServer> height_server_;
   std::unique_ptr<LinearMoveServer> insert_server_;
   std::unique_ptr<LinearMoveServer> retract_server_;
+  std::unique_ptr<LinearMoveServer> lateral_server_;  ///< only with a lateral axis (3-D tissue)
   std::unique_ptr<FlipBevelServer> flip_server_;
   ros::Timer control_timer_;
   ros::Time last_step_;

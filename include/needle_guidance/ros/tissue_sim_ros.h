@@ -12,13 +12,15 @@
 #include <string>
 
 #include "needle_guidance/ImplantSeed.h"
+#include "needle_guidance/ros/tissue_sim_3d_ros.h"
 #include "needle_guidance/tissue/image_warp.h"
 #include "needle_guidance/tissue/tissue_simulation.h"
 
 namespace needle_guidance {
 
 /// Reads parameters once (throws std::runtime_error on a bad one), then steps the simulation on
-/// a timer with the latest robot joint state.
+/// a timer with the latest robot joint state. A `kind: tissue_3d` ~scene runs the 3-D mode
+/// (TissueSim3Ros) with the same topics and services.
 class TissueSimRos {
 public:
   TissueSimRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh);
@@ -32,6 +34,7 @@ private:
   void publishMarkers(const ros::Time& stamp);
 
   std::unique_ptr<tissue::TissueSimulation> sim_;
+  std::unique_ptr<TissueSim3Ros> sim3_;  ///< 3-D mode (sim_ is then null)
   std::string colour_by_;
   std::optional<double> height_m_;
   std::optional<double> depth_m_;
