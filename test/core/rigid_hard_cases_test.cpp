@@ -68,8 +68,8 @@ TEST(RigidHardCases, ATargetTheTipNodeJumpsOverIsRefusedAndNoHeightOfTheWindowRe
   ASSERT_TRUE(plan.verified);
   EXPECT_GT(plan.verified_error_m, kJumpHalfGap_m);
   EXPECT_NE(plan.message.find("exceeds the tolerance"), std::string::npos) << plan.message;
-  // Every 0.1 mm of the height window, no search: the refusal is a bound, not where a search
-  // ended.
+  // Every 0.1 mm of the height window, no search: the tip node jumps over the corner at every
+  // height, so no grid height lands within a millimetre.
   PlannerOptions window;
   window.secant_iterations = 0;
   window.grid_points = 41;
