@@ -60,8 +60,9 @@ std::string calibrationJson() {
 }
 
 /// Heights of the window study of a target refused out of tolerance: scans at this spacing
-/// over the planner's whole height window show whether any release on the procedure's depth
-/// grid lands within the tolerance, or whether the refusal is a bound, not where a search ended.
+/// over the planner's whole height window show whether a release on the procedure's depth grid
+/// lands within the tolerance (the planner's search missed it) or none does on this grid of
+/// heights (evidence, not proof: a height between two of them may do better).
 constexpr double kWindowStudySpacing_m = 5e-5;
 
 /// The smallest error of a release on the depth grid over every height of the planner's window,
