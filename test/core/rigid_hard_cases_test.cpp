@@ -1,7 +1,12 @@
 // Hard cases of rigid-needle planning on the converged interaction (dissertation ch. 4 on the
 // model of 2.3): a target on a material boundary, a 100x stiffness contrast, a target just beyond
-// the needle's reach, a retraction that drags the seed, and zero friction.
+// the needle's reach, a target the tip node jumps over, a retraction that drags the seed, and
+// zero friction.
 #include <gtest/gtest.h>
+
+#include <algorithm>
+#include <limits>
+#include <string>
 
 #include "needle_guidance/rigid_planning/rigid_planner.h"
 
@@ -11,6 +16,9 @@ namespace {
 constexpr double kPlacedTol_m = 1e-4;      // the scene's placement tolerance (0.1 mm)
 constexpr double kSameSeed_m = 1e-9;       // the same simulation, rounding apart
 constexpr double kConstraintTol_m = 1e-9;  // the tip node sits on the needle tip
+/// Half the gap the tip node's reference position jumps at the 100x gland's corner (4 mm and
+/// more at every height of the window): no release lands closer than this.
+constexpr double kJumpHalfGap_m = 1e-3;
 
 /// Plans `target` without a work budget and checks the plan against an independent simulation.
 void expectPlaced(const scene::Scene& scene, const Point2& target) {
@@ -46,6 +54,37 @@ TEST(RigidHardCases, ATargetJustBeyondReachIsRefusedWithTheFigures) {
   EXPECT_NE(plan.message.find("55 mm"), std::string::npos) << plan.message;
   const RigidPlan high = planner.plan(Point2(0.03, scene.needle.max_height_m + 1e-4));
   EXPECT_EQ(high.code, PlanCode::kHeightOutOfRange) << high.message;
+}
+
+TEST(RigidHardCases, ATargetTheTipNodeJumpsOverIsRefusedAndNoHeightOfTheWindowReachesIt) {
+  // The lower-left vertex of a 100x kidney-shaped gland in 8 kPa fat: the cut hands the tip from
+  // a node of the fat in front of the corner to one millimetres inside the gland, so the seed
+  // (the tip node's reference position) never lands near the corner.
+  const scene::Scene scene = scene::loadScene(
+      std::string(NG_SOURCE_DIR) + "/config/scenes/rigid_eval/heldout_kidney_bone_100x.yaml");
+  const Point2 target(0.022, 0.022);
+  const RigidPlan plan = RigidPlanner(scene, PlannerOptions{}).plan(target);
+  EXPECT_EQ(plan.code, PlanCode::kOutOfTolerance) << plan.toString();
+  ASSERT_TRUE(plan.verified);
+  EXPECT_GT(plan.verified_error_m, kJumpHalfGap_m);
+  EXPECT_NE(plan.message.find("exceeds the tolerance"), std::string::npos) << plan.message;
+  // Every 0.1 mm of the height window, no search: the tip node jumps over the corner at every
+  // height, so no grid height lands within a millimetre.
+  PlannerOptions window;
+  window.secant_iterations = 0;
+  window.grid_points = 41;
+  window.error_goal_m = 1e-12;
+  window.height_tolerance_m = 1.0;  // the grid only
+  window.work_budget = 0.0;
+  window.verify = false;
+  window.refuse_over_tolerance = false;
+  const RigidPlan study = RigidPlanner(scene, window).plan(target);
+  ASSERT_GE(study.scans.size(), 41U);
+  double best = std::numeric_limits<double>::infinity();
+  for (const DepthScan& scan : study.scans) {
+    best = std::min(best, scan.best_error_m);
+  }
+  EXPECT_GT(best, kJumpHalfGap_m);
 }
 
 TEST(RigidHardCases, RetractionDragsTheSeedWhichReturnsAtRest) {
