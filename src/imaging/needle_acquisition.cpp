@@ -13,8 +13,6 @@
 #include <stdexcept>
 #include <vector>
 
-#include "ridge_filter.h"
-
 namespace needle_guidance::imaging {
 
 namespace {
@@ -188,21 +186,29 @@ float sample(const cv::Mat& m, cv::Point2d p) {
   return m.at<float>(r, c);
 }
 
-/// Step 2: the ridge filter (ridge_filter.h) at sigma [px]; strength = -lambda_min -
-/// |lambda_max| where positive (a bright line, not a blob); the Hessian parts the direction (the
-/// eigenvector of lambda_max) is computed from.
-RidgeMap ridgeMap(const cv::Mat& grey8, double sigma_px) {
+/// Step 2 at one scale: Hessian of `image` smoothed at sigma [px of image]; strength =
+/// -lambda_min - |lambda_max| where positive (a bright line, not a blob); the Hessian parts the
+/// direction (the eigenvector of lambda_max) is computed from.
+void hessianRidge(const cv::Mat& image, double sigma_px, cv::Mat* smooth, cv::Mat* strength,
+                  cv::Mat* dxy, cv::Mat* half_diff) {
+  cv::GaussianBlur(image, *smooth, cv::Size(), sigma_px);
+  cv::Mat dxx, dyy;
+  cv::Sobel(*smooth, dxx, CV_32F, 2, 0, 3);
+  cv::Sobel(*smooth, dyy, CV_32F, 0, 2, 3);
+  cv::Sobel(*smooth, *dxy, CV_32F, 1, 1, 3);
+  cv::Mat half_trace = 0.5F * (dxx + dyy), root;
+  *half_diff = 0.5F * (dxx - dyy);
+  cv::magnitude(*half_diff, *dxy, root);
+  cv::Mat lmin = half_trace - root, lmax = cv::abs(half_trace + root);
+  *strength = cv::max(-lmin - lmax, 0.0F);
+}
+
+/// Step 2: the ridge filter at sigma.
+RidgeMap ridgeFilter(const cv::Mat& grey8, double sigma_px) {
+  RidgeMap r;
   cv::Mat grey;
   grey8.convertTo(grey, CV_32F);
-  detail::RidgeFilter filter;
-  filter.sigma_px = sigma_px;
-  filter.blob_penalty = 1.0;
-  const detail::RidgeResponse response = detail::ridgeFilter(grey, filter);
-  RidgeMap r;
-  r.strength = response.strength;
-  r.dxy = response.dxy;
-  r.half_diff = response.half_diff;
-  r.smooth = response.smooth;
+  hessianRidge(grey, sigma_px, &r.smooth, &r.strength, &r.dxy, &r.half_diff);
   return r;
 }
 
@@ -1188,7 +1194,7 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
     none.message = "imaging region is not of the frame's size";
     return none;
   }
-  RidgeMap ridge = ridgeMap(grey, options.ridge_sigma_px);  // step 2
+  RidgeMap ridge = ridgeFilter(grey, options.ridge_sigma_px);  // step 2
   if (region.bounded())  // the region's own edge and the black outside it are no ridge
     ridge.strength.setTo(0.0F, region.inset < kRegionInsetSigmas * options.ridge_sigma_px);
   ridgeThresholds(&ridge, region);

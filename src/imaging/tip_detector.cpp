@@ -32,7 +32,6 @@
 #include "detection_util.h"
 #include "needle_guidance/imaging/tip_tracker.h"
 #include "needle_guidance/math.h"
-#include "ridge_filter.h"
 
 namespace needle_guidance::imaging {
 namespace {
@@ -256,29 +255,31 @@ RidgeImages filterRegion(const cv::Mat& frame, const cv::Rect& window, Modality 
   if (modality == Modality::kFluoroscopy) {
     roi = 255.0f - roi;  // dark needle on a bright background -> bright ridge
   }
-  detail::RidgeFilter filter;
-  filter.sigma_px = smoothing_px;
-  filter.blob_penalty = kBlobPenalty;
-  filter.derivative_scale = 0.25;  // per pixel^2
-  filter.border = cv::BORDER_REPLICATE;
-  const detail::RidgeResponse response = detail::ridgeFilter(roi, filter);
-  out.smooth = response.smooth;
-  out.ridge = response.strength;
+  cv::GaussianBlur(roi, out.smooth, cv::Size(0, 0), smoothing_px, smoothing_px,
+                   cv::BORDER_REPLICATE);
+  cv::Mat dxx, dyy, dxy;
+  cv::Sobel(out.smooth, dxx, CV_32F, 2, 0, 3, 0.25, 0.0, cv::BORDER_REPLICATE);
+  cv::Sobel(out.smooth, dyy, CV_32F, 0, 2, 3, 0.25, 0.0, cv::BORDER_REPLICATE);
+  cv::Sobel(out.smooth, dxy, CV_32F, 1, 1, 3, 0.25, 0.0, cv::BORDER_REPLICATE);
+  out.ridge.create(out.smooth.size(), CV_32F);
   out.normal_c.create(out.smooth.size(), CV_32F);
   out.normal_r.create(out.smooth.size(), CV_32F);
   out.anisotropy.create(out.smooth.size(), CV_32F);
   for (int r = 0; r < out.smooth.rows; ++r) {
-    const float* a = response.dxx.ptr<float>(r);
-    const float* c = response.dyy.ptr<float>(r);
-    const float* b = response.dxy.ptr<float>(r);
-    const float* e1 = response.l1.ptr<float>(r);
-    const float* e2 = response.l2.ptr<float>(r);
+    const float* a = dxx.ptr<float>(r);
+    const float* c = dyy.ptr<float>(r);
+    const float* b = dxy.ptr<float>(r);
+    float* rr = out.ridge.ptr<float>(r);
     float* nc = out.normal_c.ptr<float>(r);
     float* nr = out.normal_r.ptr<float>(r);
     float* an = out.anisotropy.ptr<float>(r);
     for (int k = 0; k < out.smooth.cols; ++k) {
-      const float l1 = e1[k];  // most negative: across a bright line
-      const float l2 = e2[k];
+      const float half_tr = 0.5f * (a[k] + c[k]);
+      const float half_diff = 0.5f * (a[k] - c[k]);
+      const float root = std::sqrt(half_diff * half_diff + b[k] * b[k]);
+      const float l1 = half_tr - root;  // most negative: across a bright line
+      const float l2 = half_tr + root;
+      rr[k] = std::max(0.0f, -l1 - static_cast<float>(kBlobPenalty) * std::abs(l2));
       const float sum = std::abs(l1) + std::abs(l2);
       an[k] = sum > 0.0f ? (std::abs(l1) - std::abs(l2)) / sum : 0.0f;
       // Eigenvector of l1: (b, l1 - a) or (l1 - c, b), whichever is better conditioned.
