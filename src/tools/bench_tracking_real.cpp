@@ -463,10 +463,11 @@ bool writeHalvesAndHeldOut(const std::vector<Result>& fresh, const std::vector<T
   // seeing a held-out frame or error).
   const char* tuning_only = std::getenv("NG_TRACKING_TUNING_ONLY");
   const bool skip_held_out = tuning_only && std::string(tuning_only) == "1";
-  // NG_TRACKING_ONLY=NAME: that synthetic sequence only (with the above, never a held-out one).
+  // NG_TRACKING_ONLY=PREFIX: the synthetic sequences whose name starts with it only (with the
+  // above, never a held-out one).
   const char* only = std::getenv("NG_TRACKING_ONLY");
   for (const SyntheticSpec& spec : syntheticSpecs()) {
-    if (only && *only && spec.name != only)
+    if (only && *only && spec.name.rfind(only, 0) != 0)
       continue;
     if (!(skip_held_out && spec.held_out))
       runs.push_back(syntheticRun(scene, spec, &table, dir));
@@ -662,7 +663,7 @@ bool writeConvex(const std::string& dir, std::ostringstream& js) {
   const char* only = std::getenv("NG_TRACKING_ONLY");
   std::vector<ConvexRun> runs;
   for (const ConvexSpec& spec : convexSpecs()) {
-    if ((only && *only && spec.name != only) || (skip_held_out && spec.held_out))
+    if ((only && *only && spec.name.rfind(only, 0) != 0) || (skip_held_out && spec.held_out))
       continue;
     runs.push_back(convexRun(spec, &table, dir));
   }
