@@ -1190,14 +1190,18 @@ void examineLines(const RidgeMap& ridge, const AcquisitionOptions& o, const Imag
 /// Steps 3-5 in two rounds. A few long bright structures (tissue interfaces) hold most of the
 /// strongest few percent of ridge pixels: the thresholds then lie above a fainter needle's ridge,
 /// which casts no Hough line (convex frames with two bright layers: a shaft plain to see had no
-/// line in any frame). The second round leaves out what the first traced, takes the thresholds
-/// from the ridge that remains and examines its Hough lines the same way.
+/// line in any frame). When the first round leaves no candidate strong enough to be the needle,
+/// the second leaves out what the first traced, takes the thresholds from the ridge that remains
+/// and examines its Hough lines the same way. (Always run, its lower thresholds let a chance
+/// line of speckle outrank a needle whose own shadow darkens one side.)
 std::vector<Candidate> collectCandidates(const RidgeMap& ridge, const AcquisitionOptions& o,
                                          const ImagingRegion& region) {
   std::vector<Candidate> all;
   cv::Mat traced(ridge.strength.size(), CV_8U, cv::Scalar(0));
   examineLines(ridge, o, region, &all, &traced);
-  if (static_cast<int>(all.size()) >= kMaxCandidates || cv::countNonZero(traced) == 0)
+  const bool acceptable = std::any_of(
+      all.begin(), all.end(), [&](const Candidate& c) { return c.acceptance >= o.min_evidence; });
+  if (acceptable || static_cast<int>(all.size()) >= kMaxCandidates || cv::countNonZero(traced) == 0)
     return all;
   RidgeMap rest = ridge;
   rest.strength = ridge.strength.clone();
