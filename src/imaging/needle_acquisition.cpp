@@ -1268,6 +1268,8 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
     extendToMotionFront(motion, *hidden, &s);
   s.motion_ahead = motionAhead(motion, s);
   if (best->acceptance < options.min_evidence) {
+    if (hidden)  // a line too weak on its own: the brightening shows the tip
+      return *hidden;
     s.found = false;
     s.message = "best line too weak to be a needle: " + summary(s);
     return s;
