@@ -21,6 +21,9 @@ import sys
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 PAGES = ROOT / "docs" / "benchmarks"
 MAX_ROWS = 400  # a page is for reading; the full figures stay in summary.json
+# Plots are copied next to the page; larger images (annotated frames) stay in reports/NAME/ and are
+# listed by name, so the pages stay small in the repository.
+MAX_PLOT_BYTES = 150_000
 
 
 def git(*args):
@@ -67,7 +70,8 @@ def rows(data, prefix=""):
 
 def stamp(report, bench_args):
     commit = git("rev-parse", "--short=12", "HEAD") or "unknown"
-    if git("status", "--porcelain", "--untracked-files=no"):
+    # The pages themselves are not a change to the code that ran.
+    if git("status", "--porcelain", "--untracked-files=no", "--", ".", ":!docs/benchmarks"):
         commit += " (with uncommitted changes)"
     summary = report / "summary.json"
     ran = datetime.datetime.fromtimestamp(summary.stat().st_mtime, datetime.timezone.utc)
@@ -90,7 +94,9 @@ def write_page(report, bench_args):
     plot_dir = PAGES / name
     if plot_dir.exists():
         shutil.rmtree(plot_dir)
-    plots = sorted(report.glob("*.png"))
+    images = sorted(report.glob("*.png"))
+    plots = [p for p in images if p.stat().st_size <= MAX_PLOT_BYTES]
+    frames = [p for p in images if p.stat().st_size > MAX_PLOT_BYTES]
     if plots:
         plot_dir.mkdir()
         for png in plots:
@@ -106,6 +112,9 @@ def write_page(report, bench_args):
     if plots:
         lines += ["", "## Plots", ""]
         lines += [f"![{p.stem}]({name}/{p.name})" for p in plots]
+    if frames:
+        lines += ["", f"Annotated frames, in `reports/{name}/` after a run (not copied here): "
+                  + ", ".join(f"`{p.name}`" for p in frames) + "."]
     (PAGES / f"{name}.md").write_text("\n".join(lines) + "\n")
 
 

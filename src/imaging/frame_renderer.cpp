@@ -87,7 +87,15 @@ void addNoise(cv::Mat* image, const ImagerConfig& config, std::uint64_t index) {
 }  // namespace
 
 std::string toString(UltrasoundModel model) {
-  return model == UltrasoundModel::kRealistic ? "realistic" : "classic";
+  switch (model) {
+    case UltrasoundModel::kRealistic:
+      return "realistic";
+    case UltrasoundModel::kConvex:
+      return "convex";
+    case UltrasoundModel::kClassic:
+      break;
+  }
+  return "classic";
 }
 
 std::optional<UltrasoundModel> ultrasoundModelFromString(const std::string& name) {
@@ -96,6 +104,9 @@ std::optional<UltrasoundModel> ultrasoundModelFromString(const std::string& name
   }
   if (name == "realistic") {
     return UltrasoundModel::kRealistic;
+  }
+  if (name == "convex") {
+    return UltrasoundModel::kConvex;
   }
   return std::nullopt;
 }
@@ -127,6 +138,10 @@ void ImagerConfig::validate() const {
     why << "needle_diameter_m " << needle_diameter_m << " is not > 0 and finite";
   } else if (!(tissue_motion_px >= 0.0 && tissue_motion_px <= 10.0)) {
     why << "tissue_motion_px " << tissue_motion_px << " is not in [0, 10]";
+  } else if (!(std::isfinite(convex_radius_m) && convex_radius_m > 0.0)) {
+    why << "convex_radius_m " << convex_radius_m << " is not > 0 and finite";
+  } else if (!(convex_half_angle_rad > 0.0 && convex_half_angle_rad <= 1.4)) {
+    why << "convex_half_angle_rad " << convex_half_angle_rad << " is not in (0, 1.4]";
   } else {
     return;
   }
@@ -171,6 +186,38 @@ ImageGeometry fieldOfView(const scene::Scene& scene, double pixel_size_m, int co
   return g;
 }
 
+namespace {
+
+/// UltrasoundModel::kConvex: the probe over the frame (its face's ends on row kConvexFaceTop_px,
+/// centred), imaging down to the frame's last row. Throws std::invalid_argument when the face's
+/// chord is wider than the frame or the face reaches below it.
+ConvexScene convexScene(const ImagerConfig& c) {
+  const ImageGeometry& g = c.geometry;
+  ConvexScene sc;
+  ConvexProbe& p = sc.probe;
+  p.pixel_size_m = g.pixel_size_m;
+  p.face_radius_px = c.convex_radius_m / g.pixel_size_m;
+  p.half_angle_rad = c.convex_half_angle_rad;
+  p.apex_px = cv::Point2d(0.5 * (g.cols - 1), FrameRenderer::kConvexFaceTop_px -
+                                                  p.face_radius_px * std::cos(p.half_angle_rad));
+  p.depth_px = (g.rows - 1) - (p.apex_px.y + p.face_radius_px);
+  const double chord_px = 2.0 * p.face_radius_px * std::sin(p.half_angle_rad);
+  if (chord_px > g.cols || p.depth_px <= 0.0) {
+    std::ostringstream why;
+    why << "ImagerConfig: a convex probe of radius " << c.convex_radius_m << " m and half angle "
+        << c.convex_half_angle_rad << " rad (face " << chord_px << " px wide, "
+        << p.face_radius_px * (1.0 - std::cos(p.half_angle_rad))
+        << " px deep) does not fit a frame of " << g.cols << " x " << g.rows << " px";
+    throw std::invalid_argument(why.str());
+  }
+  p.validate();
+  sc.noise_std = c.noise_std;
+  sc.seed = c.seed;
+  return sc;
+}
+
+}  // namespace
+
 FrameRenderer::FrameRenderer(const scene::Scene& scene, const ImagerConfig& config)
     : config_(config) {
   config_.validate();
@@ -203,6 +250,10 @@ FrameRenderer::FrameRenderer(const scene::Scene& scene, const ImagerConfig& conf
 
   if (config_.ultrasound_model == UltrasoundModel::kRealistic) {
     realistic::anatomy(scene, config_, &anatomy_, &attenuation_);
+    return;
+  }
+  if (config_.ultrasound_model == UltrasoundModel::kConvex) {
+    convex_ = std::make_shared<const ConvexScene>(convexScene(config_));
     return;
   }
   // Ultrasound: echogenicity map x static speckle; attenuation and shadows as a separate gain
@@ -281,6 +332,13 @@ Frame FrameRenderer::render(const std::vector<Point2>& needle_points, std::uint6
     return frame;
   }
   const ImageGeometry& g = config_.geometry;
+  if (convex_) {
+    std::vector<cv::Point2d> needle_px;
+    for (const Point2& p : needle_points)
+      needle_px.push_back(g.toPixel(p));
+    frame.image = renderConvexFrame(*convex_, g.size(), needle_px, index);
+    return frame;
+  }
   if (config_.modality == Modality::kUltrasound &&
       config_.ultrasound_model == UltrasoundModel::kRealistic) {
     // The noise enters before the log compression (realistic_ultrasound.h).

@@ -697,7 +697,6 @@ bool bendToArc(const RidgeMap& ridge, const AcquisitionOptions& o, Candidate* c)
   return best_strength > 0.0;
 }
 
-/// Steps 4-5 for one Hough line: trace, refit, trace again, measure.
 /// Whether the candidate never leaves the band of kEdgeBand_px along a bounded region's boundary.
 bool hugsRegionEdge(const Candidate& c, const ImagingRegion& region) {
   if (!region.bounded())
@@ -764,8 +763,21 @@ bool meetsPriors(const Candidate& c, const AcquisitionOptions& o) {
   return true;
 }
 
+/// Marks the traced segment of c in `traced` (CV_8U), kNearLineSigmas filter scales either side.
+void markTraced(const Candidate& c, double sigma, cv::Mat* traced) {
+  const int thickness = 2 * static_cast<int>(std::ceil(kNearLineSigmas * sigma)) + 1;
+  const double step = c.line.kappa == 0.0 ? c.t1 - c.t0 : 8.0;
+  for (double t = c.t0; t < c.t1; t += step) {
+    cv::line(*traced, at(c.line, t), at(c.line, std::min(t + step, c.t1)), cv::Scalar(255),
+             thickness);
+  }
+}
+
+/// Steps 4-5 for one Hough line: trace, refit, trace again, measure. The traced segment (also of
+/// a line then ruled out) is marked in `traced`.
 std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
-                                 const AcquisitionOptions& o, const ImagingRegion& region) {
+                                 const AcquisitionOptions& o, const ImagingRegion& region,
+                                 cv::Mat* traced) {
   Candidate c;
   c.line = line;
   if (!traceSegment(ridge, c.line, o.ridge_sigma_px, o.max_gap_px, &c.t0, &c.t1))
@@ -777,6 +789,7 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
   }
   if (o.radius_px > 0.0 && !bendToArc(ridge, o, &c))
     return {};
+  markTraced(c, o.ridge_sigma_px, traced);
   if (c.t1 - c.t0 < o.min_length_px)
     return {};
   // A line running from border to border has no tip in view: an interface, not a needle; nor
@@ -1162,6 +1175,42 @@ std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const Acquis
   return best;
 }
 
+/// Steps 3-5 on one ridge map: its Hough lines examined until kMaxCandidates distinct ones.
+void examineLines(const RidgeMap& ridge, const AcquisitionOptions& o, const ImagingRegion& region,
+                  std::vector<Candidate>* all, cv::Mat* traced) {
+  const std::vector<Line> lines = candidateLines(ridge, o.min_length_px);
+  for (const Line& line : lines) {
+    if (static_cast<int>(all->size()) >= kMaxCandidates)
+      return;
+    if (std::optional<Candidate> c = examine(ridge, line, o, region, traced))
+      keepDistinct(*c, all);
+  }
+}
+
+/// Steps 3-5 in two rounds. A few long bright structures (tissue interfaces) hold most of the
+/// strongest few percent of ridge pixels: the thresholds then lie above a fainter needle's ridge,
+/// which casts no Hough line (convex frames with two bright layers: a shaft plain to see had no
+/// line in any frame). When the first round leaves no candidate strong enough to be the needle,
+/// the second leaves out what the first traced, takes the thresholds from the ridge that remains
+/// and examines its Hough lines the same way. (Always run, its lower thresholds let a chance
+/// line of speckle outrank a needle whose own shadow darkens one side.)
+std::vector<Candidate> collectCandidates(const RidgeMap& ridge, const AcquisitionOptions& o,
+                                         const ImagingRegion& region) {
+  std::vector<Candidate> all;
+  cv::Mat traced(ridge.strength.size(), CV_8U, cv::Scalar(0));
+  examineLines(ridge, o, region, &all, &traced);
+  const bool acceptable = std::any_of(
+      all.begin(), all.end(), [&](const Candidate& c) { return c.acceptance >= o.min_evidence; });
+  if (acceptable || static_cast<int>(all.size()) >= kMaxCandidates || cv::countNonZero(traced) == 0)
+    return all;
+  RidgeMap rest = ridge;
+  rest.strength = ridge.strength.clone();
+  rest.strength.setTo(0.0F, traced);
+  ridgeThresholds(&rest, region);
+  examineLines(rest, o, region, &all, &traced);
+  return all;
+}
+
 }  // namespace
 
 NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& options,
@@ -1199,13 +1248,7 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
     ridge.strength.setTo(0.0F, region.inset < kRegionInsetSigmas * options.ridge_sigma_px);
   ridgeThresholds(&ridge, region);
 
-  std::vector<Candidate> all;
-  for (const Line& line : candidateLines(ridge, options.min_length_px)) {    // step 3
-    if (std::optional<Candidate> c = examine(ridge, line, options, region))  // steps 4-5
-      keepDistinct(*c, &all);
-    if (static_cast<int>(all.size()) >= kMaxCandidates)
-      break;
-  }
+  std::vector<Candidate> all = collectCandidates(ridge, options, region);  // steps 3-5
   const std::optional<Candidate> best = bestCandidate(all, options, region, motion);
   // No line moves like a needle: the tip where the frame alone brightens, if it does and the
   // best line does not end there (a line traced to that tip is kept: it shows the shaft).
@@ -1225,6 +1268,8 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
     extendToMotionFront(motion, *hidden, &s);
   s.motion_ahead = motionAhead(motion, s);
   if (best->acceptance < options.min_evidence) {
+    if (hidden)  // a line too weak on its own: the brightening shows the tip
+      return *hidden;
     s.found = false;
     s.message = "best line too weak to be a needle: " + summary(s);
     return s;

@@ -7,6 +7,7 @@
 
 #include "needle_guidance/ImageCalibration.h"
 #include "needle_guidance/imaging/biplane_views.h"
+#include "needle_guidance/math.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/scene/scene.h"
 
@@ -52,7 +53,14 @@ ImagerRos::ImagerRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
                                  imaging::modalityFromString, "ultrasound or fluoroscopy");
     config.ultrasound_model =
         rp::choice(private_nh, "ultrasound_model", "classic", imaging::ultrasoundModelFromString,
-                   "classic or realistic");
+                   "classic, realistic or convex");
+    // The convex probe's face (ultrasound_model convex): its radius and half the fan's angle.
+    config.convex_radius_m =
+        rp::number(private_nh, "convex_radius_m", config.convex_radius_m, 1e-3, 1.0, "m");
+    config.convex_half_angle_rad =
+        rp::number(private_nh, "convex_half_angle_deg", config.convex_half_angle_rad * 180.0 / kPi,
+                   1.0, 80.0, "deg") *
+        kPi / 180.0;
     config.tissue_motion_px =  // the realistic model's moving tissue
         rp::number(private_nh, "tissue_motion_px", config.tissue_motion_px, 0, 10, "px / frame");
     const double pixel_size_m =

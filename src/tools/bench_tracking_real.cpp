@@ -463,10 +463,11 @@ bool writeHalvesAndHeldOut(const std::vector<Result>& fresh, const std::vector<T
   // seeing a held-out frame or error).
   const char* tuning_only = std::getenv("NG_TRACKING_TUNING_ONLY");
   const bool skip_held_out = tuning_only && std::string(tuning_only) == "1";
-  // NG_TRACKING_ONLY=NAME: that synthetic sequence only (with the above, never a held-out one).
+  // NG_TRACKING_ONLY=PREFIX: the synthetic sequences whose name starts with it only (with the
+  // above, never a held-out one).
   const char* only = std::getenv("NG_TRACKING_ONLY");
   for (const SyntheticSpec& spec : syntheticSpecs()) {
-    if (only && *only && spec.name != only)
+    if (only && *only && spec.name.rfind(only, 0) != 0)
       continue;
     if (!(skip_held_out && spec.held_out))
       runs.push_back(syntheticRun(scene, spec, &table, dir));
@@ -662,7 +663,7 @@ bool writeConvex(const std::string& dir, std::ostringstream& js) {
   const char* only = std::getenv("NG_TRACKING_ONLY");
   std::vector<ConvexRun> runs;
   for (const ConvexSpec& spec : convexSpecs()) {
-    if ((only && *only && spec.name != only) || (skip_held_out && spec.held_out))
+    if ((only && *only && spec.name.rfind(only, 0) != 0) || (skip_held_out && spec.held_out))
       continue;
     runs.push_back(convexRun(spec, &table, dir));
   }
@@ -678,8 +679,13 @@ bool writeConvex(const std::string& dir, std::ostringstream& js) {
         continue;
       const std::string key = (held_out ? "heldout_" : "") + r.spec->name;
       empty += r.empty_frames, empty_found += r.empty_found, empty_confident += r.empty_confident;
-      if (r.rs.empty()) {  // no needle in the sequence: only never confident counts
-        js << ",\n  \"" << key << "_confident_without_needle\": " << r.empty_confident;
+      if (r.rs.empty()) {  // no needle in the sequence: "not found" is the right answer
+        js << ",\n  \"" << key << "_confident_without_needle\": " << r.empty_confident << ",\n  \""
+           << key << "_not_found_fraction\": "
+           << jsonNumber(double(r.empty_frames - r.empty_found) / std::max(r.empty_frames, 1));
+        std::cout << "[tracking_real] " << key << " (no needle): not found in "
+                  << r.empty_frames - r.empty_found << " of " << r.empty_frames
+                  << " frames, confident in " << r.empty_confident << "\n";
         continue;
       }
       const Summary s = summarise(r.rs, r.ts), h = summarise(r.hough, r.ts);
@@ -711,7 +717,9 @@ bool writeConvex(const std::string& dir, std::ostringstream& js) {
        << "_confident_wrong\": " << wrong << ",\n  \"" << set
        << "_frames_without_needle\": " << empty << ",\n  \"" << set
        << "_found_without_needle\": " << empty_found << ",\n  \"" << set
-       << "_fps_cpu\": " << jsonNumber(s.fps_cpu) << ",\n  \"" << set
+       << "_without_needle_not_found_fraction\": "
+       << jsonNumber(empty > 0 ? double(empty - empty_found) / empty : std::nan("")) << ",\n  \""
+       << set << "_fps_cpu\": " << jsonNumber(s.fps_cpu) << ",\n  \"" << set
        << "_fps\": " << jsonNumber(s.fps) << ",\n  \"" << set
        << "_hough_tip_error_px_median\": " << jsonNumber(h.median) << ",\n  \"" << set
        << "_better_than_hough_every_sequence\": " << (better_everywhere ? "true" : "false");

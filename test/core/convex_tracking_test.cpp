@@ -7,12 +7,15 @@
 
 #include <cmath>
 #include <opencv2/imgproc.hpp>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
 #include "needle_guidance/imaging/convex_ultrasound.h"
+#include "needle_guidance/imaging/frame_renderer.h"
 #include "needle_guidance/imaging/imaging_region.h"
 #include "needle_guidance/imaging/needle_acquisition.h"
+#include "needle_guidance/scene/scene.h"
 
 namespace im = needle_guidance::imaging;
 
@@ -212,4 +215,43 @@ TEST(ConvexRenderer, RefusesABadProbeAndIsDeterministic) {
 int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);
   return RUN_ALL_TESTS();
+}
+
+// The imager's convex model (UltrasoundModel::kConvex): the fan at the top of the frame, black
+// above the probe face, a sector the tracker recognises; a probe that does not fit the frame
+// and an out-of-range angle are refused naming them.
+TEST(ConvexRenderer, TheImagerDrawsAConvexFanAndRefusesAProbeThatDoesNotFit) {
+  const needle_guidance::scene::Scene scene =
+      needle_guidance::scene::loadSceneSpec("steering_workspace");
+  im::ImagerConfig c = im::imagerConfigFromScene(scene, 3);
+  c.modality = im::Modality::kUltrasound;
+  c.ultrasound_model = im::UltrasoundModel::kConvex;
+  c.geometry = im::fieldOfView(scene, 0.15e-3, 720, 440);
+  EXPECT_EQ(im::toString(c.ultrasound_model), "convex");
+  EXPECT_EQ(im::ultrasoundModelFromString("convex"), im::UltrasoundModel::kConvex);
+  const im::FrameRenderer renderer(scene, c);
+  const cv::Mat frame = renderer.render({}, 0).image;
+  ASSERT_EQ(frame.size(), cv::Size(720, 440));
+  EXPECT_EQ(frame.at<std::uint8_t>(2, 2), 0) << "above the face's end: outside the fan";
+  EXPECT_EQ(frame.at<std::uint8_t>(2, 717), 0);
+  EXPECT_GT(cv::mean(frame(cv::Rect(300, 150, 120, 120)))[0], 20.0) << "tissue inside the fan";
+  EXPECT_EQ(im::findImagingRegion(frame).shape, im::ImagingRegion::Shape::kSector);
+  EXPECT_EQ(cv::norm(frame, renderer.render({}, 0).image, cv::NORM_INF), 0.0) << "deterministic";
+
+  im::ImagerConfig wide = c;
+  wide.convex_radius_m = 0.2;  // a face chord of 1393 px in a 720 px frame
+  try {
+    im::FrameRenderer bad(scene, wide);
+    ADD_FAILURE() << "a face wider than the frame was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("convex probe"), std::string::npos) << e.what();
+  }
+  im::ImagerConfig steep = c;
+  steep.convex_half_angle_rad = 2.0;
+  try {
+    steep.validate();
+    ADD_FAILURE() << "a half angle of 2 rad was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("convex_half_angle_rad"), std::string::npos) << e.what();
+  }
 }

@@ -6,12 +6,14 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <opencv2/core.hpp>
 #include <optional>
 #include <string>
 #include <vector>
 
 #include "needle_guidance/geometry/polygon.h"
+#include "needle_guidance/imaging/convex_ultrasound.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/tissue/image_warp.h"
 
@@ -49,8 +51,17 @@ enum class UltrasoundModel : std::uint8_t {
   /// noise (noise_std) enters before the log compression, as a scanner's electronic noise does,
   /// at noise_std times the mean tissue echo; the point-spread blur follows it.
   kRealistic,
+  /// The realistic model on a convex (curvilinear) probe (convex_ultrasound.h): a fan under an
+  /// arc-shaped probe face at the top of the frame (face radius convex_radius_m, half the
+  /// sector's angle convex_half_angle_rad, its two ends on row kConvexFaceTop_px, its centre over
+  /// the frame's centre), black outside it; speckle and the point-spread function in the
+  /// probe's beam grid (the lateral resolution coarsens with depth), the needle's shadow and
+  /// reverberation tail along the beams, the face's ring-down band; the scene's tissue is
+  /// uniform (no layers). Frames drop with drop_probability; blur_sigma_m and tissue_motion_px
+  /// do not apply (the point-spread function is the probe's; the tissue is still).
+  kConvex,
 };
-/// "classic" | "realistic".
+/// "classic" | "realistic" | "convex".
 std::string toString(UltrasoundModel model);
 /// Inverse of toString(UltrasoundModel); nullopt for anything else.
 std::optional<UltrasoundModel> ultrasoundModelFromString(const std::string& name);
@@ -75,6 +86,11 @@ struct ImagerConfig {
   /// beam by up to 1.5 times it (a 10-frame period), is compressed along the beam by up to 1 %,
   /// and its speckle decorrelates partly from frame to frame; the needle is drawn where it is.
   double tissue_motion_px = 0.0;
+  /// The convex probe (UltrasoundModel::kConvex): radius of its face [m], > 0, and half the
+  /// sector's angle [rad], in (0, 1.4]. The face's chord must fit in the frame's width and the
+  /// face lie above its bottom (checked by FrameRenderer).
+  double convex_radius_m = 0.05;
+  double convex_half_angle_rad = 0.55;
   /// Throws std::invalid_argument naming the field and its value when anything is out of range.
   void validate() const;
 };
@@ -128,8 +144,13 @@ public:
   /// realistic ultrasound model, echo amplitudes before log compression (1 = full scale).
   const cv::Mat& anatomy() const { return anatomy_; }
 
+  /// Row of the convex probe face's two ends (UltrasoundModel::kConvex) [px].
+  static constexpr double kConvexFaceTop_px = 8.0;
+
 private:
   ImagerConfig config_;
+  /// UltrasoundModel::kConvex: the probe and its (uniform) scene.
+  std::shared_ptr<const ConvexScene> convex_;
   cv::Mat anatomy_;      ///< CV_32FC1, static part of the frame
   cv::Mat attenuation_;  ///< CV_32FC1, ultrasound: per-pixel gain of depth attenuation and shadows
 };
