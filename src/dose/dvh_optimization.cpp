@@ -595,6 +595,12 @@ DvhPlanResult optimizeDvh(const HdrCase& c, const Tg43Source& source,
   // Reference plan for choosing which organ points need a binary: equal times, target mean Rx.
   const Eigen::VectorXd reference_Gy = points.d.rowwise().sum() * equal_time_s;
   const Evaluator eval(c, source, o.eval_spacing_m);
+  const std::vector<VolumeCondition> stated = conditions;  // before any tightening
+  if (c.dwell_times_s.size() == c.dwells.size()) {
+    // The case's own dwell times on the planner's points: a plan the planner should match.
+    r.case_times_objective = objectiveOf(points, conditions, c.dwell_times_s, total_time_s, o);
+    r.case_times_v100_pct = coveredPct(points, conditions[0], c.dwell_times_s);
+  }
   const auto specs = criteriaSpecs(all);
   int best_violations = 1 << 30;
   for (int round = 0; round < o.rounds; ++round) {
@@ -634,6 +640,7 @@ DvhPlanResult optimizeDvh(const HdrCase& c, const Tg43Source& source,
       r.v100_pct = v100;
       r.violated = violated;
       r.mip_v100_pct = m.v100_pct;
+      r.objective = objectiveOf(points, stated, m.times_s, total_time_s, o);
       r.mip_gap_pct = m.gap_pct;
       r.mip_optimal = m.optimal;
       r.mip_bound_known = m.bound_known;

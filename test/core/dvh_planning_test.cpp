@@ -24,6 +24,7 @@ constexpr double kGridIndex_Gy = 0.3;    // RTDOSE-grid indices against direct T
 constexpr double kGridIndex_pp = 1.0;    // same [pp]
 constexpr double kCriterion_Gy = 0.02;   // a met dose criterion on the evaluation lattice
 constexpr double kCriterion_pp = 0.1;    // a met volume criterion
+constexpr double kObjective = 1e-9;      // the planner's objective, same times and points
 
 Structure cylinder(const std::string& name, StructureRole role, double cx, double cy, double radius,
                    double z0, double z1, double dz) {
@@ -235,6 +236,23 @@ TEST_F(DvhPlanning, SingleCatheterCase) {
   for (const auto& v : r.violated)
     coverage_named = coverage_named || v.find("prostate V100") != std::string::npos;
   EXPECT_TRUE(coverage_named || r.v100_pct >= 90.0);
+}
+
+TEST_F(DvhPlanning, ScoresTheCasesOwnTimesOnThePlannersModel) {
+  // A plan's score on the planner's dose points is what the planner reported for it, so a
+  // clinical plan carried by the case is compared with ours on the same model.
+  const std::vector<DvhCriterion> criteria = defaultDvhCriteria(10.0);
+  DvhPlanOptions o;
+  o.max_seconds = 3.0;
+  const DvhPlanResult first = optimizeDvh(case_, source_, criteria, o);
+  ASSERT_TRUE(first.ok()) << first.status;
+  EXPECT_TRUE(std::isnan(first.case_times_objective));  // the case carries no times
+  HdrCase carried = case_;
+  carried.dwell_times_s = first.times_s;
+  const DvhPlanResult second = optimizeDvh(carried, source_, criteria, o);
+  ASSERT_TRUE(std::isfinite(second.case_times_objective));
+  EXPECT_NEAR(second.case_times_objective, first.objective, kObjective);
+  EXPECT_NEAR(second.case_times_v100_pct, first.mip_v100_pct, kCriterion_pp);
 }
 
 TEST(DvhCriteria, ParsesUnitsAndRefusesBadText) {

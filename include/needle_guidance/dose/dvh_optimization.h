@@ -7,6 +7,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <limits>
 #include <map>
 #include <string>
 #include <vector>
@@ -65,6 +66,14 @@ struct DvhPlanResult {
   double cpu_seconds = 0.0;   ///< processor time of this process
   double v100_pct = 0.0;      ///< target V100 on the evaluation lattice
   double mip_v100_pct = 0.0;  ///< target V100 on the MIP's dose points
+  /// The MIP's objective on its dose points (lower is better): minus the target V100, plus
+  /// violation_penalty per percentage point over a criterion's stated budget.
+  double objective = 0.0;
+  /// The same objective and V100 for the dwell times the case carries (HdrCase::dwell_times_s,
+  /// e.g. the clinical plan mapped onto the candidate dwells); NaN when it carries none. A
+  /// value below `objective` shows a plan the planner missed on its own model.
+  double case_times_objective = std::numeric_limits<double>::quiet_NaN();
+  double case_times_v100_pct = std::numeric_limits<double>::quiet_NaN();
   /// With cbc_seconds > 0: the MIP objective of the plan minus CBC's proven bound (V100 points
   /// when no criterion gives way); without, unknown (mip_bound_known false).
   double mip_gap_pct = 0.0;
