@@ -13,6 +13,9 @@
 #include <stdexcept>
 
 #include "needle_guidance/format.h"
+#include "needle_guidance/steering/continuous_workspace.h"
+#include "needle_guidance/steering/monte_carlo.h"
+#include "needle_guidance/steering/start_verification.h"
 
 namespace needle_guidance::steering {
 namespace {
@@ -32,11 +35,121 @@ constexpr double kEvalStep_m = 2.5e-3;
 constexpr double kEvalAngleStep_rad = 9.0 * kPi / 180.0;
 constexpr int kEvalAngles = 4;  ///< -36 .. 36 degrees
 
+/// Model check: entry-line starts this far inside both ends of the start range [m].
+constexpr double kCheckEdge_m = 2.5e-3;
+/// Model check: entry-line angles [deg] and the best distinct starts scored.
+constexpr double kCheckAngles_deg[] = {-20.0, 0.0, 20.0};
+constexpr int kCheckTopStarts = 4;
+/// Model check trials per start: 0.25 / tolerance^2 within these bounds.
+constexpr std::int64_t kMinCheckTrials = 2000;
+constexpr std::int64_t kMaxCheckTrials = 10000;
+
 double secondsSince(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
+/// The entry-line starts of checkModel.
+std::vector<TipPose> checkPoses(const SteeringProblem& problem, const StartOptions& start) {
+  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
+  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
+  std::vector<double> heights;
+  if (hi - lo > 2.0 * kCheckEdge_m) {
+    heights = {lo + kCheckEdge_m, hi - kCheckEdge_m};
+  }
+  for (int i = 1; i <= 5; ++i) {
+    heights.push_back(lo + (hi - lo) * i / 6.0);
+  }
+  std::vector<TipPose> poses;
+  for (double y : heights) {
+    for (double a : kCheckAngles_deg) {
+      for (Bevel b : {Bevel::kLeft, Bevel::kRight}) {
+        TipPose pose;
+        pose.p_SceneTip = Point2(start.start_x_m, y);
+        pose.theta_rad = a * kPi / 180.0;
+        pose.bevel = b;
+        poses.push_back(pose);
+      }
+    }
+  }
+  return poses;
+}
+
+/// Noise-corrected RMS gap of a group: sqrt(max(0, mean(gap^2 - p (1 - p) / n))); NaN if empty.
+struct GapSum {
+  double sum = 0.0;
+  int count = 0;
+  void add(double predicted, double rate, std::int64_t trials) {
+    const double p = std::clamp(predicted, 0.0, 1.0);
+    sum += (predicted - rate) * (predicted - rate) - p * (1.0 - p) / double(trials);
+    ++count;
+  }
+  double rms() const {
+    return count > 0 ? std::sqrt(std::max(0.0, sum / count))
+                     : std::numeric_limits<double>::quiet_NaN();
+  }
+};
+
 }  // namespace
+
+std::string ModelCheck::toString() const {
+  if (!run) {
+    return "no Monte Carlo check";
+  }
+  auto gap = [](double v) { return std::isnan(v) ? std::string("undefined") : formatNumber(v, 2); };
+  std::ostringstream out;
+  out << "Monte Carlo check (" << entry_starts + top_starts << " starts x " << trials_per_start
+      << " trials): RMS gap " << gap(rms_gap_entry) << " on the entry line, " << gap(rms_gap_top)
+      << " at the best starts, tolerance " << formatNumber(tolerance, 3) << ": "
+      << (passed ? "passed" : "FAILED");
+  return out.str();
+}
+
+std::int64_t checkTrials(double tolerance) {
+  const double n = 0.25 / (tolerance * tolerance);
+  return std::clamp<std::int64_t>(static_cast<std::int64_t>(std::ceil(n)), kMinCheckTrials,
+                                  kMaxCheckTrials);
+}
+
+ModelCheck checkModel(const SteeringModel& model, const PolicyTable& table,
+                      const StartOptions& start, double tolerance, std::int64_t trials,
+                      std::uint64_t seed, int threads) {
+  if (trials < 1) {
+    throw std::invalid_argument("checkModel: trials must be >= 1, got " + std::to_string(trials));
+  }
+  const auto t0 = std::chrono::steady_clock::now();
+  const ContinuousWorkspace world(model.problem());
+  const SteeringPolicy policy = tablePolicy(table);
+  ModelCheck out;
+  out.run = true;
+  out.trials_per_start = trials;
+  out.tolerance = tolerance;
+  auto score = [&](const TipPose& pose, GapSum& group) {
+    const double predicted = table.lookup(pose).probability_of_success;
+    const MonteCarloResult mc = runMonteCarlo(world, pose, policy, trials, seed, threads);
+    if (predicted < kTrivialPs && mc.rate() < kTrivialPs) {
+      return;
+    }
+    group.add(predicted, mc.rate(), trials);
+    out.max_abs_gap = std::max(out.max_abs_gap, std::abs(predicted - mc.rate()));
+  };
+  GapSum entry, top;
+  for (const TipPose& pose : checkPoses(model.problem(), start)) {
+    score(pose, entry);
+  }
+  StartVerificationOptions best;
+  best.candidates = kCheckTopStarts;
+  for (const StartCandidate& c : distinctBestStarts(table, start, best)) {
+    score(c.pose, top);
+  }
+  out.entry_starts = entry.count;
+  out.top_starts = top.count;
+  out.rms_gap_entry = entry.rms();
+  out.rms_gap_top = top.rms();
+  // An empty group (no start with P_s >= 0.01) has nothing to contradict.
+  out.passed = !(out.rms_gap_entry > tolerance) && !(out.rms_gap_top > tolerance);
+  out.seconds = secondsSince(t0);
+  return out;
+}
 
 std::string ModelChoice::toString() const {
   std::ostringstream out;
@@ -99,24 +212,50 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
                                 formatNumber(options.ps_tolerance, 6));
   }
   const std::vector<TipPose> poses = evaluationPoses(problem, options.start);
+  const std::int64_t trials =
+      options.check_trials == 0 ? checkTrials(options.ps_tolerance) : options.check_trials;
   ModelChoice choice;
   const auto t0 = std::chrono::steady_clock::now();
+  // The current rung checked by Monte Carlo (once); true when it is accepted.
+  auto accepted = [&]() {
+    if (trials < 0) {
+      return true;
+    }
+    ModelRung& rung = choice.ladder.back();
+    if (!rung.check.run) {
+      rung.check = checkModel(*choice.model, *choice.table, options.start, options.ps_tolerance,
+                              trials, options.check_seed, options.solver.threads);
+    }
+    choice.check = rung.check;
+    return rung.check.passed;
+  };
+  // No further rung: the last one is accepted if its check passes, else the tolerance is refused.
+  auto lastRung = [&](const std::string& why_no_further) -> Result<ModelChoice> {
+    if (choice.table && accepted()) {
+      choice.total_s = secondsSince(t0);
+      return std::move(choice);
+    }
+    std::ostringstream why;
+    why << "ps_tolerance " << formatNumber(options.ps_tolerance, 4)
+        << " cannot be met: " << why_no_further << "; the finest model (grid "
+        << (choice.ladder.empty()
+                ? std::string("none")
+                : formatNumber(choice.ladder.back().grid_spacing_m * 1e3, 3) + " mm")
+        << ") has an estimated mean P_s error of "
+        << (choice.ladder.empty() ? std::string("(none)")
+                                  : formatNumber(choice.ladder.back().estimated_error, 2))
+        << (choice.ladder.empty() ? std::string() : ", " + choice.ladder.back().check.toString());
+    return GeneralStatus(StatusCode::kRefused, why.str());
+  };
   double spacing = problem.params.grid_spacing_m;
   for (int step = 0; step < options.max_steps; ++step, spacing /= kRatio) {
     SteeringProblem rung_problem = problem;
     rung_problem.params.grid_spacing_m = spacing;
     const double mb = estimatedModelMb(rung_problem);
     if (mb > options.memory_limit_mb) {
-      std::ostringstream why;
-      why << "ps_tolerance " << formatNumber(options.ps_tolerance, 4)
-          << " cannot be met within the memory limit of "
-          << formatNumber(options.memory_limit_mb, 4) << " MB: the finest model that fits (grid "
-          << formatNumber(spacing * kRatio * 1e3, 3) << " mm) has an estimated mean P_s error of "
-          << (choice.ladder.empty() ? std::string("(none)")
-                                    : formatNumber(choice.ladder.back().estimated_error, 2))
-          << ", and the next (grid " << formatNumber(spacing * 1e3, 3) << " mm) needs about "
-          << formatNumber(mb, 4) << " MB";
-      return GeneralStatus(StatusCode::kRefused, why.str());
+      return lastRung("the next grid (" + formatNumber(spacing * 1e3, 3) + " mm) needs about " +
+                      formatNumber(mb, 4) + " MB against the memory limit of " +
+                      formatNumber(options.memory_limit_mb, 4) + " MB");
     }
     ModelRung rung;
     rung.grid_spacing_m = spacing;
@@ -140,17 +279,14 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
     choice.table = std::move(table);
     choice.estimated_error = rung.estimated_error;
     choice.peak_estimate_mb = std::max(choice.peak_estimate_mb, mb);
-    if (rung.estimated_error <= options.ps_tolerance) {  // false for NaN (the first rung)
+    // false for NaN (the first rung)
+    if (rung.estimated_error <= options.ps_tolerance && accepted()) {
       choice.total_s = secondsSince(t0);
       return choice;
     }
   }
-  std::ostringstream why;
-  why << "ps_tolerance " << formatNumber(options.ps_tolerance, 4) << " not met within "
-      << options.max_steps << " refinements of grid "
-      << formatNumber(problem.params.grid_spacing_m * 1e3, 3) << " mm: the finest estimate is "
-      << formatNumber(choice.ladder.back().estimated_error, 2);
-  return GeneralStatus(StatusCode::kRefused, why.str());
+  return lastRung(std::to_string(options.max_steps) + " refinements of grid " +
+                  formatNumber(problem.params.grid_spacing_m * 1e3, 3) + " mm were solved");
 }
 
 }  // namespace needle_guidance::steering
@@ -182,6 +318,9 @@ std::string PolicySource::description() const {
       << ", " << source << " in " << formatNumber(seconds, 3) << " s";
   if (!ladder.empty()) {
     out << " (" << ladder.size() << " models)";
+  }
+  if (check.run) {
+    out << "; " << check.toString();
   }
   return out.str();
 }
@@ -268,6 +407,7 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
     out.table = std::move(choice.value().table);
     out.estimated_error = choice.value().estimated_error;
     out.ladder = choice.value().ladder;
+    out.check = choice.value().check;
   } else {
     out.model = std::make_unique<const SteeringModel>(chosen, options.threads);
     SolveStats stats;
