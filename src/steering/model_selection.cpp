@@ -50,6 +50,9 @@ double secondsSince(std::chrono::steady_clock::time_point t0) {
 
 /// The entry-line starts of checkModel.
 std::vector<TipPose> checkPoses(const SteeringProblem& problem, const StartOptions& start) {
+  // Angles on the model's orientations: the check measures the P_s of the model's states.
+  const double quantum =
+      2.0 * kPi / (problem.params.orientations * problem.params.orientation_subdivision);
   const double lo = std::max(start.min_height_m, problem.workspace_min.y());
   const double hi = std::min(start.max_height_m, problem.workspace_max.y());
   std::vector<double> heights;
@@ -65,7 +68,7 @@ std::vector<TipPose> checkPoses(const SteeringProblem& problem, const StartOptio
       for (Bevel b : {Bevel::kLeft, Bevel::kRight}) {
         TipPose pose;
         pose.p_SceneTip = Point2(start.start_x_m, y);
-        pose.theta_rad = a * kPi / 180.0;
+        pose.theta_rad = std::round(a * kPi / 180.0 / quantum) * quantum;
         pose.bevel = b;
         poses.push_back(pose);
       }
@@ -88,6 +91,29 @@ struct GapSum {
                      : std::numeric_limits<double>::quiet_NaN();
   }
 };
+
+/// A check that fails by more than this multiple of the rung's estimated error (the change with
+/// the grid) has an error the grid does not explain: the transitions are refined instead.
+constexpr double kGridErrorShare = 2.0;
+
+bool sameTransitions(const SteeringParams& a, const SteeringParams& b) {
+  return a.transition_model == b.transition_model &&
+         a.orientation_subdivision == b.orientation_subdivision;
+}
+
+/// The next finer transitions at the same grid: rounded -> interpolated, then s doubled (at
+/// most 64); false when there is none.
+bool refineTransitions(SteeringParams& params) {
+  if (params.transition_model == TransitionModel::kRounded) {
+    params.transition_model = TransitionModel::kInterpolated;
+    return true;
+  }
+  if (params.orientation_subdivision * 2 > 64) {
+    return false;
+  }
+  params.orientation_subdivision *= 2;
+  return true;
+}
 
 }  // namespace
 
@@ -247,18 +273,22 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
         << (choice.ladder.empty() ? std::string() : ", " + choice.ladder.back().check.toString());
     return GeneralStatus(StatusCode::kRefused, why.str());
   };
-  double spacing = problem.params.grid_spacing_m;
-  for (int step = 0; step < options.max_steps; ++step, spacing /= kRatio) {
+  SteeringParams params = problem.params;
+  for (int step = 0; step < options.max_steps; ++step) {
     SteeringProblem rung_problem = problem;
-    rung_problem.params.grid_spacing_m = spacing;
+    rung_problem.params = params;
     const double mb = estimatedModelMb(rung_problem);
     if (mb > options.memory_limit_mb) {
-      return lastRung("the next grid (" + formatNumber(spacing * 1e3, 3) + " mm) needs about " +
-                      formatNumber(mb, 4) + " MB against the memory limit of " +
+      return lastRung("the next model (" + steering::toString(params.transition_model) + ", grid " +
+                      formatNumber(params.grid_spacing_m * 1e3, 3) +
+                      " mm, s = " + std::to_string(params.orientation_subdivision) +
+                      ") needs about " + formatNumber(mb, 4) + " MB against the memory limit of " +
                       formatNumber(options.memory_limit_mb, 4) + " MB");
     }
     ModelRung rung;
-    rung.grid_spacing_m = spacing;
+    rung.grid_spacing_m = params.grid_spacing_m;
+    rung.transition_model = params.transition_model;
+    rung.orientation_subdivision = params.orientation_subdivision;
     const auto tb = std::chrono::steady_clock::now();
     auto model = std::make_unique<const SteeringModel>(rung_problem, options.threads);
     rung.build_s = secondsSince(tb);
@@ -269,7 +299,11 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
     rung.sweeps = stats.sweeps;
     rung.change_vs_coarser = std::numeric_limits<double>::quiet_NaN();
     rung.estimated_error = std::numeric_limits<double>::quiet_NaN();
-    if (choice.table) {
+    // The change estimate compares two grids of the same transitions; after a change of the
+    // transitions the check alone decides.
+    const bool new_transitions =
+        choice.model && !sameTransitions(choice.model->params(), rung_problem.params);
+    if (choice.table && !new_transitions) {
       rung.change_vs_coarser = meanAbsChange(*table, *choice.table, poses, rung.evaluation_states);
       rung.estimated_error = rung.change_vs_coarser / (std::pow(kRatio, kOrder) - 1.0);
     }
@@ -280,9 +314,16 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
     choice.estimated_error = rung.estimated_error;
     choice.peak_estimate_mb = std::max(choice.peak_estimate_mb, mb);
     // false for NaN (the first rung)
-    if (rung.estimated_error <= options.ps_tolerance && accepted()) {
+    if ((rung.estimated_error <= options.ps_tolerance || new_transitions) && accepted()) {
       choice.total_s = secondsSince(t0);
       return choice;
+    }
+    const ModelCheck& check = choice.ladder.back().check;
+    const double limit = kGridErrorShare * rung.estimated_error;  // NaN: the grid explains it
+    const bool grid_explains =
+        !check.run || !(check.rms_gap_entry > limit || check.rms_gap_top > limit);
+    if (grid_explains || !refineTransitions(params)) {
+      params.grid_spacing_m /= kRatio;
     }
   }
   return lastRung(std::to_string(options.max_steps) + " refinements of grid " +
@@ -371,12 +412,19 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
     bool known = !select;
     if (select) {
       std::ifstream in(record);
-      std::string key_spacing, key_error;
+      std::string key_spacing, key_error, key_model, model_name, key_s;
       double spacing = 0.0, error = 0.0;
-      known = static_cast<bool>(in >> key_spacing >> spacing >> key_error >> error) &&
-              key_spacing == "grid_spacing_m" && key_error == "estimated_error" && spacing > 0.0;
+      int subdivision = 0;
+      known = static_cast<bool>(in >> key_spacing >> spacing >> key_error >> error >> key_model >>
+                                model_name >> key_s >> subdivision) &&
+              key_spacing == "grid_spacing_m" && key_error == "estimated_error" &&
+              key_model == "transition_model" && key_s == "orientation_subdivision" &&
+              spacing > 0.0 && transitionModelFromString(model_name) && subdivision >= 1 &&
+              subdivision <= 64;
       if (known) {
         chosen.params.grid_spacing_m = spacing;
+        chosen.params.transition_model = *transitionModelFromString(model_name);
+        chosen.params.orientation_subdivision = subdivision;
         out.estimated_error = error;
       }
     }
@@ -429,8 +477,11 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
       if (select) {
         std::ofstream rec(record + ".tmp");
         rec.precision(17);
-        rec << "grid_spacing_m " << out.model->params().grid_spacing_m << "\nestimated_error "
-            << out.estimated_error << "\n";
+        const SteeringParams& chosen_params = out.model->params();
+        rec << "grid_spacing_m " << chosen_params.grid_spacing_m << "\nestimated_error "
+            << out.estimated_error << "\ntransition_model "
+            << steering::toString(chosen_params.transition_model) << "\norientation_subdivision "
+            << chosen_params.orientation_subdivision << "\n";
         rec.close();
         std::filesystem::rename(record + ".tmp", record);
       }

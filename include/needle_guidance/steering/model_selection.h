@@ -72,6 +72,8 @@ ModelCheck checkModel(const SteeringModel& model, const PolicyTable& table,
 /// One rung of the ladder.
 struct ModelRung {
   double grid_spacing_m = 0.0;
+  TransitionModel transition_model = TransitionModel::kRounded;
+  int orientation_subdivision = 1;
   std::int64_t states = 0;
   double build_s = 0.0;
   double solve_s = 0.0;
