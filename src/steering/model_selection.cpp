@@ -77,19 +77,18 @@ std::vector<TipPose> checkPoses(const SteeringProblem& problem, const StartOptio
   return poses;
 }
 
-/// Noise-corrected RMS gap of a group: sqrt(max(0, mean(gap^2 - p (1 - p) / n))); NaN if empty.
+/// Mean noise-corrected |gap| of a group: the mean of sqrt(max(0, gap^2 - p (1 - p) / n)); NaN if
+/// empty.
 struct GapSum {
   double sum = 0.0;
   int count = 0;
   void add(double predicted, double rate, std::int64_t trials) {
     const double p = std::clamp(predicted, 0.0, 1.0);
-    sum += (predicted - rate) * (predicted - rate) - p * (1.0 - p) / double(trials);
+    const double gap = predicted - rate;
+    sum += std::sqrt(std::max(0.0, gap * gap - p * (1.0 - p) / double(trials)));
     ++count;
   }
-  double rms() const {
-    return count > 0 ? std::sqrt(std::max(0.0, sum / count))
-                     : std::numeric_limits<double>::quiet_NaN();
-  }
+  double mean() const { return count > 0 ? sum / count : std::numeric_limits<double>::quiet_NaN(); }
 };
 
 /// A check that fails by more than this multiple of the rung's estimated error (the change with
@@ -124,7 +123,7 @@ std::string ModelCheck::toString() const {
   auto gap = [](double v) { return std::isnan(v) ? std::string("undefined") : formatNumber(v, 2); };
   std::ostringstream out;
   out << "Monte Carlo check (" << entry_starts + top_starts << " starts x " << trials_per_start
-      << " trials): RMS gap " << gap(rms_gap_entry) << " on the entry line, " << gap(rms_gap_top)
+      << " trials): mean gap " << gap(gap_entry) << " on the entry line, " << gap(gap_top)
       << " at the best starts, tolerance " << formatNumber(tolerance, 3) << ": "
       << (passed ? "passed" : "FAILED");
   return out.str();
@@ -169,10 +168,10 @@ ModelCheck checkModel(const SteeringModel& model, const PolicyTable& table,
   }
   out.entry_starts = entry.count;
   out.top_starts = top.count;
-  out.rms_gap_entry = entry.rms();
-  out.rms_gap_top = top.rms();
+  out.gap_entry = entry.mean();
+  out.gap_top = top.mean();
   // An empty group (no start with P_s >= 0.01) has nothing to contradict.
-  out.passed = !(out.rms_gap_entry > tolerance) && !(out.rms_gap_top > tolerance);
+  out.passed = !(out.gap_entry > tolerance) && !(out.gap_top > tolerance);
   out.seconds = secondsSince(t0);
   return out;
 }
@@ -320,8 +319,7 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
     }
     const ModelCheck& check = choice.ladder.back().check;
     const double limit = kGridErrorShare * rung.estimated_error;  // NaN: the grid explains it
-    const bool grid_explains =
-        !check.run || !(check.rms_gap_entry > limit || check.rms_gap_top > limit);
+    const bool grid_explains = !check.run || !(check.gap_entry > limit || check.gap_top > limit);
     if (grid_explains || !refineTransitions(params)) {
       params.grid_spacing_m /= kRatio;
     }

@@ -1306,8 +1306,8 @@ std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
   key("ps_tolerance", num(d.ps_tolerance));
   key("model", "\"" + d.model + "\"");
   key("estimated_error", num(d.estimated_error));
-  key("model_check_rms_gap_entry", num(d.check.rms_gap_entry));
-  key("model_check_rms_gap_top", num(d.check.rms_gap_top));
+  key("model_check_mean_gap_entry", num(d.check.gap_entry));
+  key("model_check_mean_gap_top", num(d.check.gap_top));
   key("model_check_trials", std::to_string(d.check.trials_per_start));
   key("model_check_passed", d.check.passed ? "true" : "false");
   key("chosen_start_y_mm", num(d.chosen.start.pose.p_SceneTip.y() * kMmPerM));

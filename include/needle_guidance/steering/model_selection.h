@@ -43,16 +43,16 @@ struct ModelCheck {
   std::int64_t trials_per_start = 0;
   int entry_starts = 0;  ///< non-trivial entry-line starts scored (both ends included)
   int top_starts = 0;    ///< best distinct starts scored
-  /// Root mean square of |predicted - Monte Carlo| over the group, its binomial noise removed
-  /// (sqrt(max(0, mean(gap^2 - p (1 - p) / n)))): an estimate of the group's RMS error, which
-  /// is >= its mean |error|. NaN when the group has no non-trivial start.
-  double rms_gap_entry = 0.0;
-  double rms_gap_top = 0.0;
+  /// Mean over the group of |predicted - Monte Carlo| with its binomial noise removed,
+  /// sqrt(max(0, gap^2 - p (1 - p) / n)) per start: an estimate of the group's mean |P_s error|
+  /// that the Monte Carlo noise does not inflate. NaN when the group has no non-trivial start.
+  double gap_entry = 0.0;
+  double gap_top = 0.0;
   double max_abs_gap = 0.0;  ///< largest measured |gap| of any start (noise included)
   double tolerance = 0.0;
-  bool passed = false;  ///< both RMS gaps <= tolerance
+  bool passed = false;  ///< both mean gaps <= tolerance
   double seconds = 0.0;
-  /// "Monte Carlo check (40 starts x 10000 trials): RMS gap 0.0031 entry line, 0.0024 best
+  /// "Monte Carlo check (40 starts x 10000 trials): mean gap 0.0031 entry line, 0.0024 best
   /// starts, tolerance 0.005: passed".
   std::string toString() const;
 };
