@@ -273,10 +273,28 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
     return GeneralStatus(StatusCode::kRefused, why.str());
   };
   SteeringParams params = problem.params;
+  bool traded = false;
   for (int step = 0; step < options.max_steps; ++step) {
     SteeringProblem rung_problem = problem;
     rung_problem.params = params;
     const double mb = estimatedModelMb(rung_problem);
+    if (mb > options.memory_limit_mb && !traded && choice.table && !accepted()) {
+      // Once: finer transitions instead of a finer grid, within the last rung's memory (twice
+      // the orientations on a grid sqrt(2) coarser).
+      SteeringParams finer = choice.model->params();
+      const bool doubles = finer.transition_model == TransitionModel::kInterpolated;
+      if (refineTransitions(finer)) {
+        finer.grid_spacing_m *= doubles ? kRatio : 1.0;
+        SteeringProblem traded_problem = problem;
+        traded_problem.params = finer;
+        if (estimatedModelMb(traded_problem) <= options.memory_limit_mb) {
+          params = finer;
+          traded = true;
+          --step;  // not a rung of the grid ladder
+          continue;
+        }
+      }
+    }
     if (mb > options.memory_limit_mb) {
       return lastRung("the next model (" + steering::toString(params.transition_model) + ", grid " +
                       formatNumber(params.grid_spacing_m * 1e3, 3) +

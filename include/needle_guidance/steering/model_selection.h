@@ -26,7 +26,7 @@ namespace needle_guidance::steering {
 struct SelectionOptions {
   double ps_tolerance = 0.005;     ///< mean |P_s error| wanted at the entry-line states, in (0, 1)
   double memory_limit_mb = 500.0;  ///< refuse models whose estimated footprint exceeds this [MB]
-  int max_steps = 8;               ///< rungs of the ladder at most (Delta_0 / sqrt(2)^7 finest)
+  int max_steps = 10;              ///< rungs of the ladder at most (grids and transitions together)
   SolverOptions solver;            ///< for every solve
   int threads = 2;                 ///< model building
   StartOptions start;              ///< the entry line the error is measured on
@@ -114,7 +114,10 @@ double meanAbsChange(const PolicyTable& fine, const PolicyTable& coarse,
 
 /// Solves the ladder from problem.params.grid_spacing_m (the coarsest) until a rung's estimate
 /// meets options.ps_tolerance and its checkModel passes (or, when the next rung would exceed
-/// memory_limit_mb or max_steps, the last rung's check passes whatever its estimate). Refuses
+/// memory_limit_mb or max_steps, the last rung's check passes whatever its estimate). A failed
+/// check the grid's estimated error does not explain refines the transitions instead (rounded
+/// -> interpolated -> s doubled); when memory stops the grid, the transitions are refined once
+/// within the last rung's memory (s doubled on a grid sqrt(2) coarser). Refuses
 /// (StatusCode::kRefused, naming the tolerance, the finest estimate and check reached and why)
 /// otherwise; then nothing is kept.
 /// Throws std::invalid_argument for a tolerance outside (0, 1).
