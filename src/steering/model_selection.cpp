@@ -370,8 +370,9 @@ std::string PolicySource::description() const {
       << " states, sigma_i " << formatNumber(p.sigma_insert_rad * 180.0 / kPi, 3)
       << " deg, sigma_r " << formatNumber(p.sigma_flip_rad * 180.0 / kPi, 3)
       << " deg, estimated P_s error "
-      << (std::isnan(estimated_error) ? std::string("not estimated (ps_tolerance 0)")
-                                      : formatNumber(estimated_error, 2))
+      << (!std::isnan(estimated_error) ? formatNumber(estimated_error, 2)
+          : ladder.empty()             ? std::string("not estimated")
+                           : std::string("not estimated (first model of its transitions)"))
       << ", " << source << " in " << formatNumber(seconds, 3) << " s";
   if (!ladder.empty()) {
     out << " (" << ladder.size() << " models)";
@@ -441,7 +442,7 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
         chosen.params.grid_spacing_m = spacing;
         chosen.params.transition_model = *transitionModelFromString(model_name);
         chosen.params.orientation_subdivision = subdivision;
-        out.estimated_error = error;
+        out.estimated_error = error >= 0.0 ? error : std::numeric_limits<double>::quiet_NaN();
       }
     }
     if (known) {
@@ -494,10 +495,11 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
         std::ofstream rec(record + ".tmp");
         rec.precision(17);
         const SteeringParams& chosen_params = out.model->params();
+        // -1: not estimated (the chosen model was the first of its transitions).
         rec << "grid_spacing_m " << chosen_params.grid_spacing_m << "\nestimated_error "
-            << out.estimated_error << "\ntransition_model "
-            << steering::toString(chosen_params.transition_model) << "\norientation_subdivision "
-            << chosen_params.orientation_subdivision << "\n";
+            << (std::isnan(out.estimated_error) ? -1.0 : out.estimated_error)
+            << "\ntransition_model " << steering::toString(chosen_params.transition_model)
+            << "\norientation_subdivision " << chosen_params.orientation_subdivision << "\n";
         rec.close();
         std::filesystem::rename(record + ".tmp", record);
       }

@@ -133,7 +133,8 @@ struct PolicySource {
   std::unique_ptr<const SteeringModel> model;
   std::unique_ptr<const PolicyTable> table;
   std::string source;  ///< "solved" | "loaded"
-  /// The chosen model's estimated mean |P_s error| (NaN when ps_tolerance is 0: not estimated).
+  /// The chosen model's estimated mean |P_s error| (NaN: not estimated, when ps_tolerance is 0 or
+  /// the chosen model was the first of its transitions; its ModelCheck then measured it).
   double estimated_error = 0.0;
   double seconds = 0.0;           ///< wall time of this call [s]
   std::vector<ModelRung> ladder;  ///< the rungs solved (empty when loaded or fixed)
