@@ -233,7 +233,7 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
     throw std::runtime_error("parameter '" + nh.resolveName(description_param) +
                              "' (the stage URDF) is not set");
   }
-  const robot::StageLimits limits = robot::parseStageLimits(urdf_xml);
+  robot::StageLimits limits = robot::parseStageLimits(urdf_xml);
   // One ~scene, dispatched on its kind: a steering_3d file selects the 3-D steerable mode.
   const std::string kind = scene::sceneKind(scene_spec);
   const bool scene_is_3d = kind == "steering_3d";
@@ -262,6 +262,13 @@ InsertionRobotRos::InsertionRobotRos(ros::NodeHandle& nh, ros::NodeHandle& priva
   if (steerable_mode && !scene.steering) {
     throw std::runtime_error("~mode steerable needs a scene with models.steering; scene '" +
                              scene.name + "' has none");
+  }
+  if (steerable_mode) {
+    // The planar steerable stage's height travel spans the scene's workspace, so every
+    // workspace the scene loader accepts can be driven (the URDF's travel is the rigid stage's).
+    robot::JointLimits& travel = limits.joints[static_cast<std::size_t>(StageJoint::kHeight)];
+    travel.lower = scene.workspace_min.y();
+    travel.upper = scene.workspace_max.y();
   }
   const auto& h = limits[StageJoint::kHeight];
   const auto& d = limits[StageJoint::kDepth];

@@ -281,6 +281,7 @@ SteerableProcedureRos::SteerableProcedureRos(ros::NodeHandle& nh, ros::NodeHandl
   s_.flip_velocity_rad_s =
       ros_params::number(private_nh, "flip_velocity_rad_s", 2.0 * kPi, 1e-3, 100.0, "rad/s");
   s_.timeout_s = ros_params::number(private_nh, "timeout_s", 10.0, 0.1, 600.0, "s");
+  s_.policy_wait_s = ros_params::number(private_nh, "policy_wait_s", 600.0, 1.0, 7200.0, "s");
   s_.trials.seed =
       ros_params::integer(private_nh, "seed", 1, -1, 1L << 40, "(-1 = the robot's stream)");
   s_.max_unconfident = static_cast<int>(
@@ -305,10 +306,15 @@ bool SteerableProcedureRos::run() {
   const steering::SteeringProblem problem = steering::problemFromScene(scene, s_.target);
   RosSteerableDevices devices(nh_, s_);
   ros::ServiceClient best_start = nh_.serviceClient<BestStart>(s_.policy_ns + "/best_start");
-  if (!devices.waitForRobot() || !best_start.waitForExistence(ros::Duration(60.0))) {
-    ROS_FATAL_STREAM("steerable_procedure: the robot (" << s_.robot_ns << ") or the policy ("
-                                                        << s_.policy_ns
+  if (!devices.waitForRobot()) {
+    ROS_FATAL_STREAM("steerable_procedure: the robot (" << s_.robot_ns
                                                         << ") did not come up in 60 s");
+    return false;
+  }
+  if (!best_start.waitForExistence(ros::Duration(s_.policy_wait_s))) {
+    ROS_FATAL_STREAM("steerable_procedure: the policy ("
+                     << s_.policy_ns << ") did not come up in " << s_.policy_wait_s
+                     << " s (~policy_wait_s; it chooses and solves its model first)");
     return false;
   }
   devices.supervise(s_.watch_nodes);

@@ -290,13 +290,16 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
       ROS_WARN_STREAM_NAMED(kName, "steering_policy: table " << p.note);
     }
     for (const st::ModelRung& rung : p.ladder) {
-      ROS_INFO_STREAM_NAMED(kName, "steering_policy: model grid "
-                                       << rung.grid_spacing_m * 1e3 << " mm, " << rung.states
-                                       << " states, solved in " << rung.solve_s
-                                       << " s, estimated mean P_s error "
-                                       << (std::isnan(rung.estimated_error)
-                                               ? std::string("not estimated (coarsest model)")
-                                               : formatNumber(rung.estimated_error, 2)));
+      ROS_INFO_STREAM_NAMED(
+          kName,
+          "steering_policy: model "
+              << st::toString(rung.transition_model) << ", grid " << rung.grid_spacing_m * 1e3
+              << " mm, s = " << rung.orientation_subdivision << ", " << rung.states
+              << " states, solved in " << rung.solve_s << " s, estimated mean P_s error "
+              << (std::isnan(rung.estimated_error) ? std::string("not estimated (first model of "
+                                                                 "these transitions)")
+                                                   : formatNumber(rung.estimated_error, 2))
+              << "; " << rung.check.toString());
     }
     description_ = p.description();  // before the model moves out
     estimated_error_ = p.estimated_error;

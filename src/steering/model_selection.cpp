@@ -13,6 +13,9 @@
 #include <stdexcept>
 
 #include "needle_guidance/format.h"
+#include "needle_guidance/steering/continuous_workspace.h"
+#include "needle_guidance/steering/monte_carlo.h"
+#include "needle_guidance/steering/start_verification.h"
 
 namespace needle_guidance::steering {
 namespace {
@@ -32,11 +35,146 @@ constexpr double kEvalStep_m = 2.5e-3;
 constexpr double kEvalAngleStep_rad = 9.0 * kPi / 180.0;
 constexpr int kEvalAngles = 4;  ///< -36 .. 36 degrees
 
+/// Model check: entry-line starts this far inside both ends of the start range [m].
+constexpr double kCheckEdge_m = 2.5e-3;
+/// Model check: entry-line angles [deg] and the best distinct starts scored.
+constexpr double kCheckAngles_deg[] = {-20.0, 0.0, 20.0};
+constexpr int kCheckTopStarts = 4;
+/// Model check trials per start: 0.25 / tolerance^2 within these bounds.
+constexpr std::int64_t kMinCheckTrials = 2000;
+constexpr std::int64_t kMaxCheckTrials = 10000;
+
 double secondsSince(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
+/// The entry-line starts of checkModel.
+std::vector<TipPose> checkPoses(const SteeringProblem& problem, const StartOptions& start) {
+  // Angles on the model's orientations: the check measures the P_s of the model's states.
+  const double quantum =
+      2.0 * kPi / (problem.params.orientations * problem.params.orientation_subdivision);
+  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
+  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
+  std::vector<double> heights;
+  if (hi - lo > 2.0 * kCheckEdge_m) {
+    heights = {lo + kCheckEdge_m, hi - kCheckEdge_m};
+  }
+  for (int i = 1; i <= 5; ++i) {
+    heights.push_back(lo + (hi - lo) * i / 6.0);
+  }
+  std::vector<TipPose> poses;
+  for (double y : heights) {
+    for (double a : kCheckAngles_deg) {
+      for (Bevel b : {Bevel::kLeft, Bevel::kRight}) {
+        TipPose pose;
+        pose.p_SceneTip = Point2(start.start_x_m, y);
+        pose.theta_rad = std::round(a * kPi / 180.0 / quantum) * quantum;
+        pose.bevel = b;
+        poses.push_back(pose);
+      }
+    }
+  }
+  return poses;
+}
+
+/// Mean noise-corrected |gap| of a group: the mean of sqrt(max(0, gap^2 - p (1 - p) / n)); NaN if
+/// empty.
+struct GapSum {
+  double sum = 0.0;
+  int count = 0;
+  void add(double predicted, double rate, std::int64_t trials) {
+    const double p = std::clamp(predicted, 0.0, 1.0);
+    const double gap = predicted - rate;
+    sum += std::sqrt(std::max(0.0, gap * gap - p * (1.0 - p) / double(trials)));
+    ++count;
+  }
+  double mean() const { return count > 0 ? sum / count : std::numeric_limits<double>::quiet_NaN(); }
+};
+
+/// A check that fails by more than this multiple of the rung's estimated error (the change with
+/// the grid) has an error the grid does not explain: the transitions are refined instead.
+constexpr double kGridErrorShare = 2.0;
+
+bool sameTransitions(const SteeringParams& a, const SteeringParams& b) {
+  return a.transition_model == b.transition_model &&
+         a.orientation_subdivision == b.orientation_subdivision;
+}
+
+/// The next finer transitions at the same grid: rounded -> interpolated, then s doubled (at
+/// most 64); false when there is none.
+bool refineTransitions(SteeringParams& params) {
+  if (params.transition_model == TransitionModel::kRounded) {
+    params.transition_model = TransitionModel::kInterpolated;
+    return true;
+  }
+  if (params.orientation_subdivision * 2 > 64) {
+    return false;
+  }
+  params.orientation_subdivision *= 2;
+  return true;
+}
+
 }  // namespace
+
+std::string ModelCheck::toString() const {
+  if (!run) {
+    return "no Monte Carlo check";
+  }
+  auto gap = [](double v) { return std::isnan(v) ? std::string("undefined") : formatNumber(v, 2); };
+  std::ostringstream out;
+  out << "Monte Carlo check (" << entry_starts + top_starts << " starts x " << trials_per_start
+      << " trials): mean gap " << gap(gap_entry) << " on the entry line, " << gap(gap_top)
+      << " at the best starts, tolerance " << formatNumber(tolerance, 3) << ": "
+      << (passed ? "passed" : "FAILED");
+  return out.str();
+}
+
+std::int64_t checkTrials(double tolerance) {
+  const double n = 0.25 / (tolerance * tolerance);
+  return std::clamp<std::int64_t>(static_cast<std::int64_t>(std::ceil(n)), kMinCheckTrials,
+                                  kMaxCheckTrials);
+}
+
+ModelCheck checkModel(const SteeringModel& model, const PolicyTable& table,
+                      const StartOptions& start, double tolerance, std::int64_t trials,
+                      std::uint64_t seed, int threads) {
+  if (trials < 1) {
+    throw std::invalid_argument("checkModel: trials must be >= 1, got " + std::to_string(trials));
+  }
+  const auto t0 = std::chrono::steady_clock::now();
+  const ContinuousWorkspace world(model.problem());
+  const SteeringPolicy policy = tablePolicy(table);
+  ModelCheck out;
+  out.run = true;
+  out.trials_per_start = trials;
+  out.tolerance = tolerance;
+  auto score = [&](const TipPose& pose, GapSum& group) {
+    const double predicted = table.lookup(pose).probability_of_success;
+    const MonteCarloResult mc = runMonteCarlo(world, pose, policy, trials, seed, threads);
+    if (predicted < kTrivialPs && mc.rate() < kTrivialPs) {
+      return;
+    }
+    group.add(predicted, mc.rate(), trials);
+    out.max_abs_gap = std::max(out.max_abs_gap, std::abs(predicted - mc.rate()));
+  };
+  GapSum entry, top;
+  for (const TipPose& pose : checkPoses(model.problem(), start)) {
+    score(pose, entry);
+  }
+  StartVerificationOptions best;
+  best.candidates = kCheckTopStarts;
+  for (const StartCandidate& c : distinctBestStarts(table, start, best)) {
+    score(c.pose, top);
+  }
+  out.entry_starts = entry.count;
+  out.top_starts = top.count;
+  out.gap_entry = entry.mean();
+  out.gap_top = top.mean();
+  // An empty group (no start with P_s >= 0.01) has nothing to contradict.
+  out.passed = !(out.gap_entry > tolerance) && !(out.gap_top > tolerance);
+  out.seconds = secondsSince(t0);
+  return out;
+}
 
 std::string ModelChoice::toString() const {
   std::ostringstream out;
@@ -99,27 +237,75 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
                                 formatNumber(options.ps_tolerance, 6));
   }
   const std::vector<TipPose> poses = evaluationPoses(problem, options.start);
+  const std::int64_t trials =
+      options.check_trials == 0 ? checkTrials(options.ps_tolerance) : options.check_trials;
   ModelChoice choice;
   const auto t0 = std::chrono::steady_clock::now();
-  double spacing = problem.params.grid_spacing_m;
-  for (int step = 0; step < options.max_steps; ++step, spacing /= kRatio) {
+  // The current rung checked by Monte Carlo (once); true when it is accepted.
+  auto accepted = [&]() {
+    if (trials < 0) {
+      return true;
+    }
+    ModelRung& rung = choice.ladder.back();
+    if (!rung.check.run) {
+      rung.check = checkModel(*choice.model, *choice.table, options.start, options.ps_tolerance,
+                              trials, options.check_seed, options.solver.threads);
+    }
+    choice.check = rung.check;
+    return rung.check.passed;
+  };
+  // No further rung: the last one is accepted if its check passes, else the tolerance is refused.
+  auto lastRung = [&](const std::string& why_no_further) -> Result<ModelChoice> {
+    if (choice.table && accepted()) {
+      choice.total_s = secondsSince(t0);
+      return std::move(choice);
+    }
+    std::ostringstream why;
+    why << "ps_tolerance " << formatNumber(options.ps_tolerance, 4)
+        << " cannot be met: " << why_no_further << "; the finest model (grid "
+        << (choice.ladder.empty()
+                ? std::string("none")
+                : formatNumber(choice.ladder.back().grid_spacing_m * 1e3, 3) + " mm")
+        << ") has an estimated mean P_s error of "
+        << (choice.ladder.empty() ? std::string("(none)")
+                                  : formatNumber(choice.ladder.back().estimated_error, 2))
+        << (choice.ladder.empty() ? std::string() : ", " + choice.ladder.back().check.toString());
+    return GeneralStatus(StatusCode::kRefused, why.str());
+  };
+  SteeringParams params = problem.params;
+  bool traded = false;
+  for (int step = 0; step < options.max_steps; ++step) {
     SteeringProblem rung_problem = problem;
-    rung_problem.params.grid_spacing_m = spacing;
+    rung_problem.params = params;
     const double mb = estimatedModelMb(rung_problem);
+    if (mb > options.memory_limit_mb && !traded && choice.table && !accepted()) {
+      // Once: finer transitions instead of a finer grid, within the last rung's memory (twice
+      // the orientations on a grid sqrt(2) coarser).
+      SteeringParams finer = choice.model->params();
+      const bool doubles = finer.transition_model == TransitionModel::kInterpolated;
+      if (refineTransitions(finer)) {
+        finer.grid_spacing_m *= doubles ? kRatio : 1.0;
+        SteeringProblem traded_problem = problem;
+        traded_problem.params = finer;
+        if (estimatedModelMb(traded_problem) <= options.memory_limit_mb) {
+          params = finer;
+          traded = true;
+          --step;  // not a rung of the grid ladder
+          continue;
+        }
+      }
+    }
     if (mb > options.memory_limit_mb) {
-      std::ostringstream why;
-      why << "ps_tolerance " << formatNumber(options.ps_tolerance, 4)
-          << " cannot be met within the memory limit of "
-          << formatNumber(options.memory_limit_mb, 4) << " MB: the finest model that fits (grid "
-          << formatNumber(spacing * kRatio * 1e3, 3) << " mm) has an estimated mean P_s error of "
-          << (choice.ladder.empty() ? std::string("(none)")
-                                    : formatNumber(choice.ladder.back().estimated_error, 2))
-          << ", and the next (grid " << formatNumber(spacing * 1e3, 3) << " mm) needs about "
-          << formatNumber(mb, 4) << " MB";
-      return GeneralStatus(StatusCode::kRefused, why.str());
+      return lastRung("the next model (" + steering::toString(params.transition_model) + ", grid " +
+                      formatNumber(params.grid_spacing_m * 1e3, 3) +
+                      " mm, s = " + std::to_string(params.orientation_subdivision) +
+                      ") needs about " + formatNumber(mb, 4) + " MB against the memory limit of " +
+                      formatNumber(options.memory_limit_mb, 4) + " MB");
     }
     ModelRung rung;
-    rung.grid_spacing_m = spacing;
+    rung.grid_spacing_m = params.grid_spacing_m;
+    rung.transition_model = params.transition_model;
+    rung.orientation_subdivision = params.orientation_subdivision;
     const auto tb = std::chrono::steady_clock::now();
     auto model = std::make_unique<const SteeringModel>(rung_problem, options.threads);
     rung.build_s = secondsSince(tb);
@@ -130,7 +316,11 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
     rung.sweeps = stats.sweeps;
     rung.change_vs_coarser = std::numeric_limits<double>::quiet_NaN();
     rung.estimated_error = std::numeric_limits<double>::quiet_NaN();
-    if (choice.table) {
+    // The change estimate compares two grids of the same transitions; after a change of the
+    // transitions the check alone decides.
+    const bool new_transitions =
+        choice.model && !sameTransitions(choice.model->params(), rung_problem.params);
+    if (choice.table && !new_transitions) {
       rung.change_vs_coarser = meanAbsChange(*table, *choice.table, poses, rung.evaluation_states);
       rung.estimated_error = rung.change_vs_coarser / (std::pow(kRatio, kOrder) - 1.0);
     }
@@ -140,17 +330,20 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
     choice.table = std::move(table);
     choice.estimated_error = rung.estimated_error;
     choice.peak_estimate_mb = std::max(choice.peak_estimate_mb, mb);
-    if (rung.estimated_error <= options.ps_tolerance) {  // false for NaN (the first rung)
+    // false for NaN (the first rung)
+    if ((rung.estimated_error <= options.ps_tolerance || new_transitions) && accepted()) {
       choice.total_s = secondsSince(t0);
       return choice;
     }
+    const ModelCheck& check = choice.ladder.back().check;
+    const double limit = kGridErrorShare * rung.estimated_error;  // NaN: the grid explains it
+    const bool grid_explains = !check.run || !(check.gap_entry > limit || check.gap_top > limit);
+    if (grid_explains || !refineTransitions(params)) {
+      params.grid_spacing_m /= kRatio;
+    }
   }
-  std::ostringstream why;
-  why << "ps_tolerance " << formatNumber(options.ps_tolerance, 4) << " not met within "
-      << options.max_steps << " refinements of grid "
-      << formatNumber(problem.params.grid_spacing_m * 1e3, 3) << " mm: the finest estimate is "
-      << formatNumber(choice.ladder.back().estimated_error, 2);
-  return GeneralStatus(StatusCode::kRefused, why.str());
+  return lastRung(std::to_string(options.max_steps) + " refinements of grid " +
+                  formatNumber(problem.params.grid_spacing_m * 1e3, 3) + " mm were solved");
 }
 
 }  // namespace needle_guidance::steering
@@ -177,11 +370,15 @@ std::string PolicySource::description() const {
       << " states, sigma_i " << formatNumber(p.sigma_insert_rad * 180.0 / kPi, 3)
       << " deg, sigma_r " << formatNumber(p.sigma_flip_rad * 180.0 / kPi, 3)
       << " deg, estimated P_s error "
-      << (std::isnan(estimated_error) ? std::string("not estimated (ps_tolerance 0)")
-                                      : formatNumber(estimated_error, 2))
+      << (!std::isnan(estimated_error) ? formatNumber(estimated_error, 2)
+          : ladder.empty()             ? std::string("not estimated")
+                           : std::string("not estimated (first model of its transitions)"))
       << ", " << source << " in " << formatNumber(seconds, 3) << " s";
   if (!ladder.empty()) {
     out << " (" << ladder.size() << " models)";
+  }
+  if (check.run) {
+    out << "; " << check.toString();
   }
   return out.str();
 }
@@ -232,13 +429,20 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
     bool known = !select;
     if (select) {
       std::ifstream in(record);
-      std::string key_spacing, key_error;
+      std::string key_spacing, key_error, key_model, model_name, key_s;
       double spacing = 0.0, error = 0.0;
-      known = static_cast<bool>(in >> key_spacing >> spacing >> key_error >> error) &&
-              key_spacing == "grid_spacing_m" && key_error == "estimated_error" && spacing > 0.0;
+      int subdivision = 0;
+      known = static_cast<bool>(in >> key_spacing >> spacing >> key_error >> error >> key_model >>
+                                model_name >> key_s >> subdivision) &&
+              key_spacing == "grid_spacing_m" && key_error == "estimated_error" &&
+              key_model == "transition_model" && key_s == "orientation_subdivision" &&
+              spacing > 0.0 && transitionModelFromString(model_name) && subdivision >= 1 &&
+              subdivision <= 64;
       if (known) {
         chosen.params.grid_spacing_m = spacing;
-        out.estimated_error = error;
+        chosen.params.transition_model = *transitionModelFromString(model_name);
+        chosen.params.orientation_subdivision = subdivision;
+        out.estimated_error = error >= 0.0 ? error : std::numeric_limits<double>::quiet_NaN();
       }
     }
     if (known) {
@@ -268,6 +472,7 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
     out.table = std::move(choice.value().table);
     out.estimated_error = choice.value().estimated_error;
     out.ladder = choice.value().ladder;
+    out.check = choice.value().check;
   } else {
     out.model = std::make_unique<const SteeringModel>(chosen, options.threads);
     SolveStats stats;
@@ -289,8 +494,12 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
       if (select) {
         std::ofstream rec(record + ".tmp");
         rec.precision(17);
-        rec << "grid_spacing_m " << out.model->params().grid_spacing_m << "\nestimated_error "
-            << out.estimated_error << "\n";
+        const SteeringParams& chosen_params = out.model->params();
+        // -1: not estimated (the chosen model was the first of its transitions).
+        rec << "grid_spacing_m " << chosen_params.grid_spacing_m << "\nestimated_error "
+            << (std::isnan(out.estimated_error) ? -1.0 : out.estimated_error)
+            << "\ntransition_model " << steering::toString(chosen_params.transition_model)
+            << "\norientation_subdivision " << chosen_params.orientation_subdivision << "\n";
         rec.close();
         std::filesystem::rename(record + ".tmp", record);
       }

@@ -16,6 +16,8 @@ namespace {
 constexpr double kPi = 3.14159265358979323846;
 /// Candidates verified with fresh seeds at most, in score order.
 constexpr int kMaxVerified = 5;
+/// Fewest fresh trials of a verification (verify_trials 0).
+constexpr std::int64_t kMinVerifyTrials = 16000;
 
 void checkOptions(const StartVerificationOptions& o) {
   const std::pair<bool, std::pair<const char*, double>> checks[] = {
@@ -23,7 +25,7 @@ void checkOptions(const StartVerificationOptions& o) {
       {o.separation_m >= 0.0, {"separation_m (>= 0)", o.separation_m}},
       {o.separation_rad >= 0.0, {"separation_rad (>= 0)", o.separation_rad}},
       {o.screen_trials >= 1, {"screen_trials (>= 1)", double(o.screen_trials)}},
-      {o.verify_trials >= 1, {"verify_trials (>= 1)", double(o.verify_trials)}},
+      {o.verify_trials >= 0, {"verify_trials (>= 0)", double(o.verify_trials)}},
       {o.tolerance >= 0.0 && o.tolerance < 1.0, {"tolerance [0, 1)", o.tolerance}},
       {o.z > 0.0 && std::isfinite(o.z), {"z (> 0)", o.z}},
       {o.threads >= 1, {"threads (>= 1)", o.threads}},
@@ -144,12 +146,19 @@ VerifiedStart verifyBestStart(const ContinuousWorkspace& world, const PolicyTabl
     }
     return sa.score > sb.score;
   });
+  const std::int64_t verify_trials =
+      options.verify_trials > 0
+          ? options.verify_trials
+          : std::max<std::int64_t>(
+                kMinVerifyTrials,
+                static_cast<std::int64_t>(
+                    std::ceil(1.0 / std::max(options.tolerance * options.tolerance, 1e-5))));
   double best_gap = 1.0;
   const int tries = std::min<int>(kMaxVerified, static_cast<int>(order.size()));
   for (int i = 0; i < tries; ++i) {
     const int index = order[static_cast<std::size_t>(i)];
     const StartCandidate& c = out.screened[static_cast<std::size_t>(index)].candidate;
-    const MonteCarloResult mc = runMonteCarlo(world, c.pose, policy, options.verify_trials,
+    const MonteCarloResult mc = runMonteCarlo(world, c.pose, policy, verify_trials,
                                               options.seed + 1, options.threads, trial);
     // Strict: the verified gap itself within the tolerance (no allowance for the noise).
     const bool confirmed =

@@ -1133,6 +1133,7 @@ struct DecisionTruth {
   double ps_tolerance = 0.0;
   std::string model;  ///< the chosen model's description
   double estimated_error = NAN;
+  st::ModelCheck check;      ///< the chosen model's Monte Carlo check in the selection
   double selection_s = 0.0;  ///< the whole ladder [s]
   double solve_s = 0.0;      ///< the chosen model's solve, fastest of kSolveRepeats [s]
   double verify_s = 0.0;     ///< screening and verifying the start [s]
@@ -1210,6 +1211,7 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
   }
   out.model = source.value().description();
   out.estimated_error = source.value().estimated_error;
+  out.check = source.value().check;
   out.selection_s = source.value().seconds;
   const st::SteeringProblem chosen = source.value().model->problem();
   const Solved solved =
@@ -1304,6 +1306,10 @@ std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
   key("ps_tolerance", num(d.ps_tolerance));
   key("model", "\"" + d.model + "\"");
   key("estimated_error", num(d.estimated_error));
+  key("model_check_mean_gap_entry", num(d.check.gap_entry));
+  key("model_check_mean_gap_top", num(d.check.gap_top));
+  key("model_check_trials", std::to_string(d.check.trials_per_start));
+  key("model_check_passed", d.check.passed ? "true" : "false");
   key("chosen_start_y_mm", num(d.chosen.start.pose.p_SceneTip.y() * kMmPerM));
   key("chosen_start_theta_deg", num(d.chosen.start.pose.theta_rad * kDegPerRad));
   key("chosen_start_bevel", "\"" + st::toString(d.chosen.start.pose.bevel) + "\"");

@@ -8,7 +8,9 @@
 
 #include "../steering_shapes.h"
 #include "needle_guidance/math.h"
+#include "needle_guidance/steering/continuous_workspace.h"
 #include "needle_guidance/steering/model_selection.h"
+#include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/value_iteration.h"
 
 namespace needle_guidance::steering {
@@ -70,8 +72,15 @@ TEST(ModelSelection, ChosenRungMeetsTheToleranceByItsOwnEstimate) {
   EXPECT_LE(c.estimated_error, o.ps_tolerance);
   EXPECT_TRUE(std::isnan(c.ladder.front().estimated_error));
   for (std::size_t i = 1; i + 1 < c.ladder.size(); ++i) {
-    EXPECT_GT(c.ladder[i].estimated_error, o.ps_tolerance) << "rung " << i << " already met it";
+    EXPECT_TRUE(c.ladder[i].estimated_error > o.ps_tolerance ||
+                (c.ladder[i].check.run && !c.ladder[i].check.passed))
+        << "rung " << i << " already met it";
   }
+  // The chosen rung was confirmed by the continuous needle, not only by its own estimate.
+  EXPECT_TRUE(c.check.run);
+  EXPECT_TRUE(c.check.passed) << c.check.toString();
+  EXPECT_GT(c.check.entry_starts + c.check.top_starts, 0);
+  EXPECT_EQ(c.check.trials_per_start, checkTrials(o.ps_tolerance));
   // Each rung halves the area of a grid cell.
   for (std::size_t i = 1; i < c.ladder.size(); ++i) {
     EXPECT_NEAR(c.ladder[i - 1].grid_spacing_m / c.ladder[i].grid_spacing_m, std::sqrt(2.0), 1e-12);
@@ -92,6 +101,45 @@ TEST(ModelSelection, ToleranceBeyondTheMemoryLimitIsRefusedNamingIt) {
       << r.status().toString();
   EXPECT_NE(r.status().toString().find("memory limit of 60 MB"), std::string::npos)
       << r.status().toString();
+  // The finest model that fits was checked and the refusal gives its measured figures.
+  EXPECT_NE(r.status().toString().find("Monte Carlo check"), std::string::npos)
+      << r.status().toString();
+  EXPECT_NE(r.status().toString().find("FAILED"), std::string::npos) << r.status().toString();
+}
+
+TEST(ModelSelection, ChosenModelAgreesWithAnIndependentMonteCarloAtItsBestStart) {
+  // Fresh seeds (not the check's): the prediction at the best start of the chosen model is
+  // within the tolerance plus the binomial noise of kTrials trials.
+  constexpr std::int64_t kTrials = 8000;
+  constexpr double kZ = 3.0;  // a false alarm once in ~370 runs of a fixed seed: never
+  SelectionOptions o;
+  o.ps_tolerance = 0.02;
+  o.start = entryLine();
+  const Result<ModelChoice> r = chooseModel(noisyProblem(4e-3), o);
+  ASSERT_TRUE(r) << r.status().toString();
+  const ModelChoice& c = r.value();
+  const BestStart best = c.table->bestStart(o.start);
+  ASSERT_TRUE(best);
+  const ContinuousWorkspace world(c.problem);
+  const MonteCarloResult mc =
+      runMonteCarlo(world, best.best.pose, tablePolicy(*c.table), kTrials, 977, 2);
+  const double p = best.best.probability_of_success;
+  EXPECT_LE(std::abs(p - mc.rate()),
+            o.ps_tolerance + kZ * std::sqrt(p * (1.0 - p) / double(kTrials)))
+      << "predicted " << p << ", Monte Carlo " << mc.rate();
+}
+
+TEST(ModelSelection, CheckTrialsFollowTheToleranceWithinBounds) {
+  EXPECT_EQ(checkTrials(0.005), 10000);  // 0.25 / 0.005^2
+  EXPECT_EQ(checkTrials(0.008), 3907);
+  EXPECT_EQ(checkTrials(0.02), 2000);    // the lower bound
+  EXPECT_EQ(checkTrials(0.001), 10000);  // the upper bound
+}
+
+TEST(ModelSelection, CheckWithoutTrialsThrows) {
+  const SteeringModel model(noisyProblem(4e-3), 1);
+  const PolicyTable table = solveValueIteration(model);
+  EXPECT_THROW(checkModel(model, table, entryLine(), 0.01, 0, 1), std::invalid_argument);
 }
 
 TEST(ModelSelection, BadToleranceThrows) {
@@ -117,7 +165,10 @@ TEST(SolveOrLoad, SecondCallLoadsTheChosenModelAndItsEstimate) {
   const Result<PolicySource> second = solveOrLoad(p, "test", dir, o);
   ASSERT_TRUE(second) << second.status().toString();
   EXPECT_EQ(second.value().source, "loaded");
+  // The same model, transitions included (the selection may refine them).
   EXPECT_EQ(second.value().model->hash(), first.value().model->hash());
+  EXPECT_EQ(second.value().model->params().orientation_subdivision,
+            first.value().model->params().orientation_subdivision);
   EXPECT_DOUBLE_EQ(second.value().estimated_error, first.value().estimated_error);
   EXPECT_EQ(second.value().table->values(), first.value().table->values());
   const Result<PolicySource> forced = solveOrLoad(p, "test", dir, o, true);

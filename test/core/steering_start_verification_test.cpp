@@ -132,6 +132,22 @@ TEST_F(StartVerificationTest, ChosenStartIsVerifiedWithFreshSeedsAndDeterministi
   EXPECT_NE(a.toString().find("predicted P_s"), std::string::npos) << a.toString();
 }
 
+TEST_F(StartVerificationTest, VerificationTrialsFollowTheTolerance) {
+  // verify_trials 0: max(16,000, 1 / tolerance^2), so the standard error is at most half the
+  // tolerance.
+  StartVerificationOptions options;
+  options.candidates = 1;
+  options.screen_trials = 200;
+  options.tolerance = 0.005;
+  const VerifiedStart tight = verifyBestStart(*world_, *table_, test_shapes::entryLine(), options);
+  ASSERT_TRUE(tight) << tight.message;
+  EXPECT_EQ(tight.verification.trials, 40000);
+  options.tolerance = 0.02;
+  const VerifiedStart loose = verifyBestStart(*world_, *table_, test_shapes::entryLine(), options);
+  ASSERT_TRUE(loose) << loose.message;
+  EXPECT_EQ(loose.verification.trials, 16000);
+}
+
 TEST_F(StartVerificationTest, StartTheTableOverratesIsNotChosen) {
   // Raise one mediocre start state's prediction to 0.99: the table's own best start is then
   // that state, which the continuous needle does not confirm.

@@ -28,6 +28,8 @@ public:
     double retract_velocity_m_s = 0.0;
     double flip_velocity_rad_s = 0.0;
     double timeout_s = 0.0;
+    /// How long the policy may take to come up: it chooses and solves its model first [s].
+    double policy_wait_s = 0.0;
     int max_unconfident = 0;  ///< extra controls to wait for a confident tip before acting
     std::vector<std::string> watch_nodes;  ///< nodes whose death stops the run (~watch_nodes)
   };

@@ -3,7 +3,12 @@
 // the error of a model is estimated from the change of P_s against the previous, coarser model
 // (Richardson: for an error of order p in Delta, e(Delta) = D / (r^p - 1) with r = sqrt(2); p = 2,
 // the order of bilinear interpolation, gives e = D). The first model whose estimate meets the
-// tolerance is chosen. Not in the dissertation (5.4.2 fixes Delta by hand).
+// tolerance is a candidate. A candidate is accepted only once a Monte Carlo of the continuous
+// needle at a fixed-seed sample of start states (the entry line, its ends near the workspace
+// edges, and the best distinct starts the procedure chooses from) confirms it (checkModel); else
+// the ladder goes on to the next rung. The finest rung that fits the memory limit is checked
+// too, so a tolerance the change estimate cannot reach is still met when the continuous needle
+// confirms it. Not in the dissertation (5.4.2 fixes Delta by hand).
 #pragma once
 
 #include <cstdint>
@@ -21,15 +26,54 @@ namespace needle_guidance::steering {
 struct SelectionOptions {
   double ps_tolerance = 0.005;     ///< mean |P_s error| wanted at the entry-line states, in (0, 1)
   double memory_limit_mb = 500.0;  ///< refuse models whose estimated footprint exceeds this [MB]
-  int max_steps = 8;               ///< rungs of the ladder at most (Delta_0 / sqrt(2)^7 finest)
+  int max_steps = 10;              ///< rungs of the ladder at most (grids and transitions together)
   SolverOptions solver;            ///< for every solve
   int threads = 2;                 ///< model building
   StartOptions start;              ///< the entry line the error is measured on
+  /// Monte Carlo trials per start of the model check; 0 = from the tolerance (checkTrials), < 0 =
+  /// no check (the change estimate alone decides).
+  std::int64_t check_trials = 0;
+  std::uint64_t check_seed = 31;  ///< trial i of every checked start uses (check_seed, i)
 };
+
+/// The Monte Carlo check of one solved model: predicted P_s against the continuous needle
+/// following the table's policy, at a fixed sample of start states.
+struct ModelCheck {
+  bool run = false;
+  std::int64_t trials_per_start = 0;
+  int entry_starts = 0;  ///< non-trivial entry-line starts scored (both ends included)
+  int top_starts = 0;    ///< best distinct starts scored
+  /// Mean over the group of |predicted - Monte Carlo| with its binomial noise removed,
+  /// sqrt(max(0, gap^2 - p (1 - p) / n)) per start: an estimate of the group's mean |P_s error|
+  /// that the Monte Carlo noise does not inflate. NaN when the group has no non-trivial start.
+  double gap_entry = 0.0;
+  double gap_top = 0.0;
+  double max_abs_gap = 0.0;  ///< largest measured |gap| of any start (noise included)
+  double tolerance = 0.0;
+  bool passed = false;  ///< both mean gaps <= tolerance
+  double seconds = 0.0;
+  /// "Monte Carlo check (40 starts x 10000 trials): mean gap 0.0031 entry line, 0.0024 best
+  /// starts, tolerance 0.005: passed".
+  std::string toString() const;
+};
+
+/// Trials per start of the model check for a tolerance: 0.25 / tolerance^2 (the binomial
+/// standard error at P_s 0.5 is half the tolerance) within [2000, 10000].
+std::int64_t checkTrials(double tolerance);
+
+/// Scores `table` against the continuous needle at the entry-line starts (heights 2.5 mm inside
+/// both ends of the start range and at 1/6 .. 5/6 of it, angles -20, 0, 20 degrees, both bevels)
+/// and at the 4 best distinct starts (distinctBestStarts); starts where prediction and Monte
+/// Carlo are both below 0.01 are left out. Throws std::invalid_argument for trials < 1.
+ModelCheck checkModel(const SteeringModel& model, const PolicyTable& table,
+                      const StartOptions& start, double tolerance, std::int64_t trials,
+                      std::uint64_t seed, int threads = 2);
 
 /// One rung of the ladder.
 struct ModelRung {
   double grid_spacing_m = 0.0;
+  TransitionModel transition_model = TransitionModel::kRounded;
+  int orientation_subdivision = 1;
   std::int64_t states = 0;
   double build_s = 0.0;
   double solve_s = 0.0;
@@ -38,6 +82,7 @@ struct ModelRung {
   double change_vs_coarser = 0.0;
   double estimated_error = 0.0;  ///< the estimate of this rung's mean |P_s error| (NaN first)
   int evaluation_states = 0;     ///< states where either rung predicts P_s >= 0.01
+  ModelCheck check;              ///< run when this rung was a candidate
 };
 
 /// The model chosen for a tolerance, with its table.
@@ -46,6 +91,7 @@ struct ModelChoice {
   std::unique_ptr<const SteeringModel> model;
   std::unique_ptr<PolicyTable> table;
   double estimated_error = 0.0;  ///< of the chosen rung
+  ModelCheck check;              ///< the chosen rung's Monte Carlo check (run = false: none)
   double total_s = 0.0;          ///< build + solve of every rung [s]
   double peak_estimate_mb = 0.0;
   std::vector<ModelRung> ladder;
@@ -67,9 +113,13 @@ double meanAbsChange(const PolicyTable& fine, const PolicyTable& coarse,
                      const std::vector<TipPose>& poses, int& count);
 
 /// Solves the ladder from problem.params.grid_spacing_m (the coarsest) until a rung's estimate
-/// meets options.ps_tolerance. Refuses (StatusCode::kRefused, naming the tolerance, the finest
-/// estimate reached and why) when the next rung would exceed memory_limit_mb or max_steps; then
-/// nothing is kept.
+/// meets options.ps_tolerance and its checkModel passes (or, when the next rung would exceed
+/// memory_limit_mb or max_steps, the last rung's check passes whatever its estimate). A failed
+/// check the grid's estimated error does not explain refines the transitions instead (rounded
+/// -> interpolated -> s doubled); when memory stops the grid, the transitions are refined once
+/// within the last rung's memory (s doubled on a grid sqrt(2) coarser). Refuses
+/// (StatusCode::kRefused, naming the tolerance, the finest estimate and check reached and why)
+/// otherwise; then nothing is kept.
 /// Throws std::invalid_argument for a tolerance outside (0, 1).
 Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionOptions& options);
 
@@ -83,10 +133,12 @@ struct PolicySource {
   std::unique_ptr<const SteeringModel> model;
   std::unique_ptr<const PolicyTable> table;
   std::string source;  ///< "solved" | "loaded"
-  /// The chosen model's estimated mean |P_s error| (NaN when ps_tolerance is 0: not estimated).
+  /// The chosen model's estimated mean |P_s error| (NaN: not estimated, when ps_tolerance is 0 or
+  /// the chosen model was the first of its transitions; its ModelCheck then measured it).
   double estimated_error = 0.0;
   double seconds = 0.0;           ///< wall time of this call [s]
   std::vector<ModelRung> ladder;  ///< the rungs solved (empty when loaded or fixed)
+  ModelCheck check;               ///< the chosen model's Monte Carlo check (run = false: none)
   std::string note;               ///< where the table was saved, or why not
   /// "interpolated, grid 0.707 mm, s = 3, 4771440 states, estimated P_s error 0.0070, solved in
   /// 2.4 s (4 models)".

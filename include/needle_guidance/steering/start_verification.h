@@ -26,8 +26,11 @@ struct StartVerificationOptions {
   /// optimistic state [m], [rad], >= 0.
   double separation_m = 2e-3;
   double separation_rad = 0.16;
-  std::int64_t screen_trials = 1000;   ///< Monte Carlo trials per screened start, >= 1
-  std::int64_t verify_trials = 16000;  ///< fresh trials at a chosen start, >= 1
+  std::int64_t screen_trials = 1000;  ///< Monte Carlo trials per screened start, >= 1
+  /// Fresh trials at a chosen start, >= 0; 0 = from the tolerance: max(16,000, 1 / tolerance^2)
+  /// (40,000 at 0.005), so the verification's binomial standard error is at most half the
+  /// tolerance at any P_s (at most 100,000).
+  std::int64_t verify_trials = 0;
   /// The gap |predicted - Monte Carlo| a confirmed prediction may have (the scene's
   /// ps_tolerance), >= 0. The screen allows the binomial noise on top (z below); the
   /// verification does not: its own gap must be within the tolerance.
