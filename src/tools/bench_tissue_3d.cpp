@@ -221,7 +221,7 @@ struct SliceErrors {
   std::string why;
 };
 
-SliceErrors sliceErrors(const t3::TissueScene3d& scene, const t3::Target3& target) {
+SliceErrors sliceErrors(const t3::TissueScene3d& scene, const t3::Target3& target, bool plan_too) {
   SliceErrors e;
   try {
     const ng::rigid_planning::RigidPlanner planner(
@@ -232,6 +232,9 @@ SliceErrors sliceErrors(const t3::TissueScene3d& scene, const t3::Target3& targe
       e.unplanned_m = unplanned.predicted_error_m;
     } else {
       e.why = unplanned.message;
+    }
+    if (!plan_too) {
+      return e;
     }
     const auto plan = planner.plan(t);
     if (plan && std::isfinite(plan.verified_error_m)) {
@@ -310,7 +313,7 @@ int main(int argc, char** argv) {
           worst_cpu = std::max(worst_cpu, r.plan_cpu_s);
         }
         model.compliance().clearCache();
-        const SliceErrors slice = sliceErrors(scene, target);
+        const SliceErrors slice = sliceErrors(scene, target, !args->quick);
         if (slice.unplanned_m >= 0.0 && r.unplanned_error_m >= 0.0) {
           const double diff = std::abs(slice.unplanned_m - r.unplanned_error_m);
           slice_unplanned_diff_max = std::max(slice_unplanned_diff_max, diff);
