@@ -2,6 +2,7 @@
 #include "needle_guidance/fem/linear_elasticity.h"
 
 #include <Eigen/LU>
+#include <Eigen/SVD>
 #include <cmath>
 #include <stdexcept>
 #include <string>
@@ -102,6 +103,45 @@ ElementMatrix<Dim> elementStiffness(const Corners<Dim>& c, const Material& mater
 }
 
 template <int Dim>
+Eigen::Matrix<double, Dim, Dim> polarRotation(const Eigen::Matrix<double, Dim, Dim>& f) {
+  const Eigen::JacobiSVD<Eigen::Matrix<double, Dim, Dim>> svd(
+      f, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Matrix<double, Dim, Dim> u = svd.matrixU();
+  const Eigen::Matrix<double, Dim, Dim> v = svd.matrixV();
+  if ((u * v.transpose()).determinant() < 0.0) {
+    u.col(Dim - 1) *= -1.0;  // the smallest singular value takes the reflection
+  }
+  return u * v.transpose();
+}
+
+template <int Dim>
+CorotatedElement<Dim> corotatedElement(const Corners<Dim>& reference, const Corners<Dim>& displaced,
+                                       const Material& material, double thickness_m) {
+  const Eigen::Matrix<double, Dim + 1, Dim> g = shapeGradients<Dim>(reference);
+  Eigen::Matrix<double, Dim, Dim> f = Eigen::Matrix<double, Dim, Dim>::Zero();
+  Point<Dim> x_mean = Point<Dim>::Zero(), X_mean = Point<Dim>::Zero();
+  for (int a = 0; a <= Dim; ++a) {
+    f += displaced[static_cast<std::size_t>(a)] * g.row(a);
+    x_mean += displaced[static_cast<std::size_t>(a)] / double(Dim + 1);
+    X_mean += reference[static_cast<std::size_t>(a)] / double(Dim + 1);
+  }
+  CorotatedElement<Dim> out;
+  out.rotation = polarRotation<Dim>(f);
+  const ElementMatrix<Dim> ke = elementStiffness<Dim>(reference, material, thickness_m);
+  ElementMatrix<Dim> rb = ElementMatrix<Dim>::Zero();
+  Eigen::Matrix<double, kElementDofs<Dim>, 1> d;
+  for (int a = 0; a <= Dim; ++a) {
+    const auto k = static_cast<std::size_t>(a);
+    rb.template block<Dim, Dim>(Dim * a, Dim * a) = out.rotation;
+    d.template segment<Dim>(Dim * a) =
+        out.rotation.transpose() * (displaced[k] - x_mean) - (reference[k] - X_mean);
+  }
+  out.force = rb * (ke * d);
+  out.tangent = rb * ke * rb.transpose();
+  return out;
+}
+
+template <int Dim>
 Corners<Dim> corners(const SimplexMesh<Dim>& mesh, int element) {
   Corners<Dim> c;
   const auto& nodes = mesh.elements[static_cast<std::size_t>(element)];
@@ -162,6 +202,9 @@ SparseMatrix assembleStiffness(const SimplexMesh<Dim>& mesh, const std::vector<M
       const Material&);                                                                           \
   template ElementMatrix<D> elementStiffness<D>(const Corners<D>&, const Material&, double);      \
   template Corners<D> corners<D>(const SimplexMesh<D>&, int);                                     \
+  template Eigen::Matrix<double, D, D> polarRotation<D>(const Eigen::Matrix<double, D, D>&);      \
+  template CorotatedElement<D> corotatedElement<D>(const Corners<D>&, const Corners<D>&,          \
+                                                   const Material&, double);                      \
   template SparseMatrix assembleStiffness<D>(const SimplexMesh<D>&, const std::vector<Material>&, \
                                              double, double);
 NG_FEM_INSTANTIATE(2)

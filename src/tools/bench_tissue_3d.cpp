@@ -2,7 +2,9 @@
 // Reports insertion steps per second (CPU, one core) and peak memory against the tetrahedron
 // count (5k to 200k; --quick: 5k to 50k), and per scene and target the planned seed error
 // measured by an independent full simulation, the planning CPU time, the step convergence
-// (halving the step) and the unplanned error (aiming straight at the target).
+// (halving the step) and the unplanned error (aiming straight at the target); and the same
+// targets planned in a 2-D slice of the scene (the sagittal section through the target, meshed
+// and simulated by the planar model): how far a 2-D model's errors are from the 3-D ones.
 // Usage: bench_tissue_3d --out DIR [--quick] [--scene FILE ...]
 
 #include <algorithm>
@@ -10,6 +12,7 @@
 #include <ctime>
 #include <filesystem>
 #include <iostream>
+#include <optional>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -18,6 +21,7 @@
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/process_usage.h"
 #include "needle_guidance/report/table.h"
+#include "needle_guidance/rigid_planning/rigid_planner.h"
 #include "needle_guidance/tissue_3d/offset_planner_3d.h"
 
 namespace ng = needle_guidance;
@@ -86,6 +90,164 @@ ScalingRow scalingRun(const t3::TissueScene3d& scene, double scale) {
   return row;
 }
 
+/// The section of region r of the 3-D scene in the plane z = z_m as a polygon (x, y), traced by
+/// rays from an interior point of the section, each ending where another region (or the block's
+/// outside) begins, less margin_m so sections of neighbouring regions do not touch. Exact for
+/// sections star-shaped from that point (ellipsoids); nullopt when the plane misses the region.
+std::optional<ng::geometry::Polygon> regionSection(const t3::TissueScene3d& scene,
+                                                   const t3::RegionLocator3& locator, int r,
+                                                   double z_m, double margin_m) {
+  auto label = [&](const Eigen::Vector2d& p) {
+    return locator.regionAt(t3::Vector3(p.x(), p.y(), z_m));
+  };
+  const double grid = 1e-3;
+  std::vector<Eigen::Vector2d> inside;
+  for (double x = scene.block_min_m.x() + grid / 2; x < scene.block_max_m.x(); x += grid) {
+    for (double y = scene.block_min_m.y() + grid / 2; y < scene.block_max_m.y(); y += grid) {
+      if (label({x, y}) == r) {
+        inside.emplace_back(x, y);
+      }
+    }
+  }
+  if (inside.size() < 4) {
+    return std::nullopt;
+  }
+  Eigen::Vector2d c = Eigen::Vector2d::Zero();
+  for (const auto& p : inside) {
+    c += p / double(inside.size());
+  }
+  if (label(c) != r) {
+    c = *std::min_element(inside.begin(), inside.end(), [&](const auto& a, const auto& b) {
+      return (a - c).squaredNorm() < (b - c).squaredNorm();
+    });
+  }
+  const int rays = 72;
+  const double step = 5e-4;
+  std::vector<Eigen::Vector2d> vertices;
+  for (int k = 0; k < rays; ++k) {
+    const double a = 2.0 * M_PI * k / rays;
+    const Eigen::Vector2d d(std::cos(a), std::sin(a));
+    double lo = 0.0, hi = step;
+    while (label(c + hi * d) == r) {
+      lo = hi;
+      hi += step;
+    }
+    for (int i = 0; i < 8; ++i) {
+      const double mid = 0.5 * (lo + hi);
+      (label(c + mid * d) == r ? lo : hi) = mid;
+    }
+    const double radius = std::max(lo - margin_m, 0.2 * lo);
+    if (radius > 1e-5) {
+      vertices.push_back(c + radius * d);
+    }
+  }
+  if (vertices.size() < 3) {
+    return std::nullopt;
+  }
+  return ng::geometry::Polygon(vertices);
+}
+
+/// The planar scene of the section z = z_m of a 3-D scene: the block's x-y rectangle, its
+/// fixed faces, each region's section (fixed regions rigid), the needle and its interaction,
+/// the stage's (or template's) height range, a slice thickness of 1 cm (the planar scenes'
+/// default) and the 3-D planner's tolerance.
+ng::scene::Scene sliceScene(const t3::TissueScene3d& s, double z_m, double tolerance_m) {
+  namespace sc = ng::scene;
+  sc::Scene out;
+  out.name = s.name + "_slice";
+  out.source = s.source;
+  out.workspace_min = s.block_min_m.head<2>();
+  out.workspace_max = s.block_max_m.head<2>();
+  out.thickness_m = 0.01;
+  out.models.tissue = sc::TissueModel::kQuasiStatic;
+  auto material = [](const std::string& name, const ng::fem::Material& m) {
+    sc::Material out_m;
+    out_m.name = name;
+    out_m.young_modulus_Pa = m.young_modulus_Pa;
+    out_m.poisson_ratio = m.poisson_ratio;
+    return out_m;
+  };
+  out.materials.push_back(material("block", s.block_material));
+  out.background_material = "block";
+  const t3::RegionLocator3 locator(s);
+  for (std::size_t r = 0; r < s.regions.size(); ++r) {
+    const t3::Region3& region = s.regions[r];
+    const auto polygon = regionSection(s, locator, int(r), z_m, 3e-4);
+    if (!polygon) {
+      continue;
+    }
+    out.materials.push_back(material(region.name, region.material));
+    sc::Region planar;
+    planar.name = region.name;
+    planar.material = region.name;
+    planar.polygon = *polygon;
+    planar.rigid = region.fixed;
+    out.regions.push_back(planar);
+  }
+  const Eigen::Vector2d lo = out.workspace_min, hi = out.workspace_max;
+  const std::vector<std::pair<std::string, ng::geometry::Segment>> faces = {
+      {"x_min", {{lo.x(), lo.y()}, {lo.x(), hi.y()}}},
+      {"x_max", {{hi.x(), lo.y()}, {hi.x(), hi.y()}}},
+      {"y_min", {{lo.x(), lo.y()}, {hi.x(), lo.y()}}},
+      {"y_max", {{lo.x(), hi.y()}, {hi.x(), hi.y()}}}};
+  for (const auto& [name, segment] : faces) {
+    if (std::find(s.fixed_faces.begin(), s.fixed_faces.end(), name) != s.fixed_faces.end()) {
+      out.boundary.push_back({name, segment, sc::BoundaryCondition::kFixed});
+    }
+  }
+  const t3::Workspace3& w = s.workspace;
+  const double reach =
+      w.template_spacing_m * std::max(0, (w.template_rows - 1)) * (w.use_template ? 1.0 : 0.0);
+  out.needle.min_height_m = std::max(lo.y(), w.use_template ? w.template_origin_m.x() : w.y_min_m);
+  out.needle.max_height_m =
+      std::min(hi.y(), w.use_template ? w.template_origin_m.x() + reach : w.y_max_m);
+  out.needle.max_depth_m = w.max_tip_x_m;
+  out.needle.insertion_velocity_m_s = s.needle.insertion_velocity_m_s;
+  out.needle.cutting_force_N = s.needle.cutting_force_N;
+  out.needle.cut_length_m = 1e-4;
+  out.needle.static_friction_N_per_m = s.needle.static_friction_N_per_m;
+  out.needle.kinetic_friction_N_per_m = s.needle.kinetic_friction_N_per_m;
+  out.needle.stick_velocity_m_s = s.needle.stick_velocity_m_s;
+  out.needle.diameter_m = s.needle.diameter_m;
+  out.needle.placement_tolerance_m = tolerance_m;
+  return out;
+}
+
+/// Unplanned and planned (verified) seed errors of one target in the 2-D slice through it [m];
+/// < 0 where the planar planner refuses (reason in `why`).
+struct SliceErrors {
+  double unplanned_m = -1.0;
+  double planned_m = -1.0;
+  std::string why;
+};
+
+SliceErrors sliceErrors(const t3::TissueScene3d& scene, const t3::Target3& target, bool plan_too) {
+  SliceErrors e;
+  try {
+    const ng::rigid_planning::RigidPlanner planner(
+        sliceScene(scene, target.position_m.z(), t3::PlannerOptions3{}.tolerance_m), {});
+    const ng::geometry::Point2 t = target.position_m.head<2>();
+    const auto unplanned = planner.unplanned(t);
+    if (unplanned) {
+      e.unplanned_m = unplanned.predicted_error_m;
+    } else {
+      e.why = unplanned.message;
+    }
+    if (!plan_too) {
+      return e;
+    }
+    const auto plan = planner.plan(t);
+    if (plan && std::isfinite(plan.verified_error_m)) {
+      e.planned_m = plan.verified_error_m;
+    } else if (e.why.empty()) {
+      e.why = plan.message;
+    }
+  } catch (const std::exception& ex) {
+    e.why = ex.what();
+  }
+  return e;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -123,6 +285,11 @@ int main(int argc, char** argv) {
     ng::report::Table plans({"scene", "target", "placed", "predicted_mm", "verified_mm",
                              "unplanned_mm", "step_halving_mm", "plan_cpu_s", "simulations", "tets",
                              "refusal"});
+    ng::report::Table slices({"scene", "target", "unplanned_3d_mm", "unplanned_slice_mm",
+                              "planned_3d_mm", "planned_slice_mm", "slice_refusal"});
+    double slice_unplanned_diff_max = -1.0, slice_unplanned_diff_sum = 0.0;
+    double unplanned_3d_sum = 0.0, unplanned_slice_sum = 0.0, slice_planned_max = -1.0;
+    int slice_pairs = 0;
     double worst_error = 0.0, worst_cpu = 0.0, worst_halving = 0.0;
     int reachable = 0, placed = 0;
     for (const std::string& file : files) {
@@ -146,6 +313,19 @@ int main(int argc, char** argv) {
           worst_cpu = std::max(worst_cpu, r.plan_cpu_s);
         }
         model.compliance().clearCache();
+        const SliceErrors slice = sliceErrors(scene, target, !args->quick);
+        if (slice.unplanned_m >= 0.0 && r.unplanned_error_m >= 0.0) {
+          const double diff = std::abs(slice.unplanned_m - r.unplanned_error_m);
+          slice_unplanned_diff_max = std::max(slice_unplanned_diff_max, diff);
+          slice_unplanned_diff_sum += diff;
+          unplanned_3d_sum += r.unplanned_error_m;
+          unplanned_slice_sum += slice.unplanned_m;
+          ++slice_pairs;
+        }
+        slice_planned_max = std::max(slice_planned_max, slice.planned_m);
+        slices.addRow({scene.name, target.name, mmOrUndefined(r.unplanned_error_m),
+                       mmOrUndefined(slice.unplanned_m), mmOrUndefined(r.verified_error_m),
+                       mmOrUndefined(slice.planned_m), slice.why});
         plans.addRow({scene.name, target.name,
                       std::string(r.placed        ? "yes"
                                   : r.unreachable ? "unreachable"
@@ -160,6 +340,8 @@ int main(int argc, char** argv) {
     }
     scaling.writeCsv(args->out_dir + "/scaling.csv");
     plans.writeCsv(args->out_dir + "/plans.csv");
+    slices.writeCsv(args->out_dir + "/slice_vs_3d.csv");
+    auto mmKey = [](bool defined, double m) { return defined ? jsonNumber(m * 1e3) : "null"; };
     const ScalingRow r50 = nearestRow(5e4);
     const ScalingRow r200 = nearestRow(2e5);
     std::ostringstream json;
@@ -178,7 +360,18 @@ int main(int argc, char** argv) {
          << ",\n  \"placed_targets_3d\": " << placed
          << ",\n  \"plan_cpu_s_max_3d\": " << (placed > 0 ? jsonNumber(worst_cpu) : "null")
          << ",\n  \"step_halving_change_mm_max_3d\": "
-         << (placed > 0 ? jsonNumber(worst_halving * 1e3) : "null") << "\n}\n";
+         << (placed > 0 ? jsonNumber(worst_halving * 1e3) : "null")
+         << ",\n  \"slice_vs_3d_targets\": " << slice_pairs
+         << ",\n  \"unplanned_error_mm_mean_3d\": "
+         << mmKey(slice_pairs > 0, unplanned_3d_sum / std::max(slice_pairs, 1))
+         << ",\n  \"unplanned_error_mm_mean_slice\": "
+         << mmKey(slice_pairs > 0, unplanned_slice_sum / std::max(slice_pairs, 1))
+         << ",\n  \"slice_vs_3d_unplanned_error_mm_mean\": "
+         << mmKey(slice_pairs > 0, slice_unplanned_diff_sum / std::max(slice_pairs, 1))
+         << ",\n  \"slice_vs_3d_unplanned_error_mm_max\": "
+         << mmKey(slice_pairs > 0, slice_unplanned_diff_max)
+         << ",\n  \"planned_error_mm_max_slice\": "
+         << mmKey(slice_planned_max >= 0.0, slice_planned_max) << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(args->out_dir + "/plot.json",
                               R"json([{"csv": "scaling.csv", "x": "tets", "y": "steps_per_s",
@@ -188,7 +381,10 @@ int main(int argc, char** argv) {
   "logx": true, "logy": true, "png": "peak_mb_vs_tets.png"},
  {"csv": "plans.csv", "x": "plan_cpu_s", "y": "verified_mm", "group": "scene", "filter": {"placed": "yes"},
   "title": "Planned seed error (independent simulation) vs planning CPU time",
-  "points": true, "logy": true, "png": "plan_error_vs_cpu.png"}])json");
+  "points": true, "logy": true, "png": "plan_error_vs_cpu.png"},
+ {"csv": "slice_vs_3d.csv", "x": "unplanned_3d_mm", "y": "unplanned_slice_mm", "group": "scene",
+  "title": "Unplanned seed error: 2-D slice vs 3-D (same targets)", "points": true,
+  "png": "slice_vs_3d_unplanned.png"}])json");
     std::cout << plans.toText();
   } catch (const std::exception& e) {
     std::cerr << "bench_tissue_3d: " << e.what() << "\n";

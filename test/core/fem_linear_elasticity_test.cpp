@@ -170,6 +170,51 @@ TEST(FemLinearElasticity, RefusesDegenerateElementAndFreeBody) {
   EXPECT_THROW(assembleStiffness<3>(ok, {Material{-1.0, 0.3}}), std::invalid_argument);
 }
 
+// A tetrahedron turned rigidly by up to 90 degrees: the linear element answers with forces that
+// grow with the angle (at 90 degrees more than those of a real 10 % stretch), the corotational
+// element with none; a stretch then turned gives the stretch's own forces, turned.
+TEST(FemLinearElasticity, CorotatedTetrahedronHasNoForceUnderLargeRotation) {
+  const Material material{10e3, 0.45};
+  const Corners<3> ref{Point<3>(0.0, 0.0, 0.0), Point<3>(0.01, 0.001, 0.0),
+                       Point<3>(0.002, 0.012, 0.001), Point<3>(0.001, 0.002, 0.009)};
+  const ElementMatrix<3> ke = elementStiffness<3>(ref, material);
+  auto flatten = [](const Corners<3>& c) {
+    Eigen::Matrix<double, 12, 1> v;
+    for (int a = 0; a < 4; ++a) {
+      v.segment<3>(3 * a) = c[static_cast<std::size_t>(a)];
+    }
+    return v;
+  };
+  auto transformed = [&](const Eigen::Matrix3d& m) {
+    Corners<3> out = ref;
+    for (auto& p : out) {
+      p = m * p;
+    }
+    return out;
+  };
+  const Eigen::Vector3d axis = Eigen::Vector3d(1.0, 2.0, 0.5).normalized();
+  const Eigen::Matrix3d stretch = Eigen::Vector3d(1.1, 1.0, 1.0).asDiagonal();
+  const double stretch_force = (ke * (flatten(transformed(stretch)) - flatten(ref))).norm();
+  double previous_linear = 0.0;
+  for (int deg = 15; deg <= 90; deg += 15) {
+    const Eigen::Matrix3d r = Eigen::AngleAxisd(deg * M_PI / 180.0, axis).toRotationMatrix();
+    const Corners<3> turned = transformed(r);
+    const double linear = (ke * (flatten(turned) - flatten(ref))).norm();
+    const CorotatedElement<3> co = corotatedElement<3>(ref, turned, material);
+    EXPECT_GT(linear, previous_linear) << deg << " deg: linear force grows with the angle";
+    previous_linear = linear;
+    EXPECT_LT(co.force.norm(), kRoundOffRel * 1e3 * stretch_force) << deg << " deg";
+    EXPECT_LT((co.rotation - r).norm(), kSolveRel) << deg << " deg";
+    const CorotatedElement<3> both = corotatedElement<3>(ref, transformed(r * stretch), material);
+    Eigen::Matrix<double, 12, 1> expected = ke * (flatten(transformed(stretch)) - flatten(ref));
+    for (int a = 0; a < 4; ++a) {
+      expected.segment<3>(3 * a) = r * expected.segment<3>(3 * a).eval();
+    }
+    EXPECT_LT((both.force - expected).norm(), kSolveRel * stretch_force) << deg << " deg";
+  }
+  EXPECT_GT(previous_linear, stretch_force) << "linear: spurious force at 90 deg";
+}
+
 }  // namespace
 }  // namespace needle_guidance::fem
 

@@ -69,6 +69,25 @@ template <int Dim>
 ElementMatrix<Dim> elementStiffness(const Corners<Dim>& corners, const Material& material,
                                     double thickness_m = 1.0);
 
+/// The rotation R of the polar decomposition F = R S (det R = +1), through the SVD.
+template <int Dim>
+Eigen::Matrix<double, Dim, Dim> polarRotation(const Eigen::Matrix<double, Dim, Dim>& f);
+
+/// A corotational element at displaced corners x = X + u: the element's rotation R (polar
+/// rotation of its deformation gradient), the internal force R K_e (R^T x - X) about the
+/// centroid (zero for any rigid motion, however large the rotation) and the tangent R K_e R^T,
+/// with K_e = elementStiffness(X). The linear element's force K_e u instead grows with the
+/// rotation: a rigid turn by angle a strains it by ~a^2 / 2, so large rotations need this one.
+template <int Dim>
+struct CorotatedElement {
+  Eigen::Matrix<double, Dim, Dim> rotation;
+  Eigen::Matrix<double, kElementDofs<Dim>, 1> force;  ///< internal force [N]
+  ElementMatrix<Dim> tangent;                         ///< [N/m]
+};
+template <int Dim>
+CorotatedElement<Dim> corotatedElement(const Corners<Dim>& reference, const Corners<Dim>& displaced,
+                                       const Material& material, double thickness_m = 1.0);
+
 /// Corners of element e.
 template <int Dim>
 Corners<Dim> corners(const SimplexMesh<Dim>& mesh, int element);
