@@ -2,6 +2,8 @@
 
 #include <array>
 
+#include "needle_guidance/ros/conversions.h"
+
 namespace needle_guidance::ros_conversions {
 namespace {
 
@@ -24,19 +26,6 @@ std_msgs::ColorRGBA colour(float r, float g, float b, float a) {
   return c;
 }
 
-visualization_msgs::Marker marker(const std::string& ns, int id, int type,
-                                  const std::string& frame_id) {
-  visualization_msgs::Marker m;
-  m.header.frame_id = frame_id;
-  m.ns = ns;
-  m.id = id;
-  m.type = type;
-  m.action = visualization_msgs::Marker::ADD;
-  m.pose.orientation.w = 1.0;
-  m.scale.x = m.scale.y = m.scale.z = 1.0;
-  return m;
-}
-
 /// World position of an embedded point under the nodal displacement u.
 Vector3 deformed(const tissue_3d::EmbeddedPoint& p, const tissue_3d::TissueModel3& model,
                  const Eigen::VectorXd& u) {
@@ -54,7 +43,8 @@ Vector3 deformed(const tissue_3d::EmbeddedPoint& p, const tissue_3d::TissueModel
 visualization_msgs::Marker sphereList(const std::string& ns, const std::vector<Vector3>& points,
                                       double diameter_m, const std_msgs::ColorRGBA& c,
                                       const std::string& frame_id) {
-  visualization_msgs::Marker m = marker(ns, 0, visualization_msgs::Marker::SPHERE_LIST, frame_id);
+  visualization_msgs::Marker m =
+      baseMarker(frame_id, ns, 0, visualization_msgs::Marker::SPHERE_LIST);
   m.scale.x = m.scale.y = m.scale.z = diameter_m;
   m.color = c;
   for (const Vector3& p : points) {
@@ -69,7 +59,7 @@ visualization_msgs::Marker sphereList(const std::string& ns, const std::vector<V
 visualization_msgs::Marker blockOutline(const tissue_3d::TissueScene3d& scene,
                                         const std::string& frame_id) {
   visualization_msgs::Marker m =
-      marker("block", 0, visualization_msgs::Marker::LINE_LIST, frame_id);
+      baseMarker(frame_id, "block", 0, visualization_msgs::Marker::LINE_LIST);
   m.scale.x = 5e-4;
   m.color = colour(0.7F, 0.7F, 0.7F, 1.0F);
   const Vector3& lo = scene.block_min_m;
@@ -123,8 +113,8 @@ visualization_msgs::MarkerArray tissue3dToMarkers(const tissue_3d::TissueScene3d
   out.markers.push_back(blockOutline(scene, frame_id));
   for (std::size_t r = 0; r < surfaces.size(); ++r) {
     const EmbeddedSurface3& s = surfaces[r];
-    visualization_msgs::Marker m = marker("region/" + s.name, static_cast<int>(r),
-                                          visualization_msgs::Marker::TRIANGLE_LIST, frame_id);
+    visualization_msgs::Marker m = baseMarker(frame_id, "region/" + s.name, static_cast<int>(r),
+                                              visualization_msgs::Marker::TRIANGLE_LIST);
     const auto& c = kPalette[r % kPalette.size()];
     m.color = s.fixed ? colour(0.8F, 0.8F, 0.75F, 0.9F) : colour(c[0], c[1], c[2], 0.45F);
     std::vector<geometry_msgs::Point> world;
@@ -140,7 +130,7 @@ visualization_msgs::MarkerArray tissue3dToMarkers(const tissue_3d::TissueScene3d
     out.markers.push_back(m);
   }
   visualization_msgs::Marker shaft =
-      marker("needle", 0, visualization_msgs::Marker::LINE_STRIP, frame_id);
+      baseMarker(frame_id, "needle", 0, visualization_msgs::Marker::LINE_STRIP);
   shaft.scale.x = scene.needle.diameter_m;
   shaft.color = colour(0.2F, 0.2F, 0.25F, 1.0F);
   const double tip_x = needle.tipX();
