@@ -38,7 +38,8 @@ TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
   // The report reads the table steering_policy saved; it does not solve the MDP again.
   EXPECT_NE(text.str().find("\"policy_table\": \"loaded\""), std::string::npos) << text.str();
   // The start is the policy's verified one; the report gives the verification and its own check.
-  EXPECT_NE(text.str().find("\"verification_trials\": 16000"), std::string::npos) << text.str();
+  // max(16000, 1 / tol^2) trials at steering_workspace's tolerance 0.005.
+  EXPECT_NE(text.str().find("\"verification_trials\": 40000"), std::string::npos) << text.str();
   EXPECT_NE(text.str().find("\"start_confirmed_by_policy\": "), std::string::npos) << text.str();
   EXPECT_NE(text.str().find("\"prediction_confirmed_by_mc\": "), std::string::npos) << text.str();
 
