@@ -85,18 +85,28 @@ StageLimits parseStageLimits(const std::string& urdf_xml) {
   return limits;
 }
 
+namespace {
+
+/// Throws unless the scene's range [lower_m, upper_m] of `joint_name` lies inside the joint's
+/// limits.
+void requireRangeInside(const char* joint_name, double lower_m, double upper_m,
+                        const JointLimits& joint) {
+  if (!(lower_m <= upper_m) || lower_m < joint.lower || upper_m > joint.upper) {
+    throw std::invalid_argument(
+        std::string("InsertionStage: scene ") + joint_name + " range [" + describe(lower_m, "m") +
+        ", " + describe(upper_m, "m") + "] is not inside the stage's " + joint_name + " limits [" +
+        describe(joint.lower, "m") + ", " + describe(joint.upper, "m") + "]");
+  }
+}
+
+}  // namespace
+
 InsertionStage::InsertionStage(const StageLimits& limits, const SceneLimits& scene,
                                const std::array<double, kStageJointCount>& initial)
     : limits_(limits), scene_(scene) {
   const JointLimits& height = limits_[StageJoint::kHeight];
   const JointLimits& depth = limits_[StageJoint::kDepth];
-  if (!(scene.min_height_m <= scene.max_height_m) || scene.min_height_m < height.lower ||
-      scene.max_height_m > height.upper) {
-    throw std::invalid_argument(
-        "InsertionStage: scene height range [" + describe(scene.min_height_m, "m") + ", " +
-        describe(scene.max_height_m, "m") + "] is not inside the stage's height limits [" +
-        describe(height.lower, "m") + ", " + describe(height.upper, "m") + "]");
-  }
+  requireRangeInside("height", scene.min_height_m, scene.max_height_m, height);
   if (!(scene.max_depth_m > scene.entry_x_m) || scene.max_depth_m > depth.upper ||
       scene.entry_x_m < depth.lower) {
     throw std::invalid_argument("InsertionStage: scene max depth " +
@@ -104,14 +114,8 @@ InsertionStage::InsertionStage(const StageLimits& limits, const SceneLimits& sce
                                 describe(scene.entry_x_m, "m") + ", stage insertion limit " +
                                 describe(depth.upper, "m") + "]");
   }
-  const JointLimits& lateral = limits_[StageJoint::kLateral];
-  if (!(scene.min_lateral_m <= scene.max_lateral_m) || scene.min_lateral_m < lateral.lower ||
-      scene.max_lateral_m > lateral.upper) {
-    throw std::invalid_argument(
-        "InsertionStage: scene lateral range [" + describe(scene.min_lateral_m, "m") + ", " +
-        describe(scene.max_lateral_m, "m") + "] is not inside the stage's lateral limits [" +
-        describe(lateral.lower, "m") + ", " + describe(lateral.upper, "m") + "]");
-  }
+  requireRangeInside("lateral", scene.min_lateral_m, scene.max_lateral_m,
+                     limits_[StageJoint::kLateral]);
   for (std::size_t i = 0; i < kStageJointCount; ++i) {
     const JointLimits& joint = limits_.joints[i];
     if (!std::isfinite(initial[i]) || initial[i] < joint.lower || initial[i] > joint.upper) {
