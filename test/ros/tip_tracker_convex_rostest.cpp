@@ -17,6 +17,7 @@
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/imaging/frame_renderer.h"
 #include "needle_guidance/tissue/image_warp.h"
+#include "stamped_answer.h"
 
 namespace {
 
@@ -65,18 +66,7 @@ protected:
   }
   /// The first tip answering a frame of the shape stamped `stamp`.
   std::optional<ng::NeedleTip> answerTo(const ros::Time& stamp) {
-    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(10.0);
-    while (ros::WallTime::now() < end) {
-      {
-        std::lock_guard<std::mutex> lock(mutex_);
-        for (const auto& t : tips_) {
-          if (t.header.stamp == stamp)
-            return t;
-        }
-      }
-      ros::WallDuration(0.01).sleep();
-    }
-    return std::nullopt;
+    return needle_guidance::rostest_support::waitForStamp(mutex_, tips_, stamp, 10.0);
   }
   /// Publishes the needle (pixels, entry -> tip; empty: none) in scene coordinates.
   ros::Time send(const std::vector<cv::Point2d>& needle_px, int k) {

@@ -15,6 +15,7 @@
 
 #include "needle_guidance/NeedleTip.h"
 #include "needle_guidance/imaging/synthetic_bmode.h"
+#include "stamped_answer.h"
 
 namespace {
 
@@ -44,18 +45,7 @@ protected:
     tips_.push_back(*m);
   }
   std::optional<NeedleTip> answerTo(const ros::Time& stamp) {
-    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(5.0);
-    while (ros::WallTime::now() < end) {
-      {
-        std::lock_guard<std::mutex> lock(mutex_);
-        for (const auto& t : tips_) {
-          if (t.header.stamp == stamp)
-            return t;
-        }
-      }
-      ros::WallDuration(0.01).sleep();
-    }
-    return std::nullopt;
+    return needle_guidance::rostest_support::waitForStamp(mutex_, tips_, stamp, 5.0);
   }
   ros::Time send(const cv::Mat& frame, int k) {
     std_msgs::Header h;
