@@ -323,13 +323,13 @@ private:
     background_key_ = m.keyPath("background_material");
     background_line_ = m.lineOfKey("background_material");
     m.finish();
-    if (!(max.point.x() > min.point.x() && max.point.y() > min.point.y())) {
+    if (!(max.value.x() > min.value.x() && max.value.y() > min.value.y())) {
       fail(max.key, max.text,
-           "workspace max must exceed min " + formatIn(min.point, max.unit) + " in x and y",
+           "workspace max must exceed min " + formatIn(min.value, max.unit) + " in x and y",
            max.line);
     }
-    scene_.workspace_min = min.point;
-    scene_.workspace_max = max.point;
+    scene_.workspace_min = min.value;
+    scene_.workspace_max = max.value;
   }
 
   void readModels(MapReader m) {
@@ -400,7 +400,7 @@ private:
     const PointValue from = m.requiredPoint("from", detail::kLength);
     const PointValue to = m.requiredPoint("to", detail::kLength);
     m.finish();
-    if ((to.point - from.point).norm() <= kGeometryTol_m) {
+    if ((to.value - from.value).norm() <= kGeometryTol_m) {
       fail(to.key, to.text, "boundary segment has zero length", to.line);
     }
     // A segment applies to the outer nodes of the mesh, which lie on the workspace rectangle.
@@ -424,15 +424,15 @@ private:
       }
       return mask;
     };
-    if ((sides(from.point) & sides(to.point)) == 0) {
-      const bool from_ok = sides(from.point) != 0;
+    if ((sides(from.value) & sides(to.value)) == 0) {
+      const bool from_ok = sides(from.value) != 0;
       const PointValue& bad = from_ok ? to : from;
       fail(bad.key, bad.text,
            "boundary segment '" + segment.name + "' must lie along one side of the workspace " +
                workspaceText(bad.unit),
            bad.line);
     }
-    segment.segment = Segment{from.point, to.point};
+    segment.segment = Segment{from.value, to.value};
     scene_.boundary.push_back(segment);
   }
 
@@ -548,7 +548,7 @@ private:
     origin.name_key = m.keyPath("name");
     target.name = readName(m, target_names_);
     origin.position = m.requiredPoint("position", detail::kLength);
-    target.position = origin.position.point;
+    target.position = origin.position.value;
     target.radius_m = nonNegativeOr(m, "radius", detail::kLength, 0.0);
     m.finish();
     scene_.targets.push_back(target);

@@ -253,14 +253,21 @@ double MapReader::toNumber(const std::string& key_path, const YAML::Node& node) 
   return value;
 }
 
-Point2 MapReader::toPoint(const std::string& key_path, const YAML::Node& node, double to_si) const {
-  if (!node.IsSequence() || node.size() != 2) {
+template <int N>
+Eigen::Matrix<double, N, 1> MapReader::toVector(const std::string& key_path, const YAML::Node& node,
+                                                double to_si) const {
+  static_assert(N == 2 || N == 3, "points are 2-D or 3-D");
+  if (!node.IsSequence() || node.size() != static_cast<std::size_t>(N)) {
     failAt(key_path, node,
-           "expected a point [x, y], got " +
+           std::string(N == 2 ? "expected a point [x, y]" : "expected a list [x, y, z]") +
+               ", got " +
                (node.IsSequence() ? "a list of " + std::to_string(node.size()) : typeName(node)));
   }
-  return Point2(toNumber(key_path + "[0]", node[0]) * to_si,
-                toNumber(key_path + "[1]", node[1]) * to_si);
+  Eigen::Matrix<double, N, 1> v;
+  for (int i = 0; i < N; ++i) {
+    v[i] = toNumber(key_path + "[" + std::to_string(i) + "]", node[i]) * to_si;
+  }
+  return v;
 }
 
 std::optional<MapReader::Variant> MapReader::findVariant(const std::string& base,
@@ -336,41 +343,22 @@ Quantity MapReader::requiredQuantity(const std::string& base, const Dimension& d
   return *quantity;
 }
 
-PointValue MapReader::requiredPoint(const std::string& base, const Dimension& dim) {
+template <int N>
+VectorValue<N> MapReader::requiredVectorValue(const std::string& base, const Dimension& dim) {
   const std::optional<Variant> variant = findVariant(base, dim);
   if (!variant) {
     failMissing(base, dim);
   }
-  PointValue point;
-  point.key = keyPath(variant->key);
-  point.point = toPoint(point.key, variant->node, variant->unit.to_si);
-  point.text = nodeText(variant->node);
-  point.unit = variant->unit;
-  point.line = lineOf(variant->node);
-  return point;
-}
-
-Vector3Value MapReader::requiredVector3(const std::string& base, const Dimension& dim) {
-  const std::optional<Variant> variant = findVariant(base, dim);
-  if (!variant) {
-    failMissing(base, dim);
-  }
-  Vector3Value v;
+  VectorValue<N> v;
   v.key = keyPath(variant->key);
   v.text = nodeText(variant->node);
   v.unit = variant->unit;
   v.line = lineOf(variant->node);
-  const YAML::Node& node = variant->node;
-  if (!node.IsSequence() || node.size() != 3) {
-    failAt(v.key, node,
-           "expected a list [x, y, z], got " +
-               (node.IsSequence() ? "a list of " + std::to_string(node.size()) : typeName(node)));
-  }
-  for (int i = 0; i < 3; ++i) {
-    v.value[i] = toNumber(v.key + "[" + std::to_string(i) + "]", node[i]) * variant->unit.to_si;
-  }
+  v.value = toVector<N>(v.key, variant->node, variant->unit.to_si);
   return v;
 }
+template VectorValue<2> MapReader::requiredVectorValue<2>(const std::string&, const Dimension&);
+template VectorValue<3> MapReader::requiredVectorValue<3>(const std::string&, const Dimension&);
 
 Eigen::Vector3d MapReader::requiredPoint3(const std::string& base, const Dimension& dim,
                                           std::string* key_path) {
@@ -396,8 +384,8 @@ PointList MapReader::requiredPointList(const std::string& base, const Dimension&
            "expected a list of points [[x, y], ...], got " + typeName(variant->node));
   }
   for (std::size_t i = 0; i < variant->node.size(); ++i) {
-    list.points.push_back(
-        toPoint(list.key + "[" + std::to_string(i) + "]", variant->node[i], variant->unit.to_si));
+    list.points.push_back(toVector<2>(list.key + "[" + std::to_string(i) + "]", variant->node[i],
+                                      variant->unit.to_si));
   }
   return list;
 }

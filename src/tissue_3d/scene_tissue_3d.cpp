@@ -236,7 +236,7 @@ private:
     } else {
       w.use_template = true;
       const scene::detail::PointValue o = grid->requiredPoint("origin", units::kLength);
-      w.template_origin_m = o.point;
+      w.template_origin_m = o.value;
       const Quantity spacing = grid->requiredQuantity("spacing", units::kLength);
       w.template_rows = grid->requiredInt("rows");
       w.template_columns = grid->requiredInt("columns");

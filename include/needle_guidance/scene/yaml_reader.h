@@ -66,23 +66,17 @@ struct PointList {
   int line = -1;  ///< 1-based line of the list, -1 if unknown
 };
 
-/// One point read from the file.
-struct PointValue {
-  Point2 point = Point2::Zero();  ///< [m]
+/// A 2-D point or a 3-D point/vector read from the file.
+template <int N>
+struct VectorValue {
+  Eigen::Matrix<double, N, 1> value = Eigen::Matrix<double, N, 1>::Zero();  ///< in SI
   std::string key;
   std::string text;
   Unit unit{"", "", 1.0};
   int line = -1;  ///< 1-based line, -1 if unknown
 };
-
-/// A 3-D point or vector read from the file.
-struct Vector3Value {
-  Eigen::Vector3d value = Eigen::Vector3d::Zero();  ///< in SI
-  std::string key;
-  std::string text;
-  Unit unit{"", "", 1.0};
-  int line = -1;  ///< 1-based line, -1 if unknown
-};
+using PointValue = VectorValue<2>;    ///< [m]
+using Vector3Value = VectorValue<3>;  ///< in SI
 
 /// The YAML node as one line of text (flow style, shortened) for error messages.
 std::string nodeText(const YAML::Node& node);
@@ -127,9 +121,13 @@ public:
   Quantity requiredQuantity(const std::string& base, const Dimension& dim);
   std::optional<Quantity> optionalQuantity(const std::string& base, const Dimension& dim);
   /// A point [x, y] under base + one of dim's suffixes.
-  PointValue requiredPoint(const std::string& base, const Dimension& dim);
+  PointValue requiredPoint(const std::string& base, const Dimension& dim) {
+    return requiredVectorValue<2>(base, dim);
+  }
   /// A list [x, y, z] under base + one of dim's suffixes (kDimensionless: the key `base`).
-  Vector3Value requiredVector3(const std::string& base, const Dimension& dim);
+  Vector3Value requiredVector3(const std::string& base, const Dimension& dim) {
+    return requiredVectorValue<3>(base, dim);
+  }
   /// A 3-D point [x, y, z] under base + one of dim's suffixes, in SI; its key path goes to
   /// *key_path if given.
   Eigen::Vector3d requiredPoint3(const std::string& base, const Dimension& dim,
@@ -162,7 +160,12 @@ private:
   std::optional<Variant> findVariant(const std::string& base, const Dimension& dim);
   [[noreturn]] void failMissing(const std::string& base, const Dimension& dim) const;
   double toNumber(const std::string& key_path, const YAML::Node& node) const;
-  Point2 toPoint(const std::string& key_path, const YAML::Node& node, double to_si) const;
+  /// The list [x, y] (N = 2) or [x, y, z] (N = 3) scaled by to_si.
+  template <int N>
+  Eigen::Matrix<double, N, 1> toVector(const std::string& key_path, const YAML::Node& node,
+                                       double to_si) const;
+  template <int N>
+  VectorValue<N> requiredVectorValue(const std::string& base, const Dimension& dim);
 
   /// Marks a plain key as known.
   void noteKey(const std::string& key);
