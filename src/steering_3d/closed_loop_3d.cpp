@@ -1,9 +1,9 @@
 // One simulated insertion per strategy (closed_loop_3d.h).
 #include "needle_guidance/steering_3d/closed_loop_3d.h"
+#include "needle_guidance/cpu_time.h"
 
 #include <chrono>
 #include <cmath>
-#include <ctime>
 #include <deque>
 #include <limits>
 #include <memory>
@@ -17,13 +17,6 @@ using Clock = std::chrono::steady_clock;
 
 double secondsSince(Clock::time_point t0) {
   return std::chrono::duration<double>(Clock::now() - t0).count();
-}
-
-/// CPU time of the calling thread [s] (the replan's own work, whatever the machine's load).
-double threadCpuSeconds() {
-  timespec ts{};
-  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
-  return double(ts.tv_sec) + 1e-9 * double(ts.tv_nsec);
 }
 
 /// The straight needle: from the disc point nearest the target, aimed at it (clamped into the

@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "needle_guidance/calibration/calibration.h"
+#include "needle_guidance/cpu_time.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/process_usage.h"
 #include "needle_guidance/report/table.h"
@@ -18,7 +19,7 @@
 #include "needle_guidance/scene/interaction_preset.h"
 
 namespace ng = needle_guidance;
-using needle_guidance::report::cpuSeconds;
+using needle_guidance::processCpuSeconds;
 namespace cal = needle_guidance::calibration;
 using ng::report::jsonNumber;
 
@@ -72,9 +73,9 @@ int main(int argc, char** argv) {
     const cal::InteractionModel preset = cal::loadPreset(kPreset);
     std::string source;
     const std::vector<cal::ForceTrial> trials = cal::liverHeldOutTrials(&source);
-    double t0 = cpuSeconds();
+    double t0 = processCpuSeconds();
     const cal::PresetCheck check = cal::checkPreset(preset, trials);
-    const double check_cpu_s = cpuSeconds() - t0;
+    const double check_cpu_s = processCpuSeconds() - t0;
 
     // Convergence of the FEM's force curve in the depth step: RMSE against the finest step.
     const std::vector<double> steps_mm =
@@ -84,9 +85,9 @@ int main(int argc, char** argv) {
     for (double step_mm : steps_mm) {
       cal::InteractionModel m = preset;
       m.block.depth_step_m = 1e-3 * step_mm;
-      t0 = cpuSeconds();
+      t0 = processCpuSeconds();
       curves.push_back(cal::femInsertionForce(m.block, m.needle, check.depths_m));
-      cpu.push_back(cpuSeconds() - t0);
+      cpu.push_back(processCpuSeconds() - t0);
     }
     ng::report::Table convergence(
         {"depth_step_mm", "rmse_vs_finest_N", "trend_rmse_vs_finest_N", "cpu_s"}, 6);

@@ -22,6 +22,7 @@
 #include <utility>
 #include <vector>
 
+#include "needle_guidance/cpu_time.h"
 #include "needle_guidance/math.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/process_usage.h"
@@ -37,7 +38,7 @@
 #include "needle_guidance/steering/value_iteration.h"
 
 namespace ng = needle_guidance;
-using needle_guidance::report::cpuSeconds;
+using needle_guidance::processCpuSeconds;
 using needle_guidance::report::peakMb;
 namespace st = ng::steering;
 
@@ -1220,14 +1221,14 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
   out.solve_s = solved.fastest_s;
   const st::PolicyTable& table = *solved.table;
   st::SolverOptions solver;  // once more for its CPU time (both threads' together)
-  double c0 = cpuSeconds();
+  double c0 = processCpuSeconds();
   st::solveValueIteration(*solved.model, solver);
-  out.solve_cpu_s = cpuSeconds() - c0;
+  out.solve_cpu_s = processCpuSeconds() - c0;
   st::StartVerificationOptions verify;
   verify.tolerance = st::verificationTolerance(problem);
-  c0 = cpuSeconds();
+  c0 = processCpuSeconds();
   out.chosen = st::verifyBestStart(world, table, start, verify);
-  out.verify_cpu_s = cpuSeconds() - c0;
+  out.verify_cpu_s = processCpuSeconds() - c0;
   out.verify_s = out.chosen.seconds;
   if (!out.chosen) {
     throw std::runtime_error(scene.name + ": " + out.chosen.message);

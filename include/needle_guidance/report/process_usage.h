@@ -1,4 +1,5 @@
-// What the running process has used so far, for the benchmarks' speed and memory figures.
+// What the running process has used so far, for the benchmarks' memory figures (CPU time:
+// needle_guidance/cpu_time.h).
 #pragma once
 
 #include <sys/resource.h>
@@ -10,14 +11,6 @@ inline double peakMb() {
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
   return static_cast<double>(usage.ru_maxrss) / 1024.0;
-}
-
-/// User + system CPU time of the process so far, all threads [s].
-inline double cpuSeconds() {
-  rusage usage{};
-  getrusage(RUSAGE_SELF, &usage);
-  return static_cast<double>(usage.ru_utime.tv_sec + usage.ru_stime.tv_sec) +
-         1e-6 * static_cast<double>(usage.ru_utime.tv_usec + usage.ru_stime.tv_usec);
 }
 
 }  // namespace needle_guidance::report
