@@ -30,7 +30,7 @@ std::string sceneDir() {
 }
 
 std::filesystem::path tempDir() {
-  const auto dir = std::filesystem::temp_directory_path() / "ng_steering_3d_scene_test";
+  const auto dir = std::filesystem::temp_directory_path() / "ng_needle_model_scene_test";
   std::filesystem::create_directories(dir);
   return dir;
 }
