@@ -16,49 +16,48 @@ double cross(const Point2& a, const Point2& b) {
   return a.x() * b.y() - a.y() * b.x();
 }
 
-/// Winding number of the region's loops around p (non-zero = inside).
-int winding(const Loops& region, const Point2& p) {
-  int w = 0;
+/// Calls edge(a, b) for every directed edge a -> b of the region's loops of 3 or more points.
+template <class EdgeFn>
+void forEachEdge(const Loops& region, EdgeFn edge) {
   for (const auto& loop : region) {
     const std::size_t n = loop.size();
     if (n < 3)
       continue;
-    for (std::size_t i = 0; i < n; ++i) {
-      const Point2& a = loop[i];
-      const Point2& b = loop[(i + 1) % n];
-      if (a.y() <= p.y()) {
-        if (b.y() > p.y() && cross(b - a, p - a) > 0.0)
-          ++w;
-      } else if (b.y() <= p.y() && cross(b - a, p - a) < 0.0) {
-        --w;
-      }
-    }
+    for (std::size_t i = 0; i < n; ++i)
+      edge(loop[i], loop[(i + 1) % n]);
   }
+}
+
+/// Winding number of the region's loops around p (non-zero = inside).
+int winding(const Loops& region, const Point2& p) {
+  int w = 0;
+  forEachEdge(region, [&](const Point2& a, const Point2& b) {
+    if (a.y() <= p.y()) {
+      if (b.y() > p.y() && cross(b - a, p - a) > 0.0)
+        ++w;
+    } else if (b.y() <= p.y() && cross(b - a, p - a) < 0.0) {
+      --w;
+    }
+  });
   return w;
 }
 
 /// If p lies on an edge of the region, +1 when that edge runs along `direction`, -1 when
-/// against it; 0 when p is not on the boundary.
+/// against it; 0 when p is not on the boundary (the first such edge decides).
 int onBoundary(const Loops& region, const Point2& p, const Point2& direction) {
-  for (const auto& loop : region) {
-    const std::size_t n = loop.size();
-    if (n < 3)
-      continue;
-    for (std::size_t i = 0; i < n; ++i) {
-      const Point2& a = loop[i];
-      const Point2& b = loop[(i + 1) % n];
-      if (p.x() < std::min(a.x(), b.x()) - kOnBoundaryTol_m ||
-          p.x() > std::max(a.x(), b.x()) + kOnBoundaryTol_m ||
-          p.y() < std::min(a.y(), b.y()) - kOnBoundaryTol_m ||
-          p.y() > std::max(a.y(), b.y()) + kOnBoundaryTol_m) {
-        continue;
-      }
-      if (geometry::pointSegmentDistance(p, a, b) <= kOnBoundaryTol_m) {
-        return (b - a).dot(direction) > 0.0 ? 1 : -1;
-      }
+  int side = 0;
+  forEachEdge(region, [&](const Point2& a, const Point2& b) {
+    if (side != 0 || p.x() < std::min(a.x(), b.x()) - kOnBoundaryTol_m ||
+        p.x() > std::max(a.x(), b.x()) + kOnBoundaryTol_m ||
+        p.y() < std::min(a.y(), b.y()) - kOnBoundaryTol_m ||
+        p.y() > std::max(a.y(), b.y()) + kOnBoundaryTol_m) {
+      return;
     }
-  }
-  return 0;
+    if (geometry::pointSegmentDistance(p, a, b) <= kOnBoundaryTol_m) {
+      side = (b - a).dot(direction) > 0.0 ? 1 : -1;
+    }
+  });
+  return side;
 }
 
 /// Green's-theorem contribution 1/2 sum cross(p, q) of the parts of `a`'s boundary inside
@@ -79,35 +78,28 @@ double boundaryInside(const Loops& a, const Loops& b, bool same_orientation_coun
       const Point2 lo = p.cwiseMin(loop[(i + 1) % n]);
       const Point2 hi = p.cwiseMax(loop[(i + 1) % n]);
       cuts.assign({0.0, 1.0});
-      for (const auto& other : b) {
-        const std::size_t m = other.size();
-        if (m < 3)
-          continue;
-        for (std::size_t j = 0; j < m; ++j) {
-          const Point2& q = other[j];
-          const Point2& q2 = other[(j + 1) % m];
-          if (std::max(q.x(), q2.x()) < lo.x() || std::min(q.x(), q2.x()) > hi.x() ||
-              std::max(q.y(), q2.y()) < lo.y() || std::min(q.y(), q2.y()) > hi.y()) {
-            continue;
-          }
-          const Point2 s = q2 - q;
-          const double denom = cross(r, s);
-          const Point2 qp = q - p;
-          if (std::abs(denom) > 1e-14 * std::sqrt(rr * s.squaredNorm())) {
-            const double t = cross(qp, s) / denom;
-            const double u = cross(qp, r) / denom;
-            if (t > 0.0 && t < 1.0 && u >= -1e-12 && u <= 1.0 + 1e-12)
+      forEachEdge(b, [&](const Point2& q, const Point2& q2) {
+        if (std::max(q.x(), q2.x()) < lo.x() || std::min(q.x(), q2.x()) > hi.x() ||
+            std::max(q.y(), q2.y()) < lo.y() || std::min(q.y(), q2.y()) > hi.y()) {
+          return;
+        }
+        const Point2 s = q2 - q;
+        const double denom = cross(r, s);
+        const Point2 qp = q - p;
+        if (std::abs(denom) > 1e-14 * std::sqrt(rr * s.squaredNorm())) {
+          const double t = cross(qp, s) / denom;
+          const double u = cross(qp, r) / denom;
+          if (t > 0.0 && t < 1.0 && u >= -1e-12 && u <= 1.0 + 1e-12)
+            cuts.push_back(t);
+        } else if (std::abs(cross(qp, r)) <= 1e-14 * rr + kOnBoundaryTol_m * std::sqrt(rr)) {
+          // Collinear: the other edge's end points split this edge.
+          for (const Point2& e : {q, q2}) {
+            const double t = (e - p).dot(r) / rr;
+            if (t > 0.0 && t < 1.0)
               cuts.push_back(t);
-          } else if (std::abs(cross(qp, r)) <= 1e-14 * rr + kOnBoundaryTol_m * std::sqrt(rr)) {
-            // Collinear: the other edge's end points split this edge.
-            for (const Point2& e : {q, q2}) {
-              const double t = (e - p).dot(r) / rr;
-              if (t > 0.0 && t < 1.0)
-                cuts.push_back(t);
-            }
           }
         }
-      }
+      });
       std::sort(cuts.begin(), cuts.end());
       for (std::size_t k = 0; k + 1 < cuts.size(); ++k) {
         if (cuts[k + 1] - cuts[k] <= 1e-15)
@@ -129,13 +121,7 @@ double boundaryInside(const Loops& a, const Loops& b, bool same_orientation_coun
 
 double loopsArea(const Loops& region) {
   double area = 0.0;
-  for (const auto& loop : region) {
-    const std::size_t n = loop.size();
-    if (n < 3)
-      continue;
-    for (std::size_t i = 0; i < n; ++i)
-      area += 0.5 * cross(loop[i], loop[(i + 1) % n]);
-  }
+  forEachEdge(region, [&area](const Point2& a, const Point2& b) { area += 0.5 * cross(a, b); });
   return area;
 }
 
