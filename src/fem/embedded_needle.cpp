@@ -16,6 +16,8 @@ constexpr double kCutTol_m = 1e-10;        // root finding of the cut length
 constexpr double kEventTol_m = 1e-12;      // events closer than this to a segment end coincide
 constexpr int kMaxEventsPerMove = 100000;  // bound against a stalled event loop
 constexpr int kMaxCutIterations = 60;
+constexpr double kFirstCutTrial_m = 2e-5;  // first trial length when bracketing the cut
+constexpr double kMaxCutTrial_m = 2.5e-4;  // trials grow up to this (a quarter of a fine element)
 
 /// s where an affine function with values fa at sa and fb at sb equals level.
 double crossing(double sa, double fa, double sb, double fb, double level) {
@@ -171,12 +173,12 @@ EmbeddedNeedle<Dim>::EmbeddedNeedle(const EmbeddingTissue<Dim>& tissue,
                                     const EmbeddedNeedleParams& params, double entry_x_m,
                                     double max_tip_x_m)
     : tissue_(&tissue), params_(params), entry_x_m_(entry_x_m), max_tip_x_m_(max_tip_x_m) {
-  if (!(params.cutting_force_N > 0.0) || !(params.track_spacing_m > 0.0) ||
+  if (!(params.cutting_force_N >= 0.0) || !(params.track_spacing_m > 0.0) ||
       !(params.kinetic_friction_N_per_m >= 0.0) ||
       !(params.static_friction_N_per_m >= params.kinetic_friction_N_per_m) ||
       !std::isfinite(entry_x_m)) {
     throw std::invalid_argument(
-        "EmbeddedNeedle: needs cutting_force > 0, track_spacing > 0, 0 <= kinetic friction <= "
+        "EmbeddedNeedle: needs cutting_force >= 0, track_spacing > 0, 0 <= kinetic friction <= "
         "static friction and a finite entry face");
   }
   s_ = entry_x_m - 1e-3;
@@ -346,13 +348,26 @@ double EmbeddedNeedle<Dim>::cutLength(double s) const {
   if (f_start <= fb) {
     return 0.0;
   }
-  // The tip's tissue point cannot pass the needle tip: the cut is at most `room`.
-  double hi = std::max(0.0, s - tip_.reference_m.x());
+  // The tip's tissue point cannot pass the needle tip: the cut is at most `room`. The cut
+  // progresses continuously from the current point, so it ends at the FIRST length where the tip
+  // force falls to f_b: the force is not monotone in the length (a point's compliance varies
+  // within its element and across a stiffness contrast), and a farther root is reached only
+  // once the nearer one has vanished. Marching out in growing trials brackets the first root.
+  const double room = std::max(0.0, s - tip_.reference_m.x());
   double lo = 0.0, f_lo = f_start - fb;
-  Point_ p_hi = along(hi);
-  double f_hi = solveAt(s, &p_hi).tip_force_N - fb;
-  if (f_hi >= 0.0) {
-    return hi;
+  double hi = 0.0, f_hi = 0.0;
+  for (double trial = kFirstCutTrial_m;; trial = std::min(2.0 * trial, kMaxCutTrial_m)) {
+    hi = std::min(room, lo + trial);
+    const Point_ p_hi = along(hi);
+    f_hi = solveAt(s, &p_hi).tip_force_N - fb;
+    if (f_hi < 0.0) {
+      break;
+    }
+    if (hi >= room) {
+      return room;
+    }
+    lo = hi;
+    f_lo = f_hi;
   }
   // Illinois regula falsi on the tip force, which falls as the cut lengthens.
   int side = 0;

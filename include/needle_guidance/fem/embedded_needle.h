@@ -80,7 +80,7 @@ private:
 
 /// Interaction parameters of the embedded needle [SI].
 struct EmbeddedNeedleParams {
-  double cutting_force_N = 0.5;            ///< tip force at which the tissue is cut (2.3.4), > 0
+  double cutting_force_N = 0.5;            ///< tip force at which the tissue is cut (2.3.4), >= 0
   double static_friction_N_per_m = 30.0;   ///< per unit length of shaft (2.3.5)
   double kinetic_friction_N_per_m = 20.0;  ///< per unit length of shaft, <= static
   double stick_velocity_m_s = 5e-4;        ///< the shaft slips while the needle slides faster
