@@ -356,8 +356,12 @@ double EmbeddedNeedle<Dim>::cutLength(double s) const {
   const double room = std::max(0.0, s - tip_.reference_m.x());
   double lo = 0.0, f_lo = f_start - fb;
   double hi = 0.0, f_hi = 0.0;
+  const double to_event = next_event_cut_m_ - cut_total_m_;  // the next track point
   for (double trial = kFirstCutTrial_m;; trial = std::min(2.0 * trial, kMaxCutTrial_m)) {
     hi = std::min(room, lo + trial);
+    if (lo < to_event && hi > to_event) {
+      hi = to_event;  // a trial on the track point: the cut ends there or before, never past it
+    }
     const Point_ p_hi = along(hi);
     f_hi = solveAt(s, &p_hi).tip_force_N - fb;
     if (f_hi < 0.0) {

@@ -224,6 +224,16 @@ RigidPlan RigidPlanner::check(const Point2& target) const {
   return plan;
 }
 
+namespace {
+
+/// A step refused because the needle meets bone (the embedded track cannot cut rigid tissue),
+/// after the scan has a segment in tissue: the scan ends there.
+bool metBone(const tissue::StepStatus& status, const DepthScan& scan) {
+  return scan.implant.size() >= 2 && status.toString().find("rigid tissue") != std::string::npos;
+}
+
+}  // namespace
+
 /// An insertion at one height on the scene's mesh, as far as a scan went: its implant points and
 /// its state there. A scan at that height for a deeper target continues from a copy of it.
 struct InsertionPrefix {
@@ -281,6 +291,9 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
     const double dt_s = dz / options_.velocity_m_s;
     x = std::min(max_depth_m, x + dz);
     const tissue::StepStatus status = sim.step(dt_s, height_m, x);
+    if (!status && metBone(status, scan)) {
+      break;  // the needle meets bone at this height: no deeper release exists here
+    }
     if (!status) {
       throw std::runtime_error("RigidPlanner: simulation step refused: " + status.toString());
     }
@@ -581,8 +594,7 @@ void RigidPlanner::runGridScan(tissue::TissueSimulation& sim, DepthScan& scan, c
   for (long k = sim.gridPosition() + 1; k <= last; ++k) {
     const double x = sim.gridDepth(k);
     const tissue::StepStatus status = sim.advance(dt_s, scan.height_m, x);
-    if (!status && scan.implant.size() >= 2 &&
-        status.toString().find("rigid tissue") != std::string::npos) {
+    if (!status && metBone(status, scan)) {
       break;  // the needle meets bone at this height: no deeper release exists here
     }
     if (!status) {
