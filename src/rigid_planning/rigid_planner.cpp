@@ -464,6 +464,12 @@ void RigidPlanner::searchHeights(RigidPlan& plan,
 }
 
 double RigidPlanner::maxScanDepth(const Point2& target) const {
+  if (sim_options_.needle_model == tissue::NeedleModel::kEmbeddedTrack) {
+    // Soft tissue ahead of the tip compresses millimetres before it is cut, more than any fixed
+    // margin: scans run to the needle's reach and stop once the tip's tissue point has passed
+    // the target.
+    return scene_.needle.max_depth_m;
+  }
   return std::min(scene_.needle.max_depth_m, target.x() + options_.depth_margin_m);
 }
 
