@@ -1,95 +1,14 @@
-// TissueModel3: stiffness assembly, the factored compliance and a uniform-grid element locator
-// (needle_insertion_3d.h).
-#include <algorithm>
-#include <cmath>
-#include <ctime>
-#include <stdexcept>
-
+// TissueModel3: the tetrahedral mesh and its embedding tissue (stiffness assembly, the factored
+// compliance and the element locator of fem::EmbeddingTissue) (needle_insertion_3d.h).
 #include "needle_guidance/tissue_3d/needle_insertion_3d.h"
 
 namespace needle_guidance::tissue_3d {
 
-/// Elements bucketed by their bounding boxes on a uniform grid of about one element per cell.
-struct TissueModel3::Grid {
-  Vector3 lo, cell;
-  Eigen::Vector3i n;
-  std::vector<std::vector<int>> buckets;
-  int index(const Eigen::Vector3i& c) const { return (c.z() * n.y() + c.y()) * n.x() + c.x(); }
-  Eigen::Vector3i cellOf(const Vector3& p) const {
-    Eigen::Vector3i c;
-    for (int k = 0; k < 3; ++k) {
-      c(k) = std::clamp(static_cast<int>(std::floor((p(k) - lo(k)) / cell(k))), 0, n(k) - 1);
-    }
-    return c;
-  }
-};
-
 TissueModel3::TissueModel3(TetMesh3 mesh, const std::vector<fem::Material>& materials)
     : mesh_(std::move(mesh)) {
-  const std::clock_t start = std::clock();
-  const fem::SparseMatrix k = fem::assembleStiffness<3>(mesh_, materials);
-  std::vector<char> fixed(static_cast<std::size_t>(3 * mesh_.nodeCount()), 0);
-  for (int i = 0; i < mesh_.nodeCount(); ++i) {
-    if (mesh_.node_fixed[static_cast<std::size_t>(i)]) {
-      for (int d = 0; d < 3; ++d) {
-        fixed[static_cast<std::size_t>(3 * i + d)] = 1;
-      }
-    }
-  }
-  compliance_ = std::make_unique<fem::CondensedCompliance>(k, fixed);
-  assembly_cpu_s_ = static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
-
-  grid_ = std::make_unique<Grid>();
-  Vector3 lo = mesh_.nodes[0], hi = mesh_.nodes[0];
-  for (const auto& p : mesh_.nodes) {
-    lo = lo.cwiseMin(p);
-    hi = hi.cwiseMax(p);
-  }
-  const double per_cell = std::cbrt((hi - lo).prod() / std::max(1, mesh_.elementCount()));
-  grid_->lo = lo;
-  for (int k = 0; k < 3; ++k) {
-    grid_->n(k) = std::max(1, static_cast<int>((hi(k) - lo(k)) / (2.0 * per_cell)));
-    grid_->cell(k) = (hi(k) - lo(k)) / grid_->n(k);
-  }
-  grid_->buckets.resize(static_cast<std::size_t>(grid_->n.prod()));
-  for (int e = 0; e < mesh_.elementCount(); ++e) {
-    const fem::Corners<3> c = fem::corners<3>(mesh_, e);
-    Vector3 a = c[0], b = c[0];
-    for (const auto& p : c) {
-      a = a.cwiseMin(p);
-      b = b.cwiseMax(p);
-    }
-    const Eigen::Vector3i ca = grid_->cellOf(a), cb = grid_->cellOf(b);
-    for (int z = ca.z(); z <= cb.z(); ++z) {
-      for (int y = ca.y(); y <= cb.y(); ++y) {
-        for (int x = ca.x(); x <= cb.x(); ++x) {
-          grid_->buckets[static_cast<std::size_t>(grid_->index({x, y, z}))].push_back(e);
-        }
-      }
-    }
-  }
+  embedding_ = std::make_unique<fem::EmbeddingTissue<3>>(mesh_, mesh_.node_fixed, materials);
 }
 
 TissueModel3::~TissueModel3() = default;
-
-std::optional<EmbeddedPoint> TissueModel3::locate(const Vector3& p) const {
-  constexpr double kInsideTol = 1e-9;  // barycentric, round-off on shared faces
-  const auto& bucket = grid_->buckets[static_cast<std::size_t>(grid_->index(grid_->cellOf(p)))];
-  EmbeddedPoint best;
-  double best_min = -1e300;
-  for (int e : bucket) {
-    const Eigen::Vector4d w = fem::barycentric<3>(fem::corners<3>(mesh_, e), p);
-    if (w.minCoeff() > best_min) {
-      best_min = w.minCoeff();
-      best.element = e;
-      best.weights = w;
-    }
-  }
-  if (best.element < 0 || best_min < -kInsideTol) {
-    return std::nullopt;
-  }
-  best.reference_m = p;
-  return best;
-}
 
 }  // namespace needle_guidance::tissue_3d
