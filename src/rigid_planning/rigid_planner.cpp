@@ -125,8 +125,15 @@ const char* toString(PlanCode code) {
       return "simulation failed";
     case PlanCode::kOutOfTolerance:
       return "out of tolerance";
+    case PlanCode::kUnstableCut:
+      return "unstable cut";
   }
   return "?";
+}
+
+bool isPhysicalRefusal(PlanCode code) {
+  return code == PlanCode::kTargetOutsideTissue || code == PlanCode::kHeightOutOfRange ||
+         code == PlanCode::kBeyondMaxDepth || code == PlanCode::kUnstableCut;
 }
 
 Point2 DepthScan::implantAt(double z) const {
@@ -854,32 +861,44 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
 
 namespace {
 
-/// Why no release lands near the target when the cut front jumps over it: of the scans, the one
-/// nearest the target's height whose implant curve passes the target's depth in one step longer
-/// than the tolerance (the cut is unstable there: the tip force stays above the cutting force
-/// across the stretch, so no tip ever rests in it). Empty when no scan shows such a jump.
-std::string jumpOver(const std::vector<DepthScan>& scans, const Point2& target, double tolerance) {
-  const DepthScan* nearest = nullptr;
-  std::size_t at = 0;
+/// Where the cut front jumps over the target: of the scans, the one nearest the target's height
+/// whose implant curve passes the target's depth in one step longer than the tolerance (the cut
+/// is unstable there: the tip force stays above the cutting force across the stretch, so no tip
+/// ever rests in it).
+/// A seed that follows the tip moves about as far as the tip; a cut front that runs this many
+/// times farther than the tip in one step is snapping through, not following.
+constexpr double kSnapThroughRatio = 10.0;
+
+struct CutJump {
+  const DepthScan* scan = nullptr;  ///< null when no scan shows such a jump
+  std::size_t at = 0;               ///< the jump runs from implant[at - 1] to implant[at]
+
+  std::string describe() const {
+    if (!scan) {
+      return "";
+    }
+    return "at height " + mm(scan->height_m) + " the cut front jumps from depth " +
+           mm(scan->implant[at - 1].x()) + " to " + mm(scan->implant[at].x()) +
+           " over the target while the tip moves " + mm(scan->depth_m[at] - scan->depth_m[at - 1]) +
+           " (the tip force stays above the cutting force there: no tip rests in that stretch)";
+  }
+};
+
+CutJump jumpOver(const std::vector<DepthScan>& scans, const Point2& target, double tolerance) {
+  CutJump jump;
   for (const DepthScan& scan : scans) {
     for (std::size_t i = 1; i < scan.implant.size(); ++i) {
       const Point2 &a = scan.implant[i - 1], &b = scan.implant[i];
+      const double tip_move = scan.depth_m[i] - scan.depth_m[i - 1];
       if (a.x() < target.x() && b.x() > target.x() && (b - a).norm() > tolerance &&
-          (!nearest ||
-           std::abs(scan.height_m - target.y()) < std::abs(nearest->height_m - target.y()))) {
-        nearest = &scan;
-        at = i;
+          (b - a).norm() > kSnapThroughRatio * tip_move &&
+          (!jump.scan ||
+           std::abs(scan.height_m - target.y()) < std::abs(jump.scan->height_m - target.y()))) {
+        jump = CutJump{&scan, i};
       }
     }
   }
-  if (!nearest) {
-    return "";
-  }
-  return "; at height " + mm(nearest->height_m) + " the cut front jumps from depth " +
-         mm(nearest->implant[at - 1].x()) + " to " + mm(nearest->implant[at].x()) +
-         " over the target while the tip moves " +
-         mm(nearest->depth_m[at] - nearest->depth_m[at - 1]) +
-         " (the tip force stays above the cutting force there: no tip rests in that stretch)";
+  return jump;
 }
 
 }  // namespace
@@ -915,10 +934,16 @@ void RigidPlanner::finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_
                                                     mm(plan.predicted_error_m) + ", tolerance " +
                                                     mm(plan.tolerance_m) +
                                                     "): a full simulation would exceed the budget";
+    const CutJump jump = jumpOver(plan.scans, target, plan.tolerance_m);
     plan.message = (budget_expired ? budget.str() : std::string()) + figures +
-                   jumpOver(plan.scans, target, plan.tolerance_m);
+                   (jump.scan ? "; " + jump.describe() : std::string());
+    // The embedded track's seed lands on the needle's own line, so the target's height is the
+    // only one that can reach it: a jump over the target there is the physics' answer.
+    const bool unstable_cut = sim_options_.needle_model == tissue::NeedleModel::kEmbeddedTrack &&
+                              jump.scan &&
+                              std::abs(jump.scan->height_m - target.y()) <= kSameHeight_m;
     if (options_.refuse_over_tolerance) {
-      plan.code = PlanCode::kOutOfTolerance;
+      plan.code = unstable_cut ? PlanCode::kUnstableCut : PlanCode::kOutOfTolerance;
       plan.message = std::string("RigidPlanner: ") + toString(plan.code) + ": " + plan.message;
     }
   }

@@ -63,7 +63,9 @@ bool RigidPlannerRos::onPlan(PlanRigid::Request& req, PlanRigid::Response& res) 
                                                                 : planner_->unplanned(target);
   res.success = static_cast<bool>(plan);
   res.message = plan.message;
-  res.code = rigid_planning::toString(plan.code);
+  // A refusal the physics explains is "unreachable", as in 3-D; the message keeps the detail.
+  res.code = rigid_planning::isPhysicalRefusal(plan.code) ? "unreachable"
+                                                          : rigid_planning::toString(plan.code);
   res.tolerance_m = planner_->tolerance();
   res.verified_error_m = NAN;
   if (!plan) {

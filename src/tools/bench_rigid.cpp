@@ -90,7 +90,8 @@ double windowStudyBestError(const ng::scene::Scene& scene, const Point2& target)
 struct SceneFigures {
   std::string name, spec;
   int targets = 0, planned = 0, refused = 0, over_tolerance = 0;
-  int unreachable = 0;  ///< refused for physics: outside the tissue, in bone, out of range
+  int unreachable =
+      0;  ///< refused for physics: outside the tissue, in bone, out of range, unstable cut
   /// Of the targets refused out of tolerance: the window study's best error [mm]
   std::vector<double> window_best_mm;
   std::vector<double> halving_mm;  ///< seed change when the depth grid step is halved [mm]
@@ -128,16 +129,15 @@ SceneFigures evaluateScene(const std::string& spec, bool quick, ng::report::Tabl
     const auto plan = planner.plan(target.position, previous_offset);
     if (!plan) {
       ++f.refused;
-      f.unreachable += plan.code == ng::rigid_planning::PlanCode::kOutOfTolerance ||
-                               plan.code == ng::rigid_planning::PlanCode::kSimulationFailed
-                           ? 0
-                           : 1;
+      f.unreachable += ng::rigid_planning::isPhysicalRefusal(plan.code) ? 1 : 0;
       f.seconds.push_back(plan.seconds);  // a refusal's planning time counts too
       f.fem_steps.push_back(static_cast<double>(plan.fem_steps));
       f.solver_work.push_back(plan.solver_work);
       f.cpu_seconds.push_back(plan.cpu_seconds);
       const ng::report::Cell none{std::string()};  // never inserted: no error figures
-      const bool over = plan.code == ng::rigid_planning::PlanCode::kOutOfTolerance;
+      // Out of tolerance or an unstable cut: the window study checks every height independently.
+      const bool over = plan.code == ng::rigid_planning::PlanCode::kOutOfTolerance ||
+                        plan.code == ng::rigid_planning::PlanCode::kUnstableCut;
       const double window_mm = over ? 1e3 * windowStudyBestError(scene, target.position) : NAN;
       if (over) {
         f.window_best_mm.push_back(window_mm);

@@ -150,7 +150,11 @@ enum class PlanCode {
   /// No release point whose verified seed lands within the tolerance was found (in the budget):
   /// the target is refused with the best verified error; release and verified_* still say where
   /// the best plan would put the seed, for a caller that accepts it.
-  kOutOfTolerance
+  kOutOfTolerance,
+  /// On the embedded track, whose seed lands on the needle's own line: at the target's height the
+  /// cut front jumps over the target (the tip force stays above the cutting force across the
+  /// stretch), so no tip ever rests near it and no depth reaches it.
+  kUnstableCut
 };
 
 /// A plan: release point, predicted error, and what it cost.
@@ -326,5 +330,8 @@ private:
 };
 
 const char* toString(PlanCode code);
+/// True for a refusal the physics explains (outside the tissue or in bone, out of the needle's
+/// range, an unstable cut over the target); false for ok, a failed simulation or a miss.
+bool isPhysicalRefusal(PlanCode code);
 
 }  // namespace needle_guidance::rigid_planning
