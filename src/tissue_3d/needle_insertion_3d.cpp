@@ -16,6 +16,10 @@ constexpr double kCutTol_m = 1e-10;        // root finding of the cut length
 constexpr double kEventTol_m = 1e-12;      // events closer than this to a segment end coincide
 constexpr int kMaxEventsPerMove = 100000;  // bound against a stalled event loop
 constexpr int kMaxCutIterations = 60;
+// Corotational fixed point: converged when no node's warp changes by more than this, three
+// orders below the step-halving target (5 um) of the seeds.
+constexpr double kWarpTol_m = 1e-9;
+constexpr int kMaxWarpUpdates = 60;
 
 /// s where an affine function with values fa at sa and fb at sb equals level.
 double crossing(double sa, double fa, double sb, double fb, double level) {
@@ -134,6 +138,11 @@ NeedleInsertion3::Solution NeedleInsertion3::solveAt(double s, const EmbeddedPoi
       fixed.push_back(3 * ns + d);
     }
   }
+  // The corotational part of the displacement adds to the compliance's answer.
+  Eigen::VectorXd warp = Eigen::VectorXd::Zero(3 * m);
+  for (int k = 0; k < m && warp_.size() > 0; ++k) {
+    warp.segment<3>(3 * k) = warpAt(k < ns ? shaft_[static_cast<std::size_t>(k)].point : *tip);
+  }
   const int nf = static_cast<int>(fixed.size()), nl = static_cast<int>(loaded.size());
   Eigen::MatrixXd cff(nf, nf), cfl(nf, nl);
   Eigen::VectorXd rhs(nf), fl(nl);
@@ -141,7 +150,7 @@ NeedleInsertion3::Solution NeedleInsertion3::solveAt(double s, const EmbeddedPoi
     fl(j) = value(loaded[static_cast<std::size_t>(j)]);
   }
   for (int i = 0; i < nf; ++i) {
-    rhs(i) = value(fixed[static_cast<std::size_t>(i)]);
+    rhs(i) = value(fixed[static_cast<std::size_t>(i)]) - warp(fixed[static_cast<std::size_t>(i)]);
     for (int j = 0; j < nf; ++j) {
       cff(i, j) = c(fixed[static_cast<std::size_t>(i)], fixed[static_cast<std::size_t>(j)]);
     }
@@ -156,7 +165,7 @@ NeedleInsertion3::Solution NeedleInsertion3::solveAt(double s, const EmbeddedPoi
   for (int j = 0; j < nl; ++j) {
     sol.forces(loaded[static_cast<std::size_t>(j)]) = fl(j);
   }
-  sol.displacement = c * sol.forces;
+  sol.displacement = c * sol.forces + warp;
   sol.tip_force_N = tip ? sol.forces(3 * ns) : 0.0;
   return sol;
 }
@@ -266,8 +275,46 @@ void NeedleInsertion3::releaseShaftPoint(std::size_t k) {
   shaft_.erase(shaft_.begin() + static_cast<std::ptrdiff_t>(k));
 }
 
+Vector3 NeedleInsertion3::warpAt(const EmbeddedPoint& p) const {
+  Vector3 v = Vector3::Zero();
+  const auto& nodes = model_.mesh().elements[static_cast<std::size_t>(p.element)];
+  for (int a = 0; a < 4 && warp_.size() > 0; ++a) {
+    v += p.weights(a) * warp_.segment<3>(3 * nodes[a]);
+  }
+  return v;
+}
+
+bool NeedleInsertion3::settleWarp(bool fresh) {
+  if (!model_.corotational()) {
+    return true;
+  }
+  if (warp_.size() == 0) {
+    warp_ = Eigen::VectorXd::Zero(3 * model_.mesh().nodeCount());
+  }
+  if (fresh || warp_updates_ == 0) {
+    warp_mixer_.reset();  // the constraints or the tip moved since the last update
+  }
+  const Eigen::VectorXd v = model_.corotationDisplacement(displacementField());
+  const double change = (v - warp_).lpNorm<Eigen::Infinity>();
+  warp_ = change <= kWarpTol_m ? v : warp_mixer_.next(warp_, v);
+  commit(s_, nullptr);
+  ++info_.corotation_updates;
+  if (change <= kWarpTol_m) {
+    warp_updates_ = 0;
+    return true;
+  }
+  if (++warp_updates_ > kMaxWarpUpdates) {
+    throw std::runtime_error(
+        "the corotational iteration did not converge: the warp still changed by " +
+        std::to_string(change * 1e3) + " mm after " + std::to_string(kMaxWarpUpdates) +
+        " updates (rotations too large for the fixed point on the linear "
+        "stiffness)");
+  }
+  return false;
+}
+
 Vector3 NeedleInsertion3::nodeDisplacement(int node) const {
-  Vector3 u = Vector3::Zero();
+  Vector3 u = warp_.size() > 0 ? Vector3(warp_.segment<3>(3 * node)) : Vector3::Zero();
   const auto& g = model_.compliance();
   const int ns = static_cast<int>(shaft_.size());
   for (int k = 0; k < committed_.forces.size() / 3; ++k) {
@@ -465,6 +512,8 @@ bool NeedleInsertion3::moveTo(const Eigen::Vector2d& lateral, double tip_x, std:
     return refuse("the lateral position can change only outside the tissue");
   }
   info_.events = 0;
+  info_.corotation_updates = 0;
+  warp_updates_ = 0;
   solves_ = 0;
   if (!in_tissue_) {
     lateral_ = lateral;
@@ -508,7 +557,8 @@ bool NeedleInsertion3::moveTo(const Eigen::Vector2d& lateral, double tip_x, std:
   try {
     for (int i = 0; i < kMaxEventsPerMove; ++i) {
       const bool done = direction_ > 0 ? insertSegment(tip_x) : retractSegment(tip_x);
-      if (done) {
+      // Corotational: the segment is solved again at its end until the warp has converged.
+      if (settleWarp(!done) && done) {
         break;
       }
     }
@@ -535,6 +585,16 @@ std::optional<int> NeedleInsertion3::implantSeed(std::string* why_not) {
     return std::nullopt;
   }
   seeds_.push_back(tip_.reference_m);
+  return static_cast<int>(seeds_.size()) - 1;
+}
+
+int NeedleInsertion3::addSeed(const Vector3& reference_m) {
+  if (!model_.locate(reference_m)) {
+    throw std::invalid_argument(
+        "NeedleInsertion3::addSeed: the seed's tissue point is outside "
+        "the mesh");
+  }
+  seeds_.push_back(reference_m);
   return static_cast<int>(seeds_.size()) - 1;
 }
 
@@ -577,7 +637,11 @@ Eigen::VectorXd NeedleInsertion3::displacementField() const {
       f.segment<3>(3 * nodes[a]) += p.weights(a) * committed_.forces.segment<3>(3 * k);
     }
   }
-  return model_.compliance().solve(f);
+  Eigen::VectorXd u = model_.compliance().solve(f);
+  if (warp_.size() > 0) {
+    u += warp_;
+  }
+  return u;
 }
 
 }  // namespace needle_guidance::tissue_3d

@@ -24,10 +24,22 @@ struct TissueModel3::Grid {
   }
 };
 
-TissueModel3::TissueModel3(TetMesh3 mesh, const std::vector<fem::Material>& materials)
-    : mesh_(std::move(mesh)) {
+TissueModel3::TissueModel3(TetMesh3 mesh, const std::vector<fem::Material>& materials,
+                           bool corotational)
+    : mesh_(std::move(mesh)), corotational_(corotational) {
   const std::clock_t start = std::clock();
   const fem::SparseMatrix k = fem::assembleStiffness<3>(mesh_, materials);
+  if (corotational_) {
+    gradients_.reserve(mesh_.elements.size());
+    element_stiffness_.reserve(mesh_.elements.size());
+    for (int e = 0; e < mesh_.elementCount(); ++e) {
+      const fem::Corners<3> c = fem::corners<3>(mesh_, e);
+      gradients_.push_back(fem::shapeGradients<3>(c));
+      element_stiffness_.push_back(
+          fem::elementStiffness<3>(c, materials[static_cast<std::size_t>(
+                                          mesh_.element_material[static_cast<std::size_t>(e)])]));
+    }
+  }
   std::vector<char> fixed(static_cast<std::size_t>(3 * mesh_.nodeCount()), 0);
   for (int i = 0; i < mesh_.nodeCount(); ++i) {
     if (mesh_.node_fixed[static_cast<std::size_t>(i)]) {
@@ -71,6 +83,55 @@ TissueModel3::TissueModel3(TetMesh3 mesh, const std::vector<fem::Material>& mate
 }
 
 TissueModel3::~TissueModel3() = default;
+
+Eigen::VectorXd TissueModel3::corotationDisplacement(const Eigen::VectorXd& u) const {
+  // An element whose deformation gradient is symmetric to this has no rotation: its corotated
+  // force equals the linear one (to this relative size), so it adds nothing to g.
+  constexpr double kNoRotation = 1e-12;
+  if (!corotational_) {
+    return {};
+  }
+  const std::clock_t start = std::clock();
+  Eigen::VectorXd g = Eigen::VectorXd::Zero(3 * mesh_.nodeCount());
+  using Vector12 = Eigen::Matrix<double, 12, 1>;
+  for (int e = 0; e < mesh_.elementCount(); ++e) {
+    const auto& nodes = mesh_.elements[static_cast<std::size_t>(e)];
+    const Eigen::Matrix<double, 4, 3>& grad = gradients_[static_cast<std::size_t>(e)];
+    Eigen::Matrix3d f = Eigen::Matrix3d::Identity();
+    Vector12 ue, xe_ref;
+    for (int a = 0; a < 4; ++a) {
+      ue.segment<3>(3 * a) = u.segment<3>(3 * nodes[a]);
+      xe_ref.segment<3>(3 * a) = mesh_.nodes[static_cast<std::size_t>(nodes[a])];
+      f += ue.segment<3>(3 * a) * grad.row(a);
+    }
+    if ((f - f.transpose()).cwiseAbs().maxCoeff() < kNoRotation) {
+      continue;
+    }
+    if (!(f.determinant() > 0.0)) {
+      throw std::runtime_error("TissueModel3: element " + std::to_string(e) +
+                               " inverts under the corotational update (det F = " +
+                               std::to_string(f.determinant()) + ")");
+    }
+    const Eigen::Matrix3d r = fem::polarRotation<3>(f);
+    // R K_e (R^T x - X) - K_e u with x = X + u.
+    Vector12 local;
+    for (int a = 0; a < 4; ++a) {
+      local.segment<3>(3 * a) = r.transpose() * (xe_ref.segment<3>(3 * a) + ue.segment<3>(3 * a)) -
+                                xe_ref.segment<3>(3 * a);
+    }
+    const fem::ElementMatrix<3>& ke = element_stiffness_[static_cast<std::size_t>(e)];
+    const Vector12 kl = ke * local, ku = ke * ue;
+    for (int a = 0; a < 4; ++a) {
+      g.segment<3>(3 * nodes[a]) += r * kl.segment<3>(3 * a) - ku.segment<3>(3 * a);
+    }
+  }
+  Eigen::VectorXd v = -compliance_->solve(g);
+  corotation_cpu_s_ += static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
+  if (!v.allFinite()) {
+    throw std::runtime_error("TissueModel3: the corotational displacement is not finite");
+  }
+  return v;
+}
 
 std::optional<EmbeddedPoint> TissueModel3::locate(const Vector3& p) const {
   constexpr double kInsideTol = 1e-9;  // barycentric, round-off on shared faces

@@ -31,6 +31,7 @@
 #include <vector>
 
 #include "needle_guidance/fem/condensed_compliance.h"
+#include "needle_guidance/fem/fixed_point.h"
 #include "needle_guidance/tissue_3d/scene_tissue_3d.h"
 #include "needle_guidance/tissue_3d/tet_mesh_3d.h"
 
@@ -47,9 +48,21 @@ struct EmbeddedPoint {
 class TissueModel3 {
 public:
   /// Throws std::invalid_argument if the mesh is invalid or not held by fixed nodes.
-  TissueModel3(TetMesh3 mesh, const std::vector<fem::Material>& materials);
+  /// corotational: the elements follow their rotation (scene key `tissue.model`).
+  TissueModel3(TetMesh3 mesh, const std::vector<fem::Material>& materials,
+               bool corotational = false);
   ~TissueModel3();
   const TetMesh3& mesh() const { return mesh_; }
+  bool corotational() const { return corotational_; }
+  /// The corotational part of the displacement at displacement u (3 * node order) [m]:
+  /// v = -K^-1 g(u), g(u) = sum over elements of R K_e (R^T x - X) - K_e u, the corotated
+  /// element forces (fem::corotatedElement) less the linear ones. Equilibrium under nodal
+  /// forces f is the fixed point u = K^-1 f + v(u), solved with the factored linear K as the
+  /// preconditioner on the rotation residual (warped stiffness, Mueller et al. 2002). Empty for
+  /// a linear model. Throws std::runtime_error naming the element if one inverts.
+  Eigen::VectorXd corotationDisplacement(const Eigen::VectorXd& u) const;
+  /// CPU time spent in corotationDisplacement so far [s].
+  double corotationCpuSeconds() const { return corotation_cpu_s_; }
   fem::CondensedCompliance& compliance() { return *compliance_; }
   const fem::CondensedCompliance& compliance() const { return *compliance_; }
   /// The element containing p (reference), or nullopt outside the mesh.
@@ -62,6 +75,11 @@ private:
   struct Grid;
   std::unique_ptr<Grid> grid_;
   double assembly_cpu_s_ = 0.0;
+  bool corotational_ = false;
+  /// Per element, when corotational: shape gradients and the linear stiffness K_e.
+  std::vector<Eigen::Matrix<double, 4, 3>> gradients_;
+  std::vector<fem::ElementMatrix<3>> element_stiffness_;
+  mutable double corotation_cpu_s_ = 0.0;
 };
 
 /// Figures of the last move, for reports.
@@ -70,8 +88,9 @@ struct InsertionInfo3 {
   double friction_force_N = 0.0;  ///< total shaft force on the tissue along +x
   int shaft_points = 0;
   int slipping = 0;
-  int events = 0;  ///< located events in the last move
-  int solves = 0;  ///< condensed solves in the last move
+  int events = 0;              ///< located events in the last move
+  int solves = 0;              ///< condensed solves in the last move
+  int corotation_updates = 0;  ///< corotational fixed-point updates in the last move
 };
 
 class NeedleInsertion3 {
@@ -91,6 +110,9 @@ public:
 
   /// Releases a seed at the tip (2.4); its tissue point is the tip's. Refused outside tissue.
   std::optional<int> implantSeed(std::string* why_not = nullptr);
+  /// A seed placed earlier (by another needle) at this tissue point (reference, in the mesh):
+  /// it moves with the tissue like the seeds this needle releases. Returns its id.
+  int addSeed(const Vector3& reference_m);
   /// Seed's tissue point (reference) and its current world position [m].
   const Vector3& seedReference(int seed) const;
   Vector3 seedWorld(int seed) const;
@@ -146,6 +168,14 @@ private:
   void addTrackPoint(const EmbeddedPoint& p);
   void releaseShaftPoint(std::size_t k);
   Vector3 nodeDisplacement(int node) const;
+  /// The corotational part of the displacement at p (zero for a linear model) [m].
+  Vector3 warpAt(const EmbeddedPoint& p) const;
+  /// Corotational model: one fixed-point update of the warp at the committed state (Anderson
+  /// mixing over the updates since the constraints last changed, i.e. since `fresh`), which is
+  /// then solved again; true when the update changed the warp by at most the convergence
+  /// tolerance (always true for a linear model). Throws std::runtime_error if it does not
+  /// converge.
+  bool settleWarp(bool fresh);
 
   TissueModel3& model_;
   Needle3 needle_;
@@ -169,6 +199,9 @@ private:
   std::vector<Vector3> seeds_;
   InsertionInfo3 info_;
   mutable int solves_ = 0;
+  Eigen::VectorXd warp_;  ///< corotational part of the displacement (empty: none) [m]
+  int warp_updates_ = 0;  ///< consecutive updates without convergence
+  fem::AndersonAcceleration warp_mixer_;
 };
 
 }  // namespace needle_guidance::tissue_3d
