@@ -16,9 +16,9 @@ constexpr double kCutTol_m = 1e-10;        // root finding of the cut length
 constexpr double kEventTol_m = 1e-12;      // events closer than this to a segment end coincide
 constexpr int kMaxEventsPerMove = 100000;  // bound against a stalled event loop
 constexpr int kMaxCutIterations = 60;
-// Corotational fixed point: converged when no node's warp changes by more than this, three
-// orders below the step-halving target (5 um) of the seeds.
-constexpr double kWarpTol_m = 1e-9;
+// Corotational fixed point: converged when no node's warp changes by more than this, 50
+// times below the step-halving target (5 um) of the seeds.
+constexpr double kWarpTol_m = 1e-7;
 constexpr int kMaxWarpUpdates = 60;
 
 /// s where an affine function with values fa at sa and fb at sb equals level.
@@ -557,8 +557,10 @@ bool NeedleInsertion3::moveTo(const Eigen::Vector2d& lateral, double tip_x, std:
   try {
     for (int i = 0; i < kMaxEventsPerMove; ++i) {
       const bool done = direction_ > 0 ? insertSegment(tip_x) : retractSegment(tip_x);
-      // Corotational: the segment is solved again at its end until the warp has converged.
-      if (settleWarp(!done) && done) {
+      // Corotational: at the move's end the segment is solved again until the warp has
+      // converged; events inside the move are located with the warp of its start (the warp
+      // is a second-order part of the displacement, so that lag is far below the tolerance).
+      if (done && settleWarp(false)) {
         break;
       }
     }

@@ -24,6 +24,31 @@ struct TissueModel3::Grid {
   }
 };
 
+namespace {
+
+/// The rotation of the polar decomposition F = R S: Newton's iteration R <- (R + R^-T) / 2
+/// from F (Higham 1986), quadratic and a few 3 x 3 inverses for the near-rigid elements of
+/// tissue; the SVD (fem::polarRotation) for an inverted or nearly flat F, or if it stalls.
+Eigen::Matrix3d polarRotation3(const Eigen::Matrix3d& f) {
+  constexpr double kMinDet = 0.1;
+  constexpr double kConverged = 1e-13;
+  constexpr int kMaxIterations = 12;
+  if (!(f.determinant() > kMinDet)) {
+    return fem::polarRotation<3>(f);
+  }
+  Eigen::Matrix3d r = f;
+  for (int i = 0; i < kMaxIterations; ++i) {
+    const Eigen::Matrix3d next = 0.5 * (r + r.inverse().transpose());
+    if ((next - r).cwiseAbs().maxCoeff() < kConverged) {
+      return next;
+    }
+    r = next;
+  }
+  return fem::polarRotation<3>(f);
+}
+
+}  // namespace
+
 TissueModel3::TissueModel3(TetMesh3 mesh, const std::vector<fem::Material>& materials,
                            bool corotational)
     : mesh_(std::move(mesh)), corotational_(corotational) {
@@ -93,6 +118,7 @@ Eigen::VectorXd TissueModel3::corotationDisplacement(const Eigen::VectorXd& u) c
   }
   const std::clock_t start = std::clock();
   Eigen::VectorXd g = Eigen::VectorXd::Zero(3 * mesh_.nodeCount());
+  int inverted = 0;
   using Vector12 = Eigen::Matrix<double, 12, 1>;
   for (int e = 0; e < mesh_.elementCount(); ++e) {
     const auto& nodes = mesh_.elements[static_cast<std::size_t>(e)];
@@ -107,12 +133,11 @@ Eigen::VectorXd TissueModel3::corotationDisplacement(const Eigen::VectorXd& u) c
     if ((f - f.transpose()).cwiseAbs().maxCoeff() < kNoRotation) {
       continue;
     }
-    if (!(f.determinant() > 0.0)) {
-      throw std::runtime_error("TissueModel3: element " + std::to_string(e) +
-                               " inverts under the corotational update (det F = " +
-                               std::to_string(f.determinant()) + ")");
-    }
-    const Eigen::Matrix3d r = fem::polarRotation<3>(f);
+    // An element the point-like tip load inverts (det F <= 0; the linear field does that next
+    // to the tip on fine meshes) takes the proper rotation nearest to F: polarRotation flips
+    // the smallest singular direction (as invertible FEM does), so its force stays finite.
+    inverted += f.determinant() > 0.0 ? 0 : 1;
+    const Eigen::Matrix3d r = polarRotation3(f);
     // R K_e (R^T x - X) - K_e u with x = X + u.
     Vector12 local;
     for (int a = 0; a < 4; ++a) {
@@ -125,6 +150,7 @@ Eigen::VectorXd TissueModel3::corotationDisplacement(const Eigen::VectorXd& u) c
       g.segment<3>(3 * nodes[a]) += r * kl.segment<3>(3 * a) - ku.segment<3>(3 * a);
     }
   }
+  inverted_elements_ = inverted;
   Eigen::VectorXd v = -compliance_->solve(g);
   corotation_cpu_s_ += static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
   if (!v.allFinite()) {

@@ -107,7 +107,8 @@ struct PlacedPlan {
 /// again (same mesh, same lateral position and depth) in corotational tissue; the seed moves by
 /// `change_mm`. Writes corotation.csv; returns the largest change [m] (-1: none simulated).
 double corotationChanges(const std::vector<PlacedPlan>& plans, const std::string& csv) {
-  ng::report::Table table({"scene", "target", "change_mm", "corotational_cpu_s", "linear_mm"});
+  ng::report::Table table(
+      {"scene", "target", "change_mm", "corotational_cpu_s", "linear_mm", "refusal"});
   double worst = -1.0;
   for (std::size_t i = 0; i < plans.size();) {
     const t3::TissueScene3d scene = t3::loadTissueScene3d(plans[i].file);
@@ -116,16 +117,21 @@ double corotationChanges(const std::vector<PlacedPlan>& plans, const std::string
     for (; i < plans.size() && plans[i].file == scene.source; ++i) {
       const PlacedPlan& p = plans[i];
       const double start = cpuNow();
-      const t3::Vector3 seed = planner.simulateImplant(p.lateral, p.tip_x_m);
-      const double change = (seed - p.seed_linear).norm();
-      worst = std::max(worst, change);
       const t3::Target3& target =
           *std::find_if(scene.targets.begin(), scene.targets.end(),
                         [&](const t3::Target3& t) { return t.name == p.target; });
-      table.addRow({scene.name, p.target, change * 1e3, cpuNow() - start,
-                    (p.seed_linear - target.position_m).norm() * 1e3});
+      double change = -1.0;
+      std::string refusal;
+      try {
+        change = (planner.simulateImplant(p.lateral, p.tip_x_m) - p.seed_linear).norm();
+        worst = std::max(worst, change);
+      } catch (const std::runtime_error& e) {
+        refusal = e.what();
+      }
+      table.addRow({scene.name, p.target, mmOrUndefined(change), cpuNow() - start,
+                    (p.seed_linear - target.position_m).norm() * 1e3, refusal});
       std::cout << "  corotational " << scene.name << "/" << p.target << ": seed moves "
-                << change * 1e3 << " mm\n";
+                << change * 1e3 << " mm " << refusal << "\n";
     }
   }
   table.writeCsv(csv);
@@ -389,7 +395,13 @@ int main(int argc, char** argv) {
     const ScalingRow r50_linear = nearestRow(5e4);
     double scale50 = std::cbrt(probe.elementCount() / 5e4);
     scale50 *= std::cbrt(t3::meshTissue3d(base, {}, scale50).elementCount() / 5e4);
-    const ScalingRow r50_corot = scalingRun(base, scale50, true);
+    ScalingRow r50_corot;
+    r50_corot.steps_per_s = -1.0;
+    try {
+      r50_corot = scalingRun(base, scale50, true);
+    } catch (const std::runtime_error& e) {
+      std::cout << "  corotational scaling run refused: " << e.what() << "\n";
+    }
     std::cout << "  corotational, " << r50_corot.tets << " tets: " << r50_corot.steps_per_s
               << " steps/s (linear " << r50_linear.steps_per_s << " at " << r50_linear.tets
               << ")\n";
@@ -429,9 +441,12 @@ int main(int argc, char** argv) {
          << ",\n  \"planned_error_mm_max_slice\": "
          << mmKey(slice_planned_max >= 0.0, slice_planned_max)
          << ",\n  \"tets_50k_corotational\": " << r50_corot.tets
-         << ",\n  \"steps_per_s_50k_tets_corotational\": " << jsonNumber(r50_corot.steps_per_s)
+         << ",\n  \"steps_per_s_50k_tets_corotational\": "
+         << (r50_corot.steps_per_s > 0.0 ? jsonNumber(r50_corot.steps_per_s) : "null")
          << ",\n  \"corotation_cpu_fraction_50k\": "
-         << jsonNumber(r50_corot.corotation_cpu_s / std::max(r50_corot.insertion_cpu_s, 1e-9))
+         << (r50_corot.steps_per_s > 0.0 ? jsonNumber(r50_corot.corotation_cpu_s /
+                                                      std::max(r50_corot.insertion_cpu_s, 1e-9))
+                                         : "null")
          << ",\n  \"corotational_seed_change_mm_max\": " << mmKey(corot_change >= 0.0, corot_change)
          << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());

@@ -59,8 +59,11 @@ public:
   /// element forces (fem::corotatedElement) less the linear ones. Equilibrium under nodal
   /// forces f is the fixed point u = K^-1 f + v(u), solved with the factored linear K as the
   /// preconditioner on the rotation residual (warped stiffness, Mueller et al. 2002). Empty for
-  /// a linear model. Throws std::runtime_error naming the element if one inverts.
+  /// a linear model. Throws std::runtime_error if the result is not finite.
   Eigen::VectorXd corotationDisplacement(const Eigen::VectorXd& u) const;
+  /// Elements inverted (det F <= 0) at the u of the last corotationDisplacement; they take the
+  /// proper rotation nearest to F.
+  int invertedElements() const { return inverted_elements_; }
   /// CPU time spent in corotationDisplacement so far [s].
   double corotationCpuSeconds() const { return corotation_cpu_s_; }
   fem::CondensedCompliance& compliance() { return *compliance_; }
@@ -80,6 +83,7 @@ private:
   std::vector<Eigen::Matrix<double, 4, 3>> gradients_;
   std::vector<fem::ElementMatrix<3>> element_stiffness_;
   mutable double corotation_cpu_s_ = 0.0;
+  mutable int inverted_elements_ = 0;
 };
 
 /// Figures of the last move, for reports.
