@@ -231,6 +231,32 @@ TEST(Tissue3dInsertion, SlowNeedleShaftSticks) {
   EXPECT_TRUE(saw_stuck);  // points cut by a slow needle stick before the drag makes them slip
 }
 
+TEST(Tissue3dInsertion, SeedsOfEarlierNeedlesStayAndMoveWithTheTissue) {
+  // tissue_sim's reset between needles: a fresh needle takes over the implant's seeds.
+  constexpr double kMoved_m = 1e-6;  // the next needle visibly displaces the kept seed
+  Fixture f(testScene());
+  NeedleInsertion3 first(f.model, f.scene.needle, 0.0, 0.04);
+  const Eigen::Vector2d a(1e-3, 2e-3), b(1e-3, 5e-3);
+  for (double s = 0.0; s <= 0.036 + 1e-12; s += 1e-3) {
+    ASSERT_TRUE(first.moveTo(a, s));
+  }
+  ASSERT_TRUE(first.implantSeed().has_value());
+  ASSERT_TRUE(first.moveTo(a, -1e-3));
+  NeedleInsertion3 second(f.model, f.scene.needle, 0.0, 0.04);
+  EXPECT_EQ(second.addSeed(first.seedReference(0)), 0);
+  EXPECT_LT((second.seedWorld(0) - first.seedWorld(0)).norm(), kRelaxed_m);
+  for (double s = 0.0; s <= 0.038 + 1e-12; s += 1e-3) {  // 3 mm beside the first track
+    ASSERT_TRUE(second.moveTo(b, s));
+  }
+  EXPECT_GT((second.seedWorld(0) - second.seedReference(0)).norm(), kMoved_m);
+  ASSERT_TRUE(second.implantSeed().has_value());
+  EXPECT_EQ(second.seedCount(), 2);
+  ASSERT_TRUE(second.moveTo(b, -1e-3));
+  EXPECT_LT((second.seedWorld(0) - second.seedReference(0)).norm(), kRelaxed_m);
+  EXPECT_THROW(second.addSeed(Vector3(1.0, 0.0, 0.0)), std::invalid_argument);
+  EXPECT_EQ(second.seedCount(), 2);
+}
+
 TEST(Tissue3dInsertion, HalvingTheStepMovesNoSeed) {
   Fixture f(testScene());
   OffsetPlanner3 planner(f.scene, f.model);
