@@ -92,7 +92,7 @@ std::vector<double> femInsertionForce(const CalibrationBlock& block,
       throw std::runtime_error("femInsertionForce: the simulation refused depth " +
                                formatNumber(sim.gridDepth(k)) + " m: " + status.message);
     }
-    const tissue::InsertionStepInfo& info = sim.needle().lastStep();
+    const tissue::InsertionStepInfo& info = sim.lastStep();
     grid_depth.push_back(sim.gridDepth(k));
     grid_force.push_back(info.tip_force_N + info.friction_force_N);
   }

@@ -4,6 +4,7 @@
 #include <Eigen/CholmodSupport>
 #include <algorithm>
 #include <ctime>
+#include <mutex>
 #include <stdexcept>
 #include <string>
 
@@ -12,6 +13,8 @@ namespace needle_guidance::fem {
 struct CondensedCompliance::Impl {
   Eigen::CholmodSupernodalLLT<SparseMatrix, Eigen::Lower> llt;
   std::size_t factor_bytes = 0;
+  /// Guards the column cache and CHOLMOD's workspace: copies of a needle share one compliance.
+  std::mutex mutex;
 };
 
 CondensedCompliance::CondensedCompliance(const SparseMatrix& k, const std::vector<char>& fixed_dof)
@@ -69,6 +72,7 @@ CondensedCompliance::CondensedCompliance(const SparseMatrix& k, const std::vecto
 CondensedCompliance::~CondensedCompliance() = default;
 
 void CondensedCompliance::require(const std::vector<int>& dofs) {
+  const std::lock_guard<std::mutex> lock(impl_->mutex);
   std::vector<int> todo;
   for (int d : dofs) {
     if (d < 0 || d >= dofCount()) {
@@ -130,6 +134,7 @@ Eigen::VectorXd CondensedCompliance::solve(const Eigen::VectorXd& force_N) const
                                 std::to_string(force_N.size()) + " entries for " +
                                 std::to_string(dofCount()) + " DOFs");
   }
+  const std::lock_guard<std::mutex> lock(impl_->mutex);
   const int m = static_cast<int>(free_dofs_.size());
   Eigen::VectorXd b(m);
   for (int r = 0; r < m; ++r) {

@@ -195,6 +195,21 @@ RigidPlan RigidPlanner::check(const Point2& target) const {
                     "target lies in rigid region '" + region.name + "'");
     }
   }
+  if (sim_options_.needle_model == tissue::NeedleModel::kEmbeddedTrack) {
+    // The embedded track cuts along the needle's line and the seed lands on it: the needle must
+    // reach the target at its own height, so bone on that line in front of it is a wall.
+    constexpr double kLineSample_m = 1e-4;
+    for (double x = scene_.workspace_min.x(); x < target.x(); x += kLineSample_m) {
+      for (const auto& region : scene_.regions) {
+        if (region.rigid && region.polygon.contains(Point2(x, target.y()))) {
+          return refuse(PlanCode::kTargetOutsideTissue,
+                        "the needle line to the target (height " + mm(target.y()) +
+                            ") meets rigid region '" + region.name + "' at depth " + mm(x) +
+                            ", short of the target depth " + mm(target.x()));
+        }
+      }
+    }
+  }
   if (target.y() < scene_.needle.min_height_m || target.y() > scene_.needle.max_height_m) {
     return refuse(PlanCode::kHeightOutOfRange,
                   "target height " + mm(target.y()) + " is outside the needle's range [" +
@@ -269,7 +284,7 @@ DepthScan RigidPlanner::scan(tissue::TissueSimulation& sim, double height_m, con
     if (!status) {
       throw std::runtime_error("RigidPlanner: simulation step refused: " + status.toString());
     }
-    const std::optional<Point2> tip = sim.needle().tipReference();
+    const std::optional<Point2> tip = sim.tipReference();
     if (!tip) {
       continue;  // not in tissue yet
     }
@@ -566,10 +581,14 @@ void RigidPlanner::runGridScan(tissue::TissueSimulation& sim, DepthScan& scan, c
   for (long k = sim.gridPosition() + 1; k <= last; ++k) {
     const double x = sim.gridDepth(k);
     const tissue::StepStatus status = sim.advance(dt_s, scan.height_m, x);
+    if (!status && scan.implant.size() >= 2 &&
+        status.toString().find("rigid tissue") != std::string::npos) {
+      break;  // the needle meets bone at this height: no deeper release exists here
+    }
     if (!status) {
       throw std::runtime_error("RigidPlanner: simulation step refused: " + status.toString());
     }
-    const std::optional<Point2> tip = sim.needle().tipReference();
+    const std::optional<Point2> tip = sim.tipReference();
     if (tip && addGridPoint(scan, x, *tip, target, &sim, stop_past_target)) {
       break;
     }
@@ -815,11 +834,44 @@ RigidPlan RigidPlanner::plan(const Point2& target, double first_height_offset_m)
   });
 }
 
+namespace {
+
+/// Why no release lands near the target when the cut front jumps over it: of the scans, the one
+/// nearest the target's height whose implant curve passes the target's depth in one step longer
+/// than the tolerance (the cut is unstable there: the tip force stays above the cutting force
+/// across the stretch, so no tip ever rests in it). Empty when no scan shows such a jump.
+std::string jumpOver(const std::vector<DepthScan>& scans, const Point2& target, double tolerance) {
+  const DepthScan* nearest = nullptr;
+  std::size_t at = 0;
+  for (const DepthScan& scan : scans) {
+    for (std::size_t i = 1; i < scan.implant.size(); ++i) {
+      const Point2 &a = scan.implant[i - 1], &b = scan.implant[i];
+      if (a.x() < target.x() && b.x() > target.x() && (b - a).norm() > tolerance &&
+          (!nearest ||
+           std::abs(scan.height_m - target.y()) < std::abs(nearest->height_m - target.y()))) {
+        nearest = &scan;
+        at = i;
+      }
+    }
+  }
+  if (!nearest) {
+    return "";
+  }
+  return "; at height " + mm(nearest->height_m) + " the cut front jumps from depth " +
+         mm(nearest->implant[at - 1].x()) + " to " + mm(nearest->implant[at].x()) +
+         " over the target while the tip moves " +
+         mm(nearest->depth_m[at] - nearest->depth_m[at - 1]) +
+         " (the tip force stays above the cutting force there: no tip rests in that stretch)";
+}
+
+}  // namespace
+
 void RigidPlanner::finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_steps,
                                       double work) const {
   const int simulations = plan.simulations, verifications = plan.verifications,
             corrections = plan.corrections;
   const bool budget_expired = plan.budget_expired;
+  const Point2 target = plan.target;
   std::vector<DepthScan> scans = std::move(plan.scans);
   plan = std::move(best);
   plan.scans = std::move(scans);
@@ -845,7 +897,8 @@ void RigidPlanner::finishVerifiedPlan(RigidPlan& plan, RigidPlan best, long fem_
                                                     mm(plan.predicted_error_m) + ", tolerance " +
                                                     mm(plan.tolerance_m) +
                                                     "): a full simulation would exceed the budget";
-    plan.message = (budget_expired ? budget.str() : std::string()) + figures;
+    plan.message = (budget_expired ? budget.str() : std::string()) + figures +
+                   jumpOver(plan.scans, target, plan.tolerance_m);
     if (options_.refuse_over_tolerance) {
       plan.code = PlanCode::kOutOfTolerance;
       plan.message = std::string("RigidPlanner: ") + toString(plan.code) + ": " + plan.message;

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "needle_guidance/fem/embedded_needle.h"
 #include "needle_guidance/geometry/triangle_mesh.h"
 
 namespace needle_guidance::ros_conversions {
@@ -214,13 +215,50 @@ visualization_msgs::MarkerArray sceneToMarkers(const scene::Scene& scene,
   return array;
 }
 
+namespace {
+
+/// World positions of the shaft's nodes (node-moving model) or tissue points (embedded track).
+std::vector<geometry::Point2> shaftWorld(const tissue::TissueSimulation& sim,
+                                         const std::vector<geometry::Point2>& nodes) {
+  std::vector<geometry::Point2> out;
+  if (sim.needleModel() == tissue::NeedleModel::kNodeMoving) {
+    for (int node : sim.needle().shaftNodes()) {
+      out.push_back(nodes[static_cast<std::size_t>(node)]);
+    }
+    return out;
+  }
+  for (const geometry::Point2& p : sim.shaftReference()) {
+    out.emplace_back(sim.trackNeedle().worldOf(p));
+  }
+  return out;
+}
+
+/// World position of the tip node, or of the tip's tissue point (on the needle tip).
+std::optional<geometry::Point2> tipWorld(const tissue::TissueSimulation& sim,
+                                         const std::vector<geometry::Point2>& nodes) {
+  if (sim.needleModel() == tissue::NeedleModel::kNodeMoving) {
+    if (sim.needle().tipNode() < 0) {
+      return std::nullopt;
+    }
+    return nodes[static_cast<std::size_t>(sim.needle().tipNode())];
+  }
+  if (!sim.needleInTissue()) {
+    return std::nullopt;
+  }
+  return geometry::Point2(sim.tipX(), sim.trackNeedle().lateral()(0));
+}
+
+}  // namespace
+
 visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& sim,
                                                 const std::string& colour_by,
                                                 const std::string& frame_id) {
   visualization_msgs::MarkerArray array;
-  const auto& mesh = sim.model().mesh();
+  const auto& mesh = sim.mesh();
   const std::vector<geometry::Point2> nodes = sim.deformedNodes();
-  const bool by_stress = colour_by == "stress";
+  // Stress colours need the node-moving model's elements; the embedded track colours by region.
+  const bool by_stress =
+      colour_by == "stress" && sim.needleModel() == tissue::NeedleModel::kNodeMoving;
   Eigen::VectorXd stress;
   double max_stress = 0.0;
   if (by_stress) {
@@ -272,8 +310,8 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
       baseMarker(frame_id, "shaft_nodes", 0, visualization_msgs::Marker::SPHERE_LIST);
   shaft.scale.x = shaft.scale.y = shaft.scale.z = 0.0006;
   shaft.color = colour(1.0F, 0.55F, 0.0F, 1.0F);
-  for (int node : sim.needle().shaftNodes()) {
-    shaft.points.push_back(toMessage(nodes[static_cast<std::size_t>(node)]));
+  for (const geometry::Point2& p : shaftWorld(sim, nodes)) {
+    shaft.points.push_back(toMessage(p));
     shaft.points.back().z = 0.0006;
   }
   if (shaft.points.empty()) {
@@ -284,8 +322,8 @@ visualization_msgs::MarkerArray tissueToMarkers(const tissue::TissueSimulation& 
       baseMarker(frame_id, "tip_node", 0, visualization_msgs::Marker::SPHERE);
   tip.scale.x = tip.scale.y = tip.scale.z = 0.0009;
   tip.color = colour(0.9F, 0.0F, 0.0F, 1.0F);
-  if (sim.needle().tipNode() >= 0) {
-    tip.pose.position = toMessage(nodes[static_cast<std::size_t>(sim.needle().tipNode())]);
+  if (const std::optional<geometry::Point2> p = tipWorld(sim, nodes)) {
+    tip.pose.position = toMessage(*p);
     tip.pose.position.z = kMarkerOverlay_m + 0.0015;
   } else {
     tip.action = visualization_msgs::Marker::DELETE;

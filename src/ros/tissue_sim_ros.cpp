@@ -57,6 +57,7 @@ TissueSimRos::TissueSimRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
     throw std::runtime_error("parameter 'formulation' = '" + formulation +
                              "' is not one of '' (the scene's), linear, averaged_volumetric");
   }
+  options.needle_model = tissue::needleModelFor(options);
   const double rate_hz = ros_params::number(private_nh, "rate_hz", 200.0, 1.0, 5000.0, "Hz");
   const double marker_rate_hz =
       ros_params::number(private_nh, "marker_rate_hz", 20.0, 0.1, rate_hz, "Hz");
@@ -83,10 +84,10 @@ TissueSimRos::TissueSimRos(ros::NodeHandle& nh, ros::NodeHandle& private_nh) {
   sim_ = std::make_unique<tissue::TissueSimulation>(scene, options);
   const double build_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-  ROS_INFO_STREAM("tissue_sim: scene '"
-                  << scene.name << "', " << sim_->model().mesh().triangleCount() << " triangles, "
-                  << sim_->model().nodeCount() << " nodes, " << tissue::toString(options.integrator)
-                  << ", built in " << build_ms << " ms");
+  ROS_INFO_STREAM("tissue_sim: scene '" << scene.name << "', " << sim_->mesh().triangleCount()
+                                        << " triangles, " << sim_->mesh().nodeCount() << " nodes, "
+                                        << tissue::toString(options.integrator) << ", built in "
+                                        << build_ms << " ms");
   image_geometry_ = tissue::forWorkspace(scene, pixel_size_m);
   reference_image_ =
       tissue::referenceImage(scene, image_geometry_, static_cast<std::uint32_t>(image_seed));
@@ -131,14 +132,14 @@ void TissueSimRos::onStepTimer(const ros::TimerEvent& /*event*/) {
     ROS_ERROR_STREAM_THROTTLE_NAMED(2.0, "tissue_sim",
                                     "tissue_sim: step refused: " << status.toString());
   }
-  const tissue::InsertionStepInfo& info = sim_->needle().lastStep();
+  const tissue::InsertionStepInfo& info = sim_->lastStep();
   TissueStatus msg;
   msg.header.stamp = now;
   msg.header.frame_id = "scene";
-  msg.needle_in_tissue = sim_->needle().inTissue();
+  msg.needle_in_tissue = sim_->needleInTissue();
   msg.tip_force_N = info.tip_force_N;
   msg.friction_force_N = info.friction_force_N;
-  msg.shaft_nodes = static_cast<int>(sim_->needle().shaftNodes().size());
+  msg.shaft_nodes = sim_->shaftCount();
   msg.slipping_nodes = info.slipping;
   msg.cuts = info.cuts;
   msg.relocations = info.relocations;
@@ -176,8 +177,8 @@ void TissueSimRos::onImageTimer(const ros::TimerEvent& /*event*/) {
     return;
   }
   try {
-    const cv::Mat warped = tissue::warpImage(
-        reference_image_, image_geometry_, sim_->model().mesh(), sim_->integrator().displacement());
+    const cv::Mat warped =
+        tissue::warpImage(reference_image_, image_geometry_, sim_->mesh(), sim_->displacement());
     cv_bridge::CvImage image(std_msgs::Header(), "mono8", warped);
     image.header.stamp = ros::Time::now();
     image.header.frame_id = "scene_image";

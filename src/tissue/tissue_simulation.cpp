@@ -3,6 +3,8 @@
 #include <cmath>
 #include <stdexcept>
 
+#include "needle_guidance/fem/embedded_needle.h"
+
 namespace needle_guidance::tissue {
 namespace {
 
@@ -28,12 +30,24 @@ IntegratorKind integratorFor(scene::TissueModel model) {
 
 }  // namespace
 
+const char* toString(NeedleModel model) {
+  return model == NeedleModel::kEmbeddedTrack ? "embedded_track" : "node_moving";
+}
+
+NeedleModel needleModelFor(const TissueSimOptions& options) {
+  return options.integrator == IntegratorKind::kQuasiStatic && !options.corotational &&
+                 options.formulation == ElementFormulation::kLinear
+             ? NeedleModel::kEmbeddedTrack
+             : NeedleModel::kNodeMoving;
+}
+
 TissueSimOptions optionsFromScene(const scene::Scene& scene) {
   TissueSimOptions options;
   options.integrator = integratorFor(scene.models.tissue);
   options.corotational = scene.models.corotational;
   options.formulation = scene.models.averaged_volumetric ? ElementFormulation::kAveragedVolumetric
                                                          : ElementFormulation::kLinear;
+  options.needle_model = needleModelFor(options);
   options.depth_grid.insert_velocity_m_s = scene.needle.insertion_velocity_m_s;
   options.depth_grid.retract_velocity_m_s = 2.0 * scene.needle.insertion_velocity_m_s;
   options.meshing.max_edge_m = scene.mesh.max_edge_m;
@@ -76,6 +90,14 @@ TissueSimulation::TissueSimulation(const scene::Scene& scene, const TissueSimOpt
         "velocities > 0 (step " +
         std::to_string(grid.step_m) + " m, stride " + std::to_string(grid.retract_stride) + ")");
   }
+  if (embedded() &&
+      (options_.integrator != IntegratorKind::kQuasiStatic || options_.corotational ||
+       options_.formulation != ElementFormulation::kLinear || !(options_.track_spacing_m > 0.0))) {
+    throw std::invalid_argument(
+        "TissueSimulation: the embedded track needs the quasi-static integrator, linear "
+        "elements (not corotational, not averaged volumetric) and a track spacing > 0 (" +
+        std::to_string(options_.track_spacing_m) + " m)");
+  }
   initial_mesh_ = geometry::meshDomain(scene_.workspacePolygon(), scene_.background_material,
                                        scene_.meshRegions(), options_.meshing);
 
@@ -109,7 +131,52 @@ TissueSimulation::TissueSimulation(const scene::Scene& scene, const TissueSimOpt
       fixed_dofs_.push_back(dofY(static_cast<int>(node)));
     }
   }
-  build();
+  if (embedded()) {
+    buildTrack();
+  } else {
+    build();
+  }
+}
+
+/// The embedded track's tissue: the mesh as generated (never cut) and its factored compliance.
+struct TissueSimulation::Track {
+  fem::SimplexMesh<2> mesh;
+  std::unique_ptr<fem::EmbeddingTissue<2>> tissue;
+  fem::EmbeddedNeedleParams params;
+  double max_tip_x_m = 0.0;
+};
+
+void TissueSimulation::buildTrack() {
+  auto track = std::make_shared<Track>();
+  track->mesh.nodes = initial_mesh_.nodes;
+  std::vector<fem::Material> materials;
+  for (std::size_t t = 0; t < initial_mesh_.triangleCount(); ++t) {
+    track->mesh.elements.push_back(initial_mesh_.triangles[t]);
+    track->mesh.element_material.push_back(static_cast<int>(t));
+    materials.push_back(
+        {element_materials_[t].young_modulus_Pa, element_materials_[t].poisson_ratio});
+  }
+  std::vector<char> node_fixed(initial_mesh_.nodeCount(), 0);
+  for (std::size_t i = 0; i < fixed_dofs_.size(); i += 2) {
+    node_fixed[static_cast<std::size_t>(fixed_dofs_[i] / 2)] = 1;
+  }
+  track->tissue = std::make_unique<fem::EmbeddingTissue<2>>(track->mesh, node_fixed, materials,
+                                                            scene_.thickness_m);
+  const NeedleParams needle = needleParamsFromScene(scene_);
+  track->params.cutting_force_N = needle.cutting_force_N;
+  track->params.static_friction_N_per_m = needle.static_friction_N_per_m;
+  track->params.kinetic_friction_N_per_m = needle.kinetic_friction_N_per_m;
+  track->params.stick_velocity_m_s = needle.stick_velocity_m_s;
+  track->params.insertion_velocity_m_s = scene_.needle.insertion_velocity_m_s;
+  track->params.track_spacing_m = options_.track_spacing_m;
+  // The compliance along the needle line is solved in one batch up to the deepest tip the
+  // needle may reach; deeper elements are solved as the tip meets them.
+  track->max_tip_x_m = scene_.needle.max_depth_m > scene_.workspace_min.x()
+                           ? std::min(scene_.needle.max_depth_m, scene_.workspace_max.x())
+                           : scene_.workspace_max.x();
+  track_ = track;
+  track_needle_ = std::make_unique<fem::EmbeddedNeedle<2>>(
+      *track_->tissue, track_->params, scene_.workspace_min.x(), track_->max_tip_x_m);
 }
 
 struct TissueSimulation::Pristine {
@@ -129,6 +196,13 @@ TissueSimulation::TissueSimulation(const TissueSimulation& other)
       grid_k_(other.grid_k_),
       fem_steps_(other.fem_steps_),
       solver_work_(other.solver_work_) {
+  if (other.embedded()) {
+    track_ = other.track_;
+    track_needle_ = std::make_unique<fem::EmbeddedNeedle<2>>(*other.track_needle_);
+    track_seeds_ = other.track_seeds_;
+    track_info_ = other.track_info_;
+    return;
+  }
   if (!other.copyable()) {
     throw std::logic_error("TissueSimulation: the " +
                            std::string(toString(other.integrator_->kind())) +
@@ -188,6 +262,9 @@ void TissueSimulation::build() {
 
 StepStatus TissueSimulation::needleStep(double dt_s, double needle_height_m, double tip_x_m) {
   ++fem_steps_;
+  if (embedded()) {
+    return trackStep(dt_s, needle_height_m, tip_x_m);
+  }
   const Integrator::SolverCounters before = integrator_->solverCounters();
   const StepStatus status = needle_->step(dt_s, needle_height_m, tip_x_m);
   const Integrator::SolverCounters after = integrator_->solverCounters();
@@ -263,6 +340,13 @@ StepStatus TissueSimulation::advance(double dt_s, double needle_height_m, double
 
 void TissueSimulation::reset() {
   grid_k_ = -1;
+  if (embedded()) {
+    track_needle_ = std::make_unique<fem::EmbeddedNeedle<2>>(
+        *track_->tissue, track_->params, scene_.workspace_min.x(), track_->max_tip_x_m);
+    track_seeds_.clear();
+    track_info_ = InsertionStepInfo{};
+    return;
+  }
   if (pristine_) {
     copyParts(*pristine_->model, *pristine_->integrator, *pristine_->needle);
     return;
@@ -271,6 +355,177 @@ void TissueSimulation::reset() {
   integrator_.reset();
   model_.reset();
   build();
+}
+
+StepStatus TissueSimulation::trackStep(double dt_s, double needle_height_m, double tip_x_m) {
+  auto refuse = [](const std::string& why) { return StepStatus{false, "needle step: " + why}; };
+  if (!std::isfinite(dt_s) || !(dt_s > 0.0) || !std::isfinite(needle_height_m) ||
+      !std::isfinite(tip_x_m)) {
+    return refuse("non-finite input or dt <= 0");
+  }
+  if (needle_height_m <= scene_.workspace_min.y() || needle_height_m >= scene_.workspace_max.y()) {
+    return refuse("needle height " + std::to_string(needle_height_m * 1e3) +
+                  " mm is outside the tissue (" + std::to_string(scene_.workspace_min.y() * 1e3) +
+                  " to " + std::to_string(scene_.workspace_max.y() * 1e3) + " mm)");
+  }
+  if (tip_x_m >= scene_.workspace_max.x()) {
+    return refuse("tip x " + std::to_string(tip_x_m * 1e3) + " mm is beyond the tissue (" +
+                  std::to_string(scene_.workspace_max.x() * 1e3) + " mm)");
+  }
+  const fem::CondensedCompliance& compliance = track_->tissue->compliance();
+  const long long solves_before = track_needle_->totalSolves();
+  const long long columns_before = compliance.solvedColumns();
+  const int shaft_before = track_needle_->lastMove().shaft_points;
+  // A move refused half-way (the track meets bone, or leaves the mesh) leaves the state as it
+  // was: the needle is moved on a copy.
+  auto moved = std::make_unique<fem::EmbeddedNeedle<2>>(*track_needle_);
+  std::string why;
+  if (!moved->moveTo(Eigen::Matrix<double, 1, 1>(needle_height_m), tip_x_m, &why)) {
+    return refuse(why);
+  }
+  track_needle_ = std::move(moved);
+  const fem::EmbeddedNeedleInfo& info = track_needle_->lastMove();
+  track_info_ = InsertionStepInfo{};
+  track_info_.events = info.events;
+  track_info_.slipping = info.slipping;
+  track_info_.promoted = std::max(0, info.shaft_points - shaft_before);
+  track_info_.released = std::max(0, shaft_before - info.shaft_points);
+  track_info_.tip_force_N = info.tip_force_N;
+  track_info_.friction_force_N = info.friction_force_N;
+  // Work in the node-moving model's unit (millions of factor entries touched): each compliance
+  // column is one solve with the sparse factor, each condensed solve touches its dense system.
+  const double points = info.shaft_points + 1.0;
+  solver_work_ += 1e-6 * (static_cast<double>(compliance.solvedColumns() - columns_before) *
+                              static_cast<double>(compliance.memoryBytes()) / sizeof(double) / 8.0 +
+                          static_cast<double>(track_needle_->totalSolves() - solves_before) * 4.0 *
+                              points * points);
+  return StepStatus{};
+}
+
+std::optional<int> TissueSimulation::implantSeed(std::string* why_not) {
+  if (!embedded()) {
+    return needle_->implantSeed(why_not);
+  }
+  const std::optional<int> id = track_needle_->implantSeed(why_not);
+  if (!id) {
+    return id;
+  }
+  Seed seed;
+  seed.id = static_cast<int>(track_seeds_.size());
+  seed.p_ref = track_needle_->seedReference(*id);
+  if (const auto p = track_->tissue->locate(seed.p_ref)) {
+    seed.triangle = p->element;
+    seed.barycentric = {p->weights(0), p->weights(1), p->weights(2)};
+  }
+  track_seeds_.push_back(seed);
+  return seed.id;
+}
+
+const std::vector<Seed>& TissueSimulation::seeds() const {
+  return embedded() ? track_seeds_ : needle_->seeds();
+}
+
+Point2 TissueSimulation::seedPosition(const Seed& seed) const {
+  return embedded() ? Point2(track_needle_->worldOf(seed.p_ref)) : needle_->seedPosition(seed);
+}
+
+Eigen::VectorXd TissueSimulation::displacement() const {
+  return embedded() ? track_needle_->displacementField() : integrator_->displacement();
+}
+
+std::vector<Point2> TissueSimulation::deformedNodes() const {
+  if (!embedded()) {
+    return needle_->deformedNodes();
+  }
+  const Eigen::VectorXd u = displacement();
+  std::vector<Point2> nodes = initial_mesh_.nodes;
+  for (std::size_t i = 0; i < nodes.size(); ++i) {
+    nodes[i] += u.segment<2>(2 * static_cast<Eigen::Index>(i));
+  }
+  return nodes;
+}
+
+const geometry::TriangleMesh& TissueSimulation::mesh() const {
+  return embedded() ? initial_mesh_ : model_->mesh();
+}
+
+bool TissueSimulation::needleInTissue() const {
+  return embedded() ? track_needle_->inTissue() : needle_->inTissue();
+}
+
+double TissueSimulation::tipX() const {
+  return embedded() ? track_needle_->tipX() : needle_->tipX();
+}
+
+std::optional<Point2> TissueSimulation::tipReference() const {
+  if (!embedded()) {
+    return needle_->tipReference();
+  }
+  if (!track_needle_->inTissue()) {
+    return std::nullopt;
+  }
+  return Point2(track_needle_->tipReference());
+}
+
+int TissueSimulation::shaftCount() const {
+  return embedded() ? track_needle_->lastMove().shaft_points
+                    : static_cast<int>(needle_->shaftNodes().size());
+}
+
+std::vector<Point2> TissueSimulation::shaftReference() const {
+  std::vector<Point2> out;
+  if (embedded()) {
+    for (const auto& p : track_needle_->shaftReference()) {
+      out.emplace_back(p);
+    }
+    return out;
+  }
+  for (int node : needle_->shaftNodes()) {
+    out.push_back(model_->mesh().nodes[static_cast<std::size_t>(node)]);
+  }
+  return out;
+}
+
+const InsertionStepInfo& TissueSimulation::lastStep() const {
+  return embedded() ? track_info_ : needle_->lastStep();
+}
+
+namespace {
+
+[[noreturn]] void notOnTrack(const char* what) {
+  throw std::logic_error(std::string("TissueSimulation::") + what +
+                         ": the embedded track has no node-moving model; use the needle-model "
+                         "independent accessors");
+}
+
+}  // namespace
+
+const FemModel& TissueSimulation::model() const {
+  if (embedded()) {
+    notOnTrack("model");
+  }
+  return *model_;
+}
+
+const Integrator& TissueSimulation::integrator() const {
+  if (embedded()) {
+    notOnTrack("integrator");
+  }
+  return *integrator_;
+}
+
+const NeedleInsertion& TissueSimulation::needle() const {
+  if (embedded()) {
+    notOnTrack("needle");
+  }
+  return *needle_;
+}
+
+const fem::EmbeddedNeedle<2>& TissueSimulation::trackNeedle() const {
+  if (!embedded()) {
+    throw std::logic_error("TissueSimulation::trackNeedle: the node-moving model has no track");
+  }
+  return *track_needle_;
 }
 
 }  // namespace needle_guidance::tissue

@@ -352,8 +352,7 @@ void speedSweep(const ng::scene::Scene& scene, const ng::rigid_planning::RigidPl
     ng::tissue::TissueSimOptions sim_options = ng::tissue::optionsFromScene(scene);
     sim_options.meshing.max_edge_m *= scale;
     sim_options.meshing.min_edge_m *= scale;
-    const std::size_t nodes =
-        ng::tissue::TissueSimulation(scene, sim_options).model().mesh().nodeCount();
+    const std::size_t nodes = ng::tissue::TissueSimulation(scene, sim_options).mesh().nodeCount();
     for (double dz_mm : steps_mm) {
       ng::rigid_planning::PlannerOptions o = planner.options();
       o.depth_step_m = 1e-3 * dz_mm;
@@ -404,6 +403,9 @@ std::string convergenceStudy(const ng::scene::Scene& scene, bool quick,
     ng::tissue::TissueSimOptions options = ng::tissue::optionsFromScene(scene);
     options.depth_grid.step_m = 0.0;
     options.locate_events = located;
+    if (!located) {  // events at the step end: the node-moving model, which can place them so
+      options.needle_model = ng::tissue::NeedleModel::kNodeMoving;
+    }
     std::vector<Point2> seeds;
     for (double step_mm : steps_mm) {
       ng::rigid_planning::ImplantSchedule schedule;

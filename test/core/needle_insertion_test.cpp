@@ -1,5 +1,6 @@
-// NeedleInsertion on the default prostate scene (quasi-static): tip and shaft constraints,
-// cutting, friction, retraction, seeds, refusals, and no inverted element ever (figure 2.9).
+// NeedleInsertion (the node-moving cut) on the default prostate scene (quasi-static): tip and
+// shaft constraints, cutting, friction, retraction, seeds, refusals, and no inverted element ever
+// (figure 2.9).
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -14,6 +15,13 @@ namespace {
 constexpr double kConstraintTol_m = 1e-9;  // constrained nodes sit on the needle
 constexpr double kDt_s = 0.005;
 constexpr double kVelocity_m_s = 0.01;
+
+/// The scene's options on the node-moving model.
+TissueSimOptions nodeMoving(const scene::Scene& scene) {
+  TissueSimOptions options = optionsFromScene(scene);
+  options.needle_model = NeedleModel::kNodeMoving;
+  return options;
+}
 
 double minAreaRatio(const TissueSimulation& sim) {
   const auto& mesh = sim.model().mesh();
@@ -52,7 +60,8 @@ void drive(TissueSimulation& sim, double height_m, double x0, double x1,
 
 class NeedleInsertionTest : public ::testing::Test {
 protected:
-  NeedleInsertionTest() : scene_(scene::defaultScene("prostate_sagittal")), sim_(scene_) {}
+  NeedleInsertionTest()
+      : scene_(scene::defaultScene("prostate_sagittal")), sim_(scene_, nodeMoving(scene_)) {}
   scene::Scene scene_;
   TissueSimulation sim_;
 };
@@ -131,7 +140,7 @@ TEST(NeedleInsertionHardCases, NoInvertedElementOnCoarseMeshesAtManyHeights) {
   int relocations = 0;
   double min_ratio = 1e300;
   for (int trial = 0; trial < 12; ++trial) {
-    TissueSimulation sim(scene);
+    TissueSimulation sim(scene, nodeMoving(scene));
     const double h = height(rng);
     const double x_end = 0.045;
     const int steps = 150;
@@ -167,7 +176,7 @@ TEST(NeedleInsertionHardCases, NeedlePathAlongARegionBoundary) {
        false});
   scene.targets.clear();
   scene.targets.push_back({"on_boundary", Point2(0.04, kBoundaryY_m), 0.0});
-  TissueSimulation sim(scene);
+  TissueSimulation sim(scene, nodeMoving(scene));
   double min_ratio = 1e300;
   drive(sim, kBoundaryY_m, -0.002, 0.04, &min_ratio);
   EXPECT_GT(min_ratio, 0.0);
@@ -210,7 +219,7 @@ TEST_F(NeedleInsertionTest, ACopyContinuesBitForBitAndLeavesTheOriginalAlone) {
   sim_.reset();
   EXPECT_TRUE(sim_.seeds().empty());
   EXPECT_EQ(sim_.model().mesh().nodes, sim_.initialMesh().nodes);
-  TissueSimulation fresh(scene_);
+  TissueSimulation fresh(scene_, nodeMoving(scene_));
   drive(sim_, kHeight_m, -0.002, 0.0);
   drive(fresh, kHeight_m, -0.002, 0.0);
   const Point2 after_reset = insertImplantRetract(sim_, kHeight_m, 0.0, 0.035);

@@ -1,6 +1,7 @@
 // The needle–tissue interaction converged in the step (dissertation 2.3.4–2.3.6 with event
 // location): cutting, stick–slip friction, seed release and retraction give the same seed
-// however the motion is cut into steps, with the depth grid off (every command one step).
+// however the motion is cut into steps, with the depth grid off (every command one step), on the
+// embedded track (the default) and on the node-moving cut.
 #include <gtest/gtest.h>
 
 #include <random>
@@ -22,8 +23,10 @@ scene::Scene stiffGland() {
 }
 
 /// A simulation of `scene` refined along the path to `target`, stepping at every command.
-std::unique_ptr<TissueSimulation> rawSimulation(const scene::Scene& scene, const Point2& target) {
+std::unique_ptr<TissueSimulation> rawSimulation(const scene::Scene& scene, const Point2& target,
+                                                NeedleModel model) {
   TissueSimOptions options = optionsFromScene(scene);
+  options.needle_model = model;
   options.depth_grid.step_m = 0.0;
   options.meshing.refine_points.push_back(target);
   options.meshing.refine_lines.push_back({Point2(scene.workspace_min.x(), target.y()), target});
@@ -72,17 +75,17 @@ TEST(InteractionEvents, CrossingsAreLocatedOnTheStep) {
   EXPECT_FALSE(events::sticks(1e-4, 0.9e-4, 0.01, 5e-4));
 }
 
-class StepConvergence : public ::testing::TestWithParam<int> {};
+class StepConvergence : public ::testing::TestWithParam<std::tuple<int, NeedleModel>> {};
 
 TEST_P(StepConvergence, TheSeedDoesNotDependOnTheStep) {
   // Three targets on the 10x gland: across the gland edge, deep in the gland, in the fat.
   const std::vector<Point2> targets{Point2(0.0181, 0.030), Point2(0.033, 0.0185),
                                     Point2(0.012, 0.045)};
   const scene::Scene scene = stiffGland();
-  const Point2 target = targets.at(static_cast<std::size_t>(GetParam()));
+  const Point2 target = targets.at(static_cast<std::size_t>(std::get<0>(GetParam())));
   const Point2 release(target.x() + 0.0021, target.y() + 0.0002);
   auto seedFor = [&](const std::vector<double>& steps) {
-    const auto sim = rawSimulation(scene, target);
+    const auto sim = rawSimulation(scene, target, std::get<1>(GetParam()));
     return implantThrough(*sim, release, steps);
   };
   const Point2 coarse = seedFor(uniformSteps(release.x(), 1e-4));
@@ -108,24 +111,42 @@ TEST_P(StepConvergence, TheSeedDoesNotDependOnTheStep) {
   EXPECT_LT((seedFor(paused) - coarse).norm(), kConvergedTol_m) << "stop and resume";
 }
 
-INSTANTIATE_TEST_SUITE_P(Targets, StepConvergence, ::testing::Values(0, 1, 2));
+INSTANTIATE_TEST_SUITE_P(Targets, StepConvergence,
+                         ::testing::Combine(::testing::Values(0, 1, 2),
+                                            ::testing::Values(NeedleModel::kEmbeddedTrack,
+                                                              NeedleModel::kNodeMoving)));
 
-TEST(StepConvergenceHardCases, AStepLongerThanAnElementIsConvergedOrRefusedClearly) {
+TEST(StepConvergenceHardCases, AStepLongerThanAnElementIsConverged) {
   const scene::Scene scene = stiffGland();
   const Point2 target(0.025, 0.030);
   const Point2 release(target.x(), target.y());
-  const auto fine = rawSimulation(scene, target);
+  for (NeedleModel model : {NeedleModel::kEmbeddedTrack, NeedleModel::kNodeMoving}) {
+    const auto fine = rawSimulation(scene, target, model);
+    const Point2 reference = implantThrough(*fine, release, uniformSteps(release.x(), 1e-4));
+    // 2 mm steps, longer than the finest elements (1 mm here): still the same seed.
+    const auto coarse = rawSimulation(scene, target, model);
+    EXPECT_LT(
+        (implantThrough(*coarse, release, uniformSteps(release.x(), 2e-3)) - reference).norm(),
+        kConvergedTol_m)
+        << toString(model);
+  }
+  // The embedded track cuts continuously: one step across the whole gland is the same seed.
+  const auto fine = rawSimulation(scene, target, NeedleModel::kEmbeddedTrack);
   const Point2 reference = implantThrough(*fine, release, uniformSteps(release.x(), 1e-4));
-  // 2 mm steps, longer than the finest elements (1 mm here): still the same seed.
-  const auto coarse = rawSimulation(scene, target);
-  EXPECT_LT((implantThrough(*coarse, release, uniformSteps(release.x(), 2e-3)) - reference).norm(),
-            kConvergedTol_m);
+  const auto one = rawSimulation(scene, target, NeedleModel::kEmbeddedTrack);
+  EXPECT_LT((implantThrough(*one, release, {release.x()}) - reference).norm(), kConvergedTol_m);
+}
+
+TEST(StepConvergenceHardCases, TheNodeMovingCutRefusesAStepOfTooManyCuts) {
+  const scene::Scene scene = stiffGland();
+  const Point2 target(0.025, 0.030);
+  const Point2 release(target.x(), target.y());
   // One step across the whole gland needs more cuts than a step may make: refused, saying so.
-  const auto jump = rawSimulation(scene, target);
+  const auto jump = rawSimulation(scene, target, NeedleModel::kNodeMoving);
   const StepStatus status = jump->step(1.0, release.y(), release.x());
   EXPECT_FALSE(status);
   EXPECT_NE(status.toString().find("max_cuts_per_step"), std::string::npos) << status.toString();
-  EXPECT_FALSE(jump->needle().inTissue());  // state unchanged
+  EXPECT_FALSE(jump->needleInTissue());  // state unchanged
 }
 
 }  // namespace

@@ -1,0 +1,207 @@
+// Needle insertion on a cut track embedded in a fixed simplex mesh, one implementation for 2-D
+// (plane-strain triangles) and 3-D (tetrahedra); dissertation 2.3.3-2.3.6 and 2.4. The mesh never
+// changes: the needle acts through constraints on tissue points embedded in elements
+// (barycentric weights). A step is solved on the condensed system of those points
+// (CondensedCompliance: K is factored once, columns of K^-1 are formed only for the nodes of
+// elements the needle passes and reused), so its cost grows with the number of needle points,
+// not with the mesh.
+//
+// The needle moves along +x at a lateral position (y in 2-D; y, z in 3-D). Interaction:
+//  * tip: before puncture the tip pins the surface point it touches; when the tip force
+//    reaches the cutting force f_b the tissue is cut continuously: the tip's tissue point
+//    advances along +x in the reference so that the tip force stays f_b. The tip holds the
+//    tissue it cuts on the needle axis, so the cut track is the reference line at the needle's
+//    lateral position; the lateral shear just ahead of the tip (F^-1 e_x of 2.3.4) is
+//    neglected: evaluated on the tip's element it is dominated by the tip's own point load
+//    and made the track wander with the mesh;
+//  * shaft: the cut track's tissue points, one per track_spacing of cut, lie on the needle axis;
+//    along it each is stuck (moves with the needle) or slips with the kinetic friction force
+//    (per unit length times its share of shaft); a stuck point slips when holding it needs
+//    more than the static friction (2.3.5). Points cut during insertion slip (the needle slides
+//    past them at the insertion speed, above stick_velocity); when the needle reverses their
+//    relative speed passes zero and they stick, then slip again one by one as the drag grows;
+//  * seed release at the tip (2.4); retraction releases the track points the tip passes.
+// Events (puncture, a new track point, stick to slip) are located where they happen within a
+// step (with the other constraints fixed the forces are affine in the tip position; stick to
+// slip by bisection with the cut solved at each depth), so the result does not depend on the
+// step length.
+#pragma once
+
+#include <Eigen/Core>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "needle_guidance/fem/condensed_compliance.h"
+#include "needle_guidance/fem/linear_elasticity.h"
+
+namespace needle_guidance::fem {
+
+/// A tissue point embedded in a simplex.
+template <int Dim>
+struct EmbeddedPoint {
+  Point<Dim> reference_m = Point<Dim>::Zero();
+  int element = -1;
+  Eigen::Matrix<double, Dim + 1, 1> weights = Eigen::Matrix<double, Dim + 1, 1>::Zero();
+};
+
+/// The linear tissue a needle is embedded in: the mesh (owned by the caller, who keeps it alive
+/// and unchanged), its stiffness factored once, and a uniform-grid locator of embedded points.
+template <int Dim>
+class EmbeddingTissue {
+public:
+  /// node_fixed: per node, 1 if held fixed. thickness_m: out-of-plane thickness in 2-D (plane
+  /// strain; forces are per that thickness), 1 in 3-D. Throws std::invalid_argument if the mesh
+  /// is invalid or not held by fixed nodes.
+  EmbeddingTissue(const SimplexMesh<Dim>& mesh, const std::vector<char>& node_fixed,
+                  const std::vector<Material>& materials, double thickness_m = 1.0);
+  ~EmbeddingTissue();
+  EmbeddingTissue(const EmbeddingTissue&) = delete;
+  EmbeddingTissue& operator=(const EmbeddingTissue&) = delete;
+
+  const SimplexMesh<Dim>& mesh() const { return *mesh_; }
+  /// The compliance and its cache of columns (filled as needles need them; thread-safe).
+  CondensedCompliance& compliance() const { return *compliance_; }
+  /// The element containing p (reference), or nullopt outside the mesh.
+  std::optional<EmbeddedPoint<Dim>> locate(const Point<Dim>& p) const;
+  /// True when every node of the element is fixed (rigid tissue: nothing there can deform).
+  bool rigidElement(int element) const;
+  double assemblyCpuSeconds() const { return assembly_cpu_s_; }
+
+private:
+  const SimplexMesh<Dim>* mesh_;
+  std::vector<char> node_fixed_;
+  std::unique_ptr<CondensedCompliance> compliance_;
+  struct Grid;
+  std::unique_ptr<Grid> grid_;
+  double assembly_cpu_s_ = 0.0;
+};
+
+/// Interaction parameters of the embedded needle [SI].
+struct EmbeddedNeedleParams {
+  double cutting_force_N = 0.5;            ///< tip force at which the tissue is cut (2.3.4), >= 0
+  double static_friction_N_per_m = 30.0;   ///< per unit length of shaft (2.3.5)
+  double kinetic_friction_N_per_m = 20.0;  ///< per unit length of shaft, <= static
+  double stick_velocity_m_s = 5e-4;        ///< the shaft slips while the needle slides faster
+  double insertion_velocity_m_s = 5e-3;    ///< nominal insertion speed
+  double track_spacing_m = 1e-3;           ///< spacing of the shaft's tissue points, > 0
+};
+
+/// Figures of the last move, for reports.
+struct EmbeddedNeedleInfo {
+  double tip_force_N = 0.0;       ///< needle force on the tissue at the tip along +x
+  double friction_force_N = 0.0;  ///< total shaft force on the tissue along +x
+  int shaft_points = 0;
+  int slipping = 0;
+  int events = 0;  ///< located events in the last move
+  int solves = 0;  ///< condensed solves in the last move
+};
+
+template <int Dim>
+class EmbeddedNeedle {
+public:
+  using Lateral = Eigen::Matrix<double, Dim - 1, 1>;
+  using Vector = Point<Dim>;
+
+  /// The needle moves along +x; the tissue's entry face is x = entry_x_m; the tip goes no deeper
+  /// than max_tip_x_m (the compliance columns along the needle line are solved up to there in
+  /// one batch when the needle enters). The tissue must outlive the needle; copies share it.
+  /// Throws std::invalid_argument for invalid parameters.
+  EmbeddedNeedle(const EmbeddingTissue<Dim>& tissue, const EmbeddedNeedleParams& params,
+                 double entry_x_m, double max_tip_x_m);
+
+  /// Moves the tip to x = tip_x_m (forwards or back) at the lateral position, locating every
+  /// event on the way. The lateral position may change only outside tissue. Returns false and
+  /// leaves the state unchanged (why_not says why) for non-finite input, a lateral change in
+  /// tissue, a lateral position outside the mesh, or re-insertion before the needle left.
+  bool moveTo(const Lateral& lateral_m, double tip_x_m, std::string* why_not = nullptr);
+
+  /// Releases a seed at the tip (2.4); its tissue point is the tip's. Refused outside tissue.
+  std::optional<int> implantSeed(std::string* why_not = nullptr);
+  /// Seed's tissue point (reference) and its current world position [m].
+  const Vector& seedReference(int seed) const;
+  Vector seedWorld(int seed) const;
+  int seedCount() const { return static_cast<int>(seeds_.size()); }
+
+  bool inTissue() const { return in_tissue_; }
+  bool punctured() const { return punctured_; }
+  double tipX() const { return s_; }
+  const Lateral& lateral() const { return lateral_; }
+  /// Reference position of the tip's tissue point (when in tissue) [m].
+  Vector tipReference() const { return tip_.reference_m; }
+  /// Reference positions of the shaft's tissue points [m].
+  std::vector<Vector> shaftReference() const;
+  const EmbeddedNeedleInfo& lastMove() const { return info_; }
+  /// Displacement of every mesh node now (one full solve) [m], Dim*node order.
+  Eigen::VectorXd displacementField() const;
+  /// World position of a reference point now (it must lie in the mesh) [m].
+  Vector worldOf(const Vector& reference_m) const;
+  /// Condensed solves since construction (a copy continues its original's count).
+  long long totalSolves() const { return total_solves_; }
+
+private:
+  using Block = Eigen::Matrix<double, Dim, Dim>;
+  using Point_ = EmbeddedPoint<Dim>;
+  struct ShaftPoint {
+    Point_ point;
+    bool stuck = false;
+    double offset_m = 0.0;   ///< world x - tip x while stuck
+    double share_m = 0.0;    ///< length of shaft it stands for
+    double world_x_m = 0.0;  ///< after the last committed solve
+  };
+  struct Solution {
+    Eigen::VectorXd forces;        ///< per constraint point (shaft..., tip), on the tissue [N]
+    Eigen::VectorXd displacement;  ///< the same points' displacements [m]
+    double tip_force_N = 0.0;
+  };
+  /// Quasi-static solution with the tip at x = s and the tip's tissue point `tip` (nullptr:
+  /// no tip constraint), the shaft in its current stick/slip state.
+  Solution solveAt(double s, const Point_* tip) const;
+  Block block(const Point_& p, const Point_& q) const;
+  void requireColumns(const Point_& p) const;
+  void prefetchLine(const Lateral& lateral) const;
+  Vector onLine(double x) const;
+  /// Length cut beyond the current tip point for the tip at x = s (tip force then f_b).
+  double cutLength(double s) const;
+  Point_ along(double cut_m) const;
+  /// One segment of a move towards target without events inside; true when target is reached.
+  bool insertSegment(double target);
+  /// Cutting towards target, up to the next track point (true when target is reached).
+  bool cutTo(double target);
+  /// Largest excess of a stuck point's force over its static friction at tip x = s, with
+  /// the cut solved there (-inf when no point is stuck) [N].
+  double stuckExcess(double s) const;
+  /// Tip x where a stuck point first slips on the way to target (target if none does).
+  double firstSlip(double target) const;
+  bool retractSegment(double target);
+  void commit(double s, const Point_* tip);
+  void addTrackPoint(const Point_& p);
+  void releaseShaftPoint(std::size_t k);
+  Vector nodeDisplacement(int node) const;
+  bool enter(const Lateral& lateral, std::string* why_not);
+
+  const EmbeddingTissue<Dim>* tissue_;
+  EmbeddedNeedleParams params_;
+  double entry_x_m_;
+  double max_tip_x_m_;
+  Lateral lateral_ = Lateral::Zero();
+  double s_ = 0.0;
+  int direction_ = 1;
+  bool in_tissue_ = false;
+  bool punctured_ = false;
+  bool tip_active_ = false;
+  Point_ tip_;
+  Point_ pending_track_;      ///< the next track point, added when the cut is one spacing past it
+  double cut_total_m_ = 0.0;  ///< cut length along the track
+  double next_event_cut_m_ = 0.0;
+  std::vector<ShaftPoint> shaft_;
+  Eigen::MatrixXd shaft_compliance_;  ///< condensed compliance among the shaft points [m/N]
+  Solution committed_;
+  std::vector<Vector> seeds_;
+  EmbeddedNeedleInfo info_;
+  mutable int solves_ = 0;
+  mutable long long total_solves_ = 0;
+};
+
+}  // namespace needle_guidance::fem

@@ -1,0 +1,802 @@
+// Needle insertion on an embedded cut track with condensed compliance, in 2-D and 3-D
+// (embedded_needle.h).
+#include "needle_guidance/fem/embedded_needle.h"
+
+#include <Eigen/Cholesky>
+#include <algorithm>
+#include <cmath>
+#include <ctime>
+#include <stdexcept>
+
+namespace needle_guidance::fem {
+namespace {
+
+constexpr double kEntryInset_m = 1e-5;     // the entry point lies this far inside the face
+constexpr double kCutTol_m = 1e-10;        // root finding of the cut length
+constexpr double kEventTol_m = 1e-12;      // events closer than this to a segment end coincide
+constexpr int kMaxEventsPerMove = 100000;  // bound against a stalled event loop
+constexpr int kMaxCutIterations = 60;
+constexpr double kFirstCutTrial_m = 2e-5;  // first trial length when bracketing the cut
+constexpr double kMaxCutTrial_m = 2.5e-4;  // trials grow up to this (a quarter of a fine element)
+
+/// s where an affine function with values fa at sa and fb at sb equals level.
+double crossing(double sa, double fa, double sb, double fb, double level) {
+  const double t = (fb == fa) ? 1.0 : std::clamp((level - fa) / (fb - fa), 0.0, 1.0);
+  return sa + t * (sb - sa);
+}
+
+std::string mm(double x_m) {
+  return std::to_string(x_m * 1e3);
+}
+
+template <int Dim>
+std::string pointText(const Point<Dim>& p) {
+  std::string s = "[";
+  for (int d = 0; d < Dim; ++d) {
+    s += (d ? ", " : "") + mm(p(d));
+  }
+  return s + "] mm";
+}
+
+/// Edge length of a cell holding about one element: the Dim-th root of the measure per element.
+double rootOf(double measure, int dim) {
+  return dim == 3 ? std::cbrt(measure) : std::sqrt(measure);
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// EmbeddingTissue
+
+/// Elements bucketed by their bounding boxes on a uniform grid of about one element per cell.
+template <int Dim>
+struct EmbeddingTissue<Dim>::Grid {
+  using Cell = Eigen::Matrix<int, Dim, 1>;
+  Point<Dim> lo, cell;
+  Cell n;
+  std::vector<std::vector<int>> buckets;
+  int index(const Cell& c) const {
+    int i = 0;
+    for (int k = Dim - 1; k >= 0; --k) {
+      i = i * n(k) + c(k);
+    }
+    return i;
+  }
+  Cell cellOf(const Point<Dim>& p) const {
+    Cell c;
+    for (int k = 0; k < Dim; ++k) {
+      c(k) = std::clamp(static_cast<int>(std::floor((p(k) - lo(k)) / cell(k))), 0, n(k) - 1);
+    }
+    return c;
+  }
+};
+
+template <int Dim>
+EmbeddingTissue<Dim>::EmbeddingTissue(const SimplexMesh<Dim>& mesh,
+                                      const std::vector<char>& node_fixed,
+                                      const std::vector<Material>& materials, double thickness_m)
+    : mesh_(&mesh), node_fixed_(node_fixed) {
+  if (node_fixed_.size() != mesh.nodes.size() || mesh.elements.empty()) {
+    throw std::invalid_argument("EmbeddingTissue: " + std::to_string(node_fixed_.size()) +
+                                " fixed flags for " + std::to_string(mesh.nodes.size()) +
+                                " nodes, or no element");
+  }
+  const std::clock_t start = std::clock();
+  const SparseMatrix k = assembleStiffness<Dim>(mesh, materials, thickness_m);
+  std::vector<char> fixed(static_cast<std::size_t>(Dim * mesh.nodeCount()), 0);
+  for (int i = 0; i < mesh.nodeCount(); ++i) {
+    if (node_fixed_[static_cast<std::size_t>(i)]) {
+      for (int d = 0; d < Dim; ++d) {
+        fixed[static_cast<std::size_t>(Dim * i + d)] = 1;
+      }
+    }
+  }
+  compliance_ = std::make_unique<CondensedCompliance>(k, fixed);
+  assembly_cpu_s_ = static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
+
+  grid_ = std::make_unique<Grid>();
+  Point<Dim> lo = mesh.nodes[0], hi = mesh.nodes[0];
+  for (const auto& p : mesh.nodes) {
+    lo = lo.cwiseMin(p);
+    hi = hi.cwiseMax(p);
+  }
+  const double per_cell = rootOf((hi - lo).prod() / std::max(1, mesh.elementCount()), Dim);
+  grid_->lo = lo;
+  for (int k = 0; k < Dim; ++k) {
+    grid_->n(k) = std::max(1, static_cast<int>((hi(k) - lo(k)) / (2.0 * per_cell)));
+    grid_->cell(k) = (hi(k) - lo(k)) / grid_->n(k);
+  }
+  grid_->buckets.resize(static_cast<std::size_t>(grid_->n.prod()));
+  for (int e = 0; e < mesh.elementCount(); ++e) {
+    const Corners<Dim> c = corners<Dim>(mesh, e);
+    Point<Dim> a = c[0], b = c[0];
+    for (const auto& p : c) {
+      a = a.cwiseMin(p);
+      b = b.cwiseMax(p);
+    }
+    const typename Grid::Cell ca = grid_->cellOf(a), cb = grid_->cellOf(b);
+    typename Grid::Cell at = ca;
+    while (true) {  // every cell of the box [ca, cb], x fastest
+      grid_->buckets[static_cast<std::size_t>(grid_->index(at))].push_back(e);
+      int k = 0;
+      while (k < Dim && at(k) == cb(k)) {
+        at(k) = ca(k);
+        ++k;
+      }
+      if (k == Dim) {
+        break;
+      }
+      ++at(k);
+    }
+  }
+}
+
+template <int Dim>
+EmbeddingTissue<Dim>::~EmbeddingTissue() = default;
+
+template <int Dim>
+std::optional<EmbeddedPoint<Dim>> EmbeddingTissue<Dim>::locate(const Point<Dim>& p) const {
+  constexpr double kInsideTol = 1e-9;  // barycentric, round-off on shared faces
+  const auto& bucket = grid_->buckets[static_cast<std::size_t>(grid_->index(grid_->cellOf(p)))];
+  EmbeddedPoint<Dim> best;
+  double best_min = -1e300;
+  for (int e : bucket) {
+    const Eigen::Matrix<double, Dim + 1, 1> w = barycentric<Dim>(corners<Dim>(*mesh_, e), p);
+    if (w.minCoeff() > best_min) {
+      best_min = w.minCoeff();
+      best.element = e;
+      best.weights = w;
+    }
+  }
+  if (best.element < 0 || best_min < -kInsideTol) {
+    return std::nullopt;
+  }
+  best.reference_m = p;
+  return best;
+}
+
+template <int Dim>
+bool EmbeddingTissue<Dim>::rigidElement(int element) const {
+  for (int n : mesh_->elements[static_cast<std::size_t>(element)]) {
+    if (!node_fixed_[static_cast<std::size_t>(n)]) {
+      return false;
+    }
+  }
+  return true;
+}
+
+// ---------------------------------------------------------------------------------------------
+// EmbeddedNeedle
+
+template <int Dim>
+EmbeddedNeedle<Dim>::EmbeddedNeedle(const EmbeddingTissue<Dim>& tissue,
+                                    const EmbeddedNeedleParams& params, double entry_x_m,
+                                    double max_tip_x_m)
+    : tissue_(&tissue), params_(params), entry_x_m_(entry_x_m), max_tip_x_m_(max_tip_x_m) {
+  if (!(params.cutting_force_N >= 0.0) || !(params.track_spacing_m > 0.0) ||
+      !(params.kinetic_friction_N_per_m >= 0.0) ||
+      !(params.static_friction_N_per_m >= params.kinetic_friction_N_per_m) ||
+      !std::isfinite(entry_x_m)) {
+    throw std::invalid_argument(
+        "EmbeddedNeedle: needs cutting_force >= 0, track_spacing > 0, 0 <= kinetic friction <= "
+        "static friction and a finite entry face");
+  }
+  s_ = entry_x_m - 1e-3;
+}
+
+template <int Dim>
+typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::onLine(double x) const {
+  Vector p;
+  p(0) = x;
+  p.template tail<Dim - 1>() = lateral_;
+  return p;
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::prefetchLine(const Lateral& lateral) const {
+  // The cut track is the reference line at this lateral position: the columns of every node
+  // of the elements it crosses are solved in one batch instead of a few per step.
+  constexpr double kSample_m = 2e-4;
+  std::vector<int> dofs;
+  std::vector<char> seen(tissue_->mesh().elements.size(), 0);
+  const double end = max_tip_x_m_ + 2.0 * params_.track_spacing_m;
+  Vector p;
+  p.template tail<Dim - 1>() = lateral;
+  for (double x = entry_x_m_ + kEntryInset_m; x <= end; x += kSample_m) {
+    p(0) = x;
+    const std::optional<Point_> e = tissue_->locate(p);
+    if (!e) {
+      break;
+    }
+    if (!seen[static_cast<std::size_t>(e->element)]) {
+      seen[static_cast<std::size_t>(e->element)] = 1;
+      for (int n : tissue_->mesh().elements[static_cast<std::size_t>(e->element)]) {
+        for (int d = 0; d < Dim; ++d) {
+          dofs.push_back(Dim * n + d);
+        }
+      }
+    }
+  }
+  tissue_->compliance().require(dofs);
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::requireColumns(const Point_& p) const {
+  std::vector<int> dofs;
+  for (int n : tissue_->mesh().elements[static_cast<std::size_t>(p.element)]) {
+    for (int d = 0; d < Dim; ++d) {
+      dofs.push_back(Dim * n + d);
+    }
+  }
+  tissue_->compliance().require(dofs);
+}
+
+template <int Dim>
+typename EmbeddedNeedle<Dim>::Block EmbeddedNeedle<Dim>::block(const Point_& p,
+                                                               const Point_& q) const {
+  const auto& g = tissue_->compliance();
+  const auto& np = tissue_->mesh().elements[static_cast<std::size_t>(p.element)];
+  const auto& nq = tissue_->mesh().elements[static_cast<std::size_t>(q.element)];
+  Block b = Block::Zero();
+  for (int j = 0; j < Dim + 1; ++j) {
+    for (int d = 0; d < Dim; ++d) {
+      const Eigen::VectorXd& col = g.column(Dim * nq[j] + d);
+      for (int i = 0; i < Dim + 1; ++i) {
+        const double w = p.weights(i) * q.weights(j);
+        b.col(d) += w * col.template segment<Dim>(Dim * np[i]);
+      }
+    }
+  }
+  return b;
+}
+
+template <int Dim>
+typename EmbeddedNeedle<Dim>::Solution EmbeddedNeedle<Dim>::solveAt(double s,
+                                                                    const Point_* tip) const {
+  ++solves_;
+  ++total_solves_;
+  const int ns = static_cast<int>(shaft_.size());
+  const int m = ns + (tip ? 1 : 0);
+  Solution sol;
+  sol.forces = Eigen::VectorXd::Zero(Dim * m);
+  sol.displacement = Eigen::VectorXd::Zero(Dim * m);
+  if (m == 0) {
+    return sol;
+  }
+  Eigen::MatrixXd c(Dim * m, Dim * m);
+  c.topLeftCorner(Dim * ns, Dim * ns) = shaft_compliance_;
+  if (tip) {
+    requireColumns(*tip);
+    for (int k = 0; k < ns; ++k) {
+      const Block b = block(shaft_[static_cast<std::size_t>(k)].point, *tip);
+      c.template block<Dim, Dim>(Dim * k, Dim * ns) = b;
+      c.template block<Dim, Dim>(Dim * ns, Dim * k) = b.transpose();
+    }
+    c.template block<Dim, Dim>(Dim * ns, Dim * ns) = block(*tip, *tip);
+  }
+  // Prescribed components (value: displacement) and force components (value: force).
+  std::vector<int> fixed, loaded;
+  Eigen::VectorXd value(Dim * m);
+  for (int k = 0; k < ns; ++k) {
+    const ShaftPoint& p = shaft_[static_cast<std::size_t>(k)];
+    for (int d = 1; d < Dim; ++d) {
+      value(Dim * k + d) = lateral_(d - 1) - p.point.reference_m(d);
+      fixed.push_back(Dim * k + d);
+    }
+    if (p.stuck) {
+      value(Dim * k) = s + p.offset_m - p.point.reference_m.x();
+      fixed.push_back(Dim * k);
+    } else {
+      value(Dim * k) = direction_ * params_.kinetic_friction_N_per_m * p.share_m;
+      loaded.push_back(Dim * k);
+    }
+  }
+  if (tip) {
+    value.template segment<Dim>(Dim * ns) = onLine(s) - tip->reference_m;
+    for (int d = 0; d < Dim; ++d) {
+      fixed.push_back(Dim * ns + d);
+    }
+  }
+  const int nf = static_cast<int>(fixed.size()), nl = static_cast<int>(loaded.size());
+  Eigen::MatrixXd cff(nf, nf), cfl(nf, nl);
+  Eigen::VectorXd rhs(nf), fl(nl);
+  for (int j = 0; j < nl; ++j) {
+    fl(j) = value(loaded[static_cast<std::size_t>(j)]);
+  }
+  for (int i = 0; i < nf; ++i) {
+    rhs(i) = value(fixed[static_cast<std::size_t>(i)]);
+    for (int j = 0; j < nf; ++j) {
+      cff(i, j) = c(fixed[static_cast<std::size_t>(i)], fixed[static_cast<std::size_t>(j)]);
+    }
+    for (int j = 0; j < nl; ++j) {
+      cfl(i, j) = c(fixed[static_cast<std::size_t>(i)], loaded[static_cast<std::size_t>(j)]);
+    }
+  }
+  const Eigen::VectorXd ff = cff.ldlt().solve(rhs - cfl * fl);
+  for (int i = 0; i < nf; ++i) {
+    sol.forces(fixed[static_cast<std::size_t>(i)]) = ff(i);
+  }
+  for (int j = 0; j < nl; ++j) {
+    sol.forces(loaded[static_cast<std::size_t>(j)]) = fl(j);
+  }
+  sol.displacement = c * sol.forces;
+  sol.tip_force_N = tip ? sol.forces(Dim * ns) : 0.0;
+  return sol;
+}
+
+template <int Dim>
+typename EmbeddedNeedle<Dim>::Point_ EmbeddedNeedle<Dim>::along(double cut_m) const {
+  Vector p = tip_.reference_m;
+  p(0) += cut_m;
+  std::optional<Point_> e = tissue_->locate(p);
+  if (!e) {
+    throw std::runtime_error("the cut track leaves the tissue mesh at " + pointText<Dim>(p));
+  }
+  if (tissue_->rigidElement(e->element)) {
+    throw std::runtime_error(
+        "the needle meets rigid tissue (every node of the element held "
+        "fixed) at " +
+        pointText<Dim>(p));
+  }
+  return *e;
+}
+
+template <int Dim>
+double EmbeddedNeedle<Dim>::cutLength(double s) const {
+  const double fb = params_.cutting_force_N;
+  const double f_start = solveAt(s, &tip_).tip_force_N;
+  if (f_start <= fb) {
+    return 0.0;
+  }
+  // The tip's tissue point cannot pass the needle tip: the cut is at most `room`. The cut
+  // progresses continuously from the current point, so it ends at the FIRST length where the tip
+  // force falls to f_b: the force is not monotone in the length (a point's compliance varies
+  // within its element and across a stiffness contrast), and a farther root is reached only
+  // once the nearer one has vanished. Marching out in growing trials brackets the first root.
+  const double room = std::max(0.0, s - tip_.reference_m.x());
+  double lo = 0.0, f_lo = f_start - fb;
+  double hi = 0.0, f_hi = 0.0;
+  for (double trial = kFirstCutTrial_m;; trial = std::min(2.0 * trial, kMaxCutTrial_m)) {
+    hi = std::min(room, lo + trial);
+    const Point_ p_hi = along(hi);
+    f_hi = solveAt(s, &p_hi).tip_force_N - fb;
+    if (f_hi < 0.0) {
+      break;
+    }
+    if (hi >= room) {
+      return room;
+    }
+    lo = hi;
+    f_lo = f_hi;
+  }
+  // Illinois regula falsi on the tip force, which falls as the cut lengthens.
+  int side = 0;
+  for (int it = 0; it < kMaxCutIterations && hi - lo > kCutTol_m; ++it) {
+    const double mid = (lo * f_hi - hi * f_lo) / (f_hi - f_lo);
+    const Point_ p = along(mid);
+    const double f = solveAt(s, &p).tip_force_N - fb;
+    if (f > 0.0) {
+      lo = mid;
+      f_lo = f;
+      if (side == 1) {
+        f_hi *= 0.5;
+      }
+      side = 1;
+    } else {
+      hi = mid;
+      f_hi = f;
+      if (side == -1) {
+        f_lo *= 0.5;
+      }
+      side = -1;
+    }
+    if (std::abs(f) < 1e-12 * fb) {
+      return mid;
+    }
+  }
+  return 0.5 * (lo + hi);
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::commit(double s, const Point_* tip) {
+  s_ = s;
+  if (tip) {
+    tip_ = *tip;
+  }
+  committed_ = solveAt(s, tip_active_ ? &tip_ : nullptr);
+  for (std::size_t k = 0; k < shaft_.size(); ++k) {
+    shaft_[k].world_x_m =
+        shaft_[k].point.reference_m.x() + committed_.displacement(Dim * static_cast<int>(k));
+  }
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::addTrackPoint(const Point_& p) {
+  requireColumns(p);
+  const int ns = static_cast<int>(shaft_.size());
+  Eigen::MatrixXd c(Dim * ns + Dim, Dim * ns + Dim);
+  c.topLeftCorner(Dim * ns, Dim * ns) = shaft_compliance_;
+  for (int k = 0; k < ns; ++k) {
+    const Block b = block(shaft_[static_cast<std::size_t>(k)].point, p);
+    c.template block<Dim, Dim>(Dim * k, Dim * ns) = b;
+    c.template block<Dim, Dim>(Dim * ns, Dim * k) = b.transpose();
+  }
+  c.template block<Dim, Dim>(Dim * ns, Dim * ns) = block(p, p);
+  shaft_compliance_ = std::move(c);
+  ShaftPoint sp;
+  sp.point = p;
+  sp.share_m = params_.track_spacing_m;
+  // The needle slides past the tissue it has just cut at the insertion speed: the point
+  // slips unless that speed is below the stick velocity.
+  sp.world_x_m = worldOf(p.reference_m).x();
+  sp.stuck = params_.insertion_velocity_m_s < params_.stick_velocity_m_s;
+  sp.offset_m = sp.world_x_m - s_;
+  shaft_.push_back(sp);
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::releaseShaftPoint(std::size_t k) {
+  const int n = static_cast<int>(shaft_.size()), i = static_cast<int>(k);
+  Eigen::MatrixXd c(Dim * n - Dim, Dim * n - Dim);
+  std::vector<int> keep;
+  for (int r = 0; r < Dim * n; ++r) {
+    if (r / Dim != i) {
+      keep.push_back(r);
+    }
+  }
+  for (std::size_t a = 0; a < keep.size(); ++a) {
+    for (std::size_t b = 0; b < keep.size(); ++b) {
+      c(static_cast<int>(a), static_cast<int>(b)) = shaft_compliance_(keep[a], keep[b]);
+    }
+  }
+  shaft_compliance_ = std::move(c);
+  shaft_.erase(shaft_.begin() + static_cast<std::ptrdiff_t>(k));
+}
+
+template <int Dim>
+typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::nodeDisplacement(int node) const {
+  Vector u = Vector::Zero();
+  const auto& g = tissue_->compliance();
+  const int ns = static_cast<int>(shaft_.size());
+  for (int k = 0; k < committed_.forces.size() / Dim; ++k) {
+    const Point_& p = k < ns ? shaft_[static_cast<std::size_t>(k)].point : tip_;
+    const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p.element)];
+    for (int a = 0; a < Dim + 1; ++a) {
+      for (int d = 0; d < Dim; ++d) {
+        const double f = p.weights(a) * committed_.forces(Dim * k + d);
+        if (f != 0.0) {
+          u += f * g.column(Dim * nodes[a] + d).template segment<Dim>(Dim * node);
+        }
+      }
+    }
+  }
+  return u;
+}
+
+template <int Dim>
+double EmbeddedNeedle<Dim>::stuckExcess(double s) const {
+  double worst = -1e300;
+  bool any = false;
+  for (const ShaftPoint& p : shaft_) {
+    any = any || p.stuck;
+  }
+  if (!any) {
+    return worst;
+  }
+  const double to_event = next_event_cut_m_ - cut_total_m_;
+  const Point_ tip = along(std::min(cutLength(s), to_event));
+  const Solution sol = solveAt(s, &tip);
+  for (std::size_t k = 0; k < shaft_.size(); ++k) {
+    if (shaft_[k].stuck) {
+      worst = std::max(worst, std::abs(sol.forces(Dim * static_cast<int>(k))) -
+                                  params_.static_friction_N_per_m * shaft_[k].share_m);
+    }
+  }
+  return worst;
+}
+
+template <int Dim>
+double EmbeddedNeedle<Dim>::firstSlip(double target) const {
+  constexpr int kBisections = 48;
+  if (!(stuckExcess(target) > 0.0)) {
+    return target;
+  }
+  double lo = s_, hi = target;
+  for (int i = 0; i < kBisections && hi - lo > kEventTol_m; ++i) {
+    const double mid = 0.5 * (lo + hi);
+    (stuckExcess(mid) > 0.0 ? hi : lo) = mid;
+  }
+  return hi;
+}
+
+template <int Dim>
+bool EmbeddedNeedle<Dim>::insertSegment(double target) {
+  const double fb = params_.cutting_force_N;
+  if (!punctured_) {
+    // The tip presses the surface point: its force is affine in s until it reaches f_b.
+    const double fa = solveAt(s_, &tip_).tip_force_N;
+    const double f_end = solveAt(target, &tip_).tip_force_N;
+    if (f_end < fb) {
+      commit(target, nullptr);
+      return true;
+    }
+    commit(crossing(s_, fa, target, f_end, fb), nullptr);
+    punctured_ = true;
+    pending_track_ = tip_;
+    cut_total_m_ = 0.0;
+    next_event_cut_m_ = params_.track_spacing_m;
+    ++info_.events;
+    return false;
+  }
+  // A stuck shaft point slips where holding it first needs more than the static friction:
+  // located by bisection on the tip position, the cut solved at each.
+  const double end = firstSlip(target);
+  if (end < target) {
+    if (!cutTo(std::max(end, s_))) {
+      return false;  // a track point came first
+    }
+    // The point(s) at their static limit slip (at least the one nearest to it: progress).
+    std::size_t nearest = shaft_.size();
+    double nearest_ratio = -1.0;
+    bool flipped = false;
+    for (std::size_t k = 0; k < shaft_.size(); ++k) {
+      ShaftPoint& p = shaft_[k];
+      const double ratio = std::abs(committed_.forces(Dim * static_cast<int>(k))) /
+                           (params_.static_friction_N_per_m * p.share_m);
+      if (p.stuck && ratio >= 1.0 - 1e-9) {
+        p.stuck = false;
+        flipped = true;
+      } else if (p.stuck && ratio > nearest_ratio) {
+        nearest = k;
+        nearest_ratio = ratio;
+      }
+    }
+    if (!flipped && nearest < shaft_.size()) {
+      shaft_[nearest].stuck = false;
+    }
+    commit(s_, nullptr);
+    ++info_.events;
+    return false;
+  }
+  return cutTo(target);
+}
+
+template <int Dim>
+bool EmbeddedNeedle<Dim>::cutTo(double target) {
+  const double fb = params_.cutting_force_N;
+  const double cut = cutLength(target);
+  const double to_event = next_event_cut_m_ - cut_total_m_;
+  if (cut < to_event - kCutTol_m) {
+    const Point_ p = along(cut);
+    cut_total_m_ += cut;
+    commit(target, &p);
+    return true;
+  }
+  // The cut reaches the next track point: with the tip's tissue point there, the tip force is
+  // affine in s, so the event is located exactly.
+  const Point_ p = along(to_event);
+  const double fa = solveAt(s_, &p).tip_force_N;
+  const double f_end = solveAt(target, &p).tip_force_N;
+  const double s_event = f_end > fb ? crossing(s_, fa, target, f_end, fb) : target;
+  cut_total_m_ = next_event_cut_m_;
+  next_event_cut_m_ += params_.track_spacing_m;
+  addTrackPoint(pending_track_);
+  pending_track_ = p;
+  commit(s_event, &p);
+  ++info_.events;
+  return s_event >= target - kEventTol_m;
+}
+
+template <int Dim>
+bool EmbeddedNeedle<Dim>::retractSegment(double target) {
+  const double end = std::max(target, entry_x_m_);
+  if (end < s_ - kEventTol_m && !shaft_.empty()) {
+    const Solution a = solveAt(s_, nullptr), b = solveAt(end, nullptr);
+    double s_event = end;
+    for (std::size_t k = 0; k < shaft_.size(); ++k) {
+      const int i = Dim * static_cast<int>(k);
+      const ShaftPoint& p = shaft_[k];
+      if (p.stuck) {
+        const double limit = params_.static_friction_N_per_m * p.share_m;
+        if (std::abs(b.forces(i)) > limit) {
+          const double level = b.forces(i) > 0.0 ? limit : -limit;
+          s_event = std::max(s_event, crossing(s_, a.forces(i), end, b.forces(i), level));
+        }
+      } else {
+        // Released when the tip passes back over it: s = world x.
+        const double ga = s_ - (p.point.reference_m.x() + a.displacement(i));
+        const double gb = end - (p.point.reference_m.x() + b.displacement(i));
+        if (gb <= 0.0) {
+          s_event = std::max(s_event, crossing(s_, ga, end, gb, 0.0));
+        }
+      }
+    }
+    const Solution e = solveAt(s_event, nullptr);
+    bool changed = false;
+    for (std::size_t k = shaft_.size(); k-- > 0;) {
+      const int i = Dim * static_cast<int>(k);
+      ShaftPoint& p = shaft_[k];
+      const double world_x = p.point.reference_m.x() + e.displacement(i);
+      if (p.stuck &&
+          std::abs(e.forces(i)) >= params_.static_friction_N_per_m * p.share_m * (1.0 - 1e-9)) {
+        p.stuck = false;
+        changed = true;
+      } else if (!p.stuck && s_event <= world_x + kEventTol_m) {
+        releaseShaftPoint(k);
+        changed = true;
+      }
+    }
+    commit(s_event, nullptr);
+    info_.events += changed ? 1 : 0;
+    if (s_event > end + kEventTol_m) {
+      return false;
+    }
+  } else if (end < s_) {
+    commit(end, nullptr);
+  }
+  if (target <= entry_x_m_) {
+    // Out of the tissue: nothing holds it any more.
+    shaft_.clear();
+    shaft_compliance_.resize(0, 0);
+    in_tissue_ = punctured_ = tip_active_ = false;
+    commit(target, nullptr);
+  }
+  return true;
+}
+
+template <int Dim>
+bool EmbeddedNeedle<Dim>::enter(const Lateral& lateral, std::string* why_not) {
+  Vector p;
+  p(0) = entry_x_m_ + kEntryInset_m;
+  p.template tail<Dim - 1>() = lateral;
+  std::optional<Point_> entry = tissue_->locate(p);
+  if (!entry || tissue_->rigidElement(entry->element)) {
+    if (why_not) {
+      *why_not = "the needle line at " + pointText<Dim>(p) +
+                 (entry ? " meets rigid tissue at the entry face" : " misses the tissue mesh");
+    }
+    return false;
+  }
+  lateral_ = lateral;
+  prefetchLine(lateral);
+  s_ = entry->reference_m.x();
+  tip_ = *entry;
+  in_tissue_ = tip_active_ = true;
+  punctured_ = false;
+  direction_ = 1;
+  commit(s_, &tip_);
+  ++info_.events;
+  return true;
+}
+
+template <int Dim>
+bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::string* why_not) {
+  auto refuse = [&](const std::string& why) {
+    if (why_not) {
+      *why_not = why;
+    }
+    return false;
+  };
+  if (!lateral.allFinite() || !std::isfinite(tip_x)) {
+    return refuse("non-finite lateral position or tip position");
+  }
+  if (in_tissue_ && (lateral - lateral_).norm() > 1e-12) {
+    return refuse("the lateral position can change only outside the tissue");
+  }
+  if (in_tissue_ && direction_ < 0 && tip_x > s_) {
+    return refuse("the needle must leave the tissue before it is inserted again");
+  }
+  info_.events = 0;
+  solves_ = 0;
+  if (!in_tissue_) {
+    if (tip_x < entry_x_m_) {
+      lateral_ = lateral;
+      s_ = tip_x;
+      direction_ = 1;
+      return true;
+    }
+    if (!enter(lateral, why_not)) {
+      return false;
+    }
+  }
+  if (direction_ > 0 && !punctured_ && tip_x < s_ && tip_x >= entry_x_m_) {
+    tip_x = s_;  // touching the entry face: nothing to move yet
+  }
+  if (tip_x < s_ && direction_ > 0) {
+    // The needle stops and reverses: every shaft point sticks where it is; the tip's cut ends.
+    direction_ = -1;
+    tip_active_ = false;
+    for (ShaftPoint& p : shaft_) {
+      p.stuck = true;
+      p.offset_m = p.world_x_m - s_;
+    }
+    commit(s_, nullptr);
+  }
+  try {
+    for (int i = 0; i < kMaxEventsPerMove; ++i) {
+      const bool done = direction_ > 0 ? insertSegment(tip_x) : retractSegment(tip_x);
+      if (done) {
+        break;
+      }
+    }
+  } catch (const std::runtime_error& e) {
+    return refuse(e.what());
+  }
+  info_.tip_force_N = committed_.tip_force_N;
+  info_.friction_force_N = 0.0;
+  info_.slipping = 0;
+  for (std::size_t k = 0; k < shaft_.size(); ++k) {
+    info_.friction_force_N += committed_.forces(Dim * static_cast<int>(k));
+    info_.slipping += shaft_[k].stuck ? 0 : 1;
+  }
+  info_.shaft_points = static_cast<int>(shaft_.size());
+  info_.solves = solves_;
+  return true;
+}
+
+template <int Dim>
+std::optional<int> EmbeddedNeedle<Dim>::implantSeed(std::string* why_not) {
+  if (!in_tissue_ || !punctured_ || !tip_active_) {
+    if (why_not) {
+      *why_not = "the needle tip is not in tissue";
+    }
+    return std::nullopt;
+  }
+  seeds_.push_back(tip_.reference_m);
+  return static_cast<int>(seeds_.size()) - 1;
+}
+
+template <int Dim>
+const typename EmbeddedNeedle<Dim>::Vector& EmbeddedNeedle<Dim>::seedReference(int seed) const {
+  return seeds_.at(static_cast<std::size_t>(seed));
+}
+
+template <int Dim>
+typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::worldOf(const Vector& reference) const {
+  const std::optional<Point_> p = tissue_->locate(reference);
+  if (!p) {
+    throw std::invalid_argument("EmbeddedNeedle::worldOf: the point is outside the mesh");
+  }
+  Vector x = reference;
+  const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p->element)];
+  for (int a = 0; a < Dim + 1; ++a) {
+    x += p->weights(a) * nodeDisplacement(nodes[a]);
+  }
+  return x;
+}
+
+template <int Dim>
+typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::seedWorld(int seed) const {
+  return worldOf(seedReference(seed));
+}
+
+template <int Dim>
+std::vector<typename EmbeddedNeedle<Dim>::Vector> EmbeddedNeedle<Dim>::shaftReference() const {
+  std::vector<Vector> out;
+  for (const ShaftPoint& p : shaft_) {
+    out.push_back(p.point.reference_m);
+  }
+  return out;
+}
+
+template <int Dim>
+Eigen::VectorXd EmbeddedNeedle<Dim>::displacementField() const {
+  Eigen::VectorXd f = Eigen::VectorXd::Zero(Dim * tissue_->mesh().nodeCount());
+  const int ns = static_cast<int>(shaft_.size());
+  for (int k = 0; k < committed_.forces.size() / Dim; ++k) {
+    const Point_& p = k < ns ? shaft_[static_cast<std::size_t>(k)].point : tip_;
+    const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p.element)];
+    for (int a = 0; a < Dim + 1; ++a) {
+      f.template segment<Dim>(Dim * nodes[a]) +=
+          p.weights(a) * committed_.forces.template segment<Dim>(Dim * k);
+    }
+  }
+  return tissue_->compliance().solve(f);
+}
+
+template class EmbeddingTissue<2>;
+template class EmbeddingTissue<3>;
+template class EmbeddedNeedle<2>;
+template class EmbeddedNeedle<3>;
+
+}  // namespace needle_guidance::fem
