@@ -18,6 +18,10 @@ constexpr int kMaxEventsPerMove = 100000;  // bound against a stalled event loop
 constexpr int kMaxCutIterations = 60;
 constexpr double kFirstCutTrial_m = 2e-5;  // first trial length when bracketing the cut
 constexpr double kMaxCutTrial_m = 2.5e-4;  // trials grow up to this (a quarter of a fine element)
+// Corotational fixed point: converged when no node's warp changes by more than this, 50 times
+// below the step-halving target (5 um) of the seeds.
+constexpr double kWarpTol_m = 1e-7;
+constexpr int kMaxWarpUpdates = 60;
 
 /// s where an affine function with values fa at sa and fb at sb equals level.
 double crossing(double sa, double fa, double sb, double fb, double level) {
@@ -74,7 +78,8 @@ struct EmbeddingTissue<Dim>::Grid {
 template <int Dim>
 EmbeddingTissue<Dim>::EmbeddingTissue(const SimplexMesh<Dim>& mesh,
                                       const std::vector<char>& node_fixed,
-                                      const std::vector<Material>& materials, double thickness_m)
+                                      const std::vector<Material>& materials, double thickness_m,
+                                      bool corotational)
     : mesh_(&mesh), node_fixed_(node_fixed) {
   if (node_fixed_.size() != mesh.nodes.size() || mesh.elements.empty()) {
     throw std::invalid_argument("EmbeddingTissue: " + std::to_string(node_fixed_.size()) +
@@ -92,6 +97,9 @@ EmbeddingTissue<Dim>::EmbeddingTissue(const SimplexMesh<Dim>& mesh,
     }
   }
   compliance_ = std::make_unique<CondensedCompliance>(k, fixed);
+  if (corotational) {
+    corotation_ = std::make_unique<CorotationalForces<Dim>>(mesh, materials, thickness_m);
+  }
   assembly_cpu_s_ = static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
 
   grid_ = std::make_unique<Grid>();
@@ -133,6 +141,22 @@ EmbeddingTissue<Dim>::EmbeddingTissue(const SimplexMesh<Dim>& mesh,
 
 template <int Dim>
 EmbeddingTissue<Dim>::~EmbeddingTissue() = default;
+
+template <int Dim>
+Eigen::VectorXd EmbeddingTissue<Dim>::corotationDisplacement(const Eigen::VectorXd& u) const {
+  if (!corotation_) {
+    return {};
+  }
+  const std::clock_t start = std::clock();
+  int inverted = 0;
+  Eigen::VectorXd v = -compliance_->solve(corotation_->correction(u, &inverted));
+  inverted_elements_ = inverted;
+  corotation_cpu_s_ += static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
+  if (!v.allFinite()) {
+    throw std::runtime_error("EmbeddingTissue: the corotational displacement is not finite");
+  }
+  return v;
+}
 
 template <int Dim>
 std::optional<EmbeddedPoint<Dim>> EmbeddingTissue<Dim>::locate(const Point<Dim>& p) const {
@@ -297,6 +321,12 @@ typename EmbeddedNeedle<Dim>::Solution EmbeddedNeedle<Dim>::solveAt(double s,
       fixed.push_back(Dim * ns + d);
     }
   }
+  // The corotational part of the displacement adds to the compliance's answer.
+  Eigen::VectorXd warp = Eigen::VectorXd::Zero(Dim * m);
+  for (int k = 0; k < m && warp_.size() > 0; ++k) {
+    warp.template segment<Dim>(Dim * k) =
+        warpAt(k < ns ? shaft_[static_cast<std::size_t>(k)].point : *tip);
+  }
   const int nf = static_cast<int>(fixed.size()), nl = static_cast<int>(loaded.size());
   Eigen::MatrixXd cff(nf, nf), cfl(nf, nl);
   Eigen::VectorXd rhs(nf), fl(nl);
@@ -304,7 +334,7 @@ typename EmbeddedNeedle<Dim>::Solution EmbeddedNeedle<Dim>::solveAt(double s,
     fl(j) = value(loaded[static_cast<std::size_t>(j)]);
   }
   for (int i = 0; i < nf; ++i) {
-    rhs(i) = value(fixed[static_cast<std::size_t>(i)]);
+    rhs(i) = value(fixed[static_cast<std::size_t>(i)]) - warp(fixed[static_cast<std::size_t>(i)]);
     for (int j = 0; j < nf; ++j) {
       cff(i, j) = c(fixed[static_cast<std::size_t>(i)], fixed[static_cast<std::size_t>(j)]);
     }
@@ -319,7 +349,7 @@ typename EmbeddedNeedle<Dim>::Solution EmbeddedNeedle<Dim>::solveAt(double s,
   for (int j = 0; j < nl; ++j) {
     sol.forces(loaded[static_cast<std::size_t>(j)]) = fl(j);
   }
-  sol.displacement = c * sol.forces;
+  sol.displacement = c * sol.forces + warp;
   sol.tip_force_N = tip ? sol.forces(Dim * ns) : 0.0;
   return sol;
 }
@@ -458,8 +488,47 @@ void EmbeddedNeedle<Dim>::releaseShaftPoint(std::size_t k) {
 }
 
 template <int Dim>
+typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::warpAt(const Point_& p) const {
+  Vector v = Vector::Zero();
+  const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p.element)];
+  for (int a = 0; a < Dim + 1 && warp_.size() > 0; ++a) {
+    v += p.weights(a) * warp_.template segment<Dim>(Dim * nodes[a]);
+  }
+  return v;
+}
+
+template <int Dim>
+bool EmbeddedNeedle<Dim>::settleWarp() {
+  if (!tissue_->corotational()) {
+    return true;
+  }
+  if (warp_.size() == 0) {
+    warp_ = Eigen::VectorXd::Zero(Dim * tissue_->mesh().nodeCount());
+  }
+  if (warp_updates_ == 0) {
+    warp_mixer_.reset();  // the needle moved since the last update
+  }
+  const Eigen::VectorXd v = tissue_->corotationDisplacement(displacementField());
+  const double change = (v - warp_).lpNorm<Eigen::Infinity>();
+  warp_ = change <= kWarpTol_m ? v : warp_mixer_.next(warp_, v);
+  commit(s_, nullptr);
+  ++info_.corotation_updates;
+  if (change <= kWarpTol_m) {
+    warp_updates_ = 0;
+    return true;
+  }
+  if (++warp_updates_ > kMaxWarpUpdates) {
+    throw std::runtime_error(
+        "the corotational iteration did not converge: the warp still changed by " + mm(change) +
+        " mm after " + std::to_string(kMaxWarpUpdates) +
+        " updates (rotations too large for the fixed point on the linear stiffness)");
+  }
+  return false;
+}
+
+template <int Dim>
 typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::nodeDisplacement(int node) const {
-  Vector u = Vector::Zero();
+  Vector u = warp_.size() > 0 ? Vector(warp_.template segment<Dim>(Dim * node)) : Vector::Zero();
   const auto& g = tissue_->compliance();
   const int ns = static_cast<int>(shaft_.size());
   for (int k = 0; k < committed_.forces.size() / Dim; ++k) {
@@ -691,6 +760,8 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
     return refuse("the needle must leave the tissue before it is inserted again");
   }
   info_.events = 0;
+  info_.corotation_updates = 0;
+  warp_updates_ = 0;
   solves_ = 0;
   if (!in_tissue_) {
     if (tip_x < entry_x_m_) {
@@ -719,7 +790,10 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
   try {
     for (int i = 0; i < kMaxEventsPerMove; ++i) {
       const bool done = direction_ > 0 ? insertSegment(tip_x) : retractSegment(tip_x);
-      if (done) {
+      // Corotational: at the move's end the segment is solved again until the warp has
+      // converged; events inside the move are located with the warp of its start (the warp
+      // is a second-order part of the displacement, so that lag is far below the tolerance).
+      if (done && settleWarp()) {
         break;
       }
     }
@@ -747,6 +821,16 @@ std::optional<int> EmbeddedNeedle<Dim>::implantSeed(std::string* why_not) {
     return std::nullopt;
   }
   seeds_.push_back(tip_.reference_m);
+  return static_cast<int>(seeds_.size()) - 1;
+}
+
+template <int Dim>
+int EmbeddedNeedle<Dim>::addSeed(const Vector& reference_m) {
+  if (!tissue_->locate(reference_m)) {
+    throw std::invalid_argument("EmbeddedNeedle::addSeed: the seed's tissue point " +
+                                pointText<Dim>(reference_m) + " is outside the mesh");
+  }
+  seeds_.push_back(reference_m);
   return static_cast<int>(seeds_.size()) - 1;
 }
 
@@ -795,7 +879,11 @@ Eigen::VectorXd EmbeddedNeedle<Dim>::displacementField() const {
           p.weights(a) * committed_.forces.template segment<Dim>(Dim * k);
     }
   }
-  return tissue_->compliance().solve(f);
+  Eigen::VectorXd u = tissue_->compliance().solve(f);
+  if (warp_.size() > 0) {
+    u += warp_;
+  }
+  return u;
 }
 
 template class EmbeddingTissue<2>;

@@ -13,7 +13,7 @@ RigidPlanner3Ros::RigidPlanner3Ros(ros::NodeHandle& private_nh, const std::strin
     : scene_(tissue_3d::loadTissueScene3d(scene_file)) {
   const std::clock_t start = std::clock();
   model_ = std::make_unique<tissue_3d::TissueModel3>(tissue_3d::meshTissue3d(scene_, {}),
-                                                     scene_.materialTable());
+                                                     scene_.materialTable(), scene_.corotational);
   if (tolerance_m > 0.0) {
     options_.tolerance_m = tolerance_m;
   }

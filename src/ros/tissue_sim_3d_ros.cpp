@@ -32,7 +32,8 @@ TissueSim3Ros::TissueSim3Ros(ros::NodeHandle& nh, ros::NodeHandle& private_nh,
   tissue_3d::TetMeshReport mesh_report;
   tissue_3d::TetMesh3 mesh = tissue_3d::meshTissue3d(scene_, {}, 1.0, &mesh_report);
   const std::size_t tets = mesh.elements.size();
-  model_ = std::make_unique<tissue_3d::TissueModel3>(std::move(mesh), scene_.materialTable());
+  model_ = std::make_unique<tissue_3d::TissueModel3>(std::move(mesh), scene_.materialTable(),
+                                                     scene_.corotational);
   needle_ = std::make_unique<tissue_3d::NeedleInsertion3>(
       *model_, scene_.needle, scene_.block_min_m.x(), scene_.workspace.max_tip_x_m);
   surfaces_ = ros_conversions::embedSurfaces(scene_, *model_);
@@ -154,13 +155,19 @@ bool TissueSim3Ros::onReset(std_srvs::Trigger::Request& /*req*/, std_srvs::Trigg
     return true;
   }
   // A fresh needle on the same model: the factorisation and the compliance columns are kept.
+  // The implant's seeds stay in the tissue, at their tissue points, with their ids.
   const Eigen::Vector2d lateral = needle_->lateral();
   const double tip_x = needle_->tipX();
-  needle_ = std::make_unique<tissue_3d::NeedleInsertion3>(
+  auto fresh = std::make_unique<tissue_3d::NeedleInsertion3>(
       *model_, scene_.needle, scene_.block_min_m.x(), scene_.workspace.max_tip_x_m);
+  for (int i = 0; i < needle_->seedCount(); ++i) {
+    fresh->addSeed(needle_->seedReference(i));
+  }
+  needle_ = std::move(fresh);
   needle_->moveTo(lateral, tip_x);
   res.success = true;
-  res.message = "tissue reset to its reference state; seeds removed";
+  res.message = "tissue reset to its reference state; " + std::to_string(needle_->seedCount()) +
+                " seeds kept";
   publishMarkers(ros::Time::now());
   publishSeeds(ros::Time::now());
   return true;

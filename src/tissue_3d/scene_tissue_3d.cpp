@@ -44,6 +44,7 @@ public:
     MapReader needle = top.requiredMap("needle");
     MapReader workspace = top.requiredMap("workspace");
     std::optional<MapReader> mesh = top.optionalMap("mesh");
+    std::optional<MapReader> tissue = top.optionalMap("tissue");
     std::vector<MapReader> targets = top.optionalList("targets");
     top.finish();
     s_.source = source_;
@@ -56,6 +57,12 @@ public:
     readWorkspace(workspace);
     if (mesh) {
       readSizing(*mesh);
+    }
+    if (tissue) {
+      s_.corotational =
+          tissue->optionalChoice("model", {"linear", "corotational"}).value_or("linear") ==
+          "corotational";
+      tissue->finish();
     }
     for (MapReader& t : targets) {
       readTarget(t);

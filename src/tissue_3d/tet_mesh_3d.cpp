@@ -205,7 +205,8 @@ int checkTissueScene3d(const std::string& path, bool mesh, std::ostream& out) {
   out << "scene '" << s.name << "' (tissue_3d) from " << s.source << ": OK\n"
       << "  block " << size.x() << " x " << size.y() << " x " << size.z() << " cm, "
       << s.regions.size() << " regions, " << s.targets.size() << " targets, "
-      << (s.workspace.use_template ? "template grid" : "lateral stage") << "\n";
+      << (s.workspace.use_template ? "template grid" : "lateral stage") << ", "
+      << (s.corotational ? "corotational" : "linear") << " elasticity\n";
   if (mesh) {
     TetMeshReport report;
     const TetMesh3 m = meshTissue3d(s, {}, 1.0, &report);

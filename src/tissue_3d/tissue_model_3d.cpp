@@ -4,9 +4,11 @@
 
 namespace needle_guidance::tissue_3d {
 
-TissueModel3::TissueModel3(TetMesh3 mesh, const std::vector<fem::Material>& materials)
+TissueModel3::TissueModel3(TetMesh3 mesh, const std::vector<fem::Material>& materials,
+                           bool corotational)
     : mesh_(std::move(mesh)) {
-  embedding_ = std::make_unique<fem::EmbeddingTissue<3>>(mesh_, mesh_.node_fixed, materials);
+  embedding_ = std::make_unique<fem::EmbeddingTissue<3>>(mesh_, mesh_.node_fixed, materials, 1.0,
+                                                         corotational);
 }
 
 TissueModel3::~TissueModel3() = default;

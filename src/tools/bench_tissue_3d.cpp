@@ -59,16 +59,19 @@ struct ScalingRow {
   double mesh_cpu_s = 0.0;
   double peak_mb = 0.0;
   double columns_mb = 0.0;
+  double insertion_cpu_s = 0.0;
+  double corotation_cpu_s = 0.0;  ///< CPU in the corotational updates of the insertion
 };
 
-/// One insertion to the scene's first target at its step; CPU per step.
-ScalingRow scalingRun(const t3::TissueScene3d& scene, double scale) {
+/// One insertion to the scene's first target at its step; CPU per step. corotational: the
+/// same with the corotational elasticity.
+ScalingRow scalingRun(const t3::TissueScene3d& scene, double scale, bool corotational = false) {
   ScalingRow row;
   t3::TetMeshReport report;
   t3::TetMesh3 mesh = t3::meshTissue3d(scene, {}, scale, &report);
   row.tets = mesh.elementCount();
   row.mesh_cpu_s = report.cpu_s;
-  t3::TissueModel3 model(std::move(mesh), scene.materialTable());
+  t3::TissueModel3 model(std::move(mesh), scene.materialTable(), corotational);
   row.factor_cpu_s = model.assemblyCpuSeconds();
   const t3::Target3& target = scene.targets.front();
   t3::NeedleInsertion3 needle(model, scene.needle, scene.block_min_m.x(), target.position_m.x());
@@ -85,9 +88,54 @@ ScalingRow scalingRun(const t3::TissueScene3d& scene, double scale) {
   }
   const double cpu = cpuNow() - start;
   row.steps_per_s = steps / std::max(cpu, 1e-9);
+  row.insertion_cpu_s = cpu;
   row.peak_mb = peakMb();
   row.columns_mb = model.compliance().memoryBytes() / 1048576.0;
+  row.corotation_cpu_s = model.corotationCpuSeconds();
   return row;
+}
+
+/// A placed plan of the linear model, to be simulated again with corotational elasticity.
+struct PlacedPlan {
+  std::string file, target;
+  Eigen::Vector2d lateral;
+  double tip_x_m = 0.0;
+  t3::Vector3 seed_linear;
+};
+
+/// What the corotational model changes on the shipped scenes: each linear plan is simulated
+/// again (same mesh, same lateral position and depth) in corotational tissue; the seed moves by
+/// `change_mm`. Writes corotation.csv; returns the largest change [m] (-1: none simulated).
+double corotationChanges(const std::vector<PlacedPlan>& plans, const std::string& csv) {
+  ng::report::Table table(
+      {"scene", "target", "change_mm", "corotational_cpu_s", "linear_mm", "refusal"});
+  double worst = -1.0;
+  for (std::size_t i = 0; i < plans.size();) {
+    const t3::TissueScene3d scene = t3::loadTissueScene3d(plans[i].file);
+    t3::TissueModel3 model(t3::meshTissue3d(scene, {}, 1.0), scene.materialTable(), true);
+    t3::OffsetPlanner3 planner(scene, model);
+    for (; i < plans.size() && plans[i].file == scene.source; ++i) {
+      const PlacedPlan& p = plans[i];
+      const double start = cpuNow();
+      const t3::Target3& target =
+          *std::find_if(scene.targets.begin(), scene.targets.end(),
+                        [&](const t3::Target3& t) { return t.name == p.target; });
+      double change = -1.0;
+      std::string refusal;
+      try {
+        change = (planner.simulateImplant(p.lateral, p.tip_x_m) - p.seed_linear).norm();
+        worst = std::max(worst, change);
+      } catch (const std::runtime_error& e) {
+        refusal = e.what();
+      }
+      table.addRow({scene.name, p.target, mmOrUndefined(change), cpuNow() - start,
+                    (p.seed_linear - target.position_m).norm() * 1e3, refusal});
+      std::cout << "  corotational " << scene.name << "/" << p.target << ": seed moves "
+                << change * 1e3 << " mm " << refusal << "\n";
+    }
+  }
+  table.writeCsv(csv);
+  return worst;
 }
 
 /// The section of region r of the 3-D scene in the plane z = z_m as a polygon (x, y), traced by
@@ -292,11 +340,12 @@ int main(int argc, char** argv) {
     int slice_pairs = 0;
     double worst_error = 0.0, worst_cpu = 0.0, worst_halving = 0.0;
     int reachable = 0, placed = 0;
+    std::vector<PlacedPlan> placed_plans;
     for (const std::string& file : files) {
       const t3::TissueScene3d scene = t3::loadTissueScene3d(file);
       t3::TetMesh3 mesh = t3::meshTissue3d(scene, {}, 1.0);
       const int tets = mesh.elementCount();
-      t3::TissueModel3 model(std::move(mesh), scene.materialTable());
+      t3::TissueModel3 model(std::move(mesh), scene.materialTable(), scene.corotational);
       t3::OffsetPlanner3 planner(scene, model);
       for (const t3::Target3& target : scene.targets) {
         const t3::PlanResult3 r = planner.plan(target);
@@ -311,6 +360,10 @@ int main(int argc, char** argv) {
           worst_halving = std::max(worst_halving, halving);
           worst_error = std::max(worst_error, r.verified_error_m);
           worst_cpu = std::max(worst_cpu, r.plan_cpu_s);
+          if (!scene.corotational) {
+            placed_plans.push_back(
+                {scene.source, target.name, r.lateral_m, r.tip_x_m, r.verified_seed_m});
+          }
         }
         model.compliance().clearCache();
         const SliceErrors slice = sliceErrors(scene, target, !args->quick);
@@ -338,6 +391,21 @@ int main(int argc, char** argv) {
                   << r.refusal << "\n";
       }
     }
+    // ---- corotational elasticity: its cost at ~50k tetrahedra and what it changes ----------
+    const ScalingRow r50_linear = nearestRow(5e4);
+    double scale50 = std::cbrt(probe.elementCount() / 5e4);
+    scale50 *= std::cbrt(t3::meshTissue3d(base, {}, scale50).elementCount() / 5e4);
+    ScalingRow r50_corot;
+    r50_corot.steps_per_s = -1.0;
+    try {
+      r50_corot = scalingRun(base, scale50, true);
+    } catch (const std::runtime_error& e) {
+      std::cout << "  corotational scaling run refused: " << e.what() << "\n";
+    }
+    std::cout << "  corotational, " << r50_corot.tets << " tets: " << r50_corot.steps_per_s
+              << " steps/s (linear " << r50_linear.steps_per_s << " at " << r50_linear.tets
+              << ")\n";
+    const double corot_change = corotationChanges(placed_plans, args->out_dir + "/corotation.csv");
     scaling.writeCsv(args->out_dir + "/scaling.csv");
     plans.writeCsv(args->out_dir + "/plans.csv");
     slices.writeCsv(args->out_dir + "/slice_vs_3d.csv");
@@ -371,7 +439,16 @@ int main(int argc, char** argv) {
          << ",\n  \"slice_vs_3d_unplanned_error_mm_max\": "
          << mmKey(slice_pairs > 0, slice_unplanned_diff_max)
          << ",\n  \"planned_error_mm_max_slice\": "
-         << mmKey(slice_planned_max >= 0.0, slice_planned_max) << "\n}\n";
+         << mmKey(slice_planned_max >= 0.0, slice_planned_max)
+         << ",\n  \"tets_50k_corotational\": " << r50_corot.tets
+         << ",\n  \"steps_per_s_50k_tets_corotational\": "
+         << (r50_corot.steps_per_s > 0.0 ? jsonNumber(r50_corot.steps_per_s) : "null")
+         << ",\n  \"corotation_cpu_fraction_50k\": "
+         << (r50_corot.steps_per_s > 0.0 ? jsonNumber(r50_corot.corotation_cpu_s /
+                                                      std::max(r50_corot.insertion_cpu_s, 1e-9))
+                                         : "null")
+         << ",\n  \"corotational_seed_change_mm_max\": " << mmKey(corot_change >= 0.0, corot_change)
+         << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(args->out_dir + "/plot.json",
                               R"json([{"csv": "scaling.csv", "x": "tets", "y": "steps_per_s",

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <string>
 
+#include "needle_guidance/fem/fixed_point.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/tissue_3d/offset_planner_3d.h"
 
@@ -57,7 +58,8 @@ struct Fixture {
   TissueScene3d scene;
   TissueModel3 model;
   explicit Fixture(TissueScene3d s)
-      : scene(std::move(s)), model(meshTissue3d(scene, {}), scene.materialTable()) {}
+      : scene(std::move(s)),
+        model(meshTissue3d(scene, {}), scene.materialTable(), scene.corotational) {}
 };
 
 TEST(Tissue3dScene, ShippedScenesLoadAndMesh) {
@@ -229,6 +231,32 @@ TEST(Tissue3dInsertion, SlowNeedleShaftSticks) {
   EXPECT_TRUE(saw_stuck);  // points cut by a slow needle stick before the drag makes them slip
 }
 
+TEST(Tissue3dInsertion, SeedsOfEarlierNeedlesStayAndMoveWithTheTissue) {
+  // tissue_sim's reset between needles: a fresh needle takes over the implant's seeds.
+  constexpr double kMoved_m = 1e-6;  // the next needle visibly displaces the kept seed
+  Fixture f(testScene());
+  NeedleInsertion3 first(f.model, f.scene.needle, 0.0, 0.04);
+  const Eigen::Vector2d a(1e-3, 2e-3), b(1e-3, 5e-3);
+  for (double s = 0.0; s <= 0.036 + 1e-12; s += 1e-3) {
+    ASSERT_TRUE(first.moveTo(a, s));
+  }
+  ASSERT_TRUE(first.implantSeed().has_value());
+  ASSERT_TRUE(first.moveTo(a, -1e-3));
+  NeedleInsertion3 second(f.model, f.scene.needle, 0.0, 0.04);
+  EXPECT_EQ(second.addSeed(first.seedReference(0)), 0);
+  EXPECT_LT((second.seedWorld(0) - first.seedWorld(0)).norm(), kRelaxed_m);
+  for (double s = 0.0; s <= 0.038 + 1e-12; s += 1e-3) {  // 3 mm beside the first track
+    ASSERT_TRUE(second.moveTo(b, s));
+  }
+  EXPECT_GT((second.seedWorld(0) - second.seedReference(0)).norm(), kMoved_m);
+  ASSERT_TRUE(second.implantSeed().has_value());
+  EXPECT_EQ(second.seedCount(), 2);
+  ASSERT_TRUE(second.moveTo(b, -1e-3));
+  EXPECT_LT((second.seedWorld(0) - second.seedReference(0)).norm(), kRelaxed_m);
+  EXPECT_THROW(second.addSeed(Vector3(1.0, 0.0, 0.0)), std::invalid_argument);
+  EXPECT_EQ(second.seedCount(), 2);
+}
+
 TEST(Tissue3dInsertion, HalvingTheStepMovesNoSeed) {
   Fixture f(testScene());
   OffsetPlanner3 planner(f.scene, f.model);
@@ -275,6 +303,167 @@ TEST(Tissue3dPlanner, VeryStiffGland) {
   EXPECT_TRUE(r.placed) << r.refusal;
   EXPECT_LE(r.verified_error_m, kPlacementTol_m);
   EXPECT_TRUE(r.verified_seed_m.allFinite());
+}
+
+// ---- Corotational elasticity (scene key tissue.model) ----
+
+TEST(Tissue3dCorotation, SceneKeyChoosesTheModel) {
+  EXPECT_FALSE(testScene().corotational);  // linear is the default
+  std::string text = sceneText(60) + "tissue: {model: corotational}\n";
+  EXPECT_TRUE(parseTissueScene3d(text, "corot.yaml", ".").corotational);
+  text = sceneText(60) + "tissue: {model: linear}\n";
+  EXPECT_FALSE(parseTissueScene3d(text, "linear.yaml", ".").corotational);
+  try {
+    parseTissueScene3d(sceneText(60) + "tissue: {model: hyperelastic}\n", "bad.yaml", ".");
+    ADD_FAILURE() << "an unknown tissue model was accepted";
+  } catch (const scene::SceneError& e) {
+    EXPECT_NE(std::string(e.what()).find("tissue.model"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("hyperelastic"), std::string::npos) << e.what();
+  }
+}
+
+/// A cantilever along x: length x h x h, n cubes along x, two across, six tetrahedra per cube
+/// (all around the cube's diagonal), held at x = 0.
+TetMesh3 beamMesh(double length, double h, int n) {
+  TetMesh3 m;
+  auto id = [&](int i, int j, int k) { return (i * 3 + j) * 3 + k; };
+  for (int i = 0; i <= n; ++i) {
+    for (int j = 0; j <= 2; ++j) {
+      for (int k = 0; k <= 2; ++k) {
+        m.nodes.emplace_back(length * i / n, h * j / 2.0, h * k / 2.0);
+        m.node_fixed.push_back(i == 0 ? 1 : 0);
+      }
+    }
+  }
+  const int paths[6][3] = {{0, 1, 2}, {0, 2, 1}, {1, 0, 2}, {1, 2, 0}, {2, 0, 1}, {2, 1, 0}};
+  for (int i = 0; i < n; ++i) {
+    for (int j = 0; j < 2; ++j) {
+      for (int k = 0; k < 2; ++k) {
+        for (const auto& path : paths) {
+          std::array<int, 3> c = {i, j, k};
+          std::array<int, 4> tet;
+          tet[0] = id(c[0], c[1], c[2]);
+          for (int a = 0; a < 3; ++a) {
+            ++c[static_cast<std::size_t>(path[a])];
+            tet[static_cast<std::size_t>(a + 1)] = id(c[0], c[1], c[2]);
+          }
+          fem::Corners<3> corners;
+          for (int a = 0; a < 4; ++a) {
+            corners[static_cast<std::size_t>(a)] = m.nodes[static_cast<std::size_t>(tet[a])];
+          }
+          if (fem::signedMeasure<3>(corners) < 0.0) {
+            std::swap(tet[2], tet[3]);
+          }
+          m.elements.push_back(tet);
+          m.element_material.push_back(0);
+        }
+      }
+    }
+  }
+  return m;
+}
+
+/// Length of the beam's deformed centre line (nodes j = k = 1).
+double centreLineLength(const TetMesh3& m, const Eigen::VectorXd& u, int n) {
+  double length = 0.0;
+  for (int i = 0; i < n; ++i) {
+    const int a = (i * 3 + 1) * 3 + 1, b = ((i + 1) * 3 + 1) * 3 + 1;
+    length += (m.nodes[static_cast<std::size_t>(b)] + u.segment<3>(3 * b) -
+               m.nodes[static_cast<std::size_t>(a)] - u.segment<3>(3 * a))
+                  .norm();
+  }
+  return length;
+}
+
+TEST(Tissue3dCorotation, LargeBendingKeepsTheLengthWhereLinearGrows) {
+  // A soft cantilever bent by an end load to a deflection of 20 % of its length (end rotation
+  // about 17 degrees): the linear element moves every point straight across, so the beam's
+  // centre line stretches (spurious growth ~ the integral of w'^2 / 2); the corotational
+  // element rotates it instead and keeps its length.
+  constexpr double kLength_m = 0.05, kHeight_m = 0.006;
+  constexpr int kCubes = 20;
+  constexpr double kDeflection = 0.2;              // end deflection / length, linear model
+  constexpr double kLinearGrowthMin = 0.015;       // the linear beam stretches by more than this
+  constexpr double kCorotationalGrowthMax = 2e-3;  // the corotational one by less than this
+  constexpr double kConverged_m = 1e-9;
+  constexpr int kIncrements = 10;
+  constexpr int kMaxIterations = 100;
+  const TetMesh3 mesh = beamMesh(kLength_m, kHeight_m, kCubes);
+  const std::vector<fem::Material> materials = {{1e4, 0.3}};
+  TissueModel3 linear(mesh, materials, false);
+  TissueModel3 corot(mesh, materials, true);
+  Eigen::VectorXd f = Eigen::VectorXd::Zero(3 * mesh.nodeCount());
+  for (int node = 0; node < mesh.nodeCount(); ++node) {
+    if (mesh.nodes[static_cast<std::size_t>(node)].x() > kLength_m - 1e-9) {
+      f(3 * node + 1) = 1.0;
+    }
+  }
+  const int tip = (kCubes * 3 + 1) * 3 + 1;
+  f *= kDeflection * kLength_m / linear.compliance().solve(f)(3 * tip + 1);
+  const Eigen::VectorXd u_linear = linear.compliance().solve(f);
+  EXPECT_TRUE(linear.corotationDisplacement(u_linear).size() == 0);  // linear: no warp
+  // The load is applied in increments, each iterated to its fixed point (as the insertion
+  // does step by step); Anderson mixing damps the beam's oscillating bending modes, on which
+  // the plain iteration u <- K^-1 f + v(u) does not converge at all.
+  Eigen::VectorXd u = Eigen::VectorXd::Zero(f.size()), u_next;
+  for (int increment = 1; increment <= kIncrements; ++increment) {
+    const Eigen::VectorXd u_load = corot.compliance().solve(f * increment / kIncrements);
+    fem::AndersonAcceleration mixer;
+    double change = 1.0;
+    int it = 0;
+    for (; it < kMaxIterations && change > kConverged_m; ++it) {
+      u_next = mixer.next(u, u_load + corot.corotationDisplacement(u));
+      change = (u_next - u).lpNorm<Eigen::Infinity>();
+      u = u_next;
+    }
+    ASSERT_LE(change, kConverged_m) << "increment " << increment << ": no fixed point in " << it;
+  }
+  ASSERT_TRUE(u.allFinite());
+  const double growth_linear = centreLineLength(mesh, u_linear, kCubes) / kLength_m - 1.0;
+  const double growth_corot = centreLineLength(mesh, u, kCubes) / kLength_m - 1.0;
+  EXPECT_GT(growth_linear, kLinearGrowthMin);
+  EXPECT_LT(std::abs(growth_corot), kCorotationalGrowthMax);
+  // The corotational end swings back towards the support (arc, not a straight shift).
+  EXPECT_LT(u(3 * tip), -0.5 * kLinearGrowthMin * kLength_m);
+}
+
+TissueScene3d corotationalScene() {
+  return parseTissueScene3d(sceneText(60) + "tissue: {model: corotational}\n", "corot.yaml", ".");
+}
+
+TEST(Tissue3dCorotation, SmallStrainGivesTheLinearSeed) {
+  // Insertion strains stay at a few percent: the corotated answer differs from the linear one
+  // by second-order terms (rotation x strain), here below 2 % of the deformation itself.
+  constexpr double kRelativeTol = 0.02;
+  Fixture lin(testScene());
+  Fixture rot(corotationalScene());
+  ASSERT_TRUE(rot.model.corotational());
+  const Eigen::Vector2d lateral(1e-3, 2e-3);
+  const Vector3 aim(0.036, 1e-3, 2e-3);
+  OffsetPlanner3 lin_planner(lin.scene, lin.model), rot_planner(rot.scene, rot.model);
+  const Vector3 a = lin_planner.simulateImplant(lateral, aim.x());
+  const Vector3 b = rot_planner.simulateImplant(lateral, aim.x());
+  ASSERT_TRUE(b.allFinite());
+  EXPECT_GT((a - aim).norm(), 1e-4);  // the tissue deforms: the seed is not at the tip's aim
+  EXPECT_LT((a - b).norm(), kRelativeTol * (a - aim).norm()) << (a - b).transpose();
+  // The corotational iteration ran and the tissue relaxed after the needle left.
+  NeedleInsertion3 needle(rot.model, rot.scene.needle, 0.0, 0.04);
+  for (double s = 0.0; s <= 0.03 + 1e-12; s += 1e-3) {
+    ASSERT_TRUE(needle.moveTo(lateral, s));
+  }
+  EXPECT_GT(needle.lastMove().corotation_updates, 0);
+  ASSERT_TRUE(needle.moveTo(lateral, -1e-3));
+  EXPECT_LT(needle.displacementField().lpNorm<Eigen::Infinity>(), kRelaxed_m);
+}
+
+TEST(Tissue3dCorotation, HalvingTheStepMovesNoSeed) {
+  Fixture f(corotationalScene());
+  OffsetPlanner3 planner(f.scene, f.model);
+  const Eigen::Vector2d lateral(1e-3, 2e-3);
+  const Vector3 a = planner.simulateImplant(lateral, 0.04, 1.0);
+  const Vector3 b = planner.simulateImplant(lateral, 0.04, 0.5);
+  EXPECT_LT((a - b).norm(), kStepHalving_m);
+  EXPECT_TRUE(a.allFinite() && b.allFinite());
 }
 
 }  // namespace

@@ -34,6 +34,8 @@
 #include <vector>
 
 #include "needle_guidance/fem/condensed_compliance.h"
+#include "needle_guidance/fem/corotation.h"
+#include "needle_guidance/fem/fixed_point.h"
 #include "needle_guidance/fem/linear_elasticity.h"
 
 namespace needle_guidance::fem {
@@ -52,10 +54,12 @@ template <int Dim>
 class EmbeddingTissue {
 public:
   /// node_fixed: per node, 1 if held fixed. thickness_m: out-of-plane thickness in 2-D (plane
-  /// strain; forces are per that thickness), 1 in 3-D. Throws std::invalid_argument if the mesh
-  /// is invalid or not held by fixed nodes.
+  /// strain; forces are per that thickness), 1 in 3-D. corotational: the elements follow their
+  /// rotation (CorotationalForces). Throws std::invalid_argument if the mesh is invalid or not
+  /// held by fixed nodes.
   EmbeddingTissue(const SimplexMesh<Dim>& mesh, const std::vector<char>& node_fixed,
-                  const std::vector<Material>& materials, double thickness_m = 1.0);
+                  const std::vector<Material>& materials, double thickness_m = 1.0,
+                  bool corotational = false);
   ~EmbeddingTissue();
   EmbeddingTissue(const EmbeddingTissue&) = delete;
   EmbeddingTissue& operator=(const EmbeddingTissue&) = delete;
@@ -69,6 +73,20 @@ public:
   bool rigidElement(int element) const;
   double assemblyCpuSeconds() const { return assembly_cpu_s_; }
 
+  bool corotational() const { return corotation_ != nullptr; }
+  /// The corotational part of the displacement at displacement u (Dim * node order) [m]:
+  /// v = -K^-1 g(u), g the corotated element forces less the linear ones
+  /// (CorotationalForces::correction). Equilibrium under nodal forces f is the fixed point
+  /// u = K^-1 f + v(u), solved with the factored linear K as the preconditioner on the rotation
+  /// residual (warped stiffness, Mueller et al. 2002). Empty for a linear tissue. Throws
+  /// std::runtime_error if the result is not finite.
+  Eigen::VectorXd corotationDisplacement(const Eigen::VectorXd& u) const;
+  /// Elements inverted at the u of the last corotationDisplacement (they take the proper
+  /// rotation nearest to F).
+  int invertedElements() const { return inverted_elements_; }
+  /// CPU time spent in corotationDisplacement so far [s].
+  double corotationCpuSeconds() const { return corotation_cpu_s_; }
+
 private:
   const SimplexMesh<Dim>* mesh_;
   std::vector<char> node_fixed_;
@@ -76,6 +94,9 @@ private:
   struct Grid;
   std::unique_ptr<Grid> grid_;
   double assembly_cpu_s_ = 0.0;
+  std::unique_ptr<CorotationalForces<Dim>> corotation_;
+  mutable double corotation_cpu_s_ = 0.0;
+  mutable int inverted_elements_ = 0;
 };
 
 /// Interaction parameters of the embedded needle [SI].
@@ -94,8 +115,9 @@ struct EmbeddedNeedleInfo {
   double friction_force_N = 0.0;  ///< total shaft force on the tissue along +x
   int shaft_points = 0;
   int slipping = 0;
-  int events = 0;  ///< located events in the last move
-  int solves = 0;  ///< condensed solves in the last move
+  int events = 0;              ///< located events in the last move
+  int solves = 0;              ///< condensed solves in the last move
+  int corotation_updates = 0;  ///< corotational fixed-point updates in the last move
 };
 
 template <int Dim>
@@ -119,6 +141,10 @@ public:
 
   /// Releases a seed at the tip (2.4); its tissue point is the tip's. Refused outside tissue.
   std::optional<int> implantSeed(std::string* why_not = nullptr);
+  /// A seed placed earlier (by another needle) at this tissue point (reference, in the mesh):
+  /// it moves with the tissue like the seeds this needle releases. Returns its id. Throws
+  /// std::invalid_argument outside the mesh.
+  int addSeed(const Vector& reference_m);
   /// Seed's tissue point (reference) and its current world position [m].
   const Vector& seedReference(int seed) const;
   Vector seedWorld(int seed) const;
@@ -179,6 +205,13 @@ private:
   void addTrackPoint(const Point_& p);
   void releaseShaftPoint(std::size_t k);
   Vector nodeDisplacement(int node) const;
+  /// The corotational part of the displacement at p (zero for a linear tissue) [m].
+  Vector warpAt(const Point_& p) const;
+  /// Corotational tissue: one fixed-point update of the warp at the committed state (Anderson
+  /// mixing over the updates of this move), which is then solved again; true when the update
+  /// changed the warp by at most the convergence tolerance (always true for a linear tissue).
+  /// Throws std::runtime_error if it does not converge.
+  bool settleWarp();
   bool enter(const Lateral& lateral, std::string* why_not);
 
   const EmbeddingTissue<Dim>* tissue_;
@@ -202,6 +235,9 @@ private:
   EmbeddedNeedleInfo info_;
   mutable int solves_ = 0;
   mutable long long total_solves_ = 0;
+  Eigen::VectorXd warp_;  ///< corotational part of the displacement (empty: none) [m]
+  int warp_updates_ = 0;  ///< consecutive updates without convergence
+  AndersonAcceleration warp_mixer_;
 };
 
 }  // namespace needle_guidance::fem

@@ -27,7 +27,9 @@ using EmbeddedPoint = fem::EmbeddedPoint<3>;
 class TissueModel3 {
 public:
   /// Throws std::invalid_argument if the mesh is invalid or not held by fixed nodes.
-  TissueModel3(TetMesh3 mesh, const std::vector<fem::Material>& materials);
+  /// corotational: the elements follow their rotation (scene key `tissue.model`).
+  TissueModel3(TetMesh3 mesh, const std::vector<fem::Material>& materials,
+               bool corotational = false);
   ~TissueModel3();
   const TetMesh3& mesh() const { return mesh_; }
   fem::CondensedCompliance& compliance() { return embedding_->compliance(); }
@@ -36,6 +38,14 @@ public:
   std::optional<EmbeddedPoint> locate(const Vector3& p) const { return embedding_->locate(p); }
   const fem::EmbeddingTissue<3>& embedding() const { return *embedding_; }
   double assemblyCpuSeconds() const { return embedding_->assemblyCpuSeconds(); }
+  bool corotational() const { return embedding_->corotational(); }
+  /// fem::EmbeddingTissue::corotationDisplacement: the corotational part of the displacement
+  /// at u [m] (empty for a linear model).
+  Eigen::VectorXd corotationDisplacement(const Eigen::VectorXd& u) const {
+    return embedding_->corotationDisplacement(u);
+  }
+  int invertedElements() const { return embedding_->invertedElements(); }
+  double corotationCpuSeconds() const { return embedding_->corotationCpuSeconds(); }
 
 private:
   TetMesh3 mesh_;

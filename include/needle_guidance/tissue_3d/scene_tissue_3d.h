@@ -83,6 +83,9 @@ struct TissueScene3d {
   Workspace3 workspace;
   MeshSizing3 sizing;
   std::vector<Target3> targets;
+  /// `tissue.model: corotational`: elements follow their rotation (warped stiffness); the
+  /// default `linear` is the small-rotation model.
+  bool corotational = false;
 
   /// Material index per region for the FEM: 0 = block, 1 + r = regions[r].
   std::vector<fem::Material> materialTable() const;
