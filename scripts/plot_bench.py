@@ -144,6 +144,8 @@ def plot(folder: pathlib.Path, spec: dict) -> None:
         groups.setdefault(row.get(spec.get("group", ""), ""), []).append(row)
     fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=110)
     for name, members in groups.items():
+        # An empty cell is a figure the run could not give (a refused case): it is not drawn.
+        members = [r for r in members if r.get(spec["x"], "") != "" and r.get(spec["y"], "") != ""]
         xs = [float(r[spec["x"]]) for r in members]
         ys = [float(r[spec["y"]]) for r in members]
         order = sorted(range(len(xs)), key=xs.__getitem__)
