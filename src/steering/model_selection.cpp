@@ -114,6 +114,53 @@ bool refineTransitions(SteeringParams& params) {
   return true;
 }
 
+/// Trials of the model check's first stage: 1 / kCheckStages of them.
+constexpr std::int64_t kCheckStages = 4;
+/// A first stage fails the check when a group's mean gap, less the bias of its noise correction
+/// and kClearFailZ standard errors, still exceeds the tolerance.
+constexpr double kClearFailZ = 3.0;
+/// Upper bound of the mean of sqrt(max(0, g^2 - s^2)) for g ~ N(0, s^2), in units of s (0.40):
+/// the noise correction's bias when a start has no error at all.
+constexpr double kCorrectionBias = 0.41;
+
+/// The check's figures from the Monte Carlo results so far (Checked: pose, predicted, top, mc).
+template <typename Checked>
+ModelCheck scoreCheck(const std::vector<Checked>& starts, double tolerance) {
+  ModelCheck out;
+  out.run = true;
+  out.tolerance = tolerance;
+  GapSum group[2];
+  double noise[2] = {0.0, 0.0}, variance[2] = {0.0, 0.0};
+  for (const Checked& c : starts) {
+    const double rate = c.mc.rate();
+    if (c.predicted < kTrivialPs && rate < kTrivialPs) {
+      continue;
+    }
+    const int g = c.top ? 1 : 0;
+    group[g].add(c.predicted, rate, c.mc.trials);
+    const double p = std::clamp(c.predicted, 0.0, 1.0);
+    const double v = p * (1.0 - p) / double(c.mc.trials);
+    noise[g] += std::sqrt(v);
+    variance[g] += v;
+    out.max_abs_gap = std::max(out.max_abs_gap, std::abs(c.predicted - rate));
+  }
+  out.entry_starts = group[0].count;
+  out.top_starts = group[1].count;
+  out.gap_entry = group[0].mean();
+  out.gap_top = group[1].mean();
+  // An empty group (no start with P_s >= 0.01) has nothing to contradict.
+  out.passed = !(out.gap_entry > tolerance) && !(out.gap_top > tolerance);
+  for (int g = 0; g < 2; ++g) {
+    if (group[g].count > 0) {
+      const double n = group[g].count;
+      const double low = group[g].mean() - kCorrectionBias * noise[g] / n -
+                         kClearFailZ * std::sqrt(variance[g]) / n;
+      out.clear_fail_margin = std::max(out.clear_fail_margin, low - tolerance);
+    }
+  }
+  return out;
+}
+
 }  // namespace
 
 std::string ModelCheck::toString() const {
@@ -123,7 +170,8 @@ std::string ModelCheck::toString() const {
   auto gap = [](double v) { return std::isnan(v) ? std::string("undefined") : formatNumber(v, 2); };
   std::ostringstream out;
   out << "Monte Carlo check (" << entry_starts + top_starts << " starts x " << trials_per_start
-      << " trials): mean gap " << gap(gap_entry) << " on the entry line, " << gap(gap_top)
+      << " trials" << (trials_per_start < trials_requested ? ", stopped: clearly failed" : "")
+      << "): mean gap " << gap(gap_entry) << " on the entry line, " << gap(gap_top)
       << " at the best starts, tolerance " << formatNumber(tolerance, 3) << ": "
       << (passed ? "passed" : "FAILED");
   return out.str();
@@ -144,34 +192,39 @@ ModelCheck checkModel(const SteeringModel& model, const PolicyTable& table,
   const auto t0 = std::chrono::steady_clock::now();
   const ContinuousWorkspace world(model.problem());
   const SteeringPolicy policy = tablePolicy(table);
-  ModelCheck out;
-  out.run = true;
-  out.trials_per_start = trials;
-  out.tolerance = tolerance;
-  auto score = [&](const TipPose& pose, GapSum& group) {
-    const double predicted = table.lookup(pose).probability_of_success;
-    const MonteCarloResult mc = runMonteCarlo(world, pose, policy, trials, seed, threads);
-    if (predicted < kTrivialPs && mc.rate() < kTrivialPs) {
-      return;
-    }
-    group.add(predicted, mc.rate(), trials);
-    out.max_abs_gap = std::max(out.max_abs_gap, std::abs(predicted - mc.rate()));
+  struct Checked {
+    TipPose pose;
+    double predicted = 0.0;
+    bool top = false;  // a best distinct start (else the entry line)
+    MonteCarloResult mc;
   };
-  GapSum entry, top;
+  std::vector<Checked> starts;
   for (const TipPose& pose : checkPoses(model.problem(), start)) {
-    score(pose, entry);
+    starts.push_back({pose, table.lookup(pose).probability_of_success, false, {}});
   }
   StartVerificationOptions best;
   best.candidates = kCheckTopStarts;
   for (const StartCandidate& c : distinctBestStarts(table, start, best)) {
-    score(c.pose, top);
+    starts.push_back({c.pose, table.lookup(c.pose).probability_of_success, true, {}});
   }
-  out.entry_starts = entry.count;
-  out.top_starts = top.count;
-  out.gap_entry = entry.mean();
-  out.gap_top = top.mean();
-  // An empty group (no start with P_s >= 0.01) has nothing to contradict.
-  out.passed = !(out.gap_entry > tolerance) && !(out.gap_top > tolerance);
+  // First a quarter of the trials: a check that clearly fails stops there (sequential stop).
+  TrialOptions options;
+  const std::int64_t first = std::max<std::int64_t>(1, trials / kCheckStages);
+  for (Checked& c : starts) {
+    c.mc = runMonteCarlo(world, c.pose, policy, first, seed, threads, options);
+  }
+  ModelCheck out = scoreCheck(starts, tolerance);
+  out.trials_per_start = first;
+  if (first < trials && !out.clearlyFailed()) {
+    options.first_trial = first;
+    for (Checked& c : starts) {
+      c.mc = combined(c.mc,
+                      runMonteCarlo(world, c.pose, policy, trials - first, seed, threads, options));
+    }
+    out = scoreCheck(starts, tolerance);
+    out.trials_per_start = trials;
+  }
+  out.trials_requested = trials;
   out.seconds = secondsSince(t0);
   return out;
 }

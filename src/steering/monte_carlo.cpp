@@ -151,10 +151,11 @@ PairedDifference pairedDifference(const std::vector<bool>& a, const std::vector<
 MonteCarloResult runMonteCarlo(const ContinuousWorkspace& world, const TipPose& start,
                                const SteeringPolicy& policy, std::int64_t trials,
                                std::uint64_t seed, int threads, const TrialOptions& options) {
-  if (trials < 1 || threads < 1 || options.max_steps < 1) {
-    throw std::invalid_argument("runMonteCarlo: trials, threads and max_steps must be >= 1, got " +
-                                std::to_string(trials) + ", " + std::to_string(threads) + ", " +
-                                std::to_string(options.max_steps));
+  if (trials < 1 || threads < 1 || options.max_steps < 1 || options.first_trial < 0) {
+    throw std::invalid_argument(
+        "runMonteCarlo: trials, threads and max_steps must be >= 1 and first_trial >= 0, got " +
+        std::to_string(trials) + ", " + std::to_string(threads) + ", " +
+        std::to_string(options.max_steps) + ", " + std::to_string(options.first_trial));
   }
   const auto t0 = std::chrono::steady_clock::now();
   TrialOptions quiet = options;
@@ -164,7 +165,8 @@ MonteCarloResult runMonteCarlo(const ContinuousWorkspace& world, const TipPose& 
   auto work = [&](int part) {
     MonteCarloResult& r = parts[static_cast<std::size_t>(part)];
     for (std::int64_t i = part; i < trials; i += threads) {
-      const Trial t = simulateTrial(world, start, policy, mixSeed(seed, std::uint64_t(i)), quiet);
+      const Trial t = simulateTrial(world, start, policy,
+                                    mixSeed(seed, std::uint64_t(options.first_trial + i)), quiet);
       ++r.trials;
       r.successes += t.outcome == TrialOutcome::kReachedTarget ? 1 : 0;
       r.hit_obstacle += t.outcome == TrialOutcome::kHitObstacle ? 1 : 0;
@@ -197,6 +199,23 @@ MonteCarloResult runMonteCarlo(const ContinuousWorkspace& world, const TipPose& 
   total.mean_flips = total_flips / double(total.trials);
   total.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return total;
+}
+
+MonteCarloResult combined(const MonteCarloResult& a, const MonteCarloResult& b) {
+  MonteCarloResult out;
+  out.trials = a.trials + b.trials;
+  out.successes = a.successes + b.successes;
+  out.hit_obstacle = a.hit_obstacle + b.hit_obstacle;
+  out.left_workspace = a.left_workspace + b.left_workspace;
+  out.step_limit = a.step_limit + b.step_limit;
+  if (out.trials > 0) {
+    out.mean_steps =
+        (a.mean_steps * double(a.trials) + b.mean_steps * double(b.trials)) / double(out.trials);
+    out.mean_flips =
+        (a.mean_flips * double(a.trials) + b.mean_flips * double(b.trials)) / double(out.trials);
+  }
+  out.seconds = a.seconds + b.seconds;
+  return out;
 }
 
 ChainResult runDiscreteChain(const SteeringModel& model, const PolicyTable& table,

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <memory>
 #include <numeric>
 #include <set>
 #include <stdexcept>
@@ -385,14 +386,17 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   for (int t = 0; t < n_threads; ++t) {
     bands.push_back({g.ny * t / n_threads, g.ny * (t + 1) / n_threads});
   }
-  std::vector<float> snapshot(n_threads > 1 ? static_cast<std::size_t>(n) : 0);
+  // Left uninitialised: only the rows copied at the start of each sweep are ever read, so only
+  // their pages are touched.
+  std::unique_ptr<float[]> snapshot(n_threads > 1 ? new float[static_cast<std::size_t>(n)]
+                                                  : nullptr);
 
   Context c;
   c.model = &model;
   c.grid = &g;
   c.cells = cells.data();
   c.values = values.data();
-  c.snapshot = snapshot.data();
+  c.snapshot = snapshot.get();
   c.controls = controls.data();
   c.stencil_begin = begins.data();
   c.stencil_end = ends.data();
@@ -423,7 +427,7 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
           const int hi = std::min(g.ny, bands[t].row_begin + reach);
           const std::int64_t first = g.position(ix, lo) * 2 * nc;
           const std::int64_t count = static_cast<std::int64_t>(hi - lo) * 2 * nc;
-          std::memcpy(snapshot.data() + first, values.data() + first,
+          std::memcpy(snapshot.get() + first, values.data() + first,
                       static_cast<std::size_t>(count) * sizeof(float));
         }
       }

@@ -6,7 +6,8 @@
 // size and save/load time; the start-state surface of figure 5.7.
 // Usage: bench_steering --out DIR [--quick] [--scene SPEC]
 //        bench_steering --truth-only --out DIR [--scene SPEC]... (the truth check where the start
-//        is chosen, per scene: chosen start, 10 best starts, starts near every boundary)
+//        is chosen, per scene: chosen start, 10 best starts, starts near every boundary, and the
+//        procedure's closed loop on the robot's simulated needle at the chosen start)
 
 #include <algorithm>
 #include <chrono>
@@ -24,6 +25,7 @@
 
 #include "needle_guidance/cpu_time.h"
 #include "needle_guidance/math.h"
+#include "needle_guidance/procedures/guided_trial.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/process_usage.h"
 #include "needle_guidance/report/table.h"
@@ -1127,6 +1129,45 @@ std::vector<TruthStart> boundaryStarts(const st::SteeringProblem& problem,
   return out;
 }
 
+/// Closed-loop trials at the chosen start: the procedure's trial loop (runGuidedTrial) on the
+/// robot's simulated needle, ground-truth feedback, with steerable_procedure's deflection streams
+/// (~seed 1: trial k uses kTrialSeedStride + k), so its first kLaunchTrials are the trials of
+/// `steerable_needle.launch trials:=30`.
+constexpr int kClosedLoopTrials = 3000;
+constexpr int kLaunchTrials = 30;
+
+struct ClosedLoop {
+  std::int64_t trials = 0;
+  std::int64_t successes = 0;
+  int launch_successes = 0;  ///< of the first kLaunchTrials
+  double rate() const { return trials > 0 ? double(successes) / double(trials) : NAN; }
+};
+
+ClosedLoop closedLoop(const ng::scene::Scene& scene, const st::SteeringProblem& problem,
+                      const st::PolicyTable& table, const st::TipPose& start) {
+  ng::robot::SteerableNeedleConfig config;  // as insertion_robot configures it from the scene
+  config.start_x_m = scene.steering->start_x_m;
+  config.min_height_m = scene.needle.min_height_m;
+  config.max_height_m = scene.needle.max_height_m;
+  config.sigma_insert_rad = problem.params.sigma_insert_rad;
+  config.sigma_flip_rad = problem.params.sigma_flip_rad;
+  const ng::robot::EntryPose entry{start.p_SceneTip.y(), start.theta_rad, start.bevel};
+  ng::robot::SteerableNeedle needle(st::planarWorkspace(problem), config, entry);
+  const double delta_m = 2.0 * kPi * problem.params.radius_m / problem.params.orientations;
+  ClosedLoop out;
+  std::uint64_t frame_index = 0;
+  for (int k = 0; k < kClosedLoopTrials; ++k) {
+    const ng::procedures::GuidedTrial trial = ng::procedures::runGuidedTrial(
+        needle, entry, delta_m, ng::procedures::SteerableSettings::kTrialSeedStride + k, table,
+        nullptr, nullptr, frame_index);
+    const bool success = trial.outcome == st::TrialOutcome::kReachedTarget;
+    out.successes += success ? 1 : 0;
+    out.launch_successes += success && k < kLaunchTrials ? 1 : 0;
+    ++out.trials;
+  }
+  return out;
+}
+
 /// The truth check of one scene where its start is chosen: per start its prediction against the
 /// continuous needle (same seeds for every start), grouped; rows go to `rows`.
 struct DecisionTruth {
@@ -1150,6 +1191,7 @@ struct DecisionTruth {
   double mean_abs_gap_boundary = 0.0, max_abs_gap_boundary = 0.0;
   int entry_starts = 0, top_starts = 0, boundary_starts = 0;
   double mc_s = 0.0;
+  ClosedLoop closed_loop;  ///< the procedure's closed loop at the chosen start
 };
 
 /// Prediction against Monte Carlo for each start of `starts`; returns the mean |gap| of the
@@ -1282,6 +1324,7 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
                                           rows, n, max_gap, within, noise);
   out.boundary_starts = n;
   out.max_abs_gap_boundary = max_gap;
+  out.closed_loop = closedLoop(scene, problem, table, out.chosen.start.pose);
   out.mc_s = secondsSince(t0);
   return out;
 }
@@ -1337,6 +1380,11 @@ std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
   key("verify_start_s", num(d.verify_s));
   key("solve_and_verify_s", num(d.solve_s + d.verify_s));
   key("solve_and_verify_cpu_s", num(d.solve_cpu_s + d.verify_cpu_s));
+  key("closed_loop_ps_chosen_start", num(d.closed_loop.rate()));
+  key("closed_loop_ps_chosen_start_ci",
+      jsonInterval(st::wilsonInterval(d.closed_loop.successes, d.closed_loop.trials)));
+  key("closed_loop_trials", std::to_string(d.closed_loop.trials));
+  key("closed_loop_successes_first30", std::to_string(d.closed_loop.launch_successes));
   key("truth_mc_s", num(d.mc_s));
   key("targets_met", targetsMet(d) ? "true" : "false");
   return j.str();

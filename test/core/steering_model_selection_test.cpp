@@ -142,6 +142,29 @@ TEST(ModelSelection, CheckWithoutTrialsThrows) {
   EXPECT_THROW(checkModel(model, table, entryLine(), 0.01, 0, 1), std::invalid_argument);
 }
 
+TEST(ModelSelection, CheckThatClearlyFailsStopsAfterAQuarterOfItsTrials) {
+  // The rounded model on a 4 mm grid is far from the continuous needle (gaps of several
+  // hundredths): against a tolerance of 0.001 the first quarter decides.
+  SteeringProblem p = noisyProblem(4e-3);
+  p.params.transition_model = TransitionModel::kRounded;
+  p.params.orientation_subdivision = 1;
+  const SteeringModel model(p, 1);
+  const PolicyTable table = solveValueIteration(model);
+  const ModelCheck strict = checkModel(model, table, entryLine(), 0.001, 4000, 31);
+  EXPECT_FALSE(strict.passed);
+  EXPECT_TRUE(strict.clearlyFailed());
+  EXPECT_EQ(strict.trials_per_start, 1000);
+  EXPECT_EQ(strict.trials_requested, 4000);
+  EXPECT_NE(strict.toString().find("stopped"), std::string::npos) << strict.toString();
+  // Against a loose tolerance nothing is decided early: all trials run, and the figures are
+  // those of one run of 4000 trials per start.
+  const ModelCheck loose = checkModel(model, table, entryLine(), 0.5, 4000, 31);
+  EXPECT_TRUE(loose.passed);
+  EXPECT_FALSE(loose.clearlyFailed());
+  EXPECT_EQ(loose.trials_per_start, 4000);
+  EXPECT_GT(loose.gap_entry, strict.tolerance);  // the same model, far from 0.001
+}
+
 TEST(ModelSelection, BadToleranceThrows) {
   SelectionOptions o;
   o.ps_tolerance = 0.0;

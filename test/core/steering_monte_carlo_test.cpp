@@ -224,6 +224,32 @@ TEST(MonteCarlo, ResultDoesNotDependOnThreads) {
   EXPECT_NE(one.successes, other_seed.successes);
 }
 
+TEST(MonteCarlo, ContinuedRunEqualsOneRun) {
+  // Trials 0..999 and then 1000..2999 (first_trial) combined are the 3000 trials of one run.
+  SteeringProblem p = openProblem();
+  p.params.sigma_insert_rad = 5 * kDeg;
+  p.params.sigma_flip_rad = 10 * kDeg;
+  const ContinuousWorkspace world(p);
+  const SteeringModel model(p);
+  const PolicyTable table = solveValueIteration(model);
+  TipPose start;
+  start.p_SceneTip = Point2(0.0, 0.05);
+  const MonteCarloResult one = runMonteCarlo(world, start, tablePolicy(table), 3000, 9, 2);
+  const MonteCarloResult first = runMonteCarlo(world, start, tablePolicy(table), 1000, 9, 2);
+  TrialOptions rest;
+  rest.first_trial = 1000;
+  const MonteCarloResult both =
+      combined(first, runMonteCarlo(world, start, tablePolicy(table), 2000, 9, 1, rest));
+  EXPECT_EQ(both.trials, 3000);
+  EXPECT_EQ(both.successes, one.successes);
+  EXPECT_EQ(both.hit_obstacle, one.hit_obstacle);
+  EXPECT_EQ(both.left_workspace, one.left_workspace);
+  EXPECT_NEAR(both.mean_steps, one.mean_steps, 1e-12);
+  rest.first_trial = -1;
+  EXPECT_THROW(runMonteCarlo(world, start, tablePolicy(table), 10, 9, 1, rest),
+               std::invalid_argument);
+}
+
 // sigma = 0 (5.4.2): following the MDP's controls, the continuous needle has exactly the
 // discrete orientation, and its position stays within E_h = h Delta sqrt(2) + Delta sqrt(2)/2
 // of the discrete state after h direction changes. So a P_s = 1 path ends within E_h of the

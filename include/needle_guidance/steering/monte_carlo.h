@@ -41,6 +41,9 @@ struct TrialOptions {
   /// of this step [rad] — an ablation that isolates the MDP's orientation quantisation (with
   /// alpha = 2 pi / N_c, what remains of the gap is the position rounding of 5.4.2).
   double deflection_step_rad = 0.0;
+  /// runMonteCarlo runs trials first_trial .. first_trial + trials - 1 (trial i with seed
+  /// (seed, i)), so a run of n trials can be continued by another from first_trial = n; >= 0.
+  std::int64_t first_trial = 0;
 };
 
 /// One simulated insertion.
@@ -102,13 +105,18 @@ struct MonteCarloResult {
   Interval interval() const { return wilsonInterval(successes, trials); }
 };
 
-/// Runs `trials` independent trials from `start`; trial i uses seed (seed, i), so the result
-/// does not depend on `threads` (>= 1). The policy must be safe to call from several threads.
-/// Throws std::invalid_argument for trials < 1, threads < 1 or max_steps < 1.
+/// Runs `trials` independent trials from `start`; trial i (from options.first_trial on) uses seed
+/// (seed, i), so the result does not depend on `threads` (>= 1). The policy must be safe to call
+/// from several threads. Throws std::invalid_argument for trials < 1, threads < 1, max_steps < 1
+/// or first_trial < 0.
 MonteCarloResult runMonteCarlo(const ContinuousWorkspace& world, const TipPose& start,
                                const SteeringPolicy& policy, std::int64_t trials,
                                std::uint64_t seed, int threads = 2,
                                const TrialOptions& options = {});
+
+/// Two runs from one start as one (counts added, mean steps and flips weighted by trials,
+/// seconds added), e.g. a run continued with TrialOptions::first_trial.
+MonteCarloResult combined(const MonteCarloResult& a, const MonteCarloResult& b);
 
 /// Aggregate of sampling the discretised MDP itself (DiscreteChain).
 struct ChainResult {
