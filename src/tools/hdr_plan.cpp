@@ -62,38 +62,18 @@ std::string gapText(const dose::DvhPlanResult& r) {
          (r.mip_optimal ? " (optimal)" : "");
 }
 
-/// The planning case with the clinical plan's dwell times on the candidate dwells (an active
-/// clinical dwell within 1 mm of a candidate on its catheter adds its time there), so that the
-/// planner scores the clinical plan on its own model.
-dose::HdrCase withClinicalTimes(const dose::DicomCase& dc) {
-  dose::HdrCase c = dc.planning;
-  c.dwell_times_s.assign(c.dwells.size(), 0.0);
-  for (std::size_t j = 0; j < dc.clinical.dwells.size(); ++j) {
-    double best = 1e-3;
-    int at = -1;
-    for (std::size_t i = 0; i < c.dwells.size(); ++i) {
-      const double dist = (c.dwells[i].position_m - dc.clinical.dwells[j].position_m).norm();
-      if (c.dwells[i].catheter == dc.clinical.dwells[j].catheter && dist < best) {
-        best = dist;
-        at = static_cast<int>(i);
-      }
-    }
-    if (at >= 0)
-      c.dwell_times_s[static_cast<std::size_t>(at)] += dc.clinical.dwell_times_s[j];
-  }
-  return c;
-}
-
 /// hdr_plan --dicom --method dvh: plans on the criteria, then tries to dominate the clinical plan.
 std::vector<double> planDicomDvh(const dose::DicomCase& dc, const dose::DicomCaseSettings& settings,
                                  const dose::Tg43Source& source) {
   const dose::HdrCase& c = dc.planning;
   const auto criteria = dose::dvhCriteria(settings, c.prescription_Gy);
   const dose::DvhPlanOptions options;
+  // The clinical times on our dwells: a start the planner never does worse than.
+  const dose::HdrCase with_clinical = dose::planningWithClinicalTimes(dc);
   const auto clinical = dose::comparisonIndexSet(
       dose::structureDoses(dc.clinical, source, dc.clinical.dwell_times_s, options.eval_spacing_m),
       c.prescription_Gy);
-  const dose::DvhPlanResult r = dose::optimizeDvh(withClinicalTimes(dc), source, criteria, options);
+  const dose::DvhPlanResult r = dose::optimizeDvh(with_clinical, source, criteria, options);
   for (const auto& note : r.notes)
     std::cout << "note: " << note << "\n";
   if (!r.ok())
@@ -110,7 +90,7 @@ std::vector<double> planDicomDvh(const dose::DicomCase& dc, const dose::DicomCas
   const auto ours = dose::comparisonIndexSet(
       dose::structureDoses(c, source, r.times_s, options.eval_spacing_m), c.prescription_Gy);
   printIndices(clinical, ours, "clinical", "DVH");
-  const dose::Dominance d = dose::dominate(c, source, clinical, "prostate", options);
+  const dose::Dominance d = dose::dominate(with_clinical, source, clinical, "prostate", options);
   std::cout << "plan at least as good as the clinical one on every defined index: "
             << (d.dominated ? "found" : "not found") << " (" << d.plan.seconds << " s)\n";
   for (const auto& w : d.worse)
