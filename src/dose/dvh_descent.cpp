@@ -172,12 +172,12 @@ DescentResult descendOnCriteria(const PlanPoints& p, const std::vector<VolumeCon
     }
     ++r.iterations;
     const double exact = objectiveAt(p, conditions, d_new, t_new.sum(), total_time_s, o);
-    if (exact < best - 1e-9) {
+    // Progress: a better plan by a fifth of the smallest goal step (smaller gains are kept
+    // but do not hold off the goal's drop).
+    stalled = exact < best - 0.2 * o.descent_min_step_pp ? 0 : stalled + 1;
+    if (exact < best) {
       best = exact;
       best_t = t_new;
-      stalled = 0;
-    } else {
-      ++stalled;
     }
     const double covered = coverage(d_new);
     if (violationPct(p, conditions, d_new) <= 0.0 && covered >= f.goal - 0.5 * step)

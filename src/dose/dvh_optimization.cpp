@@ -545,7 +545,7 @@ Problem setUp(const HdrCase& c, const Tg43Source& source, const std::vector<DvhC
   pr.specs = criteriaSpecs(pr.all);
   pr.eval = planPoints(c, source, structures, o.eval_spacing_m, 0, false);
   // Bound on the total time: 4x what gives the target its prescription on average with equal
-  // times (reported if a plan reaches it).
+  // times, or twice the case's own plan if more (reported if a plan reaches it).
   const PlanPoints& p = pr.eval;
   const int tf = p.first[static_cast<std::size_t>(target)];
   const Eigen::VectorXd rate =
@@ -555,6 +555,9 @@ Problem setUp(const HdrCase& c, const Tg43Source& source, const std::vector<DvhC
     mean_rate += rate(i) * p.pct[static_cast<std::size_t>(tf + i)] / 100.0;
   pr.equal_time_s = c.prescription_Gy / std::max(mean_rate, 1e-300);
   pr.total_time_s = 4.0 * pr.equal_time_s * static_cast<double>(c.dwells.size());
+  if (c.dwell_times_s.size() == c.dwells.size())  // the case's own plan stays within the bound
+    pr.total_time_s = std::max(pr.total_time_s, 2.0 * std::accumulate(c.dwell_times_s.begin(),
+                                                                      c.dwell_times_s.end(), 0.0));
   return pr;
 }
 
@@ -717,6 +720,8 @@ DvhPlanResult optimizeDvh(const HdrCase& c, const Tg43Source& source,
     throw std::invalid_argument("optimizeDvh: method '" + o.method + "': expected descent or mip");
   DvhPlanResult r;
   const Problem pr = setUp(c, source, criteria, o, &r.notes);
+  r.points = static_cast<int>(pr.eval.d.rows());
+  r.setup_cpu_seconds = cpuSince(cpu0);
   if (c.dwell_times_s.size() == c.dwells.size()) {
     // The case's own dwell times on the planner's points: a plan the planner should match.
     r.case_times_objective =

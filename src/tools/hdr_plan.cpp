@@ -64,10 +64,10 @@ std::string gapText(const dose::DvhPlanResult& r) {
 
 /// hdr_plan --dicom --method dvh: plans on the criteria, then tries to dominate the clinical plan.
 std::vector<double> planDicomDvh(const dose::DicomCase& dc, const dose::DicomCaseSettings& settings,
-                                 const dose::Tg43Source& source) {
+                                 const dose::Tg43Source& source,
+                                 const dose::DvhPlanOptions& options) {
   const dose::HdrCase& c = dc.planning;
   const auto criteria = dose::dvhCriteria(settings, c.prescription_Gy);
-  const dose::DvhPlanOptions options;
   // The clinical times on our dwells: a start the planner never does worse than.
   const dose::HdrCase with_clinical = dose::planningWithClinicalTimes(dc);
   const auto clinical = dose::comparisonIndexSet(
@@ -79,7 +79,9 @@ std::vector<double> planDicomDvh(const dose::DicomCase& dc, const dose::DicomCas
   if (!r.ok())
     throw std::runtime_error("dose-volume planning: " + r.status);
   std::cout << "DVH plan on " << criteria.size() << " criteria: V100 " << r.v100_pct << " %, "
-            << r.seconds << " s (" << r.cpu_seconds << " s processor), " << gapText(r) << "\n";
+            << r.seconds << " s (" << r.cpu_seconds << " s processor, of which "
+            << r.setup_cpu_seconds << " s for the dose-rate matrix of " << r.points << " points; "
+            << r.descent_iterations << " descent iterations), " << gapText(r) << "\n";
   for (const auto& v : r.violated)
     std::cout << "  gives way: " << v << "\n";
   std::cout << "on the planner's dose points: objective " << r.objective << " (V100 "
@@ -114,7 +116,7 @@ void exportPlan(const dose::HdrCase& plan, const dose::DicomCase& dc,
 
 /// hdr_plan --dicom: plan a DICOM-RT folder and compare with its clinical plan.
 int planDicom(const std::string& dir, const std::string& case_file, const std::string& export_dir,
-              const std::string& method) {
+              const std::string& method, const dose::DvhPlanOptions& dvh_options) {
   const dose::DicomCaseSettings settings =
       case_file.empty() ? dose::DicomCaseSettings{} : dose::readDicomCaseSettings(case_file);
   const dose::DicomCase dc = dose::loadDicomCase(dir, settings);
@@ -132,7 +134,7 @@ int planDicom(const std::string& dir, const std::string& case_file, const std::s
   const dose::Tg43Source source = dose::loadSource(c.source);
   if (method == "dvh") {
     dose::HdrCase plan = c;
-    plan.dwell_times_s = planDicomDvh(dc, settings, source);
+    plan.dwell_times_s = planDicomDvh(dc, settings, source, dvh_options);
     if (!export_dir.empty())
       exportPlan(plan, dc, source, export_dir);
     return 0;
@@ -160,7 +162,9 @@ int planDicom(const std::string& dir, const std::string& case_file, const std::s
 constexpr const char* kUsage =
     "usage: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both|dvh] [--mps FILE] "
     "[--write-case DIR] [--iterations N] [--criterion TEXT]...\n"
-    "       hdr_plan --dicom DIR [--case-file FILE.yaml] [--method lp|dvh] [--export DIR]\n";
+    "       hdr_plan --dicom DIR [--case-file FILE.yaml] [--method lp|dvh] [--export DIR]\n"
+    "  with --method dvh: [--max-seconds S] (processor time per plan, default 8)\n"
+    "                     [--dvh-method descent|mip] (default descent)\n";
 
 int main(int argc, char** argv) {
   if (needle_guidance::report::helpRequested(argc, argv)) {
@@ -170,6 +174,7 @@ int main(int argc, char** argv) {
   std::string case_dir, method = "both", mps, write_dir, dicom_dir, case_file, export_dir;
   std::vector<std::string> criteria_text;
   long iterations = 100000;
+  dose::DvhPlanOptions dvh_options;
   int synthetic = -1;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -200,6 +205,10 @@ int main(int argc, char** argv) {
       export_dir = value();
     else if (a == "--criterion")
       criteria_text.push_back(value());
+    else if (a == "--max-seconds")
+      dvh_options.max_seconds = std::stod(value());
+    else if (a == "--dvh-method")
+      dvh_options.method = value();
     else {
       std::cerr << kUsage;
       return 2;
@@ -211,7 +220,7 @@ int main(int argc, char** argv) {
         std::cerr << "hdr_plan: --dicom plans with --method lp or dvh\n";
         return 2;
       }
-      return planDicom(dicom_dir, case_file, export_dir, method);
+      return planDicom(dicom_dir, case_file, export_dir, method, dvh_options);
     } catch (const std::invalid_argument& e) {
       std::cerr << "hdr_plan: " << e.what() << "\n";
       return 2;
@@ -252,7 +261,7 @@ int main(int argc, char** argv) {
         for (const auto& text : criteria_text)
           criteria.push_back(dose::parseDvhCriterion(text, c.prescription_Gy));
       }
-      const auto r = dose::optimizeDvh(c, source, criteria);
+      const auto r = dose::optimizeDvh(c, source, criteria, dvh_options);
       for (const auto& note : r.notes)
         std::cout << "note: " << note << "\n";
       if (!r.ok()) {

@@ -94,6 +94,10 @@ struct DvhPlanResult {
   int binaries = 0, rows = 0;  ///< size of the last MIP
   int rounds = 0;
   int descent_iterations = 0;  ///< descent: iterations
+  int points = 0;              ///< dose points of the evaluation lattice
+  /// Processor time of building the evaluation lattice and its dose-rate matrix [s] (the rest
+  /// of cpu_seconds is the LP start, the descent or MIP, and judging the plan).
+  double setup_cpu_seconds = 0.0;
   /// Descent: the objective of its best start (the case's times, the LP's or equal times,
   /// scaled) and of its answer (before CBC); NaN for the MIP.
   double start_objective = std::numeric_limits<double>::quiet_NaN();
