@@ -252,12 +252,18 @@ std::string dvhStudy(const dose::DicomCase& dc, const std::string& dir,
   const auto clinical_fine = dose::comparisonIndexSet(
       dose::structureDoses(dc.clinical, source, dc.clinical.dwell_times_s, 0.25e-3), rx);
   const dose::IndexChange lattice = dose::indexChange(clinical, clinical_fine);
-  const dose::DvhPlanResult plan = dose::optimizeDvh(c, source, criteria, options);
+  // The clinical times on our dwells: a start the planner never does worse than.
+  const dose::HdrCase with_clinical = dose::planningWithClinicalTimes(dc);
+  const dose::DvhPlanResult plan = dose::optimizeDvh(with_clinical, source, criteria, options);
   if (!plan.ok())
     throw std::runtime_error("dose-volume planning: " + plan.status);
   const auto ours =
       dose::comparisonIndexSet(dose::structureDoses(c, source, plan.times_s, kEvalSpacing_m), rx);
-  const dose::Dominance dom = dose::dominate(c, source, clinical, "prostate", options);
+  const dose::Dominance dom = dose::dominate(with_clinical, source, clinical, "prostate", options);
+  // Where the dominating plan is strictly better ("clinical worse": reference and ours swapped).
+  const std::vector<std::string> better =
+      dom.dominated ? dose::worseIndices(clinical, dom.indices, "prostate")
+                    : std::vector<std::string>{};
   // Front: urethra D10 limit swept around the clinical plan's, the rectum at its criteria.
   std::vector<double> limits;
   const double u0 = clinical.count("urethra_D10") && clinical.at("urethra_D10").defined
@@ -304,12 +310,19 @@ std::string dvhStudy(const dose::DicomCase& dc, const std::string& dir,
        << ",\n  \"dvh_v100_pct\": " << jsonNumber(plan.v100_pct)
        << ",\n  \"dvh_urethra_d10_gy\": " << jsonNumber(value(ours, "urethra_D10"))
        << ",\n  \"dvh_plan_cpu_s\": " << jsonNumber(plan.cpu_seconds)
+       << ",\n  \"dvh_matrix_cpu_s\": " << jsonNumber(plan.setup_cpu_seconds)
+       << ",\n  \"dvh_points\": " << plan.points
+       << ",\n  \"dvh_descent_iterations\": " << plan.descent_iterations
+       << ",\n  \"dvh_method\": \"" << options.method << "\""
        << ",\n  \"dvh_mip_gap_v100_pp\": "
        << (plan.mip_bound_known ? jsonNumber(plan.mip_gap_pct) : std::string("null"))
        << ",\n  \"dvh_mip_binaries\": " << plan.binaries
        << ",\n  \"dvh_criteria_giving_way\": " << jsonList(plan.violated)
        << ",\n  \"clinical_dominated_dvh\": " << (dom.dominated ? 1 : 0)
        << ",\n  \"dominating_plan_s\": " << jsonNumber(dom.plan.seconds)
+       << ",\n  \"dominating_plan_cpu_s\": " << jsonNumber(dom.plan.cpu_seconds)
+       << ",\n  \"dominating_v100_pct\": " << jsonNumber(value(dom.indices, "prostate_V100"))
+       << ",\n  \"dominating_better_on\": " << jsonList(better)
        << ",\n  \"dominance_prevented_by\": " << jsonList(dom.worse)
        << ",\n  \"index_rotation_change_max_gy\": "
        << jsonNumber(std::max(rot_clinical.dose_Gy, rot_dvh.dose_Gy))

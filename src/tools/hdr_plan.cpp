@@ -163,7 +163,7 @@ constexpr const char* kUsage =
     "usage: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both|dvh] [--mps FILE] "
     "[--write-case DIR] [--iterations N] [--criterion TEXT]...\n"
     "       hdr_plan --dicom DIR [--case-file FILE.yaml] [--method lp|dvh] [--export DIR]\n"
-    "  with --method dvh: [--max-seconds S] (processor time per plan, default 8)\n"
+    "  with --method dvh: [--max-seconds S] (processor time per plan, default 5)\n"
     "                     [--dvh-method descent|mip] (default descent)\n";
 
 int main(int argc, char** argv) {

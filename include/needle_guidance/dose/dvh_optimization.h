@@ -57,7 +57,7 @@ struct DvhPlanOptions {
   /// below this fraction of the criterion's level is held below the level without a binary.
   double binary_dose_ratio = 0.5;
   double eval_spacing_m = 0.5e-3;  ///< lattice on which the criteria are checked and indices read
-  double max_seconds = 8.0;        ///< processor-time limit over all rounds [s]
+  double max_seconds = 5.0;        ///< processor-time limit of one plan [s]
   /// CBC's processor time per round after the heuristic or descent [s] (its incumbent); 0: no
   /// CBC, no bound.
   double cbc_seconds = 0.0;
