@@ -117,15 +117,21 @@ double at(const std::map<std::string, double>& m, const std::string& k) {
 
 constexpr double kEvalSpacing_m = 0.5e-3;  // index lattice (dose_indices.h)
 
-/// CSV of an index set, undefined ones with their reason.
-void writeIndexCsv(const std::map<std::string, dose::DoseVolumeIndex>& set, double rx,
+/// CSV of an index set, undefined ones with their reason, and the same index on the dose grid's
+/// own discretisation (on_grid; empty where undefined).
+void writeIndexCsv(const std::map<std::string, dose::DoseVolumeIndex>& set,
+                   const std::map<std::string, dose::DoseVolumeIndex>& on_grid, double rx,
                    const std::string& path) {
   std::ofstream out(path);
-  out << "index,rx_gy,ours,reason\n";
+  out << "index,rx_gy,ours,ours_on_dose_grid,reason\n";
   for (const auto& [k, v] : set) {
     out << k << "," << rx << ",";
     if (v.defined)
       out << ng::report::jsonNumber(v.value, 6);
+    out << ",";
+    const auto it = on_grid.find(k);
+    if (it != on_grid.end() && it->second.defined)
+      out << ng::report::jsonNumber(it->second.value, 6);
     out << ",\"" << v.reason << "\"\n";
   }
 }
@@ -139,7 +145,9 @@ std::string dicompylerCheck(const dose::DicomCase& dc, const std::string& dir,
   const dose::DoseGrid grid = dose::readRtDose(dc.files.dose);
   const auto ours = dose::comparisonIndexSet(
       dose::structureDosesFromGrid(dc.clinical, grid, kEvalSpacing_m), dc.clinical.prescription_Gy);
-  writeIndexCsv(ours, dc.clinical.prescription_Gy, out_dir + "/indices_rtdose_ours.csv");
+  const auto on_grid = dose::comparisonIndexSet(dose::structureDosesOnGridPixels(dc.clinical, grid),
+                                                dc.clinical.prescription_Gy);
+  writeIndexCsv(ours, on_grid, dc.clinical.prescription_Gy, out_dir + "/indices_rtdose_ours.csv");
   const std::string json_path = out_dir + "/dicompyler.json";
   const int rc = std::system(("/usr/bin/python3 " + needle_guidance::packageDir().string() +
                               "/scripts/check_dvh_dicompyler.py '" + dir + "' '" + out_dir +
@@ -279,7 +287,7 @@ std::string dvhStudy(const dose::DicomCase& dc, const std::string& dir,
                         "plan_s", "criteria_met"},
                        6);
   for (const auto& p : front)
-    ft.addRow({std::string("DVH MIP"), p.urethra_d10_limit_Gy, p.urethra_d10_Gy, p.v100_pct,
+    ft.addRow({std::string("DVH plan"), p.urethra_d10_limit_Gy, p.urethra_d10_Gy, p.v100_pct,
                p.seconds, p.criteria_met ? 1.0 : 0.0});
   const auto value = [](const std::map<std::string, dose::DoseVolumeIndex>& m, const char* k) {
     const auto it = m.find(k);
@@ -333,8 +341,16 @@ std::string dvhStudy(const dose::DicomCase& dc, const std::string& dir,
        << ",\n  \"index_lattice_worst\": " << jsonList({lattice.worst_dose, lattice.worst_volume});
   if (!dpy.empty()) {
     json << ",\n  \"index_vs_dicompyler_max_gy\": "
-         << jsonNumber(jsonField(dpy, "max_diff_interpolated_gy"))
+         << jsonNumber(jsonField(dpy, "max_diff_comparable_gy"))
          << ",\n  \"index_vs_dicompyler_max_pp\": "
+         << jsonNumber(jsonField(dpy, "max_diff_comparable_pp"))
+         << ",\n  \"index_vs_dicompyler_on_its_grid_max_gy\": "
+         << jsonNumber(jsonField(dpy, "max_diff_on_grid_gy"))
+         << ",\n  \"index_vs_dicompyler_on_its_grid_max_pp\": "
+         << jsonNumber(jsonField(dpy, "max_diff_on_grid_pp"))
+         << ",\n  \"index_vs_dicompyler_interpolated_max_gy\": "
+         << jsonNumber(jsonField(dpy, "max_diff_interpolated_gy"))
+         << ",\n  \"index_vs_dicompyler_interpolated_max_pp\": "
          << jsonNumber(jsonField(dpy, "max_diff_interpolated_pp"))
          << ",\n  \"index_vs_dicompyler_default_max_gy\": "
          << jsonNumber(jsonField(dpy, "max_diff_default_gy"))
@@ -505,7 +521,7 @@ int main(int argc, char** argv) {
  {"csv": "front.csv", "x": "urethra_D10_Gy", "y": "prostate_V100_pct", "group": "plan", "annotate": "urethra_weight_scale",
   "title": "LP trade-off front (urethra weight sweep) and the clinical plan", "png": "front.png"},
  {"csv": "dvh_front.csv", "x": "urethra_D10_Gy", "y": "prostate_V100_pct", "group": "plan",
-  "title": "Dose-volume MIP front: V100 maximised at each urethra D10 limit (rectum at its criteria)", "png": "dvh_front.png"}])json");
+  "title": "Dose-volume front: V100 maximised at each urethra D10 limit (rectum at its criteria)", "png": "dvh_front.png"}])json");
     std::cout << json.str();
     return 0;
   } catch (const std::exception& e) {
