@@ -12,15 +12,19 @@ double coveredPct(const PlanPoints& p, const VolumeCondition& v, const Eigen::Ve
   const int first = p.first[static_cast<std::size_t>(v.structure)];
   double pct = 0.0;
   for (int i = first; i < first + p.count[static_cast<std::size_t>(v.structure)]; ++i)
-    pct += dose(i) >= v.level_Gy * (1.0 - 1e-9) ? p.pct[static_cast<std::size_t>(i)] : 0.0;
+    pct += (v.strict ? dose(i) > v.level_Gy : dose(i) >= v.level_Gy * (1.0 - 1e-9))
+               ? p.pct[static_cast<std::size_t>(i)]
+               : 0.0;
   return pct;
 }
 
 namespace {
 
-/// Volume over (at most) or short of (at least) condition v's budget, given its covered %.
+/// Volume over (at most) or short of (at least) condition v's budget, given its covered %
+/// (rounding of the volume sums, below 1e-9 points, is not a violation).
 double slackOf(const VolumeCondition& v, double pct) {
-  return std::max(0.0, v.at_most ? pct - v.budget_pct : v.budget_pct - pct);
+  const double slack = v.at_most ? pct - v.budget_pct : v.budget_pct - pct;
+  return slack > 1e-9 ? slack : 0.0;
 }
 
 }  // namespace

@@ -19,6 +19,9 @@ struct VolumeCondition {
   double level_Gy = 0.0;
   double budget_pct = 0.0;
   bool at_most = true;
+  /// Count only doses above the level (D<p> <= L: less than p of the volume above L, so a point
+  /// at exactly L does not count); otherwise doses at or above it (V<p>, D<p> >= L).
+  bool strict = false;
 };
 
 /// Dose points: a structure lattice of every structure a condition names.

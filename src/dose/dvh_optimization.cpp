@@ -92,8 +92,10 @@ bool toCondition(const HdrCase& c, const DvhCriterion& k, std::size_t which, dou
                        " cm3), criterion skipped");
       return false;
     }
-    // D_x <= L: less than x of the volume above L (strictly, so the hottest x is not all above).
-    v.budget_pct = k.at_most ? pct * (1.0 - 1e-6) : pct;
+    // D_x <= L: less than x of the volume above L (strictly, so the hottest x is not all above);
+    // D_x >= L: at least x of the volume at L or more (doseCoveringVolume's reading).
+    v.budget_pct = pct * (1.0 - 1e-6);
+    v.strict = k.at_most;
   }
   *out = v;
   return true;
