@@ -1,7 +1,7 @@
 // Plans one HDR case: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both|dvh]
 //   [--mps FILE] [--write-case DIR] [--iterations N] [--criterion "urethra D10 <= 115%"]...
 // or a DICOM-RT folder: hdr_plan --dicom DIR [--case-file FILE.yaml] [--method lp|dvh]
-//   [--export DIR]
+//   [--export DIR] [--max-seconds S] [--dvh-method descent|mip]
 // --dicom builds the case from RTSTRUCT + RTPLAN (dicom_case.h), plans the LP (or, with
 // --method dvh, maximises target V100 under the case file's dose-volume criteria and then
 // looks for a plan at least as good as the clinical one on every index), prints the clinical

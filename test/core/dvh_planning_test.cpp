@@ -177,6 +177,29 @@ TEST_F(DvhPlanning, StructureAlongTheDoseGridsEdge) {
   EXPECT_NE(partial.at("prostate_V100").reason.find("outside the dose grid"), std::string::npos);
 }
 
+TEST_F(DvhPlanning, DoseGridPixelsSampleAsDicompylerDoes) {
+  // dicompyler-core's discretisation: 1 mm voxel centres inside each contour at its plane, each
+  // voxel area x slice thickness. The volume is the voxel count's (within a ring of voxels of
+  // the contour volume), every dose is a voxel's, and the prostate indices stay near ours.
+  const std::vector<double> times = uniformTimes(case_, 4.0);
+  Point3 lo, hi;
+  case_.structures[0].bounds(lo, hi);
+  const Point3 margin = Point3::Constant(3e-3);  // the grid covers the prostate
+  const DoseGrid grid = gridOver(case_, source_, times, lo - margin, hi + margin);
+  const auto pixels = structureDosesOnGridPixels(case_, grid);
+  ASSERT_EQ(pixels.size(), case_.structures.size());
+  const Structure& prostate = case_.structures[0];
+  const double ring_m3 = 15e-3 * 2 * M_PI * 1e-3 * (hi.z() - lo.z() + 2e-3);  // 1 mm ring
+  EXPECT_NEAR(pixels[0].volume(), prostate.volume_m3(), ring_m3);
+  EXPECT_EQ(pixels[0].outside_m3, 0.0);
+  const double max_grid = grid.maxDose();
+  for (double d : pixels[0].dose_Gy)
+    ASSERT_LE(d, max_grid + 1e-12);
+  const auto on_pixels = comparisonIndexSet(pixels, 10.0);
+  const auto direct = comparisonIndexSet(structureDoses(case_, source_, times, 0.5e-3), 10.0);
+  EXPECT_NEAR(on_pixels.at("prostate_D90").value, direct.at("prostate_D90").value, kGridIndex_Gy);
+}
+
 TEST_F(DvhPlanning, CriteriaThatCannotAllHoldGiveTheLeastViolatingPlan) {
   // The urethra runs through the target: 95 % coverage at Rx and urethra D10 <= 50 % of Rx
   // cannot hold together.
