@@ -54,6 +54,26 @@ double cpuSince(std::clock_t start) {
   return static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
 }
 
+/// A plan's standing: total violation first (so a plan meeting every criterion beats any that
+/// breaks one, however much more it covers), then the objective.
+struct Score {
+  double violation = std::numeric_limits<double>::infinity();
+  double objective = std::numeric_limits<double>::infinity();
+  /// Better than b, by more than `by` on the objective when the violations tie.
+  bool beats(const Score& b, double by = 0.0) const {
+    if (violation < b.violation - 1e-9)
+      return true;
+    return violation <= b.violation + 1e-9 && objective < b.objective - by;
+  }
+};
+
+Score scoreOf(const PlanPoints& p, const std::vector<VolumeCondition>& conditions,
+              const Eigen::VectorXd& dose, double total_s, double total_time_s,
+              const DvhPlanOptions& o) {
+  return {violationPct(p, conditions, dose),
+          objectiveAt(p, conditions, dose, total_s, total_time_s, o)};
+}
+
 /// The penalty of one condition at point doses d, with its gradient added into coef (per point):
 /// at most, the points at or above `level` beyond the hottest `budget` % are pushed down to it;
 /// at least, the hottest points below `level` that make up the shortfall are pushed up to it.
@@ -125,9 +145,9 @@ struct Surrogate {
 /// The best start on the exact objective, each start scaled by 0.7-1.5 (doses scale with it).
 Eigen::VectorXd bestStart(const PlanPoints& p, const std::vector<VolumeCondition>& conditions,
                           double total_time_s, const std::vector<std::vector<double>>& starts,
-                          const DvhPlanOptions& o, double* best) {
+                          const DvhPlanOptions& o, Score* best) {
   Eigen::VectorXd out;
-  *best = std::numeric_limits<double>::infinity();
+  *best = Score{};
   for (const std::vector<double>& s : starts) {
     if (static_cast<Eigen::Index>(s.size()) != p.d.cols())
       continue;
@@ -136,8 +156,8 @@ Eigen::VectorXd bestStart(const PlanPoints& p, const std::vector<VolumeCondition
       continue;
     const Eigen::VectorXd d = p.d * t;
     for (double scale = 0.7; scale <= 1.5 + 1e-9; scale += 0.01) {
-      const double value = objectiveAt(p, conditions, scale * d, scale * t.sum(), total_time_s, o);
-      if (value < *best) {
+      const Score value = scoreOf(p, conditions, scale * d, scale * t.sum(), total_time_s, o);
+      if (value.beats(*best)) {
         *best = value;
         out = scale * t;
       }
@@ -153,9 +173,9 @@ DescentResult descendOnCriteria(const PlanPoints& p, const std::vector<VolumeCon
                                 const DvhPlanOptions& o, double seconds) {
   const std::clock_t cpu0 = std::clock();
   DescentResult r;
-  double best = 0.0;
+  Score best;
   Eigen::VectorXd best_t = bestStart(p, conditions, total_time_s, starts, o, &best);
-  r.start_objective = best;
+  r.start_objective = best.objective;
   if (best_t.size() == 0)
     return r;
   Surrogate f{p, p.d, conditions, o.descent_level_margin, o.violation_penalty, 0.0, {}, {}};
@@ -178,16 +198,16 @@ DescentResult descendOnCriteria(const PlanPoints& p, const std::vector<VolumeCon
       alpha *= 0.5;
     }
     ++r.iterations;
-    const double exact = objectiveAt(p, conditions, d_new, t_new.sum(), total_time_s, o);
+    const Score exact = scoreOf(p, conditions, d_new, t_new.sum(), total_time_s, o);
     // Progress: a better plan by a fifth of the smallest goal step (smaller gains are kept
     // but do not hold off the goal's drop).
-    stalled = exact < best - 0.2 * o.descent_min_step_pp ? 0 : stalled + 1;
-    if (exact < best) {
+    stalled = exact.beats(best, 0.2 * o.descent_min_step_pp) ? 0 : stalled + 1;
+    if (exact.beats(best)) {
       best = exact;
       best_t = t_new;
     }
     const double covered = coverage(d_new);
-    if (violationPct(p, conditions, d_new) <= 0.0 && covered >= f.goal - 0.5 * step)
+    if (exact.violation <= 0.0 && covered >= f.goal - 0.5 * step)
       f.goal = covered + step;  // reached: ask for more
     // Barzilai-Borwein step length for the next iteration.
     const Eigen::VectorXd s = t_new - t, y = g_new - g;
@@ -215,7 +235,7 @@ DescentResult descendOnCriteria(const PlanPoints& p, const std::vector<VolumeCon
     }
   }
   r.times_s.assign(best_t.data(), best_t.data() + best_t.size());
-  r.objective = best;
+  r.objective = best.objective;
   return r;
 }
 

@@ -61,8 +61,9 @@ struct DescentResult {
 /// 1998: for each condition, only the points that break it beyond its budget are pushed back to
 /// its level, with a level margin so that a zero penalty means the exact condition holds) with a
 /// coverage goal above the best exact plan so far, raised when reached and lowered when the
-/// descent stalls. Every iterate is scored on the exact objective and the best is returned, so
-/// the answer is never worse than the best start. Processor time at most seconds.
+/// descent stalls. Every iterate is scored exactly, total violation first and then the
+/// objective, and the best is returned, so the answer is never worse than the best start.
+/// Processor time at most seconds.
 DescentResult descendOnCriteria(const PlanPoints& p, const std::vector<VolumeCondition>& conditions,
                                 double total_time_s, const std::vector<std::vector<double>>& starts,
                                 const DvhPlanOptions& o, double seconds);

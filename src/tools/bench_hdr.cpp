@@ -220,6 +220,7 @@ std::string dvhCohort(const std::vector<dose::HdrCase>& cohort, const dose::Tg43
   constexpr double kSpacing_m = 1e-3;  // index lattice of the cohort (prostates up to 103 cc)
   dose::DvhPlanOptions o;
   o.eval_spacing_m = kSpacing_m;
+  o.max_seconds = 3.0;  // per plan: 20 cases x 2 plans on a shared 2-core machine
   ng::report::Table t({"case", "dvh_plan_s", "dvh_v100_pct", "dvh_urethra_D10_Gy",
                        "dvh_criteria_met", "sa_v100_pct", "sa_urethra_D10_Gy", "dominating_plan_s",
                        "sa_dominated", "prevented_by", "rotation_change_Gy", "rotation_change_pp"},

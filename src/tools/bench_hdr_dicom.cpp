@@ -282,7 +282,7 @@ std::string dvhStudy(const dose::DicomCase& dc, const std::string& dir,
     limits.push_back(f * u0);
   dose::DvhPlanOptions front_options = options;
   front_options.max_seconds = 4.0;
-  const auto front = dose::dvhFront(c, source, criteria, limits, front_options);
+  const auto front = dose::dvhFront(with_clinical, source, criteria, limits, front_options);
   ng::report::Table ft({"plan", "urethra_D10_limit_Gy", "urethra_D10_Gy", "prostate_V100_pct",
                         "plan_s", "criteria_met"},
                        6);
