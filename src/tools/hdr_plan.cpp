@@ -13,6 +13,7 @@
 // LP's dwell times (or SA's with --method sa) as a case folder. Prints objectives, times and
 // dosimetric indices. Exit 0 on success, 2 on bad arguments or a bad case.
 #include <cstdio>
+#include <cstdlib>
 #include <iostream>
 #include <map>
 #include <memory>
@@ -205,9 +206,15 @@ int main(int argc, char** argv) {
       export_dir = value();
     else if (a == "--criterion")
       criteria_text.push_back(value());
-    else if (a == "--max-seconds")
-      dvh_options.max_seconds = std::stod(value());
-    else if (a == "--dvh-method")
+    else if (a == "--max-seconds") {
+      const std::string text = value();
+      char* end = nullptr;
+      dvh_options.max_seconds = std::strtod(text.c_str(), &end);
+      if (end == text.c_str() || *end != '\0' || !(dvh_options.max_seconds > 0.0)) {
+        std::cerr << "hdr_plan: --max-seconds needs a number > 0, got '" << text << "'\n";
+        return 2;
+      }
+    } else if (a == "--dvh-method")
       dvh_options.method = value();
     else {
       std::cerr << kUsage;
