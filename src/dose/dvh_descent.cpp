@@ -155,7 +155,8 @@ Eigen::VectorXd bestStart(const PlanPoints& p, const std::vector<VolumeCondition
     if (!t.allFinite() || (t.array() < 0.0).any() || !(t.sum() > 0.0))
       continue;
     const Eigen::VectorXd d = p.d * t;
-    for (double scale = 0.7; scale <= 1.5 + 1e-9; scale += 0.01) {
+    for (int percent = 70; percent <= 150; ++percent) {  // 100: the start itself, exactly
+      const double scale = percent / 100.0;
       const Score value = scoreOf(p, conditions, scale * d, scale * t.sum(), total_time_s, o);
       if (value.beats(*best)) {
         *best = value;

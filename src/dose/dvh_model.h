@@ -22,6 +22,7 @@ struct VolumeCondition {
   /// Count only doses above the level (D<p> <= L: less than p of the volume above L, so a point
   /// at exactly L does not count); otherwise doses at or above it (V<p>, D<p> >= L).
   bool strict = false;
+  double cc = 0.0;  ///< D<v>cc: v [cm^3], whose share of the sampled volume is the budget
 };
 
 /// Dose points: a structure lattice of every structure a condition names.

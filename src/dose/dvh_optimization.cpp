@@ -96,6 +96,7 @@ bool toCondition(const HdrCase& c, const DvhCriterion& k, std::size_t which, dou
     // D_x >= L: at least x of the volume at L or more (doseCoveringVolume's reading).
     v.budget_pct = pct * (1.0 - 1e-6);
     v.strict = k.at_most;
+    v.cc = isCc(k.index) ? x : 0.0;
   }
   *out = v;
   return true;
@@ -546,6 +547,15 @@ Problem setUp(const HdrCase& c, const Tg43Source& source, const std::vector<DvhC
   }
   pr.specs = criteriaSpecs(pr.all);
   pr.eval = planPoints(c, source, structures, o.eval_spacing_m, 0, false);
+  for (VolumeCondition& v : pr.conditions) {
+    // D<v>cc: v as a share of the volume the lattice holds, as the index reads it.
+    const int first = pr.eval.first[static_cast<std::size_t>(v.structure)];
+    const auto begin = pr.eval.volume_m3.begin() + first;
+    const double sampled =
+        std::accumulate(begin, begin + pr.eval.count[static_cast<std::size_t>(v.structure)], 0.0);
+    if (v.cc > 0.0 && sampled > 0.0)
+      v.budget_pct = std::min(100.0, 100.0 * v.cc * 1e-6 / sampled) * (1.0 - 1e-6);
+  }
   // Bound on the total time: 4x what gives the target its prescription on average with equal
   // times, or twice the case's own plan if more (reported if a plan reaches it).
   const PlanPoints& p = pr.eval;
