@@ -399,4 +399,26 @@ void exportDicomRtPlan(const HdrCase& plan, const Tg43Source& source, const Dose
   }
 }
 
+/// The planning case with the clinical plan's dwell times on the candidate dwells (an active
+/// clinical dwell within 1 mm of a candidate on its catheter adds its time there), so that the
+/// planner scores the clinical plan on its own model.
+HdrCase planningWithClinicalTimes(const DicomCase& dc) {
+  HdrCase c = dc.planning;
+  c.dwell_times_s.assign(c.dwells.size(), 0.0);
+  for (std::size_t j = 0; j < dc.clinical.dwells.size(); ++j) {
+    double best = 1e-3;
+    int at = -1;
+    for (std::size_t i = 0; i < c.dwells.size(); ++i) {
+      const double dist = (c.dwells[i].position_m - dc.clinical.dwells[j].position_m).norm();
+      if (c.dwells[i].catheter == dc.clinical.dwells[j].catheter && dist < best) {
+        best = dist;
+        at = static_cast<int>(i);
+      }
+    }
+    if (at >= 0)
+      c.dwell_times_s[static_cast<std::size_t>(at)] += dc.clinical.dwell_times_s[j];
+  }
+  return c;
+}
+
 }  // namespace needle_guidance::dose

@@ -266,6 +266,39 @@ std::vector<StructureDose> structureDosesFromGrid(const HdrCase& c, const DoseGr
   return out;
 }
 
+std::vector<StructureDose> structureDosesOnGridPixels(const HdrCase& c, const DoseGrid& grid) {
+  grid.validate("structureDosesOnGridPixels: dose grid");
+  std::vector<StructureDose> out;
+  const double pixel_m2 = grid.spacing_m.x() * grid.spacing_m.y();
+  for (const Structure& s : c.structures) {
+    StructureDose sd;
+    sd.name = s.name;
+    const double h = s.sliceSpacing();
+    for (std::size_t k = 0; k < s.contours.size(); ++k) {
+      const double z = s.contours[k].z_m;
+      if (k > 0 && std::abs(z - s.contours[k - 1].z_m) < 1e-12)
+        continue;  // one pass per plane (contains() takes all its contours)
+      for (int j = 0; j < grid.sizes[1]; ++j) {
+        for (int i = 0; i < grid.sizes[0]; ++i) {
+          Point3 p = grid.position(i, j, 0);
+          p.z() = z;
+          if (!s.contains(p))
+            continue;
+          double dose = 0.0;
+          if (grid.interpolate(p, &dose)) {
+            sd.dose_Gy.push_back(dose);
+            sd.volume_m3.push_back(pixel_m2 * h);
+          } else {
+            sd.outside_m3 += pixel_m2 * h;
+          }
+        }
+      }
+    }
+    out.push_back(std::move(sd));
+  }
+  return out;
+}
+
 double volumePercentAbove(const StructureDose& s, double dose_Gy) {
   const double total = s.volume();
   if (s.dose_Gy.empty() || !(total > 0.0)) {

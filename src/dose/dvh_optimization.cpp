@@ -1,5 +1,8 @@
 #include "needle_guidance/dose/dvh_optimization.h"
 
+#include "dvh_model.h"
+#include "needle_guidance/dose/dwell_optimization.h"
+
 #include <CbcModel.hpp>
 #include <CbcSolver.hpp>
 #include <CoinPackedMatrix.hpp>
@@ -17,6 +20,9 @@
 
 namespace needle_guidance::dose {
 namespace {
+
+using dvh_model::PlanPoints;
+using dvh_model::VolumeCondition;
 
 using Clock = std::chrono::steady_clock;
 
@@ -45,28 +51,26 @@ double specNumber(const std::string& index) {
   return std::stod(index.substr(1, index.size() - 1 - (isCc(index) ? 2 : 0)));
 }
 
-/// A criterion as a volume condition on the dose points of its structure: the volume at dose
-/// >= level_Gy is at most (at_most) or at least budget_pct of the structure's volume.
-struct VolumeCondition {
-  std::size_t criterion = 0;
-  int structure = 0;
-  double level_Gy = 0.0;
-  double budget_pct = 0.0;
-  bool at_most = true;
-};
-
 /// Turns criterion k into a volume condition; false (with a note) if its structure cannot
 /// support it (D<v>cc of a smaller structure) or is absent.
+std::string lowerName(std::string n) {
+  std::transform(n.begin(), n.end(), n.begin(),
+                 [](unsigned char ch) { return static_cast<char>(std::tolower(ch)); });
+  return n;
+}
+
+/// Index of the structure named `name` (lower case) in c, or -1.
+int structureIndex(const HdrCase& c, const std::string& name) {
+  for (std::size_t s = 0; s < c.structures.size(); ++s) {
+    if (lowerName(c.structures[s].name) == name)
+      return static_cast<int>(s);
+  }
+  return -1;
+}
+
 bool toCondition(const HdrCase& c, const DvhCriterion& k, std::size_t which, double rx,
                  VolumeCondition* out, std::vector<std::string>* notes) {
-  int si = -1;
-  for (std::size_t s = 0; s < c.structures.size(); ++s) {
-    std::string n = c.structures[s].name;
-    std::transform(n.begin(), n.end(), n.begin(),
-                   [](unsigned char ch) { return std::tolower(ch); });
-    if (n == k.structure)
-      si = static_cast<int>(s);
-  }
+  const int si = structureIndex(c, k.structure);
   if (si < 0) {
     notes->push_back(describe(k) + ": no structure '" + k.structure + "', criterion skipped");
     return false;
@@ -88,42 +92,44 @@ bool toCondition(const HdrCase& c, const DvhCriterion& k, std::size_t which, dou
                        " cm3), criterion skipped");
       return false;
     }
-    // D_x <= L: less than x of the volume above L (strictly, so the hottest x is not all above).
-    v.budget_pct = k.at_most ? pct * (1.0 - 1e-6) : pct;
+    // D_x <= L: less than x of the volume above L (strictly, so the hottest x is not all above);
+    // D_x >= L: at least x of the volume at L or more (doseCoveringVolume's reading).
+    v.budget_pct = pct * (1.0 - 1e-6);
+    v.strict = k.at_most;
+    v.cc = isCc(k.index) ? x : 0.0;
   }
   *out = v;
   return true;
 }
 
-/// Dose points of the MIP: the coarse structure lattice of every structure a condition names.
-struct PlanPoints {
-  std::vector<int> first;  ///< per structure: index of its first point (-1 if unused)
-  std::vector<int> count;
-  std::vector<double> pct;  ///< per point: % of its structure's volume
-  Eigen::MatrixXd d;        ///< dose rate [Gy/s] per point and dwell
-};
-
+/// Dose points of every structure in `structures`. For the MIP (`coarse`): the structure lattice
+/// at min_spacing_m in all three directions, coarser so that no structure has more than
+/// max_points. Otherwise the evaluation lattice itself (sampleStructure at latticeSpacing, as
+/// structureDoses samples), so that the plan is judged on the points it was optimised on.
 PlanPoints planPoints(const HdrCase& c, const Tg43Source& source,
-                      const std::vector<VolumeCondition>& conditions, double min_spacing_m,
-                      int max_points) {
+                      const std::vector<int>& structures, double min_spacing_m, int max_points,
+                      bool coarse) {
   PlanPoints p;
   p.first.assign(c.structures.size(), -1);
   p.count.assign(c.structures.size(), 0);
   std::vector<Point3> points;
-  for (const VolumeCondition& v : conditions) {
-    const std::size_t s = static_cast<std::size_t>(v.structure);
+  for (const int si : structures) {
+    const std::size_t s = static_cast<std::size_t>(si);
     if (p.first[s] >= 0)
       continue;
-    // The lattice coarsens for a large structure so that the MIP stays small.
-    const double spacing_m =
-        std::max(min_spacing_m, std::cbrt(c.structures[s].volume_m3() / max_points));
-    const VolumeSample sample = sampleStructure(c.structures[s], spacing_m, spacing_m);
+    const Structure& st = c.structures[s];
+    const VolumeSample sample =
+        coarse
+            ? sampleStructure(st, std::max(min_spacing_m, std::cbrt(st.volume_m3() / max_points)),
+                              std::max(min_spacing_m, std::cbrt(st.volume_m3() / max_points)))
+            : sampleStructure(st, latticeSpacing(st, min_spacing_m));
     const double total = std::accumulate(sample.volume_m3.begin(), sample.volume_m3.end(), 0.0);
     p.first[s] = static_cast<int>(points.size());
     p.count[s] = static_cast<int>(sample.points_m.size());
     for (std::size_t i = 0; i < sample.points_m.size(); ++i) {
       points.push_back(sample.points_m[i]);
       p.pct.push_back(100.0 * sample.volume_m3[i] / total);
+      p.volume_m3.push_back(sample.volume_m3[i]);
     }
   }
   p.d.resize(static_cast<Eigen::Index>(points.size()), static_cast<Eigen::Index>(c.dwells.size()));
@@ -140,36 +146,16 @@ Eigen::VectorXd pointDoses(const PlanPoints& p, const std::vector<double>& t) {
   return p.d * Eigen::Map<const Eigen::VectorXd>(t.data(), static_cast<Eigen::Index>(t.size()));
 }
 
-/// % of the condition's structure at dose >= its level.
+/// % of the condition's structure at dose >= its level under times t.
 double coveredPct(const PlanPoints& p, const VolumeCondition& v, const std::vector<double>& t) {
-  const Eigen::VectorXd d = pointDoses(p, t);
-  const int first = p.first[static_cast<std::size_t>(v.structure)];
-  double pct = 0.0;
-  for (int i = first; i < first + p.count[static_cast<std::size_t>(v.structure)]; ++i)
-    pct += d(i) >= v.level_Gy * (1.0 - 1e-9) ? p.pct[static_cast<std::size_t>(i)] : 0.0;
-  return pct;
+  return dvh_model::coveredPct(p, v, pointDoses(p, t));
 }
 
-/// The MIP's objective at times t with the binaries and elastic slacks the doses imply
-/// (infinite if t breaks the total-time bound).
+/// The planner's objective at times t (objectiveAt).
 double objectiveOf(const PlanPoints& p, const std::vector<VolumeCondition>& conditions,
                    const std::vector<double>& t, double total_time_s, const DvhPlanOptions& o) {
-  double total = 0.0;
-  for (double v : t)
-    total += v;
-  if (total > total_time_s * (1.0 + 1e-9))
-    return std::numeric_limits<double>::infinity();
-  double value = 1e-6 / static_cast<double>(t.size()) * total;
-  for (std::size_t k = 0; k < conditions.size(); ++k) {
-    const VolumeCondition& v = conditions[k];
-    const double pct = coveredPct(p, v, t);
-    if (k == 0)
-      value -= pct;
-    const double slack = v.at_most ? pct - v.budget_pct : v.budget_pct - pct;
-    if (slack > 0.0 && !(k == 0 && v.budget_pct <= 0.0))
-      value += o.violation_penalty * slack;
-  }
-  return value;
+  return dvh_model::objectiveAt(p, conditions, pointDoses(p, t),
+                                std::accumulate(t.begin(), t.end(), 0.0), total_time_s, o);
 }
 
 /// The freeing LP heuristic (in the manner of IPIP): every organ point is held below its
@@ -301,17 +287,16 @@ struct MipSolution {
 };
 
 /// Column layout: dwell times, then per condition its point binaries, then per condition its
-/// elastic slack. Condition 0 is the objective's (target coverage at the prescription).
+/// elastic slack. Condition 0 is the objective's (target coverage at the prescription). CBC
+/// starts from the incumbent `start` (its objective is the cutoff) and runs for `cbc_seconds`.
 MipSolution solveMip(const PlanPoints& p, const std::vector<VolumeCondition>& conditions,
                      double total_time_s, const Eigen::VectorXd& reference_Gy,
-                     const DvhPlanOptions& o, double seconds) {
-  const std::clock_t start = std::clock();
+                     const DvhPlanOptions& o, const std::vector<double>& start,
+                     double cbc_seconds) {
   const int n = static_cast<int>(p.d.cols());
   MipSolution out;
-  // Incumbent: the freeing LP heuristic; CBC then looks for better within its time.
-  std::vector<double> best_t = freeingHeuristic(p, conditions, total_time_s, o, o.heuristic_rounds);
+  std::vector<double> best_t = start;
   double best = objectiveOf(p, conditions, best_t, total_time_s, o);
-  const double cbc_seconds = std::min(o.cbc_seconds, seconds - cpuSince(start));
   if (!(cbc_seconds > 0.0)) {
     out.found = std::isfinite(best);
     out.times_s = best_t;
@@ -515,34 +500,220 @@ std::vector<DvhCriterion> criteriaAt(const std::map<std::string, DoseVolumeIndex
 
 namespace {
 
-/// Structure doses on the evaluation lattice (samples kept between rounds).
-struct Evaluator {
-  const HdrCase& c;
-  const Tg43Source& source;
-  std::vector<VolumeSample> samples;
-  Evaluator(const HdrCase& hc, const Tg43Source& s, double spacing) : c(hc), source(s) {
-    for (const Structure& st : c.structures)
-      samples.push_back(sampleStructure(st, latticeSpacing(st, spacing)));
-  }
-  std::vector<StructureDose> doses(const std::vector<double>& times) const {
-    std::vector<StructureDose> out;
-    for (std::size_t s = 0; s < c.structures.size(); ++s) {
-      StructureDose sd;
-      sd.name = c.structures[s].name;
-      sd.volume_m3 = samples[s].volume_m3;
-      for (const Point3& p : samples[s].points_m)
-        sd.dose_Gy.push_back(doseAt(c, source, times, p));
-      out.push_back(std::move(sd));
-    }
-    return out;
-  }
-};
-
 /// How far index `got` misses criterion k (> 0: violated), in its unit.
 double excess(const DvhCriterion& k, const DoseVolumeIndex& got) {
   if (!got.defined)
     return 0.0;
   return k.at_most ? got.value - k.limit : k.limit - got.value;
+}
+
+/// The problem as both methods see it: the criteria (0: the target's V100, the objective), their
+/// volume conditions, and the evaluation lattice on which plans are judged.
+struct Problem {
+  std::vector<DvhCriterion> all;
+  std::vector<VolumeCondition> conditions;  ///< as stated (before any tightening)
+  std::map<std::string, std::vector<std::string>> specs;
+  std::string target_name;
+  PlanPoints eval;            ///< the evaluation lattice of every structure a criterion names
+  double total_time_s = 0.0;  ///< bound on the total dwell time
+  double equal_time_s = 0.0;  ///< equal times giving the target its prescription on average
+};
+
+Problem setUp(const HdrCase& c, const Tg43Source& source, const std::vector<DvhCriterion>& criteria,
+              const DvhPlanOptions& o, std::vector<std::string>* notes) {
+  Problem pr;
+  int target = -1;
+  for (std::size_t s = 0; s < c.structures.size() && target < 0; ++s)
+    target = c.structures[s].role == StructureRole::kTarget ? static_cast<int>(s) : -1;
+  if (target < 0)
+    throw std::invalid_argument("optimizeDvh: case '" + c.name + "' has no target structure");
+  pr.target_name = lowerName(c.structures[static_cast<std::size_t>(target)].name);
+  // Condition 0: the objective, target V100 (at least the criterion's budget if there is one).
+  pr.all = {{pr.target_name, "V100", 0.0, false}};
+  for (const DvhCriterion& k : criteria) {
+    if (k.structure == pr.target_name && k.index == "V100" && !k.at_most)
+      pr.all[0].limit = k.limit;
+    else
+      pr.all.push_back(k);
+  }
+  std::vector<int> structures;
+  for (std::size_t k = 0; k < pr.all.size(); ++k) {
+    VolumeCondition v;
+    if (toCondition(c, pr.all[k], k, c.prescription_Gy, &v, notes))
+      pr.conditions.push_back(v);
+    const int si = structureIndex(c, pr.all[k].structure);
+    if (si >= 0)
+      structures.push_back(si);
+  }
+  pr.specs = criteriaSpecs(pr.all);
+  pr.eval = planPoints(c, source, structures, o.eval_spacing_m, 0, false);
+  for (VolumeCondition& v : pr.conditions) {
+    // D<v>cc: v as a share of the volume the lattice holds, as the index reads it.
+    const int first = pr.eval.first[static_cast<std::size_t>(v.structure)];
+    const auto begin = pr.eval.volume_m3.begin() + first;
+    const double sampled =
+        std::accumulate(begin, begin + pr.eval.count[static_cast<std::size_t>(v.structure)], 0.0);
+    if (v.cc > 0.0 && sampled > 0.0)
+      v.budget_pct = std::min(100.0, 100.0 * v.cc * 1e-6 / sampled) * (1.0 - 1e-6);
+  }
+  // Bound on the total time: 4x what gives the target its prescription on average with equal
+  // times, or twice the case's own plan if more (reported if a plan reaches it).
+  const PlanPoints& p = pr.eval;
+  const int tf = p.first[static_cast<std::size_t>(target)];
+  const Eigen::VectorXd rate =
+      p.d.middleRows(tf, p.count[static_cast<std::size_t>(target)]).rowwise().sum();
+  double mean_rate = 0.0;
+  for (int i = 0; i < rate.size(); ++i)
+    mean_rate += rate(i) * p.pct[static_cast<std::size_t>(tf + i)] / 100.0;
+  pr.equal_time_s = c.prescription_Gy / std::max(mean_rate, 1e-300);
+  pr.total_time_s = 4.0 * pr.equal_time_s * static_cast<double>(c.dwells.size());
+  if (c.dwell_times_s.size() == c.dwells.size())  // the case's own plan stays within the bound
+    pr.total_time_s = std::max(pr.total_time_s, 2.0 * std::accumulate(c.dwell_times_s.begin(),
+                                                                      c.dwell_times_s.end(), 0.0));
+  return pr;
+}
+
+/// Structure doses of times t on the evaluation lattice (what structureDoses computes).
+std::vector<StructureDose> latticeDoses(const HdrCase& c, const PlanPoints& p,
+                                        const std::vector<double>& t) {
+  const Eigen::VectorXd d = pointDoses(p, t);
+  std::vector<StructureDose> out;
+  for (std::size_t s = 0; s < c.structures.size(); ++s) {
+    if (p.first[s] < 0)
+      continue;
+    StructureDose sd;
+    sd.name = c.structures[s].name;
+    for (int i = p.first[s]; i < p.first[s] + p.count[s]; ++i) {
+      sd.dose_Gy.push_back(d(i));
+      sd.volume_m3.push_back(p.volume_m3[static_cast<std::size_t>(i)]);
+    }
+    out.push_back(std::move(sd));
+  }
+  return out;
+}
+
+/// Plan t judged on the evaluation lattice: its indices and the criteria that give way (with
+/// the index each reached). With `tighten`, each missed condition is tightened by its miss.
+struct Judgement {
+  std::map<std::string, DoseVolumeIndex> indices;
+  std::vector<std::string> violated;
+  double v100_pct = 0.0;
+};
+
+Judgement judge(const HdrCase& c, const Problem& pr, const std::vector<double>& t,
+                std::vector<VolumeCondition>* tighten) {
+  Judgement j;
+  j.indices = indexSet(latticeDoses(c, pr.eval, t), pr.specs, c.prescription_Gy);
+  for (std::size_t q = 0; q < pr.conditions.size(); ++q) {
+    const DvhCriterion& k = pr.all[pr.conditions[q].criterion];
+    const std::string key = k.structure + "_" + k.index;
+    const double miss = q == 0 && k.limit <= 0.0 ? 0.0 : excess(k, j.indices.at(key));
+    const bool is_v = k.index[0] == 'V';
+    if (miss <= (is_v ? 0.1 : 0.02))
+      continue;
+    j.violated.push_back(describe(k) + " (" + number(j.indices.at(key).value) + ")");
+    if (tighten != nullptr) {
+      // Tighten by what the evaluation lattice shows (the MIP's points under-sample it).
+      VolumeCondition& v = (*tighten)[q];
+      const double step = (v.at_most ? -1.0 : 1.0) * miss;
+      (is_v ? v.budget_pct : v.level_Gy) += step;
+      v.budget_pct = std::clamp(v.budget_pct, 0.0, 100.0);
+      v.level_Gy = std::max(v.level_Gy, 0.0);
+    }
+  }
+  j.v100_pct = j.indices.at(pr.target_name + "_V100").value;
+  return j;
+}
+
+/// Records plan t with its judgement in r.
+void record(const Problem& pr, const std::vector<double>& t, Judgement j, const DvhPlanOptions& o,
+            DvhPlanResult* r) {
+  r->times_s = t;
+  r->indices = std::move(j.indices);
+  r->violated = std::move(j.violated);
+  r->v100_pct = j.v100_pct;
+  r->mip_v100_pct = coveredPct(pr.eval, pr.conditions[0], t);
+  r->objective = objectiveOf(pr.eval, pr.conditions, t, pr.total_time_s, o);
+}
+
+/// The MIP (IPIP-style freeing heuristic, then CBC when cbc_seconds > 0) on a coarse lattice,
+/// re-solved with conditions tightened by what the evaluation lattice shows.
+void planByMip(const HdrCase& c, const Tg43Source& source, const Problem& pr,
+               const DvhPlanOptions& o, std::clock_t cpu0, DvhPlanResult* r) {
+  std::vector<int> structures;
+  for (const VolumeCondition& v : pr.conditions)
+    structures.push_back(v.structure);
+  const PlanPoints points =
+      planPoints(c, source, structures, o.plan_spacing_m, o.max_points_per_structure, true);
+  // Reference plan for choosing which organ points need a binary: equal times, target mean Rx.
+  const Eigen::VectorXd reference_Gy = points.d.rowwise().sum() * pr.equal_time_s;
+  std::vector<VolumeCondition> conditions = pr.conditions;
+  int best_violations = 1 << 30;
+  for (int round = 0; round < o.rounds; ++round) {
+    const double left = o.max_seconds - cpuSince(cpu0);
+    if (round > 0 && left < 0.5)
+      break;
+    const std::clock_t round0 = std::clock();
+    const std::vector<double> start =
+        freeingHeuristic(points, conditions, pr.total_time_s, o, o.heuristic_rounds);
+    const double cbc = std::min(o.cbc_seconds, left / (o.rounds - round) - cpuSince(round0));
+    const MipSolution m =
+        solveMip(points, conditions, pr.total_time_s, reference_Gy, o, start, cbc);
+    ++r->rounds;
+    if (!m.found)
+      continue;
+    Judgement j = judge(c, pr, m.times_s, &conditions);
+    const int nv = static_cast<int>(j.violated.size());
+    if (nv < best_violations || (nv == best_violations && j.v100_pct > r->v100_pct)) {
+      best_violations = nv;
+      const bool done = j.violated.empty();
+      record(pr, m.times_s, std::move(j), o, r);
+      r->mip_gap_pct = m.gap_pct;
+      r->mip_optimal = m.optimal;
+      r->mip_bound_known = m.bound_known;
+      r->binaries = m.binaries;
+      r->rows = m.rows;
+      if (done)
+        break;
+    }
+  }
+}
+
+/// The descent on the criteria over the evaluation lattice (descendOnCriteria), from the case's
+/// own times, the IPSA LP's and equal times; with cbc_seconds > 0, CBC then bounds it on the
+/// same points.
+void planByDescent(const HdrCase& c, const Tg43Source& source, const Problem& pr,
+                   const DvhPlanOptions& o, std::clock_t cpu0, DvhPlanResult* r) {
+  std::vector<std::vector<double>> starts;
+  if (c.dwell_times_s.size() == c.dwells.size())
+    starts.push_back(c.dwell_times_s);
+  if (!c.points.empty()) {
+    const DwellResult lp = optimizeLp(c, doseRateMatrix(c, source));
+    if (lp.ok())
+      starts.push_back(lp.times_s);
+  }
+  starts.emplace_back(c.dwells.size(), pr.equal_time_s);
+  const dvh_model::DescentResult dr = dvh_model::descendOnCriteria(
+      pr.eval, pr.conditions, pr.total_time_s, starts, o, o.max_seconds - cpuSince(cpu0));
+  r->rounds = 1;
+  r->descent_iterations = dr.iterations;
+  r->descent_objective = dr.objective;
+  r->start_objective = dr.start_objective;
+  std::vector<double> t = dr.times_s;
+  if (t.empty())
+    return;
+  if (o.cbc_seconds > 0.0) {
+    const Eigen::VectorXd reference_Gy = pr.eval.d.rowwise().sum() * pr.equal_time_s;
+    const MipSolution m =
+        solveMip(pr.eval, pr.conditions, pr.total_time_s, reference_Gy, o, t, o.cbc_seconds);
+    t = m.times_s;
+    r->mip_gap_pct = m.gap_pct;
+    r->mip_optimal = m.optimal;
+    r->mip_bound_known = m.bound_known;
+    r->binaries = m.binaries;
+    r->rows = m.rows;
+  }
+  record(pr, t, judge(c, pr, t, nullptr), o, r);
 }
 
 }  // namespace
@@ -557,108 +728,31 @@ DvhPlanResult optimizeDvh(const HdrCase& c, const Tg43Source& source,
       o.rounds < 1 || !(o.violation_penalty > 0.0))
     throw std::invalid_argument(
         "optimizeDvh: spacings, time limit, rounds and penalty must be > 0");
-  const double rx = c.prescription_Gy;
+  if (o.method != "descent" && o.method != "mip")
+    throw std::invalid_argument("optimizeDvh: method '" + o.method + "': expected descent or mip");
   DvhPlanResult r;
-  int target = -1;
-  for (std::size_t s = 0; s < c.structures.size() && target < 0; ++s)
-    target = c.structures[s].role == StructureRole::kTarget ? static_cast<int>(s) : -1;
-  if (target < 0)
-    throw std::invalid_argument("optimizeDvh: case '" + c.name + "' has no target structure");
-  std::string target_name = c.structures[static_cast<std::size_t>(target)].name;
-  std::transform(target_name.begin(), target_name.end(), target_name.begin(),
-                 [](unsigned char ch) { return std::tolower(ch); });
-  // Condition 0: the objective, target V100 (at least the criterion's budget if there is one).
-  std::vector<DvhCriterion> all = {{target_name, "V100", 0.0, false}};
-  for (const DvhCriterion& k : criteria) {
-    if (k.structure == target_name && k.index == "V100" && !k.at_most)
-      all[0].limit = k.limit;
-    else
-      all.push_back(k);
-  }
-  std::vector<VolumeCondition> conditions;
-  for (std::size_t k = 0; k < all.size(); ++k) {
-    VolumeCondition v;
-    if (toCondition(c, all[k], k, rx, &v, &r.notes))
-      conditions.push_back(v);
-  }
-  const PlanPoints points =
-      planPoints(c, source, conditions, o.plan_spacing_m, o.max_points_per_structure);
-  // Bound on the total time: 4x what gives the target its prescription on average with equal
-  // times (reported if a plan reaches it).
-  const int tf = points.first[static_cast<std::size_t>(target)];
-  const double mean_rate = points.d.middleRows(tf, points.count[static_cast<std::size_t>(target)])
-                               .rowwise()
-                               .sum()
-                               .mean();
-  const double equal_time_s = rx / std::max(mean_rate, 1e-300);
-  const double total_time_s = 4.0 * equal_time_s * c.dwells.size();
-  // Reference plan for choosing which organ points need a binary: equal times, target mean Rx.
-  const Eigen::VectorXd reference_Gy = points.d.rowwise().sum() * equal_time_s;
-  const Evaluator eval(c, source, o.eval_spacing_m);
-  const std::vector<VolumeCondition> stated = conditions;  // before any tightening
+  const Problem pr = setUp(c, source, criteria, o, &r.notes);
+  r.points = static_cast<int>(pr.eval.d.rows());
+  r.setup_cpu_seconds = cpuSince(cpu0);
   if (c.dwell_times_s.size() == c.dwells.size()) {
     // The case's own dwell times on the planner's points: a plan the planner should match.
-    r.case_times_objective = objectiveOf(points, conditions, c.dwell_times_s, total_time_s, o);
-    r.case_times_v100_pct = coveredPct(points, conditions[0], c.dwell_times_s);
+    r.case_times_objective =
+        objectiveOf(pr.eval, pr.conditions, c.dwell_times_s, pr.total_time_s, o);
+    r.case_times_v100_pct = coveredPct(pr.eval, pr.conditions[0], c.dwell_times_s);
   }
-  const auto specs = criteriaSpecs(all);
-  int best_violations = 1 << 30;
-  for (int round = 0; round < o.rounds; ++round) {
-    const double left = o.max_seconds - cpuSince(cpu0);
-    if (round > 0 && left < 0.5)
-      break;
-    const MipSolution m =
-        solveMip(points, conditions, total_time_s, reference_Gy, o, left / (o.rounds - round));
-    ++r.rounds;
-    if (!m.found)
-      continue;
-    const auto indices = indexSet(eval.doses(m.times_s), specs, rx);
-    std::vector<std::string> violated;
-    for (VolumeCondition& v : conditions) {
-      const DvhCriterion& k = all[v.criterion];
-      const std::string key = k.structure + "_" + k.index;
-      const double miss = v.criterion == 0 && k.limit <= 0.0 ? 0.0 : excess(k, indices.at(key));
-      const bool is_v = k.index[0] == 'V';
-      if (miss > (is_v ? 0.1 : 0.02)) {
-        violated.push_back(describe(k) + " (" + number(indices.at(key).value) + ")");
-        // Tighten by what the fine lattice shows (the MIP's points under-sample the structure).
-        const double step = (v.at_most ? -1.0 : 1.0) * miss;
-        (is_v ? v.budget_pct : v.level_Gy) += step;
-        v.budget_pct = std::clamp(v.budget_pct, 0.0, 100.0);
-        v.level_Gy = std::max(v.level_Gy, 0.0);
-      }
-    }
-    const double v100 = indices.at(target_name + "_V100").value;
-    const int nv = static_cast<int>(violated.size());
-    const double best_v100 = r.indices.count(target_name + "_V100") != 0
-                                 ? r.indices.at(target_name + "_V100").value
-                                 : -1.0;
-    if (nv < best_violations || (nv == best_violations && v100 > best_v100)) {
-      best_violations = nv;
-      r.times_s = m.times_s;
-      r.indices = indices;
-      r.v100_pct = v100;
-      r.violated = violated;
-      r.mip_v100_pct = m.v100_pct;
-      r.objective = objectiveOf(points, stated, m.times_s, total_time_s, o);
-      r.mip_gap_pct = m.gap_pct;
-      r.mip_optimal = m.optimal;
-      r.mip_bound_known = m.bound_known;
-      r.binaries = m.binaries;
-      r.rows = m.rows;
-    }
-    if (violated.empty())
-      break;
-  }
+  if (o.method == "mip")
+    planByMip(c, source, pr, o, cpu0, &r);
+  else
+    planByDescent(c, source, pr, o, cpu0, &r);
   r.seconds = since(t0);
   r.cpu_seconds = cpuSince(cpu0);
   if (r.times_s.empty()) {
-    r.status = "CBC found no plan within " + number(o.max_seconds) + " s";
+    r.status = "no plan found within " + number(o.max_seconds) + " s";
     return r;
   }
   const double total = std::accumulate(r.times_s.begin(), r.times_s.end(), 0.0);
-  if (total > 0.99 * total_time_s)
-    r.notes.push_back("the plan reaches the total-time bound of " + number(total_time_s) + " s");
+  if (total > 0.99 * pr.total_time_s)
+    r.notes.push_back("the plan reaches the total-time bound of " + number(pr.total_time_s) + " s");
   return r;
 }
 

@@ -117,15 +117,21 @@ double at(const std::map<std::string, double>& m, const std::string& k) {
 
 constexpr double kEvalSpacing_m = 0.5e-3;  // index lattice (dose_indices.h)
 
-/// CSV of an index set, undefined ones with their reason.
-void writeIndexCsv(const std::map<std::string, dose::DoseVolumeIndex>& set, double rx,
+/// CSV of an index set, undefined ones with their reason, and the same index on the dose grid's
+/// own discretisation (on_grid; empty where undefined).
+void writeIndexCsv(const std::map<std::string, dose::DoseVolumeIndex>& set,
+                   const std::map<std::string, dose::DoseVolumeIndex>& on_grid, double rx,
                    const std::string& path) {
   std::ofstream out(path);
-  out << "index,rx_gy,ours,reason\n";
+  out << "index,rx_gy,ours,ours_on_dose_grid,reason\n";
   for (const auto& [k, v] : set) {
     out << k << "," << rx << ",";
     if (v.defined)
       out << ng::report::jsonNumber(v.value, 6);
+    out << ",";
+    const auto it = on_grid.find(k);
+    if (it != on_grid.end() && it->second.defined)
+      out << ng::report::jsonNumber(it->second.value, 6);
     out << ",\"" << v.reason << "\"\n";
   }
 }
@@ -139,7 +145,9 @@ std::string dicompylerCheck(const dose::DicomCase& dc, const std::string& dir,
   const dose::DoseGrid grid = dose::readRtDose(dc.files.dose);
   const auto ours = dose::comparisonIndexSet(
       dose::structureDosesFromGrid(dc.clinical, grid, kEvalSpacing_m), dc.clinical.prescription_Gy);
-  writeIndexCsv(ours, dc.clinical.prescription_Gy, out_dir + "/indices_rtdose_ours.csv");
+  const auto on_grid = dose::comparisonIndexSet(dose::structureDosesOnGridPixels(dc.clinical, grid),
+                                                dc.clinical.prescription_Gy);
+  writeIndexCsv(ours, on_grid, dc.clinical.prescription_Gy, out_dir + "/indices_rtdose_ours.csv");
   const std::string json_path = out_dir + "/dicompyler.json";
   const int rc = std::system(("/usr/bin/python3 " + needle_guidance::packageDir().string() +
                               "/scripts/check_dvh_dicompyler.py '" + dir + "' '" + out_dir +
@@ -252,12 +260,18 @@ std::string dvhStudy(const dose::DicomCase& dc, const std::string& dir,
   const auto clinical_fine = dose::comparisonIndexSet(
       dose::structureDoses(dc.clinical, source, dc.clinical.dwell_times_s, 0.25e-3), rx);
   const dose::IndexChange lattice = dose::indexChange(clinical, clinical_fine);
-  const dose::DvhPlanResult plan = dose::optimizeDvh(c, source, criteria, options);
+  // The clinical times on our dwells: a start the planner never does worse than.
+  const dose::HdrCase with_clinical = dose::planningWithClinicalTimes(dc);
+  const dose::DvhPlanResult plan = dose::optimizeDvh(with_clinical, source, criteria, options);
   if (!plan.ok())
     throw std::runtime_error("dose-volume planning: " + plan.status);
   const auto ours =
       dose::comparisonIndexSet(dose::structureDoses(c, source, plan.times_s, kEvalSpacing_m), rx);
-  const dose::Dominance dom = dose::dominate(c, source, clinical, "prostate", options);
+  const dose::Dominance dom = dose::dominate(with_clinical, source, clinical, "prostate", options);
+  // Where the dominating plan is strictly better ("clinical worse": reference and ours swapped).
+  const std::vector<std::string> better =
+      dom.dominated ? dose::worseIndices(clinical, dom.indices, "prostate")
+                    : std::vector<std::string>{};
   // Front: urethra D10 limit swept around the clinical plan's, the rectum at its criteria.
   std::vector<double> limits;
   const double u0 = clinical.count("urethra_D10") && clinical.at("urethra_D10").defined
@@ -268,12 +282,12 @@ std::string dvhStudy(const dose::DicomCase& dc, const std::string& dir,
     limits.push_back(f * u0);
   dose::DvhPlanOptions front_options = options;
   front_options.max_seconds = 4.0;
-  const auto front = dose::dvhFront(c, source, criteria, limits, front_options);
+  const auto front = dose::dvhFront(with_clinical, source, criteria, limits, front_options);
   ng::report::Table ft({"plan", "urethra_D10_limit_Gy", "urethra_D10_Gy", "prostate_V100_pct",
                         "plan_s", "criteria_met"},
                        6);
   for (const auto& p : front)
-    ft.addRow({std::string("DVH MIP"), p.urethra_d10_limit_Gy, p.urethra_d10_Gy, p.v100_pct,
+    ft.addRow({std::string("DVH plan"), p.urethra_d10_limit_Gy, p.urethra_d10_Gy, p.v100_pct,
                p.seconds, p.criteria_met ? 1.0 : 0.0});
   const auto value = [](const std::map<std::string, dose::DoseVolumeIndex>& m, const char* k) {
     const auto it = m.find(k);
@@ -304,12 +318,19 @@ std::string dvhStudy(const dose::DicomCase& dc, const std::string& dir,
        << ",\n  \"dvh_v100_pct\": " << jsonNumber(plan.v100_pct)
        << ",\n  \"dvh_urethra_d10_gy\": " << jsonNumber(value(ours, "urethra_D10"))
        << ",\n  \"dvh_plan_cpu_s\": " << jsonNumber(plan.cpu_seconds)
+       << ",\n  \"dvh_matrix_cpu_s\": " << jsonNumber(plan.setup_cpu_seconds)
+       << ",\n  \"dvh_points\": " << plan.points
+       << ",\n  \"dvh_descent_iterations\": " << plan.descent_iterations
+       << ",\n  \"dvh_method\": \"" << options.method << "\""
        << ",\n  \"dvh_mip_gap_v100_pp\": "
        << (plan.mip_bound_known ? jsonNumber(plan.mip_gap_pct) : std::string("null"))
        << ",\n  \"dvh_mip_binaries\": " << plan.binaries
        << ",\n  \"dvh_criteria_giving_way\": " << jsonList(plan.violated)
        << ",\n  \"clinical_dominated_dvh\": " << (dom.dominated ? 1 : 0)
        << ",\n  \"dominating_plan_s\": " << jsonNumber(dom.plan.seconds)
+       << ",\n  \"dominating_plan_cpu_s\": " << jsonNumber(dom.plan.cpu_seconds)
+       << ",\n  \"dominating_v100_pct\": " << jsonNumber(value(dom.indices, "prostate_V100"))
+       << ",\n  \"dominating_better_on\": " << jsonList(better)
        << ",\n  \"dominance_prevented_by\": " << jsonList(dom.worse)
        << ",\n  \"index_rotation_change_max_gy\": "
        << jsonNumber(std::max(rot_clinical.dose_Gy, rot_dvh.dose_Gy))
@@ -320,8 +341,16 @@ std::string dvhStudy(const dose::DicomCase& dc, const std::string& dir,
        << ",\n  \"index_lattice_worst\": " << jsonList({lattice.worst_dose, lattice.worst_volume});
   if (!dpy.empty()) {
     json << ",\n  \"index_vs_dicompyler_max_gy\": "
-         << jsonNumber(jsonField(dpy, "max_diff_interpolated_gy"))
+         << jsonNumber(jsonField(dpy, "max_diff_comparable_gy"))
          << ",\n  \"index_vs_dicompyler_max_pp\": "
+         << jsonNumber(jsonField(dpy, "max_diff_comparable_pp"))
+         << ",\n  \"index_vs_dicompyler_on_its_grid_max_gy\": "
+         << jsonNumber(jsonField(dpy, "max_diff_on_grid_gy"))
+         << ",\n  \"index_vs_dicompyler_on_its_grid_max_pp\": "
+         << jsonNumber(jsonField(dpy, "max_diff_on_grid_pp"))
+         << ",\n  \"index_vs_dicompyler_interpolated_max_gy\": "
+         << jsonNumber(jsonField(dpy, "max_diff_interpolated_gy"))
+         << ",\n  \"index_vs_dicompyler_interpolated_max_pp\": "
          << jsonNumber(jsonField(dpy, "max_diff_interpolated_pp"))
          << ",\n  \"index_vs_dicompyler_default_max_gy\": "
          << jsonNumber(jsonField(dpy, "max_diff_default_gy"))
@@ -492,7 +521,7 @@ int main(int argc, char** argv) {
  {"csv": "front.csv", "x": "urethra_D10_Gy", "y": "prostate_V100_pct", "group": "plan", "annotate": "urethra_weight_scale",
   "title": "LP trade-off front (urethra weight sweep) and the clinical plan", "png": "front.png"},
  {"csv": "dvh_front.csv", "x": "urethra_D10_Gy", "y": "prostate_V100_pct", "group": "plan",
-  "title": "Dose-volume MIP front: V100 maximised at each urethra D10 limit (rectum at its criteria)", "png": "dvh_front.png"}])json");
+  "title": "Dose-volume front: V100 maximised at each urethra D10 limit (rectum at its criteria)", "png": "dvh_front.png"}])json");
     std::cout << json.str();
     return 0;
   } catch (const std::exception& e) {

@@ -1,7 +1,7 @@
 // Plans one HDR case: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both|dvh]
 //   [--mps FILE] [--write-case DIR] [--iterations N] [--criterion "urethra D10 <= 115%"]...
 // or a DICOM-RT folder: hdr_plan --dicom DIR [--case-file FILE.yaml] [--method lp|dvh]
-//   [--export DIR]
+//   [--export DIR] [--max-seconds S] [--dvh-method descent|mip]
 // --dicom builds the case from RTSTRUCT + RTPLAN (dicom_case.h), plans the LP (or, with
 // --method dvh, maximises target V100 under the case file's dose-volume criteria and then
 // looks for a plan at least as good as the clinical one on every index), prints the clinical
@@ -13,6 +13,7 @@
 // LP's dwell times (or SA's with --method sa) as a case folder. Prints objectives, times and
 // dosimetric indices. Exit 0 on success, 2 on bad arguments or a bad case.
 #include <cstdio>
+#include <cstdlib>
 #include <iostream>
 #include <map>
 #include <memory>
@@ -62,44 +63,26 @@ std::string gapText(const dose::DvhPlanResult& r) {
          (r.mip_optimal ? " (optimal)" : "");
 }
 
-/// The planning case with the clinical plan's dwell times on the candidate dwells (an active
-/// clinical dwell within 1 mm of a candidate on its catheter adds its time there), so that the
-/// planner scores the clinical plan on its own model.
-dose::HdrCase withClinicalTimes(const dose::DicomCase& dc) {
-  dose::HdrCase c = dc.planning;
-  c.dwell_times_s.assign(c.dwells.size(), 0.0);
-  for (std::size_t j = 0; j < dc.clinical.dwells.size(); ++j) {
-    double best = 1e-3;
-    int at = -1;
-    for (std::size_t i = 0; i < c.dwells.size(); ++i) {
-      const double dist = (c.dwells[i].position_m - dc.clinical.dwells[j].position_m).norm();
-      if (c.dwells[i].catheter == dc.clinical.dwells[j].catheter && dist < best) {
-        best = dist;
-        at = static_cast<int>(i);
-      }
-    }
-    if (at >= 0)
-      c.dwell_times_s[static_cast<std::size_t>(at)] += dc.clinical.dwell_times_s[j];
-  }
-  return c;
-}
-
 /// hdr_plan --dicom --method dvh: plans on the criteria, then tries to dominate the clinical plan.
 std::vector<double> planDicomDvh(const dose::DicomCase& dc, const dose::DicomCaseSettings& settings,
-                                 const dose::Tg43Source& source) {
+                                 const dose::Tg43Source& source,
+                                 const dose::DvhPlanOptions& options) {
   const dose::HdrCase& c = dc.planning;
   const auto criteria = dose::dvhCriteria(settings, c.prescription_Gy);
-  const dose::DvhPlanOptions options;
+  // The clinical times on our dwells: a start the planner never does worse than.
+  const dose::HdrCase with_clinical = dose::planningWithClinicalTimes(dc);
   const auto clinical = dose::comparisonIndexSet(
       dose::structureDoses(dc.clinical, source, dc.clinical.dwell_times_s, options.eval_spacing_m),
       c.prescription_Gy);
-  const dose::DvhPlanResult r = dose::optimizeDvh(withClinicalTimes(dc), source, criteria, options);
+  const dose::DvhPlanResult r = dose::optimizeDvh(with_clinical, source, criteria, options);
   for (const auto& note : r.notes)
     std::cout << "note: " << note << "\n";
   if (!r.ok())
     throw std::runtime_error("dose-volume planning: " + r.status);
   std::cout << "DVH plan on " << criteria.size() << " criteria: V100 " << r.v100_pct << " %, "
-            << r.seconds << " s (" << r.cpu_seconds << " s processor), " << gapText(r) << "\n";
+            << r.seconds << " s (" << r.cpu_seconds << " s processor, of which "
+            << r.setup_cpu_seconds << " s for the dose-rate matrix of " << r.points << " points; "
+            << r.descent_iterations << " descent iterations), " << gapText(r) << "\n";
   for (const auto& v : r.violated)
     std::cout << "  gives way: " << v << "\n";
   std::cout << "on the planner's dose points: objective " << r.objective << " (V100 "
@@ -110,7 +93,7 @@ std::vector<double> planDicomDvh(const dose::DicomCase& dc, const dose::DicomCas
   const auto ours = dose::comparisonIndexSet(
       dose::structureDoses(c, source, r.times_s, options.eval_spacing_m), c.prescription_Gy);
   printIndices(clinical, ours, "clinical", "DVH");
-  const dose::Dominance d = dose::dominate(c, source, clinical, "prostate", options);
+  const dose::Dominance d = dose::dominate(with_clinical, source, clinical, "prostate", options);
   std::cout << "plan at least as good as the clinical one on every defined index: "
             << (d.dominated ? "found" : "not found") << " (" << d.plan.seconds << " s)\n";
   for (const auto& w : d.worse)
@@ -134,7 +117,7 @@ void exportPlan(const dose::HdrCase& plan, const dose::DicomCase& dc,
 
 /// hdr_plan --dicom: plan a DICOM-RT folder and compare with its clinical plan.
 int planDicom(const std::string& dir, const std::string& case_file, const std::string& export_dir,
-              const std::string& method) {
+              const std::string& method, const dose::DvhPlanOptions& dvh_options) {
   const dose::DicomCaseSettings settings =
       case_file.empty() ? dose::DicomCaseSettings{} : dose::readDicomCaseSettings(case_file);
   const dose::DicomCase dc = dose::loadDicomCase(dir, settings);
@@ -152,7 +135,7 @@ int planDicom(const std::string& dir, const std::string& case_file, const std::s
   const dose::Tg43Source source = dose::loadSource(c.source);
   if (method == "dvh") {
     dose::HdrCase plan = c;
-    plan.dwell_times_s = planDicomDvh(dc, settings, source);
+    plan.dwell_times_s = planDicomDvh(dc, settings, source, dvh_options);
     if (!export_dir.empty())
       exportPlan(plan, dc, source, export_dir);
     return 0;
@@ -180,7 +163,9 @@ int planDicom(const std::string& dir, const std::string& case_file, const std::s
 constexpr const char* kUsage =
     "usage: hdr_plan (--case DIR | --synthetic SEED) [--method lp|sa|both|dvh] [--mps FILE] "
     "[--write-case DIR] [--iterations N] [--criterion TEXT]...\n"
-    "       hdr_plan --dicom DIR [--case-file FILE.yaml] [--method lp|dvh] [--export DIR]\n";
+    "       hdr_plan --dicom DIR [--case-file FILE.yaml] [--method lp|dvh] [--export DIR]\n"
+    "  with --method dvh: [--max-seconds S] (processor time per plan, default 5)\n"
+    "                     [--dvh-method descent|mip] (default descent)\n";
 
 int main(int argc, char** argv) {
   if (needle_guidance::report::helpRequested(argc, argv)) {
@@ -190,6 +175,7 @@ int main(int argc, char** argv) {
   std::string case_dir, method = "both", mps, write_dir, dicom_dir, case_file, export_dir;
   std::vector<std::string> criteria_text;
   long iterations = 100000;
+  dose::DvhPlanOptions dvh_options;
   int synthetic = -1;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -220,6 +206,16 @@ int main(int argc, char** argv) {
       export_dir = value();
     else if (a == "--criterion")
       criteria_text.push_back(value());
+    else if (a == "--max-seconds") {
+      const std::string text = value();
+      char* end = nullptr;
+      dvh_options.max_seconds = std::strtod(text.c_str(), &end);
+      if (end == text.c_str() || *end != '\0' || !(dvh_options.max_seconds > 0.0)) {
+        std::cerr << "hdr_plan: --max-seconds needs a number > 0, got '" << text << "'\n";
+        return 2;
+      }
+    } else if (a == "--dvh-method")
+      dvh_options.method = value();
     else {
       std::cerr << kUsage;
       return 2;
@@ -231,7 +227,7 @@ int main(int argc, char** argv) {
         std::cerr << "hdr_plan: --dicom plans with --method lp or dvh\n";
         return 2;
       }
-      return planDicom(dicom_dir, case_file, export_dir, method);
+      return planDicom(dicom_dir, case_file, export_dir, method, dvh_options);
     } catch (const std::invalid_argument& e) {
       std::cerr << "hdr_plan: " << e.what() << "\n";
       return 2;
@@ -272,7 +268,7 @@ int main(int argc, char** argv) {
         for (const auto& text : criteria_text)
           criteria.push_back(dose::parseDvhCriterion(text, c.prescription_Gy));
       }
-      const auto r = dose::optimizeDvh(c, source, criteria);
+      const auto r = dose::optimizeDvh(c, source, criteria, dvh_options);
       for (const auto& note : r.notes)
         std::cout << "note: " << note << "\n";
       if (!r.ok()) {

@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <cmath>
 
 #include "needle_guidance/dose/dicom_case.h"
@@ -25,6 +26,7 @@ constexpr double kGridIndex_pp = 1.0;    // same [pp]
 constexpr double kCriterion_Gy = 0.02;   // a met dose criterion on the evaluation lattice
 constexpr double kCriterion_pp = 0.1;    // a met volume criterion
 constexpr double kObjective = 1e-9;      // the planner's objective, same times and points
+constexpr double kDescentGap = 1.0;      // descent above CBC's proven optimum [objective: V100 pp]
 
 Structure cylinder(const std::string& name, StructureRole role, double cx, double cy, double radius,
                    double z0, double z1, double dz) {
@@ -175,6 +177,29 @@ TEST_F(DvhPlanning, StructureAlongTheDoseGridsEdge) {
   EXPECT_NE(partial.at("prostate_V100").reason.find("outside the dose grid"), std::string::npos);
 }
 
+TEST_F(DvhPlanning, DoseGridPixelsSampleAsDicompylerDoes) {
+  // dicompyler-core's discretisation: 1 mm voxel centres inside each contour at its plane, each
+  // voxel area x slice thickness. The volume is the voxel count's (within a ring of voxels of
+  // the contour volume), every dose is a voxel's, and the prostate indices stay near ours.
+  const std::vector<double> times = uniformTimes(case_, 4.0);
+  Point3 lo, hi;
+  case_.structures[0].bounds(lo, hi);
+  const Point3 margin = Point3::Constant(3e-3);  // the grid covers the prostate
+  const DoseGrid grid = gridOver(case_, source_, times, lo - margin, hi + margin);
+  const auto pixels = structureDosesOnGridPixels(case_, grid);
+  ASSERT_EQ(pixels.size(), case_.structures.size());
+  const Structure& prostate = case_.structures[0];
+  const double ring_m3 = 15e-3 * 2 * M_PI * 1e-3 * (hi.z() - lo.z() + 2e-3);  // 1 mm ring
+  EXPECT_NEAR(pixels[0].volume(), prostate.volume_m3(), ring_m3);
+  EXPECT_EQ(pixels[0].outside_m3, 0.0);
+  const double max_grid = grid.maxDose();
+  for (double d : pixels[0].dose_Gy)
+    ASSERT_LE(d, max_grid + 1e-12);
+  const auto on_pixels = comparisonIndexSet(pixels, 10.0);
+  const auto direct = comparisonIndexSet(structureDoses(case_, source_, times, 0.5e-3), 10.0);
+  EXPECT_NEAR(on_pixels.at("prostate_D90").value, direct.at("prostate_D90").value, kGridIndex_Gy);
+}
+
 TEST_F(DvhPlanning, CriteriaThatCannotAllHoldGiveTheLeastViolatingPlan) {
   // The urethra runs through the target: 95 % coverage at Rx and urethra D10 <= 50 % of Rx
   // cannot hold together.
@@ -253,6 +278,86 @@ TEST_F(DvhPlanning, ScoresTheCasesOwnTimesOnThePlannersModel) {
   ASSERT_TRUE(std::isfinite(second.case_times_objective));
   EXPECT_NEAR(second.case_times_objective, first.objective, kObjective);
   EXPECT_NEAR(second.case_times_v100_pct, first.mip_v100_pct, kCriterion_pp);
+  // Started from those times, the planner never returns a worse plan on its model.
+  EXPECT_LE(second.objective, second.case_times_objective + kObjective);
+}
+
+TEST_F(DvhPlanning, DescentReachesTheBruteForceOptimumWithinItsGap) {
+  // Three dwells, one per catheter at mid-gland: the planner's objective (minus target V100,
+  // plus 100 per percentage point over a criterion) searched over a 41^3 grid of dwell times on
+  // the same lattice. The descent is within kDescentGap of the grid's optimum, or better.
+  HdrCase three = smallCase(3);
+  std::vector<DwellPosition> mid;
+  for (const DwellPosition& d : three.dwells) {
+    if (std::abs(d.position_m.z()) < 2.1e-3 && (mid.empty() || mid.back().catheter != d.catheter))
+      mid.push_back(d);
+  }
+  ASSERT_EQ(mid.size(), 3u);
+  three.dwells = mid;
+  const std::vector<DvhCriterion> criteria = {parseDvhCriterion("urethra V120 <= 10", 10.0),
+                                              parseDvhCriterion("rectum V60 <= 5", 10.0)};
+  DvhPlanOptions o;
+  o.eval_spacing_m = 2e-3;
+  o.max_seconds = 5.0;
+  const DvhPlanResult r = optimizeDvh(three, source_, criteria, o);
+  ASSERT_TRUE(r.ok()) << r.status;
+  // Dose per second of each dwell on the lattice; doses are linear in the times.
+  std::vector<std::vector<StructureDose>> unit;
+  for (std::size_t j = 0; j < 3; ++j) {
+    std::vector<double> t(3, 0.0);
+    t[j] = 1.0;
+    unit.push_back(structureDoses(three, source_, t, o.eval_spacing_m));
+  }
+  const double t_max = 2.0 * *std::max_element(r.times_s.begin(), r.times_s.end());
+  double best = 1e300;
+  std::vector<StructureDose> sd = unit[0];
+  for (int a = 0; a <= 40; ++a)
+    for (int b = 0; b <= 40; ++b)
+      for (int c = 0; c <= 40; ++c) {
+        const double t[3] = {a * t_max / 40, b * t_max / 40, c * t_max / 40};
+        for (std::size_t s = 0; s < sd.size(); ++s)
+          for (std::size_t i = 0; i < sd[s].dose_Gy.size(); ++i)
+            sd[s].dose_Gy[i] = t[0] * unit[0][s].dose_Gy[i] + t[1] * unit[1][s].dose_Gy[i] +
+                               t[2] * unit[2][s].dose_Gy[i];
+        const double value = -volumePercentAbove(sd[0], 10.0) +
+                             100.0 * std::max(0.0, volumePercentAbove(sd[1], 12.0) - 10.0) +
+                             100.0 * std::max(0.0, volumePercentAbove(sd[2], 6.0) - 5.0);
+        best = std::min(best, value);
+      }
+  EXPECT_LE(r.objective, best + kDescentGap) << "V100 " << r.v100_pct;
+  EXPECT_GT(-best, 0.0);  // the grid covers some of the target
+}
+
+TEST_F(DvhPlanning, CbcBoundsTheDescentOnItsOwnPoints) {
+  // With cbc_seconds, CBC starts from the descent's plan on the same points: it never returns
+  // a worse plan, and its bound is known.
+  const std::vector<DvhCriterion> criteria = {parseDvhCriterion("urethra D10 <= 110%", 10.0)};
+  DvhPlanOptions o;
+  o.eval_spacing_m = 5e-3;
+  o.max_seconds = 2.0;
+  o.cbc_seconds = 2.0;
+  const DvhPlanResult r = optimizeDvh(smallCase(3), source_, criteria, o);
+  ASSERT_TRUE(r.ok()) << r.status;
+  EXPECT_TRUE(r.mip_bound_known);
+  EXPECT_GE(r.mip_gap_pct, 0.0);
+  EXPECT_LE(r.objective, r.descent_objective + kObjective);
+}
+
+TEST_F(DvhPlanning, DominatesAPlanOnItsOwnDwells) {
+  // A reference plan on the same dwells is a feasible point of the dominance problem: the
+  // planner, started there, finds a plan at least as good on every defined index.
+  const std::vector<double> reference_times = uniformTimes(case_, 3.0);  // D90 near Rx
+  const auto reference = comparisonIndexSet(structureDoses(case_, source_, reference_times, 1e-3),
+                                            case_.prescription_Gy);
+  HdrCase carried = case_;
+  carried.dwell_times_s = reference_times;
+  DvhPlanOptions o;
+  o.eval_spacing_m = 1e-3;
+  o.max_seconds = 3.0;
+  const Dominance d = dominate(carried, source_, reference, "prostate", o);
+  ASSERT_TRUE(d.plan.ok()) << d.plan.status;
+  EXPECT_TRUE(d.dominated) << (d.worse.empty() ? "" : d.worse.front());
+  EXPECT_GE(d.indices.at("prostate_V100").value, reference.at("prostate_V100").value);
 }
 
 TEST(DvhCriteria, ParsesUnitsAndRefusesBadText) {

@@ -80,6 +80,11 @@ std::vector<DwellPosition> candidateDwells(const HdrCase& c,
                                            const std::vector<DwellPosition>& clinical,
                                            double step_m, double margin_m);
 
+/// The planning case carrying the clinical plan's dwell times on the candidate dwells (an
+/// active clinical dwell within 1 mm of a candidate on its catheter adds its time there): the
+/// clinical plan as a point of the planner's model, and a start for it.
+HdrCase planningWithClinicalTimes(const DicomCase& dc);
+
 /// The comparison indices (6.3.2 plus the clinical comparison set), keyed "prostate_V100",
 /// "prostate_V150", "prostate_V200", "prostate_D90", "urethra_D10", "urethra_D0.1cc",
 /// "urethra_V125", "rectum_D2cc", "rectum_D0.1cc", "rectum_V75", "bladder_D2cc", "bladder_D0.1cc",

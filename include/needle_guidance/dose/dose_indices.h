@@ -79,6 +79,12 @@ std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& so
 /// outside_m3.
 std::vector<StructureDose> structureDosesFromGrid(const HdrCase& c, const DoseGrid& grid,
                                                   double spacing_m = 0.5e-3);
+/// Dose of every structure of `c` on the dose grid's own discretisation, the way dicompyler-core
+/// computes a DVH: the grid's in-plane voxel centres inside each contour, at the contour's
+/// plane (dose linear between the grid's frames), each standing for the voxel's in-plane area
+/// times the structure's slice spacing. Used to tell a discretisation difference from an error
+/// when our indices are compared with dicompyler's; our own indices use the lattice above.
+std::vector<StructureDose> structureDosesOnGridPixels(const HdrCase& c, const DoseGrid& grid);
 // structureDoses and structureDosesFromGrid sample each structure at latticeSpacing(s, spacing).
 
 /// V_x: % of the volume receiving at least dose_Gy; D_x: the minimum dose of the hottest x %

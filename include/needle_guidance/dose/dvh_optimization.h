@@ -40,15 +40,26 @@ DvhCriterion parseDvhCriterion(const std::string& text, double prescription_Gy);
 std::string describe(const DvhCriterion& k);
 
 struct DvhPlanOptions {
-  double plan_spacing_m = 2.5e-3;  ///< dose points of the MIP: structure lattice, this spacing
+  /// "descent": descent on the criteria over the evaluation lattice (descendOnCriteria in
+  /// src/dose/dvh_model.h), optimised and judged on the same points; "mip": the IPIP-style
+  /// MIP on a coarse lattice (freeing LP heuristic, then CBC when cbc_seconds > 0).
+  std::string method = "descent";
+  /// Descent: each condition's dose level is moved by this fraction towards its safe side, so
+  /// that a plan the surrogate accepts meets the exact criterion.
+  double descent_level_margin = 2e-3;
+  double descent_goal_step_pp = 2.0;  ///< descent: first coverage goal above the best plan [pp]
+  int descent_patience = 40;  ///< descent: iterations without a better plan before the goal drops
+  double descent_min_step_pp = 0.05;  ///< descent: stops when the goal step falls below this
+  double plan_spacing_m = 2.5e-3;     ///< dose points of the MIP: structure lattice, this spacing
   /// ... or coarser, so that no structure has more than this many dose points.
   int max_points_per_structure = 600;
   /// An at-most criterion's point whose dose under equal dwell times (target mean = Rx) is
   /// below this fraction of the criterion's level is held below the level without a binary.
   double binary_dose_ratio = 0.5;
   double eval_spacing_m = 0.5e-3;  ///< lattice on which the criteria are checked and indices read
-  double max_seconds = 8.0;        ///< processor-time limit over all rounds [s]
-  /// CBC's processor time per round after the heuristic [s]; 0: the heuristic alone (no bound).
+  double max_seconds = 5.0;        ///< processor-time limit of one plan [s]
+  /// CBC's processor time per round after the heuristic or descent [s] (its incumbent); 0: no
+  /// CBC, no bound.
   double cbc_seconds = 0.0;
   double relative_gap = 1e-3;  ///< CBC stops within this gap of its bound
   int rounds = 3;              ///< re-solves with limits tightened by the fine-lattice excess
@@ -65,9 +76,10 @@ struct DvhPlanResult {
   double seconds = 0.0;       ///< wall time
   double cpu_seconds = 0.0;   ///< processor time of this process
   double v100_pct = 0.0;      ///< target V100 on the evaluation lattice
-  double mip_v100_pct = 0.0;  ///< target V100 on the MIP's dose points
-  /// The MIP's objective on its dose points (lower is better): minus the target V100, plus
-  /// violation_penalty per percentage point over a criterion's stated budget.
+  double mip_v100_pct = 0.0;  ///< target V100 on the planner's own dose points (see objective)
+  /// The planner's objective on its own dose points (the evaluation lattice for the descent, the
+  /// coarse lattice for the MIP; lower is better): minus the target V100, plus violation_penalty
+  /// per percentage point over a criterion's stated budget.
   double objective = 0.0;
   /// The same objective and V100 for the dwell times the case carries (HdrCase::dwell_times_s,
   /// e.g. the clinical plan mapped onto the candidate dwells); NaN when it carries none. A
@@ -81,6 +93,15 @@ struct DvhPlanResult {
   bool mip_optimal = false;    ///< CBC proved optimality within relative_gap
   int binaries = 0, rows = 0;  ///< size of the last MIP
   int rounds = 0;
+  int descent_iterations = 0;  ///< descent: iterations
+  int points = 0;              ///< dose points of the evaluation lattice
+  /// Processor time of building the evaluation lattice and its dose-rate matrix [s] (the rest
+  /// of cpu_seconds is the LP start, the descent or MIP, and judging the plan).
+  double setup_cpu_seconds = 0.0;
+  /// Descent: the objective of its best start (the case's times, the LP's or equal times,
+  /// scaled) and of its answer (before CBC); NaN for the MIP.
+  double start_objective = std::numeric_limits<double>::quiet_NaN();
+  double descent_objective = std::numeric_limits<double>::quiet_NaN();
   std::map<std::string, DoseVolumeIndex> indices;  ///< on the evaluation lattice
   std::vector<std::string> violated;               ///< criteria that give way (fine lattice)
   std::vector<std::string> notes;
