@@ -1,8 +1,10 @@
 // Needle acquisition without a prior; see needle_acquisition.h for the steps.
 #include "needle_guidance/imaging/needle_acquisition.h"
 #include "needle_guidance/math.h"
+#include "ridge_filter.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <opencv2/imgproc.hpp>
 #include <opencv2/video/tracking.hpp>
@@ -26,6 +28,13 @@ namespace {
 /// it finds is traced and refit on the 3 % anyway.
 constexpr double kRidgeQuantile = 0.97;
 constexpr double kHoughQuantile = 0.98;
+/// Step 2: the ridge strength is -lambda_across - kBlobPenalty |lambda_along| (ridge_filter.h).
+constexpr double kBlobPenalty = 1.0;
+/// Step 3: the thresholds are at least this [grey levels / px^2] (a flat frame has no ridge).
+constexpr float kMinRidgeThreshold = 2.5e-4F;
+/// Step 2, face band (faceBandFlattened): a depth with fewer pixels of the fan than this has no
+/// level of its own.
+constexpr int kBandMinPixels = 20;
 /// Step 3: at most kMaxHoughLines distinct Hough lines are examined, until kMaxCandidates
 /// distinct segments are found; Hough lines closer than these are the same line.
 constexpr int kMaxHoughLines = 64;
@@ -186,30 +195,86 @@ float sample(const cv::Mat& m, cv::Point2d p) {
   return m.at<float>(r, c);
 }
 
-/// Step 2 at one scale: Hessian of `image` smoothed at sigma [px of image]; strength =
-/// -lambda_min - |lambda_max| where positive (a bright line, not a blob); the Hessian parts the
-/// direction (the eigenvector of lambda_max) is computed from.
-void hessianRidge(const cv::Mat& image, double sigma_px, cv::Mat* smooth, cv::Mat* strength,
-                  cv::Mat* dxy, cv::Mat* half_diff) {
-  cv::GaussianBlur(image, *smooth, cv::Size(), sigma_px);
-  cv::Mat dxx, dyy;
-  cv::Sobel(*smooth, dxx, CV_32F, 2, 0, 3);
-  cv::Sobel(*smooth, dyy, CV_32F, 0, 2, 3);
-  cv::Sobel(*smooth, *dxy, CV_32F, 1, 1, 3);
-  cv::Mat half_trace = 0.5F * (dxx + dyy), root;
-  *half_diff = 0.5F * (dxx - dyy);
-  cv::magnitude(*half_diff, *dxy, root);
-  cv::Mat lmin = half_trace - root, lmax = cv::abs(half_trace + root);
-  *strength = cv::max(-lmin - lmax, 0.0F);
+/// Step 2: the shared ridge filter (ridge_filter.h) at sigma, a blob penalised by its whole
+/// larger eigenvalue, on the frame as CV_32F (faceBandFlattened).
+RidgeMap ridgeFilter(const cv::Mat& grey32f, double sigma_px) {
+  detail::HessianRidge h =
+      detail::hessianRidge(grey32f, sigma_px, kBlobPenalty, cv::BORDER_DEFAULT);
+  RidgeMap r;
+  r.strength = h.strength;
+  r.dxy = h.dxy;
+  r.half_diff = h.half_diff;
+  r.smooth = h.smooth;
+  return r;
 }
 
-/// Step 2: the ridge filter at sigma.
-RidgeMap ridgeFilter(const cv::Mat& grey8, double sigma_px) {
-  RidgeMap r;
-  cv::Mat grey;
-  grey8.convertTo(grey, CV_32F);
-  hessianRidge(grey, sigma_px, &r.smooth, &r.strength, &r.dxy, &r.half_diff);
-  return r;
+/// Step 2 (before the filter): the frame as CV_32F, and in a fan with a curved probe face, less
+/// the face band's excess brightness. Under the face, the transducer's ring-down adds a bright
+/// band that follows the face's arc; a needle entering from the probe's end runs inside it for
+/// its first tens of pixels, and the band's own curved edge is a stronger ridge than the shaft.
+/// The band is a function of the depth below the face alone: per depth (1 px bins of the distance
+/// from the face's centre), the median grey level over the fan; its excess over the fan's
+/// typical level (the median of those medians), from the face down to where it first falls to
+/// that level (the band may begin up to slack_px below the fitted face), is subtracted. A needle,
+/// an interface or a shadow covers a few pixels of each depth's arc and does not move the median;
+/// below the band nothing changes.
+cv::Mat faceBandFlattened(const cv::Mat& grey8, const ImagingRegion& region) {
+  cv::Mat out;
+  grey8.convertTo(out, CV_32F);
+  if (region.shape != ImagingRegion::Shape::kSector || !(region.top_radius_px > 0.0) ||
+      region.mask.size() != grey8.size())
+    return out;
+  const int bins = static_cast<int>(std::ceil(std::hypot(grey8.cols, grey8.rows))) + 1;
+  cv::Mat depth(grey8.size(), CV_32S, cv::Scalar(-1));
+  std::vector<std::array<int, 256>> hist(static_cast<std::size_t>(bins));
+  std::vector<int> count(static_cast<std::size_t>(bins), 0);
+  for (auto& h : hist)
+    h.fill(0);
+  for (int y = 0; y < grey8.rows; ++y) {
+    const std::uint8_t* g = grey8.ptr<std::uint8_t>(y);
+    const std::uint8_t* in = region.mask.ptr<std::uint8_t>(y);
+    int* d = depth.ptr<int>(y);
+    for (int x = 0; x < grey8.cols; ++x) {
+      if (!in[x])
+        continue;
+      const double below =
+          std::hypot(x - region.apex_px.x, y - region.apex_px.y) - region.top_radius_px;
+      d[x] = std::clamp(static_cast<int>(below), 0, bins - 1);
+      ++hist[static_cast<std::size_t>(d[x])][g[x]];
+      ++count[static_cast<std::size_t>(d[x])];
+    }
+  }
+  std::vector<float> level(static_cast<std::size_t>(bins), -1.0F), levels;
+  for (int k = 0; k < bins; ++k) {
+    const std::size_t i = static_cast<std::size_t>(k);
+    if (count[i] < kBandMinPixels)
+      continue;
+    int seen = 0, v = 0;
+    while (v < 255 && 2 * (seen + hist[i][static_cast<std::size_t>(v)]) < count[i])
+      seen += hist[i][static_cast<std::size_t>(v++)];
+    level[i] = static_cast<float>(v);
+    levels.push_back(level[i]);
+  }
+  if (levels.empty())
+    return out;
+  std::nth_element(levels.begin(), levels.begin() + static_cast<long>(levels.size() / 2),
+                   levels.end());
+  const float typical = levels[levels.size() / 2];
+  std::vector<float> excess(static_cast<std::size_t>(bins), 0.0F);
+  for (int k = 0; k < bins; ++k) {
+    const float l = level[static_cast<std::size_t>(k)];
+    if (l >= 0.0F)
+      excess[static_cast<std::size_t>(k)] = l - typical;
+  }
+  for (int y = 0; y < out.rows; ++y) {
+    float* o = out.ptr<float>(y);
+    const int* d = depth.ptr<int>(y);
+    for (int x = 0; x < out.cols; ++x) {
+      if (d[x] >= 0)
+        o[x] -= excess[static_cast<std::size_t>(d[x])];
+    }
+  }
+  return out;
 }
 
 /// The ridge's line direction at p, in [-pi/2, pi/2] [rad].
@@ -235,7 +300,7 @@ void ridgeThresholds(RidgeMap* ridge, const ImagingRegion& region) {
   auto quantile = [&v](double q) {
     auto k = v.begin() + static_cast<long>(q * static_cast<double>(v.size() - 1));
     std::nth_element(v.begin(), k, v.end());
-    return std::max(*k, 1e-3F);
+    return std::max(*k, kMinRidgeThreshold);
   };
   ridge->threshold = quantile(kRidgeQuantile);
   ridge->hough_threshold = quantile(kHoughQuantile);
@@ -1243,7 +1308,8 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
     none.message = "imaging region is not of the frame's size";
     return none;
   }
-  RidgeMap ridge = ridgeFilter(grey, options.ridge_sigma_px);  // step 2
+  RidgeMap ridge = ridgeFilter(faceBandFlattened(grey, region),
+                               options.ridge_sigma_px);  // step 2
   if (region.bounded())  // the region's own edge and the black outside it are no ridge
     ridge.strength.setTo(0.0F, region.inset < kRegionInsetSigmas * options.ridge_sigma_px);
   ridgeThresholds(&ridge, region);
