@@ -270,8 +270,7 @@ cv::Mat faceBandFlattened(const cv::Mat& grey8, const ImagingRegion& region) {
     float* o = out.ptr<float>(y);
     const int* d = depth.ptr<int>(y);
     for (int x = 0; x < out.cols; ++x) {
-      if (d[x] >= 0)
-        o[x] -= excess[static_cast<std::size_t>(d[x])];
+      o[x] = d[x] >= 0 ? o[x] - excess[static_cast<std::size_t>(d[x])] : typical;
     }
   }
   return out;
@@ -624,6 +623,11 @@ void orientByEntry(const Candidate& c, const AcquisitionOptions& o, const Imagin
     a_is_tail =
         (b - a).dot(cv::Point2d(std::cos(*o.entry_angle_rad), std::sin(*o.entry_angle_rad))) >= 0.0;
   }
+  {
+    const cv::Point2d ta = a_is_tail ? a : b, tb = a_is_tail ? b : a;
+    const cv::Point2d d = (ta - tb) / std::max(cv::norm(ta - tb), 1e-9);
+    s->entry_gap_px = rayToBorder(ta, d, region, sigma);
+  }
   s->tail_px = a_is_tail ? a : b;
   s->tip_px = a_is_tail ? b : a;
   s->angle_rad = std::atan2(s->tip_px.y - s->tail_px.y, s->tip_px.x - s->tail_px.x);
@@ -912,7 +916,8 @@ std::string summary(const NeedleSegment& s) {
   out.precision(3);
   out << "needle " << s.length_px() << " px, tip (" << s.tip_px.x << ", " << s.tip_px.y
       << "), evidence " << s.evidence << ", symmetry " << s.symmetry << ", coherence "
-      << s.coherence << (s.extended_by_motion ? ", tip moved on to the motion's front" : "");
+      << s.coherence << ", gap " << s.entry_gap_px
+      << (s.extended_by_motion ? ", tip moved on to the motion's front" : "");
   return out.str();
 }
 
