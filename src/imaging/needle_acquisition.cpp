@@ -35,6 +35,8 @@ constexpr float kMinRidgeThreshold = 2.5e-4F;
 /// Step 2, face band (faceBandFlattened): a depth with fewer pixels of the fan than this has no
 /// level of its own.
 constexpr int kBandMinPixels = 20;
+/// Step 2, face band: the depth profile is smoothed over this many 1 px depths either way.
+constexpr int kBandSmooth_px = 3;
 /// Step 6 (entry): a tail this close to the imaging region's boundary along the shaft is at the
 /// needle's entry (the ridge is left out within kRegionInsetSigmas filter scales of it, and the
 /// trace ends up to a max gap before that) [px].
@@ -221,11 +223,11 @@ RidgeMap ridgeFilter(const cv::Mat& grey32f, double sigma_px) {
 /// band that follows the face's arc; a needle entering from the probe's end runs inside it for
 /// its first tens of pixels, and the band's own curved edge is a stronger ridge than the shaft.
 /// The band is a function of the depth below the face alone: per depth (1 px bins of the distance
-/// from the face's centre), the median grey level over the fan; its excess over the fan's
-/// typical level (the median of those medians), from the face down to where it first falls to
-/// that level (the band may begin up to slack_px below the fitted face), is subtracted. A needle,
-/// an interface or a shadow covers a few pixels of each depth's arc and does not move the median;
-/// below the band nothing changes.
+/// from the face's centre), the median grey level over the fan; from the face down, the profile
+/// rises to the band's peak and falls to the tissue's level (its first minimum); the excess over
+/// that level is subtracted there, and outside the fan reads as that level (a shaft along the
+/// face has tissue on both sides). A needle, an interface or a shadow covers a few pixels of
+/// each depth's arc and does not move the median; below the band nothing changes.
 cv::Mat faceBandFlattened(const cv::Mat& grey8, const ImagingRegion& region) {
   cv::Mat out;
   grey8.convertTo(out, CV_32F);
@@ -252,7 +254,7 @@ cv::Mat faceBandFlattened(const cv::Mat& grey8, const ImagingRegion& region) {
       ++count[static_cast<std::size_t>(d[x])];
     }
   }
-  std::vector<float> level(static_cast<std::size_t>(bins), -1.0F), levels;
+  std::vector<float> level(static_cast<std::size_t>(bins), -1.0F);
   for (int k = 0; k < bins; ++k) {
     const std::size_t i = static_cast<std::size_t>(k);
     if (count[i] < kBandMinPixels)
@@ -261,19 +263,35 @@ cv::Mat faceBandFlattened(const cv::Mat& grey8, const ImagingRegion& region) {
     while (v < 255 && 2 * (seen + hist[i][static_cast<std::size_t>(v)]) < count[i])
       seen += hist[i][static_cast<std::size_t>(v++)];
     level[i] = static_cast<float>(v);
-    levels.push_back(level[i]);
   }
-  if (levels.empty())
-    return out;
-  std::nth_element(levels.begin(), levels.begin() + static_cast<long>(levels.size() / 2),
-                   levels.end());
-  const float typical = levels[levels.size() / 2];
-  std::vector<float> excess(static_cast<std::size_t>(bins), 0.0F);
+  // The profile of the depths that have a level, smoothed over kBandSmooth_px either way: the
+  // band falls from its peak under the face to the tissue's level, its first minimum.
+  std::vector<int> depths;
+  std::vector<float> profile;
   for (int k = 0; k < bins; ++k) {
-    const float l = level[static_cast<std::size_t>(k)];
-    if (l >= 0.0F)
-      excess[static_cast<std::size_t>(k)] = l - typical;
+    if (level[static_cast<std::size_t>(k)] < 0.0F)
+      continue;
+    double sum = 0.0;
+    int n = 0;
+    for (int j = std::max(0, k - kBandSmooth_px); j <= std::min(bins - 1, k + kBandSmooth_px); ++j)
+      if (level[static_cast<std::size_t>(j)] >= 0.0F)
+        sum += level[static_cast<std::size_t>(j)], ++n;
+    depths.push_back(k);
+    profile.push_back(static_cast<float>(sum / n));
   }
+  if (profile.size() < 3)
+    return out;
+  std::size_t peak = 0;
+  while (peak + 1 < profile.size() && profile[peak + 1] >= profile[peak])
+    ++peak;
+  std::size_t end = peak;
+  while (end + 1 < profile.size() && profile[end + 1] < profile[end])
+    ++end;
+  const float floor = profile[end];
+  std::vector<float> excess(static_cast<std::size_t>(bins), 0.0F);
+  for (std::size_t i = 0; i < end; ++i)
+    excess[static_cast<std::size_t>(depths[i])] = std::max(0.0F, profile[i] - floor);
+  const float typical = floor;
   for (int y = 0; y < out.rows; ++y) {
     float* o = out.ptr<float>(y);
     const int* d = depth.ptr<int>(y);
@@ -1257,23 +1275,26 @@ std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const RidgeM
                                        const cv::Mat& motion) {
   bool any_moving = false;
   // A tip on the frame's border is no tip in view: the line runs on out of the frame (a layer
-  // seen from the stated entry side, or a needle past the field of view). In a bounded imaging
-  // region, a line that starts inside it with nothing on the way back to its boundary enters
-  // from nowhere (entrySupport): the end of an interface, not a needle. (A frame without a black
-  // margin may be a crop that cuts the needle's entry off: there the rule does not apply.)
-  all.erase(std::remove_if(all.begin(), all.end(),
-                           [&](Candidate& c) {
-                             orientByEntry(c, o, region, &c.cues);
-                             c.cues.entry_support = entrySupport(ridge, o.ridge_sigma_px, c.cues);
-                             return onBorder(c.cues.tip_px, region, o.ridge_sigma_px) ||
-                                    (region.shape == ImagingRegion::Shape::kSector &&
-                                     c.cues.entry_support < kMinEntrySupport);
-                           }),
+  // seen from the stated entry side, or a needle past the field of view). In a fan, a still
+  // line that starts inside it with nothing on the way back to its boundary enters from nowhere
+  // (entrySupport): the end of an interface, not a needle. A line whose tip moves like a
+  // needle's is kept whatever its entry shows. (A frame without a black margin may be a crop
+  // that cuts the needle's entry off, and a linear probe's rectangle may not show where the
+  // needle comes into the plane: there the rule does not apply.)
+  const bool fan = region.shape == ImagingRegion::Shape::kSector;
+  all.erase(std::remove_if(
+                all.begin(), all.end(),
+                [&](Candidate& c) {
+                  orientByEntry(c, o, region, &c.cues);
+                  if (onBorder(c.cues.tip_px, region, o.ridge_sigma_px))
+                    return true;
+                  c.cues.motion = tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
+                  c.cues.entry_support = fan ? entrySupport(ridge, o.ridge_sigma_px, c.cues) : 1.0;
+                  return c.cues.motion < kMinMotionRatio && c.cues.entry_support < kMinEntrySupport;
+                }),
             all.end());
-  for (Candidate& c : all) {
-    c.cues.motion = tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
+  for (const Candidate& c : all)
     any_moving = any_moving || (c.cues.motion >= kMinMotionRatio && c.acceptance >= o.min_evidence);
-  }
   std::optional<Candidate> best;
   for (const Candidate& c : all) {
     if (any_moving && c.cues.motion < kMinMotionRatio)
