@@ -4,7 +4,6 @@
 #include "ridge_filter.h"
 
 #include <algorithm>
-#include <array>
 #include <cmath>
 #include <opencv2/imgproc.hpp>
 #include <opencv2/video/tracking.hpp>
@@ -32,11 +31,6 @@ constexpr double kHoughQuantile = 0.98;
 constexpr double kBlobPenalty = 1.0;
 /// Step 3: the thresholds are at least this [grey levels / px^2] (a flat frame has no ridge).
 constexpr float kMinRidgeThreshold = 2.5e-4F;
-/// Step 2, face band (faceBandFlattened): a depth with fewer pixels of the fan than this has no
-/// level of its own.
-constexpr int kBandMinPixels = 20;
-/// Step 2, face band: the depth profile is smoothed over this many 1 px depths either way.
-constexpr int kBandSmooth_px = 3;
 /// Step 6 (entry): a tail this close to the imaging region's boundary along the shaft is at the
 /// needle's entry (the ridge is left out within kRegionInsetSigmas filter scales of it, and the
 /// trace ends up to a max gap before that) [px].
@@ -205,8 +199,8 @@ float sample(const cv::Mat& m, cv::Point2d p) {
   return m.at<float>(r, c);
 }
 
-/// Step 2: the shared ridge filter (ridge_filter.h) at sigma, a blob penalised by its whole
-/// larger eigenvalue, on the frame as CV_32F (faceBandFlattened).
+/// Step 2: the shared ridge filter (ridge_filter.h) at sigma on the frame as CV_32F, a blob
+/// penalised by its whole larger eigenvalue.
 RidgeMap ridgeFilter(const cv::Mat& grey32f, double sigma_px) {
   detail::HessianRidge h =
       detail::hessianRidge(grey32f, sigma_px, kBlobPenalty, cv::BORDER_DEFAULT);
@@ -216,90 +210,6 @@ RidgeMap ridgeFilter(const cv::Mat& grey32f, double sigma_px) {
   r.half_diff = h.half_diff;
   r.smooth = h.smooth;
   return r;
-}
-
-/// Step 2 (before the filter): the frame as CV_32F, and in a fan with a curved probe face, less
-/// the face band's excess brightness. Under the face, the transducer's ring-down adds a bright
-/// band that follows the face's arc; a needle entering from the probe's end runs inside it for
-/// its first tens of pixels, and the band's own curved edge is a stronger ridge than the shaft.
-/// The band is a function of the depth below the face alone: per depth (1 px bins of the distance
-/// from the face's centre), the median grey level over the fan; from the face down, the profile
-/// rises to the band's peak and falls to the tissue's level (its first minimum); the excess over
-/// that level is subtracted there, and outside the fan reads as that level (a shaft along the
-/// face has tissue on both sides). A needle, an interface or a shadow covers a few pixels of
-/// each depth's arc and does not move the median; below the band nothing changes.
-cv::Mat faceBandFlattened(const cv::Mat& grey8, const ImagingRegion& region) {
-  cv::Mat out;
-  grey8.convertTo(out, CV_32F);
-  if (region.shape != ImagingRegion::Shape::kSector || !(region.top_radius_px > 0.0) ||
-      region.mask.size() != grey8.size())
-    return out;
-  const int bins = static_cast<int>(std::ceil(std::hypot(grey8.cols, grey8.rows))) + 1;
-  cv::Mat depth(grey8.size(), CV_32S, cv::Scalar(-1));
-  std::vector<std::array<int, 256>> hist(static_cast<std::size_t>(bins));
-  std::vector<int> count(static_cast<std::size_t>(bins), 0);
-  for (auto& h : hist)
-    h.fill(0);
-  for (int y = 0; y < grey8.rows; ++y) {
-    const std::uint8_t* g = grey8.ptr<std::uint8_t>(y);
-    const std::uint8_t* in = region.mask.ptr<std::uint8_t>(y);
-    int* d = depth.ptr<int>(y);
-    for (int x = 0; x < grey8.cols; ++x) {
-      if (!in[x])
-        continue;
-      const double below =
-          std::hypot(x - region.apex_px.x, y - region.apex_px.y) - region.top_radius_px;
-      d[x] = std::clamp(static_cast<int>(below), 0, bins - 1);
-      ++hist[static_cast<std::size_t>(d[x])][g[x]];
-      ++count[static_cast<std::size_t>(d[x])];
-    }
-  }
-  std::vector<float> level(static_cast<std::size_t>(bins), -1.0F);
-  for (int k = 0; k < bins; ++k) {
-    const std::size_t i = static_cast<std::size_t>(k);
-    if (count[i] < kBandMinPixels)
-      continue;
-    int seen = 0, v = 0;
-    while (v < 255 && 2 * (seen + hist[i][static_cast<std::size_t>(v)]) < count[i])
-      seen += hist[i][static_cast<std::size_t>(v++)];
-    level[i] = static_cast<float>(v);
-  }
-  // The profile of the depths that have a level, smoothed over kBandSmooth_px either way: the
-  // band falls from its peak under the face to the tissue's level, its first minimum.
-  std::vector<int> depths;
-  std::vector<float> profile;
-  for (int k = 0; k < bins; ++k) {
-    if (level[static_cast<std::size_t>(k)] < 0.0F)
-      continue;
-    double sum = 0.0;
-    int n = 0;
-    for (int j = std::max(0, k - kBandSmooth_px); j <= std::min(bins - 1, k + kBandSmooth_px); ++j)
-      if (level[static_cast<std::size_t>(j)] >= 0.0F)
-        sum += level[static_cast<std::size_t>(j)], ++n;
-    depths.push_back(k);
-    profile.push_back(static_cast<float>(sum / n));
-  }
-  if (profile.size() < 3)
-    return out;
-  std::size_t peak = 0;
-  while (peak + 1 < profile.size() && profile[peak + 1] >= profile[peak])
-    ++peak;
-  std::size_t end = peak;
-  while (end + 1 < profile.size() && profile[end + 1] < profile[end])
-    ++end;
-  const float floor = profile[end];
-  std::vector<float> excess(static_cast<std::size_t>(bins), 0.0F);
-  for (std::size_t i = 0; i < end; ++i)
-    excess[static_cast<std::size_t>(depths[i])] = std::max(0.0F, profile[i] - floor);
-  const float typical = floor;
-  for (int y = 0; y < out.rows; ++y) {
-    float* o = out.ptr<float>(y);
-    const int* d = depth.ptr<int>(y);
-    for (int x = 0; x < out.cols; ++x) {
-      o[x] = d[x] >= 0 ? o[x] - excess[static_cast<std::size_t>(d[x])] : typical;
-    }
-  }
-  return out;
 }
 
 /// The ridge's line direction at p, in [-pi/2, pi/2] [rad].
@@ -1373,8 +1283,9 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
     none.message = "imaging region is not of the frame's size";
     return none;
   }
-  RidgeMap ridge = ridgeFilter(faceBandFlattened(grey, region),
-                               options.ridge_sigma_px);  // step 2
+  cv::Mat grey32;
+  grey.convertTo(grey32, CV_32F);
+  RidgeMap ridge = ridgeFilter(grey32, options.ridge_sigma_px);  // step 2
   if (region.bounded())  // the region's own edge and the black outside it are no ridge
     ridge.strength.setTo(0.0F, region.inset < kRegionInsetSigmas * options.ridge_sigma_px);
   ridgeThresholds(&ridge, region);
