@@ -1,6 +1,7 @@
 // Needle acquisition without a prior; see needle_acquisition.h for the steps.
 #include "needle_guidance/imaging/needle_acquisition.h"
 #include "needle_guidance/math.h"
+#include "ridge_filter.h"
 
 #include <algorithm>
 #include <cmath>
@@ -26,6 +27,18 @@ namespace {
 /// it finds is traced and refit on the 3 % anyway.
 constexpr double kRidgeQuantile = 0.97;
 constexpr double kHoughQuantile = 0.98;
+/// Step 2: the ridge strength is -lambda_across - kBlobPenalty |lambda_along| (ridge_filter.h).
+constexpr double kBlobPenalty = 1.0;
+/// Step 3: the thresholds are at least this [grey levels / px^2] (a flat frame has no ridge).
+constexpr float kMinRidgeThreshold = 2.5e-4F;
+/// Step 6 (entry): a tail this close to the imaging region's boundary along the shaft is at the
+/// needle's entry (the ridge is left out within kRegionInsetSigmas filter scales of it, and the
+/// trace ends up to a max gap before that) [px].
+constexpr double kEntrySlack_px = 24.0;
+/// A candidate in a bounded imaging region whose entry support (entrySupport) is below this is
+/// not a needle: the needles of the convex tuning sequences show 1.0 beyond the slack, the ends
+/// of interfaces and chance lines of speckle 0-0.75, a few up to 0.9.
+constexpr double kMinEntrySupport = 0.8;
 /// Step 3: at most kMaxHoughLines distinct Hough lines are examined, until kMaxCandidates
 /// distinct segments are found; Hough lines closer than these are the same line.
 constexpr int kMaxHoughLines = 64;
@@ -186,29 +199,16 @@ float sample(const cv::Mat& m, cv::Point2d p) {
   return m.at<float>(r, c);
 }
 
-/// Step 2 at one scale: Hessian of `image` smoothed at sigma [px of image]; strength =
-/// -lambda_min - |lambda_max| where positive (a bright line, not a blob); the Hessian parts the
-/// direction (the eigenvector of lambda_max) is computed from.
-void hessianRidge(const cv::Mat& image, double sigma_px, cv::Mat* smooth, cv::Mat* strength,
-                  cv::Mat* dxy, cv::Mat* half_diff) {
-  cv::GaussianBlur(image, *smooth, cv::Size(), sigma_px);
-  cv::Mat dxx, dyy;
-  cv::Sobel(*smooth, dxx, CV_32F, 2, 0, 3);
-  cv::Sobel(*smooth, dyy, CV_32F, 0, 2, 3);
-  cv::Sobel(*smooth, *dxy, CV_32F, 1, 1, 3);
-  cv::Mat half_trace = 0.5F * (dxx + dyy), root;
-  *half_diff = 0.5F * (dxx - dyy);
-  cv::magnitude(*half_diff, *dxy, root);
-  cv::Mat lmin = half_trace - root, lmax = cv::abs(half_trace + root);
-  *strength = cv::max(-lmin - lmax, 0.0F);
-}
-
-/// Step 2: the ridge filter at sigma.
-RidgeMap ridgeFilter(const cv::Mat& grey8, double sigma_px) {
+/// Step 2: the shared ridge filter (ridge_filter.h) at sigma on the frame as CV_32F, a blob
+/// penalised by its whole larger eigenvalue.
+RidgeMap ridgeFilter(const cv::Mat& grey32f, double sigma_px) {
+  detail::HessianRidge h =
+      detail::hessianRidge(grey32f, sigma_px, kBlobPenalty, cv::BORDER_DEFAULT);
   RidgeMap r;
-  cv::Mat grey;
-  grey8.convertTo(grey, CV_32F);
-  hessianRidge(grey, sigma_px, &r.smooth, &r.strength, &r.dxy, &r.half_diff);
+  r.strength = h.strength;
+  r.dxy = h.dxy;
+  r.half_diff = h.half_diff;
+  r.smooth = h.smooth;
   return r;
 }
 
@@ -235,7 +235,7 @@ void ridgeThresholds(RidgeMap* ridge, const ImagingRegion& region) {
   auto quantile = [&v](double q) {
     auto k = v.begin() + static_cast<long>(q * static_cast<double>(v.size() - 1));
     std::nth_element(v.begin(), k, v.end());
-    return std::max(*k, 1e-3F);
+    return std::max(*k, kMinRidgeThreshold);
   };
   ridge->threshold = quantile(kRidgeQuantile);
   ridge->hough_threshold = quantile(kHoughQuantile);
@@ -559,6 +559,11 @@ void orientByEntry(const Candidate& c, const AcquisitionOptions& o, const Imagin
     a_is_tail =
         (b - a).dot(cv::Point2d(std::cos(*o.entry_angle_rad), std::sin(*o.entry_angle_rad))) >= 0.0;
   }
+  {
+    const cv::Point2d ta = a_is_tail ? a : b, tb = a_is_tail ? b : a;
+    const cv::Point2d d = (ta - tb) / std::max(cv::norm(ta - tb), 1e-9);
+    s->entry_gap_px = rayToBorder(ta, d, region, sigma);
+  }
   s->tail_px = a_is_tail ? a : b;
   s->tip_px = a_is_tail ? b : a;
   s->angle_rad = std::atan2(s->tip_px.y - s->tail_px.y, s->tip_px.x - s->tail_px.x);
@@ -585,6 +590,30 @@ double crossContrast(const RidgeMap& ridge, cv::Point2d p, cv::Point2d n, double
   for (int k = -reach; k <= reach; ++k)
     on = std::max(on, sample(ridge.smooth, p + k * n));
   return on - side / std::max(count, 1);
+}
+
+/// Step 6 (entry): the share of the way from the tail back to the imaging region's boundary,
+/// along the shaft, where the cross-line contrast stays at kTipLevel of the shaft's (its median
+/// along the segment), or 1 when the tail lies within kEntrySlack_px of that boundary. A needle
+/// comes into the image through the region's boundary: where its trace stops short of it (the
+/// shaft near the entry is fainter, or a reverberation hides it) the shaft still shows on the way
+/// out. An interface's end inside the fan is the end of the structure: tissue lies beyond it.
+double entrySupport(const RidgeMap& ridge, double sigma, const NeedleSegment& s) {
+  const double length = s.length_px();
+  if (s.entry_gap_px <= kEntrySlack_px || length < 1.0)
+    return 1.0;
+  const cv::Point2d d = (s.tip_px - s.tail_px) / length, n(-d.y, d.x);
+  std::vector<double> shaft;
+  for (double u = 0.0; u <= length; u += 1.0)
+    shaft.push_back(crossContrast(ridge, s.tail_px + u * d, n, sigma));
+  std::nth_element(shaft.begin(), shaft.begin() + static_cast<long>(shaft.size() / 2), shaft.end());
+  const double level = kTipLevel * shaft[shaft.size() / 2];
+  if (level <= 0.0)
+    return 0.0;
+  int on = 0, count = 0;
+  for (double u = 1.0; u <= s.entry_gap_px; u += 1.0, ++count)
+    on += crossContrast(ridge, s.tail_px - u * d, n, sigma) >= level ? 1 : 0;
+  return count > 0 ? static_cast<double>(on) / count : 1.0;
 }
 
 /// Step 6 (tip): walking from the tail, the needle ends where its cross-line contrast stays
@@ -847,7 +876,8 @@ std::string summary(const NeedleSegment& s) {
   out.precision(3);
   out << "needle " << s.length_px() << " px, tip (" << s.tip_px.x << ", " << s.tip_px.y
       << "), evidence " << s.evidence << ", symmetry " << s.symmetry << ", coherence "
-      << s.coherence << (s.extended_by_motion ? ", tip moved on to the motion's front" : "");
+      << s.coherence << ", gap " << s.entry_gap_px << ", support " << s.entry_support
+      << (s.extended_by_motion ? ", tip moved on to the motion's front" : "");
   return out.str();
 }
 
@@ -1150,21 +1180,31 @@ std::optional<NeedleSegment> tipFromMotion(const cv::Mat& motion, EntrySide entr
 /// Step 6 with the sequence cue: orient every candidate, measure its motion; when one that
 /// passes the evidence threshold moves, the still ones drop out (never a still line over a
 /// moving needle); the best score wins.
-std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const AcquisitionOptions& o,
-                                       const ImagingRegion& region, const cv::Mat& motion) {
+std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const RidgeMap& ridge,
+                                       const AcquisitionOptions& o, const ImagingRegion& region,
+                                       const cv::Mat& motion) {
   bool any_moving = false;
   // A tip on the frame's border is no tip in view: the line runs on out of the frame (a layer
-  // seen from the stated entry side, or a needle past the field of view).
-  all.erase(std::remove_if(all.begin(), all.end(),
-                           [&](Candidate& c) {
-                             orientByEntry(c, o, region, &c.cues);
-                             return onBorder(c.cues.tip_px, region, o.ridge_sigma_px);
-                           }),
+  // seen from the stated entry side, or a needle past the field of view). In a fan, a still
+  // line that starts inside it with nothing on the way back to its boundary enters from nowhere
+  // (entrySupport): the end of an interface, not a needle. A line whose tip moves like a
+  // needle's is kept whatever its entry shows. (A frame without a black margin may be a crop
+  // that cuts the needle's entry off, and a linear probe's rectangle may not show where the
+  // needle comes into the plane: there the rule does not apply.)
+  const bool fan = region.shape == ImagingRegion::Shape::kSector;
+  all.erase(std::remove_if(
+                all.begin(), all.end(),
+                [&](Candidate& c) {
+                  orientByEntry(c, o, region, &c.cues);
+                  if (onBorder(c.cues.tip_px, region, o.ridge_sigma_px))
+                    return true;
+                  c.cues.motion = tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
+                  c.cues.entry_support = fan ? entrySupport(ridge, o.ridge_sigma_px, c.cues) : 1.0;
+                  return c.cues.motion < kMinMotionRatio && c.cues.entry_support < kMinEntrySupport;
+                }),
             all.end());
-  for (Candidate& c : all) {
-    c.cues.motion = tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
+  for (const Candidate& c : all)
     any_moving = any_moving || (c.cues.motion >= kMinMotionRatio && c.acceptance >= o.min_evidence);
-  }
   std::optional<Candidate> best;
   for (const Candidate& c : all) {
     if (any_moving && c.cues.motion < kMinMotionRatio)
@@ -1243,13 +1283,15 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
     none.message = "imaging region is not of the frame's size";
     return none;
   }
-  RidgeMap ridge = ridgeFilter(grey, options.ridge_sigma_px);  // step 2
+  cv::Mat grey32;
+  grey.convertTo(grey32, CV_32F);
+  RidgeMap ridge = ridgeFilter(grey32, options.ridge_sigma_px);  // step 2
   if (region.bounded())  // the region's own edge and the black outside it are no ridge
     ridge.strength.setTo(0.0F, region.inset < kRegionInsetSigmas * options.ridge_sigma_px);
   ridgeThresholds(&ridge, region);
 
   std::vector<Candidate> all = collectCandidates(ridge, options, region);  // steps 3-5
-  const std::optional<Candidate> best = bestCandidate(all, options, region, motion);
+  const std::optional<Candidate> best = bestCandidate(all, ridge, options, region, motion);
   // No line moves like a needle: the tip where the frame alone brightens, if it does and the
   // best line does not end there (a line traced to that tip is kept: it shows the shaft).
   const std::optional<NeedleSegment> hidden = tipFromMotion(motion, options.entry);

@@ -32,6 +32,7 @@
 #include "detection_util.h"
 #include "needle_guidance/imaging/tip_tracker.h"
 #include "needle_guidance/math.h"
+#include "ridge_filter.h"
 
 namespace needle_guidance::imaging {
 namespace {
@@ -255,37 +256,30 @@ RidgeImages filterRegion(const cv::Mat& frame, const cv::Rect& window, Modality 
   if (modality == Modality::kFluoroscopy) {
     roi = 255.0f - roi;  // dark needle on a bright background -> bright ridge
   }
-  cv::GaussianBlur(roi, out.smooth, cv::Size(0, 0), smoothing_px, smoothing_px,
-                   cv::BORDER_REPLICATE);
-  cv::Mat dxx, dyy, dxy;
-  cv::Sobel(out.smooth, dxx, CV_32F, 2, 0, 3, 0.25, 0.0, cv::BORDER_REPLICATE);
-  cv::Sobel(out.smooth, dyy, CV_32F, 0, 2, 3, 0.25, 0.0, cv::BORDER_REPLICATE);
-  cv::Sobel(out.smooth, dxy, CV_32F, 1, 1, 3, 0.25, 0.0, cv::BORDER_REPLICATE);
-  out.ridge.create(out.smooth.size(), CV_32F);
+  detail::HessianRidge h =
+      detail::hessianRidge(roi, smoothing_px, kBlobPenalty, cv::BORDER_REPLICATE);
+  out.smooth = h.smooth;
+  out.ridge = h.strength;
   out.normal_c.create(out.smooth.size(), CV_32F);
   out.normal_r.create(out.smooth.size(), CV_32F);
   out.anisotropy.create(out.smooth.size(), CV_32F);
   for (int r = 0; r < out.smooth.rows; ++r) {
-    const float* a = dxx.ptr<float>(r);
-    const float* c = dyy.ptr<float>(r);
-    const float* b = dxy.ptr<float>(r);
-    float* rr = out.ridge.ptr<float>(r);
+    const float* l1 = h.lambda_across.ptr<float>(r);  // most negative: across a bright line
+    const float* l2 = h.lambda_along.ptr<float>(r);
+    const float* hd = h.half_diff.ptr<float>(r);
+    const float* b = h.dxy.ptr<float>(r);
     float* nc = out.normal_c.ptr<float>(r);
     float* nr = out.normal_r.ptr<float>(r);
     float* an = out.anisotropy.ptr<float>(r);
     for (int k = 0; k < out.smooth.cols; ++k) {
-      const float half_tr = 0.5f * (a[k] + c[k]);
-      const float half_diff = 0.5f * (a[k] - c[k]);
-      const float root = std::sqrt(half_diff * half_diff + b[k] * b[k]);
-      const float l1 = half_tr - root;  // most negative: across a bright line
-      const float l2 = half_tr + root;
-      rr[k] = std::max(0.0f, -l1 - static_cast<float>(kBlobPenalty) * std::abs(l2));
-      const float sum = std::abs(l1) + std::abs(l2);
-      an[k] = sum > 0.0f ? (std::abs(l1) - std::abs(l2)) / sum : 0.0f;
-      // Eigenvector of l1: (b, l1 - a) or (l1 - c, b), whichever is better conditioned.
+      const float sum = std::abs(l1[k]) + std::abs(l2[k]);
+      an[k] = sum > 0.0f ? (std::abs(l1[k]) - std::abs(l2[k])) / sum : 0.0f;
+      // Eigenvector of l1: (b, l1 - Ixx) or (l1 - Iyy, b), whichever is better conditioned;
+      // l1 - Ixx = -root - half_diff and l1 - Iyy = -root + half_diff.
+      const float root = 0.5f * (l2[k] - l1[k]);
       float vx = b[k];
-      float vy = l1 - a[k];
-      const float wx = l1 - c[k];
+      float vy = -root - hd[k];
+      const float wx = -root + hd[k];
       const float wy = b[k];
       if (vx * vx + vy * vy < wx * wx + wy * wy) {
         vx = wx;

@@ -562,6 +562,13 @@ const std::vector<ConvexSpec>& convexSpecs() {
   add("tune_convex_j", false, convex(619, wide, -0.8, 35, 8))->appear_at = -1;  // no needle
   add("tune_convex_k", false, convex(621, wide, 0.85, 20, 9));
   {
+    im::ConvexInsertion* c = add("tune_convex_l", false, convex(623, wide, 0.75, 45, 8));
+    c->face_radius_px = 70;  // a phased-array-like small face, wide sector
+    c->half_angle_rad = 0.65;
+    c->face_top_px = 8;
+  }
+  add("tune_convex_m", false, convex(625, crop, -0.85, 30, 8))->appear_at = -1;  // no needle
+  {
     im::ConvexInsertion* c = add("convex_a", true, convex(701, crop, -0.85, 35, 10));
     c->layers = 3;
   }
