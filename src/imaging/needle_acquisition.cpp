@@ -31,14 +31,6 @@ constexpr double kHoughQuantile = 0.98;
 constexpr double kBlobPenalty = 1.0;
 /// Step 3: the thresholds are at least this [grey levels / px^2] (a flat frame has no ridge).
 constexpr float kMinRidgeThreshold = 2.5e-4F;
-/// Step 6 (entry): a tail this close to the imaging region's boundary along the shaft is at the
-/// needle's entry (the ridge is left out within kRegionInsetSigmas filter scales of it, and the
-/// trace ends up to a max gap before that) [px].
-constexpr double kEntrySlack_px = 24.0;
-/// A candidate in a bounded imaging region whose entry support (entrySupport) is below this is
-/// not a needle: the needles of the convex tuning sequences show 1.0 beyond the slack, the ends
-/// of interfaces and chance lines of speckle 0-0.75, a few up to 0.9.
-constexpr double kMinEntrySupport = 0.8;
 /// Step 3: at most kMaxHoughLines distinct Hough lines are examined, until kMaxCandidates
 /// distinct segments are found; Hough lines closer than these are the same line.
 constexpr int kMaxHoughLines = 64;
@@ -592,30 +584,6 @@ double crossContrast(const RidgeMap& ridge, cv::Point2d p, cv::Point2d n, double
   return on - side / std::max(count, 1);
 }
 
-/// Step 6 (entry): the share of the way from the tail back to the imaging region's boundary,
-/// along the shaft, where the cross-line contrast stays at kTipLevel of the shaft's (its median
-/// along the segment), or 1 when the tail lies within kEntrySlack_px of that boundary. A needle
-/// comes into the image through the region's boundary: where its trace stops short of it (the
-/// shaft near the entry is fainter, or a reverberation hides it) the shaft still shows on the way
-/// out. An interface's end inside the fan is the end of the structure: tissue lies beyond it.
-double entrySupport(const RidgeMap& ridge, double sigma, const NeedleSegment& s) {
-  const double length = s.length_px();
-  if (s.entry_gap_px <= kEntrySlack_px || length < 1.0)
-    return 1.0;
-  const cv::Point2d d = (s.tip_px - s.tail_px) / length, n(-d.y, d.x);
-  std::vector<double> shaft;
-  for (double u = 0.0; u <= length; u += 1.0)
-    shaft.push_back(crossContrast(ridge, s.tail_px + u * d, n, sigma));
-  std::nth_element(shaft.begin(), shaft.begin() + static_cast<long>(shaft.size() / 2), shaft.end());
-  const double level = kTipLevel * shaft[shaft.size() / 2];
-  if (level <= 0.0)
-    return 0.0;
-  int on = 0, count = 0;
-  for (double u = 1.0; u <= s.entry_gap_px; u += 1.0, ++count)
-    on += crossContrast(ridge, s.tail_px - u * d, n, sigma) >= level ? 1 : 0;
-  return count > 0 ? static_cast<double>(on) / count : 1.0;
-}
-
 /// Step 6 (tip): walking from the tail, the needle ends where its cross-line contrast stays
 /// below kTipLevel of the shaft's level for more than max_gap (a faint
 /// streak beyond the tip passes the ridge threshold but not this).
@@ -876,7 +844,7 @@ std::string summary(const NeedleSegment& s) {
   out.precision(3);
   out << "needle " << s.length_px() << " px, tip (" << s.tip_px.x << ", " << s.tip_px.y
       << "), evidence " << s.evidence << ", symmetry " << s.symmetry << ", coherence "
-      << s.coherence << ", gap " << s.entry_gap_px << ", support " << s.entry_support
+      << s.coherence << ", gap " << s.entry_gap_px
       << (s.extended_by_motion ? ", tip moved on to the motion's front" : "");
   return out.str();
 }
@@ -1180,28 +1148,20 @@ std::optional<NeedleSegment> tipFromMotion(const cv::Mat& motion, EntrySide entr
 /// Step 6 with the sequence cue: orient every candidate, measure its motion; when one that
 /// passes the evidence threshold moves, the still ones drop out (never a still line over a
 /// moving needle); the best score wins.
-std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const RidgeMap& ridge,
-                                       const AcquisitionOptions& o, const ImagingRegion& region,
-                                       const cv::Mat& motion) {
+std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const AcquisitionOptions& o,
+                                       const ImagingRegion& region, const cv::Mat& motion) {
   bool any_moving = false;
   // A tip on the frame's border is no tip in view: the line runs on out of the frame (a layer
-  // seen from the stated entry side, or a needle past the field of view). In a fan, a still
-  // line that starts inside it with nothing on the way back to its boundary enters from nowhere
-  // (entrySupport): the end of an interface, not a needle. A line whose tip moves like a
-  // needle's is kept whatever its entry shows. (A frame without a black margin may be a crop
-  // that cuts the needle's entry off, and a linear probe's rectangle may not show where the
-  // needle comes into the plane: there the rule does not apply.)
-  const bool fan = region.shape == ImagingRegion::Shape::kSector;
-  all.erase(std::remove_if(
-                all.begin(), all.end(),
-                [&](Candidate& c) {
-                  orientByEntry(c, o, region, &c.cues);
-                  if (onBorder(c.cues.tip_px, region, o.ridge_sigma_px))
-                    return true;
-                  c.cues.motion = tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
-                  c.cues.entry_support = fan ? entrySupport(ridge, o.ridge_sigma_px, c.cues) : 1.0;
-                  return c.cues.motion < kMinMotionRatio && c.cues.entry_support < kMinEntrySupport;
-                }),
+  // seen from the stated entry side, or a needle past the field of view).
+  all.erase(std::remove_if(all.begin(), all.end(),
+                           [&](Candidate& c) {
+                             orientByEntry(c, o, region, &c.cues);
+                             if (onBorder(c.cues.tip_px, region, o.ridge_sigma_px))
+                               return true;
+                             c.cues.motion =
+                                 tipMotion(motion, c.cues, kMotionBeyondGaps * o.max_gap_px);
+                             return false;
+                           }),
             all.end());
   for (const Candidate& c : all)
     any_moving = any_moving || (c.cues.motion >= kMinMotionRatio && c.acceptance >= o.min_evidence);
@@ -1291,7 +1251,7 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
   ridgeThresholds(&ridge, region);
 
   std::vector<Candidate> all = collectCandidates(ridge, options, region);  // steps 3-5
-  const std::optional<Candidate> best = bestCandidate(all, ridge, options, region, motion);
+  const std::optional<Candidate> best = bestCandidate(all, options, region, motion);
   // No line moves like a needle: the tip where the frame alone brightens, if it does and the
   // best line does not end there (a line traced to that tip is kept: it shows the shaft).
   const std::optional<NeedleSegment> hidden = tipFromMotion(motion, options.entry);

@@ -2,7 +2,7 @@
 // from the frames, steep needles from the top of the fan, and the hard cases: a 60 degree needle
 // under a brighter, longer interface; the fan's edge at the needle's entry; a needle nearly
 // along the beam; a needle appearing part-way; a sparse sequence; a fan without a needle; the
-// priors (entry point, entry angle); a line starting inside the fan with tissue all round it.
+// priors (entry point, entry angle).
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -25,9 +25,6 @@ constexpr double kTipTolerance_px = 15.0;  ///< a found tip this close to the tr
 constexpr double kConfidentWrong_px = 20.0;
 constexpr double kAngleTolerance_deg = 5.0;
 constexpr double kRegionAgreement = 0.97;  ///< share of pixels the region and the probe agree on
-constexpr double kBandShaft_px = 75.0;     ///< a shaft this short from the face lies in its band
-constexpr double kLineLength_px = 120.0;   ///< a drawn test line
-constexpr double kLineGrey = 200.0;
 
 im::ConvexInsertion insertion(std::uint64_t seed, double entry, double angle_deg) {
   im::ConvexInsertion c;
@@ -163,35 +160,6 @@ TEST(ConvexTracking, FanWithoutANeedleIsNeverConfident) {
   const Tracked t = track(c);
   for (std::size_t k = 0; k < t.out.size(); ++k)
     EXPECT_FALSE(t.out[k].confident) << "frame " << k << ": " << t.out[k].segment.message;
-}
-
-TEST(ConvexTracking, LineStartingInsideTheFanIsNoNeedleUnlessItComesFromTheBoundary) {
-  im::ConvexInsertion c = insertion(53, -0.8, 35);
-  c.layers = 0;
-  const im::ConvexScene scene = c.scene();
-  const cv::Mat fan = im::renderConvexFrame(scene, c.size, {}, 0);
-  const im::ImagingRegion region = im::findImagingRegion(fan);
-  ASSERT_EQ(region.shape, im::ImagingRegion::Shape::kSector);
-  // A thin bright segment 120 px long, 35 degrees down the rows: once deep inside the fan with
-  // tissue all round it (the end of a structure, not a needle), once from the probe face in.
-  const cv::Point2d dir(std::cos(35 * CV_PI / 180), std::sin(35 * CV_PI / 180));
-  const cv::Point2d face = scene.probe.apex_px + scene.probe.face_radius_px * cv::Point2d(-0.3, 1);
-  const cv::Point2d deep = face + 110.0 * cv::Point2d(0.0, 1.0);
-  for (const bool from_face : {false, true}) {
-    cv::Mat frame = fan.clone();
-    const cv::Point2d start = from_face ? face : deep;
-    cv::line(frame, start, start + kLineLength_px * dir, cv::Scalar(kLineGrey), 2, cv::LINE_AA);
-    const im::NeedleSegment s =
-        im::acquireNeedle(frame, im::AcquisitionOptions{}, cv::Mat(), region);
-    if (from_face) {
-      ASSERT_TRUE(s.found) << s.message;
-      EXPECT_LT(cv::norm(s.tip_px - (start + kLineLength_px * dir)), kTipTolerance_px) << s.message;
-    } else {
-      EXPECT_FALSE(s.found &&
-                   cv::norm(s.tip_px - (start + kLineLength_px * dir)) < kTipTolerance_px)
-          << s.message;
-    }
-  }
 }
 
 TEST(ConvexTracking, PriorsPickTheNeedleOverADecoyAndOrientIt) {

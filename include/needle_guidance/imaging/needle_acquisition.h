@@ -85,8 +85,6 @@ struct NeedleSegment {
   /// From the tail back along the shaft to the imaging region's boundary (or the frame's
   /// border) [px]: the part of the needle between its entry and the visible shaft.
   double entry_gap_px = 0.0;
-  /// Share of that gap where the shaft's cross-line contrast goes on (1: no gap to speak of).
-  double entry_support = 1.0;
   /// Sequence cue: signed frame difference against the background (brightening) at the tip
   /// end, less the unsigned difference along the rest of the shaft, both over the frame's mean
   /// difference (0 for a single frame; >= 3 counts as moving: a needle advancing along its own
