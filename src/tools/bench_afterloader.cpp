@@ -50,6 +50,9 @@ constexpr double kSpeed = 0.5;         // [m/s] source speed (node default)
 constexpr double kTimeScale = 100.0;   // device seconds per wall second in the campaign
 constexpr double kQuantum = 0.05;      // [s] the node's default commit quantum
 constexpr double kTargetErrorS = 0.1;  // [s] bound on the dwell-time error
+// [s] two kills in one dwell leave two quanta of doubt (0.1 s), which a floating-point sum may
+// exceed in the last bit
+constexpr double kTimeSumRoundingS = 1e-9;
 
 double now() {
   return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
@@ -450,7 +453,8 @@ int main(int argc, char** argv) {
          << ",\n  \"time_scale\": " << kTimeScale << ",\n  \"commit_quantum_s\": " << kQuantum
          << ",\n  \"delivery_wall_s_median\": " << ng::report::median(wall)
          << ",\n  \"target_met\": "
-         << (safe == deliveries && max_error <= kTargetErrorS && doubles == 0 && lost == 0
+         << (safe == deliveries && max_error <= kTargetErrorS + kTimeSumRoundingS && doubles == 0 &&
+                     lost == 0
                  ? "true"
                  : "false")
          << "\n}\n";
