@@ -205,15 +205,29 @@ TEST(MonteCarlo, OneStepSuccessMatchesTheNormalIntegral) {
   EXPECT_EQ(r.successes + r.step_limit + r.hit_obstacle + r.left_workspace, n);
 }
 
+/// The open workspace with insertion and flip noise, its solved policy and a start on the
+/// entry line: the runs below compare Monte Carlo results of one policy.
+struct NoisyOpenCase {
+  SteeringProblem problem = [] {
+    SteeringProblem p = openProblem();
+    p.params.sigma_insert_rad = 5 * kDeg;
+    p.params.sigma_flip_rad = 10 * kDeg;
+    return p;
+  }();
+  ContinuousWorkspace world{problem};
+  PolicyTable table = solveValueIteration(SteeringModel(problem));
+  TipPose start = [] {
+    TipPose t;
+    t.p_SceneTip = Point2(0.0, 0.05);
+    return t;
+  }();
+};
+
 TEST(MonteCarlo, ResultDoesNotDependOnThreads) {
-  SteeringProblem p = openProblem();
-  p.params.sigma_insert_rad = 5 * kDeg;
-  p.params.sigma_flip_rad = 10 * kDeg;
-  const ContinuousWorkspace world(p);
-  const SteeringModel model(p);
-  const PolicyTable table = solveValueIteration(model);
-  TipPose start;
-  start.p_SceneTip = Point2(0.0, 0.05);
+  const NoisyOpenCase c;
+  const ContinuousWorkspace& world = c.world;
+  const PolicyTable& table = c.table;
+  const TipPose& start = c.start;
   const MonteCarloResult one = runMonteCarlo(world, start, tablePolicy(table), 3000, 9, 1);
   const MonteCarloResult two = runMonteCarlo(world, start, tablePolicy(table), 3000, 9, 2);
   EXPECT_EQ(one.successes, two.successes);
@@ -226,14 +240,10 @@ TEST(MonteCarlo, ResultDoesNotDependOnThreads) {
 
 TEST(MonteCarlo, ContinuedRunEqualsOneRun) {
   // Trials 0..999 and then 1000..2999 (first_trial) combined are the 3000 trials of one run.
-  SteeringProblem p = openProblem();
-  p.params.sigma_insert_rad = 5 * kDeg;
-  p.params.sigma_flip_rad = 10 * kDeg;
-  const ContinuousWorkspace world(p);
-  const SteeringModel model(p);
-  const PolicyTable table = solveValueIteration(model);
-  TipPose start;
-  start.p_SceneTip = Point2(0.0, 0.05);
+  const NoisyOpenCase c;
+  const ContinuousWorkspace& world = c.world;
+  const PolicyTable& table = c.table;
+  const TipPose& start = c.start;
   const MonteCarloResult one = runMonteCarlo(world, start, tablePolicy(table), 3000, 9, 2);
   const MonteCarloResult first = runMonteCarlo(world, start, tablePolicy(table), 1000, 9, 2);
   TrialOptions rest;
