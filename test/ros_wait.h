@@ -8,6 +8,7 @@
 
 #include <fstream>
 #include <optional>
+#include <sstream>
 #include <string>
 
 /// Polls pred() every poll_s seconds until it holds or timeout_s seconds of wall time have
@@ -27,6 +28,22 @@ bool waitFor(Pred pred, double timeout_s = 10.0, double poll_s = 0.01) {
 /// Waits up to timeout_s seconds for `path` to be readable (e.g. a procedure's summary.json).
 inline bool waitForFile(const std::string& path, double timeout_s) {
   return waitFor([&path] { return std::ifstream(path).good(); }, timeout_s, 0.5);
+}
+
+/// The whole text of `path`; empty when it cannot be read.
+inline std::string readText(const std::string& path) {
+  std::stringstream text;
+  text << std::ifstream(path).rdbuf();
+  return text.str();
+}
+
+/// The text of `path` once it is readable, or nullopt when it does not appear within timeout_s
+/// seconds (a procedure's summary.json, written once the procedure has ended).
+inline std::optional<std::string> waitForText(const std::string& path, double timeout_s) {
+  if (!waitForFile(path, timeout_s)) {
+    return std::nullopt;
+  }
+  return readText(path);
 }
 
 /// The first message a new subscriber to `topic` receives (a latched topic's last message),

@@ -1,12 +1,12 @@
 #include "needle_guidance/rigid_planning/rigid_planner.h"
 
+#include "needle_guidance/cpu_time.h"
 #include "needle_guidance/report/statistics.h"
 
 #include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cmath>
-#include <ctime>
 #include <exception>
 #include <mutex>
 #include <random>
@@ -37,13 +37,6 @@ constexpr double kRest_m = 1e-9;
 /// Insertion prefixes (one per height, the deepest) kept for scans of later targets: a scene's
 /// targets share a few heights; each prefix holds a copy of the simulation (a few MB).
 constexpr std::size_t kMaxPrefixes = 8;
-
-/// CPU time of the calling thread [s] (a plan runs on one thread).
-double threadCpuSeconds() {
-  timespec t{};
-  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
-  return static_cast<double>(t.tv_sec) + 1e-9 * static_cast<double>(t.tv_nsec);
-}
 
 std::string mm(double metres) {
   std::ostringstream out;
@@ -483,7 +476,7 @@ double RigidPlanner::maxScanDepth(const Point2& target) const {
 RigidPlan RigidPlanner::timed(const Point2& target,
                               const std::function<void(RigidPlan&)>& body) const {
   const auto start = std::chrono::steady_clock::now();
-  const double cpu_start = threadCpuSeconds();
+  const CpuStopwatch cpu;  // a plan runs on one thread
   RigidPlan plan = check(target);
   if (!plan) {
     return plan;
@@ -495,7 +488,7 @@ RigidPlan RigidPlanner::timed(const Point2& target,
     plan.message = e.what();
   }
   plan.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  plan.cpu_seconds = threadCpuSeconds() - cpu_start;
+  plan.cpu_seconds = cpu.seconds();
   return plan;
 }
 

@@ -8,6 +8,7 @@
 #include <ctime>
 
 #include "needle_guidance/TissueStatus.h"
+#include "needle_guidance/ros/implant_seed_answer.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/tissue_3d/tet_mesh_3d.h"
 
@@ -174,27 +175,16 @@ bool TissueSim3Ros::onReset(std_srvs::Trigger::Request& /*req*/, std_srvs::Trigg
 }
 
 bool TissueSim3Ros::onImplantSeed(ImplantSeed::Request& /*req*/, ImplantSeed::Response& res) {
-  const std::string why_follow = follow();  // catch up with the robot's last state first
-  if (!why_follow.empty()) {
-    res.success = false;
-    res.message = "seed not implanted: the tissue could not follow the needle: " + why_follow;
-    ROS_WARN_STREAM_NAMED("tissue_sim", res.message);
-    return true;
-  }
-  std::string why_not;
-  const std::optional<int> id = needle_->implantSeed(&why_not);
-  res.success = id.has_value();
+  const std::optional<int> id = ros_conversions::answerImplantSeed(
+      follow(),  // catch up with the robot's last state first
+      [this](std::string* why_not) { return needle_->implantSeed(why_not); }, res);
   if (!id) {
-    res.message = "seed not implanted: " + why_not;
-    ROS_WARN_STREAM_NAMED("tissue_sim", res.message);
     return true;
   }
-  res.seed_id = *id;
   const tissue_3d::Vector3 p = needle_->seedWorld(*id);
   res.position.x = p.x();
   res.position.y = p.y();
   res.position.z = p.z();
-  res.message = "seed " + std::to_string(*id) + " implanted";
   publishMarkers(ros::Time::now());
   publishSeeds(ros::Time::now());
   return true;

@@ -10,6 +10,7 @@
 
 #include "needle_guidance/TissueStatus.h"
 #include "needle_guidance/ros/conversions.h"
+#include "needle_guidance/ros/implant_seed_answer.h"
 #include "needle_guidance/ros/params.h"
 
 namespace needle_guidance {
@@ -198,27 +199,19 @@ bool TissueSimRos::onReset(std_srvs::Trigger::Request& /*req*/, std_srvs::Trigge
 }
 
 bool TissueSimRos::onImplantSeed(ImplantSeed::Request& /*req*/, ImplantSeed::Response& res) {
+  std::string why_not_followed;
   if (height_m_ && depth_m_) {  // catch up with the robot's last state before releasing
     const tissue::StepStatus status = sim_->advance(1.0 / rate_hz_, *height_m_, *depth_m_);
     if (!status) {
-      res.success = false;
-      res.message =
-          "seed not implanted: the tissue could not follow the needle: " + status.toString();
-      ROS_WARN_STREAM_NAMED("tissue_sim", res.message);
-      return true;
+      why_not_followed = status.toString();
     }
   }
-  std::string why_not;
-  const std::optional<int> id = sim_->implantSeed(&why_not);
-  res.success = id.has_value();
+  const std::optional<int> id = ros_conversions::answerImplantSeed(
+      why_not_followed, [this](std::string* why_not) { return sim_->implantSeed(why_not); }, res);
   if (!id) {
-    res.message = "seed not implanted: " + why_not;
-    ROS_WARN_STREAM_NAMED("tissue_sim", res.message);
     return true;
   }
-  res.seed_id = *id;
   res.position = ros_conversions::toMessage(sim_->seedPosition(sim_->seeds().back()));
-  res.message = "seed " + std::to_string(*id) + " implanted";
   publishMarkers(ros::Time::now());
   return true;
 }

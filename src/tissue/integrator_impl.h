@@ -5,6 +5,7 @@
 #include <memory>
 #include <vector>
 
+#include "constrained_solver.h"
 #include "needle_guidance/tissue/integrator.h"
 
 namespace needle_guidance::tissue::detail {
@@ -28,6 +29,12 @@ inline std::vector<char> fixedMark(int dof_count, const std::vector<int>& fixed_
   for (int d : fixed_dofs)
     mark[d] = 1;
   return mark;
+}
+
+/// A constrained solver's work counters as an integrator reports them.
+inline Integrator::SolverCounters solverCountersOf(const SolverStats& s) {
+  return {s.factorizations, s.row_deletions, s.row_additions,
+          s.rank_updates,   s.solves,        s.factor_entries};
 }
 
 /// Maximum number of fixed-point iterations of the corotational quasi-static solve.

@@ -75,11 +75,7 @@ public:
     return status;
   }
 
-  SolverCounters solverCounters() const override {
-    const SolverStats& s = solver_->stats();
-    return {s.factorizations, s.row_deletions, s.row_additions,
-            s.rank_updates,   s.solves,        s.factor_entries};
-  }
+  SolverCounters solverCounters() const override { return solverCountersOf(solver_->stats()); }
 
   void modelChanged(const std::vector<int>& dofs) override {
     if (options_.corotational || !std::isfinite(factored_h_s_))

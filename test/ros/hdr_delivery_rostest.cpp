@@ -21,12 +21,11 @@ TEST(HdrDelivery, PlanDeliverEvaluateReport) {
   std::string report_dir;
   ASSERT_TRUE(private_nh.getParam("report_dir", report_dir));
   const std::string summary = report_dir + "/summary.json";
-  ASSERT_TRUE(waitForFile(summary, 200.0)) << "the procedure wrote no report in 200 s";
-  std::stringstream text;
-  text << std::ifstream(summary).rdbuf();
-  EXPECT_NE(text.str().find("\"success\": true"), std::string::npos) << text.str();
-  EXPECT_NE(text.str().find("\"status\": \"completed\""), std::string::npos) << text.str();
-  EXPECT_EQ(text.str().find("\"interruptions\": 0,"), std::string::npos)
+  const std::optional<std::string> text = waitForText(summary, 200.0);
+  ASSERT_TRUE(text) << "the procedure wrote no report in 200 s";
+  EXPECT_NE(text->find("\"success\": true"), std::string::npos) << *text;
+  EXPECT_NE(text->find("\"status\": \"completed\""), std::string::npos) << *text;
+  EXPECT_EQ(text->find("\"interruptions\": 0,"), std::string::npos)
       << "the operator pause is not in the record";
 
   const auto dwells = readCsvRows(report_dir + "/delivery.csv");

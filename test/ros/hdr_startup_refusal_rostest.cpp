@@ -18,12 +18,11 @@ TEST(HdrStartupRefusal, ReportNamesTheNodeThatNeverCameUp) {
   std::string report_dir;
   ASSERT_TRUE(private_nh.getParam("report_dir", report_dir));
   const std::string summary = report_dir + "/summary.json";
-  ASSERT_TRUE(waitForFile(summary, kReportWithin_s)) << "no report: the procedure hung";
-  std::stringstream text;
-  text << std::ifstream(summary).rdbuf();
-  EXPECT_NE(text.str().find("\"success\": false"), std::string::npos) << text.str();
-  EXPECT_NE(text.str().find("\"status\": \"not_started\""), std::string::npos) << text.str();
-  EXPECT_NE(text.str().find("\"dead_node\": \"/afterloader\""), std::string::npos) << text.str();
+  const std::optional<std::string> text = waitForText(summary, kReportWithin_s);
+  ASSERT_TRUE(text) << "no report: the procedure hung";
+  EXPECT_NE(text->find("\"success\": false"), std::string::npos) << *text;
+  EXPECT_NE(text->find("\"status\": \"not_started\""), std::string::npos) << *text;
+  EXPECT_NE(text->find("\"dead_node\": \"/afterloader\""), std::string::npos) << *text;
 }
 
 }  // namespace

@@ -22,20 +22,13 @@ constexpr double kPlacementTolerance_mm = 0.1;  // the 3-D planner's tolerance
 constexpr double kVerifiedAgreement_mm = 1e-3;
 constexpr std::size_t kTargets = 3;
 
-std::string readFile(const std::string& path) {
-  std::ifstream in(path);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
-
 TEST(RigidSeedImplant3d, ReachableSeedsArePlacedAndTheBoneTargetIsRefused) {
   ros::NodeHandle private_nh("~");
   std::string report_dir;
   ASSERT_TRUE(private_nh.getParam("report_dir", report_dir));
   const std::string summary = report_dir + "/summary.json";
   ASSERT_TRUE(waitForFile(summary, 280.0)) << "the procedure wrote no report in 280 s";
-  const std::string json = readFile(summary);
+  const std::string json = readText(summary);
   EXPECT_NE(json.find("\"success\": true"), std::string::npos) << json;
   EXPECT_NE(json.find("\"placed\": 2"), std::string::npos) << json;
   EXPECT_NE(json.find("\"refused_unreachable\": 1"), std::string::npos) << json;

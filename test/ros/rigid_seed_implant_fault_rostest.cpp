@@ -26,13 +26,6 @@ constexpr double kRetractStart_m = 2e-4;  // the tip has moved back this far: re
 
 /// A node's process id, asked from the node itself (what `rosnode info` does).
 
-std::string readFile(const std::string& path) {
-  std::ifstream in(path);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
-
 TEST(RigidSeedImplantFault, KilledTissueSimStopsTheRobotAndIsReported) {
   ros::NodeHandle nh, private_nh("~");
   std::string report_dir;
@@ -103,7 +96,7 @@ TEST(RigidSeedImplantFault, KilledTissueSimStopsTheRobotAndIsReported) {
               << " s after tissue_sim was killed\n";
     EXPECT_LT(depth, 0.0) << "the needle is still in the tissue";
   }
-  const std::string json = readFile(summary);
+  const std::string json = readText(summary);
   EXPECT_NE(json.find("\"success\": false"), std::string::npos) << json;
   EXPECT_NE(json.find("\"node\": \"/tissue_sim\""), std::string::npos) << json;
   EXPECT_NE(json.find("\"targets_tried\": 2"), std::string::npos) << json;

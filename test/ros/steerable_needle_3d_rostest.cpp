@@ -45,12 +45,6 @@ constexpr double kJointTolM = 1e-9;  // [m] a retracted insertion joint reads ex
 // not the prediction from the controls, carry the loop.
 constexpr double kMinFusedFraction = 0.5;
 
-std::string slurp(const std::string& path) {
-  std::stringstream text;
-  text << std::ifstream(path).rdbuf();
-  return text.str();
-}
-
 /// The number after "key": in summary.json; NaN when the key is missing.
 double jsonNumber(const std::string& json, const std::string& key) {
   const std::size_t at = json.find("\"" + key + "\": ");
@@ -121,7 +115,7 @@ TEST(SteerableNeedle3d, TrialsReachTheTargetAndTheReportMatchesTheScene) {
   const double wait_s = private_nh.param("report_wait_s", 100.0);
   ASSERT_TRUE(waitForFile(report_dir + "/summary.json", wait_s))
       << "no report in " << wait_s << " s";
-  const std::string summary = slurp(report_dir + "/summary.json");
+  const std::string summary = readText(report_dir + "/summary.json");
   EXPECT_NE(summary.find("\"trials\": " + std::to_string(n_trials) + ","), std::string::npos)
       << summary;
   if (private_nh.param("biplane", false)) {  // the tips came from the rendered views
@@ -201,7 +195,7 @@ TEST(SteerableNeedle3d, AMissingImagerIsAFaultNamingItsTopic) {
   const double wait_s = private_nh.param("report_wait_s", 60.0);
   ASSERT_TRUE(waitForFile(report_dir + "/summary.json", wait_s))
       << "no report in " << wait_s << " s";
-  const std::string summary = slurp(report_dir + "/summary.json");
+  const std::string summary = readText(report_dir + "/summary.json");
   EXPECT_NE(summary.find("\"status\": \"fault\""), std::string::npos) << summary;
   EXPECT_NE(summary.find("\"faults\": 1"), std::string::npos) << summary;
   EXPECT_NE(summary.find("\"safe_stop\": \"needle retracted\""), std::string::npos) << summary;

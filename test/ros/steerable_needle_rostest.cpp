@@ -31,17 +31,16 @@ TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
   std::string report_dir;
   ASSERT_TRUE(private_nh.getParam("report_dir", report_dir));
   const std::string summary = report_dir + "/summary.json";
-  ASSERT_TRUE(waitForFile(summary, 200.0)) << "the procedure wrote no report in 200 s";
-  std::stringstream text;
-  text << std::ifstream(summary).rdbuf();
-  EXPECT_NE(text.str().find("\"trials\": 8,"), std::string::npos) << text.str();
+  const std::optional<std::string> text = waitForText(summary, 200.0);
+  ASSERT_TRUE(text) << "the procedure wrote no report in 200 s";
+  EXPECT_NE(text->find("\"trials\": 8,"), std::string::npos) << *text;
   // The report reads the table steering_policy saved; it does not solve the MDP again.
-  EXPECT_NE(text.str().find("\"policy_table\": \"loaded\""), std::string::npos) << text.str();
+  EXPECT_NE(text->find("\"policy_table\": \"loaded\""), std::string::npos) << *text;
   // The start is the policy's verified one; the report gives the verification and its own check.
   // max(16000, 1 / tol^2) trials at steering_workspace's tolerance 0.005.
-  EXPECT_NE(text.str().find("\"verification_trials\": 40000"), std::string::npos) << text.str();
-  EXPECT_NE(text.str().find("\"start_confirmed_by_policy\": "), std::string::npos) << text.str();
-  EXPECT_NE(text.str().find("\"prediction_confirmed_by_mc\": "), std::string::npos) << text.str();
+  EXPECT_NE(text->find("\"verification_trials\": 40000"), std::string::npos) << *text;
+  EXPECT_NE(text->find("\"start_confirmed_by_policy\": "), std::string::npos) << *text;
+  EXPECT_NE(text->find("\"prediction_confirmed_by_mc\": "), std::string::npos) << *text;
 
   namespace st = needle_guidance::steering;
   const st::SteeringProblem problem =
@@ -91,7 +90,7 @@ TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
   // decision names its source, and those the tracker was confident of are close to the truth.
   std::string feedback = "ground_truth";
   private_nh.getParam("feedback", feedback);
-  EXPECT_NE(text.str().find("\"feedback\": \"" + feedback + "\""), std::string::npos) << text.str();
+  EXPECT_NE(text->find("\"feedback\": \"" + feedback + "\""), std::string::npos) << *text;
   int confident_decisions = 0;
   for (const auto& row : decisions) {
     if (row.at("control") == "end") {
