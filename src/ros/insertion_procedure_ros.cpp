@@ -146,6 +146,9 @@ public:
     srv.request.target.z = target.z();
     PlanResult r;
     const bool called = plan_.call(srv);
+    if (!called) {
+      checkNodesNow();  // a dead planner fails the call at once, before the supervisor's timer
+    }
     r.ok = called && srv.response.success;
     r.refused = called && !r.ok && srv.response.code != "simulation failed";
     r.unreachable = r.refused && srv.response.code == "unreachable";
@@ -178,8 +181,12 @@ public:
 
   std::optional<int> implantSeed(std::string& why_not) override {
     ImplantSeed srv;
-    if (implant_.call(srv) && srv.response.success) {
+    const bool called = implant_.call(srv);
+    if (called && srv.response.success) {
       return srv.response.seed_id;
+    }
+    if (!called) {
+      checkNodesNow();
     }
     why_not = srv.response.message.empty() ? "the implant_seed call failed" : srv.response.message;
     ROS_ERROR_STREAM("insertion_procedure: seed not implanted: " << why_not);
@@ -214,6 +221,14 @@ public:
     reset_.call(trigger);
     std::lock_guard<std::mutex> lock(mutex_);
     seeds_.poses.clear();
+  }
+
+  /// Checks the watched nodes at once, so a fault() right after a failed service call names a
+  /// node that died instead of waiting for the supervisor's next period.
+  void checkNodesNow() {
+    if (supervisor_) {
+      supervisor_->checkNow();
+    }
   }
 
   std::optional<Fault> fault() override {
