@@ -116,9 +116,17 @@ void RigidImplantProcedure::classify(TargetRecord& r, bool with_tissue) const {
   const double velocity_error =
       std::abs(r.insert.mean_velocity_m_s - settings_.insertion_velocity_m_s) /
       settings_.insertion_velocity_m_s;
-  if (r.status == "ok" && (depth_error > settings_.depth_tolerance_m ||
-                           velocity_error > settings_.velocity_tolerance)) {
-    r.status = "out of tolerance";
+  if (r.status == "ok" && depth_error > settings_.depth_tolerance_m) {
+    std::ostringstream why;
+    why << "insertion depth " << 1e3 * depth_error << " mm off the release point (tolerance "
+        << 1e3 * settings_.depth_tolerance_m << " mm)";
+    r.status = why.str();
+  } else if (r.status == "ok" && velocity_error > settings_.velocity_tolerance) {
+    std::ostringstream why;
+    why << "insertion velocity " << 100.0 * velocity_error << " % off the commanded "
+        << 1e3 * settings_.insertion_velocity_m_s << " mm/s (tolerance "
+        << 100.0 * settings_.velocity_tolerance << " %)";
+    r.status = why.str();
   }
   if (r.status == "ok" && with_tissue && !r.seed.allFinite()) {
     r.status = "seed not measured";
