@@ -128,6 +128,12 @@ constexpr double kEdgeBand_px = 24.0;
 constexpr double kThroughReach = 0.15;
 /// A needle reaches a convex fan no deeper than this share of the fan's depth (entersDeep).
 constexpr double kMaxEntryDepth = 0.5;
+/// A needle inserted through the skin reaches the skin (the row of the probe face's ends, a fan
+/// with a curved face) within this share of the fan's width beside the face (reachesSkin): an
+/// in-plane approach from the probe's end punctures the skin a few centimetres from it, well
+/// inside this; a tissue interface a few degrees off the rows, traced back, meets that row
+/// several fan widths away, or never.
+constexpr double kSkinReach = 0.5;
 /// Priors (AcquisitionOptions::entry_point_px, entry_angle_rad): a candidate whose curve passes
 /// farther than kPriorPoint_px from the stated entry point, or whose direction differs by more
 /// than kPriorAngle_rad from the stated angle, is not the needle.
@@ -738,6 +744,52 @@ bool entersDeep(const Candidate& c, const ImagingRegion& region, const Acquisiti
   return depth > kMaxEntryDepth * fan_depth;
 }
 
+/// The two ends of a curved probe face: the outermost points of its arc with the region just
+/// below them, at angles from the apex's downward axis; false when the region has no curved face.
+bool faceEnds(const ImagingRegion& region, double sigma, cv::Point2d* left, cv::Point2d* right) {
+  if (region.shape != ImagingRegion::Shape::kSector || region.top_radius_px <= 0.0)
+    return false;
+  const double r = region.top_radius_px, below = r + regionMargin(sigma) + 2.0;
+  double lo = 1e9, hi = -1e9;
+  for (double phi = -0.5 * kPi; phi <= 0.5 * kPi; phi += 1.0 / below) {
+    const cv::Point2d u(std::sin(phi), std::cos(phi));
+    if (region.insetAt(region.apex_px + below * u) > 0.0F)
+      lo = std::min(lo, phi), hi = std::max(hi, phi);
+  }
+  if (hi < lo)
+    return false;
+  *left = region.apex_px + r * cv::Point2d(std::sin(lo), std::cos(lo));
+  *right = region.apex_px + r * cv::Point2d(std::sin(hi), std::cos(hi));
+  return true;
+}
+
+/// Whether, in a fan with a curved probe face, the candidate traced back from its entry end (the
+/// end with the shorter way out, as orientByEntry takes it) rises to the skin, the row of the
+/// face's ends, within kSkinReach of the fan's width beside the face. A needle inserted through
+/// the skin goes deeper as it advances, and punctures the skin beside the probe or under its
+/// face; a line that does not rise towards its entry end, or one so shallow that it meets the
+/// skin far from the probe, is a tissue interface.
+bool reachesSkin(const Candidate& c, const ImagingRegion& region, const AcquisitionOptions& o) {
+  cv::Point2d left, right;
+  if (o.entry != EntrySide::kAuto || o.entry_point_px ||
+      !faceEnds(region, o.ridge_sigma_px, &left, &right))
+    return true;
+  const double sigma = o.ridge_sigma_px;
+  const cv::Point2d a = at(c.line, c.t0), b = at(c.line, c.t1);
+  const cv::Point2d da = -tangent(c.line, c.t0), db = tangent(c.line, c.t1);
+  const bool a_is_tail = rayToBorder(a, da, region, sigma) <= rayToBorder(b, db, region, sigma);
+  const cv::Point2d tail = a_is_tail ? a : b, back = a_is_tail ? da : db;
+  const double skin_row = std::max(left.y, right.y);
+  double x = tail.x;
+  if (tail.y > skin_row) {
+    if (back.y >= -1e-6)
+      return false;  // the shaft does not rise towards its entry end
+    x = tail.x + back.x * (skin_row - tail.y) / back.y;
+  }
+  const double reach = kSkinReach * region.box.width;
+  return x >= std::min(left.x, right.x) - reach && x <= std::max(left.x, right.x) + reach;
+}
+
 /// Whether the candidate agrees with the priors (kPriorPoint_px, kPriorAngle_rad); true without.
 bool meetsPriors(const Candidate& c, const AcquisitionOptions& o) {
   if (o.entry_angle_rad) {
@@ -795,7 +847,7 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
   if (onBorder(at(c.line, c.t0), region, sigma) && onBorder(at(c.line, c.t1), region, sigma))
     return {};
   if (hugsRegionEdge(c, region) || runsThroughRegion(c, region, sigma) ||
-      entersDeep(c, region, o) || !meetsPriors(c, o))
+      entersDeep(c, region, o) || !reachesSkin(c, region, o) || !meetsPriors(c, o))
     return {};
   measureCues(ridge, &c, o.ridge_sigma_px);
   return c;
