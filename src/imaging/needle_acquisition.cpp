@@ -134,6 +134,16 @@ constexpr double kMaxEntryDepth = 0.5;
 /// inside this; a tissue interface a few degrees off the rows, traced back, meets that row
 /// several fan widths away, or never.
 constexpr double kSkinReach = 0.5;
+/// A shaft anchored at the fan's entry (a fan with a curved face, the shaft rising to the skin
+/// beside the probe, its traced tail within kAnchoredGap_px of the fan's boundary along it, its
+/// ridge aligned with it on kAnchoredCoherence of its length) needs kAnchoredEvidence of
+/// min_evidence only. A needle just inserted crosses the probe face's bright ring-down band,
+/// whose depth gradient counts as noise against the shaft's contrast; a chance line of speckle
+/// that starts at the fan's boundary and runs down from the skin beside the probe is rare, and
+/// the motion still has to confirm the track before its tip is confident.
+constexpr double kAnchoredGap_px = 12.0;
+constexpr double kAnchoredCoherence = 0.8;
+constexpr double kAnchoredEvidence = 0.5;
 /// Priors (AcquisitionOptions::entry_point_px, entry_angle_rad): a candidate whose curve passes
 /// farther than kPriorPoint_px from the stated entry point, or whose direction differs by more
 /// than kPriorAngle_rad from the stated angle, is not the needle.
@@ -790,6 +800,18 @@ bool reachesSkin(const Candidate& c, const ImagingRegion& region, const Acquisit
   return x >= std::min(left.x, right.x) - reach && x <= std::max(left.x, right.x) + reach;
 }
 
+/// The evidence a candidate needs: options.min_evidence, kAnchoredEvidence of it for a shaft
+/// anchored at the fan's entry (oriented: its cues' entry_gap_px set).
+double evidenceNeeded(const Candidate& c, const AcquisitionOptions& o,
+                      const ImagingRegion& region) {
+  cv::Point2d left, right;
+  const bool anchored = o.entry == EntrySide::kAuto && !o.entry_point_px &&
+                        faceEnds(region, o.ridge_sigma_px, &left, &right) &&
+                        c.cues.entry_gap_px <= kAnchoredGap_px &&
+                        c.cues.coherence >= kAnchoredCoherence;
+  return anchored ? kAnchoredEvidence * o.min_evidence : o.min_evidence;
+}
+
 /// Whether the candidate agrees with the priors (kPriorPoint_px, kPriorAngle_rad); true without.
 bool meetsPriors(const Candidate& c, const AcquisitionOptions& o) {
   if (o.entry_angle_rad) {
@@ -1321,7 +1343,7 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
   if (hidden)
     extendToMotionFront(motion, *hidden, &s);
   s.motion_ahead = motionAhead(motion, s);
-  if (best->acceptance < options.min_evidence) {
+  if (best->acceptance < evidenceNeeded(*best, options, region)) {
     if (hidden)  // a line too weak on its own: the brightening shows the tip
       return *hidden;
     s.found = false;
