@@ -128,13 +128,13 @@ constexpr double kEdgeBand_px = 24.0;
 constexpr double kThroughReach = 0.15;
 /// A needle reaches a convex fan no deeper than this share of the fan's depth (entersDeep).
 constexpr double kMaxEntryDepth = 0.5;
-/// A needle inserted through the skin reaches the skin (the row of the probe face's ends, a fan
-/// with a curved face) within this share of the fan's width beside the face (reachesSkin): an
+/// A needle inserted through the skin reaches the skin (the row of the probe face's ends, in a
+/// fan) within this share of the fan's width beside the face (reachesSkin): an
 /// in-plane approach from the probe's end punctures the skin a few centimetres from it, well
 /// inside this; a tissue interface a few degrees off the rows, traced back, meets that row
 /// several fan widths away, or never.
 constexpr double kSkinReach = 0.5;
-/// A shaft anchored at the fan's entry (a fan with a curved face, the shaft rising to the skin
+/// A shaft anchored at the fan's entry (in a fan, the shaft rising to the skin
 /// beside the probe, its traced tail within kAnchoredGap_px of the fan's boundary along it, its
 /// ridge aligned with it on kAnchoredCoherence of its length) needs kAnchoredEvidence of
 /// min_evidence only. A needle just inserted crosses the probe face's bright ring-down band,
@@ -754,12 +754,27 @@ bool entersDeep(const Candidate& c, const ImagingRegion& region, const Acquisiti
   return depth > kMaxEntryDepth * fan_depth;
 }
 
-/// The two ends of a curved probe face: the outermost points of its arc with the region just
-/// below them, at angles from the apex's downward axis; false when the region has no curved face.
+/// The two ends of the probe face of a fan: with a curved face, the outermost points of its arc
+/// with the region just below them; with a face too small or too flat to fit an arc (a phased
+/// array), the ends of the fan's top row. False outside a fan.
 bool faceEnds(const ImagingRegion& region, double sigma, cv::Point2d* left, cv::Point2d* right) {
-  if (region.shape != ImagingRegion::Shape::kSector || region.top_radius_px <= 0.0)
+  if (region.shape != ImagingRegion::Shape::kSector)
     return false;
-  const double r = region.top_radius_px, below = r + regionMargin(sigma) + 2.0;
+  const double margin = regionMargin(sigma) + 2.0;
+  if (region.top_radius_px <= 0.0) {
+    const int row = std::min(region.box.y + cvRound(margin), region.inset.rows - 1);
+    int lo = region.inset.cols, hi = -1;
+    for (int x = 0; x < region.inset.cols; ++x) {
+      if (region.inset.at<float>(row, x) > 0.0F)
+        lo = std::min(lo, x), hi = std::max(hi, x);
+    }
+    if (hi < lo)
+      return false;
+    *left = cv::Point2d(lo, region.box.y);
+    *right = cv::Point2d(hi, region.box.y);
+    return true;
+  }
+  const double r = region.top_radius_px, below = r + margin;
   double lo = 1e9, hi = -1e9;
   for (double phi = -0.5 * kPi; phi <= 0.5 * kPi; phi += 1.0 / below) {
     const cv::Point2d u(std::sin(phi), std::cos(phi));
@@ -773,7 +788,7 @@ bool faceEnds(const ImagingRegion& region, double sigma, cv::Point2d* left, cv::
   return true;
 }
 
-/// Whether, in a fan with a curved probe face, the candidate traced back from its entry end (the
+/// Whether, in a fan, the candidate traced back from its entry end (the
 /// end with the shorter way out, as orientByEntry takes it) rises to the skin, the row of the
 /// face's ends, within kSkinReach of the fan's width beside the face. A needle inserted through
 /// the skin goes deeper as it advances, and punctures the skin beside the probe or under its
