@@ -41,6 +41,12 @@ constexpr double kSameLineTheta_rad = 4.0 * kPi / 180.0;
 /// kAheadTo_px beyond the tip along its direction (clear of the tip's own blur). A needle
 /// whose tip is traced short keeps brightening the tissue there as it advances.
 constexpr double kAheadFrom_px = 6.0, kAheadTo_px = 30.0;
+/// The window of kAheadTo_px - kAheadFrom_px slides on up to kAheadReach_px beyond the tip: the
+/// background model forgets an advance within a few frames, so a tip traced short by more than a
+/// frame's advance (a shaft fading with depth) shows its brightening only this far ahead, where
+/// the needle went last. When that brightening reaches kMinMotionRatio, the tip moves on along
+/// its line to the motion's front (traced short: the needle is there, faint).
+constexpr double kAheadReach_px = 60.0;
 /// Step 4: a ridge pixel belongs to a line if within this many filter scales of it.
 constexpr double kNearLineSigmas = 1.5;
 /// Step 5: side bands from 3 to 10 filter scales from the line (outside the needle's own blur,
@@ -1062,17 +1068,32 @@ double tipMotion(const cv::Mat& motion, const NeedleSegment& s, double beyond) {
   return (tip_count > 0 ? tip / tip_count : 0.0) - (shaft_count > 0 ? shaft / shaft_count : 0.0);
 }
 
-/// Sequence cue past the tip (kAheadFrom_px to kAheadTo_px along its direction); 0 without a
-/// motion map.
-double motionAhead(const cv::Mat& motion, const NeedleSegment& s) {
+/// Sequence cue past the estimated tip: the largest mean of the signed motion map over a window
+/// of kAheadTo_px - kAheadFrom_px along the tip's direction, starting kAheadFrom_px to
+/// kAheadReach_px - (kAheadTo_px - kAheadFrom_px) beyond the tip; 0 without a motion map. With
+/// `front`, the distance beyond the tip of that window's far end.
+double motionAhead(const cv::Mat& motion, const NeedleSegment& s, double* front = nullptr) {
   if (motion.empty())
     return 0.0;
   const cv::Point2d d(std::cos(s.angle_rad), std::sin(s.angle_rad));
-  double sum = 0;
-  int count = 0;
-  for (double u = kAheadFrom_px; u <= kAheadTo_px; u += 1.0, ++count)
-    sum += sample(motion, s.tip_px + u * d);
-  return sum / count;
+  std::vector<double> v;
+  for (double u = kAheadFrom_px; u <= kAheadReach_px; u += 1.0)
+    v.push_back(sample(motion, s.tip_px + u * d));
+  const auto window = static_cast<std::size_t>(kAheadTo_px - kAheadFrom_px + 1.0);
+  double sum = 0.0, best = -1e9;
+  for (std::size_t i = 0; i < v.size(); ++i) {
+    sum += v[i];
+    if (i + 1 < window)
+      continue;
+    if (i >= window)
+      sum -= v[i - window];
+    if (sum > best) {
+      best = sum;
+      if (front)
+        *front = kAheadFrom_px + static_cast<double>(i);
+    }
+  }
+  return best / static_cast<double>(window);
 }
 
 /// A brightening blob of the motion map: where a needle advancing along its own axis has just
@@ -1357,7 +1378,18 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
     return *hidden;
   if (hidden)
     extendToMotionFront(motion, *hidden, &s);
-  s.motion_ahead = motionAhead(motion, s);
+  double front = 0.0;
+  s.motion_ahead = motionAhead(motion, s, &front);
+  if (s.motion_ahead >= kMinMotionRatio && !s.extended_by_motion) {
+    // Traced short: the tip moves on along its line to where the brightening ends.
+    const cv::Point2d d(std::cos(s.angle_rad), std::sin(s.angle_rad));
+    const double u = motionFront(motion, s.tip_px, d, front);
+    if (u >= kBlobAhead_px) {
+      s.tip_px += u * d;
+      s.extended_by_motion = true;
+      s.motion_ahead = motionAhead(motion, s);
+    }
+  }
   if (best->acceptance < evidenceNeeded(*best, options, region)) {
     if (hidden)  // a line too weak on its own: the brightening shows the tip
       return *hidden;
