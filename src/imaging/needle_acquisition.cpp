@@ -821,16 +821,20 @@ bool reachesSkin(const Candidate& c, const ImagingRegion& region, const Acquisit
   return x >= std::min(left.x, right.x) - reach && x <= std::max(left.x, right.x) + reach;
 }
 
-/// The evidence a candidate needs: options.min_evidence, kAnchoredEvidence of it for a shaft
-/// anchored at the fan's entry (oriented: its cues' entry_gap_px set).
-double evidenceNeeded(const Candidate& c, const AcquisitionOptions& o,
-                      const ImagingRegion& region) {
+/// Whether the candidate is strong enough to be the needle: its acceptance reaches
+/// options.min_evidence; a shaft anchored at the fan's entry (oriented: its cues' entry_gap_px
+/// set) needs kAnchoredEvidence of it, its side symmetry counted as the shadow's
+/// (kShadowSymmetryPower: the face's band and the shaft's shadow both brighten one side).
+bool strongEnough(const Candidate& c, const AcquisitionOptions& o, const ImagingRegion& region) {
   cv::Point2d left, right;
+  const NeedleSegment& s = c.cues;
   const bool anchored = o.entry == EntrySide::kAuto && !o.entry_point_px &&
                         faceEnds(region, o.ridge_sigma_px, &left, &right) &&
-                        c.cues.entry_gap_px <= kAnchoredGap_px &&
-                        c.cues.coherence >= kAnchoredCoherence;
-  return anchored ? kAnchoredEvidence * o.min_evidence : o.min_evidence;
+                        s.entry_gap_px <= kAnchoredGap_px && s.coherence >= kAnchoredCoherence;
+  if (anchored)
+    return s.evidence * std::pow(s.symmetry, kShadowSymmetryPower) * s.coherence >=
+           kAnchoredEvidence * o.min_evidence;
+  return c.acceptance >= o.min_evidence;
 }
 
 /// Whether the candidate agrees with the priors (kPriorPoint_px, kPriorAngle_rad); true without.
@@ -1390,7 +1394,7 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
       s.motion_ahead = motionAhead(motion, s);
     }
   }
-  if (best->acceptance < evidenceNeeded(*best, options, region)) {
+  if (!strongEnough(*best, options, region)) {
     if (hidden)  // a line too weak on its own: the brightening shows the tip
       return *hidden;
     s.found = false;
