@@ -146,8 +146,10 @@ constexpr double kSkinReach = 0.5;
 /// min_evidence only. A needle just inserted crosses the probe face's bright ring-down band,
 /// whose depth gradient counts as noise against the shaft's contrast; a chance line of speckle
 /// that starts at the fan's boundary and runs down from the skin beside the probe is rare, and
-/// the motion still has to confirm the track before its tip is confident.
-constexpr double kAnchoredGap_px = 12.0;
+/// the motion still has to confirm the track before its tip is confident. The gap allowed is
+/// the band along the boundary that holds the region's own edge response (kEdgeBand_px): the
+/// shaft's first part inside the face's band is often not traced.
+constexpr double kAnchoredGap_px = kEdgeBand_px;
 constexpr double kAnchoredCoherence = 0.8;
 constexpr double kAnchoredEvidence = 0.5;
 /// Priors (AcquisitionOptions::entry_point_px, entry_angle_rad): a candidate whose curve passes
