@@ -839,6 +839,21 @@ bool strongEnough(const Candidate& c, const AcquisitionOptions& o, const Imaging
   return c.acceptance >= o.min_evidence;
 }
 
+/// In a fan (auto entry, no entry point), the way from the candidate's upper end out to the
+/// fan's boundary along the shaft when it is at most kAnchoredGap_px: the part of a shaft just
+/// inserted that the probe face's band hides, counted in its length; else 0.
+double anchoredGap(const Candidate& c, const AcquisitionOptions& o, const ImagingRegion& region) {
+  cv::Point2d left, right;
+  if (o.entry != EntrySide::kAuto || o.entry_point_px ||
+      !faceEnds(region, o.ridge_sigma_px, &left, &right))
+    return 0.0;
+  const cv::Point2d a = at(c.line, c.t0), b = at(c.line, c.t1);
+  const bool a_up = a.y < b.y;
+  const cv::Point2d up = a_up ? a : b, out = a_up ? -tangent(c.line, c.t0) : tangent(c.line, c.t1);
+  const double gap = rayToBorder(up, out, region, o.ridge_sigma_px);
+  return gap <= kAnchoredGap_px ? gap : 0.0;
+}
+
 /// Whether the candidate agrees with the priors (kPriorPoint_px, kPriorAngle_rad); true without.
 bool meetsPriors(const Candidate& c, const AcquisitionOptions& o) {
   if (o.entry_angle_rad) {
@@ -888,7 +903,7 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
   if (o.radius_px > 0.0 && !bendToArc(ridge, o, &c))
     return {};
   markTraced(c, o.ridge_sigma_px, traced);
-  if (c.t1 - c.t0 < o.min_length_px)
+  if (c.t1 - c.t0 + anchoredGap(c, o, region) < o.min_length_px)
     return {};
   // A line running from border to border has no tip in view: an interface, not a needle; nor
   // is the imaging region's own edge, nor a line the priors rule out.
