@@ -41,6 +41,12 @@ constexpr double kSameLineTheta_rad = 4.0 * kPi / 180.0;
 /// kAheadTo_px beyond the tip along its direction (clear of the tip's own blur). A needle
 /// whose tip is traced short keeps brightening the tissue there as it advances.
 constexpr double kAheadFrom_px = 6.0, kAheadTo_px = 30.0;
+/// The window of kAheadTo_px - kAheadFrom_px slides on up to kAheadReach_px beyond the tip: the
+/// background model forgets an advance within a few frames, so a tip traced short by more than a
+/// frame's advance (a shaft fading with depth) shows its brightening only this far ahead, where
+/// the needle went last. When that brightening reaches kMinMotionRatio, the tip moves on along
+/// its line to the motion's front (traced short: the needle is there, faint).
+constexpr double kAheadReach_px = 60.0;
 /// Step 4: a ridge pixel belongs to a line if within this many filter scales of it.
 constexpr double kNearLineSigmas = 1.5;
 /// Step 5: side bands from 3 to 10 filter scales from the line (outside the needle's own blur,
@@ -128,6 +134,24 @@ constexpr double kEdgeBand_px = 24.0;
 constexpr double kThroughReach = 0.15;
 /// A needle reaches a convex fan no deeper than this share of the fan's depth (entersDeep).
 constexpr double kMaxEntryDepth = 0.5;
+/// A needle inserted through the skin reaches the skin (the row of the probe face's ends, in a
+/// fan) within this share of the fan's width beside the face (reachesSkin): an
+/// in-plane approach from the probe's end punctures the skin a few centimetres from it, well
+/// inside this; a tissue interface a few degrees off the rows, traced back, meets that row
+/// several fan widths away, or never.
+constexpr double kSkinReach = 0.5;
+/// A shaft anchored at the fan's entry (in a fan, the shaft rising to the skin
+/// beside the probe, its traced tail within kAnchoredGap_px of the fan's boundary along it, its
+/// ridge aligned with it on kAnchoredCoherence of its length) needs kAnchoredEvidence of
+/// min_evidence only. A needle just inserted crosses the probe face's bright ring-down band,
+/// whose depth gradient counts as noise against the shaft's contrast; a chance line of speckle
+/// that starts at the fan's boundary and runs down from the skin beside the probe is rare, and
+/// the motion still has to confirm the track before its tip is confident. The gap allowed is
+/// the band along the boundary that holds the region's own edge response (kEdgeBand_px): the
+/// shaft's first part inside the face's band is often not traced.
+constexpr double kAnchoredGap_px = kEdgeBand_px;
+constexpr double kAnchoredCoherence = 0.8;
+constexpr double kAnchoredEvidence = 0.5;
 /// Priors (AcquisitionOptions::entry_point_px, entry_angle_rad): a candidate whose curve passes
 /// farther than kPriorPoint_px from the stated entry point, or whose direction differs by more
 /// than kPriorAngle_rad from the stated angle, is not the needle.
@@ -738,6 +762,98 @@ bool entersDeep(const Candidate& c, const ImagingRegion& region, const Acquisiti
   return depth > kMaxEntryDepth * fan_depth;
 }
 
+/// The two ends of the probe face of a fan: with a curved face, the outermost points of its arc
+/// with the region just below them; with a face too small or too flat to fit an arc (a phased
+/// array), the ends of the fan's top row. False outside a fan.
+bool faceEnds(const ImagingRegion& region, double sigma, cv::Point2d* left, cv::Point2d* right) {
+  if (region.shape != ImagingRegion::Shape::kSector)
+    return false;
+  const double margin = regionMargin(sigma) + 2.0;
+  if (region.top_radius_px <= 0.0) {
+    const int row = std::min(region.box.y + cvRound(margin), region.inset.rows - 1);
+    int lo = region.inset.cols, hi = -1;
+    for (int x = 0; x < region.inset.cols; ++x) {
+      if (region.inset.at<float>(row, x) > 0.0F)
+        lo = std::min(lo, x), hi = std::max(hi, x);
+    }
+    if (hi < lo)
+      return false;
+    *left = cv::Point2d(lo, region.box.y);
+    *right = cv::Point2d(hi, region.box.y);
+    return true;
+  }
+  const double r = region.top_radius_px, below = r + margin;
+  double lo = 1e9, hi = -1e9;
+  for (double phi = -0.5 * kPi; phi <= 0.5 * kPi; phi += 1.0 / below) {
+    const cv::Point2d u(std::sin(phi), std::cos(phi));
+    if (region.insetAt(region.apex_px + below * u) > 0.0F)
+      lo = std::min(lo, phi), hi = std::max(hi, phi);
+  }
+  if (hi < lo)
+    return false;
+  *left = region.apex_px + r * cv::Point2d(std::sin(lo), std::cos(lo));
+  *right = region.apex_px + r * cv::Point2d(std::sin(hi), std::cos(hi));
+  return true;
+}
+
+/// Whether, in a fan, the candidate traced back from its entry end (the
+/// end with the shorter way out, as orientByEntry takes it) rises to the skin, the row of the
+/// face's ends, within kSkinReach of the fan's width beside the face. A needle inserted through
+/// the skin goes deeper as it advances, and punctures the skin beside the probe or under its
+/// face; a line that does not rise towards its entry end, or one so shallow that it meets the
+/// skin far from the probe, is a tissue interface.
+bool reachesSkin(const Candidate& c, const ImagingRegion& region, const AcquisitionOptions& o) {
+  cv::Point2d left, right;
+  if (o.entry != EntrySide::kAuto || o.entry_point_px ||
+      !faceEnds(region, o.ridge_sigma_px, &left, &right))
+    return true;
+  const double sigma = o.ridge_sigma_px;
+  const cv::Point2d a = at(c.line, c.t0), b = at(c.line, c.t1);
+  const cv::Point2d da = -tangent(c.line, c.t0), db = tangent(c.line, c.t1);
+  const bool a_is_tail = rayToBorder(a, da, region, sigma) <= rayToBorder(b, db, region, sigma);
+  const cv::Point2d tail = a_is_tail ? a : b, back = a_is_tail ? da : db;
+  const double skin_row = std::max(left.y, right.y);
+  double x = tail.x;
+  if (tail.y > skin_row) {
+    if (back.y >= -1e-6)
+      return false;  // the shaft does not rise towards its entry end
+    x = tail.x + back.x * (skin_row - tail.y) / back.y;
+  }
+  const double reach = kSkinReach * region.box.width;
+  return x >= std::min(left.x, right.x) - reach && x <= std::max(left.x, right.x) + reach;
+}
+
+/// Whether the candidate is strong enough to be the needle: its acceptance reaches
+/// options.min_evidence; a shaft anchored at the fan's entry (oriented: its cues' entry_gap_px
+/// set) needs kAnchoredEvidence of it, its side symmetry counted as the shadow's
+/// (kShadowSymmetryPower: the face's band and the shaft's shadow both brighten one side).
+bool strongEnough(const Candidate& c, const AcquisitionOptions& o, const ImagingRegion& region) {
+  cv::Point2d left, right;
+  const NeedleSegment& s = c.cues;
+  const bool anchored = o.entry == EntrySide::kAuto && !o.entry_point_px &&
+                        faceEnds(region, o.ridge_sigma_px, &left, &right) &&
+                        s.entry_gap_px <= kAnchoredGap_px && s.coherence >= kAnchoredCoherence;
+  if (anchored)
+    return s.evidence * std::pow(s.symmetry, kShadowSymmetryPower) * s.coherence >=
+           kAnchoredEvidence * o.min_evidence;
+  return c.acceptance >= o.min_evidence;
+}
+
+/// In a fan (auto entry, no entry point), the way from the candidate's upper end out to the
+/// fan's boundary along the shaft when it is at most kAnchoredGap_px: the part of a shaft just
+/// inserted that the probe face's band hides, counted in its length; else 0.
+double anchoredGap(const Candidate& c, const AcquisitionOptions& o, const ImagingRegion& region) {
+  cv::Point2d left, right;
+  if (o.entry != EntrySide::kAuto || o.entry_point_px ||
+      !faceEnds(region, o.ridge_sigma_px, &left, &right))
+    return 0.0;
+  const cv::Point2d a = at(c.line, c.t0), b = at(c.line, c.t1);
+  const bool a_up = a.y < b.y;
+  const cv::Point2d up = a_up ? a : b, out = a_up ? -tangent(c.line, c.t0) : tangent(c.line, c.t1);
+  const double gap = rayToBorder(up, out, region, o.ridge_sigma_px);
+  return gap <= kAnchoredGap_px ? gap : 0.0;
+}
+
 /// Whether the candidate agrees with the priors (kPriorPoint_px, kPriorAngle_rad); true without.
 bool meetsPriors(const Candidate& c, const AcquisitionOptions& o) {
   if (o.entry_angle_rad) {
@@ -787,7 +903,7 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
   if (o.radius_px > 0.0 && !bendToArc(ridge, o, &c))
     return {};
   markTraced(c, o.ridge_sigma_px, traced);
-  if (c.t1 - c.t0 < o.min_length_px)
+  if (c.t1 - c.t0 + anchoredGap(c, o, region) < o.min_length_px)
     return {};
   // A line running from border to border has no tip in view: an interface, not a needle; nor
   // is the imaging region's own edge, nor a line the priors rule out.
@@ -795,7 +911,7 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
   if (onBorder(at(c.line, c.t0), region, sigma) && onBorder(at(c.line, c.t1), region, sigma))
     return {};
   if (hugsRegionEdge(c, region) || runsThroughRegion(c, region, sigma) ||
-      entersDeep(c, region, o) || !meetsPriors(c, o))
+      entersDeep(c, region, o) || !reachesSkin(c, region, o) || !meetsPriors(c, o))
     return {};
   measureCues(ridge, &c, o.ridge_sigma_px);
   return c;
@@ -973,17 +1089,32 @@ double tipMotion(const cv::Mat& motion, const NeedleSegment& s, double beyond) {
   return (tip_count > 0 ? tip / tip_count : 0.0) - (shaft_count > 0 ? shaft / shaft_count : 0.0);
 }
 
-/// Sequence cue past the tip (kAheadFrom_px to kAheadTo_px along its direction); 0 without a
-/// motion map.
-double motionAhead(const cv::Mat& motion, const NeedleSegment& s) {
+/// Sequence cue past the estimated tip: the largest mean of the signed motion map over a window
+/// of kAheadTo_px - kAheadFrom_px along the tip's direction, starting kAheadFrom_px to
+/// kAheadReach_px - (kAheadTo_px - kAheadFrom_px) beyond the tip; 0 without a motion map. With
+/// `front`, the distance beyond the tip of that window's far end.
+double motionAhead(const cv::Mat& motion, const NeedleSegment& s, double* front = nullptr) {
   if (motion.empty())
     return 0.0;
   const cv::Point2d d(std::cos(s.angle_rad), std::sin(s.angle_rad));
-  double sum = 0;
-  int count = 0;
-  for (double u = kAheadFrom_px; u <= kAheadTo_px; u += 1.0, ++count)
-    sum += sample(motion, s.tip_px + u * d);
-  return sum / count;
+  std::vector<double> v;
+  for (double u = kAheadFrom_px; u <= kAheadReach_px; u += 1.0)
+    v.push_back(sample(motion, s.tip_px + u * d));
+  const auto window = static_cast<std::size_t>(kAheadTo_px - kAheadFrom_px + 1.0);
+  double sum = 0.0, best = -1e9;
+  for (std::size_t i = 0; i < v.size(); ++i) {
+    sum += v[i];
+    if (i + 1 < window)
+      continue;
+    if (i >= window)
+      sum -= v[i - window];
+    if (sum > best) {
+      best = sum;
+      if (front)
+        *front = kAheadFrom_px + static_cast<double>(i);
+    }
+  }
+  return best / static_cast<double>(window);
 }
 
 /// A brightening blob of the motion map: where a needle advancing along its own axis has just
@@ -1268,8 +1399,19 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
     return *hidden;
   if (hidden)
     extendToMotionFront(motion, *hidden, &s);
-  s.motion_ahead = motionAhead(motion, s);
-  if (best->acceptance < options.min_evidence) {
+  double front = 0.0;
+  s.motion_ahead = motionAhead(motion, s, &front);
+  if (s.motion_ahead >= kMinMotionRatio && !s.extended_by_motion) {
+    // Traced short: the tip moves on along its line to where the brightening ends.
+    const cv::Point2d d(std::cos(s.angle_rad), std::sin(s.angle_rad));
+    const double u = motionFront(motion, s.tip_px, d, front);
+    if (u >= kBlobAhead_px) {
+      s.tip_px += u * d;
+      s.extended_by_motion = true;
+      s.motion_ahead = motionAhead(motion, s);
+    }
+  }
+  if (!strongEnough(*best, options, region)) {
     if (hidden)  // a line too weak on its own: the brightening shows the tip
       return *hidden;
     s.found = false;

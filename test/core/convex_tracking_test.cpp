@@ -162,6 +162,52 @@ TEST(ConvexTracking, FanWithoutANeedleIsNeverConfident) {
     EXPECT_FALSE(t.out[k].confident) << "frame " << k << ": " << t.out[k].segment.message;
 }
 
+TEST(ConvexTracking, FanWithoutANeedleMostlyAnswersNotFound) {
+  // Interfaces a few degrees off the rows never rise to the skin beside the probe: "not found"
+  // is the answer, not a tip on an interface.
+  constexpr double kNotFoundShare = 0.8;
+  im::ConvexInsertion c = insertion(47, 0.8, 35);
+  c.appear_at = -1;
+  c.frames = 10;
+  const Tracked t = track(c);
+  int not_found = 0;
+  for (const auto& o : t.out)
+    not_found += o.segment.found ? 0 : 1;
+  EXPECT_GE(not_found, kNotFoundShare * static_cast<double>(t.out.size()));
+}
+
+TEST(ConvexTracking, TiltedInterfaceMeetingTheFanEdgeHalfWayDownIsNoNeedle) {
+  // A bright interface from the fan's left edge at 0.45 of its depth, 8 degrees down to the
+  // right, ending inside the fan: shaped like a shallow needle from that edge, but traced back
+  // it meets the skin several fan widths from the probe.
+  im::ConvexInsertion c = insertion(49, -0.8, 35);
+  im::ConvexScene scene = c.scene();
+  const im::ConvexProbe& p = scene.probe;
+  const double r = p.face_radius_px + 0.45 * p.depth_px;
+  im::ConvexLayer layer;
+  layer.a = p.apex_px + r * cv::Point2d(std::sin(-p.half_angle_rad), std::cos(p.half_angle_rad));
+  const double tilt = 8.0 * CV_PI / 180.0;
+  layer.b = layer.a + 380.0 * cv::Point2d(std::cos(tilt), std::sin(tilt));
+  layer.amplitude = 2.0;
+  scene.layers = {layer};
+  im::SequenceTracker tracker(im::AcquisitionOptions{});
+  for (int k = 0; k < 8; ++k) {
+    const auto out = tracker.onFrame(im::renderConvexFrame(scene, c.size, {}, std::uint64_t(k)));
+    EXPECT_FALSE(out.segment.found) << "frame " << k << ": " << out.segment.message;
+  }
+}
+
+TEST(ConvexTracking, PhasedSectorNeedleFadingWithDepthIsFollowedToItsTip) {
+  // A small face and a wide sector: the shaft's echo fades as it runs towards the sector's
+  // middle; its tip is where the tissue brightens as it advances, not where the trace stops.
+  im::ConvexInsertion c = insertion(51, 0.75, 45);
+  c.face_radius_px = 70;
+  c.half_angle_rad = 0.65;
+  const Tracked t = track(c);
+  expectLastTipRight(t, "phased sector, fading shaft");
+  expectNoConfidentWrong(t, "phased sector, fading shaft");
+}
+
 TEST(ConvexTracking, PriorsPickTheNeedleOverADecoyAndOrientIt) {
   const im::ConvexInsertion c = insertion(45, -0.8, 35);
   const im::ConvexScene scene = c.scene();
