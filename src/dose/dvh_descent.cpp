@@ -1,10 +1,10 @@
 #include <algorithm>
 #include <cmath>
-#include <ctime>
 #include <deque>
 #include <limits>
 
 #include "dvh_model.h"
+#include "needle_guidance/cpu_time.h"
 
 namespace needle_guidance::dose::dvh_model {
 
@@ -49,10 +49,6 @@ double objectiveAt(const PlanPoints& p, const std::vector<VolumeCondition>& cond
 }
 
 namespace {
-
-double cpuSince(std::clock_t start) {
-  return static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
-}
 
 /// A plan's standing: total violation first (so a plan meeting every criterion beats any that
 /// breaks one, however much more it covers), then the objective.
@@ -172,7 +168,7 @@ Eigen::VectorXd bestStart(const PlanPoints& p, const std::vector<VolumeCondition
 DescentResult descendOnCriteria(const PlanPoints& p, const std::vector<VolumeCondition>& conditions,
                                 double total_time_s, const std::vector<std::vector<double>>& starts,
                                 const DvhPlanOptions& o, double seconds) {
-  const std::clock_t cpu0 = std::clock();
+  const CpuStopwatch cpu(CpuStopwatch::Scope::kProcess);
   DescentResult r;
   Score best;
   Eigen::VectorXd best_t = bestStart(p, conditions, total_time_s, starts, o, &best);
@@ -188,7 +184,7 @@ DescentResult descendOnCriteria(const PlanPoints& p, const std::vector<VolumeCon
   double alpha = 0.05 * std::max(t.mean(), 1e-9) / std::max(g.cwiseAbs().maxCoeff(), 1e-300);
   std::deque<double> recent{value};
   int stalled = 0;
-  while (cpuSince(cpu0) < seconds) {
+  while (cpu.seconds() < seconds) {
     double value_new = value;
     for (int tries = 0; tries < 30; ++tries) {
       t_new = (t - alpha * g).cwiseMax(0.0);
