@@ -181,15 +181,15 @@ VolumeSample sampleStructure(const Structure& s, double spacing_m, double plane_
 }
 
 double latticeSpacing(const Structure& s, double spacing_m, double max_samples,
-                      double min_plane_samples) {
+                      double thin_area_m2) {
   double area = 0.0;
   int planes = 0;
   for (std::size_t k = 0; k < s.contours.size(); ++k) {
     area += polygonArea(s.contours[k].xy_m);
     planes += k == 0 || std::abs(s.contours[k].z_m - s.contours[k - 1].z_m) >= 1e-12;
   }
-  const double fine = planes > 0 && area > 0.0 && min_plane_samples > 0.0
-                          ? std::min(spacing_m, std::sqrt(area / planes / min_plane_samples))
+  const double fine = planes > 0 && area > 0.0 && thin_area_m2 > 0.0
+                          ? spacing_m * std::min(1.0, std::sqrt(area / planes / thin_area_m2))
                           : spacing_m;
   return std::max(fine, std::cbrt(s.volume_m3() / max_samples));
 }

@@ -37,15 +37,16 @@ struct VolumeSample {
 /// <= 0 or not finite.
 VolumeSample sampleStructure(const Structure& s, double spacing_m, double plane_spacing_m = 0.0);
 
-/// The lattice spacing used for structure s when spacing_m is asked: spacing_m, finer so that
-/// a contour plane of mean area holds at least min_plane_samples samples (a thin structure,
-/// e.g. a 22 mm^2 rectum section, gets 0.23 mm: at 0.5 mm its few columns of samples alias
-/// with the isodose lines, and on the shared plan rectum V75 is 1.2 pp off the converged
-/// value), and coarser so that the structure has at most about max_samples samples (a 50 cm^3
-/// prostate at 0.5 mm would need 400,000). Depends only on the structure's volume and contour
-/// areas, so it moves with the patient.
+/// The lattice spacing used for structure s when spacing_m is asked: spacing_m, finer for a
+/// thin structure, coarser for a large one. A structure whose mean contour area A is below
+/// thin_area_m2 gets spacing_m * sqrt(A / thin_area_m2): each of its planes holds as many samples
+/// as a plane of thin_area_m2 would (400 at 0.5 mm; a 22 mm^2 rectum section gets 0.23 mm: at
+/// 0.5 mm its few columns of samples alias with the isodose lines, and on the shared plan rectum
+/// V75 is 1.2 pp off the converged value). Coarser so that the structure has at most about
+/// max_samples samples (a 50 cm^3 prostate at 0.5 mm would need 400,000). Depends only on the
+/// structure's volume and contour areas, so it moves with the patient.
 double latticeSpacing(const Structure& s, double spacing_m, double max_samples = 50000,
-                      double min_plane_samples = 400);
+                      double thin_area_m2 = 100e-6);
 
 /// Dose at the volume samples of one structure.
 struct StructureDose {
