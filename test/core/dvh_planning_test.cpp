@@ -1,6 +1,7 @@
 // Dose-volume indices and the dose-volume planner: the structure lattice keeps the volume,
 // indices a structure cannot support are undefined with the reason, turning and moving the case
-// changes no index, a structure along the dose grid's edge, criteria that cannot all hold (the
+// changes no index, a structure along the dose grid's edge, a thin structure's index at the
+// default lattice against the converged one, criteria that cannot all hold (the
 // least-violating plan names what gives way), a single-catheter case, criterion parsing.
 #include <gtest/gtest.h>
 
