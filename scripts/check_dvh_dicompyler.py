@@ -1,30 +1,37 @@
 #!/usr/bin/python3
 """Independent check of our dose-volume indices on a DICOM-RT plan's RTDOSE.
 
-Usage: check_dvh_dicompyler.py DICOM_DIR OURS_CSV OUT_CSV
+Usage: check_dvh_dicompyler.py DICOM_DIR OURS_CSV OUT_CSV [CONVERGENCE_CSV CONVERGENCE_OUT_CSV]
 
-OURS_CSV (written by bench_hdr_dicom) has the columns index, rx_gy, ours, reason: our index
-from the RTDOSE (trilinear interpolation on our structure-aligned lattice), empty when our
-method reports it undefined (reason says why). For every index this script computes the same
-index with dicompyler-core (python3-dicompylercore) from the RTDOSE and RTSTRUCT, twice: with
-its defaults (dose-grid pixels, 1 mm here) and with in-plane interpolation to 0.25 mm, and from
-the cumulative DVHs stored in the RTDOSE (DVHSequence; linear between bin edges). Writes
-OUT_CSV and prints a JSON summary: the largest |ours - dicompyler| over the indices defined by
-ours (Gy for D indices, percentage points for V indices). Exit 0 after a check, 3 when
-dicompyler-core or pydicom is missing (nothing checked), 2 on bad input.
+OURS_CSV (written by bench_hdr_dicom) has the columns index, rx_gy, ours, ours_on_dose_grid,
+reason: our index from the RTDOSE as reported (trilinear interpolation on our structure-aligned
+lattice), empty when we report it undefined (reason says why), and our index code on
+dicompyler's default discretisation. CONVERGENCE_CSV (spacing_mm, planes_per_slice, index,
+value) holds our index as the lattice is refined.
 
-Telling a discretisation difference from an error: OURS_CSV may also have the column
-ours_on_dose_grid, our index code run on dicompyler's own discretisation (the dose grid's
-in-plane voxel centres inside each contour, at the contour's plane, each voxel area x slice
-thickness). An index whose |ours - dicompyler default| exceeds the tolerance (0.3 Gy, 1 pp)
-while ours_on_dose_grid agrees with dicompyler within it is "not comparable": the difference
-comes from the two discretisations, not from the index. It is listed with the figures in
-not_comparable and left out of max_diff_comparable_*. Every other index counts there, so a
-real error is never hidden. max_diff_on_grid_* is the largest |ours_on_dose_grid -
-dicompyler default| over all indices.
+dicompyler-core (python3-dicompylercore) computes every index from the RTDOSE and RTSTRUCT:
+- with its defaults: dose-grid pixels, dose at each contour's plane, each pixel one slice thick;
+- with its interpolation as shipped (interpolation_resolution, for the record);
+- with its interpolation corrected (corrected_interpolation below), at RESOLUTIONS_MM in plane
+  and PLANES_PER_SLICE sample planes per contour slab. As shipped, its interpolated dose sits
+  up to 0.6 pixel from the contour points it is paired with, and its planes between contours
+  take the nearest dose frame and drop half a slab at each end: refined, it moves away from
+  the converged value instead of towards it.
+Also read: the cumulative DVHs stored in the RTDOSE (DVHSequence; linear between bin edges).
+
+Writes OUT_CSV (one row per index), CONVERGENCE_OUT_CSV (every calculator at every
+discretisation) and prints a JSON summary of the largest differences (Gy for D indices,
+percentage points for V indices) over the indices we report defined (an undefined one is never
+compared):
+- matched: ours against corrected dicompyler at the same discretisation (MATCHED);
+- converged: ours at our finest lattice against corrected dicompyler at its finest;
+- ours_vs_converged: ours as reported against corrected dicompyler at its finest;
+- default, on_grid, as_shipped, stored: ours (on_grid: ours_on_dose_grid) against dicompyler's
+  defaults, its shipped interpolation at 0.25 mm, and the stored DVHs.
+Exit 0 after a check, 3 when dicompyler-core or pydicom is missing (nothing checked), 2 on bad
+input.
 """
 
-TOLERANCE = {"gy": 0.3, "pp": 1.0}
 import csv
 import glob
 import json
@@ -40,6 +47,65 @@ try:
 except ImportError as e:  # the check is optional: say so, do not fail the benchmark
     print(json.dumps({"dicompyler_available": False, "reason": str(e)}))
     sys.exit(3)
+
+import collections
+import contextlib
+import numpy as np
+from dicompylercore import dicomparser
+
+# Refined runs: in-plane interpolation resolution [mm] x sample planes per contour slab.
+RESOLUTIONS_MM = (0.5, 0.25, 0.125)
+PLANES_PER_SLICE = (1, 2, 4)
+MATCHED = (0.125, 4)  # the discretisation both sides are compared at (ours: lattice 0.125 mm)
+
+
+def registered_lut(index_extents, extents, new_pixel_spacing, min_pixel_spacing):
+    """Positions of the samples skimage's rescale returns for the dose-grid extract
+    d[ymin:ymax, xmin:xmax]: input pixel (k + 1/2)/s - 1/2 for output pixel k, s = scale.
+    dicompyler's get_resampled_lut spreads the same number of samples evenly from the first to
+    the last extent pixel instead, which pairs each dose value with a contour point up to 0.6
+    pixel away from where the dose was interpolated."""
+    s = min_pixel_spacing / new_pixel_spacing
+    out = []
+    for a in (0, 1):
+        n = int(round(abs(index_extents[a + 2] - index_extents[a]) * s))
+        out.append(extents[a] + ((np.arange(n) + 0.5) / s - 0.5) * min_pixel_spacing)
+    return tuple(out)
+
+
+def slab_planes(planes, n=1):
+    """n + 1 sample planes per contour slab, centred in the slab (one slice thick, as the
+    default run's volume counts it), each cut through the slab's own contour. dicompyler's
+    interpolate_between_planes spreads them from the first to the last contour plane instead,
+    dropping half a slab at each end."""
+    keys = sorted(planes.keys(), key=float)
+    h = min(float(b) - float(a) for a, b in zip(keys, keys[1:])) if len(keys) > 1 else 0.0
+    out = collections.OrderedDict()
+    for k in keys:
+        for m in range(n + 1):
+            out[float(k) + ((m + 0.5) / (n + 1) - 0.5) * h] = planes[k]
+    return out
+
+
+@contextlib.contextmanager
+def corrected_interpolation():
+    """dicompyler-core's interpolation options with three corrections (registration of the
+    interpolated dose, slab-centred sub-planes, dose linear between dose frames: GetDoseGrid takes
+    the nearest frame within 0.5 mm otherwise) and one more pixel of margin around the structure
+    (the dose extract stops one pixel short of the extent)."""
+    saved = (dvhcalc.get_resampled_lut, dvhcalc.interpolate_between_planes,
+             dvhcalc.dosegrid_extents_indices, dicomparser.DicomParser.GetDoseGrid)
+    grid, extents = saved[3], saved[2]
+    dvhcalc.get_resampled_lut = registered_lut
+    dvhcalc.interpolate_between_planes = slab_planes
+    dvhcalc.dosegrid_extents_indices = lambda e, dd, padding=1: extents(e, dd, padding + 1)
+    dicomparser.DicomParser.GetDoseGrid = lambda self, z=0, threshold=0.5: grid(self, z, 1e-6)
+    try:
+        yield
+    finally:
+        (dvhcalc.get_resampled_lut, dvhcalc.interpolate_between_planes,
+         dvhcalc.dosegrid_extents_indices, dicomparser.DicomParser.GetDoseGrid) = saved
+
 
 CANONICAL = {"prostate": ["prostate", "ctv", "ptv"], "urethra": ["urethra"],
              "rectum": ["rectum"], "bladder": ["bladder"]}
@@ -129,92 +195,135 @@ def from_stored(curve, spec, rx):
     return None
 
 
-def judge(index, ours, on_grid, reference, unit, comparable, row):
-    """Counts |ours - reference| as comparable unless ours on the reference's discretisation
-    (on_grid) agrees with it while ours does not; records the reason in row and comparable."""
-    tol = TOLERANCE["gy" if unit else "pp"]
-    diff = abs(ours - reference)
-    row["comparable"] = 1
-    if on_grid == "":
-        comparable["comparable"][0][unit].append(diff)
-        return
-    grid_diff = abs(float(on_grid) - reference)
-    comparable["on_grid"][0][unit].append(grid_diff)
-    if diff > tol and grid_diff <= tol:
-        row["comparable"] = 0
-        comparable["comparable"][1][index] = (
-            "discretisation: ours %.3f on our lattice, %.3f on dicompyler's grid, dicompyler "
-            "%.3f (%s)" % (ours, float(on_grid), reference, "Gy" if unit else "%"))
-    else:
-        comparable["comparable"][0][unit].append(diff)
+def dicompyler_runs(rtstruct, rtdose, rois):
+    """(calculator, resolution mm or None, planes per slice, roi) -> DVH: dicompyler's defaults,
+    its interpolation as shipped, and its interpolation corrected (corrected_interpolation)."""
+    runs = {}
+    for roi in rois:
+        runs[("default", None, 1, roi)] = dvhcalc.get_dvh(rtstruct, rtdose, roi,
+                                                          use_structure_extents=True)
+        for res in RESOLUTIONS_MM:
+            runs[("as_shipped", res, 1, roi)] = dvhcalc.get_dvh(
+                rtstruct, rtdose, roi, interpolation_resolution=res, use_structure_extents=True)
+        with corrected_interpolation():
+            for res in RESOLUTIONS_MM:
+                for n in PLANES_PER_SLICE:
+                    runs[("corrected", res, n, roi)] = dvhcalc.get_dvh(
+                        rtstruct, rtdose, roi, interpolation_resolution=res,
+                        interpolation_segments_between_planes=n - 1, use_structure_extents=True)
+    return runs
+
+
+def read_convergence(path):
+    """(spacing_mm, planes_per_slice) -> {index: value or None} from bench_hdr_dicom's CSV."""
+    out = collections.defaultdict(dict)
+    with open(path) as f:
+        for r in csv.DictReader(f):
+            key = (float(r["spacing_mm"]), int(r["planes_per_slice"]))
+            out[key][r["index"]] = float(r["value"]) if r["value"] != "" else None
+    return out
+
+
+class Worst:
+    """Largest |a - b| per unit (pp for V indices, Gy for D indices) and where."""
+
+    def __init__(self):
+        self.value = {"pp": 0.0, "gy": 0.0}
+        self.index = {"pp": "", "gy": ""}
+
+    def add(self, index, a, b):
+        if a is None or b is None or a == "" or b == "":
+            return
+        unit = "gy" if index.split("_", 1)[1].startswith("D") else "pp"
+        if abs(a - b) > self.value[unit]:
+            self.value[unit] = abs(a - b)
+            self.index[unit] = index
+
+    def into(self, summary, name):
+        for unit in ("pp", "gy"):
+            summary["max_diff_%s_%s" % (name, unit)] = round(self.value[unit], 4)
+        summary["worst_%s" % name] = [self.index["pp"], self.index["gy"]]
 
 
 def main():
-    if len(sys.argv) != 4:
+    if len(sys.argv) not in (4, 6):
         sys.exit(__doc__)
-    folder, ours_csv, out_csv = sys.argv[1:]
+    folder, ours_csv, out_csv = sys.argv[1:4]
     rtstruct, rtdose = find_files(folder)
     rois = roi_numbers(rtstruct)
     stored = stored_curves(rtdose)
     with open(ours_csv) as f:
         ours = list(csv.DictReader(f))
-    dvhs = {}
-    # name -> ([diffs in pp], [diffs in Gy]), and for "comparable" the excluded indices.
-    comparable = {"comparable": ([[], []], {}), "on_grid": ([[], []], {})}
-    rows, worst = [], {"default": [0.0, 0.0], "interpolated": [0.0, 0.0], "stored": [0.0, 0.0]}
-    worst_key = {k: ["", ""] for k in worst}
+    used = sorted({rois[r["index"].split("_", 1)[0]] for r in ours
+                   if r["index"].split("_", 1)[0] in rois})
+    runs = dicompyler_runs(rtstruct, rtdose, used)
+    convergence = read_convergence(sys.argv[4]) if len(sys.argv) == 6 else {}
+    m_res, m_planes = MATCHED
+    worst = {k: Worst() for k in ("matched", "default", "on_grid", "as_shipped", "stored",
+                                  "ours_vs_converged", "converged")}
+    rows, conv_rows = [], []
+    finest_ours = (min(k[0] for k in convergence), max(k[1] for k in convergence)) \
+        if convergence else None
+    converged_key = ("corrected", min(RESOLUTIONS_MM), max(PLANES_PER_SLICE))
     for r in ours:
         structure, spec = r["index"].split("_", 1)
         rx = float(r["rx_gy"])
         roi = rois.get(structure)
         if roi is None:
             continue
-        for mode, res in (("default", None), ("interpolated", 0.25)):
-            if (roi, mode) not in dvhs:
-                dvhs[(roi, mode)] = dvhcalc.get_dvh(rtstruct, rtdose, roi,
-                                                    interpolation_resolution=res,
-                                                    use_structure_extents=True)
-        row = {"index": r["index"], "ours": r["ours"], "reason": r.get("reason", ""),
-               "ours_on_dose_grid": r.get("ours_on_dose_grid", ""), "comparable": ""}
-        row["dicompyler_default"] = from_dicompyler(dvhs[(roi, "default")], spec, rx)
-        row["dicompyler_0.25mm"] = from_dicompyler(dvhs[(roi, "interpolated")], spec, rx)
+        value = {k[:3]: from_dicompyler(dvh, spec, rx) for k, dvh in runs.items() if k[3] == roi}
+        o = float(r["ours"]) if r["ours"] != "" else None
+        on_grid = float(r["ours_on_dose_grid"]) if r.get("ours_on_dose_grid", "") != "" else None
         s = from_stored(stored[roi], spec, rx) if roi in stored else None
-        row["stored_dvh"] = "" if s is None else s
-        unit = 1 if spec.startswith("D") else 0  # [pp, Gy] slot
-        if r["ours"] != "":
-            o = float(r["ours"])
-            for mode, ref in (("default", row["dicompyler_default"]),
-                              ("interpolated", row["dicompyler_0.25mm"]),
-                              ("stored", s)):
-                if ref is None or ref == "":
-                    continue
-                diff = abs(o - ref)
-                if diff > worst[mode][unit]:
-                    worst[mode][unit] = diff
-                    worst_key[mode][unit] = r["index"]
-            judge(r["index"], o, r.get("ours_on_dose_grid", ""), row["dicompyler_default"],
-                  unit, comparable, row)
+        matched = convergence.get((m_res, m_planes), {}).get(r["index"])
+        finest = convergence[finest_ours].get(r["index"]) if finest_ours else None
+        row = {"index": r["index"], "ours": r["ours"], "reason": r.get("reason", ""),
+               "ours_on_dose_grid": "" if on_grid is None else on_grid,
+               "ours_matched": "" if matched is None else matched,
+               "dicompyler_matched": value[("corrected", m_res, m_planes)],
+               "ours_converged": "" if finest is None else finest,
+               "dicompyler_converged": value[converged_key],
+               "dicompyler_default": value[("default", None, 1)],
+               "dicompyler_0.25mm_as_shipped": value[("as_shipped", 0.25, 1)],
+               "stored_dvh": "" if s is None else s}
+        if o is not None:  # an index ours reports undefined is never compared
+            worst["matched"].add(r["index"], matched, row["dicompyler_matched"])
+            worst["default"].add(r["index"], o, row["dicompyler_default"])
+            worst["on_grid"].add(r["index"], on_grid, row["dicompyler_default"])
+            worst["as_shipped"].add(r["index"], o, row["dicompyler_0.25mm_as_shipped"])
+            worst["stored"].add(r["index"], o, s)
+            worst["ours_vs_converged"].add(r["index"], o, row["dicompyler_converged"])
+            worst["converged"].add(r["index"], finest, row["dicompyler_converged"])
         rows.append(row)
+        for (calc, res, n), v in sorted(value.items(), key=str):
+            conv_rows.append({"calculator": "dicompyler_" + calc, "spacing_mm": res or "",
+                              "planes_per_slice": n, "index": r["index"], "value": v})
+        for (res, n), values in sorted(convergence.items()):
+            v = values.get(r["index"])
+            conv_rows.append({"calculator": "ours", "spacing_mm": res, "planes_per_slice": n,
+                              "index": r["index"], "value": "" if v is None else v})
     with open(out_csv, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=["index", "ours", "ours_on_dose_grid",
-                                          "dicompyler_default", "dicompyler_0.25mm",
-                                          "stored_dvh", "comparable", "reason"])
+        w = csv.DictWriter(f, fieldnames=list(rows[0].keys()) if rows else ["index"])
         w.writeheader()
         w.writerows(rows)
-    summary = {"dicompyler_available": True, "indices": len(rows)}
-    for name, (values, _) in comparable.items():
-        for unit, slot in (("pp", 0), ("gy", 1)):
-            summary["max_diff_%s_%s" % (name, unit)] = round(max(values[slot], default=0.0), 4)
-    summary["not_comparable"] = comparable["comparable"][1]
-    for mode in worst:
-        summary["max_diff_%s_pp" % mode] = round(worst[mode][0], 4)
-        summary["max_diff_%s_gy" % mode] = round(worst[mode][1], 4)
-        summary["worst_%s" % mode] = worst_key[mode]
+    if len(sys.argv) == 6:
+        with open(sys.argv[5], "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=["calculator", "spacing_mm", "planes_per_slice",
+                                              "index", "value"])
+            w.writeheader()
+            w.writerows(conv_rows)
+    summary = {"dicompyler_available": True, "indices": len(rows),
+               "matched_spacing_mm": m_res, "matched_planes_per_slice": m_planes,
+               "converged_dicompyler": list(converged_key[1:]),
+               "converged_ours": list(finest_ours) if finest_ours else None}
+    for name, wst in worst.items():
+        wst.into(summary, name)
     print(json.dumps(summary))
 
 
 if __name__ == "__main__":
     if any(a in ("-h", "--help") for a in sys.argv[1:]):
-        print(__doc__ + "\nusage: check_dvh_dicompyler.py CASE_DIR OURS_CSV OUT_CSV")
+        print(__doc__ + "\nusage: check_dvh_dicompyler.py CASE_DIR OURS_CSV OUT_CSV "
+              "[CONVERGENCE_CSV CONVERGENCE_OUT_CSV]")
         sys.exit(0)
     main()

@@ -152,7 +152,8 @@ VolumeSample sampleStructure(const Structure& s, double spacing_m, double plane_
     if (!out.points_m.empty())
       return out;
   }
-  const int planes = h > 0.0 ? std::max(1, static_cast<int>(std::ceil(h / spacing_m - 1e-9))) : 1;
+  const double dz = plane_spacing_m > 0.0 ? plane_spacing_m : spacing_m;
+  const int planes = h > 0.0 ? std::max(1, static_cast<int>(std::ceil(h / dz - 1e-9))) : 1;
   for (std::size_t k = 0; k < s.contours.size();) {
     std::size_t end = k;
     double area = 0.0;
@@ -179,8 +180,18 @@ VolumeSample sampleStructure(const Structure& s, double spacing_m, double plane_
   return out;
 }
 
-double latticeSpacing(const Structure& s, double spacing_m, double max_samples) {
-  return std::max(spacing_m, std::cbrt(s.volume_m3() / max_samples));
+double latticeSpacing(const Structure& s, double spacing_m, double max_samples,
+                      double thin_area_m2) {
+  double area = 0.0;
+  int planes = 0;
+  for (std::size_t k = 0; k < s.contours.size(); ++k) {
+    area += polygonArea(s.contours[k].xy_m);
+    planes += k == 0 || std::abs(s.contours[k].z_m - s.contours[k - 1].z_m) >= 1e-12;
+  }
+  const double fine = planes > 0 && area > 0.0 && thin_area_m2 > 0.0
+                          ? spacing_m * std::min(1.0, std::sqrt(area / planes / thin_area_m2))
+                          : spacing_m;
+  return std::max(fine, std::cbrt(s.volume_m3() / max_samples));
 }
 
 double StructureDose::volume() const {
@@ -235,7 +246,8 @@ std::vector<StructureDose> structureDoses(const HdrCase& c, const Tg43Source& so
 }
 
 std::vector<StructureDose> structureDosesFromGrid(const HdrCase& c, const DoseGrid& grid,
-                                                  double spacing_m) {
+                                                  double spacing_m, double plane_spacing_m,
+                                                  bool adapt) {
   grid.validate("structureDosesFromGrid: dose grid");
   std::vector<StructureDose> out;
   const int nx = grid.sizes[0], ny = grid.sizes[1], nz = grid.sizes[2];
@@ -246,7 +258,8 @@ std::vector<StructureDose> structureDosesFromGrid(const HdrCase& c, const DoseGr
   for (const Structure& s : c.structures) {
     StructureDose sd;
     sd.name = s.name;
-    const VolumeSample sample = sampleStructure(s, latticeSpacing(s, spacing_m));
+    const VolumeSample sample =
+        sampleStructure(s, adapt ? latticeSpacing(s, spacing_m) : spacing_m, plane_spacing_m);
     for (std::size_t i = 0; i < sample.points_m.size(); ++i) {
       const Point3& p = sample.points_m[i];
       double dose = 0.0;

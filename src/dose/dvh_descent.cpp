@@ -1,10 +1,11 @@
 #include <algorithm>
 #include <cmath>
-#include <ctime>
 #include <deque>
 #include <limits>
+#include <random>
 
 #include "dvh_model.h"
+#include "needle_guidance/cpu_time.h"
 
 namespace needle_guidance::dose::dvh_model {
 
@@ -49,10 +50,6 @@ double objectiveAt(const PlanPoints& p, const std::vector<VolumeCondition>& cond
 }
 
 namespace {
-
-double cpuSince(std::clock_t start) {
-  return static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
-}
 
 /// A plan's standing: total violation first (so a plan meeting every criterion beats any that
 /// breaks one, however much more it covers), then the objective.
@@ -172,7 +169,7 @@ Eigen::VectorXd bestStart(const PlanPoints& p, const std::vector<VolumeCondition
 DescentResult descendOnCriteria(const PlanPoints& p, const std::vector<VolumeCondition>& conditions,
                                 double total_time_s, const std::vector<std::vector<double>>& starts,
                                 const DvhPlanOptions& o, double seconds) {
-  const std::clock_t cpu0 = std::clock();
+  const CpuStopwatch cpu(CpuStopwatch::Scope::kProcess);
   DescentResult r;
   Score best;
   Eigen::VectorXd best_t = bestStart(p, conditions, total_time_s, starts, o, &best);
@@ -187,8 +184,10 @@ DescentResult descendOnCriteria(const PlanPoints& p, const std::vector<VolumeCon
   double value = f(t, &d, &g);
   double alpha = 0.05 * std::max(t.mean(), 1e-9) / std::max(g.cwiseAbs().maxCoeff(), 1e-300);
   std::deque<double> recent{value};
-  int stalled = 0;
-  while (cpuSince(cpu0) < seconds) {
+  int stalled = 0, shakes = 0;
+  constexpr int kShakes = 8;
+  std::mt19937 rng(1);
+  while (cpu.seconds() < seconds) {
     double value_new = value;
     for (int tries = 0; tries < 30; ++tries) {
       t_new = (t - alpha * g).cwiseMax(0.0);
@@ -222,12 +221,21 @@ DescentResult descendOnCriteria(const PlanPoints& p, const std::vector<VolumeCon
     if (recent.size() > 8)
       recent.pop_front();
     if (stalled >= o.descent_patience) {
-      // The goal is out of reach from here: ask for less, from the best plan.
+      // The goal is out of reach from here: ask for less, from the best plan. Below the
+      // smallest step, the descent has settled in a local optimum of the step-function indices:
+      // with time left, it starts again from the best plan with every dwell time scaled by a
+      // seeded factor in [0.5, 1.5] and the first goal step (at most kShakes times).
       step *= 0.5;
-      if (step < o.descent_min_step_pp)
-        break;
-      ++r.restarts;
       t = best_t;
+      if (step < o.descent_min_step_pp) {
+        if (++shakes > kShakes)
+          break;
+        step = o.descent_goal_step_pp;
+        std::uniform_real_distribution<double> factor(0.5, 1.5);
+        for (Eigen::Index i = 0; i < t.size(); ++i)
+          t[i] *= factor(rng);
+      }
+      ++r.restarts;
       f.goal = std::max(conditions[0].budget_pct, coverage(p.d * t) + step);
       value = f(t, &d, &g);
       recent.assign(1, value);

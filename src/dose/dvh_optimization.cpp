@@ -1,6 +1,7 @@
 #include "needle_guidance/dose/dvh_optimization.h"
 
 #include "dvh_model.h"
+#include "needle_guidance/cpu_time.h"
 #include "needle_guidance/dose/dwell_optimization.h"
 
 #include <CbcModel.hpp>
@@ -12,7 +13,6 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
-#include <ctime>
 #include <limits>
 #include <numeric>
 #include <sstream>
@@ -30,11 +30,10 @@ double since(Clock::time_point start) {
   return std::chrono::duration<double>(Clock::now() - start).count();
 }
 
-/// Processor time of this process since `start` [s] (what the time limits count: the machine's
-/// load from other processes does not shorten the search).
-double cpuSince(std::clock_t start) {
-  return static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
-}
+/// The time limits count processor time of this process (CpuStopwatch::Scope::kProcess): the
+/// machine's load from other processes does not shorten the search.
+using CpuStopwatch = needle_guidance::CpuStopwatch;
+constexpr auto kProcess = CpuStopwatch::Scope::kProcess;
 
 std::string number(double v) {
   char text[32];
@@ -639,7 +638,7 @@ void record(const Problem& pr, const std::vector<double>& t, Judgement j, const 
 /// The MIP (IPIP-style freeing heuristic, then CBC when cbc_seconds > 0) on a coarse lattice,
 /// re-solved with conditions tightened by what the evaluation lattice shows.
 void planByMip(const HdrCase& c, const Tg43Source& source, const Problem& pr,
-               const DvhPlanOptions& o, std::clock_t cpu0, DvhPlanResult* r) {
+               const DvhPlanOptions& o, const CpuStopwatch& cpu, DvhPlanResult* r) {
   std::vector<int> structures;
   for (const VolumeCondition& v : pr.conditions)
     structures.push_back(v.structure);
@@ -650,13 +649,13 @@ void planByMip(const HdrCase& c, const Tg43Source& source, const Problem& pr,
   std::vector<VolumeCondition> conditions = pr.conditions;
   int best_violations = 1 << 30;
   for (int round = 0; round < o.rounds; ++round) {
-    const double left = o.max_seconds - cpuSince(cpu0);
+    const double left = o.max_seconds - cpu.seconds();
     if (round > 0 && left < 0.5)
       break;
-    const std::clock_t round0 = std::clock();
+    const CpuStopwatch round_cpu(kProcess);
     const std::vector<double> start =
         freeingHeuristic(points, conditions, pr.total_time_s, o, o.heuristic_rounds);
-    const double cbc = std::min(o.cbc_seconds, left / (o.rounds - round) - cpuSince(round0));
+    const double cbc = std::min(o.cbc_seconds, left / (o.rounds - round) - round_cpu.seconds());
     const MipSolution m =
         solveMip(points, conditions, pr.total_time_s, reference_Gy, o, start, cbc);
     ++r->rounds;
@@ -683,7 +682,7 @@ void planByMip(const HdrCase& c, const Tg43Source& source, const Problem& pr,
 /// own times, the IPSA LP's and equal times; with cbc_seconds > 0, CBC then bounds it on the
 /// same points.
 void planByDescent(const HdrCase& c, const Tg43Source& source, const Problem& pr,
-                   const DvhPlanOptions& o, std::clock_t cpu0, DvhPlanResult* r) {
+                   const DvhPlanOptions& o, const CpuStopwatch& cpu, DvhPlanResult* r) {
   std::vector<std::vector<double>> starts;
   if (c.dwell_times_s.size() == c.dwells.size())
     starts.push_back(c.dwell_times_s);
@@ -694,7 +693,7 @@ void planByDescent(const HdrCase& c, const Tg43Source& source, const Problem& pr
   }
   starts.emplace_back(c.dwells.size(), pr.equal_time_s);
   const dvh_model::DescentResult dr = dvh_model::descendOnCriteria(
-      pr.eval, pr.conditions, pr.total_time_s, starts, o, o.max_seconds - cpuSince(cpu0));
+      pr.eval, pr.conditions, pr.total_time_s, starts, o, o.max_seconds - cpu.seconds());
   r->rounds = 1;
   r->descent_iterations = dr.iterations;
   r->descent_objective = dr.objective;
@@ -721,7 +720,7 @@ void planByDescent(const HdrCase& c, const Tg43Source& source, const Problem& pr
 DvhPlanResult optimizeDvh(const HdrCase& c, const Tg43Source& source,
                           const std::vector<DvhCriterion>& criteria, const DvhPlanOptions& o) {
   const auto t0 = Clock::now();
-  const std::clock_t cpu0 = std::clock();
+  const CpuStopwatch cpu(kProcess);
   if (c.dwells.empty())
     throw std::invalid_argument("optimizeDvh: case '" + c.name + "' has no dwell positions");
   if (!(o.plan_spacing_m > 0.0) || !(o.eval_spacing_m > 0.0) || !(o.max_seconds > 0.0) ||
@@ -733,7 +732,7 @@ DvhPlanResult optimizeDvh(const HdrCase& c, const Tg43Source& source,
   DvhPlanResult r;
   const Problem pr = setUp(c, source, criteria, o, &r.notes);
   r.points = static_cast<int>(pr.eval.d.rows());
-  r.setup_cpu_seconds = cpuSince(cpu0);
+  r.setup_cpu_seconds = cpu.seconds();
   if (c.dwell_times_s.size() == c.dwells.size()) {
     // The case's own dwell times on the planner's points: a plan the planner should match.
     r.case_times_objective =
@@ -741,11 +740,11 @@ DvhPlanResult optimizeDvh(const HdrCase& c, const Tg43Source& source,
     r.case_times_v100_pct = coveredPct(pr.eval, pr.conditions[0], c.dwell_times_s);
   }
   if (o.method == "mip")
-    planByMip(c, source, pr, o, cpu0, &r);
+    planByMip(c, source, pr, o, cpu, &r);
   else
-    planByDescent(c, source, pr, o, cpu0, &r);
+    planByDescent(c, source, pr, o, cpu, &r);
   r.seconds = since(t0);
-  r.cpu_seconds = cpuSince(cpu0);
+  r.cpu_seconds = cpu.seconds();
   if (r.times_s.empty()) {
     r.status = "no plan found within " + number(o.max_seconds) + " s";
     return r;

@@ -212,6 +212,33 @@ constexpr const char* kPlots =
  {"csv": "dvh.csv", "x": "dose_Gy", "y": "volume_pct", "group": "curve",
   "title": "Cumulative DVH, LP vs SA (case with the largest index difference)", "png": "dvh.png"}])json";
 
+/// Volume of each organ inside the target's contours ("bladder 1.23 cm3"; organs with none are
+/// left out): the target's coverage needs about the prescription there, so an organ criterion
+/// below it on at least that much volume (D2cc, D0.1cc, V75) cannot hold with full coverage.
+std::string organVolumeInTarget(const dose::HdrCase& c, double spacing_m) {
+  const auto target = std::find_if(c.structures.begin(), c.structures.end(), [](const auto& s) {
+    return s.role == dose::StructureRole::kTarget;
+  });
+  std::string out;
+  if (target == c.structures.end())
+    return out;
+  for (const dose::Structure& s : c.structures) {
+    if (s.role == dose::StructureRole::kTarget)
+      continue;
+    const dose::VolumeSample v = dose::sampleStructure(s, dose::latticeSpacing(s, spacing_m));
+    double inside_m3 = 0.0;
+    for (std::size_t i = 0; i < v.points_m.size(); ++i)
+      inside_m3 += target->contains(v.points_m[i]) ? v.volume_m3[i] : 0.0;
+    if (inside_m3 > 0.0) {
+      std::ostringstream text;
+      text.precision(3);
+      text << s.name << " " << inside_m3 * 1e6 << " cm3";
+      out += (out.empty() ? "" : "; ") + text.str();
+    }
+  }
+  return out;
+}
+
 /// The dose-volume planner on every cohort case against its annealing plan; rows into
 /// dvh_cohort.csv, headline figures as JSON members.
 std::string dvhCohort(const std::vector<dose::HdrCase>& cohort, const dose::Tg43Source& source,
@@ -221,13 +248,14 @@ std::string dvhCohort(const std::vector<dose::HdrCase>& cohort, const dose::Tg43
   dose::DvhPlanOptions o;
   o.eval_spacing_m = kSpacing_m;
   o.max_seconds = 3.0;  // per plan: 20 cases x 2 plans on a shared 2-core machine
-  ng::report::Table t({"case", "dvh_plan_s", "dvh_v100_pct", "dvh_urethra_D10_Gy",
-                       "dvh_criteria_met", "sa_v100_pct", "sa_urethra_D10_Gy", "dominating_plan_s",
-                       "sa_dominated", "prevented_by", "rotation_change_Gy", "rotation_change_pp"},
-                      6);
+  ng::report::Table t(
+      {"case", "dvh_plan_s", "dvh_v100_pct", "dvh_urethra_D10_Gy", "dvh_criteria_met",
+       "sa_v100_pct", "sa_urethra_D10_Gy", "dominating_plan_s", "sa_dominated", "prevented_by",
+       "dvh_criteria_giving_way", "organ_in_target", "rotation_change_Gy", "rotation_change_pp"},
+      6);
   std::vector<double> plan_s, plan_cpu_s, dom_s, dom_cpu_s, v100, v100_gain, rot_gy, rot_pp;
   int dominated = 0, met = 0;
-  std::map<std::string, int> preventing;
+  std::map<std::string, int> preventing, giving_way;
   for (std::size_t k = 0; k < cohort.size(); ++k) {
     const dose::HdrCase& c = cohort[k];
     const double rx = c.prescription_Gy;
@@ -253,13 +281,23 @@ std::string dvhCohort(const std::vector<dose::HdrCase>& cohort, const dose::Tg43
       ++preventing[key];
       prevented += (prevented.empty() ? "" : "; ") + w;
     }
+    // The criteria the plan breaks, each with the value it reached ("urethra V125 <= 10.00 %
+    // (12.31)"); counted per criterion as structure_index.
+    std::string broken;
+    for (const auto& v : r.violated) {
+      const std::size_t space = v.find(' ');
+      ++giving_way[v.substr(0, space) + "_" +
+                   v.substr(space + 1, v.find(' ', space + 1) - space - 1)];
+      broken += (broken.empty() ? "" : "; ") + v;
+    }
     const auto value = [](const std::map<std::string, dose::DoseVolumeIndex>& m, const char* key) {
       const auto it = m.find(key);
       return it != m.end() && it->second.defined ? it->second.value : std::nan("");
     };
     t.addRow({c.name, r.seconds, r.v100_pct, value(dvh, "urethra_D10"),
               r.violated.empty() ? 1.0 : 0.0, value(sa, "prostate_V100"), value(sa, "urethra_D10"),
-              d.plan.seconds, d.dominated ? 1.0 : 0.0, prevented, ch.dose_Gy, ch.volume_pp});
+              d.plan.seconds, d.dominated ? 1.0 : 0.0, prevented, broken,
+              organVolumeInTarget(c, kSpacing_m), ch.dose_Gy, ch.volume_pp});
     plan_s.push_back(r.seconds);
     plan_cpu_s.push_back(r.cpu_seconds);
     dom_s.push_back(d.plan.seconds);
@@ -297,6 +335,12 @@ std::string dvhCohort(const std::vector<dose::HdrCase>& cohort, const dose::Tg43
        << *std::max_element(rot_pp.begin(), rot_pp.end()) << ",\n  \"dominance_prevented_by\": {";
   bool first = true;
   for (const auto& [key, n] : preventing) {
+    json << (first ? "" : ", ") << "\"" << key << "\": " << n;
+    first = false;
+  }
+  json << "},\n  \"dvh_criteria_giving_way\": {";
+  first = true;
+  for (const auto& [key, n] : giving_way) {
     json << (first ? "" : ", ") << "\"" << key << "\": " << n;
     first = false;
   }

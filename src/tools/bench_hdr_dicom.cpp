@@ -136,6 +136,33 @@ void writeIndexCsv(const std::map<std::string, dose::DoseVolumeIndex>& set,
   }
 }
 
+/// Our indices from the RTDOSE as the lattice is refined: in-plane spacing 2 to 0.125 mm and
+/// sample planes per contour slab 1 (at the contour, dicompyler's model) to 8, at exactly that
+/// spacing (latticeSpacing's adaptation off). Rows spacing_mm, planes_per_slice, index, value
+/// (empty where undefined).
+void writeConvergenceCsv(const dose::DicomCase& dc, const dose::DoseGrid& grid,
+                         const std::string& path) {
+  std::ofstream out(path);
+  out << "spacing_mm,planes_per_slice,index,value\n";
+  double slice_m = 0.0;
+  for (const dose::Structure& s : dc.clinical.structures)
+    slice_m = std::max(slice_m, s.sliceSpacing());
+  for (const double spacing_mm : {2.0, 1.0, 0.5, 0.25, 0.125}) {
+    for (const int planes : {1, 2, 4, 8}) {
+      const auto set = dose::comparisonIndexSet(
+          dose::structureDosesFromGrid(dc.clinical, grid, spacing_mm * 1e-3,
+                                       slice_m > 0.0 ? slice_m / planes : 0.0, false),
+          dc.clinical.prescription_Gy);
+      for (const auto& [k, v] : set) {
+        out << spacing_mm << "," << planes << "," << k << ",";
+        if (v.defined)
+          out << ng::report::jsonNumber(v.value, 6);
+        out << "\n";
+      }
+    }
+  }
+}
+
 /// Our indices from the RTDOSE and dicompyler-core's (scripts/check_dvh_dicompyler.py); the
 /// script's JSON line, or "" when it did not run (dicompyler-core missing or no RTDOSE).
 std::string dicompylerCheck(const dose::DicomCase& dc, const std::string& dir,
@@ -148,12 +175,15 @@ std::string dicompylerCheck(const dose::DicomCase& dc, const std::string& dir,
   const auto on_grid = dose::comparisonIndexSet(dose::structureDosesOnGridPixels(dc.clinical, grid),
                                                 dc.clinical.prescription_Gy);
   writeIndexCsv(ours, on_grid, dc.clinical.prescription_Gy, out_dir + "/indices_rtdose_ours.csv");
+  writeConvergenceCsv(dc, grid, out_dir + "/indices_convergence_ours.csv");
   const std::string json_path = out_dir + "/dicompyler.json";
-  const int rc = std::system(("/usr/bin/python3 " + needle_guidance::packageDir().string() +
-                              "/scripts/check_dvh_dicompyler.py '" + dir + "' '" + out_dir +
-                              "/indices_rtdose_ours.csv' '" + out_dir +
-                              "/indices_vs_dicompyler.csv' > '" + json_path + "' 2> /dev/null")
-                                 .c_str());
+  const int rc =
+      std::system(("/usr/bin/python3 " + needle_guidance::packageDir().string() +
+                   "/scripts/check_dvh_dicompyler.py '" + dir + "' '" + out_dir +
+                   "/indices_rtdose_ours.csv' '" + out_dir + "/indices_vs_dicompyler.csv' '" +
+                   out_dir + "/indices_convergence_ours.csv' '" + out_dir +
+                   "/indices_convergence.csv' > '" + json_path + "' 2> /dev/null")
+                      .c_str());
   if (rc != 0)
     return "";
   std::ifstream in(json_path);
@@ -340,26 +370,21 @@ std::string dvhStudy(const dose::DicomCase& dc, const std::string& dir,
        << ",\n  \"index_lattice_change_pp\": " << jsonNumber(lattice.volume_pp)
        << ",\n  \"index_lattice_worst\": " << jsonList({lattice.worst_dose, lattice.worst_volume});
   if (!dpy.empty()) {
-    json << ",\n  \"index_vs_dicompyler_max_gy\": "
-         << jsonNumber(jsonField(dpy, "max_diff_comparable_gy"))
-         << ",\n  \"index_vs_dicompyler_max_pp\": "
-         << jsonNumber(jsonField(dpy, "max_diff_comparable_pp"))
-         << ",\n  \"index_vs_dicompyler_on_its_grid_max_gy\": "
-         << jsonNumber(jsonField(dpy, "max_diff_on_grid_gy"))
-         << ",\n  \"index_vs_dicompyler_on_its_grid_max_pp\": "
-         << jsonNumber(jsonField(dpy, "max_diff_on_grid_pp"))
-         << ",\n  \"index_vs_dicompyler_interpolated_max_gy\": "
-         << jsonNumber(jsonField(dpy, "max_diff_interpolated_gy"))
-         << ",\n  \"index_vs_dicompyler_interpolated_max_pp\": "
-         << jsonNumber(jsonField(dpy, "max_diff_interpolated_pp"))
-         << ",\n  \"index_vs_dicompyler_default_max_gy\": "
-         << jsonNumber(jsonField(dpy, "max_diff_default_gy"))
-         << ",\n  \"index_vs_dicompyler_default_max_pp\": "
-         << jsonNumber(jsonField(dpy, "max_diff_default_pp"))
-         << ",\n  \"index_vs_stored_dvh_max_gy\": "
-         << jsonNumber(jsonField(dpy, "max_diff_stored_gy"))
-         << ",\n  \"index_vs_stored_dvh_max_pp\": "
-         << jsonNumber(jsonField(dpy, "max_diff_stored_pp")) << ",\n  \"dicompyler\": " << dpy;
+    // name in the summary -> name in the script's JSON (max_diff_<name>_gy / _pp).
+    const std::vector<std::pair<std::string, std::string>> keys = {
+        {"index_vs_dicompyler", "matched"},
+        {"index_vs_dicompyler_reported", "ours_vs_converged"},
+        {"index_vs_dicompyler_converged", "converged"},
+        {"index_vs_dicompyler_default", "default"},
+        {"index_vs_dicompyler_as_shipped", "as_shipped"},
+        {"index_vs_dicompyler_on_its_grid", "on_grid"},
+        {"index_vs_stored_dvh", "stored"}};
+    for (const auto& [name, field] : keys) {
+      for (const char* unit : {"gy", "pp"})
+        json << ",\n  \"" << name << "_max_" << unit
+             << "\": " << jsonNumber(jsonField(dpy, "max_diff_" + field + "_" + unit));
+    }
+    json << ",\n  \"dicompyler\": " << dpy;
   }
   std::map<std::string, std::string> reasons;
   for (const auto& [k, v] : clinical) {

@@ -1,6 +1,7 @@
 // Dose-volume indices and the dose-volume planner: the structure lattice keeps the volume,
 // indices a structure cannot support are undefined with the reason, turning and moving the case
-// changes no index, a structure along the dose grid's edge, criteria that cannot all hold (the
+// changes no index, a structure along the dose grid's edge, a thin structure's index at the
+// default lattice against the converged one, criteria that cannot all hold (the
 // least-violating plan names what gives way), a single-catheter case, criterion parsing.
 #include <gtest/gtest.h>
 
@@ -175,6 +176,31 @@ TEST_F(DvhPlanning, StructureAlongTheDoseGridsEdge) {
   const auto partial = comparisonIndexSet(structureDosesFromGrid(case_, cut, 0.5e-3), 10.0);
   EXPECT_FALSE(partial.at("prostate_V100").defined);
   EXPECT_NE(partial.at("prostate_V100").reason.find("outside the dose grid"), std::string::npos);
+}
+
+TEST_F(DvhPlanning, ThinStructureIndexMatchesTheConvergedLattice) {
+  // A 23 mm^2 section extruded over 21 planes 1 mm apart (as the shared plan's rectum): at a
+  // lattice of 0.5 mm its few columns of samples alias with the isodose lines. The default
+  // lattice (latticeSpacing: at least 400 samples per plane) reads V within 1 pp and D0.1cc
+  // within 0.3 Gy of a 0.05 mm lattice with 8 planes per slice.
+  constexpr double kConverged_pp = 1.0, kConverged_Gy = 0.3;
+  HdrCase c = case_;
+  c.structures = {
+      cylinder("wall", StructureRole::kOrganAtRisk, 0, -12e-3, 3e-3, -10e-3, 10e-3, 1e-3)};
+  EXPECT_LE(latticeSpacing(c.structures[0], 0.5e-3), 0.27e-3);
+  Point3 lo, hi;
+  c.structures[0].bounds(lo, hi);
+  const std::vector<double> times = uniformTimes(case_, 4.0);
+  const DoseGrid g =
+      gridOver(c, source_, times, lo - Point3(2e-3, 2e-3, 2e-3), hi + Point3(2e-3, 2e-3, 2e-3));
+  const StructureDose fine = structureDosesFromGrid(c, g, 0.05e-3, 0.125e-3, false).front();
+  const StructureDose ours = structureDosesFromGrid(c, g, 0.5e-3).front();
+  for (const double pct : {3.0, 6.0, 12.0, 50.0}) {
+    const double level = doseCoveringPercent(fine, pct);
+    EXPECT_NEAR(volumePercentAbove(ours, level), volumePercentAbove(fine, level), kConverged_pp)
+        << "V at the dose covering " << pct << " %";
+  }
+  EXPECT_NEAR(doseCoveringVolume(ours, 0.1e-6), doseCoveringVolume(fine, 0.1e-6), kConverged_Gy);
 }
 
 TEST_F(DvhPlanning, DoseGridPixelsSampleAsDicompylerDoes) {
