@@ -49,7 +49,8 @@ struct EmbeddedPoint {
 };
 
 /// The linear tissue a needle is embedded in: the mesh (owned by the caller, who keeps it alive
-/// and unchanged), its stiffness factored once, and a uniform-grid locator of embedded points.
+/// and unchanged), its stiffness factored once (corotational tissue: again when a needle
+/// re-warps it), and a uniform-grid locator of embedded points.
 template <int Dim>
 class EmbeddingTissue {
 public:
@@ -75,11 +76,11 @@ public:
 
   bool corotational() const { return corotation_ != nullptr; }
   /// The corotational part of the displacement at displacement u (Dim * node order) [m]:
-  /// v = -K^-1 g(u), g the corotated element forces less the linear ones
-  /// (CorotationalForces::correction). Equilibrium under nodal forces f is the fixed point
-  /// u = K^-1 f + v(u), solved with the factored linear K as the preconditioner on the rotation
-  /// residual (warped stiffness, Mueller et al. 2002). Empty for a linear tissue. Throws
-  /// std::runtime_error if the result is not finite.
+  /// v = -K_0^-1 g(u), g the corotated element forces less K_0 u (CorotationalForces::
+  /// correction), K_0 the factored reference stiffness: the linear K until warpReference, then
+  /// the warped stiffness. Equilibrium under nodal forces f is the fixed point
+  /// u = K_0^-1 f + v(u) (warped stiffness, Mueller et al. 2002). Empty for a linear tissue.
+  /// Throws std::runtime_error if the result is not finite.
   Eigen::VectorXd corotationDisplacement(const Eigen::VectorXd& u) const;
   /// Elements inverted at the u of the last corotationDisplacement (they take the proper
   /// rotation nearest to F).
