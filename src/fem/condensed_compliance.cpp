@@ -3,10 +3,11 @@
 
 #include <Eigen/CholmodSupport>
 #include <algorithm>
-#include <ctime>
 #include <mutex>
 #include <stdexcept>
 #include <string>
+
+#include "needle_guidance/cpu_time.h"
 
 namespace needle_guidance::fem {
 
@@ -20,11 +21,6 @@ struct CondensedCompliance::Impl {
 CondensedCompliance::CondensedCompliance(const SparseMatrix& k, const std::vector<char>& fixed_dof)
     : impl_(std::make_unique<Impl>()), fixed_(fixed_dof) {
   const int n = static_cast<int>(fixed_.size());
-  if (k.rows() != n || k.cols() != n) {
-    throw std::invalid_argument("CondensedCompliance: stiffness is " + std::to_string(k.rows()) +
-                                " x " + std::to_string(k.cols()) + " for " + std::to_string(n) +
-                                " DOFs");
-  }
   free_index_.assign(static_cast<std::size_t>(n), -1);
   for (int i = 0; i < n; ++i) {
     if (!fixed_[static_cast<std::size_t>(i)]) {
@@ -38,6 +34,29 @@ CondensedCompliance::CondensedCompliance(const SparseMatrix& k, const std::vecto
   if (static_cast<int>(free_dofs_.size()) == n) {
     throw std::invalid_argument(
         "CondensedCompliance: no DOF is fixed: the body is free to move rigidly (K singular)");
+  }
+  const SparseMatrix kff = freeBlock(k);
+  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
+  impl_->llt.compute(kff);
+  factor_cpu_s_ = clock.seconds();
+  if (impl_->llt.info() != Eigen::Success) {
+    throw std::invalid_argument(
+        "CondensedCompliance: the free-DOF stiffness (" + std::to_string(kff.rows()) +
+        " DOFs) is not positive definite: too few fixed DOFs to hold the tissue, or a "
+        "degenerate element");
+  }
+  impl_->factor_bytes = impl_->llt.cholmod().memory_inuse;  // CHOLMOD's own accounting
+  columns_.resize(static_cast<std::size_t>(n));
+}
+
+CondensedCompliance::~CondensedCompliance() = default;
+
+SparseMatrix CondensedCompliance::freeBlock(const SparseMatrix& k) const {
+  const int n = dofCount();
+  if (k.rows() != n || k.cols() != n) {
+    throw std::invalid_argument("CondensedCompliance: stiffness is " + std::to_string(k.rows()) +
+                                " x " + std::to_string(k.cols()) + " for " + std::to_string(n) +
+                                " DOFs");
   }
   const int m = static_cast<int>(free_dofs_.size());
   std::vector<Eigen::Triplet<double>> t;
@@ -56,20 +75,26 @@ CondensedCompliance::CondensedCompliance(const SparseMatrix& k, const std::vecto
   }
   SparseMatrix kff(m, m);
   kff.setFromTriplets(t.begin(), t.end());
-  const std::clock_t start = std::clock();
-  impl_->llt.compute(kff);
-  factor_cpu_s_ = static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
-  if (impl_->llt.info() != Eigen::Success) {
-    throw std::invalid_argument(
-        "CondensedCompliance: the free-DOF stiffness (" + std::to_string(m) +
-        " DOFs) is not positive definite: too few fixed DOFs to hold the tissue, or a "
-        "degenerate element");
-  }
-  impl_->factor_bytes = impl_->llt.cholmod().memory_inuse;  // CHOLMOD's own accounting
-  columns_.resize(static_cast<std::size_t>(n));
+  return kff;
 }
 
-CondensedCompliance::~CondensedCompliance() = default;
+void CondensedCompliance::refactor(const SparseMatrix& k) {
+  const SparseMatrix kff = freeBlock(k);
+  const std::lock_guard<std::mutex> lock(impl_->mutex);
+  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
+  impl_->llt.factorize(kff);
+  refactor_cpu_s_ += clock.seconds();
+  ++refactors_;
+  for (Eigen::VectorXd& c : columns_) {
+    c.resize(0);
+  }
+  cached_ = 0;
+  if (impl_->llt.info() != Eigen::Success) {
+    throw std::invalid_argument("CondensedCompliance: the refactored stiffness (" +
+                                std::to_string(kff.rows()) +
+                                " free DOFs) is not positive definite");
+  }
+}
 
 void CondensedCompliance::require(const std::vector<int>& dofs) {
   const std::lock_guard<std::mutex> lock(impl_->mutex);

@@ -2,6 +2,8 @@
 #include "needle_guidance/fem/corotation.h"
 
 #include <Eigen/LU>
+#include <algorithm>
+#include <cmath>
 #include <stdexcept>
 #include <string>
 
@@ -46,49 +48,138 @@ CorotationalForces<Dim>::CorotationalForces(const SimplexMesh<Dim>& mesh,
   }
 }
 
+namespace {
+
+/// Angle of a rotation [rad].
 template <int Dim>
-Eigen::VectorXd CorotationalForces<Dim>::correction(const Eigen::VectorXd& u, int* inverted) const {
-  // An element whose deformation gradient is symmetric to this has no rotation: its corotated
-  // force equals the linear one (to this relative size), so it adds nothing to g.
+double rotationAngle(const Eigen::Matrix<double, Dim, Dim>& r) {
+  return std::acos(std::clamp(0.5 * (r.trace() - (Dim - 2)), -1.0, 1.0));
+}
+
+/// R_b K R_b^T for the block-diagonal R_b with r on each corner's block.
+template <int Dim>
+ElementMatrix<Dim> rotated(const ElementMatrix<Dim>& k, const Eigen::Matrix<double, Dim, Dim>& r) {
+  ElementMatrix<Dim> out;
+  for (int a = 0; a <= Dim; ++a) {
+    for (int b = 0; b <= Dim; ++b) {
+      out.template block<Dim, Dim>(Dim * a, Dim * b) =
+          r * k.template block<Dim, Dim>(Dim * a, Dim * b) * r.transpose();
+    }
+  }
+  return out;
+}
+
+}  // namespace
+
+template <int Dim>
+typename CorotationalForces<Dim>::Rotation CorotationalForces<Dim>::gradient(
+    int e, const Eigen::VectorXd& u) const {
+  const auto& nodes = mesh_->elements[static_cast<std::size_t>(e)];
+  const auto& grad = gradients_[static_cast<std::size_t>(e)];
+  Rotation f = Rotation::Identity();
+  for (int a = 0; a <= Dim; ++a) {
+    f += u.template segment<Dim>(Dim * nodes[a]) * grad.row(a);
+  }
+  return f;
+}
+
+template <int Dim>
+Eigen::VectorXd CorotationalForces<Dim>::correction(const Eigen::VectorXd& u, int* inverted,
+                                                    double* max_turn_rad) const {
+  // An element whose deformation gradient is symmetric to this has no rotation: with the
+  // identity as reference its corotated force equals the linear one (to this relative size), so
+  // it adds nothing to g.
   constexpr double kNoRotation = 1e-12;
   constexpr int kDofs = kElementDofs<Dim>;
   using Local = Eigen::Matrix<double, kDofs, 1>;
-  using Matrix = Eigen::Matrix<double, Dim, Dim>;
   Eigen::VectorXd g = Eigen::VectorXd::Zero(u.size());
   int flipped = 0;
+  double turn = 0.0;
   for (int e = 0; e < mesh_->elementCount(); ++e) {
-    const auto& nodes = mesh_->elements[static_cast<std::size_t>(e)];
-    const auto& grad = gradients_[static_cast<std::size_t>(e)];
-    Matrix f = Matrix::Identity();
-    Local ue, xe;
-    for (int a = 0; a <= Dim; ++a) {
-      ue.template segment<Dim>(Dim * a) = u.template segment<Dim>(Dim * nodes[a]);
-      xe.template segment<Dim>(Dim * a) = mesh_->nodes[static_cast<std::size_t>(nodes[a])];
-      f += ue.template segment<Dim>(Dim * a) * grad.row(a);
-    }
-    if ((f - f.transpose()).cwiseAbs().maxCoeff() < kNoRotation) {
+    const std::size_t ei = static_cast<std::size_t>(e);
+    const bool warped = !warped_.empty() && warped_[ei];
+    const Rotation f = gradient(e, u);
+    if (!warped && (f - f.transpose()).cwiseAbs().maxCoeff() < kNoRotation) {
       continue;
     }
     flipped += f.determinant() > 0.0 ? 0 : 1;
-    const Matrix r = fastPolarRotation<Dim>(f);
-    // R K_e (R^T x - X) - K_e u with x = X + u.
-    Local local;
+    const Rotation r = fastPolarRotation<Dim>(f);
+    const Rotation r0 = warped ? reference_[ei] : Rotation::Identity();
+    turn = std::max(turn, rotationAngle<Dim>(r0.transpose() * r));
+    // R K_e (R^T x - X) - R_0 K_e R_0^T u with x = X + u.
+    const auto& nodes = mesh_->elements[ei];
+    Local local, ue0;
     for (int a = 0; a <= Dim; ++a) {
-      local.template segment<Dim>(Dim * a) =
-          r.transpose() * (xe.template segment<Dim>(Dim * a) + ue.template segment<Dim>(Dim * a)) -
-          xe.template segment<Dim>(Dim * a);
+      const auto ua = u.template segment<Dim>(Dim * nodes[a]);
+      const Point<Dim>& xa = mesh_->nodes[static_cast<std::size_t>(nodes[a])];
+      local.template segment<Dim>(Dim * a) = r.transpose() * (xa + ua) - xa;
+      ue0.template segment<Dim>(Dim * a) = r0.transpose() * ua;
     }
-    const ElementMatrix<Dim>& ke = stiffness_[static_cast<std::size_t>(e)];
-    const Local kl = ke * local, ku = ke * ue;
+    const ElementMatrix<Dim>& ke = stiffness_[ei];
+    const Local kl = ke * local, ku = ke * ue0;
     for (int a = 0; a <= Dim; ++a) {
       g.template segment<Dim>(Dim * nodes[a]) +=
-          r * kl.template segment<Dim>(Dim * a) - ku.template segment<Dim>(Dim * a);
+          r * kl.template segment<Dim>(Dim * a) - r0 * ku.template segment<Dim>(Dim * a);
     }
   }
   if (inverted) {
     *inverted = flipped;
   }
+  if (max_turn_rad) {
+    *max_turn_rad = turn;
+  }
   return g;
+}
+
+template <int Dim>
+SparseMatrix CorotationalForces<Dim>::warpedStiffness(const Eigen::VectorXd& u) {
+  constexpr int kDofs = kElementDofs<Dim>;
+  constexpr int kEntries = kDofs * kDofs;
+  const std::size_t n = mesh_->elements.size();
+  if (slots_.empty()) {
+    // The pattern of assembleStiffness, once; later calls only overwrite the values.
+    std::vector<Eigen::Triplet<double>> triplets;
+    triplets.reserve(n * kEntries);
+    for (const auto& nodes : mesh_->elements) {
+      for (int a = 0; a < kDofs; ++a) {
+        for (int b = 0; b < kDofs; ++b) {
+          triplets.emplace_back(Dim * nodes[a / Dim] + a % Dim, Dim * nodes[b / Dim] + b % Dim,
+                                1.0);
+        }
+      }
+    }
+    warped_k_.resize(Dim * mesh_->nodeCount(), Dim * mesh_->nodeCount());
+    warped_k_.setFromTriplets(triplets.begin(), triplets.end());
+    slots_.resize(n * kEntries);
+    for (std::size_t t = 0; t < triplets.size(); ++t) {
+      const int col = triplets[t].col();
+      const int* first = warped_k_.innerIndexPtr() + warped_k_.outerIndexPtr()[col];
+      const int* last = warped_k_.innerIndexPtr() + warped_k_.outerIndexPtr()[col + 1];
+      slots_[t] = static_cast<int>(std::lower_bound(first, last, triplets[t].row()) -
+                                   warped_k_.innerIndexPtr());
+    }
+  }
+  reference_.assign(n, Rotation::Identity());
+  warped_.assign(n, 0);
+  warped_elements_ = 0;
+  std::fill(warped_k_.valuePtr(), warped_k_.valuePtr() + warped_k_.nonZeros(), 0.0);
+  for (int e = 0; e < mesh_->elementCount(); ++e) {
+    const std::size_t ei = static_cast<std::size_t>(e);
+    const Rotation r = fastPolarRotation<Dim>(gradient(e, u));
+    if (r != Rotation::Identity()) {
+      reference_[ei] = r;
+      warped_[ei] = 1;
+      ++warped_elements_;
+    }
+    const ElementMatrix<Dim> k = rotated<Dim>(stiffness_[ei], reference_[ei]);
+    const int* slot = slots_.data() + ei * kEntries;
+    for (int a = 0; a < kDofs; ++a) {
+      for (int b = 0; b < kDofs; ++b) {
+        warped_k_.valuePtr()[slot[a * kDofs + b]] += k(a, b);
+      }
+    }
+  }
+  return warped_k_;
 }
 
 template Eigen::Matrix<double, 2, 2> fastPolarRotation<2>(const Eigen::Matrix<double, 2, 2>&);

@@ -5,8 +5,9 @@
 #include <Eigen/Cholesky>
 #include <algorithm>
 #include <cmath>
-#include <ctime>
 #include <stdexcept>
+
+#include "needle_guidance/cpu_time.h"
 
 namespace needle_guidance::fem {
 namespace {
@@ -22,6 +23,15 @@ constexpr double kMaxCutTrial_m = 2.5e-4;  // trials grow up to this (a quarter 
 // below the step-halving target (5 um) of the seeds.
 constexpr double kWarpTol_m = 1e-7;
 constexpr int kMaxWarpUpdates = 60;
+// The warped stiffness is re-factored when the last kRewarpProbe updates, extrapolated at their
+// mean rate, predict more than kRewarpBudget further updates (a refactorisation costs about as
+// much as that many updates at 50k tetrahedra), at most kMaxRewarpsPerMove times per move.
+constexpr int kRewarpProbe = 5;
+constexpr double kRewarpBudget = 16.0;
+constexpr int kMaxRewarpsPerMove = 4;
+// After a rewarp the compliance columns are solved again in one batch along the needle line up
+// to this far beyond the tip, the rest as the tip gets there.
+constexpr double kRewarpPrefetch_m = 5e-3;
 
 /// s where an affine function with values fa at sa and fb at sb equals level.
 double crossing(double sa, double fa, double sb, double fb, double level) {
@@ -86,7 +96,7 @@ EmbeddingTissue<Dim>::EmbeddingTissue(const SimplexMesh<Dim>& mesh,
                                 " fixed flags for " + std::to_string(mesh.nodes.size()) +
                                 " nodes, or no element");
   }
-  const std::clock_t start = std::clock();
+  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
   const SparseMatrix k = assembleStiffness<Dim>(mesh, materials, thickness_m);
   std::vector<char> fixed(static_cast<std::size_t>(Dim * mesh.nodeCount()), 0);
   for (int i = 0; i < mesh.nodeCount(); ++i) {
@@ -100,7 +110,7 @@ EmbeddingTissue<Dim>::EmbeddingTissue(const SimplexMesh<Dim>& mesh,
   if (corotational) {
     corotation_ = std::make_unique<CorotationalForces<Dim>>(mesh, materials, thickness_m);
   }
-  assembly_cpu_s_ = static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
+  assembly_cpu_s_ = clock.seconds();
 
   grid_ = std::make_unique<Grid>();
   Point<Dim> lo = mesh.nodes[0], hi = mesh.nodes[0];
@@ -147,15 +157,26 @@ Eigen::VectorXd EmbeddingTissue<Dim>::corotationDisplacement(const Eigen::Vector
   if (!corotation_) {
     return {};
   }
-  const std::clock_t start = std::clock();
+  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
   int inverted = 0;
-  Eigen::VectorXd v = -compliance_->solve(corotation_->correction(u, &inverted));
+  Eigen::VectorXd v = -compliance_->solve(corotation_->correction(u, &inverted, &last_turn_rad_));
   inverted_elements_ = inverted;
-  corotation_cpu_s_ += static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
+  corotation_cpu_s_ += clock.seconds();
   if (!v.allFinite()) {
     throw std::runtime_error("EmbeddingTissue: the corotational displacement is not finite");
   }
   return v;
+}
+
+template <int Dim>
+void EmbeddingTissue<Dim>::warpReference(const Eigen::VectorXd& u) const {
+  if (!corotation_) {
+    return;
+  }
+  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
+  compliance_->refactor(corotation_->warpedStiffness(u));
+  ++reference_version_;
+  corotation_cpu_s_ += clock.seconds();
 }
 
 template <int Dim>
@@ -217,13 +238,14 @@ typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::onLine(double x) const
 }
 
 template <int Dim>
-void EmbeddedNeedle<Dim>::prefetchLine(const Lateral& lateral) const {
+void EmbeddedNeedle<Dim>::prefetchLine(const Lateral& lateral,
+                                       std::optional<double> end_x_m) const {
   // The cut track is the reference line at this lateral position: the columns of every node
   // of the elements it crosses are solved in one batch instead of a few per step.
   constexpr double kSample_m = 2e-4;
   std::vector<int> dofs;
   std::vector<char> seen(tissue_->mesh().elements.size(), 0);
-  const double end = max_tip_x_m_ + 2.0 * params_.track_spacing_m;
+  const double end = end_x_m.value_or(max_tip_x_m_ + 2.0 * params_.track_spacing_m);
   Vector p;
   p.template tail<Dim - 1>() = lateral;
   for (double x = entry_x_m_ + kEntryInset_m; x <= end; x += kSample_m) {
@@ -505,25 +527,89 @@ bool EmbeddedNeedle<Dim>::settleWarp() {
   if (warp_.size() == 0) {
     warp_ = Eigen::VectorXd::Zero(Dim * tissue_->mesh().nodeCount());
   }
+  if (reference_version_ != tissue_->referenceVersion()) {
+    adoptReference();  // another needle re-warped the shared tissue: the warp is a first guess
+  }
   if (warp_updates_ == 0) {
     warp_mixer_.reset();  // the needle moved since the last update
+    warp_changes_.clear();
   }
-  const Eigen::VectorXd v = tissue_->corotationDisplacement(displacementField());
+  const Eigen::VectorXd u = displacementField();
+  const Eigen::VectorXd v = tissue_->corotationDisplacement(u);
   const double change = (v - warp_).lpNorm<Eigen::Infinity>();
-  warp_ = change <= kWarpTol_m ? v : warp_mixer_.next(warp_, v);
-  commit(s_, nullptr);
   ++info_.corotation_updates;
   if (change <= kWarpTol_m) {
+    warp_ = v;
+    commit(s_, nullptr);
     warp_updates_ = 0;
     return true;
   }
-  if (++warp_updates_ > kMaxWarpUpdates) {
+  if (++warp_updates_ > kMaxWarpUpdates) {  // counted since the last rewarp
     throw std::runtime_error(
         "the corotational iteration did not converge: the warp still changed by " + mm(change) +
-        " mm after " + std::to_string(kMaxWarpUpdates) +
-        " updates (rotations too large for the fixed point on the linear stiffness)");
+        " mm after " + std::to_string(kMaxWarpUpdates) + " updates and " +
+        std::to_string(info_.rewarps) + " refactorisations of the warped stiffness");
   }
+  warp_changes_.push_back(change);
+  if (slowWarp()) {
+    rewarp(u);
+    return false;
+  }
+  warp_ = warp_mixer_.next(warp_, v);
+  commit(s_, nullptr);
   return false;
+}
+
+template <int Dim>
+bool EmbeddedNeedle<Dim>::slowWarp() const {
+  const int n = static_cast<int>(warp_changes_.size());
+  if (n < kRewarpProbe || info_.rewarps >= kMaxRewarpsPerMove) {
+    return false;
+  }
+  const double last = warp_changes_.back();
+  const double before = warp_changes_[static_cast<std::size_t>(n - kRewarpProbe)];
+  const double rate = std::pow(last / before, 1.0 / (kRewarpProbe - 1));
+  if (!(rate < 1.0)) {
+    return true;
+  }
+  return std::log(kWarpTol_m / last) / std::log(rate) > kRewarpBudget;
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::rewarp(const Eigen::VectorXd& u) {
+  tissue_->warpReference(u);
+  adoptReference();
+  warp_.setZero();
+  warp_ = u - displacementField();  // u = G f + warp on the new compliance
+  commit(s_, nullptr);
+  warp_mixer_.reset();
+  warp_changes_.clear();
+  warp_updates_ = 0;
+  ++info_.rewarps;
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::adoptReference() {
+  reference_version_ = tissue_->referenceVersion();
+  if (!in_tissue_) {
+    return;
+  }
+  prefetchLine(lateral_, std::min(s_ + kRewarpPrefetch_m, max_tip_x_m_));
+  requireColumns(tip_);
+  if (punctured_) {
+    requireColumns(pending_track_);
+  }
+  const int ns = static_cast<int>(shaft_.size());
+  shaft_compliance_.resize(Dim * ns, Dim * ns);
+  for (int k = 0; k < ns; ++k) {
+    requireColumns(shaft_[static_cast<std::size_t>(k)].point);
+  }
+  for (int k = 0; k < ns; ++k) {
+    for (int l = 0; l < ns; ++l) {
+      shaft_compliance_.template block<Dim, Dim>(Dim * k, Dim * l) = block(
+          shaft_[static_cast<std::size_t>(k)].point, shaft_[static_cast<std::size_t>(l)].point);
+    }
+  }
 }
 
 template <int Dim>
@@ -761,6 +847,7 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
   }
   info_.events = 0;
   info_.corotation_updates = 0;
+  info_.rewarps = 0;
   warp_updates_ = 0;
   solves_ = 0;
   if (!in_tissue_) {

@@ -1,9 +1,9 @@
 #include "needle_guidance/ros/rigid_planner_3d_ros.h"
 
 #include <cmath>
-#include <ctime>
 #include <sstream>
 
+#include "needle_guidance/cpu_time.h"
 #include "needle_guidance/tissue_3d/tet_mesh_3d.h"
 
 namespace needle_guidance {
@@ -11,7 +11,7 @@ namespace needle_guidance {
 RigidPlanner3Ros::RigidPlanner3Ros(ros::NodeHandle& private_nh, const std::string& scene_file,
                                    double tolerance_m)
     : scene_(tissue_3d::loadTissueScene3d(scene_file)) {
-  const std::clock_t start = std::clock();
+  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
   model_ = std::make_unique<tissue_3d::TissueModel3>(tissue_3d::meshTissue3d(scene_, {}),
                                                      scene_.materialTable(), scene_.corotational);
   if (tolerance_m > 0.0) {
@@ -21,8 +21,7 @@ RigidPlanner3Ros::RigidPlanner3Ros(ros::NodeHandle& private_nh, const std::strin
   plan_srv_ = private_nh.advertiseService("plan", &RigidPlanner3Ros::onPlan, this);
   ROS_INFO_STREAM("rigid_planner: ready on 3-D scene '"
                   << scene_.name << "', " << model_->mesh().elements.size()
-                  << " tetrahedra, built in " << double(std::clock() - start) / CLOCKS_PER_SEC
-                  << " s CPU");
+                  << " tetrahedra, built in " << clock.seconds() << " s CPU");
 }
 
 bool RigidPlanner3Ros::onPlan(PlanRigid::Request& req, PlanRigid::Response& res) {

@@ -5,9 +5,9 @@
 
 #include <algorithm>
 #include <chrono>
-#include <ctime>
 
 #include "needle_guidance/TissueStatus.h"
+#include "needle_guidance/cpu_time.h"
 #include "needle_guidance/ros/implant_seed_answer.h"
 #include "needle_guidance/ros/params.h"
 #include "needle_guidance/tissue_3d/tet_mesh_3d.h"
@@ -29,7 +29,7 @@ TissueSim3Ros::TissueSim3Ros(ros::NodeHandle& nh, ros::NodeHandle& private_nh,
   const std::string robot = ros_params::text(private_nh, "robot", "insertion_robot");
   marker_period_s_ = 1.0 / marker_rate_hz;
 
-  const std::clock_t start = std::clock();
+  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
   tissue_3d::TetMeshReport mesh_report;
   tissue_3d::TetMesh3 mesh = tissue_3d::meshTissue3d(scene_, {}, 1.0, &mesh_report);
   const std::size_t tets = mesh.elements.size();
@@ -41,7 +41,7 @@ TissueSim3Ros::TissueSim3Ros(ros::NodeHandle& nh, ros::NodeHandle& private_nh,
   ROS_INFO_STREAM("tissue_sim: 3-D scene '"
                   << scene_.name << "', " << tets << " tetrahedra, " << model_->mesh().nodeCount()
                   << " nodes" << (mesh_report.note.empty() ? "" : " (" + mesh_report.note + ")")
-                  << ", built in " << double(std::clock() - start) / CLOCKS_PER_SEC << " s CPU");
+                  << ", built in " << clock.seconds() << " s CPU");
 
   markers_pub_ = private_nh.advertise<visualization_msgs::MarkerArray>("markers", 1, true);
   status_pub_ = private_nh.advertise<TissueStatus>("status", 10);

@@ -2,9 +2,10 @@
 #include "needle_guidance/tissue_3d/offset_planner_3d.h"
 
 #include <cmath>
-#include <ctime>
 #include <sstream>
 #include <stdexcept>
+
+#include "needle_guidance/cpu_time.h"
 
 namespace needle_guidance::tissue_3d {
 namespace {
@@ -17,10 +18,6 @@ std::string mm(double m) {
   out.precision(3);
   out << std::fixed << m * 1e3 << " mm";
   return out.str();
-}
-
-double cpuNow() {
-  return static_cast<double>(std::clock()) / CLOCKS_PER_SEC;
 }
 
 }  // namespace
@@ -97,7 +94,7 @@ Vector3 OffsetPlanner3::simulateImplant(const Eigen::Vector2d& lateral, double t
 }
 
 PlanResult3 OffsetPlanner3::plan(const Target3& target) {
-  const double cpu_start = cpuNow();
+  const CpuStopwatch plan_clock(CpuStopwatch::Scope::kProcess);
   PlanResult3 r;
   r.target = target.name;
   const Vector3& goal = target.position_m;
@@ -105,7 +102,7 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
   const Workspace3& w = scene_.workspace;
   double excluded_cpu = 0.0;
   auto finish = [&]() {
-    r.plan_cpu_s = cpuNow() - cpu_start - excluded_cpu;
+    r.plan_cpu_s = plan_clock.seconds() - excluded_cpu;
     return r;
   };
   if (!r.refusal.empty()) {
@@ -115,10 +112,10 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
   try {
     if (options_.unplanned) {
       // For the report only: not part of planning, so not in plan_cpu_s.
-      const double unplanned_start = cpuNow();
+      const CpuStopwatch unplanned_clock(CpuStopwatch::Scope::kProcess);
       const Vector3 seed = simulateImplant(goal.tail<2>(), goal.x());
       r.unplanned_error_m = (seed - goal).norm();
-      excluded_cpu += cpuNow() - unplanned_start;
+      excluded_cpu += unplanned_clock.seconds();
     }
     // Lateral and depth by fixed-point iteration on the simulated tip trajectory: the seed's
     // tissue point is the tip's at release.

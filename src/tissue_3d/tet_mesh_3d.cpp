@@ -9,10 +9,11 @@
 #include <CGAL/make_mesh_3.h>
 
 #include <cmath>
-#include <ctime>
 #include <map>
 #include <sstream>
 #include <stdexcept>
+
+#include "needle_guidance/cpu_time.h"
 
 namespace needle_guidance::tissue_3d {
 namespace {
@@ -120,7 +121,7 @@ void repairTetMesh(TetMesh3& mesh, double min_quality, TetMeshReport& report) {
 
 TetMesh3 meshTissue3d(const TissueScene3d& scene, const std::vector<Eigen::Vector2d>& lines,
                       double size_scale, TetMeshReport* report) {
-  const std::clock_t start = std::clock();
+  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
   const RegionLocator3 locator(scene);
   // Labels: 0 outside, 1 block, 2 + r region r.
   std::function<int(const CgalPoint&)> label = [&locator](const CgalPoint& p) {
@@ -190,7 +191,7 @@ TetMesh3 meshTissue3d(const TissueScene3d& scene, const std::vector<Eigen::Vecto
   TetMeshReport local;
   TetMeshReport& r = report ? *report : local;
   repairTetMesh(mesh, kMinTetQuality, r);
-  r.cpu_s = static_cast<double>(std::clock() - start) / CLOCKS_PER_SEC;
+  r.cpu_s = clock.seconds();
   if (mesh.fixedCount() < 4) {
     throw std::invalid_argument("meshTissue3d: scene '" + scene.name + "': only " +
                                 std::to_string(mesh.fixedCount()) +

@@ -9,7 +9,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <ctime>
 #include <filesystem>
 #include <iostream>
 #include <optional>
@@ -17,6 +16,7 @@
 #include <string>
 #include <vector>
 
+#include "needle_guidance/cpu_time.h"
 #include "needle_guidance/package_paths.h"
 #include "needle_guidance/report/bench_args.h"
 #include "needle_guidance/report/process_usage.h"
@@ -34,10 +34,6 @@ namespace {
 /// A length in mm for the CSV, empty when undefined (< 0: never computed).
 ng::report::Cell mmOrUndefined(double m) {
   return m < 0.0 ? ng::report::Cell(std::string()) : ng::report::Cell(m * 1e3);
-}
-
-double cpuNow() {
-  return static_cast<double>(std::clock()) / CLOCKS_PER_SEC;
 }
 
 std::vector<std::string> defaultScenes() {
@@ -61,11 +57,18 @@ struct ScalingRow {
   double columns_mb = 0.0;
   double insertion_cpu_s = 0.0;
   double corotation_cpu_s = 0.0;  ///< CPU in the corotational updates of the insertion
+  int steps = 0;
+  int corotation_updates = 0;  ///< corotational fixed-point updates of the insertion
+  int rewarps = 0;             ///< refactorisations of the warped stiffness in the insertion
+  double refactor_cpu_s = 0.0;
+  t3::Vector3 seed_m = t3::Vector3::Constant(std::nan(""));  ///< with_seed: after retraction
 };
 
-/// One insertion to the scene's first target at its step; CPU per step. corotational: the
-/// same with the corotational elasticity.
-ScalingRow scalingRun(const t3::TissueScene3d& scene, double scale, bool corotational = false) {
+/// One insertion to the scene's first target at its step (times step_scale); CPU per step.
+/// corotational: the same with the corotational elasticity. with_seed: then a seed released at
+/// the tip and the needle retracted at the same step (not timed).
+ScalingRow scalingRun(const t3::TissueScene3d& scene, double scale, bool corotational = false,
+                      double step_scale = 1.0, bool with_seed = false) {
   ScalingRow row;
   t3::TetMeshReport report;
   t3::TetMesh3 mesh = t3::meshTissue3d(scene, {}, scale, &report);
@@ -75,8 +78,8 @@ ScalingRow scalingRun(const t3::TissueScene3d& scene, double scale, bool corotat
   row.factor_cpu_s = model.assemblyCpuSeconds();
   const t3::Target3& target = scene.targets.front();
   t3::NeedleInsertion3 needle(model, scene.needle, scene.block_min_m.x(), target.position_m.x());
-  const double step = scene.needle.insertion_velocity_m_s * scene.needle.step_s;
-  const double start = cpuNow();
+  const double step = scene.needle.insertion_velocity_m_s * scene.needle.step_s * step_scale;
+  const ng::CpuStopwatch clock(ng::CpuStopwatch::Scope::kProcess);
   int steps = 0;
   std::string why;
   for (double s = scene.block_min_m.x() - step; s < target.position_m.x();) {
@@ -85,13 +88,27 @@ ScalingRow scalingRun(const t3::TissueScene3d& scene, double scale, bool corotat
       throw std::runtime_error("scaling run: " + why);
     }
     ++steps;
+    row.corotation_updates += needle.lastMove().corotation_updates;
+    row.rewarps += needle.lastMove().rewarps;
   }
-  const double cpu = cpuNow() - start;
+  const double cpu = clock.seconds();
   row.steps_per_s = steps / std::max(cpu, 1e-9);
   row.insertion_cpu_s = cpu;
   row.peak_mb = peakMb();
   row.columns_mb = model.compliance().memoryBytes() / 1048576.0;
   row.corotation_cpu_s = model.corotationCpuSeconds();
+  row.refactor_cpu_s = model.compliance().refactorCpuSeconds();
+  row.steps = steps;
+  if (with_seed) {
+    const int seed = needle.implantSeed(&why).value();
+    for (double s = target.position_m.x(); s > scene.block_min_m.x() - step;) {
+      s -= step;
+      if (!needle.moveTo(target.position_m.tail<2>(), s, &why)) {
+        throw std::runtime_error("scaling run, retraction: " + why);
+      }
+    }
+    row.seed_m = needle.seedWorld(seed);
+  }
   return row;
 }
 
@@ -116,7 +133,7 @@ double corotationChanges(const std::vector<PlacedPlan>& plans, const std::string
     t3::OffsetPlanner3 planner(scene, model);
     for (; i < plans.size() && plans[i].file == scene.source; ++i) {
       const PlacedPlan& p = plans[i];
-      const double start = cpuNow();
+      const ng::CpuStopwatch clock(ng::CpuStopwatch::Scope::kProcess);
       const t3::Target3& target =
           *std::find_if(scene.targets.begin(), scene.targets.end(),
                         [&](const t3::Target3& t) { return t.name == p.target; });
@@ -128,7 +145,7 @@ double corotationChanges(const std::vector<PlacedPlan>& plans, const std::string
       } catch (const std::runtime_error& e) {
         refusal = e.what();
       }
-      table.addRow({scene.name, p.target, mmOrUndefined(change), cpuNow() - start,
+      table.addRow({scene.name, p.target, mmOrUndefined(change), clock.seconds(),
                     (p.seed_linear - target.position_m).norm() * 1e3, refusal});
       std::cout << "  corotational " << scene.name << "/" << p.target << ": seed moves "
                 << change * 1e3 << " mm " << refusal << "\n";
@@ -397,14 +414,18 @@ int main(int argc, char** argv) {
     scale50 *= std::cbrt(t3::meshTissue3d(base, {}, scale50).elementCount() / 5e4);
     ScalingRow r50_corot;
     r50_corot.steps_per_s = -1.0;
+    double corot_halving = -1.0;  // the seed's change when the step is halved [m]
     try {
-      r50_corot = scalingRun(base, scale50, true);
+      r50_corot = scalingRun(base, scale50, true, 1.0, true);
+      corot_halving = (scalingRun(base, scale50, true, 0.5, true).seed_m - r50_corot.seed_m).norm();
     } catch (const std::runtime_error& e) {
       std::cout << "  corotational scaling run refused: " << e.what() << "\n";
     }
     std::cout << "  corotational, " << r50_corot.tets << " tets: " << r50_corot.steps_per_s
-              << " steps/s (linear " << r50_linear.steps_per_s << " at " << r50_linear.tets
-              << ")\n";
+              << " steps/s (linear " << r50_linear.steps_per_s << " at " << r50_linear.tets << "), "
+              << r50_corot.corotation_updates << " updates and " << r50_corot.rewarps
+              << " refactorisations in " << r50_corot.steps << " steps; halving the step moves the"
+              << " seed by " << corot_halving * 1e3 << " mm\n";
     const double corot_change = corotationChanges(placed_plans, args->out_dir + "/corotation.csv");
     scaling.writeCsv(args->out_dir + "/scaling.csv");
     plans.writeCsv(args->out_dir + "/plans.csv");
@@ -447,6 +468,16 @@ int main(int argc, char** argv) {
          << (r50_corot.steps_per_s > 0.0 ? jsonNumber(r50_corot.corotation_cpu_s /
                                                       std::max(r50_corot.insertion_cpu_s, 1e-9))
                                          : "null")
+         << ",\n  \"corotation_updates_per_step_50k\": "
+         << (r50_corot.steps > 0
+                 ? jsonNumber(double(r50_corot.corotation_updates) / r50_corot.steps)
+                 : "null")
+         << ",\n  \"corotation_refactorisations_50k\": "
+         << (r50_corot.steps > 0 ? std::to_string(r50_corot.rewarps) : "null")
+         << ",\n  \"corotation_refactor_cpu_s_50k\": "
+         << (r50_corot.steps > 0 ? jsonNumber(r50_corot.refactor_cpu_s) : "null")
+         << ",\n  \"corotational_step_halving_mm_50k\": "
+         << mmKey(corot_halving >= 0.0, corot_halving)
          << ",\n  \"corotational_seed_change_mm_max\": " << mmKey(corot_change >= 0.0, corot_change)
          << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());

@@ -4,9 +4,12 @@
 // physical refusals (target in bone, needle line grazing a region, very stiff gland).
 #include <gtest/gtest.h>
 
+#include <Eigen/Geometry>
 #include <cmath>
 #include <string>
 
+#include "needle_guidance/fem/condensed_compliance.h"
+#include "needle_guidance/fem/corotation.h"
 #include "needle_guidance/fem/fixed_point.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/tissue_3d/offset_planner_3d.h"
@@ -464,6 +467,96 @@ TEST(Tissue3dCorotation, HalvingTheStepMovesNoSeed) {
   const Vector3 b = planner.simulateImplant(lateral, 0.04, 0.5);
   EXPECT_LT((a - b).norm(), kStepHalving_m);
   EXPECT_TRUE(a.allFinite() && b.allFinite());
+}
+
+TEST(Tissue3dCorotation, WarpedStiffnessAndItsFactor) {
+  // Every element turned rigidly by 0.6 rad about z: the corotated forces vanish, so against
+  // the warped stiffness at that turn the correction is exactly -K_R u; the compliance
+  // re-factored with K_R solves K_R x = e_j on the free DOFs, like a fresh factorisation.
+  constexpr double kTurn_rad = 0.6;
+  constexpr double kRelTol = 1e-9;
+  const TetMesh3 mesh = beamMesh(0.05, 0.006, 6);
+  const std::vector<fem::Material> materials = {{1e4, 0.3}};
+  const Eigen::Matrix3d r = Eigen::AngleAxisd(kTurn_rad, Eigen::Vector3d::UnitZ()).matrix();
+  Eigen::VectorXd u(3 * mesh.nodeCount());
+  for (int i = 0; i < mesh.nodeCount(); ++i) {
+    const Vector3& x = mesh.nodes[static_cast<std::size_t>(i)];
+    u.segment<3>(3 * i) = r * x - x;
+  }
+  fem::CorotationalForces<3> forces(mesh, materials);
+  double turn_rad = -1.0;
+  const Eigen::VectorXd g_linear = forces.correction(u, nullptr, &turn_rad);
+  EXPECT_NEAR(turn_rad, kTurn_rad, 1e-9);  // against the identity: the turn itself
+  const fem::SparseMatrix k = fem::assembleStiffness<3>(mesh, materials);
+  EXPECT_LT((g_linear + k * u).norm(), kRelTol * (k * u).norm());  // f_int = 0: g = -K u
+  const fem::SparseMatrix k_r = forces.warpedStiffness(u);
+  EXPECT_EQ(forces.warpedElements(), mesh.elementCount());
+  EXPECT_EQ(k_r.nonZeros(), k.nonZeros());
+  const Eigen::VectorXd g = forces.correction(u, nullptr, &turn_rad);
+  EXPECT_LT(turn_rad, 1e-6);  // the reference has the same turn
+  EXPECT_LT((g + k_r * u).norm(), kRelTol * (k_r * u).norm());
+  std::vector<char> fixed(static_cast<std::size_t>(3 * mesh.nodeCount()), 0);
+  for (int i = 0; i < mesh.nodeCount(); ++i) {
+    for (int d = 0; d < 3; ++d) {
+      fixed[static_cast<std::size_t>(3 * i + d)] = mesh.node_fixed[static_cast<std::size_t>(i)];
+    }
+  }
+  fem::CondensedCompliance compliance(k, fixed), fresh(k_r, fixed);
+  const int dof = 3 * (mesh.nodeCount() - 1) + 1;
+  compliance.require({dof});
+  compliance.refactor(k_r);
+  EXPECT_EQ(compliance.refactorCount(), 1);
+  EXPECT_EQ(compliance.cachedColumns(), 0);  // the old columns are dropped
+  compliance.require({dof});
+  fresh.require({dof});
+  EXPECT_LT((compliance.column(dof) - fresh.column(dof)).norm(),
+            kRelTol * fresh.column(dof).norm());
+  Eigen::VectorXd residual = k_r * compliance.column(dof);
+  residual(dof) -= 1.0;
+  for (int i = 0; i < residual.size(); ++i) {
+    residual(i) = fixed[static_cast<std::size_t>(i)] ? 0.0 : residual(i);
+  }
+  EXPECT_LT(residual.norm(), kRelTol * k_r.norm());
+  // A stiffness of another size is refused, naming both.
+  EXPECT_THROW(compliance.refactor(fem::SparseMatrix(3, 3)), std::invalid_argument);
+}
+
+TEST(Tissue3dCorotation, SeedDoesNotDependOnTheWarpedReference) {
+  // The corotational equilibrium is the fixed point whatever stiffness preconditions it: an
+  // insertion on a tissue whose warped stiffness was taken at a rigid turn of the whole block
+  // by 0.5 rad (a poor reference, re-warped during the insertion when the updates stall)
+  // leaves the seed where the insertion from the linear stiffness does.
+  constexpr double kReferenceTol_m = 1e-6;
+  constexpr double kTurn_rad = 0.5;
+  const Eigen::Vector2d lateral(1e-3, 2e-3);
+  constexpr double kDepth_m = 0.036, kStep_m = 5e-4;
+  auto insert = [&](TissueModel3& model, const TissueScene3d& scene, int* rewarps) {
+    NeedleInsertion3 needle(model, scene.needle, 0.0, 0.04);
+    for (double s = 0.0; s < kDepth_m - 1e-12;) {
+      s = std::min(s + kStep_m, kDepth_m);
+      std::string why;
+      EXPECT_TRUE(needle.moveTo(lateral, s, &why)) << why;
+      *rewarps += needle.lastMove().rewarps;
+    }
+    const int seed = needle.implantSeed().value();
+    EXPECT_TRUE(needle.moveTo(lateral, -1e-3));
+    return needle.seedWorld(seed);
+  };
+  Fixture a(corotationalScene()), b(corotationalScene());
+  Eigen::VectorXd turn(3 * b.model.mesh().nodeCount());
+  const Eigen::Matrix3d r = Eigen::AngleAxisd(kTurn_rad, Eigen::Vector3d::UnitY()).matrix();
+  for (int i = 0; i < b.model.mesh().nodeCount(); ++i) {
+    const Vector3& x = b.model.mesh().nodes[static_cast<std::size_t>(i)];
+    turn.segment<3>(3 * i) = r * x - x;
+  }
+  b.model.embedding().warpReference(turn);
+  EXPECT_EQ(b.model.embedding().referenceVersion(), 1);
+  int rewarps_a = 0, rewarps_b = 0;
+  const Vector3 seed_a = insert(a.model, a.scene, &rewarps_a);
+  const Vector3 seed_b = insert(b.model, b.scene, &rewarps_b);
+  ASSERT_TRUE(seed_a.allFinite() && seed_b.allFinite());
+  EXPECT_LT((seed_a - seed_b).norm(), kReferenceTol_m) << (seed_a - seed_b).transpose();
+  EXPECT_GT(rewarps_b, 0);  // the poor reference was replaced
 }
 
 }  // namespace

@@ -46,7 +46,18 @@ public:
   /// Drops every cached column (memory bound between insertions along new paths).
   void clearCache();
 
+  /// Factors a new stiffness of the same sparsity pattern and the same fixed DOFs (the warped
+  /// stiffness of corotational tissue), re-using the symbolic analysis, and drops every cached
+  /// column. Throws std::invalid_argument like the constructor; the compliance is then unusable.
+  void refactor(const SparseMatrix& stiffness);
+  int refactorCount() const { return refactors_; }
+  /// CPU time of the refactorisations so far [s].
+  double refactorCpuSeconds() const { return refactor_cpu_s_; }
+
 private:
+  /// K restricted to the free DOFs, lower triangle.
+  SparseMatrix freeBlock(const SparseMatrix& stiffness) const;
+
   struct Impl;
   std::unique_ptr<Impl> impl_;
   std::vector<char> fixed_;
@@ -56,6 +67,8 @@ private:
   int cached_ = 0;
   long long solved_ = 0;
   double factor_cpu_s_ = 0.0;
+  int refactors_ = 0;
+  double refactor_cpu_s_ = 0.0;
 };
 
 }  // namespace needle_guidance::fem

@@ -2,8 +2,12 @@
 // of element e at displaced corners x = X + u is R K_e (R^T x - X), R the rotation of the polar
 // decomposition of its deformation gradient, which vanishes for any rigid motion however large;
 // the linear element's K_e u instead grows with the rotation (a turn by a strains it by
-// ~a^2 / 2). CorotationalForces gives the difference g(u) = f_int(u) - K u, so that a solver
-// factored for the linear K finds the corotational equilibrium K u = f - g(u) as a fixed point.
+// ~a^2 / 2). CorotationalForces gives the difference g(u) = f_int(u) - K_0 u to a reference
+// stiffness K_0, so that a solver factored for K_0 finds the corotational equilibrium
+// K_0 u = f - g(u) as a fixed point. K_0 is the linear K, or the warped stiffness
+// K_R = sum_e R_e K_e R_e^T at the rotations of a recent displacement (Mueller et al. 2002):
+// the fixed point then contracts with the rotations' change since that displacement rather
+// than with the rotations themselves.
 #pragma once
 
 #include <Eigen/Core>
@@ -26,15 +30,32 @@ public:
   /// and unchanged). Throws std::invalid_argument like assembleStiffness.
   CorotationalForces(const SimplexMesh<Dim>& mesh, const std::vector<Material>& materials,
                      double thickness_m = 1.0);
-  /// g(u) = sum over elements of R K_e (R^T x - X) - K_e u at displacement u (Dim * node order)
-  /// [N]. An element the displacement inverts (det F <= 0) takes the proper rotation nearest to
-  /// F (the smallest singular direction flipped, as invertible FEM does); inverted counts them.
-  Eigen::VectorXd correction(const Eigen::VectorXd& u, int* inverted = nullptr) const;
+  /// g(u) = sum over elements of R K_e (R^T x - X) - R_0 K_e R_0^T u at displacement u (Dim *
+  /// node order) [N], R_0 the element's reference rotation (identity until warpedStiffness).
+  /// An element the displacement inverts (det F <= 0) takes the proper rotation nearest to F
+  /// (the smallest singular direction flipped, as invertible FEM does); inverted counts them.
+  /// max_turn_rad: the largest angle between an element's rotation and its reference rotation.
+  Eigen::VectorXd correction(const Eigen::VectorXd& u, int* inverted = nullptr,
+                             double* max_turn_rad = nullptr) const;
+  /// The warped stiffness K_R = sum_e R_e K_e R_e^T at displacement u (the same sparsity pattern
+  /// as assembleStiffness); the rotations R_e become the reference rotations of correction.
+  SparseMatrix warpedStiffness(const Eigen::VectorXd& u);
+  /// Elements whose reference rotation is not the identity.
+  int warpedElements() const { return warped_elements_; }
 
 private:
+  using Rotation = Eigen::Matrix<double, Dim, Dim>;
+  /// Deformation gradient of element e at u.
+  Rotation gradient(int e, const Eigen::VectorXd& u) const;
+
   const SimplexMesh<Dim>* mesh_;
   std::vector<Eigen::Matrix<double, Dim + 1, Dim>> gradients_;
   std::vector<ElementMatrix<Dim>> stiffness_;
+  std::vector<Rotation> reference_;  ///< per element; empty: every reference is the identity
+  std::vector<char> warped_;         ///< per element: reference rotation differs from identity
+  int warped_elements_ = 0;
+  SparseMatrix warped_k_;   ///< the last warped stiffness (its pattern is re-used)
+  std::vector<int> slots_;  ///< per element and entry of K_e: its index in warped_k_'s values
 };
 
 }  // namespace needle_guidance::fem

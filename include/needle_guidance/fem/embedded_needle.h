@@ -49,7 +49,8 @@ struct EmbeddedPoint {
 };
 
 /// The linear tissue a needle is embedded in: the mesh (owned by the caller, who keeps it alive
-/// and unchanged), its stiffness factored once, and a uniform-grid locator of embedded points.
+/// and unchanged), its stiffness factored once (corotational tissue: again when a needle
+/// re-warps it), and a uniform-grid locator of embedded points.
 template <int Dim>
 class EmbeddingTissue {
 public:
@@ -75,16 +76,25 @@ public:
 
   bool corotational() const { return corotation_ != nullptr; }
   /// The corotational part of the displacement at displacement u (Dim * node order) [m]:
-  /// v = -K^-1 g(u), g the corotated element forces less the linear ones
-  /// (CorotationalForces::correction). Equilibrium under nodal forces f is the fixed point
-  /// u = K^-1 f + v(u), solved with the factored linear K as the preconditioner on the rotation
-  /// residual (warped stiffness, Mueller et al. 2002). Empty for a linear tissue. Throws
-  /// std::runtime_error if the result is not finite.
+  /// v = -K_0^-1 g(u), g the corotated element forces less K_0 u (CorotationalForces::
+  /// correction), K_0 the factored reference stiffness: the linear K until warpReference, then
+  /// the warped stiffness. Equilibrium under nodal forces f is the fixed point
+  /// u = K_0^-1 f + v(u) (warped stiffness, Mueller et al. 2002). Empty for a linear tissue.
+  /// Throws std::runtime_error if the result is not finite.
   Eigen::VectorXd corotationDisplacement(const Eigen::VectorXd& u) const;
   /// Elements inverted at the u of the last corotationDisplacement (they take the proper
   /// rotation nearest to F).
   int invertedElements() const { return inverted_elements_; }
-  /// CPU time spent in corotationDisplacement so far [s].
+  /// The largest angle between an element's rotation at the u of the last
+  /// corotationDisplacement and its reference rotation [rad].
+  double lastTurnRad() const { return last_turn_rad_; }
+  /// Corotational tissue: re-factors the compliance with the warped stiffness at displacement u
+  /// (the rotations at u become the reference; every cached column is dropped and
+  /// referenceVersion() grows). The tissue's needles share the reference: a needle finding a
+  /// new version rebuilds what it derived from the old one.
+  void warpReference(const Eigen::VectorXd& u) const;
+  int referenceVersion() const { return reference_version_; }
+  /// CPU time spent in corotationDisplacement and warpReference so far [s].
   double corotationCpuSeconds() const { return corotation_cpu_s_; }
 
 private:
@@ -97,6 +107,8 @@ private:
   std::unique_ptr<CorotationalForces<Dim>> corotation_;
   mutable double corotation_cpu_s_ = 0.0;
   mutable int inverted_elements_ = 0;
+  mutable double last_turn_rad_ = 0.0;
+  mutable int reference_version_ = 0;
 };
 
 /// Interaction parameters of the embedded needle [SI].
@@ -118,6 +130,7 @@ struct EmbeddedNeedleInfo {
   int events = 0;              ///< located events in the last move
   int solves = 0;              ///< condensed solves in the last move
   int corotation_updates = 0;  ///< corotational fixed-point updates in the last move
+  int rewarps = 0;             ///< warped-stiffness refactorisations in the last move
 };
 
 template <int Dim>
@@ -186,7 +199,8 @@ private:
   Solution solveAt(double s, const Point_* tip) const;
   Block block(const Point_& p, const Point_& q) const;
   void requireColumns(const Point_& p) const;
-  void prefetchLine(const Lateral& lateral) const;
+  /// end_x_m: the last x to prefetch (default: beyond the deepest tip position).
+  void prefetchLine(const Lateral& lateral, std::optional<double> end_x_m = std::nullopt) const;
   Vector onLine(double x) const;
   /// Length cut beyond the current tip point for the tip at x = s (tip force then f_b).
   double cutLength(double s) const;
@@ -210,8 +224,18 @@ private:
   /// Corotational tissue: one fixed-point update of the warp at the committed state (Anderson
   /// mixing over the updates of this move), which is then solved again; true when the update
   /// changed the warp by at most the convergence tolerance (always true for a linear tissue).
-  /// Throws std::runtime_error if it does not converge.
+  /// When the updates converge too slowly the tissue's reference stiffness is re-warped at the
+  /// current displacement (rewarp). Throws std::runtime_error if it does not converge.
   bool settleWarp();
+  /// True when the warp's last changes predict more updates to convergence than a rewarp is
+  /// worth.
+  bool slowWarp() const;
+  /// Re-factors the tissue's warped stiffness at displacement u (the current state) and
+  /// expresses the state on it: u = G f + warp with the new compliance G.
+  void rewarp(const Eigen::VectorXd& u);
+  /// Rebuilds what the needle derived from the tissue's compliance (the columns along its line
+  /// and the shaft's condensed compliance) after the reference changed.
+  void adoptReference();
   bool enter(const Lateral& lateral, std::string* why_not);
 
   const EmbeddingTissue<Dim>* tissue_;
@@ -238,6 +262,8 @@ private:
   Eigen::VectorXd warp_;  ///< corotational part of the displacement (empty: none) [m]
   int warp_updates_ = 0;  ///< consecutive updates without convergence
   AndersonAcceleration warp_mixer_;
+  std::vector<double> warp_changes_;  ///< changes of the updates since the last reference change
+  int reference_version_ = 0;         ///< the tissue's reference the compliance data came from
 };
 
 }  // namespace needle_guidance::fem
