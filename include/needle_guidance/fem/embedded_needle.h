@@ -9,11 +9,19 @@
 // The needle moves along +x at a lateral position (y in 2-D; y, z in 3-D). Interaction:
 //  * tip: before puncture the tip pins the surface point it touches; when the tip force
 //    reaches the cutting force f_b the tissue is cut continuously: the tip's tissue point
-//    advances along +x in the reference so that the tip force stays f_b. The tip holds the
-//    tissue it cuts on the needle axis, so the cut track is the reference line at the needle's
-//    lateral position; the lateral shear just ahead of the tip (F^-1 e_x of 2.3.4) is
-//    neglected: evaluated on the tip's element it is dominated by the tip's own point load
-//    and made the track wander with the mesh;
+//    advances in the reference so that the tip force stays f_b. Which tissue it advances
+//    through is the cut track model (EmbeddedNeedleParams::track):
+//    - rest_line: along +x, the reference line at the needle's lateral position (the tissue
+//      ahead of the tip is taken where it was at rest);
+//    - follow_tissue: the tip cuts the tissue that is now in front of it. At puncture and at
+//      each new track point the tissue currently at the needle axis one track spacing ahead,
+//      X = p - u(X), is found by fixed-point iteration, and the track heads there. u is the
+//      displacement averaged over the tip's cross-section (a disc of the needle's radius about
+//      X, normal to the needle) caused by every load except the tip's own: the tip's point load
+//      is singular (its displacement next to it is set by the element size, and its lateral
+//      part by the mesh's asymmetry), while a real tip of finite size pushes the tissue it cuts
+//      symmetrically aside. The direction is found at located events only, so it does not
+//      depend on the step length either;
 //  * shaft: the cut track's tissue points, one per track_spacing of cut, lie on the needle axis;
 //    along it each is stuck (moves with the needle) or slips with the kinetic friction force
 //    (per unit length times its share of shaft); a stuck point slips when holding it needs
@@ -107,6 +115,9 @@ struct EmbeddedNeedleParams {
   double stick_velocity_m_s = 5e-4;        ///< the shaft slips while the needle slides faster
   double insertion_velocity_m_s = 5e-3;    ///< nominal insertion speed
   double track_spacing_m = 1e-3;           ///< spacing of the shaft's tissue points, > 0
+  /// The tissue the tip cuts (see the file comment): false = rest_line, true = follow_tissue.
+  bool follow_tissue = false;
+  double tip_radius_m = 6.35e-4;  ///< follow_tissue: radius of the tip's cross-section, > 0
 };
 
 /// Figures of the last move, for reports.
@@ -118,6 +129,7 @@ struct EmbeddedNeedleInfo {
   int events = 0;              ///< located events in the last move
   int solves = 0;              ///< condensed solves in the last move
   int corotation_updates = 0;  ///< corotational fixed-point updates in the last move
+  int aim_iterations = 0;      ///< follow_tissue: fixed-point iterations aiming the cut
 };
 
 template <int Dim>
@@ -156,6 +168,8 @@ public:
   const Lateral& lateral() const { return lateral_; }
   /// Reference position of the tip's tissue point (when in tissue) [m].
   Vector tipReference() const { return tip_.reference_m; }
+  /// follow_tissue: the track's present direction in the reference (unit; +x on the rest line).
+  const Vector& cutDirection() const { return cut_dir_; }
   /// Reference positions of the shaft's tissue points [m].
   std::vector<Vector> shaftReference() const;
   const EmbeddedNeedleInfo& lastMove() const { return info_; }
@@ -182,8 +196,9 @@ private:
     double tip_force_N = 0.0;
   };
   /// Quasi-static solution with the tip at x = s and the tip's tissue point `tip` (nullptr:
-  /// no tip constraint), the shaft in its current stick/slip state.
-  Solution solveAt(double s, const Point_* tip) const;
+  /// no tip constraint), the shaft in its current stick/slip state. tip_axial_free: the tip
+  /// holds its tissue point on the needle axis but pushes it with no force along it.
+  Solution solveAt(double s, const Point_* tip, bool tip_axial_free = false) const;
   Block block(const Point_& p, const Point_& q) const;
   void requireColumns(const Point_& p) const;
   void prefetchLine(const Lateral& lateral) const;
@@ -204,7 +219,14 @@ private:
   void commit(double s, const Point_* tip);
   void addTrackPoint(const Point_& p);
   void releaseShaftPoint(std::size_t k);
-  Vector nodeDisplacement(int node) const;
+  /// Displacement of a node under the needle's forces (per constraint point: shaft..., tip) [m].
+  Vector nodeDisplacement(int node, const Eigen::VectorXd& forces) const;
+  /// follow_tissue: the displacement under those forces averaged over the tip's cross-section
+  /// centred at the reference point x [m].
+  Vector crossSectionDisplacement(const Vector& x, const Eigen::VectorXd& forces) const;
+  /// Sets the cut direction at the committed state (follow_tissue; +x otherwise). Throws
+  /// std::runtime_error if the aim does not converge or leaves the mesh.
+  void aimCut();
   /// The corotational part of the displacement at p (zero for a linear tissue) [m].
   Vector warpAt(const Point_& p) const;
   /// Corotational tissue: one fixed-point update of the warp at the committed state (Anderson
@@ -225,6 +247,7 @@ private:
   bool punctured_ = false;
   bool tip_active_ = false;
   Point_ tip_;
+  Vector cut_dir_ = Vector::UnitX();  ///< direction of the cut in the reference (unit)
   Point_ pending_track_;      ///< the next track point, added when the cut is one spacing past it
   double cut_total_m_ = 0.0;  ///< cut length along the track
   double next_event_cut_m_ = 0.0;
