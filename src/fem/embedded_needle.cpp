@@ -313,8 +313,8 @@ typename EmbeddedNeedle<Dim>::Solution EmbeddedNeedle<Dim>::solveAt(double s, co
   for (int k = 0; k < ns; ++k) {
     const ShaftPoint& p = shaft_[static_cast<std::size_t>(k)];
     for (int d = 1; d < Dim; ++d) {
-      if (params_.follow_tissue) {
-        value(Dim * k + d) = 0.0;  // no lateral hold: the track bends within elements
+      if (!p.held) {
+        value(Dim * k + d) = 0.0;
         loaded.push_back(Dim * k + d);
       } else {
         value(Dim * k + d) = lateral_(d - 1) - p.point.reference_m(d);
@@ -483,6 +483,11 @@ void EmbeddedNeedle<Dim>::addTrackPoint(const Point_& p) {
   sp.world_x_m = worldOf(p.reference_m).x();
   sp.stuck = params_.insertion_velocity_m_s < params_.stick_velocity_m_s;
   sp.offset_m = sp.world_x_m - s_;
+  // A followed track bends between its points: a linear element holds two of them on the
+  // needle's axis (the tip and one shaft point), not more, so the others are free sideways.
+  for (const ShaftPoint& q : shaft_) {
+    sp.held = sp.held && !(params_.follow_tissue && q.held && q.point.element == p.element);
+  }
   shaft_.push_back(sp);
 }
 
@@ -608,9 +613,7 @@ void EmbeddedNeedle<Dim>::aimCut() {
   // under the shaft's axial (friction) loads. The tip's cutting load is left out: a tip of
   // finite size pushes the tissue it cuts symmetrically aside, while the point load's
   // displacement next to it is set by the element size and its lateral part by the mesh's
-  // asymmetry. The lateral forces holding the shaft's tissue on the axis are left out too:
-  // they hold points a fraction of an element apart, so their individual values (not their
-  // sum) depend on the mesh, and they would feed the track's own offset back into its aim.
+  // asymmetry.
   Eigen::VectorXd forces = Eigen::VectorXd::Zero(Dim * static_cast<int>(shaft_.size()));
   for (int k = 0; k < forces.size() / Dim; ++k) {
     forces(Dim * k) = committed_.forces(Dim * k);

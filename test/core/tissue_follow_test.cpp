@@ -97,11 +97,24 @@ TEST(FollowTissue3d, HalvingTheStepMovesNoSeed) {
   EXPECT_LT((r.tail<2>() - lateral).norm(), 1e-9);
   EXPECT_GT((a.tail<2>() - lateral).norm(), 1e-6);
   EXPECT_NEAR(a.x(), r.x(), 1e-4);
+  // On a followed track the shaft holds one point per element on its axis; the tissue between
+  // strays from the axis by 0.0066 mm here.
+  constexpr double kShaftOffAxis_m = 1.5e-5;
+  NeedleInsertion3 needle(f.model, f.scene.needle, 0.0, 0.04);
+  for (double s = 0.0; s <= 0.04 + 1e-12; s += 5e-4) {
+    ASSERT_TRUE(needle.moveTo(lateral, s));
+  }
+  double off_axis = 0.0;
+  for (const Vector3& p : needle.shaftReference()) {
+    off_axis = std::max(off_axis, (needle.worldOf(p).tail<2>() - lateral).norm());
+  }
+  EXPECT_LT(off_axis, kShaftOffAxis_m);
 }
 
 TEST(FollowTissue3d, SymmetricSceneDriftsOnlyByTheMeshAsymmetry) {
   // A homogeneous block and the needle on its axis of symmetry: the track would stay on the
-  // axis but for the unstructured mesh (the seed's lateral offset is 0.0075 mm here).
+  // axis but for the unstructured mesh (the seed's lateral offset is 0.0076 mm here, against
+  // 0.03 mm beside the inclusion).
   constexpr double kMeshAsymmetry_m = 1.5e-5;
   Fixture f = follow(4, false);
   OffsetPlanner3 planner(f.scene, f.model);
@@ -110,7 +123,7 @@ TEST(FollowTissue3d, SymmetricSceneDriftsOnlyByTheMeshAsymmetry) {
 }
 
 TEST(FollowTissue3d, MeshRefinementMovesTheLateralOffsetLittle) {
-  // Fine size 4 mm -> 2 mm at the needle. The seed's lateral offset changes by 0.009 mm; its
+  // Fine size 4 mm -> 2 mm at the needle. The seed's lateral offset changes by 0.0093 mm; its
   // depth moves by about 2 mm in either track model (the point tip's indentation scales with
   // the element size: docs/tissue_3d.md, limits).
   constexpr double kLateralChange_m = 2e-5;
@@ -133,7 +146,6 @@ TEST(FollowTissue3d, PlannerCorrectsTheLateralPosition) {
   EXPECT_GE(r.predicted_error_m, 0.0);
   // The needle goes in off the target's line to cancel the track's lateral drift.
   EXPECT_GT((r.lateral_m - f.scene.targets[0].position_m.tail<2>()).norm(), 1e-6);
-  std::cout << "lateral correction " << (r.lateral_m - f.scene.targets[0].position_m.tail<2>()).transpose() * 1e3 << " verified " << r.verified_error_m * 1e3 << "\n";
 }
 
 // ---- 2-D: the same core on plane-strain triangles ----
@@ -145,7 +157,8 @@ struct Slice {
   std::vector<char> fixed;
   std::vector<fem::Material> materials{{20e3, 0.45}, {400e3, 0.45}};
   explicit Slice(double h) {
-    const int nx = static_cast<int>(std::lround(0.06 / h)), ny = static_cast<int>(std::lround(0.04 / h));
+    const int nx = static_cast<int>(std::lround(0.06 / h)),
+              ny = static_cast<int>(std::lround(0.04 / h));
     for (int j = 0; j <= ny; ++j) {
       for (int i = 0; i <= nx; ++i) {
         mesh.nodes.emplace_back(i * h, -0.02 + j * h);
@@ -156,7 +169,8 @@ struct Slice {
       for (int i = 0; i < nx; ++i) {
         const int a = j * (nx + 1) + i, b = a + 1, c = a + nx + 1, d = c + 1;
         const fem::Point<2> mid((i + 0.5) * h, -0.02 + (j + 0.5) * h);
-        const int m = (mid.x() > 0.02 && mid.x() < 0.04 && mid.y() > 0.004 && mid.y() < 0.01) ? 1 : 0;
+        const int m =
+            (mid.x() > 0.02 && mid.x() < 0.04 && mid.y() > 0.004 && mid.y() < 0.01) ? 1 : 0;
         mesh.elements.push_back({a, b, d});
         mesh.elements.push_back({a, d, c});
         mesh.element_material.push_back(m);
@@ -191,7 +205,7 @@ TEST(FollowTissue2d, HalvingTheStepMovesNoSeed) {
   const Eigen::Vector2d b = implant2d(tissue, 2.5e-4);
   ASSERT_TRUE(a.allFinite() && b.allFinite());
   EXPECT_LT((a - b).norm(), kStepHalving_m);
-  std::cout << "2d seed " << a.transpose() * 1e3 << "\n";
+  EXPECT_GT(std::abs(a.y()), 1e-6);  // the stiff band moves the tissue ahead sideways
 }
 
 }  // namespace

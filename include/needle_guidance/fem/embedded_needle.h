@@ -10,24 +10,29 @@
 //  * tip: before puncture the tip pins the surface point it touches; when the tip force
 //    reaches the cutting force f_b the tissue is cut continuously: the tip's tissue point
 //    advances in the reference so that the tip force stays f_b. Which tissue it advances
-//    through is the cut track model (EmbeddedNeedleParams::track):
+//    through is the cut track model (EmbeddedNeedleParams::follow_tissue):
 //    - rest_line: along +x, the reference line at the needle's lateral position (the tissue
 //      ahead of the tip is taken where it was at rest);
 //    - follow_tissue: the tip cuts the tissue that is now in front of it. At puncture and at
-//      each new track point the tissue currently at the needle axis one track spacing ahead,
-//      X = p - u(X), is found by fixed-point iteration, and the track heads there. u is the
-//      displacement averaged over the tip's cross-section (a disc of the needle's radius about
-//      X, normal to the needle) caused by every load except the tip's own: the tip's point load
-//      is singular (its displacement next to it is set by the element size, and its lateral
-//      part by the mesh's asymmetry), while a real tip of finite size pushes the tissue it cuts
-//      symmetrically aside. The direction is found at located events only, so it does not
-//      depend on the step length either;
-//  * shaft: the cut track's tissue points, one per track_spacing of cut, lie on the needle axis;
-//    along it each is stuck (moves with the needle) or slips with the kinetic friction force
-//    (per unit length times its share of shaft); a stuck point slips when holding it needs
-//    more than the static friction (2.3.5). Points cut during insertion slip (the needle slides
-//    past them at the insertion speed, above stick_velocity); when the needle reverses their
-//    relative speed passes zero and they stick, then slip again one by one as the drag grows;
+//      each new track point the tissue now on the needle axis one track spacing ahead,
+//      X = p - u(X), is found by fixed-point iteration (to 1e-10 m), and the track heads there
+//      until the next track point. u is the displacement averaged over the tip's cross-section
+//      (a disc of the needle's radius about X, normal to the needle) under the shaft's axial
+//      (friction) loads. The tip's own cutting load is left out: a tip of finite size pushes
+//      the tissue it cuts symmetrically aside, while the point load's displacement next to it
+//      is set by the element size and its lateral part by the mesh's asymmetry (it made the
+//      track wander by up to 1 mm). The direction is found at located events only, so it does
+//      not depend on the step length;
+//  * shaft: the cut track's tissue points, one per track_spacing of cut. On the rest line the
+//    needle holds them on its axis; on a followed track they are free sideways (the track
+//    bends between them within an element, and a linear element cannot hold several
+//    non-collinear points on one line without straining by the bend over the point spacing).
+//    Along the needle each is stuck (moves with the needle) or slips with the kinetic friction
+//    force (per unit length times its share of shaft); a stuck point slips when holding it
+//    needs more than the static friction (2.3.5). Points cut during insertion slip (the needle
+//    slides past them at the insertion speed, above stick_velocity); when the needle reverses
+//    their relative speed passes zero and they stick, then slip again one by one as the drag
+//    grows;
 //  * seed release at the tip (2.4); retraction releases the track points the tip passes.
 // Events (puncture, a new track point, stick to slip) are located where they happen within a
 // step (with the other constraints fixed the forces are affine in the tip position; stick to
@@ -189,6 +194,7 @@ private:
     double offset_m = 0.0;   ///< world x - tip x while stuck
     double share_m = 0.0;    ///< length of shaft it stands for
     double world_x_m = 0.0;  ///< after the last committed solve
+    bool held = true;        ///< held on the needle axis sideways
   };
   struct Solution {
     Eigen::VectorXd forces;        ///< per constraint point (shaft..., tip), on the tissue [N]
