@@ -6,11 +6,13 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
-#include <iostream>
+#include <fstream>
+#include <sstream>
 #include <string>
 #include <vector>
 
 #include "needle_guidance/fem/embedded_needle.h"
+#include "needle_guidance/scene/scene.h"
 #include "needle_guidance/tissue_3d/offset_planner_3d.h"
 
 namespace needle_guidance::tissue_3d {
@@ -149,6 +151,33 @@ TEST(FollowTissue3d, PlannerCorrectsTheLateralPosition) {
 }
 
 // ---- 2-D: the same core on plane-strain triangles ----
+
+std::string sagittalText() {
+  std::ifstream in(std::string(NG_SOURCE_DIR) + "/config/scenes/prostate_sagittal.yaml");
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+TEST(FollowTissue2d, PlanarSceneKeyNeedsTheTipsSize) {
+  const std::string base = sagittalText();
+  const std::string anchor = "  radius_of_curvature_cm: 0\n";
+  ASSERT_NE(base.find(anchor), std::string::npos);
+  std::string follow = base;
+  follow.replace(follow.find(anchor), anchor.size(), anchor + "  track: follow_tissue\n");
+  EXPECT_TRUE(scene::parseScene(follow, "f.yaml").needle.follow_tissue);
+  EXPECT_FALSE(scene::parseScene(base, "r.yaml").needle.follow_tissue);
+  const std::string diameter = "  diameter_mm: 1.27";
+  ASSERT_NE(follow.find(diameter), std::string::npos);
+  follow.replace(follow.find(diameter), diameter.size(), "  diameter_mm: 0");
+  try {
+    scene::parseScene(follow, "f.yaml");
+    FAIL() << "a followed track without the tip's size was accepted";
+  } catch (const scene::SceneError& e) {
+    EXPECT_NE(std::string(e.what()).find("needle.track"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("diameter"), std::string::npos) << e.what();
+  }
+}
 
 /// A structured triangle mesh of a 60 x 40 mm slice, held at x = 60 mm, with a 400 kPa band
 /// above the needle's path (y in [4, 10] mm, x in [20, 40] mm).
