@@ -8,6 +8,7 @@
 #include <stdexcept>
 
 #include "needle_guidance/cpu_time.h"
+#include "needle_guidance/math.h"
 
 namespace needle_guidance::fem {
 namespace {
@@ -32,6 +33,12 @@ constexpr int kMaxRewarpsPerMove = 4;
 // After a rewarp the compliance columns are solved again in one batch along the needle line up
 // to this far beyond the tip, the rest as the tip gets there.
 constexpr double kRewarpPrefetch_m = 5e-3;
+// follow_tissue: the aim of the cut (X = p - u(X)) is converged when an iteration moves it by
+// at most this, 5e4 times below the step-halving target of the seeds.
+constexpr double kAimTol_m = 1e-10;
+constexpr int kMaxAimIterations = 50;
+constexpr int kRimPoints3 = 8;             // the tip's cross-section: its centre and rim points
+constexpr double kMinCutDirectionX = 0.5;  // a track turning more than 60 degrees is refused
 
 /// s where an affine function with values fa at sa and fb at sb equals level.
 double crossing(double sa, double fa, double sb, double fb, double level) {
@@ -221,10 +228,11 @@ EmbeddedNeedle<Dim>::EmbeddedNeedle(const EmbeddingTissue<Dim>& tissue,
   if (!(params.cutting_force_N >= 0.0) || !(params.track_spacing_m > 0.0) ||
       !(params.kinetic_friction_N_per_m >= 0.0) ||
       !(params.static_friction_N_per_m >= params.kinetic_friction_N_per_m) ||
-      !std::isfinite(entry_x_m)) {
+      !std::isfinite(entry_x_m) || (params.follow_tissue && !(params.tip_radius_m > 0.0))) {
     throw std::invalid_argument(
         "EmbeddedNeedle: needs cutting_force >= 0, track_spacing > 0, 0 <= kinetic friction <= "
-        "static friction and a finite entry face");
+        "static friction, a finite entry face and, when the track follows the tissue, a tip "
+        "radius > 0");
   }
   s_ = entry_x_m - 1e-3;
 }
@@ -297,8 +305,8 @@ typename EmbeddedNeedle<Dim>::Block EmbeddedNeedle<Dim>::block(const Point_& p,
 }
 
 template <int Dim>
-typename EmbeddedNeedle<Dim>::Solution EmbeddedNeedle<Dim>::solveAt(double s,
-                                                                    const Point_* tip) const {
+typename EmbeddedNeedle<Dim>::Solution EmbeddedNeedle<Dim>::solveAt(double s, const Point_* tip,
+                                                                    bool tip_axial_free) const {
   ++solves_;
   ++total_solves_;
   const int ns = static_cast<int>(shaft_.size());
@@ -326,8 +334,13 @@ typename EmbeddedNeedle<Dim>::Solution EmbeddedNeedle<Dim>::solveAt(double s,
   for (int k = 0; k < ns; ++k) {
     const ShaftPoint& p = shaft_[static_cast<std::size_t>(k)];
     for (int d = 1; d < Dim; ++d) {
-      value(Dim * k + d) = lateral_(d - 1) - p.point.reference_m(d);
-      fixed.push_back(Dim * k + d);
+      if (!p.held) {
+        value(Dim * k + d) = 0.0;
+        loaded.push_back(Dim * k + d);
+      } else {
+        value(Dim * k + d) = lateral_(d - 1) - p.point.reference_m(d);
+        fixed.push_back(Dim * k + d);
+      }
     }
     if (p.stuck) {
       value(Dim * k) = s + p.offset_m - p.point.reference_m.x();
@@ -340,7 +353,12 @@ typename EmbeddedNeedle<Dim>::Solution EmbeddedNeedle<Dim>::solveAt(double s,
   if (tip) {
     value.template segment<Dim>(Dim * ns) = onLine(s) - tip->reference_m;
     for (int d = 0; d < Dim; ++d) {
-      fixed.push_back(Dim * ns + d);
+      if (d == 0 && tip_axial_free) {
+        value(Dim * ns) = 0.0;
+        loaded.push_back(Dim * ns);
+      } else {
+        fixed.push_back(Dim * ns + d);
+      }
     }
   }
   // The corotational part of the displacement adds to the compliance's answer.
@@ -378,8 +396,7 @@ typename EmbeddedNeedle<Dim>::Solution EmbeddedNeedle<Dim>::solveAt(double s,
 
 template <int Dim>
 typename EmbeddedNeedle<Dim>::Point_ EmbeddedNeedle<Dim>::along(double cut_m) const {
-  Vector p = tip_.reference_m;
-  p(0) += cut_m;
+  const Vector p = tip_.reference_m + cut_m * cut_dir_;
   std::optional<Point_> e = tissue_->locate(p);
   if (!e) {
     throw std::runtime_error("the cut track leaves the tissue mesh at " + pointText<Dim>(p));
@@ -405,7 +422,7 @@ double EmbeddedNeedle<Dim>::cutLength(double s) const {
   // force falls to f_b: the force is not monotone in the length (a point's compliance varies
   // within its element and across a stiffness contrast), and a farther root is reached only
   // once the nearer one has vanished. Marching out in growing trials brackets the first root.
-  const double room = std::max(0.0, s - tip_.reference_m.x());
+  const double room = std::max(0.0, s - tip_.reference_m.x()) / cut_dir_.x();
   double lo = 0.0, f_lo = f_start - fb;
   double hi = 0.0, f_hi = 0.0;
   const double to_event = next_event_cut_m_ - cut_total_m_;  // the next track point
@@ -487,6 +504,11 @@ void EmbeddedNeedle<Dim>::addTrackPoint(const Point_& p) {
   sp.world_x_m = worldOf(p.reference_m).x();
   sp.stuck = params_.insertion_velocity_m_s < params_.stick_velocity_m_s;
   sp.offset_m = sp.world_x_m - s_;
+  // A followed track bends between its points: a linear element holds two of them on the
+  // needle's axis (the tip and one shaft point), not more, so the others are free sideways.
+  for (const ShaftPoint& q : shaft_) {
+    sp.held = sp.held && !(params_.follow_tissue && q.held && q.point.element == p.element);
+  }
   shaft_.push_back(sp);
 }
 
@@ -613,16 +635,17 @@ void EmbeddedNeedle<Dim>::adoptReference() {
 }
 
 template <int Dim>
-typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::nodeDisplacement(int node) const {
+typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::nodeDisplacement(
+    int node, const Eigen::VectorXd& forces) const {
   Vector u = warp_.size() > 0 ? Vector(warp_.template segment<Dim>(Dim * node)) : Vector::Zero();
   const auto& g = tissue_->compliance();
   const int ns = static_cast<int>(shaft_.size());
-  for (int k = 0; k < committed_.forces.size() / Dim; ++k) {
+  for (int k = 0; k < forces.size() / Dim; ++k) {
     const Point_& p = k < ns ? shaft_[static_cast<std::size_t>(k)].point : tip_;
     const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p.element)];
     for (int a = 0; a < Dim + 1; ++a) {
       for (int d = 0; d < Dim; ++d) {
-        const double f = p.weights(a) * committed_.forces(Dim * k + d);
+        const double f = p.weights(a) * forces(Dim * k + d);
         if (f != 0.0) {
           u += f * g.column(Dim * nodes[a] + d).template segment<Dim>(Dim * node);
         }
@@ -630,6 +653,77 @@ typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::nodeDisplacement(int n
     }
   }
   return u;
+}
+
+template <int Dim>
+typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::crossSectionDisplacement(
+    const Vector& x, const Eigen::VectorXd& forces) const {
+  // The centre and rim points of a disc of the tip's radius normal to the needle (+x): in 3-D
+  // kRimPoints3 on the circle, in 2-D the two ends of the section's diameter.
+  std::vector<Vector> samples{x};
+  const double a = params_.tip_radius_m;
+  const int rim = Dim == 3 ? kRimPoints3 : 2;
+  for (int i = 0; i < rim; ++i) {
+    const double t = 2.0 * kPi * i / rim;
+    Vector q = x;
+    q(1) += a * std::cos(t);
+    if constexpr (Dim == 3) {
+      q(2) += a * std::sin(t);
+    }
+    samples.push_back(q);
+  }
+  Vector sum = Vector::Zero();
+  int n = 0;
+  for (const Vector& q : samples) {
+    const std::optional<Point_> e = tissue_->locate(q);
+    if (!e) {
+      continue;  // a rim point beyond the tissue's surface
+    }
+    const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(e->element)];
+    for (int k = 0; k < Dim + 1; ++k) {
+      sum += e->weights(k) * nodeDisplacement(nodes[k], forces);
+    }
+    ++n;
+  }
+  return n > 0 ? Vector(sum / n) : Vector::Zero();
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::aimCut() {
+  cut_dir_ = Vector::UnitX();
+  if (!params_.follow_tissue) {
+    return;
+  }
+  // The tissue now on the needle axis one track spacing ahead of the tip: X = p - u(X), u
+  // under the shaft's axial (friction) loads. The tip's cutting load is left out: a tip of
+  // finite size pushes the tissue it cuts symmetrically aside, while the point load's
+  // displacement next to it is set by the element size and its lateral part by the mesh's
+  // asymmetry.
+  Eigen::VectorXd forces = Eigen::VectorXd::Zero(Dim * static_cast<int>(shaft_.size()));
+  for (int k = 0; k < forces.size() / Dim; ++k) {
+    forces(Dim * k) = committed_.forces(Dim * k);
+  }
+  const Vector p = onLine(s_ + params_.track_spacing_m);
+  Vector x = tip_.reference_m + params_.track_spacing_m * Vector::UnitX();
+  double change = 0.0;
+  for (int it = 0; it < kMaxAimIterations; ++it) {
+    ++info_.aim_iterations;
+    const Vector next = p - crossSectionDisplacement(x, forces);
+    change = (next - x).norm();
+    x = next;
+    if (change <= kAimTol_m) {
+      const Vector d = x - tip_.reference_m;
+      if (!(d.norm() > 0.0) || d.x() < kMinCutDirectionX * d.norm()) {
+        throw std::runtime_error("the tissue ahead of the tip at " + pointText<Dim>(p) +
+                                 " has moved more than 60 degrees off the needle's direction");
+      }
+      cut_dir_ = d.normalized();
+      return;
+    }
+  }
+  throw std::runtime_error("the tissue ahead of the tip at " + pointText<Dim>(p) +
+                           " was not located: the fixed point still moved by " + mm(change) +
+                           " mm after " + std::to_string(kMaxAimIterations) + " iterations");
 }
 
 template <int Dim>
@@ -684,6 +778,7 @@ bool EmbeddedNeedle<Dim>::insertSegment(double target) {
     pending_track_ = tip_;
     cut_total_m_ = 0.0;
     next_event_cut_m_ = params_.track_spacing_m;
+    aimCut();
     ++info_.events;
     return false;
   }
@@ -742,6 +837,7 @@ bool EmbeddedNeedle<Dim>::cutTo(double target) {
   addTrackPoint(pending_track_);
   pending_track_ = p;
   commit(s_event, &p);
+  aimCut();
   ++info_.events;
   return s_event >= target - kEventTol_m;
 }
@@ -820,6 +916,7 @@ bool EmbeddedNeedle<Dim>::enter(const Lateral& lateral, std::string* why_not) {
   prefetchLine(lateral);
   s_ = entry->reference_m.x();
   tip_ = *entry;
+  cut_dir_ = Vector::UnitX();
   in_tissue_ = tip_active_ = true;
   punctured_ = false;
   direction_ = 1;
@@ -848,6 +945,7 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
   info_.events = 0;
   info_.corotation_updates = 0;
   info_.rewarps = 0;
+  info_.aim_iterations = 0;
   warp_updates_ = 0;
   solves_ = 0;
   if (!in_tissue_) {
@@ -935,7 +1033,7 @@ typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::worldOf(const Vector& 
   Vector x = reference;
   const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p->element)];
   for (int a = 0; a < Dim + 1; ++a) {
-    x += p->weights(a) * nodeDisplacement(nodes[a]);
+    x += p->weights(a) * nodeDisplacement(nodes[a], committed_.forces);
   }
   return x;
 }

@@ -460,7 +460,14 @@ private:
         positiveOr(m, "placement_tolerance", detail::kLength, needle.placement_tolerance_m);
     const std::optional<Quantity> radius =
         m.optionalQuantity("radius_of_curvature", detail::kLength);
+    const std::optional<std::string> track =
+        m.optionalChoice("track", {"rest_line", "follow_tissue"});
     m.finish();
+    needle.follow_tissue = track && *track == "follow_tissue";
+    if (needle.follow_tissue && !(needle.diameter_m > 0.0)) {
+      fail(m.keyPath("track"), *track,
+           "a track that follows the tissue needs the tip's size: give needle.diameter > 0");
+    }
 
     const Unit& unit = min_height.unit;
     if (min_height.si > max_height.si) {

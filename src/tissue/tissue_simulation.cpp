@@ -169,6 +169,9 @@ void TissueSimulation::buildTrack() {
   track->params.stick_velocity_m_s = needle.stick_velocity_m_s;
   track->params.insertion_velocity_m_s = scene_.needle.insertion_velocity_m_s;
   track->params.track_spacing_m = options_.track_spacing_m;
+  track->params.follow_tissue = scene_.needle.follow_tissue;
+  track->params.tip_radius_m =
+      scene_.needle.diameter_m > 0.0 ? 0.5 * scene_.needle.diameter_m : track->params.tip_radius_m;
   // The compliance along the needle line is solved in one batch up to the deepest tip the
   // needle may reach; deeper elements are solved as the tip meets them.
   track->max_tip_x_m = scene_.needle.max_depth_m > scene_.workspace_min.x()

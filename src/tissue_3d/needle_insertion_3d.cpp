@@ -13,6 +13,8 @@ fem::EmbeddedNeedleParams paramsOf(const Needle3& needle) {
   p.stick_velocity_m_s = needle.stick_velocity_m_s;
   p.insertion_velocity_m_s = needle.insertion_velocity_m_s;
   p.track_spacing_m = needle.track_spacing_m;
+  p.follow_tissue = needle.follow_tissue;
+  p.tip_radius_m = 0.5 * needle.diameter_m;
   return p;
 }
 

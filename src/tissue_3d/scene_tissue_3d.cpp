@@ -212,6 +212,9 @@ private:
     n.stick_velocity_m_s = nonNegative("stick_velocity", units::kVelocity, n.stick_velocity_m_s);
     n.step_s = positive("step", units::kTime, n.step_s);
     n.track_spacing_m = positive("track_spacing", units::kLength, n.track_spacing_m);
+    n.follow_tissue =
+        m.optionalChoice("track", {"rest_line", "follow_tissue"}).value_or("rest_line") ==
+        "follow_tissue";
     if (n.gauge < 10 || n.gauge > 30) {
       m.fail(m.keyPath("gauge"), std::to_string(n.gauge), "must be in [10, 30]");
     }

@@ -207,7 +207,8 @@ int checkTissueScene3d(const std::string& path, bool mesh, std::ostream& out) {
       << "  block " << size.x() << " x " << size.y() << " x " << size.z() << " cm, "
       << s.regions.size() << " regions, " << s.targets.size() << " targets, "
       << (s.workspace.use_template ? "template grid" : "lateral stage") << ", "
-      << (s.corotational ? "corotational" : "linear") << " elasticity\n";
+      << (s.corotational ? "corotational" : "linear") << " elasticity, cut track "
+      << (s.needle.follow_tissue ? "follow_tissue" : "rest_line") << "\n";
   if (mesh) {
     TetMeshReport report;
     const TetMesh3 m = meshTissue3d(s, {}, 1.0, &report);

@@ -2,8 +2,9 @@
 // Reports insertion steps per second (CPU, one core) and peak memory against the tetrahedron
 // count (5k to 200k; --quick: 5k to 50k), and per scene and target the planned seed error
 // measured by an independent full simulation, the planning CPU time, the step convergence
-// (halving the step) and the unplanned error (aiming straight at the target); and the same
-// targets planned in a 2-D slice of the scene (the sagittal section through the target, meshed
+// (halving the step), the unplanned error (aiming straight at the target), the lateral
+// correction and what the other cut track (rest_line / follow_tissue) does to the plan; and the
+// same targets planned in a 2-D slice of the scene (the sagittal section through the target, meshed
 // and simulated by the planar model): how far a 2-D model's errors are from the 3-D ones.
 // Usage: bench_tissue_3d --out DIR [--quick] [--scene FILE ...]
 
@@ -349,13 +350,14 @@ int main(int argc, char** argv) {
     // ---- planning per scene ---------------------------------------------------------------
     ng::report::Table plans({"scene", "target", "placed", "predicted_mm", "verified_mm",
                              "unplanned_mm", "step_halving_mm", "plan_cpu_s", "simulations", "tets",
-                             "refusal"});
+                             "track", "lateral_correction_mm", "other_track_error_mm", "refusal"});
     ng::report::Table slices({"scene", "target", "unplanned_3d_mm", "unplanned_slice_mm",
                               "planned_3d_mm", "planned_slice_mm", "slice_refusal"});
     double slice_unplanned_diff_max = -1.0, slice_unplanned_diff_sum = 0.0;
     double unplanned_3d_sum = 0.0, unplanned_slice_sum = 0.0, slice_planned_max = -1.0;
     int slice_pairs = 0;
     double worst_error = 0.0, worst_cpu = 0.0, worst_halving = 0.0;
+    double worst_lateral = 0.0, worst_straight_on_follow = -1.0;
     int reachable = 0, placed = 0;
     std::vector<PlacedPlan> placed_plans;
     for (const std::string& file : files) {
@@ -364,9 +366,13 @@ int main(int argc, char** argv) {
       const int tets = mesh.elementCount();
       t3::TissueModel3 model(std::move(mesh), scene.materialTable(), scene.corotational);
       t3::OffsetPlanner3 planner(scene, model);
+      // The same tissue with the other cut track: what the track model changes in each plan.
+      t3::TissueScene3d other_scene = scene;
+      other_scene.needle.follow_tissue = !scene.needle.follow_tissue;
+      t3::OffsetPlanner3 other_track(other_scene, model);
       for (const t3::Target3& target : scene.targets) {
         const t3::PlanResult3 r = planner.plan(target);
-        double halving = -1.0;
+        double halving = -1.0, lateral_correction = -1.0, other_error = -1.0;
         if (!r.unreachable) {
           ++reachable;
         }
@@ -377,6 +383,17 @@ int main(int argc, char** argv) {
           worst_halving = std::max(worst_halving, halving);
           worst_error = std::max(worst_error, r.verified_error_m);
           worst_cpu = std::max(worst_cpu, r.plan_cpu_s);
+          lateral_correction = (r.lateral_m - target.position_m.tail<2>()).norm();
+          worst_lateral = std::max(worst_lateral, lateral_correction);
+          try {
+            other_error =
+                (other_track.simulateImplant(r.lateral_m, r.tip_x_m) - target.position_m).norm();
+          } catch (const std::runtime_error& e) {
+            std::cout << "  other track refused: " << e.what() << "\n";
+          }
+          if (!scene.needle.follow_tissue && other_error >= 0.0) {
+            worst_straight_on_follow = std::max(worst_straight_on_follow, other_error);
+          }
           if (!scene.corotational) {
             placed_plans.push_back(
                 {scene.source, target.name, r.lateral_m, r.tip_x_m, r.verified_seed_m});
@@ -402,7 +419,9 @@ int main(int argc, char** argv) {
                                                   : "no"),
                       mmOrUndefined(r.predicted_error_m), mmOrUndefined(r.verified_error_m),
                       mmOrUndefined(r.unplanned_error_m), mmOrUndefined(halving), r.plan_cpu_s,
-                      double(r.simulations), double(tets), r.refusal});
+                      double(r.simulations), double(tets),
+                      std::string(scene.needle.follow_tissue ? "follow_tissue" : "rest_line"),
+                      mmOrUndefined(lateral_correction), mmOrUndefined(other_error), r.refusal});
         std::cout << "  " << scene.name << "/" << target.name << ": "
                   << (r.placed ? "placed" : "not placed") << ", " << r.plan_cpu_s << " s CPU "
                   << r.refusal << "\n";
@@ -450,6 +469,9 @@ int main(int argc, char** argv) {
          << ",\n  \"plan_cpu_s_max_3d\": " << (placed > 0 ? jsonNumber(worst_cpu) : "null")
          << ",\n  \"step_halving_change_mm_max_3d\": "
          << (placed > 0 ? jsonNumber(worst_halving * 1e3) : "null")
+         << ",\n  \"lateral_correction_mm_max_3d\": " << mmKey(placed > 0, worst_lateral)
+         << ",\n  \"straight_plan_error_mm_max_follow\": "
+         << mmKey(worst_straight_on_follow >= 0.0, worst_straight_on_follow)
          << ",\n  \"slice_vs_3d_targets\": " << slice_pairs
          << ",\n  \"unplanned_error_mm_mean_3d\": "
          << mmKey(slice_pairs > 0, unplanned_3d_sum / std::max(slice_pairs, 1))

@@ -9,17 +9,30 @@
 // The needle moves along +x at a lateral position (y in 2-D; y, z in 3-D). Interaction:
 //  * tip: before puncture the tip pins the surface point it touches; when the tip force
 //    reaches the cutting force f_b the tissue is cut continuously: the tip's tissue point
-//    advances along +x in the reference so that the tip force stays f_b. The tip holds the
-//    tissue it cuts on the needle axis, so the cut track is the reference line at the needle's
-//    lateral position; the lateral shear just ahead of the tip (F^-1 e_x of 2.3.4) is
-//    neglected: evaluated on the tip's element it is dominated by the tip's own point load
-//    and made the track wander with the mesh;
-//  * shaft: the cut track's tissue points, one per track_spacing of cut, lie on the needle axis;
-//    along it each is stuck (moves with the needle) or slips with the kinetic friction force
-//    (per unit length times its share of shaft); a stuck point slips when holding it needs
-//    more than the static friction (2.3.5). Points cut during insertion slip (the needle slides
-//    past them at the insertion speed, above stick_velocity); when the needle reverses their
-//    relative speed passes zero and they stick, then slip again one by one as the drag grows;
+//    advances in the reference so that the tip force stays f_b. Which tissue it advances
+//    through is the cut track model (EmbeddedNeedleParams::follow_tissue):
+//    - rest_line: along +x, the reference line at the needle's lateral position (the tissue
+//      ahead of the tip is taken where it was at rest);
+//    - follow_tissue: the tip cuts the tissue that is now in front of it. At puncture and at
+//      each new track point the tissue now on the needle axis one track spacing ahead,
+//      X = p - u(X), is found by fixed-point iteration (to 1e-10 m), and the track heads there
+//      until the next track point. u is the displacement averaged over the tip's cross-section
+//      (a disc of the needle's radius about X, normal to the needle) under the shaft's axial
+//      (friction) loads. The tip's own cutting load is left out: a tip of finite size pushes
+//      the tissue it cuts symmetrically aside, while the point load's displacement next to it
+//      is set by the element size and its lateral part by the mesh's asymmetry (it made the
+//      track wander by up to 1 mm). The direction is found at located events only, so it does
+//      not depend on the step length;
+//  * shaft: the cut track's tissue points, one per track_spacing of cut. On the rest line the
+//    needle holds them on its axis; on a followed track they are free sideways (the track
+//    bends between them within an element, and a linear element cannot hold several
+//    non-collinear points on one line without straining by the bend over the point spacing).
+//    Along the needle each is stuck (moves with the needle) or slips with the kinetic friction
+//    force (per unit length times its share of shaft); a stuck point slips when holding it
+//    needs more than the static friction (2.3.5). Points cut during insertion slip (the needle
+//    slides past them at the insertion speed, above stick_velocity); when the needle reverses
+//    their relative speed passes zero and they stick, then slip again one by one as the drag
+//    grows;
 //  * seed release at the tip (2.4); retraction releases the track points the tip passes.
 // Events (puncture, a new track point, stick to slip) are located where they happen within a
 // step (with the other constraints fixed the forces are affine in the tip position; stick to
@@ -119,6 +132,9 @@ struct EmbeddedNeedleParams {
   double stick_velocity_m_s = 5e-4;        ///< the shaft slips while the needle slides faster
   double insertion_velocity_m_s = 5e-3;    ///< nominal insertion speed
   double track_spacing_m = 1e-3;           ///< spacing of the shaft's tissue points, > 0
+  /// The tissue the tip cuts (see the file comment): false = rest_line, true = follow_tissue.
+  bool follow_tissue = false;
+  double tip_radius_m = 6.35e-4;  ///< follow_tissue: radius of the tip's cross-section, > 0
 };
 
 /// Figures of the last move, for reports.
@@ -131,6 +147,7 @@ struct EmbeddedNeedleInfo {
   int solves = 0;              ///< condensed solves in the last move
   int corotation_updates = 0;  ///< corotational fixed-point updates in the last move
   int rewarps = 0;             ///< warped-stiffness refactorisations in the last move
+  int aim_iterations = 0;      ///< follow_tissue: fixed-point iterations aiming the cut
 };
 
 template <int Dim>
@@ -169,6 +186,8 @@ public:
   const Lateral& lateral() const { return lateral_; }
   /// Reference position of the tip's tissue point (when in tissue) [m].
   Vector tipReference() const { return tip_.reference_m; }
+  /// follow_tissue: the track's present direction in the reference (unit; +x on the rest line).
+  const Vector& cutDirection() const { return cut_dir_; }
   /// Reference positions of the shaft's tissue points [m].
   std::vector<Vector> shaftReference() const;
   const EmbeddedNeedleInfo& lastMove() const { return info_; }
@@ -188,6 +207,7 @@ private:
     double offset_m = 0.0;   ///< world x - tip x while stuck
     double share_m = 0.0;    ///< length of shaft it stands for
     double world_x_m = 0.0;  ///< after the last committed solve
+    bool held = true;        ///< held on the needle axis sideways
   };
   struct Solution {
     Eigen::VectorXd forces;        ///< per constraint point (shaft..., tip), on the tissue [N]
@@ -195,8 +215,9 @@ private:
     double tip_force_N = 0.0;
   };
   /// Quasi-static solution with the tip at x = s and the tip's tissue point `tip` (nullptr:
-  /// no tip constraint), the shaft in its current stick/slip state.
-  Solution solveAt(double s, const Point_* tip) const;
+  /// no tip constraint), the shaft in its current stick/slip state. tip_axial_free: the tip
+  /// holds its tissue point on the needle axis but pushes it with no force along it.
+  Solution solveAt(double s, const Point_* tip, bool tip_axial_free = false) const;
   Block block(const Point_& p, const Point_& q) const;
   void requireColumns(const Point_& p) const;
   /// end_x_m: the last x to prefetch (default: beyond the deepest tip position).
@@ -218,7 +239,14 @@ private:
   void commit(double s, const Point_* tip);
   void addTrackPoint(const Point_& p);
   void releaseShaftPoint(std::size_t k);
-  Vector nodeDisplacement(int node) const;
+  /// Displacement of a node under the needle's forces (per constraint point: shaft..., tip) [m].
+  Vector nodeDisplacement(int node, const Eigen::VectorXd& forces) const;
+  /// follow_tissue: the displacement under those forces averaged over the tip's cross-section
+  /// centred at the reference point x [m].
+  Vector crossSectionDisplacement(const Vector& x, const Eigen::VectorXd& forces) const;
+  /// Sets the cut direction at the committed state (follow_tissue; +x otherwise). Throws
+  /// std::runtime_error if the aim does not converge or leaves the mesh.
+  void aimCut();
   /// The corotational part of the displacement at p (zero for a linear tissue) [m].
   Vector warpAt(const Point_& p) const;
   /// Corotational tissue: one fixed-point update of the warp at the committed state (Anderson
@@ -249,6 +277,7 @@ private:
   bool punctured_ = false;
   bool tip_active_ = false;
   Point_ tip_;
+  Vector cut_dir_ = Vector::UnitX();  ///< direction of the cut in the reference (unit)
   Point_ pending_track_;      ///< the next track point, added when the cut is one spacing past it
   double cut_total_m_ = 0.0;  ///< cut length along the track
   double next_event_cut_m_ = 0.0;

@@ -65,6 +65,9 @@ struct Needle {
   double diameter_m = 0.0;
   /// A seed within this of its target counts as placed (rigid seed implant) [m].
   double placement_tolerance_m = 1e-4;
+  /// Embedded track: the tip cuts the tissue now in front of it (`track: follow_tissue`)
+  /// instead of the tissue at rest on its line (`rest_line`); fem::EmbeddedNeedle.
+  bool follow_tissue = false;
 };
 
 /// A point to reach, with the radius that counts as reached [m].
