@@ -54,6 +54,31 @@ TEST(SolverSkipping, ValuesWithinTheSkipBoundOfTheFullSweeps) {
   EXPECT_LT(updates_skip, updates_all) << "skipping saved no position update";
 }
 
+TEST(SolverSkipping, FirstSweepFromTheTargetFrontEqualsAFullSweep) {
+  // Before the first sweep only the target cells and the arcs ending in the target are non-zero;
+  // a position none of whose successors has risen from 0 keeps its 0, so the first sweep may
+  // skip it. With a skip bound far below any change, the seeded sweep must give exactly the
+  // values and controls of a sweep over every free position, with fewer updates.
+  const SteeringModel model(noisyProblem(2e-3), 2);
+  SolverOptions all;
+  all.skip_fraction = 0.0;
+  all.max_sweeps = 1;
+  SolverOptions seeded = all;
+  seeded.skip_fraction = 1e-9;  // any change above 1e-12 makes its predecessors due
+  SolveStats stats_all, stats_seeded;
+  const PolicyTable a = solveValueIteration(model, all, &stats_all);
+  const PolicyTable b = solveValueIteration(model, seeded, &stats_seeded);
+  std::int64_t differing = 0;
+  for (StateId s = 0; s < model.numStates(); ++s) {
+    differing += a.value(s) != b.value(s) || a.control(s) != b.control(s) ? 1 : 0;
+  }
+  EXPECT_EQ(differing, 0) << "states whose first-sweep value or control differs";
+  ASSERT_EQ(stats_all.updated_per_sweep.size(), 1u);
+  ASSERT_EQ(stats_seeded.updated_per_sweep.size(), 1u);
+  EXPECT_LT(stats_seeded.updated_per_sweep[0], stats_all.updated_per_sweep[0])
+      << "the first sweep recomputed every free position";
+}
+
 TEST(SolverSkipping, BadSkipFractionIsRefused) {
   const SteeringModel model(noisyProblem(4e-3), 1);
   SolverOptions o;
