@@ -26,6 +26,7 @@ constexpr int kSweepOrders = 4;
 struct Band {
   int row_begin = 0;
   int row_end = 0;
+  int index = 0;  // the thread's number
 };
 
 /// Shared read-only context of one solve.
@@ -46,50 +47,63 @@ struct Context {
 /// Skips positions whose update could not move their values by `skip_below` or more. The
 /// Bellman update (eq. 5.2) is a maximum of weighted means with weights summing to <= 1, so a
 /// position's new values differ from its old ones by at most the largest change of any successor
-/// since its last update. `pending` accumulates an upper bound of that (changes in the previous
-/// sweep plus those already made in this one, counted twice at worst); a position is updated
-/// once its bound reaches skip_below. Changes made in another thread's band during the current
-/// sweep are counted one sweep later (when they are in `previous`), as their values are too (the
-/// snapshot), so the result does not depend on timing.
+/// since its last update. The changes are kept per block of kBlock x kBlock positions (the
+/// largest of its positions), and a position reads the blocks that hold any of its successors,
+/// a superset of them, so the bound stays a bound at a fraction of the reads. `pending`
+/// accumulates it (changes in the previous sweep plus those already made in this one, counted
+/// twice at worst); a position is updated once its bound reaches skip_below. Each thread records
+/// its own changes of the current sweep; those of another thread's band are counted one sweep
+/// later (in `previous`), as their values are too (the snapshot), so the result does not depend
+/// on timing.
 struct ChangeTracker {
-  /// Distinct successor positions of one column offset with consecutive rows dy_lo .. dy_hi,
-  /// read as one contiguous run of positions.
+  static constexpr int kBlock = 4;  // positions per block side
+  /// Blocks of one column offset with consecutive rows dby_lo .. dby_hi (contiguous in memory).
   struct Run {
-    std::int16_t dx = 0, dy_lo = 0, dy_hi = 0;
+    std::int16_t dbx = 0, dby_lo = 0, dby_hi = 0;
   };
   float skip_below = 0.0f;
-  std::vector<float> previous;  // per position: max |change| in the previous sweep
-  std::vector<float> current;   // per position: max |change| so far in this sweep
-  std::vector<float> pending;   // per position: bound on its change since its last update
+  int nbx = 0, nby = 0;                     // blocks along x and y
+  std::vector<float> previous;              // per block: max |change| in the previous sweep
+  std::vector<std::vector<float>> current;  // per thread, per block: max |change| this sweep
+  std::vector<float> pending;  // per position: bound on its change since its last update
   std::vector<Run> runs;
 
+  std::size_t block(int ix, int iy) const {
+    return static_cast<std::size_t>((ix / kBlock) * nby + iy / kBlock);
+  }
   /// Adds this sweep's bound for position (ix, iy) and says whether it must be updated.
-  bool due(const GridSpec& g, std::int64_t pos, int ix, int iy, int row_begin, int row_end) {
+  bool due(std::int64_t pos, int ix, int iy, int thread) {
+    const int bx = ix / kBlock, by = iy / kBlock;
+    const float* cur = current[static_cast<std::size_t>(thread)].data();
     float bound = 0.0f;
     for (const Run& r : runs) {
-      const int x = ix + r.dx;
-      if (x < 0 || x >= g.nx) {
+      const int x = bx + r.dbx;
+      if (x < 0 || x >= nbx) {
         continue;
       }
-      const int lo = std::max(0, iy + r.dy_lo), hi = std::min(g.ny - 1, iy + r.dy_hi);
-      const std::size_t column = static_cast<std::size_t>(g.position(x, 0));
-      const float* prev = previous.data() + column;
-      const float* cur = current.data() + column;
-      // Rows of another thread's band: their changes of this sweep count in the next one.
-      const int own_lo = std::max(lo, row_begin), own_hi = std::min(hi, row_end - 1);
-      for (int y = lo; y <= std::min(hi, own_lo - 1); ++y) {
-        bound = std::max(bound, prev[y]);
-      }
-      for (int y = own_lo; y <= own_hi; ++y) {
-        bound = std::max(bound, prev[y] + cur[y]);
-      }
-      for (int y = std::max(lo, own_hi + 1); y <= hi; ++y) {
-        bound = std::max(bound, prev[y]);
+      const int lo = std::max(0, by + r.dby_lo), hi = std::min(nby - 1, by + r.dby_hi);
+      const std::size_t column = static_cast<std::size_t>(x) * static_cast<std::size_t>(nby);
+      for (int y = lo; y <= hi; ++y) {
+        bound = std::max(bound, previous[column + y] + cur[column + y]);
       }
     }
     float& p = pending[static_cast<std::size_t>(pos)];
     p += bound;
     return p >= skip_below;
+  }
+  void record(int ix, int iy, int thread, float change) {
+    float& c = current[static_cast<std::size_t>(thread)][block(ix, iy)];
+    c = std::max(c, change);
+  }
+  /// This sweep's changes become the previous ones.
+  void endSweep() {
+    std::fill(previous.begin(), previous.end(), 0.0f);
+    for (std::vector<float>& cur : current) {
+      for (std::size_t i = 0; i < cur.size(); ++i) {
+        previous[i] = std::max(previous[i], cur[i]);
+      }
+      std::fill(cur.begin(), cur.end(), 0.0f);
+    }
   }
 };
 
@@ -296,25 +310,30 @@ ArcTables arcTables(const SteeringModel& model) {
 /// due in the first sweep only once a successor's value has risen from 0, so the first sweep
 /// follows the front spreading back from the target instead of recomputing zeros: with every
 /// successor at 0, eq. 5.2 gives 0 and the control insert (ties keep insert), which the
-/// position already holds. The distinct successor positions come from the model's stencils.
-ChangeTracker changeTracker(const SteeringModel& model, float skip_below) {
+/// position already holds. The blocks read come from the model's stencils.
+ChangeTracker changeTracker(const SteeringModel& model, float skip_below, int threads) {
   const GridSpec& g = model.grid();
+  constexpr int kB = ChangeTracker::kBlock;
   ChangeTracker t;
   t.skip_below = skip_below;
-  const auto n = static_cast<std::size_t>(g.numPositions());
-  t.previous.assign(n, 0.0f);
-  t.current.assign(n, 0.0f);
-  t.pending.assign(n, 0.0f);
+  t.nbx = (g.nx + kB - 1) / kB;
+  t.nby = (g.ny + kB - 1) / kB;
+  const auto blocks = static_cast<std::size_t>(t.nbx) * static_cast<std::size_t>(t.nby);
+  t.previous.assign(blocks, 0.0f);
+  t.current.assign(static_cast<std::size_t>(threads), std::vector<float>(blocks, 0.0f));
+  t.pending.assign(static_cast<std::size_t>(g.numPositions()), 0.0f);
   const bool interpolated = model.transitionModel() == TransitionModel::kInterpolated;
-  for (std::int64_t pos = 0; pos < g.numPositions(); ++pos) {
-    const auto i = static_cast<std::size_t>(pos);
-    if (model.cell(pos) == Cell::kTarget) {
-      t.previous[i] = 1.0f;
-    } else if (interpolated && model.cell(pos) == Cell::kFree && !model.allArcsValid(pos)) {
-      for (int a = 0; a < 2 * g.nc; ++a) {
-        if (model.arcValid(pos, a) && (model.endMask(pos, a) & SteeringModel::kEndInTarget)) {
-          t.pending[i] = std::numeric_limits<float>::infinity();
-          break;
+  for (int ix = 0; ix < g.nx; ++ix) {
+    for (int iy = 0; iy < g.ny; ++iy) {
+      const std::int64_t pos = g.position(ix, iy);
+      if (model.cell(pos) == Cell::kTarget) {
+        t.previous[t.block(ix, iy)] = 1.0f;
+      } else if (interpolated && model.cell(pos) == Cell::kFree && !model.allArcsValid(pos)) {
+        for (int a = 0; a < 2 * g.nc; ++a) {
+          if (model.arcValid(pos, a) && (model.endMask(pos, a) & SteeringModel::kEndInTarget)) {
+            t.pending[static_cast<std::size_t>(pos)] = std::numeric_limits<float>::infinity();
+            break;
+          }
         }
       }
     }
@@ -332,12 +351,22 @@ ChangeTracker changeTracker(const SteeringModel& model, float skip_below) {
       }
     }
   }
-  for (const auto& [dx, dy] : seen) {  // ordered by column, then row: merge consecutive rows
-    if (!t.runs.empty() && t.runs.back().dx == dx && t.runs.back().dy_hi + 1 == dy) {
-      t.runs.back().dy_hi = static_cast<std::int16_t>(dy);
+  // Every block offset a successor of any position of a block falls in.
+  const auto floorDiv = [](int a) { return a >= 0 ? a / kB : -((-a + kB - 1) / kB); };
+  std::set<std::pair<int, int>> block_offsets;
+  for (const auto& [dx, dy] : seen) {
+    for (int o = 0; o < kB; ++o) {
+      for (int p = 0; p < kB; ++p) {
+        block_offsets.insert({floorDiv(o + dx), floorDiv(p + dy)});
+      }
+    }
+  }
+  for (const auto& [dbx, dby] : block_offsets) {  // by column, then row: merge consecutive rows
+    if (!t.runs.empty() && t.runs.back().dbx == dbx && t.runs.back().dby_hi + 1 == dby) {
+      t.runs.back().dby_hi = static_cast<std::int16_t>(dby);
     } else {
-      t.runs.push_back({static_cast<std::int16_t>(dx), static_cast<std::int16_t>(dy),
-                        static_cast<std::int16_t>(dy)});
+      t.runs.push_back({static_cast<std::int16_t>(dbx), static_cast<std::int16_t>(dby),
+                        static_cast<std::int16_t>(dby)});
     }
   }
   return t;
@@ -360,8 +389,7 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
       if (c.cells[pos] != static_cast<std::uint8_t>(Cell::kFree)) {
         continue;  // absorbing (5.4.2)
       }
-      if (c.changes != nullptr && !c.changes->due(g, pos, ix, iy, use_snapshot ? band.row_begin : 0,
-                                                  use_snapshot ? band.row_end : g.ny)) {
+      if (c.changes != nullptr && !c.changes->due(pos, ix, iy, band.index)) {
         max_change = std::max(max_change, c.changes->pending[static_cast<std::size_t>(pos)]);
         continue;  // its values would move by less than skip_below
       }
@@ -389,7 +417,7 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
                        : updatePosition<false, false>(c, pos, iy, band);
       }
       if (c.changes != nullptr) {
-        c.changes->current[static_cast<std::size_t>(pos)] = change;
+        c.changes->record(ix, iy, band.index, change);
         c.changes->pending[static_cast<std::size_t>(pos)] = 0.0f;
       }
       max_change = std::max(max_change, change);
@@ -468,7 +496,7 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   const int n_threads = std::max(1, std::min(options.threads, g.ny / std::max(1, 2 * reach)));
   std::vector<Band> bands;
   for (int t = 0; t < n_threads; ++t) {
-    bands.push_back({g.ny * t / n_threads, g.ny * (t + 1) / n_threads});
+    bands.push_back({g.ny * t / n_threads, g.ny * (t + 1) / n_threads, t});
   }
   // Left uninitialised: only the rows copied at the start of each sweep are ever read, so only
   // their pages are touched.
@@ -489,7 +517,8 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   c.arcs = &arc_tables;
   ChangeTracker tracker;
   if (options.skip_fraction > 0.0) {
-    tracker = changeTracker(model, static_cast<float>(options.epsilon * options.skip_fraction));
+    tracker = changeTracker(model, static_cast<float>(options.epsilon * options.skip_fraction),
+                            n_threads);
     c.changes = &tracker;
   }
 
@@ -531,8 +560,7 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
       band_change[0] = sweepBand(c, bands[0], x_desc, y_desc, reach, false, band_updates[0]);
     }
     if (c.changes != nullptr) {
-      tracker.previous.swap(tracker.current);
-      std::fill(tracker.current.begin(), tracker.current.end(), 0.0f);
+      tracker.endSweep();
     }
     const double max_change = *std::max_element(band_change.begin(), band_change.end());
     st.max_change_per_sweep.push_back(max_change);
