@@ -13,6 +13,10 @@
 #include <string>
 #include <thread>
 
+#ifdef __linux__
+#include <sys/mman.h>
+#endif
+
 namespace needle_guidance::steering {
 namespace {
 
@@ -22,6 +26,7 @@ constexpr int kSweepOrders = 4;
 struct Band {
   int row_begin = 0;
   int row_end = 0;
+  int index = 0;  // the thread's number
 };
 
 /// Shared read-only context of one solve.
@@ -42,34 +47,63 @@ struct Context {
 /// Skips positions whose update could not move their values by `skip_below` or more. The
 /// Bellman update (eq. 5.2) is a maximum of weighted means with weights summing to <= 1, so a
 /// position's new values differ from its old ones by at most the largest change of any successor
-/// since its last update. `pending` accumulates an upper bound of that (changes in the previous
-/// sweep plus those already made in this one, counted twice at worst); a position is updated
-/// once its bound reaches skip_below. Changes made in another thread's band during the current
-/// sweep are counted one sweep later (when they are in `previous`), as their values are too (the
-/// snapshot), so the result does not depend on timing.
+/// since its last update. The changes are kept per block of kBlock x kBlock positions (the
+/// largest of its positions), and a position reads the blocks that hold any of its successors,
+/// a superset of them, so the bound stays a bound at a fraction of the reads. `pending`
+/// accumulates it (changes in the previous sweep plus those already made in this one, counted
+/// twice at worst); a position is updated once its bound reaches skip_below. Each thread records
+/// its own changes of the current sweep; those of another thread's band are counted one sweep
+/// later (in `previous`), as their values are too (the snapshot), so the result does not depend
+/// on timing.
 struct ChangeTracker {
+  static constexpr int kBlock = 4;  // positions per block side
+  /// Blocks of one column offset with consecutive rows dby_lo .. dby_hi (contiguous in memory).
+  struct Run {
+    std::int16_t dbx = 0, dby_lo = 0, dby_hi = 0;
+  };
   float skip_below = 0.0f;
-  std::vector<float> previous;          // per position: max |change| in the previous sweep
-  std::vector<float> current;           // per position: max |change| so far in this sweep
-  std::vector<float> pending;           // per position: bound on its change since its last update
-  std::vector<std::int32_t> succ_dpos;  // distinct successor positions: index offset
-  std::vector<std::int16_t> succ_dx, succ_dy;
+  int nbx = 0, nby = 0;                     // blocks along x and y
+  std::vector<float> previous;              // per block: max |change| in the previous sweep
+  std::vector<std::vector<float>> current;  // per thread, per block: max |change| this sweep
+  std::vector<float> pending;  // per position: bound on its change since its last update
+  std::vector<Run> runs;
 
+  std::size_t block(int ix, int iy) const {
+    return static_cast<std::size_t>((ix / kBlock) * nby + iy / kBlock);
+  }
   /// Adds this sweep's bound for position (ix, iy) and says whether it must be updated.
-  bool due(const GridSpec& g, std::int64_t pos, int ix, int iy, int row_begin, int row_end) {
+  bool due(std::int64_t pos, int ix, int iy, int thread) {
+    const int bx = ix / kBlock, by = iy / kBlock;
+    const float* cur = current[static_cast<std::size_t>(thread)].data();
     float bound = 0.0f;
-    for (std::size_t i = 0; i < succ_dpos.size(); ++i) {
-      const int x = ix + succ_dx[i], y = iy + succ_dy[i];
-      if (x < 0 || x >= g.nx || y < 0 || y >= g.ny) {
+    for (const Run& r : runs) {
+      const int x = bx + r.dbx;
+      if (x < 0 || x >= nbx) {
         continue;
       }
-      const auto q = static_cast<std::size_t>(pos + succ_dpos[i]);
-      const float own = y >= row_begin && y < row_end ? current[q] : 0.0f;
-      bound = std::max(bound, previous[q] + own);
+      const int lo = std::max(0, by + r.dby_lo), hi = std::min(nby - 1, by + r.dby_hi);
+      const std::size_t column = static_cast<std::size_t>(x) * static_cast<std::size_t>(nby);
+      for (int y = lo; y <= hi; ++y) {
+        bound = std::max(bound, previous[column + y] + cur[column + y]);
+      }
     }
     float& p = pending[static_cast<std::size_t>(pos)];
     p += bound;
     return p >= skip_below;
+  }
+  void record(int ix, int iy, int thread, float change) {
+    float& c = current[static_cast<std::size_t>(thread)][block(ix, iy)];
+    c = std::max(c, change);
+  }
+  /// This sweep's changes become the previous ones.
+  void endSweep() {
+    std::fill(previous.begin(), previous.end(), 0.0f);
+    for (std::vector<float>& cur : current) {
+      for (std::size_t i = 0; i < cur.size(); ++i) {
+        previous[i] = std::max(previous[i], cur[i]);
+      }
+      std::fill(cur.begin(), cur.end(), 0.0f);
+    }
   }
 };
 
@@ -134,49 +168,22 @@ float updatePosition(const Context& c, std::int64_t pos, int iy, const Band& ban
   return max_change;
 }
 
-template <bool kBand>
-float updateFactoredPosition(const Context& c, std::int64_t pos, int iy, const Band& band,
-                             bool plain, std::vector<float>& after) {
-  const int nc = c.grid->nc;
-  const ArcTables& t = *c.arcs;
-  const std::uint64_t* mask = c.model->validityMask(pos);
-  const std::int64_t base = pos * 2 * nc;
-  for (int a = 0; a < 2 * nc; ++a) {
-    if (!plain && !((mask[a >> 6] >> (a & 63)) & 1u)) {
-      after[static_cast<std::size_t>(a)] = 0.0f;  // the arc fails
-      continue;
-    }
-    const std::uint8_t em = plain ? 15 : c.model->endMask(pos, a);
-    if (em & SteeringModel::kEndInTarget) {
-      after[static_cast<std::size_t>(a)] = 1.0f;
-      continue;
-    }
-    float kept = 0.0f, weighted = 0.0f;
-    for (int i = 0; i < 4; ++i) {
-      const auto ai = static_cast<std::size_t>(a * 4 + i);
-      if (!((em >> t.corner[ai]) & 1u)) {
-        continue;
-      }
-      const std::int64_t j = base + t.offset[ai];
-      float v;
-      if (kBand) {
-        const int row = iy + t.dy[ai];
-        v = row >= band.row_begin && row < band.row_end ? c.values[j] : c.snapshot[j];
-      } else {
-        v = c.values[j];
-      }
-      kept += t.weight[ai];
-      weighted += t.weight[ai] * v;
-    }
-    after[static_cast<std::size_t>(a)] = kept > 0.0f ? weighted / kept : 0.0f;
-  }
-  // The deflection sums are circular convolutions over the orientation: for bevel b and
-  // control u, q_u(k) = sum_i P_u(i) after(traced, k + first_u + i). Each bevel's values are
-  // unrolled once (wrapped around) so the inner loop runs over contiguous k (SIMD).
-  float* ext = after.data() + 2 * nc;
+/// The deflection sums of one position from the values after each arc (`after`: 2 nc, then
+/// scratch), the better control of every state written to `values` and `controls`; returns the
+/// largest |change|. The sums are circular convolutions over the orientation: for bevel b and
+/// control u, q_u(k) = sum_i P_u(i) after(traced, k + first_u + i). Each bevel's values are
+/// unrolled once (wrapped around) so the inner loop runs over contiguous k. Built for AVX2 and
+/// plain x86-64, chosen at load time: each element is the same sum in the same order either
+/// way (no fused multiply-add), so the table does not depend on the processor.
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+__attribute__((target_clones("avx2", "default")))
+#endif
+float deflectionSums(const ArcTables& t, int nc, float* after, float* values,
+                     std::uint8_t* controls) {
+  float* ext = after + 2 * nc;
   for (int tr = 0; tr < 2; ++tr) {
     float* e = ext + tr * t.ext_len;
-    const float* src = after.data() + tr * nc;
+    const float* src = after + tr * nc;
     for (int j = 0; j < t.ext_len; ++j) {
       e[j] = src[t.ext_src[static_cast<std::size_t>(j)]];
     }
@@ -202,8 +209,8 @@ float updateFactoredPosition(const Context& c, std::int64_t pos, int iy, const B
   for (int b = 0; b < 2; ++b) {
     const float* q_insert = q + (b * 2) * nc;
     const float* q_flip = q + (b * 2 + 1) * nc;
-    float* v = c.values + base + b * nc;
-    std::uint8_t* ctl = c.controls + base + b * nc;
+    float* v = values + b * nc;
+    std::uint8_t* ctl = controls + b * nc;
     for (int k = 0; k < nc; ++k) {
       const bool flip = q_flip[k] > q_insert[k];  // ties keep insert
       const float best = flip ? q_flip[k] : q_insert[k];
@@ -213,6 +220,46 @@ float updateFactoredPosition(const Context& c, std::int64_t pos, int iy, const B
     }
   }
   return max_change;
+}
+
+/// kPlain: every arc from the position is valid and keeps its four corners (allArcsValid).
+template <bool kBand, bool kPlain>
+float updateFactoredPosition(const Context& c, std::int64_t pos, int iy, const Band& band,
+                             std::vector<float>& after) {
+  const int nc = c.grid->nc;
+  const ArcTables& t = *c.arcs;
+  const std::uint64_t* mask = c.model->validityMask(pos);
+  const std::int64_t base = pos * 2 * nc;
+  for (int a = 0; a < 2 * nc; ++a) {
+    if (!kPlain && !((mask[a >> 6] >> (a & 63)) & 1u)) {
+      after[static_cast<std::size_t>(a)] = 0.0f;  // the arc fails
+      continue;
+    }
+    const std::uint8_t em = kPlain ? 15 : c.model->endMask(pos, a);
+    if (!kPlain && (em & SteeringModel::kEndInTarget)) {
+      after[static_cast<std::size_t>(a)] = 1.0f;
+      continue;
+    }
+    float kept = 0.0f, weighted = 0.0f;
+    for (int i = 0; i < 4; ++i) {
+      const auto ai = static_cast<std::size_t>(a * 4 + i);
+      if (!kPlain && !((em >> t.corner[ai]) & 1u)) {
+        continue;
+      }
+      const std::int64_t j = base + t.offset[ai];
+      float v;
+      if (kBand) {
+        const int row = iy + t.dy[ai];
+        v = row >= band.row_begin && row < band.row_end ? c.values[j] : c.snapshot[j];
+      } else {
+        v = c.values[j];
+      }
+      kept += t.weight[ai];
+      weighted += t.weight[ai] * v;
+    }
+    after[static_cast<std::size_t>(a)] = kept > 0.0f ? weighted / kept : 0.0f;
+  }
+  return deflectionSums(t, nc, after.data(), c.values + base, c.controls + base);
 }
 
 /// The per-arc corners and per-slot deflections of a kInterpolated model's stencils.
@@ -258,17 +305,40 @@ ArcTables arcTables(const SteeringModel& model) {
   return t;
 }
 
-/// A tracker with every position due in the first sweep and the distinct successor positions
-/// of the model's stencils.
-ChangeTracker changeTracker(const SteeringModel& model, float skip_below) {
+/// A tracker seeded with the only values that differ from 0 before the first sweep: the target
+/// cells (P_s = 1, counted as a change of 1) and the arcs that end in the target. A position is
+/// due in the first sweep only once a successor's value has risen from 0, so the first sweep
+/// follows the front spreading back from the target instead of recomputing zeros: with every
+/// successor at 0, eq. 5.2 gives 0 and the control insert (ties keep insert), which the
+/// position already holds. The blocks read come from the model's stencils.
+ChangeTracker changeTracker(const SteeringModel& model, float skip_below, int threads) {
   const GridSpec& g = model.grid();
+  constexpr int kB = ChangeTracker::kBlock;
   ChangeTracker t;
   t.skip_below = skip_below;
-  const auto n = static_cast<std::size_t>(g.numPositions());
-  t.previous.assign(n, 0.0f);
-  t.current.assign(n, 0.0f);
-  t.pending.assign(n, std::numeric_limits<float>::infinity());
-  std::set<std::pair<std::int32_t, std::int16_t>> seen;
+  t.nbx = (g.nx + kB - 1) / kB;
+  t.nby = (g.ny + kB - 1) / kB;
+  const auto blocks = static_cast<std::size_t>(t.nbx) * static_cast<std::size_t>(t.nby);
+  t.previous.assign(blocks, 0.0f);
+  t.current.assign(static_cast<std::size_t>(threads), std::vector<float>(blocks, 0.0f));
+  t.pending.assign(static_cast<std::size_t>(g.numPositions()), 0.0f);
+  const bool interpolated = model.transitionModel() == TransitionModel::kInterpolated;
+  for (int ix = 0; ix < g.nx; ++ix) {
+    for (int iy = 0; iy < g.ny; ++iy) {
+      const std::int64_t pos = g.position(ix, iy);
+      if (model.cell(pos) == Cell::kTarget) {
+        t.previous[t.block(ix, iy)] = 1.0f;
+      } else if (interpolated && model.cell(pos) == Cell::kFree && !model.allArcsValid(pos)) {
+        for (int a = 0; a < 2 * g.nc; ++a) {
+          if (model.arcValid(pos, a) && (model.endMask(pos, a) & SteeringModel::kEndInTarget)) {
+            t.pending[static_cast<std::size_t>(pos)] = std::numeric_limits<float>::infinity();
+            break;
+          }
+        }
+      }
+    }
+  }
+  std::set<std::pair<int, int>> seen;  // distinct successors: (column offset, row offset)
   for (int b = 0; b < 2; ++b) {
     for (int k = 0; k < g.nc; ++k) {
       for (int u = 0; u < 2; ++u) {
@@ -276,13 +346,27 @@ ChangeTracker changeTracker(const SteeringModel& model, float skip_below) {
         const auto control = static_cast<Control>(u);
         for (const StencilEntry* e = model.stencilBegin(k, bevel, control);
              e != model.stencilEnd(k, bevel, control); ++e) {
-          if (seen.insert({e->dpos, e->dy}).second) {
-            t.succ_dpos.push_back(e->dpos);
-            t.succ_dy.push_back(e->dy);
-            t.succ_dx.push_back(static_cast<std::int16_t>((e->dpos - e->dy) / g.ny));
-          }
+          seen.insert({(e->dpos - e->dy) / g.ny, e->dy});
         }
       }
+    }
+  }
+  // Every block offset a successor of any position of a block falls in.
+  const auto floorDiv = [](int a) { return a >= 0 ? a / kB : -((-a + kB - 1) / kB); };
+  std::set<std::pair<int, int>> block_offsets;
+  for (const auto& [dx, dy] : seen) {
+    for (int o = 0; o < kB; ++o) {
+      for (int p = 0; p < kB; ++p) {
+        block_offsets.insert({floorDiv(o + dx), floorDiv(p + dy)});
+      }
+    }
+  }
+  for (const auto& [dbx, dby] : block_offsets) {  // by column, then row: merge consecutive rows
+    if (!t.runs.empty() && t.runs.back().dbx == dbx && t.runs.back().dby_hi + 1 == dby) {
+      t.runs.back().dby_hi = static_cast<std::int16_t>(dby);
+    } else {
+      t.runs.push_back({static_cast<std::int16_t>(dbx), static_cast<std::int16_t>(dby),
+                        static_cast<std::int16_t>(dby)});
     }
   }
   return t;
@@ -305,19 +389,26 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
       if (c.cells[pos] != static_cast<std::uint8_t>(Cell::kFree)) {
         continue;  // absorbing (5.4.2)
       }
-      if (c.changes != nullptr && !c.changes->due(g, pos, ix, iy, use_snapshot ? band.row_begin : 0,
-                                                  use_snapshot ? band.row_end : g.ny)) {
+      if (c.changes != nullptr && !c.changes->due(pos, ix, iy, band.index)) {
         max_change = std::max(max_change, c.changes->pending[static_cast<std::size_t>(pos)]);
         continue;  // its values would move by less than skip_below
       }
       ++updated;
       const bool check = !c.model->allArcsValid(pos);
+      // Only rows within reach of another thread's band read the snapshot; the workspace's own
+      // lower and upper edges have no neighbour.
       const bool near_edge =
-          use_snapshot && (iy - band.row_begin < reach || band.row_end - 1 - iy < reach);
+          use_snapshot && ((band.row_begin > 0 && iy - band.row_begin < reach) ||
+                           (band.row_end < g.ny && band.row_end - 1 - iy < reach));
       float change;
       if (c.split) {
-        change = near_edge ? updateFactoredPosition<true>(c, pos, iy, band, !check, after)
-                           : updateFactoredPosition<false>(c, pos, iy, band, !check, after);
+        if (near_edge) {
+          change = check ? updateFactoredPosition<true, false>(c, pos, iy, band, after)
+                         : updateFactoredPosition<true, true>(c, pos, iy, band, after);
+        } else {
+          change = check ? updateFactoredPosition<false, false>(c, pos, iy, band, after)
+                         : updateFactoredPosition<false, true>(c, pos, iy, band, after);
+        }
       } else if (near_edge) {
         change = check ? updatePosition<true, true>(c, pos, iy, band)
                        : updatePosition<false, true>(c, pos, iy, band);
@@ -326,13 +417,32 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
                        : updatePosition<false, false>(c, pos, iy, band);
       }
       if (c.changes != nullptr) {
-        c.changes->current[static_cast<std::size_t>(pos)] = change;
+        c.changes->record(ix, iy, band.index, change);
         c.changes->pending[static_cast<std::size_t>(pos)] = 0.0f;
       }
       max_change = std::max(max_change, change);
     }
   }
   return max_change;
+}
+
+/// `v` resized to n zeros. A table of many states is hundreds of MB written once: it is
+/// allocated first and marked for transparent huge pages (where the kernel offers them on
+/// request), so that the zero fill takes one page fault per 2 MB instead of one per 4 kB.
+template <typename T>
+void zeroFilled(std::vector<T>& v, std::int64_t n) {
+  v.reserve(static_cast<std::size_t>(n));
+#ifdef __linux__
+  constexpr std::uintptr_t kHugePage = std::uintptr_t{1} << 21;
+  const auto begin = reinterpret_cast<std::uintptr_t>(v.data());
+  const std::uintptr_t first = (begin + kHugePage - 1) & ~(kHugePage - 1);
+  const std::uintptr_t last =
+      (begin + static_cast<std::uintptr_t>(n) * sizeof(T)) & ~(kHugePage - 1);
+  if (last > first) {
+    madvise(reinterpret_cast<void*>(first), last - first, MADV_HUGEPAGE);  // advice only
+  }
+#endif
+  v.assign(static_cast<std::size_t>(n), T{});
 }
 
 }  // namespace
@@ -359,8 +469,10 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   const GridSpec& g = model.grid();
   const int nc = g.nc;
   const std::int64_t n = g.numStates();
-  std::vector<float> values(static_cast<std::size_t>(n), 0.0f);
-  std::vector<std::uint8_t> controls(static_cast<std::size_t>(n), 0);
+  std::vector<float> values;
+  std::vector<std::uint8_t> controls;
+  zeroFilled(values, n);
+  zeroFilled(controls, n);
   const std::vector<std::uint8_t>& cells = model.cells();
   for (std::int64_t pos = 0; pos < g.numPositions(); ++pos) {
     if (model.cell(pos) == Cell::kTarget) {
@@ -384,7 +496,7 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   const int n_threads = std::max(1, std::min(options.threads, g.ny / std::max(1, 2 * reach)));
   std::vector<Band> bands;
   for (int t = 0; t < n_threads; ++t) {
-    bands.push_back({g.ny * t / n_threads, g.ny * (t + 1) / n_threads});
+    bands.push_back({g.ny * t / n_threads, g.ny * (t + 1) / n_threads, t});
   }
   // Left uninitialised: only the rows copied at the start of each sweep are ever read, so only
   // their pages are touched.
@@ -405,7 +517,8 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   c.arcs = &arc_tables;
   ChangeTracker tracker;
   if (options.skip_fraction > 0.0) {
-    tracker = changeTracker(model, static_cast<float>(options.epsilon * options.skip_fraction));
+    tracker = changeTracker(model, static_cast<float>(options.epsilon * options.skip_fraction),
+                            n_threads);
     c.changes = &tracker;
   }
 
@@ -447,8 +560,7 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
       band_change[0] = sweepBand(c, bands[0], x_desc, y_desc, reach, false, band_updates[0]);
     }
     if (c.changes != nullptr) {
-      tracker.previous.swap(tracker.current);
-      std::fill(tracker.current.begin(), tracker.current.end(), 0.0f);
+      tracker.endSweep();
     }
     const double max_change = *std::max_element(band_change.begin(), band_change.end());
     st.max_change_per_sweep.push_back(max_change);

@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <string>
@@ -52,6 +53,53 @@ TEST(SolverSkipping, ValuesWithinTheSkipBoundOfTheFullSweeps) {
   for (auto u : stats_skip.updated_per_sweep)
     updates_skip += u;
   EXPECT_LT(updates_skip, updates_all) << "skipping saved no position update";
+}
+
+/// States whose value or control differs between a first sweep over every free position and
+/// one that follows the front from the target (skip bound far below any change).
+std::int64_t firstSweepDifferences(const SteeringModel& model, std::int64_t& updates_all,
+                                   std::int64_t& updates_seeded) {
+  SolverOptions all;
+  all.skip_fraction = 0.0;
+  all.max_sweeps = 1;
+  SolverOptions seeded = all;
+  seeded.skip_fraction = 1e-9;  // any change above 1e-12 makes its predecessors due
+  SolveStats stats_all, stats_seeded;
+  const PolicyTable a = solveValueIteration(model, all, &stats_all);
+  const PolicyTable b = solveValueIteration(model, seeded, &stats_seeded);
+  std::int64_t differing = 0;
+  for (StateId s = 0; s < model.numStates(); ++s) {
+    differing += a.value(s) != b.value(s) || a.control(s) != b.control(s) ? 1 : 0;
+  }
+  updates_all = stats_all.updated_per_sweep.at(0);
+  updates_seeded = stats_seeded.updated_per_sweep.at(0);
+  return differing;
+}
+
+TEST(SolverSkipping, FirstSweepFromTheTargetFrontEqualsAFullSweep) {
+  // Before the first sweep only the target cells and the arcs ending in the target are non-zero;
+  // a position none of whose successors has risen from 0 keeps its 0, so the first sweep may
+  // skip it. The seeded sweep must give exactly the values and controls of a sweep over every
+  // free position, with fewer updates.
+  std::int64_t updates_all = 0, updates_seeded = 0;
+  const SteeringModel model(noisyProblem(2e-3), 2);
+  EXPECT_EQ(firstSweepDifferences(model, updates_all, updates_seeded), 0);
+  EXPECT_LT(updates_seeded, updates_all) << "the first sweep recomputed every free position";
+
+  // A target disc of radius 0.5 mm midway between four grid points (2 mm apart) holds no grid
+  // point: only arcs whose exact end lies in it reach it, so the front starts from those arcs.
+  SteeringProblem small = noisyProblem(2e-3);
+  const GridSpec& g = model.grid();
+  const int ix = g.nx * 85 / 100, iy = g.ny / 2;
+  small.target.position = 0.5 * (g.point(ix, iy) + g.point(ix + 1, iy + 1));
+  small.target.radius_m = 0.5e-3;
+  const SteeringModel between(small, 2);
+  ASSERT_EQ(std::count(between.cells().begin(), between.cells().end(),
+                       static_cast<std::uint8_t>(Cell::kTarget)),
+            0)
+      << "the small target should hold no grid point";
+  EXPECT_EQ(firstSweepDifferences(between, updates_all, updates_seeded), 0);
+  EXPECT_GT(updates_seeded, 0) << "no position reaches the small target in the first sweep";
 }
 
 TEST(SolverSkipping, BadSkipFractionIsRefused) {
