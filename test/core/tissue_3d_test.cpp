@@ -13,6 +13,7 @@
 #include "needle_guidance/fem/fixed_point.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/tissue_3d/offset_planner_3d.h"
+#include "tissue_3d_scene_text.h"
 
 namespace needle_guidance::tissue_3d {
 namespace {
@@ -38,17 +39,8 @@ regions:
   - name: bone
     ellipsoid: {center_mm: [30, 19, 0], semi_axes_mm: [6, 4, 15]}
     fixed: true
-needle:
-  cutting_force_N: 0.5
-  static_friction_N_per_cm: 0.3
-  kinetic_friction_N_per_cm: 0.2
-  insertion_velocity_mm_s: 5
-  step_s: 0.1
-workspace:
-  stage: {y_min_mm: -20, y_max_mm: 20, z_min_mm: -20, z_max_mm: 20}
-  max_tip_x_mm: 56
-mesh: {size_mm: 12, fine_size_mm: 4, fine_radius_mm: 4}
-targets:
+)" + testNeedleStageMesh() +
+         R"(targets:
   - {name: center, position_mm: [36, 1, 2]}
 )" + extra_targets;
 }

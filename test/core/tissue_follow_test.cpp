@@ -14,6 +14,7 @@
 #include "needle_guidance/fem/embedded_needle.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/tissue_3d/offset_planner_3d.h"
+#include "tissue_3d_scene_text.h"
 
 namespace needle_guidance::tissue_3d {
 namespace {
@@ -39,21 +40,8 @@ block:
     material: {young_modulus_kPa: 400, poisson_ratio: 0.45}
 )";
   }
-  return s + R"(needle:
-  track: )" +
-         track +
-         R"(
-  cutting_force_N: 0.5
-  static_friction_N_per_cm: 0.3
-  kinetic_friction_N_per_cm: 0.2
-  insertion_velocity_mm_s: 5
-  step_s: 0.1
-workspace:
-  stage: {y_min_mm: -20, y_max_mm: 20, z_min_mm: -20, z_max_mm: 20}
-  max_tip_x_mm: 56
-mesh: {size_mm: 12, fine_size_mm: )" +
-         std::to_string(fine_mm) + R"(, fine_radius_mm: 4}
-targets:
+  return s + testNeedleStageMesh("  track: " + track + "\n", std::to_string(fine_mm)) +
+         R"(targets:
   - {name: beside, position_mm: [40, 0, 1]}
 )";
 }
