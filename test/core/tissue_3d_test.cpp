@@ -24,14 +24,7 @@ constexpr double kPlacementTol_m = 1e-4;  // target: seeds within 0.1 mm
 constexpr double kRelaxed_m = 1e-9;       // after full retraction the tissue is back at rest
 
 std::string sceneText(double gland_kpa, const std::string& extra_targets = "") {
-  return R"(
-scene: {name: test_block, kind: tissue_3d}
-block:
-  min_mm: [0, -25, -25]
-  max_mm: [60, 25, 25]
-  material: {young_modulus_kPa: 20, poisson_ratio: 0.45}
-  fixed_faces: x_max
-regions:
+  return testBlock("test_block") + R"(regions:
   - name: gland
     ellipsoid: {center_mm: [35, 0, 0], semi_axes_mm: [14, 12, 12]}
     material: {young_modulus_kPa: )" +

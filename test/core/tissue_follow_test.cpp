@@ -25,14 +25,7 @@ constexpr double kPlacementTol_m = 1e-4;  // target: seeds within 0.1 mm
 /// A 20 kPa block fixed at its far face with a stiff inclusion beside the needle path: the
 /// tissue ahead of the tip moves sideways around it.
 std::string sceneText(const std::string& track, double fine_mm, bool inclusion = true) {
-  std::string s = R"(
-scene: {name: follow_block, kind: tissue_3d}
-block:
-  min_mm: [0, -25, -25]
-  max_mm: [60, 25, 25]
-  material: {young_modulus_kPa: 20, poisson_ratio: 0.45}
-  fixed_faces: x_max
-)";
+  std::string s = testBlock("follow_block");
   if (inclusion) {
     s += R"(regions:
   - name: inclusion
