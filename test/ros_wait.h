@@ -7,6 +7,7 @@
 #include <xmlrpcpp/XmlRpcClient.h>
 
 #include <fstream>
+#include <limits>
 #include <optional>
 #include <sstream>
 #include <string>
@@ -35,6 +36,13 @@ inline std::string readText(const std::string& path) {
   std::stringstream text;
   text << std::ifstream(path).rdbuf();
   return text.str();
+}
+
+/// The number after "key": in a summary.json text; NaN when the key is missing.
+inline double jsonNumber(const std::string& json, const std::string& key) {
+  const std::size_t at = json.find("\"" + key + "\": ");
+  return at == std::string::npos ? std::numeric_limits<double>::quiet_NaN()
+                                 : std::stod(json.substr(at + key.size() + 4));
 }
 
 /// The text of `path` once it is readable, or nullopt when it does not appear within timeout_s

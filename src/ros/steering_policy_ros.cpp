@@ -299,7 +299,9 @@ SteeringPolicyRos::SolveOutcome SteeringPolicyRos::solveOrLoad(double epsilon, b
               << (std::isnan(rung.estimated_error) ? std::string("not estimated (first model of "
                                                                  "these transitions)")
                                                    : formatNumber(rung.estimated_error, 2))
-              << "; " << rung.check.toString());
+              << "; " << rung.check.toString()
+              << (rung.coarsened ? " (coarser grid of the accepted transitions)" : "")
+              << (rung.chosen ? " (chosen)" : ""));
     }
     description_ = p.description();  // before the model moves out
     estimated_error_ = p.estimated_error;

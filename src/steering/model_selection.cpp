@@ -161,6 +161,45 @@ ModelCheck scoreCheck(const std::vector<Checked>& starts, double tolerance) {
   return out;
 }
 
+/// A rung built and solved, with its table and model.
+struct SolvedRung {
+  ModelRung rung;
+  std::unique_ptr<const SteeringModel> model;
+  std::unique_ptr<PolicyTable> table;
+};
+
+SolvedRung solveRung(const SteeringProblem& rung_problem, const SelectionOptions& options) {
+  SolvedRung out;
+  const SteeringParams& params = rung_problem.params;
+  out.rung.grid_spacing_m = params.grid_spacing_m;
+  out.rung.transition_model = params.transition_model;
+  out.rung.orientation_subdivision = params.orientation_subdivision;
+  const auto tb = std::chrono::steady_clock::now();
+  out.model = std::make_unique<const SteeringModel>(rung_problem, options.threads);
+  out.rung.build_s = secondsSince(tb);
+  out.rung.states = out.model->numStates();
+  SolveStats stats;
+  out.table =
+      std::make_unique<PolicyTable>(solveValueIteration(*out.model, options.solver, &stats));
+  out.rung.solve_s = stats.seconds;
+  out.rung.sweeps = stats.sweeps;
+  out.rung.change_vs_coarser = std::numeric_limits<double>::quiet_NaN();
+  out.rung.estimated_error = std::numeric_limits<double>::quiet_NaN();
+  return out;
+}
+
+/// True when the ladder already holds a rung of these transitions at this grid.
+bool solvedBefore(const std::vector<ModelRung>& ladder, const SteeringParams& params) {
+  for (const ModelRung& r : ladder) {
+    if (r.transition_model == params.transition_model &&
+        r.orientation_subdivision == params.orientation_subdivision &&
+        std::abs(r.grid_spacing_m / params.grid_spacing_m - 1.0) < 1e-9) {
+      return true;
+    }
+  }
+  return false;
+}
+
 }  // namespace
 
 std::string ModelCheck::toString() const {
@@ -284,6 +323,50 @@ double meanAbsChange(const PolicyTable& fine, const PolicyTable& coarse,
   return count > 0 ? sum / count : 0.0;
 }
 
+namespace {
+
+/// After a model is accepted: the grids coarser than it with its transitions that the ladder never
+/// solved (its transitions came in on a finer grid) are tried in turn, none coarser than the
+/// scene's own grid. Each is accepted when its estimated error (its change to the finer accepted
+/// model, Richardson: e = D r^k / (r^k - 1)) meets the tolerance and its check passes; the first
+/// that does not ends the descent.
+void coarsen(ModelChoice& choice, const SteeringProblem& problem, const SelectionOptions& options,
+             const std::vector<TipPose>& poses, std::int64_t trials) {
+  const double rk = std::pow(kRatio, kOrder);
+  for (;;) {
+    SteeringParams params = choice.model->params();
+    params.grid_spacing_m *= kRatio;
+    if (params.grid_spacing_m > problem.params.grid_spacing_m * (1.0 + 1e-9) ||
+        solvedBefore(choice.ladder, params)) {
+      return;
+    }
+    SteeringProblem rung_problem = problem;
+    rung_problem.params = params;
+    SolvedRung solved = solveRung(rung_problem, options);
+    ModelRung& rung = solved.rung;
+    rung.coarsened = true;
+    rung.change_vs_coarser =
+        meanAbsChange(*choice.table, *solved.table, poses, rung.evaluation_states);
+    rung.estimated_error = rung.change_vs_coarser * rk / (rk - 1.0);
+    const bool estimate_met = rung.estimated_error <= options.ps_tolerance;
+    if (estimate_met && trials >= 0) {
+      rung.check = checkModel(*solved.model, *solved.table, options.start, options.ps_tolerance,
+                              trials, options.check_seed, options.solver.threads);
+    }
+    choice.ladder.push_back(rung);
+    if (!estimate_met || (trials >= 0 && !rung.check.passed)) {
+      return;
+    }
+    choice.problem = rung_problem;
+    choice.model = std::move(solved.model);
+    choice.table = std::move(solved.table);
+    choice.estimated_error = rung.estimated_error;
+    choice.check = rung.check;
+  }
+}
+
+}  // namespace
+
 Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionOptions& options) {
   if (!(options.ps_tolerance > 0.0 && options.ps_tolerance < 1.0)) {
     throw std::invalid_argument("chooseModel: ps_tolerance must be in (0, 1), got " +
@@ -294,6 +377,14 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
       options.check_trials == 0 ? checkTrials(options.ps_tolerance) : options.check_trials;
   ModelChoice choice;
   const auto t0 = std::chrono::steady_clock::now();
+  // The accepted model, or a coarser one of its transitions that also meets the tolerance.
+  auto finish = [&]() {
+    coarsen(choice, problem, options, poses, trials);
+    for (ModelRung& r : choice.ladder) {
+      r.chosen = solvedBefore({r}, choice.model->params());
+    }
+    choice.total_s = secondsSince(t0);
+  };
   // The current rung checked by Monte Carlo (once); true when it is accepted.
   auto accepted = [&]() {
     if (trials < 0) {
@@ -310,7 +401,7 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
   // No further rung: the last one is accepted if its check passes, else the tolerance is refused.
   auto lastRung = [&](const std::string& why_no_further) -> Result<ModelChoice> {
     if (choice.table && accepted()) {
-      choice.total_s = secondsSince(t0);
+      finish();
       return std::move(choice);
     }
     std::ostringstream why;
@@ -355,20 +446,10 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
                       ") needs about " + formatNumber(mb, 4) + " MB against the memory limit of " +
                       formatNumber(options.memory_limit_mb, 4) + " MB");
     }
-    ModelRung rung;
-    rung.grid_spacing_m = params.grid_spacing_m;
-    rung.transition_model = params.transition_model;
-    rung.orientation_subdivision = params.orientation_subdivision;
-    const auto tb = std::chrono::steady_clock::now();
-    auto model = std::make_unique<const SteeringModel>(rung_problem, options.threads);
-    rung.build_s = secondsSince(tb);
-    rung.states = model->numStates();
-    SolveStats stats;
-    auto table = std::make_unique<PolicyTable>(solveValueIteration(*model, options.solver, &stats));
-    rung.solve_s = stats.seconds;
-    rung.sweeps = stats.sweeps;
-    rung.change_vs_coarser = std::numeric_limits<double>::quiet_NaN();
-    rung.estimated_error = std::numeric_limits<double>::quiet_NaN();
+    SolvedRung solved = solveRung(rung_problem, options);
+    ModelRung& rung = solved.rung;
+    std::unique_ptr<const SteeringModel>& model = solved.model;
+    std::unique_ptr<PolicyTable>& table = solved.table;
     // The change estimate compares two grids of the same transitions; after a change of the
     // transitions the check alone decides.
     const bool new_transitions =
@@ -385,7 +466,7 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
     choice.peak_estimate_mb = std::max(choice.peak_estimate_mb, mb);
     // false for NaN (the first rung)
     if ((rung.estimated_error <= options.ps_tolerance || new_transitions) && accepted()) {
-      choice.total_s = secondsSince(t0);
+      finish();
       return choice;
     }
     const ModelCheck& check = choice.ladder.back().check;

@@ -45,6 +45,19 @@ double angleBetween(double a, double b) {
   return std::min(d, 2.0 * kPi - d);
 }
 
+/// Fresh trials of a verification (verify_trials 0): those that give the standard error of
+/// max(16,000, 1 / tolerance^2) trials at P_s 0.5, at the larger binomial variance of the
+/// candidate's prediction and of its screen's rate; never fewer than the screen ran.
+std::int64_t verificationTrials(const StartVerificationOptions& o, const ScreenedStart& s) {
+  const double at_half = std::max(double(kMinVerifyTrials),
+                                  std::ceil(1.0 / std::max(o.tolerance * o.tolerance, 1e-5)));
+  const double p = std::clamp<double>(s.candidate.probability_of_success, 0.0, 1.0);
+  const double r = s.screen.rate();
+  const double variance = std::max(p * (1.0 - p), r * (1.0 - r));
+  return std::max<std::int64_t>(o.screen_trials,
+                                static_cast<std::int64_t>(std::ceil(at_half * 4.0 * variance)));
+}
+
 std::string ordinal(int n) {
   const int last = n % 10;
   const bool teen = n % 100 >= 11 && n % 100 <= 13;
@@ -146,18 +159,14 @@ VerifiedStart verifyBestStart(const ContinuousWorkspace& world, const PolicyTabl
     }
     return sa.score > sb.score;
   });
-  const std::int64_t verify_trials =
-      options.verify_trials > 0
-          ? options.verify_trials
-          : std::max<std::int64_t>(
-                kMinVerifyTrials,
-                static_cast<std::int64_t>(
-                    std::ceil(1.0 / std::max(options.tolerance * options.tolerance, 1e-5))));
   double best_gap = 1.0;
   const int tries = std::min<int>(kMaxVerified, static_cast<int>(order.size()));
   for (int i = 0; i < tries; ++i) {
     const int index = order[static_cast<std::size_t>(i)];
-    const StartCandidate& c = out.screened[static_cast<std::size_t>(index)].candidate;
+    const ScreenedStart& screened = out.screened[static_cast<std::size_t>(index)];
+    const StartCandidate& c = screened.candidate;
+    const std::int64_t verify_trials =
+        options.verify_trials > 0 ? options.verify_trials : verificationTrials(options, screened);
     const MonteCarloResult mc = runMonteCarlo(world, c.pose, policy, verify_trials,
                                               options.seed + 1, options.threads, trial);
     // Strict: the verified gap itself within the tolerance (no allowance for the noise).

@@ -137,6 +137,59 @@ TEST(ModelSelection, ChosenRungMeetsTheToleranceByItsOwnEstimate) {
   EXPECT_EQ(c.model->numStates(), c.ladder.back().states);
 }
 
+/// The rung of `params`' transitions at `spacing_m` in the ladder, or nullptr.
+const ModelRung* rungAt(const ModelChoice& c, const SteeringParams& params, double spacing_m) {
+  for (const ModelRung& r : c.ladder) {
+    if (r.transition_model == params.transition_model &&
+        r.orientation_subdivision == params.orientation_subdivision &&
+        std::abs(r.grid_spacing_m / spacing_m - 1.0) < 1e-9) {
+      return &r;
+    }
+  }
+  return nullptr;
+}
+
+TEST(ModelSelection, NoCoarserGridOfTheChosenTransitionsMeetsTheTolerance) {
+  // Rounded transitions on a coarse grid: the ladder refines the transitions on a finer grid,
+  // then tries the coarser grids of the transitions it accepted, down to the problem's own.
+  SteeringProblem p = noisyProblem(4e-3);
+  p.params.transition_model = TransitionModel::kRounded;
+  p.params.orientation_subdivision = 1;
+  SelectionOptions o;
+  o.ps_tolerance = 0.02;
+  o.start = entryLine();
+  const Result<ModelChoice> r = chooseModel(p, o);
+  ASSERT_TRUE(r) << r.status().toString();
+  const ModelChoice& c = r.value();
+  const SteeringParams& chosen = c.model->params();
+  const double coarser_m = chosen.grid_spacing_m * std::sqrt(2.0);
+  const ModelRung* coarser = rungAt(c, chosen, coarser_m);
+  if (coarser_m <= p.params.grid_spacing_m * (1.0 + 1e-9)) {
+    ASSERT_NE(coarser, nullptr) << "the grid sqrt(2) coarser was never tried";
+    EXPECT_TRUE(coarser->estimated_error > o.ps_tolerance ||
+                (coarser->check.run && !coarser->check.passed))
+        << "the coarser grid met the tolerance: " << coarser->check.toString();
+  }
+  // The transitions were refined on a finer grid than the one chosen: the choice is the
+  // cheaper coarser grid of those transitions, not the first model that passed.
+  EXPECT_EQ(chosen.transition_model, TransitionModel::kInterpolated);
+  double finest_m = chosen.grid_spacing_m;
+  for (const ModelRung& rung : c.ladder) {
+    if (rung.transition_model == chosen.transition_model &&
+        rung.orientation_subdivision == chosen.orientation_subdivision) {
+      finest_m = std::min(finest_m, rung.grid_spacing_m);
+    }
+  }
+  EXPECT_GT(chosen.grid_spacing_m, finest_m * 1.01) << "no coarser grid was taken";
+  const ModelRung* mine = rungAt(c, chosen, chosen.grid_spacing_m);
+  ASSERT_NE(mine, nullptr);
+  EXPECT_TRUE(mine->chosen);
+  EXPECT_EQ(
+      std::count_if(c.ladder.begin(), c.ladder.end(), [](const ModelRung& x) { return x.chosen; }),
+      1);
+  EXPECT_TRUE(c.check.run && c.check.passed) << c.check.toString();
+}
+
 TEST(ModelSelection, ToleranceBeyondTheMemoryLimitIsRefusedNamingIt) {
   SelectionOptions o;
   o.ps_tolerance = 1e-6;

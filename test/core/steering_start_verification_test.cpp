@@ -132,20 +132,27 @@ TEST_F(StartVerificationTest, ChosenStartIsVerifiedWithFreshSeedsAndDeterministi
   EXPECT_NE(a.toString().find("predicted P_s"), std::string::npos) << a.toString();
 }
 
-TEST_F(StartVerificationTest, VerificationTrialsFollowTheTolerance) {
-  // verify_trials 0: max(16,000, 1 / tolerance^2), so the standard error is at most half the
-  // tolerance.
+TEST_F(StartVerificationTest, VerificationTrialsFollowTheToleranceAndTheStartsPs) {
+  // verify_trials 0: max(16,000, 1 / tolerance^2) x 4 v, v the larger binomial variance of the
+  // prediction and the screen's rate, so the standard error is at most half the tolerance.
   StartVerificationOptions options;
   options.candidates = 1;
   options.screen_trials = 200;
-  options.tolerance = 0.005;
-  const VerifiedStart tight = verifyBestStart(*world_, *table_, test_shapes::entryLine(), options);
-  ASSERT_TRUE(tight) << tight.message;
-  EXPECT_EQ(tight.verification.trials, 40000);
-  options.tolerance = 0.02;
-  const VerifiedStart loose = verifyBestStart(*world_, *table_, test_shapes::entryLine(), options);
-  ASSERT_TRUE(loose) << loose.message;
-  EXPECT_EQ(loose.verification.trials, 16000);
+  for (const double tolerance : {0.005, 0.02}) {
+    options.tolerance = tolerance;
+    const VerifiedStart v = verifyBestStart(*world_, *table_, test_shapes::entryLine(), options);
+    ASSERT_TRUE(v) << v.message;
+    const ScreenedStart& s = v.screened.at(std::size_t(v.rank_by_prediction));
+    const double p = s.candidate.probability_of_success;
+    const double r = s.screen.rate();
+    const double variance = std::max(p * (1.0 - p), r * (1.0 - r));
+    const double at_half = tolerance == 0.005 ? 40000.0 : 16000.0;
+    EXPECT_EQ(v.verification.trials,
+              std::max<std::int64_t>(200, std::int64_t(std::ceil(at_half * 4.0 * variance))))
+        << "tolerance " << tolerance << ", p " << p << ", screen " << r;
+    EXPECT_LE(v.verification.trials, std::int64_t(at_half));
+    EXPECT_LE(std::sqrt(variance / double(v.verification.trials)), 0.5 * tolerance + 1e-12);
+  }
 }
 
 TEST_F(StartVerificationTest, StartTheTableOverratesIsNotChosen) {

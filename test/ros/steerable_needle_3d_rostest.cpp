@@ -45,13 +45,6 @@ constexpr double kJointTolM = 1e-9;  // [m] a retracted insertion joint reads ex
 // not the prediction from the controls, carry the loop.
 constexpr double kMinFusedFraction = 0.5;
 
-/// The number after "key": in summary.json; NaN when the key is missing.
-double jsonNumber(const std::string& json, const std::string& key) {
-  const std::size_t at = json.find("\"" + key + "\": ");
-  return at == std::string::npos ? std::numeric_limits<double>::quiet_NaN()
-                                 : std::stod(json.substr(at + key.size() + 4));
-}
-
 /// Publishes `tip` to the planner and returns its answer (matched by stamp).
 std::optional<needle_guidance::SteeringControl3> askPlanner(
     const geometry_msgs::PoseWithCovarianceStamped& tip) {

@@ -86,11 +86,15 @@ struct ModelRung {
   double build_s = 0.0;
   double solve_s = 0.0;
   int sweeps = 0;
-  /// Mean |P_s - P_s of the previous rung| over the evaluation states; NaN on the first rung.
+  /// Mean |P_s - P_s of the previous rung| over the evaluation states (of the finer accepted
+  /// model for a coarsened rung); NaN on the first rung and the first of new transitions.
   double change_vs_coarser = 0.0;
   double estimated_error = 0.0;  ///< the estimate of this rung's mean |P_s error| (NaN first)
   int evaluation_states = 0;     ///< states where either rung predicts P_s >= 0.01
   ModelCheck check;              ///< run when this rung was a candidate
+  /// Solved after a finer model was accepted: a coarser grid of its transitions (coarsen).
+  bool coarsened = false;
+  bool chosen = false;  ///< the model chosen
 };
 
 /// The model chosen for a tolerance, with its table.
@@ -125,7 +129,10 @@ double meanAbsChange(const PolicyTable& fine, const PolicyTable& coarse,
 /// memory_limit_mb or max_steps, the last rung's check passes whatever its estimate). A failed
 /// check the grid's estimated error does not explain refines the transitions instead (rounded
 /// -> interpolated -> s doubled); when memory stops the grid, the transitions are refined once
-/// within the last rung's memory (s doubled on a grid sqrt(2) coarser). Refuses
+/// within the last rung's memory (s doubled on a grid sqrt(2) coarser). An accepted model whose
+/// transitions came in on a finer grid is then coarsened: the grid sqrt(2) coarser with the same
+/// transitions (never coarser than problem.params.grid_spacing_m) is taken while its estimate
+/// (its change to the finer, times 2) meets the tolerance and its check passes. Refuses
 /// (StatusCode::kRefused, naming the tolerance, the finest estimate and check reached and why)
 /// otherwise; then nothing is kept.
 /// Throws std::invalid_argument for a tolerance outside (0, 1).

@@ -27,9 +27,11 @@ struct StartVerificationOptions {
   double separation_m = 2e-3;
   double separation_rad = 0.16;
   std::int64_t screen_trials = 1000;  ///< Monte Carlo trials per screened start, >= 1
-  /// Fresh trials at a chosen start, >= 0; 0 = from the tolerance: max(16,000, 1 / tolerance^2)
-  /// (40,000 at 0.005), so the verification's binomial standard error is at most half the
-  /// tolerance at any P_s (at most 100,000).
+  /// Fresh trials at a chosen start, >= 0; 0 = from the tolerance and the start's P_s:
+  /// n = max(16,000, 1 / tolerance^2) x 4 v, v the larger of p (1 - p) of the prediction and of
+  /// the screen's rate (at P_s 0.5: 40,000 at 0.005, 16,000 at 0.01; at most 100,000; at least
+  /// screen_trials), so the verification's binomial standard error is at most half the
+  /// tolerance at its own P_s.
   std::int64_t verify_trials = 0;
   /// The gap |predicted - Monte Carlo| a confirmed prediction may have (the scene's
   /// ps_tolerance), >= 0. The screen allows the binomial noise on top (z below); the
