@@ -64,6 +64,15 @@ struct AcquisitionOptions {
   /// (track_frames --entry-angle DEG). A candidate more than 10 degrees off it is not the
   /// needle, and the shaft is oriented that way. nullopt: any direction.
   std::optional<double> entry_angle_rad;
+  /// In a fan (convex or phased probe), the frame's depth profile (the median grey level at
+  /// each depth: the probe face's ring-down band, attenuation, gain) is subtracted before the
+  /// ridge filter, so a needle inside the band stands out against the band rather than its
+  /// gradient. false: the frame as it is.
+  bool flatten_depth = true;
+  /// In a fan (auto entry, no entry point), when the whole fan's ridge gives no candidate strong
+  /// enough: the band along the fan's upper boundary, where a needle just inserted lies, is
+  /// searched on its own (its own ridge thresholds). false: the whole fan only.
+  bool entry_zone = true;
   /// Throws std::invalid_argument naming the field when out of range.
   void validate() const;
 };
