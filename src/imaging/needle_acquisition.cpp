@@ -167,7 +167,10 @@ constexpr double kPriorAngle_rad = 10.0 * kPi / 180.0;
 constexpr int kProfileMinPixels = 24;
 constexpr double kProfileMaxGain = 2.0;
 constexpr double kProfileMinGain = 0.5;
-constexpr int kProfileSmooth_px = 16;
+/// The gain is smoothed over 2 kGainSmooth_px + 1 depths, the median over 2 kLevelSmooth_px + 1:
+/// the ring-down band's level falls within a few pixels below the face, its spread does not.
+constexpr int kGainSmooth_px = 16;
+constexpr int kLevelSmooth_px = 2;
 
 /// The Hessian ridge filter's output: strength (>= 0) and line direction per pixel.
 struct RidgeMap {
@@ -552,9 +555,9 @@ void flattenDepthProfile(const cv::Mat& grey8, const ImagingRegion& region, cv::
   // Smoothed over depth: a bin's quantiles are whole grey levels, and a step in gain from one
   // depth to the next would cut a bright layer crossing it into pieces.
   cv::Mat gain_row(1, depths, CV_32F, gain.data()), offset_row(1, depths, CV_32F, offset.data());
-  cv::blur(gain_row, gain_row, cv::Size(2 * kProfileSmooth_px + 1, 1), cv::Point(-1, -1),
+  cv::blur(gain_row, gain_row, cv::Size(2 * kGainSmooth_px + 1, 1), cv::Point(-1, -1),
            cv::BORDER_REPLICATE);
-  cv::blur(offset_row, offset_row, cv::Size(2 * kProfileSmooth_px + 1, 1), cv::Point(-1, -1),
+  cv::blur(offset_row, offset_row, cv::Size(2 * kLevelSmooth_px + 1, 1), cv::Point(-1, -1),
            cv::BORDER_REPLICATE);
   for (int y = 0; y < grey32->rows; ++y) {
     float* g = grey32->ptr<float>(y);
