@@ -835,15 +835,9 @@ bool bendToArc(const RidgeMap& ridge, const AcquisitionOptions& o, Candidate* c)
   return best_strength > 0.0;
 }
 
-/// Whether the candidate never leaves the band of kEdgeBand_px along a bounded region's boundary
-/// and runs along it: its two ends lie within kEdgeBand_px / 2 of the same distance from the
-/// boundary. The region's own edge response (a straight side, a chord of the face's arc) runs
-/// along the boundary; a needle just inserted through the face crosses the band, away from it.
+/// Whether the candidate never leaves the band of kEdgeBand_px along a bounded region's boundary.
 bool hugsRegionEdge(const Candidate& c, const ImagingRegion& region) {
   if (!region.bounded())
-    return false;
-  if (std::abs(region.insetAt(at(c.line, c.t1)) - region.insetAt(at(c.line, c.t0))) >=
-      0.5 * kEdgeBand_px)
     return false;
   for (double t = c.t0; t <= c.t1; t += 2.0) {
     if (region.insetAt(at(c.line, t)) > kEdgeBand_px)
