@@ -152,11 +152,25 @@ constexpr double kSkinReach = 0.5;
 constexpr double kAnchoredGap_px = kEdgeBand_px;
 constexpr double kAnchoredCoherence = 0.8;
 constexpr double kAnchoredEvidence = 0.5;
+/// The entry zone's round (examineEntryZone): the band along a fan's boundary, down to
+/// kMaxEntryDepth of the fan, where a needle just inserted lies [px]: twice the band that holds
+/// the region's own edge (kEdgeBand_px), so a shaft crossing it shows beyond that edge's response.
+constexpr double kEntryZone_px = 2.0 * kEdgeBand_px;
 /// Priors (AcquisitionOptions::entry_point_px, entry_angle_rad): a candidate whose curve passes
 /// farther than kPriorPoint_px from the stated entry point, or whose direction differs by more
 /// than kPriorAngle_rad from the stated angle, is not the needle.
 constexpr double kPriorPoint_px = 25.0;
 constexpr double kPriorAngle_rad = 10.0 * kPi / 180.0;
+
+/// Depth profile (flattenDepthProfile): a depth bin with fewer pixels of the fan than this keeps
+/// its grey levels as they are (too few to tell its level from a needle's or a layer's).
+constexpr int kProfileMinPixels = 24;
+constexpr double kProfileMaxGain = 2.0;
+constexpr double kProfileMinGain = 0.5;
+/// The gain is smoothed over 2 kGainSmooth_px + 1 depths, the median over 2 kLevelSmooth_px + 1:
+/// the ring-down band's level falls within a few pixels below the face, its spread does not.
+constexpr int kGainSmooth_px = 16;
+constexpr int kLevelSmooth_px = 2;
 
 /// The Hessian ridge filter's output: strength (>= 0) and line direction per pixel.
 struct RidgeMap {
@@ -234,13 +248,13 @@ double ridgeDirection(const RidgeMap& r, cv::Point2d p) {
 }
 
 /// Step 3 (thresholds): the kRidgeQuantile and kHoughQuantile quantiles of the ridge strengths.
-void ridgeThresholds(RidgeMap* ridge, const ImagingRegion& region) {
+void ridgeThresholds(RidgeMap* ridge, const cv::Mat& mask) {
   const cv::Mat& strength = ridge->strength;
   std::vector<float> v;
   v.reserve(strength.total() / 4);
   for (int y = 0; y < strength.rows; y += 2) {
     const float* s = strength.ptr<float>(y);
-    const std::uint8_t* inside = region.bounded() ? region.mask.ptr<std::uint8_t>(y) : nullptr;
+    const std::uint8_t* inside = mask.empty() ? nullptr : mask.ptr<std::uint8_t>(y);
     for (int x = 0; x < strength.cols; x += 2) {
       if (!inside || inside[x])
         v.push_back(s[x]);
@@ -255,6 +269,10 @@ void ridgeThresholds(RidgeMap* ridge, const ImagingRegion& region) {
   };
   ridge->threshold = quantile(kRidgeQuantile);
   ridge->hough_threshold = quantile(kHoughQuantile);
+}
+
+void ridgeThresholds(RidgeMap* ridge, const ImagingRegion& region) {
+  ridgeThresholds(ridge, region.bounded() ? region.mask : cv::Mat());
 }
 
 /// Step 3: whether Hough lines h and k are the same line within the frame: directions within
@@ -452,6 +470,105 @@ Line refitArc(const RidgeMap& ridge, const Line& l, double t0, double t1, double
   const cv::Point2d n(-out.dir.y, out.dir.x);
   out.kappa = (c - out.point).dot(n) > 0 ? 1.0 / radius : -1.0 / radius;
   return out;
+}
+
+/// Step 2, in a fan: the frame less its depth profile, at the speckle's typical spread. A B-mode
+/// frame is log compressed, so what varies with depth alone (the attenuation and the gain's
+/// compensation of it) is an offset in grey levels per depth; and the probe face's ring-down,
+/// added to the echoes before compression, lifts the band under the face and compresses every
+/// echo contrast in it, the speckle's and a needle's alike. The band's gradient across a needle
+/// just inserted reads as noise against its contrast, and its compressed ridge drowns among the
+/// whole fan's strongest. At each depth (the distance from the face's centre, or the row under a
+/// straight face) the median grey level over the fan is subtracted and the rest scaled by the
+/// typical depth's interquartile spread over this depth's (kProfileMinGain to kProfileMaxGain):
+/// tissue fills most of a depth's arc, a needle or a layer crosses a few of its pixels. A steep
+/// needle crosses many depths, and its faint echo then stands out against the speckle of each.
+/// The frame's median level is added back (the side symmetry is a ratio of grey levels).
+void flattenDepthProfile(const cv::Mat& grey8, const ImagingRegion& region, cv::Mat* grey32) {
+  if (region.shape != ImagingRegion::Shape::kSector || region.mask.empty())
+    return;
+  const bool curved = region.top_radius_px > 0.0;
+  auto depthOf = [&](int x, int y) {
+    return curved ? static_cast<int>(
+                        std::lround(std::hypot(x - region.apex_px.x, y - region.apex_px.y)))
+                  : y;
+  };
+  const double far = curved ? std::hypot(std::max(region.apex_px.x, grey8.cols - region.apex_px.x),
+                                         std::max(region.apex_px.y, grey8.rows - region.apex_px.y))
+                            : grey8.rows;
+  const int depths = static_cast<int>(far) + 2;
+  cv::Mat depth(grey8.size(), CV_32S, cv::Scalar(-1));
+  std::vector<int> hist(static_cast<std::size_t>(depths) * 256, 0), all(256, 0);
+  for (int y = 0; y < grey8.rows; ++y) {
+    const std::uint8_t* g = grey8.ptr<std::uint8_t>(y);
+    const std::uint8_t* m = region.mask.ptr<std::uint8_t>(y);
+    int* d = depth.ptr<int>(y);
+    for (int x = 0; x < grey8.cols; ++x) {
+      if (m[x] == 0)
+        continue;
+      d[x] = std::clamp(depthOf(x, y), 0, depths - 1);
+      ++hist[static_cast<std::size_t>(d[x]) * 256 + g[x]];
+      ++all[g[x]];
+    }
+  }
+  // The grey level below which a share q of a histogram's pixels lie; -1 for too few pixels.
+  auto quantile = [](const int* h, double q) {
+    int n = 0;
+    for (int v = 0; v < 256; ++v)
+      n += h[v];
+    if (n < kProfileMinPixels)
+      return -1.0;
+    double seen = 0.0;
+    for (int v = 0; v < 256; ++v) {
+      seen += h[v];
+      if (seen >= q * n)
+        return double(v);
+    }
+    return 255.0;
+  };
+  const double level = quantile(all.data(), 0.5);
+  if (level < 0.0)
+    return;
+  std::vector<float> offset(static_cast<std::size_t>(depths), static_cast<float>(level));
+  std::vector<float> spread(static_cast<std::size_t>(depths), -1.0F), spreads;
+  for (int k = 0; k < depths; ++k) {
+    const int* h = &hist[static_cast<std::size_t>(k) * 256];
+    const double m = quantile(h, 0.5);
+    if (m < 0.0)
+      continue;  // too few pixels at this depth: left as it is
+    offset[static_cast<std::size_t>(k)] = static_cast<float>(m);
+    spread[static_cast<std::size_t>(k)] = static_cast<float>(quantile(h, 0.75) - quantile(h, 0.25));
+    spreads.push_back(spread[static_cast<std::size_t>(k)]);
+  }
+  if (spreads.empty())
+    return;
+  std::nth_element(spreads.begin(), spreads.begin() + spreads.size() / 2, spreads.end());
+  const double typical = spreads[spreads.size() / 2];  // the typical depth's spread
+  std::vector<float> gain(static_cast<std::size_t>(depths), 1.0F);
+  for (std::size_t k = 0; k < gain.size(); ++k) {
+    if (spread[k] == 0.0F)
+      gain[k] = static_cast<float>(kProfileMaxGain);
+    else if (spread[k] > 0.0F)
+      gain[k] =
+          static_cast<float>(std::clamp(typical / spread[k], kProfileMinGain, kProfileMaxGain));
+  }
+  // Smoothed over depth: a bin's quantiles are whole grey levels, and a step in gain from one
+  // depth to the next would cut a bright layer crossing it into pieces.
+  cv::Mat gain_row(1, depths, CV_32F, gain.data()), offset_row(1, depths, CV_32F, offset.data());
+  cv::blur(gain_row, gain_row, cv::Size(2 * kGainSmooth_px + 1, 1), cv::Point(-1, -1),
+           cv::BORDER_REPLICATE);
+  cv::blur(offset_row, offset_row, cv::Size(2 * kLevelSmooth_px + 1, 1), cv::Point(-1, -1),
+           cv::BORDER_REPLICATE);
+  for (int y = 0; y < grey32->rows; ++y) {
+    float* g = grey32->ptr<float>(y);
+    const int* d = depth.ptr<int>(y);
+    for (int x = 0; x < grey32->cols; ++x) {
+      if (d[x] < 0)
+        continue;
+      const auto k = static_cast<std::size_t>(d[x]);
+      g[x] = static_cast<float>(level) + gain[k] * (g[x] - offset[k]);
+    }
+  }
 }
 
 /// Step 5: contrast, side symmetry, coherence and evidence of a candidate segment.
@@ -1307,15 +1424,44 @@ std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const Acquis
 }
 
 /// Steps 3-5 on one ridge map: its Hough lines examined until kMaxCandidates distinct ones.
-void examineLines(const RidgeMap& ridge, const AcquisitionOptions& o, const ImagingRegion& region,
-                  std::vector<Candidate>* all, cv::Mat* traced) {
-  const std::vector<Line> lines = candidateLines(ridge, o.min_length_px);
+void examineLines(const RidgeMap& votes, const RidgeMap& ridge, const AcquisitionOptions& o,
+                  const ImagingRegion& region, std::vector<Candidate>* all, cv::Mat* traced) {
+  const std::vector<Line> lines = candidateLines(votes, o.min_length_px);
   for (const Line& line : lines) {
     if (static_cast<int>(all->size()) >= kMaxCandidates)
       return;
     if (std::optional<Candidate> c = examine(ridge, line, o, region, traced))
       keepDistinct(*c, all);
   }
+}
+
+/// Step 3, in a fan (auto entry, no entry point), when neither round found a candidate strong
+/// enough: a round of its own over the entry zone, the part of the fan within kEntryZone_px of its
+/// boundary and no deeper than kMaxEntryDepth of it. A needle inserted through the skin beside the
+/// probe enters the fan there (through the face or the upper part of a straight edge); just
+/// inserted, its shaft is short and lies in the face's ring-down band, and among the whole fan's
+/// strongest ridge pixels (the long interfaces, the speckle) it casts no Hough line. Over the zone
+/// alone, its thresholds taken from the zone's ridge, it does; each line is then traced along the
+/// whole fan at the zone's thresholds and judged by the same rules.
+void examineEntryZone(const RidgeMap& ridge, const AcquisitionOptions& o,
+                      const ImagingRegion& region, std::vector<Candidate>* all, cv::Mat* traced) {
+  cv::Point2d left, right;
+  if (o.entry != EntrySide::kAuto || o.entry_point_px ||
+      !faceEnds(region, o.ridge_sigma_px, &left, &right))
+    return;
+  cv::Mat zone = region.mask & (region.inset <= kEntryZone_px);
+  const int deep = region.box.y + static_cast<int>(kMaxEntryDepth * region.box.height);
+  if (deep < zone.rows)
+    zone.rowRange(std::max(deep, 0), zone.rows).setTo(0);
+  if (cv::countNonZero(zone) == 0)
+    return;
+  RidgeMap votes = ridge, trace = ridge;
+  votes.strength = cv::Mat(ridge.strength.size(), CV_32F, cv::Scalar(0));  // a buffer of its own
+  ridge.strength.copyTo(votes.strength, zone);
+  ridgeThresholds(&votes, zone);
+  trace.threshold = votes.threshold;
+  trace.hough_threshold = votes.hough_threshold;
+  examineLines(votes, trace, o, region, all, traced);
 }
 
 /// Steps 3-5 in two rounds. A few long bright structures (tissue interfaces) hold most of the
@@ -1329,16 +1475,22 @@ std::vector<Candidate> collectCandidates(const RidgeMap& ridge, const Acquisitio
                                          const ImagingRegion& region) {
   std::vector<Candidate> all;
   cv::Mat traced(ridge.strength.size(), CV_8U, cv::Scalar(0));
-  examineLines(ridge, o, region, &all, &traced);
-  const bool acceptable = std::any_of(
-      all.begin(), all.end(), [&](const Candidate& c) { return c.acceptance >= o.min_evidence; });
-  if (acceptable || static_cast<int>(all.size()) >= kMaxCandidates || cv::countNonZero(traced) == 0)
+  examineLines(ridge, ridge, o, region, &all, &traced);
+  auto acceptable = [&] {
+    return std::any_of(all.begin(), all.end(),
+                       [&](const Candidate& c) { return c.acceptance >= o.min_evidence; });
+  };
+  if (acceptable() || static_cast<int>(all.size()) >= kMaxCandidates)
     return all;
-  RidgeMap rest = ridge;
-  rest.strength = ridge.strength.clone();
-  rest.strength.setTo(0.0F, traced);
-  ridgeThresholds(&rest, region);
-  examineLines(rest, o, region, &all, &traced);
+  if (cv::countNonZero(traced) > 0) {
+    RidgeMap rest = ridge;
+    rest.strength = ridge.strength.clone();
+    rest.strength.setTo(0.0F, traced);
+    ridgeThresholds(&rest, region);
+    examineLines(rest, rest, o, region, &all, &traced);
+  }
+  if (!acceptable() && o.entry_zone)
+    examineEntryZone(ridge, o, region, &all, &traced);
   return all;
 }
 
@@ -1376,6 +1528,8 @@ NeedleSegment acquireNeedle(const cv::Mat& frame, const AcquisitionOptions& opti
   }
   cv::Mat grey32;
   grey.convertTo(grey32, CV_32F);
+  if (options.flatten_depth)
+    flattenDepthProfile(grey, region, &grey32);
   RidgeMap ridge = ridgeFilter(grey32, options.ridge_sigma_px);  // step 2
   if (region.bounded())  // the region's own edge and the black outside it are no ridge
     ridge.strength.setTo(0.0F, region.inset < kRegionInsetSigmas * options.ridge_sigma_px);

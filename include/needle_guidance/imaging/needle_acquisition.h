@@ -2,10 +2,12 @@
 // (tip_tracker.h) assumes the needle the simulated imager draws, this finds a needle anywhere in
 // a real frame and tells it from the structures that look like one:
 //   step 1  grey conversion (8/16-bit, mono/colour; anything else refused with the reason);
-//   step 2  ridge filter (Hessian, bright thin lines) and its orientation;
+//   step 2  ridge filter (Hessian, bright thin lines) and its orientation; in a fan, on the
+//           frame less its depth profile (the probe face's ring-down band, attenuation);
 //   step 3  candidate lines (cv::HoughLines on the strongest ridge pixels; near-duplicate lines
 //           merged, and traced segments with the same ends kept once, so that a thick layer's
-//           many lines do not take every candidate slot);
+//           many lines do not take every candidate slot); in a fan, when none is strong enough,
+//           the band along the fan's upper boundary where a needle enters searched on its own;
 //   step 4  each candidate's visible segment along the line (gaps bridged), refit by weighted
 //           least squares on the ridge pixels near it (a steerable needle, options.radius_px:
 //           then bent into an arc of that radius either way, the circle's centre refit by
@@ -64,6 +66,15 @@ struct AcquisitionOptions {
   /// (track_frames --entry-angle DEG). A candidate more than 10 degrees off it is not the
   /// needle, and the shaft is oriented that way. nullopt: any direction.
   std::optional<double> entry_angle_rad;
+  /// In a fan (convex or phased probe), the frame's depth profile (the median grey level at
+  /// each depth: the probe face's ring-down band, attenuation, gain) is subtracted before the
+  /// ridge filter, so a needle inside the band stands out against the band rather than its
+  /// gradient. false: the frame as it is.
+  bool flatten_depth = true;
+  /// In a fan (auto entry, no entry point), when the whole fan's ridge gives no candidate strong
+  /// enough: the band along the fan's upper boundary, where a needle just inserted lies, is
+  /// searched on its own (its own ridge thresholds). false: the whole fan only.
+  bool entry_zone = true;
   /// Throws std::invalid_argument naming the field when out of range.
   void validate() const;
 };
