@@ -59,6 +59,9 @@ struct Workspace3 {
   bool reaches(const Eigen::Vector2d& lateral_m) const;
   /// The nearest template hole (template mode) or the clamped stage position.
   Eigen::Vector2d nearest(const Eigen::Vector2d& lateral_m) const;
+  /// Template mode: the (row, column) of the nearest hole; hole(row, column) its (y, z).
+  Eigen::Vector2i holeIndex(const Eigen::Vector2d& lateral_m) const;
+  Eigen::Vector2d hole(int row, int column) const;
 };
 
 /// Mesh sizes: tetrahedra of size_m, graded to fine_size_m within fine_radius_m of the
