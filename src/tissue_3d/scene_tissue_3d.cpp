@@ -213,7 +213,7 @@ private:
     n.step_s = positive("step", units::kTime, n.step_s);
     n.track_spacing_m = positive("track_spacing", units::kLength, n.track_spacing_m);
     n.follow_tissue =
-        m.optionalChoice("track", {"rest_line", "follow_tissue"}).value_or("rest_line") ==
+        m.optionalChoice("track", {"rest_line", "follow_tissue"}).value_or("follow_tissue") ==
         "follow_tissue";
     if (n.gauge < 10 || n.gauge > 30) {
       m.fail(m.keyPath("gauge"), std::to_string(n.gauge), "must be in [10, 30]");
