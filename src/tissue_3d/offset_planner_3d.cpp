@@ -70,8 +70,8 @@ std::string OffsetPlanner3::fixedRegionOnLine(const Eigen::Vector2d& lateral, do
   return "";
 }
 
-OffsetPlanner3::Trajectory OffsetPlanner3::insertAlong(const Eigen::Vector2d& lateral,
-                                                       double max_x) {
+OffsetPlanner3::Trajectory OffsetPlanner3::insertAlong(const Eigen::Vector2d& lateral, double max_x,
+                                                       double stop_x) {
   NeedleInsertion3 needle(model_, scene_.needle, scene_.block_min_m.x(), max_x);
   Trajectory t;
   const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s;
@@ -85,7 +85,7 @@ OffsetPlanner3::Trajectory OffsetPlanner3::insertAlong(const Eigen::Vector2d& la
       t.s.push_back(s);
       t.tip.push_back(needle.tipReference());
     }
-    if (s >= max_x) {
+    if (s >= max_x || (!t.tip.empty() && t.tip.back().x() >= stop_x)) {
       break;
     }
   }
@@ -130,7 +130,7 @@ bool OffsetPlanner3::predict(const Vector3& goal, Eigen::Vector2d& lateral, doub
       return false;
     }
     lateral = reachable;
-    const Trajectory t = insertAlong(lateral, w.max_tip_x_m);
+    const Trajectory t = insertAlong(lateral, w.max_tip_x_m, goal.x());
     ++r.simulations;
     std::size_t k = 0;
     while (k < t.tip.size() && t.tip[k].x() < goal.x()) {

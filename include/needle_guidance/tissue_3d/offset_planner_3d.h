@@ -57,7 +57,8 @@ public:
   Vector3 simulateImplant(const Eigen::Vector2d& lateral, double tip_x, double step_scale = 1.0);
 
 private:
-  /// Tip's tissue point against tip x, from one insertion to max_x (recorded after each step).
+  /// Tip's tissue point against tip x, from one insertion to max_x (recorded after each step),
+  /// stopped once the tip's tissue point has passed x = stop_x.
   struct Trajectory {
     std::vector<double> s;
     std::vector<Vector3> tip;
@@ -69,7 +70,7 @@ private:
     Vector3 seed = Vector3::Zero();
     double error = -1.0;  ///< |seed - goal|; < 0 never simulated
   };
-  Trajectory insertAlong(const Eigen::Vector2d& lateral, double max_x);
+  Trajectory insertAlong(const Eigen::Vector2d& lateral, double max_x, double stop_x);
   std::string physicalRefusal(const Target3& target) const;
   /// The fixed region the needle line at lateral crosses before tip x, with where ("" if none).
   std::string fixedRegionOnLine(const Eigen::Vector2d& lateral, double tip_x) const;
