@@ -227,7 +227,12 @@ OffsetPlanner3::Attempt OffsetPlanner3::bestHole(const Vector3& goal, const Atte
     if (!fixedRegionOnLine(lateral, best.tip_x).empty()) {
       continue;
     }
-    const Attempt a = verify(goal, lateral, best.tip_x, false, r);
+    Attempt a;
+    try {
+      a = verify(goal, lateral, best.tip_x, false, r);
+    } catch (const std::runtime_error&) {
+      continue;  // this hole's insertion was refused; the holes verified so far stand
+    }
     ++r.holes_verified;
     if (a.error >= 0.0 && a.error < best.error) {
       best = a;
