@@ -1,6 +1,7 @@
 // Offset planning for rigid needles in 3-D (offset_planner_3d.h).
 #include "needle_guidance/tissue_3d/offset_planner_3d.h"
 
+#include <algorithm>
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
@@ -12,12 +13,31 @@ namespace {
 
 constexpr double kPathSample_m = 5e-4;  // needle line sampled for fixed regions at this spacing
 constexpr int kMaxVerifications = 4;
+constexpr int kMaxHoles = 3;  // template holes verified per target, the nearest included
 
 std::string mm(double m) {
   std::ostringstream out;
   out.precision(3);
   out << std::fixed << m * 1e3 << " mm";
   return out.str();
+}
+
+/// The reach refusal on a template: no hole lands within the tolerance; the nearest hole (row,
+/// column, y, z) and its verified miss, and the best other hole verified.
+std::string templateRefusal(const Workspace3& w, const PlanResult3& r, double tolerance_m) {
+  auto name = [&](const Eigen::Vector2i& k) {
+    const Eigen::Vector2d p = w.hole(k.x(), k.y());
+    return "row " + std::to_string(k.x()) + ", column " + std::to_string(k.y()) + " (y " +
+           mm(p.x()) + ", z " + mm(p.y()) + ")";
+  };
+  std::string why = "out of reach: no template hole places the seed within " + mm(tolerance_m) +
+                    "; the nearest hole, " + name(r.nearest_hole) + ", misses by " +
+                    mm(r.nearest_hole_error_m) + " (verified)";
+  if (r.hole != r.nearest_hole) {
+    why += "; the best of " + std::to_string(r.holes_verified) + " holes verified, " +
+           name(r.hole) + ", by " + mm(r.verified_error_m);
+  }
+  return why;
 }
 
 }  // namespace
@@ -35,19 +55,23 @@ std::string OffsetPlanner3::physicalRefusal(const Target3& t) const {
     return "target inside fixed region '" + scene_.regions[static_cast<std::size_t>(r)].name +
            "' (" + mm(regions_.distanceToRegion(r, t.position_m)) + " from its surface)";
   }
-  const double entry = scene_.block_min_m.x();
-  for (double x = entry; x <= t.position_m.x(); x += kPathSample_m) {
-    const int q = regions_.regionAt(Vector3(x, t.position_m.y(), t.position_m.z()));
+  const std::string fixed = fixedRegionOnLine(t.position_m.tail<2>(), t.position_m.x());
+  return fixed.empty() ? "" : "the needle line to the target crosses " + fixed;
+}
+
+std::string OffsetPlanner3::fixedRegionOnLine(const Eigen::Vector2d& lateral, double tip_x) const {
+  for (double x = scene_.block_min_m.x(); x <= tip_x; x += kPathSample_m) {
+    const int q = regions_.regionAt(Vector3(x, lateral.x(), lateral.y()));
     if (q >= 0 && scene_.regions[static_cast<std::size_t>(q)].fixed) {
-      return "the needle line to the target crosses fixed region '" +
-             scene_.regions[static_cast<std::size_t>(q)].name + "' at x = " + mm(x);
+      return "fixed region '" + scene_.regions[static_cast<std::size_t>(q)].name +
+             "' at x = " + mm(x);
     }
   }
   return "";
 }
 
-OffsetPlanner3::Trajectory OffsetPlanner3::insertAlong(const Eigen::Vector2d& lateral,
-                                                       double max_x) {
+OffsetPlanner3::Trajectory OffsetPlanner3::insertAlong(const Eigen::Vector2d& lateral, double max_x,
+                                                       double stop_x) {
   NeedleInsertion3 needle(model_, scene_.needle, scene_.block_min_m.x(), max_x);
   Trajectory t;
   const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s;
@@ -61,7 +85,7 @@ OffsetPlanner3::Trajectory OffsetPlanner3::insertAlong(const Eigen::Vector2d& la
       t.s.push_back(s);
       t.tip.push_back(needle.tipReference());
     }
-    if (s >= max_x) {
+    if (s >= max_x || (!t.tip.empty() && t.tip.back().x() >= stop_x)) {
       break;
     }
   }
@@ -93,6 +117,131 @@ Vector3 OffsetPlanner3::simulateImplant(const Eigen::Vector2d& lateral, double t
   return needle.seedWorld(*seed);
 }
 
+bool OffsetPlanner3::predict(const Vector3& goal, Eigen::Vector2d& lateral, double& tip_x,
+                             PlanResult3& r) {
+  // Fixed-point iteration on the simulated tip trajectory: the seed's tissue point is the tip's
+  // at release. On a template the hole is given and only the depth is predicted.
+  const Workspace3& w = scene_.workspace;
+  for (int it = 0; it < options_.max_iterations; ++it) {
+    const Eigen::Vector2d reachable = w.nearest(lateral);
+    if (!w.use_template && (reachable - lateral).norm() > 1e-6) {
+      r.refusal = "out of reach: the stage would need (y " + mm(lateral.x()) + ", z " +
+                  mm(lateral.y()) + ")";
+      return false;
+    }
+    lateral = reachable;
+    const Trajectory t = insertAlong(lateral, w.max_tip_x_m, goal.x());
+    ++r.simulations;
+    std::size_t k = 0;
+    while (k < t.tip.size() && t.tip[k].x() < goal.x()) {
+      ++k;
+    }
+    if (k == t.tip.size()) {
+      r.refusal = "out of reach: at the deepest tip x " + mm(w.max_tip_x_m) +
+                  " the tip's tissue point is at x " +
+                  mm(t.tip.empty() ? scene_.block_min_m.x() : t.tip.back().x()) +
+                  ", short of the target's " + mm(goal.x());
+      return false;
+    }
+    Vector3 predicted = t.tip[k];
+    tip_x = t.s[k];
+    if (k > 0) {
+      const double a = (goal.x() - t.tip[k - 1].x()) / (t.tip[k].x() - t.tip[k - 1].x());
+      predicted = t.tip[k - 1] + a * (t.tip[k] - t.tip[k - 1]);
+      tip_x = t.s[k - 1] + a * (t.s[k] - t.s[k - 1]);
+    }
+    r.predicted_error_m = (predicted - goal).norm();
+    if (w.use_template || r.predicted_error_m < options_.converge_m) {
+      break;
+    }
+    lateral += goal.tail<2>() - predicted.tail<2>();
+  }
+  return true;
+}
+
+OffsetPlanner3::Attempt OffsetPlanner3::verify(const Vector3& goal, Eigen::Vector2d lateral,
+                                               double tip_x, bool move_lateral, PlanResult3& r) {
+  // Independent full simulations, correcting the depth (and the lateral position) by the
+  // measured miss while it is above the tolerance's tenth. A hole whose seed misses laterally
+  // by more than the tolerance cannot be corrected by the depth: one simulation measures it.
+  const Workspace3& w = scene_.workspace;
+  Attempt best;
+  for (int v = 0; v < kMaxVerifications; ++v) {
+    Attempt a{lateral, tip_x, simulateImplant(lateral, tip_x), 0.0};
+    ++r.simulations;
+    a.error = (a.seed - goal).norm();
+    if (best.error < 0.0 || a.error < best.error) {
+      best = a;
+    }
+    const double lateral_miss = (a.seed.tail<2>() - goal.tail<2>()).norm();
+    const double depth_miss = std::abs(goal.x() - a.seed.x());
+    if (a.error <= 0.1 * options_.tolerance_m ||
+        (!move_lateral &&
+         (lateral_miss > options_.tolerance_m || depth_miss <= 0.1 * options_.tolerance_m))) {
+      break;
+    }
+    tip_x += goal.x() - a.seed.x();
+    if (move_lateral) {
+      lateral += goal.tail<2>() - a.seed.tail<2>();
+    }
+    if (tip_x > w.max_tip_x_m || !w.reaches(lateral)) {
+      break;
+    }
+  }
+  return best;
+}
+
+OffsetPlanner3::Attempt OffsetPlanner3::bestHole(const Vector3& goal, const Attempt& nearest,
+                                                 PlanResult3& r) {
+  // Lateral sensitivity: a seed moves with its hole one to one, so every hole's seed is
+  // predicted at the hole plus the nearest hole's measured offset (the track's drift). Holes
+  // predicted to land within the tolerance (plus half the drift, its change between nearby
+  // holes) and closer than the best verified seed by a tenth of the tolerance are verified,
+  // best predicted first, at most kMaxHoles in all.
+  const Workspace3& w = scene_.workspace;
+  const Eigen::Vector2d drift = nearest.seed.tail<2>() - nearest.lateral;
+  const Eigen::Vector2i centre = w.holeIndex(goal.tail<2>() - drift);
+  const int reach =
+      1 + static_cast<int>(std::ceil((drift.norm() + options_.tolerance_m) / w.template_spacing_m));
+  std::vector<std::pair<double, Eigen::Vector2i>> candidates;
+  for (int i = std::max(0, centre.x() - reach);
+       i <= std::min(w.template_rows - 1, centre.x() + reach); ++i) {
+    for (int j = std::max(0, centre.y() - reach);
+         j <= std::min(w.template_columns - 1, centre.y() + reach); ++j) {
+      const double e = (w.hole(i, j) + drift - goal.tail<2>()).norm();
+      if (Eigen::Vector2i(i, j) != r.nearest_hole &&
+          e <= options_.tolerance_m + 0.5 * drift.norm()) {
+        candidates.emplace_back(e, Eigen::Vector2i(i, j));
+      }
+    }
+  }
+  std::sort(candidates.begin(), candidates.end(),
+            [](const auto& a, const auto& b) { return a.first < b.first; });
+  Attempt best = nearest;
+  for (const auto& [predicted, hole] : candidates) {
+    if (r.holes_verified >= kMaxHoles || best.error <= 0.1 * options_.tolerance_m ||
+        predicted >= best.error - 0.1 * options_.tolerance_m) {
+      break;
+    }
+    const Eigen::Vector2d lateral = w.hole(hole.x(), hole.y());
+    if (!fixedRegionOnLine(lateral, best.tip_x).empty()) {
+      continue;
+    }
+    Attempt a;
+    try {
+      a = verify(goal, lateral, best.tip_x, false, r);
+    } catch (const std::runtime_error&) {
+      continue;  // this hole's insertion was refused; the holes verified so far stand
+    }
+    ++r.holes_verified;
+    if (a.error >= 0.0 && a.error < best.error) {
+      best = a;
+      r.hole = hole;
+    }
+  }
+  return best;
+}
+
 PlanResult3 OffsetPlanner3::plan(const Target3& target) {
   const CpuStopwatch plan_clock(CpuStopwatch::Scope::kProcess);
   PlanResult3 r;
@@ -117,75 +266,38 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
       r.unplanned_error_m = (seed - goal).norm();
       excluded_cpu += unplanned_clock.seconds();
     }
-    // Lateral and depth by fixed-point iteration on the simulated tip trajectory: the seed's
-    // tissue point is the tip's at release.
     Eigen::Vector2d lateral = goal.tail<2>();
     double tip_x = goal.x();
-    for (int it = 0; it < options_.max_iterations; ++it) {
-      const Eigen::Vector2d reachable = w.nearest(lateral);
-      if ((reachable - lateral).norm() > 1e-6) {
-        if (!w.use_template) {
-          r.refusal = "out of reach: the stage would need (y " + mm(lateral.x()) + ", z " +
-                      mm(lateral.y()) + ")";
-          r.unreachable = true;
-          return finish();
-        }
-      }
-      lateral = reachable;
-      const Trajectory t = insertAlong(lateral, w.max_tip_x_m);
-      ++r.simulations;
-      std::size_t k = 0;
-      while (k < t.tip.size() && t.tip[k].x() < goal.x()) {
-        ++k;
-      }
-      if (k == t.tip.size()) {
-        r.refusal = "out of reach: at the deepest tip x " + mm(w.max_tip_x_m) +
-                    " the tip's tissue point is at x " +
-                    mm(t.tip.empty() ? scene_.block_min_m.x() : t.tip.back().x()) +
-                    ", short of the target's " + mm(goal.x());
+    if (w.use_template) {
+      r.nearest_hole = r.hole = w.holeIndex(goal.tail<2>());
+      lateral = w.hole(r.hole.x(), r.hole.y());
+      const std::string fixed = fixedRegionOnLine(lateral, goal.x());
+      if (!fixed.empty()) {
+        r.refusal = "out of reach: the nearest template hole's needle line crosses " + fixed;
         r.unreachable = true;
         return finish();
       }
-      Vector3 predicted = t.tip[k];
-      tip_x = t.s[k];
-      if (k > 0) {
-        const double a = (goal.x() - t.tip[k - 1].x()) / (t.tip[k].x() - t.tip[k - 1].x());
-        predicted = t.tip[k - 1] + a * (t.tip[k] - t.tip[k - 1]);
-        tip_x = t.s[k - 1] + a * (t.s[k] - t.s[k - 1]);
-      }
-      r.predicted_error_m = (predicted - goal).norm();
-      if (w.use_template || r.predicted_error_m < options_.converge_m) {
-        break;
-      }
-      lateral += goal.tail<2>() - predicted.tail<2>();
     }
-    // Verification by independent full simulations, correcting depth and lateral by the
-    // measured miss when it is above the tolerance's tenth.
-    for (int v = 0; v < kMaxVerifications; ++v) {
-      r.verified_seed_m = simulateImplant(lateral, tip_x);
-      ++r.simulations;
-      r.verified_error_m = (r.verified_seed_m - goal).norm();
-      r.lateral_m = lateral;
-      r.tip_x_m = tip_x;
-      if (r.verified_error_m <= 0.1 * options_.tolerance_m) {
-        break;
-      }
-      tip_x += goal.x() - r.verified_seed_m.x();
-      if (!w.use_template) {
-        lateral += goal.tail<2>() - r.verified_seed_m.tail<2>();
-      }
-      if (tip_x > w.max_tip_x_m || !w.reaches(lateral)) {
-        break;
-      }
+    if (!predict(goal, lateral, tip_x, r)) {
+      r.unreachable = true;
+      return finish();
     }
+    Attempt plan = verify(goal, lateral, tip_x, !w.use_template, r);
+    if (w.use_template) {
+      r.holes_verified = 1;
+      r.nearest_hole_error_m = plan.error;
+      plan = bestHole(goal, plan, r);
+    }
+    r.lateral_m = plan.lateral;
+    r.tip_x_m = plan.tip_x;
+    r.verified_seed_m = plan.seed;
+    r.verified_error_m = plan.error;
     r.placed = r.verified_error_m <= options_.tolerance_m;
     r.unreachable = !r.placed && w.use_template;  // the holes are where they are
     if (!r.placed) {
-      r.refusal =
-          w.use_template
-              ? "no template hole places the seed within " + mm(options_.tolerance_m) +
-                    ": nearest hole misses by " + mm(r.verified_error_m)
-              : "verified miss " + mm(r.verified_error_m) + " above " + mm(options_.tolerance_m);
+      r.refusal = w.use_template ? templateRefusal(w, r, options_.tolerance_m)
+                                 : "verified miss " + mm(r.verified_error_m) + " above " +
+                                       mm(options_.tolerance_m);
     }
   } catch (const std::runtime_error& e) {
     r.refusal = std::string("simulation refused: ") + e.what();

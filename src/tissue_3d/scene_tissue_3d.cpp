@@ -213,7 +213,7 @@ private:
     n.step_s = positive("step", units::kTime, n.step_s);
     n.track_spacing_m = positive("track_spacing", units::kLength, n.track_spacing_m);
     n.follow_tissue =
-        m.optionalChoice("track", {"rest_line", "follow_tissue"}).value_or("rest_line") ==
+        m.optionalChoice("track", {"rest_line", "follow_tissue"}).value_or("follow_tissue") ==
         "follow_tissue";
     if (n.gauge < 10 || n.gauge > 30) {
       m.fail(m.keyPath("gauge"), std::to_string(n.gauge), "must be in [10, 30]");
@@ -312,10 +312,18 @@ Eigen::Vector2d Workspace3::nearest(const Eigen::Vector2d& p) const {
     return Eigen::Vector2d(std::clamp(p.x(), y_min_m, y_max_m),
                            std::clamp(p.y(), z_min_m, z_max_m));
   }
+  const Eigen::Vector2i k = holeIndex(p);
+  return hole(k.x(), k.y());
+}
+
+Eigen::Vector2i Workspace3::holeIndex(const Eigen::Vector2d& p) const {
   const Eigen::Vector2d k = ((p - template_origin_m) / template_spacing_m).array().round();
-  const double row = std::clamp(k.x(), 0.0, static_cast<double>(template_rows - 1));
-  const double col = std::clamp(k.y(), 0.0, static_cast<double>(template_columns - 1));
-  return template_origin_m + template_spacing_m * Eigen::Vector2d(row, col);
+  return {static_cast<int>(std::clamp(k.x(), 0.0, static_cast<double>(template_rows - 1))),
+          static_cast<int>(std::clamp(k.y(), 0.0, static_cast<double>(template_columns - 1)))};
+}
+
+Eigen::Vector2d Workspace3::hole(int row, int column) const {
+  return template_origin_m + template_spacing_m * Eigen::Vector2d(row, column);
 }
 
 std::vector<fem::Material> TissueScene3d::materialTable() const {

@@ -209,6 +209,11 @@ int checkTissueScene3d(const std::string& path, bool mesh, std::ostream& out) {
       << (s.workspace.use_template ? "template grid" : "lateral stage") << ", "
       << (s.corotational ? "corotational" : "linear") << " elasticity, cut track "
       << (s.needle.follow_tissue ? "follow_tissue" : "rest_line") << "\n";
+  if (!s.needle.follow_tissue) {
+    out << "  note: on the rest line seeds land on the needle's line; the tissue's sideways drift"
+           " it leaves out moved seeds by up to 0.12 mm on the shipped scenes (docs/tissue_3d.md,"
+           " cut track): keep it only where the placement tolerance is well above that\n";
+  }
   if (mesh) {
     TetMeshReport report;
     const TetMesh3 m = meshTissue3d(s, {}, 1.0, &report);

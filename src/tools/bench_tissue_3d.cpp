@@ -350,14 +350,15 @@ int main(int argc, char** argv) {
     // ---- planning per scene ---------------------------------------------------------------
     ng::report::Table plans({"scene", "target", "placed", "predicted_mm", "verified_mm",
                              "unplanned_mm", "step_halving_mm", "plan_cpu_s", "simulations", "tets",
-                             "track", "lateral_correction_mm", "other_track_error_mm", "refusal"});
+                             "track", "lateral_correction_mm", "other_track_error_mm", "hole",
+                             "holes_verified", "nearest_hole_mm", "refusal"});
     ng::report::Table slices({"scene", "target", "unplanned_3d_mm", "unplanned_slice_mm",
                               "planned_3d_mm", "planned_slice_mm", "slice_refusal"});
     double slice_unplanned_diff_max = -1.0, slice_unplanned_diff_sum = 0.0;
     double unplanned_3d_sum = 0.0, unplanned_slice_sum = 0.0, slice_planned_max = -1.0;
     int slice_pairs = 0;
     double worst_error = 0.0, worst_cpu = 0.0, worst_halving = 0.0;
-    double worst_lateral = 0.0, worst_straight_on_follow = -1.0;
+    double worst_lateral = 0.0, worst_straight_on_follow = -1.0, worst_track_difference = -1.0;
     int reachable = 0, placed = 0;
     std::vector<PlacedPlan> placed_plans;
     for (const std::string& file : files) {
@@ -386,8 +387,10 @@ int main(int argc, char** argv) {
           lateral_correction = (r.lateral_m - target.position_m.tail<2>()).norm();
           worst_lateral = std::max(worst_lateral, lateral_correction);
           try {
-            other_error =
-                (other_track.simulateImplant(r.lateral_m, r.tip_x_m) - target.position_m).norm();
+            const t3::Vector3 other = other_track.simulateImplant(r.lateral_m, r.tip_x_m);
+            other_error = (other - target.position_m).norm();
+            worst_track_difference =
+                std::max(worst_track_difference, (other - r.verified_seed_m).norm());
           } catch (const std::runtime_error& e) {
             std::cout << "  other track refused: " << e.what() << "\n";
           }
@@ -421,7 +424,11 @@ int main(int argc, char** argv) {
                       mmOrUndefined(r.unplanned_error_m), mmOrUndefined(halving), r.plan_cpu_s,
                       double(r.simulations), double(tets),
                       std::string(scene.needle.follow_tissue ? "follow_tissue" : "rest_line"),
-                      mmOrUndefined(lateral_correction), mmOrUndefined(other_error), r.refusal});
+                      mmOrUndefined(lateral_correction), mmOrUndefined(other_error),
+                      r.hole.x() < 0
+                          ? std::string()
+                          : std::to_string(r.hole.x()) + ":" + std::to_string(r.hole.y()),
+                      double(r.holes_verified), mmOrUndefined(r.nearest_hole_error_m), r.refusal});
         std::cout << "  " << scene.name << "/" << target.name << ": "
                   << (r.placed ? "placed" : "not placed") << ", " << r.plan_cpu_s << " s CPU "
                   << r.refusal << "\n";
@@ -472,6 +479,8 @@ int main(int argc, char** argv) {
          << ",\n  \"lateral_correction_mm_max_3d\": " << mmKey(placed > 0, worst_lateral)
          << ",\n  \"straight_plan_error_mm_max_follow\": "
          << mmKey(worst_straight_on_follow >= 0.0, worst_straight_on_follow)
+         << ",\n  \"track_difference_mm_max_3d\": "
+         << mmKey(worst_track_difference >= 0.0, worst_track_difference)
          << ",\n  \"slice_vs_3d_targets\": " << slice_pairs
          << ",\n  \"unplanned_error_mm_mean_3d\": "
          << mmKey(slice_pairs > 0, unplanned_3d_sum / std::max(slice_pairs, 1))

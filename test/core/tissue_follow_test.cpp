@@ -1,8 +1,8 @@
 // The follow_tissue cut track (fem::EmbeddedNeedle, scene key needle.track): the tip cuts the
 // tissue now in front of it, so the track bends in the reference where the tissue ahead has
 // moved sideways, and the seed lands off the needle line. Tests: step halving in 3-D and 2-D,
-// mesh refinement, a symmetric scene without lateral drift, the scene key, and the 3-D planner
-// correcting the lateral position.
+// mesh refinement, a symmetric scene without lateral drift, the scene key, the 3-D planner
+// correcting the lateral position, and the search for the best template hole.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -129,6 +129,75 @@ TEST(FollowTissue3d, PlannerCorrectsTheLateralPosition) {
   EXPECT_GE(r.predicted_error_m, 0.0);
   // The needle goes in off the target's line to cancel the track's lateral drift.
   EXPECT_GT((r.lateral_m - f.scene.targets[0].position_m.tail<2>()).norm(), 1e-6);
+}
+
+// ---- Template grid: the best hole ----
+
+/// The inclusion scene with the stage replaced by a template grid (`grid`: the template map).
+Fixture onTemplate(const std::string& track, const std::string& grid) {
+  std::string text = sceneText(track, 4);
+  const std::string stage = "  stage: {y_min_mm: -20, y_max_mm: 20, z_min_mm: -20, z_max_mm: 20}";
+  text.replace(text.find(stage), stage.size(), "  template: " + grid);
+  return Fixture(parseTissueScene3d(text, "t.yaml", "."));
+}
+
+TEST(FollowTissue3dTemplate, NearestHoleMissesAnotherHoleLands) {
+  // A positioning grid finer than the followed track's drift (0.02 mm holes, drift about
+  // 0.03 mm beside the inclusion) and a tolerance of 0.01 mm: the target is where hole B's seed
+  // lands, so the hole nearest to the target is another one, whose seed misses by about the
+  // hole spacing. The planner must find B (or a hole as good) from the drift it measured at the
+  // nearest hole, verifying at most 3 holes.
+  constexpr double kTolerance_m = 1e-5;
+  Fixture f = onTemplate("follow_tissue",
+                         "{origin_mm: [-0.4, 0.6], spacing_mm: 0.02, rows: 41, columns: 41}");
+  const Workspace3& w = f.scene.workspace;
+  PlannerOptions3 options;
+  options.tolerance_m = kTolerance_m;
+  options.unplanned = false;
+  OffsetPlanner3 planner(f.scene, f.model, options);
+  const Eigen::Vector2d hole_b = w.hole(20, 20);  // (0, 1 mm)
+  const Vector3 seed_b = planner.simulateImplant(hole_b, 0.04);
+  const Eigen::Vector2i nearest = w.holeIndex(seed_b.tail<2>());
+  ASSERT_NE(nearest, Eigen::Vector2i(20, 20))
+      << "the drift " << (seed_b.tail<2>() - hole_b).transpose() << " m stays within hole B";
+  const PlanResult3 r = planner.plan({"at_b", seed_b});
+  ASSERT_TRUE(r.placed) << r.refusal;
+  EXPECT_LE(r.verified_error_m, kTolerance_m);
+  EXPECT_EQ(r.nearest_hole, nearest);
+  EXPECT_GT(r.nearest_hole_error_m, kTolerance_m);  // the nearest hole misses
+  EXPECT_NE(r.hole, r.nearest_hole);
+  EXPECT_TRUE(w.reaches(r.lateral_m));
+  EXPECT_LE(r.holes_verified, 3);
+  EXPECT_GE(r.holes_verified, 2);
+}
+
+TEST(FollowTissue3dTemplate, OutOfReachNamesTheNearestHoleOnBothTracks) {
+  // The clinical 5 mm grid and a target 2.5 mm from the holes in y and z: no hole lands within
+  // 0.1 mm on either track (the drift is a few hundredths of a millimetre). Refused as out of
+  // reach, naming the nearest hole and its verified miss; one hole verified, one simulation.
+  for (const std::string track : {"rest_line", "follow_tissue"}) {
+    Fixture f = onTemplate(track, "{origin_mm: [-15, -14], spacing_mm: 5, rows: 7, columns: 7}");
+    OffsetPlanner3 planner(f.scene, f.model);
+    const Vector3 between(0.04, 2.5e-3, 3.5e-3);  // holes at y = 0, 5 mm and z = 1, 6 mm
+    const PlanResult3 r = planner.plan({"between", between});
+    EXPECT_FALSE(r.placed) << track;
+    EXPECT_TRUE(r.unreachable) << track;
+    EXPECT_NE(r.refusal.find("out of reach"), std::string::npos) << r.refusal;
+    EXPECT_NE(r.refusal.find("nearest hole, row "), std::string::npos) << r.refusal;
+    EXPECT_NE(r.refusal.find("(verified)"), std::string::npos) << r.refusal;
+    // Its miss is the lateral distance to the hole, sqrt(2.5^2 + 2.5^2) mm, give or take the
+    // drift and the depth.
+    EXPECT_NEAR(r.nearest_hole_error_m, 3.536e-3, 0.1e-3) << track;
+    EXPECT_EQ(r.verified_error_m, r.nearest_hole_error_m) << track;
+    EXPECT_EQ(r.holes_verified, 1) << track;
+    // A target on a hole is placed through that hole.
+    const Vector3 on_hole(0.04, 0.0, 1e-3);
+    const PlanResult3 ok = planner.plan({"on_hole", on_hole});
+    ASSERT_TRUE(ok.placed) << track << ": " << ok.refusal;
+    EXPECT_LE(ok.verified_error_m, kPlacementTol_m);
+    EXPECT_EQ(ok.hole, Eigen::Vector2i(3, 3));
+    EXPECT_EQ(ok.hole, ok.nearest_hole);
+  }
 }
 
 // ---- 2-D: the same core on plane-strain triangles ----

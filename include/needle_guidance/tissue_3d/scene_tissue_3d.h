@@ -40,9 +40,9 @@ struct Needle3 {
   double stick_velocity_m_s = 5e-4;        ///< slipping shaft sticks again below this
   double step_s = 0.1;                     ///< simulation step (tissue_sim period)
   double track_spacing_m = 1e-3;           ///< spacing of the shaft's tissue points
-  /// Cut track (`needle.track`): false = rest_line (the tip cuts the tissue at rest on its
-  /// line), true = follow_tissue (the tip cuts the tissue now in front of it; fem::EmbeddedNeedle).
-  bool follow_tissue = false;
+  /// Cut track (`needle.track`): true = follow_tissue (default: the tip cuts the tissue now in
+  /// front of it; fem::EmbeddedNeedle), false = rest_line (the tissue at rest on its line).
+  bool follow_tissue = true;
 };
 
 /// The insertion robot's reach. Stage: any lateral (y, z) in the box; template: only the
@@ -59,6 +59,9 @@ struct Workspace3 {
   bool reaches(const Eigen::Vector2d& lateral_m) const;
   /// The nearest template hole (template mode) or the clamped stage position.
   Eigen::Vector2d nearest(const Eigen::Vector2d& lateral_m) const;
+  /// Template mode: the (row, column) of the nearest hole; hole(row, column) its (y, z).
+  Eigen::Vector2i holeIndex(const Eigen::Vector2d& lateral_m) const;
+  Eigen::Vector2d hole(int row, int column) const;
 };
 
 /// Mesh sizes: tetrahedra of size_m, graded to fine_size_m within fine_radius_m of the
