@@ -6,7 +6,8 @@
 
 namespace needle_guidance::report {
 
-std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string& tool) {
+std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string& tool,
+                                        const std::string& more_usage) {
   BenchArgs args;
   bool ok = true;
   for (int i = 1; i < argc && ok; ++i) {
@@ -27,7 +28,7 @@ std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string
       args.quick = true;
     } else if (arg == "--help" || arg == "-h") {
       std::cout << "usage: " << tool << " --out DIR [--quick] [--scene SPEC]... [--trials N > 0]\n"
-                << "Writes DIR/summary.json, its CSVs and plot.json (scripts/bench "
+                << more_usage << "Writes DIR/summary.json, its CSVs and plot.json (scripts/bench "
                 << tool.substr(tool.find('_') + 1) << " runs it and draws the plots).\n";
       std::exit(0);
     } else {
@@ -35,7 +36,8 @@ std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string
     }
   }
   if (!ok || args.out_dir.empty()) {
-    std::cerr << "usage: " << tool << " --out DIR [--quick] [--scene SPEC]... [--trials N > 0]\n";
+    std::cerr << "usage: " << tool << " --out DIR [--quick] [--scene SPEC]... [--trials N > 0]\n"
+              << more_usage;
     return std::nullopt;
   }
   return args;

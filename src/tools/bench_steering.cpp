@@ -1442,10 +1442,12 @@ int main(int argc, char** argv) {
       rest.push_back(argv[i]);
     }
   }
-  const auto args =
-      ng::report::parseBenchArgs(static_cast<int>(rest.size()), rest.data(), "bench_steering");
+  const auto args = ng::report::parseBenchArgs(
+      static_cast<int>(rest.size()), rest.data(), "bench_steering",
+      "       bench_steering --truth-only --out DIR [--scene SPEC]...\n"
+      "  --truth-only: only the truth check where the start is chosen (the chosen start, the 10 "
+      "best starts, starts near every edge and obstacle), on every --scene\n");
   if (!args) {
-    std::cerr << "       bench_steering --truth-only --out DIR [--scene SPEC]...\n";
     return 2;
   }
   try {

@@ -18,8 +18,10 @@ struct BenchArgs {
 
 /// Parses the arguments; on a bad or missing one prints the usage of `tool` to stderr and
 /// returns nullopt (the tool then exits with status 2). --help or -h prints the usage to stdout
-/// and exits the process with status 0.
-std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string& tool);
+/// and exits the process with status 0. `more_usage` (lines, each ending in a newline) follows
+/// the usage line: a tool's own forms and flags.
+std::optional<BenchArgs> parseBenchArgs(int argc, char** argv, const std::string& tool,
+                                        const std::string& more_usage = {});
 
 /// Whether any argument is --help or -h (a command-line tool then prints its usage to stdout
 /// and exits with status 0).
