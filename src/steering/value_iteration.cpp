@@ -168,13 +168,38 @@ float updatePosition(const Context& c, std::int64_t pos, int iy, const Band& ban
   return max_change;
 }
 
+/// Eight floats: one AVX register in the AVX2 build, two SSE registers in the plain one. Plain
+/// multiplies and adds, element by element, so either build gives the same sums.
+using Floats8 = float __attribute__((vector_size(32)));
+constexpr int kLanes = 8;
+
+/// q[k] = sum_i p[i] e[k + i] for k < kBlocks * kLanes, summed over ascending i from 0 as the
+/// plain loop does, but held in registers across i instead of read and written per term.
+template <int kBlocks>
+inline void convolveBlocks(const float* p, int np, const float* e, float* q) {
+  Floats8 acc[kBlocks];
+  for (int j = 0; j < kBlocks; ++j) {
+    acc[j] = Floats8{};
+  }
+  for (int i = 0; i < np; ++i) {
+    const Floats8 pi = Floats8{} + p[i];
+    for (int j = 0; j < kBlocks; ++j) {
+      Floats8 ej;
+      std::memcpy(&ej, e + i + j * kLanes, sizeof(ej));
+      acc[j] += pi * ej;
+    }
+  }
+  std::memcpy(q, acc, sizeof(acc));
+}
+
 /// The deflection sums of one position from the values after each arc (`after`: 2 nc, then
 /// scratch), the better control of every state written to `values` and `controls`; returns the
 /// largest |change|. The sums are circular convolutions over the orientation: for bevel b and
 /// control u, q_u(k) = sum_i P_u(i) after(traced, k + first_u + i). Each bevel's values are
-/// unrolled once (wrapped around) so the inner loop runs over contiguous k. Built for AVX2 and
-/// plain x86-64, chosen at load time: each element is the same sum in the same order either
-/// way (no fused multiply-add), so the table does not depend on the processor.
+/// unrolled once (wrapped around) so the inner loop runs over contiguous k, 32 (then 8) of them
+/// at a time held in registers. Built for AVX2 and plain x86-64, chosen at load time: each
+/// element is the same sum in the same order either way (no fused multiply-add), so the table
+/// does not depend on the processor.
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 __attribute__((target_clones("avx2", "default")))
 #endif
@@ -194,14 +219,21 @@ float deflectionSums(const ArcTables& t, int nc, float* after, float* values,
       const int traced = u == 0 ? b : 1 - b;
       const float* e = ext + traced * t.ext_len + (t.first[u] - t.first_min);
       float* qu = q + (b * 2 + u) * nc;
-      std::fill(qu, qu + nc, 0.0f);
-      const std::vector<float>& p = t.p[u];
-      for (std::size_t i = 0; i < p.size(); ++i) {
-        const float pi = p[i];
-        const float* ei = e + i;
-        for (int k = 0; k < nc; ++k) {
-          qu[k] += pi * ei[k];
+      const float* p = t.p[u].data();
+      const int np = static_cast<int>(t.p[u].size());
+      int k = 0;
+      for (; k + 4 * kLanes <= nc; k += 4 * kLanes) {
+        convolveBlocks<4>(p, np, e + k, qu + k);
+      }
+      for (; k + kLanes <= nc; k += kLanes) {
+        convolveBlocks<1>(p, np, e + k, qu + k);
+      }
+      for (; k < nc; ++k) {
+        float sum = 0.0f;
+        for (int i = 0; i < np; ++i) {
+          sum += p[i] * e[k + i];
         }
+        qu[k] = sum;
       }
     }
   }
