@@ -42,6 +42,9 @@ struct Context {
   bool split = false;  // kInterpolated: positions off the fast path use expectedSplit
   const struct ArcTables* arcs = nullptr;   // kInterpolated: per-arc corners, per-slot deflections
   struct ChangeTracker* changes = nullptr;  // null: every free position is updated every sweep
+  /// Per position: its values changed since they were last copied to the snapshot (the band
+  /// that owns the position sets it; the snapshot is taken between sweeps).
+  std::uint8_t* unsaved = nullptr;
 };
 
 /// Skips positions whose update could not move their values by `skip_below` or more. The
@@ -238,18 +241,38 @@ float deflectionSums(const ArcTables& t, int nc, float* after, float* values,
     }
   }
   float max_change = 0.0f;
+  Floats8 max8{};  // the largest |change| per lane (a maximum: exact in any order)
   for (int b = 0; b < 2; ++b) {
     const float* q_insert = q + (b * 2) * nc;
     const float* q_flip = q + (b * 2 + 1) * nc;
     float* v = values + b * nc;
     std::uint8_t* ctl = controls + b * nc;
-    for (int k = 0; k < nc; ++k) {
+    int k = 0;
+    for (; k + kLanes <= nc; k += kLanes) {
+      Floats8 qi, qf, old;
+      std::memcpy(&qi, q_insert + k, sizeof(qi));
+      std::memcpy(&qf, q_flip + k, sizeof(qf));
+      std::memcpy(&old, v + k, sizeof(old));
+      const auto flip = qf > qi;  // ties keep insert
+      const Floats8 best = flip ? qf : qi;
+      const Floats8 diff = best - old;
+      const Floats8 change = diff > Floats8{} ? diff : -diff;
+      max8 = change > max8 ? change : max8;
+      std::memcpy(v + k, &best, sizeof(best));
+      for (int j = 0; j < kLanes; ++j) {
+        ctl[k + j] = flip[j] ? 1 : 0;
+      }
+    }
+    for (; k < nc; ++k) {
       const bool flip = q_flip[k] > q_insert[k];  // ties keep insert
       const float best = flip ? q_flip[k] : q_insert[k];
       max_change = std::max(max_change, std::abs(best - v[k]));
       v[k] = best;
       ctl[k] = flip ? 1 : 0;
     }
+  }
+  for (int j = 0; j < kLanes; ++j) {
+    max_change = std::max(max_change, max8[j]);
   }
   return max_change;
 }
@@ -448,6 +471,9 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
         change = check ? updatePosition<true, false>(c, pos, iy, band)
                        : updatePosition<false, false>(c, pos, iy, band);
       }
+      if (c.unsaved != nullptr) {
+        c.unsaved[pos] = 1;
+      }
       if (c.changes != nullptr) {
         c.changes->record(ix, iy, band.index, change);
         c.changes->pending[static_cast<std::size_t>(pos)] = 0.0f;
@@ -456,6 +482,28 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
     }
   }
   return max_change;
+}
+
+/// Copies the rows within `reach` of a band boundary to the snapshot, so that neighbouring bands
+/// read them race-free: only the positions whose values changed since their last copy (the
+/// others already hold the same values there).
+void copyBoundaryRows(const GridSpec& g, const std::vector<Band>& bands, int reach,
+                      const float* values, float* snapshot, std::uint8_t* unsaved) {
+  const std::size_t per_position = static_cast<std::size_t>(2 * g.nc);
+  for (int ix = 0; ix < g.nx; ++ix) {
+    for (std::size_t t = 1; t < bands.size(); ++t) {
+      const int lo = std::max(0, bands[t].row_begin - reach);
+      const int hi = std::min(g.ny, bands[t].row_begin + reach);
+      for (int iy = lo; iy < hi; ++iy) {
+        const std::int64_t pos = g.position(ix, iy);
+        if (unsaved[pos] != 0) {
+          const std::size_t first = static_cast<std::size_t>(pos) * per_position;
+          std::memcpy(snapshot + first, values + first, per_position * sizeof(float));
+          unsaved[pos] = 0;
+        }
+      }
+    }
+  }
 }
 
 /// `v` resized to n zeros. A table of many states is hundreds of MB written once: it is
@@ -534,6 +582,9 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   // their pages are touched.
   std::unique_ptr<float[]> snapshot(n_threads > 1 ? new float[static_cast<std::size_t>(n)]
                                                   : nullptr);
+  // Every position is copied before the first sweep, then only those updated since.
+  std::vector<std::uint8_t> unsaved(
+      n_threads > 1 ? static_cast<std::size_t>(g.numPositions()) : std::size_t{0}, 1);
 
   Context c;
   c.model = &model;
@@ -547,6 +598,7 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   c.split = model.transitionModel() == TransitionModel::kInterpolated;
   const ArcTables arc_tables = c.split ? arcTables(model) : ArcTables{};
   c.arcs = &arc_tables;
+  c.unsaved = n_threads > 1 ? unsaved.data() : nullptr;
   ChangeTracker tracker;
   if (options.skip_fraction > 0.0) {
     tracker = changeTracker(model, static_cast<float>(options.epsilon * options.skip_fraction),
@@ -565,17 +617,7 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
     const bool x_desc = order < 2;  // insertion is mostly along +x: start there
     const bool y_desc = order == 0 || order == 3;
     if (n_threads > 1) {
-      // Rows within `reach` of a band boundary, copied so that neighbours read them race-free.
-      for (int ix = 0; ix < g.nx; ++ix) {
-        for (std::size_t t = 1; t < bands.size(); ++t) {
-          const int lo = std::max(0, bands[t].row_begin - reach);
-          const int hi = std::min(g.ny, bands[t].row_begin + reach);
-          const std::int64_t first = g.position(ix, lo) * 2 * nc;
-          const std::int64_t count = static_cast<std::int64_t>(hi - lo) * 2 * nc;
-          std::memcpy(snapshot.get() + first, values.data() + first,
-                      static_cast<std::size_t>(count) * sizeof(float));
-        }
-      }
+      copyBoundaryRows(g, bands, reach, values.data(), snapshot.get(), unsaved.data());
       std::vector<std::thread> pool;
       for (int t = 1; t < n_threads; ++t) {
         pool.emplace_back([&, t] {
