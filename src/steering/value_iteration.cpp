@@ -124,7 +124,34 @@ struct ArcTables {
   int first_min = 0;  // min(first[0], first[1])
   int ext_len = 0;    // nc + the widest deflection span: length of one bevel's wrapped values
   std::vector<std::uint16_t> ext_src;  // per j < ext_len: orientation (j + first_min) mod nc
+  /// One corner offset per distinct cache line the corners of a position read (set by
+  /// prefetchLines for the value table's alignment; empty when it differs between positions).
+  std::vector<std::int64_t> lines;
 };
+
+/// ArcTables::lines for a value table at `values`: the corners of a position whose arcs are all
+/// valid lie on these cache lines, requested together before the corners are read so that their
+/// memory latencies overlap.
+void prefetchLines(ArcTables& t, const float* values, int nc) {
+  constexpr std::int64_t kLineFloats = 64 / sizeof(float);
+  t.lines.clear();
+  if ((2 * nc) % kLineFloats != 0) {
+    return;  // positions start at different places within a line
+  }
+  const auto phase = static_cast<std::int64_t>(
+      (reinterpret_cast<std::uintptr_t>(values) / sizeof(float)) % kLineFloats);
+  std::vector<std::pair<std::int64_t, std::int64_t>> by_line;  // (line, offset)
+  for (const std::int64_t off : t.offset) {
+    const std::int64_t f = phase + off;
+    by_line.push_back({f >= 0 ? f / kLineFloats : -((-f + kLineFloats - 1) / kLineFloats), off});
+  }
+  std::sort(by_line.begin(), by_line.end());
+  for (std::size_t i = 0; i < by_line.size(); ++i) {
+    if (i == 0 || by_line[i].first != by_line[i - 1].first) {
+      t.lines.push_back(by_line[i].second);
+    }
+  }
+}
 
 /// Expected P_s of one control: sum_j p_ij P_s(x_j) over the stencil (eq. 5.2). kCheck: some
 /// arcs from this position fail; kBand: successors outside rows [row_begin, row_end) are read
@@ -285,6 +312,11 @@ float updateFactoredPosition(const Context& c, std::int64_t pos, int iy, const B
   const ArcTables& t = *c.arcs;
   const std::uint64_t* mask = c.model->validityMask(pos);
   const std::int64_t base = pos * 2 * nc;
+  if (kPlain) {
+    for (const std::int64_t off : t.lines) {
+      __builtin_prefetch(c.values + base + off);
+    }
+  }
   for (int a = 0; a < 2 * nc; ++a) {
     if (!kPlain && !((mask[a >> 6] >> (a & 63)) & 1u)) {
       after[static_cast<std::size_t>(a)] = 0.0f;  // the arc fails
@@ -596,7 +628,10 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   c.stencil_begin = begins.data();
   c.stencil_end = ends.data();
   c.split = model.transitionModel() == TransitionModel::kInterpolated;
-  const ArcTables arc_tables = c.split ? arcTables(model) : ArcTables{};
+  ArcTables arc_tables = c.split ? arcTables(model) : ArcTables{};
+  if (c.split) {
+    prefetchLines(arc_tables, values.data(), nc);
+  }
   c.arcs = &arc_tables;
   c.unsaved = n_threads > 1 ? unsaved.data() : nullptr;
   ChangeTracker tracker;
