@@ -124,31 +124,35 @@ struct ArcTables {
   int first_min = 0;  // min(first[0], first[1])
   int ext_len = 0;    // nc + the widest deflection span: length of one bevel's wrapped values
   std::vector<std::uint16_t> ext_src;  // per j < ext_len: orientation (j + first_min) mod nc
-  /// One corner offset per distinct cache line the corners of a position read (set by
-  /// prefetchLines for the value table's alignment; empty when it differs between positions).
-  std::vector<std::int64_t> lines;
+  /// Per phase (position index mod phase count): one corner offset per distinct cache line the
+  /// corners of a position read, for the value table's alignment (set by prefetchLines).
+  std::vector<std::vector<std::int64_t>> lines;
 };
 
-/// ArcTables::lines for a value table at `values`: the corners of a position whose arcs are all
-/// valid lie on these cache lines, requested together before the corners are read so that their
-/// memory latencies overlap.
+/// ArcTables::lines for a value table at `values`: the corners of a position lie on these cache
+/// lines, requested together before the corners are read so that their memory latencies
+/// overlap. A position's values start at one of few places within a line (2 nc floats per
+/// position), one list per place.
 void prefetchLines(ArcTables& t, const float* values, int nc) {
   constexpr std::int64_t kLineFloats = 64 / sizeof(float);
-  t.lines.clear();
-  if ((2 * nc) % kLineFloats != 0) {
-    return;  // positions start at different places within a line
-  }
-  const auto phase = static_cast<std::int64_t>(
+  const std::int64_t per_position = 2 * nc;
+  const std::int64_t phases = kLineFloats / std::gcd(per_position, kLineFloats);
+  const auto start = static_cast<std::int64_t>(
       (reinterpret_cast<std::uintptr_t>(values) / sizeof(float)) % kLineFloats);
-  std::vector<std::pair<std::int64_t, std::int64_t>> by_line;  // (line, offset)
-  for (const std::int64_t off : t.offset) {
-    const std::int64_t f = phase + off;
-    by_line.push_back({f >= 0 ? f / kLineFloats : -((-f + kLineFloats - 1) / kLineFloats), off});
-  }
-  std::sort(by_line.begin(), by_line.end());
-  for (std::size_t i = 0; i < by_line.size(); ++i) {
-    if (i == 0 || by_line[i].first != by_line[i - 1].first) {
-      t.lines.push_back(by_line[i].second);
+  t.lines.assign(static_cast<std::size_t>(phases), {});
+  for (std::int64_t ph = 0; ph < phases; ++ph) {
+    const std::int64_t phase = (start + ph * per_position) % kLineFloats;
+    std::vector<std::pair<std::int64_t, std::int64_t>> by_line;  // (line, offset)
+    for (const std::int64_t off : t.offset) {
+      const std::int64_t f = phase + off;
+      by_line.push_back({f >= 0 ? f / kLineFloats : -((-f + kLineFloats - 1) / kLineFloats), off});
+    }
+    std::sort(by_line.begin(), by_line.end());
+    std::vector<std::int64_t>& lines = t.lines[static_cast<std::size_t>(ph)];
+    for (std::size_t i = 0; i < by_line.size(); ++i) {
+      if (i == 0 || by_line[i].first != by_line[i - 1].first) {
+        lines.push_back(by_line[i].second);
+      }
     }
   }
 }
@@ -312,9 +316,13 @@ float updateFactoredPosition(const Context& c, std::int64_t pos, int iy, const B
   const ArcTables& t = *c.arcs;
   const std::uint64_t* mask = c.model->validityMask(pos);
   const std::int64_t base = pos * 2 * nc;
-  if (kPlain) {
-    for (const std::int64_t off : t.lines) {
-      __builtin_prefetch(c.values + base + off);
+  {
+    // Addresses, not pointers: a failing arc's corners may lie off the table, and a prefetch
+    // never faults.
+    const auto table = reinterpret_cast<std::uintptr_t>(c.values + base);
+    const auto phase = static_cast<std::size_t>(pos % static_cast<std::int64_t>(t.lines.size()));
+    for (const std::int64_t off : t.lines[phase]) {
+      __builtin_prefetch(reinterpret_cast<const void*>(table + off * sizeof(float)));
     }
   }
   for (int a = 0; a < 2 * nc; ++a) {
