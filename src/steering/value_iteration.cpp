@@ -124,14 +124,14 @@ struct ArcTables {
   int first_min = 0;  // min(first[0], first[1])
   int ext_len = 0;    // nc + the widest deflection span: length of one bevel's wrapped values
   std::vector<std::uint16_t> ext_src;  // per j < ext_len: orientation (j + first_min) mod nc
-  /// Per phase (position index mod phase count): one corner offset per distinct cache line the
-  /// corners of a position read, for the value table's alignment (set by prefetchLines).
+  /// Per phase (position index mod phase count): one offset per distinct cache line the corners
+  /// and the values of a position lie on, for the value table's alignment (set by prefetchLines).
   std::vector<std::vector<std::int64_t>> lines;
 };
 
-/// ArcTables::lines for a value table at `values`: the corners of a position lie on these cache
-/// lines, requested together before the corners are read so that their memory latencies
-/// overlap. A position's values start at one of few places within a line (2 nc floats per
+/// ArcTables::lines for a value table at `values`: the corners of a position and its own values
+/// lie on these cache lines, requested together before the corners are read so that their memory
+/// latencies overlap. A position's values start at one of few places within a line (2 nc floats per
 /// position), one list per place.
 void prefetchLines(ArcTables& t, const float* values, int nc) {
   constexpr std::int64_t kLineFloats = 64 / sizeof(float);
@@ -143,7 +143,11 @@ void prefetchLines(ArcTables& t, const float* values, int nc) {
   for (std::int64_t ph = 0; ph < phases; ++ph) {
     const std::int64_t phase = (start + ph * per_position) % kLineFloats;
     std::vector<std::pair<std::int64_t, std::int64_t>> by_line;  // (line, offset)
-    for (const std::int64_t off : t.offset) {
+    std::vector<std::int64_t> offsets = t.offset;
+    for (std::int64_t own = 0; own < per_position; ++own) {
+      offsets.push_back(own);  // the position's own values, read for their change
+    }
+    for (const std::int64_t off : offsets) {
       const std::int64_t f = phase + off;
       by_line.push_back({f >= 0 ? f / kLineFloats : -((-f + kLineFloats - 1) / kLineFloats), off});
     }
