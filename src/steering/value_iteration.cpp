@@ -42,6 +42,9 @@ struct Context {
   bool split = false;  // kInterpolated: positions off the fast path use expectedSplit
   const struct ArcTables* arcs = nullptr;   // kInterpolated: per-arc corners, per-slot deflections
   struct ChangeTracker* changes = nullptr;  // null: every free position is updated every sweep
+  /// Per position: its values changed since they were last copied to the snapshot (the band
+  /// that owns the position sets it; the snapshot is taken between sweeps).
+  std::uint8_t* unsaved = nullptr;
 };
 
 /// Skips positions whose update could not move their values by `skip_below` or more. The
@@ -121,7 +124,42 @@ struct ArcTables {
   int first_min = 0;  // min(first[0], first[1])
   int ext_len = 0;    // nc + the widest deflection span: length of one bevel's wrapped values
   std::vector<std::uint16_t> ext_src;  // per j < ext_len: orientation (j + first_min) mod nc
+  /// Per phase (position index mod phase count): one offset per distinct cache line the corners
+  /// and the values of a position lie on, for the value table's alignment (set by prefetchLines).
+  std::vector<std::vector<std::int64_t>> lines;
 };
+
+/// ArcTables::lines for a value table at `values`: the corners of a position and its own values
+/// lie on these cache lines, requested together before the corners are read so that their memory
+/// latencies overlap. A position's values start at one of few places within a line (2 nc floats per
+/// position), one list per place.
+void prefetchLines(ArcTables& t, const float* values, int nc) {
+  constexpr std::int64_t kLineFloats = 64 / sizeof(float);
+  const std::int64_t per_position = 2 * nc;
+  const std::int64_t phases = kLineFloats / std::gcd(per_position, kLineFloats);
+  const auto start = static_cast<std::int64_t>(
+      (reinterpret_cast<std::uintptr_t>(values) / sizeof(float)) % kLineFloats);
+  t.lines.assign(static_cast<std::size_t>(phases), {});
+  for (std::int64_t ph = 0; ph < phases; ++ph) {
+    const std::int64_t phase = (start + ph * per_position) % kLineFloats;
+    std::vector<std::pair<std::int64_t, std::int64_t>> by_line;  // (line, offset)
+    std::vector<std::int64_t> offsets = t.offset;
+    for (std::int64_t own = 0; own < per_position; ++own) {
+      offsets.push_back(own);  // the position's own values, read for their change
+    }
+    for (const std::int64_t off : offsets) {
+      const std::int64_t f = phase + off;
+      by_line.push_back({f >= 0 ? f / kLineFloats : -((-f + kLineFloats - 1) / kLineFloats), off});
+    }
+    std::sort(by_line.begin(), by_line.end());
+    std::vector<std::int64_t>& lines = t.lines[static_cast<std::size_t>(ph)];
+    for (std::size_t i = 0; i < by_line.size(); ++i) {
+      if (i == 0 || by_line[i].first != by_line[i - 1].first) {
+        lines.push_back(by_line[i].second);
+      }
+    }
+  }
+}
 
 /// Expected P_s of one control: sum_j p_ij P_s(x_j) over the stencil (eq. 5.2). kCheck: some
 /// arcs from this position fail; kBand: successors outside rows [row_begin, row_end) are read
@@ -168,13 +206,38 @@ float updatePosition(const Context& c, std::int64_t pos, int iy, const Band& ban
   return max_change;
 }
 
+/// Eight floats: one AVX register in the AVX2 build, two SSE registers in the plain one. Plain
+/// multiplies and adds, element by element, so either build gives the same sums.
+using Floats8 = float __attribute__((vector_size(32)));
+constexpr int kLanes = 8;
+
+/// q[k] = sum_i p[i] e[k + i] for k < kBlocks * kLanes, summed over ascending i from 0 as the
+/// plain loop does, but held in registers across i instead of read and written per term.
+template <int kBlocks>
+inline void convolveBlocks(const float* p, int np, const float* e, float* q) {
+  Floats8 acc[kBlocks];
+  for (int j = 0; j < kBlocks; ++j) {
+    acc[j] = Floats8{};
+  }
+  for (int i = 0; i < np; ++i) {
+    const Floats8 pi = Floats8{} + p[i];
+    for (int j = 0; j < kBlocks; ++j) {
+      Floats8 ej;
+      std::memcpy(&ej, e + i + j * kLanes, sizeof(ej));
+      acc[j] += pi * ej;
+    }
+  }
+  std::memcpy(q, acc, sizeof(acc));
+}
+
 /// The deflection sums of one position from the values after each arc (`after`: 2 nc, then
 /// scratch), the better control of every state written to `values` and `controls`; returns the
 /// largest |change|. The sums are circular convolutions over the orientation: for bevel b and
 /// control u, q_u(k) = sum_i P_u(i) after(traced, k + first_u + i). Each bevel's values are
-/// unrolled once (wrapped around) so the inner loop runs over contiguous k. Built for AVX2 and
-/// plain x86-64, chosen at load time: each element is the same sum in the same order either
-/// way (no fused multiply-add), so the table does not depend on the processor.
+/// unrolled once (wrapped around) so the inner loop runs over contiguous k, 32 (then 8) of them
+/// at a time held in registers. Built for AVX2 and plain x86-64, chosen at load time: each
+/// element is the same sum in the same order either way (no fused multiply-add), so the table
+/// does not depend on the processor.
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 __attribute__((target_clones("avx2", "default")))
 #endif
@@ -194,30 +257,57 @@ float deflectionSums(const ArcTables& t, int nc, float* after, float* values,
       const int traced = u == 0 ? b : 1 - b;
       const float* e = ext + traced * t.ext_len + (t.first[u] - t.first_min);
       float* qu = q + (b * 2 + u) * nc;
-      std::fill(qu, qu + nc, 0.0f);
-      const std::vector<float>& p = t.p[u];
-      for (std::size_t i = 0; i < p.size(); ++i) {
-        const float pi = p[i];
-        const float* ei = e + i;
-        for (int k = 0; k < nc; ++k) {
-          qu[k] += pi * ei[k];
+      const float* p = t.p[u].data();
+      const int np = static_cast<int>(t.p[u].size());
+      int k = 0;
+      for (; k + 4 * kLanes <= nc; k += 4 * kLanes) {
+        convolveBlocks<4>(p, np, e + k, qu + k);
+      }
+      for (; k + kLanes <= nc; k += kLanes) {
+        convolveBlocks<1>(p, np, e + k, qu + k);
+      }
+      for (; k < nc; ++k) {
+        float sum = 0.0f;
+        for (int i = 0; i < np; ++i) {
+          sum += p[i] * e[k + i];
         }
+        qu[k] = sum;
       }
     }
   }
   float max_change = 0.0f;
+  Floats8 max8{};  // the largest |change| per lane (a maximum: exact in any order)
   for (int b = 0; b < 2; ++b) {
     const float* q_insert = q + (b * 2) * nc;
     const float* q_flip = q + (b * 2 + 1) * nc;
     float* v = values + b * nc;
     std::uint8_t* ctl = controls + b * nc;
-    for (int k = 0; k < nc; ++k) {
+    int k = 0;
+    for (; k + kLanes <= nc; k += kLanes) {
+      Floats8 qi, qf, old;
+      std::memcpy(&qi, q_insert + k, sizeof(qi));
+      std::memcpy(&qf, q_flip + k, sizeof(qf));
+      std::memcpy(&old, v + k, sizeof(old));
+      const auto flip = qf > qi;  // ties keep insert
+      const Floats8 best = flip ? qf : qi;
+      const Floats8 diff = best - old;
+      const Floats8 change = diff > Floats8{} ? diff : -diff;
+      max8 = change > max8 ? change : max8;
+      std::memcpy(v + k, &best, sizeof(best));
+      for (int j = 0; j < kLanes; ++j) {
+        ctl[k + j] = flip[j] ? 1 : 0;
+      }
+    }
+    for (; k < nc; ++k) {
       const bool flip = q_flip[k] > q_insert[k];  // ties keep insert
       const float best = flip ? q_flip[k] : q_insert[k];
       max_change = std::max(max_change, std::abs(best - v[k]));
       v[k] = best;
       ctl[k] = flip ? 1 : 0;
     }
+  }
+  for (int j = 0; j < kLanes; ++j) {
+    max_change = std::max(max_change, max8[j]);
   }
   return max_change;
 }
@@ -230,6 +320,15 @@ float updateFactoredPosition(const Context& c, std::int64_t pos, int iy, const B
   const ArcTables& t = *c.arcs;
   const std::uint64_t* mask = c.model->validityMask(pos);
   const std::int64_t base = pos * 2 * nc;
+  {
+    // Addresses, not pointers: a failing arc's corners may lie off the table, and a prefetch
+    // never faults.
+    const auto table = reinterpret_cast<std::uintptr_t>(c.values + base);
+    const auto phase = static_cast<std::size_t>(pos % static_cast<std::int64_t>(t.lines.size()));
+    for (const std::int64_t off : t.lines[phase]) {
+      __builtin_prefetch(reinterpret_cast<const void*>(table + off * sizeof(float)));
+    }
+  }
   for (int a = 0; a < 2 * nc; ++a) {
     if (!kPlain && !((mask[a >> 6] >> (a & 63)) & 1u)) {
       after[static_cast<std::size_t>(a)] = 0.0f;  // the arc fails
@@ -416,6 +515,9 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
         change = check ? updatePosition<true, false>(c, pos, iy, band)
                        : updatePosition<false, false>(c, pos, iy, band);
       }
+      if (c.unsaved != nullptr) {
+        c.unsaved[pos] = 1;
+      }
       if (c.changes != nullptr) {
         c.changes->record(ix, iy, band.index, change);
         c.changes->pending[static_cast<std::size_t>(pos)] = 0.0f;
@@ -424,6 +526,28 @@ float sweepBand(const Context& c, const Band& band, bool x_descending, bool y_de
     }
   }
   return max_change;
+}
+
+/// Copies the rows within `reach` of a band boundary to the snapshot, so that neighbouring bands
+/// read them race-free: only the positions whose values changed since their last copy (the
+/// others already hold the same values there).
+void copyBoundaryRows(const GridSpec& g, const std::vector<Band>& bands, int reach,
+                      const float* values, float* snapshot, std::uint8_t* unsaved) {
+  const std::size_t per_position = static_cast<std::size_t>(2 * g.nc);
+  for (int ix = 0; ix < g.nx; ++ix) {
+    for (std::size_t t = 1; t < bands.size(); ++t) {
+      const int lo = std::max(0, bands[t].row_begin - reach);
+      const int hi = std::min(g.ny, bands[t].row_begin + reach);
+      for (int iy = lo; iy < hi; ++iy) {
+        const std::int64_t pos = g.position(ix, iy);
+        if (unsaved[pos] != 0) {
+          const std::size_t first = static_cast<std::size_t>(pos) * per_position;
+          std::memcpy(snapshot + first, values + first, per_position * sizeof(float));
+          unsaved[pos] = 0;
+        }
+      }
+    }
+  }
 }
 
 /// `v` resized to n zeros. A table of many states is hundreds of MB written once: it is
@@ -502,6 +626,9 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   // their pages are touched.
   std::unique_ptr<float[]> snapshot(n_threads > 1 ? new float[static_cast<std::size_t>(n)]
                                                   : nullptr);
+  // Every position is copied before the first sweep, then only those updated since.
+  std::vector<std::uint8_t> unsaved(
+      n_threads > 1 ? static_cast<std::size_t>(g.numPositions()) : std::size_t{0}, 1);
 
   Context c;
   c.model = &model;
@@ -513,8 +640,12 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
   c.stencil_begin = begins.data();
   c.stencil_end = ends.data();
   c.split = model.transitionModel() == TransitionModel::kInterpolated;
-  const ArcTables arc_tables = c.split ? arcTables(model) : ArcTables{};
+  ArcTables arc_tables = c.split ? arcTables(model) : ArcTables{};
+  if (c.split) {
+    prefetchLines(arc_tables, values.data(), nc);
+  }
   c.arcs = &arc_tables;
+  c.unsaved = n_threads > 1 ? unsaved.data() : nullptr;
   ChangeTracker tracker;
   if (options.skip_fraction > 0.0) {
     tracker = changeTracker(model, static_cast<float>(options.epsilon * options.skip_fraction),
@@ -533,17 +664,7 @@ PolicyTable solveValueIteration(const SteeringModel& model, const SolverOptions&
     const bool x_desc = order < 2;  // insertion is mostly along +x: start there
     const bool y_desc = order == 0 || order == 3;
     if (n_threads > 1) {
-      // Rows within `reach` of a band boundary, copied so that neighbours read them race-free.
-      for (int ix = 0; ix < g.nx; ++ix) {
-        for (std::size_t t = 1; t < bands.size(); ++t) {
-          const int lo = std::max(0, bands[t].row_begin - reach);
-          const int hi = std::min(g.ny, bands[t].row_begin + reach);
-          const std::int64_t first = g.position(ix, lo) * 2 * nc;
-          const std::int64_t count = static_cast<std::int64_t>(hi - lo) * 2 * nc;
-          std::memcpy(snapshot.get() + first, values.data() + first,
-                      static_cast<std::size_t>(count) * sizeof(float));
-        }
-      }
+      copyBoundaryRows(g, bands, reach, values.data(), snapshot.get(), unsaved.data());
       std::vector<std::thread> pool;
       for (int t = 1; t < n_threads; ++t) {
         pool.emplace_back([&, t] {
