@@ -43,6 +43,10 @@ struct Needle3 {
   /// Cut track (`needle.track`): false = rest_line (the tip cuts the tissue at rest on its
   /// line), true = follow_tissue (the tip cuts the tissue now in front of it; fem::EmbeddedNeedle).
   bool follow_tissue = false;
+  /// The needle's forces on the tissue (`needle.load`): false = point (at its tissue points),
+  /// true = cross_section (spread over a disc of the needle's radius about each;
+  /// fem::EmbeddedNeedleParams::section_load).
+  bool section_load = false;
 };
 
 /// The insertion robot's reach. Stage: any lateral (y, z) in the box; template: only the
