@@ -270,11 +270,11 @@ std::optional<EmbeddedPoint<Dim>> EmbeddingTissue<Dim>::locateSection(const Poin
       }
     }
   }
-  for (NodeWeight& w : section) {
-    w.weight /= used;  // used >= 1 unless every sample left the mesh
-  }
   if (used == 0) {
-    section.clear();
+    section.clear();  // every sample beyond the surface: the point itself
+  }
+  for (NodeWeight& w : section) {
+    w.weight /= used;
   }
   return centre;
 }

@@ -288,6 +288,29 @@ TEST(Tissue3dInsertion, SectionLoadConvergesUnderMeshRefinement) {
   EXPECT_GT(section_2.x(), point_2.x());
 }
 
+TEST(Tissue3dInsertion, CrossSectionWeightsSpreadOverTheDisc) {
+  constexpr double kSumTol = 1e-12;
+  Fixture f(testScene());
+  const Vector3 centre(0.03, 1e-3, 2e-3);
+  const auto point = f.model.embedding().locateSection(centre, 0.0);
+  ASSERT_TRUE(point.has_value());
+  EXPECT_TRUE(point->section.empty());  // radius 0: the point itself
+  const auto disc = f.model.embedding().locateSection(centre, 4e-3);
+  ASSERT_TRUE(disc.has_value());
+  double sum = 0.0;
+  Vector3 mean = Vector3::Zero();
+  for (const fem::NodeWeight& w : disc->section) {
+    sum += w.weight;
+    mean += w.weight * f.model.mesh().nodes[static_cast<std::size_t>(w.node)];
+  }
+  EXPECT_NEAR(sum, 1.0, kSumTol);
+  EXPECT_GT(disc->section.size(), 4u);  // beyond the one element at the centre
+  // The weights reproduce the disc's centroid (linear shape functions, symmetric samples up to
+  // the sunflower rule's imbalance, below a tenth of the radius).
+  EXPECT_LT((mean - centre).norm(), 4e-4);
+  EXPECT_FALSE(f.model.embedding().locateSection(Vector3(1.0, 0.0, 0.0), 4e-3).has_value());
+}
+
 TEST(Tissue3dPlanner, PlacesReachableTargetAndRefusesBone) {
   Fixture f(testScene(60, R"(  - {name: in_bone, position_mm: [30, 19, 0]}
   - {name: behind_bone, position_mm: [45, 19, 0]}
