@@ -151,6 +151,48 @@ CorotationalRun corotationalRun50k(const t3::TissueScene3d& scene) {
   return run;
 }
 
+/// The corotational 50k runs: on every scene, or on the first only; one row each in csv.
+struct CorotationalSummary {
+  std::vector<CorotationalRun> runs;
+  int converged = 0;
+  double halving_max_m = -1.0;    ///< over the converged runs (-1: none)
+  double steps_per_s_min = -1.0;  ///< over the converged runs (-1: none)
+};
+
+CorotationalSummary corotationalRuns(const std::vector<std::string>& files, bool every_scene,
+                                     const std::string& csv) {
+  ng::report::Table table({"scene", "tets", "steps_per_s", "updates_per_step", "refactorisations",
+                           "refactor_cpu_s", "corotation_cpu_fraction", "step_halving_mm",
+                           "refusal"});
+  CorotationalSummary out;
+  const ng::report::Cell undefined{std::string()};
+  for (const std::string& file : files) {
+    out.runs.push_back(corotationalRun50k(t3::loadTissueScene3d(file)));
+    const CorotationalRun& c = out.runs.back();
+    const bool ok = c.refusal.empty();
+    table.addRow(
+        {c.scene, double(c.row.tets), ok ? ng::report::Cell(c.row.steps_per_s) : undefined,
+         ok ? ng::report::Cell(double(c.row.corotation_updates) / std::max(c.row.steps, 1))
+            : undefined,
+         double(c.row.rewarps), c.row.refactor_cpu_s,
+         ok ? ng::report::Cell(c.row.corotation_cpu_s / std::max(c.row.insertion_cpu_s, 1e-9))
+            : undefined,
+         mmOrUndefined(c.halving_m), c.refusal});
+    if (ok) {
+      ++out.converged;
+      out.halving_max_m = std::max(out.halving_max_m, c.halving_m);
+      out.steps_per_s_min = out.steps_per_s_min < 0.0
+                                ? c.row.steps_per_s
+                                : std::min(out.steps_per_s_min, c.row.steps_per_s);
+    }
+    if (!every_scene) {
+      break;  // the scaling scene only
+    }
+  }
+  table.writeCsv(csv);
+  return out;
+}
+
 /// A placed plan of the linear model, to be simulated again with corotational elasticity.
 struct PlacedPlan {
   std::string file, target;
@@ -489,44 +531,13 @@ int main(int argc, char** argv) {
     }
     // ---- corotational elasticity: its cost at ~50k tetrahedra and what it changes ----------
     const ScalingRow r50_linear = nearestRow(5e4);
-    ng::report::Table corot_table({"scene", "tets", "steps_per_s", "updates_per_step",
-                                   "refactorisations", "refactor_cpu_s", "corotation_cpu_fraction",
-                                   "step_halving_mm", "refusal"});
-    std::vector<CorotationalRun> corot_runs;
-    for (const std::string& file : files) {
-      const t3::TissueScene3d scene = t3::loadTissueScene3d(file);
-      corot_runs.push_back(corotationalRun50k(scene));
-      const CorotationalRun& c = corot_runs.back();
-      const bool ok = c.refusal.empty();
-      const ng::report::Cell undefined{std::string()};
-      corot_table.addRow(
-          {c.scene, double(c.row.tets), ok ? ng::report::Cell(c.row.steps_per_s) : undefined,
-           ok ? ng::report::Cell(double(c.row.corotation_updates) / std::max(c.row.steps, 1))
-              : undefined,
-           double(c.row.rewarps), c.row.refactor_cpu_s,
-           ok ? ng::report::Cell(c.row.corotation_cpu_s / std::max(c.row.insertion_cpu_s, 1e-9))
-              : undefined,
-           mmOrUndefined(c.halving_m), c.refusal});
-      if (!corotational_every_scene) {
-        break;  // the scaling scene only
-      }
-    }
-    const ScalingRow r50_corot = corot_runs.front().row;
-    const double corot_halving = corot_runs.front().halving_m;
-    int corot_converged = 0;
-    double corot_halving_max = -1.0, corot_rate_min = -1.0;
-    for (const CorotationalRun& c : corot_runs) {
-      if (c.refusal.empty()) {
-        ++corot_converged;
-        corot_halving_max = std::max(corot_halving_max, c.halving_m);
-        corot_rate_min =
-            corot_rate_min < 0.0 ? c.row.steps_per_s : std::min(corot_rate_min, c.row.steps_per_s);
-      }
-    }
+    const CorotationalSummary corot =
+        corotationalRuns(files, corotational_every_scene, args->out_dir + "/corotational_50k.csv");
+    const ScalingRow r50_corot = corot.runs.front().row;
+    const double corot_halving = corot.runs.front().halving_m;
     std::cout << "  linear at " << r50_linear.tets << " tets: " << r50_linear.steps_per_s
-              << " steps/s; corotational converged on " << corot_converged << " of "
-              << corot_runs.size() << " scenes\n";
-    corot_table.writeCsv(args->out_dir + "/corotational_50k.csv");
+              << " steps/s; corotational converged on " << corot.converged << " of "
+              << corot.runs.size() << " scenes\n";
     const double corot_change = corotationChanges(placed_plans, args->out_dir + "/corotation.csv");
     scaling.writeCsv(args->out_dir + "/scaling.csv");
     plans.writeCsv(args->out_dir + "/plans.csv");
@@ -583,12 +594,12 @@ int main(int argc, char** argv) {
          << ",\n  \"corotational_step_halving_mm_50k\": "
          << mmKey(corot_halving >= 0.0, corot_halving)
          << ",\n  \"corotational_seed_change_mm_max\": " << mmKey(corot_change >= 0.0, corot_change)
-         << ",\n  \"corotational_50k_scenes\": " << corot_runs.size()
-         << ",\n  \"corotational_50k_converged\": " << corot_converged
+         << ",\n  \"corotational_50k_scenes\": " << corot.runs.size()
+         << ",\n  \"corotational_50k_converged\": " << corot.converged
          << ",\n  \"steps_per_s_50k_tets_corotational_min\": "
-         << (corot_converged > 0 ? jsonNumber(corot_rate_min) : "null")
+         << (corot.converged > 0 ? jsonNumber(corot.steps_per_s_min) : "null")
          << ",\n  \"corotational_step_halving_mm_50k_max\": "
-         << mmKey(corot_halving_max >= 0.0, corot_halving_max) << "\n}\n";
+         << mmKey(corot.halving_max_m >= 0.0, corot.halving_max_m) << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(args->out_dir + "/plot.json",
                               R"json([{"csv": "scaling.csv", "x": "tets", "y": "steps_per_s",
