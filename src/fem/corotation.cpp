@@ -1,6 +1,7 @@
 // Corotational element forces (corotation.h).
 #include "needle_guidance/fem/corotation.h"
 
+#include <Eigen/Geometry>
 #include <Eigen/LU>
 #include <algorithm>
 #include <cmath>
@@ -28,6 +29,40 @@ Eigen::Matrix<double, Dim, Dim> fastPolarRotation(const Eigen::Matrix<double, Di
   return polarRotation<Dim>(f);
 }
 
+namespace {
+
+/// 0 at or below lo, 1 at or above hi, smooth (C1) in between.
+double smoothStep(double x, double lo, double hi) {
+  const double t = std::clamp((x - lo) / (hi - lo), 0.0, 1.0);
+  return t * t * (3.0 - 2.0 * t);
+}
+
+}  // namespace
+
+template <int Dim>
+Eigen::Matrix<double, Dim, Dim> elementRotation(const Eigen::Matrix<double, Dim, Dim>& f) {
+  using Matrix = Eigen::Matrix<double, Dim, Dim>;
+  // The share of its polar rotation the element takes: all of it while it is sound (volume
+  // ratio det F and Green strain within the small-strain range), none when crushed or strained
+  // far beyond it, smooth in between.
+  const double green = 0.5 * (f.transpose() * f - Matrix::Identity()).norm();
+  const double t = smoothStep(f.determinant(), kCrushedVolume, kSoundVolume) *
+                   (1.0 - smoothStep(green, kSmallStrain, kLargeStrain));
+  if (t <= 0.0) {
+    return Matrix::Identity();
+  }
+  const Matrix r = fastPolarRotation<Dim>(f);
+  if (t >= 1.0) {
+    return r;
+  }
+  if constexpr (Dim == 3) {
+    const Eigen::Quaterniond q(r);
+    return Eigen::Quaterniond::Identity().slerp(t, q).toRotationMatrix();
+  } else {
+    return Eigen::Rotation2Dd(t * std::atan2(r(1, 0), r(0, 0))).toRotationMatrix();
+  }
+}
+
 template <int Dim>
 CorotationalForces<Dim>::CorotationalForces(const SimplexMesh<Dim>& mesh,
                                             const std::vector<Material>& materials,
@@ -36,15 +71,10 @@ CorotationalForces<Dim>::CorotationalForces(const SimplexMesh<Dim>& mesh,
   gradients_.reserve(mesh.elements.size());
   stiffness_.reserve(mesh.elements.size());
   for (int e = 0; e < mesh.elementCount(); ++e) {
-    const int mat = mesh.element_material[static_cast<std::size_t>(e)];
-    if (mat < 0 || mat >= static_cast<int>(materials.size())) {
-      throw std::invalid_argument("CorotationalForces: element " + std::to_string(e) +
-                                  ": material index " + std::to_string(mat) + " out of range");
-    }
+    const Material& material = elementMaterial<Dim>(mesh, materials, e, "CorotationalForces");
     const Corners<Dim> c = corners<Dim>(mesh, e);
     gradients_.push_back(shapeGradients<Dim>(c));
-    stiffness_.push_back(
-        elementStiffness<Dim>(c, materials[static_cast<std::size_t>(mat)], thickness_m));
+    stiffness_.push_back(elementStiffness<Dim>(c, material, thickness_m));
   }
 }
 
@@ -103,7 +133,7 @@ Eigen::VectorXd CorotationalForces<Dim>::correction(const Eigen::VectorXd& u, in
       continue;
     }
     flipped += f.determinant() > 0.0 ? 0 : 1;
-    const Rotation r = fastPolarRotation<Dim>(f);
+    const Rotation r = elementRotation<Dim>(f);
     const Rotation r0 = warped ? reference_[ei] : Rotation::Identity();
     turn = std::max(turn, rotationAngle<Dim>(r0.transpose() * r));
     // R K_e (R^T x - X) - R_0 K_e R_0^T u with x = X + u.
@@ -165,7 +195,7 @@ SparseMatrix CorotationalForces<Dim>::warpedStiffness(const Eigen::VectorXd& u) 
   std::fill(warped_k_.valuePtr(), warped_k_.valuePtr() + warped_k_.nonZeros(), 0.0);
   for (int e = 0; e < mesh_->elementCount(); ++e) {
     const std::size_t ei = static_cast<std::size_t>(e);
-    const Rotation r = fastPolarRotation<Dim>(gradient(e, u));
+    const Rotation r = elementRotation<Dim>(gradient(e, u));
     if (r != Rotation::Identity()) {
       reference_[ei] = r;
       warped_[ei] = 1;
@@ -184,6 +214,8 @@ SparseMatrix CorotationalForces<Dim>::warpedStiffness(const Eigen::VectorXd& u) 
 
 template Eigen::Matrix<double, 2, 2> fastPolarRotation<2>(const Eigen::Matrix<double, 2, 2>&);
 template Eigen::Matrix<double, 3, 3> fastPolarRotation<3>(const Eigen::Matrix<double, 3, 3>&);
+template Eigen::Matrix<double, 2, 2> elementRotation<2>(const Eigen::Matrix<double, 2, 2>&);
+template Eigen::Matrix<double, 3, 3> elementRotation<3>(const Eigen::Matrix<double, 3, 3>&);
 template class CorotationalForces<2>;
 template class CorotationalForces<3>;
 

@@ -37,8 +37,12 @@ constexpr double kRewarpPrefetch_m = 5e-3;
 // at most this, 5e4 times below the step-halving target of the seeds.
 constexpr double kAimTol_m = 1e-10;
 constexpr int kMaxAimIterations = 50;
-constexpr int kRimPoints3 = 8;             // the tip's cross-section: its centre and rim points
 constexpr double kMinCutDirectionX = 0.5;  // a track turning more than 60 degrees is refused
+// The needle's cross-section (locateSection): samples at most half an element apart, within
+// these bounds per dimension (2-D: a segment, 3-D: a disc).
+constexpr int kMinSectionSamples[2] = {3, 7};
+constexpr int kMaxSectionSamples[2] = {64, 256};
+constexpr double kGoldenAngle = 2.399963229728653;  // pi (3 - sqrt 5): the sunflower disc rule
 
 /// s where an affine function with values fa at sa and fb at sb equals level.
 double crossing(double sa, double fa, double sb, double fb, double level) {
@@ -62,6 +66,32 @@ std::string pointText(const Point<Dim>& p) {
 /// Edge length of a cell holding about one element: the Dim-th root of the measure per element.
 double rootOf(double measure, int dim) {
   return dim == 3 ? std::cbrt(measure) : std::sqrt(measure);
+}
+
+/// Edge length of the regular simplex of this measure (area or volume) [m].
+double regularEdge(double measure, int dim) {
+  return dim == 3 ? std::cbrt(6.0 * std::sqrt(2.0) * measure)
+                  : std::sqrt(4.0 * measure / std::sqrt(3.0));
+}
+
+/// Offsets of n equal-area samples of the needle's cross-section of radius a normal to +x: in 3-D
+/// the sunflower rule on the disc (sample k at radius a sqrt((k + 1/2) / n), turned by the golden
+/// angle from the last), in 2-D the midpoints of n equal parts of the diameter.
+template <int Dim>
+std::vector<Point<Dim>> sectionOffsets(double a, int n) {
+  std::vector<Point<Dim>> out;
+  for (int k = 0; k < n; ++k) {
+    Point<Dim> q = Point<Dim>::Zero();
+    if constexpr (Dim == 3) {
+      const double r = a * std::sqrt((k + 0.5) / n), t = kGoldenAngle * k;
+      q(1) = r * std::cos(t);
+      q(2) = r * std::sin(t);
+    } else {
+      q(1) = a * (2.0 * k + 1.0 - n) / n;
+    }
+    out.push_back(q);
+  }
+  return out;
 }
 
 }  // namespace
@@ -208,6 +238,48 @@ std::optional<EmbeddedPoint<Dim>> EmbeddingTissue<Dim>::locate(const Point<Dim>&
 }
 
 template <int Dim>
+std::optional<EmbeddedPoint<Dim>> EmbeddingTissue<Dim>::locateSection(const Point<Dim>& p,
+                                                                      double radius_m) const {
+  std::optional<EmbeddedPoint<Dim>> centre = locate(p);
+  if (!centre || !(radius_m > 0.0)) {
+    return centre;
+  }
+  // Samples no farther apart than half the element at p: spacing a sqrt(pi / n) on the disc,
+  // 2a / n on the segment.
+  const double h =
+      regularEdge(std::abs(signedMeasure<Dim>(corners<Dim>(*mesh_, centre->element))), Dim);
+  const double wanted = Dim == 3 ? 4.0 * kPi * radius_m * radius_m / (h * h) : 4.0 * radius_m / h;
+  const int n = std::clamp(static_cast<int>(std::ceil(wanted)), kMinSectionSamples[Dim - 2],
+                           kMaxSectionSamples[Dim - 2]);
+  std::vector<NodeWeight>& section = centre->section;
+  int used = 0;
+  for (const Point<Dim>& offset : sectionOffsets<Dim>(radius_m, n)) {
+    const std::optional<EmbeddedPoint<Dim>> q = locate(p + offset);
+    if (!q) {
+      continue;  // beyond the tissue's surface
+    }
+    ++used;
+    const auto& nodes = mesh_->elements[static_cast<std::size_t>(q->element)];
+    for (int a = 0; a < Dim + 1; ++a) {
+      auto at = std::find_if(section.begin(), section.end(),
+                             [&](const NodeWeight& w) { return w.node == nodes[a]; });
+      if (at == section.end()) {
+        section.push_back({nodes[a], q->weights(a)});
+      } else {
+        at->weight += q->weights(a);
+      }
+    }
+  }
+  if (used == 0) {
+    section.clear();  // every sample beyond the surface: the point itself
+  }
+  for (NodeWeight& w : section) {
+    w.weight /= used;
+  }
+  return centre;
+}
+
+template <int Dim>
 bool EmbeddingTissue<Dim>::rigidElement(int element) const {
   for (int n : mesh_->elements[static_cast<std::size_t>(element)]) {
     if (!node_fixed_[static_cast<std::size_t>(n)]) {
@@ -228,11 +300,12 @@ EmbeddedNeedle<Dim>::EmbeddedNeedle(const EmbeddingTissue<Dim>& tissue,
   if (!(params.cutting_force_N >= 0.0) || !(params.track_spacing_m > 0.0) ||
       !(params.kinetic_friction_N_per_m >= 0.0) ||
       !(params.static_friction_N_per_m >= params.kinetic_friction_N_per_m) ||
-      !std::isfinite(entry_x_m) || (params.follow_tissue && !(params.tip_radius_m > 0.0))) {
+      !std::isfinite(entry_x_m) ||
+      ((params.follow_tissue || params.section_load) && !(params.tip_radius_m > 0.0))) {
     throw std::invalid_argument(
         "EmbeddedNeedle: needs cutting_force >= 0, track_spacing > 0, 0 <= kinetic friction <= "
-        "static friction, a finite entry face and, when the track follows the tissue, a tip "
-        "radius > 0");
+        "static friction, a finite entry face and, when the track follows the tissue or the load "
+        "is spread over the needle's section, a tip radius > 0");
   }
   s_ = entry_x_m - 1e-3;
 }
@@ -246,27 +319,41 @@ typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::onLine(double x) const
 }
 
 template <int Dim>
+std::optional<typename EmbeddedNeedle<Dim>::Point_> EmbeddedNeedle<Dim>::constraintPoint(
+    const Vector& x) const {
+  std::optional<Point_> p =
+      tissue_->locateSection(x, params_.section_load ? params_.tip_radius_m : 0.0);
+  if (p && p->section.empty()) {  // a point force: the element's corners
+    const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p->element)];
+    for (int a = 0; a < Dim + 1; ++a) {
+      p->section.push_back({nodes[a], p->weights(a)});
+    }
+  }
+  return p;
+}
+
+template <int Dim>
 void EmbeddedNeedle<Dim>::prefetchLine(const Lateral& lateral,
                                        std::optional<double> end_x_m) const {
   // The cut track is the reference line at this lateral position: the columns of every node
-  // of the elements it crosses are solved in one batch instead of a few per step.
+  // under the needle's cross-section along it are solved in one batch instead of a few per step.
   constexpr double kSample_m = 2e-4;
   std::vector<int> dofs;
-  std::vector<char> seen(tissue_->mesh().elements.size(), 0);
+  std::vector<char> seen(static_cast<std::size_t>(tissue_->mesh().nodeCount()), 0);
   const double end = end_x_m.value_or(max_tip_x_m_ + 2.0 * params_.track_spacing_m);
   Vector p;
   p.template tail<Dim - 1>() = lateral;
   for (double x = entry_x_m_ + kEntryInset_m; x <= end; x += kSample_m) {
     p(0) = x;
-    const std::optional<Point_> e = tissue_->locate(p);
+    const std::optional<Point_> e = constraintPoint(p);
     if (!e) {
       break;
     }
-    if (!seen[static_cast<std::size_t>(e->element)]) {
-      seen[static_cast<std::size_t>(e->element)] = 1;
-      for (int n : tissue_->mesh().elements[static_cast<std::size_t>(e->element)]) {
+    for (const NodeWeight& w : e->section) {
+      if (!seen[static_cast<std::size_t>(w.node)]) {
+        seen[static_cast<std::size_t>(w.node)] = 1;
         for (int d = 0; d < Dim; ++d) {
-          dofs.push_back(Dim * n + d);
+          dofs.push_back(Dim * w.node + d);
         }
       }
     }
@@ -277,9 +364,9 @@ void EmbeddedNeedle<Dim>::prefetchLine(const Lateral& lateral,
 template <int Dim>
 void EmbeddedNeedle<Dim>::requireColumns(const Point_& p) const {
   std::vector<int> dofs;
-  for (int n : tissue_->mesh().elements[static_cast<std::size_t>(p.element)]) {
+  for (const NodeWeight& w : p.section) {
     for (int d = 0; d < Dim; ++d) {
-      dofs.push_back(Dim * n + d);
+      dofs.push_back(Dim * w.node + d);
     }
   }
   tissue_->compliance().require(dofs);
@@ -289,16 +376,15 @@ template <int Dim>
 typename EmbeddedNeedle<Dim>::Block EmbeddedNeedle<Dim>::block(const Point_& p,
                                                                const Point_& q) const {
   const auto& g = tissue_->compliance();
-  const auto& np = tissue_->mesh().elements[static_cast<std::size_t>(p.element)];
-  const auto& nq = tissue_->mesh().elements[static_cast<std::size_t>(q.element)];
   Block b = Block::Zero();
-  for (int j = 0; j < Dim + 1; ++j) {
+  for (const NodeWeight& wq : q.section) {
     for (int d = 0; d < Dim; ++d) {
-      const Eigen::VectorXd& col = g.column(Dim * nq[j] + d);
-      for (int i = 0; i < Dim + 1; ++i) {
-        const double w = p.weights(i) * q.weights(j);
-        b.col(d) += w * col.template segment<Dim>(Dim * np[i]);
+      const Eigen::VectorXd& col = g.column(Dim * wq.node + d);
+      Vector sum = Vector::Zero();
+      for (const NodeWeight& wp : p.section) {
+        sum += wp.weight * col.template segment<Dim>(Dim * wp.node);
       }
+      b.col(d) += wq.weight * sum;
     }
   }
   return b;
@@ -397,7 +483,7 @@ typename EmbeddedNeedle<Dim>::Solution EmbeddedNeedle<Dim>::solveAt(double s, co
 template <int Dim>
 typename EmbeddedNeedle<Dim>::Point_ EmbeddedNeedle<Dim>::along(double cut_m) const {
   const Vector p = tip_.reference_m + cut_m * cut_dir_;
-  std::optional<Point_> e = tissue_->locate(p);
+  std::optional<Point_> e = constraintPoint(p);
   if (!e) {
     throw std::runtime_error("the cut track leaves the tissue mesh at " + pointText<Dim>(p));
   }
@@ -534,9 +620,8 @@ void EmbeddedNeedle<Dim>::releaseShaftPoint(std::size_t k) {
 template <int Dim>
 typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::warpAt(const Point_& p) const {
   Vector v = Vector::Zero();
-  const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p.element)];
-  for (int a = 0; a < Dim + 1 && warp_.size() > 0; ++a) {
-    v += p.weights(a) * warp_.template segment<Dim>(Dim * nodes[a]);
+  for (std::size_t a = 0; a < p.section.size() && warp_.size() > 0; ++a) {
+    v += p.section[a].weight * warp_.template segment<Dim>(Dim * p.section[a].node);
   }
   return v;
 }
@@ -642,12 +727,11 @@ typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::nodeDisplacement(
   const int ns = static_cast<int>(shaft_.size());
   for (int k = 0; k < forces.size() / Dim; ++k) {
     const Point_& p = k < ns ? shaft_[static_cast<std::size_t>(k)].point : tip_;
-    const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p.element)];
-    for (int a = 0; a < Dim + 1; ++a) {
+    for (const NodeWeight& w : p.section) {
       for (int d = 0; d < Dim; ++d) {
-        const double f = p.weights(a) * forces(Dim * k + d);
+        const double f = w.weight * forces(Dim * k + d);
         if (f != 0.0) {
-          u += f * g.column(Dim * nodes[a] + d).template segment<Dim>(Dim * node);
+          u += f * g.column(Dim * w.node + d).template segment<Dim>(Dim * node);
         }
       }
     }
@@ -658,34 +742,19 @@ typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::nodeDisplacement(
 template <int Dim>
 typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::crossSectionDisplacement(
     const Vector& x, const Eigen::VectorXd& forces) const {
-  // The centre and rim points of a disc of the tip's radius normal to the needle (+x): in 3-D
-  // kRimPoints3 on the circle, in 2-D the two ends of the section's diameter.
-  std::vector<Vector> samples{x};
-  const double a = params_.tip_radius_m;
-  const int rim = Dim == 3 ? kRimPoints3 : 2;
-  for (int i = 0; i < rim; ++i) {
-    const double t = 2.0 * kPi * i / rim;
-    Vector q = x;
-    q(1) += a * std::cos(t);
-    if constexpr (Dim == 3) {
-      q(2) += a * std::sin(t);
-    }
-    samples.push_back(q);
-  }
+  // The needle's cross-section about x (the centre alone if every sample left the mesh).
+  const std::optional<Point_> p = tissue_->locateSection(x, params_.tip_radius_m);
   Vector sum = Vector::Zero();
-  int n = 0;
-  for (const Vector& q : samples) {
-    const std::optional<Point_> e = tissue_->locate(q);
-    if (!e) {
-      continue;  // a rim point beyond the tissue's surface
+  if (p && p->section.empty()) {
+    const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p->element)];
+    for (int a = 0; a < Dim + 1; ++a) {
+      sum += p->weights(a) * nodeDisplacement(nodes[a], forces);
     }
-    const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(e->element)];
-    for (int k = 0; k < Dim + 1; ++k) {
-      sum += e->weights(k) * nodeDisplacement(nodes[k], forces);
-    }
-    ++n;
   }
-  return n > 0 ? Vector(sum / n) : Vector::Zero();
+  for (std::size_t a = 0; p && a < p->section.size(); ++a) {
+    sum += p->section[a].weight * nodeDisplacement(p->section[a].node, forces);
+  }
+  return sum;
 }
 
 template <int Dim>
@@ -904,7 +973,7 @@ bool EmbeddedNeedle<Dim>::enter(const Lateral& lateral, std::string* why_not) {
   Vector p;
   p(0) = entry_x_m_ + kEntryInset_m;
   p.template tail<Dim - 1>() = lateral;
-  std::optional<Point_> entry = tissue_->locate(p);
+  std::optional<Point_> entry = constraintPoint(p);
   if (!entry || tissue_->rigidElement(entry->element)) {
     if (why_not) {
       *why_not = "the needle line at " + pointText<Dim>(p) +
@@ -1058,10 +1127,9 @@ Eigen::VectorXd EmbeddedNeedle<Dim>::displacementField() const {
   const int ns = static_cast<int>(shaft_.size());
   for (int k = 0; k < committed_.forces.size() / Dim; ++k) {
     const Point_& p = k < ns ? shaft_[static_cast<std::size_t>(k)].point : tip_;
-    const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p.element)];
-    for (int a = 0; a < Dim + 1; ++a) {
-      f.template segment<Dim>(Dim * nodes[a]) +=
-          p.weights(a) * committed_.forces.template segment<Dim>(Dim * k);
+    for (const NodeWeight& w : p.section) {
+      f.template segment<Dim>(Dim * w.node) +=
+          w.weight * committed_.forces.template segment<Dim>(Dim * k);
     }
   }
   Eigen::VectorXd u = tissue_->compliance().solve(f);

@@ -152,6 +152,19 @@ Corners<Dim> corners(const SimplexMesh<Dim>& mesh, int element) {
 }
 
 template <int Dim>
+const Material& elementMaterial(const SimplexMesh<Dim>& mesh,
+                                const std::vector<Material>& materials, int e, const char* who) {
+  const std::size_t ei = static_cast<std::size_t>(e);
+  const int mat = ei < mesh.element_material.size() ? mesh.element_material[ei] : -1;
+  if (mat < 0 || mat >= static_cast<int>(materials.size())) {
+    throw std::invalid_argument(std::string(who) + ": element " + std::to_string(e) +
+                                ": material index " + std::to_string(mat) + " out of range (" +
+                                std::to_string(materials.size()) + " materials)");
+  }
+  return materials[static_cast<std::size_t>(mat)];
+}
+
+template <int Dim>
 SparseMatrix assembleStiffness(const SimplexMesh<Dim>& mesh, const std::vector<Material>& materials,
                                double thickness_m, double min_measure) {
   if (mesh.element_material.size() != mesh.elements.size()) {
@@ -166,11 +179,7 @@ SparseMatrix assembleStiffness(const SimplexMesh<Dim>& mesh, const std::vector<M
   std::vector<Eigen::Triplet<double>> triplets;
   triplets.reserve(mesh.elements.size() * kElementDofs<Dim> * kElementDofs<Dim>);
   for (int e = 0; e < mesh.elementCount(); ++e) {
-    const int mat = mesh.element_material[static_cast<std::size_t>(e)];
-    if (mat < 0 || mat >= static_cast<int>(materials.size())) {
-      throw std::invalid_argument("assembleStiffness: element " + std::to_string(e) +
-                                  ": material index " + std::to_string(mat) + " out of range");
-    }
+    const Material& material = elementMaterial<Dim>(mesh, materials, e, "assembleStiffness");
     const Corners<Dim> c = corners<Dim>(mesh, e);
     const double measure = signedMeasure<Dim>(c);
     if (!(measure > min_measure)) {
@@ -179,8 +188,7 @@ SparseMatrix assembleStiffness(const SimplexMesh<Dim>& mesh, const std::vector<M
                                   std::to_string(Dim) + " (<= " + formatNumber(min_measure, 6) +
                                   "): inverted or degenerate");
     }
-    const ElementMatrix<Dim> k =
-        elementStiffness<Dim>(c, materials[static_cast<std::size_t>(mat)], thickness_m);
+    const ElementMatrix<Dim> k = elementStiffness<Dim>(c, material, thickness_m);
     const auto& nodes = mesh.elements[static_cast<std::size_t>(e)];
     for (int a = 0; a < kElementDofs<Dim>; ++a) {
       const int ga = Dim * nodes[a / Dim] + a % Dim;
@@ -194,18 +202,20 @@ SparseMatrix assembleStiffness(const SimplexMesh<Dim>& mesh, const std::vector<M
   return kg;
 }
 
-#define NG_FEM_INSTANTIATE(D)                                                                     \
-  template double signedMeasure<D>(const Corners<D>&);                                            \
-  template Eigen::Matrix<double, D + 1, D> shapeGradients<D>(const Corners<D>&);                  \
-  template Eigen::Matrix<double, D + 1, 1> barycentric<D>(const Corners<D>&, const Point<D>&);    \
-  template Eigen::Matrix<double, kStrainComponents<D>, kStrainComponents<D>> elasticityMatrix<D>( \
-      const Material&);                                                                           \
-  template ElementMatrix<D> elementStiffness<D>(const Corners<D>&, const Material&, double);      \
-  template Corners<D> corners<D>(const SimplexMesh<D>&, int);                                     \
-  template Eigen::Matrix<double, D, D> polarRotation<D>(const Eigen::Matrix<double, D, D>&);      \
-  template CorotatedElement<D> corotatedElement<D>(const Corners<D>&, const Corners<D>&,          \
-                                                   const Material&, double);                      \
-  template SparseMatrix assembleStiffness<D>(const SimplexMesh<D>&, const std::vector<Material>&, \
+#define NG_FEM_INSTANTIATE(D)                                                                      \
+  template double signedMeasure<D>(const Corners<D>&);                                             \
+  template Eigen::Matrix<double, D + 1, D> shapeGradients<D>(const Corners<D>&);                   \
+  template Eigen::Matrix<double, D + 1, 1> barycentric<D>(const Corners<D>&, const Point<D>&);     \
+  template Eigen::Matrix<double, kStrainComponents<D>, kStrainComponents<D>> elasticityMatrix<D>(  \
+      const Material&);                                                                            \
+  template ElementMatrix<D> elementStiffness<D>(const Corners<D>&, const Material&, double);       \
+  template Corners<D> corners<D>(const SimplexMesh<D>&, int);                                      \
+  template const Material& elementMaterial<D>(const SimplexMesh<D>&, const std::vector<Material>&, \
+                                              int, const char*);                                   \
+  template Eigen::Matrix<double, D, D> polarRotation<D>(const Eigen::Matrix<double, D, D>&);       \
+  template CorotatedElement<D> corotatedElement<D>(const Corners<D>&, const Corners<D>&,           \
+                                                   const Material&, double);                       \
+  template SparseMatrix assembleStiffness<D>(const SimplexMesh<D>&, const std::vector<Material>&,  \
                                              double, double);
 NG_FEM_INSTANTIATE(2)
 NG_FEM_INSTANTIATE(3)

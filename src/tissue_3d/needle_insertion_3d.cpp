@@ -15,6 +15,7 @@ fem::EmbeddedNeedleParams paramsOf(const Needle3& needle) {
   p.track_spacing_m = needle.track_spacing_m;
   p.follow_tissue = needle.follow_tissue;
   p.tip_radius_m = 0.5 * needle.diameter_m;
+  p.section_load = needle.section_load;
   return p;
 }
 

@@ -215,6 +215,8 @@ private:
     n.follow_tissue =
         m.optionalChoice("track", {"rest_line", "follow_tissue"}).value_or("follow_tissue") ==
         "follow_tissue";
+    n.section_load =
+        m.optionalChoice("load", {"point", "cross_section"}).value_or("point") == "cross_section";
     if (n.gauge < 10 || n.gauge > 30) {
       m.fail(m.keyPath("gauge"), std::to_string(n.gauge), "must be in [10, 30]");
     }

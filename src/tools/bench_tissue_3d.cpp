@@ -6,7 +6,9 @@
 // correction and what the other cut track (rest_line / follow_tissue) does to the plan; and the
 // same targets planned in a 2-D slice of the scene (the sagittal section through the target, meshed
 // and simulated by the planar model): how far a 2-D model's errors are from the 3-D ones.
-// Usage: bench_tissue_3d --out DIR [--quick] [--scene FILE ...]
+// --model corotational: the corotational insertion at about 50k tetrahedra runs on every scene
+// (each meshed to about 50k), not only on the first.
+// Usage: bench_tissue_3d --out DIR [--quick] [--scene FILE ...] [--model corotational]
 
 #include <algorithm>
 #include <cmath>
@@ -111,6 +113,89 @@ ScalingRow scalingRun(const t3::TissueScene3d& scene, double scale, bool corotat
     row.seed_m = needle.seedWorld(seed);
   }
   return row;
+}
+
+/// The mesh scale of the scene that gives about n tetrahedra (element count ~ scale^-3: one
+/// correction from a trial mesh at the first guess).
+double scaleFor(const t3::TissueScene3d& scene, double n, int tets_at_scale_1) {
+  double scale = std::cbrt(tets_at_scale_1 / n);
+  return scale * std::cbrt(t3::meshTissue3d(scene, {}, scale).elementCount() / n);
+}
+
+/// The scaling insertion in corotational tissue at about 50k tetrahedra, at the scene's step
+/// and at half of it (the seed's change; halving_m < 0 and the refusal when refused).
+struct CorotationalRun {
+  std::string scene;
+  ScalingRow row;
+  double halving_m = -1.0;
+  std::string refusal;
+};
+
+CorotationalRun corotationalRun50k(const t3::TissueScene3d& scene) {
+  CorotationalRun run;
+  run.scene = scene.name;
+  run.row.steps_per_s = -1.0;
+  const double scale = scaleFor(scene, 5e4, t3::meshTissue3d(scene, {}, 1.0).elementCount());
+  try {
+    run.row = scalingRun(scene, scale, true, 1.0, true);
+    // The run at half the step: its refusal leaves the figures of the converged run defined.
+    try {
+      run.halving_m = (scalingRun(scene, scale, true, 0.5, true).seed_m - run.row.seed_m).norm();
+    } catch (const std::runtime_error& e) {
+      run.refusal = std::string("at half the step: ") + e.what();
+    }
+  } catch (const std::runtime_error& e) {
+    run.row.steps_per_s = -1.0;
+    run.refusal = e.what();
+  }
+  std::cout << "  corotational " << scene.name << ", " << run.row.tets
+            << " tets: " << run.row.steps_per_s << " steps/s, " << run.row.corotation_updates
+            << " updates and " << run.row.rewarps << " refactorisations in " << run.row.steps
+            << " steps; halving the step moves the seed by " << run.halving_m * 1e3 << " mm "
+            << run.refusal << "\n";
+  return run;
+}
+
+/// The corotational 50k runs: on every scene, or on the first only; one row each in csv.
+struct CorotationalSummary {
+  std::vector<CorotationalRun> runs;
+  int converged = 0;
+  double halving_max_m = -1.0;    ///< over the converged runs (-1: none)
+  double steps_per_s_min = -1.0;  ///< over the converged runs (-1: none)
+};
+
+CorotationalSummary corotationalRuns(const std::vector<std::string>& files, bool every_scene,
+                                     const std::string& csv) {
+  ng::report::Table table({"scene", "tets", "steps_per_s", "updates_per_step", "refactorisations",
+                           "refactor_cpu_s", "corotation_cpu_fraction", "step_halving_mm",
+                           "refusal"});
+  CorotationalSummary out;
+  const ng::report::Cell undefined{std::string()};
+  for (const std::string& file : files) {
+    out.runs.push_back(corotationalRun50k(t3::loadTissueScene3d(file)));
+    const CorotationalRun& c = out.runs.back();
+    const bool ok = c.row.steps_per_s > 0.0;  // the run at the scene's step converged
+    table.addRow(
+        {c.scene, double(c.row.tets), ok ? ng::report::Cell(c.row.steps_per_s) : undefined,
+         ok ? ng::report::Cell(double(c.row.corotation_updates) / std::max(c.row.steps, 1))
+            : undefined,
+         double(c.row.rewarps), c.row.refactor_cpu_s,
+         ok ? ng::report::Cell(c.row.corotation_cpu_s / std::max(c.row.insertion_cpu_s, 1e-9))
+            : undefined,
+         mmOrUndefined(c.halving_m), c.refusal});
+    if (ok && c.refusal.empty()) {  // converged at the step and at half of it
+      ++out.converged;
+      out.halving_max_m = std::max(out.halving_max_m, c.halving_m);
+      out.steps_per_s_min = out.steps_per_s_min < 0.0
+                                ? c.row.steps_per_s
+                                : std::min(out.steps_per_s_min, c.row.steps_per_s);
+    }
+    if (!every_scene) {
+      break;  // the scaling scene only
+    }
+  }
+  table.writeCsv(csv);
+  return out;
 }
 
 /// A placed plan of the linear model, to be simulated again with corotational elasticity.
@@ -317,7 +402,32 @@ SliceErrors sliceErrors(const t3::TissueScene3d& scene, const t3::Target3& targe
 }  // namespace
 
 int main(int argc, char** argv) {
-  const auto args = ng::report::parseBenchArgs(argc, argv, "bench_tissue_3d");
+  constexpr const char* kUsage =
+      "usage: bench_tissue_3d --out DIR [--quick] [--scene FILE]... [--model corotational]\n"
+      "Writes DIR/summary.json, its CSVs and plot.json (scripts/bench tissue_3d runs it and draws "
+      "the plots).\n--model corotational: the corotational insertion at about 50k tetrahedra "
+      "runs on every scene, not only on the first (corotational_50k.csv).\n";
+  if (ng::report::helpRequested(argc, argv)) {
+    std::cout << kUsage;
+    return 0;
+  }
+  // --model corotational is this tool's own option; the rest are the benches' common ones.
+  bool corotational_every_scene = false;
+  std::vector<char*> rest{argv[0]};
+  for (int i = 1; i < argc; ++i) {
+    if (std::string(argv[i]) == "--model" && i + 1 < argc) {
+      if (std::string(argv[++i]) != "corotational") {
+        std::cerr << "bench_tissue_3d: --model takes `corotational`, not `" << argv[i] << "`\n"
+                  << kUsage;
+        return 2;
+      }
+      corotational_every_scene = true;
+    } else {
+      rest.push_back(argv[i]);
+    }
+  }
+  const auto args =
+      ng::report::parseBenchArgs(static_cast<int>(rest.size()), rest.data(), "bench_tissue_3d");
   if (!args) {
     return 2;
   }
@@ -332,10 +442,7 @@ int main(int argc, char** argv) {
         {"tets", "steps_per_s", "factor_cpu_s", "mesh_cpu_s", "peak_mb", "columns_mb"});
     std::vector<ScalingRow> rows;
     for (double n : wanted) {
-      // Element count ~ scale^-3: one correction from a trial mesh at the first guess.
-      double scale = std::cbrt(probe.elementCount() / n);
-      scale *= std::cbrt(t3::meshTissue3d(base, {}, scale).elementCount() / n);
-      const ScalingRow r = scalingRun(base, scale);
+      const ScalingRow r = scalingRun(base, scaleFor(base, n, probe.elementCount()));
       rows.push_back(r);
       scaling.addRow(
           {double(r.tets), r.steps_per_s, r.factor_cpu_s, r.mesh_cpu_s, r.peak_mb, r.columns_mb});
@@ -436,22 +543,13 @@ int main(int argc, char** argv) {
     }
     // ---- corotational elasticity: its cost at ~50k tetrahedra and what it changes ----------
     const ScalingRow r50_linear = nearestRow(5e4);
-    double scale50 = std::cbrt(probe.elementCount() / 5e4);
-    scale50 *= std::cbrt(t3::meshTissue3d(base, {}, scale50).elementCount() / 5e4);
-    ScalingRow r50_corot;
-    r50_corot.steps_per_s = -1.0;
-    double corot_halving = -1.0;  // the seed's change when the step is halved [m]
-    try {
-      r50_corot = scalingRun(base, scale50, true, 1.0, true);
-      corot_halving = (scalingRun(base, scale50, true, 0.5, true).seed_m - r50_corot.seed_m).norm();
-    } catch (const std::runtime_error& e) {
-      std::cout << "  corotational scaling run refused: " << e.what() << "\n";
-    }
-    std::cout << "  corotational, " << r50_corot.tets << " tets: " << r50_corot.steps_per_s
-              << " steps/s (linear " << r50_linear.steps_per_s << " at " << r50_linear.tets << "), "
-              << r50_corot.corotation_updates << " updates and " << r50_corot.rewarps
-              << " refactorisations in " << r50_corot.steps << " steps; halving the step moves the"
-              << " seed by " << corot_halving * 1e3 << " mm\n";
+    const CorotationalSummary corot =
+        corotationalRuns(files, corotational_every_scene, args->out_dir + "/corotational_50k.csv");
+    const ScalingRow r50_corot = corot.runs.front().row;
+    const double corot_halving = corot.runs.front().halving_m;
+    std::cout << "  linear at " << r50_linear.tets << " tets: " << r50_linear.steps_per_s
+              << " steps/s; corotational converged on " << corot.converged << " of "
+              << corot.runs.size() << " scenes\n";
     const double corot_change = corotationChanges(placed_plans, args->out_dir + "/corotation.csv");
     scaling.writeCsv(args->out_dir + "/scaling.csv");
     plans.writeCsv(args->out_dir + "/plans.csv");
@@ -510,7 +608,12 @@ int main(int argc, char** argv) {
          << ",\n  \"corotational_step_halving_mm_50k\": "
          << mmKey(corot_halving >= 0.0, corot_halving)
          << ",\n  \"corotational_seed_change_mm_max\": " << mmKey(corot_change >= 0.0, corot_change)
-         << "\n}\n";
+         << ",\n  \"corotational_50k_scenes\": " << corot.runs.size()
+         << ",\n  \"corotational_50k_converged\": " << corot.converged
+         << ",\n  \"steps_per_s_50k_tets_corotational_min\": "
+         << (corot.converged > 0 ? jsonNumber(corot.steps_per_s_min) : "null")
+         << ",\n  \"corotational_step_halving_mm_50k_max\": "
+         << mmKey(corot.halving_max_m >= 0.0, corot.halving_max_m) << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(args->out_dir + "/plot.json",
                               R"json([{"csv": "scaling.csv", "x": "tets", "y": "steps_per_s",

@@ -280,6 +280,60 @@ TEST(Tissue3dInsertion, HalvingTheStepMovesNoSeed) {
   EXPECT_TRUE(a.allFinite());
 }
 
+/// The seed of an insertion to x = 30 mm at (y, z) = (1, 2) mm in the test block, the elements
+/// along the needle line fine_mm in size, the needle's keys needle_keys.
+Vector3 blockSeed(const std::string& needle_keys, const std::string& fine_mm) {
+  Fixture f(parseTissueScene3d(testBlock("refine") + testNeedleStageMesh(needle_keys, fine_mm) +
+                                   "targets:\n  - {name: t, position_mm: [30, 1, 2]}\n",
+                               "refine.yaml", "."));
+  OffsetPlanner3 planner(f.scene, f.model);
+  return planner.simulateImplant(Eigen::Vector2d(1e-3, 2e-3), 0.030);
+}
+
+TEST(Tissue3dInsertion, SectionLoadConvergesUnderMeshRefinement) {
+  // A point force displaces its own element by ~ F / (E h): the tip's tissue point lags the
+  // tip more as the elements shrink, and the seed (that tissue point) moves with the mesh.
+  // Spread over the needle's cross-section the answer converges once the elements are below
+  // its radius: a needle of 8 mm diameter, elements at the tip refined from 4 to 2 mm.
+  constexpr double kPointChangeMin_m = 1e-3;  // the point load's seed moves by > 1 mm
+  constexpr double kConvergedShare = 0.35;    // the section's change: below this share of it
+  const std::string point = "  diameter_mm: 8\n";
+  const std::string section = point + "  load: cross_section\n";
+  const Vector3 point_4 = blockSeed(point, "4"), point_2 = blockSeed(point, "2");
+  const Vector3 section_4 = blockSeed(section, "4"), section_2 = blockSeed(section, "2");
+  ASSERT_TRUE(point_2.allFinite() && section_2.allFinite());
+  const double point_change = (point_4 - point_2).norm();
+  const double section_change = (section_4 - section_2).norm();
+  EXPECT_GT(point_change, kPointChangeMin_m);
+  EXPECT_LT(section_change, kConvergedShare * point_change)
+      << section_change * 1e3 << " mm against " << point_change * 1e3 << " mm";
+  // The section lags less: its compliance is that of the disc, not of one small element.
+  EXPECT_GT(section_2.x(), point_2.x());
+}
+
+TEST(Tissue3dInsertion, CrossSectionWeightsSpreadOverTheDisc) {
+  constexpr double kSumTol = 1e-12;
+  Fixture f(testScene());
+  const Vector3 centre(0.03, 1e-3, 2e-3);
+  const auto point = f.model.embedding().locateSection(centre, 0.0);
+  ASSERT_TRUE(point.has_value());
+  EXPECT_TRUE(point->section.empty());  // radius 0: the point itself
+  const auto disc = f.model.embedding().locateSection(centre, 4e-3);
+  ASSERT_TRUE(disc.has_value());
+  double sum = 0.0;
+  Vector3 mean = Vector3::Zero();
+  for (const fem::NodeWeight& w : disc->section) {
+    sum += w.weight;
+    mean += w.weight * f.model.mesh().nodes[static_cast<std::size_t>(w.node)];
+  }
+  EXPECT_NEAR(sum, 1.0, kSumTol);
+  EXPECT_GT(disc->section.size(), 4u);  // beyond the one element at the centre
+  // The weights reproduce the disc's centroid (linear shape functions, symmetric samples up to
+  // the sunflower rule's imbalance, below a tenth of the radius).
+  EXPECT_LT((mean - centre).norm(), 4e-4);
+  EXPECT_FALSE(f.model.embedding().locateSection(Vector3(1.0, 0.0, 0.0), 4e-3).has_value());
+}
+
 TEST(Tissue3dPlanner, PlacesReachableTargetAndRefusesBone) {
   Fixture f(testScene(60, R"(  - {name: in_bone, position_mm: [30, 19, 0]}
   - {name: behind_bone, position_mm: [45, 19, 0]}
@@ -486,6 +540,63 @@ TEST(Tissue3dCorotation, HalvingTheStepMovesNoSeed) {
   const Vector3 b = planner.simulateImplant(lateral, 0.04, 0.5);
   EXPECT_LT((a - b).norm(), kStepHalving_m);
   EXPECT_TRUE(a.allFinite() && b.allFinite());
+}
+
+TEST(Tissue3dCorotation, ElementsCrushedByThePointTipConverge) {
+  // Soft tissue (5 kPa) and a point tip: before puncture the tip pushes the surface ~10 mm in,
+  // and the elements at the tip are crushed and inverted (Green strains of several hundred
+  // percent). Their polar rotation jumps as they flip, so the fixed point cycled; beyond the
+  // small-strain range an element's rotation now fades to none (fem::elementRotation), and
+  // the insertion converges at every step.
+  constexpr double kDepth_m = 0.030, kStep_m = 5e-4;
+  std::string text = testBlock("soft") + testNeedleStageMesh("", "2") +
+                     "targets:\n  - {name: t, position_mm: [30, 1, 2]}\n"
+                     "tissue: {model: corotational}\n";
+  text.replace(text.find("young_modulus_kPa: 20"), 21, "young_modulus_kPa: 5");
+  Fixture f(parseTissueScene3d(text, "soft.yaml", "."));
+  ASSERT_TRUE(f.model.corotational());
+  TissueModel3& model = f.model;
+  NeedleInsertion3 needle(model, f.scene.needle, 0.0, 0.04);
+  const Eigen::Vector2d lateral(1e-3, 2e-3);
+  int most_inverted = 0;
+  for (double s = 0.0; s < kDepth_m - 1e-12;) {
+    s = std::min(s + kStep_m, kDepth_m);
+    std::string why;
+    ASSERT_TRUE(needle.moveTo(lateral, s, &why)) << "at " << s * 1e3 << " mm: " << why;
+    most_inverted = std::max(most_inverted, model.invertedElements());
+  }
+  EXPECT_GT(most_inverted, 0);  // the hard case: the tip inverted elements
+  const int seed = needle.implantSeed().value();
+  ASSERT_TRUE(needle.moveTo(lateral, -1e-3));
+  const Vector3 x = needle.seedWorld(seed);
+  ASSERT_TRUE(x.allFinite());
+  // Relaxed to the corotational fixed point's tolerance (0.1 um of warp change).
+  constexpr double kWarpRelaxed_m = 1e-7;
+  EXPECT_LT(needle.displacementField().lpNorm<Eigen::Infinity>(), kWarpRelaxed_m);
+  // The compression ahead of the soft tissue's tip: the seed lags the tip by millimetres.
+  EXPECT_LT(x.x(), kDepth_m - 1e-3);
+}
+
+TEST(Tissue3dCorotation, RotationFadesBeyondTheSmallStrainRange) {
+  const Eigen::Matrix3d r = Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized()).matrix();
+  // Sound: the polar rotation itself.
+  const Eigen::Matrix3d sound = r * Eigen::Vector3d(1.1, 0.95, 1.0).asDiagonal();
+  EXPECT_LT((fem::elementRotation<3>(sound) - r).norm(), 1e-9);
+  // Inverted or crushed: no rotation (the linear element).
+  const Eigen::Matrix3d inverted = r * Eigen::Vector3d(1.0, 1.0, -0.2).asDiagonal();
+  EXPECT_LT((fem::elementRotation<3>(inverted) - Eigen::Matrix3d::Identity()).norm(), 1e-12);
+  // Strained far beyond the small-strain range: none either; in between a proper rotation.
+  const Eigen::Matrix3d stretched = r * Eigen::Vector3d(2.5, 1.0, 1.0).asDiagonal();
+  EXPECT_LT((fem::elementRotation<3>(stretched) - Eigen::Matrix3d::Identity()).norm(), 1e-12);
+  const Eigen::Matrix3d between = r * Eigen::Vector3d(1.5, 1.0, 1.0).asDiagonal();
+  const Eigen::Matrix3d q = fem::elementRotation<3>(between);
+  EXPECT_NEAR(q.determinant(), 1.0, 1e-12);
+  EXPECT_LT((q.transpose() * q - Eigen::Matrix3d::Identity()).norm(), 1e-12);
+  EXPECT_GT((q - Eigen::Matrix3d::Identity()).norm(), 1e-3);
+  EXPECT_GT((q - r).norm(), 1e-3);
+  // Continuous: a small change of F changes the rotation little.
+  const Eigen::Matrix3d nudged = r * Eigen::Vector3d(1.5 + 1e-6, 1.0, 1.0).asDiagonal();
+  EXPECT_LT((fem::elementRotation<3>(nudged) - q).norm(), 1e-4);
 }
 
 TEST(Tissue3dCorotation, WarpedStiffnessAndItsFactor) {

@@ -23,6 +23,27 @@ namespace needle_guidance::fem {
 template <int Dim>
 Eigen::Matrix<double, Dim, Dim> fastPolarRotation(const Eigen::Matrix<double, Dim, Dim>& f);
 
+/// Volume ratios (det F) of a crushed element: at or below kCrushedVolume (inverted included) an
+/// element takes no rotation (the linear element), at or above kSoundVolume its polar rotation,
+/// in between a smoothly rising fraction of it.
+constexpr double kCrushedVolume = 0.1;
+constexpr double kSoundVolume = 0.3;
+/// Green strains |F^T F - I| / 2 (Frobenius) bounding the small-strain range: up to
+/// kSmallStrain an element takes its polar rotation, from kLargeStrain none, smoothly between.
+constexpr double kSmallStrain = 0.3;
+constexpr double kLargeStrain = 1.0;
+
+/// The rotation of an element of deformation gradient F: its polar rotation while the element
+/// is in the corotational model's small-strain range (volume ratio at least kSoundVolume, Green
+/// strain at most kSmallStrain). Beyond it (next to a needle tip pushing deep into soft
+/// tissue) the rotation fades smoothly to none, the linear element: a crushed element's polar
+/// rotation turns fast as its singular values approach zero and jumps as it inverts (which
+/// singular direction takes the reflection), and a strongly strained one carries stresses whose
+/// turning the warped stiffness leaves out; with either the fixed point cycles. The linear
+/// element still resists the crushing with its full stiffness.
+template <int Dim>
+Eigen::Matrix<double, Dim, Dim> elementRotation(const Eigen::Matrix<double, Dim, Dim>& f);
+
 template <int Dim>
 class CorotationalForces {
 public:
@@ -32,8 +53,8 @@ public:
                      double thickness_m = 1.0);
   /// g(u) = sum over elements of R K_e (R^T x - X) - R_0 K_e R_0^T u at displacement u (Dim *
   /// node order) [N], R_0 the element's reference rotation (identity until warpedStiffness).
-  /// An element the displacement inverts (det F <= 0) takes the proper rotation nearest to F
-  /// (the smallest singular direction flipped, as invertible FEM does); inverted counts them.
+  /// Each element takes elementRotation(F): an element crushed to below kSoundVolume of its
+  /// volume fades to no rotation; inverted counts the inverted ones (det F <= 0).
   /// max_turn_rad: the largest angle between an element's rotation and its reference rotation.
   Eigen::VectorXd correction(const Eigen::VectorXd& u, int* inverted = nullptr,
                              double* max_turn_rad = nullptr) const;

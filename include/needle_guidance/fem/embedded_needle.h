@@ -53,12 +53,22 @@
 
 namespace needle_guidance::fem {
 
+/// A node and its weight in a load spread over several nodes.
+struct NodeWeight {
+  int node = -1;
+  double weight = 0.0;
+};
+
 /// A tissue point embedded in a simplex.
 template <int Dim>
 struct EmbeddedPoint {
   Point<Dim> reference_m = Point<Dim>::Zero();
   int element = -1;
   Eigen::Matrix<double, Dim + 1, 1> weights = Eigen::Matrix<double, Dim + 1, 1>::Zero();
+  /// The nodes a force at the point acts on and its displacement is read from, weights summing
+  /// to 1 (EmbeddingTissue::locateSection): the needle's cross-section about the point. Empty:
+  /// the point itself (the element's corners with the barycentric weights).
+  std::vector<NodeWeight> section;
 };
 
 /// The linear tissue a needle is embedded in: the mesh (owned by the caller, who keeps it alive
@@ -83,6 +93,15 @@ public:
   CondensedCompliance& compliance() const { return *compliance_; }
   /// The element containing p (reference), or nullopt outside the mesh.
   std::optional<EmbeddedPoint<Dim>> locate(const Point<Dim>& p) const;
+  /// The needle's cross-section at p: locate(p) with its section filled, a disc of radius_m
+  /// about p normal to +x (in 2-D the segment across the needle), sampled at equal-area points
+  /// no farther apart than half the size of the element at p (7 to 256 samples in 3-D, 3 to
+  /// 64 in 2-D); the samples' barycentric weights, averaged, spread a force
+  /// over the tissue under the disc and average the displacement over it. A point force in
+  /// elastic tissue displaces its own element without bound as the mesh is refined (~ 1/r in
+  /// 3-D, ~ log r in 2-D); over the disc the answer converges with the mesh. Samples outside
+  /// the mesh are left out. radius_m = 0: the point (empty section). nullopt if p is outside.
+  std::optional<EmbeddedPoint<Dim>> locateSection(const Point<Dim>& p, double radius_m) const;
   /// True when every node of the element is fixed (rigid tissue: nothing there can deform).
   bool rigidElement(int element) const;
   double assemblyCpuSeconds() const { return assembly_cpu_s_; }
@@ -134,7 +153,14 @@ struct EmbeddedNeedleParams {
   double track_spacing_m = 1e-3;           ///< spacing of the shaft's tissue points, > 0
   /// The tissue the tip cuts (see the file comment): false = rest_line, true = follow_tissue.
   bool follow_tissue = false;
-  double tip_radius_m = 6.35e-4;  ///< follow_tissue: radius of the tip's cross-section, > 0
+  /// Radius of the needle's cross-section, > 0 on a followed track (its aim averages the
+  /// tissue's displacement over it) or with section_load.
+  double tip_radius_m = 6.35e-4;
+  /// The needle's forces on the tissue: false = at its tissue points (point forces), true =
+  /// spread over its cross-section about each (a disc of tip_radius_m normal to the needle,
+  /// EmbeddingTissue::locateSection). A point force's displacement grows without bound as the
+  /// elements at it shrink; over the disc it converges once they are well below the radius.
+  bool section_load = false;
 };
 
 /// Figures of the last move, for reports.
@@ -219,6 +245,9 @@ private:
   /// holds its tissue point on the needle axis but pushes it with no force along it.
   Solution solveAt(double s, const Point_* tip, bool tip_axial_free = false) const;
   Block block(const Point_& p, const Point_& q) const;
+  /// The needle's tissue point at reference x with its cross-section (the element's corners for
+  /// a point needle), or nullopt outside the mesh.
+  std::optional<Point_> constraintPoint(const Vector& x) const;
   void requireColumns(const Point_& p) const;
   /// end_x_m: the last x to prefetch (default: beyond the deepest tip position).
   void prefetchLine(const Lateral& lateral, std::optional<double> end_x_m = std::nullopt) const;

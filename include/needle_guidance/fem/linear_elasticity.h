@@ -92,6 +92,12 @@ CorotatedElement<Dim> corotatedElement(const Corners<Dim>& reference, const Corn
 template <int Dim>
 Corners<Dim> corners(const SimplexMesh<Dim>& mesh, int element);
 
+/// The material of element e: materials[mesh.element_material[e]]. Throws std::invalid_argument
+/// naming `who` and the element if the index is missing or out of range.
+template <int Dim>
+const Material& elementMaterial(const SimplexMesh<Dim>& mesh,
+                                const std::vector<Material>& materials, int e, const char* who);
+
 /// Global stiffness K (Dim * nodeCount square, symmetric) [N/m]. Throws std::invalid_argument
 /// naming the element for a measure <= min_measure (inverted or near-degenerate), a material
 /// index out of range or an invalid material.

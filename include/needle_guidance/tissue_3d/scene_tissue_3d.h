@@ -43,6 +43,10 @@ struct Needle3 {
   /// Cut track (`needle.track`): true = follow_tissue (default: the tip cuts the tissue now in
   /// front of it; fem::EmbeddedNeedle), false = rest_line (the tissue at rest on its line).
   bool follow_tissue = true;
+  /// The needle's forces on the tissue (`needle.load`): false = point (at its tissue points),
+  /// true = cross_section (spread over a disc of the needle's radius about each;
+  /// fem::EmbeddedNeedleParams::section_load).
+  bool section_load = false;
 };
 
 /// The insertion robot's reach. Stage: any lateral (y, z) in the box; template: only the
