@@ -321,8 +321,13 @@ typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::onLine(double x) const
 template <int Dim>
 std::optional<typename EmbeddedNeedle<Dim>::Point_> EmbeddedNeedle<Dim>::constraintPoint(
     const Vector& x) const {
-  std::optional<Point_> p =
-      tissue_->locateSection(x, params_.section_load ? params_.tip_radius_m : 0.0);
+  return sectionPoint(x, params_.section_load ? params_.tip_radius_m : 0.0);
+}
+
+template <int Dim>
+std::optional<typename EmbeddedNeedle<Dim>::Point_> EmbeddedNeedle<Dim>::sectionPoint(
+    const Vector& x, double radius_m) const {
+  std::optional<Point_> p = tissue_->locateSection(x, radius_m);
   if (p && p->section.empty()) {  // a point force: the element's corners
     const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p->element)];
     for (int a = 0; a < Dim + 1; ++a) {
@@ -743,14 +748,8 @@ template <int Dim>
 typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::crossSectionDisplacement(
     const Vector& x, const Eigen::VectorXd& forces) const {
   // The needle's cross-section about x (the centre alone if every sample left the mesh).
-  const std::optional<Point_> p = tissue_->locateSection(x, params_.tip_radius_m);
+  const std::optional<Point_> p = sectionPoint(x, params_.tip_radius_m);
   Vector sum = Vector::Zero();
-  if (p && p->section.empty()) {
-    const auto& nodes = tissue_->mesh().elements[static_cast<std::size_t>(p->element)];
-    for (int a = 0; a < Dim + 1; ++a) {
-      sum += p->weights(a) * nodeDisplacement(nodes[a], forces);
-    }
-  }
   for (std::size_t a = 0; p && a < p->section.size(); ++a) {
     sum += p->section[a].weight * nodeDisplacement(p->section[a].node, forces);
   }

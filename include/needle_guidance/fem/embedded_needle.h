@@ -248,6 +248,9 @@ private:
   /// The needle's tissue point at reference x with its cross-section (the element's corners for
   /// a point needle), or nullopt outside the mesh.
   std::optional<Point_> constraintPoint(const Vector& x) const;
+  /// The tissue point at reference x with the section of radius_m about it (the element's
+  /// corners at radius 0 or where every sample left the mesh), or nullopt outside the mesh.
+  std::optional<Point_> sectionPoint(const Vector& x, double radius_m) const;
   void requireColumns(const Point_& p) const;
   /// end_x_m: the last x to prefetch (default: beyond the deepest tip position).
   void prefetchLine(const Lateral& lateral, std::optional<double> end_x_m = std::nullopt) const;
