@@ -156,6 +156,15 @@ constexpr double kAnchoredEvidence = 0.5;
 /// kMaxEntryDepth of the fan, where a needle just inserted lies [px]: twice the band that holds
 /// the region's own edge (kEdgeBand_px), so a shaft crossing it shows beyond that edge's response.
 constexpr double kEntryZone_px = 2.0 * kEdgeBand_px;
+/// A candidate entering the fan across its boundary (entersAcrossEdge): its shallower end within
+/// kEnterStrip_px beyond the strip whose ridge is left out, its depth rising at
+/// kEnterMinAngle_rad or more, its midpoint's depth within kEnterMidShare of the rise from
+/// halfway, kEnterMinTraced_px of it traced (a shorter trace gives its axis to +-5 degrees or
+/// worse, too loose to gate a track on).
+constexpr double kEnterStrip_px = 3.0;
+constexpr double kEnterMinAngle_rad = 8.0 * kPi / 180.0;
+constexpr double kEnterMidShare = 0.15;
+constexpr double kEnterMinTraced_px = kEdgeBand_px;
 /// Priors (AcquisitionOptions::entry_point_px, entry_angle_rad): a candidate whose curve passes
 /// farther than kPriorPoint_px from the stated entry point, or whose direction differs by more
 /// than kPriorAngle_rad from the stated angle, is not the needle.
@@ -563,8 +572,10 @@ void flattenDepthProfile(const cv::Mat& grey8, const ImagingRegion& region, cv::
     float* g = grey32->ptr<float>(y);
     const int* d = depth.ptr<int>(y);
     for (int x = 0; x < grey32->cols; ++x) {
-      if (d[x] < 0)
+      if (d[x] < 0) {
+        g[x] = static_cast<float>(level);  // outside the fan: no echo, no tissue
         continue;
+      }
       const auto k = static_cast<std::size_t>(d[x]);
       g[x] = static_cast<float>(level) + gain[k] * (g[x] - offset[k]);
     }
@@ -971,6 +982,40 @@ double anchoredGap(const Candidate& c, const AcquisitionOptions& o, const Imagin
   return gap <= kAnchoredGap_px ? gap : 0.0;
 }
 
+/// In a fan (auto entry, no entry point), for a candidate that never leaves the edge band
+/// (kEdgeBand_px): the length of its line from its shallower end back out of the fan, when it
+/// enters the fan across the boundary; else 0. It enters when its shallower end lies in the strip
+/// along the boundary (kEnterStrip_px beyond the ridge left out there), it goes deeper along its
+/// length at kEnterMinAngle_rad or more (the region's own edge runs along the boundary: along a
+/// straight side its depth does not change, along the face's arc its chords and tangents deepen
+/// at both ends or only near one, never steadily), its midpoint halfway in depth
+/// (kEnterMidShare either way), and kEnterMinTraced_px of it is traced. A needle inserted
+/// beside the end of a convex probe meets the face at 5-15 degrees: for its first tens of
+/// pixels it stays within the strip and the face's ring-down band, and only its deeper part is
+/// traced; the hidden part, up to kEntryZone_px, counts in its length.
+double entersAcrossEdge(const Candidate& c, const AcquisitionOptions& o,
+                        const ImagingRegion& region) {
+  cv::Point2d left, right;
+  if (o.entry != EntrySide::kAuto || o.entry_point_px ||
+      !faceEnds(region, o.ridge_sigma_px, &left, &right) || c.t1 - c.t0 < kEnterMinTraced_px)
+    return 0.0;
+  const double i0 = region.insetAt(at(c.line, c.t0)), i1 = region.insetAt(at(c.line, c.t1));
+  const double mid = region.insetAt(at(c.line, 0.5 * (c.t0 + c.t1)));
+  const double lo = std::min(i0, i1), rise = std::abs(i1 - i0);
+  const bool steady =
+      mid >= lo + (0.5 - kEnterMidShare) * rise && mid <= lo + (0.5 + kEnterMidShare) * rise;
+  if (lo > regionMargin(o.ridge_sigma_px) + kEnterStrip_px ||
+      rise < std::sin(kEnterMinAngle_rad) * (c.t1 - c.t0) || !steady)
+    return 0.0;
+  const bool a_low = i0 <= i1;
+  const cv::Point2d p = a_low ? at(c.line, c.t0) : at(c.line, c.t1);
+  const cv::Point2d out = a_low ? -tangent(c.line, c.t0) : tangent(c.line, c.t1);
+  double u = 0.0;
+  while (u < kEntryZone_px && region.insetAt(p + u * out) >= 1.0F)
+    u += 1.0;
+  return std::max(u, 1.0);
+}
+
 /// Whether the candidate agrees with the priors (kPriorPoint_px, kPriorAngle_rad); true without.
 bool meetsPriors(const Candidate& c, const AcquisitionOptions& o) {
   if (o.entry_angle_rad) {
@@ -1020,14 +1065,16 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
   if (o.radius_px > 0.0 && !bendToArc(ridge, o, &c))
     return {};
   markTraced(c, o.ridge_sigma_px, traced);
-  if (c.t1 - c.t0 + anchoredGap(c, o, region) < o.min_length_px)
+  const bool in_band = hugsRegionEdge(c, region);
+  const double entering = in_band ? entersAcrossEdge(c, o, region) : 0.0;
+  if (c.t1 - c.t0 + std::max(anchoredGap(c, o, region), entering) < o.min_length_px)
     return {};
   // A line running from border to border has no tip in view: an interface, not a needle; nor
   // is the imaging region's own edge, nor a line the priors rule out.
   const double sigma = o.ridge_sigma_px;
   if (onBorder(at(c.line, c.t0), region, sigma) && onBorder(at(c.line, c.t1), region, sigma))
     return {};
-  if (hugsRegionEdge(c, region) || runsThroughRegion(c, region, sigma) ||
+  if ((in_band && entering == 0.0) || runsThroughRegion(c, region, sigma) ||
       entersDeep(c, region, o) || !reachesSkin(c, region, o) || !meetsPriors(c, o))
     return {};
   measureCues(ridge, &c, o.ridge_sigma_px);
