@@ -572,20 +572,22 @@ void flattenDepthProfile(const cv::Mat& grey8, const ImagingRegion& region, cv::
     float* g = grey32->ptr<float>(y);
     const int* d = depth.ptr<int>(y);
     for (int x = 0; x < grey32->cols; ++x) {
-      if (d[x] < 0) {
-        g[x] = static_cast<float>(level);  // outside the fan: no echo, no tissue
+      if (d[x] < 0)
         continue;
-      }
       const auto k = static_cast<std::size_t>(d[x]);
       g[x] = static_cast<float>(level) + gain[k] * (g[x] - offset[k]);
     }
   }
 }
 
-/// Step 5: contrast, side symmetry, coherence and evidence of a candidate segment.
-void measureCues(const RidgeMap& ridge, Candidate* c, double sigma) {
+/// Step 5: contrast, side symmetry, coherence and evidence of a candidate segment. The side bands
+/// leave out what lies outside a bounded imaging region: the black beyond a fan's face is no
+/// tissue, and beside a shaft just inserted under the face it would read as an interface's dark
+/// side.
+void measureCues(const RidgeMap& ridge, const ImagingRegion& region, Candidate* c, double sigma) {
   double on = 0, a = 0, b = 0, a2 = 0, b2 = 0, aligned = 0, ridge_px = 0, a_depth = 0;
-  int count = 0, band = 0;
+  int count = 0, band_a = 0, band_b = 0;
+  auto inside = [&](cv::Point2d q) { return !region.bounded() || region.insetAt(q) >= 1.0F; };
   const double lo = kBandInnerSigmas * sigma, hi = kBandOuterSigmas * sigma;
   for (double t = c->t0; t <= c->t1; t += 1.0) {
     const cv::Point2d p = at(c->line, t), n = normal(c->line, t), d = tangent(c->line, t);
@@ -594,9 +596,14 @@ void measureCues(const RidgeMap& ridge, Candidate* c, double sigma) {
     on += sample(ridge.smooth, p);
     ++count;
     for (double o = lo; o <= hi; o += 1.0) {
-      const double va = sample(ridge.smooth, p + o * n), vb = sample(ridge.smooth, p - o * n);
-      a += va, a2 += va * va, b += vb, b2 += vb * vb;
-      ++band;
+      if (inside(p + o * n)) {
+        const double va = sample(ridge.smooth, p + o * n);
+        a += va, a2 += va * va, ++band_a;
+      }
+      if (inside(p - o * n)) {
+        const double vb = sample(ridge.smooth, p - o * n);
+        b += vb, b2 += vb * vb, ++band_b;
+      }
     }
     if (sample(ridge.strength, p) > ridge.threshold) {
       double dt = std::abs(ridgeDirection(ridge, p) - line_angle);
@@ -606,11 +613,14 @@ void measureCues(const RidgeMap& ridge, Candidate* c, double sigma) {
       ridge_px += 1.0;
     }
   }
-  if (count == 0 || band == 0)
+  if (count == 0 || band_a + band_b == 0)
     return;
   on /= count;
-  const double ma = a / band, mb = b / band;
-  const double var = 0.5 * (a2 / band - ma * ma + b2 / band - mb * mb);
+  // A side wholly outside the region (a shaft along its boundary) takes the other's values.
+  const double ma = band_a > 0 ? a / band_a : b / band_b, mb = band_b > 0 ? b / band_b : ma;
+  const double va = band_a > 0 ? a2 / band_a - ma * ma : b2 / band_b - mb * mb;
+  const double vb = band_b > 0 ? b2 / band_b - mb * mb : va;
+  const double var = 0.5 * (va + vb);
   const double noise = std::sqrt(std::max(var, 1.0));
   NeedleSegment& s = c->cues;
   s.contrast = on - 0.5 * (ma + mb);
@@ -996,7 +1006,7 @@ double anchoredGap(const Candidate& c, const AcquisitionOptions& o, const Imagin
 double entersAcrossEdge(const Candidate& c, const AcquisitionOptions& o,
                         const ImagingRegion& region) {
   cv::Point2d left, right;
-  if (o.entry != EntrySide::kAuto || o.entry_point_px ||
+  if (!o.entry_across_edge || o.entry != EntrySide::kAuto || o.entry_point_px ||
       !faceEnds(region, o.ridge_sigma_px, &left, &right) || c.t1 - c.t0 < kEnterMinTraced_px)
     return 0.0;
   const double i0 = region.insetAt(at(c.line, c.t0)), i1 = region.insetAt(at(c.line, c.t1));
@@ -1077,7 +1087,7 @@ std::optional<Candidate> examine(const RidgeMap& ridge, const Line& line,
   if ((in_band && entering == 0.0) || runsThroughRegion(c, region, sigma) ||
       entersDeep(c, region, o) || !reachesSkin(c, region, o) || !meetsPriors(c, o))
     return {};
-  measureCues(ridge, &c, o.ridge_sigma_px);
+  measureCues(ridge, region, &c, o.ridge_sigma_px);
   return c;
 }
 
@@ -1101,8 +1111,9 @@ bool within(cv::Point2d a, cv::Point2d b, cv::Point2d ka, cv::Point2d kb) {
 }
 
 /// Step 4: adds c to `all` unless it is the same segment as one there (kSameSegment_px at both
-/// ends, or lying along it: within()); of two the same, the better score stays.
-void keepDistinct(const Candidate& c, std::vector<Candidate>* all) {
+/// ends, or lying along it: within()); of two the same, the better score stays (with `replace`;
+/// without, the one there stays).
+void keepDistinct(const Candidate& c, std::vector<Candidate>* all, bool replace = true) {
   const cv::Point2d a = at(c.line, c.t0), b = at(c.line, c.t1);
   for (Candidate& k : *all) {
     const cv::Point2d ka = at(k.line, k.t0), kb = at(k.line, k.t1);
@@ -1111,7 +1122,7 @@ void keepDistinct(const Candidate& c, std::vector<Candidate>* all) {
                       (cv::norm(a - kb) < kSameSegment_px && cv::norm(b - ka) < kSameSegment_px) ||
                       (straight && (within(a, b, ka, kb) || within(ka, kb, a, b)));
     if (same) {
-      if (c.score > k.score)
+      if (replace && c.score > k.score)
         k = c;
       return;
     }
@@ -1472,13 +1483,14 @@ std::optional<Candidate> bestCandidate(std::vector<Candidate>& all, const Acquis
 
 /// Steps 3-5 on one ridge map: its Hough lines examined until kMaxCandidates distinct ones.
 void examineLines(const RidgeMap& votes, const RidgeMap& ridge, const AcquisitionOptions& o,
-                  const ImagingRegion& region, std::vector<Candidate>* all, cv::Mat* traced) {
+                  const ImagingRegion& region, std::vector<Candidate>* all, cv::Mat* traced,
+                  bool replace = true) {
   const std::vector<Line> lines = candidateLines(votes, o.min_length_px);
   for (const Line& line : lines) {
     if (static_cast<int>(all->size()) >= kMaxCandidates)
       return;
     if (std::optional<Candidate> c = examine(ridge, line, o, region, traced))
-      keepDistinct(*c, all);
+      keepDistinct(*c, all, replace);
   }
 }
 
@@ -1489,7 +1501,9 @@ void examineLines(const RidgeMap& votes, const RidgeMap& ridge, const Acquisitio
 /// inserted, its shaft is short and lies in the face's ring-down band, and among the whole fan's
 /// strongest ridge pixels (the long interfaces, the speckle) it casts no Hough line. Over the zone
 /// alone, its thresholds taken from the zone's ridge, it does; each line is then traced along the
-/// whole fan at the zone's thresholds and judged by the same rules.
+/// whole fan at the zone's thresholds and judged by the same rules. A structure the whole fan's
+/// rounds found keeps their trace: at the zone's lower thresholds a shaft's trace runs on along
+/// the speckle past its tip.
 void examineEntryZone(const RidgeMap& ridge, const AcquisitionOptions& o,
                       const ImagingRegion& region, std::vector<Candidate>* all, cv::Mat* traced) {
   cv::Point2d left, right;
@@ -1508,7 +1522,7 @@ void examineEntryZone(const RidgeMap& ridge, const AcquisitionOptions& o,
   ridgeThresholds(&votes, zone);
   trace.threshold = votes.threshold;
   trace.hough_threshold = votes.hough_threshold;
-  examineLines(votes, trace, o, region, all, traced);
+  examineLines(votes, trace, o, region, all, traced, false);
 }
 
 /// Steps 3-5 in two rounds. A few long bright structures (tissue interfaces) hold most of the

@@ -568,6 +568,19 @@ const std::vector<ConvexSpec>& convexSpecs() {
     c->face_top_px = 8;
   }
   add("tune_convex_m", false, convex(625, crop, -0.85, 30, 8))->appear_at = -1;  // no needle
+  {  // no needle under a small face: its arc's chords and tangents are no needle entering
+    im::ConvexInsertion* c = add("tune_convex_n", false, convex(627, wide, 0.8, 40, 8));
+    c->appear_at = -1;
+    c->face_radius_px = 70;
+    c->half_angle_rad = 0.65;
+  }
+  {  // a needle entering at a shallow angle to the face, from its first frames
+    im::ConvexInsertion* c = add("tune_convex_o", false, convex(629, crop, 0.8, 33, 8));
+    c->apex_dx_px = 60;
+    c->layers = 3;
+    c->start_px = 45;
+  }
+  add("tune_convex_p", false, convex(631, wide, -1.05, 38, 8))->appear_at = 3;  // fan's edge
   {
     im::ConvexInsertion* c = add("convex_a", true, convex(701, crop, -0.85, 35, 10));
     c->layers = 3;

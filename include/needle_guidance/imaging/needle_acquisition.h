@@ -75,6 +75,13 @@ struct AcquisitionOptions {
   /// enough: the band along the fan's upper boundary, where a needle just inserted lies, is
   /// searched on its own (its own ridge thresholds). false: the whole fan only.
   bool entry_zone = true;
+  /// In a fan (auto entry, no entry point), a candidate that stays within the band along the
+  /// fan's boundary is still the needle when it enters across that boundary (one end at the
+  /// boundary, going steadily deeper at 8 degrees or more), and its part hidden in the strip
+  /// along the boundary counts in its length: a needle just inserted beside the end of a convex
+  /// probe meets the face at a shallow angle. false: every candidate within that band is the
+  /// region's own edge.
+  bool entry_across_edge = true;
   /// Throws std::invalid_argument naming the field when out of range.
   void validate() const;
 };
