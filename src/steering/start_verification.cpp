@@ -17,8 +17,11 @@ namespace {
 constexpr double kPi = 3.14159265358979323846;
 /// Fewest fresh trials of a verification's first look (verify_trials 0).
 constexpr std::int64_t kMinVerifyTrials = 16000;
-/// Growth of a verification's trials from one look to the next.
+/// Growth of a verification's trials from its first look to its second.
 constexpr std::int64_t kLookGrowth = 2;
+/// Looks of a verification at most: the first, twice its trials, then the cap (the number
+/// kVerificationConfirmZ covers).
+constexpr int kMaxLooks = 3;
 
 void checkOptions(const StartVerificationOptions& o) {
   const std::pair<bool, std::pair<const char*, double>> checks[] = {
@@ -30,6 +33,7 @@ void checkOptions(const StartVerificationOptions& o) {
       {o.max_verify_trials >= 1, {"max_verify_trials (>= 1)", double(o.max_verify_trials)}},
       {o.tolerance >= 0.0 && o.tolerance < 1.0, {"tolerance [0, 1)", o.tolerance}},
       {o.z > 0.0 && std::isfinite(o.z), {"z (> 0)", o.z}},
+      {o.confirm_z > 0.0 && std::isfinite(o.confirm_z), {"confirm_z (> 0)", o.confirm_z}},
       {o.threads >= 1, {"threads (>= 1)", o.threads}},
       {o.max_steps >= 1, {"max_steps (>= 1)", o.max_steps}},
   };
@@ -65,28 +69,28 @@ std::int64_t firstLookTrials(const StartVerificationOptions& o, const ScreenedSt
   return std::min(n, o.max_verify_trials);
 }
 
-/// The staged verification of `c` (verifyBestStart): looks of 1, 2, 4, ... x `first` trials of
-/// one seeded run, up to verificationCap at the rate of the latest look.
+/// The staged verification of `c` (verifyBestStart): one seeded run looked at after `first`
+/// trials, after twice as many, and at the cap (verificationCap at the rate of the look before),
+/// stopping at the first look that confirms the prediction or reaches the cap.
 void verifyInLooks(const ContinuousWorkspace& world, const StartCandidate& c,
                    const SteeringPolicy& policy, std::int64_t first,
                    const StartVerificationOptions& o, TrialOptions trial, VerifiedStart& out) {
   const double predicted = c.probability_of_success;
   out.verification = runMonteCarlo(world, c.pose, policy, first, o.seed + 1, o.threads, trial);
-  out.looks = 1;
   out.first_look_trials = first;
-  for (;;) {
-    out.confirmed = verificationConfirms(predicted, out.verification, o.tolerance, o.z);
+  for (out.looks = 1;; ++out.looks) {
+    out.confirmed = verificationConfirms(predicted, out.verification, o.tolerance, o.confirm_z);
     const std::int64_t cap =
         verificationCap(out.verification.rate(), o.tolerance, o.z, first, o.max_verify_trials);
-    if (out.confirmed || out.verification.trials >= cap) {
+    if (out.confirmed || out.verification.trials >= cap || out.looks == kMaxLooks) {
       return;
     }
-    const std::int64_t next = std::min(out.verification.trials * kLookGrowth, cap);
+    const std::int64_t next =
+        out.looks + 1 == kMaxLooks ? cap : std::min(out.verification.trials * kLookGrowth, cap);
     trial.first_trial = out.verification.trials;  // continue the same run
     out.verification =
         combined(out.verification, runMonteCarlo(world, c.pose, policy, next - trial.first_trial,
                                                  o.seed + 1, o.threads, trial));
-    ++out.looks;
   }
 }
 
@@ -197,7 +201,7 @@ VerifiedStart verifyBestStart(const ContinuousWorkspace& world, const PolicyTabl
   const auto t0 = std::chrono::steady_clock::now();
   VerifiedStart out;
   out.tolerance = options.tolerance;
-  out.z = options.z;
+  out.z = options.confirm_z;
   const std::vector<StartCandidate> candidates = distinctBestStarts(table, start, options);
   if (candidates.empty()) {
     const BestStart best = table.bestStart(start);

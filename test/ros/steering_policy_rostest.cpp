@@ -49,8 +49,10 @@ const double kChosenSpacing_m = 1.4e-3 / std::pow(std::sqrt(2.0), 3);
 /// 1,000; an unconfirmed one goes on to z SE <= tolerance / 2 at its rate, at most 100,000
 /// (StartVerificationOptions::max_verify_trials).
 constexpr int kMaxVerificationTrials = 100000;
-/// z of the verification's bound (StartVerificationOptions::z).
-constexpr double kVerificationZ = 1.959963984540054;
+/// z of the verification's confirmation (StartVerificationOptions::confirm_z) and of its cap
+/// (StartVerificationOptions::z).
+constexpr double kConfirmZ = 2.3939797998185104;
+constexpr double kCapZ = 1.959963984540054;
 constexpr int kScreenTrials = 1000;
 constexpr double kSceneTolerance = 0.005;  ///< steering.ps_tolerance of steering_workspace
 const std::string kFirst = "/steering_policy";
@@ -182,14 +184,14 @@ TEST(SteeringPolicy, BestStartIsOnTheEntryLine) {
   // Confirmed: the gap plus the verification's noise within the tolerance, and the prediction
   // is reported. Not confirmed: the verified rate is reported, from trials enough for z SE <=
   // tolerance / 2 at its rate, or the most trials.
-  const double z_se = kVerificationZ * std::sqrt(r * (1.0 - r) / double(best.verification_trials));
+  const double se = std::sqrt(r * (1.0 - r) / double(best.verification_trials));
   if (best.confirmed) {
-    EXPECT_LE(std::abs(p - r) + z_se, best.ps_tolerance + 1e-6) << best.message;
+    EXPECT_LE(std::abs(p - r) + kConfirmZ * se, best.ps_tolerance + 1e-6) << best.message;
     EXPECT_EQ(best.reported_ps, best.probability_of_success) << best.message;
   } else {
     EXPECT_NE(best.message.find("NOT confirmed"), std::string::npos) << best.message;
     EXPECT_EQ(best.reported_ps, best.verified_ps) << best.message;
-    EXPECT_TRUE(z_se <= 0.5 * best.ps_tolerance + 1e-6 ||
+    EXPECT_TRUE(kCapZ * se <= 0.5 * best.ps_tolerance + 1e-6 ||
                 best.verification_trials == kMaxVerificationTrials)
         << best.message;
   }

@@ -19,6 +19,11 @@
 
 namespace needle_guidance::steering {
 
+/// z of the verification's confirmation: the one-sided 2.5 % / 3 quantile, so that over the at
+/// most 3 looks the default first look gives (verify_trials 0), a prediction off by the
+/// tolerance is confirmed in at most 2.5 % of verifications (Bonferroni).
+constexpr double kVerificationConfirmZ = 2.3939797998185104;
+
 struct StartVerificationOptions {
   /// Distinct start states screened (the best by predicted P_s, see separation_*), >= 1.
   int candidates = 8;
@@ -40,10 +45,12 @@ struct StartVerificationOptions {
   std::int64_t max_verify_trials = 100000;
   /// The gap |P_s reported - true P_s| the procedure answers for (the scene's ps_tolerance), >= 0.
   /// The screen confirms when |predicted - rate| <= tolerance + z SE; the verification only when
-  /// |predicted - rate| + z SE <= tolerance.
+  /// |predicted - rate| + confirm_z SE <= tolerance.
   double tolerance = 0.01;
-  /// Of the screen's intervals (95 %) and of the verification's one-sided bound (97.5 %), > 0.
+  /// Of the screen's intervals (95 %) and of the verification's cap (z SE <= tolerance / 2), > 0.
   double z = 1.959963984540054;
+  /// Of the verification's confirmation |predicted - rate| + confirm_z SE <= tolerance, > 0.
+  double confirm_z = kVerificationConfirmZ;
   std::uint64_t seed = 23;  ///< screen: (seed, i); verification: (seed + 1, i)
   int threads = 2;          ///< Monte Carlo threads, >= 1
   int max_steps = 200;      ///< insertions per trial, >= 1
@@ -64,17 +71,17 @@ struct VerifiedStart {
   bool found = false;
   StartCandidate start;           ///< the start used: pose, state, predicted P_s
   MonteCarloResult verification;  ///< its fresh trials, every look together
-  /// |predicted - verified rate| + z SE <= tolerance (SE the binomial standard error at the
-  /// verified rate): the reported P_s is the prediction. Otherwise it is the verified rate.
+  /// |predicted - verified rate| + confirm_z SE <= tolerance (SE the binomial standard error at
+  /// the verified rate): the reported P_s is the prediction. Otherwise it is the verified rate.
   bool confirmed = false;
   int looks = 0;  ///< looks of the staged verification (1 = stopped at the first)
   std::int64_t first_look_trials = 0;   ///< trials of its first look
   std::vector<ScreenedStart> screened;  ///< in the order screened (best prediction first)
   int rank_by_prediction = 0;           ///< 0 = the table's own best start (bestStart)
   double tolerance = 0.0;
-  double z = 1.959963984540054;  ///< of the verification's bound
-  double seconds = 0.0;          ///< wall time [s]
-  std::string message;           ///< why nothing was found, else empty
+  double z = kVerificationConfirmZ;  ///< of the verification's confirmation
+  double seconds = 0.0;              ///< wall time [s]
+  std::string message;               ///< why nothing was found, else empty
 
   explicit operator bool() const { return found; }
   double predicted() const { return start.probability_of_success; }
@@ -86,10 +93,10 @@ struct VerifiedStart {
   /// The verification's binomial standard error at its own rate, sqrt(r (1 - r) / n).
   double standardError() const;
   /// Confirmed: "y = 43.0 mm, theta = 18.0 deg, bevel left: P_s 0.645 (the model's prediction,
-  /// confirmed: verified 0.643 [0.636, 0.650] over 16000 trials, |gap| 0.0021 + 1.96 x SE 0.0038
-  /// = 0.0095 <= 0.01); 1st of 8 screened". Not confirmed: "...: P_s 0.631 [0.626, 0.636] (the
+  /// confirmed: verified 0.643 [0.636, 0.650] over 16000 trials, |gap| 0.0021 + 2.39 x SE 0.0038
+  /// = 0.011 <= 0.015); 1st of 8 screened". Not confirmed: "...: P_s 0.631 [0.626, 0.636] (the
   /// verified rate over 38415 trials; the model's 0.645 NOT confirmed within 0.01: |gap| 0.014 +
-  /// 1.96 x SE 0.0025 = 0.019 > 0.01); ...".
+  /// 2.39 x SE 0.0025 = 0.02 > 0.01); ...".
   std::string toString() const;
 };
 
@@ -104,8 +111,8 @@ std::vector<StartCandidate> distinctBestStarts(const PolicyTable& table, const S
 /// verifies that one with fresh seeds (seed + 1) in looks: the first of verify_trials trials,
 /// each next one continuing the same trials to twice as many, capped where z SE <= tolerance / 2
 /// at the verified rate and at max_verify_trials. It stops at the first look that confirms the
-/// prediction (verificationConfirms) or at the cap. found = false (with the reason) when no start
-/// has P_s > 0. Throws std::invalid_argument naming a bad option.
+/// prediction (verificationConfirms with confirm_z) or at the cap. found = false (with the reason)
+/// when no start has P_s > 0. Throws std::invalid_argument naming a bad option.
 VerifiedStart verifyBestStart(const ContinuousWorkspace& world, const PolicyTable& table,
                               const StartOptions& start,
                               const StartVerificationOptions& options = {});
@@ -121,7 +128,7 @@ inline double verificationTolerance(const SteeringProblem& problem) {
 /// The verification's rule: |predicted - rate| + z sqrt(rate (1 - rate) / trials) <= tolerance.
 /// False for no trials or a non-finite value.
 bool verificationConfirms(double predicted, const MonteCarloResult& mc, double tolerance,
-                          double z = 1.959963984540054);
+                          double z = kVerificationConfirmZ);
 
 /// The trials at which a verification at `rate` stops unconfirmed: z^2 rate (1 - rate) /
 /// (tolerance / 2)^2 rounded up, within [first, max_trials].
