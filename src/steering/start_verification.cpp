@@ -69,31 +69,6 @@ std::int64_t firstLookTrials(const StartVerificationOptions& o, const ScreenedSt
   return std::min(n, o.max_verify_trials);
 }
 
-/// The staged verification of `c` (verifyBestStart): one seeded run looked at after `first`
-/// trials, after twice as many, and at the cap (verificationCap at the rate of the look before),
-/// stopping at the first look that confirms the prediction or reaches the cap.
-void verifyInLooks(const ContinuousWorkspace& world, const StartCandidate& c,
-                   const SteeringPolicy& policy, std::int64_t first,
-                   const StartVerificationOptions& o, TrialOptions trial, VerifiedStart& out) {
-  const double predicted = c.probability_of_success;
-  out.verification = runMonteCarlo(world, c.pose, policy, first, o.seed + 1, o.threads, trial);
-  out.first_look_trials = first;
-  for (out.looks = 1;; ++out.looks) {
-    out.confirmed = verificationConfirms(predicted, out.verification, o.tolerance, o.confirm_z);
-    const std::int64_t cap =
-        verificationCap(out.verification.rate(), o.tolerance, o.z, first, o.max_verify_trials);
-    if (out.confirmed || out.verification.trials >= cap || out.looks == kMaxLooks) {
-      return;
-    }
-    const std::int64_t next =
-        out.looks + 1 == kMaxLooks ? cap : std::min(out.verification.trials * kLookGrowth, cap);
-    trial.first_trial = out.verification.trials;  // continue the same run
-    out.verification =
-        combined(out.verification, runMonteCarlo(world, c.pose, policy, next - trial.first_trial,
-                                                 o.seed + 1, o.threads, trial));
-  }
-}
-
 std::string ordinal(int n) {
   const int last = n % 10;
   const bool teen = n % 100 >= 11 && n % 100 <= 13;
@@ -111,6 +86,23 @@ bool predictionConfirmed(double predicted, double rate, std::int64_t trials, dou
   const double p = std::clamp(predicted, 0.0, 1.0);
   const double noise = z * std::sqrt(p * (1.0 - p) / double(trials));
   return std::abs(predicted - rate) <= tolerance + noise;
+}
+
+StagedVerification verifyInLooks(double predicted, std::int64_t first,
+                                 const StartVerificationOptions& o, const TrialSampler& sample) {
+  StagedVerification out;
+  out.mc = sample(0, first);
+  for (out.looks = 1;; ++out.looks) {
+    out.confirmed = verificationConfirms(predicted, out.mc, o.tolerance, o.confirm_z);
+    const std::int64_t cap =
+        verificationCap(out.mc.rate(), o.tolerance, o.z, first, o.max_verify_trials);
+    if (out.confirmed || out.mc.trials >= cap || out.looks == kMaxLooks) {
+      return out;
+    }
+    const std::int64_t next =
+        out.looks + 1 == kMaxLooks ? cap : std::min(out.mc.trials * kLookGrowth, cap);
+    out.mc = combined(out.mc, sample(out.mc.trials, next - out.mc.trials));  // the same run
+  }
 }
 
 bool verificationConfirms(double predicted, const MonteCarloResult& mc, double tolerance,
@@ -237,8 +229,18 @@ VerifiedStart verifyBestStart(const ContinuousWorkspace& world, const PolicyTabl
   out.found = true;
   out.start = screened.candidate;
   out.rank_by_prediction = static_cast<int>(chosen);
-  verifyInLooks(world, screened.candidate, policy, firstLookTrials(options, screened), options,
-                trial, out);
+  const std::int64_t first = firstLookTrials(options, screened);
+  const TrialSampler sample = [&](std::int64_t first_trial, std::int64_t trials) {
+    TrialOptions continued = trial;
+    continued.first_trial = first_trial;
+    return runMonteCarlo(world, out.start.pose, policy, trials, options.seed + 1, options.threads,
+                         continued);
+  };
+  const StagedVerification v = verifyInLooks(out.predicted(), first, options, sample);
+  out.verification = v.mc;
+  out.confirmed = v.confirmed;
+  out.looks = v.looks;
+  out.first_look_trials = first;
   out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return out;
 }

@@ -3,7 +3,10 @@
 // workspace's edge, beyond the last grid row.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <iostream>
+#include <random>
 #include <stdexcept>
 #include <string>
 #include <utility>
@@ -43,6 +46,17 @@ constexpr std::uint64_t kTruthSeed = 97;
 constexpr double kTolerance = 0.03;
 /// A prediction this many tolerances off the truth must not be confirmed.
 constexpr double kBiasInTolerances = 1.5;
+/// Simulated verifications per case of the staged rule, and their seed.
+constexpr int kSimulatedVerifications = 4000;
+constexpr std::uint64_t kRuleSeed = 2027;
+/// The rule's bound: a prediction off by the tolerance confirmed in at most 2.5 % (about 1.5 %
+/// expected; its binomial SE over 4,000 is 0.2 %).
+constexpr double kFalseConfirmationBound = 0.025;
+/// A reported P_s more than the tolerance off: at most 0.25 % of verifications (the verified
+/// rate's z SE <= tolerance / 2 makes it about 0.01 %).
+constexpr double kReportedOffBound = 0.0025;
+/// An exact prediction is confirmed in about 89 % (at P_s 0.5, tolerance 0.01): at least 80 %.
+constexpr double kExactConfirmedAtLeast = 0.8;
 /// The last look's trials are sized at the rate of the look before it, so at its own rate z SE
 /// may exceed tolerance / 2 by the change of sqrt(r (1 - r)) between the two: within 5 % here.
 constexpr double kCapRateSlack = 1.05;
@@ -395,6 +409,69 @@ TEST_F(StartVerificationTest, BadOptionsAreRefusedByName) {
   bad.tolerance = -0.1;
   EXPECT_THROW(verifyBestStart(*world_, *table_, test_shapes::entryLine(), bad),
                std::invalid_argument);
+}
+
+/// Simulated verifications of the staged rule: binomial draws at a known P_s stand for the
+/// continuous needle's trials.
+struct RuleFigures {
+  double confirmed = 0.0;     ///< fraction confirmed
+  double reported_off = 0.0;  ///< fraction whose reported P_s is more than the tolerance off
+  double mean_trials = 0.0;
+  int max_looks = 0;
+};
+RuleFigures simulateRule(double truth, double predicted, double tolerance, std::int64_t first) {
+  std::mt19937_64 rng(kRuleSeed);
+  StartVerificationOptions options;
+  options.tolerance = tolerance;
+  RuleFigures out;
+  for (int i = 0; i < kSimulatedVerifications; ++i) {
+    const TrialSampler sample = [&](std::int64_t, std::int64_t trials) {
+      MonteCarloResult mc;
+      mc.trials = trials;
+      mc.successes = std::binomial_distribution<std::int64_t>(trials, truth)(rng);
+      return mc;
+    };
+    const StagedVerification v = verifyInLooks(predicted, first, options, sample);
+    const double reported = v.confirmed ? predicted : v.mc.rate();
+    out.confirmed += v.confirmed ? 1.0 : 0.0;
+    out.reported_off += std::abs(reported - truth) > tolerance ? 1.0 : 0.0;
+    out.mean_trials += double(v.mc.trials);
+    out.max_looks = std::max(out.max_looks, v.looks);
+  }
+  out.confirmed /= kSimulatedVerifications;
+  out.reported_off /= kSimulatedVerifications;
+  out.mean_trials /= kSimulatedVerifications;
+  return out;
+}
+
+TEST(VerificationRule, StagedLooksConfirmAPredictionOffByTheToleranceRarely) {
+  // (P_s, tolerance, the default first look there: max(16,000, 1 / tol^2) x 4 p (1 - p)).
+  const struct {
+    double truth, tolerance;
+    std::int64_t first;
+  } cases[] = {{0.5, 0.01, 16000}, {0.85, 0.005, 20400}, {0.2, 0.01, 10240}};
+  for (const auto& c : cases) {
+    SCOPED_TRACE("P_s " + std::to_string(c.truth) + ", tolerance " + std::to_string(c.tolerance));
+    // Off by exactly the tolerance: confirmed in at most 2.5 % over all looks (Bonferroni).
+    const RuleFigures off = simulateRule(c.truth, c.truth + c.tolerance, c.tolerance, c.first);
+    EXPECT_LE(off.confirmed, kFalseConfirmationBound);
+    EXPECT_LE(off.max_looks, 3);
+    // Off by 1.5 tolerances: reported by its verified rate, which is within the tolerance.
+    const RuleFigures far =
+        simulateRule(c.truth, c.truth + kBiasInTolerances * c.tolerance, c.tolerance, c.first);
+    EXPECT_LE(far.reported_off, kReportedOffBound);
+    // Exact: mostly confirmed, and then before the cap on average.
+    const RuleFigures exact = simulateRule(c.truth, c.truth, c.tolerance, c.first);
+    EXPECT_GE(exact.confirmed, kExactConfirmedAtLeast);
+    EXPECT_LE(exact.reported_off, kReportedOffBound);
+    EXPECT_LT(exact.mean_trials,
+              double(verificationCap(c.truth, c.tolerance, 1.959963984540054, c.first, 100000)));
+    std::cout << "P_s " << c.truth << ", tolerance " << c.tolerance << ": confirmed off by tol "
+              << off.confirmed << ", exact " << exact.confirmed << " (mean trials "
+              << exact.mean_trials << "), off by 1.5 tol " << far.confirmed << " (mean trials "
+              << far.mean_trials << "); reported more than tol off: " << off.reported_off << ", "
+              << exact.reported_off << ", " << far.reported_off << "\n";
+  }
 }
 
 TEST(PredictionConfirmed, ToleranceAndBinomialNoise) {

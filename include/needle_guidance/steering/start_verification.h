@@ -10,6 +10,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -129,6 +130,25 @@ inline double verificationTolerance(const SteeringProblem& problem) {
 /// False for no trials or a non-finite value.
 bool verificationConfirms(double predicted, const MonteCarloResult& mc, double tolerance,
                           double z = kVerificationConfirmZ);
+
+/// `trials` more trials of one seeded run from one start, trials first_trial .. first_trial +
+/// trials - 1 (runMonteCarlo with TrialOptions::first_trial).
+using TrialSampler = std::function<MonteCarloResult(std::int64_t first_trial, std::int64_t trials)>;
+
+/// A staged verification: its trials (every look together), the decision and the looks taken.
+struct StagedVerification {
+  MonteCarloResult mc;
+  bool confirmed = false;
+  int looks = 0;
+};
+
+/// The staged verification of `predicted` (verifyBestStart): one run of `sample` looked at after
+/// `first` trials, after twice as many, and at the cap (verificationCap with options.z at the
+/// rate of the look before), stopping at the first look that confirms the prediction
+/// (verificationConfirms with options.confirm_z) or reaches the cap: at most 3 looks.
+StagedVerification verifyInLooks(double predicted, std::int64_t first,
+                                 const StartVerificationOptions& options,
+                                 const TrialSampler& sample);
 
 /// The trials at which a verification at `rate` stops unconfirmed: z^2 rate (1 - rate) /
 /// (tolerance / 2)^2 rounded up, within [first, max_trials].
