@@ -140,9 +140,9 @@ std::string VerifiedStart::toString() const {
   std::ostringstream out;
   const Interval ci = verification.interval();
   const double bound = std::abs(gap()) + z * standardError();
-  const std::string rule = "|gap| " + formatNumber(std::abs(gap()), 2) + " + " +
+  const std::string rule = "|gap| " + formatNumber(std::abs(gap()), 3) + " + " +
                            formatNumber(z, 3) + " x SE " + formatNumber(standardError(), 2) +
-                           " = " + formatNumber(bound, 2) + (confirmed ? " <= " : " > ") +
+                           " = " + formatNumber(bound, 3) + (confirmed ? " <= " : " > ") +
                            formatNumber(tolerance, 3);
   const std::string interval =
       "[" + formatNumber(ci.low, 3) + ", " + formatNumber(ci.high, 3) + "]";
