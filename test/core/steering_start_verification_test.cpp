@@ -409,6 +409,19 @@ TEST_F(StartVerificationTest, BadOptionsAreRefusedByName) {
   bad.tolerance = -0.1;
   EXPECT_THROW(verifyBestStart(*world_, *table_, test_shapes::entryLine(), bad),
                std::invalid_argument);
+  StartVerificationOptions no_trials;
+  no_trials.max_verify_trials = 0;
+  StartVerificationOptions no_z;
+  no_z.confirm_z = std::nan("");
+  for (const auto& [name, options] :
+       {std::pair{"max_verify_trials", no_trials}, std::pair{"confirm_z", no_z}}) {
+    try {
+      verifyBestStart(*world_, *table_, test_shapes::entryLine(), options);
+      ADD_FAILURE() << name << " out of range accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find(name), std::string::npos) << e.what();
+    }
+  }
 }
 
 /// Simulated verifications of the staged rule: binomial draws at a known P_s stand for the
