@@ -235,6 +235,24 @@ std::string tablesMarkdown(const SteerableReport& rep) {
   return md.str();
 }
 
+/// Where the reported P_s comes from: "the model's prediction, confirmed by the policy's
+/// verification" or "the policy's verified rate over N trials [low, high]; the model's P was
+/// not confirmed within the tolerance (off by G)".
+std::string reportedSource(const SteerableStart& start) {
+  std::ostringstream out;
+  if (start.verification_trials == 0) {
+    out << "the model's prediction, not verified";
+  } else if (start.confirmed) {
+    out << "the model's prediction, confirmed by the policy's verification";
+  } else {
+    out << "the policy's verified rate over " << start.verification_trials << " trials ["
+        << start.verified_ci.low << ", " << start.verified_ci.high << "]; the model's "
+        << start.predicted_ps << " was not confirmed (off by "
+        << std::abs(start.predicted_ps - start.verified_ps) << ")";
+  }
+  return out.str();
+}
+
 }  // namespace
 
 int SteerableReport::successes() const {
@@ -260,7 +278,7 @@ steering::Interval SteerableReport::successInterval() const {
 bool SteerableReport::success() const {
   const bool ground_truth = settings.feedback == "ground_truth";
   return !fault && errored() == 0 && counted() == settings.trials &&
-         (!ground_truth || successInterval().high >= start.predicted_ps);
+         (!ground_truth || successInterval().high >= start.reportedPs());
 }
 
 std::string SteerableReport::summaryJson() const {
@@ -291,7 +309,12 @@ std::string SteerableReport::summaryJson() const {
        << ",\n  \"detected_unix_s\": " << jsonNumber(fault ? fault->detected_unix_s : 0.0, 15)
        << ",\n  \"success_rate\": " << jsonNumber(rate) << ",\n  \"success_rate_ci\": ["
        << jsonNumber(ci.low) << ", " << jsonNumber(ci.high)
-       << "],\n  \"predicted_ps\": " << jsonNumber(start.predicted_ps)
+       << "],\n  \"reported_ps\": " << jsonNumber(start.reportedPs())
+       << ",\n  \"reported_ps_source\": \""
+       << (start.verification_trials > 0 && !start.confirmed ? "verification" : "model") << "\""
+       << ",\n  \"reported_gap_mc\": "
+       << jsonNumber(std::abs(start.reportedPs() - monte_carlo.rate()))
+       << ",\n  \"predicted_ps\": " << jsonNumber(start.predicted_ps)
        << ",\n  \"predicted_within_ci\": " << (ci.contains(start.predicted_ps) ? "true" : "false")
        << ",\n  \"monte_carlo_ps\": " << jsonNumber(monte_carlo.rate())
        << ",\n  \"monte_carlo_trials\": " << monte_carlo.trials << ",\n  \"prediction_gap_mc\": "
@@ -358,6 +381,8 @@ std::string SteerableReport::summaryMarkdown() const {
      << "| start | y = " << start.pose.p_SceneTip.y() * kMm
      << " mm, theta = " << start.pose.theta_rad * kDeg << " deg, bevel "
      << steering::toString(start.pose.bevel) << " |\n"
+     << "| reported P_s at the start | " << start.reportedPs() << " (" << reportedSource(start)
+     << ") |\n"
      << "| predicted P_s (MDP) | " << start.predicted_ps
      << " (the table's best start: " << start.table_best_ps << ") |\n"
      << "| verified by the policy | " << start.verified_ps << " [" << start.verified_ci.low << ", "
@@ -393,14 +418,13 @@ std::string SteerableReport::text() const {
   out << "\n== Steerable needle (" << settings.feedback << " feedback; MDP model " << model
       << "): " << successes() << " / " << n << " closed-loop trials reached the target (rate "
       << (n > 0 ? double(successes()) / n : 0.0) << ", 95 % CI [" << ci.low << ", " << ci.high
-      << "]); predicted P_s " << start.predicted_ps << ", Monte Carlo " << monte_carlo.rate()
-      << " ("
-      << (start.confirmedBy(monte_carlo, steering::verificationTolerance(problem))
-              ? "confirms"
-              : "does NOT confirm")
-      << " the prediction within " << steering::verificationTolerance(problem)
-      << "; the policy verified " << start.verified_ps << " over " << start.verification_trials
-      << " trials) ==\nstart y = " << start.pose.p_SceneTip.y() * kMm
+      << "]); reported P_s " << start.reportedPs() << " (" << reportedSource(start)
+      << "); predicted P_s " << start.predicted_ps << "; the report's own Monte Carlo "
+      << monte_carlo.rate() << " over " << monte_carlo.trials << " trials: reported "
+      << std::abs(start.reportedPs() - monte_carlo.rate()) << " and predicted "
+      << std::abs(start.predicted_ps - monte_carlo.rate()) << " from it (tolerance "
+      << steering::verificationTolerance(problem)
+      << ") ==\nstart y = " << start.pose.p_SceneTip.y() * kMm
       << " mm, theta = " << start.pose.theta_rad * kDeg << " deg, bevel "
       << steering::toString(start.pose.bevel) << "; " << wall_time_s << " s\n"
       << (errored() > 0 ? std::to_string(errored()) + " errored trial(s), not counted\n" : "")

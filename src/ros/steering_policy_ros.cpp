@@ -498,6 +498,7 @@ bool SteeringPolicyRos::onBestStart(BestStart::Request& /*req*/, BestStart::Resp
   res.confirmed = best.confirmed;
   res.ps_tolerance = static_cast<float>(best.tolerance);
   res.table_best_ps = table_->bestStart(start_options_).best.probability_of_success;
+  res.reported_ps = static_cast<float>(best.reported());
   return true;
 }
 

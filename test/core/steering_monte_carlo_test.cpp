@@ -30,6 +30,9 @@ constexpr double kChordTol_m = 1e-5;     // ContinuousWorkspace default chord to
 constexpr double kContactTol_m = 2e-5;   // contact point to expanded boundary [m]
 constexpr double kWilsonTol = 1e-4;      // published interval values, 4 decimals
 constexpr double kStandardErrors = 4.0;  // Monte Carlo vs analytic, in binomial SEs
+constexpr int kRandomArcs = 2000;        // random arcs checked against dense samples
+constexpr int kArcSamples = 200;         // samples per arc
+constexpr unsigned kArcSeed = 5;
 
 /// The open workspace (Delta = 1 mm, sigma = 0) with the target at x = 80 mm.
 SteeringProblem openProblem() {
@@ -85,6 +88,50 @@ TEST(ContinuousWorkspace, LeavingTheWorkspaceStopsOnTheBoundary) {
   ASSERT_EQ(t.outcome, ArcOutcome::kLeftWorkspace);
   EXPECT_NEAR(t.end.p_SceneTip.x(), 0.1, kChordTol_m);
   EXPECT_GT(t.free_length_m, 0.0049);
+}
+
+TEST(ContinuousWorkspace, ArcsNearAndFarFromObstaclesAgreeWithDenseSamplesOfTheArc) {
+  // Arcs from random poses (some clear of every edge and obstacle by their length, some not):
+  // a free arc has every dense sample in the workspace and outside the expanded obstacles (to
+  // the chord tolerance); a stopped one ends on the expanded boundary or the workspace's edge.
+  SteeringProblem p = openProblem();
+  p.obstacles.push_back(wall(0.04, 0.03, 0.05, 0.06, 0.002));
+  const ContinuousWorkspace world(p);
+  const geometry::Polygon& expanded = world.expandedObstacles().front();
+  std::mt19937 rng(kArcSeed);
+  std::uniform_real_distribution<double> coordinate(0.002, 0.098), angle(-kPi, kPi);
+  int free = 0, stopped = 0;
+  for (int i = 0; i < kRandomArcs; ++i) {
+    TipPose start;
+    start.p_SceneTip = Point2(coordinate(rng), coordinate(rng));
+    start.theta_rad = angle(rng);
+    if (world.obstacleAt(start.p_SceneTip) >= 0) {
+      continue;
+    }
+    const Control u = i % 2 ? Control::kFlip : Control::kInsert;
+    const double beta = 0.1 * angle(rng);
+    const ArcTrace t = world.traceArc(start, u, beta, delta(p));
+    const double length = t.outcome == ArcOutcome::kFree ? delta(p) : t.free_length_m;
+    for (int k = 0; k <= kArcSamples; ++k) {
+      const Point2 q =
+          advanceTip(start, u, beta, length * k / kArcSamples, p.params.radius_m).p_SceneTip;
+      const double depth = expanded.contains(q) ? expanded.distanceToBoundary(q) : 0.0;
+      ASSERT_LE(depth, kChordTol_m) << "arc " << i << " sample " << k;
+      ASSERT_TRUE((q.array() >= -kChordTol_m).all() && (q.array() <= 0.1 + kChordTol_m).all())
+          << "arc " << i << " sample " << k;
+    }
+    if (t.outcome == ArcOutcome::kFree) {
+      ++free;
+      continue;
+    }
+    ++stopped;
+    const Point2 e = t.end.p_SceneTip;
+    const double to_edge = std::min({e.x(), e.y(), 0.1 - e.x(), 0.1 - e.y()});
+    EXPECT_LE(std::min(std::abs(to_edge), std::abs(expanded.distanceToBoundary(e))), kContactTol_m)
+        << "arc " << i;
+  }
+  EXPECT_GT(free, kRandomArcs / 4);
+  EXPECT_GT(stopped, 0);
 }
 
 TEST(ContinuousWorkspace, BadStartsAreFailuresNotNaN) {

@@ -140,8 +140,13 @@ struct SteerableStart {
   double verified_ps = 0.0;  ///< the policy's Monte Carlo of the continuous needle
   steering::Interval verified_ci{0.0, 1.0};
   std::int64_t verification_trials = 0;
-  bool confirmed = false;      ///< the policy found the prediction confirmed
+  bool confirmed = false;      ///< the policy's verification confirmed the prediction
   double table_best_ps = 0.0;  ///< the table's maximum P_s on the entry line
+  /// The P_s the procedure reports at its start: the prediction when the policy's verification
+  /// confirmed it (or did not verify), else the verified rate (steering::VerifiedStart::reported).
+  double reportedPs() const {
+    return verification_trials > 0 && !confirmed ? verified_ps : predicted_ps;
+  }
   /// True if the report's own Monte Carlo confirms predicted_ps within `tolerance` (plus its
   /// binomial noise, steering::predictionConfirmed).
   bool confirmedBy(const steering::MonteCarloResult& mc, double tolerance) const;
