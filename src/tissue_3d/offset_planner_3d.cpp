@@ -206,7 +206,7 @@ bool OffsetPlanner3::predict(TissueModel3& model, const Vector3& goal, Eigen::Ve
 
 OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
                                                      const Eigen::Vector2d& lateral,
-                                                     PlanResult3& r) {
+                                                     double step_scale, PlanResult3& r) {
   // The insertion runs at the planner's step; before each step its state is kept. Once the tip's
   // tissue point has passed the goal's x, the depth where it reaches it is found within that
   // step (regula falsi, each trial a move from the kept state), and from there the seed is
@@ -214,8 +214,7 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
   const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
   const Workspace3& w = scene_.workspace;
   const double x0 = scene_.block_min_m.x();
-  const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s *
-                      options_.corotational_step_scale;
+  const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s * step_scale;
   ++r.simulations;
   NeedleInsertion3 needle(model_, scene_.needle, x0, w.max_tip_x_m);
   auto tissueX = [&](const NeedleInsertion3& n) {  // before puncture the tip pins the entry point
@@ -279,6 +278,7 @@ bool OffsetPlanner3::planCorotational(const Vector3& goal, Eigen::Vector2d later
     }
   }
   const double accept = options_.corotational_accept_fraction * options_.tolerance_m;
+  double step_scale = options_.corotational_step_scale;
   std::vector<Eigen::Vector2i> tried;
   Eigen::Vector2d drift = Eigen::Vector2d::Zero();
   for (int k = 0; k < options_.max_corotational_insertions; ++k) {
@@ -307,7 +307,16 @@ bool OffsetPlanner3::planCorotational(const Vector3& goal, Eigen::Vector2d later
       }
       lateral = w.hole(next->x(), next->y());
     }
-    const Attempt a = insertToGoal(goal, lateral, r);
+    Attempt a;
+    try {
+      a = insertToGoal(goal, lateral, step_scale, r);
+    } catch (const std::runtime_error&) {
+      if (step_scale == 1.0) {
+        throw;
+      }
+      step_scale = 1.0;  // refused at the planner's longer moves: the scene's step decides
+      a = insertToGoal(goal, lateral, step_scale, r);
+    }
     if (a.error < 0.0) {
       if (plan.error >= 0.0) {
         r.refusal.clear();  // an earlier insertion reached: its verified miss is the answer

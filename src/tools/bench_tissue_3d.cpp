@@ -7,7 +7,9 @@
 // same targets planned in a 2-D slice of the scene (the sagittal section through the target, meshed
 // and simulated by the planar model): how far a 2-D model's errors are from the 3-D ones.
 // --model corotational: the corotational insertion at about 50k tetrahedra runs on every scene
-// (each meshed to about 50k), not only on the first.
+// (each meshed to about 50k), not only on the first, and every target of every scene is planned
+// in corotational tissue (plans_corotational.csv), each plan checked by an independent full
+// simulation at the scene's step.
 // Usage: bench_tissue_3d --out DIR [--quick] [--scene FILE ...] [--model corotational]
 
 #include <algorithm>
@@ -241,6 +243,96 @@ double corotationChanges(const std::vector<PlacedPlan>& plans, const std::string
   return worst;
 }
 
+/// A corotational plan checked by an independent full simulation at the scene's step (the
+/// planner's own corotational insertions move by PlannerOptions3::corotational_step_scale
+/// steps): the seed's error there and its distance from the planner's verified seed.
+struct IndependentCheck {
+  double error_m = -1.0;
+  double step_error_m = -1.0;
+  double cpu_s = 0.0;
+  std::string refusal;
+};
+
+IndependentCheck independentCheck(t3::OffsetPlanner3& planner, const t3::PlanResult3& r,
+                                  const t3::Target3& target) {
+  IndependentCheck c;
+  const ng::CpuStopwatch clock(ng::CpuStopwatch::Scope::kProcess);
+  try {
+    const t3::Vector3 seed = planner.simulateImplant(r.lateral_m, r.tip_x_m);
+    c.error_m = (seed - target.position_m).norm();
+    c.step_error_m = (seed - r.verified_seed_m).norm();
+  } catch (const std::runtime_error& e) {
+    c.refusal = e.what();
+  }
+  c.cpu_s = clock.seconds();
+  return c;
+}
+
+/// Every target of every scene planned in corotational tissue (tissue.model forced to
+/// corotational, default mesh), each plan checked by an independent full simulation at the
+/// scene's step; one row per target in csv. placed: within the tolerance in that simulation.
+struct CorotationalPlans {
+  int reachable = 0, placed = 0;
+  double cpu_max_s = -1.0, error_max_m = -1.0, step_error_max_m = -1.0;
+  double simulation_cpu_max_s = -1.0, setup_max_s = -1.0;
+  int simulations_max = 0;
+};
+
+CorotationalPlans corotationalPlans(const std::vector<std::string>& files, const std::string& csv) {
+  ng::report::Table table({"scene", "target", "placed", "verified_mm", "independent_mm",
+                           "step_error_mm", "plan_cpu_s", "simulation_cpu_s", "simulations",
+                           "linear_simulations", "holes_verified", "tets", "setup_cpu_s",
+                           "independent_cpu_s", "refusal"});
+  CorotationalPlans out;
+  const double tolerance = t3::PlannerOptions3{}.tolerance_m;
+  for (const std::string& file : files) {
+    t3::TissueScene3d scene = t3::loadTissueScene3d(file);
+    scene.corotational = true;
+    t3::TetMesh3 mesh = t3::meshTissue3d(scene, {}, 1.0);
+    const int tets = mesh.elementCount();
+    t3::TissueModel3 model(std::move(mesh), scene.materialTable(), true);
+    t3::PlannerOptions3 options;
+    options.unplanned = false;
+    t3::OffsetPlanner3 planner(scene, model, options);
+    out.setup_max_s = std::max(out.setup_max_s, planner.setupCpuSeconds());
+    for (const t3::Target3& target : scene.targets) {
+      const t3::PlanResult3 r = planner.plan(target);
+      IndependentCheck check;
+      if (!r.unreachable) {
+        ++out.reachable;
+      }
+      if (r.placed) {
+        check = independentCheck(planner, r, target);
+        if (check.error_m >= 0.0 && check.error_m <= tolerance) {
+          ++out.placed;
+        }
+        out.cpu_max_s = std::max(out.cpu_max_s, r.plan_cpu_s);
+        out.simulation_cpu_max_s = std::max(out.simulation_cpu_max_s, r.simulation_cpu_s);
+        out.error_max_m = std::max(out.error_max_m, check.error_m);
+        out.step_error_max_m = std::max(out.step_error_max_m, check.step_error_m);
+        out.simulations_max = std::max(out.simulations_max, r.simulations);
+      }
+      model.compliance().clearCache();
+      table.addRow({scene.name, target.name,
+                    std::string(r.placed        ? "yes"
+                                : r.unreachable ? "unreachable"
+                                                : "no"),
+                    mmOrUndefined(r.verified_error_m), mmOrUndefined(check.error_m),
+                    mmOrUndefined(check.step_error_m), r.plan_cpu_s, r.simulation_cpu_s,
+                    double(r.simulations), double(r.linear_simulations), double(r.holes_verified),
+                    double(tets), planner.setupCpuSeconds(), check.cpu_s,
+                    r.refusal.empty() ? check.refusal : r.refusal});
+      std::cout << "  corotational plan " << scene.name << "/" << target.name << ": "
+                << (r.placed ? "placed" : "not placed") << ", verified " << r.verified_error_m * 1e3
+                << " mm, independent " << check.error_m * 1e3 << " mm, " << r.plan_cpu_s
+                << " s CPU (simulations " << r.simulation_cpu_s << " s, " << r.simulations
+                << " corotational + " << r.linear_simulations << " linear) " << r.refusal << "\n";
+    }
+  }
+  table.writeCsv(csv);
+  return out;
+}
+
 /// The section of region r of the 3-D scene in the plane z = z_m as a polygon (x, y), traced by
 /// rays from an interior point of the section, each ending where another region (or the block's
 /// outside) begins, less margin_m so sections of neighbouring regions do not touch. Exact for
@@ -406,7 +498,8 @@ int main(int argc, char** argv) {
       "usage: bench_tissue_3d --out DIR [--quick] [--scene FILE]... [--model corotational]\n"
       "Writes DIR/summary.json, its CSVs and plot.json (scripts/bench tissue_3d runs it and draws "
       "the plots).\n--model corotational: the corotational insertion at about 50k tetrahedra "
-      "runs on every scene, not only on the first (corotational_50k.csv).\n";
+      "runs on every scene, not only on the first (corotational_50k.csv), and every target is "
+      "planned in corotational tissue (plans_corotational.csv).\n";
   if (ng::report::helpRequested(argc, argv)) {
     std::cout << kUsage;
     return 0;
@@ -486,10 +579,16 @@ int main(int argc, char** argv) {
         }
         if (r.placed) {
           ++placed;
+          // Corotational tissue: the planner's insertions move by longer steps, so the seed at
+          // the scene's step (an independent full simulation) is the reference of the halving.
+          const t3::Vector3 full = scene.corotational
+                                       ? planner.simulateImplant(r.lateral_m, r.tip_x_m)
+                                       : r.verified_seed_m;
           const t3::Vector3 half = planner.simulateImplant(r.lateral_m, r.tip_x_m, 0.5);
-          halving = (half - r.verified_seed_m).norm();
+          halving = (half - full).norm();
           worst_halving = std::max(worst_halving, halving);
-          worst_error = std::max(worst_error, r.verified_error_m);
+          worst_error = std::max(worst_error,
+                                 std::max(r.verified_error_m, (full - target.position_m).norm()));
           worst_cpu = std::max(worst_cpu, r.plan_cpu_s);
           lateral_correction = (r.lateral_m - target.position_m.tail<2>()).norm();
           worst_lateral = std::max(worst_lateral, lateral_correction);
@@ -551,6 +650,13 @@ int main(int argc, char** argv) {
               << " steps/s; corotational converged on " << corot.converged << " of "
               << corot.runs.size() << " scenes\n";
     const double corot_change = corotationChanges(placed_plans, args->out_dir + "/corotation.csv");
+    CorotationalPlans corot_plans;
+    if (corotational_every_scene) {
+      corot_plans = corotationalPlans(files, args->out_dir + "/plans_corotational.csv");
+    }
+    auto corotPlanKey = [&](auto figure) {
+      return corotational_every_scene ? figure(corot_plans) : std::string("null");
+    };
     scaling.writeCsv(args->out_dir + "/scaling.csv");
     plans.writeCsv(args->out_dir + "/plans.csv");
     slices.writeCsv(args->out_dir + "/slice_vs_3d.csv");
@@ -613,7 +719,28 @@ int main(int argc, char** argv) {
          << ",\n  \"steps_per_s_50k_tets_corotational_min\": "
          << (corot.converged > 0 ? jsonNumber(corot.steps_per_s_min) : "null")
          << ",\n  \"corotational_step_halving_mm_50k_max\": "
-         << mmKey(corot.halving_max_m >= 0.0, corot.halving_max_m) << "\n}\n";
+         << mmKey(corot.halving_max_m >= 0.0, corot.halving_max_m)
+         << ",\n  \"corotational_plans_reachable\": "
+         << corotPlanKey([](const auto& c) { return std::to_string(c.reachable); })
+         << ",\n  \"corotational_plans_placed\": "
+         << corotPlanKey([](const auto& c) { return std::to_string(c.placed); })
+         << ",\n  \"corotational_plan_cpu_s_max\": " << corotPlanKey([&](const auto& c) {
+              return c.cpu_max_s >= 0.0 ? jsonNumber(c.cpu_max_s) : "null";
+            })
+         << ",\n  \"corotational_plan_simulation_cpu_s_max\": " << corotPlanKey([&](const auto& c) {
+              return c.simulation_cpu_max_s >= 0.0 ? jsonNumber(c.simulation_cpu_max_s) : "null";
+            })
+         << ",\n  \"corotational_plan_simulations_max\": "
+         << corotPlanKey([](const auto& c) { return std::to_string(c.simulations_max); })
+         << ",\n  \"corotational_planned_error_mm_max\": "
+         << corotPlanKey([&](const auto& c) { return mmKey(c.error_max_m >= 0.0, c.error_max_m); })
+         << ",\n  \"corotational_plan_step_error_mm_max\": " << corotPlanKey([&](const auto& c) {
+              return mmKey(c.step_error_max_m >= 0.0, c.step_error_max_m);
+            })
+         << ",\n  \"corotational_plan_setup_cpu_s_max\": " << corotPlanKey([&](const auto& c) {
+              return c.setup_max_s >= 0.0 ? jsonNumber(c.setup_max_s) : "null";
+            })
+         << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(args->out_dir + "/plot.json",
                               R"json([{"csv": "scaling.csv", "x": "tets", "y": "steps_per_s",

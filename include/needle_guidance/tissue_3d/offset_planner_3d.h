@@ -69,10 +69,12 @@ struct PlannerOptions3 {
   double corotational_accept_fraction = 0.5;
   int max_corotational_insertions = 3;
   /// Corotational tissue: the planner's insertions move the needle by this multiple of the
-  /// scene's step (needle.step; 1: the scene's step). A larger step costs proportionally less
-  /// (the updates per move stay about the same); the seed moves by the step's error
-  /// (docs/tissue_3d.md, planner section, for the measured trade).
-  double corotational_step_scale = 1.0;
+  /// scene's step (needle.step; 1: the scene's step). The cost falls in proportion (the
+  /// fixed-point updates per move stay about the same: 7-8); the seed moves by a few um, the
+  /// events within a move being located with the warp of its start (docs/tissue_3d.md, planner
+  /// section, for the measured trade). An insertion refused at the longer moves is simulated
+  /// again at the scene's step.
+  double corotational_step_scale = 8.0;
 };
 
 class OffsetPlanner3 {
@@ -123,10 +125,12 @@ private:
   /// set when the robot cannot reach.
   bool planCorotational(const Vector3& goal, Eigen::Vector2d lateral, Attempt& plan,
                         PlanResult3& r);
-  /// Corotational tissue: one insertion at lateral to the depth where the tip's tissue point
-  /// reaches the goal's x, seed release and retraction (the verification); error < 0 with
-  /// r.refusal set when the deepest tip position is short of it.
-  Attempt insertToGoal(const Vector3& goal, const Eigen::Vector2d& lateral, PlanResult3& r);
+  /// Corotational tissue: one insertion at lateral, moves of step_scale x the scene's step, to
+  /// the depth where the tip's tissue point reaches the goal's x, seed release and retraction
+  /// (the verification); error < 0 with r.refusal set when the deepest tip position is short of
+  /// it. Throws std::runtime_error when the simulation refuses.
+  Attempt insertToGoal(const Vector3& goal, const Eigen::Vector2d& lateral, double step_scale,
+                       PlanResult3& r);
 
   const TissueScene3d& scene_;
   TissueModel3& model_;
