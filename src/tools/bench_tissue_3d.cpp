@@ -326,12 +326,38 @@ CorotationalPlans corotationalPlans(const std::vector<std::string>& files, const
                 << (r.placed ? "placed" : "not placed") << ", verified " << r.verified_error_m * 1e3
                 << " mm, independent " << check.error_m * 1e3 << " mm, " << r.plan_cpu_s
                 << " s CPU (simulations " << r.simulation_cpu_s << " s, " << r.simulations
-                << " corotational + " << r.linear_simulations << " linear) " << r.refusal << "\n";
+                << " corotational + " << r.linear_simulations << " linear) " << r.refusal
+                << std::endl;
     }
   }
   table.writeCsv(csv);
   return out;
 }
+
+/// The summary keys of the corotational plans (null when they were not run).
+std::string corotationalPlanKeys(const CorotationalPlans* c) {
+  auto key = [&](const char* name, bool defined, const std::string& value) {
+    return std::string(",\n  \"") + name + "\": " + (c && defined ? value : "null");
+  };
+  const CorotationalPlans z;
+  const CorotationalPlans& p = c ? *c : z;
+  return key("corotational_plans_reachable", true, std::to_string(p.reachable)) +
+         key("corotational_plans_placed", true, std::to_string(p.placed)) +
+         key("corotational_plan_cpu_s_max", p.cpu_max_s >= 0.0, jsonNumber(p.cpu_max_s)) +
+         key("corotational_plan_simulation_cpu_s_max", p.simulation_cpu_max_s >= 0.0,
+             jsonNumber(p.simulation_cpu_max_s)) +
+         key("corotational_plan_simulations_max", true, std::to_string(p.simulations_max)) +
+         key("corotational_planned_error_mm_max", p.error_max_m >= 0.0,
+             jsonNumber(p.error_max_m * 1e3)) +
+         key("corotational_plan_step_error_mm_max", p.step_error_max_m >= 0.0,
+             jsonNumber(p.step_error_max_m * 1e3)) +
+         key("corotational_plan_setup_cpu_s_max", p.setup_max_s >= 0.0, jsonNumber(p.setup_max_s));
+}
+
+constexpr const char* kCorotationalPlanPlot =
+    R"json({"csv": "plans_corotational.csv", "x": "plan_cpu_s", "y": "independent_mm", "group": "scene",
+  "filter": {"placed": "yes"}, "title": "Corotational plans: seed error (independent simulation) vs planning CPU time",
+  "points": true, "png": "corotational_plan_error_vs_cpu.png"})json";
 
 /// The section of region r of the 3-D scene in the plane z = z_m as a polygon (x, y), traced by
 /// rays from an interior point of the section, each ending where another region (or the block's
@@ -496,19 +522,23 @@ SliceErrors sliceErrors(const t3::TissueScene3d& scene, const t3::Target3& targe
 int main(int argc, char** argv) {
   constexpr const char* kUsage =
       "usage: bench_tissue_3d --out DIR [--quick] [--scene FILE]... [--model corotational]\n"
+      "       [--corotational-plans]\n"
       "Writes DIR/summary.json, its CSVs and plot.json (scripts/bench tissue_3d runs it and draws "
       "the plots).\n--model corotational: the corotational insertion at about 50k tetrahedra "
       "runs on every scene, not only on the first (corotational_50k.csv), and every target is "
-      "planned in corotational tissue (plans_corotational.csv).\n";
+      "planned in corotational tissue (plans_corotational.csv).\n--corotational-plans: only "
+      "those corotational plans (plans_corotational.csv and their summary keys).\n";
   if (ng::report::helpRequested(argc, argv)) {
     std::cout << kUsage;
     return 0;
   }
   // --model corotational is this tool's own option; the rest are the benches' common ones.
-  bool corotational_every_scene = false;
+  bool corotational_every_scene = false, corotational_plans_only = false;
   std::vector<char*> rest{argv[0]};
   for (int i = 1; i < argc; ++i) {
-    if (std::string(argv[i]) == "--model" && i + 1 < argc) {
+    if (std::string(argv[i]) == "--corotational-plans") {
+      corotational_plans_only = true;
+    } else if (std::string(argv[i]) == "--model" && i + 1 < argc) {
       if (std::string(argv[++i]) != "corotational") {
         std::cerr << "bench_tissue_3d: --model takes `corotational`, not `" << argv[i] << "`\n"
                   << kUsage;
@@ -526,6 +556,17 @@ int main(int argc, char** argv) {
   }
   try {
     const std::vector<std::string> files = args->scenes.empty() ? defaultScenes() : args->scenes;
+    if (corotational_plans_only) {
+      const CorotationalPlans c =
+          corotationalPlans(files, args->out_dir + "/plans_corotational.csv");
+      ng::report::writeTextFile(args->out_dir + "/summary.json",
+                                "{\n  \"benchmark\": \"tissue_3d\",\n  \"quick\": " +
+                                    std::string(args->quick ? "true" : "false") +
+                                    corotationalPlanKeys(&c) + "\n}\n");
+      ng::report::writeTextFile(args->out_dir + "/plot.json",
+                                std::string("[") + kCorotationalPlanPlot + "]");
+      return 0;
+    }
     // ---- steps/s and memory against the tetrahedron count --------------------------------
     const t3::TissueScene3d base = t3::loadTissueScene3d(files.front());
     const t3::TetMesh3 probe = t3::meshTissue3d(base, {}, 1.0);
@@ -654,9 +695,6 @@ int main(int argc, char** argv) {
     if (corotational_every_scene) {
       corot_plans = corotationalPlans(files, args->out_dir + "/plans_corotational.csv");
     }
-    auto corotPlanKey = [&](auto figure) {
-      return corotational_every_scene ? figure(corot_plans) : std::string("null");
-    };
     scaling.writeCsv(args->out_dir + "/scaling.csv");
     plans.writeCsv(args->out_dir + "/plans.csv");
     slices.writeCsv(args->out_dir + "/slice_vs_3d.csv");
@@ -720,30 +758,11 @@ int main(int argc, char** argv) {
          << (corot.converged > 0 ? jsonNumber(corot.steps_per_s_min) : "null")
          << ",\n  \"corotational_step_halving_mm_50k_max\": "
          << mmKey(corot.halving_max_m >= 0.0, corot.halving_max_m)
-         << ",\n  \"corotational_plans_reachable\": "
-         << corotPlanKey([](const auto& c) { return std::to_string(c.reachable); })
-         << ",\n  \"corotational_plans_placed\": "
-         << corotPlanKey([](const auto& c) { return std::to_string(c.placed); })
-         << ",\n  \"corotational_plan_cpu_s_max\": " << corotPlanKey([&](const auto& c) {
-              return c.cpu_max_s >= 0.0 ? jsonNumber(c.cpu_max_s) : "null";
-            })
-         << ",\n  \"corotational_plan_simulation_cpu_s_max\": " << corotPlanKey([&](const auto& c) {
-              return c.simulation_cpu_max_s >= 0.0 ? jsonNumber(c.simulation_cpu_max_s) : "null";
-            })
-         << ",\n  \"corotational_plan_simulations_max\": "
-         << corotPlanKey([](const auto& c) { return std::to_string(c.simulations_max); })
-         << ",\n  \"corotational_planned_error_mm_max\": "
-         << corotPlanKey([&](const auto& c) { return mmKey(c.error_max_m >= 0.0, c.error_max_m); })
-         << ",\n  \"corotational_plan_step_error_mm_max\": " << corotPlanKey([&](const auto& c) {
-              return mmKey(c.step_error_max_m >= 0.0, c.step_error_max_m);
-            })
-         << ",\n  \"corotational_plan_setup_cpu_s_max\": " << corotPlanKey([&](const auto& c) {
-              return c.setup_max_s >= 0.0 ? jsonNumber(c.setup_max_s) : "null";
-            })
-         << "\n}\n";
+         << corotationalPlanKeys(corotational_every_scene ? &corot_plans : nullptr) << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
-    ng::report::writeTextFile(args->out_dir + "/plot.json",
-                              R"json([{"csv": "scaling.csv", "x": "tets", "y": "steps_per_s",
+    ng::report::writeTextFile(
+        args->out_dir + "/plot.json",
+        std::string(R"json([{"csv": "scaling.csv", "x": "tets", "y": "steps_per_s",
   "title": "Insertion steps per second (CPU, one core) vs tetrahedra", "logx": true, "logy": true,
   "png": "steps_per_s_vs_tets.png"},
  {"csv": "scaling.csv", "x": "tets", "y": "peak_mb", "title": "Peak memory vs tetrahedra",
@@ -753,7 +772,10 @@ int main(int argc, char** argv) {
   "points": true, "logy": true, "png": "plan_error_vs_cpu.png"},
  {"csv": "slice_vs_3d.csv", "x": "unplanned_3d_mm", "y": "unplanned_slice_mm", "group": "scene",
   "title": "Unplanned seed error: 2-D slice vs 3-D (same targets)", "points": true,
-  "png": "slice_vs_3d_unplanned.png"}])json");
+  "png": "slice_vs_3d_unplanned.png"})json") +
+            (corotational_every_scene ? std::string(",\n ") + kCorotationalPlanPlot
+                                      : std::string()) +
+            "]");
     std::cout << plans.toText();
   } catch (const std::exception& e) {
     std::cerr << "bench_tissue_3d: " << e.what() << "\n";
