@@ -159,11 +159,11 @@ Vector3 OffsetPlanner3::simulateImplant(const Eigen::Vector2d& lateral, double t
 }
 
 bool OffsetPlanner3::predict(TissueModel3& model, const Vector3& goal, Eigen::Vector2d& lateral,
-                             double& tip_x, PlanResult3& r, int& simulations) {
+                             double& tip_x, PlanResult3& r, int& simulations, int max_iterations) {
   // Fixed-point iteration on the simulated tip trajectory: the seed's tissue point is the tip's
   // at release. On a template the hole is given and only the depth is predicted.
   const Workspace3& w = scene_.workspace;
-  for (int it = 0; it < options_.max_iterations; ++it) {
+  for (int it = 0; it < max_iterations; ++it) {
     const Eigen::Vector2d reachable = w.nearest(lateral);
     if (!w.use_template && (reachable - lateral).norm() > 1e-6) {
       r.refusal = "out of reach: the stage would need (y " + mm(lateral.x()) + ", z " +
@@ -271,11 +271,14 @@ bool OffsetPlanner3::planCorotational(const Vector3& goal, Eigen::Vector2d later
   // gives the drift that ranks the other holes (a seed moves with its hole one to one).
   const Workspace3& w = scene_.workspace;
   if (linear_) {
+    // One linear insertion: the lateral position moves by its drift (the drift changes little
+    // over that shift, and the corotational insertion measures what remains).
     double tip_x = goal.x();
-    if (!predict(*linear_, goal, lateral, tip_x, r, r.linear_simulations)) {
+    if (!predict(*linear_, goal, lateral, tip_x, r, r.linear_simulations, 1)) {
       r.refusal.clear();
       lateral = w.nearest(lateral);
     }
+    r.predicted_error_m = -1.0;  // the corotational insertion predicts and verifies at once
   }
   const double accept = options_.corotational_accept_fraction * options_.tolerance_m;
   double step_scale = options_.corotational_step_scale;
@@ -477,7 +480,7 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
         return finish();
       }
     } else {
-      if (!predict(model_, goal, lateral, tip_x, r, r.simulations)) {
+      if (!predict(model_, goal, lateral, tip_x, r, r.simulations, options_.max_iterations)) {
         r.unreachable = true;
         return finish();
       }

@@ -36,7 +36,9 @@ struct PlanResult3 {
   bool unreachable = false;
   Eigen::Vector2d lateral_m = Eigen::Vector2d::Zero();  ///< planned (y, z)
   double tip_x_m = 0.0;                                 ///< planned depth (tip x at release)
-  double predicted_error_m = -1.0;                      ///< planner's own estimate; < 0 undefined
+  /// The planner's own estimate; < 0 undefined (corotational tissue: one insertion predicts and
+  /// verifies at once).
+  double predicted_error_m = -1.0;
   double verified_error_m = -1.0;  ///< |seed - target| by the independent simulation; < 0 undefined
   Vector3 verified_seed_m = Vector3::Zero();
   double unplanned_error_m = -1.0;  ///< aiming straight at the target; < 0 undefined
@@ -112,9 +114,10 @@ private:
   /// The fixed region the needle line at lateral crosses before tip x, with where ("" if none).
   std::string fixedRegionOnLine(const Eigen::Vector2d& lateral, double tip_x) const;
   /// Depth (and, on a stage, lateral position) from the tip trajectories simulated in model
-  /// (`simulations` counts them); false with r.refusal set when the robot cannot reach.
+  /// (`simulations` counts them, at most max_iterations; the lateral position is corrected
+  /// after the last); false with r.refusal set when the robot cannot reach.
   bool predict(TissueModel3& model, const Vector3& goal, Eigen::Vector2d& lateral, double& tip_x,
-               PlanResult3& r, int& simulations);
+               PlanResult3& r, int& simulations, int max_iterations);
   /// Full simulations from (lateral, tip_x), corrected by the measured miss (the lateral too if
   /// move_lateral); the best one.
   Attempt verify(const Vector3& goal, Eigen::Vector2d lateral, double tip_x, bool move_lateral,
