@@ -517,6 +517,51 @@ SliceErrors sliceErrors(const t3::TissueScene3d& scene, const t3::Target3& targe
   return e;
 }
 
+/// The plan's seed at the scene's step: the verified seed, or in corotational tissue (where the
+/// planner's insertions move by longer steps) an independent full simulation at the scene's step.
+t3::Vector3 seedAtSceneStep(t3::OffsetPlanner3& planner, const t3::TissueScene3d& scene,
+                            const t3::PlanResult3& r) {
+  return scene.corotational ? planner.simulateImplant(r.lateral_m, r.tip_x_m) : r.verified_seed_m;
+}
+
+/// This tool's own options (the rest go to the benches' common parser).
+struct OwnOptions {
+  bool corotational_every_scene = false;  ///< --model corotational
+  bool corotational_plans_only = false;   ///< --corotational-plans
+};
+
+/// Takes this tool's options out of argv; the others are appended to rest. False (with the
+/// reason on stderr) for a bad --model value.
+bool parseOwnOptions(int argc, char** argv, OwnOptions& own, std::vector<char*>& rest) {
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--corotational-plans") {
+      own.corotational_plans_only = true;
+    } else if (a == "--model" && i + 1 < argc) {
+      if (std::string(argv[++i]) != "corotational") {
+        std::cerr << "bench_tissue_3d: --model takes `corotational`, not `" << argv[i] << "`\n";
+        return false;
+      }
+      own.corotational_every_scene = true;
+    } else {
+      rest.push_back(argv[i]);
+    }
+  }
+  return true;
+}
+
+/// --corotational-plans: the corotational plans of every scene, their summary keys and plot.
+void writeCorotationalPlansOnly(const std::vector<std::string>& files,
+                                const ng::report::BenchArgs& args) {
+  const CorotationalPlans c = corotationalPlans(files, args.out_dir + "/plans_corotational.csv");
+  ng::report::writeTextFile(args.out_dir + "/summary.json",
+                            "{\n  \"benchmark\": \"tissue_3d\",\n  \"quick\": " +
+                                std::string(args.quick ? "true" : "false") +
+                                corotationalPlanKeys(&c) + "\n}\n");
+  ng::report::writeTextFile(args.out_dir + "/plot.json",
+                            std::string("[") + kCorotationalPlanPlot + "]");
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -532,22 +577,13 @@ int main(int argc, char** argv) {
     std::cout << kUsage;
     return 0;
   }
-  // --model corotational is this tool's own option; the rest are the benches' common ones.
-  bool corotational_every_scene = false, corotational_plans_only = false;
+  // --model corotational and --corotational-plans are this tool's own options; the rest are
+  // the benches' common ones.
+  OwnOptions own;
   std::vector<char*> rest{argv[0]};
-  for (int i = 1; i < argc; ++i) {
-    if (std::string(argv[i]) == "--corotational-plans") {
-      corotational_plans_only = true;
-    } else if (std::string(argv[i]) == "--model" && i + 1 < argc) {
-      if (std::string(argv[++i]) != "corotational") {
-        std::cerr << "bench_tissue_3d: --model takes `corotational`, not `" << argv[i] << "`\n"
-                  << kUsage;
-        return 2;
-      }
-      corotational_every_scene = true;
-    } else {
-      rest.push_back(argv[i]);
-    }
+  if (!parseOwnOptions(argc, argv, own, rest)) {
+    std::cerr << kUsage;
+    return 2;
   }
   const auto args =
       ng::report::parseBenchArgs(static_cast<int>(rest.size()), rest.data(), "bench_tissue_3d");
@@ -556,15 +592,8 @@ int main(int argc, char** argv) {
   }
   try {
     const std::vector<std::string> files = args->scenes.empty() ? defaultScenes() : args->scenes;
-    if (corotational_plans_only) {
-      const CorotationalPlans c =
-          corotationalPlans(files, args->out_dir + "/plans_corotational.csv");
-      ng::report::writeTextFile(args->out_dir + "/summary.json",
-                                "{\n  \"benchmark\": \"tissue_3d\",\n  \"quick\": " +
-                                    std::string(args->quick ? "true" : "false") +
-                                    corotationalPlanKeys(&c) + "\n}\n");
-      ng::report::writeTextFile(args->out_dir + "/plot.json",
-                                std::string("[") + kCorotationalPlanPlot + "]");
+    if (own.corotational_plans_only) {
+      writeCorotationalPlansOnly(files, *args);
       return 0;
     }
     // ---- steps/s and memory against the tetrahedron count --------------------------------
@@ -620,11 +649,7 @@ int main(int argc, char** argv) {
         }
         if (r.placed) {
           ++placed;
-          // Corotational tissue: the planner's insertions move by longer steps, so the seed at
-          // the scene's step (an independent full simulation) is the reference of the halving.
-          const t3::Vector3 full = scene.corotational
-                                       ? planner.simulateImplant(r.lateral_m, r.tip_x_m)
-                                       : r.verified_seed_m;
+          const t3::Vector3 full = seedAtSceneStep(planner, scene, r);
           const t3::Vector3 half = planner.simulateImplant(r.lateral_m, r.tip_x_m, 0.5);
           halving = (half - full).norm();
           worst_halving = std::max(worst_halving, halving);
@@ -683,8 +708,8 @@ int main(int argc, char** argv) {
     }
     // ---- corotational elasticity: its cost at ~50k tetrahedra and what it changes ----------
     const ScalingRow r50_linear = nearestRow(5e4);
-    const CorotationalSummary corot =
-        corotationalRuns(files, corotational_every_scene, args->out_dir + "/corotational_50k.csv");
+    const CorotationalSummary corot = corotationalRuns(files, own.corotational_every_scene,
+                                                       args->out_dir + "/corotational_50k.csv");
     const ScalingRow r50_corot = corot.runs.front().row;
     const double corot_halving = corot.runs.front().halving_m;
     std::cout << "  linear at " << r50_linear.tets << " tets: " << r50_linear.steps_per_s
@@ -692,7 +717,7 @@ int main(int argc, char** argv) {
               << corot.runs.size() << " scenes\n";
     const double corot_change = corotationChanges(placed_plans, args->out_dir + "/corotation.csv");
     CorotationalPlans corot_plans;
-    if (corotational_every_scene) {
+    if (own.corotational_every_scene) {
       corot_plans = corotationalPlans(files, args->out_dir + "/plans_corotational.csv");
     }
     scaling.writeCsv(args->out_dir + "/scaling.csv");
@@ -758,7 +783,7 @@ int main(int argc, char** argv) {
          << (corot.converged > 0 ? jsonNumber(corot.steps_per_s_min) : "null")
          << ",\n  \"corotational_step_halving_mm_50k_max\": "
          << mmKey(corot.halving_max_m >= 0.0, corot.halving_max_m)
-         << corotationalPlanKeys(corotational_every_scene ? &corot_plans : nullptr) << "\n}\n";
+         << corotationalPlanKeys(own.corotational_every_scene ? &corot_plans : nullptr) << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
     ng::report::writeTextFile(
         args->out_dir + "/plot.json",
@@ -773,8 +798,8 @@ int main(int argc, char** argv) {
  {"csv": "slice_vs_3d.csv", "x": "unplanned_3d_mm", "y": "unplanned_slice_mm", "group": "scene",
   "title": "Unplanned seed error: 2-D slice vs 3-D (same targets)", "points": true,
   "png": "slice_vs_3d_unplanned.png"})json") +
-            (corotational_every_scene ? std::string(",\n ") + kCorotationalPlanPlot
-                                      : std::string()) +
+            (own.corotational_every_scene ? std::string(",\n ") + kCorotationalPlanPlot
+                                          : std::string()) +
             "]");
     std::cout << plans.toText();
   } catch (const std::exception& e) {
