@@ -19,6 +19,9 @@ constexpr int kMaxHoles = 3;  // template holes verified per target, the nearest
 // state kept before that step).
 constexpr double kDepthTolFraction = 0.01;
 constexpr int kMaxDepthTrials = 4;
+// Corotational plans at the planner's longer moves are checked at half of them: seeds within
+// this fraction of the tolerance of each other accept the moves for this tissue.
+constexpr double kStepCheckFraction = 0.1;
 
 std::string mm(double m) {
   std::ostringstream out;
@@ -238,6 +241,13 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
       throw std::runtime_error(why);
     }
   }
+  if (!kept->punctured() && step_scale > 1.0) {
+    // The tip's tissue point reaches the goal in the move that punctures: the puncture is
+    // located with the warp of the move's start, which a longer move makes coarser than the
+    // scene's step, and the seed there depends on it.
+    r.simulation_cpu_s += clock.seconds();
+    throw std::runtime_error("the target is reached in the move that punctures");
+  }
   double f_lo = tissueX(*kept) - goal.x(), f_hi = needle.tipReference().x() - goal.x();
   double depth = hi, f_best = f_hi;
   NeedleInsertion3 best = needle;
@@ -280,8 +290,49 @@ bool OffsetPlanner3::planCorotational(const Vector3& goal, Eigen::Vector2d later
     }
     r.predicted_error_m = -1.0;  // the corotational insertion predicts and verifies at once
   }
-  const double accept = options_.corotational_accept_fraction * options_.tolerance_m;
   double step_scale = options_.corotational_step_scale;
+  if (!insertUntilPlaced(goal, lateral, step_scale, plan, r)) {
+    return false;
+  }
+  if (step_scale <= 1.0 || plan.error < 0.0) {
+    return true;
+  }
+  // The step check: the plan simulated again at half the planner's moves. Where the seeds agree
+  // the longer moves were short enough for this tissue, and the finer simulation is the
+  // verification; where they do not, the scene's step decides (the plan again from its lateral
+  // position).
+  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
+  std::optional<Vector3> finer;
+  try {
+    finer = simulateImplant(plan.lateral, plan.tip_x, 0.5 * step_scale);
+  } catch (const std::runtime_error&) {
+    finer.reset();  // refused at these moves: the scene's step decides
+  }
+  ++r.simulations;
+  r.simulation_cpu_s += clock.seconds();
+  if (finer && (*finer - plan.seed).norm() <= kStepCheckFraction * options_.tolerance_m) {
+    plan.seed = *finer;
+    plan.error = (*finer - goal).norm();
+    if (w.use_template && r.hole == r.nearest_hole) {
+      r.nearest_hole_error_m = plan.error;
+    }
+    return true;
+  }
+  Attempt fine;
+  step_scale = 1.0;
+  if (!insertUntilPlaced(goal, plan.lateral, step_scale, fine, r)) {
+    return false;
+  }
+  plan = fine;
+  return true;
+}
+
+bool OffsetPlanner3::insertUntilPlaced(const Vector3& goal, Eigen::Vector2d lateral,
+                                       double& step_scale, Attempt& plan, PlanResult3& r) {
+  // Corotational insertions from lateral: the depth found and verified by each, the needle
+  // moved by the miss (another hole on a template) until the seed lands within the acceptance.
+  const Workspace3& w = scene_.workspace;
+  const double accept = options_.corotational_accept_fraction * options_.tolerance_m;
   std::vector<Eigen::Vector2i> tried;
   Eigen::Vector2d drift = Eigen::Vector2d::Zero();
   for (int k = 0; k < options_.max_corotational_insertions; ++k) {

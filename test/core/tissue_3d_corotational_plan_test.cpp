@@ -16,10 +16,10 @@ namespace needle_guidance::tissue_3d {
 namespace {
 
 constexpr double kPlacementTol_m = 1e-4;  // target: seeds within 0.1 mm
-// The planner's corotational insertions move by 8 of the scene's steps; the seed of a full
-// simulation at the scene's step differs by the events located with the warp of a move's start
-// (a few um on these meshes), far inside the half tolerance the planner keeps as margin.
-constexpr double kStepError_m = 2e-5;
+// The planner's corotational insertions move at the scene's step: a fresh full simulation of the
+// plan converges to the same equilibrium, within the fixed point's tolerance (0.1 um of warp
+// change per node) from whatever warped reference the tissue holds.
+constexpr double kIndependent_m = 1e-6;
 // A stage plan: the linear start leaves the model difference (below half the tolerance here)
 // to one corotational insertion; a second one corrects the lateral position when it is not.
 constexpr int kStageInsertionsMax = 2;
@@ -72,7 +72,7 @@ TEST(CorotationalPlan3d, StageStartsLinearAndVerifiesInOneOrTwoInsertions) {
   // An independent full simulation at the scene's step (insertion, release, retraction).
   const Vector3 seed = planner.simulateImplant(r.lateral_m, r.tip_x_m);
   EXPECT_LE((seed - target.position_m).norm(), kPlacementTol_m);
-  EXPECT_LE((seed - r.verified_seed_m).norm(), kStepError_m);
+  EXPECT_LE((seed - r.verified_seed_m).norm(), kIndependent_m);
 }
 
 TEST(CorotationalPlan3d, TemplateVerifiesTheNearestHoleInOneInsertion) {

@@ -71,12 +71,14 @@ struct PlannerOptions3 {
   double corotational_accept_fraction = 0.5;
   int max_corotational_insertions = 3;
   /// Corotational tissue: the planner's insertions move the needle by this multiple of the
-  /// scene's step (needle.step; 1: the scene's step). The cost falls in proportion (the
-  /// fixed-point updates per move stay about the same: 7-8); the seed moves by a few um, the
-  /// events within a move being located with the warp of its start (docs/tissue_3d.md, planner
-  /// section, for the measured trade). An insertion refused at the longer moves is simulated
-  /// again at the scene's step.
-  double corotational_step_scale = 8.0;
+  /// scene's step (needle.step; 1, the default: the scene's step). Longer moves cost less in
+  /// proportion (the fixed-point updates per move stay about the same), but the events within
+  /// a move are located with the warp of its start: on stiff scenes the seed moves by a few um,
+  /// on a soft block with a deep indentation before puncture by up to 0.6 mm. Above 1 each plan
+  /// is simulated again at half the moves and falls back to the scene's step where the seeds
+  /// differ by more than a tenth of the tolerance or the target is reached in the move that
+  /// punctures; that check does not catch every such case (docs/tissue_3d.md).
+  double corotational_step_scale = 1.0;
 };
 
 class OffsetPlanner3 {
@@ -128,6 +130,12 @@ private:
   /// set when the robot cannot reach.
   bool planCorotational(const Vector3& goal, Eigen::Vector2d lateral, Attempt& plan,
                         PlanResult3& r);
+  /// Corotational tissue: insertions (insertToGoal) from lateral until the seed lands within
+  /// the acceptance, the needle moved by the miss (another hole on a template) in between; the
+  /// best in plan. step_scale becomes 1 when an insertion is refused at longer moves. False
+  /// with r.refusal set when the robot cannot reach.
+  bool insertUntilPlaced(const Vector3& goal, Eigen::Vector2d lateral, double& step_scale,
+                         Attempt& plan, PlanResult3& r);
   /// Corotational tissue: one insertion at lateral, moves of step_scale x the scene's step, to
   /// the depth where the tip's tissue point reaches the goal's x, seed release and retraction
   /// (the verification); error < 0 with r.refusal set when the deepest tip position is short of
