@@ -14,6 +14,14 @@ namespace {
 constexpr double kPathSample_m = 5e-4;  // needle line sampled for fixed regions at this spacing
 constexpr int kMaxVerifications = 4;
 constexpr int kMaxHoles = 3;  // template holes verified per target, the nearest included
+// Corotational insertion: the depth where the tip's tissue point reaches the goal's x is found
+// within the last step to this fraction of the tolerance (at most kMaxDepthTrials moves from the
+// state kept before that step).
+constexpr double kDepthTolFraction = 0.01;
+constexpr int kMaxDepthTrials = 4;
+// Corotational plans at the planner's longer moves are checked at half of them: seeds within
+// this fraction of the tolerance of each other accept the moves for this tissue.
+constexpr double kStepCheckFraction = 0.1;
 
 std::string mm(double m) {
   std::ostringstream out;
@@ -24,15 +32,20 @@ std::string mm(double m) {
 
 /// The reach refusal on a template: no hole lands within the tolerance; the nearest hole (row,
 /// column, y, z) and its verified miss, and the best other hole verified.
-std::string templateRefusal(const Workspace3& w, const PlanResult3& r, double tolerance_m) {
+/// nearest_predicted_m: the nearest hole's predicted miss, said when it was not verified.
+std::string templateRefusal(const Workspace3& w, const PlanResult3& r, double tolerance_m,
+                            double nearest_predicted_m = -1.0) {
   auto name = [&](const Eigen::Vector2i& k) {
     const Eigen::Vector2d p = w.hole(k.x(), k.y());
     return "row " + std::to_string(k.x()) + ", column " + std::to_string(k.y()) + " (y " +
            mm(p.x()) + ", z " + mm(p.y()) + ")";
   };
-  std::string why = "out of reach: no template hole places the seed within " + mm(tolerance_m) +
-                    "; the nearest hole, " + name(r.nearest_hole) + ", misses by " +
-                    mm(r.nearest_hole_error_m) + " (verified)";
+  std::string why =
+      "out of reach: no template hole places the seed within " + mm(tolerance_m) +
+      "; the nearest hole, " + name(r.nearest_hole) +
+      (r.nearest_hole_error_m >= 0.0
+           ? ", misses by " + mm(r.nearest_hole_error_m) + " (verified)"
+           : ", is predicted to miss by " + mm(nearest_predicted_m) + " (not verified)");
   if (r.hole != r.nearest_hole) {
     why += "; the best of " + std::to_string(r.holes_verified) + " holes verified, " +
            name(r.hole) + ", by " + mm(r.verified_error_m);
@@ -40,11 +53,51 @@ std::string templateRefusal(const Workspace3& w, const PlanResult3& r, double to
   return why;
 }
 
+/// Releases a seed at the tip and withdraws the needle to out_x: the seed's final position. The
+/// retraction is one move: its events (track points released, stick and slip) are located
+/// within it, and once the needle is out the elastic tissue is at rest, so the seed lies at its
+/// tissue point however the retraction is cut into moves. Throws std::runtime_error when the
+/// simulation refuses.
+Vector3 releaseAndRetract(NeedleInsertion3& needle, const Eigen::Vector2d& lateral, double out_x) {
+  std::string why;
+  const std::optional<int> seed = needle.implantSeed(&why);
+  if (!seed) {
+    throw std::runtime_error(why);
+  }
+  if (!needle.moveTo(lateral, out_x, &why)) {
+    throw std::runtime_error(why);
+  }
+  return needle.seedWorld(*seed);
+}
+
 }  // namespace
 
 OffsetPlanner3::OffsetPlanner3(const TissueScene3d& scene, TissueModel3& model,
                                PlannerOptions3 options)
-    : scene_(scene), model_(model), options_(options), regions_(scene) {}
+    : scene_(scene), model_(model), options_(options), regions_(scene) {
+  if (!(options_.corotational_accept_fraction > 0.0 &&
+        options_.corotational_accept_fraction <= 1.0)) {
+    throw std::invalid_argument(
+        "OffsetPlanner3: corotational_accept_fraction must be in (0, 1], not " +
+        std::to_string(options_.corotational_accept_fraction));
+  }
+  if (options_.max_corotational_insertions < 1) {
+    throw std::invalid_argument("OffsetPlanner3: max_corotational_insertions must be >= 1, not " +
+                                std::to_string(options_.max_corotational_insertions));
+  }
+  if (!(options_.corotational_step_scale > 0.0 &&
+        std::isfinite(options_.corotational_step_scale))) {
+    throw std::invalid_argument("OffsetPlanner3: corotational_step_scale must be > 0, not " +
+                                std::to_string(options_.corotational_step_scale));
+  }
+  if (model_.corotational() && !scene_.workspace.use_template && scene_.needle.follow_tissue) {
+    const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
+    linear_ = std::make_unique<TissueModel3>(model_.mesh(), scene_.materialTable(), false);
+    setup_cpu_s_ = clock.seconds();
+  }
+}
+
+OffsetPlanner3::~OffsetPlanner3() = default;
 
 std::string OffsetPlanner3::physicalRefusal(const Target3& t) const {
   const int r = regions_.regionAt(t.position_m);
@@ -70,9 +123,10 @@ std::string OffsetPlanner3::fixedRegionOnLine(const Eigen::Vector2d& lateral, do
   return "";
 }
 
-OffsetPlanner3::Trajectory OffsetPlanner3::insertAlong(const Eigen::Vector2d& lateral, double max_x,
+OffsetPlanner3::Trajectory OffsetPlanner3::insertAlong(TissueModel3& model,
+                                                       const Eigen::Vector2d& lateral, double max_x,
                                                        double stop_x) {
-  NeedleInsertion3 needle(model_, scene_.needle, scene_.block_min_m.x(), max_x);
+  NeedleInsertion3 needle(model, scene_.needle, scene_.block_min_m.x(), max_x);
   Trajectory t;
   const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s;
   std::string why;
@@ -104,25 +158,15 @@ Vector3 OffsetPlanner3::simulateImplant(const Eigen::Vector2d& lateral, double t
       throw std::runtime_error(why);
     }
   }
-  const std::optional<int> seed = needle.implantSeed(&why);
-  if (!seed) {
-    throw std::runtime_error(why);
-  }
-  for (double s = tip_x; s > start;) {
-    s = std::max(s - step, start);
-    if (!needle.moveTo(lateral, s, &why)) {
-      throw std::runtime_error(why);
-    }
-  }
-  return needle.seedWorld(*seed);
+  return releaseAndRetract(needle, lateral, start);
 }
 
-bool OffsetPlanner3::predict(const Vector3& goal, Eigen::Vector2d& lateral, double& tip_x,
-                             PlanResult3& r) {
+bool OffsetPlanner3::predict(TissueModel3& model, const Vector3& goal, Eigen::Vector2d& lateral,
+                             double& tip_x, PlanResult3& r, int& simulations, int max_iterations) {
   // Fixed-point iteration on the simulated tip trajectory: the seed's tissue point is the tip's
   // at release. On a template the hole is given and only the depth is predicted.
   const Workspace3& w = scene_.workspace;
-  for (int it = 0; it < options_.max_iterations; ++it) {
+  for (int it = 0; it < max_iterations; ++it) {
     const Eigen::Vector2d reachable = w.nearest(lateral);
     if (!w.use_template && (reachable - lateral).norm() > 1e-6) {
       r.refusal = "out of reach: the stage would need (y " + mm(lateral.x()) + ", z " +
@@ -130,8 +174,12 @@ bool OffsetPlanner3::predict(const Vector3& goal, Eigen::Vector2d& lateral, doub
       return false;
     }
     lateral = reachable;
-    const Trajectory t = insertAlong(lateral, w.max_tip_x_m, goal.x());
-    ++r.simulations;
+    const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
+    const Trajectory t = insertAlong(model, lateral, w.max_tip_x_m, goal.x());
+    ++simulations;
+    if (&model == &model_) {
+      r.simulation_cpu_s += clock.seconds();
+    }
     std::size_t k = 0;
     while (k < t.tip.size() && t.tip[k].x() < goal.x()) {
       ++k;
@@ -159,6 +207,202 @@ bool OffsetPlanner3::predict(const Vector3& goal, Eigen::Vector2d& lateral, doub
   return true;
 }
 
+OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
+                                                     const Eigen::Vector2d& lateral,
+                                                     double step_scale, PlanResult3& r) {
+  // The insertion runs at the planner's step; before each step its state is kept. Once the tip's
+  // tissue point has passed the goal's x, the depth where it reaches it is found within that
+  // step (regula falsi, each trial a move from the kept state), and from there the seed is
+  // released and the needle withdrawn: an insertion at the step to that depth, the verification.
+  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
+  const Workspace3& w = scene_.workspace;
+  const double x0 = scene_.block_min_m.x();
+  const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s * step_scale;
+  ++r.simulations;
+  NeedleInsertion3 needle(model_, scene_.needle, x0, w.max_tip_x_m);
+  auto tissueX = [&](const NeedleInsertion3& n) {  // before puncture the tip pins the entry point
+    return n.punctured() ? n.tipReference().x() : x0;
+  };
+  std::optional<NeedleInsertion3> kept;
+  double lo = x0 - step, hi = lo;
+  std::string why;
+  while (!needle.punctured() || needle.tipReference().x() < goal.x()) {
+    if (hi >= w.max_tip_x_m) {
+      r.refusal = "out of reach: at the deepest tip x " + mm(w.max_tip_x_m) +
+                  " the tip's tissue point is at x " + mm(tissueX(needle)) +
+                  ", short of the target's " + mm(goal.x());
+      r.simulation_cpu_s += clock.seconds();
+      return {};
+    }
+    kept.emplace(needle);
+    lo = hi;
+    hi = std::min(hi + step, w.max_tip_x_m);
+    if (!needle.moveTo(lateral, hi, &why)) {
+      throw std::runtime_error(why);
+    }
+  }
+  if (!kept->punctured() && step_scale > 1.0) {
+    // The tip's tissue point reaches the goal in the move that punctures: the puncture is
+    // located with the warp of the move's start, which a longer move makes coarser than the
+    // scene's step, and the seed there depends on it.
+    r.simulation_cpu_s += clock.seconds();
+    throw std::runtime_error("the target is reached in the move that punctures");
+  }
+  double f_lo = tissueX(*kept) - goal.x(), f_hi = needle.tipReference().x() - goal.x();
+  double depth = hi, f_best = f_hi;
+  NeedleInsertion3 best = needle;
+  for (int i = 0;
+       i < kMaxDepthTrials && std::abs(f_best) > kDepthTolFraction * options_.tolerance_m; ++i) {
+    const double d = lo + (hi - lo) * (-f_lo) / (f_hi - f_lo);
+    NeedleInsertion3 trial = *kept;
+    if (!trial.moveTo(lateral, d, &why)) {
+      throw std::runtime_error(why);
+    }
+    const double f = tissueX(trial) - goal.x();
+    if (std::abs(f) < std::abs(f_best)) {
+      f_best = f;
+      depth = d;
+      best = trial;
+    }
+    (f < 0.0 ? lo : hi) = d;
+    (f < 0.0 ? f_lo : f_hi) = f;
+  }
+  Attempt a{lateral, depth, releaseAndRetract(best, lateral, x0 - step), 0.0};
+  a.error = (a.seed - goal).norm();
+  r.simulation_cpu_s += clock.seconds();
+  return a;
+}
+
+bool OffsetPlanner3::planCorotational(const Vector3& goal, Eigen::Vector2d lateral, Attempt& plan,
+                                      PlanResult3& r) {
+  // The start: on a stage with a followed track the linear model's lateral position (the track's
+  // drift corrected; where the linear model cannot reach, the corotational insertion decides);
+  // on the rest line the target's own; on a template the nearest hole, whose verified seed then
+  // gives the drift that ranks the other holes (a seed moves with its hole one to one).
+  const Workspace3& w = scene_.workspace;
+  if (linear_) {
+    // One linear insertion: the lateral position moves by its drift (the drift changes little
+    // over that shift, and the corotational insertion measures what remains).
+    double tip_x = goal.x();
+    if (!predict(*linear_, goal, lateral, tip_x, r, r.linear_simulations, 1)) {
+      r.refusal.clear();
+      lateral = w.nearest(lateral);
+    }
+    r.predicted_error_m = -1.0;  // the corotational insertion predicts and verifies at once
+  }
+  double step_scale = options_.corotational_step_scale;
+  if (!insertUntilPlaced(goal, lateral, step_scale, plan, r)) {
+    return false;
+  }
+  if (step_scale <= 1.0 || plan.error < 0.0) {
+    return true;
+  }
+  // The step check: the plan simulated again at half the planner's moves. Where the seeds agree
+  // the longer moves were short enough for this tissue, and the finer simulation is the
+  // verification; where they do not, the scene's step decides (the plan again from its lateral
+  // position).
+  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
+  std::optional<Vector3> finer;
+  try {
+    finer = simulateImplant(plan.lateral, plan.tip_x, 0.5 * step_scale);
+  } catch (const std::runtime_error&) {
+    finer.reset();  // refused at these moves: the scene's step decides
+  }
+  ++r.simulations;
+  r.simulation_cpu_s += clock.seconds();
+  if (finer && (*finer - plan.seed).norm() <= kStepCheckFraction * options_.tolerance_m) {
+    plan.seed = *finer;
+    plan.error = (*finer - goal).norm();
+    if (w.use_template && r.hole == r.nearest_hole) {
+      r.nearest_hole_error_m = plan.error;
+    }
+    return true;
+  }
+  Attempt fine;
+  step_scale = 1.0;
+  if (!insertUntilPlaced(goal, plan.lateral, step_scale, fine, r)) {
+    return false;
+  }
+  plan = fine;
+  return true;
+}
+
+bool OffsetPlanner3::insertUntilPlaced(const Vector3& goal, Eigen::Vector2d lateral,
+                                       double& step_scale, Attempt& plan, PlanResult3& r) {
+  // Corotational insertions from lateral: the depth found and verified by each, the needle
+  // moved by the miss (another hole on a template) until the seed lands within the acceptance.
+  const Workspace3& w = scene_.workspace;
+  const double accept = options_.corotational_accept_fraction * options_.tolerance_m;
+  std::vector<Eigen::Vector2i> tried;
+  Eigen::Vector2d drift = Eigen::Vector2d::Zero();
+  for (int k = 0; k < options_.max_corotational_insertions; ++k) {
+    if (w.use_template && k > 0) {
+      // The untried hole whose seed is predicted closest, if it beats the best verified seed
+      // by a tenth of the tolerance.
+      const Eigen::Vector2i centre = w.holeIndex(goal.tail<2>() - drift);
+      auto miss = [&](const Eigen::Vector2i& h) {
+        return (w.hole(h.x(), h.y()) + drift - goal.tail<2>()).norm();
+      };
+      std::optional<Eigen::Vector2i> next;
+      for (int i = std::max(0, centre.x() - 1); i <= std::min(w.template_rows - 1, centre.x() + 1);
+           ++i) {
+        for (int j = std::max(0, centre.y() - 1);
+             j <= std::min(w.template_columns - 1, centre.y() + 1); ++j) {
+          const Eigen::Vector2i h(i, j);
+          if (std::find(tried.begin(), tried.end(), h) == tried.end() &&
+              (!next || miss(h) < miss(*next)) &&
+              fixedRegionOnLine(w.hole(i, j), goal.x()).empty()) {
+            next = h;
+          }
+        }
+      }
+      if (!next || miss(*next) >= plan.error - 0.1 * options_.tolerance_m) {
+        break;
+      }
+      lateral = w.hole(next->x(), next->y());
+    }
+    Attempt a;
+    try {
+      a = insertToGoal(goal, lateral, step_scale, r);
+    } catch (const std::runtime_error&) {
+      if (step_scale == 1.0) {
+        throw;
+      }
+      step_scale = 1.0;  // refused at the planner's longer moves: the scene's step decides
+      a = insertToGoal(goal, lateral, step_scale, r);
+    }
+    if (a.error < 0.0) {
+      if (plan.error >= 0.0) {
+        r.refusal.clear();  // an earlier insertion reached: its verified miss is the answer
+        break;
+      }
+      return false;
+    }
+    if (w.use_template) {
+      tried.push_back(w.holeIndex(a.lateral));
+      ++r.holes_verified;
+      if (k == 0) {
+        r.nearest_hole_error_m = a.error;
+      }
+      drift = a.seed.tail<2>() - a.lateral;
+    }
+    if (plan.error < 0.0 || a.error < plan.error) {
+      plan = a;
+      r.hole = w.use_template ? tried.back() : r.hole;
+    }
+    if (plan.error <= accept) {
+      break;
+    }
+    if (!w.use_template) {
+      lateral = a.lateral + goal.tail<2>() - a.seed.tail<2>();
+      if (!w.reaches(lateral)) {
+        break;  // the verified miss of the best insertion stands
+      }
+    }
+  }
+  return true;
+}
+
 OffsetPlanner3::Attempt OffsetPlanner3::verify(const Vector3& goal, Eigen::Vector2d lateral,
                                                double tip_x, bool move_lateral, PlanResult3& r) {
   // Independent full simulations, correcting the depth (and the lateral position) by the
@@ -167,8 +411,10 @@ OffsetPlanner3::Attempt OffsetPlanner3::verify(const Vector3& goal, Eigen::Vecto
   const Workspace3& w = scene_.workspace;
   Attempt best;
   for (int v = 0; v < kMaxVerifications; ++v) {
+    const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
     Attempt a{lateral, tip_x, simulateImplant(lateral, tip_x), 0.0};
     ++r.simulations;
+    r.simulation_cpu_s += clock.seconds();
     a.error = (a.seed - goal).norm();
     if (best.error < 0.0 || a.error < best.error) {
       best = a;
@@ -278,15 +524,23 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
         return finish();
       }
     }
-    if (!predict(goal, lateral, tip_x, r)) {
-      r.unreachable = true;
-      return finish();
-    }
-    Attempt plan = verify(goal, lateral, tip_x, !w.use_template, r);
-    if (w.use_template) {
-      r.holes_verified = 1;
-      r.nearest_hole_error_m = plan.error;
-      plan = bestHole(goal, plan, r);
+    Attempt plan;
+    if (model_.corotational()) {
+      if (!planCorotational(goal, lateral, plan, r)) {
+        r.unreachable = true;
+        return finish();
+      }
+    } else {
+      if (!predict(model_, goal, lateral, tip_x, r, r.simulations, options_.max_iterations)) {
+        r.unreachable = true;
+        return finish();
+      }
+      plan = verify(goal, lateral, tip_x, !w.use_template, r);
+      if (w.use_template) {
+        r.holes_verified = 1;
+        r.nearest_hole_error_m = plan.error;
+        plan = bestHole(goal, plan, r);
+      }
     }
     r.lateral_m = plan.lateral;
     r.tip_x_m = plan.tip_x;
@@ -295,7 +549,14 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
     r.placed = r.verified_error_m <= options_.tolerance_m;
     r.unreachable = !r.placed && w.use_template;  // the holes are where they are
     if (!r.placed) {
-      r.refusal = w.use_template ? templateRefusal(w, r, options_.tolerance_m)
+      // An unverified nearest hole (corotational tissue, another hole ranked first): its miss
+      // predicted with the best hole's drift.
+      const double nearest_predicted = w.use_template
+                                           ? (w.hole(r.nearest_hole.x(), r.nearest_hole.y()) +
+                                              plan.seed.tail<2>() - plan.lateral - goal.tail<2>())
+                                                 .norm()
+                                           : -1.0;
+      r.refusal = w.use_template ? templateRefusal(w, r, options_.tolerance_m, nearest_predicted)
                                  : "verified miss " + mm(r.verified_error_m) + " above " +
                                        mm(options_.tolerance_m);
     }

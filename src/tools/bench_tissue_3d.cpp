@@ -7,7 +7,9 @@
 // same targets planned in a 2-D slice of the scene (the sagittal section through the target, meshed
 // and simulated by the planar model): how far a 2-D model's errors are from the 3-D ones.
 // --model corotational: the corotational insertion at about 50k tetrahedra runs on every scene
-// (each meshed to about 50k), not only on the first.
+// (each meshed to about 50k), not only on the first, and every target of every scene is planned
+// in corotational tissue (plans_corotational.csv), each plan checked by an independent full
+// simulation at the scene's step.
 // Usage: bench_tissue_3d --out DIR [--quick] [--scene FILE ...] [--model corotational]
 
 #include <algorithm>
@@ -241,6 +243,122 @@ double corotationChanges(const std::vector<PlacedPlan>& plans, const std::string
   return worst;
 }
 
+/// A corotational plan checked by an independent full simulation at the scene's step (the
+/// planner's own corotational insertions move by PlannerOptions3::corotational_step_scale
+/// steps): the seed's error there and its distance from the planner's verified seed.
+struct IndependentCheck {
+  double error_m = -1.0;
+  double step_error_m = -1.0;
+  double cpu_s = 0.0;
+  std::string refusal;
+};
+
+IndependentCheck independentCheck(t3::OffsetPlanner3& planner, const t3::PlanResult3& r,
+                                  const t3::Target3& target) {
+  IndependentCheck c;
+  const ng::CpuStopwatch clock(ng::CpuStopwatch::Scope::kProcess);
+  try {
+    const t3::Vector3 seed = planner.simulateImplant(r.lateral_m, r.tip_x_m);
+    c.error_m = (seed - target.position_m).norm();
+    c.step_error_m = (seed - r.verified_seed_m).norm();
+  } catch (const std::runtime_error& e) {
+    c.refusal = e.what();
+  }
+  c.cpu_s = clock.seconds();
+  return c;
+}
+
+/// Every target of every scene planned in corotational tissue (tissue.model forced to
+/// corotational, default mesh), each plan checked by an independent full simulation at the
+/// scene's step; one row per target in csv. placed: within the tolerance in that simulation.
+struct CorotationalPlans {
+  int reachable = 0, placed = 0;
+  double cpu_max_s = -1.0, error_max_m = -1.0, step_error_max_m = -1.0;
+  double simulation_cpu_max_s = -1.0, setup_max_s = -1.0;
+  int simulations_max = 0;
+};
+
+CorotationalPlans corotationalPlans(const std::vector<std::string>& files, const std::string& csv) {
+  ng::report::Table table({"scene", "target", "placed", "verified_mm", "independent_mm",
+                           "step_error_mm", "plan_cpu_s", "simulation_cpu_s", "simulations",
+                           "linear_simulations", "holes_verified", "tets", "setup_cpu_s",
+                           "independent_cpu_s", "refusal"});
+  CorotationalPlans out;
+  const double tolerance = t3::PlannerOptions3{}.tolerance_m;
+  for (const std::string& file : files) {
+    t3::TissueScene3d scene = t3::loadTissueScene3d(file);
+    scene.corotational = true;
+    t3::TetMesh3 mesh = t3::meshTissue3d(scene, {}, 1.0);
+    const int tets = mesh.elementCount();
+    t3::TissueModel3 model(std::move(mesh), scene.materialTable(), true);
+    t3::PlannerOptions3 options;
+    options.unplanned = false;
+    t3::OffsetPlanner3 planner(scene, model, options);
+    out.setup_max_s = std::max(out.setup_max_s, planner.setupCpuSeconds());
+    for (const t3::Target3& target : scene.targets) {
+      const t3::PlanResult3 r = planner.plan(target);
+      IndependentCheck check;
+      if (!r.unreachable) {
+        ++out.reachable;
+      }
+      if (r.placed) {
+        check = independentCheck(planner, r, target);
+        if (check.error_m >= 0.0 && check.error_m <= tolerance) {
+          ++out.placed;
+        }
+        out.cpu_max_s = std::max(out.cpu_max_s, r.plan_cpu_s);
+        out.simulation_cpu_max_s = std::max(out.simulation_cpu_max_s, r.simulation_cpu_s);
+        out.error_max_m = std::max(out.error_max_m, check.error_m);
+        out.step_error_max_m = std::max(out.step_error_max_m, check.step_error_m);
+        out.simulations_max = std::max(out.simulations_max, r.simulations);
+      }
+      model.compliance().clearCache();
+      table.addRow({scene.name, target.name,
+                    std::string(r.placed        ? "yes"
+                                : r.unreachable ? "unreachable"
+                                                : "no"),
+                    mmOrUndefined(r.verified_error_m), mmOrUndefined(check.error_m),
+                    mmOrUndefined(check.step_error_m), r.plan_cpu_s, r.simulation_cpu_s,
+                    double(r.simulations), double(r.linear_simulations), double(r.holes_verified),
+                    double(tets), planner.setupCpuSeconds(), check.cpu_s,
+                    r.refusal.empty() ? check.refusal : r.refusal});
+      std::cout << "  corotational plan " << scene.name << "/" << target.name << ": "
+                << (r.placed ? "placed" : "not placed") << ", verified " << r.verified_error_m * 1e3
+                << " mm, independent " << check.error_m * 1e3 << " mm, " << r.plan_cpu_s
+                << " s CPU (simulations " << r.simulation_cpu_s << " s, " << r.simulations
+                << " corotational + " << r.linear_simulations << " linear) " << r.refusal
+                << std::endl;
+    }
+  }
+  table.writeCsv(csv);
+  return out;
+}
+
+/// The summary keys of the corotational plans (null when they were not run).
+std::string corotationalPlanKeys(const CorotationalPlans* c) {
+  auto key = [&](const char* name, bool defined, const std::string& value) {
+    return std::string(",\n  \"") + name + "\": " + (c && defined ? value : "null");
+  };
+  const CorotationalPlans z;
+  const CorotationalPlans& p = c ? *c : z;
+  return key("corotational_plans_reachable", true, std::to_string(p.reachable)) +
+         key("corotational_plans_placed", true, std::to_string(p.placed)) +
+         key("corotational_plan_cpu_s_max", p.cpu_max_s >= 0.0, jsonNumber(p.cpu_max_s)) +
+         key("corotational_plan_simulation_cpu_s_max", p.simulation_cpu_max_s >= 0.0,
+             jsonNumber(p.simulation_cpu_max_s)) +
+         key("corotational_plan_simulations_max", true, std::to_string(p.simulations_max)) +
+         key("corotational_planned_error_mm_max", p.error_max_m >= 0.0,
+             jsonNumber(p.error_max_m * 1e3)) +
+         key("corotational_plan_step_error_mm_max", p.step_error_max_m >= 0.0,
+             jsonNumber(p.step_error_max_m * 1e3)) +
+         key("corotational_plan_setup_cpu_s_max", p.setup_max_s >= 0.0, jsonNumber(p.setup_max_s));
+}
+
+constexpr const char* kCorotationalPlanPlot =
+    R"json({"csv": "plans_corotational.csv", "x": "plan_cpu_s", "y": "independent_mm", "group": "scene",
+  "filter": {"placed": "yes"}, "title": "Corotational plans: seed error (independent simulation) vs planning CPU time",
+  "points": true, "png": "corotational_plan_error_vs_cpu.png"})json";
+
 /// The section of region r of the 3-D scene in the plane z = z_m as a polygon (x, y), traced by
 /// rays from an interior point of the section, each ending where another region (or the block's
 /// outside) begins, less margin_m so sections of neighbouring regions do not touch. Exact for
@@ -399,32 +517,73 @@ SliceErrors sliceErrors(const t3::TissueScene3d& scene, const t3::Target3& targe
   return e;
 }
 
+/// The plan's seed at the scene's step: the verified seed, or in corotational tissue (where the
+/// planner's insertions move by longer steps) an independent full simulation at the scene's step.
+t3::Vector3 seedAtSceneStep(t3::OffsetPlanner3& planner, const t3::TissueScene3d& scene,
+                            const t3::PlanResult3& r) {
+  return scene.corotational ? planner.simulateImplant(r.lateral_m, r.tip_x_m) : r.verified_seed_m;
+}
+
+/// This tool's own options (the rest go to the benches' common parser).
+struct OwnOptions {
+  bool corotational_every_scene = false;  ///< --model corotational
+  bool corotational_plans_only = false;   ///< --corotational-plans
+};
+
+/// Takes this tool's options out of argv; the others are appended to rest. False (with the
+/// reason on stderr) for a bad --model value.
+bool parseOwnOptions(int argc, char** argv, OwnOptions& own, std::vector<char*>& rest) {
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--corotational-plans") {
+      own.corotational_plans_only = true;
+    } else if (a == "--model" && i + 1 < argc) {
+      if (std::string(argv[++i]) != "corotational") {
+        std::cerr << "bench_tissue_3d: --model takes `corotational`, not `" << argv[i] << "`\n";
+        return false;
+      }
+      own.corotational_every_scene = true;
+    } else {
+      rest.push_back(argv[i]);
+    }
+  }
+  return true;
+}
+
+/// --corotational-plans: the corotational plans of every scene, their summary keys and plot.
+void writeCorotationalPlansOnly(const std::vector<std::string>& files,
+                                const ng::report::BenchArgs& args) {
+  const CorotationalPlans c = corotationalPlans(files, args.out_dir + "/plans_corotational.csv");
+  ng::report::writeTextFile(args.out_dir + "/summary.json",
+                            "{\n  \"benchmark\": \"tissue_3d\",\n  \"quick\": " +
+                                std::string(args.quick ? "true" : "false") +
+                                corotationalPlanKeys(&c) + "\n}\n");
+  ng::report::writeTextFile(args.out_dir + "/plot.json",
+                            std::string("[") + kCorotationalPlanPlot + "]");
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   constexpr const char* kUsage =
       "usage: bench_tissue_3d --out DIR [--quick] [--scene FILE]... [--model corotational]\n"
+      "       [--corotational-plans]\n"
       "Writes DIR/summary.json, its CSVs and plot.json (scripts/bench tissue_3d runs it and draws "
       "the plots).\n--model corotational: the corotational insertion at about 50k tetrahedra "
-      "runs on every scene, not only on the first (corotational_50k.csv).\n";
+      "runs on every scene, not only on the first (corotational_50k.csv), and every target is "
+      "planned in corotational tissue (plans_corotational.csv).\n--corotational-plans: only "
+      "those corotational plans (plans_corotational.csv and their summary keys).\n";
   if (ng::report::helpRequested(argc, argv)) {
     std::cout << kUsage;
     return 0;
   }
-  // --model corotational is this tool's own option; the rest are the benches' common ones.
-  bool corotational_every_scene = false;
+  // --model corotational and --corotational-plans are this tool's own options; the rest are
+  // the benches' common ones.
+  OwnOptions own;
   std::vector<char*> rest{argv[0]};
-  for (int i = 1; i < argc; ++i) {
-    if (std::string(argv[i]) == "--model" && i + 1 < argc) {
-      if (std::string(argv[++i]) != "corotational") {
-        std::cerr << "bench_tissue_3d: --model takes `corotational`, not `" << argv[i] << "`\n"
-                  << kUsage;
-        return 2;
-      }
-      corotational_every_scene = true;
-    } else {
-      rest.push_back(argv[i]);
-    }
+  if (!parseOwnOptions(argc, argv, own, rest)) {
+    std::cerr << kUsage;
+    return 2;
   }
   const auto args =
       ng::report::parseBenchArgs(static_cast<int>(rest.size()), rest.data(), "bench_tissue_3d");
@@ -433,6 +592,10 @@ int main(int argc, char** argv) {
   }
   try {
     const std::vector<std::string> files = args->scenes.empty() ? defaultScenes() : args->scenes;
+    if (own.corotational_plans_only) {
+      writeCorotationalPlansOnly(files, *args);
+      return 0;
+    }
     // ---- steps/s and memory against the tetrahedron count --------------------------------
     const t3::TissueScene3d base = t3::loadTissueScene3d(files.front());
     const t3::TetMesh3 probe = t3::meshTissue3d(base, {}, 1.0);
@@ -486,10 +649,12 @@ int main(int argc, char** argv) {
         }
         if (r.placed) {
           ++placed;
+          const t3::Vector3 full = seedAtSceneStep(planner, scene, r);
           const t3::Vector3 half = planner.simulateImplant(r.lateral_m, r.tip_x_m, 0.5);
-          halving = (half - r.verified_seed_m).norm();
+          halving = (half - full).norm();
           worst_halving = std::max(worst_halving, halving);
-          worst_error = std::max(worst_error, r.verified_error_m);
+          worst_error = std::max(worst_error,
+                                 std::max(r.verified_error_m, (full - target.position_m).norm()));
           worst_cpu = std::max(worst_cpu, r.plan_cpu_s);
           lateral_correction = (r.lateral_m - target.position_m.tail<2>()).norm();
           worst_lateral = std::max(worst_lateral, lateral_correction);
@@ -543,14 +708,18 @@ int main(int argc, char** argv) {
     }
     // ---- corotational elasticity: its cost at ~50k tetrahedra and what it changes ----------
     const ScalingRow r50_linear = nearestRow(5e4);
-    const CorotationalSummary corot =
-        corotationalRuns(files, corotational_every_scene, args->out_dir + "/corotational_50k.csv");
+    const CorotationalSummary corot = corotationalRuns(files, own.corotational_every_scene,
+                                                       args->out_dir + "/corotational_50k.csv");
     const ScalingRow r50_corot = corot.runs.front().row;
     const double corot_halving = corot.runs.front().halving_m;
     std::cout << "  linear at " << r50_linear.tets << " tets: " << r50_linear.steps_per_s
               << " steps/s; corotational converged on " << corot.converged << " of "
               << corot.runs.size() << " scenes\n";
     const double corot_change = corotationChanges(placed_plans, args->out_dir + "/corotation.csv");
+    CorotationalPlans corot_plans;
+    if (own.corotational_every_scene) {
+      corot_plans = corotationalPlans(files, args->out_dir + "/plans_corotational.csv");
+    }
     scaling.writeCsv(args->out_dir + "/scaling.csv");
     plans.writeCsv(args->out_dir + "/plans.csv");
     slices.writeCsv(args->out_dir + "/slice_vs_3d.csv");
@@ -613,10 +782,12 @@ int main(int argc, char** argv) {
          << ",\n  \"steps_per_s_50k_tets_corotational_min\": "
          << (corot.converged > 0 ? jsonNumber(corot.steps_per_s_min) : "null")
          << ",\n  \"corotational_step_halving_mm_50k_max\": "
-         << mmKey(corot.halving_max_m >= 0.0, corot.halving_max_m) << "\n}\n";
+         << mmKey(corot.halving_max_m >= 0.0, corot.halving_max_m)
+         << corotationalPlanKeys(own.corotational_every_scene ? &corot_plans : nullptr) << "\n}\n";
     ng::report::writeTextFile(args->out_dir + "/summary.json", json.str());
-    ng::report::writeTextFile(args->out_dir + "/plot.json",
-                              R"json([{"csv": "scaling.csv", "x": "tets", "y": "steps_per_s",
+    ng::report::writeTextFile(
+        args->out_dir + "/plot.json",
+        std::string(R"json([{"csv": "scaling.csv", "x": "tets", "y": "steps_per_s",
   "title": "Insertion steps per second (CPU, one core) vs tetrahedra", "logx": true, "logy": true,
   "png": "steps_per_s_vs_tets.png"},
  {"csv": "scaling.csv", "x": "tets", "y": "peak_mb", "title": "Peak memory vs tetrahedra",
@@ -626,7 +797,10 @@ int main(int argc, char** argv) {
   "points": true, "logy": true, "png": "plan_error_vs_cpu.png"},
  {"csv": "slice_vs_3d.csv", "x": "unplanned_3d_mm", "y": "unplanned_slice_mm", "group": "scene",
   "title": "Unplanned seed error: 2-D slice vs 3-D (same targets)", "points": true,
-  "png": "slice_vs_3d_unplanned.png"}])json");
+  "png": "slice_vs_3d_unplanned.png"})json") +
+            (own.corotational_every_scene ? std::string(",\n ") + kCorotationalPlanPlot
+                                          : std::string()) +
+            "]");
     std::cout << plans.toText();
   } catch (const std::exception& e) {
     std::cerr << "bench_tissue_3d: " << e.what() << "\n";

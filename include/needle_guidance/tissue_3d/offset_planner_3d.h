@@ -8,8 +8,18 @@
 // verified. Refusals are physical, with their figures: target outside the tissue, in a fixed
 // (bone) region, needle line through a fixed region, or out of the robot's reach (no hole
 // within the tolerance: the nearest hole and its verified miss).
+//
+// Corotational tissue (scene key `tissue.model: corotational`): a corotational insertion costs
+// 10-30 times a linear one, so the plan starts in the linear model of the same mesh (built once
+// by the planner), which gives the lateral position, the hole and the track's drift; then one
+// corotational insertion along that needle line finds the depth where the tip's tissue point
+// reaches the target and, from the state kept before that step, inserts to that depth, releases
+// the seed and retracts: the verification. Only when that seed misses by more than half the
+// tolerance is the needle moved by the miss (another hole when the template's holes are fixed)
+// and inserted again.
 #pragma once
 
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -26,12 +36,20 @@ struct PlanResult3 {
   bool unreachable = false;
   Eigen::Vector2d lateral_m = Eigen::Vector2d::Zero();  ///< planned (y, z)
   double tip_x_m = 0.0;                                 ///< planned depth (tip x at release)
-  double predicted_error_m = -1.0;                      ///< planner's own estimate; < 0 undefined
+  /// The planner's own estimate; < 0 undefined (corotational tissue: one insertion predicts and
+  /// verifies at once).
+  double predicted_error_m = -1.0;
   double verified_error_m = -1.0;  ///< |seed - target| by the independent simulation; < 0 undefined
   Vector3 verified_seed_m = Vector3::Zero();
   double unplanned_error_m = -1.0;  ///< aiming straight at the target; < 0 undefined
   double plan_cpu_s = 0.0;  ///< planning and verification; the unplanned run is not included
   int simulations = 0;      ///< insertions the plan and its verification used
+  /// Corotational tissue: insertions in the linear model that gave the plan its start (they are
+  /// not in `simulations`, which counts the corotational ones); 0 for linear tissue.
+  int linear_simulations = 0;
+  /// CPU of the insertions in the scene's tissue model [s] (the rest of plan_cpu_s is the
+  /// linear start, the column solves along new needle lines and the planner's own work).
+  double simulation_cpu_s = 0.0;
   /// Template: the plan's hole (row along y, column along z); (-1, -1) on a stage.
   Eigen::Vector2i hole = Eigen::Vector2i(-1, -1);
   /// Template: the nearest hole to the target and its verified error (< 0 undefined).
@@ -45,16 +63,38 @@ struct PlannerOptions3 {
   double converge_m = 5e-6;   ///< planner iterations stop below this predicted error
   int max_iterations = 8;
   bool unplanned = true;  ///< also simulate the unplanned insertion
+  /// Corotational tissue: a verified seed within this fraction of the tolerance ends the plan;
+  /// above it the needle is moved by the miss and inserted again (at most
+  /// max_corotational_insertions in all). The margin covers the corotational answer's
+  /// dependence on the simulation step (a few um per halving), so the seed stays within the
+  /// tolerance in a simulation of another step (the closed loop's).
+  double corotational_accept_fraction = 0.5;
+  int max_corotational_insertions = 3;
+  /// Corotational tissue: the planner's insertions move the needle by this multiple of the
+  /// scene's step (needle.step; 1, the default: the scene's step). Longer moves cost less in
+  /// proportion (the fixed-point updates per move stay about the same), but the events within
+  /// a move are located with the warp of its start: on stiff scenes the seed moves by a few um,
+  /// on a soft block with a deep indentation before puncture by up to 0.6 mm. Above 1 each plan
+  /// is simulated again at half the moves and falls back to the scene's step where the seeds
+  /// differ by more than a tenth of the tolerance or the target is reached in the move that
+  /// punctures; that check does not catch every such case (docs/tissue_3d.md).
+  double corotational_step_scale = 1.0;
 };
 
 class OffsetPlanner3 {
 public:
+  /// model: the scene's tissue. For corotational tissue the planner also assembles and factors
+  /// the linear model of the same mesh (setupCpuSeconds). Throws std::invalid_argument for
+  /// options out of range.
   OffsetPlanner3(const TissueScene3d& scene, TissueModel3& model, PlannerOptions3 options = {});
+  ~OffsetPlanner3();
   PlanResult3 plan(const Target3& target);
   /// Seed position after an insertion to tip x at lateral, seed release and full retraction,
   /// with moves of the scene's step (step_scale x the step). Throws std::runtime_error when the
   /// simulation refuses.
   Vector3 simulateImplant(const Eigen::Vector2d& lateral, double tip_x, double step_scale = 1.0);
+  /// CPU the constructor spent on the linear model of corotational tissue [s] (0 for linear).
+  double setupCpuSeconds() const { return setup_cpu_s_; }
 
 private:
   /// Tip's tissue point against tip x, from one insertion to max_x (recorded after each step),
@@ -70,24 +110,45 @@ private:
     Vector3 seed = Vector3::Zero();
     double error = -1.0;  ///< |seed - goal|; < 0 never simulated
   };
-  Trajectory insertAlong(const Eigen::Vector2d& lateral, double max_x, double stop_x);
+  Trajectory insertAlong(TissueModel3& model, const Eigen::Vector2d& lateral, double max_x,
+                         double stop_x);
   std::string physicalRefusal(const Target3& target) const;
   /// The fixed region the needle line at lateral crosses before tip x, with where ("" if none).
   std::string fixedRegionOnLine(const Eigen::Vector2d& lateral, double tip_x) const;
-  /// Depth (and, on a stage, lateral position) from the simulated tip trajectory; false with
-  /// r.refusal set when the robot cannot reach.
-  bool predict(const Vector3& goal, Eigen::Vector2d& lateral, double& tip_x, PlanResult3& r);
+  /// Depth (and, on a stage, lateral position) from the tip trajectories simulated in model
+  /// (`simulations` counts them, at most max_iterations; the lateral position is corrected
+  /// after the last); false with r.refusal set when the robot cannot reach.
+  bool predict(TissueModel3& model, const Vector3& goal, Eigen::Vector2d& lateral, double& tip_x,
+               PlanResult3& r, int& simulations, int max_iterations);
   /// Full simulations from (lateral, tip_x), corrected by the measured miss (the lateral too if
   /// move_lateral); the best one.
   Attempt verify(const Vector3& goal, Eigen::Vector2d lateral, double tip_x, bool move_lateral,
                  PlanResult3& r);
   /// Template: from the verified nearest hole, the hole whose verified seed lands closest.
   Attempt bestHole(const Vector3& goal, const Attempt& nearest, PlanResult3& r);
+  /// Corotational tissue: the plan from the linear start (class comment); false with r.refusal
+  /// set when the robot cannot reach.
+  bool planCorotational(const Vector3& goal, Eigen::Vector2d lateral, Attempt& plan,
+                        PlanResult3& r);
+  /// Corotational tissue: insertions (insertToGoal) from lateral until the seed lands within
+  /// the acceptance, the needle moved by the miss (another hole on a template) in between; the
+  /// best in plan. step_scale becomes 1 when an insertion is refused at longer moves. False
+  /// with r.refusal set when the robot cannot reach.
+  bool insertUntilPlaced(const Vector3& goal, Eigen::Vector2d lateral, double& step_scale,
+                         Attempt& plan, PlanResult3& r);
+  /// Corotational tissue: one insertion at lateral, moves of step_scale x the scene's step, to
+  /// the depth where the tip's tissue point reaches the goal's x, seed release and retraction
+  /// (the verification); error < 0 with r.refusal set when the deepest tip position is short of
+  /// it. Throws std::runtime_error when the simulation refuses.
+  Attempt insertToGoal(const Vector3& goal, const Eigen::Vector2d& lateral, double step_scale,
+                       PlanResult3& r);
 
   const TissueScene3d& scene_;
   TissueModel3& model_;
   PlannerOptions3 options_;
   RegionLocator3 regions_;
+  std::unique_ptr<TissueModel3> linear_;  ///< corotational tissue: the linear model, same mesh
+  double setup_cpu_s_ = 0.0;
 };
 
 }  // namespace needle_guidance::tissue_3d
