@@ -30,6 +30,15 @@ constexpr int kMaxWarpUpdates = 60;
 constexpr int kRewarpProbe = 5;
 constexpr double kRewarpBudget = 16.0;
 constexpr int kMaxRewarpsPerMove = 4;
+// Corotational: a segment of a move is solved again from its start on the warp settled where
+// its event happens until its end (tip position, tip's tissue point, cut length) repeats to
+// within kWarpTol_m; each round moves the end by the change of the warp over the segment times
+// a coupling well below one, so a few rounds suffice. Ends still alternating after this many
+// rounds are a cut that snaps through (consistentSegment).
+constexpr int kMaxRelocations = 8;
+// The warp at a move's end is first guessed by extending its change over the last move, for a
+// move up to this many times as long as the last.
+constexpr double kMaxPredictionRatio = 2.0;
 // After a rewarp the compliance columns are solved again in one batch along the needle line up
 // to this far beyond the tip, the rest as the tip gets there.
 constexpr double kRewarpPrefetch_m = 5e-3;
@@ -842,6 +851,7 @@ bool EmbeddedNeedle<Dim>::insertSegment(double target) {
       return true;
     }
     commit(crossing(s_, fa, target, f_end, fb), nullptr);
+    settleBeforeEvent();
     punctured_ = true;
     pending_track_ = tip_;
     cut_total_m_ = 0.0;
@@ -857,6 +867,7 @@ bool EmbeddedNeedle<Dim>::insertSegment(double target) {
     if (!cutTo(std::max(end, s_))) {
       return false;  // a track point came first
     }
+    settleBeforeEvent();
     // The point(s) at their static limit slip (at least the one nearest to it: progress).
     std::size_t nearest = shaft_.size();
     double nearest_ratio = -1.0;
@@ -900,6 +911,10 @@ bool EmbeddedNeedle<Dim>::cutTo(double target) {
   const double fa = solveAt(s_, &p).tip_force_N;
   const double f_end = solveAt(target, &p).tip_force_N;
   const double s_event = f_end > fb ? crossing(s_, fa, target, f_end, fb) : target;
+  if (locating_) {
+    commit(s_event, &p);  // the state just before the event: the tip at the track point
+    settleBeforeEvent();
+  }
   cut_total_m_ = next_event_cut_m_;
   next_event_cut_m_ += params_.track_spacing_m;
   addTrackPoint(pending_track_);
@@ -968,6 +983,106 @@ bool EmbeddedNeedle<Dim>::retractSegment(double target) {
 }
 
 template <int Dim>
+void EmbeddedNeedle<Dim>::predictWarp(double tip_x) {
+  // The warp of the last move's start and end, valid while the needle inserts in the same
+  // reference; else the history starts again here.
+  const bool valid = tissue_->corotational() && direction_ > 0 && punctured_ &&
+                     warp_before_.size() == warp_.size() &&
+                     warp_before_version_ == reference_version_ &&
+                     reference_version_ == tissue_->referenceVersion() && s_ > s_before_;
+  Eigen::VectorXd now = warp_;
+  const double s_now = s_;
+  if (valid) {
+    const double ratio = std::clamp((tip_x - s_) / (s_ - s_before_), 0.0, kMaxPredictionRatio);
+    warp_ += ratio * (warp_ - warp_before_);
+    commit(s_, nullptr);
+  }
+  warp_before_ = std::move(now);
+  s_before_ = s_now;
+  warp_before_version_ = reference_version_;
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::settle() {
+  while (!settleWarp()) {
+  }
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::settleBeforeEvent() {
+  if (!locating_) {
+    return;
+  }
+  settle();
+  event_warp_ = warp_;
+}
+
+template <int Dim>
+bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
+  if (!tissue_->corotational() || direction_ < 0) {
+    // Linear tissue has no warp. Retraction: its events are located with the warp of the
+    // segment's start (the seeds' tissue points are set; the needle leaves the tissue at rest).
+    const bool done = direction_ > 0 ? insertSegment(target) : retractSegment(target);
+    if (done) {
+      settle();
+    }
+    return done;
+  }
+  // The segment's event (puncture, a track point, stick to slip) and its cut are located with
+  // the warp held fixed; the warp they need is the one of the state just before the event (or
+  // at the segment's end), known only once the segment has been solved. The segment is solved
+  // again from its start on that warp until its end repeats.
+  const EmbeddedNeedle start = *this;
+  Eigen::Matrix<double, Dim + 2, 1> last = Eigen::Matrix<double, Dim + 2, 1>::Zero();
+  double moved = 0.0;
+  for (int round = 0; round <= kMaxRelocations + 1; ++round) {
+    event_warp_.resize(0);
+    locating_ = true;
+    const bool done = insertSegment(target);
+    locating_ = false;
+    const bool event = event_warp_.size() > 0;
+    if (!event) {
+      settle();
+      if (!punctured_) {
+        return done;  // the tip pins its surface point: the state at target holds any warp
+      }
+    }
+    Eigen::Matrix<double, Dim + 2, 1> end;
+    end << s_, tip_.reference_m, cut_total_m_;
+    moved = round > 0 ? (end - last).template lpNorm<Eigen::Infinity>() : 0.0;
+    // The ends alternate when the cut's first root comes and goes with the warp (the tip snaps
+    // through a stretch of tissue): the cut, which only advances, continues to the farther one.
+    const bool snapped = round >= kMaxRelocations && end(1) >= last(1);
+    if (round > 0 && (moved <= kWarpTol_m || snapped)) {
+      if (event && done) {
+        settle();  // the move ends at its event
+      }
+      return done;
+    }
+    last = end;
+    ++info_.relocations;
+    // Back to the segment's start on the warp just found, keeping the counts.
+    Eigen::VectorXd warp = event ? std::move(event_warp_) : std::move(warp_);
+    const EmbeddedNeedleInfo info = info_;
+    const int solves = solves_;
+    const long long total = total_solves_;
+    *this = start;
+    warp_ = std::move(warp);
+    info_ = info;
+    solves_ = solves;
+    total_solves_ = total;
+    if (reference_version_ != tissue_->referenceVersion()) {
+      adoptReference();
+    }
+    commit(s_, nullptr);
+  }
+  throw std::runtime_error(
+      "the events of a move and the corotational warp did not agree: the segment's end still "
+      "moved by " +
+      mm(moved) + " mm after " + std::to_string(kMaxRelocations) + " relocations");
+}
+
+template <int Dim>
 bool EmbeddedNeedle<Dim>::enter(const Lateral& lateral, std::string* why_not) {
   Vector p;
   p(0) = entry_x_m_ + kEntryInset_m;
@@ -1013,6 +1128,7 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
   info_.events = 0;
   info_.corotation_updates = 0;
   info_.rewarps = 0;
+  info_.relocations = 0;
   info_.aim_iterations = 0;
   warp_updates_ = 0;
   solves_ = 0;
@@ -1041,12 +1157,9 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
     commit(s_, nullptr);
   }
   try {
+    predictWarp(tip_x);
     for (int i = 0; i < kMaxEventsPerMove; ++i) {
-      const bool done = direction_ > 0 ? insertSegment(tip_x) : retractSegment(tip_x);
-      // Corotational: at the move's end the segment is solved again until the warp has
-      // converged; events inside the move are located with the warp of its start (the warp
-      // is a second-order part of the displacement, so that lag is far below the tolerance).
-      if (done && settleWarp()) {
+      if (consistentSegment(tip_x)) {
         break;
       }
     }
