@@ -24,6 +24,14 @@ constexpr double kMaxCutTrial_m = 2.5e-4;  // trials grow up to this (a quarter 
 // below the step-halving target (5 um) of the seeds.
 constexpr double kWarpTol_m = 1e-7;
 constexpr int kMaxWarpUpdates = 60;
+// Beyond kMaxWarpUpdates the iteration goes on while the change still halves over every
+// kContractionWindow updates (a slow but steady contraction: at that rate 0.01 mm shrinks to
+// the tolerance in about 10 windows), up to kMaxContractingUpdates (about 10 s CPU at 50k
+// tetrahedra, less than the insertion a refusal discards); a change that no longer shrinks
+// so is a stall or a cycle and refuses the move.
+constexpr std::size_t kContractionWindow = 20;
+constexpr double kContraction = 0.5;
+constexpr int kMaxContractingUpdates = 240;
 // The warped stiffness is re-factored when the last kRewarpProbe updates, extrapolated at their
 // mean rate, predict more than kRewarpBudget further updates (a refactorisation costs about as
 // much as that many updates at 50k tetrahedra), at most kMaxRewarpsPerMove times per move.
@@ -31,11 +39,14 @@ constexpr int kRewarpProbe = 5;
 constexpr double kRewarpBudget = 16.0;
 constexpr int kMaxRewarpsPerMove = 4;
 // Corotational: a segment of a move is solved again from its start on the warp settled where
-// its event happens until its end (tip position, tip's tissue point, cut length) repeats to
-// within kWarpTol_m; each round moves the end by the change of the warp over the segment times
-// a coupling well below one, so a few rounds suffice. Ends still alternating after this many
-// rounds are a cut that snaps through (consistentSegment).
-constexpr int kMaxRelocations = 8;
+// its event happens (or at its end) until a relocation moves its end (tip position, tip's
+// tissue point, cut length) by at most kRelocationTol_m, or this many times. A relocation
+// moves the end by the change of the warp since the last one times a coupling below one, so
+// what remains after a move of kRelocationTol_m is a fraction of it, below the step-halving
+// target (5 um) by a factor of 10 or more; a cut that snaps through (its first root comes and
+// goes with the warp) alternates and takes the last (EmbeddedNeedleInfo::relocation_m).
+constexpr double kRelocationTol_m = 5e-7;
+constexpr int kMaxRelocations = 3;
 // The warp at a move's end is first guessed by extending its change over the last move, for a
 // move up to this many times as long as the last.
 constexpr double kMaxPredictionRatio = 2.0;
@@ -665,13 +676,20 @@ bool EmbeddedNeedle<Dim>::settleWarp() {
     warp_updates_ = 0;
     return true;
   }
-  if (++warp_updates_ > kMaxWarpUpdates) {  // counted since the last rewarp
-    throw std::runtime_error(
-        "the corotational iteration did not converge: the warp still changed by " + mm(change) +
-        " mm after " + std::to_string(kMaxWarpUpdates) + " updates and " +
-        std::to_string(info_.rewarps) + " refactorisations of the warped stiffness");
-  }
   warp_changes_.push_back(change);
+  if (++warp_updates_ > kMaxWarpUpdates) {  // counted since the last rewarp
+    // Still contracting: continue up to kMaxContractingUpdates; else refuse.
+    const std::size_t n = warp_changes_.size();
+    const double before =
+        n > kContractionWindow ? warp_changes_[n - 1 - kContractionWindow] : change;
+    if (!(change <= kContraction * before) || warp_updates_ > kMaxContractingUpdates) {
+      throw std::runtime_error(
+          "the corotational iteration did not converge: the warp still changed by " + mm(change) +
+          " mm after " + std::to_string(warp_updates_) + " updates (" + mm(before) + " mm " +
+          std::to_string(kContractionWindow) + " updates before) and " +
+          std::to_string(info_.rewarps) + " refactorisations of the warped stiffness");
+    }
+  }
   if (slowWarp()) {
     rewarp(u);
     return false;
@@ -1035,7 +1053,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
   const EmbeddedNeedle start = *this;
   Eigen::Matrix<double, Dim + 2, 1> last = Eigen::Matrix<double, Dim + 2, 1>::Zero();
   double moved = 0.0;
-  for (int round = 0; round <= kMaxRelocations + 1; ++round) {
+  for (int round = 0;; ++round) {
     event_warp_.resize(0);
     locating_ = true;
     const bool done = insertSegment(target);
@@ -1050,10 +1068,8 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
     Eigen::Matrix<double, Dim + 2, 1> end;
     end << s_, tip_.reference_m, cut_total_m_;
     moved = round > 0 ? (end - last).template lpNorm<Eigen::Infinity>() : 0.0;
-    // The ends alternate when the cut's first root comes and goes with the warp (the tip snaps
-    // through a stretch of tissue): the cut, which only advances, continues to the farther one.
-    const bool snapped = round >= kMaxRelocations && end(1) >= last(1);
-    if (round > 0 && (moved <= kWarpTol_m || snapped)) {
+    if (round > 0 && (moved <= kRelocationTol_m || round >= kMaxRelocations)) {
+      info_.relocation_m = std::max(info_.relocation_m, moved);
       if (event && done) {
         settle();  // the move ends at its event
       }
@@ -1076,10 +1092,6 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
     }
     commit(s_, nullptr);
   }
-  throw std::runtime_error(
-      "the events of a move and the corotational warp did not agree: the segment's end still "
-      "moved by " +
-      mm(moved) + " mm after " + std::to_string(kMaxRelocations) + " relocations");
 }
 
 template <int Dim>
@@ -1129,6 +1141,7 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
   info_.corotation_updates = 0;
   info_.rewarps = 0;
   info_.relocations = 0;
+  info_.relocation_m = 0.0;
   info_.aim_iterations = 0;
   warp_updates_ = 0;
   solves_ = 0;

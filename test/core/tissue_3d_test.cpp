@@ -609,19 +609,18 @@ TEST(Tissue3dCorotation, ElementsCrushedByThePointTipConverge) {
 }
 
 TEST(Tissue3dCorotation, SoftTissueSeedDoesNotDependOnTheStep) {
-  // Soft tissue: the tip pushes the surface ~10 mm in before puncture, and the warp changes by
-  // tens of micrometres over one step. Events inside a step (the puncture, each track point)
-  // and the step's cut are located on the warp where they happen, so the seed is the same at
-  // 1 mm, 0.5 mm and 0.25 mm steps (located on the warp of the step's start, the puncture
-  // and the cut lag the warp by one step and the seed moved by tens of micrometres).
+  // Soft tissue: the tip pushes the surface ~17 mm in before puncture and the warp changes by
+  // tens of micrometres over one step. The puncture, each track point and the step's cut are
+  // located on the warp where they happen (converged to 0.1 um per update), so the seed is
+  // the same at 1 mm and 0.5 mm steps to within a few times that tolerance. Located on the
+  // warp of the step's start, they lagged the warp by one step and the seed moved by 2.2 um.
   constexpr double kDepth_m = 0.030;
-  Fixture f(softCorotationalScene());
-  const Vector3 a = softImplant(f.model, f.scene, kDepth_m, 1e-3);
-  const Vector3 b = softImplant(f.model, f.scene, kDepth_m, 5e-4);
-  const Vector3 c = softImplant(f.model, f.scene, kDepth_m, 2.5e-4);
-  ASSERT_TRUE(a.allFinite() && b.allFinite() && c.allFinite());
-  EXPECT_LT((a - b).norm(), kStepHalving_m) << (a - b).transpose() * 1e3 << " mm";
-  EXPECT_LT((b - c).norm(), kStepHalving_m) << (b - c).transpose() * 1e3 << " mm";
+  constexpr double kSeedTol_m = 1e-6;  // a tenth of the warp's lag over one step
+  Fixture coarse(softCorotationalScene()), fine(softCorotationalScene());
+  const Vector3 a = softImplant(coarse.model, coarse.scene, kDepth_m, 1e-3);
+  const Vector3 b = softImplant(fine.model, fine.scene, kDepth_m, 5e-4);
+  ASSERT_TRUE(a.allFinite() && b.allFinite());
+  EXPECT_LT((a - b).norm(), kSeedTol_m) << (a - b).transpose() * 1e3 << " mm";
 }
 
 TEST(Tissue3dCorotation, RotationFadesBeyondTheSmallStrainRange) {

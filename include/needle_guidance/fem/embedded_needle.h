@@ -174,7 +174,10 @@ struct EmbeddedNeedleInfo {
   int corotation_updates = 0;  ///< corotational fixed-point updates in the last move
   int rewarps = 0;             ///< warped-stiffness refactorisations in the last move
   int relocations = 0;         ///< corotational: segments solved again on the warp of their events
-  int aim_iterations = 0;      ///< follow_tissue: fixed-point iterations aiming the cut
+  /// corotational: the largest move of a segment's end (tip position, tip's tissue point, cut
+  /// length) by its last relocation [m]
+  double relocation_m = 0.0;
+  int aim_iterations = 0;  ///< follow_tissue: fixed-point iterations aiming the cut
 };
 
 template <int Dim>
@@ -282,8 +285,8 @@ private:
   /// settled at its end; true when target is reached. Corotational insertion: the segment is
   /// solved again from its start on the warp settled just before its event (or at its end)
   /// until its end (tip position, tip's tissue point and cut length) repeats to within the
-  /// warp's tolerance, so the event and the cut are located on the warp where they happen.
-  /// Throws std::runtime_error if the ends do not settle.
+  /// warp's tolerance or once (kMaxRelocations), so the event and the cut are located on the
+  /// warp where they happen.
   bool consistentSegment(double target);
   void commit(double s, const Point_* tip);
   void addTrackPoint(const Point_& p);
