@@ -1050,20 +1050,34 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
   // the warp held fixed; the warp they need is the one of the state just before the event (or
   // at the segment's end), known only once the segment has been solved. The segment is solved
   // again from its start on that warp until its end repeats.
+  // A relocation whose warp does not converge keeps the segment located before it.
   const EmbeddedNeedle start = *this;
+  std::unique_ptr<EmbeddedNeedle> located;
+  Eigen::VectorXd located_u;
+  bool located_done = false;
   Eigen::Matrix<double, Dim + 2, 1> last = Eigen::Matrix<double, Dim + 2, 1>::Zero();
   double moved = 0.0;
   for (int round = 0;; ++round) {
     event_warp_.resize(0);
-    locating_ = true;
-    const bool done = insertSegment(target);
-    locating_ = false;
-    const bool event = event_warp_.size() > 0;
-    if (!event) {
-      settle();
-      if (!punctured_) {
-        return done;  // the tip pins its surface point: the state at target holds any warp
+    bool done = false;
+    try {
+      locating_ = true;
+      done = insertSegment(target);
+      locating_ = false;
+      if (event_warp_.size() == 0) {
+        settle();
       }
+    } catch (const std::runtime_error&) {
+      locating_ = false;
+      if (!located) {
+        throw;
+      }
+      restoreState(*located, &located_u);
+      return located_done;
+    }
+    const bool event = event_warp_.size() > 0;
+    if (!event && !punctured_) {
+      return done;  // the tip pins its surface point: the state at target holds any warp
     }
     Eigen::Matrix<double, Dim + 2, 1> end;
     end << s_, tip_.reference_m, cut_total_m_;
@@ -1077,21 +1091,34 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
     }
     last = end;
     ++info_.relocations;
-    // Back to the segment's start on the warp just found, keeping the counts.
+    located = std::make_unique<EmbeddedNeedle>(*this);
+    located_u = displacementField();
+    located_done = done;
+    // Back to the segment's start on the warp just found.
     Eigen::VectorXd warp = event ? std::move(event_warp_) : std::move(warp_);
-    const EmbeddedNeedleInfo info = info_;
-    const int solves = solves_;
-    const long long total = total_solves_;
-    *this = start;
+    restoreState(start, nullptr);
     warp_ = std::move(warp);
-    info_ = info;
-    solves_ = solves;
-    total_solves_ = total;
-    if (reference_version_ != tissue_->referenceVersion()) {
-      adoptReference();
-    }
     commit(s_, nullptr);
   }
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::restoreState(const EmbeddedNeedle& from, const Eigen::VectorXd* u) {
+  const EmbeddedNeedleInfo info = info_;
+  const int solves = solves_;
+  const long long total = total_solves_;
+  *this = from;
+  info_ = info;
+  solves_ = solves;
+  total_solves_ = total;
+  if (reference_version_ != tissue_->referenceVersion()) {
+    adoptReference();
+    if (u) {  // the same displacement on the new reference: u = G f + warp
+      warp_.setZero();
+      warp_ = *u - displacementField();
+    }
+  }
+  commit(s_, nullptr);
 }
 
 template <int Dim>

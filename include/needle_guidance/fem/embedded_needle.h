@@ -288,6 +288,9 @@ private:
   /// warp's tolerance or once (kMaxRelocations), so the event and the cut are located on the
   /// warp where they happen.
   bool consistentSegment(double target);
+  /// Back to an earlier state of this needle, keeping the counts of the move; u: that state's
+  /// displacement, to express its warp on the tissue's reference if that changed since.
+  void restoreState(const EmbeddedNeedle& from, const Eigen::VectorXd* u);
   void commit(double s, const Point_* tip);
   void addTrackPoint(const Point_& p);
   void releaseShaftPoint(std::size_t k);
