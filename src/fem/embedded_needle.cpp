@@ -1064,8 +1064,10 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
       locating_ = true;
       done = insertSegment(target);
       locating_ = false;
-      if (event_warp_.size() == 0) {
-        settle();
+      while (event_warp_.size() == 0 && !settleWarp()) {
+        if (!punctured_) {
+          insertSegment(s_);  // the tip force against f_b on the updated warp: it may puncture
+        }
       }
     } catch (const std::runtime_error&) {
       locating_ = false;
