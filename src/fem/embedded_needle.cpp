@@ -1065,9 +1065,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
       done = insertSegment(target);
       locating_ = false;
       while (event_warp_.size() == 0 && !settleWarp()) {
-        if (!punctured_) {
-          insertSegment(s_);  // the tip force against f_b on the updated warp: it may puncture
-        }
+        insertSegment(s_);  // the tip force against f_b on the updated warp: puncture, cut
       }
     } catch (const std::runtime_error&) {
       locating_ = false;
