@@ -1031,8 +1031,21 @@ void EmbeddedNeedle<Dim>::settleBeforeEvent() {
   if (!locating_) {
     return;
   }
-  settle();
-  event_warp_ = warp_;
+  const Eigen::VectorXd u = displacementField();
+  try {
+    settle();
+    event_warp_ = warp_;
+  } catch (const std::runtime_error&) {
+    // No converging warp in the state just before the event (the crushed tissue under a tip
+    // about to puncture): the event stays located on the warp the segment started from,
+    // expressed on the current factor.
+    warp_.setZero();
+    warp_ = u - displacementField();
+    warp_updates_ = 0;
+    warp_mixer_.reset();
+    warp_changes_.clear();
+    commit(s_, nullptr);
+  }
 }
 
 template <int Dim>
