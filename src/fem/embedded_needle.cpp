@@ -24,12 +24,32 @@ constexpr double kMaxCutTrial_m = 2.5e-4;  // trials grow up to this (a quarter 
 // below the step-halving target (5 um) of the seeds.
 constexpr double kWarpTol_m = 1e-7;
 constexpr int kMaxWarpUpdates = 60;
+// Beyond kMaxWarpUpdates the iteration goes on while the change still halves over every
+// kContractionWindow updates (a slow but steady contraction: at that rate 0.01 mm shrinks to
+// the tolerance in about 10 windows), up to kMaxContractingUpdates (about 10 s CPU at 50k
+// tetrahedra, less than the insertion a refusal discards); a change that no longer shrinks
+// so is a stall or a cycle and refuses the move.
+constexpr std::size_t kContractionWindow = 20;
+constexpr double kContraction = 0.5;
+constexpr int kMaxContractingUpdates = 240;
 // The warped stiffness is re-factored when the last kRewarpProbe updates, extrapolated at their
 // mean rate, predict more than kRewarpBudget further updates (a refactorisation costs about as
 // much as that many updates at 50k tetrahedra), at most kMaxRewarpsPerMove times per move.
 constexpr int kRewarpProbe = 5;
 constexpr double kRewarpBudget = 16.0;
 constexpr int kMaxRewarpsPerMove = 4;
+// Corotational: a segment of a move is solved again from its start on the warp settled where
+// its event happens (or at its end) until a relocation moves its end (tip position, tip's
+// tissue point, cut length) by at most kRelocationTol_m, or this many times. A relocation
+// moves the end by the change of the warp since the last one times a coupling below one, so
+// what remains after a move of kRelocationTol_m is a fraction of it, below the step-halving
+// target (5 um) by a factor of 10 or more; a cut that snaps through (its first root comes and
+// goes with the warp) alternates and takes the last (EmbeddedNeedleInfo::relocation_m).
+constexpr double kRelocationTol_m = 5e-7;
+constexpr int kMaxRelocations = 3;
+// The warp at a move's end is first guessed by extending its change over the last move, for a
+// move up to this many times as long as the last.
+constexpr double kMaxPredictionRatio = 2.0;
 // After a rewarp the compliance columns are solved again in one batch along the needle line up
 // to this far beyond the tip, the rest as the tip gets there.
 constexpr double kRewarpPrefetch_m = 5e-3;
@@ -656,13 +676,20 @@ bool EmbeddedNeedle<Dim>::settleWarp() {
     warp_updates_ = 0;
     return true;
   }
-  if (++warp_updates_ > kMaxWarpUpdates) {  // counted since the last rewarp
-    throw std::runtime_error(
-        "the corotational iteration did not converge: the warp still changed by " + mm(change) +
-        " mm after " + std::to_string(kMaxWarpUpdates) + " updates and " +
-        std::to_string(info_.rewarps) + " refactorisations of the warped stiffness");
-  }
   warp_changes_.push_back(change);
+  if (++warp_updates_ > kMaxWarpUpdates) {  // counted since the last rewarp
+    // Still contracting: continue up to kMaxContractingUpdates; else refuse.
+    const std::size_t n = warp_changes_.size();
+    const double before =
+        n > kContractionWindow ? warp_changes_[n - 1 - kContractionWindow] : change;
+    if (!(change <= kContraction * before) || warp_updates_ > kMaxContractingUpdates) {
+      throw std::runtime_error(
+          "the corotational iteration did not converge: the warp still changed by " + mm(change) +
+          " mm after " + std::to_string(warp_updates_) + " updates (" + mm(before) + " mm " +
+          std::to_string(kContractionWindow) + " updates before) and " +
+          std::to_string(info_.rewarps) + " refactorisations of the warped stiffness");
+    }
+  }
   if (slowWarp()) {
     rewarp(u);
     return false;
@@ -842,6 +869,7 @@ bool EmbeddedNeedle<Dim>::insertSegment(double target) {
       return true;
     }
     commit(crossing(s_, fa, target, f_end, fb), nullptr);
+    settleBeforeEvent();
     punctured_ = true;
     pending_track_ = tip_;
     cut_total_m_ = 0.0;
@@ -857,6 +885,7 @@ bool EmbeddedNeedle<Dim>::insertSegment(double target) {
     if (!cutTo(std::max(end, s_))) {
       return false;  // a track point came first
     }
+    settleBeforeEvent();
     // The point(s) at their static limit slip (at least the one nearest to it: progress).
     std::size_t nearest = shaft_.size();
     double nearest_ratio = -1.0;
@@ -900,6 +929,10 @@ bool EmbeddedNeedle<Dim>::cutTo(double target) {
   const double fa = solveAt(s_, &p).tip_force_N;
   const double f_end = solveAt(target, &p).tip_force_N;
   const double s_event = f_end > fb ? crossing(s_, fa, target, f_end, fb) : target;
+  if (locating_) {
+    commit(s_event, &p);  // the state just before the event: the tip at the track point
+    settleBeforeEvent();
+  }
   cut_total_m_ = next_event_cut_m_;
   next_event_cut_m_ += params_.track_spacing_m;
   addTrackPoint(pending_track_);
@@ -968,6 +1001,140 @@ bool EmbeddedNeedle<Dim>::retractSegment(double target) {
 }
 
 template <int Dim>
+void EmbeddedNeedle<Dim>::predictWarp(double tip_x) {
+  // The warp of the last move's start and end, valid while the needle inserts in the same
+  // reference; else the history starts again here.
+  const bool valid = tissue_->corotational() && direction_ > 0 && punctured_ &&
+                     warp_before_.size() == warp_.size() &&
+                     warp_before_version_ == reference_version_ &&
+                     reference_version_ == tissue_->referenceVersion() && s_ > s_before_;
+  Eigen::VectorXd now = warp_;
+  const double s_now = s_;
+  if (valid) {
+    const double ratio = std::clamp((tip_x - s_) / (s_ - s_before_), 0.0, kMaxPredictionRatio);
+    warp_ += ratio * (warp_ - warp_before_);
+    commit(s_, nullptr);
+  }
+  warp_before_ = std::move(now);
+  s_before_ = s_now;
+  warp_before_version_ = reference_version_;
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::settle() {
+  while (!settleWarp()) {
+  }
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::settleBeforeEvent() {
+  if (!locating_) {
+    return;
+  }
+  const Eigen::VectorXd u = displacementField();
+  try {
+    settle();
+    event_warp_ = warp_;
+  } catch (const std::runtime_error&) {
+    // No converging warp in the state just before the event (the crushed tissue under a tip
+    // about to puncture): the event stays located on the warp the segment started from,
+    // expressed on the current factor.
+    warp_.setZero();
+    warp_ = u - displacementField();
+    warp_updates_ = 0;
+    warp_mixer_.reset();
+    warp_changes_.clear();
+    commit(s_, nullptr);
+  }
+}
+
+template <int Dim>
+bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
+  if (!tissue_->corotational() || direction_ < 0) {
+    // Linear tissue has no warp. Retraction: its events are located with the warp of the
+    // segment's start (the seeds' tissue points are set; the needle leaves the tissue at rest).
+    const bool done = direction_ > 0 ? insertSegment(target) : retractSegment(target);
+    if (done) {
+      settle();
+    }
+    return done;
+  }
+  // The segment's event (puncture, a track point, stick to slip) and its cut are located with
+  // the warp held fixed; the warp they need is the one of the state just before the event (or
+  // at the segment's end), known only once the segment has been solved. The segment is solved
+  // again from its start on that warp until its end repeats.
+  // A relocation whose warp does not converge keeps the segment located before it.
+  const EmbeddedNeedle start = *this;
+  std::unique_ptr<EmbeddedNeedle> located;
+  Eigen::VectorXd located_u;
+  bool located_done = false;
+  Eigen::Matrix<double, Dim + 2, 1> last = Eigen::Matrix<double, Dim + 2, 1>::Zero();
+  double moved = 0.0;
+  for (int round = 0;; ++round) {
+    event_warp_.resize(0);
+    bool done = false;
+    try {
+      locating_ = true;
+      done = insertSegment(target);
+      locating_ = false;
+      while (event_warp_.size() == 0 && !settleWarp()) {
+        insertSegment(s_);  // the tip force against f_b on the updated warp: puncture, cut
+      }
+    } catch (const std::runtime_error&) {
+      locating_ = false;
+      if (!located) {
+        throw;
+      }
+      restoreState(*located, &located_u);
+      return located_done;
+    }
+    const bool event = event_warp_.size() > 0;
+    if (!event && !punctured_) {
+      return done;  // the tip pins its surface point: the state at target holds any warp
+    }
+    Eigen::Matrix<double, Dim + 2, 1> end;
+    end << s_, tip_.reference_m, cut_total_m_;
+    moved = round > 0 ? (end - last).template lpNorm<Eigen::Infinity>() : 0.0;
+    if (round > 0 && (moved <= kRelocationTol_m || round >= kMaxRelocations)) {
+      info_.relocation_m = std::max(info_.relocation_m, moved);
+      if (event && done) {
+        settle();  // the move ends at its event
+      }
+      return done;
+    }
+    last = end;
+    ++info_.relocations;
+    located = std::make_unique<EmbeddedNeedle>(*this);
+    located_u = displacementField();
+    located_done = done;
+    // Back to the segment's start on the warp just found.
+    Eigen::VectorXd warp = event ? std::move(event_warp_) : std::move(warp_);
+    restoreState(start, nullptr);
+    warp_ = std::move(warp);
+    commit(s_, nullptr);
+  }
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::restoreState(const EmbeddedNeedle& from, const Eigen::VectorXd* u) {
+  const EmbeddedNeedleInfo info = info_;
+  const int solves = solves_;
+  const long long total = total_solves_;
+  *this = from;
+  info_ = info;
+  solves_ = solves;
+  total_solves_ = total;
+  if (reference_version_ != tissue_->referenceVersion()) {
+    adoptReference();
+    if (u) {  // the same displacement on the new reference: u = G f + warp
+      warp_.setZero();
+      warp_ = *u - displacementField();
+    }
+  }
+  commit(s_, nullptr);
+}
+
+template <int Dim>
 bool EmbeddedNeedle<Dim>::enter(const Lateral& lateral, std::string* why_not) {
   Vector p;
   p(0) = entry_x_m_ + kEntryInset_m;
@@ -1013,6 +1180,8 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
   info_.events = 0;
   info_.corotation_updates = 0;
   info_.rewarps = 0;
+  info_.relocations = 0;
+  info_.relocation_m = 0.0;
   info_.aim_iterations = 0;
   warp_updates_ = 0;
   solves_ = 0;
@@ -1041,12 +1210,9 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
     commit(s_, nullptr);
   }
   try {
+    predictWarp(tip_x);
     for (int i = 0; i < kMaxEventsPerMove; ++i) {
-      const bool done = direction_ > 0 ? insertSegment(tip_x) : retractSegment(tip_x);
-      // Corotational: at the move's end the segment is solved again until the warp has
-      // converged; events inside the move are located with the warp of its start (the warp
-      // is a second-order part of the displacement, so that lag is far below the tolerance).
-      if (done && settleWarp()) {
+      if (consistentSegment(tip_x)) {
         break;
       }
     }

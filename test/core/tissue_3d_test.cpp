@@ -542,6 +542,41 @@ TEST(Tissue3dCorotation, HalvingTheStepMovesNoSeed) {
   EXPECT_TRUE(a.allFinite() && b.allFinite());
 }
 
+/// The soft (5 kPa) corotational block of the test scene with a point tip, meshed 2 mm fine.
+TissueScene3d softCorotationalScene() {
+  std::string text = testBlock("soft") + testNeedleStageMesh("", "2") +
+                     "targets:\n  - {name: t, position_mm: [30, 1, 2]}\n"
+                     "tissue: {model: corotational}\n";
+  text.replace(text.find("young_modulus_kPa: 20"), 21, "young_modulus_kPa: 5");
+  return parseTissueScene3d(text, "soft.yaml", ".");
+}
+
+/// Inserts to depth_m in steps of step_m, releases a seed, retracts at the same step; the seed's
+/// world position (NaN and a test failure if a move is refused).
+Vector3 softImplant(TissueModel3& model, const TissueScene3d& scene, double depth_m,
+                    double step_m) {
+  const Eigen::Vector2d lateral(1e-3, 2e-3);
+  NeedleInsertion3 needle(model, scene.needle, 0.0, 0.04);
+  std::string why;
+  for (double s = -step_m; s < depth_m - 1e-12;) {
+    s = std::min(s + step_m, depth_m);
+    if (!needle.moveTo(lateral, s, &why)) {
+      ADD_FAILURE() << "insertion at " << s * 1e3 << " mm, step " << step_m * 1e3 << " mm: " << why;
+      return Vector3::Constant(std::nan(""));
+    }
+  }
+  const int seed = needle.implantSeed().value();
+  for (double s = depth_m; s > -step_m;) {
+    s -= step_m;
+    if (!needle.moveTo(lateral, s, &why)) {
+      ADD_FAILURE() << "retraction at " << s * 1e3 << " mm, step " << step_m * 1e3
+                    << " mm: " << why;
+      return Vector3::Constant(std::nan(""));
+    }
+  }
+  return needle.seedWorld(seed);
+}
+
 TEST(Tissue3dCorotation, ElementsCrushedByThePointTipConverge) {
   // Soft tissue (5 kPa) and a point tip: before puncture the tip pushes the surface ~10 mm in,
   // and the elements at the tip are crushed and inverted (Green strains of several hundred
@@ -549,11 +584,7 @@ TEST(Tissue3dCorotation, ElementsCrushedByThePointTipConverge) {
   // small-strain range an element's rotation now fades to none (fem::elementRotation), and
   // the insertion converges at every step.
   constexpr double kDepth_m = 0.030, kStep_m = 5e-4;
-  std::string text = testBlock("soft") + testNeedleStageMesh("", "2") +
-                     "targets:\n  - {name: t, position_mm: [30, 1, 2]}\n"
-                     "tissue: {model: corotational}\n";
-  text.replace(text.find("young_modulus_kPa: 20"), 21, "young_modulus_kPa: 5");
-  Fixture f(parseTissueScene3d(text, "soft.yaml", "."));
+  Fixture f(softCorotationalScene());
   ASSERT_TRUE(f.model.corotational());
   TissueModel3& model = f.model;
   NeedleInsertion3 needle(model, f.scene.needle, 0.0, 0.04);
@@ -575,6 +606,21 @@ TEST(Tissue3dCorotation, ElementsCrushedByThePointTipConverge) {
   EXPECT_LT(needle.displacementField().lpNorm<Eigen::Infinity>(), kWarpRelaxed_m);
   // The compression ahead of the soft tissue's tip: the seed lags the tip by millimetres.
   EXPECT_LT(x.x(), kDepth_m - 1e-3);
+}
+
+TEST(Tissue3dCorotation, SoftTissueSeedDoesNotDependOnTheStep) {
+  // Soft tissue: the tip pushes the surface ~17 mm in before puncture and the warp changes by
+  // tens of micrometres over one step. The puncture, each track point and the step's cut are
+  // located on the warp where they happen (converged to 0.1 um per update), so the seed is
+  // the same at 1 mm and 0.5 mm steps to within a few times that tolerance. Located on the
+  // warp of the step's start, they lagged the warp by one step and the seed moved by 2.2 um.
+  constexpr double kDepth_m = 0.030;
+  constexpr double kSeedTol_m = 1e-6;  // a tenth of the warp's lag over one step
+  Fixture coarse(softCorotationalScene()), fine(softCorotationalScene());
+  const Vector3 a = softImplant(coarse.model, coarse.scene, kDepth_m, 1e-3);
+  const Vector3 b = softImplant(fine.model, fine.scene, kDepth_m, 5e-4);
+  ASSERT_TRUE(a.allFinite() && b.allFinite());
+  EXPECT_LT((a - b).norm(), kSeedTol_m) << (a - b).transpose() * 1e3 << " mm";
 }
 
 TEST(Tissue3dCorotation, RotationFadesBeyondTheSmallStrainRange) {

@@ -173,7 +173,11 @@ struct EmbeddedNeedleInfo {
   int solves = 0;              ///< condensed solves in the last move
   int corotation_updates = 0;  ///< corotational fixed-point updates in the last move
   int rewarps = 0;             ///< warped-stiffness refactorisations in the last move
-  int aim_iterations = 0;      ///< follow_tissue: fixed-point iterations aiming the cut
+  int relocations = 0;         ///< corotational: segments solved again on the warp of their events
+  /// corotational: the largest move of a segment's end (tip position, tip's tissue point, cut
+  /// length) by its last relocation [m]
+  double relocation_m = 0.0;
+  int aim_iterations = 0;  ///< follow_tissue: fixed-point iterations aiming the cut
 };
 
 template <int Dim>
@@ -268,6 +272,25 @@ private:
   /// Tip x where a stuck point first slips on the way to target (target if none does).
   double firstSlip(double target) const;
   bool retractSegment(double target);
+  /// Corotational insertion: the first guess of the warp for a move to tip_x, the warp of its
+  /// start extended along its change over the last move (the converged answer does not depend
+  /// on it; a close guess saves updates and relocations).
+  void predictWarp(double tip_x);
+  /// settleWarp until the warp has converged at the committed state.
+  void settle();
+  /// While a segment is located (consistentSegment): the warp settled at the committed state,
+  /// the one just before an event, kept in event_warp_.
+  void settleBeforeEvent();
+  /// One segment of a move towards target (insertSegment or retractSegment) with the warp
+  /// settled at its end; true when target is reached. Corotational insertion: the segment is
+  /// solved again from its start on the warp settled just before its event (or at its end)
+  /// until its end (tip position, tip's tissue point and cut length) repeats to within the
+  /// warp's tolerance or once (kMaxRelocations), so the event and the cut are located on the
+  /// warp where they happen.
+  bool consistentSegment(double target);
+  /// Back to an earlier state of this needle, keeping the counts of the move; u: that state's
+  /// displacement, to express its warp on the tissue's reference if that changed since.
+  void restoreState(const EmbeddedNeedle& from, const Eigen::VectorXd* u);
   void commit(double s, const Point_* tip);
   void addTrackPoint(const Point_& p);
   void releaseShaftPoint(std::size_t k);
@@ -325,6 +348,11 @@ private:
   AndersonAcceleration warp_mixer_;
   std::vector<double> warp_changes_;  ///< changes of the updates since the last reference change
   int reference_version_ = 0;         ///< the tissue's reference the compliance data came from
+  bool locating_ = false;             ///< consistentSegment is locating a segment
+  Eigen::VectorXd event_warp_;        ///< the warp settled just before the segment's event
+  Eigen::VectorXd warp_before_;       ///< the warp at the start of the last move
+  double s_before_ = 0.0;             ///< the tip x at the start of the last move
+  int warp_before_version_ = -1;      ///< the reference warp_before_ belongs to
 };
 
 }  // namespace needle_guidance::fem
