@@ -238,6 +238,19 @@ TEST(ConvexTracking, PriorsPickTheNeedleOverADecoyAndOrientIt) {
 struct JustInserted {
   std::vector<cv::Mat> frames;
   std::vector<cv::Point2d> tips;
+
+  /// Renders the first frame of `c` with at least `inserted_px` of the needle in view (its
+  /// last frame if none has), with its true tip.
+  void addFirstFrameWith(const im::ConvexInsertion& c, double inserted_px) {
+    int f = 0;
+    while (f + 1 < c.frames && c.visibleLength(f) < inserted_px)
+      ++f;
+    cv::Point2d tip;
+    double angle = 0.0;
+    const std::vector<cv::Point2d> pts = c.needleAt(f, &tip, &angle);
+    frames.push_back(im::renderConvexFrame(c.scene(), c.size, pts, std::uint64_t(f)));
+    tips.push_back(tip);
+  }
 };
 
 JustInserted justInserted(double inserted_px, double layer_amplitude = 0.0) {
@@ -253,14 +266,7 @@ JustInserted justInserted(double inserted_px, double layer_amplitude = 0.0) {
       c.layer_amplitude = layer_amplitude;
       c.layers = 3;
     }
-    int f = 0;
-    while (f + 1 < c.frames && c.visibleLength(f) < inserted_px)
-      ++f;
-    cv::Point2d tip;
-    double angle = 0.0;
-    const std::vector<cv::Point2d> pts = c.needleAt(f, &tip, &angle);
-    j.frames.push_back(im::renderConvexFrame(c.scene(), c.size, pts, std::uint64_t(f)));
-    j.tips.push_back(tip);
+    j.addFirstFrameWith(c, inserted_px);
   }
   return j;
 }
@@ -364,14 +370,7 @@ JustInserted shallowEntries(const std::vector<ShallowEntry>& cases, double inser
     im::ConvexInsertion c = shallowInsertion(k);
     c.start_px = 20.0;
     c.step_px = 4.0;
-    int f = 0;
-    while (f + 1 < c.frames && c.visibleLength(f) < inserted_px)
-      ++f;
-    cv::Point2d tip;
-    double angle = 0.0;
-    const std::vector<cv::Point2d> pts = c.needleAt(f, &tip, &angle);
-    j.frames.push_back(im::renderConvexFrame(c.scene(), c.size, pts, std::uint64_t(f)));
-    j.tips.push_back(tip);
+    j.addFirstFrameWith(c, inserted_px);
   }
   return j;
 }
