@@ -76,6 +76,15 @@ std::string ordinal(int n) {
   return std::to_string(n) + suffix;
 }
 
+/// The binomial standard error of a Monte Carlo's rate at that rate (NaN without trials).
+double rateStandardError(const MonteCarloResult& mc) {
+  if (mc.trials < 1) {
+    return std::numeric_limits<double>::quiet_NaN();
+  }
+  const double r = mc.rate();
+  return std::sqrt(r * (1.0 - r) / double(mc.trials));
+}
+
 }  // namespace
 
 bool predictionConfirmed(double predicted, double rate, std::int64_t trials, double tolerance,
@@ -110,9 +119,7 @@ bool verificationConfirms(double predicted, const MonteCarloResult& mc, double t
   if (mc.trials < 1 || !std::isfinite(predicted) || !std::isfinite(tolerance)) {
     return false;
   }
-  const double r = mc.rate();
-  const double se = std::sqrt(r * (1.0 - r) / double(mc.trials));
-  return std::abs(predicted - r) + z * se <= tolerance;
+  return std::abs(predicted - mc.rate()) + z * rateStandardError(mc) <= tolerance;
 }
 
 std::int64_t verificationCap(double rate, double tolerance, double z, std::int64_t first,
@@ -126,11 +133,7 @@ std::int64_t verificationCap(double rate, double tolerance, double z, std::int64
 }
 
 double VerifiedStart::standardError() const {
-  if (verification.trials < 1) {
-    return std::numeric_limits<double>::quiet_NaN();
-  }
-  const double r = verification.rate();
-  return std::sqrt(r * (1.0 - r) / double(verification.trials));
+  return rateStandardError(verification);
 }
 
 std::string VerifiedStart::toString() const {
