@@ -715,11 +715,16 @@ bool EmbeddedNeedle<Dim>::slowWarp() const {
 }
 
 template <int Dim>
+void EmbeddedNeedle<Dim>::holdDisplacement(const Eigen::VectorXd& u) {
+  warp_.setZero();
+  warp_ = u - displacementField();  // u = G f + warp on the current compliance
+}
+
+template <int Dim>
 void EmbeddedNeedle<Dim>::rewarp(const Eigen::VectorXd& u) {
   tissue_->warpReference(u);
   adoptReference();
-  warp_.setZero();
-  warp_ = u - displacementField();  // u = G f + warp on the new compliance
+  holdDisplacement(u);
   commit(s_, nullptr);
   warp_mixer_.reset();
   warp_changes_.clear();
@@ -1039,8 +1044,7 @@ void EmbeddedNeedle<Dim>::settleBeforeEvent() {
     // No converging warp in the state just before the event (the crushed tissue under a tip
     // about to puncture): the event stays located on the warp the segment started from,
     // expressed on the current factor.
-    warp_.setZero();
-    warp_ = u - displacementField();
+    holdDisplacement(u);
     warp_updates_ = 0;
     warp_mixer_.reset();
     warp_changes_.clear();
@@ -1127,8 +1131,7 @@ void EmbeddedNeedle<Dim>::restoreState(const EmbeddedNeedle& from, const Eigen::
   if (reference_version_ != tissue_->referenceVersion()) {
     adoptReference();
     if (u) {  // the same displacement on the new reference: u = G f + warp
-      warp_.setZero();
-      warp_ = *u - displacementField();
+      holdDisplacement(*u);
     }
   }
   commit(s_, nullptr);

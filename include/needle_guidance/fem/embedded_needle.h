@@ -316,6 +316,9 @@ private:
   /// Re-factors the tissue's warped stiffness at displacement u (the current state) and
   /// expresses the state on it: u = G f + warp with the new compliance G.
   void rewarp(const Eigen::VectorXd& u);
+  /// Sets the warp so that the needle's state, solved on the current compliance, has the tissue
+  /// displacement u (u = G f + warp); the caller commits the state.
+  void holdDisplacement(const Eigen::VectorXd& u);
   /// Rebuilds what the needle derived from the tissue's compliance (the columns along its line
   /// and the shaft's condensed compliance) after the reference changed.
   void adoptReference();
