@@ -242,9 +242,9 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
     }
   }
   if (!kept->punctured() && step_scale > 1.0) {
-    // The tip's tissue point reaches the goal in the move that punctures: the puncture is
-    // located with the warp of the move's start, which a longer move makes coarser than the
-    // scene's step, and the seed there depends on it.
+    // The tip's tissue point reaches the goal in the move that punctures: with moves longer
+    // than the scene's step the puncture was measured to depend on the move's length (a very
+    // soft block, docs/tissue_3d.md "Longer moves, measured"), and the seed there with it.
     r.simulation_cpu_s += clock.seconds();
     throw std::runtime_error("the target is reached in the move that punctures");
   }
