@@ -314,6 +314,10 @@ std::string SteerableReport::summaryJson() const {
        << (start.verification_trials > 0 && !start.confirmed ? "verification" : "model") << "\""
        << ",\n  \"reported_gap_mc\": "
        << jsonNumber(std::abs(start.reportedPs() - monte_carlo.rate()))
+       << ",\n  \"reported_confirmed_by_mc\": "
+       << (start.reportedAgreesWith(monte_carlo, steering::verificationTolerance(problem))
+               ? "true"
+               : "false")
        << ",\n  \"predicted_ps\": " << jsonNumber(start.predicted_ps)
        << ",\n  \"predicted_within_ci\": " << (ci.contains(start.predicted_ps) ? "true" : "false")
        << ",\n  \"monte_carlo_ps\": " << jsonNumber(monte_carlo.rate())
@@ -408,7 +412,12 @@ std::string SteerableReport::summaryMarkdown() const {
 }
 
 bool SteerableStart::confirmedBy(const steering::MonteCarloResult& mc, double tolerance) const {
-  return steering::predictionConfirmed(predicted_ps, mc.rate(), mc.trials, tolerance);
+  return steering::verificationConfirms(predicted_ps, mc, tolerance);
+}
+
+bool SteerableStart::reportedAgreesWith(const steering::MonteCarloResult& mc,
+                                        double tolerance) const {
+  return mc.trials > 0 && std::abs(reportedPs() - mc.rate()) <= tolerance;
 }
 
 std::string SteerableReport::text() const {
@@ -423,7 +432,10 @@ std::string SteerableReport::text() const {
       << monte_carlo.rate() << " over " << monte_carlo.trials << " trials: reported "
       << std::abs(start.reportedPs() - monte_carlo.rate()) << " and predicted "
       << std::abs(start.predicted_ps - monte_carlo.rate()) << " from it (tolerance "
-      << steering::verificationTolerance(problem)
+      << steering::verificationTolerance(problem) << ": the reported P_s "
+      << (start.reportedAgreesWith(monte_carlo, steering::verificationTolerance(problem))
+              ? "confirmed"
+              : "NOT confirmed")
       << ") ==\nstart y = " << start.pose.p_SceneTip.y() * kMm
       << " mm, theta = " << start.pose.theta_rad * kDeg << " deg, bevel "
       << steering::toString(start.pose.bevel) << "; " << wall_time_s << " s\n"

@@ -1,6 +1,7 @@
 // The closed-loop steerable-needle trials (see steerable_trials.h; dissertation 5.5).
 #include "needle_guidance/procedures/steerable_trials.h"
 #include "needle_guidance/math.h"
+#include "needle_guidance/steering/start_verification.h"
 
 #include <chrono>
 #include <cmath>
@@ -192,11 +193,18 @@ SteerableReport SteerableTrials::run(SteerableDevices& devices, const SteerableS
 
   // The same start in the core simulator (continuous needle, same policy table) and the P_s
   // map of figure 5.7.
-  rep.monte_carlo = steering::runMonteCarlo(world_, start.pose, steering::tablePolicy(table_),
-                                            kMonteCarloTrials, kMonteCarloSeed, 2);
+  rep.monte_carlo = steering::runMonteCarlo(
+      world_, start.pose, steering::tablePolicy(table_),
+      monteCarloTrials(start.reportedPs(), steering::verificationTolerance(problem_)),
+      kMonteCarloSeed, 2);
   rep.ps_map = table_.startCandidates(starts_);
   rep.wall_time_s = secondsSince(t0);
   return rep;
+}
+
+std::int64_t SteerableTrials::monteCarloTrials(double ps, double tolerance) {
+  return steering::verificationCap(ps, tolerance, steering::StartVerificationOptions{}.z,
+                                   kMinMonteCarloTrials, kMaxMonteCarloTrials);
 }
 
 }  // namespace needle_guidance::procedures
@@ -233,8 +241,9 @@ void SteerableReport::addTablesUsed(const std::vector<steering::TableUsed>& used
       t.monte_carlo = monte_carlo;  // the run's own table: the same seeded trials as the headline
     } else {
       const steering::ContinuousWorkspace world(u.policy->model->problem());
-      t.monte_carlo = steering::runMonteCarlo(world, start.pose, steering::tablePolicy(table),
-                                              SteerableTrials::kMonteCarloTrials,
+      const std::int64_t n = SteerableTrials::monteCarloTrials(
+          t.predicted_ps, steering::verificationTolerance(problem));
+      t.monte_carlo = steering::runMonteCarlo(world, start.pose, steering::tablePolicy(table), n,
                                               SteerableTrials::kMonteCarloSeed, 2);
     }
     tables.push_back(std::move(t));

@@ -224,6 +224,15 @@ TEST(SteerableTrials, EachTableThatAnsweredPredictsItsOwnTrials) {
       << rep.summaryJson();
 }
 
+TEST(SteerableTrials, TheReportsMonteCarloResolvesTheTolerance) {
+  // 1.96 SE <= tolerance / 2 at the P_s: n = ceil(1.96^2 p (1 - p) / (tolerance / 2)^2).
+  EXPECT_EQ(SteerableTrials::monteCarloTrials(0.5, 0.01), 38415);
+  EXPECT_EQ(SteerableTrials::monteCarloTrials(0.58, 0.005), 149725);
+  // Never fewer than the minimum (a P_s near 1 needs few), never more than the limit.
+  EXPECT_EQ(SteerableTrials::monteCarloTrials(0.999, 0.01), SteerableTrials::kMinMonteCarloTrials);
+  EXPECT_EQ(SteerableTrials::monteCarloTrials(0.5, 0.001), SteerableTrials::kMaxMonteCarloTrials);
+}
+
 TEST(SteerableTrials, BadSettingsAreRefused) {
   Fixture f;
   SteerableSettings s;

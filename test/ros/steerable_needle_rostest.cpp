@@ -52,6 +52,14 @@ TEST(SteerableNeedle, TrialsRunToAnOutcomeAndTheReportMatchesTheScene) {
       << *text;
   EXPECT_NE(text->find("\"start_confirmed_by_policy\": "), std::string::npos) << *text;
   EXPECT_NE(text->find("\"prediction_confirmed_by_mc\": "), std::string::npos) << *text;
+  // The report's own Monte Carlo resolves the tolerance: 1.96 SE <= tolerance / 2 at the
+  // reported P_s (or the trial limit), and it confirms the reported P_s within the tolerance.
+  const double reported = jsonNumber(*text, "reported_ps");
+  const double mc_trials = jsonNumber(*text, "monte_carlo_trials");
+  EXPECT_TRUE(mc_trials >= 200000.0 ||
+              1.96 * std::sqrt(reported * (1.0 - reported) / mc_trials) <= 0.5 * 0.005 + 1e-6)
+      << *text;
+  EXPECT_NE(text->find("\"reported_confirmed_by_mc\": true"), std::string::npos) << *text;
 
   namespace st = needle_guidance::steering;
   const st::SteeringProblem problem =

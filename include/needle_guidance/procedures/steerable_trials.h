@@ -147,9 +147,11 @@ struct SteerableStart {
   double reportedPs() const {
     return verification_trials > 0 && !confirmed ? verified_ps : predicted_ps;
   }
-  /// True if the report's own Monte Carlo confirms predicted_ps within `tolerance` (plus its
-  /// binomial noise, steering::predictionConfirmed).
+  /// True if the report's own Monte Carlo confirms predicted_ps by the policy's rule:
+  /// |predicted - rate| + z SE <= tolerance (steering::verificationConfirms).
   bool confirmedBy(const steering::MonteCarloResult& mc, double tolerance) const;
+  /// True if reportedPs() lies within `tolerance` of the report's own Monte Carlo rate.
+  bool reportedAgreesWith(const steering::MonteCarloResult& mc, double tolerance) const;
 };
 
 /// The run's report: every trial, the prediction, the core Monte Carlo from the same start with
@@ -176,7 +178,8 @@ struct SteerableReport {
   /// into records.
   std::vector<steering::TrialNoise> trialNoises(std::vector<int>& record_index) const;
   /// Fills `tables` from steering::tablesUsed(...) of trialNoises(record_index): each table's
-  /// P_s of the start and a Monte Carlo of kMonteCarloTrials in its own problem's world.
+  /// P_s of the start and a Monte Carlo of monteCarloTrials(its P_s, the tolerance) in its own
+  /// problem's world.
   void addTablesUsed(const std::vector<steering::TableUsed>& used,
                      const std::vector<int>& record_index);
 
@@ -217,9 +220,16 @@ public:
                   const steering::PolicyTable& table, const steering::StartOptions& starts,
                   SteerableSettings settings);
   /// Runs the trials from `start` until done or a fault, then leaves the needle safe and fills
-  /// the report (Monte Carlo of kMonteCarloTrials, P_s map). Never throws for device failures.
+  /// the report (Monte Carlo of monteCarloTrials(reported P_s, tolerance), P_s map). Never
+  /// throws for device failures.
   SteerableReport run(SteerableDevices& devices, const SteerableStart& start) const;
-  static constexpr std::int64_t kMonteCarloTrials = 10000;
+  /// The report's own Monte Carlo of a start whose P_s is about `ps`: enough trials that 1.96
+  /// standard errors are at most tolerance / 2 (steering::verificationCap: 38,415 at P_s 0.5 and
+  /// tolerance 0.01, 149,700 at 0.58 and 0.005), so the report can tell a P_s off by the
+  /// tolerance from its own noise; within [kMinMonteCarloTrials, kMaxMonteCarloTrials].
+  static std::int64_t monteCarloTrials(double ps, double tolerance);
+  static constexpr std::int64_t kMinMonteCarloTrials = 10000;
+  static constexpr std::int64_t kMaxMonteCarloTrials = 200000;
   static constexpr std::uint64_t kMonteCarloSeed = 11;
 
 private:
