@@ -5,6 +5,8 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <limits>
 #include <string>
 
@@ -299,6 +301,26 @@ TEST(SolveOrLoad, SecondCallLoadsTheChosenModelAndItsEstimate) {
   const Result<PolicySource> forced = solveOrLoad(p, "test", dir, o, true);
   ASSERT_TRUE(forced);
   EXPECT_EQ(forced.value().source, "solved");
+  // A choice recorded without the check's groups (made by another check) is not loaded.
+  std::string record;
+  for (const auto& entry : std::filesystem::directory_iterator(dir)) {
+    if (entry.path().extension() == ".choice") {
+      record = entry.path().string();
+    }
+  }
+  ASSERT_FALSE(record.empty()) << "no .choice file in " << dir;
+  EXPECT_NE(record.find("_check-"), std::string::npos) << record;
+  {
+    std::ifstream in(record);
+    std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    const std::size_t check_line = text.find("model_check ");
+    ASSERT_NE(check_line, std::string::npos) << text;
+    in.close();
+    std::ofstream(record) << text.substr(0, check_line);
+  }
+  const Result<PolicySource> other_check = solveOrLoad(p, "test", dir, o);
+  ASSERT_TRUE(other_check) << other_check.status().toString();
+  EXPECT_EQ(other_check.value().source, "solved");
   // Without a tolerance: the grid as given, no estimate.
   p.ps_tolerance = 0.0;
   const Result<PolicySource> fixed = solveOrLoad(p, "test", "", o);
