@@ -1080,10 +1080,13 @@ struct DecisionTruth {
   double ps_tolerance = 0.0;
   std::string model;  ///< the chosen model's description
   double estimated_error = NAN;
-  st::ModelCheck check;      ///< the chosen model's Monte Carlo check in the selection
-  double selection_s = 0.0;  ///< the whole ladder [s]
-  double solve_s = 0.0;      ///< the chosen model's solve, fastest of kSolveRepeats [s]
-  double verify_s = 0.0;     ///< screening and verifying the start [s]
+  st::ModelCheck check;               ///< the chosen model's Monte Carlo check in the selection
+  double selection_s = 0.0;           ///< the whole ladder [s]
+  int selection_models = 0;           ///< models solved by the ladder
+  double selection_check_s = 0.0;     ///< of selection_s, the Monte Carlo checks of its rungs [s]
+  std::vector<st::ModelRung> ladder;  ///< every rung the selection solved
+  double solve_s = 0.0;               ///< the chosen model's solve, fastest of kSolveRepeats [s]
+  double verify_s = 0.0;              ///< screening and verifying the start [s]
   st::VerifiedStart chosen;
   st::MonteCarloResult chosen_mc;   ///< kChosenStartTrials at the chosen start
   double gap_table_best = NAN;      ///< |gap| at the table's own best start (5.5's choice)
@@ -1135,6 +1138,29 @@ double scoreStarts(const st::ContinuousWorkspace& world, const st::PolicyTable& 
   return count > 0 ? sum / count : NAN;
 }
 
+/// The rungs of the selection's ladder (selection_ladder.csv): what each group of the model check
+/// measured against the rung's own estimate, and which rung was chosen.
+ng::report::Table ladderRows() {
+  return ng::report::Table(
+      {"scene", "rung", "transition_model", "grid_mm", "subdivision", "states", "coarsened",
+       "estimated_error", "check_gap_entry", "check_gap_top", "check_gap_boundary", "check_trials",
+       "check_passed", "check_s", "chosen"},
+      6);
+}
+
+void addLadderRows(const DecisionTruth& d, ng::report::Table& rows) {
+  for (std::size_t i = 0; i < d.ladder.size(); ++i) {
+    const st::ModelRung& r = d.ladder[i];
+    const bool run = r.check.run;
+    rows.addRow({d.scene, double(i), st::toString(r.transition_model), r.grid_spacing_m * kMmPerM,
+                 double(r.orientation_subdivision), double(r.states), r.coarsened ? 1.0 : 0.0,
+                 r.estimated_error, run ? r.check.gap_entry : NAN, run ? r.check.gap_top : NAN,
+                 run ? r.check.gap_boundary : NAN, double(r.check.trials_per_start),
+                 run ? (r.check.passed ? 1.0 : 0.0) : NAN, run ? r.check.seconds : 0.0,
+                 r.chosen ? 1.0 : 0.0});
+  }
+}
+
 /// The per-start rows of decisionTruth (truth_decision.csv).
 ng::report::Table decisionRows() {
   return ng::report::Table({"scene", "group", "x_mm", "y_mm", "theta_deg", "bevel", "predicted_ps",
@@ -1161,6 +1187,11 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
   out.estimated_error = source.value().estimated_error;
   out.check = source.value().check;
   out.selection_s = source.value().seconds;
+  out.ladder = source.value().ladder;
+  out.selection_models = int(out.ladder.size());
+  for (const st::ModelRung& rung : source.value().ladder) {
+    out.selection_check_s += rung.check.run ? rung.check.seconds : 0.0;
+  }
   const st::SteeringProblem chosen = source.value().model->problem();
   const Solved solved =
       solveAt(chosen, chosen.params.grid_spacing_m, 2, 1e-3, start,
@@ -1302,6 +1333,8 @@ std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
   key("ps_max_abs_gap_boundary", num(d.max_abs_gap_boundary));
   key("truth_starts_boundary", std::to_string(d.boundary_starts));
   key("selection_s", num(d.selection_s));
+  key("selection_models", std::to_string(d.selection_models));
+  key("selection_check_s", num(d.selection_check_s));
   key("solve_s_chosen_model", num(d.solve_s));
   key("verify_start_s", num(d.verify_s));
   key("verify_start_cpu_s", num(d.verify_cpu_s));
@@ -1320,6 +1353,7 @@ std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
 /// --truth-only: decisionTruth of every --scene; summary.json, truth_decision.csv and its plot.
 int truthOnly(const ng::report::BenchArgs& args) {
   ng::report::Table rows = decisionRows();
+  ng::report::Table ladder = ladderRows();
   std::ostringstream json;
   json << "{\n  \"benchmark\": \"steering\",\n  \"mode\": \"truth_only\"";
   const std::vector<std::string> scenes =
@@ -1334,6 +1368,8 @@ int truthOnly(const ng::report::BenchArgs& args) {
       const DecisionTruth d = decisionTruth(scene, rows);
       keys = decisionJson(d, suffix);
       all_met = all_met && targetsMet(d);
+      addLadderRows(d, ladder);
+      ladder.writeCsv(args.out_dir + "/selection_ladder.csv");
     } catch (const std::exception& e) {  // e.g. a tolerance refused: recorded, the rest run on
       std::string why = e.what();
       std::replace(why.begin(), why.end(), '"', '\'');
