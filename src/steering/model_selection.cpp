@@ -440,6 +440,30 @@ double meanAbsChange(const PolicyTable& fine, const PolicyTable& coarse,
   return count > 0 ? sum / count : 0.0;
 }
 
+bool finerGridDidNotHelp(const std::vector<ModelRung>& ladder) {
+  if (ladder.size() < 2 || !ladder.back().check.run) {
+    return false;
+  }
+  const ModelRung& now = ladder.back();
+  const double tol = now.check.tolerance;
+  for (auto it = ladder.rbegin() + 1; it != ladder.rend(); ++it) {
+    if (it->transition_model != now.transition_model ||
+        it->orientation_subdivision != now.orientation_subdivision) {
+      return false;
+    }
+    if (!it->check.run) {
+      continue;
+    }
+    auto stuck = [tol](double before, double after) {
+      return before > tol && after > tol && after >= before;
+    };
+    return stuck(it->check.gap_entry, now.check.gap_entry) ||
+           stuck(it->check.gap_top, now.check.gap_top) ||
+           stuck(it->check.gap_boundary, now.check.gap_boundary);
+  }
+  return false;
+}
+
 namespace {
 
 /// After a model is accepted: the grids coarser than it with its transitions that the ladder never
@@ -588,8 +612,9 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
     }
     const ModelCheck& check = choice.ladder.back().check;
     const double limit = kGridErrorShare * rung.estimated_error;  // NaN: the grid explains it
-    const bool grid_explains = !check.run || !(check.gap_entry > limit || check.gap_top > limit ||
-                                               check.gap_boundary > limit);
+    const bool grid_explains =
+        !check.run || !(check.gap_entry > limit || check.gap_top > limit ||
+                        check.gap_boundary > limit || finerGridDidNotHelp(choice.ladder));
     if (grid_explains || !refineTransitions(params)) {
       params.grid_spacing_m /= kRatio;
     }

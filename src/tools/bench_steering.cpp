@@ -1008,7 +1008,8 @@ ng::report::Table selectionTable() {
 /// Monte Carlo trials at the chosen start: its gap is the headline, measured against a
 /// tolerance of 0.005 - 0.01, so its binomial noise (mean |noise| <= 0.0013) must be well below.
 constexpr std::int64_t kChosenStartTrials = 10 * kMonteCarloTrials;
-/// Monte Carlo trials per entry-line start (ps_mean_abs_gap_entry; noise floor <= 0.002).
+/// Monte Carlo trials per entry-line and near-boundary start (ps_mean_abs_gap_entry,
+/// ps_mean_abs_gap_boundary; noise floor <= 0.002, well below a tolerance of 0.005).
 constexpr std::int64_t kEntryTrials = 4 * kMonteCarloTrials;
 /// Best starts by prediction in the truth check.
 constexpr int kTopStarts = 10;
@@ -1097,6 +1098,7 @@ struct DecisionTruth {
   double verify_cpu_s = 0.0;       ///< CPU time of screening and verifying the start [s]
   double mean_abs_gap_top = 0.0, max_abs_gap_top = 0.0;
   double mean_abs_gap_boundary = 0.0, max_abs_gap_boundary = 0.0;
+  double noise_floor_boundary = 0.0;  ///< mean |gap| binomial noise alone gives there
   int entry_starts = 0, top_starts = 0, boundary_starts = 0;
   double mc_s = 0.0;
   ClosedLoop closed_loop;  ///< the procedure's closed loop at the chosen start
@@ -1265,10 +1267,11 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
                                        kMonteCarloTrials, kMonteCarloSeed, 2)
                          .rate());
   }
-  out.mean_abs_gap_boundary = scoreStarts(world, table, boundary, kMonteCarloTrials, scene.name,
-                                          rows, n, max_gap, within, noise);
+  out.mean_abs_gap_boundary = scoreStarts(world, table, boundary, kEntryTrials, scene.name, rows, n,
+                                          max_gap, within, noise);
   out.boundary_starts = n;
   out.max_abs_gap_boundary = max_gap;
+  out.noise_floor_boundary = noise;
   out.closed_loop = closedLoop(scene, problem, table, out.chosen.start.pose);
   out.mc_s = secondsSince(t0);
   return out;
@@ -1332,6 +1335,7 @@ std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
   key("ps_mean_abs_gap_boundary", num(d.mean_abs_gap_boundary));
   key("ps_max_abs_gap_boundary", num(d.max_abs_gap_boundary));
   key("truth_starts_boundary", std::to_string(d.boundary_starts));
+  key("noise_floor_boundary", num(d.noise_floor_boundary));
   key("selection_s", num(d.selection_s));
   key("selection_models", std::to_string(d.selection_models));
   key("selection_check_s", num(d.selection_check_s));

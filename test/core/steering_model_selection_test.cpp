@@ -444,5 +444,42 @@ TEST(ModelSelection, BoundaryGroupFailureEscalatesARoundedModelTheOtherGroupsAcc
   EXPECT_NE(chosen.toString().find("near boundaries"), std::string::npos) << chosen.toString();
 }
 
+/// A checked rung of the ladder with the given group gaps.
+ModelRung checkedRung(double grid_m, TransitionModel transitions, double entry, double top,
+                      double boundary, double tolerance) {
+  ModelRung r;
+  r.grid_spacing_m = grid_m;
+  r.transition_model = transitions;
+  r.check.run = true;
+  r.check.tolerance = tolerance;
+  r.check.gap_entry = entry;
+  r.check.gap_top = top;
+  r.check.gap_boundary = boundary;
+  r.check.passed = entry <= tolerance && top <= tolerance && boundary <= tolerance;
+  return r;
+}
+
+TEST(ModelSelection, FinerGridThatDoesNotShrinkAFailingGroupDoesNotExplainIt) {
+  constexpr double kTol = 0.01;  // [P_s]
+  const TransitionModel kR = TransitionModel::kRounded;
+  std::vector<ModelRung> ladder;
+  EXPECT_FALSE(finerGridDidNotHelp(ladder));
+  ladder.push_back(checkedRung(6e-4, kR, 0.005, 0.0, 0.011, kTol));
+  EXPECT_FALSE(finerGridDidNotHelp(ladder)) << "no earlier rung to compare with";
+  ModelRung unchecked;  // a rung whose estimate did not make it a candidate is passed over
+  unchecked.grid_spacing_m = 5e-4;
+  unchecked.transition_model = kR;
+  ladder.push_back(unchecked);
+  ladder.push_back(checkedRung(4.2e-4, kR, 0.0068, 0.0145, 0.0134, kTol));
+  EXPECT_TRUE(finerGridDidNotHelp(ladder)) << "the near-boundary gap grew from 0.011 to 0.0134";
+  ladder.back() = checkedRung(4.2e-4, kR, 0.0068, 0.0145, 0.0105, kTol);
+  EXPECT_FALSE(finerGridDidNotHelp(ladder)) << "the near-boundary gap shrank";
+  // Another group failing only on the finer grid does not count (nothing to compare).
+  EXPECT_GT(ladder.back().check.gap_top, kTol);
+  // A coarser rung of other transitions is no comparison.
+  ladder.back() = checkedRung(4.2e-4, TransitionModel::kInterpolated, 0.0, 0.0, 0.02, kTol);
+  EXPECT_FALSE(finerGridDidNotHelp(ladder));
+}
+
 }  // namespace
 }  // namespace needle_guidance::steering

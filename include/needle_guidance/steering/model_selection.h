@@ -154,11 +154,19 @@ std::vector<TipPose> evaluationPoses(const SteeringProblem& problem, const Start
 double meanAbsChange(const PolicyTable& fine, const PolicyTable& coarse,
                      const std::vector<TipPose>& poses, int& count);
 
+/// True when the last rung's check failed a group (entry line, best starts, near boundaries) that
+/// the previous checked rung of the same transitions, a coarser grid, failed too with no smaller
+/// mean gap: a finer grid did not shrink that error, so the grid does not explain it and
+/// chooseModel refines the transitions instead. False when no earlier rung of these transitions
+/// was checked.
+bool finerGridDidNotHelp(const std::vector<ModelRung>& ladder);
+
 /// Solves the ladder from problem.params.grid_spacing_m (the coarsest) until a rung's estimate
 /// meets options.ps_tolerance and its checkModel passes (or, when the next rung would exceed
 /// memory_limit_mb or max_steps, the last rung's check passes whatever its estimate). A failed
-/// check the grid's estimated error does not explain refines the transitions instead (rounded
-/// -> interpolated -> s doubled); when memory stops the grid, the transitions are refined once
+/// check the grid's estimated error does not explain (a group's mean gap above twice the
+/// estimate, or finerGridDidNotHelp) refines the transitions instead (rounded -> interpolated ->
+/// s doubled); when memory stops the grid, the transitions are refined once
 /// within the last rung's memory (s doubled on a grid sqrt(2) coarser). An accepted model whose
 /// transitions came in on a finer grid is then coarsened: the grid sqrt(2) coarser with the same
 /// transitions (never coarser than problem.params.grid_spacing_m) is taken while its estimate
