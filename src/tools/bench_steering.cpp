@@ -67,6 +67,14 @@ constexpr std::uint64_t kMonteCarloSeed = 11;
 /// Start states whose predicted and simulated P_s are both below this are left out of the
 /// truth check: they agree trivially.
 constexpr double kTrivialPs = 0.01;
+
+/// The mean |gap| binomial noise alone gives at a start of P_s `predicted` over `trials`
+/// (sqrt(2 / pi) times the standard error; a table value a rounding past 1 counts as 1).
+double noiseFloor(double predicted, std::int64_t trials) {
+  const double p = std::clamp(predicted, 0.0, 1.0);
+  return std::sqrt(2.0 / kPi * p * (1.0 - p) / double(trials));
+}
+
 /// Heights of the truth check's start states on the entry line [mm].
 const std::vector<double> kTruthHeights_mm = {5.0, 10.0, 15.0, 30.0, 54.0, 60.0, 80.0};
 
@@ -188,7 +196,7 @@ public:
       ++sum.starts;
       sum.within += ci.contains(predicted) ? 1.0 : 0.0;
       sum.mean_abs_gap += std::abs(gap);
-      sum.noise_floor += std::sqrt(2.0 / kPi * predicted * (1.0 - predicted) / double(mc.trials));
+      sum.noise_floor += noiseFloor(predicted, mc.trials);
       max_gap = std::max(max_gap, std::abs(gap));
       signed_gap += gap;
       solver += std::abs(predicted - chain.rate());
@@ -1130,7 +1138,7 @@ double scoreStarts(const st::ContinuousWorkspace& world, const st::PolicyTable& 
       continue;
     }
     ++count;
-    noise_floor += std::sqrt(2.0 / kPi * predicted * (1.0 - predicted) / double(trials));
+    noise_floor += noiseFloor(predicted, trials);
     sum += std::abs(predicted - mc.rate());
     max_gap = std::max(max_gap, std::abs(predicted - mc.rate()));
     within += ci.contains(predicted) ? 1.0 : 0.0;
@@ -1294,7 +1302,7 @@ bool targetsMet(const DecisionTruth& d) {
 /// The JSON keys of one decisionTruth, each name followed by `suffix`.
 std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
   const double p = d.chosen.predicted();
-  const double noise = std::sqrt(2.0 / kPi * p * (1.0 - p) / double(d.chosen_mc.trials));
+  const double noise = noiseFloor(p, d.chosen_mc.trials);
   std::ostringstream j;
   auto key = [&](const std::string& name, const std::string& value) {
     j << ",\n  \"" << name << suffix << "\": " << value;
