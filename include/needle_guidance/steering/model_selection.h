@@ -26,7 +26,7 @@
 namespace needle_guidance::steering {
 
 struct SelectionOptions {
-  double ps_tolerance = 0.005;     ///< mean |P_s error| wanted at the entry-line states, in (0, 1)
+  double ps_tolerance = 0.005;     ///< mean |P_s error| wanted in each checked group, in (0, 1)
   double memory_limit_mb = 500.0;  ///< refuse models whose estimated footprint exceeds this [MB]
   int max_steps = 10;              ///< rungs of the ladder at most (grids and transitions together)
   SolverOptions solver;            ///< for every solve
