@@ -41,9 +41,9 @@ constexpr double kCheckEdge_m = 2.5e-3;
 /// Model check: entry-line angles [deg] and the best distinct starts scored.
 constexpr double kCheckAngles_deg[] = {-20.0, 0.0, 20.0};
 constexpr int kCheckTopStarts = 4;
-/// Near-boundary starts: the entry-line angles [deg] and the distances of its starts from the
-/// ends of the start range [m] (all within 5 mm of the edge).
-constexpr double kBoundaryAngles_deg[] = {-18.0, 0.0, 18.0};
+/// entryLineStarts' angles [deg], and the distances of the near-boundary entry-line starts from
+/// the ends of the start range [m] (all within 5 mm of the edge).
+constexpr double kEntryLineAngles_deg[] = {-18.0, 0.0, 18.0};
 constexpr double kEntryEndDistances_m[] = {1.5e-3, 4e-3};
 /// Model check trials per start: 0.25 / tolerance^2 within these bounds.
 constexpr std::int64_t kMinCheckTrials = 2000;
@@ -267,7 +267,7 @@ std::vector<TipPose> entryLineStarts(const SteeringProblem& problem, const Start
     if (!(y >= lo && y <= hi)) {
       continue;
     }
-    for (double theta_deg : kBoundaryAngles_deg) {
+    for (double theta_deg : kEntryLineAngles_deg) {
       for (Bevel b : {Bevel::kLeft, Bevel::kRight}) {
         TipPose pose;
         pose.p_SceneTip = Point2(start.start_x_m, y);
