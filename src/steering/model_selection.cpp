@@ -9,6 +9,7 @@
 #include <filesystem>
 #include <fstream>
 #include <limits>
+#include <optional>
 #include <sstream>
 #include <stdexcept>
 
@@ -40,6 +41,10 @@ constexpr double kCheckEdge_m = 2.5e-3;
 /// Model check: entry-line angles [deg] and the best distinct starts scored.
 constexpr double kCheckAngles_deg[] = {-20.0, 0.0, 20.0};
 constexpr int kCheckTopStarts = 4;
+/// entryLineStarts' angles [deg], and the distances of the near-boundary entry-line starts from
+/// the ends of the start range [m] (all within 5 mm of the edge).
+constexpr double kEntryLineAngles_deg[] = {-18.0, 0.0, 18.0};
+constexpr double kEntryEndDistances_m[] = {1.5e-3, 4e-3};
 /// Model check trials per start: 0.25 / tolerance^2 within these bounds.
 constexpr std::int64_t kMinCheckTrials = 2000;
 constexpr std::int64_t kMaxCheckTrials = 10000;
@@ -123,20 +128,23 @@ constexpr double kClearFailZ = 3.0;
 /// the noise correction's bias when a start has no error at all.
 constexpr double kCorrectionBias = 0.41;
 
-/// The check's figures from the Monte Carlo results so far (Checked: pose, predicted, top, mc).
+/// The check's groups, in ModelCheck's order.
+enum CheckGroup { kEntryGroup = 0, kTopGroup = 1, kBoundaryGroup = 2, kCheckGroups = 3 };
+
+/// The check's figures from the Monte Carlo results so far (Checked: pose, predicted, group, mc).
 template <typename Checked>
 ModelCheck scoreCheck(const std::vector<Checked>& starts, double tolerance) {
   ModelCheck out;
   out.run = true;
   out.tolerance = tolerance;
-  GapSum group[2];
-  double noise[2] = {0.0, 0.0}, variance[2] = {0.0, 0.0};
+  GapSum group[kCheckGroups];
+  double noise[kCheckGroups] = {}, variance[kCheckGroups] = {};
   for (const Checked& c : starts) {
     const double rate = c.mc.rate();
     if (c.predicted < kTrivialPs && rate < kTrivialPs) {
       continue;
     }
-    const int g = c.top ? 1 : 0;
+    const int g = c.group;
     group[g].add(c.predicted, rate, c.mc.trials);
     const double p = std::clamp(c.predicted, 0.0, 1.0);
     const double v = p * (1.0 - p) / double(c.mc.trials);
@@ -144,13 +152,16 @@ ModelCheck scoreCheck(const std::vector<Checked>& starts, double tolerance) {
     variance[g] += v;
     out.max_abs_gap = std::max(out.max_abs_gap, std::abs(c.predicted - rate));
   }
-  out.entry_starts = group[0].count;
-  out.top_starts = group[1].count;
-  out.gap_entry = group[0].mean();
-  out.gap_top = group[1].mean();
+  out.entry_starts = group[kEntryGroup].count;
+  out.top_starts = group[kTopGroup].count;
+  out.boundary_starts = group[kBoundaryGroup].count;
+  out.gap_entry = group[kEntryGroup].mean();
+  out.gap_top = group[kTopGroup].mean();
+  out.gap_boundary = group[kBoundaryGroup].mean();
   // An empty group (no start with P_s >= 0.01) has nothing to contradict.
-  out.passed = !(out.gap_entry > tolerance) && !(out.gap_top > tolerance);
-  for (int g = 0; g < 2; ++g) {
+  out.passed =
+      !(out.gap_entry > tolerance) && !(out.gap_top > tolerance) && !(out.gap_boundary > tolerance);
+  for (int g = 0; g < kCheckGroups; ++g) {
     if (group[g].count > 0) {
       const double n = group[g].count;
       const double low = group[g].mean() - kCorrectionBias * noise[g] / n -
@@ -159,6 +170,36 @@ ModelCheck scoreCheck(const std::vector<Checked>& starts, double tolerance) {
     }
   }
   return out;
+}
+
+/// The state of highest P_s at the grid point nearest p (any orientation and bevel), as a pose
+/// at p; nullopt when p is off the grid, not free, or every state there is below kTrivialPs.
+std::optional<TipPose> bestPoseAt(const PolicyTable& table, const Point2& p) {
+  TipPose probe;
+  probe.p_SceneTip = p;
+  const ControlLookup l = table.lookup(probe);
+  if (l.status != ControlLookup::Status::kOk) {
+    return std::nullopt;
+  }
+  const GridSpec& g = table.grid();
+  int ix = 0, iy = 0, k = 0;
+  Bevel b = Bevel::kLeft;
+  g.decode(l.state, ix, iy, k, b);
+  StateId best = -1;
+  for (int bevel = 0; bevel < 2; ++bevel) {
+    for (int kk = 0; kk < g.nc; ++kk) {
+      const StateId s = g.state(ix, iy, kk, static_cast<Bevel>(bevel));
+      if (best < 0 || table.value(s) > table.value(best)) {
+        best = s;
+      }
+    }
+  }
+  if (table.value(best) < kTrivialPs) {
+    return std::nullopt;
+  }
+  TipPose pose = g.pose(best);
+  pose.p_SceneTip = p;
+  return pose;
 }
 
 /// A rung built and solved, with its table and model.
@@ -208,12 +249,82 @@ std::string ModelCheck::toString() const {
   }
   auto gap = [](double v) { return std::isnan(v) ? std::string("undefined") : formatNumber(v, 2); };
   std::ostringstream out;
-  out << "Monte Carlo check (" << entry_starts + top_starts << " starts x " << trials_per_start
-      << " trials" << (trials_per_start < trials_requested ? ", stopped: clearly failed" : "")
-      << "): mean gap " << gap(gap_entry) << " on the entry line, " << gap(gap_top)
-      << " at the best starts, tolerance " << formatNumber(tolerance, 3) << ": "
+  out << "Monte Carlo check (" << entry_starts + top_starts + boundary_starts << " starts x "
+      << trials_per_start << " trials"
+      << (trials_per_start < trials_requested ? ", stopped: clearly failed" : "") << "): mean gap "
+      << gap(gap_entry) << " on the entry line, " << gap(gap_top) << " at the best starts, "
+      << gap(gap_boundary) << " near boundaries, tolerance " << formatNumber(tolerance, 3) << ": "
       << (passed ? "passed" : "FAILED");
   return out.str();
+}
+
+std::vector<TipPose> entryLineStarts(const SteeringProblem& problem, const StartOptions& start,
+                                     const std::vector<double>& heights_m) {
+  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
+  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
+  std::vector<TipPose> poses;
+  for (double y : heights_m) {
+    if (!(y >= lo && y <= hi)) {
+      continue;
+    }
+    for (double theta_deg : kEntryLineAngles_deg) {
+      for (Bevel b : {Bevel::kLeft, Bevel::kRight}) {
+        TipPose pose;
+        pose.p_SceneTip = Point2(start.start_x_m, y);
+        pose.theta_rad = theta_deg * kPi / 180.0;
+        pose.bevel = b;
+        poses.push_back(pose);
+      }
+    }
+  }
+  return poses;
+}
+
+std::vector<NearBoundaryStart> nearBoundaryStarts(const StartOptions& start,
+                                                  const PolicyTable& table,
+                                                  const ContinuousWorkspace& world) {
+  const SteeringProblem& problem = world.problem();
+  std::vector<NearBoundaryStart> out;
+  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
+  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
+  std::vector<double> ends;
+  for (double d : kEntryEndDistances_m) {
+    ends.push_back(lo + d);
+    ends.push_back(hi - d);
+  }
+  for (const TipPose& pose : entryLineStarts(problem, start, ends)) {
+    out.push_back({"edge", pose});
+  }
+  auto add = [&](const std::string& group, const Point2& p) {
+    if (!world.inWorkspace(p) || world.obstacleAt(p) >= 0 || world.inTarget(p)) {
+      return;
+    }
+    if (const std::optional<TipPose> pose = bestPoseAt(table, p)) {
+      out.push_back({group, *pose});
+    }
+  };
+  const Point2 lo_w = problem.workspace_min, hi_w = problem.workspace_max;
+  const double in = kNearBoundaryDistance_m;
+  for (double f : {0.25, 0.5, 0.75}) {
+    const Point2 along = lo_w + f * (hi_w - lo_w);
+    add("edge", {along.x(), lo_w.y() + in});
+    add("edge", {along.x(), hi_w.y() - in});
+    add("edge", {lo_w.x() + in, along.y()});
+    add("edge", {hi_w.x() - in, along.y()});
+  }
+  for (const geometry::Polygon& poly : world.expandedObstacles()) {
+    const std::size_t n = poly.size();
+    for (std::size_t i = 0; i < n; ++i) {
+      const Point2 a = poly.vertices()[i], b = poly.vertices()[(i + 1) % n];
+      const Point2 edge = b - a;
+      if (edge.norm() < 1e-9) {
+        continue;
+      }
+      const Point2 outward(edge.y() / edge.norm(), -edge.x() / edge.norm());  // CCW polygon
+      add("obstacle", 0.5 * (a + b) + in * outward);
+    }
+  }
+  return out;
 }
 
 std::int64_t checkTrials(double tolerance) {
@@ -234,17 +345,23 @@ ModelCheck checkModel(const SteeringModel& model, const PolicyTable& table,
   struct Checked {
     TipPose pose;
     double predicted = 0.0;
-    bool top = false;  // a best distinct start (else the entry line)
+    int group = kEntryGroup;  // CheckGroup
     MonteCarloResult mc;
   };
   std::vector<Checked> starts;
+  auto add = [&](const TipPose& pose, int group) {
+    starts.push_back({pose, table.lookup(pose).probability_of_success, group, {}});
+  };
   for (const TipPose& pose : checkPoses(model.problem(), start)) {
-    starts.push_back({pose, table.lookup(pose).probability_of_success, false, {}});
+    add(pose, kEntryGroup);
   }
   StartVerificationOptions best;
   best.candidates = kCheckTopStarts;
   for (const StartCandidate& c : distinctBestStarts(table, start, best)) {
-    starts.push_back({c.pose, table.lookup(c.pose).probability_of_success, true, {}});
+    add(c.pose, kTopGroup);
+  }
+  for (const NearBoundaryStart& b : nearBoundaryStarts(start, table, world)) {
+    add(b.pose, kBoundaryGroup);
   }
   // First a quarter of the trials: a check that clearly fails stops there (sequential stop).
   TrialOptions options;
@@ -321,6 +438,30 @@ double meanAbsChange(const PolicyTable& fine, const PolicyTable& coarse,
     ++count;
   }
   return count > 0 ? sum / count : 0.0;
+}
+
+bool finerGridDidNotHelp(const std::vector<ModelRung>& ladder) {
+  if (ladder.size() < 2 || !ladder.back().check.run) {
+    return false;
+  }
+  const ModelRung& now = ladder.back();
+  const double tol = now.check.tolerance;
+  for (auto it = ladder.rbegin() + 1; it != ladder.rend(); ++it) {
+    if (it->transition_model != now.transition_model ||
+        it->orientation_subdivision != now.orientation_subdivision) {
+      return false;
+    }
+    if (!it->check.run) {
+      continue;
+    }
+    auto stuck = [tol](double before, double after) {
+      return before > tol && after > tol && after >= before;
+    };
+    return stuck(it->check.gap_entry, now.check.gap_entry) ||
+           stuck(it->check.gap_top, now.check.gap_top) ||
+           stuck(it->check.gap_boundary, now.check.gap_boundary);
+  }
+  return false;
 }
 
 namespace {
@@ -471,7 +612,9 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
     }
     const ModelCheck& check = choice.ladder.back().check;
     const double limit = kGridErrorShare * rung.estimated_error;  // NaN: the grid explains it
-    const bool grid_explains = !check.run || !(check.gap_entry > limit || check.gap_top > limit);
+    const bool grid_explains =
+        !check.run || !(check.gap_entry > limit || check.gap_top > limit ||
+                        check.gap_boundary > limit || finerGridDidNotHelp(choice.ladder));
     if (grid_explains || !refineTransitions(params)) {
       params.grid_spacing_m /= kRatio;
     }
@@ -485,12 +628,16 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
 namespace needle_guidance::steering {
 namespace {
 
+/// The groups checkModel scores: part of the saved choice's name and contents, so a choice that
+/// a check of other groups accepted is never loaded (change it with the check's groups).
+constexpr char kCheckDefinition[] = "entry-best4-boundary";
+
 /// The file recording which grid spacing a tolerance chose for a problem (beside its tables).
 std::string choicePath(const std::string& table_dir, const std::string& scene_name,
                        const SteeringProblem& problem) {
   std::string name = PolicyTable::fileName(scene_name, problemHash(problem));
-  name =
-      name.substr(0, name.size() - 6) + "_tol" + formatNumber(problem.ps_tolerance, 6) + ".choice";
+  name = name.substr(0, name.size() - 6) + "_tol" + formatNumber(problem.ps_tolerance, 6) +
+         "_check-" + kCheckDefinition + ".choice";
   return (std::filesystem::path(table_dir) / name).string();
 }
 
@@ -563,15 +710,15 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
     bool known = !select;
     if (select) {
       std::ifstream in(record);
-      std::string key_spacing, key_error, key_model, model_name, key_s;
+      std::string key_spacing, key_error, key_model, model_name, key_s, key_check, check_name;
       double spacing = 0.0, error = 0.0;
       int subdivision = 0;
       known = static_cast<bool>(in >> key_spacing >> spacing >> key_error >> error >> key_model >>
-                                model_name >> key_s >> subdivision) &&
+                                model_name >> key_s >> subdivision >> key_check >> check_name) &&
               key_spacing == "grid_spacing_m" && key_error == "estimated_error" &&
               key_model == "transition_model" && key_s == "orientation_subdivision" &&
-              spacing > 0.0 && transitionModelFromString(model_name) && subdivision >= 1 &&
-              subdivision <= 64;
+              key_check == "model_check" && check_name == kCheckDefinition && spacing > 0.0 &&
+              transitionModelFromString(model_name) && subdivision >= 1 && subdivision <= 64;
       if (known) {
         chosen.params.grid_spacing_m = spacing;
         chosen.params.transition_model = *transitionModelFromString(model_name);
@@ -633,7 +780,8 @@ Result<PolicySource> solveOrLoad(const SteeringProblem& problem, const std::stri
         rec << "grid_spacing_m " << chosen_params.grid_spacing_m << "\nestimated_error "
             << (std::isnan(out.estimated_error) ? -1.0 : out.estimated_error)
             << "\ntransition_model " << steering::toString(chosen_params.transition_model)
-            << "\norientation_subdivision " << chosen_params.orientation_subdivision << "\n";
+            << "\norientation_subdivision " << chosen_params.orientation_subdivision
+            << "\nmodel_check " << kCheckDefinition << "\n";
         rec.close();
         std::filesystem::rename(record + ".tmp", record);
       }

@@ -67,6 +67,14 @@ constexpr std::uint64_t kMonteCarloSeed = 11;
 /// Start states whose predicted and simulated P_s are both below this are left out of the
 /// truth check: they agree trivially.
 constexpr double kTrivialPs = 0.01;
+
+/// The mean |gap| binomial noise alone gives at a start of P_s `predicted` over `trials`
+/// (sqrt(2 / pi) times the standard error; a table value a rounding past 1 counts as 1).
+double noiseFloor(double predicted, std::int64_t trials) {
+  const double p = std::clamp(predicted, 0.0, 1.0);
+  return std::sqrt(2.0 / kPi * p * (1.0 - p) / double(trials));
+}
+
 /// Heights of the truth check's start states on the entry line [mm].
 const std::vector<double> kTruthHeights_mm = {5.0, 10.0, 15.0, 30.0, 54.0, 60.0, 80.0};
 
@@ -188,7 +196,7 @@ public:
       ++sum.starts;
       sum.within += ci.contains(predicted) ? 1.0 : 0.0;
       sum.mean_abs_gap += std::abs(gap);
-      sum.noise_floor += std::sqrt(2.0 / kPi * predicted * (1.0 - predicted) / double(mc.trials));
+      sum.noise_floor += noiseFloor(predicted, mc.trials);
       max_gap = std::max(max_gap, std::abs(gap));
       signed_gap += gap;
       solver += std::abs(predicted - chain.rate());
@@ -268,23 +276,11 @@ private:
 std::vector<st::TipPose> entryStarts(const st::SteeringProblem& problem,
                                      const st::StartOptions& start,
                                      const std::vector<double>& y_mm) {
-  std::vector<st::TipPose> poses;
+  std::vector<double> heights_m;
   for (double y : y_mm) {
-    if (y / kMmPerM < std::max(start.min_height_m, problem.workspace_min.y()) ||
-        y / kMmPerM > std::min(start.max_height_m, problem.workspace_max.y())) {
-      continue;
-    }
-    for (double theta_deg : {-18.0, 0.0, 18.0}) {
-      for (st::Bevel b : {st::Bevel::kLeft, st::Bevel::kRight}) {
-        st::TipPose pose;
-        pose.p_SceneTip = st::Point2(start.start_x_m, y / kMmPerM);
-        pose.theta_rad = theta_deg / kDegPerRad;
-        pose.bevel = b;
-        poses.push_back(pose);
-      }
-    }
+    heights_m.push_back(y / kMmPerM);
   }
-  return poses;
+  return st::entryLineStarts(problem, start, heights_m);
 }
 
 /// The scene's model as steering_policy chooses it (ps_tolerance), solved once more for a median
@@ -1020,10 +1016,9 @@ ng::report::Table selectionTable() {
 /// Monte Carlo trials at the chosen start: its gap is the headline, measured against a
 /// tolerance of 0.005 - 0.01, so its binomial noise (mean |noise| <= 0.0013) must be well below.
 constexpr std::int64_t kChosenStartTrials = 10 * kMonteCarloTrials;
-/// Monte Carlo trials per entry-line start (ps_mean_abs_gap_entry; noise floor <= 0.002).
+/// Monte Carlo trials per entry-line and near-boundary start (ps_mean_abs_gap_entry,
+/// ps_mean_abs_gap_boundary; noise floor <= 0.002, well below a tolerance of 0.005).
 constexpr std::int64_t kEntryTrials = 4 * kMonteCarloTrials;
-/// Distance from a workspace edge or an expanded obstacle edge of the near-boundary starts [m].
-constexpr double kNearBoundary_m = 2.5e-3;
 /// Best starts by prediction in the truth check.
 constexpr int kTopStarts = 10;
 /// Heights of the entry-line starts as fractions of the start range.
@@ -1044,87 +1039,6 @@ std::vector<double> entryHeights_mm(const st::SteeringProblem& problem,
   std::vector<double> out;
   for (double f : fractions) {
     out.push_back((lo + f * (hi - lo)) * kMmPerM);
-  }
-  return out;
-}
-
-/// The state of highest P_s at the grid point nearest p (any orientation and bevel), as a pose
-/// at p; nullopt when p is off the grid, not free, or every state there is below kTrivialPs.
-std::optional<st::TipPose> bestPoseAt(const st::PolicyTable& table, const st::Point2& p) {
-  st::TipPose probe;
-  probe.p_SceneTip = p;
-  const st::ControlLookup l = table.lookup(probe);
-  if (l.status != st::ControlLookup::Status::kOk) {
-    return std::nullopt;
-  }
-  const st::GridSpec& g = table.grid();
-  int ix = 0, iy = 0, k = 0;
-  st::Bevel b = st::Bevel::kLeft;
-  g.decode(l.state, ix, iy, k, b);
-  st::StateId best = -1;
-  for (int bevel = 0; bevel < 2; ++bevel) {
-    for (int kk = 0; kk < g.nc; ++kk) {
-      const st::StateId s = g.state(ix, iy, kk, static_cast<st::Bevel>(bevel));
-      if (best < 0 || table.value(s) > table.value(best)) {
-        best = s;
-      }
-    }
-  }
-  if (table.value(best) < kTrivialPs) {
-    return std::nullopt;
-  }
-  st::TipPose pose = g.pose(best);
-  pose.p_SceneTip = p;
-  return pose;
-}
-
-/// Starts within 5 mm of every boundary: on the entry line 1.5 and 4 mm from both ends of the
-/// start range (angles -18, 0, 18 degrees, both bevels); inside the workspace kNearBoundary_m
-/// from each edge at a quarter, half and three quarters of it; kNearBoundary_m outside the
-/// middle of each expanded obstacle edge. Interior starts take the best orientation and bevel
-/// of their grid point (the states a good policy passes through).
-std::vector<TruthStart> boundaryStarts(const st::SteeringProblem& problem,
-                                       const st::StartOptions& start, const st::PolicyTable& table,
-                                       const st::ContinuousWorkspace& world) {
-  std::vector<TruthStart> out;
-  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
-  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
-  std::vector<double> ends_mm;
-  for (double d : {1.5e-3, 4e-3}) {
-    ends_mm.push_back((lo + d) * kMmPerM);
-    ends_mm.push_back((hi - d) * kMmPerM);
-  }
-  for (const st::TipPose& pose : entryStarts(problem, start, ends_mm)) {
-    out.push_back({"edge", pose});
-  }
-  auto add = [&](const std::string& group, const st::Point2& p) {
-    if (!world.inWorkspace(p) || world.obstacleAt(p) >= 0 || world.inTarget(p)) {
-      return;
-    }
-    if (const auto pose = bestPoseAt(table, p)) {
-      out.push_back({group, *pose});
-    }
-  };
-  const st::Point2 lo_w = problem.workspace_min, hi_w = problem.workspace_max;
-  const st::Point2 in(kNearBoundary_m, kNearBoundary_m);
-  for (double f : {0.25, 0.5, 0.75}) {
-    const st::Point2 along = lo_w + f * (hi_w - lo_w);
-    add("edge", {along.x(), lo_w.y() + in.y()});
-    add("edge", {along.x(), hi_w.y() - in.y()});
-    add("edge", {lo_w.x() + in.x(), along.y()});
-    add("edge", {hi_w.x() - in.x(), along.y()});
-  }
-  for (const ng::geometry::Polygon& poly : world.expandedObstacles()) {
-    const std::size_t n = poly.size();
-    for (std::size_t i = 0; i < n; ++i) {
-      const st::Point2 a = poly.vertices()[i], b = poly.vertices()[(i + 1) % n];
-      const st::Point2 edge = b - a;
-      if (edge.norm() < 1e-9) {
-        continue;
-      }
-      const st::Point2 outward(edge.y() / edge.norm(), -edge.x() / edge.norm());  // CCW polygon
-      add("obstacle", 0.5 * (a + b) + kNearBoundary_m * outward);
-    }
   }
   return out;
 }
@@ -1175,10 +1089,13 @@ struct DecisionTruth {
   double ps_tolerance = 0.0;
   std::string model;  ///< the chosen model's description
   double estimated_error = NAN;
-  st::ModelCheck check;      ///< the chosen model's Monte Carlo check in the selection
-  double selection_s = 0.0;  ///< the whole ladder [s]
-  double solve_s = 0.0;      ///< the chosen model's solve, fastest of kSolveRepeats [s]
-  double verify_s = 0.0;     ///< screening and verifying the start [s]
+  st::ModelCheck check;               ///< the chosen model's Monte Carlo check in the selection
+  double selection_s = 0.0;           ///< the whole ladder [s]
+  int selection_models = 0;           ///< models solved by the ladder
+  double selection_check_s = 0.0;     ///< of selection_s, the Monte Carlo checks of its rungs [s]
+  std::vector<st::ModelRung> ladder;  ///< every rung the selection solved
+  double solve_s = 0.0;               ///< the chosen model's solve, fastest of kSolveRepeats [s]
+  double verify_s = 0.0;              ///< screening and verifying the start [s]
   st::VerifiedStart chosen;
   st::MonteCarloResult chosen_mc;   ///< kChosenStartTrials at the chosen start
   double gap_table_best = NAN;      ///< |gap| at the table's own best start (5.5's choice)
@@ -1189,6 +1106,7 @@ struct DecisionTruth {
   double verify_cpu_s = 0.0;       ///< CPU time of screening and verifying the start [s]
   double mean_abs_gap_top = 0.0, max_abs_gap_top = 0.0;
   double mean_abs_gap_boundary = 0.0, max_abs_gap_boundary = 0.0;
+  double noise_floor_boundary = 0.0;  ///< mean |gap| binomial noise alone gives there
   int entry_starts = 0, top_starts = 0, boundary_starts = 0;
   double mc_s = 0.0;
   ClosedLoop closed_loop;  ///< the procedure's closed loop at the chosen start
@@ -1220,7 +1138,7 @@ double scoreStarts(const st::ContinuousWorkspace& world, const st::PolicyTable& 
       continue;
     }
     ++count;
-    noise_floor += std::sqrt(2.0 / kPi * predicted * (1.0 - predicted) / double(trials));
+    noise_floor += noiseFloor(predicted, trials);
     sum += std::abs(predicted - mc.rate());
     max_gap = std::max(max_gap, std::abs(predicted - mc.rate()));
     within += ci.contains(predicted) ? 1.0 : 0.0;
@@ -1228,6 +1146,29 @@ double scoreStarts(const st::ContinuousWorkspace& world, const st::PolicyTable& 
   within = count > 0 ? within / count : NAN;
   noise_floor = count > 0 ? noise_floor / count : NAN;
   return count > 0 ? sum / count : NAN;
+}
+
+/// The rungs of the selection's ladder (selection_ladder.csv): what each group of the model check
+/// measured against the rung's own estimate, and which rung was chosen.
+ng::report::Table ladderRows() {
+  return ng::report::Table(
+      {"scene", "rung", "transition_model", "grid_mm", "subdivision", "states", "coarsened",
+       "estimated_error", "check_gap_entry", "check_gap_top", "check_gap_boundary", "check_trials",
+       "check_passed", "check_s", "chosen"},
+      6);
+}
+
+void addLadderRows(const DecisionTruth& d, ng::report::Table& rows) {
+  for (std::size_t i = 0; i < d.ladder.size(); ++i) {
+    const st::ModelRung& r = d.ladder[i];
+    const bool run = r.check.run;
+    rows.addRow({d.scene, double(i), st::toString(r.transition_model), r.grid_spacing_m * kMmPerM,
+                 double(r.orientation_subdivision), double(r.states), r.coarsened ? 1.0 : 0.0,
+                 r.estimated_error, run ? r.check.gap_entry : NAN, run ? r.check.gap_top : NAN,
+                 run ? r.check.gap_boundary : NAN, double(r.check.trials_per_start),
+                 run ? (r.check.passed ? 1.0 : 0.0) : NAN, run ? r.check.seconds : 0.0,
+                 r.chosen ? 1.0 : 0.0});
+  }
 }
 
 /// The per-start rows of decisionTruth (truth_decision.csv).
@@ -1256,6 +1197,11 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
   out.estimated_error = source.value().estimated_error;
   out.check = source.value().check;
   out.selection_s = source.value().seconds;
+  out.ladder = source.value().ladder;
+  out.selection_models = int(out.ladder.size());
+  for (const st::ModelRung& rung : source.value().ladder) {
+    out.selection_check_s += rung.check.run ? rung.check.seconds : 0.0;
+  }
   const st::SteeringProblem chosen = source.value().model->problem();
   const Solved solved =
       solveAt(chosen, chosen.params.grid_spacing_m, 2, 1e-3, start,
@@ -1307,7 +1253,9 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
   for (std::size_t i = 0; i < all.size() && i < std::size_t(kTopStarts); ++i) {
     top.push_back({i == 0 ? "table_best" : "top10", all[i].pose});
   }
-  boundary = boundaryStarts(problem, start, table, world);
+  for (const st::NearBoundaryStart& b : st::nearBoundaryStarts(start, table, world)) {
+    boundary.push_back({b.group, b.pose});
+  }
   int n = 0;
   double max_gap = 0.0, within = 0.0, noise = 0.0;
   out.mean_abs_gap_entry =
@@ -1327,10 +1275,11 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
                                        kMonteCarloTrials, kMonteCarloSeed, 2)
                          .rate());
   }
-  out.mean_abs_gap_boundary = scoreStarts(world, table, boundary, kMonteCarloTrials, scene.name,
-                                          rows, n, max_gap, within, noise);
+  out.mean_abs_gap_boundary = scoreStarts(world, table, boundary, kEntryTrials, scene.name, rows, n,
+                                          max_gap, within, noise);
   out.boundary_starts = n;
   out.max_abs_gap_boundary = max_gap;
+  out.noise_floor_boundary = noise;
   out.closed_loop = closedLoop(scene, problem, table, out.chosen.start.pose);
   out.mc_s = secondsSince(t0);
   return out;
@@ -1341,17 +1290,19 @@ double reportedGap(const DecisionTruth& d) {
   return std::abs(d.chosen.reported() - d.chosen_mc.rate());
 }
 
-/// ps_gap_chosen_start and the entry line's mean |gap| both within the scene's tolerance.
+/// ps_gap_chosen_start, the entry line's and the near-boundary starts' mean |gap| within the
+/// scene's tolerance (no near-boundary start with P_s >= 0.01: nothing to miss).
 bool targetsMet(const DecisionTruth& d) {
   const double tolerance =
       d.ps_tolerance > 0.0 ? d.ps_tolerance : st::kDefaultVerificationTolerance;
-  return reportedGap(d) <= tolerance && d.mean_abs_gap_entry <= tolerance;
+  return reportedGap(d) <= tolerance && d.mean_abs_gap_entry <= tolerance &&
+         !(d.mean_abs_gap_boundary > tolerance);
 }
 
 /// The JSON keys of one decisionTruth, each name followed by `suffix`.
 std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
   const double p = d.chosen.predicted();
-  const double noise = std::sqrt(2.0 / kPi * p * (1.0 - p) / double(d.chosen_mc.trials));
+  const double noise = noiseFloor(p, d.chosen_mc.trials);
   std::ostringstream j;
   auto key = [&](const std::string& name, const std::string& value) {
     j << ",\n  \"" << name << suffix << "\": " << value;
@@ -1362,6 +1313,7 @@ std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
   key("estimated_error", num(d.estimated_error));
   key("model_check_mean_gap_entry", num(d.check.gap_entry));
   key("model_check_mean_gap_top", num(d.check.gap_top));
+  key("model_check_mean_gap_boundary", num(d.check.gap_boundary));
   key("model_check_trials", std::to_string(d.check.trials_per_start));
   key("model_check_passed", d.check.passed ? "true" : "false");
   key("chosen_start_y_mm", num(d.chosen.start.pose.p_SceneTip.y() * kMmPerM));
@@ -1391,7 +1343,10 @@ std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
   key("ps_mean_abs_gap_boundary", num(d.mean_abs_gap_boundary));
   key("ps_max_abs_gap_boundary", num(d.max_abs_gap_boundary));
   key("truth_starts_boundary", std::to_string(d.boundary_starts));
+  key("noise_floor_boundary", num(d.noise_floor_boundary));
   key("selection_s", num(d.selection_s));
+  key("selection_models", std::to_string(d.selection_models));
+  key("selection_check_s", num(d.selection_check_s));
   key("solve_s_chosen_model", num(d.solve_s));
   key("verify_start_s", num(d.verify_s));
   key("verify_start_cpu_s", num(d.verify_cpu_s));
@@ -1410,6 +1365,7 @@ std::string decisionJson(const DecisionTruth& d, const std::string& suffix) {
 /// --truth-only: decisionTruth of every --scene; summary.json, truth_decision.csv and its plot.
 int truthOnly(const ng::report::BenchArgs& args) {
   ng::report::Table rows = decisionRows();
+  ng::report::Table ladder = ladderRows();
   std::ostringstream json;
   json << "{\n  \"benchmark\": \"steering\",\n  \"mode\": \"truth_only\"";
   const std::vector<std::string> scenes =
@@ -1424,6 +1380,8 @@ int truthOnly(const ng::report::BenchArgs& args) {
       const DecisionTruth d = decisionTruth(scene, rows);
       keys = decisionJson(d, suffix);
       all_met = all_met && targetsMet(d);
+      addLadderRows(d, ladder);
+      ladder.writeCsv(args.out_dir + "/selection_ladder.csv");
     } catch (const std::exception& e) {  // e.g. a tolerance refused: recorded, the rest run on
       std::string why = e.what();
       std::replace(why.begin(), why.end(), '"', '\'');

@@ -4,11 +4,12 @@
 // (Richardson: for an error of order p in Delta, e(Delta) = D / (r^p - 1) with r = sqrt(2); p = 2,
 // the order of bilinear interpolation, gives e = D). The first model whose estimate meets the
 // tolerance is a candidate. A candidate is accepted only once a Monte Carlo of the continuous
-// needle at a fixed-seed sample of start states (the entry line, its ends near the workspace
-// edges, and the best distinct starts the procedure chooses from) confirms it (checkModel); else
-// the ladder goes on to the next rung. The finest rung that fits the memory limit is checked
-// too, so a tolerance the change estimate cannot reach is still met when the continuous needle
-// confirms it. Not in the dissertation (5.4.2 fixes Delta by hand).
+// needle at a fixed-seed sample of start states (the entry line, the best distinct starts the
+// procedure chooses from, and starts near every workspace edge and obstacle, where rounding to
+// the grid is worst) confirms it (checkModel); else the ladder goes on to the next rung. The finest
+// rung that fits the memory limit is checked too, so a tolerance the change estimate cannot reach
+// is still met when the continuous needle confirms it. Not in the dissertation (5.4.2 fixes Delta
+// by hand).
 #pragma once
 
 #include <cstdint>
@@ -17,6 +18,7 @@
 #include <vector>
 
 #include "needle_guidance/status.h"
+#include "needle_guidance/steering/continuous_workspace.h"
 #include "needle_guidance/steering/policy_table.h"
 #include "needle_guidance/steering/steering_model.h"
 #include "needle_guidance/steering/value_iteration.h"
@@ -24,7 +26,7 @@
 namespace needle_guidance::steering {
 
 struct SelectionOptions {
-  double ps_tolerance = 0.005;     ///< mean |P_s error| wanted at the entry-line states, in (0, 1)
+  double ps_tolerance = 0.005;     ///< mean |P_s error| wanted in each checked group, in (0, 1)
   double memory_limit_mb = 500.0;  ///< refuse models whose estimated footprint exceeds this [MB]
   int max_steps = 10;              ///< rungs of the ladder at most (grids and transitions together)
   SolverOptions solver;            ///< for every solve
@@ -44,21 +46,23 @@ struct ModelCheck {
   std::int64_t trials_requested = 0;  ///< trials per start the check would run to the end
   int entry_starts = 0;               ///< non-trivial entry-line starts scored (both ends included)
   int top_starts = 0;                 ///< best distinct starts scored
+  int boundary_starts = 0;            ///< near-boundary starts scored (nearBoundaryStarts)
   /// Mean over the group of |predicted - Monte Carlo| with its binomial noise removed,
   /// sqrt(max(0, gap^2 - p (1 - p) / n)) per start: an estimate of the group's mean |P_s error|
   /// that the Monte Carlo noise does not inflate. NaN when the group has no non-trivial start.
   double gap_entry = 0.0;
   double gap_top = 0.0;
+  double gap_boundary = 0.0;
   double max_abs_gap = 0.0;  ///< largest measured |gap| of any start (noise included)
   double tolerance = 0.0;
-  bool passed = false;  ///< both mean gaps <= tolerance
+  bool passed = false;  ///< every group's mean gap <= tolerance
   /// max over the groups of (mean gap - the bias of its noise correction - 3 standard errors -
   /// tolerance): > 0 means the check fails whatever more trials would show (about 0.1 % wrong).
   double clear_fail_margin = -1.0;
   bool clearlyFailed() const { return clear_fail_margin > 0.0; }
   double seconds = 0.0;
-  /// "Monte Carlo check (40 starts x 10000 trials): mean gap 0.0031 entry line, 0.0024 best
-  /// starts, tolerance 0.005: passed".
+  /// "Monte Carlo check (80 starts x 10000 trials): mean gap 0.0031 on the entry line, 0.0024 at
+  /// the best starts, 0.0040 near boundaries, tolerance 0.005: passed".
   std::string toString() const;
 };
 
@@ -66,10 +70,36 @@ struct ModelCheck {
 /// standard error at P_s 0.5 is half the tolerance) within [2000, 10000].
 std::int64_t checkTrials(double tolerance);
 
-/// Scores `table` against the continuous needle at the entry-line starts (heights 2.5 mm inside
-/// both ends of the start range and at 1/6 .. 5/6 of it, angles -20, 0, 20 degrees, both bevels)
-/// and at the 4 best distinct starts (distinctBestStarts); starts where prediction and Monte
-/// Carlo are both below 0.01 are left out. Sequential: a quarter of the trials first; a check
+/// A start state near a boundary and the boundary it is near.
+struct NearBoundaryStart {
+  std::string group;  ///< "edge" (a workspace edge or an end of the start range) | "obstacle"
+  TipPose pose;
+};
+
+/// Distance of the near-boundary starts from a workspace edge or an expanded obstacle edge [m].
+constexpr double kNearBoundaryDistance_m = 2.5e-3;
+
+/// The entry-line starts x = start.start_x_m at each of `heights_m` within the start range and
+/// the workspace, at -18, 0, 18 degrees and both bevels (heights outside are skipped).
+std::vector<TipPose> entryLineStarts(const SteeringProblem& problem, const StartOptions& start,
+                                     const std::vector<double>& heights_m);
+
+/// Starts within 5 mm of every boundary, inside the free space: on the entry line 1.5 and 4 mm
+/// from both ends of the start range (entryLineStarts); kNearBoundaryDistance_m inside each
+/// workspace edge at a quarter, half and three quarters of it; kNearBoundaryDistance_m outside
+/// the middle of each expanded obstacle edge. An interior start takes the orientation and bevel
+/// of the highest P_s at its grid point (the states a good policy passes through); interior
+/// points in an obstacle or the target, off the grid, or whose every state is below P_s 0.01 are
+/// left out. Shared by the model check and the benchmark's truth check.
+std::vector<NearBoundaryStart> nearBoundaryStarts(const StartOptions& start,
+                                                  const PolicyTable& table,
+                                                  const ContinuousWorkspace& world);
+
+/// Scores `table` against the continuous needle in three groups: the entry-line starts (heights
+/// 2.5 mm inside both ends of the start range and at 1/6 .. 5/6 of it, angles -20, 0, 20 degrees,
+/// both bevels), the 4 best distinct starts (distinctBestStarts) and the near-boundary starts
+/// (nearBoundaryStarts); starts where prediction and Monte Carlo are both below 0.01 are left
+/// out. Sequential: a quarter of the trials first; a check
 /// that has then clearly failed (ModelCheck::clearlyFailed) stops there, any other runs the rest
 /// (trials i from the quarter on, so the result is that of one run of `trials`). Throws
 /// std::invalid_argument for trials < 1.
@@ -124,11 +154,19 @@ std::vector<TipPose> evaluationPoses(const SteeringProblem& problem, const Start
 double meanAbsChange(const PolicyTable& fine, const PolicyTable& coarse,
                      const std::vector<TipPose>& poses, int& count);
 
+/// True when the last rung's check failed a group (entry line, best starts, near boundaries) that
+/// the previous checked rung of the same transitions, a coarser grid, failed too with no smaller
+/// mean gap: a finer grid did not shrink that error, so the grid does not explain it and
+/// chooseModel refines the transitions instead. False when no earlier rung of these transitions
+/// was checked.
+bool finerGridDidNotHelp(const std::vector<ModelRung>& ladder);
+
 /// Solves the ladder from problem.params.grid_spacing_m (the coarsest) until a rung's estimate
 /// meets options.ps_tolerance and its checkModel passes (or, when the next rung would exceed
 /// memory_limit_mb or max_steps, the last rung's check passes whatever its estimate). A failed
-/// check the grid's estimated error does not explain refines the transitions instead (rounded
-/// -> interpolated -> s doubled); when memory stops the grid, the transitions are refined once
+/// check the grid's estimated error does not explain (a group's mean gap above twice the
+/// estimate, or finerGridDidNotHelp) refines the transitions instead (rounded -> interpolated ->
+/// s doubled); when memory stops the grid, the transitions are refined once
 /// within the last rung's memory (s doubled on a grid sqrt(2) coarser). An accepted model whose
 /// transitions came in on a finer grid is then coarsened: the grid sqrt(2) coarser with the same
 /// transitions (never coarser than problem.params.grid_spacing_m) is taken while its estimate
