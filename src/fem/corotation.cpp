@@ -13,7 +13,9 @@ namespace needle_guidance::fem {
 template <int Dim>
 Eigen::Matrix<double, Dim, Dim> fastPolarRotation(const Eigen::Matrix<double, Dim, Dim>& f) {
   constexpr double kMinDet = 0.1;
-  constexpr double kConverged = 1e-13;
+  // Newton's iteration converges quadratically (the next error is about half the square of the
+  // last change): a change below 1e-7 leaves an error below 1e-14, so the iteration stops there.
+  constexpr double kConverged = 1e-7;
   constexpr int kMaxIterations = 12;
   if (!(f.determinant() > kMinDet)) {
     return polarRotation<Dim>(f);
@@ -80,10 +82,11 @@ CorotationalForces<Dim>::CorotationalForces(const SimplexMesh<Dim>& mesh,
 
 namespace {
 
-/// Angle of a rotation [rad].
+/// Cosine of the angle of a rotation (decreasing in the angle: the largest angle is found
+/// by the least cosine, one arc cosine per pass).
 template <int Dim>
-double rotationAngle(const Eigen::Matrix<double, Dim, Dim>& r) {
-  return std::acos(std::clamp(0.5 * (r.trace() - (Dim - 2)), -1.0, 1.0));
+double rotationCosine(const Eigen::Matrix<double, Dim, Dim>& r) {
+  return std::clamp(0.5 * (r.trace() - (Dim - 2)), -1.0, 1.0);
 }
 
 /// R_b K R_b^T for the block-diagonal R_b with r on each corner's block.
@@ -124,7 +127,7 @@ Eigen::VectorXd CorotationalForces<Dim>::correction(const Eigen::VectorXd& u, in
   using Local = Eigen::Matrix<double, kDofs, 1>;
   Eigen::VectorXd g = Eigen::VectorXd::Zero(u.size());
   int flipped = 0;
-  double turn = 0.0;
+  double least_cosine = 1.0;
   for (int e = 0; e < mesh_->elementCount(); ++e) {
     const std::size_t ei = static_cast<std::size_t>(e);
     const bool warped = !warped_.empty() && warped_[ei];
@@ -135,7 +138,7 @@ Eigen::VectorXd CorotationalForces<Dim>::correction(const Eigen::VectorXd& u, in
     flipped += f.determinant() > 0.0 ? 0 : 1;
     const Rotation r = elementRotation<Dim>(f);
     const Rotation r0 = warped ? reference_[ei] : Rotation::Identity();
-    turn = std::max(turn, rotationAngle<Dim>(r0.transpose() * r));
+    least_cosine = std::min(least_cosine, rotationCosine<Dim>(r0.transpose() * r));
     // R K_e (R^T x - X) - R_0 K_e R_0^T u with x = X + u.
     const auto& nodes = mesh_->elements[ei];
     Local local, ue0;
@@ -156,7 +159,7 @@ Eigen::VectorXd CorotationalForces<Dim>::correction(const Eigen::VectorXd& u, in
     *inverted = flipped;
   }
   if (max_turn_rad) {
-    *max_turn_rad = turn;
+    *max_turn_rad = std::acos(least_cosine);
   }
   return g;
 }

@@ -645,6 +645,27 @@ TEST(Tissue3dCorotation, RotationFadesBeyondTheSmallStrainRange) {
   EXPECT_LT((fem::elementRotation<3>(nudged) - q).norm(), 1e-4);
 }
 
+TEST(Tissue3dCorotation, NewtonPolarRotationMatchesTheSvd) {
+  // Newton's iteration stops once its change falls below 1e-7 (the next error is about half its
+  // square): the rotation agrees with the SVD's polar rotation and is orthonormal to round-off,
+  // from near-rigid tissue to stretches of 150 % and 80 % compression.
+  constexpr double kRotationTol = 1e-12;
+  const Eigen::Vector3d axis = Eigen::Vector3d(1, -2, 3).normalized();
+  for (const double angle : {0.0, 0.05, 0.7, 2.5}) {
+    for (const Eigen::Vector3d& stretch :
+         {Eigen::Vector3d(1.0, 1.0, 1.0), Eigen::Vector3d(1.02, 0.99, 1.0),
+          Eigen::Vector3d(1.3, 0.8, 1.1), Eigen::Vector3d(2.5, 1.0, 0.2)}) {
+      const Eigen::Matrix3d r = Eigen::AngleAxisd(angle, axis).matrix();
+      const Eigen::Matrix3d shear = Eigen::AngleAxisd(0.4, Eigen::Vector3d::UnitX()).matrix();
+      const Eigen::Matrix3d f = r * shear * stretch.asDiagonal() * shear.transpose();
+      const Eigen::Matrix3d q = fem::fastPolarRotation<3>(f);
+      EXPECT_LT((q - fem::polarRotation<3>(f)).norm(), kRotationTol) << angle;
+      EXPECT_LT((q - r).norm(), kRotationTol) << angle;  // the stretch is symmetric
+      EXPECT_LT((q.transpose() * q - Eigen::Matrix3d::Identity()).norm(), kRotationTol);
+    }
+  }
+}
+
 TEST(Tissue3dCorotation, WarpedStiffnessAndItsFactor) {
   // Every element turned rigidly by 0.6 rad about z: the corotated forces vanish, so against
   // the warped stiffness at that turn the correction is exactly -K_R u; the compliance
