@@ -12,9 +12,10 @@
 // Corotational tissue (scene key `tissue.model: corotational`): a corotational insertion costs
 // 10-30 times a linear one, so the plan starts in the linear model of the same mesh (built once
 // by the planner), which gives the lateral position, the hole and the track's drift; then one
-// corotational insertion along that needle line finds the depth where the tip's tissue point
-// reaches the target and, from the state kept before that step, inserts to that depth, releases
-// the seed and retracts: the verification. Only when that seed misses by more than half the
+// corotational insertion along that needle line, by long moves to near the depth and a short
+// one past it, finds the depth where the tip's tissue point reaches the target and, from the
+// state kept before that short move, inserts to that depth, releases the seed and retracts:
+// the verification. Only when that seed misses by more than half the
 // tolerance is the needle moved by the miss (another hole when the template's holes are fixed)
 // and inserted again.
 #pragma once
@@ -137,8 +138,9 @@ private:
   /// with r.refusal set when the robot cannot reach.
   bool insertUntilPlaced(const Vector3& goal, Eigen::Vector2d lateral, double& step_scale,
                          Attempt& plan, PlanResult3& r);
-  /// Corotational tissue: one insertion at lateral, moves of step_scale x the scene's step, to
-  /// the depth where the tip's tissue point reaches the goal's x, seed release and retraction
+  /// Corotational tissue: one insertion at lateral, moves of step_scale x the scene's step to
+  /// near the depth and of the scene's step past it, to the depth where the tip's tissue point
+  /// reaches the goal's x, seed release and retraction
   /// (the verification); error < 0 with r.refusal set when the deepest tip position is short of
   /// it. Throws std::runtime_error when the simulation refuses.
   Attempt insertToGoal(const Vector3& goal, const Eigen::Vector2d& lateral, double step_scale,
