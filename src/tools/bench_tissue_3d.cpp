@@ -9,8 +9,11 @@
 // --model corotational: the corotational insertion at about 50k tetrahedra runs on every scene
 // (each meshed to about 50k), not only on the first, and every target of every scene is planned
 // in corotational tissue (plans_corotational.csv), each plan checked by an independent full
-// simulation at the scene's step.
+// simulation at the scene's step. --corotational-plans: only those plans;
+// --corotational-step-scale S: the planner's long moves; --corotational-moves: each plan also
+// simulated with moves of 2-16 scene steps (the seed against the move length, and its CPU).
 // Usage: bench_tissue_3d --out DIR [--quick] [--scene FILE ...] [--model corotational]
+//        [--corotational-plans] [--corotational-step-scale S] [--corotational-moves]
 
 #include <algorithm>
 #include <cmath>
