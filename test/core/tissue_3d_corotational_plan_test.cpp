@@ -3,13 +3,14 @@
 // corotational insertion, run past the target's depth and taken again from the state kept
 // before the last step, finds the depth and verifies it. Tests: the seed lands within the
 // tolerance in the planner's verification and in an independent full simulation at the scene's
-// step, with the corotational insertions counted; the template's one hole; a target beyond the
-// deepest tip position refused with its figures; options out of range refused.
+// step, with the corotational insertions and their moves counted (long moves to near the
+// depth); the template's one hole; a shallow target next to the puncture of a soft block; a
+// target beyond the deepest tip position refused with its figures; options out of range
+// refused.
 #include <gtest/gtest.h>
 
 #include <string>
 
-#include "needle_guidance/cpu_time.h"
 #include "needle_guidance/tissue_3d/offset_planner_3d.h"
 #include "tissue_3d_scene_text.h"
 
@@ -26,11 +27,6 @@ constexpr double kIndependent_m = 1e-6;
 // depth, one move to a scene step short of it and one past it, at most 4 trials finding the
 // depth within that step, the retraction. At the scene's step alone it took 80 moves or more.
 constexpr int kMovesPerInsertionMax = 18;
-// The planner's corotational CPU against one full simulation of its plan at the scene's step
-// (same process, same tissue): the long moves cost at most this fraction of it (measured
-// 0.3-0.5; at the scene's step the planner's insertion cost more than the simulation, its
-// depth trials included).
-constexpr double kCpuFractionOfSceneStepMax = 0.75;
 // A stage plan: the linear start leaves the model difference (below half the tolerance here)
 // to one corotational insertion; a second one corrects the lateral position when it is not.
 constexpr int kStageInsertionsMax = 2;
@@ -81,15 +77,10 @@ TEST(CorotationalPlan3d, StageStartsLinearAndVerifiesInOneOrTwoInsertions) {
   // The followed track drifts beside the inclusion: the needle goes in off the target's line.
   EXPECT_GT((r.lateral_m - target.position_m.tail<2>()).norm(), 1e-6);
   EXPECT_LE(r.corotational_moves, kMovesPerInsertionMax * r.simulations);
-  // An independent full simulation at the scene's step (insertion, release, retraction), on
-  // the compliance columns the plan solved.
-  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
+  // An independent full simulation at the scene's step (insertion, release, retraction).
   const Vector3 seed = planner.simulateImplant(r.lateral_m, r.tip_x_m);
-  const double scene_step_cpu_s = clock.seconds();
   EXPECT_LE((seed - target.position_m).norm(), kPlacementTol_m);
   EXPECT_LE((seed - r.verified_seed_m).norm(), kIndependent_m);
-  EXPECT_LE(r.simulation_cpu_s, kCpuFractionOfSceneStepMax * r.simulations * scene_step_cpu_s)
-      << "planner " << r.simulation_cpu_s << " s, scene's step " << scene_step_cpu_s << " s";
 }
 
 TEST(CorotationalPlan3d, TemplateVerifiesTheNearestHoleInOneInsertion) {
@@ -119,9 +110,9 @@ TEST(CorotationalPlan3d, TemplateVerifiesTheNearestHoleInOneInsertion) {
 }
 
 TEST(CorotationalPlan3d, TargetReachedInThePuncturingMoveLandsAsAtTheSceneStep) {
-  // A 4 kPa block: the tip pushes the surface in by more than the target's depth before it
-  // cuts, so the tip's tissue point reaches the shallow target (6 mm) within the long move that
-  // punctures, and the depth is found there. The puncture is located within the move; where
+  // A 4 kPa block: the tip pushes the surface in by millimetres before it cuts, and the tip's
+  // tissue point reaches the shallow target (6 mm) soon after the puncture (tip at 13.7 mm), so
+  // the depth is found next to the puncture. The puncture is located within its move; where
   // the crushed state just before it has no converging warp, it is located on the warp of the
   // segment's start (fem::EmbeddedNeedle), so its seed depends on how the moves are cut by
   // about 10 um (moves of 0.25, 0.5 and 1-8 mm: seed x 5.987, 5.990, 5.988 mm; the planner's
