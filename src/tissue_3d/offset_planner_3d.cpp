@@ -15,8 +15,8 @@ constexpr double kPathSample_m = 5e-4;  // needle line sampled for fixed regions
 constexpr int kMaxVerifications = 4;
 constexpr int kMaxHoles = 3;  // template holes verified per target, the nearest included
 // Corotational insertion: the depth where the tip's tissue point reaches the goal's x is found
-// within the last step to this fraction of the tolerance (at most kMaxDepthTrials moves from the
-// state kept before that step).
+// within the last move to this fraction of the tolerance (at most kMaxDepthTrials moves, each
+// from the last state short of the goal).
 constexpr double kDepthTolFraction = 0.01;
 constexpr int kMaxDepthTrials = 4;
 
