@@ -15,13 +15,10 @@ constexpr double kPathSample_m = 5e-4;  // needle line sampled for fixed regions
 constexpr int kMaxVerifications = 4;
 constexpr int kMaxHoles = 3;  // template holes verified per target, the nearest included
 // Corotational insertion: the depth where the tip's tissue point reaches the goal's x is found
-// within the last step to this fraction of the tolerance (at most kMaxDepthTrials moves from the
-// state kept before that step).
+// within the last move to this fraction of the tolerance (at most kMaxDepthTrials moves, each
+// from the last state short of the goal).
 constexpr double kDepthTolFraction = 0.01;
 constexpr int kMaxDepthTrials = 4;
-// Corotational plans at the planner's longer moves are checked at half of them: seeds within
-// this fraction of the tolerance of each other accept the moves for this tissue.
-constexpr double kStepCheckFraction = 0.1;
 
 std::string mm(double m) {
   std::ostringstream out;
@@ -210,14 +207,18 @@ bool OffsetPlanner3::predict(TissueModel3& model, const Vector3& goal, Eigen::Ve
 OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
                                                      const Eigen::Vector2d& lateral,
                                                      double step_scale, PlanResult3& r) {
-  // The insertion runs at the planner's step; before each step its state is kept. Once the tip's
-  // tissue point has passed the goal's x, the depth where it reaches it is found within that
-  // step (regula falsi, each trial a move from the kept state), and from there the seed is
-  // released and the needle withdrawn: an insertion at the step to that depth, the verification.
+  // The needle goes in by long moves (step_scale x the scene's step: the answer does not depend
+  // on the move length, as the events are located within each move) until the tip's tissue
+  // point, extrapolated at its rate over the last move, is predicted to reach the goal's x
+  // within one more; then it stops a scene step short of that depth and passes it in one short
+  // move. The depth where the tissue point reaches the goal is found within that short move
+  // (depthWithin), from where the seed is released and the needle withdrawn: an insertion to
+  // that depth, the verification.
   const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
   const Workspace3& w = scene_.workspace;
   const double x0 = scene_.block_min_m.x();
-  const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s * step_scale;
+  const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s;
+  const double long_move = step * step_scale;
   ++r.simulations;
   NeedleInsertion3 needle(model_, scene_.needle, x0, w.max_tip_x_m);
   auto tissueX = [&](const NeedleInsertion3& n) {  // before puncture the tip pins the entry point
@@ -234,43 +235,78 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
       r.simulation_cpu_s += clock.seconds();
       return {};
     }
+    double next = hi + long_move;
+    if (needle.punctured() && kept && kept->punctured() && hi > lo) {
+      // The tip x where the tissue point is predicted to reach the goal (its rate over the last
+      // move; a rate at or below zero predicts nothing).
+      const double rate = (tissueX(needle) - tissueX(*kept)) / (hi - lo);
+      const double reach = rate > 0.0 ? hi + (goal.x() - tissueX(needle)) / rate : next + step;
+      if (reach < next + step) {
+        next = reach - step > hi + step ? reach - step : std::max(reach + 0.5 * step, hi + step);
+      }
+    }
     kept.emplace(needle);
     lo = hi;
-    hi = std::min(hi + step, w.max_tip_x_m);
+    hi = std::min(next, w.max_tip_x_m);
     if (!needle.moveTo(lateral, hi, &why)) {
       throw std::runtime_error(why);
     }
+    ++r.corotational_moves;
   }
-  if (!kept->punctured() && step_scale > 1.0) {
-    // The tip's tissue point reaches the goal in the move that punctures: with moves longer
-    // than the scene's step the puncture was measured to depend on the move's length (a very
-    // soft block, docs/tissue_3d.md "Longer moves, measured"), and the seed there with it.
-    r.simulation_cpu_s += clock.seconds();
-    throw std::runtime_error("the target is reached in the move that punctures");
-  }
-  double f_lo = tissueX(*kept) - goal.x(), f_hi = needle.tipReference().x() - goal.x();
-  double depth = hi, f_best = f_hi;
-  NeedleInsertion3 best = needle;
-  for (int i = 0;
-       i < kMaxDepthTrials && std::abs(f_best) > kDepthTolFraction * options_.tolerance_m; ++i) {
-    const double d = lo + (hi - lo) * (-f_lo) / (f_hi - f_lo);
-    NeedleInsertion3 trial = *kept;
-    if (!trial.moveTo(lateral, d, &why)) {
-      throw std::runtime_error(why);
-    }
-    const double f = tissueX(trial) - goal.x();
-    if (std::abs(f) < std::abs(f_best)) {
-      f_best = f;
-      depth = d;
-      best = trial;
-    }
-    (f < 0.0 ? lo : hi) = d;
-    (f < 0.0 ? f_lo : f_hi) = f;
-  }
-  Attempt a{lateral, depth, releaseAndRetract(best, lateral, x0 - step), 0.0};
+  NeedleInsertion3 best = depthWithin(goal, lateral, *kept, needle, lo, hi, r);
+  Attempt a{lateral, best.tipX(), releaseAndRetract(best, lateral, x0 - step), 0.0};
+  ++r.corotational_moves;
   a.error = (a.seed - goal).norm();
   r.simulation_cpu_s += clock.seconds();
   return a;
+}
+
+NeedleInsertion3 OffsetPlanner3::depthWithin(const Vector3& goal, const Eigen::Vector2d& lateral,
+                                             const NeedleInsertion3& kept,
+                                             const NeedleInsertion3& passed, double lo, double hi,
+                                             PlanResult3& r) {
+  // Regula falsi with the Illinois rule on f(d) = tissue point's x - goal's x, each trial a move
+  // from the state at lo (the kept state, or the last trial short of the goal) to d; the best
+  // trial (smallest |f|) is the insertion to the depth.
+  const double x0 = scene_.block_min_m.x();
+  auto f = [&](const NeedleInsertion3& n) {
+    return (n.punctured() ? n.tipReference().x() : x0) - goal.x();
+  };
+  double f_lo = f(kept), f_hi = f(passed);
+  double f_best = f_hi;
+  NeedleInsertion3 best = passed;
+  NeedleInsertion3 from = kept;  // the state at lo: a trial short of the goal moves it there
+  // +1 when the last trial replaced lo, -1 when it replaced hi (Illinois: the end kept twice in
+  // a row has its value halved).
+  int kept_side = 0;
+  std::string why;
+  for (int i = 0;
+       i < kMaxDepthTrials && std::abs(f_best) > kDepthTolFraction * options_.tolerance_m; ++i) {
+    const double d = lo + (hi - lo) * (-f_lo) / (f_hi - f_lo);
+    NeedleInsertion3 trial = from;
+    if (!trial.moveTo(lateral, d, &why)) {
+      throw std::runtime_error(why);
+    }
+    ++r.corotational_moves;
+    const double fd = f(trial);
+    if (std::abs(fd) < std::abs(f_best)) {
+      f_best = fd;
+      best = trial;
+    }
+    if (fd < 0.0) {
+      from = std::move(trial);
+      lo = d;
+      f_lo = fd;
+      f_hi *= kept_side > 0 ? 0.5 : 1.0;
+      kept_side = 1;
+    } else {
+      hi = d;
+      f_hi = fd;
+      f_lo *= kept_side < 0 ? 0.5 : 1.0;
+      kept_side = -1;
+    }
+  }
+  return best;
 }
 
 bool OffsetPlanner3::planCorotational(const Vector3& goal, Eigen::Vector2d lateral, Attempt& plan,
@@ -291,40 +327,7 @@ bool OffsetPlanner3::planCorotational(const Vector3& goal, Eigen::Vector2d later
     r.predicted_error_m = -1.0;  // the corotational insertion predicts and verifies at once
   }
   double step_scale = options_.corotational_step_scale;
-  if (!insertUntilPlaced(goal, lateral, step_scale, plan, r)) {
-    return false;
-  }
-  if (step_scale <= 1.0 || plan.error < 0.0) {
-    return true;
-  }
-  // The step check: the plan simulated again at half the planner's moves. Where the seeds agree
-  // the longer moves were short enough for this tissue, and the finer simulation is the
-  // verification; where they do not, the scene's step decides (the plan again from its lateral
-  // position).
-  const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
-  std::optional<Vector3> finer;
-  try {
-    finer = simulateImplant(plan.lateral, plan.tip_x, 0.5 * step_scale);
-  } catch (const std::runtime_error&) {
-    finer.reset();  // refused at these moves: the scene's step decides
-  }
-  ++r.simulations;
-  r.simulation_cpu_s += clock.seconds();
-  if (finer && (*finer - plan.seed).norm() <= kStepCheckFraction * options_.tolerance_m) {
-    plan.seed = *finer;
-    plan.error = (*finer - goal).norm();
-    if (w.use_template && r.hole == r.nearest_hole) {
-      r.nearest_hole_error_m = plan.error;
-    }
-    return true;
-  }
-  Attempt fine;
-  step_scale = 1.0;
-  if (!insertUntilPlaced(goal, plan.lateral, step_scale, fine, r)) {
-    return false;
-  }
-  plan = fine;
-  return true;
+  return insertUntilPlaced(goal, lateral, step_scale, plan, r);
 }
 
 bool OffsetPlanner3::insertUntilPlaced(const Vector3& goal, Eigen::Vector2d lateral,

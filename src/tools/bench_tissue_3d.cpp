@@ -9,11 +9,15 @@
 // --model corotational: the corotational insertion at about 50k tetrahedra runs on every scene
 // (each meshed to about 50k), not only on the first, and every target of every scene is planned
 // in corotational tissue (plans_corotational.csv), each plan checked by an independent full
-// simulation at the scene's step.
+// simulation at the scene's step. --corotational-plans: only those plans;
+// --corotational-step-scale S: the planner's long moves; --corotational-moves: each plan also
+// simulated with moves of 2-16 scene steps (the seed against the move length, and its CPU).
 // Usage: bench_tissue_3d --out DIR [--quick] [--scene FILE ...] [--model corotational]
+//        [--corotational-plans] [--corotational-step-scale S] [--corotational-moves]
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <filesystem>
 #include <iostream>
 #include <optional>
@@ -36,9 +40,14 @@ using ng::report::jsonNumber;
 
 namespace {
 
+/// A figure for the CSV, empty when undefined (< 0: never computed).
+ng::report::Cell orUndefined(double v) {
+  return v < 0.0 ? ng::report::Cell(std::string()) : ng::report::Cell(v);
+}
+
 /// A length in mm for the CSV, empty when undefined (< 0: never computed).
 ng::report::Cell mmOrUndefined(double m) {
-  return m < 0.0 ? ng::report::Cell(std::string()) : ng::report::Cell(m * 1e3);
+  return orUndefined(m < 0.0 ? m : m * 1e3);
 }
 
 std::vector<std::string> defaultScenes() {
@@ -251,6 +260,7 @@ struct IndependentCheck {
   double step_error_m = -1.0;
   double cpu_s = 0.0;
   std::string refusal;
+  t3::Vector3 seed = t3::Vector3::Zero();  ///< the seed at the scene's step (when error_m >= 0)
 };
 
 IndependentCheck independentCheck(t3::OffsetPlanner3& planner, const t3::PlanResult3& r,
@@ -258,14 +268,37 @@ IndependentCheck independentCheck(t3::OffsetPlanner3& planner, const t3::PlanRes
   IndependentCheck c;
   const ng::CpuStopwatch clock(ng::CpuStopwatch::Scope::kProcess);
   try {
-    const t3::Vector3 seed = planner.simulateImplant(r.lateral_m, r.tip_x_m);
-    c.error_m = (seed - target.position_m).norm();
-    c.step_error_m = (seed - r.verified_seed_m).norm();
+    c.seed = planner.simulateImplant(r.lateral_m, r.tip_x_m);
+    c.error_m = (c.seed - target.position_m).norm();
+    c.step_error_m = (c.seed - r.verified_seed_m).norm();
   } catch (const std::runtime_error& e) {
     c.refusal = e.what();
   }
   c.cpu_s = clock.seconds();
   return c;
+}
+
+/// --corotational-moves: the move lengths (multiples of the scene's step) at which the plan is
+/// simulated again; each seed's distance from the one at the scene's step is a column.
+constexpr double kMoveScales[] = {2.0, 4.0, 8.0, 16.0};
+
+/// The plan simulated with moves of each of kMoveScales: per scale, the seed's distance from
+/// `reference` (the seed at the scene's step; < 0 undefined: refused) and the simulation's CPU.
+std::vector<std::pair<double, double>> moveChanges(t3::OffsetPlanner3& planner,
+                                                   const t3::PlanResult3& r,
+                                                   const t3::Vector3& reference) {
+  std::vector<std::pair<double, double>> out;
+  for (double scale : kMoveScales) {
+    const ng::CpuStopwatch clock(ng::CpuStopwatch::Scope::kProcess);
+    double change = -1.0;
+    try {
+      change = (planner.simulateImplant(r.lateral_m, r.tip_x_m, scale) - reference).norm();
+    } catch (const std::runtime_error& e) {
+      std::cout << "    moves x" << scale << " refused: " << e.what() << "\n";
+    }
+    out.emplace_back(change, clock.seconds());
+  }
+  return out;
 }
 
 /// Every target of every scene planned in corotational tissue (tissue.model forced to
@@ -278,11 +311,21 @@ struct CorotationalPlans {
   int simulations_max = 0;
 };
 
-CorotationalPlans corotationalPlans(const std::vector<std::string>& files, const std::string& csv) {
-  ng::report::Table table({"scene", "target", "placed", "verified_mm", "independent_mm",
-                           "step_error_mm", "plan_cpu_s", "simulation_cpu_s", "simulations",
-                           "linear_simulations", "holes_verified", "tets", "setup_cpu_s",
-                           "independent_cpu_s", "refusal"});
+/// step_scale: the planner's corotational moves (PlannerOptions3::corotational_step_scale; <= 0
+/// its default); moves: also simulate each plan at kMoveScales (moveChanges).
+CorotationalPlans corotationalPlans(const std::vector<std::string>& files, const std::string& csv,
+                                    double step_scale, bool moves) {
+  std::vector<std::string> columns{
+      "scene",          "target",     "placed",           "verified_mm",       "independent_mm",
+      "step_error_mm",  "plan_cpu_s", "simulation_cpu_s", "simulations",       "linear_simulations",
+      "holes_verified", "tets",       "setup_cpu_s",      "independent_cpu_s", "refusal"};
+  for (double scale : moves ? std::vector<double>(std::begin(kMoveScales), std::end(kMoveScales))
+                            : std::vector<double>{}) {
+    const std::string x = "x" + std::to_string(static_cast<int>(scale));
+    columns.push_back("moves_" + x + "_change_mm");
+    columns.push_back("moves_" + x + "_cpu_s");
+  }
+  ng::report::Table table(columns);
   CorotationalPlans out;
   const double tolerance = t3::PlannerOptions3{}.tolerance_m;
   for (const std::string& file : files) {
@@ -293,6 +336,9 @@ CorotationalPlans corotationalPlans(const std::vector<std::string>& files, const
     t3::TissueModel3 model(std::move(mesh), scene.materialTable(), true);
     t3::PlannerOptions3 options;
     options.unplanned = false;
+    if (step_scale > 0.0) {
+      options.corotational_step_scale = step_scale;
+    }
     t3::OffsetPlanner3 planner(scene, model, options);
     out.setup_max_s = std::max(out.setup_max_s, planner.setupCpuSeconds());
     for (const t3::Target3& target : scene.targets) {
@@ -312,16 +358,36 @@ CorotationalPlans corotationalPlans(const std::vector<std::string>& files, const
         out.step_error_max_m = std::max(out.step_error_max_m, check.step_error_m);
         out.simulations_max = std::max(out.simulations_max, r.simulations);
       }
+      std::vector<ng::report::Cell> row{scene.name,
+                                        target.name,
+                                        std::string(r.placed        ? "yes"
+                                                    : r.unreachable ? "unreachable"
+                                                                    : "no"),
+                                        mmOrUndefined(r.verified_error_m),
+                                        mmOrUndefined(check.error_m),
+                                        mmOrUndefined(check.step_error_m),
+                                        r.plan_cpu_s,
+                                        r.simulation_cpu_s,
+                                        double(r.simulations),
+                                        double(r.linear_simulations),
+                                        double(r.holes_verified),
+                                        double(tets),
+                                        planner.setupCpuSeconds(),
+                                        check.cpu_s,
+                                        r.refusal.empty() ? check.refusal : r.refusal};
+      if (moves) {
+        std::vector<std::pair<double, double>> changes;
+        if (check.error_m >= 0.0) {
+          changes = moveChanges(planner, r, check.seed);
+        }
+        changes.resize(std::size(kMoveScales), {-1.0, -1.0});  // undefined: no seed to compare
+        for (const auto& [change, cpu] : changes) {
+          row.push_back(mmOrUndefined(change));
+          row.push_back(orUndefined(cpu));
+        }
+      }
       model.compliance().clearCache();
-      table.addRow({scene.name, target.name,
-                    std::string(r.placed        ? "yes"
-                                : r.unreachable ? "unreachable"
-                                                : "no"),
-                    mmOrUndefined(r.verified_error_m), mmOrUndefined(check.error_m),
-                    mmOrUndefined(check.step_error_m), r.plan_cpu_s, r.simulation_cpu_s,
-                    double(r.simulations), double(r.linear_simulations), double(r.holes_verified),
-                    double(tets), planner.setupCpuSeconds(), check.cpu_s,
-                    r.refusal.empty() ? check.refusal : r.refusal});
+      table.addRow(row);
       std::cout << "  corotational plan " << scene.name << "/" << target.name << ": "
                 << (r.placed ? "placed" : "not placed") << ", verified " << r.verified_error_m * 1e3
                 << " mm, independent " << check.error_m * 1e3 << " mm, " << r.plan_cpu_s
@@ -528,15 +594,28 @@ t3::Vector3 seedAtSceneStep(t3::OffsetPlanner3& planner, const t3::TissueScene3d
 struct OwnOptions {
   bool corotational_every_scene = false;  ///< --model corotational
   bool corotational_plans_only = false;   ///< --corotational-plans
+  double corotational_step_scale = 0.0;   ///< --corotational-step-scale S (<= 0: the planner's)
+  bool corotational_moves = false;        ///< --corotational-moves
 };
 
 /// Takes this tool's options out of argv; the others are appended to rest. False (with the
-/// reason on stderr) for a bad --model value.
+/// reason on stderr) for a bad --model or --corotational-step-scale value.
 bool parseOwnOptions(int argc, char** argv, OwnOptions& own, std::vector<char*>& rest) {
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--corotational-plans") {
       own.corotational_plans_only = true;
+    } else if (a == "--corotational-moves") {
+      own.corotational_moves = true;
+    } else if (a == "--corotational-step-scale" && i + 1 < argc) {
+      char* end = nullptr;
+      own.corotational_step_scale = std::strtod(argv[++i], &end);
+      if (end == argv[i] || *end != '\0' || !(own.corotational_step_scale > 0.0) ||
+          !std::isfinite(own.corotational_step_scale)) {
+        std::cerr << "bench_tissue_3d: --corotational-step-scale takes a number > 0, not `"
+                  << argv[i] << "`\n";
+        return false;
+      }
     } else if (a == "--model" && i + 1 < argc) {
       if (std::string(argv[++i]) != "corotational") {
         std::cerr << "bench_tissue_3d: --model takes `corotational`, not `" << argv[i] << "`\n";
@@ -552,8 +631,10 @@ bool parseOwnOptions(int argc, char** argv, OwnOptions& own, std::vector<char*>&
 
 /// --corotational-plans: the corotational plans of every scene, their summary keys and plot.
 void writeCorotationalPlansOnly(const std::vector<std::string>& files,
-                                const ng::report::BenchArgs& args) {
-  const CorotationalPlans c = corotationalPlans(files, args.out_dir + "/plans_corotational.csv");
+                                const ng::report::BenchArgs& args, const OwnOptions& own) {
+  const CorotationalPlans c =
+      corotationalPlans(files, args.out_dir + "/plans_corotational.csv",
+                        own.corotational_step_scale, own.corotational_moves);
   ng::report::writeTextFile(args.out_dir + "/summary.json",
                             "{\n  \"benchmark\": \"tissue_3d\",\n  \"quick\": " +
                                 std::string(args.quick ? "true" : "false") +
@@ -567,12 +648,16 @@ void writeCorotationalPlansOnly(const std::vector<std::string>& files,
 int main(int argc, char** argv) {
   constexpr const char* kUsage =
       "usage: bench_tissue_3d --out DIR [--quick] [--scene FILE]... [--model corotational]\n"
-      "       [--corotational-plans]\n"
+      "       [--corotational-plans] [--corotational-step-scale S] [--corotational-moves]\n"
       "Writes DIR/summary.json, its CSVs and plot.json (scripts/bench tissue_3d runs it and draws "
       "the plots).\n--model corotational: the corotational insertion at about 50k tetrahedra "
       "runs on every scene, not only on the first (corotational_50k.csv), and every target is "
       "planned in corotational tissue (plans_corotational.csv).\n--corotational-plans: only "
-      "those corotational plans (plans_corotational.csv and their summary keys).\n";
+      "those corotational plans (plans_corotational.csv and their summary keys).\n"
+      "--corotational-step-scale S: the planner's corotational moves, S times the scene's step "
+      "(default: the planner's).\n--corotational-moves: each corotational plan also simulated "
+      "with moves of 2, 4, 8 and 16 steps (the seed's change from the scene's step, and the "
+      "CPU).\n";
   if (ng::report::helpRequested(argc, argv)) {
     std::cout << kUsage;
     return 0;
@@ -593,7 +678,7 @@ int main(int argc, char** argv) {
   try {
     const std::vector<std::string> files = args->scenes.empty() ? defaultScenes() : args->scenes;
     if (own.corotational_plans_only) {
-      writeCorotationalPlansOnly(files, *args);
+      writeCorotationalPlansOnly(files, *args, own);
       return 0;
     }
     // ---- steps/s and memory against the tetrahedron count --------------------------------
@@ -718,7 +803,8 @@ int main(int argc, char** argv) {
     const double corot_change = corotationChanges(placed_plans, args->out_dir + "/corotation.csv");
     CorotationalPlans corot_plans;
     if (own.corotational_every_scene) {
-      corot_plans = corotationalPlans(files, args->out_dir + "/plans_corotational.csv");
+      corot_plans = corotationalPlans(files, args->out_dir + "/plans_corotational.csv",
+                                      own.corotational_step_scale, own.corotational_moves);
     }
     scaling.writeCsv(args->out_dir + "/scaling.csv");
     plans.writeCsv(args->out_dir + "/plans.csv");

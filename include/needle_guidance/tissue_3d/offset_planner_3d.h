@@ -12,9 +12,10 @@
 // Corotational tissue (scene key `tissue.model: corotational`): a corotational insertion costs
 // 10-30 times a linear one, so the plan starts in the linear model of the same mesh (built once
 // by the planner), which gives the lateral position, the hole and the track's drift; then one
-// corotational insertion along that needle line finds the depth where the tip's tissue point
-// reaches the target and, from the state kept before that step, inserts to that depth, releases
-// the seed and retracts: the verification. Only when that seed misses by more than half the
+// corotational insertion along that needle line, by long moves to near the depth and a short
+// one past it, finds the depth where the tip's tissue point reaches the target and, from the
+// state kept before that short move, inserts to that depth, releases the seed and retracts:
+// the verification. Only when that seed misses by more than half the
 // tolerance is the needle moved by the miss (another hole when the template's holes are fixed)
 // and inserted again.
 #pragma once
@@ -50,6 +51,9 @@ struct PlanResult3 {
   /// CPU of the insertions in the scene's tissue model [s] (the rest of plan_cpu_s is the
   /// linear start, the column solves along new needle lines and the planner's own work).
   double simulation_cpu_s = 0.0;
+  /// Corotational tissue: the needle moves of its corotational insertions (insertion, depth
+  /// trials and retraction; each a located, corotationally converged move); 0 for linear tissue.
+  int corotational_moves = 0;
   /// Template: the plan's hole (row along y, column along z); (-1, -1) on a stage.
   Eigen::Vector2i hole = Eigen::Vector2i(-1, -1);
   /// Template: the nearest hole to the target and its verified error (< 0 undefined).
@@ -70,15 +74,13 @@ struct PlannerOptions3 {
   /// tolerance in a simulation of another step (the closed loop's).
   double corotational_accept_fraction = 0.5;
   int max_corotational_insertions = 3;
-  /// Corotational tissue: the planner's insertions move the needle by this multiple of the
-  /// scene's step (needle.step; 1, the default: the scene's step). Longer moves cost less in
-  /// proportion (the fixed-point updates per move stay about the same), but the events within
-  /// a move are located with the warp of its start: on stiff scenes the seed moves by a few um,
-  /// on a soft block with a deep indentation before puncture by up to 0.6 mm. Above 1 each plan
-  /// is simulated again at half the moves and falls back to the scene's step where the seeds
-  /// differ by more than a tenth of the tolerance or the target is reached in the move that
-  /// punctures; that check does not catch every such case (docs/tissue_3d.md).
-  double corotational_step_scale = 1.0;
+  /// Corotational tissue: the planner's insertions move the needle by up to this multiple of the
+  /// scene's step (needle.step) until the depth is near, and by the scene's step where it is
+  /// found. The events within a move (puncture, track points, stick to slip) are located on the
+  /// warp where they happen, so the seed does not depend on the move length (docs/tissue_3d.md,
+  /// "Longer moves, measured"); a move's cost is mostly its events, which longer moves do not
+  /// remove, so beyond a few millimetres a longer move saves little.
+  double corotational_step_scale = 8.0;
 };
 
 class OffsetPlanner3 {
@@ -136,12 +138,18 @@ private:
   /// with r.refusal set when the robot cannot reach.
   bool insertUntilPlaced(const Vector3& goal, Eigen::Vector2d lateral, double& step_scale,
                          Attempt& plan, PlanResult3& r);
-  /// Corotational tissue: one insertion at lateral, moves of step_scale x the scene's step, to
-  /// the depth where the tip's tissue point reaches the goal's x, seed release and retraction
+  /// Corotational tissue: one insertion at lateral, moves of step_scale x the scene's step to
+  /// near the depth and of the scene's step past it, to the depth where the tip's tissue point
+  /// reaches the goal's x, seed release and retraction
   /// (the verification); error < 0 with r.refusal set when the deepest tip position is short of
   /// it. Throws std::runtime_error when the simulation refuses.
   Attempt insertToGoal(const Vector3& goal, const Eigen::Vector2d& lateral, double step_scale,
                        PlanResult3& r);
+  /// Corotational tissue: the insertion to the depth in [lo, hi] where the tip's tissue point
+  /// reaches the goal's x, from kept (the needle at lo, short of it) and passed (at hi, past it).
+  NeedleInsertion3 depthWithin(const Vector3& goal, const Eigen::Vector2d& lateral,
+                               const NeedleInsertion3& kept, const NeedleInsertion3& passed,
+                               double lo, double hi, PlanResult3& r);
 
   const TissueScene3d& scene_;
   TissueModel3& model_;
