@@ -726,10 +726,15 @@ void EmbeddedNeedle<Dim>::rewarp(const Eigen::VectorXd& u) {
   adoptReference();
   holdDisplacement(u);
   commit(s_, nullptr);
+  restartWarpIteration();
+  ++info_.rewarps;
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::restartWarpIteration() {
+  warp_updates_ = 0;
   warp_mixer_.reset();
   warp_changes_.clear();
-  warp_updates_ = 0;
-  ++info_.rewarps;
 }
 
 template <int Dim>
@@ -1045,9 +1050,7 @@ void EmbeddedNeedle<Dim>::settleBeforeEvent() {
     // about to puncture): the event stays located on the warp the segment started from,
     // expressed on the current factor.
     holdDisplacement(u);
-    warp_updates_ = 0;
-    warp_mixer_.reset();
-    warp_changes_.clear();
+    restartWarpIteration();
     commit(s_, nullptr);
   }
 }

@@ -316,6 +316,8 @@ private:
   /// Re-factors the tissue's warped stiffness at displacement u (the current state) and
   /// expresses the state on it: u = G f + warp with the new compliance G.
   void rewarp(const Eigen::VectorXd& u);
+  /// The warp iteration starts afresh: no updates counted, no mixer history, no changes.
+  void restartWarpIteration();
   /// Sets the warp so that the needle's state, solved on the current compliance, has the tissue
   /// displacement u (u = G f + warp); the caller commits the state.
   void holdDisplacement(const Eigen::VectorXd& u);
