@@ -54,12 +54,33 @@ double secondsSince(std::chrono::steady_clock::time_point t0) {
 }
 
 /// The entry-line starts of checkModel.
+/// Poses x = start_x_m at each height, each angle [deg] rounded to a multiple of `quantum` [rad]
+/// (0: exact), both bevels.
+std::vector<TipPose> entryPoses(const StartOptions& start, const std::vector<double>& heights_m,
+                                const std::vector<double>& angles_deg, double quantum) {
+  std::vector<TipPose> poses;
+  for (double y : heights_m) {
+    for (double a : angles_deg) {
+      for (Bevel b : {Bevel::kLeft, Bevel::kRight}) {
+        TipPose pose;
+        pose.p_SceneTip = Point2(start.start_x_m, y);
+        pose.theta_rad = a * kPi / 180.0;
+        if (quantum > 0.0) {
+          pose.theta_rad = std::round(pose.theta_rad / quantum) * quantum;
+        }
+        pose.bevel = b;
+        poses.push_back(pose);
+      }
+    }
+  }
+  return poses;
+}
+
 std::vector<TipPose> checkPoses(const SteeringProblem& problem, const StartOptions& start) {
   // Angles on the model's orientations: the check measures the P_s of the model's states.
   const double quantum =
       2.0 * kPi / (problem.params.orientations * problem.params.orientation_subdivision);
-  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
-  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
+  const auto [lo, hi] = startRange(problem, start);
   std::vector<double> heights;
   if (hi - lo > 2.0 * kCheckEdge_m) {
     heights = {lo + kCheckEdge_m, hi - kCheckEdge_m};
@@ -67,19 +88,8 @@ std::vector<TipPose> checkPoses(const SteeringProblem& problem, const StartOptio
   for (int i = 1; i <= 5; ++i) {
     heights.push_back(lo + (hi - lo) * i / 6.0);
   }
-  std::vector<TipPose> poses;
-  for (double y : heights) {
-    for (double a : kCheckAngles_deg) {
-      for (Bevel b : {Bevel::kLeft, Bevel::kRight}) {
-        TipPose pose;
-        pose.p_SceneTip = Point2(start.start_x_m, y);
-        pose.theta_rad = std::round(a * kPi / 180.0 / quantum) * quantum;
-        pose.bevel = b;
-        poses.push_back(pose);
-      }
-    }
-  }
-  return poses;
+  return entryPoses(start, heights, {std::begin(kCheckAngles_deg), std::end(kCheckAngles_deg)},
+                    quantum);
 }
 
 /// Mean noise-corrected |gap| of a group: the mean of sqrt(max(0, gap^2 - p (1 - p) / n)); NaN if
@@ -258,26 +268,22 @@ std::string ModelCheck::toString() const {
   return out.str();
 }
 
+HeightRange startRange(const SteeringProblem& problem, const StartOptions& start) {
+  return {std::max(start.min_height_m, problem.workspace_min.y()),
+          std::min(start.max_height_m, problem.workspace_max.y())};
+}
+
 std::vector<TipPose> entryLineStarts(const SteeringProblem& problem, const StartOptions& start,
                                      const std::vector<double>& heights_m) {
-  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
-  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
-  std::vector<TipPose> poses;
+  const auto [lo, hi] = startRange(problem, start);
+  std::vector<double> inside;
   for (double y : heights_m) {
-    if (!(y >= lo && y <= hi)) {
-      continue;
-    }
-    for (double theta_deg : kEntryLineAngles_deg) {
-      for (Bevel b : {Bevel::kLeft, Bevel::kRight}) {
-        TipPose pose;
-        pose.p_SceneTip = Point2(start.start_x_m, y);
-        pose.theta_rad = theta_deg * kPi / 180.0;
-        pose.bevel = b;
-        poses.push_back(pose);
-      }
+    if (y >= lo && y <= hi) {
+      inside.push_back(y);
     }
   }
-  return poses;
+  return entryPoses(start, inside,
+                    {std::begin(kEntryLineAngles_deg), std::end(kEntryLineAngles_deg)}, 0.0);
 }
 
 std::vector<NearBoundaryStart> nearBoundaryStarts(const StartOptions& start,
@@ -285,8 +291,7 @@ std::vector<NearBoundaryStart> nearBoundaryStarts(const StartOptions& start,
                                                   const ContinuousWorkspace& world) {
   const SteeringProblem& problem = world.problem();
   std::vector<NearBoundaryStart> out;
-  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
-  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
+  const auto [lo, hi] = startRange(problem, start);
   std::vector<double> ends;
   for (double d : kEntryEndDistances_m) {
     ends.push_back(lo + d);
@@ -408,8 +413,7 @@ double estimatedModelMb(const SteeringProblem& problem) {
 
 std::vector<TipPose> evaluationPoses(const SteeringProblem& problem, const StartOptions& start) {
   std::vector<TipPose> poses;
-  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
-  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
+  const auto [lo, hi] = startRange(problem, start);
   for (double y = lo + 0.5 * kEvalStep_m; y < hi; y += kEvalStep_m) {
     for (int a = -kEvalAngles; a <= kEvalAngles; ++a) {
       for (Bevel b : {Bevel::kLeft, Bevel::kRight}) {

@@ -1034,8 +1034,7 @@ struct TruthStart {
 std::vector<double> entryHeights_mm(const st::SteeringProblem& problem,
                                     const st::StartOptions& start,
                                     const std::vector<double>& fractions) {
-  const double lo = std::max(start.min_height_m, problem.workspace_min.y());
-  const double hi = std::min(start.max_height_m, problem.workspace_max.y());
+  const auto [lo, hi] = st::startRange(problem, start);
   std::vector<double> out;
   for (double f : fractions) {
     out.push_back((lo + f * (hi - lo)) * kMmPerM);

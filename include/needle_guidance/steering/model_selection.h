@@ -79,6 +79,14 @@ struct NearBoundaryStart {
 /// Distance of the near-boundary starts from a workspace edge or an expanded obstacle edge [m].
 constexpr double kNearBoundaryDistance_m = 2.5e-3;
 
+/// The start range's heights within the workspace [m]: lo = max(start.min_height_m, workspace's
+/// lowest y), hi = min(start.max_height_m, its highest y).
+struct HeightRange {
+  double lo = 0.0;
+  double hi = 0.0;
+};
+HeightRange startRange(const SteeringProblem& problem, const StartOptions& start);
+
 /// The entry-line starts x = start.start_x_m at each of `heights_m` within the start range and
 /// the workspace, at -18, 0, 18 degrees and both bevels (heights outside are skipped).
 std::vector<TipPose> entryLineStarts(const SteeringProblem& problem, const StartOptions& start,
