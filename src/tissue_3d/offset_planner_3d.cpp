@@ -20,6 +20,11 @@ constexpr int kMaxHoles = 3;  // template holes verified per target, the nearest
 constexpr double kDepthTolFraction = 0.01;
 constexpr int kMaxDepthTrials = 4;
 
+/// The x of the tip's tissue point; before puncture the tip pins the entry point, entry_x [m].
+double tissuePointX(const NeedleInsertion3& n, double entry_x) {
+  return n.punctured() ? n.tipReference().x() : entry_x;
+}
+
 std::string mm(double m) {
   std::ostringstream out;
   out.precision(3);
@@ -221,9 +226,7 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
   const double long_move = step * step_scale;
   ++r.simulations;
   NeedleInsertion3 needle(model_, scene_.needle, x0, w.max_tip_x_m);
-  auto tissueX = [&](const NeedleInsertion3& n) {  // before puncture the tip pins the entry point
-    return n.punctured() ? n.tipReference().x() : x0;
-  };
+  auto tissueX = [x0](const NeedleInsertion3& n) { return tissuePointX(n, x0); };
   std::optional<NeedleInsertion3> kept;
   double lo = x0 - step, hi = lo;
   std::string why;
@@ -269,9 +272,7 @@ NeedleInsertion3 OffsetPlanner3::depthWithin(const Vector3& goal, const Eigen::V
   // from the state at lo (the kept state, or the last trial short of the goal) to d; the best
   // trial (smallest |f|) is the insertion to the depth.
   const double x0 = scene_.block_min_m.x();
-  auto f = [&](const NeedleInsertion3& n) {
-    return (n.punctured() ? n.tipReference().x() : x0) - goal.x();
-  };
+  auto f = [&](const NeedleInsertion3& n) { return tissuePointX(n, x0) - goal.x(); };
   double f_lo = f(kept), f_hi = f(passed);
   double f_best = f_hi;
   NeedleInsertion3 best = passed;
