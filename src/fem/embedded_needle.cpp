@@ -47,9 +47,12 @@ constexpr int kMaxRewarpsPerMove = 4;
 // goes with the warp) alternates and takes the last (EmbeddedNeedleInfo::relocation_m).
 constexpr double kRelocationTol_m = 5e-7;
 constexpr int kMaxRelocations = 3;
-// The warp at a move's end is first guessed by extending its change over the last move, for a
-// move up to this many times as long as the last.
+// The warp at a segment's end (its event or the move's end) is first guessed by extending
+// linearly in the tip position the warps settled at the last two segment ends, up to this many
+// times their distance beyond the last; ends closer together than kMinWarpHistorySpacing_m
+// (events at one tip position) count as one.
 constexpr double kMaxPredictionRatio = 2.0;
+constexpr double kMinWarpHistorySpacing_m = 1e-6;
 // After a rewarp the compliance columns are solved again in one batch along the needle line up
 // to this far beyond the tip, the rest as the tip gets there.
 constexpr double kRewarpPrefetch_m = 5e-3;
@@ -1011,23 +1014,39 @@ bool EmbeddedNeedle<Dim>::retractSegment(double target) {
 }
 
 template <int Dim>
-void EmbeddedNeedle<Dim>::predictWarp(double tip_x) {
-  // The warp of the last move's start and end, valid while the needle inserts in the same
-  // reference; else the history starts again here.
+void EmbeddedNeedle<Dim>::predictWarp(double s) {
   const bool valid = tissue_->corotational() && direction_ > 0 && punctured_ &&
-                     warp_before_.size() == warp_.size() &&
-                     warp_before_version_ == reference_version_ &&
-                     reference_version_ == tissue_->referenceVersion() && s_ > s_before_;
-  Eigen::VectorXd now = warp_;
-  const double s_now = s_;
-  if (valid) {
-    const double ratio = std::clamp((tip_x - s_) / (s_ - s_before_), 0.0, kMaxPredictionRatio);
-    warp_ += ratio * (warp_ - warp_before_);
-    commit(s_, nullptr);
+                     warp_history_.size() == 2 && warp_history_version_ == reference_version_ &&
+                     reference_version_ == tissue_->referenceVersion() &&
+                     warp_history_.back().second.size() == warp_.size();
+  if (!valid) {
+    return;
   }
-  warp_before_ = std::move(now);
-  s_before_ = s_now;
-  warp_before_version_ = reference_version_;
+  const auto& [s_a, warp_a] = warp_history_.front();
+  const auto& [s_b, warp_b] = warp_history_.back();
+  const double ratio = std::clamp((s - s_b) / (s_b - s_a), 0.0, kMaxPredictionRatio);
+  warp_ = warp_b + ratio * (warp_b - warp_a);
+  commit(s_, nullptr);
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::recordWarp() {
+  const bool inserting = tissue_->corotational() && direction_ > 0 && punctured_;
+  if (!inserting || warp_history_version_ != reference_version_ ||
+      (!warp_history_.empty() && s_ < warp_history_.back().first)) {
+    warp_history_.clear();  // a new reference or a new insertion: the history starts again
+  }
+  if (!inserting) {
+    return;
+  }
+  warp_history_version_ = reference_version_;
+  if (!warp_history_.empty() && s_ - warp_history_.back().first < kMinWarpHistorySpacing_m) {
+    warp_history_.pop_back();  // events at one tip position: the later one stands for both
+  }
+  warp_history_.emplace_back(s_, warp_);
+  if (warp_history_.size() > 2) {
+    warp_history_.erase(warp_history_.begin());
+  }
 }
 
 template <int Dim>
@@ -1041,8 +1060,21 @@ void EmbeddedNeedle<Dim>::settleBeforeEvent() {
   if (!locating_) {
     return;
   }
+  end_before_event_ = segmentEnd();
+  if (relocated_from_ &&
+      (end_before_event_ - *relocated_from_).template lpNorm<Eigen::Infinity>() <=
+          kRelocationTol_m) {
+    // Relocated on the warp settled where the last round located this event, the event
+    // repeats: that warp stands (see consistentSegment).
+    event_warp_ = warp_;
+    settle_skipped_ = true;
+    return;
+  }
   const Eigen::VectorXd u = displacementField();
   try {
+    if (predict_event_warp_) {
+      predictWarp(s_);  // the segment was located on its start's warp: guess the event's
+    }
     settle();
     event_warp_ = warp_;
   } catch (const std::runtime_error&) {
@@ -1071,24 +1103,42 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
   // at the segment's end), known only once the segment has been solved. The segment is solved
   // again from its start on that warp until its end repeats.
   // A relocation whose warp does not converge keeps the segment located before it.
+  // A relocation whose end (before its event, or at the segment's end) repeats the last round's
+  // to within kRelocationTol_m is not settled again: its state differs from the one the warp
+  // was settled at by at most that, and the warp moves with the tip by 0.03-0.15 of the tip's
+  // travel (30-150 um per 1 mm track spacing), so by at most 0.08 um, below the warp's
+  // tolerance kWarpTol_m.
+  relocated_from_.reset();
+  settle_skipped_ = false;
   const EmbeddedNeedle start = *this;
   std::unique_ptr<EmbeddedNeedle> located;
   Eigen::VectorXd located_u;
   bool located_done = false;
-  Eigen::Matrix<double, Dim + 2, 1> last = Eigen::Matrix<double, Dim + 2, 1>::Zero();
+  SegmentEnd last = SegmentEnd::Zero();
   double moved = 0.0;
   for (int round = 0;; ++round) {
     event_warp_.resize(0);
     bool done = false;
     try {
       locating_ = true;
+      predict_event_warp_ = round == 0;
       done = insertSegment(target);
       locating_ = false;
-      while (event_warp_.size() == 0 && !settleWarp()) {
+      predict_event_warp_ = false;
+      if (round == 0 && event_warp_.size() == 0) {
+        predictWarp(s_);
+      }
+      if (event_warp_.size() == 0 && relocated_from_ &&
+          (segmentEnd() - *relocated_from_).template lpNorm<Eigen::Infinity>() <=
+              kRelocationTol_m) {
+        settle_skipped_ = true;  // the segment's end repeats: its warp stands
+      }
+      while (!settle_skipped_ && event_warp_.size() == 0 && !settleWarp()) {
         insertSegment(s_);  // the tip force against f_b on the updated warp: puncture, cut
       }
     } catch (const std::runtime_error&) {
       locating_ = false;
+      predict_event_warp_ = false;
       if (!located) {
         throw;
       }
@@ -1099,14 +1149,20 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
     if (!event && !punctured_) {
       return done;  // the tip pins its surface point: the state at target holds any warp
     }
-    Eigen::Matrix<double, Dim + 2, 1> end;
-    end << s_, tip_.reference_m, cut_total_m_;
+    const SegmentEnd end = segmentEnd();
     moved = round > 0 ? (end - last).template lpNorm<Eigen::Infinity>() : 0.0;
-    if (round > 0 && (moved <= kRelocationTol_m || round >= kMaxRelocations)) {
+    if (round > 0 && (settle_skipped_ || moved <= kRelocationTol_m || round >= kMaxRelocations)) {
+      if (settle_skipped_) {
+        moved = ((event ? end_before_event_ : end) - *relocated_from_)
+                    .template lpNorm<Eigen::Infinity>();
+        settle_skipped_ = false;
+      }
+      relocated_from_.reset();
       info_.relocation_m = std::max(info_.relocation_m, moved);
       if (event && done) {
         settle();  // the move ends at its event
       }
+      recordWarp();
       return done;
     }
     last = end;
@@ -1116,10 +1172,19 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
     located_done = done;
     // Back to the segment's start on the warp just found.
     Eigen::VectorXd warp = event ? std::move(event_warp_) : std::move(warp_);
+    const SegmentEnd settled_at = event ? end_before_event_ : end;
     restoreState(start, nullptr);
     warp_ = std::move(warp);
+    relocated_from_ = settled_at;
     commit(s_, nullptr);
   }
+}
+
+template <int Dim>
+typename EmbeddedNeedle<Dim>::SegmentEnd EmbeddedNeedle<Dim>::segmentEnd() const {
+  SegmentEnd end;
+  end << s_, tip_.reference_m, cut_total_m_;
+  return end;
 }
 
 template <int Dim>
@@ -1209,6 +1274,7 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
     // The needle stops and reverses: every shaft point sticks where it is; the tip's cut ends.
     direction_ = -1;
     tip_active_ = false;
+    warp_history_.clear();
     for (ShaftPoint& p : shaft_) {
       p.stuck = true;
       p.offset_m = p.world_x_m - s_;

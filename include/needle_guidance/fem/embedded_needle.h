@@ -44,6 +44,7 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "needle_guidance/fem/condensed_compliance.h"
@@ -272,10 +273,13 @@ private:
   /// Tip x where a stuck point first slips on the way to target (target if none does).
   double firstSlip(double target) const;
   bool retractSegment(double target);
-  /// Corotational insertion: the first guess of the warp for a move to tip_x, the warp of its
-  /// start extended along its change over the last move (the converged answer does not depend
-  /// on it; a close guess saves updates and relocations).
-  void predictWarp(double tip_x);
+  /// Corotational insertion: the first guess of the warp at tip x = s, extended linearly in s
+  /// from the warps settled at the last two ends of segments (events or move ends) on the current
+  /// reference; nothing changes without two such warps. The converged answer does not depend on
+  /// it; a close guess saves updates and relocations.
+  void predictWarp(double s);
+  /// Keeps the settled warp of the committed state (a segment's end) for predictWarp.
+  void recordWarp();
   /// settleWarp until the warp has converged at the committed state.
   void settle();
   /// While a segment is located (consistentSegment): the warp settled at the committed state,
@@ -355,9 +359,19 @@ private:
   int reference_version_ = 0;         ///< the tissue's reference the compliance data came from
   bool locating_ = false;             ///< consistentSegment is locating a segment
   Eigen::VectorXd event_warp_;        ///< the warp settled just before the segment's event
-  Eigen::VectorXd warp_before_;       ///< the warp at the start of the last move
-  double s_before_ = 0.0;             ///< the tip x at the start of the last move
-  int warp_before_version_ = -1;      ///< the reference warp_before_ belongs to
+  bool predict_event_warp_ = false;   ///< settleBeforeEvent starts from predictWarp
+  using SegmentEnd = Eigen::Matrix<double, Dim + 2, 1>;  ///< tip x, tip's tissue point, cut [m]
+  /// The end of the committed state (s_, tip_'s reference point, cut_total_m_).
+  SegmentEnd segmentEnd() const;
+  /// A relocation: the end located by the last round before its warp was settled there (empty
+  /// in a segment's first round), and the end of this round before its event.
+  std::optional<SegmentEnd> relocated_from_;
+  SegmentEnd end_before_event_ = SegmentEnd::Zero();
+  bool settle_skipped_ = false;  ///< the relocated end repeated: its warp was not settled again
+  /// The warps settled at the last two segment ends of the insertion (oldest first) and their
+  /// tip x [m], on the reference warp_history_version_.
+  std::vector<std::pair<double, Eigen::VectorXd>> warp_history_;
+  int warp_history_version_ = -1;
 };
 
 }  // namespace needle_guidance::fem
