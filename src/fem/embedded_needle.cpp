@@ -1104,10 +1104,10 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
   // again from its start on that warp until its end repeats.
   // A relocation whose warp does not converge keeps the segment located before it.
   // A relocation whose end (before its event, or at the segment's end) repeats the last round's
-  // to within kRelocationTol_m is not settled again: its state differs from the one the warp
-  // was settled at by at most that, and the warp moves with the tip by 0.03-0.15 of the tip's
-  // travel (30-150 um per 1 mm track spacing), so by at most 0.08 um, below the warp's
-  // tolerance kWarpTol_m.
+  // to within kRelocationTol_m keeps the warp settled there without settling it again: the
+  // warp changes by 30-150 um over a 1 mm track spacing (first changes of 30-150 um at a
+  // contraction of 0.3-0.5), so over 0.5 um of the end by at most about 0.15 um, of the order
+  // of the warp's tolerance and 30 times below the step-halving target.
   relocated_from_.reset();
   settle_skipped_ = false;
   const EmbeddedNeedle start = *this;

@@ -623,16 +623,18 @@ TEST(Tissue3dCorotation, SoftTissueSeedDoesNotDependOnTheStep) {
   EXPECT_LT((a - b).norm(), kSeedTol_m) << (a - b).transpose() * 1e3 << " mm";
 }
 
-TEST(Tissue3dCorotation, SoftTissueSeedDoesNotDependOnTheMoveLength) {
+TEST(Tissue3dCorotation, SeedDoesNotDependOnTheMoveLength) {
   // The planner moves its corotational insertion by 8 scene steps: each move holds several
   // located events (the puncture, track points 1 mm apart, stick to slip), each settled on the
-  // warp where it happens from a guess extended over the events before it. The seed is the one
-  // of an insertion by scene steps to within the step-halving target.
-  constexpr double kDepth_m = 0.030, kSceneStep_m = 5e-4, kLongMove_m = 8 * kSceneStep_m;
+  // warp where it happens from a guess extended over the segment ends before it. The seed is
+  // the one of an insertion by scene steps to within the step-halving target.
   constexpr double kMoveLengthTol_m = 5e-6;  // 0.005 mm
-  Fixture short_moves(softCorotationalScene()), long_moves(softCorotationalScene());
-  const Vector3 a = softImplant(short_moves.model, short_moves.scene, kDepth_m, kSceneStep_m);
-  const Vector3 b = softImplant(long_moves.model, long_moves.scene, kDepth_m, kLongMove_m);
+  constexpr double kLongMoveSteps = 8.0;
+  Fixture f(corotationalScene());
+  OffsetPlanner3 planner(f.scene, f.model);
+  const Eigen::Vector2d lateral(1e-3, 2e-3);
+  const Vector3 a = planner.simulateImplant(lateral, 0.04, 1.0);
+  const Vector3 b = planner.simulateImplant(lateral, 0.04, kLongMoveSteps);
   ASSERT_TRUE(a.allFinite() && b.allFinite());
   EXPECT_LT((a - b).norm(), kMoveLengthTol_m) << (a - b).transpose() * 1e3 << " mm";
 }
