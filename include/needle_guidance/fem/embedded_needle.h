@@ -283,14 +283,17 @@ private:
   /// settleWarp until the warp has converged at the committed state.
   void settle();
   /// While a segment is located (consistentSegment): the warp settled at the committed state,
-  /// the one just before an event, kept in event_warp_.
+  /// the one just before an event, kept in event_warp_; in a segment's first round from the
+  /// guess of predictWarp, in a relocation not at all when the state repeats the end the last
+  /// round settled at (within kRelocationTol_m: that warp stands).
   void settleBeforeEvent();
   /// One segment of a move towards target (insertSegment or retractSegment) with the warp
   /// settled at its end; true when target is reached. Corotational insertion: the segment is
   /// solved again from its start on the warp settled just before its event (or at its end)
   /// until its end (tip position, tip's tissue point and cut length) repeats to within the
   /// warp's tolerance or once (kMaxRelocations), so the event and the cut are located on the
-  /// warp where they happen.
+  /// warp where they happen. A relocation whose end repeats the one the last round settled at
+  /// keeps that warp without settling it again.
   bool consistentSegment(double target);
   /// Back to an earlier state of this needle, keeping the counts of the move; u: that state's
   /// displacement, to express its warp on the tissue's reference if that changed since.
