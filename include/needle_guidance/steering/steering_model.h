@@ -258,6 +258,18 @@ public:
     return end_mask_[static_cast<std::size_t>(position * 2 * grid_.nc + arc)];
   }
   static constexpr std::uint8_t kEndInTarget = 16;
+  /// kInterpolated: sub-samples per axis of the cell and across a deflection bin.
+  static constexpr int kSubSamples = 3;
+  /// kInterpolated only: the share of the transition's sub-samples whose exact arc stays inside
+  /// the workspace and crosses no expanded-obstacle edge (1 away from every edge). The
+  /// sub-samples are kSubSamples start orientations evenly across the deflection bin (at -1/3,
+  /// 0, +1/3 of it) times kSubSamples^2 start points evenly across the grid point's cell, less
+  /// the start points outside the workspace or in an obstacle. The arc's end states keep the
+  /// probabilities of the grid point's own arc, times this share; the rest fails.
+  float survival(std::int64_t position, int arc) const {
+    const auto n = static_cast<float>(survivors_[static_cast<std::size_t>(position * 2 * grid_.nc + arc)]);
+    return n / static_cast<float>(sub_samples_[static_cast<std::size_t>(position)]);
+  }
   TransitionModel transitionModel() const { return problem_.params.transition_model; }
   /// The standard deviation [rad] whose orientation-bin probabilities the model uses for a
   /// control: sigma itself for kRounded, sigma' (discrete variance = sigma^2) for kInterpolated.
@@ -313,6 +325,8 @@ private:
   std::vector<std::uint64_t> valid_;
   std::vector<std::uint8_t> all_valid_;
   std::vector<std::uint8_t> end_mask_;  // kInterpolated: per (position, arc)
+  std::vector<std::uint8_t> survivors_;  // kInterpolated: clear sub-samples per (position, arc)
+  std::vector<std::uint8_t> sub_samples_;  // kInterpolated: sub-samples per position
   double bin_sigma_[2] = {0.0, 0.0};
 };
 
