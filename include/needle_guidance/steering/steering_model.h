@@ -40,6 +40,9 @@ enum class TransitionModel : std::uint8_t {
   /// between the four surrounding grid points (only those outside obstacles; an end inside the
   /// target disc succeeds exactly), and deflection bins whose discrete variance equals sigma^2
   /// (the bins of a normal with a smaller sigma', so quantisation does not inflate the spread).
+  /// An arc's collision is judged on sub-samples across the grid point's cell and the
+  /// deflection bin (SteeringModel::survival), as a grid point's value answers every pose of its
+  /// cell.
   kInterpolated = 1,
 };
 /// "rounded" | "interpolated".
@@ -241,7 +244,8 @@ public:
   /// Largest |dy| of any stencil entry [grid steps].
   int maxRowReach() const { return max_row_reach_; }
 
-  /// True if arc `arc` from position index `position` is collision-free (and ends on the grid).
+  /// True if arc `arc` from position index `position` is collision-free (and ends on the grid);
+  /// kInterpolated: some of its sub-samples are (survival() > 0) and its end keeps a share.
   bool arcValid(std::int64_t position, int arc) const {
     return (valid_[static_cast<std::size_t>(position * words_ + arc / 64)] >> (arc % 64)) & 1u;
   }
@@ -266,9 +270,11 @@ public:
   /// 0, +1/3 of it) times kSubSamples^2 start points evenly across the grid point's cell, less
   /// the start points outside the workspace or in an obstacle. The arc's end states keep the
   /// probabilities of the grid point's own arc, times this share; the rest fails.
+  /// 0 at a position that is not free.
   float survival(std::int64_t position, int arc) const {
-    const auto n = static_cast<float>(survivors_[static_cast<std::size_t>(position * 2 * grid_.nc + arc)]);
-    return n / static_cast<float>(sub_samples_[static_cast<std::size_t>(position)]);
+    const auto i = static_cast<std::size_t>(position * 2 * grid_.nc + arc);
+    const std::uint8_t all = sub_samples_[static_cast<std::size_t>(position)];
+    return all > 0 ? static_cast<float>(survivors_[i]) / static_cast<float>(all) : 0.0f;
   }
   TransitionModel transitionModel() const { return problem_.params.transition_model; }
   /// The standard deviation [rad] whose orientation-bin probabilities the model uses for a
