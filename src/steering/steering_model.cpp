@@ -671,8 +671,8 @@ void SteeringModel::buildValidity(int threads) {
   // Each arc as a polyline relative to its start point (the same at every position).
   std::vector<std::vector<Point2>> arc_points;
   std::vector<Box> arc_box;
-  double reach = arcPolylines(problem_.params, grid_.alphaRad(), nc, arcLength_m(), 0.0,
-                              arc_points, arc_box);  // farthest any arc point gets [m]
+  double reach = arcPolylines(problem_.params, grid_.alphaRad(), nc, arcLength_m(), 0.0, arc_points,
+                              arc_box);  // farthest any arc point gets [m]
   // kInterpolated: the sub-samples of a transition, kSubSamples start orientations across the
   // deflection bin times kSubSamples^2 start points across the cell, and per arc a box that
   // holds every sub-sample's arc (an arc whose box touches no edge has all sub-samples clear).
@@ -687,9 +687,9 @@ void SteeringModel::buildValidity(int threads) {
     double sub_reach = reach;
     for (int j = 0; j < kSubSamples; ++j) {
       const double f = (j + 0.5) / kSubSamples - 0.5;  // -1/3, 0, 1/3 of a bin or cell
-      sub_reach = std::max(sub_reach, arcPolylines(problem_.params, grid_.alphaRad(), nc,
-                                                   arcLength_m(), f * grid_.alphaRad(),
-                                                   sub_points[j], sub_box[j]));
+      sub_reach =
+          std::max(sub_reach, arcPolylines(problem_.params, grid_.alphaRad(), nc, arcLength_m(),
+                                           f * grid_.alphaRad(), sub_points[j], sub_box[j]));
       for (int a = 0; a < n_arcs; ++a) {
         Box& g = graze_box[static_cast<std::size_t>(a)];
         const Box& b = sub_box[static_cast<std::size_t>(j)][static_cast<std::size_t>(a)];
@@ -805,8 +805,8 @@ void SteeringModel::buildValidity(int threads) {
           starts.clear();
           for (const Point2& o : sub_offsets) {
             const Point2 p = q + o;
-            bool free = p.x() >= wmin.x() && p.x() <= wmax.x() && p.y() >= wmin.y() &&
-                        p.y() <= wmax.y();
+            bool free =
+                p.x() >= wmin.x() && p.x() <= wmax.x() && p.y() >= wmin.y() && p.y() <= wmax.y();
             for (std::size_t i = 0; i < expanded_.size() && free && !near.empty(); ++i) {
               free = !(p.x() >= lo[i].x() && p.x() <= hi[i].x() && p.y() >= lo[i].y() &&
                        p.y() <= hi[i].y() && expanded_[i].contains(p));

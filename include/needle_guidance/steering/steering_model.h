@@ -330,8 +330,8 @@ private:
   int words_ = 0;
   std::vector<std::uint64_t> valid_;
   std::vector<std::uint8_t> all_valid_;
-  std::vector<std::uint8_t> end_mask_;  // kInterpolated: per (position, arc)
-  std::vector<std::uint8_t> survivors_;  // kInterpolated: clear sub-samples per (position, arc)
+  std::vector<std::uint8_t> end_mask_;     // kInterpolated: per (position, arc)
+  std::vector<std::uint8_t> survivors_;    // kInterpolated: clear sub-samples per (position, arc)
   std::vector<std::uint8_t> sub_samples_;  // kInterpolated: sub-samples per position
   double bin_sigma_[2] = {0.0, 0.0};
 };
