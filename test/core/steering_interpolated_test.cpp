@@ -26,10 +26,11 @@ constexpr double kPositionTol_m = 1e-7;        // float weights times a 1 mm cel
 /// Float values solved to epsilon 1e-7: the fixed point holds to float rounding of ~30 terms.
 constexpr double kBellmanTol = 1e-4;
 /// One insertion beside an obstacle corner: the model's failure probability against the
-/// continuous needle started across the cell (kCornerTrials trials, binomial SE <= 0.0035).
-constexpr double kCornerFailureTol = 0.02;
+/// continuous needle started across the cell (kCornerTrials trials, binomial SE <= 0.0035; 27
+/// sub-samples resolve a bin's share to 1/27).
+constexpr double kCornerFailureTol = 0.03;
 /// ... which judging the collision from the grid point alone misses by more than this.
-constexpr double kGridPointFailureOff = 0.05;
+constexpr double kGridPointFailureOff = 0.2;
 constexpr int kCornerTrials = 20000;
 constexpr unsigned kCornerSeed = 7;
 
@@ -262,7 +263,9 @@ std::uint64_t tableFingerprint(const PolicyTable& t, std::int64_t states) {
 /// corners and a snapshot copied only where values changed leave every value and control
 /// bit-identical to the plain per-term loops. The fingerprints were recorded with those loops:
 /// orientation counts that are (160, 80) and are not (44) a multiple of the vector width, one
-/// and two threads, both transition models.
+/// and two threads, both transition models. The interpolated ones are of the model whose
+/// collisions are judged on sub-samples (SteeringModel::survival), whose share multiplies each
+/// arc's value after the corner sum in both the factored update and successorGroups().
 TEST(SteeringInterpolatedTest, SolverTablesAreBitIdenticalToThePlainLoops) {
   struct Case {
     const char* name;
@@ -277,9 +280,9 @@ TEST(SteeringInterpolatedTest, SolverTablesAreBitIdenticalToThePlainLoops) {
   SteeringProblem rounded = workspace;
   rounded.params.transition_model = TransitionModel::kRounded;
   const std::vector<Case> cases = {
-      {"interpolated s = 4, 2 threads", interpolated(workspace, 4), 2, 0x851704ba6b35caabull},
-      {"interpolated s = 2, 1 thread", interpolated(workspace, 2), 1, 0x99f1b22e4181f163ull},
-      {"interpolated N_c = 44, 2 threads", odd, 2, 0xe710535dceee315bull},
+      {"interpolated s = 4, 2 threads", interpolated(workspace, 4), 2, 0x769692b2ce83aa1cull},
+      {"interpolated s = 2, 1 thread", interpolated(workspace, 2), 1, 0x15cc9d0ad3396130ull},
+      {"interpolated N_c = 44, 2 threads", odd, 2, 0x2b77a30bbe65af1full},
       {"rounded, 2 threads", rounded, 2, 0x218bb3db7a33c7e7ull},
   };
   for (const Case& c : cases) {
