@@ -21,6 +21,7 @@ NG_PACKAGES=(
   rviz
   dicom3tools python3-pydicom  # dciodvfy and pydicom check the DICOM-RT export
   coinor-libcbc-dev python3-dicompylercore  # dose-volume MIP; independent DVH check
+  libopenblas0-serial  # optimised single-threaded BLAS/LAPACK behind CHOLMOD (libblas.so.3)
 )
 
 ng_install() {

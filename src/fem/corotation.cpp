@@ -69,14 +69,15 @@ template <int Dim>
 CorotationalForces<Dim>::CorotationalForces(const SimplexMesh<Dim>& mesh,
                                             const std::vector<Material>& materials,
                                             double thickness_m)
-    : mesh_(&mesh) {
+    : mesh_(&mesh), materials_(materials), thickness_m_(thickness_m) {
   gradients_.reserve(mesh.elements.size());
-  stiffness_.reserve(mesh.elements.size());
+  elasticity_.reserve(mesh.elements.size());
   for (int e = 0; e < mesh.elementCount(); ++e) {
     const Material& material = elementMaterial<Dim>(mesh, materials, e, "CorotationalForces");
     const Corners<Dim> c = corners<Dim>(mesh, e);
     gradients_.push_back(shapeGradients<Dim>(c));
-    stiffness_.push_back(elementStiffness<Dim>(c, material, thickness_m));
+    elasticity_.push_back(
+        {std::abs(signedMeasure<Dim>(c)) * thickness_m, lameParameters(material)});
   }
 }
 
@@ -123,8 +124,7 @@ Eigen::VectorXd CorotationalForces<Dim>::correction(const Eigen::VectorXd& u, in
   // identity as reference its corotated force equals the linear one (to this relative size), so
   // it adds nothing to g.
   constexpr double kNoRotation = 1e-12;
-  constexpr int kDofs = kElementDofs<Dim>;
-  using Local = Eigen::Matrix<double, kDofs, 1>;
+  const Rotation identity = Rotation::Identity();
   Eigen::VectorXd g = Eigen::VectorXd::Zero(u.size());
   int flipped = 0;
   double least_cosine = 1.0;
@@ -137,22 +137,20 @@ Eigen::VectorXd CorotationalForces<Dim>::correction(const Eigen::VectorXd& u, in
     }
     flipped += f.determinant() > 0.0 ? 0 : 1;
     const Rotation r = elementRotation<Dim>(f);
-    const Rotation r0 = warped ? reference_[ei] : Rotation::Identity();
+    const Rotation r0 = warped ? reference_[ei] : identity;
     least_cosine = std::min(least_cosine, rotationCosine<Dim>(r0.transpose() * r));
-    // R K_e (R^T x - X) - R_0 K_e R_0^T u with x = X + u.
+    // R K_e (R^T x - X) - R_0 K_e R_0^T u with x = X + u. K_e d is |e| sigma(H) grad_a on
+    // corner a (linearStress), H the gradient of the corner displacements d: R^T F - I for
+    // d = R^T x - X, R_0^T (F - I) for d = R_0^T u. Nine stress entries per element instead of
+    // two products with the 12 x 12 K_e.
+    const ElementElasticity& el = elasticity_[ei];
+    const Rotation p =
+        el.measure_m * (r * linearStress<Dim>(r.transpose() * f - identity, el.lame) -
+                        r0 * linearStress<Dim>(r0.transpose() * (f - identity), el.lame));
     const auto& nodes = mesh_->elements[ei];
-    Local local, ue0;
+    const auto& grad = gradients_[ei];
     for (int a = 0; a <= Dim; ++a) {
-      const auto ua = u.template segment<Dim>(Dim * nodes[a]);
-      const Point<Dim>& xa = mesh_->nodes[static_cast<std::size_t>(nodes[a])];
-      local.template segment<Dim>(Dim * a) = r.transpose() * (xa + ua) - xa;
-      ue0.template segment<Dim>(Dim * a) = r0.transpose() * ua;
-    }
-    const ElementMatrix<Dim>& ke = stiffness_[ei];
-    const Local kl = ke * local, ku = ke * ue0;
-    for (int a = 0; a <= Dim; ++a) {
-      g.template segment<Dim>(Dim * nodes[a]) +=
-          r * kl.template segment<Dim>(Dim * a) - r0 * ku.template segment<Dim>(Dim * a);
+      g.template segment<Dim>(Dim * nodes[a]) += p * grad.row(a).transpose();
     }
   }
   if (inverted) {
@@ -204,7 +202,9 @@ SparseMatrix CorotationalForces<Dim>::warpedStiffness(const Eigen::VectorXd& u) 
       warped_[ei] = 1;
       ++warped_elements_;
     }
-    const ElementMatrix<Dim> k = rotated<Dim>(stiffness_[ei], reference_[ei]);
+    const Material& material = elementMaterial<Dim>(*mesh_, materials_, e, "CorotationalForces");
+    const ElementMatrix<Dim> k = rotated<Dim>(
+        elementStiffness<Dim>(corners<Dim>(*mesh_, e), material, thickness_m_), reference_[ei]);
     const int* slot = slots_.data() + ei * kEntries;
     for (int a = 0; a < kDofs; ++a) {
       for (int b = 0; b < kDofs; ++b) {

@@ -60,12 +60,18 @@ Eigen::Matrix<double, Dim + 1, 1> barycentric(const Corners<Dim>& c, const Point
   return w;
 }
 
+LameParameters lameParameters(const Material& m) {
+  const double nu = m.poisson_ratio;
+  return {m.young_modulus_Pa * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)),
+          m.young_modulus_Pa / (2.0 * (1.0 + nu))};
+}
+
 template <int Dim>
 Eigen::Matrix<double, kStrainComponents<Dim>, kStrainComponents<Dim>> elasticityMatrix(
     const Material& m) {
-  const double nu = m.poisson_ratio;
-  const double lambda = m.young_modulus_Pa * nu / ((1.0 + nu) * (1.0 - 2.0 * nu));
-  const double mu = m.young_modulus_Pa / (2.0 * (1.0 + nu));
+  const LameParameters lame = lameParameters(m);
+  const double lambda = lame.lambda_Pa;
+  const double mu = lame.mu_Pa;
   Eigen::Matrix<double, kStrainComponents<Dim>, kStrainComponents<Dim>> d;
   d.setZero();
   d.template topLeftCorner<Dim, Dim>().setConstant(lambda);

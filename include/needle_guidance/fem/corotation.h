@@ -69,9 +69,17 @@ private:
   /// Deformation gradient of element e at u.
   Rotation gradient(int e, const Eigen::VectorXd& u) const;
 
+  /// What an element's linear force K_e d = measure_m sigma(H) grad_a needs (linearStress).
+  struct ElementElasticity {
+    double measure_m = 0.0;  ///< |e| t [m^Dim]
+    LameParameters lame;
+  };
+
   const SimplexMesh<Dim>* mesh_;
+  std::vector<Material> materials_;
+  double thickness_m_;
   std::vector<Eigen::Matrix<double, Dim + 1, Dim>> gradients_;
-  std::vector<ElementMatrix<Dim>> stiffness_;
+  std::vector<ElementElasticity> elasticity_;
   std::vector<Rotation> reference_;  ///< per element; empty: every reference is the identity
   std::vector<char> warped_;         ///< per element: reference rotation differs from identity
   int warped_elements_ = 0;

@@ -57,6 +57,26 @@ Eigen::Matrix<double, Dim + 1, Dim> shapeGradients(const Corners<Dim>& corners);
 template <int Dim>
 Eigen::Matrix<double, Dim + 1, 1> barycentric(const Corners<Dim>& corners, const Point<Dim>& p);
 
+/// Lame parameters of an isotropic material [Pa].
+struct LameParameters {
+  double lambda_Pa = 0.0;
+  double mu_Pa = 0.0;  ///< shear modulus
+};
+LameParameters lameParameters(const Material& material);
+
+/// Linear (Cauchy) stress of the displacement gradient H: lambda tr(e) I + 2 mu e with the small
+/// strain e = (H + H^T) / 2 [Pa]; the stress elasticityMatrix gives for the same strain (plane
+/// strain in 2-D). A constant-strain element's force K_e d is then |e| t sigma grad_a on corner
+/// a, H = sum_b d_b grad_b^T.
+template <int Dim>
+Eigen::Matrix<double, Dim, Dim> linearStress(const Eigen::Matrix<double, Dim, Dim>& h,
+                                             const LameParameters& lame) {
+  const Eigen::Matrix<double, Dim, Dim> strain = 0.5 * (h + h.transpose());
+  Eigen::Matrix<double, Dim, Dim> stress = 2.0 * lame.mu_Pa * strain;
+  stress.diagonal().array() += lame.lambda_Pa * strain.trace();
+  return stress;
+}
+
 /// Elasticity matrix in Voigt form with engineering shear: plane strain (Dim 2, order xx yy xy)
 /// or 3-D (order xx yy zz xy yz zx) [Pa].
 template <int Dim>
