@@ -200,6 +200,13 @@ TetMesh3 meshTissue3d(const TissueScene3d& scene, const std::vector<Eigen::Vecto
   return mesh;
 }
 
+double sizeScaleForTets(const TissueScene3d& scene, double n, int tets_at_scale_1) {
+  const int at_1 =
+      tets_at_scale_1 > 0 ? tets_at_scale_1 : meshTissue3d(scene, {}, 1.0).elementCount();
+  const double scale = std::cbrt(at_1 / n);
+  return scale * std::cbrt(meshTissue3d(scene, {}, scale).elementCount() / n);
+}
+
 int checkTissueScene3d(const std::string& path, bool mesh, std::ostream& out) {
   const TissueScene3d s = loadTissueScene3d(path);
   const Vector3 size = (s.block_max_m - s.block_min_m) * 1e2;

@@ -126,13 +126,6 @@ ScalingRow scalingRun(const t3::TissueScene3d& scene, double scale, bool corotat
   return row;
 }
 
-/// The mesh scale of the scene that gives about n tetrahedra (element count ~ scale^-3: one
-/// correction from a trial mesh at the first guess).
-double scaleFor(const t3::TissueScene3d& scene, double n, int tets_at_scale_1) {
-  double scale = std::cbrt(tets_at_scale_1 / n);
-  return scale * std::cbrt(t3::meshTissue3d(scene, {}, scale).elementCount() / n);
-}
-
 /// The scaling insertion in corotational tissue at about 50k tetrahedra, at the scene's step
 /// and at half of it (the seed's change; halving_m < 0 and the refusal when refused).
 struct CorotationalRun {
@@ -146,7 +139,7 @@ CorotationalRun corotationalRun50k(const t3::TissueScene3d& scene) {
   CorotationalRun run;
   run.scene = scene.name;
   run.row.steps_per_s = -1.0;
-  const double scale = scaleFor(scene, 5e4, t3::meshTissue3d(scene, {}, 1.0).elementCount());
+  const double scale = t3::sizeScaleForTets(scene, 5e4);
   try {
     run.row = scalingRun(scene, scale, true, 1.0, true);
     // The run at half the step: its refusal leaves the figures of the converged run defined.
@@ -690,7 +683,7 @@ int main(int argc, char** argv) {
         {"tets", "steps_per_s", "factor_cpu_s", "mesh_cpu_s", "peak_mb", "columns_mb"});
     std::vector<ScalingRow> rows;
     for (double n : wanted) {
-      const ScalingRow r = scalingRun(base, scaleFor(base, n, probe.elementCount()));
+      const ScalingRow r = scalingRun(base, t3::sizeScaleForTets(base, n, probe.elementCount()));
       rows.push_back(r);
       scaling.addRow(
           {double(r.tets), r.steps_per_s, r.factor_cpu_s, r.mesh_cpu_s, r.peak_mb, r.columns_mb});

@@ -31,12 +31,6 @@ namespace {
 constexpr double kMoveSteps = 8.0;  // the planner's corotational moves, in scene steps
 constexpr int kColumns = 288;       // three batches of compliance columns
 
-/// The mesh scale giving about n tetrahedra (element count ~ scale^-3, one correction).
-double scaleFor(const t3::TissueScene3d& scene, double n) {
-  double scale = std::cbrt(t3::meshTissue3d(scene, {}, 1.0).elementCount() / n);
-  return scale * std::cbrt(t3::meshTissue3d(scene, {}, scale).elementCount() / n);
-}
-
 /// Mean CPU milliseconds of f over repeats calls.
 template <typename F>
 double meanMs(int repeats, F&& f) {
@@ -71,7 +65,8 @@ int main(int argc, char** argv) {
   }
   try {
     const t3::TissueScene3d scene = t3::loadTissueScene3d(argv[1]);
-    t3::TetMesh3 mesh = t3::meshTissue3d(scene, {}, tets > 0.0 ? scaleFor(scene, tets) : 1.0);
+    t3::TetMesh3 mesh =
+        t3::meshTissue3d(scene, {}, tets > 0.0 ? t3::sizeScaleForTets(scene, tets) : 1.0);
     const int n_tets = mesh.elementCount();
     t3::TissueModel3 model(std::move(mesh), scene.materialTable(), true);
     const t3::Target3& target = scene.targets.front();

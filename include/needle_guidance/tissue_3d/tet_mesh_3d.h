@@ -34,6 +34,11 @@ struct TetMeshReport {
 TetMesh3 meshTissue3d(const TissueScene3d& scene, const std::vector<Eigen::Vector2d>& lines,
                       double size_scale = 1.0, TetMeshReport* report = nullptr);
 
+/// The size_scale of meshTissue3d that gives about n tetrahedra (element count ~ scale^-3,
+/// one correction from a trial mesh at the first guess). tets_at_scale_1: the element count at
+/// scale 1 when known (<= 0: meshed here).
+double sizeScaleForTets(const TissueScene3d& scene, double n, int tets_at_scale_1 = 0);
+
 /// Mean-ratio quality 6 sqrt(2) V / l_rms^3 of a tetrahedron: 1 regular, 0 flat; negative
 /// if inverted.
 double tetQuality(const fem::Corners<3>& c);
