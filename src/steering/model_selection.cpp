@@ -556,9 +556,11 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
         << (choice.ladder.empty()
                 ? std::string("none")
                 : formatNumber(choice.ladder.back().grid_spacing_m * 1e3, 3) + " mm")
-        << ") has an estimated mean P_s error of "
-        << (choice.ladder.empty() ? std::string("(none)")
-                                  : formatNumber(choice.ladder.back().estimated_error, 2))
+        << ") has "
+        << (choice.ladder.empty() || !std::isfinite(choice.ladder.back().estimated_error)
+                ? std::string("no estimated error (the first grid of its transitions)")
+                : "an estimated mean P_s error of " +
+                      formatNumber(choice.ladder.back().estimated_error, 2))
         << (choice.ladder.empty() ? std::string() : ", " + choice.ladder.back().check.toString());
     return GeneralStatus(StatusCode::kRefused, why.str());
   };
