@@ -562,6 +562,19 @@ Result<ModelChoice> chooseModel(const SteeringProblem& problem, const SelectionO
                 : "an estimated mean P_s error of " +
                       formatNumber(choice.ladder.back().estimated_error, 2))
         << (choice.ladder.empty() ? std::string() : ", " + choice.ladder.back().check.toString());
+    // The rungs tried, so the user sees where the ladder went.
+    why << "; rungs:";
+    for (const ModelRung& r : choice.ladder) {
+      why << " [" << toString(r.transition_model) << " " << formatNumber(r.grid_spacing_m * 1e3, 3)
+          << " mm s=" << r.orientation_subdivision;
+      if (std::isfinite(r.estimated_error)) {
+        why << " est " << formatNumber(r.estimated_error, 2);
+      }
+      if (r.check.run) {
+        why << (r.check.passed ? " check passed" : " check failed");
+      }
+      why << "]";
+    }
     return GeneralStatus(StatusCode::kRefused, why.str());
   };
   SteeringParams params = problem.params;
