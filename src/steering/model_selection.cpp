@@ -28,10 +28,9 @@ const double kRatio = std::sqrt(2.0);
 constexpr double kOrder = 2.0;
 /// Start states whose P_s both rungs put below this are left out (they agree trivially).
 constexpr double kTrivialPs = 0.01;
-/// Bytes per state while building and solving (values, controls, snapshot, end masks, clear
-/// sub-samples, policy bits, plus the coarser rung's table kept for the comparison), measured on
-/// steering_workspace.
-constexpr double kBytesPerState = 15.0;
+/// Bytes per state while building and solving (values, controls, snapshot, end masks, policy
+/// bits, plus the coarser rung's table kept for the comparison), measured on steering_workspace.
+constexpr double kBytesPerState = 14.0;
 constexpr double kBaseMb = 50.0;  ///< the process without the model [MB]
 constexpr double kEvalStep_m = 2.5e-3;
 constexpr double kEvalAngleStep_rad = 9.0 * kPi / 180.0;

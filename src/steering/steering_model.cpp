@@ -18,9 +18,6 @@ namespace {
 
 /// Bumped whenever the discretisation changes meaning, so old table files are refused.
 constexpr const char* kModelVersion = "needle_guidance steering MDP v1";
-/// The same for kInterpolated alone (kRounded keeps the 5.4.2 hashes): its collisions are
-/// judged on sub-samples of the cell and the deflection bin.
-constexpr const char* kInterpolatedVersion = "sub-cell collision 3 x 3 x 3";
 /// Largest state count (flat indices and stencil offsets are 32-bit in the solver).
 constexpr std::int64_t kMaxStates = std::int64_t{1} << 31;
 /// Slack on grid-count floors: a 10 cm workspace at 1 mm is 100 columns, not 99.
@@ -173,7 +170,6 @@ std::uint64_t problemHash(const SteeringProblem& problem) {
   h.f64(p.arc_chord_tolerance_m);
   if (p.transition_model != TransitionModel::kRounded) {  // kRounded keeps the 5.4.2 hashes
     h.str(toString(p.transition_model));
-    h.str(kInterpolatedVersion);
   }
   return h.value();
 }
@@ -619,11 +615,11 @@ std::uint8_t SteeringModel::endMask(int ix, int iy, int arc) const {
   return em;
 }
 
-/// Every arc (bevel * nc + orientation) from the origin, its start orientation turned by
-/// theta_offset_rad, as a polyline whose chords lie within arc_chord_tolerance_m of the true arc,
-/// with its bounding box; returns the farthest distance any arc point gets from the start [m].
+/// Every arc (bevel * nc + orientation) from the origin as a polyline whose chords lie within
+/// arc_chord_tolerance_m of the true arc, with its bounding box; returns the farthest distance
+/// any arc point gets from the start [m].
 static double arcPolylines(const SteeringParams& params, double alpha, int nc, double arc_length_m,
-                           double theta_offset_rad, std::vector<std::vector<Point2>>& arc_points,
+                           std::vector<std::vector<Point2>>& arc_points,
                            std::vector<Box>& arc_box) {
   const double r = params.radius_m;
   const double max_step = 2.0 * std::acos(std::max(-1.0, 1.0 - params.arc_chord_tolerance_m / r));
@@ -635,7 +631,7 @@ static double arcPolylines(const SteeringParams& params, double alpha, int nc, d
   double reach = 0.0;
   for (int a = 0; a < n_arcs; ++a) {
     TipPose start;
-    start.theta_rad = (a % nc) * alpha + theta_offset_rad;
+    start.theta_rad = (a % nc) * alpha;
     start.bevel = a < nc ? Bevel::kLeft : Bevel::kRight;
     auto& pts = arc_points[static_cast<std::size_t>(a)];
     Box box{0, 0, 0, 0};
@@ -664,48 +660,14 @@ void SteeringModel::buildValidity(int threads) {
   const bool interpolated = problem_.params.transition_model == TransitionModel::kInterpolated;
   if (interpolated) {
     end_mask_.assign(static_cast<std::size_t>(n_pos * n_arcs), 0);
-    survivors_.assign(static_cast<std::size_t>(n_pos * n_arcs), 0);
-    sub_samples_.assign(static_cast<std::size_t>(n_pos), 0);
   }
 
   // Each arc as a polyline relative to its start point (the same at every position).
   std::vector<std::vector<Point2>> arc_points;
   std::vector<Box> arc_box;
-  double reach = arcPolylines(problem_.params, grid_.alphaRad(), nc, arcLength_m(), 0.0, arc_points,
-                              arc_box);  // farthest any arc point gets [m]
-  // kInterpolated: the sub-samples of a transition, kSubSamples start orientations across the
-  // deflection bin times kSubSamples^2 start points across the cell, and per arc a box that
-  // holds every sub-sample's arc (an arc whose box touches no edge has all sub-samples clear).
-  std::vector<std::vector<std::vector<Point2>>> sub_points;
-  std::vector<std::vector<Box>> sub_box;
-  std::vector<Point2> sub_offsets;  // start points relative to the grid point [m]
-  std::vector<Box> graze_box = arc_box;
-  if (interpolated) {
-    const double half = 0.5 * grid_.spacing_m;
-    sub_points.resize(kSubSamples);
-    sub_box.resize(kSubSamples);
-    double sub_reach = reach;
-    for (int j = 0; j < kSubSamples; ++j) {
-      const double f = (j + 0.5) / kSubSamples - 0.5;  // -1/3, 0, 1/3 of a bin or cell
-      sub_reach =
-          std::max(sub_reach, arcPolylines(problem_.params, grid_.alphaRad(), nc, arcLength_m(),
-                                           f * grid_.alphaRad(), sub_points[j], sub_box[j]));
-      for (int a = 0; a < n_arcs; ++a) {
-        Box& g = graze_box[static_cast<std::size_t>(a)];
-        const Box& b = sub_box[static_cast<std::size_t>(j)][static_cast<std::size_t>(a)];
-        g = {std::min(g.min_x, b.min_x), std::min(g.min_y, b.min_y), std::max(g.max_x, b.max_x),
-             std::max(g.max_y, b.max_y)};
-      }
-      for (int i = 0; i < kSubSamples; ++i) {
-        sub_offsets.emplace_back(f * grid_.spacing_m,
-                                 ((i + 0.5) / kSubSamples - 0.5) * grid_.spacing_m);
-      }
-    }
-    for (Box& g : graze_box) {
-      g = {g.min_x - half, g.min_y - half, g.max_x + half, g.max_y + half};
-    }
-    reach = sub_reach + std::sqrt(2.0) * half;
-  }
+  const double reach =
+      arcPolylines(problem_.params, grid_.alphaRad(), nc, arcLength_m(), arc_points,
+                   arc_box);  // farthest any arc point gets from the start [m]
 
   // Expanded-obstacle edges, binned on a uniform grid of cell size `reach` so each position
   // looks at the bins within reach only.
@@ -718,11 +680,6 @@ void SteeringModel::buildValidity(int threads) {
       eb.push_back(e.b);
       ebox.push_back(boxOf(e.a, e.b));
     }
-  }
-  std::vector<Point2> lo, hi;
-  for (const auto& poly : expanded_) {
-    lo.push_back(poly.minCorner());
-    hi.push_back(poly.maxCorner());
   }
   const Point2 wmin = problem_.workspace_min;
   const Point2 wmax = problem_.workspace_max;
@@ -744,36 +701,10 @@ void SteeringModel::buildValidity(int threads) {
     }
   }
   const double slack = 1e-9 * std::max(1.0, (wmax - wmin).norm());
-  auto inWorkspace = [&](const Point2& q, const Box& b) {
-    return q.x() + b.min_x >= wmin.x() - slack && q.x() + b.max_x <= wmax.x() + slack &&
-           q.y() + b.min_y >= wmin.y() - slack && q.y() + b.max_y <= wmax.y() + slack;
-  };
 
   auto work = [&](int ix_begin, int ix_end) {
     std::vector<int> stamp(ea.size(), -1);
     std::vector<int> near;
-    std::vector<Point2> starts;  // kInterpolated: the sub-sample start points in free space
-    // The arc of polyline pts and box ab from `from` stays inside the workspace and crosses no
-    // expanded-obstacle edge of `near`.
-    auto clear = [&](const Point2& from, const std::vector<Point2>& pts, const Box& ab) {
-      if (!inWorkspace(from, ab)) {
-        return false;
-      }
-      const Box moved{from.x() + ab.min_x, from.y() + ab.min_y, from.x() + ab.max_x,
-                      from.y() + ab.max_y};
-      for (int e : near) {
-        const auto se = static_cast<std::size_t>(e);
-        if (!moved.overlaps(ebox[se])) {
-          continue;
-        }
-        for (std::size_t i = 0; i + 1 < pts.size(); ++i) {
-          if (segmentsTouch(from + pts[i], from + pts[i + 1], ea[se], eb[se])) {
-            return false;
-          }
-        }
-      }
-      return true;
-    };
     for (int ix = ix_begin; ix < ix_end; ++ix) {
       for (int iy = 0; iy < grid_.ny; ++iy) {
         const std::int64_t pos = grid_.position(ix, iy);
@@ -798,57 +729,37 @@ void SteeringModel::buildValidity(int threads) {
             }
           }
         }
-        int full = 0;  // kInterpolated: sub-samples of a transition from this position
-        if (interpolated) {
-          // Start points of the cell that lie outside the workspace or in an obstacle are not
-          // states the needle can be in: they are left out of the sub-samples.
-          starts.clear();
-          for (const Point2& o : sub_offsets) {
-            const Point2 p = q + o;
-            bool free =
-                p.x() >= wmin.x() && p.x() <= wmax.x() && p.y() >= wmin.y() && p.y() <= wmax.y();
-            for (std::size_t i = 0; i < expanded_.size() && free && !near.empty(); ++i) {
-              free = !(p.x() >= lo[i].x() && p.x() <= hi[i].x() && p.y() >= lo[i].y() &&
-                       p.y() <= hi[i].y() && expanded_[i].contains(p));
-            }
-            if (free) {
-              starts.push_back(p);
-            }
-          }
-          full = kSubSamples * static_cast<int>(starts.size());
-          sub_samples_[static_cast<std::size_t>(pos)] = static_cast<std::uint8_t>(full);
-        }
         std::uint64_t* mask = valid_.data() + pos * words_;
         bool all = true;
         for (int a = 0; a < n_arcs; ++a) {
           const auto sa = static_cast<std::size_t>(a);
           const int ex = ix + disp_x_[sa];
           const int ey = iy + disp_y_[sa];
+          const Box& ab = arc_box[sa];
           bool ok = (interpolated || (ex >= 0 && ex < grid_.nx && ey >= 0 && ey < grid_.ny)) &&
-                    clear(q, arc_points[sa], arc_box[sa]);
-          if (interpolated) {
-            int survivors = ok ? full : 0;
-            const Box& g = graze_box[sa];
-            bool grazes = !inWorkspace(q, g);
-            const Box moved{q.x() + g.min_x, q.y() + g.min_y, q.x() + g.max_x, q.y() + g.max_y};
-            for (std::size_t i = 0; i < near.size() && !grazes; ++i) {
-              grazes = moved.overlaps(ebox[static_cast<std::size_t>(near[i])]);
-            }
-            if (grazes) {
-              survivors = 0;
-              for (int j = 0; j < kSubSamples; ++j) {
-                const auto sj = static_cast<std::size_t>(j);
-                for (const Point2& p : starts) {
-                  survivors += clear(p, sub_points[sj][sa], sub_box[sj][sa]) ? 1 : 0;
-                }
+                    q.x() + ab.min_x >= wmin.x() - slack && q.x() + ab.max_x <= wmax.x() + slack &&
+                    q.y() + ab.min_y >= wmin.y() - slack && q.y() + ab.max_y <= wmax.y() + slack;
+          if (ok && !near.empty()) {
+            const Box moved{q.x() + ab.min_x, q.y() + ab.min_y, q.x() + ab.max_x, q.y() + ab.max_y};
+            const auto& pts = arc_points[sa];
+            for (int e : near) {
+              const auto se = static_cast<std::size_t>(e);
+              if (!moved.overlaps(ebox[se])) {
+                continue;
+              }
+              for (std::size_t i = 0; i + 1 < pts.size() && ok; ++i) {
+                ok = !segmentsTouch(q + pts[i], q + pts[i + 1], ea[se], eb[se]);
+              }
+              if (!ok) {
+                break;
               }
             }
-            const std::uint8_t em = survivors > 0 ? endMask(ix, iy, a) : 0;
+          }
+          if (interpolated) {
+            const std::uint8_t em = ok ? endMask(ix, iy, a) : 0;
             end_mask_[static_cast<std::size_t>(pos * n_arcs + a)] = em;
-            survivors_[static_cast<std::size_t>(pos * n_arcs + a)] =
-                static_cast<std::uint8_t>(em != 0 ? survivors : 0);
             ok = em != 0;
-            all = all && em == 15 && survivors == full;
+            all = all && em == 15;
           }
           if (ok) {
             mask[a / 64] |= std::uint64_t{1} << (a % 64);
@@ -904,23 +815,19 @@ std::vector<std::vector<Transition>> SteeringModel::successorGroups(StateId s,
       continue;
     }
     const std::uint8_t em = endMask(pos, e->arc);
-    const double survive = survival(pos, e->arc);
-    std::vector<Transition> group;
     if (em & kEndInTarget) {
-      group.push_back({kSuccessState, p * survive});
-    } else {
-      double kept = 0.0;
-      for (std::size_t c = 0; c < 4; ++c) {
-        kept += (em >> e[c].corner) & 1u ? double(e[c].probability) : 0.0;
-      }
-      for (std::size_t c = 0; c < 4; ++c) {
-        if (((em >> e[c].corner) & 1u) && e[c].probability > 0.0f) {
-          group.push_back({s + e[c].offset, p * survive * double(e[c].probability) / kept});
-        }
-      }
+      out.push_back({{kSuccessState, p}});
+      continue;
     }
-    if (survive < 1.0) {
-      group.push_back({kFailState, p * (1.0 - survive)});
+    double kept = 0.0;
+    for (std::size_t c = 0; c < 4; ++c) {
+      kept += (em >> e[c].corner) & 1u ? double(e[c].probability) : 0.0;
+    }
+    std::vector<Transition> group;
+    for (std::size_t c = 0; c < 4; ++c) {
+      if (((em >> e[c].corner) & 1u) && e[c].probability > 0.0f) {
+        group.push_back({s + e[c].offset, p * double(e[c].probability) / kept});
+      }
     }
     out.push_back(std::move(group));
   }

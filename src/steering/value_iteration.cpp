@@ -336,7 +336,7 @@ float updateFactoredPosition(const Context& c, std::int64_t pos, int iy, const B
     }
     const std::uint8_t em = kPlain ? 15 : c.model->endMask(pos, a);
     if (!kPlain && (em & SteeringModel::kEndInTarget)) {
-      after[static_cast<std::size_t>(a)] = c.model->survival(pos, a);
+      after[static_cast<std::size_t>(a)] = 1.0f;
       continue;
     }
     float kept = 0.0f, weighted = 0.0f;
@@ -357,9 +357,6 @@ float updateFactoredPosition(const Context& c, std::int64_t pos, int iy, const B
       weighted += t.weight[ai] * v;
     }
     after[static_cast<std::size_t>(a)] = kept > 0.0f ? weighted / kept : 0.0f;
-    if (!kPlain) {
-      after[static_cast<std::size_t>(a)] *= c.model->survival(pos, a);
-    }
   }
   return deflectionSums(t, nc, after.data(), c.values + base, c.controls + base);
 }

@@ -40,9 +40,6 @@ enum class TransitionModel : std::uint8_t {
   /// between the four surrounding grid points (only those outside obstacles; an end inside the
   /// target disc succeeds exactly), and deflection bins whose discrete variance equals sigma^2
   /// (the bins of a normal with a smaller sigma', so quantisation does not inflate the spread).
-  /// An arc's collision is judged on sub-samples across the grid point's cell and the
-  /// deflection bin (SteeringModel::survival), as a grid point's value answers every pose of its
-  /// cell.
   kInterpolated = 1,
 };
 /// "rounded" | "interpolated".
@@ -244,8 +241,7 @@ public:
   /// Largest |dy| of any stencil entry [grid steps].
   int maxRowReach() const { return max_row_reach_; }
 
-  /// True if arc `arc` from position index `position` is collision-free (and ends on the grid);
-  /// kInterpolated: some of its sub-samples are (survival() > 0) and its end keeps a share.
+  /// True if arc `arc` from position index `position` is collision-free (and ends on the grid).
   bool arcValid(std::int64_t position, int arc) const {
     return (valid_[static_cast<std::size_t>(position * words_ + arc / 64)] >> (arc % 64)) & 1u;
   }
@@ -262,20 +258,6 @@ public:
     return end_mask_[static_cast<std::size_t>(position * 2 * grid_.nc + arc)];
   }
   static constexpr std::uint8_t kEndInTarget = 16;
-  /// kInterpolated: sub-samples per axis of the cell and across a deflection bin.
-  static constexpr int kSubSamples = 3;
-  /// kInterpolated only: the share of the transition's sub-samples whose exact arc stays inside
-  /// the workspace and crosses no expanded-obstacle edge (1 away from every edge). The
-  /// sub-samples are kSubSamples start orientations evenly across the deflection bin (at -1/3,
-  /// 0, +1/3 of it) times kSubSamples^2 start points evenly across the grid point's cell, less
-  /// the start points outside the workspace or in an obstacle. The arc's end states keep the
-  /// probabilities of the grid point's own arc, times this share; the rest fails.
-  /// 0 at a position that is not free.
-  float survival(std::int64_t position, int arc) const {
-    const auto i = static_cast<std::size_t>(position * 2 * grid_.nc + arc);
-    const std::uint8_t all = sub_samples_[static_cast<std::size_t>(position)];
-    return all > 0 ? static_cast<float>(survivors_[i]) / static_cast<float>(all) : 0.0f;
-  }
   TransitionModel transitionModel() const { return problem_.params.transition_model; }
   /// The standard deviation [rad] whose orientation-bin probabilities the model uses for a
   /// control: sigma itself for kRounded, sigma' (discrete variance = sigma^2) for kInterpolated.
@@ -330,9 +312,7 @@ private:
   int words_ = 0;
   std::vector<std::uint64_t> valid_;
   std::vector<std::uint8_t> all_valid_;
-  std::vector<std::uint8_t> end_mask_;     // kInterpolated: per (position, arc)
-  std::vector<std::uint8_t> survivors_;    // kInterpolated: clear sub-samples per (position, arc)
-  std::vector<std::uint8_t> sub_samples_;  // kInterpolated: sub-samples per position
+  std::vector<std::uint8_t> end_mask_;  // kInterpolated: per (position, arc)
   double bin_sigma_[2] = {0.0, 0.0};
 };
 
