@@ -255,10 +255,11 @@ std::string RigidImplantReport::text() const {
 }
 
 void RigidImplantReport::write(const std::string& dir) const {
+  // summary.json last: it is the file a reader waits for, so the rest is there when it appears.
   movesTable(*this).writeCsv(dir + "/moves.csv");
-  report::writeTextFile(dir + "/summary.json", summaryJson());
   report::writeTextFile(dir + "/summary.md", summaryMarkdown());
   writePlot(*this, dir + "/seed_errors.png");
+  report::writeTextFile(dir + "/summary.json", summaryJson());
 }
 
 }  // namespace needle_guidance::procedures

@@ -139,14 +139,21 @@ void writeTextFile(const std::string& path, const std::string& text) {
   if (p.has_parent_path()) {
     std::filesystem::create_directories(p.parent_path());
   }
-  std::ofstream out(path);
-  if (!out) {
-    throw std::runtime_error("writeTextFile: cannot write '" + path + "'");
+  // Written beside and renamed into place, so a reader waiting for the file never sees it
+  // half written.
+  const std::string partial = path + ".partial";
+  {
+    std::ofstream out(partial);
+    if (!out) {
+      throw std::runtime_error("writeTextFile: cannot write '" + path + "'");
+    }
+    out << text;
+    out.close();
+    if (!out) {
+      throw std::runtime_error("writeTextFile: write to '" + path + "' failed");
+    }
   }
-  out << text;
-  if (!out) {
-    throw std::runtime_error("writeTextFile: write to '" + path + "' failed");
-  }
+  std::filesystem::rename(partial, path);
 }
 
 }  // namespace needle_guidance::report

@@ -57,7 +57,9 @@ constexpr int kScreenTrials = 1000;
 constexpr double kSceneTolerance = 0.005;  ///< steering.ps_tolerance of steering_workspace
 const std::string kFirst = "/steering_policy";
 const std::string kSecond = "/second/steering_policy";
-const ros::Duration kServiceWait(60.0);
+/// The first node chooses its model at start-up before it answers: the ladder at tolerance 0.005
+/// takes about 20 s of wall time on a quiet machine and several times that on a loaded one.
+const ros::Duration kServiceWait(240.0);
 constexpr double kTopicWait_s = 30.0;
 
 /// Publishes tips on /tip and collects the first node's ~control answers.

@@ -41,7 +41,8 @@ private:
 /// no NaN or infinity).
 std::string jsonNumber(double v, int precision = 6);
 
-/// Writes text to path, creating parent folders; throws std::runtime_error on failure.
+/// Writes text to path (through path + ".partial", renamed into place), creating parent
+/// folders; throws std::runtime_error on failure.
 void writeTextFile(const std::string& path, const std::string& text);
 
 }  // namespace needle_guidance::report
