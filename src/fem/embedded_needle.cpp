@@ -1061,9 +1061,7 @@ void EmbeddedNeedle<Dim>::settleBeforeEvent() {
     return;
   }
   end_before_event_ = segmentEnd();
-  if (relocated_from_ &&
-      (end_before_event_ - *relocated_from_).template lpNorm<Eigen::Infinity>() <=
-          kRelocationTol_m) {
+  if (repeatsRelocatedEnd(end_before_event_)) {
     // Relocated on the warp settled where the last round located this event, the event
     // repeats: that warp stands (see consistentSegment).
     event_warp_ = warp_;
@@ -1128,9 +1126,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
       if (round == 0 && event_warp_.size() == 0) {
         predictWarp(s_);
       }
-      if (event_warp_.size() == 0 && relocated_from_ &&
-          (segmentEnd() - *relocated_from_).template lpNorm<Eigen::Infinity>() <=
-              kRelocationTol_m) {
+      if (event_warp_.size() == 0 && repeatsRelocatedEnd(segmentEnd())) {
         settle_skipped_ = true;  // the segment's end repeats: its warp stands
       }
       while (!settle_skipped_ && event_warp_.size() == 0 && !settleWarp()) {
@@ -1185,6 +1181,12 @@ typename EmbeddedNeedle<Dim>::SegmentEnd EmbeddedNeedle<Dim>::segmentEnd() const
   SegmentEnd end;
   end << s_, tip_.reference_m, cut_total_m_;
   return end;
+}
+
+template <int Dim>
+bool EmbeddedNeedle<Dim>::repeatsRelocatedEnd(const SegmentEnd& end) const {
+  return relocated_from_ &&
+         (end - *relocated_from_).template lpNorm<Eigen::Infinity>() <= kRelocationTol_m;
 }
 
 template <int Dim>

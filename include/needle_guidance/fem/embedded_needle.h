@@ -366,6 +366,8 @@ private:
   using SegmentEnd = Eigen::Matrix<double, Dim + 2, 1>;  ///< tip x, tip's tissue point, cut [m]
   /// The end of the committed state (s_, tip_'s reference point, cut_total_m_).
   SegmentEnd segmentEnd() const;
+  /// A relocation whose end repeats the end the last round settled at (within kRelocationTol_m).
+  bool repeatsRelocatedEnd(const SegmentEnd& end) const;
   /// A relocation: the end located by the last round before its warp was settled there (empty
   /// in a segment's first round), and the end of this round before its event.
   std::optional<SegmentEnd> relocated_from_;
