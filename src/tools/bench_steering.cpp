@@ -31,6 +31,7 @@
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/adaptive_policy.h"
+#include "needle_guidance/steering/exact_pose_prediction.h"
 #include "needle_guidance/steering/model_selection.h"
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/policy_table.h"
@@ -1114,18 +1115,18 @@ struct DecisionTruth {
 /// Prediction against Monte Carlo for each start of `starts`; returns the mean |gap| of the
 /// non-trivial ones and their count, the largest in max_gap, the fraction inside the interval
 /// in within.
-double scoreStarts(const st::ContinuousWorkspace& world, const st::PolicyTable& table,
+double scoreStarts(const st::ContinuousWorkspace& world, const st::ExactPosePrediction& prediction,
                    const std::vector<TruthStart>& starts, std::int64_t trials,
                    const std::string& scene, ng::report::Table& rows, int& count, double& max_gap,
                    double& within, double& noise_floor) {
-  const st::SteeringPolicy policy = st::tablePolicy(table);
+  const st::SteeringPolicy policy = prediction.policy();
   double sum = 0.0;
   count = 0;
   max_gap = 0.0;
   within = 0.0;
   noise_floor = 0.0;
   for (const TruthStart& s : starts) {
-    const double predicted = table.lookup(s.pose).probability_of_success;
+    const double predicted = prediction.predict(s.pose).probability_of_success;
     const st::MonteCarloResult mc =
         st::runMonteCarlo(world, s.pose, policy, trials, kMonteCarloSeed, 2);
     const st::Interval ci = mc.interval();
@@ -1255,14 +1256,16 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
   for (const st::NearBoundaryStart& b : st::nearBoundaryStarts(start, table, world)) {
     boundary.push_back({b.group, b.pose});
   }
+  // Every start is predicted from its own pose (a grid state's pose gives the table's value).
+  const st::ExactPosePrediction prediction(*solved.model, table);
   int n = 0;
   double max_gap = 0.0, within = 0.0, noise = 0.0;
-  out.mean_abs_gap_entry =
-      scoreStarts(world, table, entry, kEntryTrials, scene.name, rows, n, max_gap, within, noise);
+  out.mean_abs_gap_entry = scoreStarts(world, prediction, entry, kEntryTrials, scene.name, rows, n,
+                                       max_gap, within, noise);
   out.entry_starts = n;
   out.within_entry = within;
   out.noise_floor_entry = noise;
-  out.mean_abs_gap_top = scoreStarts(world, table, top, kMonteCarloTrials, scene.name, rows, n,
+  out.mean_abs_gap_top = scoreStarts(world, prediction, top, kMonteCarloTrials, scene.name, rows, n,
                                      max_gap, within, noise);
   out.top_starts = n;
   out.max_abs_gap_top = max_gap;
@@ -1274,8 +1277,8 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
                                        kMonteCarloTrials, kMonteCarloSeed, 2)
                          .rate());
   }
-  out.mean_abs_gap_boundary = scoreStarts(world, table, boundary, kEntryTrials, scene.name, rows, n,
-                                          max_gap, within, noise);
+  out.mean_abs_gap_boundary = scoreStarts(world, prediction, boundary, kEntryTrials, scene.name,
+                                          rows, n, max_gap, within, noise);
   out.boundary_starts = n;
   out.max_abs_gap_boundary = max_gap;
   out.noise_floor_boundary = noise;
