@@ -15,6 +15,7 @@
 
 #include "needle_guidance/format.h"
 #include "needle_guidance/steering/continuous_workspace.h"
+#include "needle_guidance/steering/exact_pose_prediction.h"
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/start_verification.h"
 
@@ -346,7 +347,10 @@ ModelCheck checkModel(const SteeringModel& model, const PolicyTable& table,
   }
   const auto t0 = std::chrono::steady_clock::now();
   const ContinuousWorkspace world(model.problem());
-  const SteeringPolicy policy = tablePolicy(table);
+  // Off-grid starts (entry line, near boundaries) are predicted from the pose itself, not from
+  // the state it rounds to; a grid state's own pose gives the table's value.
+  const ExactPosePrediction prediction(model, table);
+  const SteeringPolicy policy = prediction.policy();
   struct Checked {
     TipPose pose;
     double predicted = 0.0;
@@ -355,7 +359,7 @@ ModelCheck checkModel(const SteeringModel& model, const PolicyTable& table,
   };
   std::vector<Checked> starts;
   auto add = [&](const TipPose& pose, int group) {
-    starts.push_back({pose, table.lookup(pose).probability_of_success, group, {}});
+    starts.push_back({pose, prediction.predict(pose).probability_of_success, group, {}});
   };
   for (const TipPose& pose : checkPoses(model.problem(), start)) {
     add(pose, kEntryGroup);

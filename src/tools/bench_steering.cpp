@@ -31,6 +31,7 @@
 #include "needle_guidance/report/table.h"
 #include "needle_guidance/scene/scene.h"
 #include "needle_guidance/steering/adaptive_policy.h"
+#include "needle_guidance/steering/exact_pose_prediction.h"
 #include "needle_guidance/steering/model_selection.h"
 #include "needle_guidance/steering/monte_carlo.h"
 #include "needle_guidance/steering/policy_table.h"
@@ -1111,28 +1112,29 @@ struct DecisionTruth {
   ClosedLoop closed_loop;  ///< the procedure's closed loop at the chosen start
 };
 
-/// Prediction against Monte Carlo for each start of `starts`; returns the mean |gap| of the
+/// Prediction (from the pose itself; the table's rounded look-up beside it in the rows) against
+/// Monte Carlo for each start of `starts`; returns the mean |gap| of the
 /// non-trivial ones and their count, the largest in max_gap, the fraction inside the interval
 /// in within.
 double scoreStarts(const st::ContinuousWorkspace& world, const st::PolicyTable& table,
-                   const std::vector<TruthStart>& starts, std::int64_t trials,
-                   const std::string& scene, ng::report::Table& rows, int& count, double& max_gap,
-                   double& within, double& noise_floor) {
-  const st::SteeringPolicy policy = st::tablePolicy(table);
+                   const st::ExactPosePrediction& prediction, const std::vector<TruthStart>& starts,
+                   std::int64_t trials, const std::string& scene, ng::report::Table& rows,
+                   int& count, double& max_gap, double& within, double& noise_floor) {
+  const st::SteeringPolicy policy = prediction.policy();
   double sum = 0.0;
   count = 0;
   max_gap = 0.0;
   within = 0.0;
   noise_floor = 0.0;
   for (const TruthStart& s : starts) {
-    const double predicted = table.lookup(s.pose).probability_of_success;
+    const double predicted = prediction.predict(s.pose).probability_of_success;
     const st::MonteCarloResult mc =
         st::runMonteCarlo(world, s.pose, policy, trials, kMonteCarloSeed, 2);
     const st::Interval ci = mc.interval();
     rows.addRow({scene, s.group, s.pose.p_SceneTip.x() * kMmPerM, s.pose.p_SceneTip.y() * kMmPerM,
                  s.pose.theta_rad * kDegPerRad, st::toString(s.pose.bevel), predicted, mc.rate(),
                  ci.low, ci.high, ci.contains(predicted) ? 1.0 : 0.0, predicted - mc.rate(),
-                 double(mc.trials)});
+                 double(mc.trials), double(table.lookup(s.pose).probability_of_success)});
     if (predicted < kTrivialPs && mc.rate() < kTrivialPs) {
       continue;
     }
@@ -1172,9 +1174,10 @@ void addLadderRows(const DecisionTruth& d, ng::report::Table& rows) {
 
 /// The per-start rows of decisionTruth (truth_decision.csv).
 ng::report::Table decisionRows() {
-  return ng::report::Table({"scene", "group", "x_mm", "y_mm", "theta_deg", "bevel", "predicted_ps",
-                            "mc_ps", "ci_low", "ci_high", "within_ci", "gap", "trials"},
-                           6);
+  return ng::report::Table(
+      {"scene", "group", "x_mm", "y_mm", "theta_deg", "bevel", "predicted_ps", "mc_ps", "ci_low",
+       "ci_high", "within_ci", "gap", "trials", "rounded_ps"},
+      6);
 }
 
 /// The scene's model as ps_tolerance chooses it, its start screened and verified
@@ -1239,7 +1242,8 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
                st::toString(out.chosen.start.pose.bevel), out.chosen.predicted(),
                out.chosen_mc.rate(), out.chosen_mc.interval().low, out.chosen_mc.interval().high,
                out.chosen_mc.interval().contains(out.chosen.predicted()) ? 1.0 : 0.0,
-               out.chosen.predicted() - out.chosen_mc.rate(), double(out.chosen_mc.trials)});
+               out.chosen.predicted() - out.chosen_mc.rate(), double(out.chosen_mc.trials),
+               double(table.lookup(out.chosen.start.pose).probability_of_success)});
   std::vector<TruthStart> entry, top, boundary;
   for (const st::TipPose& p :
        entryStarts(problem, start, entryHeights_mm(problem, start, kEntryFractions))) {
@@ -1255,15 +1259,17 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
   for (const st::NearBoundaryStart& b : st::nearBoundaryStarts(start, table, world)) {
     boundary.push_back({b.group, b.pose});
   }
+  // Every start is predicted from its own pose (a grid state's pose gives the table's value).
+  const st::ExactPosePrediction prediction(*solved.model, table);
   int n = 0;
   double max_gap = 0.0, within = 0.0, noise = 0.0;
-  out.mean_abs_gap_entry =
-      scoreStarts(world, table, entry, kEntryTrials, scene.name, rows, n, max_gap, within, noise);
+  out.mean_abs_gap_entry = scoreStarts(world, table, prediction, entry, kEntryTrials, scene.name,
+                                       rows, n, max_gap, within, noise);
   out.entry_starts = n;
   out.within_entry = within;
   out.noise_floor_entry = noise;
-  out.mean_abs_gap_top = scoreStarts(world, table, top, kMonteCarloTrials, scene.name, rows, n,
-                                     max_gap, within, noise);
+  out.mean_abs_gap_top = scoreStarts(world, table, prediction, top, kMonteCarloTrials, scene.name,
+                                     rows, n, max_gap, within, noise);
   out.top_starts = n;
   out.max_abs_gap_top = max_gap;
   out.gap_table_best = NAN;
@@ -1274,8 +1280,8 @@ DecisionTruth decisionTruth(const ng::scene::Scene& scene, ng::report::Table& ro
                                        kMonteCarloTrials, kMonteCarloSeed, 2)
                          .rate());
   }
-  out.mean_abs_gap_boundary = scoreStarts(world, table, boundary, kEntryTrials, scene.name, rows, n,
-                                          max_gap, within, noise);
+  out.mean_abs_gap_boundary = scoreStarts(world, table, prediction, boundary, kEntryTrials,
+                                          scene.name, rows, n, max_gap, within, noise);
   out.boundary_starts = n;
   out.max_abs_gap_boundary = max_gap;
   out.noise_floor_boundary = noise;

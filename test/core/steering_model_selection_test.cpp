@@ -173,17 +173,22 @@ TEST(ModelSelection, NoCoarserGridOfTheChosenTransitionsMeetsTheTolerance) {
                 (coarser->check.run && !coarser->check.passed))
         << "the coarser grid met the tolerance: " << coarser->check.toString();
   }
-  // The transitions were refined on a finer grid than the one chosen: the choice is the
-  // cheaper coarser grid of those transitions, not the first model that passed.
+  // The transitions were refined on a grid finer than the problem's: after they passed, the
+  // coarser grids of those transitions were solved, and every one coarser than the choice
+  // failed its estimate or its check (the choice is the coarsest that passed).
   EXPECT_EQ(chosen.transition_model, TransitionModel::kInterpolated);
-  double finest_m = chosen.grid_spacing_m;
+  int coarsened = 0;
   for (const ModelRung& rung : c.ladder) {
-    if (rung.transition_model == chosen.transition_model &&
+    if (rung.coarsened && rung.transition_model == chosen.transition_model &&
         rung.orientation_subdivision == chosen.orientation_subdivision) {
-      finest_m = std::min(finest_m, rung.grid_spacing_m);
+      ++coarsened;
+      if (rung.grid_spacing_m > chosen.grid_spacing_m * 1.01) {
+        EXPECT_TRUE(rung.estimated_error > o.ps_tolerance || (rung.check.run && !rung.check.passed))
+            << "a coarser grid met the tolerance: " << rung.check.toString();
+      }
     }
   }
-  EXPECT_GT(chosen.grid_spacing_m, finest_m * 1.01) << "no coarser grid was taken";
+  EXPECT_GT(coarsened, 0) << "no coarser grid of the accepted transitions was tried";
   const ModelRung* mine = rungAt(c, chosen, chosen.grid_spacing_m);
   ASSERT_NE(mine, nullptr);
   EXPECT_TRUE(mine->chosen);

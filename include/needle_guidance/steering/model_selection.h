@@ -106,8 +106,9 @@ std::vector<NearBoundaryStart> nearBoundaryStarts(const StartOptions& start,
 /// Scores `table` against the continuous needle in three groups: the entry-line starts (heights
 /// 2.5 mm inside both ends of the start range and at 1/6 .. 5/6 of it, angles -20, 0, 20 degrees,
 /// both bevels), the 4 best distinct starts (distinctBestStarts) and the near-boundary starts
-/// (nearBoundaryStarts); starts where prediction and Monte Carlo are both below 0.01 are left
-/// out. Sequential: a quarter of the trials first; a check
+/// (nearBoundaryStarts), each predicted at its own pose (ExactPosePrediction, the table's
+/// control); starts where prediction and Monte Carlo are both below 0.01 are left out.
+/// Sequential: a quarter of the trials first; a check
 /// that has then clearly failed (ModelCheck::clearlyFailed) stops there, any other runs the rest
 /// (trials i from the quarter on, so the result is that of one run of `trials`). Throws
 /// std::invalid_argument for trials < 1.
