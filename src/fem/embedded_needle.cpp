@@ -1012,9 +1012,12 @@ bool EmbeddedNeedle<Dim>::retractSegment(double target) {
     commit(end, nullptr);
   }
   if (target <= entry_x_m_) {
-    // Out of the tissue: nothing holds it any more.
+    // Out of the tissue: nothing holds it any more. Unloaded, the tissue is at rest, where the
+    // corotated forces vanish: its warp is zero exactly (the seeds are read in this state, so
+    // it owes nothing to the warp's tolerance).
     shaft_.clear();
     shaft_compliance_.resize(0, 0);
+    warp_.setZero();
     in_tissue_ = punctured_ = tip_active_ = false;
     commit(target, nullptr);
   }
