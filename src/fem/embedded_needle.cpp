@@ -20,9 +20,17 @@ constexpr int kMaxEventsPerMove = 100000;  // bound against a stalled event loop
 constexpr int kMaxCutIterations = 60;
 constexpr double kFirstCutTrial_m = 2e-5;  // first trial length when bracketing the cut
 constexpr double kMaxCutTrial_m = 2.5e-4;  // trials grow up to this (a quarter of a fine element)
-// Corotational fixed point: converged when no node's warp changes by more than this, 50 times
-// below the step-halving target (5 um) of the seeds.
-constexpr double kWarpTol_m = 1e-7;
+// Corotational fixed point: converged when no node's warp changes by more than a tolerance
+// derived from the seeds' step-halving target (docs/tissue_3d.md, "Settled to the accuracy the
+// seed needs"). The state a seed is released from, whose tip's tissue point the seed is, is
+// settled to a fiftieth of the target. Every other state (just before an event, at a move's
+// end, in retraction) to half of it: a warp error e there moves the event's location by the
+// coupling (below one) times e, and the seed, whose tissue point is located afresh at every
+// track point, by less (measured at most 0.1 e on the tuning scenes), so the seed stays
+// within a twentieth of the target of the tightly settled insertion's.
+constexpr double kSeedStepTol_m = 5e-6;
+constexpr double kReleaseWarpTol_m = kSeedStepTol_m / 50.0;
+constexpr double kEventWarpTol_m = kSeedStepTol_m / 2.0;
 constexpr int kMaxWarpUpdates = 60;
 // Beyond kMaxWarpUpdates the iteration goes on while the change still halves over every
 // kContractionWindow updates (a slow but steady contraction: at that rate 0.01 mm shrinks to
@@ -42,10 +50,10 @@ constexpr int kMaxRewarpsPerMove = 4;
 // its event happens (or at its end) until a relocation moves its end (tip position, tip's
 // tissue point, cut length) by at most kRelocationTol_m, or this many times. A relocation
 // moves the end by the change of the warp since the last one times a coupling below one, so
-// what remains after a move of kRelocationTol_m is a fraction of it, below the step-halving
-// target (5 um) by a factor of 10 or more; a cut that snaps through (its first root comes and
-// goes with the warp) alternates and takes the last (EmbeddedNeedleInfo::relocation_m).
-constexpr double kRelocationTol_m = 5e-7;
+// what remains after a move of kRelocationTol_m is a fraction of it: the event's tolerance
+// on the warp, half the seeds' step-halving target; a cut that snaps through (its first root
+// comes and goes with the warp) alternates and takes the last (EmbeddedNeedleInfo::relocation_m).
+constexpr double kRelocationTol_m = kEventWarpTol_m;
 constexpr int kMaxRelocations = 3;
 // The warp at a segment's end (its event or the move's end) is first guessed by extending
 // linearly in the tip position the warps settled at the last two segment ends, up to this many
@@ -655,7 +663,7 @@ typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::warpAt(const Point_& p
 }
 
 template <int Dim>
-bool EmbeddedNeedle<Dim>::settleWarp() {
+bool EmbeddedNeedle<Dim>::settleWarp(double tol_m) {
   if (!tissue_->corotational()) {
     return true;
   }
@@ -673,7 +681,7 @@ bool EmbeddedNeedle<Dim>::settleWarp() {
   const Eigen::VectorXd v = tissue_->corotationDisplacement(u);
   const double change = (v - warp_).lpNorm<Eigen::Infinity>();
   ++info_.corotation_updates;
-  if (change <= kWarpTol_m) {
+  if (change <= tol_m) {
     warp_ = v;
     commit(s_, nullptr);
     warp_updates_ = 0;
@@ -693,7 +701,7 @@ bool EmbeddedNeedle<Dim>::settleWarp() {
           std::to_string(info_.rewarps) + " refactorisations of the warped stiffness");
     }
   }
-  if (slowWarp()) {
+  if (slowWarp(tol_m)) {
     rewarp(u);
     return false;
   }
@@ -703,7 +711,7 @@ bool EmbeddedNeedle<Dim>::settleWarp() {
 }
 
 template <int Dim>
-bool EmbeddedNeedle<Dim>::slowWarp() const {
+bool EmbeddedNeedle<Dim>::slowWarp(double tol_m) const {
   const int n = static_cast<int>(warp_changes_.size());
   if (n < kRewarpProbe || info_.rewarps >= kMaxRewarpsPerMove) {
     return false;
@@ -714,7 +722,7 @@ bool EmbeddedNeedle<Dim>::slowWarp() const {
   if (!(rate < 1.0)) {
     return true;
   }
-  return std::log(kWarpTol_m / last) / std::log(rate) > kRewarpBudget;
+  return std::log(tol_m / last) / std::log(rate) > kRewarpBudget;
 }
 
 template <int Dim>
@@ -1004,9 +1012,12 @@ bool EmbeddedNeedle<Dim>::retractSegment(double target) {
     commit(end, nullptr);
   }
   if (target <= entry_x_m_) {
-    // Out of the tissue: nothing holds it any more.
+    // Out of the tissue: nothing holds it any more. Unloaded, the tissue is at rest, where the
+    // corotated forces vanish: its warp is zero exactly (the seeds are read in this state, so
+    // it owes nothing to the warp's tolerance).
     shaft_.clear();
     shaft_compliance_.resize(0, 0);
+    warp_.setZero();
     in_tissue_ = punctured_ = tip_active_ = false;
     commit(target, nullptr);
   }
@@ -1050,8 +1061,8 @@ void EmbeddedNeedle<Dim>::recordWarp() {
 }
 
 template <int Dim>
-void EmbeddedNeedle<Dim>::settle() {
-  while (!settleWarp()) {
+void EmbeddedNeedle<Dim>::settle(double tol_m) {
+  while (!settleWarp(tol_m)) {
   }
 }
 
@@ -1073,7 +1084,7 @@ void EmbeddedNeedle<Dim>::settleBeforeEvent() {
     if (predict_event_warp_) {
       predictWarp(s_);  // the segment was located on its start's warp: guess the event's
     }
-    settle();
+    settle(kEventWarpTol_m);
     event_warp_ = warp_;
   } catch (const std::runtime_error&) {
     // No converging warp in the state just before the event (the crushed tissue under a tip
@@ -1092,7 +1103,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
     // segment's start (the seeds' tissue points are set; the needle leaves the tissue at rest).
     const bool done = direction_ > 0 ? insertSegment(target) : retractSegment(target);
     if (done) {
-      settle();
+      settle(kEventWarpTol_m);
     }
     return done;
   }
@@ -1104,8 +1115,8 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
   // A relocation whose end (before its event, or at the segment's end) repeats the last round's
   // to within kRelocationTol_m keeps the warp settled there without settling it again: the
   // warp changes by 30-150 um over a 1 mm track spacing (first changes of 30-150 um at a
-  // contraction of 0.3-0.5), so over 0.5 um of the end by at most about 0.15 um, of the order
-  // of the warp's tolerance and 30 times below the step-halving target.
+  // contraction of 0.3-0.5), so over 2.5 um of the end by at most about 0.4 um, below the
+  // event's tolerance on the warp.
   relocated_from_.reset();
   settle_skipped_ = false;
   const EmbeddedNeedle start = *this;
@@ -1129,7 +1140,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
       if (event_warp_.size() == 0 && repeatsRelocatedEnd(segmentEnd())) {
         settle_skipped_ = true;  // the segment's end repeats: its warp stands
       }
-      while (!settle_skipped_ && event_warp_.size() == 0 && !settleWarp()) {
+      while (!settle_skipped_ && event_warp_.size() == 0 && !settleWarp(kEventWarpTol_m)) {
         insertSegment(s_);  // the tip force against f_b on the updated warp: puncture, cut
       }
     } catch (const std::runtime_error&) {
@@ -1156,7 +1167,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
       relocated_from_.reset();
       info_.relocation_m = std::max(info_.relocation_m, moved);
       if (event && done) {
-        settle();  // the move ends at its event
+        settle(kEventWarpTol_m);  // the move ends at its event
       }
       recordWarp();
       return done;
@@ -1312,6 +1323,23 @@ std::optional<int> EmbeddedNeedle<Dim>::implantSeed(std::string* why_not) {
       *why_not = "the needle tip is not in tissue";
     }
     return std::nullopt;
+  }
+  if (tissue_->corotational()) {
+    // The seed is the tip's tissue point of this state: its warp settled to the release
+    // tolerance (the cut solved again on every update, as at a segment's end).
+    const EmbeddedNeedle before = *this;
+    const Eigen::VectorXd u_before = displacementField();
+    try {
+      while (!settleWarp(kReleaseWarpTol_m)) {
+        insertSegment(s_);
+      }
+    } catch (const std::runtime_error& e) {
+      restoreState(before, &u_before);
+      if (why_not) {
+        *why_not = std::string("the state the seed is released from: ") + e.what();
+      }
+      return std::nullopt;
+    }
   }
   seeds_.push_back(tip_.reference_m);
   return static_cast<int>(seeds_.size()) - 1;

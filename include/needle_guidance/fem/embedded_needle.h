@@ -201,6 +201,9 @@ public:
   bool moveTo(const Lateral& lateral_m, double tip_x_m, std::string* why_not = nullptr);
 
   /// Releases a seed at the tip (2.4); its tissue point is the tip's. Refused outside tissue.
+  /// Corotational tissue: the state it is released from is first settled to the warp's release
+  /// tolerance (the events before it to the looser event tolerance); refused, with the state
+  /// unchanged, if that warp does not converge.
   std::optional<int> implantSeed(std::string* why_not = nullptr);
   /// A seed placed earlier (by another needle) at this tissue point (reference, in the mesh):
   /// it moves with the tissue like the seeds this needle releases. Returns its id. Throws
@@ -280,8 +283,8 @@ private:
   void predictWarp(double s);
   /// Keeps the settled warp of the committed state (a segment's end) for predictWarp.
   void recordWarp();
-  /// settleWarp until the warp has converged at the committed state.
-  void settle();
+  /// settleWarp until the warp has converged to tol_m at the committed state.
+  void settle(double tol_m);
   /// While a segment is located (consistentSegment): the warp settled at the committed state,
   /// the one just before an event, kept in event_warp_; in a segment's first round from the
   /// guess of predictWarp, in a relocation not at all when the state repeats the end the last
@@ -313,13 +316,13 @@ private:
   Vector warpAt(const Point_& p) const;
   /// Corotational tissue: one fixed-point update of the warp at the committed state (Anderson
   /// mixing over the updates of this move), which is then solved again; true when the update
-  /// changed the warp by at most the convergence tolerance (always true for a linear tissue).
+  /// changed the warp by at most tol_m (always true for a linear tissue).
   /// When the updates converge too slowly the tissue's reference stiffness is re-warped at the
   /// current displacement (rewarp). Throws std::runtime_error if it does not converge.
-  bool settleWarp();
-  /// True when the warp's last changes predict more updates to convergence than a rewarp is
-  /// worth.
-  bool slowWarp() const;
+  bool settleWarp(double tol_m);
+  /// True when the warp's last changes predict more updates to convergence to tol_m than a
+  /// rewarp is worth.
+  bool slowWarp(double tol_m) const;
   /// Re-factors the tissue's warped stiffness at displacement u (the current state) and
   /// expresses the state on it: u = G f + warp with the new compliance G.
   void rewarp(const Eigen::VectorXd& u);
