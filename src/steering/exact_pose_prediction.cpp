@@ -65,20 +65,32 @@ ExactPosePrediction::ExactPosePrediction(const SteeringModel& model, const Polic
   }
 }
 
-double ExactPosePrediction::controlPs(const TipPose& pose, Control u) const noexcept {
+ControlLookup::Status ExactPosePrediction::status(const TipPose& pose) const noexcept {
   const Point2& p = pose.p_SceneTip;
   if (!p.allFinite() || !std::isfinite(pose.theta_rad) || !world_.inWorkspace(p) ||
-      world_.obstacleAt(p) >= 0) {
-    return 0.0;
+      table_.grid().nearestState(pose) < 0) {
+    return ControlLookup::Status::kOutsideGrid;
   }
-  if (world_.inTarget(p)) {
-    return 1.0;
+  if (world_.obstacleAt(p) >= 0) {
+    return ControlLookup::Status::kInObstacle;
   }
-  const StateId rounded = table_.grid().nearestState(pose);
-  if (rounded < 0) {
-    return 0.0;
+  return world_.inTarget(p) ? ControlLookup::Status::kInTarget : ControlLookup::Status::kOk;
+}
+
+double ExactPosePrediction::controlPs(const TipPose& pose, Control u) const noexcept {
+  switch (status(pose)) {
+    case ControlLookup::Status::kOk:
+      return stepPs(pose, u);
+    case ControlLookup::Status::kInTarget:
+      return 1.0;
+    default:
+      return 0.0;
   }
+}
+
+double ExactPosePrediction::stepPs(const TipPose& pose, Control u) const noexcept {
   const GridSpec& g = table_.grid();
+  const StateId rounded = g.nearestState(pose);
   int qx = 0, qy = 0, qk = 0;
   Bevel qb = Bevel::kLeft;
   g.decode(rounded, qx, qy, qk, qb);
@@ -156,23 +168,15 @@ double ExactPosePrediction::controlPs(const TipPose& pose, Control u) const noex
 
 PosePrediction ExactPosePrediction::predict(const TipPose& pose) const noexcept {
   PosePrediction out;
-  const Point2& p = pose.p_SceneTip;
-  if (!p.allFinite() || !std::isfinite(pose.theta_rad) || !world_.inWorkspace(p) ||
-      table_.grid().nearestState(pose) < 0) {
-    return out;
-  }
-  if (world_.obstacleAt(p) >= 0) {
-    out.status = ControlLookup::Status::kInObstacle;
-    return out;
-  }
-  if (world_.inTarget(p)) {
-    out.status = ControlLookup::Status::kInTarget;
+  out.status = status(pose);
+  if (out.status == ControlLookup::Status::kInTarget) {
     out.probability_of_success = 1.0;
+  }
+  if (out.status != ControlLookup::Status::kOk) {
     return out;
   }
-  out.status = ControlLookup::Status::kOk;
-  out.control_ps[0] = controlPs(pose, Control::kInsert);
-  out.control_ps[1] = controlPs(pose, Control::kFlip);
+  out.control_ps[0] = stepPs(pose, Control::kInsert);
+  out.control_ps[1] = stepPs(pose, Control::kFlip);
   if (mode_ == PoseControl::kTable) {
     out.control = table_.lookup(pose).control;
   } else {

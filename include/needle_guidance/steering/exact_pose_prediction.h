@@ -73,6 +73,11 @@ public:
   const ContinuousWorkspace& world() const { return world_; }
 
 private:
+  /// The pose's status (PosePrediction::status), shared by predict() and controlPs().
+  ControlLookup::Status status(const TipPose& pose) const noexcept;
+  /// The Bellman step from a free pose (status kOk) after control u.
+  double stepPs(const TipPose& pose, Control u) const noexcept;
+
   const SteeringModel& model_;
   const PolicyTable& table_;
   PoseControl mode_;
