@@ -37,6 +37,14 @@ CondensedCompliance::CondensedCompliance(const SparseMatrix& k, const std::vecto
   }
   const SparseMatrix kff = freeBlock(k);
   const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
+  // Fill-reducing ordering: CHOLMOD tries AMD and METIS's nested dissection and keeps the
+  // sparser factor. On tetrahedral meshes that is METIS's (13 % fewer entries and a third fewer
+  // flops at 18.6k tetrahedra); a solve reads the whole factor twice, so it runs faster in
+  // proportion (docs/tissue_3d.md, "Cost of one update").
+  cholmod_common& common = impl_->llt.cholmod();
+  common.nmethods = 2;
+  common.method[0].ordering = CHOLMOD_AMD;
+  common.method[1].ordering = CHOLMOD_METIS;
   impl_->llt.compute(kff);
   factor_cpu_s_ = clock.seconds();
   if (impl_->llt.info() != Eigen::Success) {
@@ -46,6 +54,7 @@ CondensedCompliance::CondensedCompliance(const SparseMatrix& k, const std::vecto
         "degenerate element");
   }
   impl_->factor_bytes = impl_->llt.cholmod().memory_inuse;  // CHOLMOD's own accounting
+  factor_entries_ = common.lnz;
   columns_.resize(static_cast<std::size_t>(n));
 }
 
@@ -169,6 +178,25 @@ Eigen::VectorXd CondensedCompliance::solve(const Eigen::VectorXd& force_N) const
   Eigen::VectorXd u = Eigen::VectorXd::Zero(dofCount());
   for (int r = 0; r < m; ++r) {
     u(free_dofs_[static_cast<std::size_t>(r)]) = x(r);
+  }
+  return u;
+}
+
+Eigen::VectorXd CondensedCompliance::solveSupported(const Eigen::VectorXd& force_N,
+                                                    const std::vector<int>& support) const {
+  const double column_reads = static_cast<double>(support.size()) * dofCount();
+  const bool cached = std::all_of(support.begin(), support.end(), [&](int d) {
+    return d >= 0 && d < dofCount() && columns_[static_cast<std::size_t>(d)].size() > 0;
+  });
+  if (force_N.size() != dofCount() || !cached || !(column_reads < 2.0 * factor_entries_)) {
+    return solve(force_N);
+  }
+  Eigen::VectorXd u = Eigen::VectorXd::Zero(dofCount());
+  for (int d : support) {
+    const double f = force_N(d);
+    if (f != 0.0) {
+      u.noalias() += f * columns_[static_cast<std::size_t>(d)];
+    }
   }
   return u;
 }

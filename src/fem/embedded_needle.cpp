@@ -733,6 +733,7 @@ void EmbeddedNeedle<Dim>::holdDisplacement(const Eigen::VectorXd& u) {
 
 template <int Dim>
 void EmbeddedNeedle<Dim>::rewarp(const Eigen::VectorXd& u) {
+  kept_fields_.formAll();  // the kept states' displacements, on the factor about to be replaced
   tissue_->warpReference(u);
   adoptReference();
   holdDisplacement(u);
@@ -1079,7 +1080,16 @@ void EmbeddedNeedle<Dim>::settleBeforeEvent() {
     settle_skipped_ = true;
     return;
   }
-  const Eigen::VectorXd u = displacementField();
+  // The state before the settle, to fall back on; its displacement is formed only if needed.
+  const Eigen::VectorXd forces_before = committed_.forces;
+  const Eigen::VectorXd warp_before = warp_;
+  Eigen::VectorXd u;
+  auto form = [&] {
+    if (u.size() == 0) {
+      u = displacementField(forces_before, warp_before);
+    }
+  };
+  const auto kept = kept_fields_.keep(form);
   try {
     if (predict_event_warp_) {
       predictWarp(s_);  // the segment was located on its start's warp: guess the event's
@@ -1090,6 +1100,7 @@ void EmbeddedNeedle<Dim>::settleBeforeEvent() {
     // No converging warp in the state just before the event (the crushed tissue under a tip
     // about to puncture): the event stays located on the warp the segment started from,
     // expressed on the current factor.
+    form();
     holdDisplacement(u);
     restartWarpIteration();
     commit(s_, nullptr);
@@ -1121,7 +1132,13 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
   settle_skipped_ = false;
   const EmbeddedNeedle start = *this;
   std::unique_ptr<EmbeddedNeedle> located;
-  Eigen::VectorXd located_u;
+  Eigen::VectorXd located_u;  // formed only if needed, like the settle's (settleBeforeEvent)
+  auto form_located = [&] {
+    if (located && located_u.size() == 0) {
+      located_u = located->displacementField();
+    }
+  };
+  const auto kept = kept_fields_.keep(form_located);
   bool located_done = false;
   SegmentEnd last = SegmentEnd::Zero();
   double moved = 0.0;
@@ -1149,6 +1166,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
       if (!located) {
         throw;
       }
+      form_located();
       restoreState(*located, &located_u);
       return located_done;
     }
@@ -1175,7 +1193,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
     last = end;
     ++info_.relocations;
     located = std::make_unique<EmbeddedNeedle>(*this);
-    located_u = displacementField();
+    located_u.resize(0);
     located_done = done;
     // Back to the segment's start on the warp just found.
     Eigen::VectorXd warp = event ? std::move(event_warp_) : std::move(warp_);
@@ -1390,18 +1408,33 @@ std::vector<typename EmbeddedNeedle<Dim>::Vector> EmbeddedNeedle<Dim>::shaftRefe
 
 template <int Dim>
 Eigen::VectorXd EmbeddedNeedle<Dim>::displacementField() const {
+  return displacementField(committed_.forces, warp_);
+}
+
+template <int Dim>
+Eigen::VectorXd EmbeddedNeedle<Dim>::displacementField(const Eigen::VectorXd& forces,
+                                                       const Eigen::VectorXd& warp) const {
+  // The needle's forces act on its points' section nodes only, whose compliance columns are
+  // cached: the field is their combination (CondensedCompliance::solveSupported).
   Eigen::VectorXd f = Eigen::VectorXd::Zero(Dim * tissue_->mesh().nodeCount());
+  std::vector<int> support;
+  std::vector<char> listed(static_cast<std::size_t>(tissue_->mesh().nodeCount()), 0);
   const int ns = static_cast<int>(shaft_.size());
-  for (int k = 0; k < committed_.forces.size() / Dim; ++k) {
+  for (int k = 0; k < forces.size() / Dim; ++k) {
     const Point_& p = k < ns ? shaft_[static_cast<std::size_t>(k)].point : tip_;
     for (const NodeWeight& w : p.section) {
-      f.template segment<Dim>(Dim * w.node) +=
-          w.weight * committed_.forces.template segment<Dim>(Dim * k);
+      f.template segment<Dim>(Dim * w.node) += w.weight * forces.template segment<Dim>(Dim * k);
+      if (!listed[static_cast<std::size_t>(w.node)]) {
+        listed[static_cast<std::size_t>(w.node)] = 1;
+        for (int d = 0; d < Dim; ++d) {
+          support.push_back(Dim * w.node + d);
+        }
+      }
     }
   }
-  Eigen::VectorXd u = tissue_->compliance().solve(f);
-  if (warp_.size() > 0) {
-    u += warp_;
+  Eigen::VectorXd u = tissue_->compliance().solveSupported(f, support);
+  if (warp.size() > 0) {
+    u += warp;
   }
   return u;
 }

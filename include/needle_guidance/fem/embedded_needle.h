@@ -41,6 +41,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -380,6 +381,39 @@ private:
   /// tip x [m], on the reference warp_history_version_.
   std::vector<std::pair<double, Eigen::VectorXd>> warp_history_;
   int warp_history_version_ = -1;
+
+  /// The displacements of states kept to fall back on (a settle or a relocation that does not
+  /// converge) are formed only when needed: on the fall-back, or just before a refactorisation
+  /// replaces the factor they are expressed on (rewarp runs these first). A solve per event and
+  /// per relocation is saved on the common path. Held by the needle that iterates, never copied.
+  class KeptFields {
+  public:
+    KeptFields() = default;
+    KeptFields(const KeptFields&) {}
+    KeptFields& operator=(const KeptFields&) { return *this; }
+    /// Registers form until the returned guard goes out of scope.
+    struct Guard {
+      KeptFields* owner;
+      ~Guard() { owner->form_.pop_back(); }
+    };
+    [[nodiscard]] Guard keep(std::function<void()> form) {
+      form_.push_back(std::move(form));
+      return Guard{this};
+    }
+    /// Forms every registered displacement not formed yet (on the current factor).
+    void formAll() const {
+      for (const auto& f : form_) {
+        f();
+      }
+    }
+
+  private:
+    std::vector<std::function<void()>> form_;
+  };
+  KeptFields kept_fields_;
+  /// The displacement with these needle forces and this warp on the current factor (one solve).
+  Eigen::VectorXd displacementField(const Eigen::VectorXd& forces,
+                                    const Eigen::VectorXd& warp) const;
 };
 
 }  // namespace needle_guidance::fem
