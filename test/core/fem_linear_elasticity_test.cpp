@@ -6,6 +6,7 @@
 
 #include <Eigen/Geometry>
 #include <cmath>
+#include <cstdlib>
 #include <stdexcept>
 
 #include "fem_test_support.h"
@@ -149,6 +150,43 @@ TEST(FemLinearElasticity, CondensedComplianceMatchesFullSolveAndBarTheory) {
   EXPECT_NEAR(g.entry(loaded[0], loaded[1]), g.entry(loaded[1], loaded[0]),
               kSolveRel * std::abs(g.entry(loaded[0], loaded[0])));
   EXPECT_EQ(g.solvedColumns(), static_cast<long long>(loaded.size()));
+}
+
+// A force on a few DOFs: the field from their cached columns is the solve's (to round-off), and
+// without every column cached, or with more DOFs than a solve reads, the solve answers.
+TEST(FemLinearElasticity, SupportedSolveFromCachedColumnsEqualsTheSolve) {
+  const SimplexMesh<3> mesh = boxTets(16, 6, 6, 0.08, 0.03, 0.03);
+  const SparseMatrix k = assembleStiffness<3>(mesh, {Material{20e3, 0.45}});
+  std::vector<char> fixed(static_cast<std::size_t>(3 * mesh.nodeCount()), 0);
+  for (int i = 0; i < mesh.nodeCount(); ++i) {
+    if (mesh.nodes[static_cast<std::size_t>(i)].x() < 1e-12) {
+      for (int d = 0; d < 3; ++d) {
+        fixed[static_cast<std::size_t>(3 * i + d)] = 1;
+      }
+    }
+  }
+  CondensedCompliance g(k, fixed);
+  ASSERT_GT(g.factorEntries(), 0.0);
+  // Three nodes inside the block, as a needle's tissue points load them.
+  std::vector<int> support;
+  for (int node : {mesh.nodeCount() / 2, mesh.nodeCount() / 2 + 1, mesh.nodeCount() / 3}) {
+    for (int d = 0; d < 3; ++d) {
+      support.push_back(3 * node + d);
+    }
+  }
+  std::srand(kSeed);
+  Eigen::VectorXd f = Eigen::VectorXd::Zero(3 * mesh.nodeCount());
+  for (int dof : support) {
+    f(dof) = Eigen::VectorXd::Random(1)(0);  // N
+  }
+  const Eigen::VectorXd u = g.solve(f);
+  // Not cached yet: the solve.
+  EXPECT_LT((g.solveSupported(f, support) - u).norm(), kRoundOffRel * u.norm());
+  g.require(support);
+  ASSERT_LT(static_cast<double>(support.size()) * g.dofCount(), 2.0 * g.factorEntries());
+  const Eigen::VectorXd from_columns = g.solveSupported(f, support);
+  EXPECT_LT((from_columns - u).norm(), kSolveRel * u.norm());
+  EXPECT_EQ(g.solvedColumns(), static_cast<long long>(support.size()));
 }
 
 TEST(FemLinearElasticity, RefusesDegenerateElementAndFreeBody) {

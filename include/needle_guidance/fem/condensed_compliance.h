@@ -47,6 +47,8 @@ public:
   int cachedColumns() const { return cached_; }
   long long solvedColumns() const { return solved_; }  ///< columns solved since construction
   double factorCpuSeconds() const { return factor_cpu_s_; }
+  /// Entries of the Cholesky factor (CHOLMOD's count; a solve reads each twice).
+  double factorEntries() const { return factor_entries_; }
   /// Bytes held by the factor and the cached columns.
   std::size_t memoryBytes() const;
   /// Drops every cached column (memory bound between insertions along new paths).
