@@ -1,8 +1,10 @@
 // The cost of one corotational update in 3-D tissue (dissertation 2.2.1; docs/tissue_3d.md,
 // "Cost of one update"): on the state of an insertion into a scene's first target, the CPU of
 // the element pass (fem::CorotationalForces::correction), a solve with the factor, one update
-// (the pass and its solve), the warped stiffness's assembly, a refactorisation and a compliance
-// column (batched). Each part is repeated on the same state; CPU time of the process.
+// (the pass and its solve), the needle's field (its forces' displacement, from the cached
+// compliance columns of the nodes they act on), the warped stiffness's assembly, a
+// refactorisation and a compliance column (batched). Each part is repeated on the same state;
+// CPU time of the process.
 // Usage: corotational_update_cost SCENE [TETS] [DEPTH_FRACTION] [REPEATS]
 //   TETS: mesh the scene to about this many tetrahedra (0: the scene's default mesh);
 //   DEPTH_FRACTION: the insertion's depth as a fraction of the first target's (default 0.7),
@@ -94,6 +96,7 @@ int main(int argc, char** argv) {
     const double pass_ms = meanMs(repeats, [&] { g = forces.correction(u); });
     Eigen::VectorXd x;
     const double solve_ms = meanMs(repeats, [&] { x = model.compliance().solve(g); });
+    const double field_ms = meanMs(repeats, [&] { x = needle.displacementField(); });
     const double update_ms = meanMs(repeats, [&] { x = model.corotationDisplacement(u); });
     forces.warpedStiffness(u);  // the first call also builds the sparsity pattern
     fem::SparseMatrix warped;
@@ -106,12 +109,14 @@ int main(int argc, char** argv) {
     const double columns_ms = meanMs(1, [&] { model.compliance().require(dofs); });
     std::printf(
         "%s: %d tetrahedra, insertion to %.1f mm by moves of %.1f mm: %.2f s CPU, %d updates\n"
-        "element pass %.2f ms, solve %.2f ms, pass and solve %.2f ms; an update (the pass and "
-        "two solves) about %.1f ms\n"
+        "element pass %.2f ms, solve %.2f ms, pass and solve %.2f ms, the needle's field %.2f ms "
+        "(its cached columns); an update (the field, the pass and a solve) about %.1f ms\n"
+        "factor %.0f entries\n"
         "warped stiffness assembly %.1f ms, refactorisation %.3f s, compliance column %.3f ms "
         "(%d in batches)\n",
         scene.name.c_str(), n_tets, 1e3 * depth, 1e3 * step, insertion_s, updates, pass_ms,
-        solve_ms, update_ms, pass_ms + 2.0 * solve_ms, assembly_ms, 1e-3 * refactor_ms,
+        solve_ms, update_ms, field_ms, field_ms + pass_ms + solve_ms,
+        model.compliance().factorEntries(), assembly_ms, 1e-3 * refactor_ms,
         columns_ms / std::max(1, model.compliance().cachedColumns()),
         model.compliance().cachedColumns());
   } catch (const std::exception& e) {
