@@ -664,7 +664,7 @@ typename EmbeddedNeedle<Dim>::Vector EmbeddedNeedle<Dim>::warpAt(const Point_& p
 
 template <int Dim>
 bool EmbeddedNeedle<Dim>::settleWarp(double tol_m) {
-  if (!tissue_->corotational()) {
+  if (!warped()) {
     return true;
   }
   if (warp_.size() == 0) {
@@ -1027,8 +1027,8 @@ bool EmbeddedNeedle<Dim>::retractSegment(double target) {
 
 template <int Dim>
 void EmbeddedNeedle<Dim>::predictWarp(double s) {
-  const bool valid = tissue_->corotational() && direction_ > 0 && punctured_ &&
-                     warp_history_.size() == 2 && warp_history_version_ == reference_version_ &&
+  const bool valid = warped() && direction_ > 0 && punctured_ && warp_history_.size() == 2 &&
+                     warp_history_version_ == reference_version_ &&
                      reference_version_ == tissue_->referenceVersion() &&
                      warp_history_.back().second.size() == warp_.size();
   if (!valid) {
@@ -1043,7 +1043,7 @@ void EmbeddedNeedle<Dim>::predictWarp(double s) {
 
 template <int Dim>
 void EmbeddedNeedle<Dim>::recordWarp() {
-  const bool inserting = tissue_->corotational() && direction_ > 0 && punctured_;
+  const bool inserting = warped() && direction_ > 0 && punctured_;
   if (!inserting || warp_history_version_ != reference_version_ ||
       (!warp_history_.empty() && s_ < warp_history_.back().first)) {
     warp_history_.clear();  // a new reference or a new insertion: the history starts again
@@ -1109,7 +1109,7 @@ void EmbeddedNeedle<Dim>::settleBeforeEvent() {
 
 template <int Dim>
 bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
-  if (!tissue_->corotational() || direction_ < 0) {
+  if (!warped() || direction_ < 0) {
     // Linear tissue has no warp. Retraction: its events are located with the warp of the
     // segment's start (the seeds' tissue points are set; the needle leaves the tissue at rest).
     const bool done = direction_ > 0 ? insertSegment(target) : retractSegment(target);
@@ -1279,6 +1279,10 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
   if (in_tissue_ && direction_ < 0 && tip_x > s_) {
     return refuse("the needle must leave the tissue before it is inserted again");
   }
+  if (linear_model_ && tissue_->corotational() && tissue_->referenceVersion() != 0) {
+    return refuse("the tissue's linear model is gone: its reference stiffness was re-warped (" +
+                  std::to_string(tissue_->referenceVersion()) + " refactorisations)");
+  }
   info_.events = 0;
   info_.corotation_updates = 0;
   info_.rewarps = 0;
@@ -1342,7 +1346,7 @@ std::optional<int> EmbeddedNeedle<Dim>::implantSeed(std::string* why_not) {
     }
     return std::nullopt;
   }
-  if (tissue_->corotational()) {
+  if (warped()) {
     // The seed is the tip's tissue point of this state: its warp settled to the release
     // tolerance (the cut solved again on every update, as at a segment's end).
     const EmbeddedNeedle before = *this;

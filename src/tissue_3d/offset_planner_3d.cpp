@@ -92,11 +92,8 @@ OffsetPlanner3::OffsetPlanner3(const TissueScene3d& scene, TissueModel3& model,
     throw std::invalid_argument("OffsetPlanner3: corotational_step_scale must be > 0, not " +
                                 std::to_string(options_.corotational_step_scale));
   }
-  if (model_.corotational() && !scene_.workspace.use_template && scene_.needle.follow_tissue) {
-    const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
-    linear_ = std::make_unique<TissueModel3>(model_.mesh(), scene_.materialTable(), false);
-    setup_cpu_s_ = clock.seconds();
-  }
+  linear_start_ =
+      model_.corotational() && !scene_.workspace.use_template && scene_.needle.follow_tissue;
 }
 
 OffsetPlanner3::~OffsetPlanner3() = default;
@@ -127,8 +124,11 @@ std::string OffsetPlanner3::fixedRegionOnLine(const Eigen::Vector2d& lateral, do
 
 OffsetPlanner3::Trajectory OffsetPlanner3::insertAlong(TissueModel3& model,
                                                        const Eigen::Vector2d& lateral, double max_x,
-                                                       double stop_x) {
+                                                       double stop_x, bool linear) {
   NeedleInsertion3 needle(model, scene_.needle, scene_.block_min_m.x(), max_x);
+  if (linear) {
+    needle.useLinearModel();
+  }
   Trajectory t;
   const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s;
   std::string why;
@@ -164,7 +164,8 @@ Vector3 OffsetPlanner3::simulateImplant(const Eigen::Vector2d& lateral, double t
 }
 
 bool OffsetPlanner3::predict(TissueModel3& model, const Vector3& goal, Eigen::Vector2d& lateral,
-                             double& tip_x, PlanResult3& r, int& simulations, int max_iterations) {
+                             double& tip_x, PlanResult3& r, int& simulations, int max_iterations,
+                             bool linear) {
   // Fixed-point iteration on the simulated tip trajectory: the seed's tissue point is the tip's
   // at release. On a template the hole is given and only the depth is predicted.
   const Workspace3& w = scene_.workspace;
@@ -177,9 +178,9 @@ bool OffsetPlanner3::predict(TissueModel3& model, const Vector3& goal, Eigen::Ve
     }
     lateral = reachable;
     const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
-    const Trajectory t = insertAlong(model, lateral, w.max_tip_x_m, goal.x());
+    const Trajectory t = insertAlong(model, lateral, w.max_tip_x_m, goal.x(), linear);
     ++simulations;
-    if (&model == &model_) {
+    if (&model == &model_ && !linear) {
       r.simulation_cpu_s += clock.seconds();
     }
     std::size_t k = 0;
@@ -317,11 +318,26 @@ bool OffsetPlanner3::planCorotational(const Vector3& goal, Eigen::Vector2d later
   // on the rest line the target's own; on a template the nearest hole, whose verified seed then
   // gives the drift that ranks the other holes (a seed moves with its hole one to one).
   const Workspace3& w = scene_.workspace;
-  if (linear_) {
+  if (linear_start_) {
     // One linear insertion: the lateral position moves by its drift (the drift changes little
-    // over that shift, and the corotational insertion measures what remains).
+    // over that shift, and the corotational insertion measures what remains). It runs in the
+    // scene's tissue seen as linear, on the factor and compliance columns the corotational
+    // insertion then uses, while that tissue's reference is still the linear stiffness; once a
+    // corotational insertion has re-warped it, in a linear model of the same mesh (assembled
+    // and factored once, as set-up: setupCpuSeconds, not plan CPU).
+    TissueModel3* linear = &model_;
+    if (model_.embedding().referenceVersion() != 0) {
+      if (!linear_) {
+        const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
+        linear_ = std::make_unique<TissueModel3>(model_.mesh(), scene_.materialTable(), false);
+        const double setup = clock.seconds();
+        setup_cpu_s_ += setup;
+        setup_in_plan_cpu_s_ += setup;
+      }
+      linear = linear_.get();
+    }
     double tip_x = goal.x();
-    if (!predict(*linear_, goal, lateral, tip_x, r, r.linear_simulations, 1)) {
+    if (!predict(*linear, goal, lateral, tip_x, r, r.linear_simulations, 1, true)) {
       r.refusal.clear();
       lateral = w.nearest(lateral);
     }
@@ -500,8 +516,9 @@ PlanResult3 OffsetPlanner3::plan(const Target3& target) {
   r.refusal = physicalRefusal(target);
   const Workspace3& w = scene_.workspace;
   double excluded_cpu = 0.0;
+  setup_in_plan_cpu_s_ = 0.0;
   auto finish = [&]() {
-    r.plan_cpu_s = plan_clock.seconds() - excluded_cpu;
+    r.plan_cpu_s = plan_clock.seconds() - excluded_cpu - setup_in_plan_cpu_s_;
     return r;
   };
   if (!r.refusal.empty()) {

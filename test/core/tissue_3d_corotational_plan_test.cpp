@@ -64,7 +64,8 @@ TEST(CorotationalPlan3d, StageStartsLinearAndVerifiesInOneOrTwoInsertions) {
   PlannerOptions3 options;
   options.unplanned = false;
   OffsetPlanner3 planner(f.scene, f.model, options);
-  EXPECT_GT(planner.setupCpuSeconds(), 0.0);  // the linear model of the same mesh
+  // The linear start runs in the tissue's own linear model: nothing assembled or factored again.
+  EXPECT_EQ(planner.setupCpuSeconds(), 0.0);
   const Target3& target = f.scene.targets[0];
   const PlanResult3 r = planner.plan(target);
   ASSERT_TRUE(r.placed) << r.refusal;

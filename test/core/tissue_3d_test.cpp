@@ -853,6 +853,39 @@ TEST(Tissue3dCorotation, SeedDoesNotDependOnTheWarpedReference) {
   EXPECT_GT(rewarps_b, 0);  // the poor reference was replaced
 }
 
+TEST(Tissue3dCorotation, LinearModelOfCorotationalTissueIsTheLinearTissue) {
+  // A needle moving in the linear model of corotational tissue (useLinearModel: the reference
+  // stiffness alone, on the shared factor and columns) goes where a needle in linear tissue of
+  // the same mesh goes; once the reference is re-warped its moves are refused, state unchanged.
+  constexpr double kSameTol_m = 1e-9;  // round-off of two factorisations of the same K
+  const Eigen::Vector2d lateral(1e-3, 2e-3);
+  constexpr double kDepth_m = 0.03, kStep_m = 2e-3;
+  TissueScene3d linear_scene = corotationalScene();
+  linear_scene.corotational = false;
+  Fixture corotational(corotationalScene()), linear(linear_scene);
+  ASSERT_TRUE(corotational.model.corotational());
+  ASSERT_FALSE(linear.model.corotational());
+  NeedleInsertion3 a(corotational.model, corotational.scene.needle, 0.0, 0.04);
+  NeedleInsertion3 b(linear.model, linear.scene.needle, 0.0, 0.04);
+  a.useLinearModel();
+  for (double s = 0.0; s < kDepth_m - 1e-12;) {
+    s = std::min(s + kStep_m, kDepth_m);
+    std::string why;
+    ASSERT_TRUE(a.moveTo(lateral, s, &why)) << why;
+    ASSERT_TRUE(b.moveTo(lateral, s, &why)) << why;
+    EXPECT_EQ(a.lastMove().corotation_updates, 0);
+    EXPECT_LT((a.tipReference() - b.tipReference()).norm(), kSameTol_m) << s;
+  }
+  ASSERT_TRUE(a.punctured());
+  corotational.model.embedding().warpReference(
+      Eigen::VectorXd::Zero(3 * corotational.model.mesh().nodeCount()));
+  const Vector3 before = a.tipReference();
+  std::string why;
+  EXPECT_FALSE(a.moveTo(lateral, kDepth_m + kStep_m, &why));
+  EXPECT_NE(why.find("linear model"), std::string::npos) << why;
+  EXPECT_EQ(a.tipReference(), before);
+}
+
 }  // namespace
 }  // namespace needle_guidance::tissue_3d
 

@@ -195,6 +195,13 @@ public:
   EmbeddedNeedle(const EmbeddingTissue<Dim>& tissue, const EmbeddedNeedleParams& params,
                  double entry_x_m, double max_tip_x_m);
 
+  /// From now on the needle moves in the tissue's linear model: its reference stiffness alone,
+  /// without the corotational warp, on the factor and the compliance columns the corotational
+  /// needles share (a linear estimate in corotational tissue at the cost of a linear
+  /// insertion, nothing factored or solved twice). Valid while the reference is the linear
+  /// stiffness (EmbeddingTissue::referenceVersion() 0); after a refactorisation moves refuse.
+  void useLinearModel() { linear_model_ = true; }
+
   /// Moves the tip to x = tip_x_m (forwards or back) at the lateral position, locating every
   /// event on the way. The lateral position may change only outside tissue. Returns false and
   /// leaves the state unchanged (why_not says why) for non-finite input, a lateral change in
@@ -411,6 +418,9 @@ private:
     std::vector<std::function<void()>> form_;
   };
   KeptFields kept_fields_;
+  bool linear_model_ = false;  ///< useLinearModel: the warp is left out
+  /// Corotational tissue seen as such: the warp is iterated (not in the linear model).
+  bool warped() const { return tissue_->corotational() && !linear_model_; }
   /// The displacement with these needle forces and this warp on the current factor (one solve).
   Eigen::VectorXd displacementField(const Eigen::VectorXd& forces,
                                     const Eigen::VectorXd& warp) const;

@@ -85,9 +85,10 @@ struct PlannerOptions3 {
 
 class OffsetPlanner3 {
 public:
-  /// model: the scene's tissue. For corotational tissue the planner also assembles and factors
-  /// the linear model of the same mesh (setupCpuSeconds). Throws std::invalid_argument for
-  /// options out of range.
+  /// model: the scene's tissue. In corotational tissue the linear start runs in the tissue's
+  /// linear model while its reference is the linear stiffness; after a re-warp the planner
+  /// assembles and factors a linear model of the same mesh once (setupCpuSeconds). Throws
+  /// std::invalid_argument for options out of range.
   OffsetPlanner3(const TissueScene3d& scene, TissueModel3& model, PlannerOptions3 options = {});
   ~OffsetPlanner3();
   PlanResult3 plan(const Target3& target);
@@ -95,7 +96,7 @@ public:
   /// with moves of the scene's step (step_scale x the step). Throws std::runtime_error when the
   /// simulation refuses.
   Vector3 simulateImplant(const Eigen::Vector2d& lateral, double tip_x, double step_scale = 1.0);
-  /// CPU the constructor spent on the linear model of corotational tissue [s] (0 for linear).
+  /// CPU spent on a separate linear model of corotational tissue [s] (0 while none was needed).
   double setupCpuSeconds() const { return setup_cpu_s_; }
 
 private:
@@ -112,8 +113,9 @@ private:
     Vector3 seed = Vector3::Zero();
     double error = -1.0;  ///< |seed - goal|; < 0 never simulated
   };
+  /// linear: the needle moves in model's linear model (NeedleInsertion3::useLinearModel).
   Trajectory insertAlong(TissueModel3& model, const Eigen::Vector2d& lateral, double max_x,
-                         double stop_x);
+                         double stop_x, bool linear = false);
   std::string physicalRefusal(const Target3& target) const;
   /// The fixed region the needle line at lateral crosses before tip x, with where ("" if none).
   std::string fixedRegionOnLine(const Eigen::Vector2d& lateral, double tip_x) const;
@@ -121,7 +123,7 @@ private:
   /// (`simulations` counts them, at most max_iterations; the lateral position is corrected
   /// after the last); false with r.refusal set when the robot cannot reach.
   bool predict(TissueModel3& model, const Vector3& goal, Eigen::Vector2d& lateral, double& tip_x,
-               PlanResult3& r, int& simulations, int max_iterations);
+               PlanResult3& r, int& simulations, int max_iterations, bool linear = false);
   /// Full simulations from (lateral, tip_x), corrected by the measured miss (the lateral too if
   /// move_lateral); the best one.
   Attempt verify(const Vector3& goal, Eigen::Vector2d lateral, double tip_x, bool move_lateral,
@@ -155,7 +157,12 @@ private:
   TissueModel3& model_;
   PlannerOptions3 options_;
   RegionLocator3 regions_;
-  std::unique_ptr<TissueModel3> linear_;  ///< corotational tissue: the linear model, same mesh
+  /// Corotational tissue on a stage with a followed track: the plan starts from a linear
+  /// insertion (planCorotational).
+  bool linear_start_ = false;
+  /// The linear model of the same mesh, built once the scene's tissue has been re-warped.
+  std::unique_ptr<TissueModel3> linear_;
+  double setup_in_plan_cpu_s_ = 0.0;  ///< set-up CPU spent inside the current plan()
   double setup_cpu_s_ = 0.0;
 };
 
