@@ -13,7 +13,13 @@
 namespace needle_guidance::fem {
 namespace {
 
-constexpr double kEntryInset_m = 1e-5;     // the entry point lies this far inside the face
+constexpr double kEntryInset_m = 1e-5;  // the entry point lies this far inside the face
+constexpr double kInsideTol = 1e-9;     // barycentric, round-off on shared faces
+// A point outside an element's bounding box by more than this fraction of its largest side is
+// outside the element by at least that much, so one barycentric weight is below about
+// -kBoxMargin sin(a), a the element's sharpest angle: far below -kInsideTol for any element that
+// is not degenerate (a > 1e-6 rad), so locate need not compute its weights.
+constexpr double kBoxMargin = 1e-3;
 constexpr double kCutTol_m = 1e-10;        // root finding of the cut length
 constexpr double kEventTol_m = 1e-12;      // events closer than this to a segment end coincide
 constexpr int kMaxEventsPerMove = 100000;  // bound against a stalled event loop
@@ -137,6 +143,9 @@ struct EmbeddingTissue<Dim>::Grid {
   Point<Dim> lo, cell;
   Cell n;
   std::vector<std::vector<int>> buckets;
+  /// Each element's bounding box, widened by kBoxMargin of its largest side (locate skips the
+  /// weights of an element whose box does not hold the point).
+  std::vector<Point<Dim>> box_lo, box_hi;
   int index(const Cell& c) const {
     int i = 0;
     for (int k = Dim - 1; k >= 0; --k) {
@@ -193,6 +202,8 @@ EmbeddingTissue<Dim>::EmbeddingTissue(const SimplexMesh<Dim>& mesh,
     grid_->cell(k) = (hi(k) - lo(k)) / grid_->n(k);
   }
   grid_->buckets.resize(static_cast<std::size_t>(grid_->n.prod()));
+  grid_->box_lo.resize(mesh.elements.size());
+  grid_->box_hi.resize(mesh.elements.size());
   for (int e = 0; e < mesh.elementCount(); ++e) {
     const Corners<Dim> c = corners<Dim>(mesh, e);
     Point<Dim> a = c[0], b = c[0];
@@ -200,6 +211,9 @@ EmbeddingTissue<Dim>::EmbeddingTissue(const SimplexMesh<Dim>& mesh,
       a = a.cwiseMin(p);
       b = b.cwiseMax(p);
     }
+    const double margin = kBoxMargin * (b - a).maxCoeff();
+    grid_->box_lo[static_cast<std::size_t>(e)] = a.array() - margin;
+    grid_->box_hi[static_cast<std::size_t>(e)] = b.array() + margin;
     const typename Grid::Cell ca = grid_->cellOf(a), cb = grid_->cellOf(b);
     typename Grid::Cell at = ca;
     while (true) {  // every cell of the box [ca, cb], x fastest
@@ -249,11 +263,15 @@ void EmbeddingTissue<Dim>::warpReference(const Eigen::VectorXd& u) const {
 
 template <int Dim>
 std::optional<EmbeddedPoint<Dim>> EmbeddingTissue<Dim>::locate(const Point<Dim>& p) const {
-  constexpr double kInsideTol = 1e-9;  // barycentric, round-off on shared faces
   const auto& bucket = grid_->buckets[static_cast<std::size_t>(grid_->index(grid_->cellOf(p)))];
   EmbeddedPoint<Dim> best;
   double best_min = -1e300;
   for (int e : bucket) {
+    const std::size_t ei = static_cast<std::size_t>(e);
+    if ((p.array() < grid_->box_lo[ei].array()).any() ||
+        (p.array() > grid_->box_hi[ei].array()).any()) {
+      continue;  // outside the element by far more than kInsideTol in its weights
+    }
     const Eigen::Matrix<double, Dim + 1, 1> w = barycentric<Dim>(corners<Dim>(*mesh_, e), p);
     if (w.minCoeff() > best_min) {
       best_min = w.minCoeff();
