@@ -36,25 +36,39 @@ inline Eigen::Matrix<double, Dim, Dim> cofactors(const Eigen::Matrix<double, Dim
   return c;
 }
 
-/// fastPolarRotation for an F whose determinant the caller has.
+/// A deformation gradient with its cofactor matrix and determinant, which the volume ratio,
+/// the inverted count and Newton's first step all use.
 template <int Dim>
-inline Eigen::Matrix<double, Dim, Dim> newtonPolarRotation(const Eigen::Matrix<double, Dim, Dim>& f,
-                                                           double det_f) {
+struct Deformation {
+  using Matrix = Eigen::Matrix<double, Dim, Dim>;
+  explicit Deformation(const Matrix& f_in)
+      : f(f_in), cofactor(cofactors<Dim>(f_in)), det(f_in.row(0).dot(cofactor.row(0))) {}
+  Matrix f;
+  Matrix cofactor;  ///< det(F) F^-T
+  double det;
+};
+
+/// fastPolarRotation of d.f.
+template <int Dim>
+[[gnu::always_inline]] inline Eigen::Matrix<double, Dim, Dim> newtonPolarRotation(
+    const Deformation<Dim>& d) {
   using Matrix = Eigen::Matrix<double, Dim, Dim>;
   constexpr double kMinDet = 0.1;
   // Newton's iteration converges quadratically (the next error is about half the square of the
   // last change): a change below 1e-7 leaves an error below 1e-14, so the iteration stops there.
   constexpr double kConverged = 1e-7;
   constexpr int kMaxIterations = 12;
-  if (!(det_f > kMinDet)) {
-    return polarRotation<Dim>(f);
+  if (!(d.det > kMinDet)) {
+    return polarRotation<Dim>(d.f);
   }
-  // Every iterate keeps a positive determinant (its singular values become (s + 1/s) / 2 >= 1).
-  Matrix r = f;
-  double det = det_f;
+  // R^-T = cof(R) / det R: one division per step. Every iterate keeps a positive determinant
+  // (its singular values become (s + 1/s) / 2 >= 1).
+  Matrix r = d.f;
+  Matrix c = d.cofactor;
+  double det = d.det;
   for (int i = 0; i < kMaxIterations; ++i) {
-    const Matrix c = cofactors<Dim>(r);
     if (i > 0) {
+      c = cofactors<Dim>(r);
       det = r.row(0).dot(c.row(0));
     }
     const Matrix next = 0.5 * r + (0.5 / det) * c;
@@ -63,7 +77,7 @@ inline Eigen::Matrix<double, Dim, Dim> newtonPolarRotation(const Eigen::Matrix<d
     }
     r = next;
   }
-  return polarRotation<Dim>(f);
+  return polarRotation<Dim>(d.f);
 }
 
 /// 0 at or below lo, 1 at or above hi, smooth (C1) in between.
@@ -72,34 +86,27 @@ inline double smoothStep(double x, double lo, double hi) {
   return t * t * (3.0 - 2.0 * t);
 }
 
-/// elementRotation for an F whose determinant the caller has.
+/// |F^T F - I|^2 / 4 (Frobenius), the square of the Green strain, from the upper triangle of the
+/// symmetric F^T F.
 template <int Dim>
-inline Eigen::Matrix<double, Dim, Dim> fadedRotation(const Eigen::Matrix<double, Dim, Dim>& f,
-                                                     double det_f) {
-  using Matrix = Eigen::Matrix<double, Dim, Dim>;
-  // The share of its polar rotation the element takes: all of it while it is sound (volume
-  // ratio det F and Green strain within the small-strain range), none when crushed or strained
-  // far beyond it, smooth in between.
-  const double volume_share = smoothStep(det_f, kCrushedVolume, kSoundVolume);
-  if (volume_share <= 0.0) {
-    return Matrix::Identity();
+inline double greenStrainSquared(const Eigen::Matrix<double, Dim, Dim>& f) {
+  double diagonal = 0.0;
+  double off_diagonal = 0.0;
+  for (int i = 0; i < Dim; ++i) {
+    const double cii = f.col(i).squaredNorm() - 1.0;
+    diagonal += cii * cii;
+    for (int j = i + 1; j < Dim; ++j) {
+      const double cij = f.col(i).dot(f.col(j));
+      off_diagonal += cij * cij;
+    }
   }
-  // The Green strain's square first: its root only for an element beyond kSmallStrain.
-  Matrix c;
-  c.noalias() = f.transpose() * f;
-  c.diagonal().array() -= 1.0;
-  const double green_squared = 0.25 * c.squaredNorm();
-  const double t =
-      green_squared <= kSmallStrain * kSmallStrain
-          ? volume_share
-          : volume_share * (1.0 - smoothStep(std::sqrt(green_squared), kSmallStrain, kLargeStrain));
-  if (t <= 0.0) {
-    return Matrix::Identity();
-  }
-  const Matrix r = newtonPolarRotation<Dim>(f, det_f);
-  if (t >= 1.0) {
-    return r;
-  }
+  return 0.25 * (diagonal + 2.0 * off_diagonal);
+}
+
+/// The rotation by the share t of r's angle about its axis (a faded element's, off the hot path).
+template <int Dim>
+[[gnu::noinline]] Eigen::Matrix<double, Dim, Dim> partialRotation(
+    const Eigen::Matrix<double, Dim, Dim>& r, double t) {
   if constexpr (Dim == 3) {
     const Eigen::Quaterniond q(r);
     return Eigen::Quaterniond::Identity().slerp(t, q).toRotationMatrix();
@@ -108,16 +115,50 @@ inline Eigen::Matrix<double, Dim, Dim> fadedRotation(const Eigen::Matrix<double,
   }
 }
 
+/// elementRotation of d.f; *polar (if given) says whether it is the whole polar rotation.
+template <int Dim>
+[[gnu::always_inline]] inline Eigen::Matrix<double, Dim, Dim> fadedRotation(
+    const Deformation<Dim>& d, bool* polar = nullptr) {
+  using Matrix = Eigen::Matrix<double, Dim, Dim>;
+  if (polar) {
+    *polar = false;
+  }
+  // The share of its polar rotation the element takes: all of it while it is sound (volume
+  // ratio det F and Green strain within the small-strain range), none when crushed or strained
+  // far beyond it, smooth in between.
+  const double volume_share = smoothStep(d.det, kCrushedVolume, kSoundVolume);
+  if (volume_share <= 0.0) {
+    return Matrix::Identity();
+  }
+  // The Green strain's square first: its root only for an element beyond kSmallStrain.
+  const double green_squared = greenStrainSquared<Dim>(d.f);
+  const double t =
+      green_squared <= kSmallStrain * kSmallStrain
+          ? volume_share
+          : volume_share * (1.0 - smoothStep(std::sqrt(green_squared), kSmallStrain, kLargeStrain));
+  if (t <= 0.0) {
+    return Matrix::Identity();
+  }
+  const Matrix r = newtonPolarRotation<Dim>(d);
+  if (t < 1.0) {
+    return partialRotation<Dim>(r, t);
+  }
+  if (polar) {
+    *polar = true;
+  }
+  return r;
+}
+
 }  // namespace
 
 template <int Dim>
 Eigen::Matrix<double, Dim, Dim> fastPolarRotation(const Eigen::Matrix<double, Dim, Dim>& f) {
-  return newtonPolarRotation<Dim>(f, f.determinant());
+  return newtonPolarRotation<Dim>(Deformation<Dim>(f));
 }
 
 template <int Dim>
 Eigen::Matrix<double, Dim, Dim> elementRotation(const Eigen::Matrix<double, Dim, Dim>& f) {
-  return fadedRotation<Dim>(f, f.determinant());
+  return fadedRotation<Dim>(Deformation<Dim>(f));
 }
 
 template <int Dim>
@@ -221,19 +262,27 @@ Eigen::VectorXd CorotationalForces<Dim>::correction(const Eigen::VectorXd& u, in
     if (!warped && (f - f.transpose()).cwiseAbs().maxCoeff() < kNoRotation) {
       continue;
     }
-    const double det_f = f.determinant();
-    flipped += det_f > 0.0 ? 0 : 1;
-    const Rotation r = fadedRotation<Dim>(f, det_f);
+    const Deformation<Dim> deformation(f);
+    flipped += deformation.det > 0.0 ? 0 : 1;
+    bool polar = false;
+    const Rotation r = fadedRotation<Dim>(deformation, &polar);
     // R K_e (R^T x - X) - R_0 K_e R_0^T u with x = X + u. K_e d is |e| sigma(H) grad_a on
     // corner a (linearStress), H the gradient of the corner displacements d: R^T F - I for
     // d = R^T x - X, R_0^T (F - I) for d = R_0^T u. Nine stress entries per element instead of
     // two products with the 12 x 12 K_e; with the identity as reference the second term is
     // sigma(F - I) itself.
-    Rotation h;
-    h.noalias() = r.transpose() * f;
-    h.diagonal().array() -= 1.0;
     Rotation p;
-    p.noalias() = r * elementStress<Dim>(el, h);
+    if (polar) {
+      // R^T F - I = S - I is symmetric for the polar rotation R of F = R S, and R S = F: the
+      // rotated stress is 2 |e| mu (F - R) + |e| lambda tr(S - I) R.
+      const double trace_h = r.cwiseProduct(f).sum() - Dim;
+      p = (2.0 * el.measure_mu) * (f - r) + (el.measure_lambda * trace_h) * r;
+    } else {
+      Rotation h;
+      h.noalias() = r.transpose() * f;
+      h.diagonal().array() -= 1.0;
+      p.noalias() = r * elementStress<Dim>(el, h);
+    }
     Rotation h0 = f;
     h0.diagonal().array() -= 1.0;
     if (warped) {
