@@ -19,7 +19,7 @@
 namespace needle_guidance::fem {
 
 /// The rotation of the polar decomposition F = R S: Newton's iteration R <- (R + R^-T) / 2 from F
-/// (Higham 1986), a few small inverses for the near-rigid elements of tissue; the SVD
+/// (Higham 1986), R^-T = cof(R) / det R, three steps for most elements of tissue; the SVD
 /// (polarRotation) for an inverted or nearly flat F, or if the iteration stalls.
 template <int Dim>
 Eigen::Matrix<double, Dim, Dim> fastPolarRotation(const Eigen::Matrix<double, Dim, Dim>& f);
