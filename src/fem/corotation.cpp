@@ -2,7 +2,6 @@
 #include "needle_guidance/fem/corotation.h"
 
 #include <Eigen/Geometry>
-#include <Eigen/LU>
 #include <algorithm>
 #include <cmath>
 #include <stdexcept>
