@@ -3,8 +3,8 @@
 // the element pass (fem::CorotationalForces::correction), a solve with the factor, one update
 // (the pass and its solve), the needle's field (its forces' displacement, from the cached
 // compliance columns of the nodes they act on), the warped stiffness's assembly, a
-// refactorisation and a compliance column (batched). Each part is repeated on the same state;
-// CPU time of the process.
+// refactorisation, a compliance column (batched) and the element pass again against the warped
+// stiffness's rotations. Each part is repeated on the same state; CPU time of the process.
 // Usage: corotational_update_cost SCENE [TETS] [DEPTH_FRACTION] [REPEATS]
 //   TETS: mesh the scene to about this many tetrahedra (0: the scene's default mesh);
 //   DEPTH_FRACTION: the insertion's depth as a fraction of the first target's (default 0.7),
@@ -101,6 +101,8 @@ int main(int argc, char** argv) {
     forces.warpedStiffness(u);  // the first call also builds the sparsity pattern
     fem::SparseMatrix warped;
     const double assembly_ms = meanMs(3, [&] { warped = forces.warpedStiffness(u); });
+    // The pass against the warped stiffness's rotations, as between refactorisations.
+    const double warped_pass_ms = meanMs(repeats, [&] { g = forces.correction(u); });
     const double refactor_ms = meanMs(1, [&] { model.compliance().refactor(warped); });
     std::vector<int> dofs;
     for (int i = 0; i < kColumns; ++i) {
@@ -113,12 +115,14 @@ int main(int argc, char** argv) {
         "(its cached columns); an update (the field, the pass and a solve) about %.1f ms\n"
         "factor %.0f entries\n"
         "warped stiffness assembly %.1f ms, refactorisation %.3f s, compliance column %.3f ms "
-        "(%d in batches)\n",
+        "(%d in batches)\n"
+        "element pass against the warped stiffness's rotations %.2f ms (%d of %d elements "
+        "turned)\n",
         scene.name.c_str(), n_tets, 1e3 * depth, 1e3 * step, insertion_s, updates, pass_ms,
         solve_ms, update_ms, field_ms, field_ms + pass_ms + solve_ms,
         model.compliance().factorEntries(), assembly_ms, 1e-3 * refactor_ms,
         columns_ms / std::max(1, model.compliance().cachedColumns()),
-        model.compliance().cachedColumns());
+        model.compliance().cachedColumns(), warped_pass_ms, forces.warpedElements(), n_tets);
   } catch (const std::exception& e) {
     std::fprintf(stderr, "corotational_update_cost: %s\n", e.what());
     return 1;

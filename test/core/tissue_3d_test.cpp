@@ -706,6 +706,7 @@ TEST(Tissue3dCorotation, CorotatedForcesEqualTheElementStiffnessForm) {
   // g is the small difference of the corotated and the reference forces, so round-off relative
   // to it is about 1e-12 (measured 2e-12 on an 18.6k-tetrahedron scene).
   constexpr double kRelTol = 1e-10;
+  constexpr double kFadingStrain = 0.1;  // random nodal displacements of 10 % of the height
   const TetMesh3 mesh = beamMesh(0.05, 0.006, 6);
   const std::vector<fem::Material> materials = {{1e4, 0.3}};
   std::srand(7);
@@ -761,6 +762,23 @@ TEST(Tissue3dCorotation, CorotatedForcesEqualTheElementStiffnessForm) {
   const Eigen::VectorXd g_warped = expected(u, u_warp);
   EXPECT_GT(g_warped.norm(), 0.0);
   EXPECT_LT((forces.correction(u) - g_warped).norm(), kRelTol * g_warped.norm());
+  // Strained into the fade: the pass forms the force of an element with its whole polar
+  // rotation from R^T F = S symmetric, that of a faded one (crushed, inverted or strained
+  // beyond kSmallStrain) from the general stress; the field has both kinds (69 and 75 of the
+  // 144 elements).
+  const Eigen::VectorXd u_fading = field(0.7, kFadingStrain);
+  int whole = 0;
+  int faded = 0;
+  for (int e = 0; e < mesh.elementCount(); ++e) {
+    const Eigen::Matrix3d f = deformation(e, u_fading);
+    const bool polar = f.determinant() > 0.0 &&
+                       (fem::elementRotation<3>(f) - fem::polarRotation<3>(f)).norm() < 1e-9;
+    (polar ? whole : faded) += 1;
+  }
+  EXPECT_GT(whole, 0);
+  EXPECT_GT(faded, 0);
+  const Eigen::VectorXd g_fading = expected(u_fading, u_warp);
+  EXPECT_LT((forces.correction(u_fading) - g_fading).norm(), kRelTol * g_fading.norm());
 }
 
 TEST(Tissue3dCorotation, WarpedStiffnessAndItsFactor) {

@@ -11,6 +11,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <array>
 #include <vector>
 
 #include "needle_guidance/fem/linear_elasticity.h"
@@ -18,7 +19,7 @@
 namespace needle_guidance::fem {
 
 /// The rotation of the polar decomposition F = R S: Newton's iteration R <- (R + R^-T) / 2 from F
-/// (Higham 1986), a few small inverses for the near-rigid elements of tissue; the SVD
+/// (Higham 1986), R^-T = cof(R) / det R, three steps for most elements of tissue; the SVD
 /// (polarRotation) for an inverted or nearly flat F, or if the iteration stalls.
 template <int Dim>
 Eigen::Matrix<double, Dim, Dim> fastPolarRotation(const Eigen::Matrix<double, Dim, Dim>& f);
@@ -69,17 +70,21 @@ private:
   /// Deformation gradient of element e at u.
   Rotation gradient(int e, const Eigen::VectorXd& u) const;
 
-  /// What an element's linear force K_e d = measure_m sigma(H) grad_a needs (linearStress).
-  struct ElementElasticity {
-    double measure_m = 0.0;  ///< |e| t [m^Dim]
-    LameParameters lame;
+  /// What the element pass reads of an element, side by side (two cache lines in 3-D): its
+  /// corners' first DOFs, its shape gradients and its Lame parameters times its measure, so
+  /// that the linear force K_e d is measure_mu (H + H^T) + measure_lambda tr(H) I times grad_a
+  /// on corner a (linearStress times |e| t).
+  struct PassElement {
+    std::array<int, Dim + 1> dof;                       ///< Dim * node of each corner
+    std::array<std::array<double, Dim>, Dim + 1> grad;  ///< shape gradient of each corner [1/m]
+    double measure_mu = 0.0;                            ///< |e| t mu [N m] (|e| t a volume)
+    double measure_lambda = 0.0;                        ///< |e| t lambda [N m]
   };
 
   const SimplexMesh<Dim>* mesh_;
   std::vector<Material> materials_;
   double thickness_m_;
-  std::vector<Eigen::Matrix<double, Dim + 1, Dim>> gradients_;
-  std::vector<ElementElasticity> elasticity_;
+  std::vector<PassElement> elements_;
   std::vector<Rotation> reference_;  ///< per element; empty: every reference is the identity
   std::vector<char> warped_;         ///< per element: reference rotation differs from identity
   int warped_elements_ = 0;
