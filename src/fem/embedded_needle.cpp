@@ -1149,14 +1149,8 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
   relocated_from_.reset();
   settle_skipped_ = false;
   const EmbeddedNeedle start = *this;
-  std::unique_ptr<EmbeddedNeedle> located;
-  Eigen::VectorXd located_u;  // formed only if needed, like the settle's (settleBeforeEvent)
-  auto form_located = [&] {
-    if (located && located_u.size() == 0) {
-      located_u = located->displacementField();
-    }
-  };
-  const auto kept = kept_fields_.keep(form_located);
+  Fallback located;
+  const auto kept = kept_fields_.keep([&] { located.form(); });
   bool located_done = false;
   SegmentEnd last = SegmentEnd::Zero();
   double moved = 0.0;
@@ -1181,11 +1175,10 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
     } catch (const std::runtime_error&) {
       locating_ = false;
       predict_event_warp_ = false;
-      if (!located) {
+      if (!located.state) {
         throw;
       }
-      form_located();
-      restoreState(*located, &located_u);
+      restoreFallback(located);
       return located_done;
     }
     const bool event = event_warp_.size() > 0;
@@ -1210,8 +1203,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
     }
     last = end;
     ++info_.relocations;
-    located = std::make_unique<EmbeddedNeedle>(*this);
-    located_u.resize(0);
+    located.take(*this);
     located_done = done;
     // Back to the segment's start on the warp just found.
     Eigen::VectorXd warp = event ? std::move(event_warp_) : std::move(warp_);
@@ -1252,6 +1244,12 @@ void EmbeddedNeedle<Dim>::restoreState(const EmbeddedNeedle& from, const Eigen::
     }
   }
   commit(s_, nullptr);
+}
+
+template <int Dim>
+void EmbeddedNeedle<Dim>::restoreFallback(Fallback& fallback) {
+  fallback.form();
+  restoreState(*fallback.state, &fallback.u);
 }
 
 template <int Dim>
@@ -1367,14 +1365,15 @@ std::optional<int> EmbeddedNeedle<Dim>::implantSeed(std::string* why_not) {
   if (warped()) {
     // The seed is the tip's tissue point of this state: its warp settled to the release
     // tolerance (the cut solved again on every update, as at a segment's end).
-    const EmbeddedNeedle before = *this;
-    const Eigen::VectorXd u_before = displacementField();
+    Fallback before;
+    before.take(*this);
+    const auto kept = kept_fields_.keep([&] { before.form(); });
     try {
       while (!settleWarp(kReleaseWarpTol_m)) {
         insertSegment(s_);
       }
     } catch (const std::runtime_error& e) {
-      restoreState(before, &u_before);
+      restoreFallback(before);
       if (why_not) {
         *why_not = std::string("the state the seed is released from: ") + e.what();
       }

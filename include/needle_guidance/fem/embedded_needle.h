@@ -418,6 +418,23 @@ private:
     std::vector<std::function<void()>> form_;
   };
   KeptFields kept_fields_;
+  /// A copy of the needle to fall back on (restoreState) with its displacement, formed only when
+  /// needed: on the fall-back, or first thing in a refactorisation while it is kept.
+  struct Fallback {
+    std::unique_ptr<EmbeddedNeedle> state;
+    Eigen::VectorXd u;
+    void take(const EmbeddedNeedle& needle) {
+      state = std::make_unique<EmbeddedNeedle>(needle);
+      u.resize(0);
+    }
+    void form() {
+      if (state && u.size() == 0) {
+        u = state->displacementField();
+      }
+    }
+  };
+  /// Restores the needle to fallback's state (its displacement formed now if it was not).
+  void restoreFallback(Fallback& fallback);
   bool linear_model_ = false;  ///< useLinearModel: the warp is left out
   /// Corotational tissue seen as such: the warp is iterated (not in the linear model).
   bool warped() const { return tissue_->corotational() && !linear_model_; }
