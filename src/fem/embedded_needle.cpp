@@ -908,8 +908,9 @@ bool EmbeddedNeedle<Dim>::insertSegment(double target) {
       commit(target, nullptr);
       return true;
     }
+    const double s_start = s_;
     commit(crossing(s_, fa, target, f_end, fb), nullptr);
-    settleBeforeEvent();
+    settleBeforeEvent(std::make_pair(s_start, target));
     punctured_ = true;
     pending_track_ = tip_;
     cut_total_m_ = 0.0;
@@ -968,10 +969,13 @@ bool EmbeddedNeedle<Dim>::cutTo(double target) {
   const Point_ p = along(to_event);
   const double fa = solveAt(s_, &p).tip_force_N;
   const double f_end = solveAt(target, &p).tip_force_N;
-  const double s_event = f_end > fb ? crossing(s_, fa, target, f_end, fb) : target;
+  double s_event = f_end > fb ? crossing(s_, fa, target, f_end, fb) : target;
   if (locating_) {
+    const double s_start = s_;
     commit(s_event, &p);  // the state just before the event: the tip at the track point
-    settleBeforeEvent();
+    settleBeforeEvent(f_end > fb ? std::make_optional(std::make_pair(s_start, target))
+                                 : std::nullopt);
+    s_event = s_;
   }
   cut_total_m_ = next_event_cut_m_;
   next_event_cut_m_ += params_.track_spacing_m;
@@ -1086,7 +1090,7 @@ void EmbeddedNeedle<Dim>::settle(double tol_m) {
 }
 
 template <int Dim>
-void EmbeddedNeedle<Dim>::settleBeforeEvent() {
+void EmbeddedNeedle<Dim>::settleBeforeEvent(std::optional<std::pair<double, double>> tip_bracket) {
   if (!locating_) {
     return;
   }
@@ -1099,6 +1103,7 @@ void EmbeddedNeedle<Dim>::settleBeforeEvent() {
     return;
   }
   // The state before the settle, to fall back on; its displacement is formed only if needed.
+  const double s_before = s_;
   const Eigen::VectorXd forces_before = committed_.forces;
   const Eigen::VectorXd warp_before = warp_;
   Eigen::VectorXd u;
@@ -1109,16 +1114,35 @@ void EmbeddedNeedle<Dim>::settleBeforeEvent() {
   };
   const auto kept = kept_fields_.keep(form);
   try {
+    // An event where the tip holds its tissue point (a puncture, a track point) is located
+    // again on each update of the warp: the tip force is affine in the tip x, and where it
+    // reaches f_b depends on the warp. The settle and the event's location converge together,
+    // and the relocation that follows (consistentSegment) finds its end repeated.
+    auto locateTip = [&] {
+      if (tip_bracket) {
+        const auto [lo, hi] = *tip_bracket;
+        const double f_lo = solveAt(lo, &tip_).tip_force_N;
+        const double f_hi = solveAt(hi, &tip_).tip_force_N;
+        commit(crossing(lo, f_lo, hi, f_hi, params_.cutting_force_N), nullptr);
+        end_before_event_ = segmentEnd();
+      }
+    };
     if (predict_event_warp_) {
       predictWarp(s_);  // the segment was located on its start's warp: guess the event's
+      locateTip();
     }
-    settle(kEventWarpTol_m);
+    while (!settleWarp(kEventWarpTol_m)) {
+      locateTip();
+    }
     event_warp_ = warp_;
   } catch (const std::runtime_error&) {
     // No converging warp in the state just before the event (the crushed tissue under a tip
     // about to puncture): the event stays located on the warp the segment started from,
     // expressed on the current factor.
     form();
+    s_ = s_before;
+    end_before_event_ = segmentEnd();
+    commit(s_, nullptr);
     holdDisplacement(u);
     restartWarpIteration();
     commit(s_, nullptr);

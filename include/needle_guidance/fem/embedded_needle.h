@@ -296,8 +296,11 @@ private:
   /// While a segment is located (consistentSegment): the warp settled at the committed state,
   /// the one just before an event, kept in event_warp_; in a segment's first round from the
   /// guess of predictWarp, in a relocation not at all when the state repeats the end the last
-  /// round settled at (within kRelocationTol_m: that warp stands).
-  void settleBeforeEvent();
+  /// round settled at (within kRelocationTol_m: that warp stands). tip_bracket: the event's
+  /// tip holds its tissue point (a puncture, a track point) and its force reaches f_b between
+  /// these tip x; the tip x is located again on each update of the warp, so the settle and the
+  /// event's location converge together (end_before_event_ is where the warp was settled).
+  void settleBeforeEvent(std::optional<std::pair<double, double>> tip_bracket = std::nullopt);
   /// One segment of a move towards target (insertSegment or retractSegment) with the warp
   /// settled at its end; true when target is reached. Corotational insertion: the segment is
   /// solved again from its start on the warp settled just before its event (or at its end)
