@@ -1188,6 +1188,9 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
       locating_ = false;
       predict_event_warp_ = false;
       if (round == 0 && event_warp_.size() == 0) {
+        if (transit_ && done) {
+          return done;  // a transit end: located on the warp guessed for it, not settled
+        }
         predictWarp(s_);
       }
       if (event_warp_.size() == 0 && repeatsRelocatedEnd(segmentEnd())) {
@@ -1219,7 +1222,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
       }
       relocated_from_.reset();
       info_.relocation_m = std::max(info_.relocation_m, moved);
-      if (event && done) {
+      if (event && done && !transit_) {
         settle(kEventWarpTol_m);  // the move ends at its event
       }
       recordWarp();
@@ -1300,6 +1303,16 @@ bool EmbeddedNeedle<Dim>::enter(const Lateral& lateral, std::string* why_not) {
   commit(s_, &tip_);
   ++info_.events;
   return true;
+}
+
+template <int Dim>
+bool EmbeddedNeedle<Dim>::passTo(const Lateral& lateral, double tip_x, std::string* why_not) {
+  struct Transit {
+    bool& flag;
+    explicit Transit(bool& f) : flag(f) { flag = true; }
+    ~Transit() { flag = false; }
+  } transit(transit_);
+  return moveTo(lateral, tip_x, why_not);
 }
 
 template <int Dim>

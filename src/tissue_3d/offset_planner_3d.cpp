@@ -240,11 +240,13 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
       return {};
     }
     double next = hi + long_move;
+    // The tip x where the tissue point reaches the goal: at least the goal's x (the tip pushes
+    // its tissue point ahead, so the point lags the tip), or predicted from the point's rate
+    // over the last move (a rate at or below zero predicts nothing).
+    double reach = goal.x();
     if (needle.punctured() && kept && kept->punctured() && hi > lo) {
-      // The tip x where the tissue point is predicted to reach the goal (its rate over the last
-      // move; a rate at or below zero predicts nothing).
       const double rate = (tissueX(needle) - tissueX(*kept)) / (hi - lo);
-      const double reach = rate > 0.0 ? hi + (goal.x() - tissueX(needle)) / rate : next + step;
+      reach = rate > 0.0 ? hi + (goal.x() - tissueX(needle)) / rate : next + step;
       if (reach < next + step) {
         next = reach - step > hi + step ? reach - step : std::max(reach + 0.5 * step, hi + step);
       }
@@ -252,7 +254,12 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
     kept.emplace(needle);
     lo = hi;
     hi = std::min(next, w.max_tip_x_m);
-    if (!needle.moveTo(lateral, hi, &why)) {
+    // While neither this move nor the next can reach the goal, this move's end is a transit
+    // state (passTo: its warp not settled; the events on the way are located as in moveTo, and
+    // the next move's events do not depend on it). The move before the one that passes the goal,
+    // whose state the depth trials start from, and that one are settled.
+    const bool transit = reach > hi + long_move + step && hi + long_move < w.max_tip_x_m;
+    if (!(transit ? needle.passTo(lateral, hi, &why) : needle.moveTo(lateral, hi, &why))) {
       throw std::runtime_error(why);
     }
     ++r.corotational_moves;

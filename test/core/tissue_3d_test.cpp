@@ -640,6 +640,43 @@ TEST(Tissue3dCorotation, SeedDoesNotDependOnTheMoveLength) {
   EXPECT_LT((a - b).norm(), kMoveLengthTol_m) << (a - b).transpose() * 1e3 << " mm";
 }
 
+TEST(Tissue3dCorotation, TransitMovesLeaveTheSeedOfSettledMoves) {
+  // passTo leaves its end's warp unsettled; the events after it are located on their own
+  // settled warps, so an insertion by transit moves and a last settled one releases the seed of
+  // one by settled moves, for fewer fixed-point updates.
+  constexpr double kTransitSeedTol_m = 5e-7;  // 0.0005 mm, a tenth of the step-halving target
+  constexpr double kLongMoveSteps = 8.0;
+  constexpr double kDepth_m = 0.04;
+  Fixture f(corotationalScene());
+  const Eigen::Vector2d lateral(1e-3, 2e-3);
+  const double step =
+      kLongMoveSteps * f.scene.needle.insertion_velocity_m_s * f.scene.needle.step_s;
+  const double start = f.scene.block_min_m.x() - step;
+  auto implant = [&](bool transit, int* updates) {
+    NeedleInsertion3 needle(f.model, f.scene.needle, f.scene.block_min_m.x(), kDepth_m);
+    std::string why;
+    for (double s = start; s < kDepth_m;) {
+      s = std::min(s + step, kDepth_m);
+      const bool last = s >= kDepth_m;
+      EXPECT_TRUE(transit && !last ? needle.passTo(lateral, s, &why)
+                                   : needle.moveTo(lateral, s, &why))
+          << why;
+      *updates += needle.lastMove().corotation_updates;
+    }
+    const std::optional<int> seed = needle.implantSeed(&why);
+    EXPECT_TRUE(seed.has_value()) << why;
+    EXPECT_TRUE(needle.moveTo(lateral, start, &why)) << why;
+    return seed ? needle.seedWorld(*seed) : Vector3(Vector3::Constant(NAN));
+  };
+  int settled_updates = 0, transit_updates = 0;
+  const Vector3 settled = implant(false, &settled_updates);
+  const Vector3 transit = implant(true, &transit_updates);
+  ASSERT_TRUE(settled.allFinite() && transit.allFinite());
+  EXPECT_LT((settled - transit).norm(), kTransitSeedTol_m)
+      << (settled - transit).transpose() * 1e3 << " mm";
+  EXPECT_LT(transit_updates, settled_updates) << transit_updates << " against " << settled_updates;
+}
+
 TEST(Tissue3dCorotation, SeedWithTheDerivedWarpTolerancesIsTheTightlySettledOne) {
   // Every state but the one the seed is released from is settled to half the step-halving
   // target (2.5 um) instead of 0.1 um; the seed stays where the insertion settled to 0.1 um at

@@ -207,6 +207,13 @@ public:
   /// leaves the state unchanged (why_not says why) for non-finite input, a lateral change in
   /// tissue, a lateral position outside the mesh, or re-insertion before the needle left.
   bool moveTo(const Lateral& lateral_m, double tip_x_m, std::string* why_not = nullptr);
+  /// moveTo for an insertion that goes on from tip_x_m: every event on the way is located on
+  /// its own settled warp as in moveTo, but the warp at the end is not settled (in corotational
+  /// tissue; elsewhere this is moveTo). The end is a transit state: a start for the next move,
+  /// whose events do not depend on it (each track point fixes the tip's tissue point afresh),
+  /// not an equilibrium to read; its tip's tissue point holds to about the warp's first change
+  /// there. A retraction is settled as in moveTo.
+  bool passTo(const Lateral& lateral_m, double tip_x_m, std::string* why_not = nullptr);
 
   /// Releases a seed at the tip (2.4); its tissue point is the tip's. Refused outside tissue.
   /// Corotational tissue: the state it is released from is first settled to the warp's release
@@ -375,6 +382,7 @@ private:
   std::vector<double> warp_changes_;  ///< changes of the updates since the last reference change
   int reference_version_ = 0;         ///< the tissue's reference the compliance data came from
   bool locating_ = false;             ///< consistentSegment is locating a segment
+  bool transit_ = false;              ///< passTo: the move's end is not settled
   Eigen::VectorXd event_warp_;        ///< the warp settled just before the segment's event
   bool predict_event_warp_ = false;   ///< settleBeforeEvent starts from predictWarp
   using SegmentEnd = Eigen::Matrix<double, Dim + 2, 1>;  ///< tip x, tip's tissue point, cut [m]
