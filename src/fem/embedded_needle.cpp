@@ -926,6 +926,9 @@ bool EmbeddedNeedle<Dim>::insertSegment(double target) {
     if (!cutTo(std::max(end, s_))) {
       return false;  // a track point came first
     }
+    if (info_.stopped) {
+      return true;  // the stop came first
+    }
     settleBeforeEvent();
     // The point(s) at their static limit slip (at least the one nearest to it: progress).
     std::size_t nearest = shaft_.size();
@@ -954,10 +957,36 @@ bool EmbeddedNeedle<Dim>::insertSegment(double target) {
 }
 
 template <int Dim>
+std::optional<double> EmbeddedNeedle<Dim>::cutToStop() const {
+  if (!stop_tissue_x_ || !punctured_ || direction_ < 0) {
+    return std::nullopt;
+  }
+  return std::max(0.0, (*stop_tissue_x_ - tip_.reference_m.x()) / cut_dir_.x());
+}
+
+template <int Dim>
 bool EmbeddedNeedle<Dim>::cutTo(double target) {
   const double fb = params_.cutting_force_N;
   const double cut = cutLength(target);
   const double to_event = next_event_cut_m_ - cut_total_m_;
+  const std::optional<double> to_stop = cutToStop();
+  if (to_stop && *to_stop < to_event && cut >= *to_stop - kCutTol_m) {
+    // The cut reaches the stop before the next track point: located like a track point (the
+    // tip force is affine in s with the tip's tissue point there).
+    const Point_ p = along(*to_stop);
+    const double fa = solveAt(s_, &p).tip_force_N;
+    const double f_end = solveAt(target, &p).tip_force_N;
+    const double s_stop = f_end > fb ? crossing(s_, fa, target, f_end, fb) : target;
+    const double s_start = s_;
+    commit(s_stop, &p);
+    if (locating_) {
+      settleBeforeEvent(f_end > fb ? std::make_optional(std::make_pair(s_start, target))
+                                   : std::nullopt);
+    }
+    cut_total_m_ += *to_stop;
+    info_.stopped = true;
+    return true;
+  }
   if (cut < to_event - kCutTol_m) {
     const Point_ p = along(cut);
     cut_total_m_ += cut;
@@ -1184,6 +1213,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
     try {
       locating_ = true;
       predict_event_warp_ = round == 0;
+      info_.stopped = false;
       done = insertSegment(target);
       locating_ = false;
       predict_event_warp_ = false;
@@ -1342,6 +1372,7 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
   info_.relocations = 0;
   info_.relocation_m = 0.0;
   info_.aim_iterations = 0;
+  info_.stopped = false;
   warp_updates_ = 0;
   solves_ = 0;
   if (!in_tissue_) {
@@ -1368,6 +1399,10 @@ bool EmbeddedNeedle<Dim>::moveTo(const Lateral& lateral, double tip_x, std::stri
       p.offset_m = p.world_x_m - s_;
     }
     commit(s_, nullptr);
+  }
+  if (const std::optional<double> to_stop = cutToStop(); to_stop && *to_stop <= kCutTol_m) {
+    info_.stopped = true;  // the tip's tissue point is at the stop already
+    return true;
   }
   try {
     predictWarp(tip_x);

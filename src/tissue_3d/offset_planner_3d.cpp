@@ -14,11 +14,6 @@ namespace {
 constexpr double kPathSample_m = 5e-4;  // needle line sampled for fixed regions at this spacing
 constexpr int kMaxVerifications = 4;
 constexpr int kMaxHoles = 3;  // template holes verified per target, the nearest included
-// Corotational insertion: the depth where the tip's tissue point reaches the goal's x is found
-// within the last move to this fraction of the tolerance (at most kMaxDepthTrials moves, each
-// from the last state short of the goal).
-constexpr double kDepthTolFraction = 0.01;
-constexpr int kMaxDepthTrials = 4;
 
 /// The x of the tip's tissue point; before puncture the tip pins the entry point, entry_x [m].
 double tissuePointX(const NeedleInsertion3& n, double entry_x) {
@@ -214,12 +209,10 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
                                                      const Eigen::Vector2d& lateral,
                                                      double step_scale, PlanResult3& r) {
   // The needle goes in by long moves (step_scale x the scene's step: the answer does not depend
-  // on the move length, as the events are located within each move) until the tip's tissue
-  // point, extrapolated at its rate over the last move, is predicted to reach the goal's x
-  // within one more; then it stops a scene step short of that depth and passes it in one short
-  // move. The depth where the tissue point reaches the goal is found within that short move
-  // (depthWithin), from where the seed is released and the needle withdrawn: an insertion to
-  // that depth, the verification.
+  // on the move length, as the events are located within each move) and stops where the tip's
+  // tissue point reaches the goal's x (EmbeddedNeedle::stopAtTissueX, located within its move
+  // like a track point, on the warp settled there). From there the seed is released and the
+  // needle withdrawn: an insertion to that depth, the verification.
   const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
   const Workspace3& w = scene_.workspace;
   const double x0 = scene_.block_min_m.x();
@@ -227,11 +220,11 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
   const double long_move = step * step_scale;
   ++r.simulations;
   NeedleInsertion3 needle(model_, scene_.needle, x0, w.max_tip_x_m);
+  needle.stopAtTissueX(goal.x());
   auto tissueX = [x0](const NeedleInsertion3& n) { return tissuePointX(n, x0); };
-  std::optional<NeedleInsertion3> kept;
-  double lo = x0 - step, hi = lo;
+  double lo = x0 - step, hi = lo, tissue_lo = x0;
   std::string why;
-  while (!needle.punctured() || needle.tipReference().x() < goal.x()) {
+  while (!needle.lastMove().stopped) {
     if (hi >= w.max_tip_x_m) {
       r.refusal = "out of reach: at the deepest tip x " + mm(w.max_tip_x_m) +
                   " the tip's tissue point is at x " + mm(tissueX(needle)) +
@@ -239,83 +232,32 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
       r.simulation_cpu_s += clock.seconds();
       return {};
     }
-    double next = hi + long_move;
     // The tip x where the tissue point reaches the goal: at least the goal's x (the tip pushes
     // its tissue point ahead, so the point lags the tip), or predicted from the point's rate
     // over the last move (a rate at or below zero predicts nothing).
     double reach = goal.x();
-    if (needle.punctured() && kept && kept->punctured() && hi > lo) {
-      const double rate = (tissueX(needle) - tissueX(*kept)) / (hi - lo);
-      reach = rate > 0.0 ? hi + (goal.x() - tissueX(needle)) / rate : next + step;
-      if (reach < next + step) {
-        next = reach - step > hi + step ? reach - step : std::max(reach + 0.5 * step, hi + step);
-      }
+    if (needle.punctured() && hi > lo) {
+      const double rate = (tissueX(needle) - tissue_lo) / (hi - lo);
+      reach = rate > 0.0 ? std::max(reach, hi + (goal.x() - tissueX(needle)) / rate) : hi;
     }
-    kept.emplace(needle);
+    tissue_lo = tissueX(needle);
     lo = hi;
-    hi = std::min(next, w.max_tip_x_m);
-    // While neither this move nor the next can reach the goal, this move's end is a transit
-    // state (passTo: its warp not settled; the events on the way are located as in moveTo, and
-    // the next move's events do not depend on it). The move before the one that passes the goal,
-    // whose state the depth trials start from, and that one are settled.
+    hi = std::min(hi + long_move, w.max_tip_x_m);
+    // While neither this move nor the next is predicted to reach the goal, this move's end is a
+    // transit state (passTo: its warp not settled; the events on the way are located as in
+    // moveTo, and the next move's events do not depend on it). A move that reaches the goal
+    // stops there whichever it is.
     const bool transit = reach > hi + long_move + step && hi + long_move < w.max_tip_x_m;
     if (!(transit ? needle.passTo(lateral, hi, &why) : needle.moveTo(lateral, hi, &why))) {
       throw std::runtime_error(why);
     }
     ++r.corotational_moves;
   }
-  NeedleInsertion3 best = depthWithin(goal, lateral, *kept, needle, lo, hi, r);
-  Attempt a{lateral, best.tipX(), releaseAndRetract(best, lateral, x0 - step), 0.0};
+  Attempt a{lateral, needle.tipX(), releaseAndRetract(needle, lateral, x0 - step), 0.0};
   ++r.corotational_moves;
   a.error = (a.seed - goal).norm();
   r.simulation_cpu_s += clock.seconds();
   return a;
-}
-
-NeedleInsertion3 OffsetPlanner3::depthWithin(const Vector3& goal, const Eigen::Vector2d& lateral,
-                                             const NeedleInsertion3& kept,
-                                             const NeedleInsertion3& passed, double lo, double hi,
-                                             PlanResult3& r) {
-  // Regula falsi with the Illinois rule on f(d) = tissue point's x - goal's x, each trial a move
-  // from the state at lo (the kept state, or the last trial short of the goal) to d; the best
-  // trial (smallest |f|) is the insertion to the depth.
-  const double x0 = scene_.block_min_m.x();
-  auto f = [&](const NeedleInsertion3& n) { return tissuePointX(n, x0) - goal.x(); };
-  double f_lo = f(kept), f_hi = f(passed);
-  double f_best = f_hi;
-  NeedleInsertion3 best = passed;
-  NeedleInsertion3 from = kept;  // the state at lo: a trial short of the goal moves it there
-  // +1 when the last trial replaced lo, -1 when it replaced hi (Illinois: the end kept twice in
-  // a row has its value halved).
-  int kept_side = 0;
-  std::string why;
-  for (int i = 0;
-       i < kMaxDepthTrials && std::abs(f_best) > kDepthTolFraction * options_.tolerance_m; ++i) {
-    const double d = lo + (hi - lo) * (-f_lo) / (f_hi - f_lo);
-    NeedleInsertion3 trial = from;
-    if (!trial.moveTo(lateral, d, &why)) {
-      throw std::runtime_error(why);
-    }
-    ++r.corotational_moves;
-    const double fd = f(trial);
-    if (std::abs(fd) < std::abs(f_best)) {
-      f_best = fd;
-      best = trial;
-    }
-    if (fd < 0.0) {
-      from = std::move(trial);
-      lo = d;
-      f_lo = fd;
-      f_hi *= kept_side > 0 ? 0.5 : 1.0;
-      kept_side = 1;
-    } else {
-      hi = d;
-      f_hi = fd;
-      f_lo *= kept_side < 0 ? 0.5 : 1.0;
-      kept_side = -1;
-    }
-  }
-  return best;
 }
 
 bool OffsetPlanner3::planCorotational(const Vector3& goal, Eigen::Vector2d lateral, Attempt& plan,

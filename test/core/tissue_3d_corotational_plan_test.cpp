@@ -116,9 +116,10 @@ TEST(CorotationalPlan3d, TargetReachedInThePuncturingMoveLandsAsAtTheSceneStep) 
   // the depth is found next to the puncture. The puncture is located within its move; where
   // the crushed state just before it has no converging warp, it is located on the warp of the
   // segment's start (fem::EmbeddedNeedle), so its seed depends on how the moves are cut by
-  // about 10 um (moves of 0.25, 0.5 and 1-8 mm: seed x 5.987, 5.990, 5.988 mm; the planner's
-  // cut, its depth trials included, 6.006 mm): a fifth of the tolerance, inside the half of it
-  // that the planner's acceptance leaves for another cut of the same plan.
+  // about 10 um (measured with moves of 0.25 to 8 mm; the planner's insertion, stopped where
+  // the tip's tissue point reaches the target's x, releases it at x 6.000 mm, the simulation at
+  // the scene's step at 5.9998 mm): a fifth of the tolerance, inside the half of it that the
+  // planner's acceptance leaves for another cut of the same plan.
   TissueScene3d scene =
       corotationalScene("  template: {origin_mm: [-15, -14], spacing_mm: 5, rows: 7, columns: 7}");
   scene.block_material.young_modulus_Pa = 4e3;

@@ -677,6 +677,44 @@ TEST(Tissue3dCorotation, TransitMovesLeaveTheSeedOfSettledMoves) {
   EXPECT_LT(transit_updates, settled_updates) << transit_updates << " against " << settled_updates;
 }
 
+TEST(Tissue3dCorotation, StopEndsTheMoveWhereTheTipsTissuePointReachesIt) {
+  // stopAtTissueX: the move ends where the tip's tissue point reaches the stop, located within
+  // it like a track point; the same insertion by plain moves to that tip position puts the
+  // tissue point there to within the warp's event tolerance.
+  constexpr double kStopTol_m = 1e-9;       // the cut's root finding
+  constexpr double kSameDepthTol_m = 5e-6;  // the step-halving target
+  constexpr double kStop_m = 0.0253;        // between track points
+  constexpr double kLongMoveSteps = 8.0;
+  Fixture f(corotationalScene());
+  const Eigen::Vector2d lateral(1e-3, 2e-3);
+  const double step =
+      kLongMoveSteps * f.scene.needle.insertion_velocity_m_s * f.scene.needle.step_s;
+  const double start = f.scene.block_min_m.x() - step;
+  constexpr double kDeepest_m = 0.045;
+  NeedleInsertion3 stopped(f.model, f.scene.needle, f.scene.block_min_m.x(), kDeepest_m);
+  stopped.stopAtTissueX(kStop_m);
+  std::string why;
+  int moves = 0;
+  for (double s = start; s < kDeepest_m && !stopped.lastMove().stopped; ++moves) {
+    s = std::min(s + step, kDeepest_m);
+    ASSERT_TRUE(stopped.moveTo(lateral, s, &why)) << why;
+  }
+  ASSERT_TRUE(stopped.lastMove().stopped);
+  EXPECT_NEAR(stopped.tipReference().x(), kStop_m, kStopTol_m);
+  EXPECT_LT(stopped.tipX(), start + moves * step);
+  // A further move stops at once.
+  const double tip = stopped.tipX();
+  ASSERT_TRUE(stopped.moveTo(lateral, kDeepest_m, &why)) << why;
+  EXPECT_TRUE(stopped.lastMove().stopped);
+  EXPECT_EQ(stopped.tipX(), tip);
+  NeedleInsertion3 plain(f.model, f.scene.needle, f.scene.block_min_m.x(), kDeepest_m);
+  for (double s = start; s < tip;) {
+    s = std::min(s + step, tip);
+    ASSERT_TRUE(plain.moveTo(lateral, s, &why)) << why;
+  }
+  EXPECT_NEAR(plain.tipReference().x(), kStop_m, kSameDepthTol_m);
+}
+
 TEST(Tissue3dCorotation, SeedWithTheDerivedWarpTolerancesIsTheTightlySettledOne) {
   // Every state but the one the seed is released from is settled to half the step-halving
   // target (2.5 um) instead of 0.1 um; the seed stays where the insertion settled to 0.1 um at

@@ -180,6 +180,8 @@ struct EmbeddedNeedleInfo {
   /// length) by its last relocation [m]
   double relocation_m = 0.0;
   int aim_iterations = 0;  ///< follow_tissue: fixed-point iterations aiming the cut
+  /// The move stopped where the tip's tissue point reached the stop (stopAtTissueX).
+  bool stopped = false;
 };
 
 template <int Dim>
@@ -214,6 +216,12 @@ public:
   /// not an equilibrium to read; its tip's tissue point holds to about the warp's first change
   /// there. A retraction is settled as in moveTo.
   bool passTo(const Lateral& lateral_m, double tip_x_m, std::string* why_not = nullptr);
+  /// From now on (nullopt: no longer) an insertion stops where the tip's tissue point reaches
+  /// reference x = x_m on its cut track: located within the move like a track point (the tip's
+  /// tissue point there, the tip where its force reaches the cutting force), on the warp
+  /// settled there; lastMove().stopped says so, and the tip stays short of the move's target.
+  /// A move that starts with the tip's tissue point already at or beyond x_m stops at once.
+  void stopAtTissueX(std::optional<double> x_m) { stop_tissue_x_ = x_m; }
 
   /// Releases a seed at the tip (2.4); its tissue point is the tip's. Refused outside tissue.
   /// Corotational tissue: the state it is released from is first settled to the warp's release
@@ -379,12 +387,15 @@ private:
   Eigen::VectorXd warp_;  ///< corotational part of the displacement (empty: none) [m]
   int warp_updates_ = 0;  ///< consecutive updates without convergence
   AndersonAcceleration warp_mixer_;
-  std::vector<double> warp_changes_;  ///< changes of the updates since the last reference change
-  int reference_version_ = 0;         ///< the tissue's reference the compliance data came from
-  bool locating_ = false;             ///< consistentSegment is locating a segment
-  bool transit_ = false;              ///< passTo: the move's end is not settled
-  Eigen::VectorXd event_warp_;        ///< the warp settled just before the segment's event
-  bool predict_event_warp_ = false;   ///< settleBeforeEvent starts from predictWarp
+  std::vector<double> warp_changes_;     ///< changes of the updates since the last reference change
+  int reference_version_ = 0;            ///< the tissue's reference the compliance data came from
+  bool locating_ = false;                ///< consistentSegment is locating a segment
+  bool transit_ = false;                 ///< passTo: the move's end is not settled
+  std::optional<double> stop_tissue_x_;  ///< stopAtTissueX [m]
+  /// The stop, once punctured: the cut from the tip's tissue point to it along the track [m].
+  std::optional<double> cutToStop() const;
+  Eigen::VectorXd event_warp_;       ///< the warp settled just before the segment's event
+  bool predict_event_warp_ = false;  ///< settleBeforeEvent starts from predictWarp
   using SegmentEnd = Eigen::Matrix<double, Dim + 2, 1>;  ///< tip x, tip's tissue point, cut [m]
   /// The end of the committed state (s_, tip_'s reference point, cut_total_m_).
   SegmentEnd segmentEnd() const;

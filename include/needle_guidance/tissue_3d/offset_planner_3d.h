@@ -140,18 +140,12 @@ private:
   /// with r.refusal set when the robot cannot reach.
   bool insertUntilPlaced(const Vector3& goal, Eigen::Vector2d lateral, double& step_scale,
                          Attempt& plan, PlanResult3& r);
-  /// Corotational tissue: one insertion at lateral, moves of step_scale x the scene's step to
-  /// near the depth and of the scene's step past it, to the depth where the tip's tissue point
-  /// reaches the goal's x, seed release and retraction
-  /// (the verification); error < 0 with r.refusal set when the deepest tip position is short of
-  /// it. Throws std::runtime_error when the simulation refuses.
+  /// Corotational tissue: one insertion at lateral by moves of step_scale x the scene's step,
+  /// stopped where the tip's tissue point reaches the goal's x (located within its move), seed
+  /// release and retraction (the verification); error < 0 with r.refusal set when the deepest
+  /// tip position is short of it. Throws std::runtime_error when the simulation refuses.
   Attempt insertToGoal(const Vector3& goal, const Eigen::Vector2d& lateral, double step_scale,
                        PlanResult3& r);
-  /// Corotational tissue: the insertion to the depth in [lo, hi] where the tip's tissue point
-  /// reaches the goal's x, from kept (the needle at lo, short of it) and passed (at hi, past it).
-  NeedleInsertion3 depthWithin(const Vector3& goal, const Eigen::Vector2d& lateral,
-                               const NeedleInsertion3& kept, const NeedleInsertion3& passed,
-                               double lo, double hi, PlanResult3& r);
 
   const TissueScene3d& scene_;
   TissueModel3& model_;
