@@ -56,6 +56,7 @@ CondensedCompliance::CondensedCompliance(const SparseMatrix& k, const std::vecto
   impl_->factor_bytes = impl_->llt.cholmod().memory_inuse;  // CHOLMOD's own accounting
   factor_entries_ = common.lnz;
   columns_.resize(static_cast<std::size_t>(n));
+  field_columns_.resize(static_cast<std::size_t>(n));
 }
 
 CondensedCompliance::~CondensedCompliance() = default;
@@ -95,6 +96,9 @@ void CondensedCompliance::refactor(const SparseMatrix& k) {
   refactor_cpu_s_ += clock.seconds();
   ++refactors_;
   for (Eigen::VectorXd& c : columns_) {
+    c.resize(0);
+  }
+  for (Eigen::VectorXf& c : field_columns_) {
     c.resize(0);
   }
   cached_ = 0;
@@ -143,6 +147,7 @@ void CondensedCompliance::require(const std::vector<int>& dofs) {
         }
         ++solved_;
       }
+      field_columns_[static_cast<std::size_t>(dof)] = col.cast<float>();
       columns_[static_cast<std::size_t>(dof)] = std::move(col);
       ++cached_;
     }
@@ -184,30 +189,35 @@ Eigen::VectorXd CondensedCompliance::solve(const Eigen::VectorXd& force_N) const
 
 Eigen::VectorXd CondensedCompliance::solveSupported(const Eigen::VectorXd& force_N,
                                                     const std::vector<int>& support) const {
-  const double column_reads = static_cast<double>(support.size()) * dofCount();
+  const double column_bytes = static_cast<double>(support.size()) * dofCount() * sizeof(float);
   const bool cached = std::all_of(support.begin(), support.end(), [&](int d) {
     return d >= 0 && d < dofCount() && columns_[static_cast<std::size_t>(d)].size() > 0;
   });
-  if (force_N.size() != dofCount() || !cached || !(column_reads < 2.0 * factor_entries_)) {
+  if (force_N.size() != dofCount() || !cached ||
+      !(column_bytes < 2.0 * factor_entries_ * sizeof(double))) {
     return solve(force_N);
   }
   Eigen::VectorXd u = Eigen::VectorXd::Zero(dofCount());
   for (int d : support) {
     const double f = force_N(d);
     if (f != 0.0) {
-      u.noalias() += f * columns_[static_cast<std::size_t>(d)];
+      u.noalias() += f * field_columns_[static_cast<std::size_t>(d)].cast<double>();
     }
   }
   return u;
 }
 
 std::size_t CondensedCompliance::memoryBytes() const {
-  return impl_->factor_bytes +
-         static_cast<std::size_t>(cached_) * static_cast<std::size_t>(dofCount()) * sizeof(double);
+  return impl_->factor_bytes + static_cast<std::size_t>(cached_) *
+                                   static_cast<std::size_t>(dofCount()) *
+                                   (sizeof(double) + sizeof(float));
 }
 
 void CondensedCompliance::clearCache() {
   for (Eigen::VectorXd& c : columns_) {
+    c.resize(0);
+  }
+  for (Eigen::VectorXf& c : field_columns_) {
     c.resize(0);
   }
   cached_ = 0;

@@ -119,11 +119,8 @@ std::string OffsetPlanner3::fixedRegionOnLine(const Eigen::Vector2d& lateral, do
 
 OffsetPlanner3::Trajectory OffsetPlanner3::insertAlong(TissueModel3& model,
                                                        const Eigen::Vector2d& lateral, double max_x,
-                                                       double stop_x, bool linear) {
+                                                       double stop_x) {
   NeedleInsertion3 needle(model, scene_.needle, scene_.block_min_m.x(), max_x);
-  if (linear) {
-    needle.useLinearModel();
-  }
   Trajectory t;
   const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s;
   std::string why;
@@ -159,8 +156,7 @@ Vector3 OffsetPlanner3::simulateImplant(const Eigen::Vector2d& lateral, double t
 }
 
 bool OffsetPlanner3::predict(TissueModel3& model, const Vector3& goal, Eigen::Vector2d& lateral,
-                             double& tip_x, PlanResult3& r, int& simulations, int max_iterations,
-                             bool linear) {
+                             double& tip_x, PlanResult3& r, int& simulations, int max_iterations) {
   // Fixed-point iteration on the simulated tip trajectory: the seed's tissue point is the tip's
   // at release. On a template the hole is given and only the depth is predicted.
   const Workspace3& w = scene_.workspace;
@@ -173,9 +169,9 @@ bool OffsetPlanner3::predict(TissueModel3& model, const Vector3& goal, Eigen::Ve
     }
     lateral = reachable;
     const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
-    const Trajectory t = insertAlong(model, lateral, w.max_tip_x_m, goal.x(), linear);
+    const Trajectory t = insertAlong(model, lateral, w.max_tip_x_m, goal.x());
     ++simulations;
-    if (&model == &model_ && !linear) {
+    if (&model == &model_) {
       r.simulation_cpu_s += clock.seconds();
     }
     std::size_t k = 0;
@@ -260,6 +256,35 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
   return a;
 }
 
+Eigen::Vector2d OffsetPlanner3::linearStart(TissueModel3& linear, const Vector3& goal,
+                                            const Eigen::Vector2d& lateral, PlanResult3& r) {
+  // One insertion in the linear model by the corotational insertion's long moves, stopped where
+  // the tip's tissue point reaches the goal's x; the lateral position moves by the tissue
+  // point's lateral miss there. Where the linear model does not reach the goal, the lateral
+  // position stays.
+  const Workspace3& w = scene_.workspace;
+  const double x0 = scene_.block_min_m.x();
+  const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s;
+  const double long_move = step * options_.corotational_step_scale;
+  ++r.linear_simulations;
+  NeedleInsertion3 needle(linear, scene_.needle, x0, w.max_tip_x_m);
+  if (&linear == &model_) {
+    needle.useLinearModel();
+  }
+  needle.stopAtTissueX(goal.x());
+  std::string why;
+  for (double s = x0 - step; s < w.max_tip_x_m && !needle.lastMove().stopped;) {
+    s = std::min(s + long_move, w.max_tip_x_m);
+    if (!needle.moveTo(lateral, s, &why)) {
+      throw std::runtime_error(why);
+    }
+  }
+  if (!needle.lastMove().stopped) {
+    return lateral;
+  }
+  return w.nearest(lateral + goal.tail<2>() - needle.tipReference().tail<2>());
+}
+
 bool OffsetPlanner3::planCorotational(const Vector3& goal, Eigen::Vector2d lateral, Attempt& plan,
                                       PlanResult3& r) {
   // The start: on a stage with a followed track the linear model's lateral position (the track's
@@ -285,11 +310,7 @@ bool OffsetPlanner3::planCorotational(const Vector3& goal, Eigen::Vector2d later
       }
       linear = linear_.get();
     }
-    double tip_x = goal.x();
-    if (!predict(*linear, goal, lateral, tip_x, r, r.linear_simulations, 1, true)) {
-      r.refusal.clear();
-      lateral = w.nearest(lateral);
-    }
+    lateral = linearStart(*linear, goal, w.nearest(lateral), r);
     r.predicted_error_m = -1.0;  // the corotational insertion predicts and verifies at once
   }
   double step_scale = options_.corotational_step_scale;

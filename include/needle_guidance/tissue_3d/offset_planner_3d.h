@@ -113,9 +113,8 @@ private:
     Vector3 seed = Vector3::Zero();
     double error = -1.0;  ///< |seed - goal|; < 0 never simulated
   };
-  /// linear: the needle moves in model's linear model (NeedleInsertion3::useLinearModel).
   Trajectory insertAlong(TissueModel3& model, const Eigen::Vector2d& lateral, double max_x,
-                         double stop_x, bool linear = false);
+                         double stop_x);
   std::string physicalRefusal(const Target3& target) const;
   /// The fixed region the needle line at lateral crosses before tip x, with where ("" if none).
   std::string fixedRegionOnLine(const Eigen::Vector2d& lateral, double tip_x) const;
@@ -123,13 +122,19 @@ private:
   /// (`simulations` counts them, at most max_iterations; the lateral position is corrected
   /// after the last); false with r.refusal set when the robot cannot reach.
   bool predict(TissueModel3& model, const Vector3& goal, Eigen::Vector2d& lateral, double& tip_x,
-               PlanResult3& r, int& simulations, int max_iterations, bool linear = false);
+               PlanResult3& r, int& simulations, int max_iterations);
   /// Full simulations from (lateral, tip_x), corrected by the measured miss (the lateral too if
   /// move_lateral); the best one.
   Attempt verify(const Vector3& goal, Eigen::Vector2d lateral, double tip_x, bool move_lateral,
                  PlanResult3& r);
   /// Template: from the verified nearest hole, the hole whose verified seed lands closest.
   Attempt bestHole(const Vector3& goal, const Attempt& nearest, PlanResult3& r);
+  /// Corotational tissue on a stage with a followed track: the lateral position corrected by
+  /// the drift of one insertion in the linear model (linear: the scene's tissue, seen as
+  /// linear, or a linear model of its mesh), stopped where the tip's tissue point reaches the
+  /// goal's x; lateral itself where the linear model does not reach the goal.
+  Eigen::Vector2d linearStart(TissueModel3& linear, const Vector3& goal,
+                              const Eigen::Vector2d& lateral, PlanResult3& r);
   /// Corotational tissue: the plan from the linear start (class comment); false with r.refusal
   /// set when the robot cannot reach.
   bool planCorotational(const Vector3& goal, Eigen::Vector2d lateral, Attempt& plan,
