@@ -217,34 +217,23 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
   ++r.simulations;
   NeedleInsertion3 needle(model_, scene_.needle, x0, w.max_tip_x_m);
   needle.stopAtTissueX(goal.x());
-  auto tissueX = [x0](const NeedleInsertion3& n) { return tissuePointX(n, x0); };
-  double lo = x0 - step, hi = lo, tissue_lo = x0;
+  double hi = x0 - step;
   std::string why;
   while (!needle.lastMove().stopped) {
     if (hi >= w.max_tip_x_m) {
       r.refusal = "out of reach: at the deepest tip x " + mm(w.max_tip_x_m) +
-                  " the tip's tissue point is at x " + mm(tissueX(needle)) +
+                  " the tip's tissue point is at x " + mm(tissuePointX(needle, x0)) +
                   ", short of the target's " + mm(goal.x());
       r.simulation_cpu_s += clock.seconds();
       return {};
     }
-    // The tip x where the tissue point reaches the goal: at least the goal's x (the tip pushes
-    // its tissue point ahead, so the point lags the tip), or predicted from the point's rate
-    // over the last move (a rate at or below zero predicts nothing).
-    double reach = goal.x();
-    if (needle.punctured() && hi > lo) {
-      const double rate = (tissueX(needle) - tissue_lo) / (hi - lo);
-      reach = rate > 0.0 ? std::max(reach, hi + (goal.x() - tissueX(needle)) / rate) : hi;
-    }
-    tissue_lo = tissueX(needle);
-    lo = hi;
     hi = std::min(hi + long_move, w.max_tip_x_m);
-    // While neither this move nor the next is predicted to reach the goal, this move's end is a
-    // transit state (passTo: its warp not settled; the events on the way are located as in
-    // moveTo, and the next move's events do not depend on it). A move that reaches the goal
-    // stops there whichever it is.
-    const bool transit = reach > hi + long_move + step && hi + long_move < w.max_tip_x_m;
-    if (!(transit ? needle.passTo(lateral, hi, &why) : needle.moveTo(lateral, hi, &why))) {
+    // Nothing reads a move's end but the next move, whose events do not depend on it: every
+    // move is a transit (passTo: its end's warp not settled), the one that reaches the goal
+    // stops there on the warp settled at the stop, and the one to the deepest tip position is
+    // settled for the refusal's figures.
+    const bool last = hi >= w.max_tip_x_m;
+    if (!(last ? needle.moveTo(lateral, hi, &why) : needle.passTo(lateral, hi, &why))) {
       throw std::runtime_error(why);
     }
     ++r.corotational_moves;

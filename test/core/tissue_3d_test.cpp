@@ -640,18 +640,25 @@ TEST(Tissue3dCorotation, SeedDoesNotDependOnTheMoveLength) {
   EXPECT_LT((a - b).norm(), kMoveLengthTol_m) << (a - b).transpose() * 1e3 << " mm";
 }
 
+/// The corotational test block, a needle line in it and the planner's long moves (8 scene
+/// steps) from one move before the entry face.
+struct LongMoveBlock {
+  Fixture f{corotationalScene()};
+  Eigen::Vector2d lateral{1e-3, 2e-3};
+  double step = 8.0 * f.scene.needle.insertion_velocity_m_s * f.scene.needle.step_s;
+  double start = f.scene.block_min_m.x() - step;
+};
+
 TEST(Tissue3dCorotation, TransitMovesLeaveTheSeedOfSettledMoves) {
   // passTo leaves its end's warp unsettled; the events after it are located on their own
   // settled warps, so an insertion by transit moves and a last settled one releases the seed of
   // one by settled moves, for fewer fixed-point updates.
   constexpr double kTransitSeedTol_m = 5e-7;  // 0.0005 mm, a tenth of the step-halving target
-  constexpr double kLongMoveSteps = 8.0;
   constexpr double kDepth_m = 0.04;
-  Fixture f(corotationalScene());
-  const Eigen::Vector2d lateral(1e-3, 2e-3);
-  const double step =
-      kLongMoveSteps * f.scene.needle.insertion_velocity_m_s * f.scene.needle.step_s;
-  const double start = f.scene.block_min_m.x() - step;
+  LongMoveBlock b;
+  Fixture& f = b.f;
+  const Eigen::Vector2d& lateral = b.lateral;
+  const double step = b.step, start = b.start;
   auto implant = [&](bool transit, int* updates) {
     NeedleInsertion3 needle(f.model, f.scene.needle, f.scene.block_min_m.x(), kDepth_m);
     std::string why;
@@ -684,13 +691,11 @@ TEST(Tissue3dCorotation, StopEndsTheMoveWhereTheTipsTissuePointReachesIt) {
   constexpr double kStopTol_m = 1e-9;       // the cut's root finding
   constexpr double kSameDepthTol_m = 5e-6;  // the step-halving target
   constexpr double kStop_m = 0.0253;        // between track points
-  constexpr double kLongMoveSteps = 8.0;
-  Fixture f(corotationalScene());
-  const Eigen::Vector2d lateral(1e-3, 2e-3);
-  const double step =
-      kLongMoveSteps * f.scene.needle.insertion_velocity_m_s * f.scene.needle.step_s;
-  const double start = f.scene.block_min_m.x() - step;
   constexpr double kDeepest_m = 0.045;
+  LongMoveBlock b;
+  Fixture& f = b.f;
+  const Eigen::Vector2d& lateral = b.lateral;
+  const double step = b.step, start = b.start;
   NeedleInsertion3 stopped(f.model, f.scene.needle, f.scene.block_min_m.x(), kDeepest_m);
   stopped.stopAtTissueX(kStop_m);
   std::string why;
