@@ -207,6 +207,10 @@ Eigen::VectorXd CondensedCompliance::solveSupported(const Eigen::VectorXd& force
   return u;
 }
 
+std::size_t CondensedCompliance::factorBytes() const {
+  return impl_->factor_bytes;
+}
+
 std::size_t CondensedCompliance::memoryBytes() const {
   return impl_->factor_bytes + static_cast<std::size_t>(cached_) *
                                    static_cast<std::size_t>(dofCount()) *

@@ -396,12 +396,16 @@ StepStatus TissueSimulation::trackStep(double dt_s, double needle_height_m, doub
   track_info_.tip_force_N = info.tip_force_N;
   track_info_.friction_force_N = info.friction_force_N;
   // Work in the node-moving model's unit (millions of factor entries touched): each compliance
-  // column is one solve with the sparse factor, each condensed solve touches its dense system.
+  // column is one solve with the sparse factor (counted by the doubles of the factor and the
+  // cached columns), each condensed solve touches its dense system.
   const double points = info.shaft_points + 1.0;
-  solver_work_ += 1e-6 * (static_cast<double>(compliance.solvedColumns() - columns_before) *
-                              static_cast<double>(compliance.memoryBytes()) / sizeof(double) / 8.0 +
-                          static_cast<double>(track_needle_->totalSolves() - solves_before) * 4.0 *
-                              points * points);
+  const double doubles =
+      static_cast<double>(compliance.factorBytes()) / sizeof(double) +
+      static_cast<double>(compliance.cachedColumns()) * static_cast<double>(compliance.dofCount());
+  solver_work_ +=
+      1e-6 *
+      (static_cast<double>(compliance.solvedColumns() - columns_before) * doubles / 8.0 +
+       static_cast<double>(track_needle_->totalSolves() - solves_before) * 4.0 * points * points);
   return StepStatus{};
 }
 

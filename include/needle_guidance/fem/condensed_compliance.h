@@ -50,8 +50,10 @@ public:
   double factorCpuSeconds() const { return factor_cpu_s_; }
   /// Entries of the Cholesky factor (CHOLMOD's count; a solve reads each twice).
   double factorEntries() const { return factor_entries_; }
-  /// Bytes held by the factor and the cached columns.
+  /// Bytes held by the factor and the cached columns (double and single precision).
   std::size_t memoryBytes() const;
+  /// Bytes held by the factor alone.
+  std::size_t factorBytes() const;
   /// Drops every cached column (memory bound between insertions along new paths).
   void clearCache();
 
