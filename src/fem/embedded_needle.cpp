@@ -957,6 +957,24 @@ bool EmbeddedNeedle<Dim>::insertSegment(double target) {
 }
 
 template <int Dim>
+double EmbeddedNeedle<Dim>::heldTipX(const Point_& p, double target) {
+  // With the tip's tissue point held at p the tip force is affine in s, so the event is located
+  // exactly.
+  const double fb = params_.cutting_force_N;
+  const double fa = solveAt(s_, &p).tip_force_N;
+  const double f_end = solveAt(target, &p).tip_force_N;
+  const double s_event = f_end > fb ? crossing(s_, fa, target, f_end, fb) : target;
+  if (!locating_) {
+    return s_event;
+  }
+  const double s_start = s_;
+  commit(s_event, &p);  // the state just before the event: the tip's tissue point at p
+  settleBeforeEvent(f_end > fb ? std::make_optional(std::make_pair(s_start, target))
+                               : std::nullopt);
+  return s_;
+}
+
+template <int Dim>
 std::optional<double> EmbeddedNeedle<Dim>::cutToStop() const {
   if (!stop_tissue_x_ || !punctured_ || direction_ < 0) {
     return std::nullopt;
@@ -966,23 +984,13 @@ std::optional<double> EmbeddedNeedle<Dim>::cutToStop() const {
 
 template <int Dim>
 bool EmbeddedNeedle<Dim>::cutTo(double target) {
-  const double fb = params_.cutting_force_N;
   const double cut = cutLength(target);
   const double to_event = next_event_cut_m_ - cut_total_m_;
   const std::optional<double> to_stop = cutToStop();
   if (to_stop && *to_stop < to_event && cut >= *to_stop - kCutTol_m) {
-    // The cut reaches the stop before the next track point: located like a track point (the
-    // tip force is affine in s with the tip's tissue point there).
+    // The cut reaches the stop before the next track point: located like a track point.
     const Point_ p = along(*to_stop);
-    const double fa = solveAt(s_, &p).tip_force_N;
-    const double f_end = solveAt(target, &p).tip_force_N;
-    const double s_stop = f_end > fb ? crossing(s_, fa, target, f_end, fb) : target;
-    const double s_start = s_;
-    commit(s_stop, &p);
-    if (locating_) {
-      settleBeforeEvent(f_end > fb ? std::make_optional(std::make_pair(s_start, target))
-                                   : std::nullopt);
-    }
+    commit(heldTipX(p, target), &p);
     cut_total_m_ += *to_stop;
     info_.stopped = true;
     return true;
@@ -993,19 +1001,9 @@ bool EmbeddedNeedle<Dim>::cutTo(double target) {
     commit(target, &p);
     return true;
   }
-  // The cut reaches the next track point: with the tip's tissue point there, the tip force is
-  // affine in s, so the event is located exactly.
+  // The cut reaches the next track point.
   const Point_ p = along(to_event);
-  const double fa = solveAt(s_, &p).tip_force_N;
-  const double f_end = solveAt(target, &p).tip_force_N;
-  double s_event = f_end > fb ? crossing(s_, fa, target, f_end, fb) : target;
-  if (locating_) {
-    const double s_start = s_;
-    commit(s_event, &p);  // the state just before the event: the tip at the track point
-    settleBeforeEvent(f_end > fb ? std::make_optional(std::make_pair(s_start, target))
-                                 : std::nullopt);
-    s_event = s_;
-  }
+  const double s_event = heldTipX(p, target);
   cut_total_m_ = next_event_cut_m_;
   next_event_cut_m_ += params_.track_spacing_m;
   addTrackPoint(pending_track_);

@@ -67,6 +67,25 @@ Vector3 releaseAndRetract(NeedleInsertion3& needle, const Eigen::Vector2d& later
   return needle.seedWorld(*seed);
 }
 
+/// Inserts needle at lateral by moves of long_move from a step before the entry face until its
+/// tip's tissue point reaches the stop (stopAtTissueX) or the tip the deepest position max_x;
+/// returns the moves. Nothing reads a move's end but the next move, whose events do not depend
+/// on it: every move is a transit (passTo: its end's warp not settled), the one that reaches
+/// the stop ends there on the warp settled at the stop, and the one to max_x is settled (the
+/// figures of a refusal). Throws std::runtime_error when the simulation refuses.
+int insertToStop(NeedleInsertion3& needle, const Eigen::Vector2d& lateral, double start_x,
+                 double long_move, double max_x) {
+  std::string why;
+  int moves = 0;
+  for (double s = start_x; s < max_x && !needle.lastMove().stopped; ++moves) {
+    s = std::min(s + long_move, max_x);
+    if (!(s >= max_x ? needle.moveTo(lateral, s, &why) : needle.passTo(lateral, s, &why))) {
+      throw std::runtime_error(why);
+    }
+  }
+  return moves;
+}
+
 }  // namespace
 
 OffsetPlanner3::OffsetPlanner3(const TissueScene3d& scene, TissueModel3& model,
@@ -217,26 +236,13 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
   ++r.simulations;
   NeedleInsertion3 needle(model_, scene_.needle, x0, w.max_tip_x_m);
   needle.stopAtTissueX(goal.x());
-  double hi = x0 - step;
-  std::string why;
-  while (!needle.lastMove().stopped) {
-    if (hi >= w.max_tip_x_m) {
-      r.refusal = "out of reach: at the deepest tip x " + mm(w.max_tip_x_m) +
-                  " the tip's tissue point is at x " + mm(tissuePointX(needle, x0)) +
-                  ", short of the target's " + mm(goal.x());
-      r.simulation_cpu_s += clock.seconds();
-      return {};
-    }
-    hi = std::min(hi + long_move, w.max_tip_x_m);
-    // Nothing reads a move's end but the next move, whose events do not depend on it: every
-    // move is a transit (passTo: its end's warp not settled), the one that reaches the goal
-    // stops there on the warp settled at the stop, and the one to the deepest tip position is
-    // settled for the refusal's figures.
-    const bool last = hi >= w.max_tip_x_m;
-    if (!(last ? needle.moveTo(lateral, hi, &why) : needle.passTo(lateral, hi, &why))) {
-      throw std::runtime_error(why);
-    }
-    ++r.corotational_moves;
+  r.corotational_moves += insertToStop(needle, lateral, x0 - step, long_move, w.max_tip_x_m);
+  if (!needle.lastMove().stopped) {
+    r.refusal = "out of reach: at the deepest tip x " + mm(w.max_tip_x_m) +
+                " the tip's tissue point is at x " + mm(tissuePointX(needle, x0)) +
+                ", short of the target's " + mm(goal.x());
+    r.simulation_cpu_s += clock.seconds();
+    return {};
   }
   Attempt a{lateral, needle.tipX(), releaseAndRetract(needle, lateral, x0 - step), 0.0};
   ++r.corotational_moves;
@@ -261,13 +267,7 @@ Eigen::Vector2d OffsetPlanner3::linearStart(TissueModel3& linear, const Vector3&
     needle.useLinearModel();
   }
   needle.stopAtTissueX(goal.x());
-  std::string why;
-  for (double s = x0 - step; s < w.max_tip_x_m && !needle.lastMove().stopped;) {
-    s = std::min(s + long_move, w.max_tip_x_m);
-    if (!needle.moveTo(lateral, s, &why)) {
-      throw std::runtime_error(why);
-    }
-  }
+  insertToStop(needle, lateral, x0 - step, long_move, w.max_tip_x_m);
   if (!needle.lastMove().stopped) {
     return lateral;
   }

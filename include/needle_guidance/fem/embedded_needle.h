@@ -291,6 +291,11 @@ private:
   Point_ along(double cut_m) const;
   /// One segment of a move towards target without events inside; true when target is reached.
   bool insertSegment(double target);
+  /// The tip x in [s_, target] where, with the tip's tissue point held at p, the tip force
+  /// reaches f_b (target if it does not). While a segment is located, that state is committed
+  /// and settled with the event (settleBeforeEvent), and the tip x returned is where the settled
+  /// warp puts it.
+  double heldTipX(const Point_& p, double target);
   /// Cutting towards target, up to the next track point (true when target is reached).
   bool cutTo(double target);
   /// Largest excess of a stuck point's force over its static friction at tip x = s, with
