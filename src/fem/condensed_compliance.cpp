@@ -11,8 +11,31 @@
 
 namespace needle_guidance::fem {
 
+// The single-precision BLAS (Fortran interface) CHOLMOD's own double solves run on.
+extern "C" {
+void sgemv_(const char* trans, const int* m, const int* n, const float* alpha, const float* a,
+            const int* lda, const float* x, const int* incx, const float* beta, float* y,
+            const int* incy);
+void strsv_(const char* uplo, const char* trans, const char* diag, const int* n, const float* a,
+            const int* lda, float* x, const int* incx);
+}
+
+namespace {
+
+/// CHOLMOD's supernodal LL^T with its factor readable (its supernodes, for the
+/// single-precision solve).
+class SupernodalLLT : public Eigen::CholmodSupernodalLLT<SparseMatrix, Eigen::Lower> {
+public:
+  const cholmod_factor& factor() const { return *this->m_cholmodFactor; }
+};
+
+}  // namespace
+
 struct CondensedCompliance::Impl {
-  Eigen::CholmodSupernodalLLT<SparseMatrix, Eigen::Lower> llt;
+  SupernodalLLT llt;
+  /// The factor's values in single precision, in CHOLMOD's supernodal layout (formed by the
+  /// first solveSinglePrecision after a factorisation).
+  std::vector<float> single_factor;
   std::size_t factor_bytes = 0;
   /// Guards the column cache and CHOLMOD's workspace: copies of a needle share one compliance.
   std::mutex mutex;
@@ -93,6 +116,7 @@ void CondensedCompliance::refactor(const SparseMatrix& k) {
   const std::lock_guard<std::mutex> lock(impl_->mutex);
   const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
   impl_->llt.factorize(kff);
+  impl_->single_factor.clear();
   refactor_cpu_s_ += clock.seconds();
   ++refactors_;
   for (Eigen::VectorXd& c : columns_) {
@@ -187,6 +211,81 @@ Eigen::VectorXd CondensedCompliance::solve(const Eigen::VectorXd& force_N) const
   return u;
 }
 
+Eigen::VectorXd CondensedCompliance::solveSinglePrecision(const Eigen::VectorXd& force_N) const {
+  const cholmod_factor& l = impl_->llt.factor();
+  if (!l.is_super || !l.is_ll || l.itype != CHOLMOD_INT || l.xtype != CHOLMOD_REAL) {
+    return solve(force_N);  // not a supernodal LL^T of int indices: the double solve
+  }
+  if (force_N.size() != dofCount()) {
+    return solve(force_N);  // which refuses it
+  }
+  const std::lock_guard<std::mutex> lock(impl_->mutex);
+  // CHOLMOD's supernodal layout (Chen, Davis, Hager and Rajamanickam 2008): supernode k holds
+  // columns super[k] .. super[k+1] - 1 of L as a dense column-major block of the rows
+  // s[pi[k]] .. s[pi[k+1] - 1] (its own columns first), stored from x[px[k]]. P A P^T = L L^T.
+  const int nsuper = static_cast<int>(l.nsuper);
+  const int* super = static_cast<const int*>(l.super);
+  const int* pi = static_cast<const int*>(l.pi);
+  const int* px = static_cast<const int*>(l.px);
+  const int* rows = static_cast<const int*>(l.s);
+  const int* perm = static_cast<const int*>(l.Perm);
+  if (impl_->single_factor.empty()) {
+    const double* x = static_cast<const double*>(l.x);
+    impl_->single_factor.assign(x, x + px[nsuper]);
+  }
+  const float* values = impl_->single_factor.data();
+  const int m = static_cast<int>(free_dofs_.size());
+  auto dof = [&](int i) { return free_dofs_[static_cast<std::size_t>(perm ? perm[i] : i)]; };
+  std::vector<float> y(static_cast<std::size_t>(m));
+  for (int i = 0; i < m; ++i) {
+    y[static_cast<std::size_t>(i)] = static_cast<float>(force_N(dof(i)));
+  }
+  std::vector<float> below(static_cast<std::size_t>(m));  // a supernode's rows below its columns
+  const int one = 1;
+  const float plus = 1.0f;
+  const float zero = 0.0f;
+  const float minus = -1.0f;
+  // L y = P f, supernode by supernode: the diagonal block's triangle, then its rows below.
+  for (int k = 0; k < nsuper; ++k) {
+    const int columns = super[k + 1] - super[k];
+    const int height = pi[k + 1] - pi[k];
+    const int under = height - columns;
+    const float* block = values + px[k];
+    float* yk = y.data() + super[k];
+    strsv_("L", "N", "N", &columns, block, &height, yk, &one);
+    if (under > 0) {
+      sgemv_("N", &under, &columns, &plus, block + columns, &height, yk, &one, &zero, below.data(),
+             &one);
+      const int* r = rows + pi[k] + columns;
+      for (int i = 0; i < under; ++i) {
+        y[static_cast<std::size_t>(r[i])] -= below[static_cast<std::size_t>(i)];
+      }
+    }
+  }
+  // L^T x = y, in reverse.
+  for (int k = nsuper - 1; k >= 0; --k) {
+    const int columns = super[k + 1] - super[k];
+    const int height = pi[k + 1] - pi[k];
+    const int under = height - columns;
+    const float* block = values + px[k];
+    float* yk = y.data() + super[k];
+    if (under > 0) {
+      const int* r = rows + pi[k] + columns;
+      for (int i = 0; i < under; ++i) {
+        below[static_cast<std::size_t>(i)] = y[static_cast<std::size_t>(r[i])];
+      }
+      sgemv_("T", &under, &columns, &minus, block + columns, &height, below.data(), &one, &plus, yk,
+             &one);
+    }
+    strsv_("L", "T", "N", &columns, block, &height, yk, &one);
+  }
+  Eigen::VectorXd u = Eigen::VectorXd::Zero(dofCount());
+  for (int i = 0; i < m; ++i) {
+    u(dof(i)) = y[static_cast<std::size_t>(i)];
+  }
+  return u;
+}
+
 Eigen::VectorXd CondensedCompliance::solveSupported(const Eigen::VectorXd& force_N,
                                                     const std::vector<int>& support) const {
   const double column_bytes = static_cast<double>(support.size()) * dofCount() * sizeof(float);
@@ -212,9 +311,9 @@ std::size_t CondensedCompliance::factorBytes() const {
 }
 
 std::size_t CondensedCompliance::memoryBytes() const {
-  return impl_->factor_bytes + static_cast<std::size_t>(cached_) *
-                                   static_cast<std::size_t>(dofCount()) *
-                                   (sizeof(double) + sizeof(float));
+  return impl_->factor_bytes + impl_->single_factor.size() * sizeof(float) +
+         static_cast<std::size_t>(cached_) * static_cast<std::size_t>(dofCount()) *
+             (sizeof(double) + sizeof(float));
 }
 
 void CondensedCompliance::clearCache() {

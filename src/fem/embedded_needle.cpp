@@ -30,13 +30,12 @@ constexpr double kMaxCutTrial_m = 2.5e-4;  // trials grow up to this (a quarter 
 // derived from the seeds' step-halving target (docs/tissue_3d.md, "Settled to the accuracy the
 // seed needs"). The state a seed is released from, whose tip's tissue point the seed is, is
 // settled to a fiftieth of the target. Every other state (just before an event, at a move's
-// end, in retraction) to half of it: a warp error e there moves the event's location by the
-// coupling (below one) times e, and the seed, whose tissue point is located afresh at every
-// track point, by less (measured at most 0.1 e on the tuning scenes), so the seed stays
-// within a twentieth of the target of the tightly settled insertion's.
-constexpr double kSeedStepTol_m = 5e-6;
-constexpr double kReleaseWarpTol_m = kSeedStepTol_m / 50.0;
-constexpr double kEventWarpTol_m = kSeedStepTol_m / 2.0;
+// end, in retraction) to EmbeddedNeedleParams::event_warp_tolerance_m, by default half of it:
+// a warp error e there moves the event's location by the coupling (below one) times e, and
+// the seed, whose tissue point is located afresh at every track point, by less (measured at
+// most 0.1 e on the tuning scenes), so the seed stays within a twentieth of the target of the
+// tightly settled insertion's.
+constexpr double kReleaseWarpTol_m = kSeedStepTolerance_m / 50.0;
 constexpr int kMaxWarpUpdates = 60;
 // Beyond kMaxWarpUpdates the iteration goes on while the change still halves over every
 // kContractionWindow updates (a slow but steady contraction: at that rate 0.01 mm shrinks to
@@ -54,12 +53,11 @@ constexpr double kRewarpBudget = 16.0;
 constexpr int kMaxRewarpsPerMove = 4;
 // Corotational: a segment of a move is solved again from its start on the warp settled where
 // its event happens (or at its end) until a relocation moves its end (tip position, tip's
-// tissue point, cut length) by at most kRelocationTol_m, or this many times. A relocation
-// moves the end by the change of the warp since the last one times a coupling below one, so
-// what remains after a move of kRelocationTol_m is a fraction of it: the event's tolerance
-// on the warp, half the seeds' step-halving target; a cut that snaps through (its first root
-// comes and goes with the warp) alternates and takes the last (EmbeddedNeedleInfo::relocation_m).
-constexpr double kRelocationTol_m = kEventWarpTol_m;
+// tissue point, cut length) by at most the event tolerance on the warp
+// (EmbeddedNeedleParams::event_warp_tolerance_m), or this many times. A relocation moves the end
+// by the change of the warp since the last one times a coupling below one, so what remains
+// after a move of that size is a fraction of it; a cut that snaps through (its first root comes
+// and goes with the warp) alternates and takes the last (EmbeddedNeedleInfo::relocation_m).
 constexpr int kMaxRelocations = 3;
 // The warp at a segment's end (its event or the move's end) is first guessed by extending
 // linearly in the tip position the warps settled at the last two segment ends, up to this many
@@ -241,7 +239,8 @@ Eigen::VectorXd EmbeddingTissue<Dim>::corotationDisplacement(const Eigen::Vector
   }
   const CpuStopwatch clock(CpuStopwatch::Scope::kProcess);
   int inverted = 0;
-  Eigen::VectorXd v = -compliance_->solve(corotation_->correction(u, &inverted, &last_turn_rad_));
+  Eigen::VectorXd v =
+      -compliance_->solveSinglePrecision(corotation_->correction(u, &inverted, &last_turn_rad_));
   inverted_elements_ = inverted;
   corotation_cpu_s_ += clock.seconds();
   if (!v.allFinite()) {
@@ -350,11 +349,13 @@ EmbeddedNeedle<Dim>::EmbeddedNeedle(const EmbeddingTissue<Dim>& tissue,
       !(params.kinetic_friction_N_per_m >= 0.0) ||
       !(params.static_friction_N_per_m >= params.kinetic_friction_N_per_m) ||
       !std::isfinite(entry_x_m) ||
-      ((params.follow_tissue || params.section_load) && !(params.tip_radius_m > 0.0))) {
+      ((params.follow_tissue || params.section_load) && !(params.tip_radius_m > 0.0)) ||
+      !(params.event_warp_tolerance_m > 0.0 && std::isfinite(params.event_warp_tolerance_m))) {
     throw std::invalid_argument(
         "EmbeddedNeedle: needs cutting_force >= 0, track_spacing > 0, 0 <= kinetic friction <= "
-        "static friction, a finite entry face and, when the track follows the tissue or the load "
-        "is spread over the needle's section, a tip radius > 0");
+        "static friction, a finite entry face, a finite event tolerance on the warp > 0 and, when "
+        "the track follows the tissue or the load is spread over the needle's section, a tip "
+        "radius > 0");
   }
   s_ = entry_x_m - 1e-3;
 }
@@ -1158,7 +1159,7 @@ void EmbeddedNeedle<Dim>::settleBeforeEvent(std::optional<std::pair<double, doub
       predictWarp(s_);  // the segment was located on its start's warp: guess the event's
       locateTip();
     }
-    while (!settleWarp(kEventWarpTol_m)) {
+    while (!settleWarp(params_.event_warp_tolerance_m)) {
       locateTip();
     }
     event_warp_ = warp_;
@@ -1183,7 +1184,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
     // segment's start (the seeds' tissue points are set; the needle leaves the tissue at rest).
     const bool done = direction_ > 0 ? insertSegment(target) : retractSegment(target);
     if (done) {
-      settle(kEventWarpTol_m);
+      settle(params_.event_warp_tolerance_m);
     }
     return done;
   }
@@ -1193,7 +1194,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
   // again from its start on that warp until its end repeats.
   // A relocation whose warp does not converge keeps the segment located before it.
   // A relocation whose end (before its event, or at the segment's end) repeats the last round's
-  // to within kRelocationTol_m keeps the warp settled there without settling it again: the
+  // to within the event tolerance keeps the warp settled there without settling it again: the
   // warp changes by 30-150 um over a 1 mm track spacing (first changes of 30-150 um at a
   // contraction of 0.3-0.5), so over 2.5 um of the end by at most about 0.4 um, below the
   // event's tolerance on the warp.
@@ -1224,7 +1225,8 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
       if (event_warp_.size() == 0 && repeatsRelocatedEnd(segmentEnd())) {
         settle_skipped_ = true;  // the segment's end repeats: its warp stands
       }
-      while (!settle_skipped_ && event_warp_.size() == 0 && !settleWarp(kEventWarpTol_m)) {
+      while (!settle_skipped_ && event_warp_.size() == 0 &&
+             !settleWarp(params_.event_warp_tolerance_m)) {
         insertSegment(s_);  // the tip force against f_b on the updated warp: puncture, cut
       }
     } catch (const std::runtime_error&) {
@@ -1242,7 +1244,8 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
     }
     const SegmentEnd end = segmentEnd();
     moved = round > 0 ? (end - last).template lpNorm<Eigen::Infinity>() : 0.0;
-    if (round > 0 && (settle_skipped_ || moved <= kRelocationTol_m || round >= kMaxRelocations)) {
+    if (round > 0 &&
+        (settle_skipped_ || moved <= params_.event_warp_tolerance_m || round >= kMaxRelocations)) {
       if (settle_skipped_) {
         moved = ((event ? end_before_event_ : end) - *relocated_from_)
                     .template lpNorm<Eigen::Infinity>();
@@ -1251,7 +1254,7 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
       relocated_from_.reset();
       info_.relocation_m = std::max(info_.relocation_m, moved);
       if (event && done && !transit_) {
-        settle(kEventWarpTol_m);  // the move ends at its event
+        settle(params_.event_warp_tolerance_m);  // the move ends at its event
       }
       recordWarp();
       return done;
@@ -1279,8 +1282,8 @@ typename EmbeddedNeedle<Dim>::SegmentEnd EmbeddedNeedle<Dim>::segmentEnd() const
 
 template <int Dim>
 bool EmbeddedNeedle<Dim>::repeatsRelocatedEnd(const SegmentEnd& end) const {
-  return relocated_from_ &&
-         (end - *relocated_from_).template lpNorm<Eigen::Infinity>() <= kRelocationTol_m;
+  return relocated_from_ && (end - *relocated_from_).template lpNorm<Eigen::Infinity>() <=
+                                params_.event_warp_tolerance_m;
 }
 
 template <int Dim>

@@ -5,7 +5,7 @@
 namespace needle_guidance::tissue_3d {
 namespace {
 
-fem::EmbeddedNeedleParams paramsOf(const Needle3& needle) {
+fem::EmbeddedNeedleParams paramsOf(const Needle3& needle, double event_warp_tolerance_m) {
   fem::EmbeddedNeedleParams p;
   p.cutting_force_N = needle.cutting_force_N;
   p.static_friction_N_per_m = needle.static_friction_N_per_m;
@@ -16,13 +16,15 @@ fem::EmbeddedNeedleParams paramsOf(const Needle3& needle) {
   p.follow_tissue = needle.follow_tissue;
   p.tip_radius_m = 0.5 * needle.diameter_m;
   p.section_load = needle.section_load;
+  p.event_warp_tolerance_m = event_warp_tolerance_m;
   return p;
 }
 
 }  // namespace
 
 NeedleInsertion3::NeedleInsertion3(TissueModel3& model, const Needle3& needle, double entry_x_m,
-                                   double max_tip_x_m)
-    : fem::EmbeddedNeedle<3>(model.embedding(), paramsOf(needle), entry_x_m, max_tip_x_m) {}
+                                   double max_tip_x_m, double event_warp_tolerance_m)
+    : fem::EmbeddedNeedle<3>(model.embedding(), paramsOf(needle, event_warp_tolerance_m), entry_x_m,
+                             max_tip_x_m) {}
 
 }  // namespace needle_guidance::tissue_3d

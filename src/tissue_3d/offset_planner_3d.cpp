@@ -97,6 +97,13 @@ OffsetPlanner3::OffsetPlanner3(const TissueScene3d& scene, TissueModel3& model,
         "OffsetPlanner3: corotational_accept_fraction must be in (0, 1], not " +
         std::to_string(options_.corotational_accept_fraction));
   }
+  if (!(options_.corotational_event_tolerance_fraction > 0.0 &&
+        options_.corotational_event_tolerance_fraction <= options_.corotational_accept_fraction)) {
+    throw std::invalid_argument(
+        "OffsetPlanner3: corotational_event_tolerance_fraction must be in (0, "
+        "corotational_accept_fraction], not " +
+        std::to_string(options_.corotational_event_tolerance_fraction));
+  }
   if (options_.max_corotational_insertions < 1) {
     throw std::invalid_argument("OffsetPlanner3: max_corotational_insertions must be >= 1, not " +
                                 std::to_string(options_.max_corotational_insertions));
@@ -234,7 +241,8 @@ OffsetPlanner3::Attempt OffsetPlanner3::insertToGoal(const Vector3& goal,
   const double step = scene_.needle.insertion_velocity_m_s * scene_.needle.step_s;
   const double long_move = step * step_scale;
   ++r.simulations;
-  NeedleInsertion3 needle(model_, scene_.needle, x0, w.max_tip_x_m);
+  NeedleInsertion3 needle(model_, scene_.needle, x0, w.max_tip_x_m,
+                          options_.corotational_event_tolerance_fraction * options_.tolerance_m);
   needle.stopAtTissueX(goal.x());
   r.corotational_moves += insertToStop(needle, lateral, x0 - step, long_move, w.max_tip_x_m);
   if (!needle.lastMove().stopped) {

@@ -192,6 +192,43 @@ TEST(FemLinearElasticity, SupportedSolveFromCachedColumnsEqualsTheSolve) {
   EXPECT_EQ(g.solvedColumns(), static_cast<long long>(support.size()));
 }
 
+// The single-precision solve (the corotational warp's) on a soft block with a stiff inclusion
+// (a stiffness ratio of 100, as a calcification in a gland): the double solve's answer to the
+// precision the warp's tolerances need, though not bit for bit; a wrong size is refused.
+TEST(FemLinearElasticity, SinglePrecisionSolveEqualsTheSolve) {
+  constexpr double kSingleSolveRel = 1e-5;  // relative (measured 4e-7)
+  const SimplexMesh<3> mesh = boxTets(16, 6, 6, 0.08, 0.03, 0.03);
+  std::vector<Material> materials = {Material{10e3, 0.45}, Material{1e6, 0.45}};
+  SimplexMesh<3> graded = mesh;
+  graded.element_material.assign(static_cast<std::size_t>(graded.elementCount()), 0);
+  for (int e = 0; e < graded.elementCount(); e += 7) {
+    graded.element_material[static_cast<std::size_t>(e)] = 1;
+  }
+  const SparseMatrix k = assembleStiffness<3>(graded, materials);
+  std::vector<char> fixed(static_cast<std::size_t>(3 * mesh.nodeCount()), 0);
+  for (int i = 0; i < mesh.nodeCount(); ++i) {
+    if (mesh.nodes[static_cast<std::size_t>(i)].x() < 1e-12) {
+      for (int d = 0; d < 3; ++d) {
+        fixed[static_cast<std::size_t>(3 * i + d)] = 1;
+      }
+    }
+  }
+  CondensedCompliance g(k, fixed);
+  std::srand(kSeed);
+  const Eigen::VectorXd f = 1e-3 * Eigen::VectorXd::Random(3 * mesh.nodeCount());  // N
+  const Eigen::VectorXd u = g.solve(f);
+  const Eigen::VectorXd single = g.solveSinglePrecision(f);
+  EXPECT_LT((single - u).lpNorm<Eigen::Infinity>(), kSingleSolveRel * u.lpNorm<Eigen::Infinity>());
+  EXPECT_GT((single - u).norm(), 0.0);
+  for (int i = 0; i < mesh.nodeCount(); ++i) {
+    if (fixed[static_cast<std::size_t>(3 * i)]) {
+      EXPECT_EQ(single.segment<3>(3 * i), Eigen::Vector3d::Zero().eval());
+    }
+  }
+  EXPECT_GT(g.memoryBytes(), g.factorBytes());  // the single-precision copy is held
+  EXPECT_THROW(g.solveSinglePrecision(Eigen::VectorXd::Zero(5)), std::invalid_argument);
+}
+
 TEST(FemLinearElasticity, RefusesDegenerateElementAndFreeBody) {
   SimplexMesh<3> mesh = boxTets(2, 1, 1, 0.02, 0.01, 0.01);
   const Material m{50e3, 0.3};

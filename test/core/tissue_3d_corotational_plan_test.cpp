@@ -174,6 +174,11 @@ TEST(CorotationalPlan3d, OptionsOutOfRangeRefused) {
   o = {};
   o.corotational_step_scale = -1.0;
   refused(o, "corotational_step_scale");
+  o = {};
+  o.corotational_event_tolerance_fraction = 0.0;
+  refused(o, "corotational_event_tolerance_fraction");
+  o.corotational_event_tolerance_fraction = o.corotational_accept_fraction * 1.5;
+  refused(o, "corotational_event_tolerance_fraction");
 }
 
 }  // namespace

@@ -452,7 +452,9 @@ TEST(Tissue3dCorotation, LargeBendingKeepsTheLengthWhereLinearGrows) {
   constexpr double kDeflection = 0.2;              // end deflection / length, linear model
   constexpr double kLinearGrowthMin = 0.015;       // the linear beam stretches by more than this
   constexpr double kCorotationalGrowthMax = 2e-3;  // the corotational one by less than this
-  constexpr double kConverged_m = 1e-9;
+  // The warp is solved in single precision: the fixed point's changes level off near 1e-6 of
+  // the warp (about 1e-8 m at this 1 cm deflection), far below this.
+  constexpr double kConverged_m = 1e-7;
   constexpr int kIncrements = 10;
   constexpr int kMaxIterations = 100;
   const TetMesh3 mesh = beamMesh(kLength_m, kHeight_m, kCubes);
@@ -554,10 +556,10 @@ TissueScene3d softCorotationalScene() {
 
 /// Inserts to depth_m in steps of step_m, releases a seed, retracts at the same step; the seed's
 /// world position (NaN and a test failure if a move is refused).
-Vector3 softImplant(TissueModel3& model, const TissueScene3d& scene, double depth_m,
-                    double step_m) {
+Vector3 softImplant(TissueModel3& model, const TissueScene3d& scene, double depth_m, double step_m,
+                    double event_tol_m = fem::EmbeddedNeedleParams{}.event_warp_tolerance_m) {
   const Eigen::Vector2d lateral(1e-3, 2e-3);
-  NeedleInsertion3 needle(model, scene.needle, 0.0, 0.04);
+  NeedleInsertion3 needle(model, scene.needle, 0.0, 0.04, event_tol_m);
   std::string why;
   for (double s = -step_m; s < depth_m - 1e-12;) {
     s = std::min(s + step_m, depth_m);
@@ -734,6 +736,56 @@ TEST(Tissue3dCorotation, SeedWithTheDerivedWarpTolerancesIsTheTightlySettledOne)
   ASSERT_TRUE(seed.allFinite());
   EXPECT_LT((seed - tightly_settled).norm(), kTightlySettledSeedTol_m)
       << (seed - tightly_settled).transpose() * 1e3 << " mm";
+}
+
+TEST(Tissue3dCorotation, LooserEventToleranceMovesTheSeedByAFractionOfIt) {
+  // The offset planner settles its insertion's events to 10 um (a tenth of its placement
+  // tolerance) instead of the simulation's 2.5 um: an event's location moves by less than the
+  // warp's error and the seed, whose tissue point each track point fixes afresh and whose own
+  // release state is settled as tightly as before, by a fraction of that (measured 2e-13 m on
+  // this block, 62 updates against 81), for fewer updates.
+  constexpr double kLooseEventTol_m = 1e-5;
+  constexpr double kSeedTol_m = 0.25 * kLooseEventTol_m;
+  // Where the point tip crushes a soft block's surface before the puncture, the puncture is
+  // located on the warp of its segment's start (docs/tissue_3d.md, Model): measured 6.3 um.
+  constexpr double kCrushedSurfaceSeedTol_m = kLooseEventTol_m;
+  constexpr double kDepth_m = 0.04;
+  LongMoveBlock b;
+  Fixture& f = b.f;
+  auto implant = [&](double event_tol_m, int* updates) {
+    NeedleInsertion3 needle(f.model, f.scene.needle, f.scene.block_min_m.x(), kDepth_m,
+                            event_tol_m);
+    std::string why;
+    for (double s = b.start; s < kDepth_m;) {
+      s = std::min(s + b.step, kDepth_m);
+      EXPECT_TRUE(s >= kDepth_m ? needle.moveTo(b.lateral, s, &why)
+                                : needle.passTo(b.lateral, s, &why))
+          << why;
+      *updates += needle.lastMove().corotation_updates;
+    }
+    const std::optional<int> seed = needle.implantSeed(&why);
+    EXPECT_TRUE(seed.has_value()) << why;
+    EXPECT_TRUE(needle.moveTo(b.lateral, b.start, &why)) << why;
+    return seed ? needle.seedWorld(*seed) : Vector3(Vector3::Constant(NAN));
+  };
+  int default_updates = 0, loose_updates = 0;
+  const Vector3 settled =
+      implant(fem::EmbeddedNeedleParams{}.event_warp_tolerance_m, &default_updates);
+  const Vector3 loose = implant(kLooseEventTol_m, &loose_updates);
+  ASSERT_TRUE(settled.allFinite() && loose.allFinite());
+  EXPECT_LT((settled - loose).norm(), kSeedTol_m) << (settled - loose).transpose() * 1e3 << " mm";
+  EXPECT_LT(loose_updates, default_updates) << loose_updates << " against " << default_updates;
+  // The soft block, whose point tip crushes the surface before the puncture (the hard case).
+  Fixture soft_default(softCorotationalScene()), soft_loose(softCorotationalScene());
+  const Vector3 soft_settled = softImplant(soft_default.model, soft_default.scene, 0.03, 1e-3);
+  const Vector3 soft =
+      softImplant(soft_loose.model, soft_loose.scene, 0.03, 1e-3, kLooseEventTol_m);
+  ASSERT_TRUE(soft_settled.allFinite() && soft.allFinite());
+  EXPECT_LT((soft_settled - soft).norm(), kCrushedSurfaceSeedTol_m)
+      << (soft_settled - soft).transpose() * 1e3 << " mm";
+  // Refused: no tolerance.
+  EXPECT_THROW(NeedleInsertion3(f.model, f.scene.needle, f.scene.block_min_m.x(), kDepth_m, 0.0),
+               std::invalid_argument);
 }
 
 TEST(Tissue3dCorotation, RotationFadesBeyondTheSmallStrainRange) {

@@ -37,6 +37,10 @@ public:
 
   /// Displacement of every DOF under force f (one solve) [m].
   Eigen::VectorXd solve(const Eigen::VectorXd& force_N) const;
+  /// solve() in single precision, on a single-precision copy of the factor (formed on first use
+  /// after each factorisation; half the bytes a solve reads): the solve's answer to about 1e-7
+  /// relative, for an iteration whose tolerance lies far above that (the corotational warp).
+  Eigen::VectorXd solveSinglePrecision(const Eigen::VectorXd& force_N) const;
   /// Displacement of every DOF under a force f that is zero outside the listed DOFs (each listed
   /// once) [m]: the combination of their cached columns, read in single precision, where that
   /// reads fewer bytes than a solve (which reads the double factor twice), else one solve. The
@@ -50,7 +54,8 @@ public:
   double factorCpuSeconds() const { return factor_cpu_s_; }
   /// Entries of the Cholesky factor (CHOLMOD's count; a solve reads each twice).
   double factorEntries() const { return factor_entries_; }
-  /// Bytes held by the factor and the cached columns (double and single precision).
+  /// Bytes held by the factor (double, and its single-precision copy once formed) and the cached
+  /// columns (double and single precision).
   std::size_t memoryBytes() const;
   /// Bytes held by the factor alone.
   std::size_t factorBytes() const;

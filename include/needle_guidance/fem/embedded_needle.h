@@ -112,7 +112,9 @@ public:
   /// The corotational part of the displacement at displacement u (Dim * node order) [m]:
   /// v = -K_0^-1 g(u), g the corotated element forces less K_0 u (CorotationalForces::
   /// correction), K_0 the factored reference stiffness: the linear K until warpReference, then
-  /// the warped stiffness. Equilibrium under nodal forces f is the fixed point
+  /// the warped stiffness; solved in single precision (CondensedCompliance::
+  /// solveSinglePrecision: to about 1e-7 relative, far below the warp's tolerances). Equilibrium
+  /// under nodal forces f is the fixed point
   /// u = K_0^-1 f + v(u) (warped stiffness, Mueller et al. 2002). Empty for a linear tissue.
   /// Throws std::runtime_error if the result is not finite.
   Eigen::VectorXd corotationDisplacement(const Eigen::VectorXd& u) const;
@@ -145,6 +147,11 @@ private:
   mutable int reference_version_ = 0;
 };
 
+/// The seeds' step-halving target: halving the simulation step moves no seed by more than this
+/// [m]. The corotational warp's tolerances derive from it (docs/tissue_3d.md, "Settled to the
+/// accuracy the seed needs").
+constexpr double kSeedStepTolerance_m = 5e-6;
+
 /// Interaction parameters of the embedded needle [SI].
 struct EmbeddedNeedleParams {
   double cutting_force_N = 0.5;            ///< tip force at which the tissue is cut (2.3.4), >= 0
@@ -163,6 +170,16 @@ struct EmbeddedNeedleParams {
   /// EmbeddingTissue::locateSection). A point force's displacement grows without bound as the
   /// elements at it shrink; over the disc it converges once they are well below the radius.
   bool section_load = false;
+  /// Corotational tissue: the warp at each located event (the puncture, a track point, stick to
+  /// slip, a move's end, a retraction's events) is settled until an update changes no node's
+  /// warp by more than this, and a relocation ends once it moves its segment's end by at most
+  /// this; the state a seed is released from is settled to kSeedStepTolerance_m / 50 whatever
+  /// this is. The default, half the seeds' step-halving target, keeps a seed within about a
+  /// twentieth of that target of the tightly settled insertion's; a user that needs a seed only
+  /// to a coarser accuracy (the offset planner, to a fraction of its placement tolerance) may
+  /// loosen it: the seed then moves by about a tenth of it, by up to two thirds where a point
+  /// tip crushes a soft surface before the puncture (measured, docs/tissue_3d.md). > 0.
+  double event_warp_tolerance_m = kSeedStepTolerance_m / 2.0;
 };
 
 /// Figures of the last move, for reports.
@@ -316,7 +333,7 @@ private:
   /// While a segment is located (consistentSegment): the warp settled at the committed state,
   /// the one just before an event, kept in event_warp_; in a segment's first round from the
   /// guess of predictWarp, in a relocation not at all when the state repeats the end the last
-  /// round settled at (within kRelocationTol_m: that warp stands). tip_bracket: the event's
+  /// round settled at (within the event tolerance: that warp stands). tip_bracket: the event's
   /// tip holds its tissue point (a puncture, a track point) and its force reaches f_b between
   /// these tip x; the tip x is located again on each update of the warp, so the settle and the
   /// event's location converge together (end_before_event_ is where the warp was settled).
@@ -404,7 +421,7 @@ private:
   using SegmentEnd = Eigen::Matrix<double, Dim + 2, 1>;  ///< tip x, tip's tissue point, cut [m]
   /// The end of the committed state (s_, tip_'s reference point, cut_total_m_).
   SegmentEnd segmentEnd() const;
-  /// A relocation whose end repeats the end the last round settled at (within kRelocationTol_m).
+  /// A relocation whose end repeats the end the last round settled at (within the event tolerance).
   bool repeatsRelocatedEnd(const SegmentEnd& end) const;
   /// A relocation: the end located by the last round before its warp was settled there (empty
   /// in a segment's first round), and the end of this round before its event.

@@ -60,10 +60,13 @@ class NeedleInsertion3 : public fem::EmbeddedNeedle<3> {
 public:
   /// The needle moves along +x at lateral position (y, z); the tissue's entry face is x =
   /// entry_x_m; the tip goes no deeper than max_tip_x_m (the compliance columns along the
-  /// needle line are solved up to there in one batch when the needle enters). Throws
-  /// std::invalid_argument for invalid parameters.
-  NeedleInsertion3(TissueModel3& model, const Needle3& needle, double entry_x_m,
-                   double max_tip_x_m);
+  /// needle line are solved up to there in one batch when the needle enters).
+  /// event_warp_tolerance_m: fem::EmbeddedNeedleParams::event_warp_tolerance_m (corotational
+  /// tissue; the default is the simulation's). Throws std::invalid_argument for invalid
+  /// parameters.
+  NeedleInsertion3(
+      TissueModel3& model, const Needle3& needle, double entry_x_m, double max_tip_x_m,
+      double event_warp_tolerance_m = fem::EmbeddedNeedleParams{}.event_warp_tolerance_m);
 };
 
 }  // namespace needle_guidance::tissue_3d

@@ -12,12 +12,11 @@
 // Corotational tissue (scene key `tissue.model: corotational`): a corotational insertion costs
 // 10-30 times a linear one, so the plan starts in the linear model of the same mesh (built once
 // by the planner), which gives the lateral position, the hole and the track's drift; then one
-// corotational insertion along that needle line, by long moves to near the depth and a short
-// one past it, finds the depth where the tip's tissue point reaches the target and, from the
-// state kept before that short move, inserts to that depth, releases the seed and retracts:
-// the verification. Only when that seed misses by more than half the
-// tolerance is the needle moved by the miss (another hole when the template's holes are fixed)
-// and inserted again.
+// corotational insertion along that needle line, by long moves, stops where the tip's tissue
+// point reaches the target's x (located within its move), releases the seed and retracts: the
+// depth and its verification at once, its events settled to a tenth of the tolerance. Only
+// when that seed misses by more than half the tolerance is the needle moved by the miss
+// (another hole when the template's holes are fixed) and inserted again.
 #pragma once
 
 #include <memory>
@@ -74,13 +73,21 @@ struct PlannerOptions3 {
   /// tolerance in a simulation of another step (the closed loop's).
   double corotational_accept_fraction = 0.5;
   int max_corotational_insertions = 3;
-  /// Corotational tissue: the planner's insertions move the needle by up to this multiple of the
-  /// scene's step (needle.step) until the depth is near, and by the scene's step where it is
-  /// found. The events within a move (puncture, track points, stick to slip) are located on the
-  /// warp where they happen, so the seed does not depend on the move length (docs/tissue_3d.md,
-  /// "Longer moves, measured"); a move's cost is mostly its events, which longer moves do not
-  /// remove, so beyond a few millimetres a longer move saves little.
+  /// Corotational tissue: the planner's insertions move the needle by this multiple of the
+  /// scene's step (needle.step), the last move ending at the stop. The events within a move
+  /// (puncture, track points, stick to slip) are located on the warp where they happen, so the seed
+  /// does not depend on the move length (docs/tissue_3d.md, "Longer moves, measured"); a move's
+  /// cost is mostly its events, which longer moves do not remove, so beyond a few millimetres a
+  /// longer move saves little.
   double corotational_step_scale = 8.0;
+  /// Corotational tissue: the planner's insertions settle the warp at each located event to this
+  /// fraction of the tolerance (fem::EmbeddedNeedleParams::event_warp_tolerance_m: 10 um at the
+  /// 0.1 mm tolerance, four times the simulation's 2.5 um). A seed moves by about a tenth of
+  /// the event tolerance, by up to two thirds on a soft block whose surface the tip crushes
+  /// (docs/tissue_3d.md, "Settled to the accuracy the seed needs"): far inside the acceptance's
+  /// margin. The seed's own release state is settled as tightly as in the simulation. In (0,
+  /// corotational_accept_fraction].
+  double corotational_event_tolerance_fraction = 0.1;
 };
 
 class OffsetPlanner3 {
