@@ -11,7 +11,7 @@
 
 namespace needle_guidance::fem {
 
-// The single-precision BLAS (Fortran interface) CHOLMOD's own double solves run on.
+// Single-precision routines of the BLAS that CHOLMOD links (OpenBLAS), Fortran interface.
 extern "C" {
 void sgemv_(const char* trans, const int* m, const int* n, const float* alpha, const float* a,
             const int* lda, const float* x, const int* incx, const float* beta, float* y,
