@@ -152,12 +152,8 @@ TEST(FemLinearElasticity, CondensedComplianceMatchesFullSolveAndBarTheory) {
   EXPECT_EQ(g.solvedColumns(), static_cast<long long>(loaded.size()));
 }
 
-// A force on a few DOFs: the field from their cached columns is the solve's (to the single
-// precision the columns are read in), and without every column cached, or with more DOFs than a
-// solve reads, the solve answers.
-TEST(FemLinearElasticity, SupportedSolveFromCachedColumnsEqualsTheSolve) {
-  const SimplexMesh<3> mesh = boxTets(16, 6, 6, 0.08, 0.03, 0.03);
-  const SparseMatrix k = assembleStiffness<3>(mesh, {Material{20e3, 0.45}});
+/// Every DOF of the nodes on the face x = 0 held fixed.
+std::vector<char> fixedAtEntryFace(const SimplexMesh<3>& mesh) {
   std::vector<char> fixed(static_cast<std::size_t>(3 * mesh.nodeCount()), 0);
   for (int i = 0; i < mesh.nodeCount(); ++i) {
     if (mesh.nodes[static_cast<std::size_t>(i)].x() < 1e-12) {
@@ -166,7 +162,16 @@ TEST(FemLinearElasticity, SupportedSolveFromCachedColumnsEqualsTheSolve) {
       }
     }
   }
-  CondensedCompliance g(k, fixed);
+  return fixed;
+}
+
+// A force on a few DOFs: the field from their cached columns is the solve's (to the single
+// precision the columns are read in), and without every column cached, or with more DOFs than a
+// solve reads, the solve answers.
+TEST(FemLinearElasticity, SupportedSolveFromCachedColumnsEqualsTheSolve) {
+  const SimplexMesh<3> mesh = boxTets(16, 6, 6, 0.08, 0.03, 0.03);
+  const SparseMatrix k = assembleStiffness<3>(mesh, {Material{20e3, 0.45}});
+  CondensedCompliance g(k, fixedAtEntryFace(mesh));
   ASSERT_GT(g.factorEntries(), 0.0);
   // Three nodes inside the block, as a needle's tissue points load them.
   std::vector<int> support;
@@ -205,14 +210,7 @@ TEST(FemLinearElasticity, SinglePrecisionSolveEqualsTheSolve) {
     graded.element_material[static_cast<std::size_t>(e)] = 1;
   }
   const SparseMatrix k = assembleStiffness<3>(graded, materials);
-  std::vector<char> fixed(static_cast<std::size_t>(3 * mesh.nodeCount()), 0);
-  for (int i = 0; i < mesh.nodeCount(); ++i) {
-    if (mesh.nodes[static_cast<std::size_t>(i)].x() < 1e-12) {
-      for (int d = 0; d < 3; ++d) {
-        fixed[static_cast<std::size_t>(3 * i + d)] = 1;
-      }
-    }
-  }
+  const std::vector<char> fixed = fixedAtEntryFace(mesh);
   CondensedCompliance g(k, fixed);
   std::srand(kSeed);
   const Eigen::VectorXd f = 1e-3 * Eigen::VectorXd::Random(3 * mesh.nodeCount());  // N
