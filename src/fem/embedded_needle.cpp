@@ -1194,10 +1194,10 @@ bool EmbeddedNeedle<Dim>::consistentSegment(double target) {
   // again from its start on that warp until its end repeats.
   // A relocation whose warp does not converge keeps the segment located before it.
   // A relocation whose end (before its event, or at the segment's end) repeats the last round's
-  // to within the event tolerance keeps the warp settled there without settling it again: the
+  // to within the event tolerance e keeps the warp settled there without settling it again: the
   // warp changes by 30-150 um over a 1 mm track spacing (first changes of 30-150 um at a
-  // contraction of 0.3-0.5), so over 2.5 um of the end by at most about 0.4 um, below the
-  // event's tolerance on the warp.
+  // contraction of 0.3-0.5), so over e of the end by at most about 0.15 e, below the event's
+  // tolerance on the warp.
   relocated_from_.reset();
   settle_skipped_ = false;
   const EmbeddedNeedle start = *this;

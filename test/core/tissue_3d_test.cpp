@@ -556,8 +556,11 @@ TissueScene3d softCorotationalScene() {
 
 /// Inserts to depth_m in steps of step_m, releases a seed, retracts at the same step; the seed's
 /// world position (NaN and a test failure if a move is refused).
+/// The simulation's event tolerance on the warp.
+constexpr double kDefaultEventTol_m = fem::EmbeddedNeedleParams{}.event_warp_tolerance_m;
+
 Vector3 softImplant(TissueModel3& model, const TissueScene3d& scene, double depth_m, double step_m,
-                    double event_tol_m = fem::EmbeddedNeedleParams{}.event_warp_tolerance_m) {
+                    double event_tol_m = kDefaultEventTol_m) {
   const Eigen::Vector2d lateral(1e-3, 2e-3);
   NeedleInsertion3 needle(model, scene.needle, 0.0, 0.04, event_tol_m);
   std::string why;
@@ -649,24 +652,16 @@ struct LongMoveBlock {
   Eigen::Vector2d lateral{1e-3, 2e-3};
   double step = 8.0 * f.scene.needle.insertion_velocity_m_s * f.scene.needle.step_s;
   double start = f.scene.block_min_m.x() - step;
-};
 
-TEST(Tissue3dCorotation, TransitMovesLeaveTheSeedOfSettledMoves) {
-  // passTo leaves its end's warp unsettled; the events after it are located on their own
-  // settled warps, so an insertion by transit moves and a last settled one releases the seed of
-  // one by settled moves, for fewer fixed-point updates.
-  constexpr double kTransitSeedTol_m = 5e-7;  // 0.0005 mm, a tenth of the step-halving target
-  constexpr double kDepth_m = 0.04;
-  LongMoveBlock b;
-  Fixture& f = b.f;
-  const Eigen::Vector2d& lateral = b.lateral;
-  const double step = b.step, start = b.start;
-  auto implant = [&](bool transit, int* updates) {
-    NeedleInsertion3 needle(f.model, f.scene.needle, f.scene.block_min_m.x(), kDepth_m);
+  /// An insertion to depth_m by these moves (every one but the last a transit when transit),
+  /// the seed released there and the needle withdrawn; the seed's world position (NaN if
+  /// refused). *updates gains the insertion's fixed-point updates.
+  Vector3 implant(double depth_m, bool transit, double event_tol_m, int* updates) {
+    NeedleInsertion3 needle(f.model, f.scene.needle, f.scene.block_min_m.x(), depth_m, event_tol_m);
     std::string why;
-    for (double s = start; s < kDepth_m;) {
-      s = std::min(s + step, kDepth_m);
-      const bool last = s >= kDepth_m;
+    for (double s = start; s < depth_m;) {
+      s = std::min(s + step, depth_m);
+      const bool last = s >= depth_m;
       EXPECT_TRUE(transit && !last ? needle.passTo(lateral, s, &why)
                                    : needle.moveTo(lateral, s, &why))
           << why;
@@ -676,10 +671,19 @@ TEST(Tissue3dCorotation, TransitMovesLeaveTheSeedOfSettledMoves) {
     EXPECT_TRUE(seed.has_value()) << why;
     EXPECT_TRUE(needle.moveTo(lateral, start, &why)) << why;
     return seed ? needle.seedWorld(*seed) : Vector3(Vector3::Constant(NAN));
-  };
+  }
+};
+
+TEST(Tissue3dCorotation, TransitMovesLeaveTheSeedOfSettledMoves) {
+  // passTo leaves its end's warp unsettled; the events after it are located on their own
+  // settled warps, so an insertion by transit moves and a last settled one releases the seed of
+  // one by settled moves, for fewer fixed-point updates.
+  constexpr double kTransitSeedTol_m = 5e-7;  // 0.0005 mm, a tenth of the step-halving target
+  constexpr double kDepth_m = 0.04;
+  LongMoveBlock b;
   int settled_updates = 0, transit_updates = 0;
-  const Vector3 settled = implant(false, &settled_updates);
-  const Vector3 transit = implant(true, &transit_updates);
+  const Vector3 settled = b.implant(kDepth_m, false, kDefaultEventTol_m, &settled_updates);
+  const Vector3 transit = b.implant(kDepth_m, true, kDefaultEventTol_m, &transit_updates);
   ASSERT_TRUE(settled.allFinite() && transit.allFinite());
   EXPECT_LT((settled - transit).norm(), kTransitSeedTol_m)
       << (settled - transit).transpose() * 1e3 << " mm";
@@ -752,26 +756,9 @@ TEST(Tissue3dCorotation, LooserEventToleranceMovesTheSeedByAFractionOfIt) {
   constexpr double kDepth_m = 0.04;
   LongMoveBlock b;
   Fixture& f = b.f;
-  auto implant = [&](double event_tol_m, int* updates) {
-    NeedleInsertion3 needle(f.model, f.scene.needle, f.scene.block_min_m.x(), kDepth_m,
-                            event_tol_m);
-    std::string why;
-    for (double s = b.start; s < kDepth_m;) {
-      s = std::min(s + b.step, kDepth_m);
-      EXPECT_TRUE(s >= kDepth_m ? needle.moveTo(b.lateral, s, &why)
-                                : needle.passTo(b.lateral, s, &why))
-          << why;
-      *updates += needle.lastMove().corotation_updates;
-    }
-    const std::optional<int> seed = needle.implantSeed(&why);
-    EXPECT_TRUE(seed.has_value()) << why;
-    EXPECT_TRUE(needle.moveTo(b.lateral, b.start, &why)) << why;
-    return seed ? needle.seedWorld(*seed) : Vector3(Vector3::Constant(NAN));
-  };
   int default_updates = 0, loose_updates = 0;
-  const Vector3 settled =
-      implant(fem::EmbeddedNeedleParams{}.event_warp_tolerance_m, &default_updates);
-  const Vector3 loose = implant(kLooseEventTol_m, &loose_updates);
+  const Vector3 settled = b.implant(kDepth_m, true, kDefaultEventTol_m, &default_updates);
+  const Vector3 loose = b.implant(kDepth_m, true, kLooseEventTol_m, &loose_updates);
   ASSERT_TRUE(settled.allFinite() && loose.allFinite());
   EXPECT_LT((settled - loose).norm(), kSeedTol_m) << (settled - loose).transpose() * 1e3 << " mm";
   EXPECT_LT(loose_updates, default_updates) << loose_updates << " against " << default_updates;
